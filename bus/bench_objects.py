@@ -1,0 +1,200 @@
+"""Object-dictionary indices and value encodings of the test-bench node (the plant on the bus).
+
+Owns the names of every object the test-bench node exposes (described in full, with data
+types, access and limits, by ``bus/bench.eds``), the trial command/status/fault enumerations,
+the disturbance-kind codes, the bench's EMCY codes and the byte layout of the initial state.
+Both :mod:`bus.bench_node` (server) and :mod:`host.bench_client` (client) use these.
+
+======  ===  ========================  =======  ==========================================
+index   sub  name                      type     meaning / unit
+======  ===  ========================  =======  ==========================================
+0x1017  0    producer heartbeat        U16      ms, 0 = off
+0x1018  1-4  identity                  U32      vendor, product 0xBE4C, revision, serial
+0x2400  1    control period            U32      µs (Ts), 1..1 000 000, default 1000
+0x2400  2    RK4 sub-steps             U16      per control period, 1..1000, default 4
+0x2400  3    disturbance kind          U8       :class:`DisturbanceKind` 0..3
+0x2400  4    seed                      U32      seed of the non-repetitive disturbance
+0x2410  1    trial index               U32      k (selects the non-repetitive draw)
+0x2410  2    number of ticks           U32      N ≥ 1
+0x2410  3    command                   U8       wo: :class:`BenchCommand` 1 start, 2 abort
+0x2410  4    status                    U8       ro: :class:`BenchStatus`
+0x2410  5    ticks done                U32      ro: plant steps completed in this trial
+0x2410  6    fault code                U8       ro: :class:`BenchFault`
+0x2410  7    fault tick                U32      ro: tick n at which the fault happened
+0x2410  8    fault node                U8       ro: drive node id involved (0 = none)
+0x2420  0    initial state             DOMAIN   64 bytes: q0[4] rad, qd0[4] rad/s, float64 LE
+0x2430  1    io frames sent            U32      ro, since boot (wraps)
+0x2430  2    io frames received        U32      ro, since boot (wraps)
+0x2430  3    tick timeouts             U32      ro, since boot
+0x2430  4    trials completed          U32      ro, since boot
+0x2430  5    last trial duration       U32      ro, µs wall clock (diagnostics only)
+======  ===  ========================  =======  ==========================================
+
+Configuration, trial index, number of ticks and initial state cannot be written while a trial
+runs (abort 0x08000022).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import struct
+from enum import IntEnum
+from pathlib import Path
+from typing import Final
+
+import numpy as np
+import numpy.typing as npt
+
+logger = logging.getLogger(__name__)
+
+#: The EDS of the test-bench node.
+BENCH_EDS_PATH: Final[Path] = Path(__file__).resolve().parent / "bench.eds"
+#: Default CANopen node id of the test-bench node.
+DEFAULT_BENCH_NODE_ID: Final[int] = 32
+
+HEARTBEAT_INDEX: Final[int] = 0x1017
+IDENTITY_INDEX: Final[int] = 0x1018
+ERROR_REGISTER_INDEX: Final[int] = 0x1001
+BENCH_PRODUCT_CODE: Final[int] = 0x0000BE4C
+
+
+class BenchObj(IntEnum):
+    """Manufacturer object indices of the test-bench node."""
+
+    CONFIG = 0x2400
+    TRIAL = 0x2410
+    INITIAL_STATE = 0x2420
+    COUNTERS = 0x2430
+
+
+class ConfigSub(IntEnum):
+    CONTROL_PERIOD_US = 1
+    SUBSTEPS = 2
+    DISTURBANCE = 3
+    SEED = 4
+
+
+class BenchTrialSub(IntEnum):
+    TRIAL_INDEX = 1
+    N_TICKS = 2
+    COMMAND = 3
+    STATUS = 4
+    TICKS_DONE = 5
+    FAULT_CODE = 6
+    FAULT_TICK = 7
+    FAULT_NODE = 8
+
+
+class CounterSub(IntEnum):
+    IO_SENT = 1
+    IO_RECEIVED = 2
+    TICK_TIMEOUTS = 3
+    TRIALS_DONE = 4
+    LAST_TRIAL_US = 5
+
+
+class BenchCommand(IntEnum):
+    START = 1
+    ABORT = 2
+
+
+class BenchStatus(IntEnum):
+    IDLE = 0
+    RUNNING = 1
+    DONE = 2
+    FAULT = 3
+
+
+class BenchFault(IntEnum):
+    """Why the last trial stopped early (0x2410:6)."""
+
+    NONE = 0
+    PLANT = 1  #: the plant raised (FK failure, singularity, non-finite state, bad reset)
+    TICK_TIMEOUT = 2  #: a drive did not answer a tick in time
+    TICK_SEQUENCE = 3  #: a torque frame was missing, duplicated, stale or early
+    ABORTED = 4  #: the host aborted (command 2) or NMT stopped/reset the node
+    BAD_FRAME = 5  #: a malformed torque frame
+
+
+class DisturbanceKind(IntEnum):
+    """0x2400:3; the names are those of ``plant.disturbance.KINDS``."""
+
+    NONE = 0
+    REPETITIVE = 1
+    NONREPETITIVE = 2
+    BOTH = 3
+
+    @property
+    def label(self) -> str:
+        return DISTURBANCE_NAMES[self]
+
+
+#: Disturbance kind code → name passed to the disturbance function.
+DISTURBANCE_NAMES: Final[tuple[str, str, str, str]] = ("none", "repetitive", "nonrepetitive", "both")
+
+
+def disturbance_code(name: str) -> DisturbanceKind:
+    """The 0x2400:3 code of a disturbance name.
+
+    :raises ValueError: unknown name
+    """
+    try:
+        return DisturbanceKind(DISTURBANCE_NAMES.index(name))
+    except ValueError:
+        raise ValueError(f"unknown disturbance {name!r}; choose from {DISTURBANCE_NAMES}") from None
+
+
+#: EMCY error code per fault (error register bit: generic 0x01 / communication 0x11).
+FAULT_EMCY: Final[dict[BenchFault, tuple[int, int]]] = {
+    BenchFault.PLANT: (0xFF00, 0x81),  # device specific, manufacturer bit
+    BenchFault.TICK_TIMEOUT: (0x8100, 0x11),  # communication
+    BenchFault.TICK_SEQUENCE: (0x8200, 0x11),  # protocol error
+    BenchFault.ABORTED: (0xFF01, 0x81),
+    BenchFault.BAD_FRAME: (0x8200, 0x11),
+}
+
+_EMCY_DATA = struct.Struct("<BBH")
+
+
+def fault_emcy_data(fault: BenchFault, node: int, tick: int) -> bytes:
+    """5 manufacturer bytes of a bench EMCY: u8 fault code, u8 node id, u16 tick (low bits), 0."""
+    return _EMCY_DATA.pack(int(fault), node & 0xFF, tick & 0xFFFF) + b"\x00"
+
+
+# -- initial state ------------------------------------------------------------------------
+
+_STATE = struct.Struct("<8d")
+INITIAL_STATE_BYTES: Final[int] = _STATE.size  # 64
+
+
+class InitialStateError(ValueError):
+    """q0/qd0 are not 4 finite float64 each, or the DOMAIN has the wrong length."""
+
+
+def pack_initial_state(q0_rad: npt.ArrayLike, qd0_rad_s: npt.ArrayLike) -> bytes:
+    """q0 [rad] and qd0 [rad/s] (4 each) as 8 little-endian float64 (exact bits).
+
+    :raises InitialStateError: wrong shape or non-finite value
+    """
+    q = np.asarray(q0_rad, dtype=np.float64).reshape(-1)
+    qd = np.asarray(qd0_rad_s, dtype=np.float64).reshape(-1)
+    if q.shape != (4,) or qd.shape != (4,):
+        raise InitialStateError(f"q0 and qd0 must have 4 values each, got {q.shape} and {qd.shape}")
+    vals = [float(v) for v in q] + [float(v) for v in qd]
+    if not all(math.isfinite(v) for v in vals):
+        raise InitialStateError(f"initial state must be finite, got {vals}")
+    return _STATE.pack(*vals)
+
+
+def unpack_initial_state(data: bytes) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """Inverse of :func:`pack_initial_state`: (q0, qd0), float64 (4,) each.
+
+    :raises InitialStateError: not 64 bytes or non-finite values
+    """
+    if len(data) != INITIAL_STATE_BYTES:
+        raise InitialStateError(f"initial state must be {INITIAL_STATE_BYTES} bytes, got {len(data)}")
+    vals = np.array(_STATE.unpack(bytes(data)), dtype=np.float64)
+    if not np.all(np.isfinite(vals)):
+        raise InitialStateError("initial state must be finite")
+    return vals[:4].copy(), vals[4:].copy()

@@ -1,0 +1,150 @@
+"""CiA 301 emergency (EMCY) frames: codec, COB-ID and the common error codes.
+
+EMCY frame on COB-ID ``0x080 + node_id`` (object 0x1014 default), 8 data bytes:
+error code U16 little-endian, error register U8 (object 0x1001), 5 manufacturer-specific
+bytes.  Error code 0x0000 means "error reset / no error".
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+from dataclasses import dataclass
+from enum import IntEnum, IntFlag
+
+logger = logging.getLogger(__name__)
+
+#: COB-ID base of EMCY frames.
+EMCY_BASE = 0x080
+
+_EMCY = struct.Struct("<HB5s")
+
+
+class EmcyFrameError(ValueError):
+    """A frame or field is not a valid EMCY message."""
+
+
+class EmcyCode(IntEnum):
+    """Common emergency error codes (CiA 301 table 21, CiA 402)."""
+
+    ERROR_RESET = 0x0000
+    GENERIC = 0x1000
+    CURRENT = 0x2000
+    OVER_CURRENT = 0x2310  # continuous over-current, device output side
+    SHORT_CIRCUIT = 0x2320
+    VOLTAGE = 0x3000
+    DC_LINK_OVER_VOLTAGE = 0x3210
+    DC_LINK_UNDER_VOLTAGE = 0x3220
+    TEMPERATURE = 0x4000
+    DRIVE_TEMPERATURE = 0x4310
+    DEVICE_HARDWARE = 0x5000
+    DEVICE_SOFTWARE = 0x6000
+    INTERNAL_SOFTWARE = 0x6100
+    ADDITIONAL_MODULES = 0x7000
+    MONITORING = 0x8000
+    COMMUNICATION = 0x8100
+    CAN_OVERRUN = 0x8110
+    CAN_ERROR_PASSIVE = 0x8120
+    HEARTBEAT_ERROR = 0x8130  # life guard / heartbeat consumer error
+    CAN_BUS_OFF_RECOVERED = 0x8140
+    PROTOCOL_ERROR = 0x8200
+    PDO_LENGTH = 0x8210
+    PDO_LENGTH_EXCEEDED = 0x8220
+    CONTROL = 0x8600  # CiA 402 positioning controller
+    FOLLOWING_ERROR = 0x8611
+    REFERENCE_LIMIT = 0x8612
+    SYNC_CONTROLLER = 0x8700
+    EXTERNAL_ERROR = 0x9000
+    ADDITIONAL_FUNCTIONS = 0xF000
+    DEVICE_SPECIFIC = 0xFF00
+
+
+class ErrorRegister(IntFlag):
+    """Bits of the error register, object 0x1001 (byte 2 of an EMCY frame)."""
+
+    NONE = 0x00
+    GENERIC = 0x01
+    CURRENT = 0x02
+    VOLTAGE = 0x04
+    TEMPERATURE = 0x08
+    COMMUNICATION = 0x10
+    DEVICE_PROFILE = 0x20
+    MANUFACTURER = 0x80
+
+
+def emcy_cob_id(node_id: int) -> int:
+    """COB-ID of node ``node_id``'s EMCY frames (``0x080 + node_id``).
+
+    :raises EmcyFrameError: node id outside 1..127.
+    """
+    if not 1 <= node_id <= 127:
+        raise EmcyFrameError(f"node id must be 1..127, got {node_id}")
+    return EMCY_BASE + node_id
+
+
+def emcy_node_id(cob_id: int) -> int | None:
+    """Node id if ``cob_id`` is an EMCY COB-ID (0x081..0x0FF), else None (0x080 is SYNC)."""
+    node_id = cob_id - EMCY_BASE
+    return node_id if 1 <= node_id <= 127 else None
+
+
+@dataclass(frozen=True)
+class EmcyMessage:
+    """One emergency message.
+
+    :ivar code: error code U16 (:class:`EmcyCode` or any 0..0xFFFF).
+    :ivar register: error register U8 (:class:`ErrorRegister` bits).
+    :ivar manufacturer: 5 manufacturer-specific bytes (shorter input is zero-padded).
+    """
+
+    code: int
+    register: int = 0
+    manufacturer: bytes = bytes(5)
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.code <= 0xFFFF:
+            raise EmcyFrameError(f"EMCY error code must be a U16, got {self.code}")
+        if not 0 <= self.register <= 0xFF:
+            raise EmcyFrameError(f"error register must be a U8, got {self.register}")
+        data = bytes(self.manufacturer)
+        if len(data) > 5:
+            raise EmcyFrameError(f"manufacturer field is at most 5 bytes, got {len(data)}")
+        object.__setattr__(self, "manufacturer", data.ljust(5, b"\x00"))
+
+    @property
+    def is_reset(self) -> bool:
+        """True for the "error reset / no error" message (code 0x0000)."""
+        return self.code == EmcyCode.ERROR_RESET
+
+    def encode(self) -> bytes:
+        """The 8 data bytes of the frame."""
+        return _EMCY.pack(self.code, self.register, self.manufacturer)
+
+    @classmethod
+    def decode(cls, data: bytes) -> EmcyMessage:
+        """Decode the data bytes of an EMCY frame.
+
+        :raises EmcyFrameError: data is not 8 bytes.
+        """
+        if len(data) != 8:
+            raise EmcyFrameError(f"EMCY frame must have 8 data bytes, got {len(data)}")
+        code, register, manufacturer = _EMCY.unpack(bytes(data))
+        return cls(code, register, manufacturer)
+
+    def __str__(self) -> str:
+        try:
+            name = EmcyCode(self.code).name
+        except ValueError:
+            name = "UNKNOWN"
+        return (f"EMCY 0x{self.code:04X} ({name}) register 0x{self.register:02X} "
+                f"data {self.manufacturer.hex(' ')}")
+
+
+def encode_emcy(code: int, register: int = 0, manufacturer: bytes = b"") -> bytes:
+    """Data bytes of an EMCY frame (see :class:`EmcyMessage`)."""
+    return EmcyMessage(code, register, manufacturer).encode()
+
+
+def decode_emcy(data: bytes) -> EmcyMessage:
+    """Decode EMCY frame data (see :meth:`EmcyMessage.decode`)."""
+    return EmcyMessage.decode(data)

@@ -1,0 +1,320 @@
+"""io-channel frame layouts and codecs (plant ↔ drives), classic CAN, 11-bit IDs.
+
+This module owns the frames of the ``io`` channel, which stands in for the encoder cable
+and the power stage (DESIGN.md "Processes and channels"). Lockstep, the plant is the
+clock master; per tick ``n`` (architecture.md "Time and one trial"):
+
+1. plant → drive j: :func:`encode_encoder` (one frame per joint);
+2. drive j → plant: :func:`encode_torque`;
+3. trial start/stop: :func:`encode_control` (plant → all drives).
+
+==================  ==============  ====  ===============================================
+frame               COB-ID          DLC   layout (little-endian)
+==================  ==============  ====  ===============================================
+control (plant)     0x010           7     u8 command, u16 tick, u32 n_ticks
+encoder (plant→j)   0x101 + j       6     i32 position [counts], u16 tick
+torque (j→plant)    0x181 + j       7     i32 torque [µN·m], u16 tick, u8 status bits
+==================  ==============  ====  ===============================================
+
+``j`` = joint index 0..3 (drive node id j + 1). The control frame has the highest priority.
+
+Tick counter
+    Every frame carries the low 16 bits of the tick number (``TICK_MODULUS`` = 2**16).
+    :func:`tick_diff` is the signed modular difference in [−2**15, 2**15). A stream of
+    frames from one source must carry consecutive ticks; :class:`TickTracker` follows one
+    such stream and raises :class:`TickError` with the kind ``MISSING`` (frames skipped),
+    ``DUPLICATE`` (the last tick again) or ``STALE`` (an older tick). :func:`check_tick`
+    compares one frame with the tick the receiver is waiting for.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import struct
+from dataclasses import dataclass
+
+import can
+
+from bus.errors import IlcrigError
+from bus.units import INT32_MAX, INT32_MIN
+
+logger = logging.getLogger(__name__)
+
+N_JOINTS: int = 4
+CONTROL_COB_ID: int = 0x010
+ENCODER_COB_BASE: int = 0x101
+TORQUE_COB_BASE: int = 0x181
+
+TICK_BITS: int = 16
+TICK_MODULUS: int = 1 << TICK_BITS
+TICK_MASK: int = TICK_MODULUS - 1
+_TICK_HALF: int = TICK_MODULUS >> 1
+
+_ENCODER = struct.Struct("<iH")
+_TORQUE = struct.Struct("<iHB")
+_CONTROL = struct.Struct("<BHI")
+
+
+class IoFrameError(IlcrigError, ValueError):
+    """An io frame is malformed (wrong ID, length) or a value does not fit its field."""
+
+
+class TickErrorKind(enum.Enum):
+    MISSING = "missing"
+    DUPLICATE = "duplicate"
+    STALE = "stale"
+
+
+class TickError(IoFrameError):
+    """A frame's tick counter is not the expected one.
+
+    :ivar kind: :class:`TickErrorKind`
+    :ivar expected: the full tick number the receiver expected
+    :ivar received: the 16-bit tick counter in the frame
+    :ivar diff: ``tick_diff(received, expected)`` (> 0: frames missing, < 0: old frame)
+    """
+
+    def __init__(self, kind: TickErrorKind, expected: int, received: int, source: str = "") -> None:
+        self.kind = kind
+        self.expected = expected
+        self.received = received
+        self.diff = tick_diff(received, expected)
+        what = {
+            TickErrorKind.MISSING: f"{self.diff} frame(s) missing",
+            TickErrorKind.DUPLICATE: "duplicate frame",
+            TickErrorKind.STALE: f"stale frame ({-self.diff} ticks old)",
+        }[kind]
+        src = f" from {source}" if source else ""
+        super().__init__(f"tick mismatch{src}: expected tick {expected} (wire {expected & TICK_MASK}), got wire {received}: {what}")
+
+
+class TorqueStatus(enum.IntFlag):
+    """Status bits of the torque frame."""
+
+    ENABLED = 0x01  #: CiA 402 "operation enabled": torque is applied
+    FAULT = 0x02  #: drive in Fault / Fault reaction: the plant must apply zero torque
+    SATURATED = 0x04  #: the command was clamped to the drive's torque limit this tick
+    WARNING = 0x08  #: statusword warning bit
+
+
+class ControlCommand(enum.IntEnum):
+    TRIAL_START = 1  #: a trial of ``n_ticks`` ticks starts at ``tick``
+    TRIAL_STOP = 2  #: the trial ended (normally or aborted) at ``tick``
+
+
+@dataclass(frozen=True)
+class EncoderFrame:
+    """Plant → drive ``joint``: encoder position at the start of tick ``tick``."""
+
+    joint: int
+    tick: int  #: 16-bit wire tick counter
+    count: int  #: position, int32 counts
+
+
+@dataclass(frozen=True)
+class TorqueFrame:
+    """Drive ``joint`` → plant: torque command for tick ``tick``."""
+
+    joint: int
+    tick: int  #: 16-bit wire tick counter
+    torque_units: int  #: int32 µN·m
+    status: TorqueStatus
+
+
+@dataclass(frozen=True)
+class ControlFrame:
+    """Plant → drives: trial start/stop."""
+
+    command: ControlCommand
+    tick: int  #: 16-bit wire tick counter
+    n_ticks: int  #: trial length in ticks (u32)
+
+
+IoFrame = EncoderFrame | TorqueFrame | ControlFrame
+
+
+# -- tick counter -------------------------------------------------------------------------
+
+
+def wire_tick(tick: int) -> int:
+    """The 16-bit counter carried for full tick number ``tick`` (any int)."""
+    return tick & TICK_MASK
+
+
+def tick_diff(received: int, expected: int) -> int:
+    """Signed modular difference ``received − expected`` in [−2**15, 2**15).
+
+    Both arguments may be full tick numbers or wire counters.
+    """
+    return ((received - expected + _TICK_HALF) & TICK_MASK) - _TICK_HALF
+
+
+def check_tick(received: int, expected: int, source: str = "") -> None:
+    """Raise :class:`TickError` unless wire tick ``received`` is full tick ``expected``.
+
+    ``diff > 0`` → MISSING (the sender is ahead), ``diff < 0`` → STALE (an old frame).
+    """
+    d = tick_diff(received, expected)
+    if d:
+        raise TickError(TickErrorKind.MISSING if d > 0 else TickErrorKind.STALE, expected, received, source)
+
+
+class TickTracker:
+    """Follows one frame stream that must carry consecutive ticks.
+
+    :param next_tick: full tick number the first frame must carry
+    :param source: name used in error messages (e.g. ``"torque joint 2"``)
+    """
+
+    def __init__(self, next_tick: int = 0, source: str = "") -> None:
+        self.next_tick = next_tick
+        self.source = source
+
+    def reset(self, next_tick: int = 0) -> None:
+        """Start over (new trial) expecting ``next_tick``."""
+        self.next_tick = next_tick
+
+    def accept(self, received: int) -> int:
+        """Accept wire tick ``received`` and return its full tick number.
+
+        :raises TickError: MISSING if ticks were skipped, DUPLICATE for the previous tick
+            again, STALE for an older one; the tracker's state is unchanged then
+        """
+        d = tick_diff(received, self.next_tick)
+        if d == 0:
+            tick = self.next_tick
+            self.next_tick += 1
+            return tick
+        if d > 0:
+            kind = TickErrorKind.MISSING
+        elif d == -1:
+            kind = TickErrorKind.DUPLICATE
+        else:
+            kind = TickErrorKind.STALE
+        raise TickError(kind, self.next_tick, received, self.source)
+
+
+# -- codecs -------------------------------------------------------------------------------
+
+
+def _check_joint(joint: int) -> None:
+    if not 0 <= joint < N_JOINTS:
+        raise IoFrameError(f"joint index must be 0..{N_JOINTS - 1}, got {joint}")
+
+
+def _check_i32(value: int, what: str) -> None:
+    if not INT32_MIN <= value <= INT32_MAX:
+        raise IoFrameError(f"{what} {value} does not fit int32")
+
+
+def encoder_cob_id(joint: int) -> int:
+    """COB-ID of joint ``joint``'s encoder frame (0x101..0x104)."""
+    _check_joint(joint)
+    return ENCODER_COB_BASE + joint
+
+
+def torque_cob_id(joint: int) -> int:
+    """COB-ID of joint ``joint``'s torque frame (0x181..0x184)."""
+    _check_joint(joint)
+    return TORQUE_COB_BASE + joint
+
+
+def encode_encoder(joint: int, tick: int, count: int) -> can.Message:
+    """Encoder frame plant → drive ``joint``; ``tick`` is a full tick number (wrapped to 16 bits).
+
+    :raises IoFrameError: bad joint index or count outside int32
+    """
+    _check_joint(joint)
+    _check_i32(count, "encoder count")
+    return can.Message(
+        arbitration_id=ENCODER_COB_BASE + joint,
+        is_extended_id=False,
+        data=_ENCODER.pack(count, tick & TICK_MASK),
+        check=False,
+    )
+
+
+def encode_torque(joint: int, tick: int, torque_units: int, status: TorqueStatus | int) -> can.Message:
+    """Torque frame drive ``joint`` → plant.
+
+    :raises IoFrameError: bad joint index, torque outside int32, status outside u8
+    """
+    _check_joint(joint)
+    _check_i32(torque_units, "torque")
+    if not 0 <= int(status) <= 0xFF:
+        raise IoFrameError(f"status {status} does not fit u8")
+    return can.Message(
+        arbitration_id=TORQUE_COB_BASE + joint,
+        is_extended_id=False,
+        data=_TORQUE.pack(torque_units, tick & TICK_MASK, int(status)),
+        check=False,
+    )
+
+
+def encode_control(command: ControlCommand | int, tick: int, n_ticks: int = 0) -> can.Message:
+    """Trial start/stop frame plant → all drives.
+
+    :raises IoFrameError: unknown command or ``n_ticks`` outside u32
+    """
+    try:
+        cmd = ControlCommand(command)
+    except ValueError as err:
+        raise IoFrameError(f"unknown control command {command}") from err
+    if not 0 <= n_ticks <= 0xFFFFFFFF:
+        raise IoFrameError(f"n_ticks {n_ticks} does not fit u32")
+    return can.Message(
+        arbitration_id=CONTROL_COB_ID,
+        is_extended_id=False,
+        data=_CONTROL.pack(cmd, tick & TICK_MASK, n_ticks),
+        check=False,
+    )
+
+
+def _payload(msg: can.Message, cob_base: int, n_ids: int, size: int, what: str) -> tuple[int, bytes]:
+    joint = msg.arbitration_id - cob_base
+    if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame or msg.is_fd or not 0 <= joint < n_ids:
+        raise IoFrameError(f"not an {what} frame: {msg}")
+    if len(msg.data) != size:
+        raise IoFrameError(f"{what} frame must have {size} data bytes, got {len(msg.data)}")
+    return joint, bytes(msg.data)
+
+
+def decode_encoder(msg: can.Message) -> EncoderFrame:
+    """:raises IoFrameError: not an encoder frame (ID, flags, length)"""
+    joint, data = _payload(msg, ENCODER_COB_BASE, N_JOINTS, _ENCODER.size, "encoder")
+    count, tick = _ENCODER.unpack(data)
+    return EncoderFrame(joint, tick, count)
+
+
+def decode_torque(msg: can.Message) -> TorqueFrame:
+    """:raises IoFrameError: not a torque frame (ID, flags, length)"""
+    joint, data = _payload(msg, TORQUE_COB_BASE, N_JOINTS, _TORQUE.size, "torque")
+    torque, tick, status = _TORQUE.unpack(data)
+    return TorqueFrame(joint, tick, torque, TorqueStatus(status))
+
+
+def decode_control(msg: can.Message) -> ControlFrame:
+    """:raises IoFrameError: not a control frame or unknown command"""
+    _, data = _payload(msg, CONTROL_COB_ID, 1, _CONTROL.size, "control")
+    cmd, tick, n_ticks = _CONTROL.unpack(data)
+    try:
+        command = ControlCommand(cmd)
+    except ValueError as err:
+        raise IoFrameError(f"unknown control command {cmd}") from err
+    return ControlFrame(command, tick, n_ticks)
+
+
+def decode_io(msg: can.Message) -> IoFrame:
+    """Decode any io frame by its COB-ID.
+
+    :raises IoFrameError: unknown COB-ID or malformed frame
+    """
+    cob = msg.arbitration_id
+    if ENCODER_COB_BASE <= cob < ENCODER_COB_BASE + N_JOINTS:
+        return decode_encoder(msg)
+    if TORQUE_COB_BASE <= cob < TORQUE_COB_BASE + N_JOINTS:
+        return decode_torque(msg)
+    if cob == CONTROL_COB_ID:
+        return decode_control(msg)
+    raise IoFrameError(f"unknown io COB-ID 0x{cob:03X}")

@@ -1,0 +1,220 @@
+"""CiA 301 network management: NMT command frames, node states, heartbeat frames and a
+host-side heartbeat consumer.  Pure codecs and state; no I/O, no clock (time is passed in).
+
+* NMT command: COB-ID 0x000, 2 bytes ``[cs, node_id]``; node id 0 addresses all nodes.
+* Heartbeat / boot-up: COB-ID ``0x700 + node_id``, 1 byte = node state (bit 7 is the node
+  guarding toggle bit and is ignored on decode).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from enum import IntEnum
+
+logger = logging.getLogger(__name__)
+
+#: COB-ID of NMT commands.
+NMT_COB_ID = 0x000
+#: COB-ID base of heartbeat / boot-up frames.
+HEARTBEAT_BASE = 0x700
+#: Node id 0 in an NMT command: every node.
+ALL_NODES = 0
+
+
+class NmtFrameError(ValueError):
+    """A frame is not a valid NMT command or heartbeat."""
+
+
+class NmtCommand(IntEnum):
+    """NMT command specifiers (byte 0 of an NMT command frame)."""
+
+    START = 0x01
+    STOP = 0x02
+    ENTER_PRE_OPERATIONAL = 0x80
+    RESET_NODE = 0x81
+    RESET_COMMUNICATION = 0x82
+
+
+class NmtState(IntEnum):
+    """Node states as encoded in the heartbeat byte."""
+
+    BOOT_UP = 0x00  # the boot-up message
+    INITIALISING = 0x00  # alias of BOOT_UP (the state's name in CiA 301 / bus.objects)
+    STOPPED = 0x04
+    OPERATIONAL = 0x05
+    PRE_OPERATIONAL = 0x7F
+
+
+def _check_node_id(node_id: int, allow_all: bool = False) -> None:
+    low = 0 if allow_all else 1
+    if not low <= node_id <= 127:
+        raise NmtFrameError(f"node id must be {low}..127, got {node_id}")
+
+
+def heartbeat_cob_id(node_id: int) -> int:
+    """COB-ID of node ``node_id``'s heartbeat (``0x700 + node_id``)."""
+    _check_node_id(node_id)
+    return HEARTBEAT_BASE + node_id
+
+
+def encode_nmt(command: int, node_id: int = ALL_NODES) -> bytes:
+    """Data bytes of an NMT command frame (COB-ID 0).
+
+    :param command: NMT command specifier (:class:`NmtCommand`).
+    :param node_id: target node 1..127, or 0 for all nodes.
+    :raises NmtFrameError: unknown command or node id out of range.
+    """
+    try:
+        cs = NmtCommand(command)
+    except ValueError:
+        raise NmtFrameError(f"unknown NMT command specifier 0x{command:02X}") from None
+    _check_node_id(node_id, allow_all=True)
+    return bytes([cs, node_id])
+
+
+def decode_nmt(data: bytes) -> tuple[NmtCommand, int]:
+    """Decode NMT command frame data into ``(command, node_id)`` (node id 0 = all).
+
+    :raises NmtFrameError: wrong length, unknown command or node id > 127.
+    """
+    if len(data) != 2:
+        raise NmtFrameError(f"NMT command frame must have 2 data bytes, got {len(data)}")
+    try:
+        cs = NmtCommand(data[0])
+    except ValueError:
+        raise NmtFrameError(f"unknown NMT command specifier 0x{data[0]:02X}") from None
+    _check_node_id(data[1], allow_all=True)
+    return cs, data[1]
+
+
+def nmt_addresses(data: bytes, node_id: int) -> NmtCommand | None:
+    """The command of NMT frame ``data`` if it addresses ``node_id`` (directly or all), else None.
+
+    :raises NmtFrameError: malformed frame.
+    """
+    cs, target = decode_nmt(data)
+    return cs if target in (ALL_NODES, node_id) else None
+
+
+def next_state(state: NmtState, command: NmtCommand) -> NmtState:
+    """NMT slave state after ``command`` (CiA 301 fig. 48).
+
+    The resets return :attr:`NmtState.PRE_OPERATIONAL`, the state a node reaches after its
+    reset and boot-up message (the caller sends the boot-up frame).
+    """
+    if command is NmtCommand.START:
+        return NmtState.OPERATIONAL
+    if command is NmtCommand.STOP:
+        return NmtState.STOPPED
+    if command is NmtCommand.ENTER_PRE_OPERATIONAL:
+        return NmtState.PRE_OPERATIONAL
+    return NmtState.PRE_OPERATIONAL  # RESET_NODE / RESET_COMMUNICATION, after boot-up
+
+
+def encode_heartbeat(state: int) -> bytes:
+    """Data byte of a heartbeat (or boot-up, state 0) frame.
+
+    :raises NmtFrameError: state not one of :class:`NmtState`.
+    """
+    try:
+        return bytes([NmtState(state)])
+    except ValueError:
+        raise NmtFrameError(f"not a heartbeat state: 0x{state:02X}") from None
+
+
+def decode_heartbeat(data: bytes) -> NmtState:
+    """Decode heartbeat frame data (1 byte; the toggle bit 7 is ignored).
+
+    :raises NmtFrameError: wrong length or unknown state.
+    """
+    if len(data) != 1:
+        raise NmtFrameError(f"heartbeat frame must have 1 data byte, got {len(data)}")
+    try:
+        return NmtState(data[0] & 0x7F)
+    except ValueError:
+        raise NmtFrameError(f"not a heartbeat state: 0x{data[0]:02X}") from None
+
+
+def heartbeat_node_id(cob_id: int) -> int | None:
+    """Node id if ``cob_id`` is a heartbeat COB-ID (0x701..0x77F), else None."""
+    node_id = cob_id - HEARTBEAT_BASE
+    return node_id if 1 <= node_id <= 127 else None
+
+
+@dataclass
+class HeartbeatReport:
+    """Result of :meth:`HeartbeatConsumer.check`.
+
+    :ivar overdue: nodes whose heartbeat is late (sorted).
+    :ivar booted: nodes that sent a boot-up since the previous check (in arrival order).
+    :ivar states: the last state heard from each node.
+    """
+
+    overdue: list[int] = field(default_factory=list)
+    booted: list[int] = field(default_factory=list)
+    states: dict[int, NmtState] = field(default_factory=dict)
+
+
+class HeartbeatConsumer:
+    """Host-side heartbeat monitor (CiA 301 heartbeat consumer, like object 0x1016).
+
+    Pure: feed received heartbeats with :meth:`on_heartbeat` and ask :meth:`check` with the
+    current time [s].  A monitored node is overdue when nothing was heard from it for longer
+    than its timeout; a node never heard is overdue ``timeout`` after monitoring started
+    (the first time passed in after :meth:`watch`).
+
+    :param timeouts_s: consumer timeout per node id [s] (typically 1.5–3 × the producer period).
+    """
+
+    def __init__(self, timeouts_s: dict[int, float] | None = None) -> None:
+        self._timeouts_s: dict[int, float] = {}
+        self._last_s: dict[int, float | None] = {}
+        self._states: dict[int, NmtState] = {}
+        self._booted: list[int] = []
+        for node_id, timeout_s in (timeouts_s or {}).items():
+            self.watch(node_id, timeout_s)
+
+    def watch(self, node_id: int, timeout_s: float) -> None:
+        """Monitor ``node_id`` with consumer timeout ``timeout_s`` [s] (> 0)."""
+        _check_node_id(node_id)
+        if not timeout_s > 0:
+            raise ValueError(f"heartbeat timeout must be > 0 s, got {timeout_s}")
+        self._timeouts_s[node_id] = float(timeout_s)
+        self._last_s.setdefault(node_id, None)
+
+    def on_heartbeat(self, node_id: int, data: bytes, now_s: float) -> NmtState:
+        """Record a heartbeat frame from ``node_id`` received at ``now_s`` [s].
+
+        :raises NmtFrameError: malformed heartbeat data.
+        """
+        state = decode_heartbeat(data)
+        if state is NmtState.BOOT_UP:
+            logger.info("node %d booted", node_id)
+            self._booted.append(node_id)
+        self._states[node_id] = state
+        self._last_s[node_id] = now_s
+        return state
+
+    def on_frame(self, cob_id: int, data: bytes, now_s: float) -> NmtState | None:
+        """Convenience: record ``data`` if ``cob_id`` is a heartbeat COB-ID; else return None."""
+        node_id = heartbeat_node_id(cob_id)
+        if node_id is None:
+            return None
+        return self.on_heartbeat(node_id, data, now_s)
+
+    def state(self, node_id: int) -> NmtState | None:
+        """Last state heard from ``node_id`` (None if never heard)."""
+        return self._states.get(node_id)
+
+    def check(self, now_s: float) -> HeartbeatReport:
+        """Overdue monitored nodes at ``now_s`` [s], and the boot-ups since the last check."""
+        overdue = []
+        for node_id, timeout_s in self._timeouts_s.items():
+            last = self._last_s.get(node_id)
+            if last is None:
+                self._last_s[node_id] = last = now_s  # monitoring starts now
+            if now_s - last > timeout_s:
+                overdue.append(node_id)
+        booted, self._booted = self._booted, []
+        return HeartbeatReport(sorted(overdue), booted, dict(self._states))

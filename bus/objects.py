@@ -1,0 +1,365 @@
+"""Object-dictionary indices, sub-indices and value encodings of the emulated drive.
+
+Owns the names of every object the drive exposes (described in full, with data
+types, access and limits, by ``bus/drive.eds``), the CiA 402 controlword /
+statusword encodings both sides must agree on, the manufacturer trial/recorder
+enumerations, EMCY codes, and the little-endian packing of int32 tables.
+
+Layout of the manufacturer objects (maxon/Elmo pattern, reference/canopen.md §2):
+
+======  ===  ========================  =======  ==========================================
+index   sub  name                      type     meaning / unit
+======  ===  ========================  =======  ==========================================
+0x2100  0    reference position table  DOMAIN   N × int32 LE counts (rw)
+0x2101  0    reference velocity table  DOMAIN   N × int32 LE counts/s (rw)
+0x2102  0    feed-forward torque table DOMAIN   N × int32 LE µN·m (rw)
+0x2103  1    table length N            U32      samples; tables must be 4·N bytes
+0x2103  2    table capacity            U32      const, max N
+0x2103  3    tables loaded             U8       ro bit mask: 1 ref pos, 2 ref vel, 4 ff
+0x2110  1    Kp                        I32      Q16 µN·m/count (bus.fixedpoint)
+0x2110  2    Kd                        I32      Q16 µN·m/(count/s)
+0x2110  3    velocity filter coeff.    U16      Q15, 1..32768 (32768 = unfiltered)
+0x2120  1    trial command             U8       wo: 1 = arm, 0 = disarm/abort
+0x2120  2    trial state               U8       ro: :class:`TrialState`
+0x2120  3    trial tick count          U32      ro: ticks played in this trial
+0x2120  4    last fault cause          U8       ro: :class:`FaultCause`
+0x2200  1    recorder status           U8       ro: :class:`RecorderStatus`
+0x2200  2    recorded samples          U32      ro
+0x2200  3    channels                  U8       const 4
+0x2200  4    recorder capacity         U32      const, samples per channel
+0x2210  0    recorder data             DOMAIN   ro: 4 int32 planes back to back (see below)
+0x2300  0    control period            U32      µs
+======  ===  ========================  =======  ==========================================
+
+Recorder planes, each ``recorded samples`` int32 LE long, in this order: position
+(counts), velocity estimate (counts/s), total torque (µN·m, as applied), feedback torque
+(µN·m, before the clamp).
+"""
+
+from __future__ import annotations
+
+import logging
+from enum import IntEnum, IntFlag
+from typing import Final
+
+import numpy as np
+import numpy.typing as npt
+
+logger = logging.getLogger(__name__)
+
+
+class Obj(IntEnum):
+    """Object indices."""
+
+    # CiA 301
+    DEVICE_TYPE = 0x1000
+    ERROR_REGISTER = 0x1001
+    DEVICE_NAME = 0x1008
+    SOFTWARE_VERSION = 0x100A
+    COB_ID_SYNC = 0x1005
+    COMM_CYCLE_PERIOD = 0x1006
+    COB_ID_EMCY = 0x1014
+    INHIBIT_TIME_EMCY = 0x1015
+    PRODUCER_HEARTBEAT = 0x1017
+    IDENTITY = 0x1018
+    SDO_SERVER = 0x1200
+    # CiA 402
+    ERROR_CODE = 0x603F
+    CONTROLWORD = 0x6040
+    STATUSWORD = 0x6041
+    MODES_OF_OPERATION = 0x6060
+    MODES_OF_OPERATION_DISPLAY = 0x6061
+    POSITION_ACTUAL = 0x6064
+    FOLLOWING_ERROR_WINDOW = 0x6065
+    VELOCITY_ACTUAL = 0x606C
+    MAX_TORQUE = 0x6072
+    RATED_TORQUE = 0x6076
+    TORQUE_ACTUAL = 0x6077
+    INTERPOLATION_PERIOD = 0x60C2
+    SUPPORTED_DRIVE_MODES = 0x6502
+    # manufacturer
+    REF_POSITION_TABLE = 0x2100
+    REF_VELOCITY_TABLE = 0x2101
+    FEEDFORWARD_TABLE = 0x2102
+    TABLE = 0x2103
+    GAINS = 0x2110
+    TRIAL = 0x2120
+    RECORDER = 0x2200
+    RECORDER_DATA = 0x2210
+    CONTROL_PERIOD = 0x2300
+
+
+class IdentitySub(IntEnum):
+    VENDOR_ID = 1
+    PRODUCT_CODE = 2
+    REVISION = 3
+    SERIAL = 4
+
+
+class SdoServerSub(IntEnum):
+    COB_ID_RX = 1  # client -> server, 0x600 + node id
+    COB_ID_TX = 2  # server -> client, 0x580 + node id
+
+
+class InterpolationPeriodSub(IntEnum):
+    VALUE = 1  # U8
+    INDEX = 2  # I8: period = value · 10^index s
+
+
+class TableSub(IntEnum):
+    LENGTH = 1
+    CAPACITY = 2
+    LOADED = 3
+
+
+class GainsSub(IntEnum):
+    KP = 1
+    KD = 2
+    VEL_FILTER = 3
+
+
+class TrialSub(IntEnum):
+    COMMAND = 1
+    STATE = 2
+    TICKS = 3
+    FAULT_CAUSE = 4
+
+
+class RecorderSub(IntEnum):
+    STATUS = 1
+    SAMPLES = 2
+    CHANNELS = 3
+    CAPACITY = 4
+
+
+class TableLoaded(IntFlag):
+    REF_POSITION = 0x1
+    REF_VELOCITY = 0x2
+    FEEDFORWARD = 0x4
+    ALL = 0x7
+
+
+class TrialCommand(IntEnum):
+    DISARM = 0
+    ARM = 1
+
+
+class TrialState(IntEnum):
+    """0x2120 sub 2."""
+
+    IDLE = 0
+    ARMED = 1
+    RUNNING = 2
+    DONE = 3
+    FAULT = 4
+
+
+class RecorderStatus(IntEnum):
+    """0x2200 sub 1."""
+
+    EMPTY = 0
+    RECORDING = 1
+    COMPLETE = 2  # the whole trial was recorded
+    STOPPED = 3  # trial ended early (fault/abort); samples up to 0x2200:2 are valid
+
+
+class FaultCause(IntEnum):
+    """0x2120 sub 4 and byte 0 of the EMCY manufacturer field."""
+
+    NONE = 0
+    FOLLOWING_ERROR = 1
+    TICK_SEQUENCE = 2
+
+
+class EmcyCode(IntEnum):
+    """CiA 301/402 EMCY error codes used by the drive."""
+
+    NO_ERROR = 0x0000  # error reset
+    TICK_SEQUENCE = 0x8200  # protocol error: io tick missing/duplicate/stale
+    FOLLOWING_ERROR = 0x8611
+
+
+class ErrorRegister(IntFlag):
+    """0x1001 bits (CiA 301)."""
+
+    GENERIC = 0x01
+    CURRENT = 0x02
+    VOLTAGE = 0x04
+    TEMPERATURE = 0x08
+    COMMUNICATION = 0x10
+    DEVICE_PROFILE = 0x20
+    MANUFACTURER = 0x80
+
+
+class ModeOfOperation(IntEnum):
+    """0x6060 values; the drive implements only its manufacturer table-playback mode."""
+
+    TABLE_PLAYBACK = -1  # manufacturer-specific: internal PD + feed-forward table playback
+    CSP = 8
+    CSV = 9
+    CST = 10
+
+
+class NmtState(IntEnum):
+    """NMT states as the heartbeat byte encodes them (CiA 301)."""
+
+    INITIALISING = 0x00  # also the boot-up byte
+    STOPPED = 0x04
+    OPERATIONAL = 0x05
+    PRE_OPERATIONAL = 0x7F
+
+
+class NmtCommand(IntEnum):
+    """NMT command specifiers (byte 0 of COB-ID 0x000)."""
+
+    START = 0x01
+    STOP = 0x02
+    ENTER_PRE_OPERATIONAL = 0x80
+    RESET_NODE = 0x81
+    RESET_COMMUNICATION = 0x82
+
+
+# ------------------------------------------------------------------ CiA 402 words
+
+
+class Controlword(IntFlag):
+    """0x6040 bits."""
+
+    SWITCH_ON = 0x0001
+    ENABLE_VOLTAGE = 0x0002
+    QUICK_STOP = 0x0004  # active LOW
+    ENABLE_OPERATION = 0x0008
+    FAULT_RESET = 0x0080  # rising edge
+    HALT = 0x0100
+
+
+class ControlCommand(IntEnum):
+    """Controlword values of the device-control commands (reference/canopen.md §2)."""
+
+    DISABLE_VOLTAGE = 0x0000
+    QUICK_STOP = 0x0002
+    SHUTDOWN = 0x0006
+    SWITCH_ON = 0x0007
+    DISABLE_OPERATION = 0x0007
+    ENABLE_OPERATION = 0x000F
+    FAULT_RESET = 0x0080
+
+
+class Statusword(IntFlag):
+    """0x6041 bits."""
+
+    READY_TO_SWITCH_ON = 0x0001
+    SWITCHED_ON = 0x0002
+    OPERATION_ENABLED = 0x0004
+    FAULT = 0x0008
+    VOLTAGE_ENABLED = 0x0010
+    QUICK_STOP = 0x0020  # active LOW
+    SWITCH_ON_DISABLED = 0x0040
+    WARNING = 0x0080
+    REMOTE = 0x0200
+    TARGET_REACHED = 0x0400
+    INTERNAL_LIMIT = 0x0800
+    FOLLOWS_COMMAND = 0x1000
+
+
+class Cia402State(IntEnum):
+    """CiA 402 power states."""
+
+    NOT_READY_TO_SWITCH_ON = 0
+    SWITCH_ON_DISABLED = 1
+    READY_TO_SWITCH_ON = 2
+    SWITCHED_ON = 3
+    OPERATION_ENABLED = 4
+    QUICK_STOP_ACTIVE = 5
+    FAULT_REACTION_ACTIVE = 6
+    FAULT = 7
+
+
+#: (mask, value) of the statusword for each state, exactly as the CiA 402 table
+STATUSWORD_PATTERN: Final[dict[Cia402State, tuple[int, int]]] = {
+    Cia402State.NOT_READY_TO_SWITCH_ON: (0x004F, 0x0000),
+    Cia402State.SWITCH_ON_DISABLED: (0x004F, 0x0040),
+    Cia402State.READY_TO_SWITCH_ON: (0x006F, 0x0021),
+    Cia402State.SWITCHED_ON: (0x006F, 0x0023),
+    Cia402State.OPERATION_ENABLED: (0x006F, 0x0027),
+    Cia402State.QUICK_STOP_ACTIVE: (0x006F, 0x0007),
+    Cia402State.FAULT_REACTION_ACTIVE: (0x004F, 0x000F),
+    Cia402State.FAULT: (0x004F, 0x0008),
+}
+
+
+def state_from_statusword(statusword: int) -> Cia402State:
+    """Decode the CiA 402 state from a statusword (masks of the CiA 402 table).
+
+    :raises ValueError: the bits match no state.
+    """
+    # the 0x6F patterns first: they are more specific than the 0x4F ones
+    order = sorted(STATUSWORD_PATTERN.items(), key=lambda kv: -kv[1][0])
+    for state, (mask, value) in order:
+        if statusword & mask == value:
+            return state
+    raise ValueError(f"statusword 0x{statusword:04X} matches no CiA 402 state")
+
+
+# ------------------------------------------------------------------ constants
+
+#: CiA 301 device type: 0x0192 = 402 profile, 0x0002 = servo drive
+DEVICE_TYPE_VALUE: Final[int] = 0x00020192
+#: 0x6076 default: joint-side rated torque in mN·m (88.2 N·m)
+RATED_TORQUE_MNM: Final[int] = 88_200
+#: 0x6072 default: max torque in per-thousand of rated (3000 -> 264.6 N·m)
+MAX_TORQUE_PERMILLE: Final[int] = 3000
+#: 0x2300 default control period, µs
+CONTROL_PERIOD_US: Final[int] = 1000
+#: 0x2103 sub 2: table and recorder capacity, samples (60 s at 1 kHz)
+TABLE_CAPACITY: Final[int] = 60_000
+#: recorder channels (planes)
+RECORDER_CHANNELS: Final[int] = 4
+#: 0x6065 value that disables the following-error check
+FOLLOWING_ERROR_OFF: Final[int] = 0xFFFFFFFF
+#: 0x6065 default, counts (≈ 0.6 rad)
+FOLLOWING_ERROR_DEFAULT: Final[int] = 1_000_000
+
+
+# ------------------------------------------------------------------ table packing
+
+
+class TablePackingError(ValueError):
+    """Bytes or values that do not form an int32 table."""
+
+
+def pack_int32(values: npt.ArrayLike) -> bytes:
+    """Pack integers as little-endian int32 bytes.
+
+    :raises TablePackingError: a value is outside int32 or not integral.
+    """
+    arr = np.asarray(values)
+    if arr.ndim != 1:
+        raise TablePackingError(f"expected a 1-D table, got shape {arr.shape}")
+    if arr.size and not np.issubdtype(arr.dtype, np.integer):
+        raise TablePackingError(f"expected integers, got dtype {arr.dtype}")
+    a64 = arr.astype(np.int64)
+    if a64.size and (a64.min() < -(1 << 31) or a64.max() > (1 << 31) - 1):
+        raise TablePackingError("table value outside int32")
+    return a64.astype("<i4").tobytes()
+
+
+def unpack_int32(data: bytes) -> npt.NDArray[np.int32]:
+    """Unpack little-endian int32 bytes (a copy, native int32).
+
+    :raises TablePackingError: length not a multiple of 4.
+    """
+    if len(data) % 4:
+        raise TablePackingError(f"{len(data)} bytes is not a whole number of int32")
+    return np.frombuffer(data, dtype="<i4").astype(np.int32)
+
+
+def unpack_recorder(data: bytes, n_samples: int) -> npt.NDArray[np.int32]:
+    """Split recorder DOMAIN bytes into a (RECORDER_CHANNELS, n_samples) int32 array.
+
+    :raises TablePackingError: length is not RECORDER_CHANNELS · 4 · n_samples.
+    """
+    expected = RECORDER_CHANNELS * 4 * n_samples
+    if len(data) != expected:
+        raise TablePackingError(f"recorder data is {len(data)} bytes, expected {expected}")
+    return unpack_int32(data).reshape(RECORDER_CHANNELS, n_samples)

@@ -1,0 +1,165 @@
+"""CiA 402 device-control state machine of the drive (controlword -> state -> statusword).
+
+Owns the power-state logic.  The encodings (controlword/statusword bits, state
+patterns) are shared with the host and live in :mod:`bus.objects`; they are
+re-exported here.
+
+Transitions implemented (CiA 402 numbering, reference/canopen.md §2):
+
+====  =================================  ========================================
+ no.  from -> to                          trigger
+====  =================================  ========================================
+ 0,1  start -> Not ready -> SO disabled   automatic (construction / :meth:`reset`)
+ 2    SO disabled -> Ready                Shutdown (bits 2,1 = 1, bit 0 = 0)
+ 3    Ready -> Switched on                Switch on (0x07)
+ 3+4  Ready -> Operation enabled          Enable operation (0x0F) in one step
+ 4    Switched on -> Operation enabled    Enable operation (0x0F)
+ 5    Operation enabled -> Switched on    Disable operation (0x07)
+ 6    Switched on -> Ready                Shutdown
+ 7    Ready -> SO disabled                Disable voltage (bit 1 = 0) or Quick stop
+ 8    Operation enabled -> Ready          Shutdown
+ 9    Operation enabled -> SO disabled    Disable voltage
+10    Switched on -> SO disabled          Disable voltage or Quick stop
+11    Operation enabled -> Quick stop     Quick stop (bit 2 = 0, bit 1 = 1)
+12    Quick stop active -> SO disabled    Disable voltage
+13    any -> Fault reaction active        :meth:`fault`
+14    Fault reaction active -> Fault      automatic (:meth:`fault` completes it at once)
+15    Fault -> SO disabled                rising edge of bit 7 (fault reset)
+====  =================================  ========================================
+
+While bit 7 is set no other command is decoded.  Transition 16 (Quick stop active ->
+Operation enabled) is not supported (quick-stop option code 2 behaviour: the drive stays
+in Quick stop active, torque off, until Disable voltage).
+"""
+
+from __future__ import annotations
+
+import logging
+
+from bus.objects import (
+    STATUSWORD_PATTERN,
+    Cia402State,
+    ControlCommand,
+    Controlword,
+    Statusword,
+    state_from_statusword,
+)
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "STATUSWORD_PATTERN",
+    "Cia402State",
+    "Cia402StateMachine",
+    "ControlCommand",
+    "Controlword",
+    "Statusword",
+    "state_from_statusword",
+]
+
+_S = Cia402State
+#: states in which the power stage has voltage (statusword bit 4)
+_VOLTAGE_STATES = frozenset(
+    {_S.READY_TO_SWITCH_ON, _S.SWITCHED_ON, _S.OPERATION_ENABLED, _S.QUICK_STOP_ACTIVE,
+     _S.FAULT_REACTION_ACTIVE}
+)
+
+
+class Cia402StateMachine:
+    """The CiA 402 power state machine.
+
+    :ivar state: current :class:`Cia402State`.
+    :ivar last_transition: number of the last transition taken (None if the last
+        controlword caused none).
+    """
+
+    def __init__(self) -> None:
+        self.state: Cia402State = _S.NOT_READY_TO_SWITCH_ON
+        self.last_transition: int | None = 0
+        self._last_cw: int = 0
+        self.reset()
+
+    def reset(self) -> None:
+        """Power-on / NMT reset node: Not ready to switch on -> Switch on disabled (0, 1)."""
+        self.state = _S.NOT_READY_TO_SWITCH_ON
+        self._last_cw = 0
+        self._go(_S.SWITCH_ON_DISABLED, 1)
+
+    def _go(self, new: Cia402State, transition: int) -> None:
+        if new != self.state:
+            logger.debug("CiA 402 %s -> %s (transition %d)", self.state.name, new.name, transition)
+        self.state = new
+        self.last_transition = transition
+
+    def controlword(self, cw: int) -> Cia402State:
+        """Apply a controlword write; returns the new state."""
+        cw = int(cw) & 0xFFFF
+        rising_reset = bool(cw & Controlword.FAULT_RESET) and not (self._last_cw & Controlword.FAULT_RESET)
+        self._last_cw = cw
+        self.last_transition = None
+        s = self.state
+        if cw & Controlword.FAULT_RESET:
+            if rising_reset and s == _S.FAULT:
+                self._go(_S.SWITCH_ON_DISABLED, 15)
+            return self.state
+        if s in (_S.FAULT, _S.FAULT_REACTION_ACTIVE, _S.NOT_READY_TO_SWITCH_ON):
+            return s
+        so = bool(cw & Controlword.SWITCH_ON)
+        ev = bool(cw & Controlword.ENABLE_VOLTAGE)
+        qs = bool(cw & Controlword.QUICK_STOP)  # 0 = quick stop requested
+        eo = bool(cw & Controlword.ENABLE_OPERATION)
+        if not ev:  # Disable voltage
+            t = {_S.READY_TO_SWITCH_ON: 7, _S.OPERATION_ENABLED: 9, _S.SWITCHED_ON: 10,
+                 _S.QUICK_STOP_ACTIVE: 12}.get(s)
+            if t is not None:
+                self._go(_S.SWITCH_ON_DISABLED, t)
+        elif not qs:  # Quick stop
+            if s == _S.READY_TO_SWITCH_ON:
+                self._go(_S.SWITCH_ON_DISABLED, 7)
+            elif s == _S.SWITCHED_ON:
+                self._go(_S.SWITCH_ON_DISABLED, 10)
+            elif s == _S.OPERATION_ENABLED:
+                self._go(_S.QUICK_STOP_ACTIVE, 11)
+        elif not so:  # Shutdown
+            t = {_S.SWITCH_ON_DISABLED: 2, _S.SWITCHED_ON: 6, _S.OPERATION_ENABLED: 8}.get(s)
+            if t is not None:
+                self._go(_S.READY_TO_SWITCH_ON, t)
+        elif not eo:  # Switch on / Disable operation
+            if s == _S.READY_TO_SWITCH_ON:
+                self._go(_S.SWITCHED_ON, 3)
+            elif s == _S.OPERATION_ENABLED:
+                self._go(_S.SWITCHED_ON, 5)
+        else:  # Enable operation
+            if s == _S.SWITCHED_ON:
+                self._go(_S.OPERATION_ENABLED, 4)
+            elif s == _S.READY_TO_SWITCH_ON:
+                self._go(_S.OPERATION_ENABLED, 4)  # 3 + 4 in one step
+        return self.state
+
+    def fault(self) -> Cia402State:
+        """A fault: transition 13 to Fault reaction active, then 14 to Fault at once
+        (the emulated fault reaction -- removing torque -- takes no time)."""
+        if self.state not in (_S.FAULT, _S.FAULT_REACTION_ACTIVE):
+            self._go(_S.FAULT_REACTION_ACTIVE, 13)
+        self.fault_reaction_complete()
+        return self.state
+
+    def fault_reaction_complete(self) -> None:
+        """Transition 14 (automatic)."""
+        if self.state == _S.FAULT_REACTION_ACTIVE:
+            self._go(_S.FAULT, 14)
+
+    @property
+    def operation_enabled(self) -> bool:
+        return self.state == _S.OPERATION_ENABLED
+
+    def statusword(self, internal_limit: bool = False) -> int:
+        """Statusword: the state's pattern value (CiA 402 table), plus bit 4 (voltage
+        enabled) in the powered states, bit 9 (remote) always and bit 11 (internal limit)
+        when the torque was clamped.  A healthy enabled drive reads 0x0237."""
+        sw = STATUSWORD_PATTERN[self.state][1] | Statusword.REMOTE
+        if self.state in _VOLTAGE_STATES:
+            sw |= Statusword.VOLTAGE_ENABLED
+        if internal_limit and self.state == _S.OPERATION_ENABLED:
+            sw |= Statusword.INTERNAL_LIMIT
+        return int(sw)

@@ -1,0 +1,585 @@
+"""One emulated servo drive: object dictionary, NMT state, CiA 402, trial playback, recorder.
+
+Owns the drive's application layer.  The object dictionary is loaded from
+``bus/drive.eds`` with :func:`canopen.objectdictionary.import_od` (metadata: data
+type, access, default, limits); values are kept here and reached as bytes through
+:meth:`Drive.read_object` / :meth:`Drive.write_object`, which raise
+:class:`bus.errors.SdoAbort` with CiA 301 abort codes.  Object callbacks link the
+dictionary to the live fixed-point loop (:mod:`firmware_model.loop`) and to the
+CiA 402 state machine (:mod:`firmware_model.cia402`).  The CANopen protocol layer
+(SDO server, NMT frames, heartbeat, EMCY frames) is :mod:`firmware_model.node`, which
+calls this class; formats and units: :mod:`bus.fixedpoint`, indices: :mod:`bus.objects`.
+
+Tick semantics (:meth:`Drive.io_tick`):
+
+* torque is 0 unless NMT is operational **and** CiA 402 is Operation enabled;
+* no trial playing (idle/done): PD holds the hold slot -- the encoder count seen on
+  the first tick after enabling (velocity reference 0, no feed-forward), or after a
+  trial the last table entry (PD + last feed-forward);
+* armed: the next tick must be tick 0, which starts playback (velocity estimator reset
+  to the reference velocity of sample 0, the alignment assumption); then ticks must be
+  1, 2, ... in order.  A missing, duplicate or stale tick is a fault (EMCY 0x8200);
+* after tick N-1 the trial is done and the recorder complete;
+* |position error| > 0x6065 is a fault (EMCY 0x8611).  A fault enters CiA 402 Fault,
+  sets 0x1001/0x603F, removes torque and queues an EMCY (:meth:`Drive.pop_emcy`);
+  fault reset (controlword bit 7 rising edge) queues EMCY 0x0000.
+
+If the torque enable is lost while a trial is running (disable, NMT stop), the trial
+ends in state FAULT (cause NONE) and the recorder is STOPPED.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from canopen.objectdictionary import ODArray, ODRecord, ODVariable, import_od
+from canopen.objectdictionary import datatypes as dt
+
+import bus
+from bus import fixedpoint as fp
+from bus.errors import AbortCode, IlcrigError, SdoAbort
+from bus.objects import (
+    Cia402State,
+    EmcyCode,
+    ErrorRegister,
+    FaultCause,
+    GainsSub,
+    InterpolationPeriodSub,
+    ModeOfOperation,
+    NmtCommand,
+    NmtState,
+    Obj,
+    RecorderStatus,
+    RecorderSub,
+    TableLoaded,
+    TableSub,
+    TrialCommand,
+    TrialState,
+    TrialSub,
+)
+from firmware_model import loop
+from firmware_model.cia402 import Cia402StateMachine
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_EDS_PATH: Path = Path(bus.__file__).parent / "drive.eds"
+
+_STRUCTS: dict[int, struct.Struct] = {
+    dt.BOOLEAN: struct.Struct("<?"),
+    dt.INTEGER8: struct.Struct("<b"),
+    dt.INTEGER16: struct.Struct("<h"),
+    dt.INTEGER32: struct.Struct("<i"),
+    dt.INTEGER64: struct.Struct("<q"),
+    dt.UNSIGNED8: struct.Struct("<B"),
+    dt.UNSIGNED16: struct.Struct("<H"),
+    dt.UNSIGNED32: struct.Struct("<I"),
+    dt.UNSIGNED64: struct.Struct("<Q"),
+    dt.REAL32: struct.Struct("<f"),
+    dt.REAL64: struct.Struct("<d"),
+}
+_TABLE_ROWS = {Obj.REF_POSITION_TABLE: 0, Obj.REF_VELOCITY_TABLE: 1, Obj.FEEDFORWARD_TABLE: 2}
+_TABLE_BITS = (TableLoaded.REF_POSITION, TableLoaded.REF_VELOCITY, TableLoaded.FEEDFORWARD)
+
+Value = int | float | bytes | str
+Key = tuple[int, int]
+
+
+class NmtCommandError(IlcrigError, ValueError):
+    """Unknown NMT command specifier."""
+
+
+class DriveAccess:
+    """Object access of one in-process drive with the host's ``ObjectAccess`` shape."""
+
+    def __init__(self, drive: Drive) -> None:
+        self._drive = drive
+
+    def read(self, index: int, sub: int) -> bytes:
+        return self._drive.read_object(index, sub)
+
+    def write(self, index: int, sub: int, data: bytes) -> None:
+        self._drive.write_object(index, sub, data)
+
+
+class Drive:
+    """One drive's firmware.
+
+    :param node_id: CANopen node id 1..127.
+    :param eds_path: EDS describing the object dictionary.
+    :raises ValueError: bad node id.
+    """
+
+    def __init__(self, node_id: int, eds_path: str | Path = DEFAULT_EDS_PATH) -> None:
+        if not 1 <= int(node_id) <= 127:
+            raise ValueError(f"node id must be 1..127, got {node_id}")
+        self.node_id = int(node_id)
+        self.od = import_od(str(eds_path), self.node_id)
+        self._vars: dict[Key, ODVariable] = {}
+        for obj in self.od.values():
+            if obj.index < 0x1000:
+                continue
+            if isinstance(obj, ODVariable):
+                self._vars[(obj.index, 0)] = obj
+            elif isinstance(obj, (ODRecord, ODArray)):
+                for var in obj.values():
+                    self._vars[(obj.index, var.subindex)] = var
+        self._indices = {k[0] for k in self._vars}
+        self._capacity = int(self._vars[(Obj.TABLE, TableSub.CAPACITY)].default)
+        self._rated_mnm = int(self._vars[(Obj.RATED_TORQUE, 0)].default)
+        self._st = loop.new_state()
+        self._tables = loop.new_tables(self._capacity)
+        self._rec = loop.new_recorder(self._capacity)
+        self._sm = Cia402StateMachine()
+        self._emcy: list[tuple[int, int, bytes]] = []
+        self._values: dict[Key, Value] = {}
+        self._read_hooks: dict[Key, Callable[[], Value]] = {}
+        self._write_hooks: dict[Key, Callable[[Value], None]] = {}
+        self._install_hooks()
+        self.nmt_state: NmtState = NmtState.INITIALISING
+        self._reset_application()
+        self._reset_communication()
+        self.nmt_state = NmtState.PRE_OPERATIONAL  # boot-up done
+        self._update_power()
+
+    # ------------------------------------------------------------------ public API
+
+    def access(self) -> DriveAccess:
+        """An object with ``read(index, sub)`` / ``write(index, sub, data)`` for DriveClient."""
+        return DriveAccess(self)
+
+    @property
+    def cia402_state(self) -> Cia402State:
+        return self._sm.state
+
+    @property
+    def statusword(self) -> int:
+        return self._sm.statusword(bool(self._st[loop.S_LIMITED]) and self._power)
+
+    @property
+    def trial_state(self) -> TrialState:
+        return TrialState(self._trial_state)
+
+    @property
+    def torque_enabled(self) -> bool:
+        """True when NMT operational and CiA 402 Operation enabled."""
+        return self._power
+
+    def pop_emcy(self) -> list[tuple[int, int, bytes]]:
+        """Pending EMCY messages ``(error code, error register, 5 manufacturer bytes)``,
+        oldest first; the queue is emptied."""
+        out, self._emcy = self._emcy, []
+        return out
+
+    def nmt_command(self, cs: int) -> NmtState:
+        """Apply an NMT command specifier; returns the new NMT state.
+
+        Reset node / reset communication end in pre-operational (the protocol layer
+        then sends the boot-up frame).
+
+        :raises NmtCommandError: unknown command specifier.
+        """
+        try:
+            cmd = NmtCommand(cs)
+        except ValueError:
+            raise NmtCommandError(f"unknown NMT command specifier 0x{int(cs):02X}") from None
+        if cmd == NmtCommand.START:
+            self.nmt_state = NmtState.OPERATIONAL
+        elif cmd == NmtCommand.STOP:
+            self.nmt_state = NmtState.STOPPED
+        elif cmd == NmtCommand.ENTER_PRE_OPERATIONAL:
+            self.nmt_state = NmtState.PRE_OPERATIONAL
+        elif cmd == NmtCommand.RESET_NODE:
+            self.nmt_state = NmtState.INITIALISING
+            self._update_power()
+            self._reset_application()
+            self._reset_communication()
+            self.nmt_state = NmtState.PRE_OPERATIONAL
+        else:
+            self.nmt_state = NmtState.INITIALISING
+            self._reset_communication()
+            self.nmt_state = NmtState.PRE_OPERATIONAL
+        logger.debug("node %d NMT %s -> %s", self.node_id, cmd.name, self.nmt_state.name)
+        self._update_power()
+        return self.nmt_state
+
+    def read_object(self, index: int, sub: int) -> bytes:
+        """Read an object as bytes (little endian).
+
+        :raises SdoAbort: 0x06020000 no object, 0x06090011 no sub-index, 0x06010001
+            write-only, 0x08000022 not readable now (recorder while recording).
+        """
+        var = self._lookup(index, sub)
+        if var.access_type == "wo":
+            raise SdoAbort(AbortCode.WRITE_ONLY, f"0x{index:04X}:{sub} is write-only")
+        key = (index, sub)
+        hook = self._read_hooks.get(key)
+        value = hook() if hook is not None else self._values[key]
+        return self._encode(var, value)
+
+    def write_object(self, index: int, sub: int, data: bytes) -> None:
+        """Write an object from bytes (little endian).
+
+        :raises SdoAbort: 0x06020000 / 0x06090011 unknown, 0x06010002 read-only,
+            0x06070010 wrong length, 0x06090030/31/32 value range/too high/too low,
+            0x08000022 not allowed in the current state.
+        """
+        var = self._lookup(index, sub)
+        if var.access_type in ("ro", "const"):
+            raise SdoAbort(AbortCode.READ_ONLY, f"0x{index:04X}:{sub} is read-only")
+        value = self._decode(var, bytes(data))
+        key = (index, sub)
+        hook = self._write_hooks.get(key)
+        if hook is not None:
+            hook(value)
+        self._values[key] = value
+
+    def io_tick(self, tick: int, encoder_count: int) -> int:
+        """One control tick: encoder count (int32 counts) in, torque command (µN·m) out."""
+        if not self._power:
+            self._st[loop.S_POS] = min(max(encoder_count, fp.INT32_MIN), fp.INT32_MAX)
+            return 0
+        ts = self._trial_state
+        if ts == TrialState.RUNNING:
+            if tick != self._next_tick:
+                return self._sequence_fault(tick)
+        elif ts == TrialState.ARMED:
+            if tick != 0:
+                return self._sequence_fault(tick)
+            self._start_trial()
+        else:
+            if self._capture_hold:
+                self._capture_hold = False
+                self._tables[:, self._capacity] = (
+                    min(max(encoder_count, fp.INT32_MIN), fp.INT32_MAX), 0, 0)
+            tau, status = loop.control_tick(
+                encoder_count, self._capacity, -1, self._st, self._tables, self._rec)
+            if status:
+                return self._following_error_fault(-1)
+            return tau
+        n = tick
+        tau, status = loop.control_tick(encoder_count, n, n, self._st, self._tables, self._rec)
+        self._next_tick = n + 1
+        if status:
+            return self._following_error_fault(n)
+        if self._next_tick == self._n_table:
+            self._finish_trial()
+        return tau
+
+    # ------------------------------------------------------------------ trial logic
+
+    def _start_trial(self) -> None:
+        st = self._st
+        st[loop.S_HAVE_PREV] = 0
+        st[loop.S_VF] = int(self._tables[1, 0]) << fp.VEL_STATE_Q
+        self._trial_state = TrialState.RUNNING
+        self._rec_status = RecorderStatus.RECORDING
+        self._next_tick = 0
+        logger.debug("node %d trial started, N=%d", self.node_id, self._n_table)
+
+    def _finish_trial(self) -> None:
+        n = self._n_table
+        self._trial_state = TrialState.DONE
+        self._rec_status = RecorderStatus.COMPLETE
+        self._tables[:, self._capacity] = self._tables[:, n - 1]
+        self._capture_hold = False
+        logger.debug("node %d trial done", self.node_id)
+
+    def _stop_trial(self, state: TrialState) -> None:
+        if self._trial_state == TrialState.RUNNING:
+            self._rec_status = RecorderStatus.STOPPED
+            # hold where the trial stopped, should torque come back without a new trial
+            n = max(self._next_tick - 1, 0)
+            self._tables[:, self._capacity] = self._tables[:, n]
+        self._trial_state = state
+
+    @property
+    def _recorded(self) -> int:
+        if self._trial_state in (TrialState.IDLE, TrialState.ARMED) and self._rec_status == RecorderStatus.EMPTY:
+            return 0
+        return self._next_tick
+
+    def _fault(self, code: EmcyCode, register: int, cause: FaultCause, mfr: bytes) -> int:
+        if self._trial_state in (TrialState.RUNNING, TrialState.ARMED):
+            self._stop_trial(TrialState.FAULT)
+        self._fault_cause = cause
+        self._sm.fault()
+        self._error_register = int(register)
+        self._error_code = int(code)
+        self._emcy.append((int(code), int(register), mfr))
+        self._update_power()
+        logger.warning("node %d fault %s (EMCY 0x%04X)", self.node_id, cause.name, code)
+        return 0
+
+    def _following_error_fault(self, n: int) -> int:
+        e = int(self._st[loop.S_ERR])
+        if n >= 0:
+            self._rec[loop.REC_TAU, n] = 0  # the plant gets no torque on this tick
+        return self._fault(
+            EmcyCode.FOLLOWING_ERROR, ErrorRegister.GENERIC | ErrorRegister.DEVICE_PROFILE,
+            FaultCause.FOLLOWING_ERROR, struct.pack("<Bi", FaultCause.FOLLOWING_ERROR, e))
+
+    def _sequence_fault(self, tick: int) -> int:
+        expected = self._next_tick if self._trial_state == TrialState.RUNNING else 0
+        logger.warning("node %d io tick %d, expected %d", self.node_id, tick, expected)
+        return self._fault(
+            EmcyCode.TICK_SEQUENCE, ErrorRegister.GENERIC | ErrorRegister.COMMUNICATION,
+            FaultCause.TICK_SEQUENCE,
+            struct.pack("<BHH", FaultCause.TICK_SEQUENCE, expected & 0xFFFF, int(tick) & 0xFFFF))
+
+    def _update_power(self) -> None:
+        power = self.nmt_state == NmtState.OPERATIONAL and self._sm.state == Cia402State.OPERATION_ENABLED
+        was = getattr(self, "_power", False)
+        self._power = power
+        st = self._st
+        if power and not was:
+            st[loop.S_HAVE_PREV] = 0
+            st[loop.S_VF] = 0
+            st[loop.S_VEST] = 0
+            self._capture_hold = self._trial_state != TrialState.DONE
+        elif was and not power:
+            if self._trial_state == TrialState.RUNNING:
+                logger.warning("node %d torque enable lost during a trial", self.node_id)
+                self._stop_trial(TrialState.FAULT)
+            st[loop.S_TAU] = 0
+            st[loop.S_TAU_FB] = 0
+            st[loop.S_VEST] = 0
+            st[loop.S_LIMITED] = 0
+
+    # ------------------------------------------------------------------ resets
+
+    def _default(self, var: ODVariable) -> Value:
+        if var.default is not None:
+            return var.default
+        if var.data_type in (dt.DOMAIN, dt.OCTET_STRING):
+            return b""
+        if var.data_type in (dt.VISIBLE_STRING, dt.UNICODE_STRING):
+            return ""
+        return 0
+
+    def _reset_application(self) -> None:
+        for key, var in self._vars.items():
+            if key[0] >= 0x2000:
+                self._values[key] = self._default(var)
+        self._sm.reset()
+        self._tables[:] = 0
+        self._rec[:] = 0
+        self._n_table = 0
+        self._loaded = 0
+        self._trial_state = TrialState.IDLE
+        self._rec_status = RecorderStatus.EMPTY
+        self._next_tick = 0
+        self._fault_cause = FaultCause.NONE
+        self._error_register = 0
+        self._error_code = 0
+        self._capture_hold = True
+        self._emcy.clear()
+        st = loop.new_state()
+        self._st[:] = st
+        v = self._values
+        self._set_gains(GainsSub.KP, int(v[(Obj.GAINS, GainsSub.KP)]))
+        self._set_gains(GainsSub.KD, int(v[(Obj.GAINS, GainsSub.KD)]))
+        self._set_gains(GainsSub.VEL_FILTER, int(v[(Obj.GAINS, GainsSub.VEL_FILTER)]))
+        self._set_period(int(v[(Obj.CONTROL_PERIOD, 0)]))
+        self._set_max_torque(int(v[(Obj.MAX_TORQUE, 0)]))
+        self._set_fe_window(int(v[(Obj.FOLLOWING_ERROR_WINDOW, 0)]))
+
+    def _reset_communication(self) -> None:
+        for key, var in self._vars.items():
+            if 0x1000 <= key[0] < 0x2000:
+                self._values[key] = self._default(var)
+
+    # ------------------------------------------------------------------ object plumbing
+
+    def _lookup(self, index: int, sub: int) -> ODVariable:
+        var = self._vars.get((index, sub))
+        if var is None:
+            if index not in self._indices:
+                raise SdoAbort(AbortCode.NO_OBJECT, f"no object 0x{index:04X}")
+            raise SdoAbort(AbortCode.NO_SUBINDEX, f"no sub-index {sub} in 0x{index:04X}")
+        return var
+
+    @staticmethod
+    def _encode(var: ODVariable, value: Value) -> bytes:
+        s = _STRUCTS.get(var.data_type)
+        if s is not None:
+            return s.pack(value)
+        if isinstance(value, str):
+            return value.encode("ascii")
+        return bytes(value)  # type: ignore[arg-type]
+
+    @staticmethod
+    def _decode(var: ODVariable, data: bytes) -> Value:
+        s = _STRUCTS.get(var.data_type)
+        if s is None:
+            if var.data_type in (dt.VISIBLE_STRING, dt.UNICODE_STRING):
+                try:
+                    return data.decode("ascii")
+                except UnicodeDecodeError:
+                    raise SdoAbort(AbortCode.VALUE_RANGE, "string is not ASCII") from None
+            return data
+        if len(data) != s.size:
+            raise SdoAbort(AbortCode.LENGTH_MISMATCH,
+                           f"0x{var.index:04X}:{var.subindex} needs {s.size} bytes, got {len(data)}")
+        (value,) = s.unpack(data)
+        if var.max is not None and value > var.max:
+            raise SdoAbort(AbortCode.VALUE_TOO_HIGH, f"{value} > {var.max}")
+        if var.min is not None and value < var.min:
+            raise SdoAbort(AbortCode.VALUE_TOO_LOW, f"{value} < {var.min}")
+        return value
+
+    def _install_hooks(self) -> None:
+        r = self._read_hooks
+        w = self._write_hooks
+        st = self._st
+        r[(Obj.ERROR_REGISTER, 0)] = lambda: self._error_register
+        r[(Obj.ERROR_CODE, 0)] = lambda: self._error_code
+        r[(Obj.STATUSWORD, 0)] = lambda: self.statusword
+        r[(Obj.MODES_OF_OPERATION_DISPLAY, 0)] = lambda: self._values[(Obj.MODES_OF_OPERATION, 0)]
+        r[(Obj.POSITION_ACTUAL, 0)] = lambda: int(st[loop.S_POS])
+        r[(Obj.VELOCITY_ACTUAL, 0)] = lambda: int(st[loop.S_VEST])
+        r[(Obj.TORQUE_ACTUAL, 0)] = lambda: fp.torque_units_to_permille(int(st[loop.S_TAU]), self._rated_mnm)
+        r[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.VALUE)] = lambda: self._period_repr()[0]
+        r[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.INDEX)] = lambda: self._period_repr()[1]
+        for index in _TABLE_ROWS:
+            r[(index, 0)] = (lambda i=index: self._read_table(i))
+            w[(index, 0)] = (lambda v, i=index: self._write_table(i, v))  # type: ignore[misc]
+        r[(Obj.TABLE, TableSub.LENGTH)] = lambda: self._n_table
+        r[(Obj.TABLE, TableSub.LOADED)] = lambda: self._loaded
+        r[(Obj.TRIAL, TrialSub.STATE)] = lambda: int(self._trial_state)
+        r[(Obj.TRIAL, TrialSub.TICKS)] = lambda: self._next_tick if self._trial_state != TrialState.IDLE else 0
+        r[(Obj.TRIAL, TrialSub.FAULT_CAUSE)] = lambda: int(self._fault_cause)
+        r[(Obj.RECORDER, RecorderSub.STATUS)] = lambda: int(self._rec_status)
+        r[(Obj.RECORDER, RecorderSub.SAMPLES)] = lambda: self._recorded
+        r[(Obj.RECORDER_DATA, 0)] = self._read_recorder
+
+        w[(Obj.CONTROLWORD, 0)] = self._write_controlword  # type: ignore[assignment]
+        w[(Obj.MODES_OF_OPERATION, 0)] = self._write_mode  # type: ignore[assignment]
+        w[(Obj.FOLLOWING_ERROR_WINDOW, 0)] = lambda v: self._set_fe_window(int(v))  # type: ignore[arg-type]
+        w[(Obj.MAX_TORQUE, 0)] = lambda v: self._set_max_torque(int(v))  # type: ignore[arg-type]
+        w[(Obj.TABLE, TableSub.LENGTH)] = self._write_table_length  # type: ignore[assignment]
+        for sub in GainsSub:
+            w[(Obj.GAINS, sub)] = (lambda v, s=sub: self._set_gains(s, int(v)))  # type: ignore[misc]
+        w[(Obj.TRIAL, TrialSub.COMMAND)] = self._write_trial_command  # type: ignore[assignment]
+        w[(Obj.CONTROL_PERIOD, 0)] = self._write_period  # type: ignore[assignment]
+        w[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.VALUE)] = (
+            lambda v: self._write_interp(int(v), None))  # type: ignore[arg-type]
+        w[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.INDEX)] = (
+            lambda v: self._write_interp(None, int(v)))  # type: ignore[arg-type]
+
+    # ------------------------------------------------------------------ object callbacks
+
+    def _require_not_playing(self, what: str) -> None:
+        if self._trial_state in (TrialState.ARMED, TrialState.RUNNING):
+            raise SdoAbort(AbortCode.DEVICE_STATE,
+                           f"{what} not allowed while the trial is {TrialState(self._trial_state).name}")
+
+    def _write_controlword(self, value: Value) -> None:
+        before = self._sm.state
+        self._sm.controlword(int(value))  # type: ignore[arg-type]
+        if before == Cia402State.FAULT and self._sm.state != Cia402State.FAULT:
+            self._error_register = 0
+            self._error_code = 0
+            self._emcy.append((EmcyCode.NO_ERROR, 0, bytes(5)))
+            logger.info("node %d fault reset", self.node_id)
+        self._update_power()
+
+    def _write_mode(self, value: Value) -> None:
+        if value != ModeOfOperation.TABLE_PLAYBACK:
+            raise SdoAbort(AbortCode.VALUE_RANGE, f"mode of operation {value} not supported (only -1)")
+
+    def _set_fe_window(self, value: int) -> None:
+        self._st[loop.P_FE_WINDOW] = -1 if value == 0xFFFFFFFF else value
+
+    def _set_max_torque(self, permille: int) -> None:
+        self._st[loop.P_TLIM] = fp.torque_limit_units(permille, self._rated_mnm)
+
+    def _set_gains(self, sub: int, value: int) -> None:
+        slot = {GainsSub.KP: loop.P_KP, GainsSub.KD: loop.P_KD, GainsSub.VEL_FILTER: loop.P_ALPHA}[sub]
+        self._st[slot] = value
+
+    def _set_period(self, period_us: int) -> None:
+        self._st[loop.P_RATE] = fp.rate_q12_from_period_us(period_us)
+
+    def _write_period(self, value: Value) -> None:
+        self._require_not_playing("changing the control period")
+        self._set_period(int(value))  # type: ignore[arg-type]
+
+    def _period_repr(self) -> tuple[int, int]:
+        """0x60C2 (value, index) for the control period: period = value · 10^index s."""
+        v = int(self._values[(Obj.CONTROL_PERIOD, 0)])
+        idx = -6
+        while v % 10 == 0 and idx < -1:
+            v //= 10
+            idx += 1
+        while v > 255:  # not exactly representable: nearest with a coarser index
+            v = (v + 5) // 10
+            idx += 1
+        return v, idx
+
+    def _write_interp(self, value: int | None, index: int | None) -> None:
+        cur_v, cur_i = self._period_repr()
+        v = cur_v if value is None else value
+        i = cur_i if index is None else index
+        scaled = v * 10 ** (i + 6)  # µs; the EDS limits the index to -6..-1
+        period = self._vars[(Obj.CONTROL_PERIOD, 0)]
+        if not period.min <= int(scaled) <= period.max:
+            raise SdoAbort(AbortCode.VALUE_RANGE, f"period {scaled} µs outside [{period.min}, {period.max}]")
+        self._write_period(int(scaled))
+        self._values[(Obj.CONTROL_PERIOD, 0)] = int(scaled)
+
+    def _write_table_length(self, value: Value) -> None:
+        self._require_not_playing("changing the table length")
+        n = int(value)  # type: ignore[arg-type]
+        if n != self._n_table:
+            self._loaded = 0
+            self._n_table = n
+
+    def _read_table(self, index: int) -> bytes:
+        row = _TABLE_ROWS[index]
+        if not self._loaded & _TABLE_BITS[row]:
+            return b""
+        return self._tables[row, : self._n_table].astype("<i4").tobytes()
+
+    def _write_table(self, index: int, data: Value) -> None:
+        self._require_not_playing("table download")
+        assert isinstance(data, bytes)
+        n = self._n_table
+        if n == 0:
+            raise SdoAbort(AbortCode.DEVICE_STATE, "set the table length 0x2103:1 first")
+        if len(data) != 4 * n:
+            raise SdoAbort(AbortCode.LENGTH_MISMATCH, f"table needs {4 * n} bytes (N={n}), got {len(data)}")
+        row = _TABLE_ROWS[index]
+        self._tables[row, :n] = np.frombuffer(data, dtype="<i4")
+        self._loaded |= _TABLE_BITS[row]
+
+    def _write_trial_command(self, value: Value) -> None:
+        if value == TrialCommand.ARM:
+            if self._trial_state == TrialState.RUNNING:
+                raise SdoAbort(AbortCode.DEVICE_STATE, "trial already running")
+            if self._sm.state in (Cia402State.FAULT, Cia402State.FAULT_REACTION_ACTIVE):
+                raise SdoAbort(AbortCode.DEVICE_STATE, "drive in fault; reset it first")
+            if self._n_table == 0 or self._loaded != TableLoaded.ALL:
+                raise SdoAbort(AbortCode.DEVICE_STATE,
+                               f"tables not loaded (mask 0x{self._loaded:X}, N={self._n_table})")
+            self._trial_state = TrialState.ARMED
+            self._rec_status = RecorderStatus.EMPTY
+            self._next_tick = 0
+            self._fault_cause = FaultCause.NONE
+            logger.debug("node %d trial armed, N=%d", self.node_id, self._n_table)
+        else:
+            if self._trial_state == TrialState.RUNNING:
+                self._stop_trial(TrialState.IDLE)
+            elif self._trial_state == TrialState.ARMED:
+                self._trial_state = TrialState.IDLE
+            else:
+                self._trial_state = TrialState.IDLE
+
+    def _read_recorder(self) -> bytes:
+        if self._rec_status == RecorderStatus.RECORDING:
+            raise SdoAbort(AbortCode.DEVICE_STATE, "recorder is recording")
+        n = self._recorded
+        return self._rec[:, :n].astype("<i4").tobytes()

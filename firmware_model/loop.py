@@ -1,0 +1,176 @@
+"""The drive's per-tick fixed-point control law (numba kernel on integer arrays).
+
+Owns the arithmetic of one control tick: velocity estimate by difference plus a
+first-order IIR filter, PD feedback with Q16 gains in a 64-bit accumulator, the
+feed-forward table value, the torque clamp, the following-error check and the
+recorder write.  Every format is defined in :mod:`bus.fixedpoint` (the integer
+helpers used here are compiled from there, so they exist once).  The Python glue
+(state machine, tick sequence, trial playback) lives in :mod:`firmware_model.drive`.
+
+Arrays the kernel works on (allocate them with :func:`new_state`, :func:`new_tables`,
+:func:`new_recorder`):
+
+* ``st`` int64 (``N_STATE``,): parameters (``P_*``, written by the drive's object
+  callbacks) and loop state (``S_*``).
+* ``tables`` int32 (3, capacity + 1): rows ``ROW_REF_POS`` (counts), ``ROW_REF_VEL``
+  (counts/s), ``ROW_FF`` (µN·m); column ``capacity`` is the *hold slot* used when no
+  trial is playing (the held reference).
+* ``rec`` int32 (4, capacity): rows position counts, velocity estimate counts/s,
+  torque total µN·m, torque feedback µN·m.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import numpy.typing as npt
+from numba import njit
+
+from bus import fixedpoint as fp
+
+logger = logging.getLogger(__name__)
+
+_sat32 = njit(inline="always")(fp.sat32)
+_sat = njit(inline="always")(fp.sat)
+_rshift_round = njit(inline="always")(fp.rshift_round)
+
+# ---------------------------------------------------------------- st[] layout
+P_KP = 0  #: Kp, Q16 µN·m/count
+P_KD = 1  #: Kd, Q16 µN·m/(count/s)
+P_ALPHA = 2  #: velocity filter coefficient, Q15
+P_RATE = 3  #: tick rate, Hz Q12
+P_TLIM = 4  #: torque limit, µN·m (>= 0)
+P_FE_WINDOW = 5  #: following-error window, counts; < 0 = check off
+S_PREV_COUNT = 6  #: previous encoder count
+S_HAVE_PREV = 7  #: 1 when S_PREV_COUNT is valid
+S_VF = 8  #: velocity filter state, counts/s Q12
+S_VEST = 9  #: velocity estimate, counts/s
+S_POS = 10  #: last encoder count (position actual)
+S_TAU = 11  #: last torque command, µN·m
+S_TAU_FB = 12  #: last feedback torque, µN·m
+S_ERR = 13  #: last position error, counts
+S_LIMITED = 14  #: 1 when the last torque was clamped
+N_STATE = 16
+
+ROW_REF_POS = 0
+ROW_REF_VEL = 1
+ROW_FF = 2
+
+REC_POS = 0
+REC_VEL = 1
+REC_TAU = 2
+REC_TAU_FB = 3
+
+#: raw velocity (Q12) saturation: the int32 counts/s range
+_VRAW_MAX = fp.INT32_MAX << fp.VEL_STATE_Q
+_VRAW_MIN = fp.INT32_MIN << fp.VEL_STATE_Q
+
+#: kernel status codes (second return value)
+STATUS_OK = 0
+STATUS_FOLLOWING_ERROR = 1
+
+
+def new_state() -> npt.NDArray[np.int64]:
+    """A zeroed parameter/state vector with an unfiltered velocity and a 1 kHz rate."""
+    st = np.zeros(N_STATE, dtype=np.int64)
+    st[P_ALPHA] = fp.VEL_FILTER_ONE
+    st[P_RATE] = fp.rate_q12_from_period_us(1000)
+    st[P_FE_WINDOW] = -1
+    return st
+
+
+def new_tables(capacity: int) -> npt.NDArray[np.int32]:
+    """Zeroed tables (3, capacity + 1); the last column is the hold slot."""
+    return np.zeros((3, capacity + 1), dtype=np.int32)
+
+
+def new_recorder(capacity: int) -> npt.NDArray[np.int32]:
+    """Zeroed recorder (4, capacity)."""
+    return np.zeros((4, capacity), dtype=np.int32)
+
+
+@njit(cache=True)
+def control_tick(
+    count: int,
+    idx: int,
+    rec_idx: int,
+    st: npt.NDArray[np.int64],
+    tables: npt.NDArray[np.int32],
+    rec: npt.NDArray[np.int32],
+) -> tuple[int, int]:
+    """One control tick.  Returns ``(torque µN·m, status)``.
+
+    :param count: encoder count (counts), saturated to int32 on entry.
+    :param idx: table column to play (``capacity`` = the hold slot).
+    :param rec_idx: recorder column to write, or -1 for none.
+    :param st: parameters/state (updated in place).
+    :param tables: reference position/velocity and feed-forward tables.
+    :param rec: recorder planes (written at ``rec_idx``).
+
+    Status ``STATUS_FOLLOWING_ERROR`` means |e| exceeded the window; the caller removes
+    torque.  Velocity: with no previous count (first tick after enable or trial start)
+    the raw velocity is taken equal to the filter state, i.e. the estimate is held.
+    """
+    c = _sat32(count)
+    vf = st[S_VF]
+    if st[S_HAVE_PREV] != 0:
+        d = _sat32(c - st[S_PREV_COUNT])
+        v_raw = _sat(d * st[P_RATE], _VRAW_MIN, _VRAW_MAX)
+    else:
+        v_raw = vf
+    vf = vf + _rshift_round(st[P_ALPHA] * (v_raw - vf), fp.VEL_FILTER_Q)
+    v_est = _sat32(_rshift_round(vf, fp.VEL_STATE_Q))
+
+    e = _sat32(np.int64(tables[ROW_REF_POS, idx]) - c)
+    ed = _sat32(np.int64(tables[ROW_REF_VEL, idx]) - v_est)
+    acc = st[P_KP] * e + st[P_KD] * ed  # each < 2^62, sum < 2^63 - 2^32
+    fb = _sat32(_rshift_round(acc, fp.ACC_Q))
+    tau = _sat32(fb + np.int64(tables[ROW_FF, idx]))
+    lim = st[P_TLIM]
+    limited = 0
+    if tau > lim:
+        tau = lim
+        limited = 1
+    elif tau < -lim:
+        tau = -lim
+        limited = 1
+
+    st[S_PREV_COUNT] = c
+    st[S_HAVE_PREV] = 1
+    st[S_VF] = vf
+    st[S_VEST] = v_est
+    st[S_POS] = c
+    st[S_TAU] = tau
+    st[S_TAU_FB] = fb
+    st[S_ERR] = e
+    st[S_LIMITED] = limited
+    if rec_idx >= 0:
+        rec[REC_POS, rec_idx] = c
+        rec[REC_VEL, rec_idx] = v_est
+        rec[REC_TAU, rec_idx] = tau
+        rec[REC_TAU_FB, rec_idx] = fb
+    window = st[P_FE_WINDOW]
+    if window >= 0 and (e > window or -e > window):
+        return tau, STATUS_FOLLOWING_ERROR
+    return tau, STATUS_OK
+
+
+def run_table(
+    counts: npt.NDArray[np.int64],
+    st: npt.NDArray[np.int64],
+    tables: npt.NDArray[np.int32],
+    n_table: int,
+    rec: npt.NDArray[np.int32],
+) -> npt.NDArray[np.int64]:
+    """Open-loop helper for tests/benchmarks: play ``counts`` through the kernel.
+
+    Tick n uses table column ``min(n, n_table - 1)`` and records while n < n_table.
+    Returns the torque sequence (µN·m).
+    """
+    out = np.zeros(len(counts), dtype=np.int64)
+    for n in range(len(counts)):
+        idx = n if n < n_table else n_table - 1
+        rec_idx = n if n < rec.shape[1] and n < n_table else -1
+        out[n] = control_tick(int(counts[n]), idx, rec_idx, st, tables, rec)[0]
+    return out

@@ -1,0 +1,154 @@
+"""The drive node runtime: one :class:`~firmware_model.drive.Drive` on two python-can buses,
+in one thread (the drive process's main thread).
+
+Owns the glue between the firmware and the io wire, nothing else (no protocol logic, no control
+law).  The generic CANopen-slave part (select loop, NMT, boot-up, heartbeat from 0x1017, SDO
+server, EMCY frames, ignoring own COB-IDs) is :class:`bus.slave.SlaveNode`, shared with the
+test-bench node (:mod:`bus.bench_node`); :class:`DriveNode` adds the io side:
+
+* the plant's encoder frame for this node's joint → ``drive.io_tick(tick, count)`` →
+  torque frame with the same wire tick; the trial control frame (start/stop) is passed on to
+  the drive if it has ``io_control``.  The drive gets the tick number *within the trial*
+  (architecture.md: n = 0..N-1): the 16-bit wire tick is taken relative to the TRIAL_START
+  frame's tick and unwrapped, so trials longer than 65536 ticks work.
+* frames of other joints and the node's own torque echo are ignored.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import threading
+import time
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol
+
+import can
+
+from bus import io_frames
+from bus.slave import PRODUCER_HEARTBEAT_INDEX, SlaveApp, SlaveNode, install_sigterm
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["DriveLike", "DriveNode", "PRODUCER_HEARTBEAT_INDEX", "install_sigterm", "run_node", "main"]
+
+
+class DriveLike(SlaveApp, Protocol):
+    """What the node needs from the firmware (``firmware_model.drive.Drive``): the slave
+    application interface (NMT, object access, EMCY) plus the node id and the io tick."""
+
+    node_id: int
+
+    def io_tick(self, tick: int, encoder_count: int) -> int: ...
+
+
+class DriveNode(SlaveNode):
+    """Runs one drive on a fieldbus and an io bus.
+
+    :param drive: the firmware (see :class:`DriveLike`).
+    :param fieldbus: python-can bus of the CANopen fieldbus.
+    :param io: python-can bus of the io channel (plant ↔ drives).
+    :param node_id: CANopen node id (default ``drive.node_id``); joint index = node id − 1.
+    :param clock: monotonic time source [s] for heartbeat and SDO timeout.
+    """
+
+    def __init__(self, drive: DriveLike, fieldbus: can.BusABC, io: can.BusABC, *,
+                 node_id: int | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        super().__init__(drive, fieldbus, io,
+                         node_id=int(drive.node_id if node_id is None else node_id), clock=clock)
+        self.drive = drive
+        self.joint = self.node_id - 1
+        self._encoder_id = io_frames.encoder_cob_id(self.joint)
+        self._torque_id = io_frames.torque_cob_id(self.joint)
+        self._next_full_tick = 0  # tick number (within the trial) expected next
+        self._tick_origin = 0  # wire tick of the trial's tick 0 (from TRIAL_START)
+
+    # ------------------------------------------------------------------ io
+
+    def on_io(self, msg: can.Message) -> None:
+        cob = msg.arbitration_id
+        if cob == self._encoder_id:
+            try:
+                frame = io_frames.decode_encoder(msg)
+            except io_frames.IoFrameError as err:
+                logger.warning("node %d: bad encoder frame: %s", self.node_id, err)
+                return
+            rel = (frame.tick - self._tick_origin) & io_frames.TICK_MASK
+            tick = self._next_full_tick + io_frames.tick_diff(rel, self._next_full_tick)
+            self._next_full_tick = tick + 1
+            torque = int(self.drive.io_tick(tick, frame.count))
+            status = int(self._torque_status())
+            self.io.send(io_frames.encode_torque(self.joint, frame.tick, torque, status))
+            self.frames_out += 1
+        elif cob == io_frames.CONTROL_COB_ID:
+            try:
+                control = io_frames.decode_control(msg)
+            except io_frames.IoFrameError as err:
+                logger.warning("node %d: bad control frame: %s", self.node_id, err)
+                return
+            if control.command == io_frames.ControlCommand.TRIAL_START:
+                self._tick_origin = control.tick
+                self._next_full_tick = 0
+            handler = getattr(self.drive, "io_control", None)
+            if handler is not None:
+                handler(control.command, control.tick, control.n_ticks)
+        # anything else (our own torque echo, other joints' frames) is not for us
+
+    def _torque_status(self) -> int:
+        """Torque-frame status bits: ``drive.torque_status`` if the drive has one, else derived
+        from ``drive.torque_enabled`` and the statusword (fault 0x0008, warning 0x0080,
+        internal limit 0x0800 → SATURATED)."""
+        status = getattr(self.drive, "torque_status", None)
+        if status is not None:
+            return int(status() if callable(status) else status)
+        bits = io_frames.TorqueStatus(0)
+        if getattr(self.drive, "torque_enabled", False):
+            bits |= io_frames.TorqueStatus.ENABLED
+        sw = int(getattr(self.drive, "statusword", 0))
+        if sw & 0x0008:
+            bits |= io_frames.TorqueStatus.FAULT
+        if sw & 0x0800:
+            bits |= io_frames.TorqueStatus.SATURATED
+        if sw & 0x0080:
+            bits |= io_frames.TorqueStatus.WARNING
+        return int(bits)
+
+
+def run_node(node_id: int, fieldbus_config: dict[str, Any], io_config: dict[str, Any],
+             stop: threading.Event | None = None) -> None:
+    """Drive process entry: build the Drive and both buses, serve until stopped, clean up.
+
+    :param node_id: CANopen node id 1..4.
+    :param fieldbus_config: keyword arguments of ``can.Bus`` for the fieldbus.
+    :param io_config: keyword arguments of ``can.Bus`` for the io channel.
+    :param stop: stop event; by default a new one set by SIGTERM/SIGINT.
+    """
+    from firmware_model.drive import Drive  # the firmware is only needed in the process
+
+    if stop is None:
+        stop = threading.Event()
+        install_sigterm(stop)
+    drive = Drive(node_id)
+    with can.Bus(**fieldbus_config) as fieldbus, can.Bus(**io_config) as io:
+        DriveNode(drive, fieldbus, io, node_id=node_id).run(stop)
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """``python -m firmware_model.node --node-id 1 --fieldbus-interface … --io-channel …``."""
+    parser = argparse.ArgumentParser(description="ilcrig drive node process")
+    parser.add_argument("--node-id", type=int, required=True)
+    for prefix in ("fieldbus", "io"):
+        parser.add_argument(f"--{prefix}-interface", required=True)
+        parser.add_argument(f"--{prefix}-channel", required=True)
+    parser.add_argument("--log-level", default="WARNING")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper(),
+                        format="%(asctime)s node%(process)d %(name)s %(message)s")
+    run_node(args.node_id,
+             {"interface": args.fieldbus_interface, "channel": args.fieldbus_channel},
+             {"interface": args.io_interface, "channel": args.io_channel})
+
+
+if __name__ == "__main__":
+    main()

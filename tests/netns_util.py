@@ -1,0 +1,51 @@
+"""Test helper: run a Python script inside a private user+network namespace (``unshare -rn``).
+
+Inside, loopback is brought up with multicast and a 224.0.0.0/4 route (DESIGN.md "Rules of
+this environment"), so udp_multicast traffic never reaches a real interface.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+NETNS_SETUP = "ip link set lo up && ip link set lo multicast on && ip route add 224.0.0.0/4 dev lo"
+
+
+@functools.cache
+def netns_unavailable_reason() -> str | None:
+    """``None`` if ``unshare -rn`` + the loopback setup work here, else why not."""
+    if shutil.which("unshare") is None:
+        return "unshare(1) not installed"
+    if shutil.which("ip") is None:
+        return "ip(8) not installed"
+    try:
+        res = subprocess.run(["unshare", "-rn", "sh", "-c", NETNS_SETUP], capture_output=True, timeout=10)
+    except (OSError, subprocess.TimeoutExpired) as err:
+        return f"unshare -rn failed: {err}"
+    if res.returncode != 0:
+        return f"unprivileged user+network namespaces unavailable: {res.stderr.decode().strip()}"
+    return None
+
+
+def run_in_netns(script: Path, *args: str, timeout_s: float = 30.0) -> subprocess.CompletedProcess[str]:
+    """Run ``python script args…`` in a fresh private netns; kill its whole process group on timeout."""
+    cmd = ["unshare", "-rn", "sh", "-c", f'{NETNS_SETUP} && exec "$0" "$@"', sys.executable, str(script), *args]
+    proc = subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True, env=dict(os.environ)
+    )
+    try:
+        out, err = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    return subprocess.CompletedProcess(cmd, proc.returncode, out, err)

@@ -1,0 +1,799 @@
+"""Tests of bus/bench_node.py (the plant as the test-bench CANopen node), bus/bench.eds,
+host/bench_client.py and host/sdo_access.py: objects over SDO with the canopen library, the
+trial protocol against scripted drives (faults: timeout, duplicate/stale/early frames, plant
+error, abort), and the rig on python-can ``virtual`` buses — four DriveNode threads, the
+BenchNode thread, the host through canopen RemoteNodes — bit-identical to the in-process bench.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import os
+import struct
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import can
+import canopen
+import numpy as np
+import pytest
+from canopen.objectdictionary import ODRecord, ODVariable, import_od
+from canopen.objectdictionary import datatypes as dt
+
+from bus import io_frames, units
+from bus.bench_node import BenchNode
+from bus.bench_objects import (
+    BENCH_EDS_PATH,
+    BenchFault,
+    BenchObj,
+    BenchStatus,
+    BenchTrialSub,
+    ConfigSub,
+    CounterSub,
+    InitialStateError,
+    pack_initial_state,
+    unpack_initial_state,
+)
+from bus.emcy import decode_emcy
+from bus.errors import AbortCode, SdoAbort
+from host.bench_client import (
+    BenchClient,
+    BenchInputError,
+    BenchTimeoutError,
+    BenchTrialFault,
+)
+from host.sdo_access import SdoAccess, SdoTransportError
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+ROOT = Path(__file__).resolve().parents[1]
+DRIVE_EDS = ROOT / "bus" / "drive.eds"
+BENCH_ID = 32
+TS_S = 0.001
+_counter = itertools.count()
+
+
+# ---------------------------------------------------------------------------------------
+# helpers
+# ---------------------------------------------------------------------------------------
+
+
+class FakePlant:
+    """Deterministic stand-in: counts start at round(1000·q0) and move by 1 + τ_j per step."""
+
+    def __init__(self, ts_s: float, substeps: int) -> None:
+        self.ts_s, self.substeps = ts_s, substeps
+        self.steps: list[tuple[list[int], list[float]]] = []
+        self.resets: list[tuple[list[float], list[float]]] = []
+        self.fail_at: int | None = None
+        self.counts = np.zeros(4, dtype=np.int64)
+
+    def reset(self, q0: np.ndarray, qd0: np.ndarray) -> None:
+        self.resets.append((list(q0), list(qd0)))
+        self.steps = []
+        self.counts = np.rint(np.asarray(q0) * 1000).astype(np.int64)
+
+    def encoder_counts(self) -> np.ndarray:
+        return self.counts.copy()
+
+    def step(self, torque_units: np.ndarray, disturbance_nm: np.ndarray) -> None:
+        if self.fail_at is not None and len(self.steps) == self.fail_at:
+            raise RuntimeError("simulated FK failure")
+        self.steps.append((torque_units.tolist(), disturbance_nm.tolist()))
+        self.counts += 1 + torque_units
+
+
+class PlantBox:
+    """plant_factory recording every plant it built."""
+
+    def __init__(self) -> None:
+        self.built: list[FakePlant] = []
+
+    def __call__(self, ts_s: float, substeps: int) -> FakePlant:
+        p = FakePlant(ts_s, substeps)
+        self.built.append(p)
+        return p
+
+
+def fake_disturbance(kind: str, seed: int, trial: int, n_ticks: int, ts_s: float) -> np.ndarray:
+    code = ("none", "repetitive", "nonrepetitive", "both").index(kind)
+    base = code * 1000.0 + seed * 100.0 + trial * 10.0
+    return base + np.arange(n_ticks * 4, dtype=np.float64).reshape(n_ticks, 4) * ts_s
+
+
+Policy = Callable[[int, int, int, int], list[tuple[int, int]]]
+
+
+def honest(joint: int, n: int, wire: int, count: int) -> list[tuple[int, int]]:
+    """One torque frame per encoder frame: (wire tick, torque = joint − count mod 7)."""
+    return [(wire, joint - (count % 7))]
+
+
+class ScriptedDrives:
+    """The four drives as one thread on the io bus, answering by ``policy``."""
+
+    def __init__(self, io_channel: str, policy: Policy = honest) -> None:
+        self.bus = can.Bus(interface="virtual", channel=io_channel)
+        self.policy = policy
+        self.controls: list[io_frames.ControlFrame] = []
+        self.encoders: list[io_frames.EncoderFrame] = []
+        self.delay_s = 0.0
+        self._origin = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            msg = self.bus.recv(timeout=0.01)
+            if msg is None:
+                continue
+            frame = io_frames.decode_io(msg)
+            if isinstance(frame, io_frames.ControlFrame):
+                self.controls.append(frame)
+                if frame.command == io_frames.ControlCommand.TRIAL_START:
+                    self._origin = frame.tick
+            elif isinstance(frame, io_frames.EncoderFrame):
+                self.encoders.append(frame)
+                if self.delay_s:
+                    time.sleep(self.delay_s)
+                n = (frame.tick - self._origin) & io_frames.TICK_MASK
+                for wire, torque in self.policy(frame.joint, n, frame.tick, frame.count):
+                    self.bus.send(io_frames.encode_torque(frame.joint, wire, torque,
+                                                          io_frames.TorqueStatus.ENABLED))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        assert not self._thread.is_alive()
+        self.bus.shutdown()
+
+
+class Host:
+    """canopen Network on a virtual fieldbus channel, EMCY and heartbeat capture."""
+
+    def __init__(self, fb_channel: str) -> None:
+        self.network = canopen.Network()
+        self.network.NOTIFIER_CYCLE = 0.02
+        self.network.connect(interface="virtual", channel=fb_channel)
+        self.emcy: list[tuple[int, bytes]] = []
+        self.heartbeats: list[tuple[int, int]] = []
+        for node in (1, 2, 3, 4, BENCH_ID):
+            self.network.subscribe(0x080 + node, lambda cob, data, _t: self.emcy.append((cob, bytes(data))))
+            self.network.subscribe(0x700 + node, lambda cob, data, _t: self.heartbeats.append((cob, data[0])))
+
+    def node(self, node_id: int, eds: Path) -> canopen.RemoteNode:
+        remote = canopen.RemoteNode(node_id, str(eds))
+        self.network.add_node(remote)
+        return remote
+
+    def close(self) -> None:
+        self.network.disconnect()
+
+
+class NodeThread:
+    """A SlaveNode subclass serving in a thread on its own buses."""
+
+    def __init__(self, node: Any, buses: list[can.BusABC]) -> None:
+        self.node = node
+        self.buses = buses
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=node.run, args=(self.stop,), daemon=True)
+        self.thread.start()
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(timeout=3.0)
+        assert not self.thread.is_alive()
+        for bus in self.buses:
+            bus.shutdown()
+
+
+class BenchRig:
+    """BenchNode (fake plant) in a thread + canopen host + scripted drives."""
+
+    def __init__(self, policy: Policy = honest, tick_timeout_s: float = 2.0,
+                 first_tick_timeout_s: float | None = None) -> None:
+        k = next(_counter)
+        self.fb_channel, self.io_channel = f"bench-fb-{k}", f"bench-io-{k}"
+        self.plants = PlantBox()
+        fb = can.Bus(interface="virtual", channel=self.fb_channel)
+        io = can.Bus(interface="virtual", channel=self.io_channel)
+        self.bench = BenchNode(fb, io, plant_factory=self.plants, disturbance_fn=fake_disturbance,
+                               tick_timeout_s=tick_timeout_s, first_tick_timeout_s=first_tick_timeout_s)
+        self.host = Host(self.fb_channel)
+        self.drives = ScriptedDrives(self.io_channel, policy)
+        self.remote = self.host.node(BENCH_ID, BENCH_EDS_PATH)
+        self.access = SdoAccess(self.remote)
+        self.client = BenchClient(self.access)
+        self.node = NodeThread(self.bench, [fb, io])
+
+    def close(self) -> None:
+        self.node.close()
+        self.drives.close()
+        self.host.close()
+
+
+def wait_for(predicate: Callable[[], Any], timeout_s: float = 2.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.002)
+    return bool(predicate())
+
+
+@pytest.fixture(autouse=True)
+def _no_leaked_virtual_channels() -> Iterator[None]:
+    from can.interfaces import virtual
+
+    yield
+    assert not virtual.channels, f"virtual channels left open: {list(virtual.channels)}"
+
+
+@pytest.fixture
+def rig() -> Iterator[BenchRig]:
+    r = BenchRig()
+    try:
+        yield r
+    finally:
+        r.close()
+
+
+Q0 = np.array([0.5, 0.25, -0.125, 1.0])
+QD0 = np.array([0.0, 0.1, 0.2, 0.30000000000000004])
+
+
+# ---------------------------------------------------------------------------------------
+# EDS and object encodings
+# ---------------------------------------------------------------------------------------
+
+
+def test_eds_loads_with_import_od_and_matches_the_constants() -> None:
+    od = import_od(str(BENCH_EDS_PATH), BENCH_ID)
+    assert od[0x1018][4].default == BENCH_ID  # $NODEID serial
+    assert od[0x1014].default == 0x80 + BENCH_ID
+    assert od[0x1017].data_type == dt.UNSIGNED16
+    expected = {
+        (BenchObj.CONFIG, ConfigSub.CONTROL_PERIOD_US): (dt.UNSIGNED32, "rw", 1000),
+        (BenchObj.CONFIG, ConfigSub.SUBSTEPS): (dt.UNSIGNED16, "rw", 4),
+        (BenchObj.CONFIG, ConfigSub.DISTURBANCE): (dt.UNSIGNED8, "rw", 0),
+        (BenchObj.CONFIG, ConfigSub.SEED): (dt.UNSIGNED32, "rw", 0),
+        (BenchObj.TRIAL, BenchTrialSub.TRIAL_INDEX): (dt.UNSIGNED32, "rw", 0),
+        (BenchObj.TRIAL, BenchTrialSub.N_TICKS): (dt.UNSIGNED32, "rw", 1),
+        (BenchObj.TRIAL, BenchTrialSub.COMMAND): (dt.UNSIGNED8, "wo", 0),
+        (BenchObj.TRIAL, BenchTrialSub.STATUS): (dt.UNSIGNED8, "ro", 0),
+        (BenchObj.TRIAL, BenchTrialSub.TICKS_DONE): (dt.UNSIGNED32, "ro", 0),
+        (BenchObj.TRIAL, BenchTrialSub.FAULT_CODE): (dt.UNSIGNED8, "ro", 0),
+        (BenchObj.TRIAL, BenchTrialSub.FAULT_TICK): (dt.UNSIGNED32, "ro", 0),
+        (BenchObj.TRIAL, BenchTrialSub.FAULT_NODE): (dt.UNSIGNED8, "ro", 0),
+    }
+    expected |= {(BenchObj.COUNTERS, s): (dt.UNSIGNED32, "ro", 0) for s in CounterSub}
+    for (index, sub), (dtype, access, default) in expected.items():
+        rec = od[int(index)]
+        assert isinstance(rec, ODRecord)
+        var = rec[int(sub)]
+        assert (var.data_type, var.access_type, var.default) == (dtype, access, default), (hex(index), sub)
+    state = od[int(BenchObj.INITIAL_STATE)]
+    assert isinstance(state, ODVariable) and state.data_type == dt.DOMAIN
+
+
+def test_initial_state_packing_is_exact() -> None:
+    q0 = np.array([0.1 + 0.2, -0.0, 5e-324, -1.7976931348623157e308])
+    qd0 = np.array([1 / 3, -2 / 3, 1e-300, 3.0])
+    data = pack_initial_state(q0, qd0)
+    assert len(data) == 64 and data[:8] == struct.pack("<d", 0.1 + 0.2)
+    q, qd = unpack_initial_state(data)
+    assert q.tobytes() == q0.tobytes() and qd.tobytes() == qd0.tobytes()
+    with pytest.raises(InitialStateError, match="4 values"):
+        pack_initial_state([0.0] * 3, [0.0] * 4)
+    with pytest.raises(InitialStateError, match="finite"):
+        pack_initial_state([0.0, math.nan, 0.0, 0.0], [0.0] * 4)
+    with pytest.raises(InitialStateError, match="64 bytes"):
+        unpack_initial_state(b"\x00" * 63)
+
+
+def test_bench_modules_respect_the_dependency_direction() -> None:
+    """bus never imports plant/firmware/host; the bench client imports only bus (+ the
+    drive client's ObjectAccess protocol)."""
+    import ast
+
+    def imported(rel: str) -> set[str]:
+        tree = ast.parse((ROOT / rel).read_text())
+        mods: set[str] = set()
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                mods |= {a.name for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                mods.add(node.module)
+        return mods
+
+    for rel in ("bus/slave.py", "bus/bench_node.py", "bus/bench_objects.py"):
+        assert not {m.split(".")[0] for m in imported(rel)} & {"plant", "firmware_model", "host"}, rel
+    mods = imported("host/bench_client.py")
+    assert {m.split(".")[0] for m in mods} <= {"__future__", "logging", "struct", "time", "dataclasses",
+                                               "typing", "numpy", "bus", "host"}
+    assert {m for m in mods if m.startswith("host")} == {"host.drive_client"}
+
+
+_finite = st.floats(allow_nan=False, allow_infinity=False)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(_finite, min_size=8, max_size=8))
+def test_initial_state_round_trip_property(vals: list[float]) -> None:
+    q0, qd0 = np.array(vals[:4]), np.array(vals[4:])
+    q, qd = unpack_initial_state(pack_initial_state(q0, qd0))
+    assert q.tobytes() == q0.tobytes() and qd.tobytes() == qd0.tobytes()
+
+
+# ---------------------------------------------------------------------------------------
+# objects over SDO (canopen client)
+# ---------------------------------------------------------------------------------------
+
+
+def test_objects_over_sdo(rig: BenchRig) -> None:
+    remote, client, access = rig.remote, rig.client, rig.access
+    assert wait_for(lambda: (0x700 + BENCH_ID, 0x00) in rig.host.heartbeats)  # boot-up
+    assert remote.sdo[0x1018][2].raw == 0xBE4C
+    assert remote.sdo[0x1018][4].raw == BENCH_ID
+    assert remote.sdo[0x1008].raw == "ilcrig test bench"
+    assert client.configuration() == {"ts_s": 0.001, "substeps": 4, "disturbance": "none", "seed": 0}
+    client.configure(0.0005, 8, "both", 4_000_000_000)
+    assert client.configuration() == {"ts_s": 0.0005, "substeps": 8, "disturbance": "both",
+                                      "seed": 4_000_000_000}
+    assert remote.sdo[0x2400][3].raw == 3
+    # EDS limits, lengths and access enforced by the node, mapped to SdoAbort by the adapter
+    with pytest.raises(SdoAbort) as err:
+        access.write(BenchObj.CONFIG, ConfigSub.DISTURBANCE, b"\x04")
+    assert err.value.code == AbortCode.VALUE_TOO_HIGH
+    with pytest.raises(SdoAbort) as err:
+        access.write(BenchObj.CONFIG, ConfigSub.SUBSTEPS, b"\x00\x00")
+    assert err.value.code == AbortCode.VALUE_TOO_LOW
+    with pytest.raises(SdoAbort) as err:
+        access.write(BenchObj.CONFIG, ConfigSub.CONTROL_PERIOD_US, b"\x01\x00")
+    assert err.value.code == AbortCode.LENGTH_MISMATCH
+    with pytest.raises(SdoAbort) as err:
+        access.write(BenchObj.TRIAL, BenchTrialSub.STATUS, b"\x01")
+    assert err.value.code == AbortCode.READ_ONLY
+    with pytest.raises(SdoAbort) as err:
+        access.read(BenchObj.TRIAL, BenchTrialSub.COMMAND)
+    assert err.value.code == AbortCode.WRITE_ONLY
+    with pytest.raises(SdoAbort) as err:
+        access.read(0x2499, 0)
+    assert err.value.code == AbortCode.NO_OBJECT
+    # start before any initial state: refused
+    with pytest.raises(SdoAbort) as err:
+        access.write(BenchObj.TRIAL, BenchTrialSub.COMMAND, b"\x01")
+    assert err.value.code == AbortCode.DEVICE_STATE
+    # initial state: exact bits through a segmented transfer; bad length / NaN refused
+    q0 = np.array([0.1 + 0.2, -0.0, 5e-324, 1.0])
+    state = pack_initial_state(q0, QD0)
+    access.write(BenchObj.INITIAL_STATE, 0, state)
+    assert access.read(BenchObj.INITIAL_STATE, 0) == state
+    with pytest.raises(SdoAbort) as err:
+        access.write(BenchObj.INITIAL_STATE, 0, state[:-1])
+    assert err.value.code == AbortCode.LENGTH_MISMATCH
+    with pytest.raises(SdoAbort) as err:
+        access.write(BenchObj.INITIAL_STATE, 0, struct.pack("<8d", *([math.inf] + [0.0] * 7)))
+    assert err.value.code == AbortCode.VALUE_RANGE
+    assert access.read(BenchObj.INITIAL_STATE, 0) == state
+    # host-side validation, before anything is sent
+    with pytest.raises(BenchInputError, match="whole number of µs"):
+        client.configure(0.0010000001, 4, "none", 0)
+    with pytest.raises(BenchInputError, match="unknown disturbance"):
+        client.configure(0.001, 4, "gusty", 0)
+    with pytest.raises(BenchInputError, match="seed"):
+        client.configure(0.001, 4, "none", -1)
+    with pytest.raises(BenchInputError, match="4 values"):
+        client.start_trial(0, 10, [0.0] * 3, [0.0] * 4)
+    # heartbeat from 0x1017 and NMT
+    remote.sdo[0x1017].raw = 20
+    rig.host.network.nmt.send_command(0x01)
+    assert wait_for(lambda: [s for c, s in rig.host.heartbeats if c == 0x700 + BENCH_ID].count(0x05) >= 2)
+
+
+def test_sdo_access_maps_a_silent_node_to_a_transport_error(rig: BenchRig) -> None:
+    ghost = rig.host.node(99, BENCH_EDS_PATH)
+    ghost.sdo.RESPONSE_TIMEOUT = 0.05
+    with pytest.raises(SdoTransportError, match="node 99: read 0x1018:1 failed"):
+        SdoAccess(ghost).read(0x1018, 1)
+    with pytest.raises(SdoTransportError, match="node 99: write"):
+        SdoAccess(ghost).write(0x1017, 0, b"\x00\x00")
+
+
+def test_nmt_reset_node_restores_defaults(rig: BenchRig) -> None:
+    rig.client.configure(0.002, 2, "repetitive", 9)
+    rig.host.heartbeats.clear()
+    rig.remote.nmt.send_command(0x81)
+    assert wait_for(lambda: (0x700 + BENCH_ID, 0x00) in rig.host.heartbeats)
+    assert rig.client.configuration() == {"ts_s": 0.001, "substeps": 4, "disturbance": "none", "seed": 0}
+
+
+# ---------------------------------------------------------------------------------------
+# the trial protocol against scripted drives
+# ---------------------------------------------------------------------------------------
+
+
+def test_trial_protocol_frames_plant_and_counters(rig: BenchRig) -> None:
+    client = rig.client
+    client.configure(0.002, 3, "nonrepetitive", 5)
+    n = 12
+    for trial in (4, 5):
+        client.start_trial(trial, n, Q0, QD0)
+        state = client.wait_trial(5.0)
+        assert (state.status, state.ticks_done, state.fault) == (BenchStatus.DONE, n, BenchFault.NONE)
+        plant = rig.plants.built[-1]
+        assert (plant.ts_s, plant.substeps) == (0.002, 3)
+        assert plant.resets[-1] == (Q0.tolist(), QD0.tolist())
+        dist = fake_disturbance("nonrepetitive", 5, trial, n, 0.002)
+        assert [d for _, d in plant.steps] == dist.tolist()
+        # torques: joint − (count mod 7), count = the encoder count sent for that tick
+        counts = np.rint(Q0 * 1000).astype(np.int64)
+        for k, (tau, _) in enumerate(plant.steps):
+            want = [j - int(counts[j] % 7) for j in range(4)]
+            assert tau == want, k
+            counts = counts + 1 + np.array(want)
+    assert len(rig.plants.built) == 2  # start(): default config; then (2 ms, 3): kept for trial 5
+    # io frames: TRIAL_START, 4 encoders per tick with consecutive wire ticks, TRIAL_STOP
+    ctl = rig.drives.controls
+    assert [(c.command, c.n_ticks) for c in ctl] == [(1, n), (2, n)] * 2
+    assert ctl[0].tick == 0 and ctl[1].tick == n and ctl[2].tick == n + 1 and ctl[3].tick == 2 * n + 1
+    enc = rig.drives.encoders
+    assert len(enc) == 2 * 4 * n
+    assert [e.tick for e in enc[: 4 * n: 4]] == list(range(n))
+    assert [e.joint for e in enc[:4]] == [0, 1, 2, 3]
+    assert enc[0].count == round(Q0[0] * 1000)
+    c = client.counters()
+    assert c["io_sent"] == 2 * (4 * n + 2) and c["io_received"] == 2 * 4 * n
+    assert c["trials_done"] == 2 and c["tick_timeouts"] == 0 and c["last_trial_us"] > 0
+    assert not rig.host.emcy
+
+
+def test_status_is_served_during_a_trial(rig: BenchRig) -> None:
+    rig.drives.delay_s = 0.002  # ≈ 8 ms per tick
+    rig.client.start_trial(0, 100, Q0, QD0)
+    seen = []
+    for _ in range(5):
+        seen.append(rig.client.status())
+    assert all(s.status == BenchStatus.RUNNING for s in seen)
+    assert 0 <= seen[0].ticks_done <= seen[-1].ticks_done < 100
+    with pytest.raises(SdoAbort) as err:  # no reconfiguration while running
+        rig.access.write(BenchObj.CONFIG, ConfigSub.SEED, b"\x01\x00\x00\x00")
+    assert err.value.code == AbortCode.DEVICE_STATE
+    with pytest.raises(SdoAbort) as err:
+        rig.access.write(BenchObj.TRIAL, BenchTrialSub.COMMAND, b"\x01")
+    assert err.value.code == AbortCode.DEVICE_STATE
+    rig.drives.delay_s = 0.0
+    assert rig.client.wait_trial(5.0).ticks_done == 100
+
+
+def _emcy_of_bench(rig: BenchRig) -> list[tuple[int, int, bytes]]:
+    out = []
+    for cob, data in rig.host.emcy:
+        if cob == 0x80 + BENCH_ID:
+            m = decode_emcy(data)
+            out.append((m.code, m.register, m.manufacturer))
+    return out
+
+
+def test_drive_that_stops_answering_is_a_timeout_fault_and_the_node_recovers() -> None:
+    silent_from = {"tick": 5}
+
+    def policy(joint: int, n: int, wire: int, count: int) -> list[tuple[int, int]]:
+        if joint == 2 and n >= silent_from["tick"]:
+            return []
+        return honest(joint, n, wire, count)
+
+    rig = BenchRig(policy, tick_timeout_s=0.2)
+    try:
+        rig.client.start_trial(0, 20, Q0, QD0)
+        with pytest.raises(BenchTrialFault, match="drive 3 did not answer tick 5") as err:
+            rig.client.wait_trial(5.0)
+        state = err.value.state
+        assert (state.status, state.fault, state.fault_tick, state.fault_node, state.ticks_done) == (
+            BenchStatus.FAULT, BenchFault.TICK_TIMEOUT, 5, 3, 5)
+        assert wait_for(lambda: bool(_emcy_of_bench(rig)))
+        assert _emcy_of_bench(rig) == [(0x8100, 0x11, bytes([2, 3, 5, 0, 0]))]
+        assert rig.remote.sdo[0x1001].raw == 0x11
+        assert "drive 3 did not answer tick 5" in rig.bench.last_fault_message
+        assert rig.client.counters()["tick_timeouts"] == 1
+        assert wait_for(lambda: [c.command for c in rig.drives.controls] == [1, 2])
+        assert rig.drives.controls[1].tick == 5
+        # the node keeps running: the next trial completes (and clears the error register)
+        silent_from["tick"] = 10**9
+        rig.client.start_trial(1, 8, Q0, QD0)
+        assert rig.client.wait_trial(5.0).status == BenchStatus.DONE
+        assert rig.remote.sdo[0x1001].raw == 0
+    finally:
+        rig.close()
+
+
+def test_tick_zero_gets_the_longer_first_tick_timeout() -> None:
+    rig = BenchRig(lambda j, n, wire, count: [] if j == 0 else [(wire, 0)],
+                   tick_timeout_s=0.05, first_tick_timeout_s=0.4)
+    try:
+        t0 = time.monotonic()
+        rig.client.start_trial(0, 5, Q0, QD0)
+        with pytest.raises(BenchTrialFault, match="drive 1 did not answer tick 0"):
+            rig.client.wait_trial(5.0, poll_s=0.01)
+        assert time.monotonic() - t0 >= 0.4
+        assert "within 0.4 s" in rig.bench.last_fault_message
+    finally:
+        rig.close()
+
+
+@pytest.mark.parametrize("kind", ["duplicate", "stale", "early", "missing"])
+def test_bad_torque_sequence_is_a_fault(kind: str) -> None:
+    def policy(joint: int, n: int, wire: int, count: int) -> list[tuple[int, int]]:
+        frames = honest(joint, n, wire, count)
+        if joint == 1 and n == 6:
+            if kind == "duplicate":
+                return frames + frames
+            if kind == "stale":
+                return [(wire - 3, 0)]
+            if kind == "early":
+                return frames + [(wire + 1, 0)]
+            return [(wire + 1, 0)]  # the frame of tick 6 missing, tick 7 instead
+        return frames
+
+    rig = BenchRig(policy)
+    try:
+        rig.client.start_trial(0, 20, Q0, QD0)
+        with pytest.raises(BenchTrialFault, match="drive 2 out of sequence at tick 6") as err:
+            rig.client.wait_trial(5.0)
+        assert (err.value.state.fault, err.value.state.fault_node) == (BenchFault.TICK_SEQUENCE, 2)
+        words = {"duplicate": "duplicate", "stale": "stale", "early": "during tick 6", "missing": "missing"}
+        assert words[kind] in rig.bench.last_fault_message
+        assert wait_for(lambda: bool(_emcy_of_bench(rig)))
+        assert _emcy_of_bench(rig)[0][:2] == (0x8200, 0x11)
+        # the plant never integrated tick 6 with a wrong or missing torque
+        assert len(rig.plants.built[-1].steps) <= 6 + (kind == "duplicate")
+    finally:
+        rig.close()
+
+
+def test_plant_error_is_a_fault(rig: BenchRig) -> None:
+    assert wait_for(lambda: bool(rig.plants.built))  # built at node start, kept for Ts = 1 ms
+    rig.plants.built[-1].fail_at = 3
+    rig.client.start_trial(0, 10, Q0, QD0)
+    with pytest.raises(BenchTrialFault, match="plant error at tick 3") as err:
+        rig.client.wait_trial(5.0)
+    assert err.value.state.fault == BenchFault.PLANT
+    assert "simulated FK failure" in rig.bench.last_fault_message
+    assert wait_for(lambda: bool(_emcy_of_bench(rig)))
+    assert _emcy_of_bench(rig)[0] == (0xFF00, 0x81, bytes([1, 0, 3, 0, 0]))
+
+
+def test_abort_command_and_nmt_stop_end_a_trial(rig: BenchRig) -> None:
+    rig.drives.delay_s = 0.002
+    rig.client.start_trial(0, 1000, Q0, QD0)
+    rig.client.abort()
+    with pytest.raises(BenchTrialFault, match="aborted"):
+        rig.client.wait_trial(5.0)
+    with pytest.raises(BenchTimeoutError, match="still running after 0.05 s"):
+        rig.client.start_trial(1, 1000, Q0, QD0)
+        rig.client.wait_trial(0.05)
+    assert rig.client.status().fault == BenchFault.ABORTED  # the client aborted it
+    rig.client.start_trial(2, 1000, Q0, QD0)
+    rig.remote.nmt.send_command(0x02)  # stop
+    assert wait_for(lambda: rig.bench.status == BenchStatus.FAULT)
+    assert rig.bench.fault == BenchFault.ABORTED
+    assert wait_for(lambda: [c.command for c in rig.drives.controls] == [1, 2] * 3)
+
+
+def test_run_plant_role_serves_until_stopped() -> None:
+    """host.compose.run_plant_role on a virtual transport: boots, runs a trial with the real
+    plant (scripted zero-torque drives), stops on the event and closes its buses."""
+    from bus.transport import virtual_transport
+    from host.compose import run_plant_role
+    from plant.kinematics import inverse_kinematics
+
+    transport = virtual_transport(f"plant-role-{next(_counter)}")
+    host = Host(transport.fieldbus.channel)
+    drives = ScriptedDrives(transport.io.channel, lambda j, n, wire, count: [(wire, 0)])
+    stop = threading.Event()
+    thread = threading.Thread(target=run_plant_role, args=(transport,), kwargs={"node_id": 33, "stop": stop},
+                              daemon=True)
+    try:
+        boot: list[int] = []
+        host.network.subscribe(0x700 + 33, lambda _c, data, _t: boot.append(data[0]))
+        thread.start()
+        assert wait_for(lambda: 0 in boot, 30.0)
+        client = BenchClient(SdoAccess(host.node(33, BENCH_EDS_PATH)))
+        client.start_trial(0, 20, inverse_kinematics(np.array([0.0, 0.0, -0.65, 0.0])), np.zeros(4))
+        assert client.wait_trial(5.0).ticks_done == 20
+        assert drives.encoders[-4].count != drives.encoders[0].count  # joint 1 sagged: a real plant
+    finally:
+        stop.set()
+        thread.join(timeout=3.0)
+        drives.close()
+        host.close()
+    assert not thread.is_alive()
+
+
+# ---------------------------------------------------------------------------------------
+# the rig on virtual buses vs the in-process bench: bit-identical traces
+# ---------------------------------------------------------------------------------------
+
+
+def _short_reference(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A smooth 1−cos joint move from a reachable pose: q, qd (rad, rad/s), ff (N·m), q0."""
+    from plant.dynamics import inverse_dynamics
+    from plant.kinematics import inverse_kinematics
+    from plant.params import nominal_mass_model
+
+    q0 = inverse_kinematics(np.array([0.02, -0.01, -0.65, 0.1]))
+    t = np.arange(n) * TS_S
+    T = (n - 1) * TS_S
+    amp = np.array([0.03, -0.02, 0.025, -0.015])
+    s = (1 - np.cos(np.pi * t / T))[:, None] / 2
+    sd = (np.pi / T * np.sin(np.pi * t / T))[:, None] / 2
+    sdd = ((np.pi / T) ** 2 * np.cos(np.pi * t / T))[:, None] / 2
+    q = q0 + amp * s
+    qd = amp * sd
+    ff = inverse_dynamics(q, qd, amp * sdd, nominal_mass_model())
+    return q, qd, np.asarray(ff), q0
+
+
+def _configure_drives(drives: list[Any], q: np.ndarray, qd: np.ndarray) -> None:
+    counts = np.rint(q / units.RAD_PER_COUNT).astype(np.int64)
+    for j, d in enumerate(drives):
+        d.configure(kp_nm_per_rad=2400.0, kd_nms_per_rad=48.0, torque_limit_nm=200.0,
+                    following_error_rad=math.radians(10.0))
+        d.load_reference(counts[:, j] * units.RAD_PER_COUNT, qd[:, j])
+        d.enable()
+
+
+def _in_process_traces(n: int, trials: int, disturbance: str, seed: int) -> list[list[Any]]:
+    from host.compose import InProcessBench
+    from host.config import ExperimentConfig
+
+    q, qd, ff, q0 = _short_reference(n)
+    bench = InProcessBench(ExperimentConfig(ts_s=TS_S, substeps=4, disturbance=disturbance, seed=seed))
+    bench.start()
+    _configure_drives(bench.drives, q, qd)
+    out = []
+    for k in range(trials):
+        for j, d in enumerate(bench.drives):
+            d.load_feedforward(ff[:, j])
+            d.arm_trial()
+        bench.run_trial(k, n, q[0].copy(), qd[0].copy())
+        out.append([d.read_trace() for d in bench.drives])
+    bench.close()
+    return out
+
+
+def test_rig_on_virtual_buses_is_bit_identical_to_in_process() -> None:
+    from firmware_model.drive import Drive
+    from firmware_model.node import DriveNode
+    from host.compose import make_plant
+    from host.config import ExperimentConfig
+    from host.drive_client import DriveClient
+    from plant.disturbance import disturbance_torque
+
+    n, trials, disturbance, seed = 60, 2, "both", 11
+    k = next(_counter)
+    fb_ch, io_ch = f"rig-fb-{k}", f"rig-io-{k}"
+    threads: list[NodeThread] = []
+    host = Host(fb_ch)
+    try:
+        for node_id in (1, 2, 3, 4):
+            fb = can.Bus(interface="virtual", channel=fb_ch)
+            io = can.Bus(interface="virtual", channel=io_ch)
+            threads.append(NodeThread(DriveNode(Drive(node_id), fb, io), [fb, io]))
+        fb = can.Bus(interface="virtual", channel=fb_ch)
+        io = can.Bus(interface="virtual", channel=io_ch)
+
+        def factory(ts_s: float, substeps: int) -> Any:
+            return make_plant(ExperimentConfig(ts_s=ts_s, substeps=substeps))
+
+        bench_node = BenchNode(fb, io, plant_factory=factory, disturbance_fn=disturbance_torque)
+        threads.append(NodeThread(bench_node, [fb, io]))
+        drives = [DriveClient(SdoAccess(host.node(i, DRIVE_EDS)), i) for i in (1, 2, 3, 4)]
+        bench = BenchClient(SdoAccess(host.node(BENCH_ID, BENCH_EDS_PATH)))
+        assert wait_for(lambda: len({c for c, s in host.heartbeats if s == 0}) == 5, 5.0)  # 5 boot-ups
+        host.network.nmt.send_command(0x01)  # all nodes operational
+        q, qd, ff, _ = _short_reference(n)
+        _configure_drives(drives, q, qd)
+        bench.configure(TS_S, 4, disturbance, seed)
+        rig_traces = []
+        for trial in range(trials):
+            for j, d in enumerate(drives):
+                d.load_feedforward(ff[:, j])
+                d.arm_trial()
+            bench.start_trial(trial, n, q[0].copy(), qd[0].copy())
+            assert bench.wait_trial(10.0).ticks_done == n
+            rig_traces.append([d.read_trace() for d in drives])
+        assert not [e for e in host.emcy if decode_emcy(e[1]).code != 0]
+    finally:
+        for t in threads:
+            t.close()
+        host.close()
+
+    ref = _in_process_traces(n, trials, disturbance, seed)
+    fields = ("position_counts", "velocity_counts_s", "torque_units", "torque_fb_units")
+    for trial in range(trials):
+        for j in range(4):
+            for f in fields:
+                a, b = getattr(rig_traces[trial][j], f), getattr(ref[trial][j], f)
+                assert a.dtype == b.dtype and len(a) == n
+                assert np.array_equal(a, b), (trial, j, f)
+    # the trial did something, and the non-repetitive disturbance differs between trials
+    pos = rig_traces[0][0].position_counts
+    assert abs(int(pos[-1]) - int(pos[0])) > 0.02 / units.RAD_PER_COUNT
+    assert not np.array_equal(rig_traces[0][0].torque_fb_units, rig_traces[1][0].torque_fb_units)
+
+
+# ---------------------------------------------------------------------------------------
+# speed over the hub: 4 drive processes + the plant process (slow)
+# ---------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+@pytest.mark.multiprocess
+def test_tick_rate_over_the_hub_with_drive_and_plant_processes() -> None:
+    """Throughput of the lockstep loop: hub + 4 drive processes + `ilcrig plant`, host here."""
+    from bus.hub import start_hub
+    from host.drive_client import DriveClient
+
+    n = int(os.environ.get("ILCRIG_BENCH_TICKS", "3000"))
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    procs: list[subprocess.Popen[bytes]] = []
+    with start_hub() as hub:
+        addr = hub.address
+        try:
+            for node_id in (1, 2, 3, 4):
+                procs.append(subprocess.Popen(
+                    [sys.executable, "-m", "firmware_model.node", "--node-id", str(node_id),
+                     "--fieldbus-interface", "ilcrig_hub", "--fieldbus-channel", f"{addr}#fieldbus",
+                     "--io-interface", "ilcrig_hub", "--io-channel", f"{addr}#io"], env=env))
+            procs.append(subprocess.Popen(
+                [sys.executable, "-c", "import sys; from host.cli import main; sys.exit(main(sys.argv[1:]))",
+                 "plant", "--bus", "hub", "--hub", addr], env=env))
+            network = canopen.Network()
+            network.connect(interface="ilcrig_hub", channel=f"{addr}#fieldbus")
+            try:
+                booted: set[int] = set()
+                for node_id in (1, 2, 3, 4, BENCH_ID):
+                    network.subscribe(0x700 + node_id, lambda cob, data, _t: booted.add(cob - 0x700))
+                assert wait_for(lambda: len(booted) == 5, 60.0), booted
+                network.nmt.send_command(0x01)
+                nodes = {i: canopen.RemoteNode(i, str(DRIVE_EDS if i != BENCH_ID else BENCH_EDS_PATH))
+                         for i in (1, 2, 3, 4, BENCH_ID)}
+                for node in nodes.values():
+                    network.add_node(node)
+                drives = [DriveClient(SdoAccess(nodes[i]), i) for i in (1, 2, 3, 4)]
+                bench = BenchClient(SdoAccess(nodes[BENCH_ID]))
+                q, qd, ff, _ = _short_reference(60)
+                _configure_drives(drives, q, qd)  # enabled, not armed: PD holds the start pose
+                bench.configure(TS_S, 4, "none", 0)
+                rates = []
+                for trial in range(2):
+                    t0 = time.perf_counter()
+                    bench.start_trial(trial, n, q[0].copy(), qd[0].copy())
+                    state = bench.wait_trial(120.0, poll_s=0.05)
+                    wall = time.perf_counter() - t0
+                    assert state.ticks_done == n
+                    node_s = bench.counters()["last_trial_us"] / 1e6
+                    rates.append((n / node_s, n / wall))
+                sys.stderr.write("".join(f"\nhub rig: {a:.0f} ticks/s in the plant node, {b:.0f} ticks/s host-observed"
+                                         for a, b in rates) + "\n")
+                assert max(a for a, _ in rates) > 300  # loose: a shared 2-core machine
+            finally:
+                network.disconnect()
+        finally:
+            for p in procs:
+                p.terminate()
+            for p in procs:
+                try:
+                    p.wait(10)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()

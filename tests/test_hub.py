@@ -1,0 +1,381 @@
+"""bus.hub: exact forwarding between processes, no echo, entry point, loopback-only,
+disconnects, stats, filters, and that the hub child process is always reaped."""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import select
+import signal
+import socket
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+
+from bus.busload import frame_bits, frame_bits_worst_case
+from bus.hub import (
+    HubAddressError,
+    HubAddressInUseError,
+    HubBus,
+    HubServer,
+    HubStartError,
+    NonLoopbackAddressError,
+    encode_record,
+    parse_address,
+    parse_channel,
+    query_hub_stats,
+    start_hub,
+)
+
+pytestmark = pytest.mark.multiprocess
+CTX = mp.get_context("fork")
+Frame = tuple[int, bool, bool, int, bytes]  # id, extended, remote, dlc, data
+
+
+def _child_pids() -> list[int]:
+    """PIDs (zombies included) whose parent is this process."""
+    me, out = os.getpid(), []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            if ppid == me:
+                out.append(int(entry))
+    return out
+
+
+@pytest.fixture(autouse=True)
+def no_process_left() -> Any:
+    before = set(_child_pids())
+    yield
+    left = set(_child_pids()) - before
+    assert not left, f"test left child processes {sorted(left)}"
+
+
+def _frames_of(sender: int, k: int) -> list[can.Message]:
+    out = []
+    for i in range(k):
+        ext = i % 3 == 0
+        n = i % 9
+        if i % 10 == 7:
+            out.append(can.Message(arbitration_id=0x700 + sender, is_extended_id=False, is_remote_frame=True, dlc=n))
+            continue
+        can_id = (0x1000000 * sender + i) if ext else (0x100 * sender + i % 0x100)
+        out.append(can.Message(arbitration_id=can_id, is_extended_id=ext, data=bytes((sender, i, *range(n)))[:n]))
+    return out
+
+
+def _key(m: can.Message) -> Frame:
+    return (m.arbitration_id, m.is_extended_id, m.is_remote_frame, m.dlc, bytes(m.data))
+
+
+def _sender_of(m: can.Message) -> int:
+    if m.is_remote_frame:
+        return m.arbitration_id - 0x700
+    return m.arbitration_id // (0x1000000 if m.is_extended_id else 0x100)
+
+
+def _client(channel: str, me: int, n_clients: int, k: int, barrier: Any, q: Any) -> None:
+    bus = can.Bus(interface="ilcrig_hub", channel=channel)  # via the entry point
+    try:
+        assert isinstance(bus, HubBus)
+        barrier.wait(10)
+        for m in _frames_of(me, k):
+            bus.send(m)
+        got: list[Frame] = []
+        deadline = time.monotonic() + 10
+        while len(got) < (n_clients - 1) * k and time.monotonic() < deadline:
+            m = bus.recv(0.5)
+            if m is not None:
+                assert m.is_rx and m.channel == "rig"
+                got.append(_key(m))
+        barrier.wait(10)  # everybody sent and received: anything else now is an extra
+        while (m := bus.recv(0.1)) is not None:
+            got.append(_key(m))
+        q.put((me, got))
+    finally:
+        bus.shutdown()
+
+
+def _run_clients(channel: str, n: int, k: int) -> dict[int, list[Frame]]:
+    barrier = CTX.Barrier(n)
+    q = CTX.Queue()
+    procs = [CTX.Process(target=_client, args=(channel, i, n, k, barrier, q)) for i in range(n)]
+    try:
+        for p in procs:
+            p.start()
+        results = dict(q.get(timeout=30) for _ in range(n))
+    finally:
+        for p in procs:
+            p.join(5)
+            if p.is_alive():
+                p.kill()
+                p.join()
+    assert [p.exitcode for p in procs] == [0] * n
+    return results
+
+
+def _check_exact(results: dict[int, list[Frame]], n: int, k: int) -> None:
+    for me, got in results.items():
+        assert len(got) == (n - 1) * k, f"client {me} got {len(got)} frames"
+        for s in range(n):
+            from_s = [f for f in got if _sender_of(can.Message(arbitration_id=f[0], is_extended_id=f[1], is_remote_frame=f[2])) == s]
+            if s == me:
+                assert from_s == [], "a client received its own frames (echo)"
+            else:
+                assert from_s == [_key(m) for m in _frames_of(s, k)]  # exact and in order
+
+
+@pytest.mark.parametrize("kind", ["unix", "tcp"])
+def test_two_clients_exchange_exactly(kind: str) -> None:
+    listen = None if kind == "unix" else "tcp:127.0.0.1:0"
+    with start_hub(listen) as hub:
+        results = _run_clients(hub.channel("rig"), 2, 60)
+        stats = hub.stats()
+    _check_exact(results, 2, 60)
+    frames = _frames_of(0, 60) + _frames_of(1, 60)
+    n_bytes = [0 if m.is_remote_frame else len(m.data) for m in frames]
+    assert stats["rig"].frames == 120
+    assert stats["rig"].bits == sum(frame_bits(n, m.is_extended_id) for n, m in zip(n_bytes, frames))
+    assert stats["rig"].bits_worst_case == sum(frame_bits_worst_case(n, m.is_extended_id) for n, m in zip(n_bytes, frames))
+    assert stats["rig"].connections == 2
+    assert not hub.alive
+
+
+def test_five_clients_exchange_exactly() -> None:
+    with start_hub() as hub:
+        results = _run_clients(hub.channel("rig"), 5, 40)
+    _check_exact(results, 5, 40)
+    assert not hub.alive and mp.active_children() == []
+
+
+def test_logical_buses_are_separate_and_echo_on_request() -> None:
+    with start_hub() as hub:
+        with HubBus(hub.channel("io")) as a, HubBus(hub.channel("io"), receive_own_messages=True) as b, HubBus(
+            hub.channel("fieldbus")
+        ) as c:
+            b.send(can.Message(arbitration_id=0x181, is_extended_id=False, data=b"\x01"))
+            got_a, own_b = a.recv(2.0), b.recv(2.0)
+            assert got_a is not None and got_a.is_rx and bytes(got_a.data) == b"\x01"
+            assert own_b is not None and not own_b.is_rx and own_b.arbitration_id == 0x181
+            assert c.recv(0.05) is None and a.recv(0.05) is None
+            fd = can.Message(arbitration_id=0x1ABCDEF, data=bytes(range(48)), is_fd=True, bitrate_switch=True)
+            a.send(fd)
+            got = b.recv(2.0)
+            assert got is not None and got.is_fd and got.bitrate_switch and bytes(got.data) == bytes(range(48))
+        assert hub.stats()["io"].fd_frames == 1
+
+
+def test_fileno_select_over_two_buses_and_hub_side_filters() -> None:
+    with start_hub() as hub:
+        with HubBus(hub.channel("io")) as io_tx, HubBus(hub.channel("fieldbus")) as fb_tx, HubBus(
+            hub.channel("io"), can_filters=[{"can_id": 0x101, "can_mask": 0x7FF, "extended": False}]
+        ) as io_rx, HubBus(hub.channel("fieldbus")) as fb_rx:
+            time.sleep(0.05)  # let the hub apply io_rx's filter (sent right after the handshake)
+            io_tx.send(can.Message(arbitration_id=0x102, is_extended_id=False, data=b"x"))  # filtered in the hub
+            assert select.select([io_rx, fb_rx], [], [], 0.1)[0] == []  # nothing reached the socket
+            fb_tx.send(can.Message(arbitration_id=0x601, is_extended_id=False, data=b"f"))
+            io_tx.send(can.Message(arbitration_id=0x101, is_extended_id=False, data=b"e"))
+            seen = {}
+            while len(seen) < 2:
+                ready, _, _ = select.select([io_rx, fb_rx], [], [], 2.0)
+                assert ready
+                for b in ready:
+                    m = b.recv(0)
+                    assert m is not None
+                    seen[b.bus_name] = (m.arbitration_id, bytes(m.data))
+            assert seen == {"io": (0x101, b"e"), "fieldbus": (0x601, b"f")}
+            assert select.select([io_rx, fb_rx], [], [], 0.05)[0] == []
+
+
+def _stay_then_die(channel: str, q: Any) -> None:
+    bus = HubBus(channel)
+    q.put("up")
+    time.sleep(60)  # killed by the test
+    bus.shutdown()
+
+
+def test_client_disconnect_does_not_disturb_others() -> None:
+    with start_hub() as hub:
+        q = CTX.Queue()
+        victim = CTX.Process(target=_stay_then_die, args=(hub.channel("rig"), q))
+        try:
+            victim.start()
+            assert q.get(timeout=10) == "up"
+            with HubBus(hub.channel("rig")) as a, HubBus(hub.channel("rig")) as b:
+                a.send(can.Message(arbitration_id=1, is_extended_id=False, data=b"1"))
+                assert b.recv(2.0) is not None
+                os.kill(victim.pid, signal.SIGKILL)  # abrupt: no shutdown, socket reset
+                victim.join(5)
+                for i in range(200):  # traffic keeps flowing both ways
+                    a.send(can.Message(arbitration_id=2, is_extended_id=False, data=bytes([i % 256])))
+                    m = b.recv(2.0)
+                    assert m is not None and m.data[0] == i % 256
+                    b.send(can.Message(arbitration_id=3, is_extended_id=False, data=b""))
+                    assert a.recv(2.0) is not None
+                deadline = time.monotonic() + 2
+                while hub.stats()["rig"].clients != 2 and time.monotonic() < deadline:
+                    time.sleep(0.01)
+                assert hub.stats()["rig"].clients == 2
+        finally:
+            if victim.is_alive():
+                victim.kill()
+            victim.join()
+
+
+def test_recv_raises_when_hub_goes_away() -> None:
+    hub = start_hub()
+    try:
+        bus = HubBus(hub.channel("x"))
+    finally:
+        hub.stop()
+    try:
+        with pytest.raises(can.CanOperationError, match="closed"):
+            bus.recv(2.0)
+    finally:
+        bus.shutdown()
+
+
+# -- addresses ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("addr", ["tcp:0.0.0.0:0", "tcp:8.8.8.8:1234", "tcp::0", "tcp:[::]:0"])
+def test_non_loopback_listen_refused(addr: str) -> None:
+    with pytest.raises(NonLoopbackAddressError):
+        HubServer([addr])
+    with pytest.raises(NonLoopbackAddressError):
+        start_hub(addr)  # refused before any process starts
+
+
+def test_cli_refuses_non_loopback() -> None:
+    res = subprocess.run(
+        [sys.executable, "-m", "bus.hub", "--listen", "tcp:0.0.0.0:0"], capture_output=True, text=True, timeout=30
+    )
+    assert res.returncode != 0 and "non-loopback" in res.stderr
+
+
+def test_address_parsing() -> None:
+    assert str(parse_address("tcp:localhost:5")) in ("tcp:127.0.0.1:5", "tcp:[::1]:5")
+    assert str(parse_address("tcp:[::1]:7")) == "tcp:[::1]:7"
+    assert parse_channel("/tmp/a.sock") == (parse_address("unix:/tmp/a.sock"), "default")
+    assert parse_channel("unix:/tmp/a#b.sock#io")[1] == "io"
+    for bad in ["", "unix:", "tcp:127.0.0.1", "tcp:127.0.0.1:x", "tcp:127.0.0.1:70000", "foo", "unix:/a#"]:
+        with pytest.raises(HubAddressError):
+            parse_channel(bad)
+    with pytest.raises(ValueError):
+        HubBus(None)
+
+
+def test_unix_path_in_use_and_stale(tmp_path: Path) -> None:
+    path = tmp_path / "hub.sock"
+    with start_hub(f"unix:{path}") as hub:
+        with pytest.raises(HubAddressInUseError):
+            HubServer([f"unix:{path}"])
+        assert hub.alive
+    stale = socket.socket(socket.AF_UNIX)
+    stale.bind(str(path))  # a socket file nobody listens on
+    stale.close()
+    with start_hub(f"unix:{path}") as hub, HubBus(hub.channel("x")):
+        pass
+    assert not path.exists()
+
+
+# -- process lifecycle -------------------------------------------------------------------------
+
+
+def _gone(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(")")[-1].split()[0] in ("Z", "X")
+    except FileNotFoundError:
+        return True
+
+
+def test_hub_child_always_reaped() -> None:
+    hub = start_hub()
+    pid = hub.pid
+    assert hub.alive and query_hub_stats(hub.address) == {}
+    assert hub.stop() == 0
+    assert hub.stop() == 0  # idempotent
+    with pytest.raises(ChildProcessError):
+        os.waitpid(pid, os.WNOHANG)  # already reaped: no zombie left
+    assert _gone(pid)
+    # leaving the context manager reaps it too
+    with start_hub() as hub2:
+        pid2 = hub2.pid
+    assert _gone(pid2)
+
+
+def test_start_failure_is_reaped(tmp_path: Path) -> None:
+    with pytest.raises(HubStartError, match="exited"):
+        start_hub(f"unix:{tmp_path}/no/such/dir/hub.sock")
+    assert mp.active_children() == []
+
+
+def test_hub_exits_when_parent_dies(tmp_path: Path) -> None:
+    script = tmp_path / "parent.py"
+    script.write_text(
+        textwrap.dedent(
+            """
+            import sys, time
+            from bus.hub import start_hub
+            h = start_hub()
+            print(h.pid, flush=True)
+            time.sleep(60)
+            """
+        )
+    )
+    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert parent.stdout is not None
+        hub_pid = int(parent.stdout.readline())
+        assert not _gone(hub_pid)
+        parent.kill()
+        parent.wait()
+        deadline = time.monotonic() + 5
+        while not _gone(hub_pid) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert _gone(hub_pid)
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+        parent.wait()
+        if parent.stdout is not None:
+            parent.stdout.close()
+
+
+def test_stats_reset_and_record_encoding() -> None:
+    with start_hub() as hub, HubBus(hub.channel("a")) as x, HubBus(hub.channel("a")) as y:
+        x.send(can.Message(arbitration_id=0x80, is_extended_id=False, data=b""))
+        assert y.recv(2.0) is not None
+        first = hub.stats(reset=True)["a"]
+        assert (first.frames, first.bits, first.bits_worst_case, first.clients) == (1, 47, 55, 2)
+        assert hub.stats()["a"].frames == 0
+    rec = encode_record(can.Message(arbitration_id=0x123, is_extended_id=False, data=b"\x01\x02"))
+    assert rec == bytes.fromhex("01 00 02 02 23010000 0102000000000000")
+
+
+def test_hub_refuses_bad_hello_and_keeps_serving() -> None:
+    with start_hub() as hub:
+        raw = socket.socket(socket.AF_UNIX)
+        try:
+            raw.settimeout(5)
+            raw.connect(parse_address(hub.address).path)
+            raw.sendall(b"GET / HTTP/1.0\r\n\r\n")
+            reply = raw.recv(256)
+        finally:
+            raw.close()
+        assert reply.startswith(b"ILNO") and b"bad hello" in reply
+        with HubBus(hub.channel("a")) as x, HubBus(hub.channel("a")) as y:
+            x.send(can.Message(arbitration_id=5, is_extended_id=False, data=b"ok"))
+            m = y.recv(2.0)
+            assert m is not None and bytes(m.data) == b"ok"

@@ -1,0 +1,368 @@
+"""Tests of firmware_model/node.py: the drive node runtime on python-can virtual buses, checked
+from the host side with the canopen library (RemoteNode, SDO client, NMT, heartbeat)."""
+
+from __future__ import annotations
+
+import itertools
+import struct
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import can
+import canopen
+import pytest
+
+from bus import io_frames
+from bus.emcy import EmcyCode
+from bus.errors import AbortCode, SdoAbort
+from bus.nmt import NmtCommand, NmtState, next_state
+from firmware_model.node import DriveNode
+
+EDS = Path(__file__).resolve().parents[1] / "bus" / "drive.eds"
+NODE = 2
+_counter = itertools.count()
+
+
+class FakeDrive:
+    """Minimal stand-in for firmware_model.drive.Drive (object access, NMT, EMCY, io_tick)."""
+
+    def __init__(self, node_id: int) -> None:
+        self.node_id = node_id
+        self.nmt_state = NmtState.PRE_OPERATIONAL
+        self.objects: dict[tuple[int, int], bytes] = {
+            (0x1017, 0): struct.pack("<H", 0),
+            (0x1018, 1): struct.pack("<L", 0x1234),
+            (0x6040, 0): struct.pack("<H", 0),
+            (0x6041, 0): struct.pack("<H", 0x0240),
+        }
+        self.emcy: list[tuple[int, int, bytes]] = []
+        self.ticks: list[tuple[int, int]] = []
+        self.nmt_log: list[int] = []
+        self.controls: list[tuple[int, int, int]] = []
+
+    def read_object(self, index: int, sub: int) -> bytes:
+        try:
+            return self.objects[(index, sub)]
+        except KeyError:
+            raise SdoAbort(AbortCode.NO_OBJECT) from None
+
+    def write_object(self, index: int, sub: int, data: bytes) -> None:
+        if (index, sub) not in self.objects:
+            raise SdoAbort(AbortCode.NO_OBJECT)
+        if index == 0x6041:
+            raise SdoAbort(AbortCode.READ_ONLY)
+        self.objects[(index, sub)] = bytes(data)
+        if index == 0x6040:
+            sw = {0x06: 0x0221, 0x07: 0x0223, 0x0F: 0x0237}.get(data[0], 0x0240)
+            self.objects[(0x6041, 0)] = struct.pack("<H", sw)
+            if data[0] == 0xFF:
+                self.emcy.append((EmcyCode.FOLLOWING_ERROR, 0x21, b"\x01"))
+
+    def nmt_command(self, cs: int) -> None:
+        self.nmt_log.append(cs)
+        self.nmt_state = next_state(self.nmt_state, NmtCommand(cs))
+
+    def pop_emcy(self) -> list[tuple[int, int, bytes]]:
+        out, self.emcy = self.emcy, []
+        return out
+
+    def io_tick(self, tick: int, encoder_count: int) -> int:
+        self.ticks.append((tick, encoder_count))
+        return -encoder_count
+
+    def io_control(self, command: int, tick: int, n_ticks: int) -> None:
+        self.controls.append((int(command), tick, n_ticks))
+
+    torque_status = io_frames.TorqueStatus.ENABLED
+
+
+class Rig:
+    """A DriveNode in a thread + a canopen host Network + a plant-side io bus."""
+
+    def __init__(self, drive: object) -> None:
+        k = next(_counter)
+        self.fb_channel, self.io_channel = f"node-fb-{k}", f"node-io-{k}"
+        self.drive = drive
+        self.stop = threading.Event()
+        self.fb = can.Bus(interface="virtual", channel=self.fb_channel)
+        self.io = can.Bus(interface="virtual", channel=self.io_channel)
+        self.node = DriveNode(drive, self.fb, self.io)  # type: ignore[arg-type]
+        self.plant = can.Bus(interface="virtual", channel=self.io_channel)
+        self.network = canopen.Network()
+        self.network.NOTIFIER_CYCLE = 0.02
+        self.network.connect(interface="virtual", channel=self.fb_channel)
+        self.heartbeats: list[tuple[float, int]] = []
+        self.emcys: list[bytes] = []
+        self.network.subscribe(0x700 + NODE, lambda _id, data, _t: self.heartbeats.append(
+            (time.monotonic(), data[0])))
+        self.network.subscribe(0x080 + NODE, lambda _id, data, _t: self.emcys.append(bytes(data)))
+        self.remote = canopen.RemoteNode(NODE, str(EDS))
+        self.network.add_node(self.remote)
+        self.thread = threading.Thread(target=self.node.run, args=(self.stop,), daemon=True)
+        self.thread.start()
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(timeout=2.0)
+        assert not self.thread.is_alive()
+        self.network.disconnect()
+        self.plant.shutdown()
+        self.fb.shutdown()
+        self.io.shutdown()
+
+
+def wait_for(predicate, timeout_s: float = 1.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.002)
+    return predicate()
+
+
+@pytest.fixture(autouse=True)
+def _no_leaked_virtual_channels() -> Iterator[None]:
+    from can.interfaces import virtual
+
+    yield
+    assert not virtual.channels, f"virtual channels left open: {list(virtual.channels)}"
+
+
+@pytest.fixture
+def fake_rig() -> Iterator[Rig]:
+    rig = Rig(FakeDrive(NODE))
+    try:
+        yield rig
+    finally:
+        rig.close()
+
+
+def test_bootup_sdo_nmt_heartbeat_fake_drive(fake_rig: Rig) -> None:
+    rig = fake_rig
+    assert wait_for(lambda: rig.heartbeats[:1] and rig.heartbeats[0][1] == 0x00)  # boot-up
+    assert rig.remote.sdo.upload(0x1018, 1) == struct.pack("<L", 0x1234)
+    assert rig.remote.sdo[0x6041].raw == 0x0240
+    for cw, sw in ((0x06, 0x0221), (0x07, 0x0223), (0x0F, 0x0237)):
+        rig.remote.sdo[0x6040].raw = cw
+        assert rig.remote.sdo[0x6041].raw == sw
+    with pytest.raises(canopen.SdoAbortedError) as err:
+        rig.remote.sdo[0x6041].raw = 1
+    assert err.value.code == 0x06010002
+    rig.remote.sdo[0x1017].raw = 20  # ms
+    rig.remote.nmt.send_command(0x01)
+    assert wait_for(lambda: len([s for _, s in rig.heartbeats if s == 0x05]) >= 3)
+    beats = [t for t, s in rig.heartbeats if s == 0x05]
+    period = (beats[-1] - beats[0]) / (len(beats) - 1)
+    assert 0.010 < period < 0.100
+    assert rig.drive.nmt_log == [0x01]
+    # NMT to another node is ignored
+    rig.network.send_message(0, bytes([0x02, NODE + 1]))
+    time.sleep(0.03)
+    assert rig.drive.nmt_log == [0x01]
+
+
+def test_stopped_node_ignores_sdo_and_reset_sends_bootup(fake_rig: Rig) -> None:
+    rig = fake_rig
+    rig.remote.sdo.RESPONSE_TIMEOUT = 0.05
+    rig.remote.nmt.send_command(0x02)  # stop
+    assert wait_for(lambda: rig.drive.nmt_state == NmtState.STOPPED)
+    with pytest.raises(canopen.SdoCommunicationError):
+        rig.remote.sdo.upload(0x1018, 1)
+    rig.heartbeats.clear()
+    rig.remote.nmt.send_command(0x81)  # reset node (all via node id)
+    assert wait_for(lambda: any(s == 0x00 for _, s in rig.heartbeats))
+    assert rig.remote.sdo.upload(0x1018, 1) == struct.pack("<L", 0x1234)
+
+
+def test_emcy_frames_sent(fake_rig: Rig) -> None:
+    rig = fake_rig
+    rig.remote.sdo[0x6040].raw = 0xFF  # the fake raises a following-error EMCY
+    assert wait_for(lambda: bool(rig.emcys))
+    assert rig.emcys[0] == bytes.fromhex("11 86 21 01 00 00 00 00")
+
+
+def test_io_tick_round_trip_and_tick_unwrap(fake_rig: Rig) -> None:
+    rig = fake_rig
+    joint = NODE - 1
+    rig.plant.send(io_frames.encode_control(io_frames.ControlCommand.TRIAL_START, 0, 70000))
+    torques = []
+    for n in [0, 1, 2]:
+        rig.plant.send(io_frames.encode_encoder(joint, n, 1000 + n))
+        rig.plant.send(io_frames.encode_encoder(joint + 1, n, 5))  # another joint: ignored
+        msg = rig.plant.recv(timeout=1.0)
+        assert msg is not None
+        torques.append(io_frames.decode_torque(msg))
+    assert [(t.tick, t.torque_units) for t in torques] == [(0, -1000), (1, -1001), (2, -1002)]
+    assert torques[0].status == io_frames.TorqueStatus.ENABLED
+    assert rig.drive.ticks == [(0, 1000), (1, 1001), (2, 1002)]
+    assert rig.drive.controls == [(1, 0, 70000)]
+
+
+def test_tick_is_relative_to_trial_start_and_unwrapped(fake_rig: Rig) -> None:
+    """The drive sees n = 0, 1, ... from TRIAL_START on, across the 16-bit wire wrap; the
+    torque frames echo the wire tick."""
+    rig = fake_rig
+    joint = NODE - 1
+    rig.plant.send(io_frames.encode_control(io_frames.ControlCommand.TRIAL_START, 65533, 6))
+    wire = []
+    for k in range(6):
+        rig.plant.send(io_frames.encode_encoder(joint, 65533 + k, k))
+        msg = rig.plant.recv(timeout=1.0)
+        assert msg is not None
+        wire.append(io_frames.decode_torque(msg).tick)
+    assert [t for t, _ in rig.drive.ticks] == [0, 1, 2, 3, 4, 5]
+    assert wire == [65533, 65534, 65535, 0, 1, 2]
+
+
+def test_own_frames_are_ignored(fake_rig: Rig) -> None:
+    """udp_multicast echoes a node's own frames: SDO responses, heartbeats, torques."""
+    rig = fake_rig
+    node = rig.node
+    before = (list(rig.drive.ticks), list(rig.drive.nmt_log))
+    rig.network.send_message(0x580 + NODE, bytes(8))
+    rig.network.send_message(0x700 + NODE, b"\x05")
+    rig.plant.send(io_frames.encode_torque(NODE - 1, 0, 1, 0))
+    time.sleep(0.03)
+    assert (rig.drive.ticks, rig.drive.nmt_log) == before
+    assert not node.sdo.busy
+
+
+def test_real_drive_enable_sequence() -> None:
+    """The real firmware: 0x1018/0x6041 over SDO, the CiA 402 enable sequence, NMT start,
+    heartbeat."""
+    drive_mod = pytest.importorskip("firmware_model.drive")
+    from bus.objects import Cia402State, ControlCommand, state_from_statusword
+
+    rig = Rig(drive_mod.Drive(NODE))
+    try:
+        remote = rig.remote
+        assert wait_for(lambda: rig.heartbeats[:1] and rig.heartbeats[0][1] == 0x00)
+        vendor = remote.sdo[0x1018][1].raw
+        assert isinstance(vendor, int)
+        sw = remote.sdo[0x6041].raw
+        assert state_from_statusword(sw) == Cia402State.SWITCH_ON_DISABLED
+        remote.sdo[0x1017].raw = 20
+        remote.nmt.send_command(0x01)
+        assert wait_for(lambda: any(s == 0x05 for _, s in rig.heartbeats))
+        for cw, state in ((ControlCommand.SHUTDOWN, Cia402State.READY_TO_SWITCH_ON),
+                          (ControlCommand.SWITCH_ON, Cia402State.SWITCHED_ON),
+                          (ControlCommand.ENABLE_OPERATION, Cia402State.OPERATION_ENABLED)):
+            remote.sdo[0x6040].raw = int(cw)
+            assert state_from_statusword(remote.sdo[0x6041].raw) == state
+        remote.nmt.wait_for_heartbeat(timeout=1.0)
+        assert remote.nmt.state == "OPERATIONAL"
+        # one io tick: the enabled drive answers with a torque frame, status ENABLED
+        rig.plant.send(io_frames.encode_encoder(NODE - 1, 0, 12345))
+        msg = rig.plant.recv(timeout=1.0)
+        assert msg is not None
+        torque = io_frames.decode_torque(msg)
+        assert torque.tick == 0 and torque.status & io_frames.TorqueStatus.ENABLED
+        # disable voltage: torque removed, status no longer ENABLED
+        remote.sdo[0x6040].raw = int(ControlCommand.DISABLE_VOLTAGE)
+        rig.plant.send(io_frames.encode_encoder(NODE - 1, 1, 12345))
+        msg = rig.plant.recv(timeout=1.0)
+        assert msg is not None
+        torque = io_frames.decode_torque(msg)
+        assert torque.torque_units == 0 and not torque.status & io_frames.TorqueStatus.ENABLED
+    finally:
+        rig.close()
+
+
+class SocketPairBus(can.BusABC):
+    """A two-party python-can bus over a SOCK_SEQPACKET socketpair: it has a fileno(), so the
+    node takes its select() path."""
+
+    _REC = struct.Struct("<IB8s")
+
+    def __init__(self, sock, **kwargs) -> None:  # noqa: ANN001
+        self._sock = sock
+        super().__init__(channel="pair", **kwargs)
+
+    @classmethod
+    def pair(cls) -> tuple[SocketPairBus, SocketPairBus]:
+        import socket
+
+        a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        return cls(a), cls(b)
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self._sock.send(self._REC.pack(msg.arbitration_id, msg.dlc, bytes(msg.data)))
+
+    def _recv_internal(self, timeout: float | None):  # noqa: ANN202
+        import select as _select
+
+        ready, _, _ = _select.select([self._sock], [], [], timeout)
+        if not ready:
+            return None, False
+        cob, dlc, data = self._REC.unpack(self._sock.recv(64))
+        return can.Message(arbitration_id=cob, data=data[:dlc], is_extended_id=False), False
+
+    def fileno(self) -> int:
+        return self._sock.fileno()
+
+    def shutdown(self) -> None:
+        super().shutdown()
+        self._sock.close()
+
+
+def test_select_path_with_fileno_buses() -> None:
+    drive = FakeDrive(NODE)
+    drive.objects[(0x1017, 0)] = struct.pack("<H", 10)
+    fb_node, fb_host = SocketPairBus.pair()
+    io_node, io_plant = SocketPairBus.pair()
+    node = DriveNode(drive, fb_node, io_node)  # type: ignore[arg-type]
+    assert node._fds is not None
+    stop = threading.Event()
+    thread = threading.Thread(target=node.run, args=(stop,), daemon=True)
+    thread.start()
+    try:
+        boot = fb_host.recv(timeout=1.0)
+        assert boot is not None and (boot.arbitration_id, bytes(boot.data)) == (0x702, b"\x00")
+        fb_host.send(can.Message(arbitration_id=0x602, data=bytes.fromhex("40 18 10 01 00 00 00 00"),
+                                 is_extended_id=False))
+        resp = fb_host.recv(timeout=1.0)
+        while resp is not None and resp.arbitration_id != 0x582:
+            resp = fb_host.recv(timeout=1.0)
+        assert resp is not None and bytes(resp.data) == bytes.fromhex("43 18 10 01 34 12 00 00")
+        io_plant.send(io_frames.encode_encoder(NODE - 1, 0, 42))
+        torque = io_plant.recv(timeout=1.0)
+        assert torque is not None and io_frames.decode_torque(torque).torque_units == -42
+        t0 = time.monotonic()
+        beats = 0
+        while beats < 3 and time.monotonic() - t0 < 1.0:
+            msg = fb_host.recv(timeout=0.1)
+            beats += msg is not None and msg.arbitration_id == 0x702
+        assert beats == 3
+        assert time.monotonic() - t0 < 0.5  # 10 ms heartbeat (generous under CPU load)
+    finally:
+        stop.set()
+        thread.join(timeout=2.0)
+        for bus in (fb_node, fb_host, io_node, io_plant):
+            bus.shutdown()
+    assert not thread.is_alive()
+
+
+def test_run_node_process_entry_with_stop_event() -> None:
+    """run_node builds the real Drive and both buses, serves, and cleans up on stop."""
+    pytest.importorskip("firmware_model.drive")
+    from firmware_model.node import run_node
+
+    k = next(_counter)
+    fb_cfg = {"interface": "virtual", "channel": f"run-fb-{k}"}
+    io_cfg = {"interface": "virtual", "channel": f"run-io-{k}"}
+    with can.Bus(**fb_cfg) as host, can.Bus(**io_cfg) as plant:
+        stop = threading.Event()
+        thread = threading.Thread(target=run_node, args=(3, fb_cfg, io_cfg, stop), daemon=True)
+        thread.start()
+        try:
+            boot = host.recv(timeout=5.0)
+            assert boot is not None and boot.arbitration_id == 0x703 and bytes(boot.data) == b"\x00"
+            plant.send(io_frames.encode_encoder(2, 0, 99))
+            msg = plant.recv(timeout=1.0)
+            assert msg is not None and io_frames.decode_torque(msg).torque_units == 0  # disabled
+        finally:
+            stop.set()
+            thread.join(timeout=2.0)
+        assert not thread.is_alive()
