@@ -39,8 +39,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _add_experiment_args(p: argparse.ArgumentParser) -> None:
-    from host.config import DISTURBANCES, PROFILES
-    from host.ilc import GAIN_PRESETS, LAWS
+    from host.names import DISTURBANCES, GAIN_PRESET_NAMES, LAWS, PROFILES
 
     p.add_argument("--config", metavar="TOML", help="experiment file (keys as the options; unknown keys are errors)")
     p.add_argument("--law", help=f"learning law: {', '.join(LAWS)} (default pd-ilc)")
@@ -51,7 +50,7 @@ def _add_experiment_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--disturbance", help=f"{', '.join(DISTURBANCES)} (default none)")
     p.add_argument("--seed", type=int, help="seed of every random generator (default 0)")
     p.add_argument("--ff0", help="initial feed-forward: model | zero (default model)")
-    p.add_argument("--gains", dest="preset", help=f"gain preset: {', '.join(GAIN_PRESETS)} (default normalized)")
+    p.add_argument("--gains", dest="preset", help=f"gain preset: {', '.join(GAIN_PRESET_NAMES)} (default normalized)")
     for name, hlp in (("alpha", "α of the paper's law (feedback Kp = (α−1)Lp)"),
                       ("beta", "β of the paper's law (feedback Kd = (β−1)Ld)"),
                       ("lp", "learning P gain, N·m/rad (overrides lp_norm)"),
@@ -175,6 +174,18 @@ def cmd_run(args: argparse.Namespace) -> int:
     return launch_rig(args)
 
 
+def cmd_view(args: argparse.Namespace) -> int:
+    from host.recording import view_run
+
+    return int(view_run(Path(args.run_dir)))
+
+
+def cmd_reproduce(args: argparse.Namespace) -> int:
+    from host.reproduce import reproduce_main
+
+    return int(reproduce_main(args))
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="ilcrig", description="ILC on an emulated 4-DOF parallel robot with CAN servo drives")
     p.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
@@ -203,6 +214,18 @@ def build_parser() -> argparse.ArgumentParser:
     pp.add_argument("--node-id", type=int, default=32, help="CANopen node id of the test-bench node (default 32)")
     _add_bus_args(pp)
     pp.set_defaults(func=cmd_plant)
+
+    vp = sub.add_parser("view", help="open a run's recording.rrd in the Rerun viewer (or print how to)")
+    vp.add_argument("run_dir", help="a run folder (with recording.rrd)")
+    vp.set_defaults(func=cmd_view)
+
+    xp = sub.add_parser("reproduce", help="run the paper's experiments (Tables 2-6, Figs. 8 and 10) and beyond")
+    xp.add_argument("--out", default="runs/reproduce", help="sweep folder (default runs/reproduce); reused to resume")
+    xp.add_argument("--jobs", type=int, default=None, help="parallel processes (default: number of cores)")
+    xp.add_argument("--iterations", type=int, default=10, help="trials per experiment (default 10)")
+    xp.add_argument("--only", default=None, help="comma-separated subset: table2,table3,table4,table5,table6,figs,beyond")
+    xp.add_argument("--fresh", action="store_true", help="ignore finished experiments in --out and redo all")
+    xp.set_defaults(func=cmd_reproduce)
 
     bp = sub.add_parser("hub", help="the zero-privilege CAN hub (loopback / Unix socket only)")
     bp.add_argument("--listen", action="append", help="unix:/path or tcp:127.0.0.1:PORT (repeatable)")

@@ -33,11 +33,10 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from host.ilc import GAIN_PRESETS, LAWS, GainSpec
+from host.names import DISTURBANCES, PROFILES
 
 __all__ = ["ConfigError", "ExperimentConfig", "build_config", "PROFILES", "DISTURBANCES"]
 
-PROFILES: tuple[str, ...] = ("ruckig", "poly4567", "poly5")
-DISTURBANCES: tuple[str, ...] = ("none", "repetitive", "nonrepetitive", "both")
 
 
 class ConfigError(ValueError):

@@ -34,13 +34,25 @@ from plant.params import default_true_plant, nominal_mass_model
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Bench", "TrialFault", "Plan", "prepare", "run_experiment", "ExperimentResult", "SCHEMA"]
+__all__ = ["Bench", "TrialRecorder", "TrialFault", "Plan", "prepare", "run_experiment", "ExperimentResult", "SCHEMA"]
 
 SCHEMA = "ilcrig.summary/1"
 
 
 class TrialFault(IlcrigError):
     """A trial could not complete (drive fault, plant error, lost node); torque was removed."""
+
+
+class TrialRecorder(Protocol):
+    """Receives every completed trial (e.g. :class:`host.recording.RunRecorder`)."""
+
+    def log_trial(self, k: int, ref: JointReference, traces: Sequence[Any], u: np.ndarray,
+                  error_rad: np.ndarray, metrics: TrialMetrics) -> None:
+        """``traces``: the DriveTrace of each drive; ``u`` (N, 4) the feed-forward of trial k, N·m;
+        ``error_rad`` (N, 4) = q_d − q."""
+
+    def close(self) -> None:
+        """Finish the recording (called once, also after a fault)."""
 
 
 class Bench(Protocol):
@@ -96,8 +108,9 @@ def prepare(cfg: ExperimentConfig) -> Plan:
     law = make_law(cfg.law, gains, cfg.ts_s, model=lifted)
     check = law.check(lifted, None, cfg.iterations)
     if not check.ok:
-        logger.warning("convergence check: spectral radius %.3f >= 1 for law %s: expect divergence",
-                       check.rho_max, cfg.law)
+        logger.warning("convergence check failed for law %s: spectral radius %.3f, predicted error ratio "
+                       "after %d trials %.3g: expect divergence", cfg.law, check.rho_max, check.iterations,
+                       check.predicted_ratio)
     if cfg.ff0 == "model":
         u0 = np.asarray(inverse_dynamics(ref.q, ref.qd, ref.qdd, model), dtype=float)
     else:
@@ -159,6 +172,7 @@ def run_experiment(
     mode: str,
     on_trial: Callable[[TrialMetrics], None] | None = None,
     keep_traces: bool = False,
+    recorder: TrialRecorder | None = None,
 ) -> ExperimentResult:
     """Run ``plan.cfg.iterations`` trials on ``bench``; write ``summary.json`` after each."""
     cfg, ref = plan.cfg, plan.ref
@@ -219,6 +233,8 @@ def run_experiment(
             result.feedforward.append(u.copy())
             if keep_traces:
                 result.traces.append(traces)
+            if recorder is not None:
+                recorder.log_trial(k, ref, traces, u, e, m)
             summary["iterations"].append(m.as_dict())
             summary["ticks"] = ticks
             summary["wall_s"] = wall
@@ -240,6 +256,8 @@ def run_experiment(
             summary["bench"] = _jsonable(bench.info())
         finally:
             bench.close()
+            if recorder is not None:
+                recorder.close()
         if out is not None:
             _write_summary(out, summary)
     return result

@@ -21,7 +21,9 @@ Lifetime
     Every child runs in its own session (``setsid``: a terminal Ctrl-C reaches only the
     launcher, which then stops the children in order) and has ``PR_SET_PDEATHSIG = SIGKILL``
     (set with ``prctl`` through ctypes in ``preexec_fn``), so a SIGKILLed launcher still takes
-    them down; the hub exits when its stdin (a pipe from the launcher) reaches EOF. In every
+    them down; the hub exits when its stdin (a pipe from the launcher) reaches EOF, and is
+    started with SIGINT/SIGHUP blocked, so a terminal Ctrl-C does not close it under the roles'
+    feet. In every
     other exit path — host finished, a child ended early, SIGINT/SIGTERM/SIGHUP, an exception —
     the launcher sends SIGTERM to every child's process group, waits up to
     :data:`TERMINATE_GRACE_S`, sends SIGKILL to what is left, reaps every child and stops the
@@ -97,6 +99,7 @@ ROLE_COMMAND: dict[str, list[str]] = {}
 _SIGNAL_EXIT: dict[int, int] = {signal.SIGINT: 130, signal.SIGTERM: 143, signal.SIGHUP: 129}
 _HANDLED_SIGNALS: tuple[int, ...] = tuple(_SIGNAL_EXIT)
 _PR_SET_PDEATHSIG = 1
+_HUB_BLOCKED_SIGNALS = frozenset({signal.SIGINT, signal.SIGHUP})
 # options of the experiment that are not passed through generically
 _NOT_EXPERIMENT = frozenset({"help", "out", "bus", "hub"})
 
@@ -326,12 +329,18 @@ class RigLauncher:
     def _start_hub(self, address: str | None) -> None:
         from bus.hub import HubError, start_hub
 
+        # The hub stays in the launcher's process group (start_hub's Popen); with SIGINT/SIGHUP
+        # blocked across fork+exec (the signal mask is inherited), a terminal Ctrl-C reaches only
+        # the launcher, and the hub lives until the roles are stopped (then stdin EOF stops it).
+        old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, _HUB_BLOCKED_SIGNALS)
         try:
             self.hub = start_hub(address)  # None: hub.sock in a fresh private temp directory
         except HubError as err:
             if isinstance(err, ValueError):
                 raise
             raise LaunchError(f"cannot start the bus hub{f' on {address}' if address else ''}: {err}") from err
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)  # a pending Ctrl-C is handled now
         self.hub_address = self.hub.address
         logger.info("hub pid %d on %s", self.hub.pid, self.hub_address)
 
@@ -362,6 +371,8 @@ class RigLauncher:
         cpu0, wall0 = _cpu_s(), time.monotonic()
         try:
             while True:
+                if self._signal is not None:  # first: the roles may fail because of the same Ctrl-C
+                    return self._signal_exit()
                 code = host.proc.poll()
                 if code is not None:
                     for c in others:  # a role that died first probably caused the host's end
@@ -376,8 +387,6 @@ class RigLauncher:
                     if c.proc.poll() is not None:
                         self._report_early_exit(c)
                         return EXIT_CHILD_FAILED
-                if self._signal is not None:
-                    return self._signal_exit()
                 time.sleep(POLL_S)
         finally:
             self.watch_cpu_s, self.watch_wall_s = _cpu_s() - cpu0, time.monotonic() - wall0

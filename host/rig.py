@@ -70,6 +70,10 @@ class ChannelMonitor(can.Listener):
                 self.log.on_message_received(msg)
 
     def stop(self) -> None:
+        """can.Listener hook (called by the notifier when it stops): nothing to do here."""
+
+    def close(self) -> None:
+        """Stop receiving, close the log and the bus."""
         self.notifier.stop(timeout=2.0)
         with self.lock:
             if self.log is not None:
@@ -227,9 +231,9 @@ class RigBench:
             logger.debug("disconnect failed", exc_info=True)
         for m in self.monitors:
             try:
-                m.stop()
+                m.close()
             except Exception:
-                logger.debug("monitor stop failed", exc_info=True)
+                logger.warning("closing the %s monitor failed", m.name, exc_info=True)
         self.monitors = []
 
 

@@ -24,7 +24,6 @@ from pathlib import Path
 
 import pytest
 
-from bus.hub import query_hub_stats
 from host import launcher
 from host.cli import build_parser
 from host.launcher import EXIT_CHILD_FAILED, RigLauncher, host_role_args, role_command
@@ -332,7 +331,7 @@ def start_cli_run(tmp_path: Path, piddir: Path) -> tuple[subprocess.Popen[bytes]
     proc = subprocess.Popen(
         [sys.executable, "-m", "host.cli", "run", "--iterations", "2", "--out", str(tmp_path / "run"),
          "--bus", "hub"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, env=env,
-        cwd=ROOT)
+        cwd=ROOT, start_new_session=True)  # its own process group, like a shell's foreground job
     assert proc.stdout is not None
     buf, deadline = b"", time.monotonic() + 20
     while b"starting host\n" not in buf:
@@ -358,7 +357,12 @@ def test_sigint_to_the_launcher(tmp_path: Path, piddir: Path) -> None:
         proc, line, pids = start_cli_run(tmp_path, piddir)
         sock = re.search(r"\(unix:(\S+)\)", line).group(1)  # type: ignore[union-attr]
         assert os.path.exists(sock)
-        proc.send_signal(signal.SIGINT)
+        # the hub shares the launcher's process group but blocks SIGINT (a terminal's Ctrl-C
+        # must not close the bus under the roles)
+        sigblk = next(ln for ln in Path(f"/proc/{pids['hub']}/status").read_text().splitlines()
+                      if ln.startswith("SigBlk:"))
+        assert int(sigblk.split()[1], 16) & (1 << (signal.SIGINT - 1))
+        os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does
         _, stderr = proc.communicate(timeout=10)
         assert proc.returncode == 130, stderr
         assert b"ilcrig: interrupted (SIGINT); stopping 6 processes" in stderr

@@ -1,0 +1,154 @@
+"""The distributed rig as separate OS processes: digest equality with ``ilcrig sim`` over the
+zero-privilege hub and over udp_multicast inside a private network namespace; the canopen library
+reading and writing drive objects of a drive process; candump logs read back with can.LogReader."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import can
+import canopen
+import pytest
+
+from bus.hub import start_hub
+from bus.io_frames import ENCODER_COB_BASE, TORQUE_COB_BASE
+from bus.objects import Obj
+from bus.transport import hub_transport
+from host.compose import InProcessBench
+from host.config import build_config
+from host.experiment import prepare, run_experiment
+from netns_util import NETNS_SETUP, netns_unavailable_reason
+
+pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
+
+EXP = ["--iterations", "2", "--cycle", "0.15", "--disturbance", "both", "--seed", "3"]
+EXP_CFG = {"iterations": 2, "cycle_s": 0.15, "disturbance": "both", "seed": 3}
+REPO = Path(__file__).resolve().parent.parent
+DRIVE_EDS = REPO / "bus" / "drive.eds"
+
+
+@pytest.fixture(scope="module")
+def sim_digest() -> str:
+    cfg = build_config(None, EXP_CFG)
+    res = run_experiment(prepare(cfg), InProcessBench(cfg), None, mode="sim")
+    return res.summary["trace_sha256"]
+
+
+def run_rig(cmd: list[str], timeout_s: float = 300.0) -> subprocess.CompletedProcess[str]:
+    """Run a launcher command in its own session; kill the whole group if it hangs."""
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True, cwd=REPO)
+    try:
+        out, err = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        pytest.fail(f"rig timed out:\n{out}\n{err}")
+    return subprocess.CompletedProcess(cmd, proc.returncode, out, err)
+
+
+def no_process_left(session_pid: int) -> bool:
+    """True when no process of the launcher's session is alive any more."""
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            stat = (d / "stat").read_text()
+        except OSError:
+            continue
+        fields = stat.rsplit(")", 1)[1].split()
+        if int(fields[3]) == session_pid and fields[0] != "Z":  # fields[3] = session id
+            return False
+    return True
+
+
+def check_run(res: subprocess.CompletedProcess[str], out: Path, digest: str, transport: str) -> dict:
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    s = json.loads((out / "summary.json").read_text())
+    assert s["mode"] == "rig"
+    assert s["completed"] is True
+    assert s["trace_sha256"] == digest
+    info = s["bench"]
+    assert info["transport"]["name"] == transport
+    fb, io = info["channels"]["fieldbus"], info["channels"]["io"]
+    # io: per tick 4 encoder + 4 torque frames, plus start/stop control frames per trial
+    assert io["frames"] == 2 * 301 * 8 + 2 * 2
+    assert fb["frames"] > 1000 and 0 < fb["load_percent_worst_case"]
+    return s
+
+
+def test_rig_over_hub_equals_sim_and_logs_read_back(tmp_path: Path, sim_digest: str) -> None:
+    out = tmp_path / "rig"
+    res = run_rig([sys.executable, "-m", "host.cli", "run", *EXP, "--bus", "hub", "--out", str(out)])
+    s = check_run(res, out, sim_digest, "hub")
+    assert "RMSE j1" in res.stdout
+    io_frames = list(can.LogReader(out / "io.log"))
+    assert len(io_frames) == s["bench"]["channels"]["io"]["frames"]
+    ids = {m.arbitration_id for m in io_frames}
+    assert {ENCODER_COB_BASE + j for j in range(4)} | {TORQUE_COB_BASE + j for j in range(4)} <= ids
+    fb_frames = list(can.LogReader(out / "fieldbus.log"))
+    # the summary counts up to the end of the last trial; the log also holds the shutdown
+    # (drives disabled by SDO, NMT stop, last heartbeats)
+    assert 0 <= len(fb_frames) - s["bench"]["channels"]["fieldbus"]["frames"] < 300
+    assert any(m.arbitration_id == 0x601 for m in fb_frames)  # SDO requests to drive 1
+    assert any(m.arbitration_id == 0x701 for m in fb_frames)  # heartbeats of drive 1
+
+
+@pytest.mark.netns
+def test_rig_over_udp_multicast_in_private_netns_equals_sim(tmp_path: Path, sim_digest: str) -> None:
+    reason = netns_unavailable_reason()
+    if reason:
+        pytest.skip(reason)
+    out = tmp_path / "rig"
+    inner = " ".join([sys.executable, "-m", "host.cli", "run", *EXP, "--bus", "udp_multicast", "--out", str(out)])
+    res = run_rig(["unshare", "-rn", "sh", "-c", f"{NETNS_SETUP} && ILCRIG_PRIVATE_NETNS=1 exec {inner}"])
+    check_run(res, out, sim_digest, "udp_multicast")
+
+
+def test_canopen_library_reads_and_writes_a_drive_process(tmp_path: Path) -> None:
+    with start_hub() as hub:
+        drive = subprocess.Popen([sys.executable, "-m", "host.cli", "drive", "--node", "2", "--bus", "hub",
+                                  "--hub", hub.address], start_new_session=True, cwd=REPO)
+        network = canopen.Network(hub_transport(hub.address).open("fieldbus"))
+        try:
+            network.connect()
+            node = network.add_node(2, str(DRIVE_EDS))
+            node.sdo.RESPONSE_TIMEOUT = 2.0
+            deadline = time.monotonic() + 30
+            while True:
+                try:
+                    vendor = node.sdo[0x1018][1].raw
+                    break
+                except canopen.SdoCommunicationError:
+                    if time.monotonic() > deadline or drive.poll() is not None:
+                        raise
+            assert vendor == node.object_dictionary[0x1018][1].default
+            assert node.sdo[0x6041].raw & 0x004F == 0x0040  # switch on disabled
+            node.sdo[0x6040].raw = 0x0006  # shutdown -> ready to switch on
+            assert node.sdo[0x6041].raw & 0x006F == 0x0021
+            node.sdo[0x6040].raw = 0x000F  # switch on + enable operation
+            assert node.sdo[0x6041].raw & 0x006F == 0x0027
+            node.sdo[0x6065].raw = 12345  # following-error window, counts
+            assert node.sdo[0x6065].raw == 12345
+            with pytest.raises(canopen.SdoAbortedError) as exc:
+                node.sdo[0x6041].raw = 0  # statusword is read-only
+            assert exc.value.code == 0x06010002
+            with pytest.raises(canopen.SdoAbortedError) as exc:
+                node.sdo.upload(0x5FFF, 0)
+            assert exc.value.code == 0x06020000
+            assert int(Obj.RECORDER_DATA) in node.object_dictionary
+        finally:
+            network.disconnect()
+            drive.send_signal(signal.SIGTERM)
+            try:
+                drive.wait(10)
+            except subprocess.TimeoutExpired:
+                drive.kill()
+                drive.wait()
+        assert drive.returncode == 0
