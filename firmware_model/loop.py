@@ -174,3 +174,9 @@ def run_table(
         rec_idx = n if n < rec.shape[1] and n < n_table else -1
         out[n] = control_tick(int(counts[n]), idx, rec_idx, st, tables, rec)[0]
     return out
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the control kernel now, so that a drive process pays
+    for it before it boots, not on the first tick of its first trial."""
+    control_tick(0, 0, 0, new_state(), new_tables(1), new_recorder(1))

@@ -125,7 +125,9 @@ def run_node(node_id: int, fieldbus_config: dict[str, Any], io_config: dict[str,
     :param stop: stop event; by default a new one set by SIGTERM/SIGINT.
     """
     from firmware_model.drive import Drive  # the firmware is only needed in the process
+    from firmware_model.loop import warm_up
 
+    warm_up()  # before boot-up: the host's boot wait covers the JIT, the first trial does not
     if stop is None:
         stop = threading.Event()
         install_sigterm(stop)

@@ -203,6 +203,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_experiment_args(hp)
     _add_bus_args(hp)
     hp.add_argument("--wait", type=float, default=20.0, help="seconds to wait for the nodes to boot (default 20)")
+    hp.add_argument("--pause", type=float, default=0.0,
+                    help="seconds to pause between trials (e.g. to restart a drive; a rebooted drive is set up again)")
     hp.set_defaults(func=cmd_host)
 
     dp = sub.add_parser("drive", help="one servo-drive node (firmware) on the bus")

@@ -70,6 +70,9 @@ class Bench(Protocol):
     def info(self) -> dict[str, Any]:
         """Mode-specific facts for the summary (transport, frame counts, bus load...)."""
 
+    # optional: ``recover(trial) -> list[int]`` — indices of drives that rebooted and must be
+    # configured again before ``trial`` (the rig implements it; in-process nothing reboots)
+
     def close(self) -> None:
         """Remove torque and release every resource (processes, buses)."""
 
@@ -204,7 +207,9 @@ def run_experiment(
     wall = 0.0
     try:
         bench.start()
-        for j, drive in enumerate(bench.drives):
+
+        def setup_drive(j: int) -> None:
+            drive = bench.drives[j]
             drive.configure(
                 kp_nm_per_rad=float(plan.gains.kp[j]),
                 kd_nms_per_rad=float(plan.gains.kd[j]),
@@ -213,7 +218,17 @@ def run_experiment(
             )
             drive.load_reference(q_ref_rad[:, j], ref_vel[:, j] * units.RAD_PER_COUNT)
             drive.enable()
+
+        for j in range(len(bench.drives)):
+            setup_drive(j)
+        recover = getattr(bench, "recover", None)
         for k in range(cfg.iterations):
+            if recover is not None:
+                # a drive that rebooted since the last trial (heartbeat loss + boot-up) is set up
+                # again from scratch; it then gets this trial's feed-forward like the others
+                for j in recover(k):
+                    logger.warning("drive %d rebooted: configured again before trial %d", j + 1, k)
+                    setup_drive(j)
             for j, drive in enumerate(bench.drives):
                 drive.load_feedforward(u[:, j])
                 drive.arm_trial()

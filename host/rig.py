@@ -85,8 +85,10 @@ class RigBench:
     """Drives and plant as CANopen nodes on the fieldbus (see module docstring)."""
 
     def __init__(self, cfg: ExperimentConfig, transport: TransportConfig, *,
-                 out_dir: Path | None, wait_s: float = 20.0) -> None:
+                 out_dir: Path | None, wait_s: float = 20.0, pause_s: float = 0.0) -> None:
         self.cfg = cfg
+        self.pause_s = pause_s
+        self.recoveries: list[dict[str, Any]] = []
         self.transport = transport
         self.wait_s = wait_s
         self.emcy: list[dict[str, Any]] = []
@@ -132,11 +134,16 @@ class RigBench:
                 self._pending_faults.append(f"node {node}: EMCY 0x{msg.code:04X}")
 
     # -- Bench protocol ----------------------------------------------------------------
-    def start(self) -> None:
-        """Wait until all five nodes answer SDO, NMT-start them, set up heartbeats."""
+    @property
+    def _nodes(self) -> dict[int, Any]:
+        return {n.id: n for n in (*self.drive_nodes, self.bench_node)}
+
+    def _bring_up(self, node_ids: set[int], what: str) -> None:
+        """Wait until ``node_ids`` answer SDO, give them a heartbeat, NMT-start them and wait
+        for their first operational heartbeat."""
+        nodes = self._nodes
         deadline = time.monotonic() + self.wait_s
-        waiting = set(DRIVE_NODE_IDS) | {BENCH_NODE_ID}
-        nodes = {n.id: n for n in (*self.drive_nodes, self.bench_node)}
+        waiting = set(node_ids)
         while waiting:
             for nid in sorted(waiting):
                 try:
@@ -146,25 +153,52 @@ class RigBench:
                     pass
             if waiting and time.monotonic() > deadline:
                 raise TrialFault(f"node(s) {', '.join(map(str, sorted(waiting)))} did not answer within "
-                                 f"{self.wait_s:g} s (are the drive and plant processes running on this bus?)")
-        for nid, node in nodes.items():
-            node.sdo.download(0x1017, 0, HEARTBEAT_MS.to_bytes(2, "little"))
+                                 f"{self.wait_s:g} s {what}")
+        for nid in sorted(node_ids):
+            nodes[nid].sdo.download(0x1017, 0, HEARTBEAT_MS.to_bytes(2, "little"))
             with self._lock:
                 self.heartbeats.watch(nid, HEARTBEAT_TIMEOUT_S)
-        self.network.send_message(0x000, bytes([NMT_START, 0]))
-        self.bench.configure(self.cfg.ts_s, self.cfg.substeps, self.cfg.disturbance, self.cfg.seed)
-        # the first heartbeats after NMT start
-        t_end = time.monotonic() + 3.0
-        while time.monotonic() < t_end:
+        for nid in sorted(node_ids):
+            self.network.send_message(0x000, bytes([NMT_START, nid]))
+        if BENCH_NODE_ID in node_ids:
+            self.bench.configure(self.cfg.ts_s, self.cfg.substeps, self.cfg.disturbance, self.cfg.seed)
+        t_end = time.monotonic() + 5.0
+        while True:
             with self._lock:
-                states = {nid: self.heartbeats.state(nid) for nid in nodes}
+                states = {nid: self.heartbeats.state(nid) for nid in node_ids}
             if all(s == NmtState.OPERATIONAL for s in states.values()):
                 break
+            if time.monotonic() > t_end:
+                raise TrialFault(f"nodes not operational after NMT start: {states}")
             time.sleep(0.02)
-        else:
-            raise TrialFault(f"nodes not operational after NMT start: {states}")
         with self._lock:
             self.heartbeats.check(time.monotonic())  # forget the boot-ups seen while starting
+
+    def start(self) -> None:
+        """Wait until all five nodes answer SDO, NMT-start them, set up heartbeats."""
+        self._bring_up(set(DRIVE_NODE_IDS) | {BENCH_NODE_ID},
+                       "(are the drive and plant processes running on this bus?)")
+
+    def recover(self, trial: int) -> list[int]:
+        """Before ``trial``: nodes whose heartbeat was lost or that booted again are waited for
+        (up to ``wait_s``) and brought up again; returns the indices of the drives that the host
+        must configure again (gains, reference, enable). EMCY faults are not recovered."""
+        if trial > 0 and self.pause_s > 0:
+            time.sleep(self.pause_s)
+        with self._lock:
+            report = self.heartbeats.check(time.monotonic())
+            faults, self._pending_faults = self._pending_faults, []
+        if faults:
+            raise TrialFault("; ".join(faults))
+        lost = set(report.overdue) | set(report.booted)
+        if not lost:
+            return []
+        logger.warning("node(s) %s lost or rebooted before trial %d: waiting for them", sorted(lost), trial)
+        self._bring_up(lost, "after losing them")
+        for nid in sorted(lost):
+            self.recoveries.append({"node": nid, "before_trial": trial,
+                                    "heartbeat_lost": nid in report.overdue, "boot_up_seen": nid in report.booted})
+        return [DRIVE_NODE_IDS.index(n) for n in sorted(lost) if n in DRIVE_NODE_IDS]
 
     def _check_health(self) -> None:
         with self._lock:
@@ -212,6 +246,7 @@ class RigBench:
                               "divided by the run's wall time at 1 Mbit/s",
             "elapsed_s": wall,
             "emcy": self.emcy,
+            "recoveries": self.recoveries,
         }
 
     def close(self) -> None:
@@ -254,7 +289,8 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
     sys.stdout.flush()
     out.mkdir(parents=True, exist_ok=True)
     try:
-        bench = RigBench(cfg, transport, out_dir=out, wait_s=getattr(args, "wait", 20.0))
+        bench = RigBench(cfg, transport, out_dir=out, wait_s=getattr(args, "wait", 20.0),
+                         pause_s=getattr(args, "pause", 0.0))
     except (OSError, can.CanError, IlcrigError) as exc:
         sys.stderr.write(f"ilcrig: error: cannot open the bus ({transport.name}): {exc}\n")
         return EXIT_FAULT

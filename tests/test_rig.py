@@ -152,3 +152,49 @@ def test_canopen_library_reads_and_writes_a_drive_process(tmp_path: Path) -> Non
                 drive.kill()
                 drive.wait()
         assert drive.returncode == 0
+
+
+def test_drive_killed_and_restarted_between_trials_is_set_up_again(tmp_path: Path) -> None:
+    """Heartbeat loss + boot-up of drive 2 between trials: the host brings it up again,
+    configures it and the next trial runs; the traces equal a run without the restart."""
+    def role(*args: str) -> subprocess.Popen:
+        return subprocess.Popen([sys.executable, "-m", "host.cli", *args, "--bus", "hub", "--hub", hub.address],
+                                start_new_session=True, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    procs: list[subprocess.Popen] = []
+    with start_hub() as hub:
+        try:
+            drives = {n: role("drive", "--node", str(n)) for n in (1, 2, 3, 4)}
+            procs += [*drives.values(), role("plant")]
+            out = tmp_path / "rig"
+            host = subprocess.Popen([sys.executable, "-u", "-m", "host.cli", "host", "--iterations", "3", "--cycle", "0.15",
+                                     "--pause", "4", "--bus", "hub", "--hub", hub.address, "--out", str(out)],
+                                    start_new_session=True, cwd=REPO, stdout=subprocess.PIPE, text=True)
+            procs.append(host)
+            lines = []
+            for line in host.stdout:  # type: ignore[union-attr]
+                lines.append(line)
+                if line.split()[:1] == ["0"]:  # the row of trial 0: the host now pauses 4 s
+                    drives[2].kill()
+                    drives[2].wait()
+                    procs.append(role("drive", "--node", "2"))
+                    break
+            lines += host.stdout.readlines()  # type: ignore[union-attr]
+            assert host.wait(120) == 0, "".join(lines)
+        finally:
+            for p in procs:
+                if p.poll() is None:
+                    os.killpg(p.pid, signal.SIGTERM)
+            for p in procs:
+                try:
+                    p.wait(10)
+                except subprocess.TimeoutExpired:
+                    os.killpg(p.pid, signal.SIGKILL)
+                    p.wait()
+    s = json.loads((out / "summary.json").read_text())
+    assert s["completed"] and len(s["iterations"]) == 3
+    rec = s["bench"]["recoveries"]
+    assert [r["node"] for r in rec] == [2] and rec[0]["before_trial"] == 1
+    cfg = build_config(None, {"iterations": 3, "cycle_s": 0.15})
+    ref = run_experiment(prepare(cfg), InProcessBench(cfg), None, mode="sim")
+    assert s["trace_sha256"] == ref.summary["trace_sha256"]
