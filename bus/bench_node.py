@@ -316,6 +316,12 @@ class BenchNode(SlaveNode):
         j = cob - _TORQUE_LO
         try:
             frame = io_frames.decode_torque(msg)
+            if io_frames.tick_diff(frame.tick, io_frames.wire_tick(self._origin)) < 0:
+                # an answer to a tick of an earlier (e.g. aborted) trial arriving late: wire ticks
+                # keep counting across trials, so it cannot be mistaken for one of this trial
+                logger.debug("node %d: late torque frame of drive %d from an earlier trial ignored",
+                              self.node_id, j + 1)
+                return
             tick = self._trackers[j].accept(frame.tick)
         except io_frames.TickError as err:
             self._fail(BenchFault.TICK_SEQUENCE, j + 1, f"tick {self._tick}: {err}")

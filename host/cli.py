@@ -92,7 +92,7 @@ def _print_header(stream) -> None:
 
 
 def _print_row(stream, m) -> None:
-    vals = "  ".join(f"{v:7.4f}" for v in m.rmse_deg) + "  " + "  ".join(f"{v:7.4f}" for v in m.max_abs_deg)
+    vals = "  ".join(f"{v:7.5f}" for v in m.rmse_deg) + "  " + "  ".join(f"{v:7.5f}" for v in m.max_abs_deg)
     stream.write(f"{m.k:>4}  {vals}\n")
     stream.flush()
 
@@ -112,7 +112,11 @@ def cmd_sim(args: argparse.Namespace) -> int:
         f"2-norm {c.norm2:.3f} ({'monotonic' if c.norm2 < 1 else 'not monotonic'}), paper eq.(18) rho {c.paper_rho18:.3f}\n")
     _print_header(sys.stdout)
     bench = InProcessBench(cfg)
-    res = run_experiment(plan, bench, out, mode="sim", on_trial=lambda m: _print_row(sys.stdout, m))
+    from host.recording import RunRecorder
+
+    recorder = RunRecorder(out / "recording.rrd", recording_id=out.name, config_summary=cfg.as_dict())
+    res = run_experiment(plan, bench, out, mode="sim", on_trial=lambda m: _print_row(sys.stdout, m),
+                         recorder=recorder)
     s = res.summary
     sys.stdout.write(f"{s['ticks']} ticks in {s['wall_s']:.2f} s ({s['ticks_per_s']:.0f} ticks/s); "
                      f"trace_sha256 {s['trace_sha256'][:16]}…; summary: {out / 'summary.json'}\n")

@@ -26,7 +26,7 @@ SOURCE: str = ("Li, Liu, Cui, Wu, An open-closed-loop iterative learning control
 DOI: str = "10.20517/ir.2022.02"
 
 Joint4 = tuple[float, float, float, float]
-OptJoint4 = tuple["float | None", "float | None", "float | None", "float | None"]
+OptJoint4 = tuple[float | None, float | None, float | None, float | None]
 
 
 @dataclass(frozen=True)

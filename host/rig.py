@@ -295,7 +295,11 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
         sys.stderr.write(f"ilcrig: error: cannot open the bus ({transport.name}): {exc}\n")
         return EXIT_FAULT
     _print_header(sys.stdout)
-    res = run_experiment(plan, bench, out, mode="rig", on_trial=lambda m: _print_row(sys.stdout, m))
+    from host.recording import RunRecorder
+
+    recorder = RunRecorder(out / "recording.rrd", recording_id=out.name, config_summary=cfg.as_dict())
+    res = run_experiment(plan, bench, out, mode="rig", on_trial=lambda m: _print_row(sys.stdout, m),
+                         recorder=recorder)
     s = res.summary
     ch = s.get("bench", {}).get("channels", {})
     fb = ch.get(FIELDBUS, {})

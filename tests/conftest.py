@@ -1,0 +1,35 @@
+"""pytest hooks shared by the test suite.
+
+This file owns one rule (issue 5): under ``CI=true`` a *skipped* ``vcan`` test is a failure when
+the vcan suite was asked for (``-m vcan``, as ``scripts/vcan-tests`` runs it, or
+``ILCRIG_REQUIRE_VCAN=1``): in CI the suite must really run on SocketCAN, not quietly skip.
+The ordinary ``pytest`` run (no ``-m vcan``) keeps skipping vcan tests on kernels without vcan.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+
+import pytest
+
+logger = logging.getLogger(__name__)
+
+_TRUE = ("1", "true", "yes")
+
+
+def _vcan_required(config: pytest.Config) -> bool:
+    if os.environ.get("ILCRIG_REQUIRE_VCAN", "").strip().lower() in _TRUE:
+        return True
+    markexpr = (config.getoption("markexpr", "") or "").strip()
+    return os.environ.get("CI", "").strip().lower() in _TRUE and markexpr == "vcan"
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo):  # type: ignore[no-untyped-def]
+    outcome = yield
+    report = outcome.get_result()
+    if report.skipped and item.get_closest_marker("vcan") is not None and _vcan_required(item.config):
+        reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
+        report.outcome = "failed"
+        report.longrepr = f"vcan test skipped where it must run (CI=true, -m vcan): {reason}"

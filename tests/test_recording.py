@@ -1,0 +1,228 @@
+"""recording.rrd of a run (host.recording): layout, values that reproduce the summary's metrics,
+the 3D view, the cost of recording, and `ilcrig view` without a display / without a recording."""
+
+from __future__ import annotations
+
+import io
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pytest
+
+from host.cli import main
+
+N_ITER = 3
+
+
+def read_rrd(path: Path) -> dict[tuple[str, bool], list[pa.RecordBatch]]:
+    """All chunks of the first recording, by (entity path, static)."""
+    from rerun.chunk import RrdReader
+
+    out: dict[tuple[str, bool], list[pa.RecordBatch]] = {}
+    for c in RrdReader(path).stream():
+        out.setdefault((c.entity_path, c.is_static), []).append(c.to_record_batch())
+    return out
+
+
+def series(chunks: dict, entity: str, index: str = "trial_time") -> tuple[np.ndarray, np.ndarray]:
+    """(times, values (rows, width)) of a Scalars entity, sorted by time; duration → s."""
+    t, v = [], []
+    for rb in chunks[(entity, False)]:
+        col = rb.column(index)
+        t.append(col.cast(pa.int64()).to_numpy() * (1e-9 if index == "trial_time" else 1))
+        v.append(np.array(rb.column("Scalars:scalars").to_pylist(), dtype=float))
+    tt, vv = np.concatenate(t), np.concatenate(v)
+    o = np.argsort(tt, kind="stable")
+    return tt[o], vv[o]
+
+
+def static_value(chunks: dict, entity: str, column: str) -> Any:
+    return chunks[(entity, True)][-1].column(column).to_pylist()[-1]
+
+
+@pytest.fixture(scope="module")
+def sim_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict, dict]:
+    out = tmp_path_factory.mktemp("rec") / "run-a"
+    code = main(["sim", "--iterations", str(N_ITER), "--cycle", "0.15", "--out", str(out)])
+    assert code == 0
+    summary = json.loads((out / "summary.json").read_text())
+    return out, summary, read_rrd(out / "recording.rrd")
+
+
+@pytest.mark.slow
+def test_recording_layout_and_ids(sim_run) -> None:
+    out, summary, chunks = sim_run
+    from rerun.chunk import RrdReader
+
+    recs = RrdReader(out / "recording.rrd").recordings()
+    assert [(r.application_id, r.recording_id) for r in recs] == [("ilcrig", "run-a")]
+    assert len(RrdReader(out / "recording.rrd").blueprints()) == 1  # the default blueprint
+    n = summary["config"]["n_ticks"]
+    entities = {e for e, _ in chunks}
+    for j in range(1, 5):
+        t, v = series(chunks, f"/joint{j}/reference")
+        assert v.shape == (n, 1)
+        np.testing.assert_allclose(t, np.arange(n) * 1e-3, atol=1e-12)
+        for q in ("actual", "error", "torque_ff", "torque_fb"):
+            t, v = series(chunks, f"/joint{j}/{q}")
+            assert v.shape == (n, N_ITER), q  # N ticks, one value per iteration
+            names = static_value(chunks, f"/joint{j}/{q}", "SeriesLines:names")
+            assert names[0].startswith(f"{q} iter 0") and len(names) == N_ITER
+        for key in ("rmse_deg", "maxe_deg"):
+            assert f"/metrics/{key}/joint{j}" in entities
+    assert ("/robot", True) in chunks  # ViewCoordinates
+    assert "ViewCoordinates:xyz" in chunks[("/robot", True)][0].schema.names
+
+
+@pytest.mark.slow
+def test_logged_errors_reproduce_summary_metrics(sim_run) -> None:
+    _, summary, chunks = sim_run
+    for j in range(1, 5):
+        _, e = series(chunks, f"/joint{j}/error")
+        _, ref = series(chunks, f"/joint{j}/reference")
+        _, act = series(chunks, f"/joint{j}/actual")
+        np.testing.assert_allclose(ref - act, e, atol=1e-9)  # e = q_d − q (deg)
+        for k, it in enumerate(summary["iterations"]):
+            rmse = float(np.sqrt(np.mean(e[:, k] ** 2)))
+            maxe = float(np.max(np.abs(e[:, k])))
+            assert rmse == pytest.approx(it["rmse_deg"][j - 1], rel=1e-12)
+            assert maxe == pytest.approx(it["max_abs_deg"][j - 1], rel=1e-12)
+        for key, field in (("rmse_deg", "rmse_deg"), ("maxe_deg", "max_abs_deg")):
+            it_idx, v = series(chunks, f"/metrics/{key}/joint{j}", index="iteration")
+            assert it_idx.tolist() == list(range(N_ITER))  # one row per iteration
+            assert v[:, 0].tolist() == [it[field][j - 1] for it in summary["iterations"]]
+
+
+@pytest.mark.slow
+def test_3d_first_and_last_trial(sim_run) -> None:
+    _, summary, chunks = sim_run
+    n = summary["config"]["n_ticks"]
+    m = len(np.unique(np.r_[np.arange(0, n, 5), n - 1]))
+    for which in ("first", "last"):
+        for name, col, width in (("arms", "LineStrips3D:strips", 4), ("sub_platforms", "LineStrips3D:strips", 3),
+                                 ("tool", "Points3D:positions", 1)):
+            rbs = chunks[(f"/robot/{which}/{name}", False)]
+            rows = [r for rb in rbs for r in rb.column(col).to_pylist()]
+            assert len(rows) == m and all(len(r) == width for r in rows)
+        assert (f"/robot/{which}/tcp_path", True) in chunks
+    # the arms start at the motor axes (R = 0.2 m) and the tool follows the reference path
+    arms = chunks[("/robot/first/arms", False)][0].column("LineStrips3D:strips").to_pylist()[0]
+    for strip in arms:
+        assert np.hypot(strip[0][0], strip[0][1]) == pytest.approx(0.2, abs=1e-6) and strip[0][2] == 0.0
+        assert np.linalg.norm(np.subtract(strip[2], strip[1])) == pytest.approx(0.6, abs=1e-5)  # outer arm l_b
+    ref_path = np.array(static_value(chunks, "/robot/reference_path", "LineStrips3D:strips")[0])  # (N, 3)
+    tool = np.array([r[0] for rb in chunks[("/robot/last/tool", False)]
+                     for r in rb.column("Points3D:positions").to_pylist()])
+    dist = np.min(np.linalg.norm(tool[:, None, :] - ref_path[None, :, :], axis=2), axis=1)
+    assert dist.max() < 0.01  # within 1 cm of the path (errors are a fraction of a degree)
+
+
+def _timed_experiment(cfg: Any, plan: Any, tmp: Path | None) -> tuple[float, float]:
+    """(wall s, process CPU s) of one run_experiment, including the recorder's creation."""
+    from host.compose import InProcessBench
+    from host.experiment import run_experiment
+    from host.recording import RunRecorder
+
+    w0, c0 = time.perf_counter(), time.process_time()
+    rec = RunRecorder(tmp / "recording.rrd", config_summary=cfg.as_dict()) if tmp is not None else None
+    run_experiment(plan, InProcessBench(cfg), None, mode="sim", recorder=rec)
+    if rec is not None:
+        assert rec.error is None
+    return time.perf_counter() - w0, time.process_time() - c0
+
+
+@pytest.mark.slow
+def test_recording_costs_less_than_10_percent(tmp_path: Path) -> None:
+    """The recorder's cost (creation + log_trial + close, best of 3) against the experiment as
+    ``ilcrig sim`` runs it (prepare + run_experiment).  Against run_experiment alone (about
+    0.15 s of in-process trials) the fixed ~20 ms of the file + blueprint is more: printed."""
+    import rerun  # noqa: F401  (import cost is per process, not per experiment)
+
+    from host.config import build_config
+    from host.experiment import prepare
+
+    cfg = build_config(None, {"iterations": 10})  # the default experiment: cycle 0.25 s, N = 501
+    t0 = time.perf_counter()
+    plan = prepare(cfg)
+    prepare_s = time.perf_counter() - t0
+    _timed_experiment(cfg, plan, tmp_path / "warm")  # warm caches (numba, rerun)
+    without, with_rec = [], []
+    for i in range(3):
+        without.append(_timed_experiment(cfg, plan, None))
+        with_rec.append(_timed_experiment(cfg, plan, tmp_path / f"r{i}"))
+    wall0, wall1 = min(w for w, _ in without), min(w for w, _ in with_rec)
+    cpu0, cpu1 = min(c for _, c in without), min(c for _, c in with_rec)
+    cost = wall1 - wall0
+    print(f"recording: +{cost * 1e3:.1f} ms wall (run_experiment {wall0:.3f} s: {cost / wall0:.1%}; "
+          f"with prepare {prepare_s:.2f} s: {cost / (prepare_s + wall0):.1%}), cpu {cpu0:.3f} -> {cpu1:.3f} s")
+    assert cost / (prepare_s + wall0) < 0.10
+    assert cost < 0.5 * wall0  # and no per-sample logging hiding in there
+
+
+def test_log_trial_rejects_bad_shapes(tmp_path: Path) -> None:
+    from host.metrics import trial_metrics
+    from host.recording import RecordingError, RunRecorder
+    from host.trajectory import JointReference
+
+    n = 11
+    ref = JointReference(t=np.arange(n) * 1e-3, q=np.full((n, 4), 0.5), qd=np.zeros((n, 4)), qdd=np.zeros((n, 4)))
+    rec = RunRecorder(tmp_path / "x" / "recording.rrd")
+    with pytest.raises(RecordingError, match="expected 4 traces"):
+        rec.log_trial(0, ref, [], np.zeros((n, 4)), np.zeros((n, 4)), trial_metrics(0, np.zeros((n, 4)), np.zeros((n, 4))))
+    rec.close()
+    rec.close()  # idempotent
+    assert rec.error is None and rec.recording_id == "x"
+    from rerun.chunk import RrdReader
+
+    assert [r.recording_id for r in RrdReader(tmp_path / "x" / "recording.rrd").recordings()] == ["x"]
+
+
+def test_view_without_display_prints_the_command(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from importlib.metadata import version
+
+    from host.recording import view_run
+
+    (tmp_path / "recording.rrd").write_bytes(b"")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.setattr(sys, "platform", "linux")
+    spawned: list[Any] = []
+    monkeypatch.setattr(subprocess, "Popen", lambda *a, **k: spawned.append(a))
+    out, err = io.StringIO(), io.StringIO()
+    assert view_run(tmp_path, stdout=out, stderr=err) == 0
+    text = out.getvalue()
+    assert f"rerun {(tmp_path / 'recording.rrd').resolve()}" in text
+    assert f"pip install rerun-sdk=={version('rerun-sdk')}" in text
+    assert not spawned and err.getvalue() == ""
+
+
+def test_view_with_display_spawns_the_viewer(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from host import recording
+
+    (tmp_path / "recording.rrd").write_bytes(b"")
+    monkeypatch.setenv("DISPLAY", ":0")
+    spawned: list[Any] = []
+    monkeypatch.setattr(recording, "viewer_command", lambda: ["/x/rerun"])
+    monkeypatch.setattr(subprocess, "Popen", lambda argv, **k: spawned.append(argv))
+    assert recording.view_run(tmp_path, stdout=io.StringIO()) == 0
+    assert spawned == [["/x/rerun", str((tmp_path / "recording.rrd").resolve())]]
+
+
+def test_view_missing_recording_is_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["view", str(tmp_path / "nope")])
+    out, err = capsys.readouterr()
+    assert code == 2 and out == ""
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("ilcrig: error: no recording at ")
+
+
+def test_import_host_does_not_import_rerun() -> None:
+    code = ("import sys, host, host.recording, host.cli, host.experiment; "
+            "sys.exit(1 if 'rerun' in sys.modules else 0)")
+    assert subprocess.run([sys.executable, "-c", code], timeout=60).returncode == 0
