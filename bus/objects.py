@@ -38,6 +38,8 @@ Recorder planes, each ``recorded samples`` int32 LE long, in this order: positio
 
 from __future__ import annotations
 
+import struct
+
 import logging
 from enum import IntEnum, IntFlag
 from typing import Final
@@ -326,6 +328,26 @@ FOLLOWING_ERROR_DEFAULT: Final[int] = 1_000_000
 
 class TablePackingError(ValueError):
     """Bytes or values that do not form an int32 table."""
+
+
+def u8(v: int) -> bytes:
+    """UNSIGNED8 as the SDO payload (little endian)."""
+    return struct.pack("<B", v)
+
+
+def u16(v: int) -> bytes:
+    """UNSIGNED16 as the SDO payload (little endian)."""
+    return struct.pack("<H", v)
+
+
+def u32(v: int) -> bytes:
+    """UNSIGNED32 as the SDO payload (little endian)."""
+    return struct.pack("<I", v)
+
+
+def i32(v: int) -> bytes:
+    """INTEGER32 as the SDO payload (little endian)."""
+    return struct.pack("<i", v)
 
 
 def pack_int32(values: npt.ArrayLike) -> bytes:

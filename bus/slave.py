@@ -337,6 +337,8 @@ class ObjectStore:
         self.od = import_od(str(eds_path), int(node_id))
         self.vars: dict[Key, ODVariable] = {}
         for obj in self.od.values():
+            if obj.index < 0x1000:
+                continue  # data type definitions, not objects
             if isinstance(obj, ODVariable):
                 self.vars[(obj.index, 0)] = obj
             elif isinstance(obj, (ODRecord, ODArray)):

@@ -33,11 +33,8 @@ from __future__ import annotations
 import logging
 import struct
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
-from canopen.objectdictionary import ODArray, ODRecord, ODVariable, import_od
-from canopen.objectdictionary import datatypes as dt
 
 import bus
 from bus import fixedpoint as fp
@@ -61,6 +58,7 @@ from bus.objects import (
     TrialState,
     TrialSub,
 )
+from bus.slave import ObjectStore
 from firmware_model import loop
 from firmware_model.cia402 import Cia402StateMachine
 
@@ -68,19 +66,6 @@ logger = logging.getLogger(__name__)
 
 DEFAULT_EDS_PATH: Path = Path(bus.__file__).parent / "drive.eds"
 
-_STRUCTS: dict[int, struct.Struct] = {
-    dt.BOOLEAN: struct.Struct("<?"),
-    dt.INTEGER8: struct.Struct("<b"),
-    dt.INTEGER16: struct.Struct("<h"),
-    dt.INTEGER32: struct.Struct("<i"),
-    dt.INTEGER64: struct.Struct("<q"),
-    dt.UNSIGNED8: struct.Struct("<B"),
-    dt.UNSIGNED16: struct.Struct("<H"),
-    dt.UNSIGNED32: struct.Struct("<I"),
-    dt.UNSIGNED64: struct.Struct("<Q"),
-    dt.REAL32: struct.Struct("<f"),
-    dt.REAL64: struct.Struct("<d"),
-}
 _TABLE_ROWS = {Obj.REF_POSITION_TABLE: 0, Obj.REF_VELOCITY_TABLE: 1, Obj.FEEDFORWARD_TABLE: 2}
 _TABLE_BITS = (TableLoaded.REF_POSITION, TableLoaded.REF_VELOCITY, TableLoaded.FEEDFORWARD)
 
@@ -117,17 +102,11 @@ class Drive:
         if not 1 <= int(node_id) <= 127:
             raise ValueError(f"node id must be 1..127, got {node_id}")
         self.node_id = int(node_id)
-        self.od = import_od(str(eds_path), self.node_id)
-        self._vars: dict[Key, ODVariable] = {}
-        for obj in self.od.values():
-            if obj.index < 0x1000:
-                continue
-            if isinstance(obj, ODVariable):
-                self._vars[(obj.index, 0)] = obj
-            elif isinstance(obj, (ODRecord, ODArray)):
-                for var in obj.values():
-                    self._vars[(obj.index, var.subindex)] = var
-        self._indices = {k[0] for k in self._vars}
+        # object values, access/size/limit checks and hooks: the CANopen slave object store
+        # that the test-bench node uses too (bus/slave.py)
+        self.store = ObjectStore(eds_path, self.node_id)
+        self.od = self.store.od
+        self._vars = self.store.vars
         self._capacity = int(self._vars[(Obj.TABLE, TableSub.CAPACITY)].default)
         self._rated_mnm = int(self._vars[(Obj.RATED_TORQUE, 0)].default)
         self._st = loop.new_state()
@@ -135,9 +114,9 @@ class Drive:
         self._rec = loop.new_recorder(self._capacity)
         self._sm = Cia402StateMachine()
         self._emcy: list[tuple[int, int, bytes]] = []
-        self._values: dict[Key, Value] = {}
-        self._read_hooks: dict[Key, Callable[[], Value]] = {}
-        self._write_hooks: dict[Key, Callable[[Value], None]] = {}
+        self._values = self.store.values
+        self._read_hooks = self.store.read_hooks
+        self._write_hooks = self.store.write_hooks
         self._install_hooks()
         self.nmt_state: NmtState = NmtState.INITIALISING
         self._reset_application()
@@ -212,13 +191,7 @@ class Drive:
         :raises SdoAbort: 0x06020000 no object, 0x06090011 no sub-index, 0x06010001
             write-only, 0x08000022 not readable now (recorder while recording).
         """
-        var = self._lookup(index, sub)
-        if var.access_type == "wo":
-            raise SdoAbort(AbortCode.WRITE_ONLY, f"0x{index:04X}:{sub} is write-only")
-        key = (index, sub)
-        hook = self._read_hooks.get(key)
-        value = hook() if hook is not None else self._values[key]
-        return self._encode(var, value)
+        return self.store.read_object(index, sub)
 
     def write_object(self, index: int, sub: int, data: bytes) -> None:
         """Write an object from bytes (little endian).
@@ -227,15 +200,7 @@ class Drive:
             0x06070010 wrong length, 0x06090030/31/32 value range/too high/too low,
             0x08000022 not allowed in the current state.
         """
-        var = self._lookup(index, sub)
-        if var.access_type in ("ro", "const"):
-            raise SdoAbort(AbortCode.READ_ONLY, f"0x{index:04X}:{sub} is read-only")
-        value = self._decode(var, bytes(data))
-        key = (index, sub)
-        hook = self._write_hooks.get(key)
-        if hook is not None:
-            hook(value)
-        self._values[key] = value
+        self.store.write_object(index, sub, data)
 
     def io_tick(self, tick: int, encoder_count: int) -> int:
         """One control tick: encoder count (int32 counts) in, torque command (µN·m) out."""
@@ -351,19 +316,8 @@ class Drive:
 
     # ------------------------------------------------------------------ resets
 
-    def _default(self, var: ODVariable) -> Value:
-        if var.default is not None:
-            return var.default
-        if var.data_type in (dt.DOMAIN, dt.OCTET_STRING):
-            return b""
-        if var.data_type in (dt.VISIBLE_STRING, dt.UNICODE_STRING):
-            return ""
-        return 0
-
     def _reset_application(self) -> None:
-        for key, var in self._vars.items():
-            if key[0] >= 0x2000:
-                self._values[key] = self._default(var)
+        self.store.reset(0x2000, 0xFFFF)
         self._sm.reset()
         self._tables[:] = 0
         self._rec[:] = 0
@@ -388,48 +342,9 @@ class Drive:
         self._set_fe_window(int(v[(Obj.FOLLOWING_ERROR_WINDOW, 0)]))
 
     def _reset_communication(self) -> None:
-        for key, var in self._vars.items():
-            if 0x1000 <= key[0] < 0x2000:
-                self._values[key] = self._default(var)
+        self.store.reset(0x1000, 0x1FFF)
 
     # ------------------------------------------------------------------ object plumbing
-
-    def _lookup(self, index: int, sub: int) -> ODVariable:
-        var = self._vars.get((index, sub))
-        if var is None:
-            if index not in self._indices:
-                raise SdoAbort(AbortCode.NO_OBJECT, f"no object 0x{index:04X}")
-            raise SdoAbort(AbortCode.NO_SUBINDEX, f"no sub-index {sub} in 0x{index:04X}")
-        return var
-
-    @staticmethod
-    def _encode(var: ODVariable, value: Value) -> bytes:
-        s = _STRUCTS.get(var.data_type)
-        if s is not None:
-            return s.pack(value)
-        if isinstance(value, str):
-            return value.encode("ascii")
-        return bytes(value)  # type: ignore[arg-type]
-
-    @staticmethod
-    def _decode(var: ODVariable, data: bytes) -> Value:
-        s = _STRUCTS.get(var.data_type)
-        if s is None:
-            if var.data_type in (dt.VISIBLE_STRING, dt.UNICODE_STRING):
-                try:
-                    return data.decode("ascii")
-                except UnicodeDecodeError:
-                    raise SdoAbort(AbortCode.VALUE_RANGE, "string is not ASCII") from None
-            return data
-        if len(data) != s.size:
-            raise SdoAbort(AbortCode.LENGTH_MISMATCH,
-                           f"0x{var.index:04X}:{var.subindex} needs {s.size} bytes, got {len(data)}")
-        (value,) = s.unpack(data)
-        if var.max is not None and value > var.max:
-            raise SdoAbort(AbortCode.VALUE_TOO_HIGH, f"{value} > {var.max}")
-        if var.min is not None and value < var.min:
-            raise SdoAbort(AbortCode.VALUE_TOO_LOW, f"{value} < {var.min}")
-        return value
 
     def _install_hooks(self) -> None:
         r = self._read_hooks

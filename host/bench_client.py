@@ -11,7 +11,6 @@ access is :class:`host.sdo_access.SdoAccess` over a canopen ``RemoteNode``.  Imp
 from __future__ import annotations
 
 import logging
-import struct
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -32,6 +31,7 @@ from bus.bench_objects import (
     pack_initial_state,
 )
 from bus.errors import IlcrigError
+from bus.objects import u8 as _u8, u16 as _u16, u32 as _u32  # SDO payload encoders
 from host.drive_client import ObjectAccess
 
 logger = logging.getLogger(__name__)
@@ -89,18 +89,6 @@ class BenchState:
         else:
             what = f"fault code {int(self.fault)} at tick {self.fault_tick}"
         return f"fault: {what} ({self.ticks_done} ticks done)"
-
-
-def _u8(v: int) -> bytes:
-    return struct.pack("<B", v)
-
-
-def _u16(v: int) -> bytes:
-    return struct.pack("<H", v)
-
-
-def _u32(v: int) -> bytes:
-    return struct.pack("<I", v)
 
 
 class BenchClient:

@@ -10,7 +10,6 @@ drive over CAN (an adapter over the canopen library's SDO client).  Imports only
 from __future__ import annotations
 
 import logging
-import struct
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -38,6 +37,7 @@ from bus.objects import (
     unpack_int32,
     unpack_recorder,
 )
+from bus.objects import u8 as _u8, u16 as _u16, u32 as _u32, i32 as _i32  # SDO payload encoders
 
 logger = logging.getLogger(__name__)
 
@@ -111,22 +111,6 @@ class DriveTrace:
     def tau_ff_nm(self) -> npt.NDArray[np.float64]:
         """Applied minus feedback torque (= the feed-forward value unless clamped), N·m."""
         return (self.torque_units.astype(np.float64) - self.torque_fb_units) * units.TORQUE_LSB_NM
-
-
-def _u8(v: int) -> bytes:
-    return struct.pack("<B", v)
-
-
-def _u16(v: int) -> bytes:
-    return struct.pack("<H", v)
-
-
-def _u32(v: int) -> bytes:
-    return struct.pack("<I", v)
-
-
-def _i32(v: int) -> bytes:
-    return struct.pack("<i", v)
 
 
 class DriveClient:

@@ -435,12 +435,9 @@ def make_law(name: str, gains: Gains, ts_s: float, model: LiftedModel | None = N
         # scale-aware regularisation: w relative to the largest squared gain of G
         scale = float(np.max(np.sum(G * G, axis=0)))
         Lno = -np.linalg.solve(G.T @ G + w * scale * np.eye(G.shape[0]) + 1e-300, G.T)
-        J = model.j
-
         def upd(u: np.ndarray, e: np.ndarray, tau: np.ndarray) -> np.ndarray:
             return u + (Lno @ e.reshape(-1)).reshape(e.shape)
 
         lif = lambda mdl: ("error", eye_of(mdl) + mdl.G @ Lno)  # noqa: E731
-        del J
 
     return LearningLaw(name=name, gains=gains, ts_s=ts, _update=upd, _lifted=lif, needs_model=name == "no-ilc")

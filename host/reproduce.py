@@ -46,7 +46,7 @@ from host.names import LAWS
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "Experiment", "TableRow", "GROUPS", "PAPER_LAW", "BASELINE_LAW", "BEYOND_LAWS", "PROFILE",
+    "Experiment", "TableRow", "GROUPS", "PAPER_LAW", "BASELINE_LAW", "BEYOND_LAWS", "PROFILE", "LONG_TRIALS",
     "SWEEP_SCHEMA", "ReproduceError", "group_experiments", "experiment_list", "table_rows",
     "all_experiments", "run_dir_of", "is_finished", "load_run", "RunData", "run_sweep", "reproduce_main",
     "EXIT_INTERRUPTED", "SweepOutcome",
@@ -71,35 +71,42 @@ CYCLES_S: tuple[float, ...] = (0.25, 0.15, 0.50)  # the paper's row order in Tab
 PROFILES_T6: tuple[str, ...] = ("poly4567", "poly5")
 #: the paper's disturbed case ("repetitive and non-repetitive", §5.2)
 DISTURBED = "both"
+#: trials of the long-run stability experiments (beyond the paper's horizon of about 10)
+LONG_TRIALS = 40
 
 
 class ReproduceError(ValueError):
     """Bad ``reproduce`` arguments (unknown --only group, --jobs < 1, ...)."""
 
 
-@dataclass(frozen=True, order=True)
+@dataclass(frozen=True)
 class Experiment:
-    """One configuration of the sweep (all other settings are the project defaults)."""
+    """One configuration of the sweep (all other settings are the project defaults).
+
+    ``trials`` fixes the number of trials (the long-run stability experiments); ``None`` takes the
+    sweep's ``--iterations``."""
 
     law: str
     path: str = BASE_PATH
     cycle_s: float = BASE_CYCLE_S
     profile: str = PROFILE
     disturbance: str = "none"
+    trials: int | None = None
 
     @property
     def id(self) -> str:
-        """Folder name, e.g. ``pd-ilc_p1_250ms_poly4567_none``."""
-        return f"{self.law}_p{self.path}_{round(self.cycle_s * 1000)}ms_{self.profile}_{self.disturbance}"
+        """Folder name, e.g. ``pd-ilc_p1_250ms_poly4567_none`` (``…_k40`` for a fixed 40 trials)."""
+        base = f"{self.law}_p{self.path}_{round(self.cycle_s * 1000)}ms_{self.profile}_{self.disturbance}"
+        return base if self.trials is None else f"{base}_k{self.trials}"
 
     def config(self, iterations: int) -> ExperimentConfig:
         return build_config(None, {"law": self.law, "path": self.path, "cycle_s": self.cycle_s,
                                    "profile": self.profile, "disturbance": self.disturbance,
-                                   "iterations": iterations})
+                                   "iterations": self.trials if self.trials is not None else iterations})
 
     def describe(self) -> str:
         return (f"{self.law}, path {self.path}, {self.cycle_s:g} s, {self.profile}, "
-                f"disturbance {self.disturbance}")
+                f"disturbance {self.disturbance}" + ("" if self.trials is None else f", {self.trials} trials"))
 
 
 @dataclass(frozen=True)
@@ -156,6 +163,7 @@ def group_experiments(group: str) -> list[Experiment]:
         return [_base(law, disturbance=d) for law in (PAPER_LAW, BASELINE_LAW) for d in ("none", DISTURBED)]
     if group == "beyond":
         exps = [_base(law, disturbance=d) for law in LAWS for d in ("none", DISTURBED)]
+        exps += [_base(law, disturbance=d, trials=LONG_TRIALS) for law in LAWS for d in ("none", DISTURBED)]
         for t in ("table3", "table4", "table5", "table6"):
             exps += [r.experiment for r in table_rows(t, BEYOND_LAWS)]
         return exps
@@ -182,7 +190,7 @@ def experiment_list(only: str | Iterable[str] | None = None) -> list[Experiment]
         for e in group_experiments(g):
             seen.setdefault(e.id, e)
     cost = {"q-ilc": 3.0, "no-ilc": 2.0}
-    return sorted(seen.values(), key=lambda e: (-e.cycle_s * cost.get(e.law, 1.0), e.id))
+    return sorted(seen.values(), key=lambda e: (-e.cycle_s * cost.get(e.law, 1.0) * (e.trials or 10) / 10, e.id))
 
 
 def all_experiments() -> list[Experiment]:

@@ -738,7 +738,7 @@ class FeasibilityReport:
             f"peak |tau| N·m  {f(self.peak_tau_nm)}   (limit {self.tau_limit_nm:.1f})",
             f"rms tau N·m     {f(self.rms_tau_nm)}",
             f"peak |qd| rad/s {f(self.peak_qd_rad_s, d=2)}   (limit {self.qd_limit_rad_s:.1f})",
-            f"q min..max deg  " + " ".join(
+            "q min..max deg  " + " ".join(
                 f"{math.degrees(a):.1f}..{math.degrees(b):.1f}" for a, b in zip(self.q_min_rad, self.q_max_rad)
             ),
         ])

@@ -20,7 +20,7 @@ from host import paper_data
 from host.reproduce import (GROUPS, Experiment, ReproduceError, all_experiments, experiment_list, is_finished,
                             run_dir_of, table_rows)
 from host.report import (Verdict, fmt, settle_iteration, settle_iteration_final, split_repeatable, verdict_beats,
-                         verdict_cycles, verdict_disturbance, verdict_floor_raised, verdict_paths,
+                         verdict_cycles, verdict_disturbance, verdict_floor_raised, verdict_long_bounded, verdict_paths,
                          verdict_profiles_order, verdict_profiles_similar, verdict_rise, verdict_settle,
                          write_run_report)
 
@@ -77,7 +77,10 @@ def test_each_table_varies_one_thing() -> None:
 def test_full_list_is_deduplicated_and_covers_beyond() -> None:
     exps = all_experiments()
     ids = [e.id for e in exps]
-    assert len(ids) == len(set(ids)) == 30
+    assert len(ids) == len(set(ids)) == 42
+    long = [e for e in exps if e.trials is not None]
+    assert len(long) == 12 and all(e.trials == 40 and e.id.endswith("_k40") for e in long)
+    assert long[0].config(10).iterations == 40
     assert "pd-ilc_p1_250ms_poly4567_none" in ids
     assert {e.law for e in exps} == {"pd-ilc", "d-ilc", "q-ilc", "no-ilc", "pd-ol", "p-ol"}
     for law in ("q-ilc", "no-ilc"):  # Tables 2-5 rows beyond the paper
@@ -300,3 +303,22 @@ def test_ctrl_c_stops_cleanly_and_keeps_finished(tmp_path: Path) -> None:
     for name in finished:
         e = next(x for x in all_experiments() if x.id == name)
         assert is_finished(out / "runs" / name, e.config(3))
+
+
+def test_near_misses_are_flagged_as_ties() -> None:
+    v = verdict_cycles({0.15: [3.0], 0.25: [2.0], 0.5: [2.04]}, {0.15: [3.0], 0.25: [2.0], 0.5: [1.0]})
+    assert v.holds is False and "effectively a tie" in v.detail
+    v = verdict_cycles({0.15: [3.0], 0.25: [2.0], 0.5: [2.5]}, {0.15: [3.0], 0.25: [2.0], 0.5: [1.0]})
+    assert v.holds is False and "tie" not in v.detail
+    assert "effectively a tie" in verdict_profiles_order([0.102], [0.1]).detail
+
+
+def test_verdict_long_bounded() -> None:
+    settled = np.array([[0.2 * 0.5**k + 0.001] * 4 for k in range(40)])
+    v = verdict_long_bounded(settled)
+    assert v.holds is True and "over 40 trials" in v.detail
+    diverging = settled.copy()
+    diverging[20:] *= np.geomspace(1, 100, 20)[:, None]
+    v = verdict_long_bounded(diverging)
+    assert v.holds is False and "grows again" in v.detail
+    assert verdict_long_bounded(settled[:6]).holds is None
