@@ -109,7 +109,9 @@ def cmd_sim(args: argparse.Namespace) -> int:
         f"ilcrig sim: law {cfg.law}, path {cfg.path}, cycle {cfg.cycle_s} s, profile {cfg.profile}, "
         f"disturbance {cfg.disturbance}, {cfg.iterations} iterations, N = {plan.n_ticks} ticks/trial\n"
         f"convergence check: spectral radius {c.rho_max:.4f} ({'ok' if c.ok else 'VIOLATED: expect divergence'}), "
-        f"2-norm {c.norm2:.3f} ({'monotonic' if c.norm2 < 1 else 'not monotonic'}), paper eq.(18) rho {c.paper_rho18:.3f}\n")
+        f"2-norm {c.norm2:.3f} ({'monotonic' if c.norm2 < 1 else 'not monotonic'}), paper eq.(18) rho {c.paper_rho18:.3f}; "
+        f"predicted error ratio after {c.iterations} trials {c.predicted_ratio:.3g}, after {c.long_horizon} "
+        f"{c.predicted_ratio_long:.3g}{' (diverges if run longer)' if c.predicted_ratio_long > 1 else ''}\n")
     _print_header(sys.stdout)
     bench = InProcessBench(cfg)
     from host.recording import RunRecorder
@@ -118,6 +120,10 @@ def cmd_sim(args: argparse.Namespace) -> int:
     res = run_experiment(plan, bench, out, mode="sim", on_trial=lambda m: _print_row(sys.stdout, m),
                          recorder=recorder)
     s = res.summary
+    if s["iterations"]:
+        from host.report import write_run_report
+
+        write_run_report(out, s)  # report.md + convergence plot next to the summary
     sys.stdout.write(f"{s['ticks']} ticks in {s['wall_s']:.2f} s ({s['ticks_per_s']:.0f} ticks/s); "
                      f"trace_sha256 {s['trace_sha256'][:16]}…; summary: {out / 'summary.json'}\n")
     if res.fault:

@@ -234,6 +234,8 @@ class ConvergenceReport:
     predicted_ratio: float = 0.0  # ‖e_K‖/‖e_0‖ predicted by the linearised model
     predicted_peak: float = 0.0  # max_k ‖e_k‖/‖e_0‖ on the way
     iterations: int = 0
+    long_horizon: int = 0  # a longer horizon, to warn about slow divergence beyond the run
+    predicted_ratio_long: float = 0.0
 
     def as_dict(self) -> dict:
         return {
@@ -246,6 +248,8 @@ class ConvergenceReport:
             "predicted_error_ratio": self.predicted_ratio,
             "predicted_error_peak": self.predicted_peak,
             "predicted_over_iterations": self.iterations,
+            "predicted_error_ratio_long": self.predicted_ratio_long,
+            "long_horizon": self.long_horizon,
         }
 
 
@@ -317,6 +321,9 @@ class LearningLaw:
             raise FloatingPointError(f"law {self.name} produced a non-finite feed-forward")
         return out
 
+    #: trials of the long-horizon prediction (slow divergence beyond a short run)
+    LONG_HORIZON = 40
+
     def check(self, model: LiftedModel, probe_torque: np.ndarray | None = None,
               iterations: int = 10) -> ConvergenceReport:
         """Check the lifted iteration map before a run.
@@ -338,21 +345,23 @@ class LearningLaw:
             t = np.arange(model.n)[:, None] * self.ts_s
             probe_torque = np.sin(2 * np.pi * t / max(t[-1, 0], self.ts_s) + np.arange(j)[None, :])
         probe = np.asarray(probe_torque, dtype=float).reshape(-1)
+        horizon = max(iterations, self.LONG_HORIZON)
         if kind == "error":
             x = model.G @ probe
             e0 = np.linalg.norm(x)
             norms = []
-            for _ in range(iterations):
+            for _ in range(horizon):
                 x = E @ x
                 norms.append(np.linalg.norm(x))
         else:  # input map on u; error = G (u − u*) with u* = −probe (the ideal feed-forward)
             x = probe.copy()
             e0 = np.linalg.norm(model.G @ x)
             norms = []
-            for _ in range(iterations):
+            for _ in range(horizon):
                 x = E @ x
                 norms.append(np.linalg.norm(model.G @ x))
-        ratios = np.array(norms) / e0 if e0 > 0 else np.zeros(iterations)
+        all_ratios = np.array(norms) / e0 if e0 > 0 else np.zeros(horizon)
+        ratios = all_ratios[:iterations]
         # e[0] is fixed by the aligned start and u[N−1] reaches no recorded sample (relative
         # degree one): rho and the norm are taken on the samples learning can act on.
         E = E[j:, j:] if kind == "error" else E[:-j, :-j]
@@ -369,7 +378,8 @@ class LearningLaw:
         return ConvergenceReport(rho_max=rho, norm2=nrm, paper_rho18=r18,
                                  ok=bool(rho < 1.0 and ratio < 1.0), map_kind=kind,
                                  predicted_ratio=ratio, predicted_peak=float(np.max(ratios, initial=0.0)),
-                                 iterations=iterations)
+                                 iterations=iterations, long_horizon=horizon,
+                                 predicted_ratio_long=float(all_ratios[-1]) if len(all_ratios) else 0.0)
 
 
 def make_law(name: str, gains: Gains, ts_s: float, model: LiftedModel | None = None) -> LearningLaw:

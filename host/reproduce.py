@@ -8,7 +8,7 @@ sweep runner and the run-folder layout of a sweep::
     <out>/runs/<experiment-id>/summary.json   the run's summary (host.experiment schema)
     <out>/runs/<experiment-id>/errors.npy     (K, N, 4) float32 joint errors q_d − q, rad, per trial
     <out>/runs/<experiment-id>/error.txt      only if the experiment could not start (e.g. infeasible)
-    <out>/report.md, fig8.png, fig10.png, convergence_laws.png   (host.report)
+    <out>/report.md, fig8.png, fig10.png, convergence_laws.png, long_runs.png   (host.report)
 
 Every experiment is one ``prepare`` + ``run_experiment`` on an :class:`~host.compose.InProcessBench`
 in a worker process of a ``ProcessPoolExecutor`` (spawned, SIGINT ignored in the workers so the
@@ -16,6 +16,9 @@ parent alone decides).  An experiment whose folder holds a finished summary (``"
 or a recorded fault — both are deterministic results) with the same configuration and its
 ``errors.npy`` is not run again unless ``--fresh``.  Ctrl-C (or SIGTERM) cancels what has not
 started, terminates the workers, keeps every finished experiment and returns 130.
+
+Beyond the paper: the same tables for ``q-ilc`` and ``no-ilc``, every law on path 1 with and
+without disturbance, and every law for a fixed ``LONG_TRIALS`` = 40 trials (long-run stability).
 
 Motion law: the paper's Tables 2–5 use its 4-5-6-7 polynomial law (Table 6 compares it with the
 5th-order law), so every paper-table experiment here uses ``profile = "poly4567"`` — Table 6 then
@@ -407,8 +410,10 @@ def reproduce_main(args: argparse.Namespace) -> int:
 
     Returns 0, 1 if an experiment could not run (its error.txt says why), 130 if interrupted."""
     out = Path(getattr(args, "out", None) or "runs/reproduce")
-    jobs = getattr(args, "jobs", None) or os.cpu_count() or 1
-    iterations = getattr(args, "iterations", None) or 10
+    jobs = getattr(args, "jobs", None)
+    jobs = (os.cpu_count() or 1) if jobs is None else jobs
+    iterations = getattr(args, "iterations", None)
+    iterations = 10 if iterations is None else iterations
     if jobs < 1:
         raise ReproduceError(f"--jobs must be >= 1, got {jobs}")
     if iterations < 1:

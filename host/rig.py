@@ -285,7 +285,8 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
         f"disturbance {cfg.disturbance}, {cfg.iterations} iterations, N = {plan.n_ticks} ticks/trial, "
         f"transport {transport.name}\n"
         f"convergence check: spectral radius {c.rho_max:.4f} ({'ok' if c.ok else 'VIOLATED: expect divergence'}), "
-        f"predicted error ratio after {c.iterations} trials {c.predicted_ratio:.3g}\n")
+        f"predicted error ratio after {c.iterations} trials {c.predicted_ratio:.3g}, after {c.long_horizon} "
+        f"{c.predicted_ratio_long:.3g}{' (diverges if run longer)' if c.predicted_ratio_long > 1 else ''}\n")
     sys.stdout.flush()
     out.mkdir(parents=True, exist_ok=True)
     try:
@@ -301,6 +302,10 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
     res = run_experiment(plan, bench, out, mode="rig", on_trial=lambda m: _print_row(sys.stdout, m),
                          recorder=recorder)
     s = res.summary
+    if s["iterations"]:
+        from host.report import write_run_report
+
+        write_run_report(out, s)  # report.md + convergence plot next to the summary
     ch = s.get("bench", {}).get("channels", {})
     fb = ch.get(FIELDBUS, {})
     sys.stdout.write(

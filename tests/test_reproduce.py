@@ -97,6 +97,15 @@ def test_bad_only_is_a_value_error() -> None:
         experiment_list(" , ")
 
 
+def test_cli_rejects_bad_arguments(tmp_path: Path) -> None:
+    from host.cli import main
+
+    assert main(["reproduce", "--out", str(tmp_path / "x"), "--only", "table7"]) == 2
+    assert main(["reproduce", "--out", str(tmp_path / "x"), "--jobs", "0"]) == 2
+    assert main(["reproduce", "--out", str(tmp_path / "x"), "--iterations", "0"]) == 2
+    assert not (tmp_path / "x").exists()  # nothing started
+
+
 def test_is_finished_requires_same_config_and_errors(tmp_path: Path) -> None:
     e = Experiment("pd-ilc")
     d = run_dir_of(tmp_path, e)
