@@ -212,7 +212,8 @@ def build_parser() -> argparse.ArgumentParser:
     hp = sub.add_parser("host", help="the host role alone (expects 4 drives and the plant on the bus)")
     _add_experiment_args(hp)
     _add_bus_args(hp)
-    hp.add_argument("--wait", type=float, default=20.0, help="seconds to wait for the nodes to boot (default 20)")
+    hp.add_argument("--wait", type=float, default=120.0,
+                    help="seconds to wait for the nodes to answer (default 120: a first run compiles the numba kernels)")
     hp.add_argument("--pause", type=float, default=0.0,
                     help="seconds to pause between trials (e.g. to restart a drive; a rebooted drive is set up again)")
     hp.set_defaults(func=cmd_host)
