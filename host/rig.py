@@ -108,8 +108,9 @@ class RigBench:
             self.drive_nodes = [self.network.add_node(n, str(DRIVE_EDS)) for n in DRIVE_NODE_IDS]
             self.bench_node = self.network.add_node(BENCH_NODE_ID, str(BENCH_EDS))
             for node in self.drive_nodes:
-                node.sdo.RESPONSE_TIMEOUT = 2.0
-            self.bench_node.sdo.RESPONSE_TIMEOUT = 2.0
+                # generous: 7 processes share 2 cores; a starved node answers late, not never
+                node.sdo.RESPONSE_TIMEOUT = 5.0
+            self.bench_node.sdo.RESPONSE_TIMEOUT = 5.0
             self.drives = [DriveClient(SdoAccess(node), node.id) for node in self.drive_nodes]
             self.bench = BenchClient(SdoAccess(self.bench_node))
             for nid in (*DRIVE_NODE_IDS, BENCH_NODE_ID):
