@@ -37,9 +37,12 @@ import struct
 from enum import Enum, auto
 from typing import Protocol
 
+from bus.units import timeout_scale
 from bus.errors import AbortCode, SdoAbort
 
 logger = logging.getLogger(__name__)
+
+_TIMEOUT_SCALE = timeout_scale()  # ILCRIG_TIMEOUT_SCALE, read once
 
 #: COB-ID base of SDO requests (client → server), CiA 301 predefined connection set.
 SDO_REQUEST_BASE = 0x600
@@ -209,7 +212,7 @@ class SdoServer:
         if self._last_activity_s is None:
             self._last_activity_s = now_s
             return None
-        if now_s - self._last_activity_s <= self.TIMEOUT_S:
+        if now_s - self._last_activity_s <= self.TIMEOUT_S * _TIMEOUT_SCALE:
             return None
         logger.warning("node %d: SDO transfer 0x%04X:%02X timed out",
                        self.node_id, self._index, self._sub)

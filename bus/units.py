@@ -87,3 +87,27 @@ def nm_to_torque_units_array(tau_nm: npt.ArrayLike) -> npt.NDArray[np.int32]:
     """Joint torques (N·m) -> int32 µN·m (nearest); raises UnitRangeError outside int32
     (unlike the scalar :func:`nm_to_torque_units`, which saturates)."""
     return _to_int32_array(tau_nm, TORQUE_LSB_NM, "torque [N·m]")
+
+
+#: environment variable that stretches every protocol timeout (SDO, heartbeat, tick) by a factor
+#: >= 1, for slow hosts such as a VM under software emulation; the default is 1
+TIMEOUT_SCALE_ENV: str = "ILCRIG_TIMEOUT_SCALE"
+
+
+def timeout_scale() -> float:
+    """The factor of :data:`TIMEOUT_SCALE_ENV` (1.0 when unset).
+
+    :raises ValueError: not a finite number >= 1.
+    """
+    import os
+
+    text = os.environ.get(TIMEOUT_SCALE_ENV, "").strip()
+    if not text:
+        return 1.0
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"{TIMEOUT_SCALE_ENV} must be a number >= 1, got {text!r}") from None
+    if not (math.isfinite(value) and value >= 1.0):
+        raise ValueError(f"{TIMEOUT_SCALE_ENV} must be a number >= 1, got {text!r}")
+    return value

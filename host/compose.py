@@ -126,8 +126,9 @@ def run_plant_role(transport: TransportConfig, node_id: int = 32,
     try:
         io = transport.open("io")
         try:
+            scale = units.timeout_scale()
             BenchNode(fieldbus, io, plant_factory=plant_factory, disturbance_fn=disturbance_torque,
-                      node_id=node_id).run(stop)
+                      node_id=node_id, tick_timeout_s=2.0 * scale, first_tick_timeout_s=10.0 * scale).run(stop)
         finally:
             io.shutdown()
     finally:

@@ -262,8 +262,11 @@ def run_experiment(
             if k + 1 < cfg.iterations:
                 u = plan.law.update(u, e, tau)
         summary["completed"] = True
-    except TrialFault as exc:
-        result.fault = str(exc)
+    except (TrialFault, IlcrigError) as exc:
+        # a fault, or a drive that stopped answering between trials (SDO timeout/abort while
+        # downloading a table or uploading the recorder): torque is removed by closing the
+        # bench, the trials so far are kept
+        result.fault = str(exc) if isinstance(exc, TrialFault) else f"{type(exc).__name__}: {exc}"
         summary["faults"].append({"trial": len(summary["iterations"]), "message": str(exc)})
         logger.error("trial %d faulted: %s", len(summary["iterations"]), exc)
     finally:

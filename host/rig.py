@@ -31,6 +31,7 @@ from bus.canlog import open_log
 from bus.errors import IlcrigError, SdoAbort
 from bus.nmt import HeartbeatConsumer, NmtState
 from bus.transport import FIELDBUS, IO, TransportConfig
+from bus.units import timeout_scale
 from host.bench_client import BenchClient, BenchClientError
 from host.config import ExperimentConfig
 from host.drive_client import DriveClient
@@ -109,8 +110,8 @@ class RigBench:
             self.bench_node = self.network.add_node(BENCH_NODE_ID, str(BENCH_EDS))
             for node in self.drive_nodes:
                 # generous: 7 processes share 2 cores; a starved node answers late, not never
-                node.sdo.RESPONSE_TIMEOUT = 5.0
-            self.bench_node.sdo.RESPONSE_TIMEOUT = 5.0
+                node.sdo.RESPONSE_TIMEOUT = 5.0 * timeout_scale()
+            self.bench_node.sdo.RESPONSE_TIMEOUT = 5.0 * timeout_scale()
             self.drives = [DriveClient(SdoAccess(node), node.id) for node in self.drive_nodes]
             self.bench = BenchClient(SdoAccess(self.bench_node))
             for nid in (*DRIVE_NODE_IDS, BENCH_NODE_ID):
@@ -158,7 +159,7 @@ class RigBench:
         for nid in sorted(node_ids):
             nodes[nid].sdo.download(0x1017, 0, HEARTBEAT_MS.to_bytes(2, "little"))
             with self._lock:
-                self.heartbeats.watch(nid, HEARTBEAT_TIMEOUT_S)
+                self.heartbeats.watch(nid, HEARTBEAT_TIMEOUT_S * timeout_scale())
         for nid in sorted(node_ids):
             self.network.send_message(0x000, bytes([NMT_START, nid]))
         if BENCH_NODE_ID in node_ids:
