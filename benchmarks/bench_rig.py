@@ -65,8 +65,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--iterations", type=int, default=3)
     args = ap.parse_args()
-    from bus.transport import vcan_available
     from netns_util import netns_unavailable_reason
+
+    from bus.transports.config import vcan_available
 
     plan = [("hub", "hub-unix", False)]
     if netns_unavailable_reason() is None:

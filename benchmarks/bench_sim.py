@@ -21,9 +21,10 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     args = ap.parse_args()
 
-    from host.compose import InProcessBench
-    from host.config import build_config
-    from host.experiment import prepare, run_experiment
+    from host.experiment.config import build_config
+    from host.experiment.inprocess import InProcessBench
+    from host.experiment.loop import run_experiment
+    from host.experiment.plan import prepare
 
     cfg = build_config(None, {})
     t0 = time.perf_counter()

@@ -39,7 +39,7 @@ from typing import Any
 
 import can
 
-from bus.hub import start_hub
+from bus.transports.hub_server import start_hub
 from bus.io_frames import (
     N_JOINTS,
     TickTracker,
@@ -51,7 +51,7 @@ from bus.io_frames import (
     encoder_cob_id,
     torque_cob_id,
 )
-from bus.transport import ChannelConfig, open_bus, udp_multicast_transport
+from bus.transports.config import ChannelConfig, open_bus, udp_multicast_transport
 
 CTX = mp.get_context("fork")
 PING_ID, PONG_ID = 0x100, 0x101

@@ -3,7 +3,7 @@
 Owns the names of every object the test-bench node exposes (described in full, with data
 types, access and limits, by ``bus/bench.eds``), the trial command/status/fault enumerations,
 the disturbance-kind codes, the bench's EMCY codes and the byte layout of the initial state.
-Both :mod:`bus.bench_node` (server) and :mod:`host.bench_client` (client) use these.
+Both :mod:`plant.node` (server) and :mod:`host.nodes.bench_client` (client) use these.
 
 ======  ===  ========================  =======  ==========================================
 index   sub  name                      type     meaning / unit
@@ -118,7 +118,9 @@ class BenchFault(IntEnum):
 
 
 class DisturbanceKind(IntEnum):
-    """0x2400:3; the names are those of ``plant.disturbance.KINDS``."""
+    """0x2400:3, the wire code of a disturbance kind.  The member's lower-case name is the kind's
+    name as the plant's disturbance model takes it (``plant.disturbance.KINDS``; a test checks
+    that the two lists agree)."""
 
     NONE = 0
     REPETITIVE = 1
@@ -127,11 +129,8 @@ class DisturbanceKind(IntEnum):
 
     @property
     def label(self) -> str:
-        return DISTURBANCE_NAMES[self]
-
-
-#: Disturbance kind code → name passed to the disturbance function.
-DISTURBANCE_NAMES: Final[tuple[str, str, str, str]] = ("none", "repetitive", "nonrepetitive", "both")
+        """The kind's name, e.g. ``"nonrepetitive"``."""
+        return self.name.lower()
 
 
 def disturbance_code(name: str) -> DisturbanceKind:
@@ -140,9 +139,10 @@ def disturbance_code(name: str) -> DisturbanceKind:
     :raises ValueError: unknown name
     """
     try:
-        return DisturbanceKind(DISTURBANCE_NAMES.index(name))
-    except ValueError:
-        raise ValueError(f"unknown disturbance {name!r}; choose from {DISTURBANCE_NAMES}") from None
+        return DisturbanceKind[name.upper()]
+    except KeyError:
+        known = ", ".join(k.label for k in DisturbanceKind)
+        raise ValueError(f"unknown disturbance {name!r}; choose from {known}") from None
 
 
 #: EMCY error code per fault (error register bit: generic 0x01 / communication 0x11).

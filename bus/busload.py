@@ -1,6 +1,6 @@
 """Bus-load accounting for classic CAN frames.
 
-This module owns the bit length of a classic CAN frame (canopen.md §3) and the counters
+This module owns the bit length of a classic CAN frame (docs/canopen-objects.md §9) and the counters
 built on it: :class:`BusLoadCounter` (frames and bits, load in percent of a bit rate) and
 :class:`BusLoadListener` (a :class:`can.Listener` feeding a counter).
 
@@ -182,7 +182,7 @@ class BusLoadListener(can.Listener):
 
     Attach it to a :class:`can.Notifier`, or call it from a receive loop. A process only
     receives other nodes' frames (unless ``receive_own_messages``); the hub's counters
-    (:func:`bus.hub.query_hub_stats`) see every frame of a channel.
+    (:func:`bus.transports.hub_server.query_hub_stats`) see every frame of a channel.
     """
 
     def __init__(self, counter: BusLoadCounter | None = None) -> None:

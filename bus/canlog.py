@@ -1,6 +1,6 @@
 """candump-format logs of a CAN channel, written and read with python-can's own io classes.
 
-This module owns how a run folder's channel logs are made (DESIGN.md "Outputs of a run":
+This module owns how a run folder's channel logs are made (docs/architecture.md §7:
 candump-format logs of both channels): :func:`open_log` returns a :class:`ChannelLog`, a
 :class:`can.Listener` that writes every frame with :class:`can.CanutilsLogWriter` under a
 fixed channel name (``fieldbus``, ``io``), and :func:`read_log` reads a log back with

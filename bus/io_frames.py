@@ -1,7 +1,7 @@
 """io-channel frame layouts and codecs (plant ↔ drives), classic CAN, 11-bit IDs.
 
 This module owns the frames of the ``io`` channel, which stands in for the encoder cable
-and the power stage (DESIGN.md "Processes and channels"). Lockstep, the plant is the
+and the power stage (docs/architecture.md §1). Lockstep, the plant is the
 clock master; per tick ``n`` (architecture.md "Time and one trial"):
 
 1. plant → drive j: :func:`encode_encoder` (one frame per joint);
@@ -86,7 +86,8 @@ class TickError(IoFrameError):
             TickErrorKind.STALE: f"stale frame ({-self.diff} ticks old)",
         }[kind]
         src = f" from {source}" if source else ""
-        super().__init__(f"tick mismatch{src}: expected tick {expected} (wire {expected & TICK_MASK}), got wire {received}: {what}")
+        super().__init__(f"tick mismatch{src}: expected tick {expected} (wire {expected & TICK_MASK}), "
+                         f"got wire {received}: {what}")
 
 
 class TorqueStatus(enum.IntFlag):

@@ -5,7 +5,7 @@ types, access and limits, by ``bus/drive.eds``), the CiA 402 controlword /
 statusword encodings both sides must agree on, the manufacturer trial/recorder
 enumerations, EMCY codes, and the little-endian packing of int32 tables.
 
-Layout of the manufacturer objects (maxon/Elmo pattern, reference/canopen.md §2):
+Layout of the manufacturer objects (maxon/Elmo pattern, docs/canopen-objects.md §5):
 
 ======  ===  ========================  =======  ==========================================
 index   sub  name                      type     meaning / unit
@@ -38,10 +38,10 @@ Recorder planes, each ``recorded samples`` int32 LE long, in this order: positio
 
 from __future__ import annotations
 
-import struct
-
 import logging
+import struct
 from enum import IntEnum, IntFlag
+from pathlib import Path
 from typing import Final
 
 import numpy as np
@@ -89,18 +89,6 @@ class Obj(IntEnum):
     RECORDER = 0x2200
     RECORDER_DATA = 0x2210
     CONTROL_PERIOD = 0x2300
-
-
-class IdentitySub(IntEnum):
-    VENDOR_ID = 1
-    PRODUCT_CODE = 2
-    REVISION = 3
-    SERIAL = 4
-
-
-class SdoServerSub(IntEnum):
-    COB_ID_RX = 1  # client -> server, 0x600 + node id
-    COB_ID_TX = 2  # server -> client, 0x580 + node id
 
 
 class InterpolationPeriodSub(IntEnum):
@@ -173,26 +161,6 @@ class FaultCause(IntEnum):
     TICK_SEQUENCE = 2
 
 
-class EmcyCode(IntEnum):
-    """CiA 301/402 EMCY error codes used by the drive."""
-
-    NO_ERROR = 0x0000  # error reset
-    TICK_SEQUENCE = 0x8200  # protocol error: io tick missing/duplicate/stale
-    FOLLOWING_ERROR = 0x8611
-
-
-class ErrorRegister(IntFlag):
-    """0x1001 bits (CiA 301)."""
-
-    GENERIC = 0x01
-    CURRENT = 0x02
-    VOLTAGE = 0x04
-    TEMPERATURE = 0x08
-    COMMUNICATION = 0x10
-    DEVICE_PROFILE = 0x20
-    MANUFACTURER = 0x80
-
-
 class ModeOfOperation(IntEnum):
     """0x6060 values; the drive implements only its manufacturer table-playback mode."""
 
@@ -200,25 +168,6 @@ class ModeOfOperation(IntEnum):
     CSP = 8
     CSV = 9
     CST = 10
-
-
-class NmtState(IntEnum):
-    """NMT states as the heartbeat byte encodes them (CiA 301)."""
-
-    INITIALISING = 0x00  # also the boot-up byte
-    STOPPED = 0x04
-    OPERATIONAL = 0x05
-    PRE_OPERATIONAL = 0x7F
-
-
-class NmtCommand(IntEnum):
-    """NMT command specifiers (byte 0 of COB-ID 0x000)."""
-
-    START = 0x01
-    STOP = 0x02
-    ENTER_PRE_OPERATIONAL = 0x80
-    RESET_NODE = 0x81
-    RESET_COMMUNICATION = 0x82
 
 
 # ------------------------------------------------------------------ CiA 402 words
@@ -236,7 +185,7 @@ class Controlword(IntFlag):
 
 
 class ControlCommand(IntEnum):
-    """Controlword values of the device-control commands (reference/canopen.md §2)."""
+    """Controlword values of the device-control commands (docs/canopen-objects.md §5)."""
 
     DISABLE_VOLTAGE = 0x0000
     QUICK_STOP = 0x0002
@@ -304,6 +253,11 @@ def state_from_statusword(statusword: int) -> Cia402State:
 
 
 # ------------------------------------------------------------------ constants
+
+#: node ids of the robot's four drives, joint j = 1..4 is node j
+DRIVE_NODE_IDS: Final[tuple[int, ...]] = (1, 2, 3, 4)
+#: the drive's electronic data sheet (describes every object above)
+DRIVE_EDS_PATH: Final[Path] = Path(__file__).resolve().parent / "drive.eds"
 
 #: CiA 301 device type: 0x0192 = 402 profile, 0x0002 = servo drive
 DEVICE_TYPE_VALUE: Final[int] = 0x00020192

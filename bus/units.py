@@ -1,7 +1,7 @@
 """Units and integer scalings that drives, plant interface and host must agree on.
 
 This module is the single place where the integer representations crossing a
-process boundary are defined (DESIGN.md: "anything both sides must agree on lives
+process boundary are defined (docs/architecture.md §3: "anything both sides must agree on lives
 once, in bus/").  The drive firmware's internal Q formats are documented in
 :mod:`bus.fixedpoint` (also shared, since the host converts gains to them).
 
@@ -25,9 +25,9 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-#: encoder resolution at the motor shaft (robot.md §6: 2**20 counts per motor revolution)
+#: encoder resolution at the motor shaft (docs/robot-model.md §5.3: 2**20 counts per motor revolution)
 COUNTS_PER_MOTOR_REV: int = 1 << 20
-#: reducer ratio n (robot.md §2, proposed value)
+#: reducer ratio n (docs/robot-model.md §2.3, proposed value)
 GEAR_RATIO: int = 10
 #: encoder counts per joint revolution
 COUNTS_PER_JOINT_REV: int = COUNTS_PER_MOTOR_REV * GEAR_RATIO
@@ -48,15 +48,9 @@ def rad_to_counts(q_rad: float) -> int:
     return int(round(q_rad / RAD_PER_COUNT))
 
 
-def nm_to_torque_units(tau_nm: float) -> int:
-    """Nearest torque LSB (µN·m) for a joint-side torque in N·m, saturated to int32."""
-    v = int(round(tau_nm / TORQUE_LSB_NM))
-    return max(INT32_MIN, min(INT32_MAX, v))
-
-
 # ---------------------------------------------------------------------- array converters
-# (added for table downloads; same rounding as the scalar functions above: nearest, ties to
-# even, which np.rint and Python's round share)
+# (for table downloads; same rounding as the scalar function above: nearest, ties to even,
+# which np.rint and Python's round share)
 
 
 class UnitRangeError(ValueError):
@@ -85,7 +79,7 @@ def rad_s_to_counts_s_array(qd_rad_s: npt.ArrayLike) -> npt.NDArray[np.int32]:
 
 def nm_to_torque_units_array(tau_nm: npt.ArrayLike) -> npt.NDArray[np.int32]:
     """Joint torques (N·m) -> int32 µN·m (nearest); raises UnitRangeError outside int32
-    (unlike the scalar :func:`nm_to_torque_units`, which saturates)."""
+    (no silent saturation of a table value)."""
     return _to_int32_array(tau_nm, TORQUE_LSB_NM, "torque [N·m]")
 
 

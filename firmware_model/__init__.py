@@ -1,3 +1,10 @@
-"""firmware_model: the servo-drive firmware (fixed-point control loop, CiA 402 state
-machine, object dictionary, feed-forward table playback, data recorder).
-Never imports :mod:`host` or :mod:`plant`."""
+"""firmware_model: the servo drive's firmware.
+
+Owns the fixed-point control loop (:mod:`firmware_model.loop`), the CiA 402 state machine
+(:mod:`firmware_model.cia402`), the drive's object dictionary, feed-forward table playback and
+data recorder (:mod:`firmware_model.drive`), and the drive process on the bus
+(:mod:`firmware_model.node`, ``ilcrig drive``).
+
+May import: ``bus`` and ``bus.cia301`` (the contract it shares with the host).  Never ``host`` or
+``plant``: the drive knows the robot only through its encoder and its torque command.
+"""

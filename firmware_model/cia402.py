@@ -4,7 +4,7 @@ Owns the power-state logic.  The encodings (controlword/statusword bits, state
 patterns) are shared with the host and live in :mod:`bus.objects`; they are
 re-exported here.
 
-Transitions implemented (CiA 402 numbering, reference/canopen.md §2):
+Transitions implemented (CiA 402 numbering, docs/canopen-objects.md §5):
 
 ====  =================================  ========================================
  no.  from -> to                          trigger

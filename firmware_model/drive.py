@@ -36,19 +36,18 @@ from pathlib import Path
 
 import numpy as np
 
-import bus
 from bus import fixedpoint as fp
+from bus.cia301.emcy import EmcyCode, ErrorRegister
+from bus.cia301.nmt import NmtCommand, NmtState
+from bus.cia301.node import ObjectStore
 from bus.errors import AbortCode, IlcrigError, SdoAbort
 from bus.objects import (
+    DRIVE_EDS_PATH,
     Cia402State,
-    EmcyCode,
-    ErrorRegister,
     FaultCause,
     GainsSub,
     InterpolationPeriodSub,
     ModeOfOperation,
-    NmtCommand,
-    NmtState,
     Obj,
     RecorderStatus,
     RecorderSub,
@@ -58,13 +57,12 @@ from bus.objects import (
     TrialState,
     TrialSub,
 )
-from bus.slave import ObjectStore
 from firmware_model import loop
 from firmware_model.cia402 import Cia402StateMachine
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_EDS_PATH: Path = Path(bus.__file__).parent / "drive.eds"
+DEFAULT_EDS_PATH: Path = DRIVE_EDS_PATH
 
 _TABLE_ROWS = {Obj.REF_POSITION_TABLE: 0, Obj.REF_VELOCITY_TABLE: 1, Obj.FEEDFORWARD_TABLE: 2}
 _TABLE_BITS = (TableLoaded.REF_POSITION, TableLoaded.REF_VELOCITY, TableLoaded.FEEDFORWARD)
@@ -75,19 +73,6 @@ Key = tuple[int, int]
 
 class NmtCommandError(IlcrigError, ValueError):
     """Unknown NMT command specifier."""
-
-
-class DriveAccess:
-    """Object access of one in-process drive with the host's ``ObjectAccess`` shape."""
-
-    def __init__(self, drive: Drive) -> None:
-        self._drive = drive
-
-    def read(self, index: int, sub: int) -> bytes:
-        return self._drive.read_object(index, sub)
-
-    def write(self, index: int, sub: int, data: bytes) -> None:
-        self._drive.write_object(index, sub, data)
 
 
 class Drive:
@@ -125,10 +110,6 @@ class Drive:
         self._update_power()
 
     # ------------------------------------------------------------------ public API
-
-    def access(self) -> DriveAccess:
-        """An object with ``read(index, sub)`` / ``write(index, sub, data)`` for DriveClient."""
-        return DriveAccess(self)
 
     @property
     def cia402_state(self) -> Cia402State:
@@ -291,7 +272,7 @@ class Drive:
         expected = self._next_tick if self._trial_state == TrialState.RUNNING else 0
         logger.warning("node %d io tick %d, expected %d", self.node_id, tick, expected)
         return self._fault(
-            EmcyCode.TICK_SEQUENCE, ErrorRegister.GENERIC | ErrorRegister.COMMUNICATION,
+            EmcyCode.PROTOCOL_ERROR, ErrorRegister.GENERIC | ErrorRegister.COMMUNICATION,
             FaultCause.TICK_SEQUENCE,
             struct.pack("<BHH", FaultCause.TICK_SEQUENCE, expected & 0xFFFF, int(tick) & 0xFFFF))
 
@@ -398,7 +379,7 @@ class Drive:
         if before == Cia402State.FAULT and self._sm.state != Cia402State.FAULT:
             self._error_register = 0
             self._error_code = 0
-            self._emcy.append((EmcyCode.NO_ERROR, 0, bytes(5)))
+            self._emcy.append((EmcyCode.ERROR_RESET, 0, bytes(5)))
             logger.info("node %d fault reset", self.node_id)
         self._update_power()
 

@@ -3,12 +3,12 @@ in one thread (the drive process's main thread).
 
 Owns the glue between the firmware and the io wire, nothing else (no protocol logic, no control
 law).  The generic CANopen-slave part (select loop, NMT, boot-up, heartbeat from 0x1017, SDO
-server, EMCY frames, ignoring own COB-IDs) is :class:`bus.slave.SlaveNode`, shared with the
-test-bench node (:mod:`bus.bench_node`); :class:`DriveNode` adds the io side:
+server, EMCY frames, ignoring own COB-IDs) is :class:`bus.cia301.node.SlaveNode`, shared with the
+test-bench node (:mod:`plant.node`); :class:`DriveNode` adds the io side:
 
 * the plant's encoder frame for this node's joint → ``drive.io_tick(tick, count)`` →
-  torque frame with the same wire tick; the trial control frame (start/stop) is passed on to
-  the drive if it has ``io_control``.  The drive gets the tick number *within the trial*
+  torque frame with the same wire tick; the trial control frame TRIAL_START sets the tick
+  origin.  The drive gets the tick number *within the trial*
   (architecture.md: n = 0..N-1): the 16-bit wire tick is taken relative to the TRIAL_START
   frame's tick and unwrapped, so trials longer than 65536 ticks work.
 * frames of other joints and the node's own torque echo are ignored.
@@ -26,7 +26,7 @@ from typing import Any, Protocol
 import can
 
 from bus import io_frames
-from bus.slave import PRODUCER_HEARTBEAT_INDEX, SlaveApp, SlaveNode, install_sigterm
+from bus.cia301.node import PRODUCER_HEARTBEAT_INDEX, SlaveApp, SlaveNode, install_sigterm
 
 logger = logging.getLogger(__name__)
 
@@ -35,11 +35,24 @@ __all__ = ["DriveLike", "DriveNode", "PRODUCER_HEARTBEAT_INDEX", "install_sigter
 
 class DriveLike(SlaveApp, Protocol):
     """What the node needs from the firmware (``firmware_model.drive.Drive``): the slave
-    application interface (NMT, object access, EMCY) plus the node id and the io tick."""
+    application interface (NMT, object access, EMCY) plus the node id, the io tick and the state
+    the torque frame reports."""
 
     node_id: int
 
-    def io_tick(self, tick: int, encoder_count: int) -> int: ...
+    def io_tick(self, tick: int, encoder_count: int) -> int:
+        """Torque command [µN·m] of tick ``tick`` (within the trial) for ``encoder_count``."""
+        ...
+
+    @property
+    def torque_enabled(self) -> bool:
+        """True while the power stage applies torque."""
+        ...
+
+    @property
+    def statusword(self) -> int:
+        """CiA 402 statusword 0x6041."""
+        ...
 
 
 class DriveNode(SlaveNode):
@@ -90,22 +103,15 @@ class DriveNode(SlaveNode):
             if control.command == io_frames.ControlCommand.TRIAL_START:
                 self._tick_origin = control.tick
                 self._next_full_tick = 0
-            handler = getattr(self.drive, "io_control", None)
-            if handler is not None:
-                handler(control.command, control.tick, control.n_ticks)
         # anything else (our own torque echo, other joints' frames) is not for us
 
     def _torque_status(self) -> int:
-        """Torque-frame status bits: ``drive.torque_status`` if the drive has one, else derived
-        from ``drive.torque_enabled`` and the statusword (fault 0x0008, warning 0x0080,
-        internal limit 0x0800 → SATURATED)."""
-        status = getattr(self.drive, "torque_status", None)
-        if status is not None:
-            return int(status() if callable(status) else status)
+        """Torque-frame status bits from ``drive.torque_enabled`` and the CiA 402 statusword
+        (fault 0x0008, warning 0x0080, internal limit 0x0800 → SATURATED)."""
         bits = io_frames.TorqueStatus(0)
-        if getattr(self.drive, "torque_enabled", False):
+        if self.drive.torque_enabled:
             bits |= io_frames.TorqueStatus.ENABLED
-        sw = int(getattr(self.drive, "statusword", 0))
+        sw = int(self.drive.statusword)
         if sw & 0x0008:
             bits |= io_frames.TorqueStatus.FAULT
         if sw & 0x0800:

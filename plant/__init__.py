@@ -1,10 +1,12 @@
-"""plant: the simulated robot (kinematics, dynamics, true-plant effects, disturbances,
-integrator, encoder and torque interfaces).  Depends only on numpy, scipy and numba.
+"""plant: the simulated robot.
 
-Modules: :mod:`plant.params` (geometry, mass models, true-plant config),
-:mod:`plant.kinematics` (IK/FK, Jacobians), :mod:`plant.dynamics` (M, C q̇, G, inverse /
-forward dynamics, energy), :mod:`plant.disturbance` (per-trial disturbance torques),
-:mod:`plant.simulator` (:class:`~plant.simulator.Plant`), :mod:`plant.bench`
-(``python -m plant.bench``: step timing and gate-path torque check).  The numba kernels live
-in the private :mod:`plant._kernels`.
+Owns the robot's kinematics (:mod:`plant.kinematics`: IK/FK, Jacobians), dynamics
+(:mod:`plant.dynamics`: M, C q̇, G, inverse / forward dynamics), parameters (:mod:`plant.params`),
+the true-plant effects and the RK4 integrator (:mod:`plant.simulator`), the per-trial disturbances
+(:mod:`plant.disturbance`), the numba kernels (:mod:`plant._kernels`), a micro-benchmark
+(``python -m plant.bench``) and, in :mod:`plant.node`, the plant's CANopen test-bench node and the
+``ilcrig plant`` process entry.
+
+May import: numpy, scipy, numba and the standard library only — except :mod:`plant.node`, which
+also imports ``bus`` (it speaks CAN).  Never ``host`` or ``firmware_model``.
 """

@@ -1,7 +1,7 @@
 """Numba kernels shared by plant.kinematics, plant.dynamics and plant.simulator.
 
 This module owns the hot path: closed-form IK, Newton FK with warm start, the A/B Jacobian
-matrices of robot.md §3.5, J̇q̇ of §3.6, the lumped dynamics of §4.1 (+ true-plant friction and
+matrices of docs/robot-model.md §3.5, J̇q̇ of §3.6, the lumped dynamics of §4.1 (+ true-plant friction and
 the tool-spin term) and the RK4 integrator of one control period.  Everything works on float64
 arrays with hand-written 4×4 LU / Cholesky solves; nothing here allocates in the per-step path
 (the caller passes a workspace).  No fastmath, no parallel: results are bit-reproducible.
@@ -250,7 +250,7 @@ def chol4_solve(m: np.ndarray, x: np.ndarray, xo: int) -> bool:
 @njit(cache=True, error_model="numpy")
 def subplatform_from_task4(x: float, y: float, z: float, th: float, p: np.ndarray, out: np.ndarray,
                            oo: int) -> None:
-    """Y = (x, y, z_u, z_l) from X = (x, y, z, θ) (robot.md §3.1, TCP e below the ball plane)."""
+    """Y = (x, y, z_u, z_l) from X = (x, y, z, θ) (docs/robot-model.md §3.1, TCP e below the ball plane)."""
     zl = z + p[P_E]
     out[oo + 0] = x
     out[oo + 1] = y
@@ -260,7 +260,7 @@ def subplatform_from_task4(x: float, y: float, z: float, th: float, p: np.ndarra
 
 @njit(cache=True, error_model="numpy")
 def ik_limbs(y0: float, y1: float, zu: float, zl: float, p: np.ndarray, q: np.ndarray, qo: int) -> int:
-    """Closed-form elbow-out IK of the four limbs (robot.md §3.3) for sub-platform Y.
+    """Closed-form elbow-out IK of the four limbs (docs/robot-model.md §3.3) for sub-platform Y.
     Writes ``q[qo:qo+4]``; returns -1 or the 0-based index of the first limb out of reach."""
     la = p[P_LA]
     lb = p[P_LB]
@@ -294,7 +294,7 @@ def trig4(q: np.ndarray, qo: int, tr: np.ndarray) -> None:
 @njit(cache=True, error_model="numpy")
 def build_a_b(tr: np.ndarray, y: np.ndarray, yo: int, p: np.ndarray, a: np.ndarray,
               vec: np.ndarray) -> None:
-    """Rows of A (robot.md §3.5) into ``a``; b_i into vec[4:8]; constraint residuals
+    """Rows of A (docs/robot-model.md §3.5) into ``a``; b_i into vec[4:8]; constraint residuals
     f_i/2 = (|s_i|² - l_b²)/2 into vec[12:16].  ``tr`` = (cos q, sin q) from :func:`trig4`."""
     la = p[P_LA]
     lb = p[P_LB]
@@ -324,7 +324,7 @@ def build_a_b(tr: np.ndarray, y: np.ndarray, yo: int, p: np.ndarray, a: np.ndarr
 @njit(cache=True, error_model="numpy")
 def fk_newton(tr: np.ndarray, y: np.ndarray, yo: int, p: np.ndarray, a: np.ndarray,
               vec: np.ndarray) -> int:
-    """Newton FK (robot.md §3.4) from the guess in ``y[yo:yo+4]`` (updated in place).
+    """Newton FK (docs/robot-model.md §3.4) from the guess in ``y[yo:yo+4]`` (updated in place).
 
     On success ``a`` holds the LU factors of A at the converged Y (pivots in vec[0:4]) and
     vec[4:8] holds b.  Returns the number of Newton steps, -1 if not converged, -2 if A
@@ -386,7 +386,7 @@ def jacobian_from_lu(a: np.ndarray, vec: np.ndarray, jout: np.ndarray) -> None:
 @njit(cache=True, error_model="numpy")
 def w_vector(tr: np.ndarray, qd: np.ndarray, qdo: int, y: np.ndarray, yo: int,
              yd: np.ndarray, ydo: int, p: np.ndarray, out: np.ndarray, oo: int) -> None:
-    """w_i = ḃ_i q̇_i − ṡ_i·v_s(i) of robot.md §3.6 (A Ÿ = B q̈ + w); ``tr`` from :func:`trig4`."""
+    """w_i = ḃ_i q̇_i − ṡ_i·v_s(i) of docs/robot-model.md §3.6 (A Ÿ = B q̈ + w); ``tr`` from :func:`trig4`."""
     la = p[P_LA]
     for i in range(4):
         c = p[P_COS + i]

@@ -4,11 +4,11 @@ This module owns two quick measurements the lead asked for, printed (logging at 
 
 * kernel load/compile time of the first ``Plant`` step and µs per :meth:`Plant.step`
   (CPU time, best and median of repeated batches), with 4 RK4 sub-steps per 1 ms;
-* peak / RMS joint torque of the nominal inverse dynamics along the gate path of robot.md §5
+* peak / RMS joint torque of the nominal inverse dynamics along the gate path of docs/robot-model.md §6.1–6.2
   (25 × 305 × 25 mm, +90° tool turn, 4-5-6-7 law, overlap blend f_z = 0.4, f_h = 0.15) for
   single-journey times 0.50 / 0.25 / 0.15 s, to compare with the joint torque limit.
 
-The gate path here is a self-contained copy of robot.md §5.3 (default blend) for this check
+The gate path here is a self-contained copy of docs/robot-model.md §6.2 (default blend) for this check
 only; the host's trajectory module is the reference for real runs.
 """
 
@@ -48,7 +48,7 @@ def _axis(t: np.ndarray, t0: float, t1: float, length: float) -> tuple[np.ndarra
 
 def gate_path(T: float, ts_s: float = 1e-3, fz: float = 0.4, fh: float = 0.15,
               dtheta: float = math.pi / 2) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(t, X, Ẋ, Ẍ) of one single journey of the robot.md §5 gate path (pick at x = −0.1525 m)."""
+    """(t, X, Ẋ, Ẍ) of one single journey of the docs/robot-model.md §6.1–6.2 gate path (pick at x = −0.1525 m)."""
     t = np.arange(0.0, T + 0.5 * ts_s, ts_s)
     X = np.zeros((t.size, 4))
     Xd = np.zeros_like(X)
@@ -87,7 +87,7 @@ def bench_step(batches: int = 30, steps: int = 1000) -> dict[str, float]:
 
 def peak_torques() -> list[tuple[float, str, np.ndarray, np.ndarray]]:
     """(T, model name, peak |τ| (4,), RMS τ (4,)) along the gate path for T = 0.5/0.25/0.15 s."""
-    models = {"robot.md 1 kW (J_m=1.9e-4)": robot_md_mass_model(), "nominal 3 kW (J_m=7.16e-4)": nominal_mass_model()}
+    models = {"docs/robot-model.md 1 kW (J_m=1.9e-4)": robot_md_mass_model(), "nominal 3 kW (J_m=7.16e-4)": nominal_mass_model()}
     out = []
     for T in (0.50, 0.25, 0.15):
         _, X, Xd, Xdd = gate_path(T, ts_s=1e-4)

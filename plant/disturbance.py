@@ -12,7 +12,7 @@ in every trial.  The non-repetitive line cannot be what was meant (it equals sin
 repetitive); its Fig. 9B shows an irregular torque of a few N·m that changes from trial to trial.
 We therefore implement:
 
-* ``"repetitive"``: d_j(t) = λ sin(ω t + φ_j) with λ = 2 N·m (robot.md §6), ω = 2π/T_cycle
+* ``"repetitive"``: d_j(t) = λ sin(ω t + φ_j) with λ = 2 N·m (docs/robot-model.md §5.4), ω = 2π/T_cycle
   (T_cycle = ``period_s``, default the trial length (n_ticks − 1)·Ts, i.e. the cycle
   frequency of a pick→place→pick trial) and φ_j = j·π/2 for joint j = 0..3.  Independent of
   seed and trial.
@@ -34,7 +34,6 @@ import logging
 import math
 
 import numpy as np
-from scipy import signal
 
 logger = logging.getLogger(__name__)
 
@@ -87,6 +86,8 @@ def nonrepetitive_torque(seed: int, trial: int, n_ticks: int, ts_s: float) -> np
     white = rng.standard_normal(size=(n_ticks + _WARMUP, 4))
     fs = 1.0 / ts_s
     fc = min(NR_NOISE_CUTOFF_HZ, 0.4 * fs)
+    from scipy import signal  # imported here: the kind names above must stay cheap to import
+
     b, a = signal.butter(2, fc, btype="low", fs=fs)
     colored = signal.lfilter(b, a, white, axis=0)[_WARMUP:]
     rms = np.sqrt(np.mean(colored**2, axis=0))

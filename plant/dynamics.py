@@ -1,4 +1,4 @@
-"""Rigid-body dynamics of the robot: the paper's model eq. (1)–(4) with robot.md §4.1 lumping.
+"""Rigid-body dynamics of the robot: the paper's model eq. (1)–(4) with docs/robot-model.md §4 lumping.
 
 This module owns the public dynamics API, joint side, SI units (N·m, rad, s)::
 

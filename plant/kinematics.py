@@ -1,4 +1,4 @@
-"""Kinematics of the 4-limb Schönflies robot with a screw-pair platform (robot.md §3).
+"""Kinematics of the 4-limb Schönflies robot with a screw-pair platform (docs/robot-model.md §3).
 
 This module owns the public kinematic API (all lengths in m, angles in rad):
 
@@ -119,7 +119,7 @@ def task_rates_from_subplatform(Yd: np.ndarray, geometry: Geometry | None = None
 def inverse_kinematics(X: np.ndarray, geometry: Geometry | None = None) -> np.ndarray:
     """Joint angles q (..., 4) [rad] for task poses X (..., 4) = (x, y, z, θ) [m, rad].
 
-    Closed-form elbow-out branch per limb (robot.md §3.3).
+    Closed-form elbow-out branch per limb (docs/robot-model.md §3.3).
 
     :raises OutOfReachError: if a limb cannot reach a point (message names limb and point).
     """
@@ -141,7 +141,7 @@ def forward_kinematics(q: np.ndarray, Y_guess: np.ndarray | None = None,
                        geometry: Geometry | None = None) -> np.ndarray:
     """Sub-platform coordinates Y (..., 4) = (x, y, z_u, z_l) [m] for joint angles q (..., 4).
 
-    Newton on the four rod constraints (robot.md §3.4), started from ``Y_guess`` (default
+    Newton on the four rod constraints (docs/robot-model.md §3.4), started from ``Y_guess`` (default
     :data:`DEFAULT_Y_GUESS`); along a batch each sample is warm-started from the previous one.
 
     :raises ForwardKinematicsError: if Newton does not converge.
@@ -179,7 +179,7 @@ def jacobian_up_low(q: np.ndarray, Y: np.ndarray, geometry: Geometry | None = No
 
 def jdot_qdot(q: np.ndarray, qd: np.ndarray, Y: np.ndarray, Yd: np.ndarray | None = None,
               geometry: Geometry | None = None) -> np.ndarray:
-    """J̇q̇ (..., 4) [m/s²] = A⁻¹w (robot.md §3.6), so that Ÿ = J q̈ + J̇q̇.
+    """J̇q̇ (..., 4) [m/s²] = A⁻¹w (docs/robot-model.md §3.6), so that Ÿ = J q̈ + J̇q̇.
 
     ``Yd`` is accepted for interface symmetry; the kernel recomputes Ẏ = J q̇ for consistency.
     """
@@ -218,7 +218,7 @@ def joint_velocity(q: np.ndarray, Y: np.ndarray, Yd: np.ndarray, geometry: Geome
 
 def joint_acceleration(q: np.ndarray, qd: np.ndarray | None, Y: np.ndarray, Yd: np.ndarray, Ydd: np.ndarray,
                        geometry: Geometry | None = None) -> np.ndarray:
-    """q̈ = B⁻¹(A Ÿ − w) (..., 4) [rad/s²] (robot.md §3.6).
+    """q̈ = B⁻¹(A Ÿ − w) (..., 4) [rad/s²] (docs/robot-model.md §3.6).
 
     ``qd`` is accepted for interface symmetry; q̇ is recomputed from Ẏ (consistent by
     construction).

@@ -1,19 +1,19 @@
 """Robot parameters: geometry, lumped mass model and true-plant configuration (SI units).
 
 This module owns every physical number the plant and the host's nominal model use.
-Each value carries the source tag of /work/shared/reference/robot.md:
+Each value carries the source tag of docs/robot-model.md:
 
 * **[S]** taken from a named source (S1 = Li et al. 2022 Table 1, S3 Codourey, S4 Olsson,
   S7 Yaskawa Sigma-II manual),
 * **[D]** derived from [S]/[P] values,
 * **[P]** proposed (plausible, not published).
 
-Drivetrain (lead decision, deviating from robot.md §2): reducer n = 10 (= bus.units.GEAR_RATIO)
-with a **3 kW class motor** instead of robot.md's 1 kW, so that the paper's 0.15 s single
+Drivetrain (lead decision, deviating from docs/robot-model.md §2.3): reducer n = 10 (= bus.units.GEAR_RATIO)
+with a **3 kW class motor** instead of docs/robot-model.md 1 kW, so that the paper's 0.15 s single
 journeys are feasible: rotor 7.0e-4 kg·m² + reducer input 0.16e-4 kg·m², peak motor torque
 29.4 N·m, max speed 5000 rpm.  [P] "3 kW class, Sigma-II SGMSH-30A-like values, not re-checked".
 
-Conventions (robot.md §3.1): base frame z up, motor axes in z = 0, joint angle q = 0 with the
+Conventions (docs/robot-model.md §3.1): base frame z up, motor axes in z = 0, joint angle q = 0 with the
 inner arm horizontal pointing outward, positive downward.  Sub-platform coordinates
 Y = (x, y, z_u, z_l); task coordinates X = (x, y, z, θ) with (x, y, z) the TCP on the lower
 sub-platform.  Limbs 1, 3 (index 0, 2) drive the upper sub-platform, limbs 2, 4 (index 1, 3)
@@ -37,7 +37,7 @@ LIMB_ON_UPPER: tuple[bool, bool, bool, bool] = (True, False, True, False)
 
 @dataclass(frozen=True)
 class Geometry:
-    """Kinematic geometry (robot.md §2, §3).  Lengths in m, angles in rad."""
+    """Kinematic geometry (docs/robot-model.md §2.3, §3).  Lengths in m, angles in rad."""
 
     #: inner arm length, motor axis to elbow-bar midpoint [S1 Table 1]
     l_a: float = 0.296
@@ -66,7 +66,7 @@ class Geometry:
 
 @dataclass(frozen=True)
 class MassModel:
-    """Lumped mass model of robot.md §4.1 (kg, m, kg·m²).
+    """Lumped mass model of docs/robot-model.md §4 (kg, m, kg·m²).
 
     Derived quantities (properties) follow the lumping rules: the forearm mass of each limb
     is split, ``rho`` at the elbow and ``1 - rho`` at the sub-platform; the inner arm is a
@@ -140,13 +140,13 @@ VISCOUS_SPREAD: tuple[float, float, float, float] = (0.88, 1.15, 1.05, 0.82)
 
 @dataclass(frozen=True)
 class TruePlantConfig:
-    """The emulated robot: a mass model plus effects the nominal model lacks (robot.md §6).
+    """The emulated robot: a mass model plus effects the nominal model lacks (docs/robot-model.md §5.1).
 
     Friction per joint (joint side): ``τ_f = F(q̇) tanh(q̇ / v_smooth) + F_v q̇`` with
     ``F(q̇) = F_c (1 + (r_s - 1) exp(-(q̇/v_s)²))`` (Stribeck; ``r_s = 1`` switches it off).
     The commanded torque is clamped to ``±joint_torque_limit_nm`` before the disturbance
     (an external torque) is added.  Not modelled: screw efficiency, current-loop lag,
-    transport delay, encoder noise (robot.md §6 lists them as optional).
+    transport delay, encoder noise (docs/robot-model.md §5.1 lists them as optional).
     """
 
     #: mass model of the emulated robot
@@ -159,7 +159,7 @@ class TruePlantConfig:
     viscous_nm_s_per_rad: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     #: smoothing velocity of the Coulomb term, rad/s [P]
     friction_smoothing_rad_s: float = 0.01
-    #: Stribeck ratio F_s/F_c (1.0 = off; robot.md §6 suggests 1.3 as an option) [P]
+    #: Stribeck ratio F_s/F_c (1.0 = off; docs/robot-model.md §5.1 suggests 1.3 as an option) [P]
     stribeck_ratio: float = 1.0
     #: Stribeck velocity, rad/s [P]
     stribeck_velocity_rad_s: float = 0.05
@@ -197,21 +197,21 @@ class TruePlantConfig:
 
 
 def nominal_mass_model() -> MassModel:
-    """The host's nominal model (robot.md §4.1): ρ = 1/2, no payload, no tool spin inertia."""
+    """The host's nominal model (docs/robot-model.md §4): ρ = 1/2, no payload, no tool spin inertia."""
     return MassModel()
 
 
 def robot_md_mass_model() -> MassModel:
-    """Nominal model with robot.md's original 1 kW drivetrain (J_m = 1.9e-4 kg·m², S7 SGMSH-10A).
+    """Nominal model with docs/robot-model.md original 1 kW drivetrain (J_m = 1.9e-4 kg·m², S7 SGMSH-10A).
 
-    Only for cross-checking numbers quoted in robot.md (e.g. §5.4 loads); gravity terms do
+    Only for cross-checking numbers quoted in docs/robot-model.md (e.g. §5.4 loads); gravity terms do
     not depend on J_m.
     """
     return replace(MassModel(), J_m=1.74e-4 + 0.16e-4)
 
 
 def default_true_plant() -> TruePlantConfig:
-    """The emulated robot of robot.md §6 (all differences [P]).
+    """The emulated robot of docs/robot-model.md §5.1 (all differences [P]).
 
     * forearm lumping ρ = 2/3 (S4) vs nominal 1/2
     * inner-arm inertia +10 %, COM l_c = 0.135 m (heavy hub)

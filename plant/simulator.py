@@ -69,7 +69,7 @@ class Plant:
 
     @classmethod
     def nominal(cls, ts_s: float, substeps: int, rad_per_count: float, torque_lsb_nm: float,
-                torque_limit_enabled: bool = True) -> "Plant":
+                torque_limit_enabled: bool = True) -> Plant:
         """A plant on the nominal mass model without friction (for tests / model checks)."""
         return cls(nominal_plant_config(torque_limit_enabled), ts_s, substeps, rad_per_count, torque_lsb_nm)
 

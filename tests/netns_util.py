@@ -1,6 +1,6 @@
 """Test helper: run a Python script inside a private user+network namespace (``unshare -rn``).
 
-Inside, loopback is brought up with multicast and a 224.0.0.0/4 route (DESIGN.md "Rules of
+Inside, loopback is brought up with multicast and a 224.0.0.0/4 route (docs/architecture.md §6, "Rules of
 this environment"), so udp_multicast traffic never reaches a real interface.
 """
 

@@ -1,4 +1,4 @@
-"""bus.busload: bit lengths against canopen.md §3, counters, listener."""
+"""bus.busload: bit lengths against docs/canopen-objects.md §9, counters, listener."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from bus.busload import (
     stuff_bits_worst_case,
 )
 
-# canopen.md §3 table: n bytes -> (bits no stuffing, worst case), 11-bit ID; n = 3, 5, 7
+# docs/canopen-objects.md §9 table: n bytes -> (bits no stuffing, worst case), 11-bit ID; n = 3, 5, 7
 # are not in the table and were computed by hand from 47 + 8n and ⌊(34 + 8n − 1)/4⌋.
 STD_TABLE = {
     0: (47, 55),
@@ -31,7 +31,7 @@ STD_TABLE = {
     7: (103, 125),
     8: (111, 135),
 }
-# canopen.md §3 "max frames/s at 1 Mbit/s" row: (no stuffing, worst case)
+# docs/canopen-objects.md §9 "max frames/s at 1 Mbit/s" row: (no stuffing, worst case)
 MAX_FRAMES = {
     0: (21_276, 18_181),
     1: (18_181, 15_384),
@@ -86,7 +86,7 @@ def test_counter_and_load_percent() -> None:
     for j in range(4):
         c.add(can.Message(arbitration_id=0x181 + j, is_extended_id=False, data=bytes(8)))
     assert (c.frames, c.bits, c.bits_worst_case) == (5, 491, 595)
-    # 1000 such ticks in 1 s at 1 Mbit/s → 49.1 % / 59.5 % (canopen.md: 49–60 %)
+    # 1000 such ticks in 1 s at 1 Mbit/s → 49.1 % / 59.5 % (docs/canopen-objects.md §9: 49–60 %)
     scaled = BusLoadCounter(c.frames * 1000, c.bits * 1000, c.bits_worst_case * 1000)
     assert scaled.load_percent(1.0) == pytest.approx(59.5)
     assert scaled.load_percent(1.0, worst_case=False) == pytest.approx(49.1)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import IO
 
 import can
 import pytest
@@ -85,40 +86,61 @@ def test_stop_is_idempotent(tmp_path: Path) -> None:
     log.stop()
 
 
+def _readline(stream: IO[str], timeout_s: float) -> str:
+    """One line from a child's stdout pipe, or "" if none came within ``timeout_s``."""
+    import select
+
+    if not select.select([stream], [], [], timeout_s)[0]:
+        return ""
+    return stream.readline()
+
+
 @pytest.mark.multiprocess
 def test_python_can_logger_records_a_hub_channel(tmp_path: Path) -> None:
-    """python-can's own `can.logger` joins the hub through the entry point and writes candump."""
+    """python-can's own `can.logger` joins the hub through the entry point and writes candump.
+
+    Events, no sleeps: the logger prints "Connected to ..." once its bus is up (the hub has
+    registered it: frames flow to it from then on).  The end of the recording is the end of
+    the hub's stream: when the hub stops, the logger reads every frame queued before the
+    end-of-stream, its loop ends and it writes the file on the way out.  (A SIGINT instead would
+    drop whatever the logger had not read yet.)"""
+    import os
     import signal
     import subprocess
     import sys
-    import time
 
-    from bus.hub import HubBus, start_hub
+    from bus.transports.hub_client import HubBus
+    from bus.transports.hub_server import start_hub
 
     path = tmp_path / "io.log"
     with start_hub() as hub:
         proc = subprocess.Popen(
             [sys.executable, "-m", "can.logger", "-i", "ilcrig_hub", "-c", hub.channel("io"), "-f", str(path)],
-            stdout=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
             stderr=subprocess.DEVNULL,
+            text=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
         )
+        assert proc.stdout is not None
         try:
-            deadline = time.monotonic() + 15
-            while "io" not in hub.stats() and time.monotonic() < deadline:
-                time.sleep(0.02)
+            line = _readline(proc.stdout, 30.0)
+            assert line.startswith("Connected to HubBus"), line
             sent = [encode_encoder(j, 9, 100 * j) for j in range(4)]
             with HubBus(hub.channel("io")) as bus, HubBus(hub.channel("io")) as witness:
                 for m in sent:
                     bus.send(m)
-                assert all(witness.recv(5.0) is not None for _ in sent)
-                time.sleep(0.5)  # the logger writes on exit; give it time to read what the witness got
+                assert all(witness.recv(5.0) is not None for _ in sent)  # the hub routed them all
+            hub.stop()  # end of the stream, behind the frames
+            proc.wait(10)  # the logger saw the end: everything before it is read and written
         finally:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+                try:
+                    proc.wait(10)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
+            proc.stdout.close()
     back = list(read_log(path))
     assert [(m.arbitration_id, bytes(m.data), m.channel) for m in back] == [
         (m.arbitration_id, bytes(m.data), "io") for m in sent

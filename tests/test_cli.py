@@ -11,9 +11,10 @@ import pytest
 
 from bus import units
 from host.cli import main
-from host.compose import InProcessBench
-from host.config import build_config
-from host.experiment import prepare, run_experiment
+from host.experiment.config import build_config
+from host.experiment.inprocess import InProcessBench
+from host.experiment.loop import run_experiment
+from host.experiment.plan import prepare
 
 
 def run_cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:

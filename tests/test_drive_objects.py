@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from bus import fixedpoint as fp
+from bus.cia301.emcy import EmcyCode
+from bus.cia301.nmt import NmtState
 from bus.errors import AbortCode, SdoAbort
 from bus.objects import (
-    EmcyCode,
     FaultCause,
     GainsSub,
-    NmtState,
     Obj,
     RecorderStatus,
     RecorderSub,
@@ -265,7 +265,7 @@ def test_tick_sequence_fault_and_emcy(ticks: list[int], bad: int) -> None:
     assert d.cia402_state == Cia402State.FAULT
     assert rd_u(d, 0x6041) == 0x0208
     assert rd_u(d, 0x1001) == 0x11  # generic + communication
-    assert rd_u(d, 0x603F) == EmcyCode.TICK_SEQUENCE == 0x8200
+    assert rd_u(d, 0x603F) == EmcyCode.PROTOCOL_ERROR == 0x8200
     assert d.pop_emcy() == [(0x8200, 0x11, struct.pack("<BHH", FaultCause.TICK_SEQUENCE, played, bad))]
     assert d.pop_emcy() == []
     assert rd_u(d, Obj.TRIAL, TrialSub.STATE) == TrialState.FAULT

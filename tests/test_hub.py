@@ -1,4 +1,4 @@
-"""bus.hub: exact forwarding between processes, no echo, entry point, loopback-only,
+"""bus.transports.hub_*: exact forwarding between processes, no echo, entry point, loopback-only,
 disconnects, stats, filters, and that the hub child process is always reaped."""
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -19,18 +20,16 @@ import can
 import pytest
 
 from bus.busload import frame_bits, frame_bits_worst_case
-from bus.hub import (
+from bus.transports.hub_client import HubBus
+from bus.transports.hub_server import HubServer, query_hub_stats, start_hub
+from bus.transports.hub_wire import (
     HubAddressError,
     HubAddressInUseError,
-    HubBus,
-    HubServer,
     HubStartError,
     NonLoopbackAddressError,
     encode_record,
     parse_address,
     parse_channel,
-    query_hub_stats,
-    start_hub,
 )
 
 pytestmark = pytest.mark.multiprocess
@@ -59,6 +58,16 @@ def no_process_left() -> Any:
     yield
     left = set(_child_pids()) - before
     assert not left, f"test left child processes {sorted(left)}"
+
+
+def _wait_until(condition: Callable[[], bool], timeout_s: float) -> bool:
+    """Poll ``condition`` (a state only the hub knows, e.g. its client count) until true."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.005)
+    return True
 
 
 def _frames_of(sender: int, k: int) -> list[can.Message]:
@@ -96,7 +105,7 @@ def _client(channel: str, me: int, n_clients: int, k: int, barrier: Any, q: Any)
         while len(got) < (n_clients - 1) * k and time.monotonic() < deadline:
             m = bus.recv(0.5)
             if m is not None:
-                assert m.is_rx and m.channel == "rig"
+                assert m.is_rx and m.channel == channel  # the channel string the bus was opened with
                 got.append(_key(m))
         barrier.wait(10)  # everybody sent and received: anything else now is an extra
         while (m := bus.recv(0.1)) is not None:
@@ -180,7 +189,10 @@ def test_fileno_select_over_two_buses_and_hub_side_filters() -> None:
         with HubBus(hub.channel("io")) as io_tx, HubBus(hub.channel("fieldbus")) as fb_tx, HubBus(
             hub.channel("io"), can_filters=[{"can_id": 0x101, "can_mask": 0x7FF, "extended": False}]
         ) as io_rx, HubBus(hub.channel("fieldbus")) as fb_rx:
-            time.sleep(0.05)  # let the hub apply io_rx's filter (sent right after the handshake)
+            # the hub handles one client's records in order: once io_rx's next frame reached
+            # io_tx, the hub has applied io_rx's filter record (sent right after the handshake)
+            io_rx.send(can.Message(arbitration_id=0x7FF, is_extended_id=False))
+            assert io_tx.recv(2.0) is not None
             io_tx.send(can.Message(arbitration_id=0x102, is_extended_id=False, data=b"x"))  # filtered in the hub
             assert select.select([io_rx, fb_rx], [], [], 0.1)[0] == []  # nothing reached the socket
             fb_tx.send(can.Message(arbitration_id=0x601, is_extended_id=False, data=b"f"))
@@ -200,7 +212,7 @@ def test_fileno_select_over_two_buses_and_hub_side_filters() -> None:
 def _stay_then_die(channel: str, q: Any) -> None:
     bus = HubBus(channel)
     q.put("up")
-    time.sleep(60)  # killed by the test
+    signal.pause()  # until the test's SIGKILL
     bus.shutdown()
 
 
@@ -222,10 +234,7 @@ def test_client_disconnect_does_not_disturb_others() -> None:
                     assert m is not None and m.data[0] == i % 256
                     b.send(can.Message(arbitration_id=3, is_extended_id=False, data=b""))
                     assert a.recv(2.0) is not None
-                deadline = time.monotonic() + 2
-                while hub.stats()["rig"].clients != 2 and time.monotonic() < deadline:
-                    time.sleep(0.01)
-                assert hub.stats()["rig"].clients == 2
+                assert _wait_until(lambda: hub.stats()["rig"].clients == 2, 5.0)
         finally:
             if victim.is_alive():
                 victim.kill()
@@ -258,7 +267,7 @@ def test_non_loopback_listen_refused(addr: str) -> None:
 
 def test_cli_refuses_non_loopback() -> None:
     res = subprocess.run(
-        [sys.executable, "-m", "bus.hub", "--listen", "tcp:0.0.0.0:0"], capture_output=True, text=True, timeout=30
+        [sys.executable, "-m", "bus.transports.hub_server", "--listen", "tcp:0.0.0.0:0"], capture_output=True, text=True, timeout=30
     )
     assert res.returncode != 0 and "non-loopback" in res.stderr
 
@@ -326,11 +335,11 @@ def test_hub_exits_when_parent_dies(tmp_path: Path) -> None:
     script.write_text(
         textwrap.dedent(
             """
-            import sys, time
-            from bus.hub import start_hub
+            import signal
+            from bus.transports.hub_server import start_hub
             h = start_hub()
             print(h.pid, flush=True)
-            time.sleep(60)
+            signal.pause()  # until the test's SIGKILL
             """
         )
     )
@@ -339,11 +348,13 @@ def test_hub_exits_when_parent_dies(tmp_path: Path) -> None:
         assert parent.stdout is not None
         hub_pid = int(parent.stdout.readline())
         assert not _gone(hub_pid)
-        parent.kill()
-        parent.wait()
-        deadline = time.monotonic() + 5
-        while not _gone(hub_pid) and time.monotonic() < deadline:
-            time.sleep(0.02)
+        pidfd = os.pidfd_open(hub_pid)  # readable when the hub process ends
+        try:
+            parent.kill()
+            parent.wait()
+            assert select.select([pidfd], [], [], 10)[0], "hub still running 10 s after its parent died"
+        finally:
+            os.close(pidfd)
         assert _gone(hub_pid)
     finally:
         if parent.poll() is None:
@@ -361,7 +372,7 @@ def test_stats_reset_and_record_encoding() -> None:
         assert (first.frames, first.bits, first.bits_worst_case, first.clients) == (1, 47, 55, 2)
         assert hub.stats()["a"].frames == 0
     rec = encode_record(can.Message(arbitration_id=0x123, is_extended_id=False, data=b"\x01\x02"))
-    assert rec == bytes.fromhex("01 00 02 02 23010000 0102000000000000")
+    assert rec == bytes.fromhex("01 00 02 02 23010000 0000000000000000 0102000000000000")  # stamp 0: the hub's
 
 
 def test_hub_refuses_bad_hello_and_keeps_serving() -> None:

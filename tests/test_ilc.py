@@ -5,8 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from host.ilc import (GAIN_PRESETS, LAWS, GainSpec, LiftedModel, backward_difference, lead, make_law,
-                      resolve_gains)
+from host.learning.ilc import (
+    GAIN_PRESETS,
+    LAWS,
+    GainSpec,
+    LiftedModel,
+    backward_difference,
+    lead,
+    make_law,
+    resolve_gains,
+)
 
 TS = 1e-3
 N = 160

@@ -24,9 +24,9 @@ from pathlib import Path
 
 import pytest
 
-from host import launcher
 from host.cli import build_parser
-from host.launcher import EXIT_CHILD_FAILED, RigLauncher, host_role_args, role_command
+from host.rig import launcher
+from host.rig.launcher import EXIT_CHILD_FAILED, RigLauncher, host_role_args, role_command
 
 pytestmark = pytest.mark.multiprocess
 

@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from bus.emcy import (
+from bus.cia301.emcy import (
     EmcyCode,
     EmcyFrameError,
     EmcyMessage,
@@ -16,7 +16,7 @@ from bus.emcy import (
     emcy_node_id,
     encode_emcy,
 )
-from bus.nmt import (
+from bus.cia301.nmt import (
     HeartbeatConsumer,
     NmtCommand,
     NmtFrameError,

@@ -1,5 +1,11 @@
 """Tests of firmware_model/node.py: the drive node runtime on python-can virtual buses, checked
-from the host side with the canopen library (RemoteNode, SDO client, NMT, heartbeat)."""
+from the host side with the canopen library (RemoteNode, SDO client, NMT, heartbeat).
+
+Synchronisation is by events only: a test waits for the frame or state it expects (with a
+timeout that only bounds a failure), never sleeps for a guessed time.  That something does NOT
+happen is shown with a probe sent behind it on the same bus (the node serves each bus in
+order): once the probe's effect is seen, the earlier frame has been handled.  Heartbeat timing
+is checked on a manual node clock, never against the wall clock."""
 
 from __future__ import annotations
 
@@ -15,9 +21,9 @@ import canopen
 import pytest
 
 from bus import io_frames
-from bus.emcy import EmcyCode
+from bus.cia301.emcy import EmcyCode
 from bus.errors import AbortCode, SdoAbort
-from bus.nmt import NmtCommand, NmtState, next_state
+from bus.cia301.nmt import NmtCommand, NmtState, next_state
 from firmware_model.node import DriveNode
 
 EDS = Path(__file__).resolve().parents[1] / "bus" / "drive.eds"
@@ -26,7 +32,8 @@ _counter = itertools.count()
 
 
 class FakeDrive:
-    """Minimal stand-in for firmware_model.drive.Drive (object access, NMT, EMCY, io_tick)."""
+    """Minimal stand-in for firmware_model.drive.Drive (object access, NMT, EMCY, io_tick and
+    the torque-frame state: ``torque_enabled``, ``statusword``)."""
 
     def __init__(self, node_id: int) -> None:
         self.node_id = node_id
@@ -40,7 +47,6 @@ class FakeDrive:
         self.emcy: list[tuple[int, int, bytes]] = []
         self.ticks: list[tuple[int, int]] = []
         self.nmt_log: list[int] = []
-        self.controls: list[tuple[int, int, int]] = []
 
     def read_object(self, index: int, sub: int) -> bytes:
         try:
@@ -72,10 +78,21 @@ class FakeDrive:
         self.ticks.append((tick, encoder_count))
         return -encoder_count
 
-    def io_control(self, command: int, tick: int, n_ticks: int) -> None:
-        self.controls.append((int(command), tick, n_ticks))
+    torque_enabled = True
 
-    torque_status = io_frames.TorqueStatus.ENABLED
+    @property
+    def statusword(self) -> int:
+        return int(struct.unpack("<H", self.objects[(0x6041, 0)])[0])
+
+
+class ManualClock:
+    """A node clock that only the test moves: heartbeats fall due exactly when it says."""
+
+    def __init__(self, now: float = 1000.0) -> None:
+        self.now = now
+
+    def __call__(self) -> float:
+        return self.now
 
 
 class Rig:
@@ -93,10 +110,9 @@ class Rig:
         self.network = canopen.Network()
         self.network.NOTIFIER_CYCLE = 0.02
         self.network.connect(interface="virtual", channel=self.fb_channel)
-        self.heartbeats: list[tuple[float, int]] = []
+        self.heartbeats: list[int] = []  # NMT state byte of every heartbeat / boot-up frame
         self.emcys: list[bytes] = []
-        self.network.subscribe(0x700 + NODE, lambda _id, data, _t: self.heartbeats.append(
-            (time.monotonic(), data[0])))
+        self.network.subscribe(0x700 + NODE, lambda _id, data, _t: self.heartbeats.append(data[0]))
         self.network.subscribe(0x080 + NODE, lambda _id, data, _t: self.emcys.append(bytes(data)))
         self.remote = canopen.RemoteNode(NODE, str(EDS))
         self.network.add_node(self.remote)
@@ -114,6 +130,7 @@ class Rig:
 
 
 def wait_for(predicate, timeout_s: float = 1.0) -> bool:
+    """Poll ``predicate`` until true or ``timeout_s`` passed (the caller asserts the result)."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if predicate():
@@ -141,7 +158,7 @@ def fake_rig() -> Iterator[Rig]:
 
 def test_bootup_sdo_nmt_heartbeat_fake_drive(fake_rig: Rig) -> None:
     rig = fake_rig
-    assert wait_for(lambda: rig.heartbeats[:1] and rig.heartbeats[0][1] == 0x00)  # boot-up
+    assert wait_for(lambda: rig.heartbeats[:1] == [0x00])  # boot-up
     assert rig.remote.sdo.upload(0x1018, 1) == struct.pack("<L", 0x1234)
     assert rig.remote.sdo[0x6041].raw == 0x0240
     for cw, sw in ((0x06, 0x0221), (0x07, 0x0223), (0x0F, 0x0237)):
@@ -150,17 +167,17 @@ def test_bootup_sdo_nmt_heartbeat_fake_drive(fake_rig: Rig) -> None:
     with pytest.raises(canopen.SdoAbortedError) as err:
         rig.remote.sdo[0x6041].raw = 1
     assert err.value.code == 0x06010002
-    rig.remote.sdo[0x1017].raw = 20  # ms
+    rig.remote.sdo[0x1017].raw = 20  # ms; the period itself: test_heartbeat_period_is_0x1017_on_the_node_clock
     rig.remote.nmt.send_command(0x01)
-    assert wait_for(lambda: len([s for _, s in rig.heartbeats if s == 0x05]) >= 3)
-    beats = [t for t, s in rig.heartbeats if s == 0x05]
-    period = (beats[-1] - beats[0]) / (len(beats) - 1)
-    assert 0.010 < period < 0.100
+    assert wait_for(lambda: rig.heartbeats.count(0x05) >= 3)
     assert rig.drive.nmt_log == [0x01]
-    # NMT to another node is ignored
+    # NMT to another node is ignored: a STOP for node 3, then a probe for this node behind it
+    # (enter pre-operational); once the probe is applied, the STOP has been seen and dropped
     rig.network.send_message(0, bytes([0x02, NODE + 1]))
-    time.sleep(0.03)
-    assert rig.drive.nmt_log == [0x01]
+    rig.network.send_message(0, bytes([0x80, NODE]))
+    assert wait_for(lambda: rig.drive.nmt_log[-1:] == [0x80])
+    assert rig.drive.nmt_log == [0x01, 0x80]
+    assert rig.drive.nmt_state == NmtState.PRE_OPERATIONAL
 
 
 def test_stopped_node_ignores_sdo_and_reset_sends_bootup(fake_rig: Rig) -> None:
@@ -172,7 +189,7 @@ def test_stopped_node_ignores_sdo_and_reset_sends_bootup(fake_rig: Rig) -> None:
         rig.remote.sdo.upload(0x1018, 1)
     rig.heartbeats.clear()
     rig.remote.nmt.send_command(0x81)  # reset node (all via node id)
-    assert wait_for(lambda: any(s == 0x00 for _, s in rig.heartbeats))
+    assert wait_for(lambda: 0x00 in rig.heartbeats)
     assert rig.remote.sdo.upload(0x1018, 1) == struct.pack("<L", 0x1234)
 
 
@@ -197,7 +214,6 @@ def test_io_tick_round_trip_and_tick_unwrap(fake_rig: Rig) -> None:
     assert [(t.tick, t.torque_units) for t in torques] == [(0, -1000), (1, -1001), (2, -1002)]
     assert torques[0].status == io_frames.TorqueStatus.ENABLED
     assert rig.drive.ticks == [(0, 1000), (1, 1001), (2, 1002)]
-    assert rig.drive.controls == [(1, 0, 70000)]
 
 
 def test_tick_is_relative_to_trial_start_and_unwrapped(fake_rig: Rig) -> None:
@@ -217,16 +233,80 @@ def test_tick_is_relative_to_trial_start_and_unwrapped(fake_rig: Rig) -> None:
 
 
 def test_own_frames_are_ignored(fake_rig: Rig) -> None:
-    """udp_multicast echoes a node's own frames: SDO responses, heartbeats, torques."""
+    """udp_multicast echoes a node's own frames: SDO responses, heartbeats, torques.  Probes
+    behind the echoes on the same buses (an NMT command, an encoder frame) show that the echoes
+    have been handled: the only effects are the probes'."""
     rig = fake_rig
     node = rig.node
-    before = (list(rig.drive.ticks), list(rig.drive.nmt_log))
+    assert wait_for(lambda: rig.heartbeats[:1] == [0x00])  # serving
+    assert (rig.drive.ticks, rig.drive.nmt_log) == ([], [])
     rig.network.send_message(0x580 + NODE, bytes(8))
     rig.network.send_message(0x700 + NODE, b"\x05")
     rig.plant.send(io_frames.encode_torque(NODE - 1, 0, 1, 0))
-    time.sleep(0.03)
-    assert (rig.drive.ticks, rig.drive.nmt_log) == before
+    rig.network.send_message(0, bytes([0x80, NODE]))  # probe: enter pre-operational
+    rig.plant.send(io_frames.encode_encoder(NODE - 1, 0, 321))  # probe: one io tick
+    answer = rig.plant.recv(timeout=1.0)  # the first io frame of the node is the probe's torque
+    assert answer is not None
+    torque = io_frames.decode_torque(answer)
+    assert (answer.arbitration_id, torque.tick, torque.torque_units) == (
+        io_frames.torque_cob_id(NODE - 1), 0, -321)
+    assert wait_for(lambda: rig.drive.nmt_log != [])
+    assert (rig.drive.ticks, rig.drive.nmt_log) == ([(0, 321)], [0x80])
     assert not node.sdo.busy
+    assert rig.remote.sdo.upload(0x1018, 1) == struct.pack("<L", 0x1234)  # and SDO still answers
+
+
+def test_heartbeat_period_is_0x1017_on_the_node_clock() -> None:
+    """Heartbeat timing, deterministic: the node is stepped by the test (no thread) on a manual
+    clock; a virtual bus delivers on send, so after ``step`` every frame the node sent is
+    waiting.  The period comes from 0x1017 (written over SDO, the timer restarts then); one
+    beat per period with the NMT state, none before it is due, a late step sends one beat (no
+    burst) and a beat less than a period late keeps the phase."""
+    k = next(_counter)
+    fb_node = can.Bus(interface="virtual", channel=f"hb-fb-{k}")
+    host = can.Bus(interface="virtual", channel=f"hb-fb-{k}")
+    io_node = can.Bus(interface="virtual", channel=f"hb-io-{k}")
+    clock = ManualClock(1000.0)
+    drive = FakeDrive(NODE)
+    node = DriveNode(drive, fb_node, io_node, clock=clock)  # type: ignore[arg-type]
+
+    def sent() -> list[tuple[int, bytes]]:
+        out = []
+        while (msg := host.recv(timeout=0)) is not None:
+            out.append((msg.arbitration_id, bytes(msg.data)))
+        return out
+
+    def step_at(t: float) -> list[tuple[int, bytes]]:
+        clock.now = t
+        node.step(0.0)
+        return sent()
+
+    beat = (0x702, b"\x7f")  # pre-operational
+    try:
+        node.start()
+        assert sent() == [(0x702, b"\x00")]  # boot-up; 0x1017 = 0: no heartbeat
+        assert step_at(1010.0) == []
+        host.send(can.Message(arbitration_id=0x602, data=bytes.fromhex("2B 17 10 00 7D 00 00 00"),
+                              is_extended_id=False))  # 0x1017 := 125 ms
+        t0 = 1020.0  # the download is handled at t0: first beat due at t0 + 0.125
+        assert step_at(t0) == [(0x582, bytes.fromhex("60 17 10 00 00 00 00 00"))]
+        assert step_at(t0 + 0.124) == []
+        assert step_at(t0 + 0.125) == [beat]
+        assert step_at(t0 + 0.125) == []
+        assert step_at(t0 + 0.249) == []
+        assert step_at(t0 + 0.25) == [beat]
+        host.send(can.Message(arbitration_id=0, data=bytes([0x01, NODE]), is_extended_id=False))
+        assert step_at(t0 + 0.3) == []  # NMT start applied; the heartbeat keeps its own timer
+        assert drive.nmt_state == NmtState.OPERATIONAL
+        beat = (0x702, b"\x05")
+        assert step_at(t0 + 0.4) == [beat]  # due at t0 + 0.375: 25 ms late
+        assert step_at(t0 + 0.499) == []  # the phase is kept: next due t0 + 0.5
+        assert step_at(t0 + 0.5) == [beat]
+        assert step_at(t0 + 0.875) == [beat]  # two periods missed: one beat, no burst
+        assert step_at(t0 + 0.875) == []
+    finally:
+        for bus in (fb_node, host, io_node):
+            bus.shutdown()
 
 
 def test_real_drive_enable_sequence() -> None:
@@ -238,14 +318,14 @@ def test_real_drive_enable_sequence() -> None:
     rig = Rig(drive_mod.Drive(NODE))
     try:
         remote = rig.remote
-        assert wait_for(lambda: rig.heartbeats[:1] and rig.heartbeats[0][1] == 0x00)
+        assert wait_for(lambda: rig.heartbeats[:1] == [0x00])
         vendor = remote.sdo[0x1018][1].raw
         assert isinstance(vendor, int)
         sw = remote.sdo[0x6041].raw
         assert state_from_statusword(sw) == Cia402State.SWITCH_ON_DISABLED
         remote.sdo[0x1017].raw = 20
         remote.nmt.send_command(0x01)
-        assert wait_for(lambda: any(s == 0x05 for _, s in rig.heartbeats))
+        assert wait_for(lambda: 0x05 in rig.heartbeats)
         for cw, state in ((ControlCommand.SHUTDOWN, Cia402State.READY_TO_SWITCH_ON),
                           (ControlCommand.SWITCH_ON, Cia402State.SWITCHED_ON),
                           (ControlCommand.ENABLE_OPERATION, Cia402State.OPERATION_ENABLED)):
@@ -308,11 +388,16 @@ class SocketPairBus(can.BusABC):
 
 
 def test_select_path_with_fileno_buses() -> None:
+    """The select() path: boot-up, SDO, io tick, and heartbeats that only the heartbeat deadline
+    can wake (MAX_WAIT_S is made huge), on a manual node clock: one beat each time the clock
+    passes a 0x1017 period, none before, none extra."""
     drive = FakeDrive(NODE)
-    drive.objects[(0x1017, 0)] = struct.pack("<H", 10)
+    drive.objects[(0x1017, 0)] = struct.pack("<H", 125)  # ms (exact in binary: exact due times)
     fb_node, fb_host = SocketPairBus.pair()
     io_node, io_plant = SocketPairBus.pair()
-    node = DriveNode(drive, fb_node, io_node)  # type: ignore[arg-type]
+    clock = ManualClock(1000.0)
+    node = DriveNode(drive, fb_node, io_node, clock=clock)  # type: ignore[arg-type]
+    node.MAX_WAIT_S = 3600.0  # a quiet select() ends at the heartbeat deadline or not at all
     assert node._fds is not None
     stop = threading.Event()
     thread = threading.Thread(target=node.run, args=(stop,), daemon=True)
@@ -320,22 +405,22 @@ def test_select_path_with_fileno_buses() -> None:
     try:
         boot = fb_host.recv(timeout=1.0)
         assert boot is not None and (boot.arbitration_id, bytes(boot.data)) == (0x702, b"\x00")
-        fb_host.send(can.Message(arbitration_id=0x602, data=bytes.fromhex("40 18 10 01 00 00 00 00"),
-                                 is_extended_id=False))
-        resp = fb_host.recv(timeout=1.0)
-        while resp is not None and resp.arbitration_id != 0x582:
-            resp = fb_host.recv(timeout=1.0)
-        assert resp is not None and bytes(resp.data) == bytes.fromhex("43 18 10 01 34 12 00 00")
+        upload = can.Message(arbitration_id=0x602, data=bytes.fromhex("40 18 10 01 00 00 00 00"),
+                             is_extended_id=False)
+        fb_host.send(upload)
+        resp = fb_host.recv(timeout=1.0)  # the clock stands still: no heartbeat before the answer
+        assert resp is not None and resp.arbitration_id == 0x582
+        assert bytes(resp.data) == bytes.fromhex("43 18 10 01 34 12 00 00")
         io_plant.send(io_frames.encode_encoder(NODE - 1, 0, 42))
         torque = io_plant.recv(timeout=1.0)
         assert torque is not None and io_frames.decode_torque(torque).torque_units == -42
-        t0 = time.monotonic()
-        beats = 0
-        while beats < 3 and time.monotonic() - t0 < 1.0:
-            msg = fb_host.recv(timeout=0.1)
-            beats += msg is not None and msg.arbitration_id == 0x702
-        assert beats == 3
-        assert time.monotonic() - t0 < 0.5  # 10 ms heartbeat (generous under CPU load)
+        for k in (1, 2, 3):
+            clock.now = 1000.0 + 0.125 * k  # due: the node's select() times out and beats
+            beat = fb_host.recv(timeout=5.0)
+            assert beat is not None and (beat.arbitration_id, bytes(beat.data)) == (0x702, b"\x7f"), k
+        fb_host.send(upload)  # probe: the next frame is its answer, no extra beat in between
+        resp = fb_host.recv(timeout=1.0)
+        assert resp is not None and resp.arbitration_id == 0x582
     finally:
         stop.set()
         thread.join(timeout=2.0)

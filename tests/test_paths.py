@@ -1,4 +1,4 @@
-"""Tests of host.paths: built-in paths, TOML path files, path resolution."""
+"""Tests of host.planning.paths: built-in paths, TOML path files, path resolution."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from host.paths import BUILTIN_PATHS, PathError, PathSpec, load_path_file, resolve_path
+from host.planning.paths import BUILTIN_PATHS, PathError, PathSpec, load_path_file, resolve_path
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "host" / "paths" / "example.toml"
+EXAMPLE = Path(__file__).resolve().parents[1] / "host" / "planning" / "path_files" / "example.toml"
 
 GOOD = """\
 name = "test gate"

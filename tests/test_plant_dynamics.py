@@ -1,4 +1,4 @@
-"""Dynamics of the plant (robot.md §4): structure of M/C/G, consistency with the Lagrangian,
+"""Dynamics of the plant (docs/robot-model.md §4): structure of M/C/G, consistency with the Lagrangian,
 holding torques, energy conservation, friction dissipation, true-plant terms."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Kinematics of the plant (robot.md §3): IK/FK round trip, reach errors, J and J̇q̇ against
+"""Kinematics of the plant (docs/robot-model.md §3): IK/FK round trip, reach errors, J and J̇q̇ against
 finite differences, joint rates from task rates, the screw pair and the rotation check."""
 
 from __future__ import annotations
@@ -152,7 +152,7 @@ def test_joint_states_vectorised_over_trajectory() -> None:
 
 
 def test_rotation_at_fixed_tcp_moves_only_limbs_1_and_3() -> None:
-    """robot.md §1: θ̇ = 1 rad/s at a fixed TCP gives q̇ = (-0.0165, 0, -0.0165, 0) rad/s."""
+    """docs/robot-model.md §2.1: θ̇ = 1 rad/s at a fixed TCP gives q̇ = (-0.0165, 0, -0.0165, 0) rad/s."""
     q, qd, _ = k.joint_states_from_task(CENTRE, np.array([0.0, 0.0, 0.0, 1.0]), np.zeros(4))
     np.testing.assert_allclose(qd, [-0.0165, 0.0, -0.0165, 0.0], atol=5e-5)
     assert qd[1] == 0.0 and qd[3] == 0.0

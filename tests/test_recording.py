@@ -1,4 +1,4 @@
-"""recording.rrd of a run (host.recording): layout, values that reproduce the summary's metrics,
+"""recording.rrd of a run (host.analysis.recording): layout, values that reproduce the summary's metrics,
 the 3D view, the cost of recording, and `ilcrig view` without a display / without a recording."""
 
 from __future__ import annotations
@@ -125,9 +125,9 @@ def test_3d_first_and_last_trial(sim_run) -> None:
 
 def _timed_experiment(cfg: Any, plan: Any, tmp: Path | None) -> tuple[float, float]:
     """(wall s, process CPU s) of one run_experiment, including the recorder's creation."""
-    from host.compose import InProcessBench
-    from host.experiment import run_experiment
-    from host.recording import RunRecorder
+    from host.experiment.inprocess import InProcessBench
+    from host.experiment.loop import run_experiment
+    from host.analysis.recording import RunRecorder
 
     w0, c0 = time.perf_counter(), time.process_time()
     rec = RunRecorder(tmp / "recording.rrd", config_summary=cfg.as_dict()) if tmp is not None else None
@@ -144,8 +144,8 @@ def test_recording_costs_less_than_10_percent(tmp_path: Path) -> None:
     0.15 s of in-process trials) the fixed ~20 ms of the file + blueprint is more: printed."""
     import rerun  # noqa: F401  (import cost is per process, not per experiment)
 
-    from host.config import build_config
-    from host.experiment import prepare
+    from host.experiment.config import build_config
+    from host.experiment.plan import prepare
 
     cfg = build_config(None, {"iterations": 10})  # the default experiment: cycle 0.25 s, N = 501
     t0 = time.perf_counter()
@@ -166,9 +166,9 @@ def test_recording_costs_less_than_10_percent(tmp_path: Path) -> None:
 
 
 def test_log_trial_rejects_bad_shapes(tmp_path: Path) -> None:
-    from host.metrics import trial_metrics
-    from host.recording import RecordingError, RunRecorder
-    from host.trajectory import JointReference
+    from host.learning.metrics import trial_metrics
+    from host.analysis.recording import RecordingError, RunRecorder
+    from host.planning.trajectory import JointReference
 
     n = 11
     ref = JointReference(t=np.arange(n) * 1e-3, q=np.full((n, 4), 0.5), qd=np.zeros((n, 4)), qdd=np.zeros((n, 4)))
@@ -186,7 +186,7 @@ def test_log_trial_rejects_bad_shapes(tmp_path: Path) -> None:
 def test_view_without_display_prints_the_command(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from importlib.metadata import version
 
-    from host.recording import view_run
+    from host.analysis.recording import view_run
 
     (tmp_path / "recording.rrd").write_bytes(b"")
     monkeypatch.delenv("DISPLAY", raising=False)
@@ -203,7 +203,7 @@ def test_view_without_display_prints_the_command(tmp_path: Path, monkeypatch: py
 
 
 def test_view_with_display_spawns_the_viewer(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from host import recording
+    from host.analysis import recording
 
     (tmp_path / "recording.rrd").write_bytes(b"")
     monkeypatch.setenv("DISPLAY", ":0")
@@ -223,6 +223,6 @@ def test_view_missing_recording_is_exit_2(tmp_path: Path, capsys: pytest.Capture
 
 
 def test_import_host_does_not_import_rerun() -> None:
-    code = ("import sys, host, host.recording, host.cli, host.experiment; "
+    code = ("import sys, host, host.analysis.recording, host.cli, host.experiment.loop; "
             "sys.exit(1 if 'rerun' in sys.modules else 0)")
     assert subprocess.run([sys.executable, "-c", code], timeout=60).returncode == 0

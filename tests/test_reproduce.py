@@ -16,13 +16,35 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from host import paper_data
-from host.reproduce import (GROUPS, Experiment, ReproduceError, all_experiments, experiment_list, is_finished,
-                            run_dir_of, table_rows)
-from host.report import (Verdict, fmt, settle_iteration, settle_iteration_final, split_repeatable, verdict_beats,
-                         verdict_cycles, verdict_disturbance, verdict_floor_raised, verdict_long_bounded, verdict_paths,
-                         verdict_profiles_order, verdict_profiles_similar, verdict_rise, verdict_settle,
-                         write_run_report)
+from host.analysis import paper_data
+from host.analysis.report import (
+    Verdict,
+    fmt,
+    settle_iteration,
+    settle_iteration_final,
+    split_repeatable,
+    verdict_beats,
+    verdict_cycles,
+    verdict_disturbance,
+    verdict_floor_raised,
+    verdict_long_bounded,
+    verdict_paths,
+    verdict_profiles_order,
+    verdict_profiles_similar,
+    verdict_rise,
+    verdict_settle,
+)
+from host.analysis.run_report import write_run_report
+from host.analysis.sweep_plan import (
+    GROUPS,
+    Experiment,
+    ReproduceError,
+    all_experiments,
+    experiment_list,
+    is_finished,
+    run_dir_of,
+    table_rows,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -207,7 +229,7 @@ def test_verdict_paths_cycles_profiles() -> None:
 
 
 def test_paper_numbers_satisfy_the_criteria() -> None:
-    from host.report import _paper_self_check
+    from host.analysis.report import _paper_self_check
 
     assert all(v.holds for v in _paper_self_check().values())
 

@@ -15,15 +15,16 @@ from pathlib import Path
 import can
 import canopen
 import pytest
+from netns_util import NETNS_SETUP, netns_unavailable_reason
 
-from bus.hub import start_hub
 from bus.io_frames import ENCODER_COB_BASE, TORQUE_COB_BASE
 from bus.objects import Obj
-from bus.transport import hub_transport
-from host.compose import InProcessBench
-from host.config import build_config
-from host.experiment import prepare, run_experiment
-from netns_util import NETNS_SETUP, netns_unavailable_reason
+from bus.transports.config import hub_transport
+from bus.transports.hub_server import start_hub
+from host.experiment.config import build_config
+from host.experiment.inprocess import InProcessBench
+from host.experiment.loop import run_experiment
+from host.experiment.plan import prepare
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 

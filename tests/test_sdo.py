@@ -16,14 +16,14 @@ from canopen import objectdictionary as od
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bus.errors import AbortCode, SdoAbort
-from bus.sdo import (
+from bus.cia301.sdo import (
     SdoServer,
     abort_frame,
     crc16_ccitt,
     sdo_request_cob_id,
     sdo_response_cob_id,
 )
+from bus.errors import AbortCode, SdoAbort
 
 NODE = 5
 IDX = 0x2000  # test objects live at 0x2000:sub

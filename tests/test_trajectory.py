@@ -1,4 +1,4 @@
-"""Tests of host.trajectory: motion laws, trial planning (poly4567, poly5, ruckig), joint
+"""Tests of host.planning.trajectory: motion laws, trial planning (poly4567, poly5, ruckig), joint
 references by IK and the feasibility check."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from host.paths import BUILTIN_PATHS, PathSpec
-from host.trajectory import (
+from host.planning.paths import BUILTIN_PATHS, PathSpec
+from host.planning.trajectory import (
     PROFILES,
     CartesianLimits,
     InfeasibleTaskError,
@@ -314,7 +314,7 @@ def test_feasibility_report(nominal) -> None:
     lim = JointLimits()
     assert lim.tau_max_nm == pytest.approx(264.6)
     assert rep.tau_limit_nm == pytest.approx(0.9 * 264.6)
-    # the x run loads limbs 1 and 3 most (robot.md §5.4); limbs 2/4 mirror each other
+    # the x run loads limbs 1 and 3 most (docs/robot-model.md §6.5); limbs 2/4 mirror each other
     assert rep.peak_tau_nm[0] > 3 * rep.peak_tau_nm[1]
     assert rep.peak_tau_nm[1] == pytest.approx(rep.peak_tau_nm[3], rel=1e-6)
     assert 40.0 < rep.peak_tau_nm[0] < 120.0
@@ -328,7 +328,8 @@ def test_feasibility_report(nominal) -> None:
 @pytest.mark.parametrize(
     ("limits", "pattern"),
     [
-        (JointLimits(tau_max_nm=50.0), r"joint 1 peak torque \d+\.\d N·m exceeds the limit 45\.0 N·m \(0\.9 × 50\.0 N·m\) at t = "),
+        (JointLimits(tau_max_nm=50.0),
+         r"joint 1 peak torque \d+\.\d N·m exceeds the limit 45\.0 N·m \(0\.9 × 50\.0 N·m\) at t = "),
         (JointLimits(qd_max_rad_s=5.0), r"joint 1 speed \d+\.\d\d rad/s exceeds the limit 5\.00 rad/s at t = "),
         (JointLimits(q_max_rad=math.radians(45.0)), r"joint 1 angle 52\.\d deg is above the range limit 45\.0 deg"),
         (JointLimits(q_min_rad=math.radians(20.0)), r"joint 1 angle 8\.\d deg is below the range limit 20\.0 deg"),

@@ -1,4 +1,4 @@
-"""bus.transport: config precedence, transport choice, multicast policy; udp_multicast in a netns."""
+"""bus.transports.config: config precedence, transport choice, multicast policy; udp_multicast in a netns."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ from pathlib import Path
 
 import can
 import pytest
+from netns_util import netns_unavailable_reason, run_in_netns
 
-import bus.transport as tr
-from bus.hub import NonLoopbackAddressError, start_hub
-from bus.transport import (
+import bus.transports.config as tr
+from bus.transports.config import (
     ChannelConfig,
     MulticastNotAllowedError,
     TransportConfigError,
@@ -25,8 +25,8 @@ from bus.transport import (
     udp_multicast_transport,
     virtual_transport,
 )
-
-from netns_util import netns_unavailable_reason, run_in_netns
+from bus.transports.hub_server import start_hub
+from bus.transports.hub_wire import NonLoopbackAddressError
 
 CAN_ENV = [
     "CAN_INTERFACE", "CAN_CHANNEL", "CAN_BITRATE", "CAN_CONFIG",
@@ -164,7 +164,7 @@ NETNS_SCRIPT = textwrap.dedent(
     """
     import json, multiprocessing as mp, sys
     import can
-    from bus.transport import udp_multicast_transport, in_private_netns
+    from bus.transports.config import udp_multicast_transport, in_private_netns
 
     def drive(q):
         t = udp_multicast_transport()

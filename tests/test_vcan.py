@@ -31,10 +31,11 @@ import canopen
 import pytest
 
 from bus.io_frames import ENCODER_COB_BASE, TORQUE_COB_BASE
-from bus.transport import VCAN_FIELDBUS, VCAN_IO, vcan_available
-from host.compose import InProcessBench
-from host.config import build_config
-from host.experiment import prepare, run_experiment
+from bus.transports.config import VCAN_FIELDBUS, VCAN_IO, vcan_available
+from host.experiment.config import build_config
+from host.experiment.inprocess import InProcessBench
+from host.experiment.loop import run_experiment
+from host.experiment.plan import prepare
 
 REPO = Path(__file__).resolve().parent.parent
 DRIVE_EDS = REPO / "bus" / "drive.eds"
@@ -284,7 +285,8 @@ def test_canopen_library_reads_drive_objects_on_vcan0(tmp_path: Path) -> None:
                 break
             except canopen.SdoCommunicationError:
                 if time.monotonic() > deadline or drive.poll() is not None:
-                    raise AssertionError(f"drive 2 did not answer SDO on vcan0:\n{tail(tmp_path / 'drive2.log')}")
+                    raise AssertionError(
+                        f"drive 2 did not answer SDO on vcan0:\n{tail(tmp_path / 'drive2.log')}") from None
         assert vendor == node.object_dictionary[0x1018][1].default
         assert node.sdo[0x1000].raw == node.object_dictionary[0x1000].default  # device type
         assert node.sdo[0x6041].raw & 0x004F == 0x0040  # switch on disabled

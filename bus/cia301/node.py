@@ -1,0 +1,431 @@
+"""Generic CANopen-slave runtime on two python-can buses (fieldbus + io), in one thread.
+
+This module owns what every node of the rig does on the wire, independent of its application
+(the drive firmware, the test-bench plant):
+
+* :class:`SlaveNode` — the select loop over the fieldbus and the io bus; NMT (COB-ID 0) →
+  ``app.nmt_command(cs)``; SDO requests (0x600 + id) → :class:`bus.cia301.sdo.SdoServer` on the app's
+  object access, responses on 0x580 + id; boot-up on start and after an NMT reset; producer
+  heartbeat (0x700 + id) every 0x1017 ms (re-read after every completed SDO transfer); EMCY
+  frames (0x080 + id) for every entry of ``app.pop_emcy()``.  SDO and EMCY are silent in the
+  NMT state STOPPED (CiA 301); NMT and heartbeat always work.  Frames carrying this node's own
+  COB-IDs are ignored (udp_multicast echoes a sender's frames back to it).  io frames are
+  handed to the subclass hook :meth:`SlaveNode.on_io`; :meth:`SlaveNode.on_service` and
+  :meth:`SlaveNode.next_deadline` let a subclass run its own timers in the same loop.
+* :class:`ObjectStore` — a dict-backed object dictionary loaded from an EDS with canopen's
+  ``import_od`` (data type, access, default, limits), byte-level ``read_object`` /
+  ``write_object`` raising :class:`bus.errors.SdoAbort`, with per-object read/write hooks.
+* :func:`install_sigterm` — SIGTERM/SIGINT set a stop event (process entry points).
+
+Waiting: ``select()`` on both buses' ``fileno()`` where both have one (udp_multicast,
+socketcan, the ilcrig hub), otherwise short-timeout polling (``virtual``).
+
+Time: heartbeat period, SDO transfer timeout and subclass deadlines use ``clock`` (monotonic
+wall clock by default: protocol timing only, never a model; the control loop is paced by the
+plant's io frames).
+"""
+
+from __future__ import annotations
+
+import logging
+import select
+import signal
+import struct
+import threading
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, Protocol
+
+import can
+from canopen.objectdictionary import ODArray, ODRecord, ODVariable, import_od
+from canopen.objectdictionary import datatypes as dt
+
+from bus.cia301.emcy import emcy_cob_id, encode_emcy
+from bus.cia301.nmt import (
+    NMT_COB_ID,
+    NmtCommand,
+    NmtFrameError,
+    NmtState,
+    encode_heartbeat,
+    heartbeat_cob_id,
+    nmt_addresses,
+)
+from bus.cia301.sdo import SdoServer, sdo_request_cob_id, sdo_response_cob_id
+from bus.errors import AbortCode, SdoAbort
+
+logger = logging.getLogger(__name__)
+
+#: Object index of the producer heartbeat time (U16, ms).
+PRODUCER_HEARTBEAT_INDEX = 0x1017
+
+
+class SlaveApp(Protocol):
+    """What :class:`SlaveNode` needs from the application behind the node."""
+
+    @property
+    def nmt_state(self) -> int: ...
+
+    def nmt_command(self, cs: int) -> Any: ...
+
+    def read_object(self, index: int, sub: int) -> bytes: ...
+
+    def write_object(self, index: int, sub: int, data: bytes) -> None: ...
+
+    def pop_emcy(self) -> Sequence[tuple[int, int, bytes]]: ...
+
+
+class SlaveNode:
+    """One CANopen slave on a fieldbus and an io bus; subclasses add the io protocol.
+
+    :param app: the application (see :class:`SlaveApp`).
+    :param fieldbus: python-can bus of the CANopen fieldbus.
+    :param io: python-can bus of the io channel (plant ↔ drives).
+    :param node_id: CANopen node id 1..127.
+    :param clock: monotonic time source [s] for heartbeat, SDO timeout and deadlines.
+    """
+
+    #: Longest single wait [s]: bounds the reaction time to the stop event.
+    MAX_WAIT_S: float = 0.05
+    #: Poll timeout [s] per bus when the buses have no file descriptor (e.g. ``virtual``).
+    POLL_S: float = 0.0005
+
+    def __init__(self, app: SlaveApp, fieldbus: can.BusABC, io: can.BusABC, *, node_id: int,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.app = app
+        self.fieldbus = fieldbus
+        self.io = io
+        self.node_id = int(node_id)
+        self._clock = clock
+        self.sdo = SdoServer(self.node_id, app)
+        self._sdo_rx = sdo_request_cob_id(self.node_id)
+        self._sdo_tx = sdo_response_cob_id(self.node_id)
+        self._hb_id = heartbeat_cob_id(self.node_id)
+        self._emcy_id = emcy_cob_id(self.node_id)
+        self._own_fieldbus_ids = {self._sdo_tx, self._hb_id, self._emcy_id}
+        self._heartbeat_ms = 0
+        self._next_heartbeat_s: float | None = None
+        self._fds = self._filenos()
+        self.frames_in = 0
+        self.frames_out = 0
+
+    def _filenos(self) -> list[int] | None:
+        fds = []
+        for bus in (self.fieldbus, self.io):
+            try:
+                fd = bus.fileno()
+            except (NotImplementedError, AttributeError, OSError):
+                return None
+            if fd is None or fd < 0:
+                return None
+            fds.append(fd)
+        return fds
+
+    # ------------------------------------------------------------------ subclass hooks
+
+    def on_io(self, msg: can.Message) -> None:
+        """One frame received on the io bus (default: ignored)."""
+
+    def on_service(self, now: float) -> None:
+        """Called after every wait/drain round with the current clock time [s]."""
+
+    def next_deadline(self) -> float | None:
+        """Clock time [s] by which :meth:`on_service` must run next (None = no deadline)."""
+        return None
+
+    def on_nmt_reset(self, command: NmtCommand) -> None:
+        """Called after the app handled an NMT reset, before the boot-up frame is sent."""
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def start(self) -> None:
+        """Send the boot-up frame and start the heartbeat."""
+        self._send(self.fieldbus, self._hb_id, encode_heartbeat(NmtState.BOOT_UP))
+        self._reload_heartbeat(force=True)
+        logger.info("node %d: booted, heartbeat %d ms, %s", self.node_id, self._heartbeat_ms,
+                    "select()" if self._fds else "polling")
+
+    def run(self, stop: threading.Event) -> None:
+        """:meth:`start`, then serve until ``stop`` is set."""
+        self.start()
+        while not stop.is_set():
+            self.step(self.MAX_WAIT_S)
+        logger.info("node %d: stopped (%d frames in, %d out)", self.node_id,
+                    self.frames_in, self.frames_out)
+
+    def step(self, max_wait_s: float) -> int:
+        """Wait up to ``max_wait_s`` [s] (less if a heartbeat or a subclass deadline is due) for
+        frames, process every frame waiting on both buses (io first), then send due heartbeat,
+        EMCY and SDO-timeout frames and call :meth:`on_service`.
+
+        :return: number of frames received.
+        """
+        now = self._clock()
+        wait = max_wait_s
+        if self._next_heartbeat_s is not None:
+            wait = min(wait, self._next_heartbeat_s - now)
+        deadline = self.next_deadline()
+        if deadline is not None:
+            wait = min(wait, deadline - now)
+        wait = max(0.0, wait)
+        handled = 0
+        if self._fds is not None:
+            ready, _, _ = select.select(self._fds, [], [], wait)
+            if ready:
+                handled += self._drain(self.io)
+                handled += self._drain(self.fieldbus)
+        else:
+            handled += self._drain(self.io)
+            handled += self._drain(self.fieldbus)
+            if not handled:
+                end = self._clock() + wait
+                while True:
+                    msg = self.io.recv(timeout=self.POLL_S)
+                    if msg is not None:
+                        self.on_io(msg)
+                        handled += 1 + self._drain(self.io) + self._drain(self.fieldbus)
+                        break
+                    msg = self.fieldbus.recv(timeout=0)
+                    if msg is not None:
+                        self._on_fieldbus(msg)
+                        handled += 1 + self._drain(self.io) + self._drain(self.fieldbus)
+                        break
+                    if self._clock() >= end:
+                        break
+        self.frames_in += handled
+        now = self._clock()
+        self._service(now)
+        self.on_service(now)
+        return handled
+
+    def _drain(self, bus: can.BusABC) -> int:
+        n = 0
+        handler = self.on_io if bus is self.io else self._on_fieldbus
+        while True:
+            msg = bus.recv(timeout=0)
+            if msg is None:
+                return n
+            n += 1
+            handler(msg)
+
+    # ------------------------------------------------------------------ periodic
+
+    def _service(self, now: float) -> None:
+        state = int(self.app.nmt_state)
+        if state != NmtState.STOPPED:
+            for code, register, data in self.app.pop_emcy():
+                self._send(self.fieldbus, self._emcy_id,
+                           encode_emcy(int(code), int(register), bytes(data)[:5]))
+        abort = self.sdo.tick(now)
+        if abort is not None:
+            self._send(self.fieldbus, self._sdo_tx, abort)
+        if self._next_heartbeat_s is not None and now >= self._next_heartbeat_s:
+            self._send(self.fieldbus, self._hb_id, encode_heartbeat(state))
+            period = self._heartbeat_ms / 1000.0
+            # keep the phase; skip missed beats instead of bursting
+            self._next_heartbeat_s += period
+            if self._next_heartbeat_s <= now:
+                self._next_heartbeat_s = now + period
+
+    def _reload_heartbeat(self, force: bool = False) -> None:
+        """Re-read 0x1017 [ms]; restart the heartbeat timer if it changed (or ``force``)."""
+        try:
+            period_ms = int.from_bytes(self.app.read_object(PRODUCER_HEARTBEAT_INDEX, 0)[:2],
+                                       "little")
+        except SdoAbort:
+            period_ms = 0
+        if period_ms == self._heartbeat_ms and not force:
+            return
+        self._heartbeat_ms = period_ms
+        self._next_heartbeat_s = self._clock() + period_ms / 1000.0 if period_ms else None
+
+    # ------------------------------------------------------------------ fieldbus
+
+    def _on_fieldbus(self, msg: can.Message) -> None:
+        if msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame:
+            return
+        cob = msg.arbitration_id
+        if cob in self._own_fieldbus_ids:
+            return  # our own frame, echoed
+        if cob == NMT_COB_ID:
+            self._on_nmt(bytes(msg.data))
+        elif cob == self._sdo_rx:
+            if int(self.app.nmt_state) == NmtState.STOPPED:
+                return
+            response = self.sdo.handle(bytes(msg.data), now_s=self._clock())
+            if response is not None:
+                for data in [response] if isinstance(response, bytes) else response:
+                    self._send(self.fieldbus, self._sdo_tx, data)
+            if not self.sdo.busy:
+                self._reload_heartbeat()
+
+    def _on_nmt(self, data: bytes) -> None:
+        try:
+            command = nmt_addresses(data, self.node_id)
+        except NmtFrameError as err:
+            logger.warning("node %d: ignoring NMT frame %s: %s", self.node_id, data.hex(), err)
+            return
+        if command is None:
+            return
+        logger.info("node %d: NMT %s", self.node_id, command.name)
+        self.app.nmt_command(int(command))
+        if command in (NmtCommand.RESET_NODE, NmtCommand.RESET_COMMUNICATION):
+            self.sdo = SdoServer(self.node_id, self.app)  # drops any transfer
+            self.on_nmt_reset(command)
+            self._send(self.fieldbus, self._hb_id, encode_heartbeat(NmtState.BOOT_UP))
+            self._reload_heartbeat(force=True)
+
+    # ------------------------------------------------------------------ send
+
+    def send_emcy(self, code: int, register: int, data: bytes = b"") -> None:
+        """Send one EMCY frame now (unless the node is STOPPED)."""
+        if int(self.app.nmt_state) != NmtState.STOPPED:
+            self._send(self.fieldbus, self._emcy_id, encode_emcy(int(code), int(register), data[:5]))
+
+    def _send(self, bus: can.BusABC, cob_id: int, data: bytes) -> None:
+        bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
+        self.frames_out += 1
+
+
+# ---------------------------------------------------------------------------------------
+# object store
+# ---------------------------------------------------------------------------------------
+
+_STRUCTS: dict[int, struct.Struct] = {
+    dt.BOOLEAN: struct.Struct("<?"),
+    dt.INTEGER8: struct.Struct("<b"),
+    dt.INTEGER16: struct.Struct("<h"),
+    dt.INTEGER32: struct.Struct("<i"),
+    dt.INTEGER64: struct.Struct("<q"),
+    dt.UNSIGNED8: struct.Struct("<B"),
+    dt.UNSIGNED16: struct.Struct("<H"),
+    dt.UNSIGNED32: struct.Struct("<I"),
+    dt.UNSIGNED64: struct.Struct("<Q"),
+    dt.REAL32: struct.Struct("<f"),
+    dt.REAL64: struct.Struct("<d"),
+}
+
+Value = int | float | bytes | str
+Key = tuple[int, int]
+
+
+class ObjectStore:
+    """Object values of one node, described by an EDS (``canopen.objectdictionary.import_od``).
+
+    Values are Python values (int, float, bytes for DOMAIN/OCTET_STRING, str for strings);
+    :meth:`read_object` / :meth:`write_object` convert to and from little-endian bytes and
+    enforce access type, exact size of numeric types and the EDS LowLimit/HighLimit.  A read
+    hook replaces the stored value; a write hook sees the decoded value before it is stored
+    and may refuse with :class:`SdoAbort`.
+
+    :param eds_path: the EDS file.
+    :param node_id: node id for ``$NODEID`` expressions.
+    """
+
+    def __init__(self, eds_path: str | Path, node_id: int) -> None:
+        self.od = import_od(str(eds_path), int(node_id))
+        self.vars: dict[Key, ODVariable] = {}
+        for obj in self.od.values():
+            if obj.index < 0x1000:
+                continue  # data type definitions, not objects
+            if isinstance(obj, ODVariable):
+                self.vars[(obj.index, 0)] = obj
+            elif isinstance(obj, (ODRecord, ODArray)):
+                for var in obj.values():
+                    self.vars[(obj.index, var.subindex)] = var
+        self._indices = {k[0] for k in self.vars}
+        self.values: dict[Key, Value] = {}
+        self.read_hooks: dict[Key, Callable[[], Value]] = {}
+        self.write_hooks: dict[Key, Callable[[Value], None]] = {}
+        self.reset(0x0000, 0xFFFF)
+
+    @staticmethod
+    def default(var: ODVariable) -> Value:
+        """The EDS default of ``var`` (0 / b"" / "" if none)."""
+        if var.default is not None:
+            return var.default
+        if var.data_type in (dt.DOMAIN, dt.OCTET_STRING):
+            return b""
+        if var.data_type in (dt.VISIBLE_STRING, dt.UNICODE_STRING):
+            return ""
+        return 0
+
+    def reset(self, first: int, last: int) -> None:
+        """Set every object with index in [first, last] to its EDS default."""
+        for key, var in self.vars.items():
+            if first <= key[0] <= last:
+                self.values[key] = self.default(var)
+
+    def lookup(self, index: int, sub: int) -> ODVariable:
+        """:raises SdoAbort: 0x06020000 no object, 0x06090011 no sub-index."""
+        var = self.vars.get((index, sub))
+        if var is None:
+            if index not in self._indices:
+                raise SdoAbort(AbortCode.NO_OBJECT, f"no object 0x{index:04X}")
+            raise SdoAbort(AbortCode.NO_SUBINDEX, f"no sub-index {sub} in 0x{index:04X}")
+        return var
+
+    def get(self, index: int, sub: int = 0) -> Value:
+        """The current value (through the read hook, if any), no access check."""
+        hook = self.read_hooks.get((index, sub))
+        return hook() if hook is not None else self.values[(index, sub)]
+
+    def read_object(self, index: int, sub: int) -> bytes:
+        """:raises SdoAbort: unknown object/sub-index, write-only."""
+        var = self.lookup(index, sub)
+        if var.access_type == "wo":
+            raise SdoAbort(AbortCode.WRITE_ONLY, f"0x{index:04X}:{sub} is write-only")
+        return self.encode(var, self.get(index, sub))
+
+    def write_object(self, index: int, sub: int, data: bytes) -> None:
+        """:raises SdoAbort: unknown, read-only, wrong length, out of range, refused by hook."""
+        var = self.lookup(index, sub)
+        if var.access_type in ("ro", "const"):
+            raise SdoAbort(AbortCode.READ_ONLY, f"0x{index:04X}:{sub} is read-only")
+        value = self.decode(var, bytes(data))
+        key = (index, sub)
+        hook = self.write_hooks.get(key)
+        if hook is not None:
+            hook(value)
+        self.values[key] = value
+
+    @staticmethod
+    def encode(var: ODVariable, value: Value) -> bytes:
+        s = _STRUCTS.get(var.data_type)
+        if s is not None:
+            return s.pack(value)
+        if isinstance(value, str):
+            return value.encode("ascii")
+        return bytes(value)  # type: ignore[arg-type]
+
+    @staticmethod
+    def decode(var: ODVariable, data: bytes) -> Value:
+        """:raises SdoAbort: 0x06070010 length, 0x06090031/32 limits, 0x06090030 non-ASCII."""
+        s = _STRUCTS.get(var.data_type)
+        if s is None:
+            if var.data_type in (dt.VISIBLE_STRING, dt.UNICODE_STRING):
+                try:
+                    return data.decode("ascii")
+                except UnicodeDecodeError:
+                    raise SdoAbort(AbortCode.VALUE_RANGE, "string is not ASCII") from None
+            return data
+        if len(data) != s.size:
+            raise SdoAbort(AbortCode.LENGTH_MISMATCH,
+                           f"0x{var.index:04X}:{var.subindex} needs {s.size} bytes, got {len(data)}")
+        (value,) = s.unpack(data)
+        if var.max is not None and value > var.max:
+            raise SdoAbort(AbortCode.VALUE_TOO_HIGH, f"{value} > {var.max}")
+        if var.min is not None and value < var.min:
+            raise SdoAbort(AbortCode.VALUE_TOO_LOW, f"{value} < {var.min}")
+        return value
+
+
+def install_sigterm(stop: threading.Event) -> None:
+    """Make SIGTERM (and SIGINT) set ``stop`` (only possible from the main thread)."""
+
+    def _handler(signum: int, _frame: object) -> None:
+        logger.info("signal %d: stopping", signum)
+        stop.set()
+
+    signal.signal(signal.SIGTERM, _handler)
+    signal.signal(signal.SIGINT, _handler)

@@ -1,0 +1,327 @@
+"""Hub client: :class:`HubBus`, the python-can interface ``ilcrig_hub``.
+
+This module owns the client side of the zero-privilege CAN hub: one :class:`HubBus` is one
+member of one logical bus on a hub (:mod:`bus.transports.hub_server`), speaking the wire
+format of :mod:`bus.transports.hub_wire`. It is registered as the python-can interface
+``ilcrig_hub`` (entry point in ``pyproject.toml``), so ``can.Bus(interface="ilcrig_hub",
+channel=...)`` and python-can's tools (``can.logger``, ``can.player``, ``can.bridge``,
+``can.viewer``) reach it, and it behaves as python-can's own interfaces do (python-can's
+back-to-back, notifier, listener, filtering and cyclic-send tests run against it:
+``tests/test_hub_python_can.py``).
+
+    >>> bus = can.Bus(interface="ilcrig_hub", channel="unix:/tmp/x.sock#io")  # doctest: +SKIP
+
+Forwarding
+    Every frame a client sends is forwarded to every other client of the same logical bus,
+    never back to the sender (unless the sender asked for ``receive_own_messages``; it then
+    gets its own frames back with ``is_rx=False``).
+
+Timestamps
+    ``msg.timestamp`` is the time (``time.time()`` scale, s since the epoch) at which the
+    hub received the frame, not the time the application read it: frames read late keep
+    their true spacing, as with SocketCAN's kernel timestamps.
+
+Channel
+    ``msg.channel`` is the channel string the receiving bus was opened with (e.g.
+    ``unix:/tmp/rig/hub.sock#io``), as with python-can's own interfaces (socketcan gives
+    ``vcan0``, virtual its channel id): a received frame names the bus it came from and can
+    be sent on again, and two buses opened on the same channel agree on it.
+    Candump logs: the project's own logs (:class:`bus.canlog.ChannelLog`, the run folder's
+    ``fieldbus.log``/``io.log``) keep writing the short logical name (``fieldbus``, ``io``):
+    ChannelLog replaces every frame's channel by its fixed ``channel_name``
+    (``bus.canlog._with_channel``), so they stay short, stable across runs (the hub socket
+    path is a fresh temp dir each run) and comparable to SocketCAN runs. python-can's
+    ``can.logger`` writes ``msg.channel`` as it is, i.e. the full channel string (it has
+    no whitespace, so ``can.LogReader`` reads it back).
+
+CAN FD, classic CAN and bitrates
+    ``fd=True`` (the default, as before: the hub carries FD frames) makes a CAN FD
+    controller (:attr:`protocol` ``CAN_FD``). ``fd=False`` makes a classic CAN controller
+    (``CAN_20``): :meth:`send` refuses FD frames and frames longer than 8 bytes with
+    :class:`can.CanOperationError` (as SocketCAN does, ``EINVAL``), and the hub forwards no
+    FD frames to it (as a non-FD SocketCAN raw socket never sees them). ``bitrate`` and
+    ``data_bitrate`` (bit/s; also taken from a ``timing`` :class:`can.BitTiming` /
+    :class:`can.BitTimingFd`) are kept: the first member of an empty logical bus sets the
+    bus's bitrates, a member asking for different ones is refused (like a node at the
+    wrong bitrate), a member giving none adopts the bus's. They are exposed as
+    :attr:`HubBus.bitrate` / :attr:`HubBus.data_bitrate` (None = unknown), in
+    :attr:`channel_info` and in the hub stats (:class:`~bus.transports.hub_server.HubChannelStats`).
+
+Acceptance filters
+    ``can_filters`` / :meth:`can.BusABC.set_filters` are pushed to the hub, which then only
+    forwards matching frames (like SocketCAN's kernel filters); the client still checks
+    them in software, so frames in flight while filters change are filtered too.
+
+Reading
+    Clients read exactly one record per ``recv`` (header with ``MSG_WAITALL``), so a
+    readable :meth:`HubBus.fileno` always means a frame is waiting: callers may
+    ``select()`` over several buses. Blocking client sockets + ``select``, no sleeps.
+
+After :meth:`shutdown`
+    ``recv``, ``send``, ``set_filters``, ``flush_tx_buffer`` and ``send_periodic`` raise
+    :class:`can.CanOperationError` ("Cannot operate on a closed bus", python-can's virtual
+    interface's words), also in a thread that was blocked in ``recv`` when another thread
+    shut the bus down; ``shutdown`` again does nothing; ``fileno`` returns -1 (as a closed
+    SocketCAN bus does).
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import select
+import socket
+import threading
+from typing import Any
+
+import can
+from can import CanProtocol
+
+from bus.transports.hub_wire import (
+    FLAG_BRS,
+    FLAG_ECHO,
+    FLAG_ERR,
+    FLAG_ESI,
+    FLAG_EXT,
+    FLAG_FD,
+    FLAG_RTR,
+    HEADER,
+    HEADER_SIZE,
+    KIND_FRAME,
+    ROLE_MEMBER,
+    HubAddressError,
+    HubProtocolError,
+    connect,
+    encode_filters,
+    encode_record,
+    hello,
+    parse_channel,
+    read_member_reply,
+)
+
+logger = logging.getLogger(__name__)
+
+_CLOSED = "Cannot operate on a closed bus"
+
+
+def _bitrate_arg(name: str, value: object) -> int:
+    """A bitrate keyword as int bit/s; 0 for None.
+
+    :raises ValueError: not a positive integer below 2**32
+    """
+    if value is None:
+        return 0
+    if isinstance(value, bool) or not isinstance(value, int | float) or value != int(value) or not 0 < value < 1 << 32:
+        raise ValueError(f"{name} must be a positive integer in bit/s, got {value!r}")
+    return int(value)
+
+
+class HubBus(can.BusABC):
+    """python-can interface ``ilcrig_hub``: one logical bus on an ilcrig hub.
+
+    :param channel: ``<address>#<bus name>`` (see :mod:`bus.transports.hub_wire`)
+    :param can_filters: acceptance filters, applied in the hub and again in software
+    :param receive_own_messages: the hub echoes this client's frames back (``is_rx=False``)
+    :param fd: True (default): CAN FD controller; False: classic CAN controller (see the
+        module docstring)
+    :param bitrate: nominal bitrate, bit/s (None: adopt the bus's)
+    :param data_bitrate: CAN FD data-phase bitrate, bit/s (None: adopt the bus's)
+    :param timing: :class:`can.BitTiming` or :class:`can.BitTimingFd`; gives the bitrates
+        (a BitTimingFd also means ``fd=True``) when they are not given
+    :param connect_timeout_s: connect + handshake timeout, s
+    :raises can.CanInitializationError: no hub at the address, or the hub refused (e.g.
+        another bitrate on that bus, another protocol version)
+    :raises HubAddressError: malformed channel string (a ValueError)
+    :raises ValueError: a bitrate that is not a positive integer
+
+    :ivar channel: the channel string as given
+    :ivar bus_name: the logical bus name (after ``#``)
+    :ivar bitrate: the logical bus's nominal bitrate, bit/s, None if unknown
+    :ivar data_bitrate: its data-phase bitrate, bit/s, None if unknown
+    :ivar fd: whether this is a CAN FD controller
+    """
+
+    #: connect + handshake timeout, s
+    CONNECT_TIMEOUT_S: float = 5.0
+
+    def __init__(
+        self,
+        channel: str | None = None,
+        can_filters: can.typechecking.CanFilters | None = None,
+        receive_own_messages: bool = False,
+        fd: bool | None = True,
+        bitrate: int | None = None,
+        data_bitrate: int | None = None,
+        timing: can.BitTiming | can.BitTimingFd | None = None,
+        connect_timeout_s: float | None = None,
+        **kwargs: Any,
+    ) -> None:
+        self._closed = True  # until connected: nothing to operate on
+        if channel is None:
+            raise HubAddressError("HubBus needs a channel such as 'unix:/tmp/hub.sock#io'")
+        addr, name = parse_channel(str(channel))
+        if isinstance(timing, can.BitTimingFd):
+            bitrate = timing.nom_bitrate if bitrate is None else bitrate
+            data_bitrate = timing.data_bitrate if data_bitrate is None else data_bitrate
+            fd = True
+        elif isinstance(timing, can.BitTiming):
+            bitrate = timing.bitrate if bitrate is None else bitrate
+        self.fd = fd is None or bool(fd)
+        asked = _bitrate_arg("bitrate", bitrate), _bitrate_arg("data_bitrate", data_bitrate)
+        timeout = self.CONNECT_TIMEOUT_S if connect_timeout_s is None else connect_timeout_s
+        try:
+            sock = connect(addr, timeout)
+        except OSError as err:
+            raise can.CanInitializationError(f"cannot reach ilcrig hub at {addr}: {err}") from err
+        try:
+            sock.sendall(hello(ROLE_MEMBER, name, echo=receive_own_messages, classic=not self.fd,
+                               bitrate=asked[0], data_bitrate=asked[1]))
+            bus_bitrate, bus_data_bitrate = read_member_reply(sock)
+            sock.settimeout(None)  # blocking from now on
+        except (OSError, HubProtocolError) as err:
+            sock.close()
+            raise can.CanInitializationError(f"hub handshake with {addr} failed: {err}") from err
+        self._sock = sock
+        self._closed = False
+        self._send_lock = threading.Lock()
+        self._address = addr
+        self.bus_name = name
+        self.receive_own_messages = receive_own_messages
+        self.channel = str(channel)
+        self.bitrate: int | None = bus_bitrate or None
+        self.data_bitrate: int | None = bus_data_bitrate or None
+        self._can_protocol = CanProtocol.CAN_FD if self.fd else CanProtocol.CAN_20
+        rates = f", {self.bitrate} bit/s" if self.bitrate else ""
+        if self.fd and self.data_bitrate:
+            rates += f", data {self.data_bitrate} bit/s"
+        self.channel_info = f"ilcrig hub {addr} bus {name!r}, {'CAN FD' if self.fd else 'classic CAN'}{rates}"
+        try:
+            super().__init__(channel=channel, can_filters=can_filters, **kwargs)
+        except BaseException:
+            self._closed = True
+            sock.close()
+            raise
+        logger.debug("connected to %s", self.channel_info)
+
+    # -- receiving ------------------------------------------------------------------------
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if self._closed:
+            raise can.CanOperationError(_CLOSED)
+        sock = self._sock
+        try:
+            if timeout is not None:
+                ready, _, _ = select.select((sock,), (), (), max(timeout, 0.0))
+                if not ready:
+                    return None, False
+            head = sock.recv(HEADER_SIZE, socket.MSG_WAITALL)
+            if len(head) != HEADER_SIZE:
+                head = self._complete(head, HEADER_SIZE)
+            kind, flags, dlc, length, can_id, stamp_ns, inline = HEADER.unpack(head)
+            if kind != KIND_FRAME:
+                raise HubProtocolError(f"unexpected record kind {kind} from hub")
+            if length > 8:
+                data = inline + self._complete(b"", length - 8)
+            else:
+                data = inline[:length]
+        except (OSError, ValueError) as err:  # ValueError: select() on a socket closed meanwhile
+            if self._closed:
+                raise can.CanOperationError(_CLOSED) from err
+            raise can.CanOperationError(f"hub receive failed: {err}") from err
+        msg = can.Message(
+            timestamp=stamp_ns / 1e9,
+            arbitration_id=can_id,
+            is_extended_id=bool(flags & FLAG_EXT),
+            is_remote_frame=bool(flags & FLAG_RTR),
+            is_error_frame=bool(flags & FLAG_ERR),
+            is_fd=bool(flags & FLAG_FD),
+            bitrate_switch=bool(flags & FLAG_BRS),
+            error_state_indicator=bool(flags & FLAG_ESI),
+            dlc=dlc,
+            data=data,
+            channel=self.channel,
+            is_rx=not flags & FLAG_ECHO,
+            check=False,
+        )
+        return msg, False
+
+    def _complete(self, part: bytes, n: int) -> bytes:
+        """Read until ``n`` bytes (a signal may cut a MSG_WAITALL read short)."""
+        while len(part) < n:
+            chunk = self._sock.recv(n - len(part), socket.MSG_WAITALL)
+            if not chunk:
+                if self._closed:
+                    raise can.CanOperationError(_CLOSED)
+                raise can.CanOperationError(f"ilcrig hub closed the connection ({self.channel_info})")
+            part += chunk
+        return part
+
+    def fileno(self) -> int:
+        """The socket's descriptor: readable ⇔ a frame is waiting (one record per recv);
+        -1 after :meth:`shutdown`."""
+        return self._sock.fileno()
+
+    # -- sending --------------------------------------------------------------------------
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        """Send one frame to every other client of this bus.
+
+        Blocking (the hub always reads); ``timeout`` is accepted for the BusABC signature
+        and not used. Thread-safe (python-can's periodic tasks send from threads).
+
+        :raises can.CanOperationError: the bus is shut down or the hub gone; on a classic
+            bus (``fd=False``) an FD frame or more than 8 data bytes (``EINVAL``)
+        """
+        if self._closed:
+            raise can.CanOperationError(_CLOSED)
+        if not self.fd and (msg.is_fd or (not msg.is_remote_frame and len(msg.data) > 8)):
+            raise can.CanOperationError(
+                "Failed to transmit: CAN FD frame on a classic CAN bus (opened with fd=False)", errno.EINVAL
+            )
+        self._sock_send(encode_record(msg))
+
+    def _sock_send(self, data: bytes) -> None:
+        if self._closed:
+            raise can.CanOperationError(_CLOSED)
+        try:
+            with self._send_lock:
+                self._sock.sendall(data)
+        except OSError as err:
+            if self._closed:
+                raise can.CanOperationError(_CLOSED) from err
+            raise can.CanOperationError(f"hub send failed: {err}") from err
+
+    def send_periodic(self, *args: Any, **kwargs: Any) -> can.broadcastmanager.CyclicSendTaskABC:
+        """:meth:`can.BusABC.send_periodic`; raises :class:`can.CanOperationError` once shut down."""
+        if self._closed:
+            raise can.CanOperationError(_CLOSED)
+        return super().send_periodic(*args, **kwargs)
+
+    def flush_tx_buffer(self) -> None:
+        """Nothing to discard: :meth:`send` returns when the kernel holds the frame."""
+        if self._closed:
+            raise can.CanOperationError(_CLOSED)
+
+    def _apply_filters(self, filters: can.typechecking.CanFilters | None) -> None:
+        self._sock_send(encode_filters(filters))
+
+    # -- lifetime -------------------------------------------------------------------------
+
+    def shutdown(self) -> None:
+        """Leave the hub. Idempotent; wakes a thread blocked in :meth:`recv` (it then raises
+        :class:`can.CanOperationError`)."""
+        if self._is_shutdown:
+            return
+        super().shutdown()  # stops the periodic tasks while the socket still works
+        if self._closed:
+            return
+        self._closed = True
+        for close in (lambda: self._sock.shutdown(socket.SHUT_RDWR), self._sock.close):
+            try:
+                close()
+            except OSError as err:
+                logger.debug("closing %s: %s", self.channel_info, err)
+
+    @staticmethod
+    def _detect_available_configs() -> list[can.typechecking.AutoDetectedConfig]:
+        return []

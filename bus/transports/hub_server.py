@@ -1,0 +1,659 @@
+"""Hub server: the hub process, its counters, and starting it as a child process.
+
+This module owns the server side of the zero-privilege CAN hub (no root, no kernel module):
+:class:`HubServer` (one process that accepts clients on a Unix domain socket, the default,
+or on loopback TCP, and forwards frames between the members of each logical bus), its
+per-bus counters (:class:`HubChannelStats`, :func:`query_hub_stats`), the child-process API
+(:func:`start_hub`, :class:`HubHandle`) and the command line :func:`main`
+(``ilcrig hub`` / ``python -m bus.transports.hub_server``). The wire format and the
+addresses are :mod:`bus.transports.hub_wire`'s; the client is
+:class:`bus.transports.hub_client.HubBus`.
+
+Forwarding
+    Every frame a member sends is forwarded to every other member of the same logical bus,
+    never back to the sender (unless the sender asked for ``receive_own_messages``; it then
+    gets its own frames back flagged as echo). A listen address that is not loopback is
+    refused (:class:`~bus.transports.hub_wire.NonLoopbackAddressError`).
+
+Counting
+    The hub counts, per logical bus, frames and bits (without and with worst-case
+    stuffing, :mod:`bus.busload`), FD and error frames, and clients. Read them with
+    :func:`query_hub_stats` or :meth:`HubHandle.stats`.
+
+Acceptance filters
+    A member's filters (a filter record, see :mod:`bus.transports.hub_wire`) are applied
+    here: only matching frames are forwarded to it (like SocketCAN's kernel filters).
+
+Latency
+    Non-blocking hub sockets in one ``epoll`` loop, no sleeps, ``TCP_NODELAY`` for TCP. A
+    client that stops reading is dropped once more than :attr:`HubServer.MAX_OUTBUF_BYTES`
+    are queued for it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import logging
+import os
+import select
+import selectors
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import weakref
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Self
+
+from bus.busload import BusLoadCounter, bits_lookup
+from bus.transports.hub_wire import (
+    BITRATES,
+    FILTER_ENTRY,
+    FLAG_ECHO,
+    FLAG_ERR,
+    FLAG_EXT,
+    FLAG_FD,
+    FLAG_RTR,
+    HEADER_SIZE,
+    HELLO_FIXED,
+    HELLO_FLAG_CLASSIC,
+    HELLO_FLAG_ECHO,
+    KIND_FILTERS,
+    KIND_FRAME,
+    MAGIC_HELLO,
+    MAGIC_NO,
+    MAGIC_OK,
+    PROTOCOL_VERSION,
+    ROLE_MEMBER,
+    ROLE_STATS,
+    ROLE_STATS_RESET,
+    STAMP,
+    STAMP_OFFSET,
+    U32,
+    HubAddress,
+    HubAddressError,
+    HubAddressInUseError,
+    HubError,
+    HubStartError,
+    connect,
+    default_hub_address,
+    hello,
+    parse_address,
+    parse_channel,
+    read_reply,
+    recv_exact,
+    version_refusal,
+)
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class HubChannelStats:
+    """What the hub counted on one logical bus since start (or the last reset)."""
+
+    frames: int = 0
+    bits: int = 0
+    bits_worst_case: int = 0
+    fd_frames: int = 0
+    error_frames: int = 0
+    clients: int = 0
+    connections: int = 0
+    dropped_clients: int = 0
+    #: the logical bus's bitrates, bit/s (0 = no member gave one), set by the first member
+    #: that joins the empty bus; a member asking for another one is refused
+    bitrate: int = 0
+    data_bitrate: int = 0
+
+    def load(self) -> BusLoadCounter:
+        """The classic-CAN frame and bit totals as a :class:`BusLoadCounter`."""
+        return BusLoadCounter(self.frames, self.bits, self.bits_worst_case, self.fd_frames)
+
+
+@dataclass(eq=False)
+class _Client:
+    sock: socket.socket
+    peer: str
+    bus: str = ""
+    role: int = 0
+    echo: bool = False
+    classic: bool = False
+    filters: list[tuple[int, int, int]] | None = None
+    inbuf: bytearray = field(default_factory=bytearray)
+    outbuf: bytearray = field(default_factory=bytearray)
+    writing: bool = False
+
+    def accepts(self, can_id: int, ext: int) -> bool:
+        if not self.filters:
+            return True
+        for f_id, f_mask, f_ext in self.filters:
+            if f_ext >= 0 and f_ext != ext:
+                continue
+            if (f_id ^ can_id) & f_mask == 0:
+                return True
+        return False
+
+
+class HubServer:
+    """The hub: binds its listen addresses at construction, serves in :meth:`serve_forever`.
+
+    :param listen: addresses (strings or :class:`HubAddress`); TCP port 0 picks a free port
+    :raises NonLoopbackAddressError: a TCP address is not loopback
+    :raises HubAddressInUseError: a live hub already owns a Unix path
+    """
+
+    #: a client with more than this many unsent bytes queued is dropped (it stopped reading)
+    MAX_OUTBUF_BYTES: int = 8 << 20
+    RECV_CHUNK: int = 1 << 16
+
+    def __init__(self, listen: Sequence[str | HubAddress]) -> None:
+        if not listen:
+            raise HubAddressError("the hub needs at least one listen address")
+        self._sel = selectors.DefaultSelector()
+        self._listeners: dict[socket.socket, HubAddress] = {}
+        self._unix_paths: list[str] = []
+        self._clients: dict[socket.socket, _Client] = {}
+        self._buses: dict[str, list[_Client]] = {}
+        self._stats: dict[str, HubChannelStats] = {}
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_w, False)
+        self._sel.register(self._wake_r, selectors.EVENT_READ, "wake")
+        self.addresses: list[HubAddress] = []
+        try:
+            for item in listen:
+                addr = item if isinstance(item, HubAddress) else parse_address(item)
+                self.addresses.append(self._bind(addr))
+        except BaseException:
+            self.close()
+            raise
+
+    def _bind(self, addr: HubAddress) -> HubAddress:
+        if addr.kind == "unix":
+            self._clear_stale_unix_path(addr.path)
+        sock = socket.socket(addr.family, socket.SOCK_STREAM)
+        try:
+            if addr.kind == "tcp":
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            sock.bind(addr.sockaddr)
+            sock.listen(64)
+            sock.setblocking(False)
+        except BaseException:
+            sock.close()
+            raise
+        if addr.kind == "unix":
+            self._unix_paths.append(addr.path)
+            bound = addr
+        else:
+            host, port = sock.getsockname()[:2]
+            bound = HubAddress("tcp", host=host, port=port)
+        self._listeners[sock] = bound
+        self._sel.register(sock, selectors.EVENT_READ, "listen")
+        logger.info("hub listening on %s", bound)
+        return bound
+
+    @staticmethod
+    def _clear_stale_unix_path(path: str) -> None:
+        if not os.path.exists(path):
+            return
+        probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            probe.connect(path)
+        except (ConnectionRefusedError, FileNotFoundError):
+            logger.info("removing stale hub socket %s", path)
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(path)
+            return
+        except OSError as err:
+            raise HubAddressInUseError(f"cannot use {path}: {err}") from err
+        finally:
+            probe.close()
+        raise HubAddressInUseError(f"a hub already listens on {path}")
+
+    # -- public ---------------------------------------------------------------------------
+
+    def stats(self, reset: bool = False) -> dict[str, HubChannelStats]:
+        """Per-bus counters (copies); ``reset`` zeroes frame and bit counts afterwards."""
+        out: dict[str, HubChannelStats] = {}
+        for name, st in self._stats.items():
+            st.clients = len(self._buses.get(name, ()))
+            out[name] = HubChannelStats(**vars(st))
+            if reset:
+                st.frames = st.bits = st.bits_worst_case = st.fd_frames = st.error_frames = 0
+        return out
+
+    def wake(self) -> None:
+        """Ask :meth:`serve_forever` to return (thread-safe, signal-safe)."""
+        with contextlib.suppress(OSError):
+            os.write(self._wake_w, b"x")
+
+    def serve_forever(self, watch_fd: int | None = None) -> None:
+        """Serve until :meth:`wake` is called or ``watch_fd`` reaches EOF (parent gone)."""
+        if watch_fd is not None:
+            self._sel.register(watch_fd, selectors.EVENT_READ, "watch")
+        try:
+            while True:
+                for key, events in self._sel.select():
+                    tag = key.data
+                    if isinstance(tag, _Client):
+                        if events & selectors.EVENT_READ:
+                            self._on_readable(tag)
+                        if events & selectors.EVENT_WRITE and tag.sock in self._clients:
+                            self._flush(tag)
+                    elif tag == "listen":
+                        self._accept(key.fileobj)  # type: ignore[arg-type]
+                    elif tag == "wake":
+                        return
+                    elif tag == "watch" and not os.read(watch_fd, 4096):  # type: ignore[arg-type]
+                        logger.info("hub: watched descriptor closed, exiting")
+                        return
+        finally:
+            if watch_fd is not None:
+                with contextlib.suppress(KeyError, ValueError):
+                    self._sel.unregister(watch_fd)
+
+    def close(self) -> None:
+        """Close every socket and remove the Unix socket files."""
+        for client in list(self._clients.values()):
+            self._drop(client, "hub closing")
+        for sock in list(self._listeners):
+            with contextlib.suppress(KeyError, ValueError):
+                self._sel.unregister(sock)
+            sock.close()
+        self._listeners.clear()
+        for path in self._unix_paths:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(path)
+        self._unix_paths.clear()
+        for fd in (self._wake_r, self._wake_w):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        self._wake_r = self._wake_w = -1
+        self._sel.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- internals ------------------------------------------------------------------------
+
+    def _accept(self, lsock: socket.socket) -> None:
+        try:
+            sock, peer = lsock.accept()
+        except BlockingIOError:
+            return
+        sock.setblocking(False)
+        if sock.family != socket.AF_UNIX:
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        client = _Client(sock=sock, peer=str(peer) or "unix")
+        self._clients[sock] = client
+        self._sel.register(sock, selectors.EVENT_READ, client)
+
+    def _drop(self, client: _Client, reason: str) -> None:
+        if self._clients.pop(client.sock, None) is None:
+            return
+        with contextlib.suppress(KeyError, ValueError):
+            self._sel.unregister(client.sock)
+        client.sock.close()
+        members = self._buses.get(client.bus)
+        if members and client in members:
+            members.remove(client)
+            logger.info("hub: client left bus %r (%s)", client.bus, reason)
+
+    def _on_readable(self, client: _Client) -> None:
+        try:
+            data = client.sock.recv(self.RECV_CHUNK)
+        except BlockingIOError:
+            return
+        except OSError as err:
+            self._drop(client, f"recv error {err}")
+            return
+        stamp_ns = time.time_ns()  # the receive time of every frame completed by this read
+        if not data:
+            self._drop(client, "disconnected")
+            return
+        client.inbuf += data
+        if not client.role:
+            self._handshake(client)
+            if not client.role or client.sock not in self._clients:
+                return
+        self._route(client, stamp_ns)
+
+    def _handshake(self, client: _Client) -> None:
+        buf = client.inbuf
+        if len(buf) < HELLO_FIXED.size:
+            return
+        magic, version, role, flags, n = HELLO_FIXED.unpack_from(buf)
+        if magic != MAGIC_HELLO or role not in (ROLE_MEMBER, ROLE_STATS, ROLE_STATS_RESET):
+            self._refuse(client, f"bad hello (magic {magic!r}, version {version}, role {role})")
+            return
+        if version != PROTOCOL_VERSION:
+            self._refuse(client, version_refusal(version))
+            return
+        end = HELLO_FIXED.size + n
+        if len(buf) < end + BITRATES.size:
+            return
+        name = bytes(buf[HELLO_FIXED.size : end]).decode(errors="replace")
+        bitrate, data_bitrate = BITRATES.unpack_from(buf, end)
+        del buf[: end + BITRATES.size]
+        if role in (ROLE_STATS, ROLE_STATS_RESET):
+            stats = self.stats(reset=role == ROLE_STATS_RESET)
+            body = json.dumps({k: vars(v) for k, v in stats.items()}).encode()
+            self._send_to(client, MAGIC_OK + U32.pack(len(body)) + body)
+            client.role = role
+            return
+        members = self._buses.setdefault(name, [])
+        st = self._stats.setdefault(name, HubChannelStats())
+        if not members:  # the first member of an empty bus sets its bitrates
+            st.bitrate, st.data_bitrate = bitrate, data_bitrate
+        else:
+            for what, have, asked in (("bitrate", st.bitrate, bitrate), ("data bitrate", st.data_bitrate, data_bitrate)):
+                if have and asked and have != asked:
+                    self._refuse(client, f"bus {name!r} runs at {what} {have} bit/s, the client asked for {asked} bit/s")
+                    return
+            st.bitrate = st.bitrate or bitrate
+            st.data_bitrate = st.data_bitrate or data_bitrate
+        client.role = role
+        client.bus = name
+        client.echo = bool(flags & HELLO_FLAG_ECHO)
+        client.classic = bool(flags & HELLO_FLAG_CLASSIC)
+        members.append(client)
+        st.connections += 1
+        logger.info("hub: client %s joined bus %r%s", client.peer, name, " (classic CAN)" if client.classic else "")
+        self._send_to(client, MAGIC_OK + BITRATES.pack(st.bitrate, st.data_bitrate))
+
+    def _refuse(self, client: _Client, text: str) -> None:
+        logger.warning("hub: refusing client %s: %s", client.peer, text)
+        raw = text.encode()[:255]
+        with contextlib.suppress(OSError):
+            client.sock.send(MAGIC_NO + bytes([len(raw)]) + raw)
+        self._drop(client, text)
+
+    def _route(self, sender: _Client, stamp_ns: int) -> None:
+        if sender.role != ROLE_MEMBER:
+            sender.inbuf.clear()  # a stats connection has nothing more to say
+            return
+        buf = sender.inbuf
+        size = len(buf)
+        members = self._buses[sender.bus]
+        st = self._stats[sender.bus]
+        out: dict[_Client, list[bytes | bytearray]] = {}
+        off = 0
+        while size - off >= HEADER_SIZE:
+            kind = buf[off]
+            flags = buf[off + 1]
+            length = buf[off + 3]
+            if kind == KIND_FRAME:
+                total = HEADER_SIZE + (length - 8 if length > 8 else 0)
+                if size - off < total:
+                    break
+                rec = bytearray(buf[off : off + total])
+                STAMP.pack_into(rec, STAMP_OFFSET, stamp_ns)
+                can_id = U32.unpack_from(buf, off + 4)[0]
+                ext = flags & FLAG_EXT
+                fd = flags & FLAG_FD
+                if flags & FLAG_ERR:
+                    st.error_frames += 1
+                elif fd:
+                    st.fd_frames += 1
+                else:
+                    nominal, worst = bits_lookup(0 if flags & FLAG_RTR else min(length, 8), bool(ext))
+                    st.frames += 1
+                    st.bits += nominal
+                    st.bits_worst_case += worst
+                ext = 1 if ext else 0
+                for peer in members:
+                    if fd and peer.classic:
+                        continue  # a classic CAN member never sees FD frames (like a non-FD raw socket)
+                    if peer is sender:
+                        if peer.echo and peer.accepts(can_id, ext):
+                            out.setdefault(peer, []).append(rec[:1] + bytes([flags | FLAG_ECHO]) + rec[2:])
+                    elif peer.accepts(can_id, ext):
+                        out.setdefault(peer, []).append(rec)
+            elif kind == KIND_FILTERS:
+                n = U32.unpack_from(buf, off + 4)[0]
+                total = HEADER_SIZE + n
+                if size - off < total:
+                    break
+                body = bytes(buf[off + HEADER_SIZE : off + total])
+                sender.filters = [
+                    FILTER_ENTRY.unpack_from(body, i) for i in range(0, n - n % FILTER_ENTRY.size, FILTER_ENTRY.size)
+                ] or None
+            else:
+                self._refuse(sender, f"unknown record kind {kind}")
+                return
+            off += total
+        del buf[:off]
+        for peer, chunks in out.items():
+            self._send_to(peer, b"".join(chunks))
+
+    def _send_to(self, client: _Client, data: bytes) -> None:
+        if client.sock not in self._clients:
+            return
+        if client.outbuf:
+            client.outbuf += data
+        else:
+            try:
+                sent = client.sock.send(data)
+            except BlockingIOError:
+                sent = 0
+            except OSError as err:
+                self._drop(client, f"send error {err}")
+                return
+            if sent == len(data):
+                return
+            client.outbuf += data[sent:]
+        if len(client.outbuf) > self.MAX_OUTBUF_BYTES:
+            st = self._stats.get(client.bus)
+            if st is not None:
+                st.dropped_clients += 1
+            logger.warning("hub: dropping client %s on bus %r: it stopped reading", client.peer, client.bus)
+            self._drop(client, "output buffer overflow")
+            return
+        if not client.writing:
+            client.writing = True
+            self._sel.modify(client.sock, selectors.EVENT_READ | selectors.EVENT_WRITE, client)
+
+    def _flush(self, client: _Client) -> None:
+        try:
+            sent = client.sock.send(client.outbuf)
+        except BlockingIOError:
+            return
+        except OSError as err:
+            self._drop(client, f"send error {err}")
+            return
+        del client.outbuf[:sent]
+        if not client.outbuf and client.writing:
+            client.writing = False
+            self._sel.modify(client.sock, selectors.EVENT_READ, client)
+
+
+def query_hub_stats(address: str, reset: bool = False, timeout_s: float = 2.0) -> dict[str, HubChannelStats]:
+    """Ask a running hub for its per-bus counters.
+
+    :param address: the hub address (a channel string's ``#bus`` part is ignored)
+    :param reset: zero the frame and bit counters after reading them
+    :raises HubError: no hub, or a protocol error
+    """
+    addr = parse_channel(address)[0] if "#" in address else parse_address(address)
+    try:
+        sock = connect(addr, timeout_s)
+    except OSError as err:
+        raise HubError(f"cannot reach hub at {addr}: {err}") from err
+    with sock:
+        sock.sendall(hello(ROLE_STATS_RESET if reset else ROLE_STATS, ""))
+        read_reply(sock)
+        n = U32.unpack(recv_exact(sock, 4))[0]
+        raw = json.loads(recv_exact(sock, n))
+    return {name: HubChannelStats(**values) for name, values in raw.items()}
+
+
+# ---------------------------------------------------------------------------------------
+# child-process API
+# ---------------------------------------------------------------------------------------
+
+READY_PREFIX = "ILCRIG-HUB-READY"
+
+
+def _reap(proc: subprocess.Popen[bytes], timeout_s: float) -> int:
+    """Terminate (then kill) and wait for ``proc``; always reaps. Returns the exit code."""
+    if proc.poll() is None:
+        with contextlib.suppress(OSError):
+            if proc.stdin is not None:
+                proc.stdin.close()  # the hub exits on stdin EOF
+        try:
+            proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.terminate()
+            try:
+                proc.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+    for stream in (proc.stdin, proc.stdout):
+        if stream is not None:
+            with contextlib.suppress(OSError):
+                stream.close()
+    return int(proc.returncode)
+
+
+class HubHandle:
+    """A hub running in a child process (from :func:`start_hub`). Use as a context manager.
+
+    :ivar addresses: the resolved listen addresses (TCP port 0 replaced by the real port)
+    """
+
+    def __init__(self, proc: subprocess.Popen[bytes], addresses: list[str], tmpdir: str | None) -> None:
+        self.process = proc
+        self.addresses = addresses
+        self._tmpdir = tmpdir
+        self._finalizer = weakref.finalize(self, HubHandle._cleanup, proc, tmpdir)
+
+    @staticmethod
+    def _cleanup(proc: subprocess.Popen[bytes], tmpdir: str | None) -> None:
+        _reap(proc, 2.0)
+        if tmpdir is not None:
+            with contextlib.suppress(OSError):
+                for name in os.listdir(tmpdir):
+                    os.unlink(os.path.join(tmpdir, name))
+                os.rmdir(tmpdir)
+
+    @property
+    def pid(self) -> int:
+        return self.process.pid
+
+    @property
+    def address(self) -> str:
+        """The first listen address, e.g. ``unix:/tmp/ilcrig-hub-x/hub.sock``."""
+        return self.addresses[0]
+
+    def channel(self, bus_name: str, address_index: int = 0) -> str:
+        """The python-can channel string of logical bus ``bus_name`` on this hub."""
+        return f"{self.addresses[address_index]}#{bus_name}"
+
+    @property
+    def alive(self) -> bool:
+        return self.process.poll() is None
+
+    def stats(self, reset: bool = False) -> dict[str, HubChannelStats]:
+        """Per-bus counters of this hub (see :func:`query_hub_stats`)."""
+        return query_hub_stats(self.address, reset=reset)
+
+    def stop(self) -> int:
+        """Stop the hub and reap the child process (idempotent). Returns its exit code."""
+        self._finalizer()
+        return int(self.process.returncode)
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def start_hub(
+    listen: str | Sequence[str] | None = None, *, timeout_s: float = 10.0, log_level: str = "WARNING"
+) -> HubHandle:
+    """Start a hub in a child process and wait until it accepts clients.
+
+    :param listen: address(es); default: ``hub.sock`` in a fresh private temp directory
+        (removed again by :meth:`HubHandle.stop`)
+    :param timeout_s: how long to wait for readiness, s
+    :raises NonLoopbackAddressError: checked here already, before any process starts
+    :raises HubStartError: the child exited or did not report ready in time (it is reaped)
+
+    The child exits when :meth:`HubHandle.stop` closes its stdin, and also when this
+    process dies (its stdin reaches EOF), so no hub outlives its parent.
+    """
+    tmpdir = None
+    if listen is None:
+        tmpdir = tempfile.mkdtemp(prefix="ilcrig-hub-")
+        listen_list = [f"unix:{os.path.join(tmpdir, 'hub.sock')}"]
+    else:
+        listen_list = [listen] if isinstance(listen, str) else list(listen)
+    for text in listen_list:
+        parse_address(text)  # fail fast on a bad or non-loopback address
+    cmd = [sys.executable, "-m", "bus.transports.hub_server", "--ready", "--exit-on-stdin-eof", "--log-level", log_level]
+    for text in listen_list:
+        cmd += ["--listen", text]
+    proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    assert proc.stdout is not None
+    deadline = time.monotonic() + timeout_s
+    line = b""
+    try:
+        while not line.endswith(b"\n"):
+            left = deadline - time.monotonic()
+            if left <= 0 or not select.select([proc.stdout], [], [], left)[0]:
+                raise HubStartError(f"hub did not become ready within {timeout_s} s")
+            chunk = os.read(proc.stdout.fileno(), 4096)
+            if not chunk:
+                raise HubStartError(f"hub exited during start-up (exit code {proc.wait()})")
+            line += chunk
+    except BaseException:
+        HubHandle._cleanup(proc, tmpdir)
+        raise
+    parts = line.decode().split()
+    if not parts or parts[0] != READY_PREFIX:
+        HubHandle._cleanup(proc, tmpdir)
+        raise HubStartError(f"unexpected hub start-up output {line!r}")
+    handle = HubHandle(proc, parts[1:], tmpdir)
+    logger.info("hub pid %d ready on %s", proc.pid, " ".join(parts[1:]))
+    return handle
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m bus.transports.hub_server --listen unix:/path [--listen tcp:127.0.0.1:0]``."""
+    parser = argparse.ArgumentParser(prog="python -m bus.transports.hub_server", description="ilcrig zero-privilege CAN hub")
+    parser.add_argument(
+        "--listen",
+        action="append",
+        help=f"unix:/path or tcp:127.0.0.1:PORT (repeatable; default {default_hub_address()})",
+    )
+    parser.add_argument("--ready", action="store_true", help=f"print '{READY_PREFIX} <addresses>' when listening")
+    parser.add_argument("--exit-on-stdin-eof", action="store_true", help="exit when stdin closes")
+    parser.add_argument("--log-level", default="INFO")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s hub %(levelname)s %(message)s")
+    try:
+        server = HubServer(args.listen or [default_hub_address()])
+    except (HubAddressError, HubAddressInUseError, OSError) as err:
+        sys.exit(f"error: {err}")
+    signal.signal(signal.SIGTERM, lambda *_: server.wake())
+    signal.signal(signal.SIGINT, lambda *_: server.wake())
+    try:
+        if args.ready:
+            print(READY_PREFIX, *map(str, server.addresses), flush=True)
+        server.serve_forever(watch_fd=sys.stdin.fileno() if args.exit_on_stdin_eof else None)
+    finally:
+        server.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,543 @@
+"""Rerun recordings of a run (``recording.rrd``) and ``ilcrig view``.
+
+This module owns the layout of ``recording.rrd`` and the only ``import rerun`` of the project
+(lazy: importing this module does not import rerun).  :class:`RunRecorder` implements the
+:class:`host.experiment.loop.TrialRecorder` protocol with a *non-global* ``rr.RecordingStream`` saved
+to a file (no viewer, no network).
+
+Layout (entity paths; timelines ``trial_time`` = t_n = n·Ts as a duration, ``iteration`` = k):
+
+* ``/joint{j}/reference``  q_d of joint j (1..4), deg — one series (the same in every trial)
+* ``/joint{j}/actual``     measured q (encoder), deg
+* ``/joint{j}/error``      e = q_d − q, deg
+* ``/joint{j}/torque_ff``  feed-forward u_k sent to the drive, N·m
+* ``/joint{j}/torque_fb``  feedback torque recorded by the drive, N·m
+  All on ``trial_time`` with N rows (one per tick).  Equivalent to one entity per iteration:
+  row n of ``actual``/``error``/``torque_*`` holds K values, value k is iteration k, and the
+  static ``SeriesLines`` names them ``<quantity> iter k [unit]`` (colour red = first → blue =
+  last; reference grey), so the iterations overlay as K lines.
+* ``/metrics/rmse_deg/joint{j}``, ``/metrics/maxe_deg/joint{j}``: one row per trial on the
+  ``iteration`` sequence timeline (the values of the summary, deg).
+* ``/robot`` (``ViewCoordinates.RIGHT_HAND_Z_UP``, base frame, m): static ``/robot/base``
+  (motor-axis points A_i), ``/robot/base/motor_axes``, ``/robot/reference_path`` (reference TCP
+  path); ``/robot/first/...`` (trial 0) and ``/robot/last/...`` (the last completed trial), on
+  ``trial_time`` every ``decimate_3d``-th sample, by forward kinematics from the MEASURED joint
+  angles: ``arms`` (4 strips A_i → elbow B_i → ball-bar midpoint C_i: inner then outer arm),
+  ``sub_platforms`` (upper bar C_1–C_3, lower bar C_2–C_4, screw shaft down to the tool with a
+  5 cm blade along θ), ``tool`` (TCP point) and a static ``tcp_path``.
+* ``/run_info``: static text (configuration and how to read the recording).
+
+Cost (Rerun's cost is per entity and per call, hardly per value): :meth:`RunRecorder.log_trial`
+only copies the trial's arrays; :meth:`RunRecorder.close` sends everything as five multi-entity
+Arrow record batches (``send_record_batch``: one column per entity, split by Rerun into one
+chunk per entity, the same chunks ``send_columns`` makes).  Nothing is logged per sample.
+The recording is therefore written at the end of the run (also after a fault: ``close`` is
+called by ``run_experiment``'s ``finally``); a killed process leaves an empty recording.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import logging
+import os
+import shutil
+import subprocess
+import sys
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+
+from host.learning.metrics import TrialMetrics
+from host.planning.trajectory import JointReference
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["RunRecorder", "RecordingError", "view_run", "viewer_command", "SERIES", "N_JOINTS"]
+
+N_JOINTS = 4
+#: per-joint time-series quantities (entity name, unit)
+SERIES: tuple[tuple[str, str], ...] = (
+    ("reference", "deg"), ("actual", "deg"), ("error", "deg"), ("torque_ff", "N·m"), ("torque_fb", "N·m"))
+EXIT_USAGE = 2
+
+_COLOR_FIRST = (255, 140, 0, 255)
+_COLOR_LAST = (30, 144, 255, 255)
+_REFERENCE_GREY = (150, 150, 150, 255)
+
+
+class RecordingError(ValueError):
+    """Bad input to the recorder (shapes that do not match the reference)."""
+
+
+def _rgba_u32(c: Sequence[int]) -> int:
+    r, g, b, a = (int(v) & 0xFF for v in c)
+    return (r << 24) | (g << 16) | (b << 8) | a
+
+
+def _iteration_color(k: int, n_expected: int | None) -> tuple[int, int, int, int]:
+    """Red (first trial) → blue (last expected trial); beyond the expected count: blue."""
+    n = max(int(n_expected or 10), 2)
+    f = min(max(k / (n - 1), 0.0), 1.0)
+    a, b = np.array([220, 50, 47]), np.array([38, 139, 210])
+    r, g, bl = (a + f * (b - a)).round().astype(int)
+    return int(r), int(g), int(bl), 255
+
+
+def _data_field(pa: Any, entity: str, descriptor: Any, dtype: Any) -> Any:
+    """Arrow field of one component column of ``entity`` with the Rerun metadata that
+    ``send_columns`` would attach (so ``Chunk.from_record_batch`` splits a batch per entity)."""
+    return pa.field(f"{entity}:{descriptor.component}", dtype, metadata={
+        "rerun:entity_path": entity, "rerun:kind": "data", "rerun:component": descriptor.component,
+        "rerun:archetype": descriptor.archetype or "", "rerun:component_type": descriptor.component_type or ""})
+
+
+@functools.lru_cache(maxsize=1)
+def _components() -> dict[str, tuple[Any, Any]]:
+    """Component name (``Archetype:field``) → (descriptor, Arrow type), taken once per process
+    from rerun's own converters; the hand-built arrays below are cast to these types."""
+    import rerun as rr
+
+    cols = [*rr.Scalars.columns(scalars=[0.0]),
+            *rr.SeriesLines.columns(names=["x"], colors=[0]),
+            *rr.SeriesPoints.columns(names=["x"], colors=[0], marker_sizes=[1.0]),
+            *rr.Points3D.columns(positions=[[0.0, 0.0, 0.0]], radii=[1.0], colors=[0], labels=["x"]),
+            *rr.LineStrips3D.columns(strips=[[[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]], radii=[1.0], colors=[0]),
+            *rr.TextDocument.columns(text=["x"], media_type=["text/markdown"])]
+    return {c.component_descriptor().component: (c.component_descriptor(), c.as_arrow_array().type) for c in cols}
+
+
+def _nested(pa: Any, xyz: np.ndarray, dtype: Any) -> Any:
+    """Rows of (strips of) 3D points as an Arrow list array: ``xyz`` (R, P, 3) → R rows of P points,
+    (R, S, P, 3) → R rows of S strips of P points."""
+    arr = pa.FixedSizeListArray.from_arrays(pa.array(np.ascontiguousarray(xyz, dtype=np.float32).ravel()), 3)
+    for size in reversed(xyz.shape[1:-1]):
+        count = len(arr) // size
+        arr = pa.ListArray.from_arrays(pa.array(np.arange(0, count * size + 1, size, dtype=np.int32)), arr)
+    return arr.cast(dtype)
+
+
+class _Batch:
+    """Component columns of many entities sharing one index (or static), sent as ONE record batch:
+    one Python→Rust call instead of one per entity."""
+
+    def __init__(self, pa: Any) -> None:
+        self._pa = pa
+        self.fields: list[Any] = []
+        self.arrays: list[Any] = []
+
+    def add(self, entity: str, columns: Any) -> None:
+        """Add the columns of an ``rr.<Archetype>.columns(...)`` list (partitioned or not)."""
+        for c in columns:
+            arr = c.as_arrow_array()
+            self.fields.append(_data_field(self._pa, entity, c.component_descriptor(), arr.type))
+            self.arrays.append(arr)
+
+    def put(self, entity: str, component: str, value: Any) -> None:
+        """Add one column: ``value`` is an Arrow array, (R, [S,] P, 3) points, or a list of rows."""
+        descriptor, dtype = _components()[component]
+        if isinstance(value, np.ndarray):
+            value = _nested(self._pa, value, dtype)
+        elif not isinstance(value, self._pa.Array):
+            value = self._pa.array(value, dtype)
+        self.add_array(entity, descriptor, value)
+
+    def add_array(self, entity: str, descriptor: Any, array: Any) -> None:
+        self.fields.append(_data_field(self._pa, entity, descriptor, array.type))
+        self.arrays.append(array)
+
+    def send(self, rec: Any, index_name: str | None = None, index_array: Any = None) -> None:
+        pa = self._pa
+        if not self.fields:
+            return
+        fields, arrays = list(self.fields), list(self.arrays)
+        if index_name is not None:
+            fields.insert(0, pa.field(index_name, index_array.type, metadata={
+                "rerun:index_name": index_name, "rerun:kind": "index", "rerun:is_sorted": "true"}))
+            arrays.insert(0, index_array)
+        rec.send_record_batch(pa.RecordBatch.from_arrays(arrays, schema=pa.schema(fields)), index=index_name)
+        self.fields.clear()
+        self.arrays.clear()
+
+
+class RunRecorder:
+    """Writes ``recording.rrd`` of one run; implements :class:`host.experiment.loop.TrialRecorder`.
+
+    :meth:`log_trial` only keeps a copy of the trial's arrays (about 0.1 ms); :meth:`close` writes
+    everything in five Arrow record batches (Rerun's cost is per entity and per call, not per
+    value) and finalises the file.  The stream and its file (with the default blueprint) are
+    created by the constructor, so a bad path fails before the experiment starts.  A failure
+    while writing is logged (``logger.error``) and kept in :attr:`error`; :meth:`close` never
+    raises into the experiment (its summary must still be written).
+
+    :param path: the ``.rrd`` file to write (its folder is created).
+    :param application_id: Rerun application id.
+    :param recording_id: Rerun recording id (default: the run folder's name).
+    :param config_summary: the run's configuration (shown as ``/run_info``).
+    :param decimate_3d: 3D frames every this many samples (≥ 1).
+    """
+
+    def __init__(self, path: str | Path, *, application_id: str = "ilcrig", recording_id: str | None = None,
+                 config_summary: Mapping[str, Any] | None = None, decimate_3d: int = 5) -> None:
+        import pyarrow as pa
+        import rerun as rr
+        import rerun.blueprint  # noqa: F401
+
+        if isinstance(decimate_3d, bool) or int(decimate_3d) < 1:
+            raise RecordingError(f"decimate_3d must be an integer >= 1, got {decimate_3d!r}")
+        self._rr, self._pa = rr, pa
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.application_id = application_id
+        self.recording_id = recording_id if recording_id is not None else self.path.parent.resolve().name
+        self.config_summary: dict[str, Any] = dict(config_summary or {})
+        self.decimate_3d = int(decimate_3d)
+        self.error: str | None = None
+        self._closed = False
+        self._ref: JointReference | None = None
+        self._k: list[int] = []
+        self._q: list[np.ndarray] = []  # (N, 4) rad per trial
+        self._e: list[np.ndarray] = []  # (N, 4) rad
+        self._u: list[np.ndarray] = []  # (N, 4) N·m
+        self._fb: list[np.ndarray] = []  # (N, 4) N·m
+        self._rmse: list[tuple[float, ...]] = []
+        self._maxe: list[tuple[float, ...]] = []
+        self._rec = rr.RecordingStream(application_id, recording_id=self.recording_id)
+        self._rec.save(str(self.path), default_blueprint=default_blueprint())
+
+    @property
+    def trials(self) -> int:
+        """Number of trials logged so far."""
+        return len(self._k)
+
+    # ---- TrialRecorder ------------------------------------------------------------------------
+
+    def log_trial(self, k: int, ref: JointReference, traces: Sequence[Any], u: np.ndarray,
+                  error_rad: np.ndarray, metrics: TrialMetrics) -> None:
+        """Keep trial ``k`` for the recording (written by :meth:`close`).
+
+        :param traces: one DriveTrace per joint (``q_rad``, ``tau_fb_nm``).
+        :param u: (N, 4) feed-forward of trial k, N·m.  :param error_rad: (N, 4) q_d − q, rad.
+        :raises RecordingError: shapes that do not match the reference, or after :meth:`close`.
+        """
+        if self._closed:
+            raise RecordingError("log_trial after close()")
+        n = int(ref.t.shape[0])
+        if self._ref is not None and self._ref.t.shape[0] != n:
+            raise RecordingError(f"trial {k}: {n} samples, earlier trials had {self._ref.t.shape[0]}")
+        u = np.array(u, dtype=np.float64)
+        error_rad = np.array(error_rad, dtype=np.float64)
+        if len(traces) != N_JOINTS or u.shape != (n, N_JOINTS) or error_rad.shape != (n, N_JOINTS):
+            raise RecordingError(f"trial {k}: expected {N_JOINTS} traces and (N, 4) arrays with N = {n}, got "
+                                 f"{len(traces)} traces, u {u.shape}, error {error_rad.shape}")
+        q_meas = np.stack([np.asarray(tr.q_rad, dtype=np.float64) for tr in traces], axis=1)
+        tau_fb = np.stack([np.asarray(tr.tau_fb_nm, dtype=np.float64) for tr in traces], axis=1)
+        if q_meas.shape != (n, N_JOINTS) or tau_fb.shape != (n, N_JOINTS):
+            raise RecordingError(f"trial {k}: traces have {q_meas.shape[0]} samples, the reference {n}")
+        if self._ref is None:
+            self._ref = ref
+        self._k.append(int(k))
+        self._q.append(q_meas)
+        self._e.append(error_rad)
+        self._u.append(u)
+        self._fb.append(tau_fb)
+        self._rmse.append(tuple(float(v) for v in metrics.rmse_deg))
+        self._maxe.append(tuple(float(v) for v in metrics.max_abs_deg))
+
+    def close(self) -> None:
+        """Write the series, metrics and 3D views of the kept trials, flush and finalise the file.
+        Idempotent; never raises (a failure is logged and kept in :attr:`error`)."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            if self._ref is not None:
+                self._write_all()
+            else:
+                self._write_static_scene(None)
+        except Exception as exc:  # noqa: BLE001 - the recording must never break the experiment
+            self.error = f"{type(exc).__name__}: {exc}"
+            logger.error("recording %s: writing failed: %s", self.path, self.error)
+        finally:
+            try:
+                self._rec.flush()
+                self._rec.disconnect()
+            except Exception as exc:  # noqa: BLE001
+                self.error = self.error or f"{type(exc).__name__}: {exc}"
+                logger.error("recording %s: finalising failed: %s", self.path, exc)
+        logger.debug("recording %s: %d trials", self.path, self.trials)
+
+    def __enter__(self) -> RunRecorder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ---- writing ------------------------------------------------------------------------------
+
+    def _write_all(self) -> None:
+        pa, rec = self._pa, self._rec
+        ref = self._ref
+        assert ref is not None
+        n, n_tr = int(ref.t.shape[0]), len(self._k)
+        t_ns = pa.array(np.rint(np.asarray(ref.t, dtype=np.float64) * 1e9).astype(np.int64), pa.duration("ns"))
+        comp = _components()
+        scal = comp["Scalars:scalars"][0]
+        sl = {k: comp[k][0] for k in ("SeriesLines:names", "SeriesLines:colors")}
+        static = _Batch(pa)
+        series = _Batch(pa)
+        # (quantity, N, 4, K) in display units
+        stacks = {
+            "actual": np.degrees(np.stack(self._q, axis=-1)),
+            "error": np.degrees(np.stack(self._e, axis=-1)),
+            "torque_ff": np.stack(self._u, axis=-1),
+            "torque_fb": np.stack(self._fb, axis=-1),
+        }
+        colors = [_rgba_u32(_iteration_color(i, n_tr)) for i in range(n_tr)]
+        str_list, u32_list = pa.list_(pa.utf8()), pa.list_(pa.uint32())
+        off_k = pa.array(np.arange(0, n * n_tr + 1, n_tr, dtype=np.int32))
+        off_1 = pa.array(np.arange(n + 1, dtype=np.int32))
+        ref_deg = np.degrees(np.asarray(ref.q, dtype=np.float64))
+        for j in range(N_JOINTS):
+            ent = f"/joint{j + 1}/reference"
+            series.add_array(ent, scal, pa.ListArray.from_arrays(off_1, pa.array(np.ascontiguousarray(ref_deg[:, j]))))
+            static.add_array(ent, sl["SeriesLines:names"], pa.array([["reference [deg]"]], str_list))
+            static.add_array(ent, sl["SeriesLines:colors"], pa.array([[_rgba_u32(_REFERENCE_GREY)]], u32_list))
+            for name, unit in SERIES[1:]:
+                ent = f"/joint{j + 1}/{name}"
+                vals = np.ascontiguousarray(stacks[name][:, j, :]).ravel()  # row n: the K iterations
+                series.add_array(ent, scal, pa.ListArray.from_arrays(off_k, pa.array(vals)))
+                static.add_array(ent, sl["SeriesLines:names"],
+                                 pa.array([[f"{name} iter {k} [{unit}]" for k in self._k]], str_list))
+                static.add_array(ent, sl["SeriesLines:colors"], pa.array([colors], u32_list))
+        series.send(rec, "trial_time", t_ns)
+
+        met = _Batch(pa)
+        f64_list = pa.list_(pa.float64())
+        for key, vals in (("rmse_deg", self._rmse), ("maxe_deg", self._maxe)):
+            arr = np.asarray(vals, dtype=np.float64)  # (K, 4)
+            for j in range(N_JOINTS):
+                met.add_array(f"/metrics/{key}/joint{j + 1}", scal, pa.array([[v] for v in arr[:, j]], f64_list))
+        met.send(rec, "iteration", pa.array(self._k, pa.int64()))
+
+        step = self.decimate_3d
+        idx = np.unique(np.r_[np.arange(0, n, step), n - 1])
+        y_guess = None
+        if ref.task is not None:
+            from plant.kinematics import subplatform_from_task
+
+            y_guess = subplatform_from_task(ref.task.X[0])
+        robot = _Batch(pa)
+        for which, q, color in (("first", self._q[0], _COLOR_FIRST), ("last", self._q[-1], _COLOR_LAST)):
+            self._add_robot(robot, static, which, q[idx], y_guess, color)
+        if robot.fields:
+            robot.send(rec, "trial_time", t_ns.take(pa.array(idx)))
+        self._write_static_scene(static)
+
+    def _write_static_scene(self, static: _Batch | None) -> None:
+        rr, rec, pa = self._rr, self._rec, self._pa
+        from plant.params import Geometry
+
+        st = static if static is not None else _Batch(pa)
+        g = Geometry()
+        phi = np.asarray(g.azimuths_rad)
+        e = np.stack([np.cos(phi), np.sin(phi), np.zeros(4)], axis=1)
+        u_axis = np.stack([-np.sin(phi), np.cos(phi), np.zeros(4)], axis=1)
+        A = g.R * e
+        rec.log("/robot", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        text = ("# ilcrig run\n\n"
+                f"{self.trials} trials recorded.\n\n"
+                "* joint plots: timeline **trial_time**; one line per iteration (red = first, blue = last), "
+                "reference grey.\n"
+                "* metrics (RMSE, MaxE per joint, deg): select the timeline **iteration**.\n"
+                "* 3D: orange = first trial, blue = last trial, grey = reference TCP path; "
+                "from the measured joint angles by forward kinematics.\n\n"
+                "```json\n" + json.dumps(self.config_summary, indent=2, default=str) + "\n```\n")
+        st.put("/run_info", "TextDocument:text", [[text]])
+        st.put("/run_info", "TextDocument:media_type", [["text/markdown"]])
+        grey = _rgba_u32((90, 90, 90, 255))
+        st.put("/robot/base", "Points3D:positions", A[None])
+        st.put("/robot/base", "Points3D:radii", [[0.012]])
+        st.put("/robot/base", "Points3D:colors", [[grey]])
+        st.put("/robot/base", "Points3D:labels", [[f"M{i + 1}" for i in range(4)]])
+        st.put("/robot/base/motor_axes", "LineStrips3D:strips", np.stack([A - 0.04 * u_axis, A + 0.04 * u_axis], axis=1)[None])
+        st.put("/robot/base/motor_axes", "LineStrips3D:radii", [[0.006]])
+        st.put("/robot/base/motor_axes", "LineStrips3D:colors", [[grey]])
+        if self._ref is not None:
+            xyz = self._reference_xyz(self._ref)
+            if xyz is not None:
+                st.put("/robot/reference_path", "LineStrips3D:strips", xyz[None, None])
+                st.put("/robot/reference_path", "LineStrips3D:radii", [[0.0015]])
+                st.put("/robot/reference_path", "LineStrips3D:colors", [[_rgba_u32(_REFERENCE_GREY)]])
+        for key, label in (("rmse_deg", "RMSE"), ("maxe_deg", "MaxE")):
+            for j in range(N_JOINTS):
+                c = _rgba_u32(((228, 26, 28, 255), (55, 126, 184, 255), (77, 175, 74, 255), (152, 78, 163, 255))[j])
+                name = f"{label} joint {j + 1} [deg]"
+                ent = f"/metrics/{key}/joint{j + 1}"
+                st.put(ent, "SeriesLines:names", [[name]])
+                st.put(ent, "SeriesLines:colors", [[c]])
+                st.put(ent, "SeriesPoints:names", [[name]])
+                st.put(ent, "SeriesPoints:colors", [[c]])
+                st.put(ent, "SeriesPoints:marker_sizes", [[4.0]])
+        st.send(rec)
+
+    def _reference_xyz(self, ref: JointReference) -> np.ndarray | None:
+        if ref.task is not None:
+            return np.asarray(ref.task.X[:, :3], dtype=np.float64)
+        from plant.kinematics import KinematicsError, forward_kinematics, task_from_subplatform
+
+        try:
+            return task_from_subplatform(forward_kinematics(ref.q[:: self.decimate_3d]))[:, :3]
+        except KinematicsError as exc:
+            logger.warning("recording: no reference path in 3D: %s", exc)
+            return None
+
+    def _add_robot(self, data: _Batch, static: _Batch, which: str, q: np.ndarray, y_guess: np.ndarray | None,
+                   color: tuple[int, int, int, int]) -> None:
+        """The robot skeleton at every (decimated) sample of one trial under ``/robot/{which}``."""
+        from plant.kinematics import KinematicsError, forward_kinematics
+
+        try:
+            Y = forward_kinematics(q, y_guess)
+        except KinematicsError as exc:
+            logger.warning("recording: no 3D view of the %s trial: %s", which, exc)
+            return
+        pts = skeleton_points(q, Y)
+        m = q.shape[0]
+        base = f"/robot/{which}"
+        arms = np.stack([pts["A"], pts["B"], pts["C"]], axis=2).reshape(m * 4, 3, 3)  # A_i → B_i → C_i
+        C, pu, pl, tcp = pts["C"], pts["P_up"], pts["P_low"], pts["tcp"]
+        upper = np.stack([C[:, 0], pu, C[:, 2], C[:, 2]], axis=1)  # (padded to 4 points)
+        lower = np.stack([C[:, 1], pl, C[:, 3], C[:, 3]], axis=1)
+        shaft = np.stack([pu, pl, tcp, tcp + 0.05 * pts["tool_dir"]], axis=1)  # screw shaft, tool blade at θ
+        plat = np.stack([upper, lower, shaft], axis=1).reshape(m * 3, 4, 3)
+        c = [[_rgba_u32(color)]]
+        data.put(f"{base}/arms", "LineStrips3D:strips", arms.reshape(m, 4, 3, 3))
+        data.put(f"{base}/sub_platforms", "LineStrips3D:strips", plat.reshape(m, 3, 4, 3))
+        data.put(f"{base}/tool", "Points3D:positions", tcp[:, None, :])
+        for ent, radius in (("arms", 0.006), ("sub_platforms", 0.005), ("tcp_path", 0.001)):
+            static.put(f"{base}/{ent}", "LineStrips3D:radii", [[radius]])
+            static.put(f"{base}/{ent}", "LineStrips3D:colors", c)
+        static.put(f"{base}/tcp_path", "LineStrips3D:strips", tcp[None, None])
+        static.put(f"{base}/tool", "Points3D:radii", [[0.012]])
+        static.put(f"{base}/tool", "Points3D:colors", c)
+
+
+def skeleton_points(q: np.ndarray, Y: np.ndarray, geometry: Any | None = None) -> dict[str, np.ndarray]:
+    """Points of the robot's skeleton (docs/robot-model.md §3.1), base frame, m.
+
+    :param q: (M, 4) joint angles, rad.  :param Y: (M, 4) sub-platform coordinates (x, y, z_u, z_l).
+    :returns: ``A`` (M, 4, 3) motor-axis points, ``B`` elbows, ``C`` ball-bar midpoints, ``P_up`` /
+        ``P_low`` (M, 3) sub-platform centres, ``tcp`` (M, 3), ``tool_dir`` (M, 3) unit vector at θ.
+    """
+    from plant.kinematics import task_from_subplatform
+    from plant.params import LIMB_ON_UPPER, Geometry
+
+    g = geometry if geometry is not None else Geometry()
+    q = np.asarray(q, dtype=np.float64)
+    Y = np.asarray(Y, dtype=np.float64)
+    m = q.shape[0]
+    phi = np.asarray(g.azimuths_rad)
+    e = np.stack([np.cos(phi), np.sin(phi), np.zeros(4)], axis=1)  # (4, 3)
+    k = np.array([0.0, 0.0, 1.0])
+    A = np.broadcast_to(g.R * e, (m, 4, 3))
+    B = A + g.l_a * (np.cos(q)[..., None] * e - np.sin(q)[..., None] * k)
+    p_up = np.stack([Y[:, 0], Y[:, 1], Y[:, 2]], axis=1)
+    p_low = np.stack([Y[:, 0], Y[:, 1], Y[:, 3]], axis=1)
+    centre = np.where(np.asarray(LIMB_ON_UPPER)[None, :, None], p_up[:, None, :], p_low[:, None, :])
+    C = centre + g.r * e
+    X = task_from_subplatform(Y, g)
+    tcp = X[:, :3]
+    tool_dir = np.stack([np.cos(X[:, 3]), np.sin(X[:, 3]), np.zeros(m)], axis=1)
+    return {"A": np.array(A), "B": B, "C": C, "P_up": p_up, "P_low": p_low, "tcp": tcp, "tool_dir": tool_dir}
+
+
+def default_blueprint() -> Any:
+    """The viewer layout: per-joint error / torque / position plots (tabs), the 3D robot, metrics."""
+    import rerun.blueprint as rrb
+
+    def grid(kind: str, parts: Sequence[str], unit: str) -> Any:
+        return rrb.Grid(*[rrb.TimeSeriesView(origin=f"/joint{j}", contents=[f"+ /joint{j}/{p}/**" for p in parts],
+                                             name=f"joint {j} {kind} [{unit}]")
+                          for j in range(1, N_JOINTS + 1)], name=kind)
+
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Tabs(grid("error", ["error"], "deg"), grid("torque", ["torque_ff", "torque_fb"], "N·m"),
+                     grid("position", ["reference", "actual"], "deg")),
+            rrb.Vertical(
+                rrb.Tabs(rrb.Spatial3DView(origin="/robot", name="robot: first (orange) vs last (blue) trial"),
+                         rrb.TextDocumentView(origin="/run_info", name="run info")),
+                rrb.Horizontal(rrb.TimeSeriesView(origin="/metrics/rmse_deg", name="RMSE per iteration [deg]"),
+                               rrb.TimeSeriesView(origin="/metrics/maxe_deg", name="MaxE per iteration [deg]")),
+                row_shares=[3, 2]),
+            column_shares=[3, 2]),
+        rrb.TimePanel(timeline="trial_time"),
+        collapse_panels=False)
+
+
+# ---- ilcrig view ---------------------------------------------------------------------------------
+
+
+def _rerun_version() -> str | None:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("rerun-sdk")
+    except PackageNotFoundError:
+        return None
+
+
+def viewer_command() -> list[str] | None:
+    """The command that starts the Rerun viewer here: ``rerun`` on PATH, the one next to this
+    Python, or ``python -m rerun``; None if rerun-sdk is not installed."""
+    exe = shutil.which("rerun")
+    if exe:
+        return [exe]
+    sibling = Path(sys.executable).parent / "rerun"
+    if sibling.is_file() and os.access(sibling, os.X_OK):
+        return [str(sibling)]
+    from importlib.util import find_spec
+
+    if find_spec("rerun_cli") is not None or find_spec("rerun") is not None:
+        return [sys.executable, "-m", "rerun"]
+    return None
+
+
+def _display_available() -> bool:
+    if sys.platform in ("darwin", "win32"):
+        return True
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def view_run(run_dir: str | Path, *, stdout: TextIO | None = None, stderr: TextIO | None = None) -> int:
+    """``ilcrig view RUN_DIR``: open ``RUN_DIR/recording.rrd`` in the viewer, or say how to.
+
+    :returns: 0 (viewer spawned, or the command printed), 2 if there is no recording.
+    """
+    out = stdout if stdout is not None else sys.stdout
+    err = stderr if stderr is not None else sys.stderr
+    p = Path(run_dir)
+    rrd = p if p.suffix == ".rrd" else p / "recording.rrd"
+    if not rrd.is_file():
+        err.write(f"ilcrig: error: no recording at {rrd}\n")
+        return EXIT_USAGE
+    rrd = rrd.resolve()
+    cmd = viewer_command()
+    if cmd is not None and _display_available():
+        try:
+            subprocess.Popen([*cmd, str(rrd)], stdin=subprocess.DEVNULL, start_new_session=True)
+        except OSError as exc:
+            logger.warning("cannot start the viewer %s: %s", cmd[0], exc)
+        else:
+            out.write(f"ilcrig view: opened {rrd} in the Rerun viewer ({' '.join(cmd)})\n")
+            return 0
+    ver = _rerun_version()
+    pin = f"rerun-sdk=={ver}" if ver else "rerun-sdk"
+    why = "no display ($DISPLAY / $WAYLAND_DISPLAY unset)" if cmd is not None else "no Rerun viewer installed"
+    out.write(f"ilcrig view: {why}; open the recording on a machine with a display:\n"
+              f"  rerun {rrd}\n"
+              f"  (viewer: pip install {pin})\n")
+    return 0

@@ -1,0 +1,59 @@
+"""The report of one run folder (``ilcrig sim`` / ``ilcrig run``): ``report.md`` with the
+per-trial RMSE / MaxE / MAE table, the convergence check, any fault, and ``convergence.png``."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from host.analysis.report import JOINTS, figure, fmt, md_table, save_png
+
+__all__ = ["write_run_report"]
+
+
+def write_run_report(run_dir: str | Path, summary: Mapping[str, Any]) -> Path:
+    """``report.md`` + ``convergence.png`` for one run folder from its summary (``ilcrig sim``/``run``)."""
+    d = Path(run_dir)
+    d.mkdir(parents=True, exist_ok=True)
+    cfg = summary.get("config", {})
+    its = summary.get("iterations", [])
+    chk = summary.get("convergence_check", {})
+    lines = [f"# ilcrig run — {cfg.get('law', '?')}, path {cfg.get('path', '?')}, {cfg.get('cycle_s', '?')} s, "
+             f"{cfg.get('profile', '?')}, disturbance {cfg.get('disturbance', '?')}", "",
+             f"Mode {summary.get('mode', '?')}; {len(its)} of {cfg.get('iterations', '?')} trials"
+             f"{' (completed)' if summary.get('completed') else ''}; N = {cfg.get('n_ticks', '?')} ticks per trial; "
+             f"trace_sha256 `{str(summary.get('trace_sha256', ''))[:16]}…`.", ""]
+    if chk:
+        lines += [f"Convergence check: spectral radius {fmt(chk.get('rho_max'), 4)} "
+                  f"({'ok' if chk.get('ok') else 'VIOLATED'}), 2-norm {fmt(chk.get('norm2'), 4)}.", ""]
+    for f in summary.get("faults", []):
+        lines += [f"**Fault** at trial {f.get('trial')}: {f.get('message')}", ""]
+    rows = [[str(it["k"])] + [fmt(v) for v in it["rmse_deg"]] + [fmt(v) for v in it["max_abs_deg"]]
+            + [fmt(v) for v in it["mae_deg"]] for it in its]
+    lines += md_table(["k"] + [f"RMSE j{j}" for j in JOINTS] + [f"MaxE j{j}" for j in JOINTS]
+                       + [f"MAE j{j}" for j in JOINTS], rows)
+    lines += ["", "Errors in deg (e = q_d − q); k = 0 is the first trial.", ""]
+    if its:
+        r = np.array([it["rmse_deg"] for it in its], dtype=float)
+        fig, ax = figure(1, 1, 7, 4)
+        a = ax[0, 0]
+        for j in range(r.shape[1]):
+            a.plot(np.arange(r.shape[0]), r[:, j], marker="o", ms=3, label=f"joint {j + 1}")
+        if np.all(r > 0):
+            a.set_yscale("log")
+        a.set_xlabel("trial k")
+        a.set_ylabel("RMSE [deg]")
+        a.grid(True, which="both", alpha=0.3)
+        a.legend()
+        a.set_title(f"{cfg.get('law', '?')}: RMSE per trial")
+        save_png(fig, d / "convergence.png")
+        lines += ["![convergence](convergence.png)", ""]
+    path = d / "report.md"
+    tmp = d / "report.md.tmp"
+    tmp.write_text("\n".join(lines))
+    os.replace(tmp, path)
+    return path

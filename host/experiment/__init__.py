@@ -1,0 +1,11 @@
+"""host.experiment: one ILC experiment, whatever runs it.
+
+Owns the configuration (:mod:`host.experiment.config`), the plan decided before anything moves
+(:mod:`host.experiment.plan`), the trial loop and the bench protocol
+(:mod:`host.experiment.loop`), ``summary.json`` (:mod:`host.experiment.summary`), the console
+lines, experiment options and exit codes (:mod:`host.experiment.console`) and the in-process
+composition root of ``ilcrig sim`` (:mod:`host.experiment.inprocess`).
+
+May import: ``bus``, ``plant``, :mod:`host.planning`, :mod:`host.learning`, :mod:`host.nodes`;
+``firmware_model`` only in :mod:`host.experiment.inprocess`.  Never the rig or the analysis.
+"""

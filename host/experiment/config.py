@@ -1,0 +1,171 @@
+"""Experiment configuration: one frozen dataclass, built from a TOML file and/or CLI options.
+
+Precedence (one place, :func:`build_config`): command-line option > TOML file (``--config``) >
+defaults below.  Unknown keys and bad values are :class:`ConfigError` (a ``ValueError``) with a
+one-line message; the CLI turns them into exit code 2 before anything moves.
+
+TOML layout::
+
+    law = "pd-ilc"          # see host.learning.ilc.LAWS
+    iterations = 10
+    path = "1"              # 1..4 or a path TOML file
+    cycle_s = 0.25          # single-journey time, s
+    profile = "ruckig"      # ruckig | poly4567 | poly5
+    disturbance = "none"    # none | repetitive | nonrepetitive | both
+    seed = 0
+    ts_s = 0.001            # control period, s
+    substeps = 4            # RK4 sub-steps per control period
+    ff0 = "model"           # initial feed-forward: "model" (nominal inverse dynamics) | "zero"
+    following_error_deg = 10.0
+
+    [gains]                 # host.learning.ilc.GainSpec fields; preset = "normalized" | "paper"
+    preset = "normalized"
+    alpha = 3.0
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from host.learning.ilc import GAIN_PRESETS, LAWS, GainSpec
+from host.planning.trajectory import PROFILES
+from plant.disturbance import KINDS as DISTURBANCES
+
+__all__ = ["ConfigError", "ExperimentConfig", "build_config", "PROFILES", "DISTURBANCES"]
+
+
+
+class ConfigError(ValueError):
+    """A configuration value or key is not acceptable."""
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    law: str = "pd-ilc"
+    iterations: int = 10
+    path: str = "1"
+    cycle_s: float = 0.25
+    profile: str = "ruckig"
+    disturbance: str = "none"
+    seed: int = 0
+    ts_s: float = 0.001
+    substeps: int = 4
+    ff0: str = "model"
+    following_error_deg: float = 10.0
+    gains: GainSpec = field(default_factory=GainSpec)
+
+    def as_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["gains"] = dataclasses.asdict(self.gains)
+        return d
+
+
+_TOP_KEYS = {f.name for f in dataclasses.fields(ExperimentConfig)}
+_GAIN_KEYS = {f.name for f in dataclasses.fields(GainSpec)} - {"name"} | {"preset"}
+
+
+def _check_number(name: str, v: Any, *, integer: bool = False) -> None:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or (integer and not isinstance(v, int)):
+        raise ConfigError(f"{name} must be {'an integer' if integer else 'a number'}, got {v!r}")
+    if not math.isfinite(float(v)):
+        raise ConfigError(f"{name} must be finite, got {v!r}")
+
+
+def _gain_spec(table: Mapping[str, Any]) -> GainSpec:
+    unknown = set(table) - _GAIN_KEYS
+    if unknown:
+        raise ConfigError(f"unknown key(s) in [gains]: {', '.join(sorted(unknown))}")
+    preset = table.get("preset", "normalized")
+    if preset not in GAIN_PRESETS:
+        raise ConfigError(f"unknown gain preset {preset!r}; choose one of {', '.join(GAIN_PRESETS)}")
+    base = GAIN_PRESETS[preset]
+    changes: dict[str, Any] = {}
+    for k, v in table.items():
+        if k == "preset":
+            continue
+        if v is None:
+            changes[k] = None
+            continue
+        _check_number(f"gains.{k}", v, integer=k in ("lead", "q_order"))
+        changes[k] = v
+    if changes:
+        changes["name"] = f"{preset}+custom"
+    return dataclasses.replace(base, **changes)
+
+
+def build_config(toml_path: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> ExperimentConfig:
+    """Merge defaults < TOML file < ``overrides`` (CLI options that were given) and validate."""
+    data: dict[str, Any] = {}
+    if toml_path is not None:
+        p = Path(toml_path)
+        try:
+            data = tomllib.loads(p.read_text())
+        except FileNotFoundError:
+            raise ConfigError(f"config file not found: {p}") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"config file {p} is not valid TOML: {exc}") from None
+    for k, v in (overrides or {}).items():
+        if v is not None:
+            data[k] = v
+    unknown = set(data) - _TOP_KEYS
+    if unknown:
+        raise ConfigError(f"unknown key(s): {', '.join(sorted(unknown))}")
+    gains_table = data.pop("gains", {})
+    if isinstance(gains_table, GainSpec):
+        spec = gains_table
+    else:
+        if not isinstance(gains_table, dict):
+            raise ConfigError("gains must be a table")
+        spec = _gain_spec(gains_table)
+    if "path" in data:
+        data["path"] = str(data["path"])
+    cfg = ExperimentConfig(**data, gains=spec)
+    validate(cfg)
+    return cfg
+
+
+def validate(cfg: ExperimentConfig) -> None:
+    """Raise :class:`ConfigError` on any value that cannot run."""
+    if cfg.law not in LAWS:
+        raise ConfigError(f"unknown law {cfg.law!r}; choose one of {', '.join(LAWS)}")
+    _check_number("iterations", cfg.iterations, integer=True)
+    if cfg.iterations < 1:
+        raise ConfigError(f"iterations must be >= 1, got {cfg.iterations}")
+    _check_number("cycle_s", cfg.cycle_s)
+    if cfg.cycle_s <= 0:
+        raise ConfigError(f"cycle_s must be > 0, got {cfg.cycle_s}")
+    if cfg.profile not in PROFILES:
+        raise ConfigError(f"unknown profile {cfg.profile!r}; choose one of {', '.join(PROFILES)}")
+    if cfg.disturbance not in DISTURBANCES:
+        raise ConfigError(f"unknown disturbance {cfg.disturbance!r}; choose one of {', '.join(DISTURBANCES)}")
+    _check_number("seed", cfg.seed, integer=True)
+    if cfg.seed < 0:
+        raise ConfigError(f"seed must be >= 0, got {cfg.seed}")
+    _check_number("ts_s", cfg.ts_s)
+    if not 1e-4 <= cfg.ts_s <= 1e-2:
+        raise ConfigError(f"ts_s must be between 0.0001 and 0.01 s, got {cfg.ts_s}")
+    _check_number("substeps", cfg.substeps, integer=True)
+    if not 1 <= cfg.substeps <= 100:
+        raise ConfigError(f"substeps must be between 1 and 100, got {cfg.substeps}")
+    if cfg.ff0 not in ("model", "zero"):
+        raise ConfigError(f"ff0 must be 'model' or 'zero', got {cfg.ff0!r}")
+    _check_number("following_error_deg", cfg.following_error_deg)
+    if cfg.following_error_deg <= 0:
+        raise ConfigError(f"following_error_deg must be > 0, got {cfg.following_error_deg}")
+    g = cfg.gains
+    for name in ("alpha", "beta", "lp_norm", "ld_norm", "q_cutoff_hz", "no_weight", "lp", "ld"):
+        v = getattr(g, name)
+        if v is not None and (not math.isfinite(v)):
+            raise ConfigError(f"gains.{name} must be finite, got {v}")
+        if v is not None and v < 0:
+            raise ConfigError(f"gains.{name} must be >= 0, got {v}")
+    if g.alpha < 1 or g.beta < 1:
+        raise ConfigError(f"gains.alpha and gains.beta must be >= 1, got {g.alpha}, {g.beta}")
+    if g.lead < 0:
+        raise ConfigError(f"gains.lead must be >= 0, got {g.lead}")

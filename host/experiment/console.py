@@ -1,0 +1,131 @@
+"""What an experiment says on the terminal, and the options that define it.
+
+This module owns the process exit codes of every ``ilcrig`` command, the experiment options of
+the command line (one definition, used by ``sim``, ``run`` and ``host`` and by the launcher that
+passes them on to the host role), the translation of parsed options into an
+:class:`~host.experiment.config.ExperimentConfig`, and the console lines of a run: the plan with
+its convergence check, one row of RMSE/MaxE per trial, and the closing line.  It is kept
+import-light: every role parses the command line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tomllib
+from typing import TYPE_CHECKING, Any, TextIO
+
+from host.learning.names import GAIN_PRESET_NAMES, LAWS
+from host.planning.trajectory import PROFILES
+
+if TYPE_CHECKING:
+    from host.experiment.config import ExperimentConfig
+    from host.experiment.plan import Plan
+    from host.learning.metrics import TrialMetrics
+
+__all__ = [
+    "EXIT_OK", "EXIT_USAGE", "EXIT_FAULT", "EXIT_CHILD_FAILED", "EXIT_INTERRUPTED", "EXIT_TERMINATED",
+    "add_experiment_args", "experiment_config", "print_plan", "print_header", "print_row",
+]
+
+#: the run completed
+EXIT_OK: int = 0
+#: bad input (one line ``ilcrig: error: …``), nothing was started
+EXIT_USAGE: int = 2
+#: a fault during a trial: torque removed, the completed trials kept in summary.json
+EXIT_FAULT: int = 3
+#: ``ilcrig run``: a role process ended while the host was running
+EXIT_CHILD_FAILED: int = 4
+#: interrupted by Ctrl-C (SIGINT)
+EXIT_INTERRUPTED: int = 130
+#: terminated by SIGTERM
+EXIT_TERMINATED: int = 143
+
+#: the disturbance kinds (one definition: ``plant.disturbance.KINDS``, whose import is heavy
+#: enough that the help text lists them here; a test checks that both agree)
+_DISTURBANCE_HELP = "none, repetitive, nonrepetitive, both"
+
+#: the parsed options that are not part of the experiment (the launcher does not pass them on)
+NOT_EXPERIMENT: frozenset[str] = frozenset({"help", "out", "bus", "hub"})
+
+
+def add_experiment_args(p: argparse.ArgumentParser) -> None:
+    """The experiment options (``--law``, ``--iterations``, …, ``--out``) on ``p``."""
+    p.add_argument("--config", metavar="TOML", help="experiment file (keys as the options; unknown keys are errors)")
+    p.add_argument("--law", help=f"learning law: {', '.join(LAWS)} (default pd-ilc)")
+    p.add_argument("--iterations", type=int, help="number of trials (default 10)")
+    p.add_argument("--path", help="1-4 or a path TOML file (default 1)")
+    p.add_argument("--cycle", type=float, dest="cycle_s", help="single-journey time in s (default 0.25)")
+    p.add_argument("--profile", help=f"motion law: {', '.join(PROFILES)} (default ruckig)")
+    p.add_argument("--disturbance", help=f"{_DISTURBANCE_HELP} (default none)")
+    p.add_argument("--seed", type=int, help="seed of every random generator (default 0)")
+    p.add_argument("--ff0", help="initial feed-forward: model | zero (default model)")
+    p.add_argument("--gains", dest="preset", help=f"gain preset: {', '.join(GAIN_PRESET_NAMES)} (default normalized)")
+    for name, hlp in (("alpha", "α of the paper's law (feedback Kp = (α−1)Lp)"),
+                      ("beta", "β of the paper's law (feedback Kd = (β−1)Ld)"),
+                      ("lp", "learning P gain, N·m/rad (overrides lp_norm)"),
+                      ("ld", "learning D gain, N·m·s/rad (overrides ld_norm)"),
+                      ("lp-norm", "Lp·Ts²/I_joint"), ("ld-norm", "Ld·Ts/I_joint"),
+                      ("q-cutoff-hz", "Q-filter cut-off of q-ilc, Hz")):
+        p.add_argument(f"--{name}", type=float, dest=f"g_{name.replace('-', '_')}", help=hlp)
+    p.add_argument("--lead", type=int, dest="g_lead", help="learning lead in samples (default 1)")
+    p.add_argument("--out", default=None, help="run folder (default runs/<mode>-<time>)")
+
+
+def experiment_actions() -> list[argparse.Action]:
+    """The argparse actions of the experiment options, without ``--out`` (for the launcher)."""
+    parser = argparse.ArgumentParser(add_help=False)
+    add_experiment_args(parser)
+    return [a for a in parser._actions if a.option_strings and a.dest not in NOT_EXPERIMENT]
+
+
+def experiment_config(args: argparse.Namespace) -> ExperimentConfig:
+    """The validated configuration of parsed experiment options (a ``--config`` file below them).
+
+    :raises ValueError: one-line message naming the option or file.
+    """
+    from host.experiment.config import build_config  # heavy (plant, learning): only when needed
+
+    overrides: dict[str, Any] = {k: getattr(args, k) for k in (
+        "law", "iterations", "path", "cycle_s", "profile", "disturbance", "seed", "ff0")}
+    gains: dict[str, Any] = {}
+    if args.config:
+        try:
+            with open(args.config, "rb") as fh:
+                gains = dict(tomllib.load(fh).get("gains", {}))
+        except (OSError, tomllib.TOMLDecodeError, TypeError, ValueError):
+            gains = {}  # build_config reports the file problem
+    if args.preset is not None:
+        gains["preset"] = args.preset
+    for k, v in vars(args).items():
+        if k.startswith("g_") and v is not None:
+            gains[k[2:]] = v
+    if gains:
+        overrides["gains"] = gains
+    return build_config(args.config, overrides)
+
+
+def print_plan(stream: TextIO, role: str, plan: Plan, extra: str = "") -> None:
+    """The run's first lines: the experiment and the convergence check."""
+    cfg, c = plan.cfg, plan.check
+    stream.write(
+        f"ilcrig {role}: law {cfg.law}, path {cfg.path}, cycle {cfg.cycle_s} s, profile {cfg.profile}, "
+        f"disturbance {cfg.disturbance}, {cfg.iterations} iterations, N = {plan.n_ticks} ticks/trial{extra}\n"
+        f"convergence check: spectral radius {c.rho_max:.4f} ({'ok' if c.ok else 'VIOLATED: expect divergence'}), "
+        f"2-norm {c.norm2:.3f} ({'monotonic' if c.norm2 < 1 else 'not monotonic'}), paper eq.(18) rho "
+        f"{c.paper_rho18:.3f}; predicted error ratio after {c.iterations} trials {c.predicted_ratio:.3g}, after "
+        f"{c.long_horizon} {c.predicted_ratio_long:.3g}"
+        f"{' (diverges if run longer)' if c.predicted_ratio_long > 1 else ''}\n")
+    stream.flush()
+
+
+def print_header(stream: TextIO) -> None:
+    """The column header of the per-trial rows."""
+    cols = "  ".join(f"RMSE j{j}" for j in range(1, 5)) + "  " + "  ".join(f"MaxE j{j}" for j in range(1, 5))
+    stream.write(f"{'iter':>4}  {cols}   [deg]\n")
+
+
+def print_row(stream: TextIO, m: TrialMetrics) -> None:
+    """One trial's RMSE and MaxE per joint, degrees."""
+    vals = "  ".join(f"{v:7.5f}" for v in m.rmse_deg) + "  " + "  ".join(f"{v:7.5f}" for v in m.max_abs_deg)
+    stream.write(f"{m.k:>4}  {vals}\n")
+    stream.flush()

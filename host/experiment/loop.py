@@ -1,0 +1,226 @@
+"""One ILC experiment: plan, check, then trial after trial on a bench, learning in between.
+
+The host side is the same for every mode: it talks to the four drives only through
+:class:`host.nodes.drive_client.DriveClient` (object-dictionary reads and writes) and asks a
+:class:`Bench` to run a trial.  ``ilcrig sim`` uses the in-process bench of
+:mod:`host.experiment.inprocess`; ``ilcrig run`` a bench whose drives and plant are other processes on CAN.
+
+The run folder gets ``summary.json`` (:mod:`host.experiment.summary`), rewritten atomically after
+every trial so a fault or Ctrl-C never corrupts the results of earlier trials.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from bus import units
+from bus.errors import IlcrigError
+from host.experiment.plan import Plan, reference_tables
+from host.experiment.summary import SCHEMA, jsonable, write_summary
+from host.learning.metrics import TraceDigest, TrialMetrics, trial_metrics
+from host.nodes.drive_client import DriveClient
+from host.planning.trajectory import JointReference
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["Bench", "TrialRecorder", "TrialFault", "run_experiment", "ExperimentResult", "new_summary"]
+
+
+class TrialFault(IlcrigError):
+    """A trial could not complete (drive fault, plant error, lost node); torque was removed."""
+
+
+class TrialRecorder(Protocol):
+    """Receives every completed trial (e.g. :class:`host.analysis.recording.RunRecorder`)."""
+
+    def log_trial(self, k: int, ref: JointReference, traces: Sequence[Any], u: np.ndarray,
+                  error_rad: np.ndarray, metrics: TrialMetrics) -> None:
+        """``traces``: the DriveTrace of each drive; ``u`` (N, 4) the feed-forward of trial k, N·m;
+        ``error_rad`` (N, 4) = q_d − q."""
+
+    def close(self) -> None:
+        """Finish the recording (called once, also after a fault)."""
+
+
+class Bench(Protocol):
+    """What the host needs from a set of drives plus a plant, whatever connects them."""
+
+    drives: Sequence[DriveClient]
+
+    def start(self) -> None:
+        """Bring the nodes to operational (NMT) so they can be configured and enabled."""
+
+    def run_trial(self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray) -> None:
+        """Reset the plant to (q0, qd0) and run ``n_ticks`` lockstep ticks with the armed drives.
+        Raises :class:`TrialFault` if the trial did not complete."""
+
+    def info(self) -> dict[str, Any]:
+        """Mode-specific facts for the summary (transport, frame counts, bus load...)."""
+
+    def recover(self, trial: int) -> list[int]:
+        """Indices of drives that rebooted and must be configured again before ``trial`` (the
+        rig detects a heartbeat loss followed by a boot-up; in-process nothing reboots: [])."""
+
+    def close(self) -> None:
+        """Remove torque and release every resource (processes, buses)."""
+
+
+@dataclass
+class ExperimentResult:
+    """What :func:`run_experiment` returns: the summary and, per trial, metrics and signals."""
+
+    summary: dict[str, Any]
+    metrics: list[TrialMetrics] = field(default_factory=list)
+    errors: list[np.ndarray] = field(default_factory=list)  # (N, 4) rad per trial
+    traces: list[list[Any]] = field(default_factory=list)  # per trial: DriveTrace per drive
+    feedforward: list[np.ndarray] = field(default_factory=list)  # (N, 4) N·m per trial
+    fault: str | None = None
+
+
+def new_summary(plan: Plan, mode: str, digest: TraceDigest) -> dict[str, Any]:
+    """The summary before the first trial (``completed`` false, no iterations)."""
+    return {
+        "schema": SCHEMA,
+        "mode": mode,
+        "config": plan.cfg.as_dict() | {"n_ticks": plan.n_ticks, "trial_s": float(plan.ref.t[-1])},
+        "iterations": [],
+        "convergence_check": plan.check.as_dict(),
+        "gains": plan.gains.as_dict(),
+        "feasibility": plan.feasibility,
+        "encoder_lsb_deg": units.DEG_PER_COUNT,
+        "encoder_lsb_rad": units.RAD_PER_COUNT,
+        "ticks": 0,
+        "wall_s": 0.0,
+        "ticks_per_s": 0.0,
+        "trace_sha256": digest.hexdigest(),
+        "faults": [],
+        "completed": False,
+    }
+
+
+class _Trials:
+    """The trial loop's state: the plan, the bench, the feed-forward and what was measured."""
+
+    def __init__(self, plan: Plan, bench: Bench, result: ExperimentResult, keep_traces: bool,
+                 recorder: TrialRecorder | None) -> None:
+        self.plan, self.bench, self.result = plan, bench, result
+        self.keep_traces, self.recorder = keep_traces, recorder
+        self.digest = TraceDigest()
+        ref_counts, ref_vel = reference_tables(plan.ref)
+        self.q_ref_rad = ref_counts * units.RAD_PER_COUNT
+        self.qd_ref_rad_s = ref_vel * units.RAD_PER_COUNT
+        self.u = plan.u0.copy()  # (N, 4) feed-forward of the next trial, N·m
+        self.wall_s = 0.0
+
+    def setup_drive(self, j: int) -> None:
+        """Gains, limits, reference tables, then enable (CiA 402 Operation enabled)."""
+        plan, drive = self.plan, self.bench.drives[j]
+        drive.configure(
+            kp_nm_per_rad=float(plan.gains.kp[j]),
+            kd_nms_per_rad=float(plan.gains.kd[j]),
+            torque_limit_nm=plan.torque_limit_nm,
+            following_error_rad=float(np.radians(plan.cfg.following_error_deg)),
+        )
+        drive.load_reference(self.q_ref_rad[:, j], self.qd_ref_rad_s[:, j])
+        drive.enable()
+
+    def run_trial(self, k: int) -> tuple[TrialMetrics, np.ndarray, np.ndarray]:
+        """Trial ``k``: set up rebooted drives, download u, run, upload the traces, measure.
+        Returns the metrics, the error q_d − q (N, 4) rad and the total torque (N, 4) N·m."""
+        plan, bench, ref = self.plan, self.bench, self.plan.ref
+        for j in bench.recover(k):
+            # a drive that rebooted since the last trial (heartbeat loss + boot-up) is set up
+            # again from scratch; it then gets this trial's feed-forward like the others
+            logger.warning("drive %d rebooted: configured again before trial %d", j + 1, k)
+            self.setup_drive(j)
+        for j, drive in enumerate(bench.drives):
+            drive.load_feedforward(self.u[:, j])
+            drive.arm_trial()
+        t0 = time.perf_counter()
+        bench.run_trial(k, plan.n_ticks, ref.q[0].copy(), ref.qd[0].copy())
+        self.wall_s += time.perf_counter() - t0
+        traces = [drive.read_trace() for drive in bench.drives]
+        self.digest.add_trial([(tr.position_counts, tr.velocity_counts_s, tr.torque_units, tr.torque_fb_units)
+                               for tr in traces])
+        q_meas = np.stack([tr.q_rad for tr in traces], axis=1)
+        tau = np.stack([tr.tau_nm for tr in traces], axis=1)
+        e = ref.q - q_meas
+        m = trial_metrics(k, e, tau)
+        res = self.result
+        res.metrics.append(m)
+        res.errors.append(e)
+        res.feedforward.append(self.u.copy())
+        if self.keep_traces:
+            res.traces.append(traces)
+        if self.recorder is not None:
+            self.recorder.log_trial(k, ref, traces, self.u, e, m)
+        return m, e, tau
+
+    def record(self, m: TrialMetrics) -> None:
+        """Add trial ``m`` to the summary."""
+        s = self.result.summary
+        s["iterations"].append(m.as_dict())
+        s["ticks"] = len(s["iterations"]) * self.plan.n_ticks
+        s["wall_s"] = self.wall_s
+        s["ticks_per_s"] = s["ticks"] / self.wall_s if self.wall_s > 0 else 0.0
+        s["trace_sha256"] = self.digest.hexdigest()
+
+
+def run_experiment(
+    plan: Plan,
+    bench: Bench,
+    out_dir: str | Path | None,
+    *,
+    mode: str,
+    on_trial: Callable[[TrialMetrics], None] | None = None,
+    keep_traces: bool = False,
+    recorder: TrialRecorder | None = None,
+) -> ExperimentResult:
+    """Run ``plan.cfg.iterations`` trials on ``bench``; write ``summary.json`` after each.
+
+    A fault (:class:`TrialFault`, or a node that stopped answering between trials) ends the run:
+    torque is removed by closing the bench, the completed trials are kept and the fault is in
+    ``summary["faults"]`` and ``result.fault``."""
+    out = Path(out_dir) if out_dir is not None else None
+    result = ExperimentResult(summary={})
+    trials = _Trials(plan, bench, result, keep_traces, recorder)
+    summary = result.summary
+    summary.update(new_summary(plan, mode, trials.digest))
+    try:
+        bench.start()
+        for j in range(len(bench.drives)):
+            trials.setup_drive(j)
+        for k in range(plan.cfg.iterations):
+            m, e, tau = trials.run_trial(k)
+            trials.record(m)
+            if out is not None:
+                write_summary(out, summary)
+            if on_trial is not None:
+                on_trial(m)
+            if k + 1 < plan.cfg.iterations:
+                trials.u = plan.law.update(trials.u, e, tau)
+        summary["completed"] = True
+    except IlcrigError as exc:
+        # a fault, or a drive that stopped answering between trials (SDO timeout/abort while
+        # downloading a table or uploading the recorder): torque is removed by closing the
+        # bench, the trials so far are kept
+        result.fault = str(exc) if isinstance(exc, TrialFault) else f"{type(exc).__name__}: {exc}"
+        summary["faults"].append({"trial": len(summary["iterations"]), "message": str(exc)})
+        logger.error("trial %d faulted: %s", len(summary["iterations"]), exc)
+    finally:
+        try:
+            summary["bench"] = jsonable(bench.info())
+        finally:
+            bench.close()
+            if recorder is not None:
+                recorder.close()
+        if out is not None:
+            write_summary(out, summary)
+    return result

@@ -1,0 +1,299 @@
+"""The host on the real (emulated) fieldbus: a :class:`host.experiment.loop.Bench` whose four drives
+and plant are other processes, reached only over CAN with the ``canopen`` library.
+
+* every node is a ``canopen.RemoteNode`` built from its EDS (bus/drive.eds, bus/bench.eds); the
+  host reads and writes objects by SDO (block transfer for tables and recorder data), so the
+  hand-written drives are checked against an independent CANopen implementation;
+* NMT start/stop, heartbeat consumption (0x1017 set by the host) and EMCY listening: a lost
+  node or an EMCY during a trial is a :class:`host.experiment.loop.TrialFault`;
+* a passive monitor (a second python-can bus per channel, i.e. an ordinary bus member) counts
+  frames and bits per channel and writes candump logs with python-can's own writer.
+
+:func:`run_host_role` is the ``ilcrig host`` entry point (also what ``ilcrig run`` starts).
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import can
+import canopen
+import numpy as np
+
+from bus.bench_objects import BENCH_EDS_PATH
+from bus.bench_objects import DEFAULT_BENCH_NODE_ID as BENCH_NODE_ID
+from bus.busload import BusLoadCounter
+from bus.canlog import open_log
+from bus.cia301.nmt import HeartbeatConsumer, NmtCommand, NmtState
+from bus.errors import IlcrigError, SdoAbort
+from bus.objects import DRIVE_EDS_PATH, DRIVE_NODE_IDS
+from bus.transports.config import FIELDBUS, IO, TransportConfig
+from bus.units import timeout_scale
+from host.analysis.session import report_fault, run_session
+from host.experiment.config import ExperimentConfig
+from host.experiment.console import EXIT_FAULT, print_plan
+from host.experiment.loop import TrialFault
+from host.experiment.plan import prepare
+from host.nodes.bench_client import BenchClient, BenchClientError
+from host.nodes.drive_client import DriveClient
+from host.nodes.sdo_access import SdoAccess, SdoTransportError
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["RigBench", "run_host_role"]
+
+#: producer heartbeat period the host gives every node (0x1017), ms
+HEARTBEAT_MS = 100
+#: the host's consumer timeout: 10 missed periods, generous (2 cores for 7 processes), s
+HEARTBEAT_TIMEOUT_S = 1.0
+
+
+class ChannelMonitor(can.Listener):
+    """Counts frames/bits of one channel and writes its candump log (a plain bus member)."""
+
+    def __init__(self, bus: can.BusABC, name: str, log_path: Path | None) -> None:
+        self.bus = bus
+        self.name = name
+        self.counter = BusLoadCounter()
+        self.log = open_log(log_path, name) if log_path is not None else None
+        self.lock = threading.Lock()
+        listeners: list[can.Listener] = [self]
+        self.notifier = can.Notifier(bus, listeners, timeout=0.1)
+
+    def on_message_received(self, msg: can.Message) -> None:
+        with self.lock:
+            self.counter.add(msg)
+            if self.log is not None:
+                self.log.on_message_received(msg)
+
+    def stop(self) -> None:
+        """can.Listener hook (called by the notifier when it stops): nothing to do here."""
+
+    def close(self) -> None:
+        """Stop receiving, close the log and the bus."""
+        self.notifier.stop(timeout=2.0)
+        with self.lock:
+            if self.log is not None:
+                self.log.stop()
+        self.bus.shutdown()
+
+
+class RigBench:
+    """Drives and plant as CANopen nodes on the fieldbus (see module docstring)."""
+
+    def __init__(self, cfg: ExperimentConfig, transport: TransportConfig, *,
+                 out_dir: Path | None, wait_s: float = 20.0, pause_s: float = 0.0) -> None:
+        self.cfg = cfg
+        self.pause_s = pause_s
+        self.recoveries: list[dict[str, Any]] = []
+        self.transport = transport
+        self.wait_s = wait_s
+        self.emcy: list[dict[str, Any]] = []
+        self._pending_faults: list[str] = []
+        self._lock = threading.Lock()
+        self.heartbeats = HeartbeatConsumer()
+        self.monitors: list[ChannelMonitor] = []
+        self.drives: list[DriveClient] = []
+        self._t_start = time.monotonic()
+        self.network = canopen.Network(transport.open(FIELDBUS))
+        try:
+            for name in (FIELDBUS, IO):
+                log = (out_dir / f"{name}.log") if out_dir is not None else None
+                if log is not None:
+                    log.parent.mkdir(parents=True, exist_ok=True)
+                self.monitors.append(ChannelMonitor(transport.open(name), name, log))
+            self.network.connect()
+            self.drive_nodes = [self.network.add_node(n, str(DRIVE_EDS_PATH)) for n in DRIVE_NODE_IDS]
+            self.bench_node = self.network.add_node(BENCH_NODE_ID, str(BENCH_EDS_PATH))
+            for node in self.drive_nodes:
+                # generous: 7 processes share 2 cores; a starved node answers late, not never
+                node.sdo.RESPONSE_TIMEOUT = 5.0 * timeout_scale()
+            self.bench_node.sdo.RESPONSE_TIMEOUT = 5.0 * timeout_scale()
+            self.drives = [DriveClient(SdoAccess(node), node.id) for node in self.drive_nodes]
+            self.bench = BenchClient(SdoAccess(self.bench_node))
+            for node in (*self.drive_nodes, self.bench_node):
+                # canopen's own consumers: RemoteNode.nmt hears the heartbeats, .emcy the EMCYs
+                node.nmt.add_heartbeat_callback(functools.partial(self._on_heartbeat, node.id))
+                node.emcy.add_callback(functools.partial(self._on_emcy, node.id))
+        except Exception:
+            self.close()
+            raise
+
+    # -- listeners (run in the canopen notifier thread) ---------------------------------
+    def _on_heartbeat(self, node_id: int, state: int) -> None:
+        with self._lock:
+            self.heartbeats.on_heartbeat(node_id, bytes([state]), time.monotonic())
+
+    def _on_emcy(self, node_id: int, err: canopen.emcy.EmcyError) -> None:
+        with self._lock:
+            self.emcy.append({"node": node_id, "code": err.code, "register": err.register,
+                              "data": bytes(err.data).hex(), "t_s": round(time.monotonic() - self._t_start, 4)})
+            if err.code & 0xFF00:  # not an error reset
+                self._pending_faults.append(f"node {node_id}: EMCY 0x{err.code:04X}")
+
+    # -- Bench protocol ----------------------------------------------------------------
+    @property
+    def _nodes(self) -> dict[int, Any]:
+        return {n.id: n for n in (*self.drive_nodes, self.bench_node)}
+
+    def _bring_up(self, node_ids: set[int], what: str) -> None:
+        """Wait until ``node_ids`` answer SDO, give them a heartbeat, NMT-start them and wait
+        for their first operational heartbeat."""
+        nodes = self._nodes
+        deadline = time.monotonic() + self.wait_s
+        waiting = set(node_ids)
+        while waiting:
+            for nid in sorted(waiting):
+                try:
+                    nodes[nid].sdo.upload(0x1000, 0)
+                    waiting.discard(nid)
+                except (canopen.SdoCommunicationError, canopen.SdoAbortedError):
+                    pass
+            if waiting and time.monotonic() > deadline:
+                raise TrialFault(f"node(s) {', '.join(map(str, sorted(waiting)))} did not answer within "
+                                 f"{self.wait_s:g} s {what}")
+        for nid in sorted(node_ids):
+            nodes[nid].sdo.download(0x1017, 0, HEARTBEAT_MS.to_bytes(2, "little"))
+            with self._lock:
+                self.heartbeats.watch(nid, HEARTBEAT_TIMEOUT_S * timeout_scale())
+        for nid in sorted(node_ids):
+            nodes[nid].nmt.send_command(NmtCommand.START)
+        if BENCH_NODE_ID in node_ids:
+            self.bench.configure(self.cfg.ts_s, self.cfg.substeps, self.cfg.disturbance, self.cfg.seed)
+        t_end = time.monotonic() + 5.0
+        while True:
+            with self._lock:
+                states = {nid: self.heartbeats.state(nid) for nid in node_ids}
+            if all(s == NmtState.OPERATIONAL for s in states.values()):
+                break
+            if time.monotonic() > t_end:
+                raise TrialFault(f"nodes not operational after NMT start: {states}")
+            time.sleep(0.02)
+        with self._lock:
+            self.heartbeats.check(time.monotonic())  # forget the boot-ups seen while starting
+
+    def start(self) -> None:
+        """Wait until all five nodes answer SDO, NMT-start them, set up heartbeats."""
+        self._bring_up(set(DRIVE_NODE_IDS) | {BENCH_NODE_ID},
+                       "(are the drive and plant processes running on this bus?)")
+
+    def recover(self, trial: int) -> list[int]:
+        """Before ``trial``: nodes whose heartbeat was lost or that booted again are waited for
+        (up to ``wait_s``) and brought up again; returns the indices of the drives that the host
+        must configure again (gains, reference, enable). EMCY faults are not recovered."""
+        if trial > 0 and self.pause_s > 0:
+            time.sleep(self.pause_s)
+        with self._lock:
+            report = self.heartbeats.check(time.monotonic())
+            faults, self._pending_faults = self._pending_faults, []
+        if faults:
+            raise TrialFault("; ".join(faults))
+        lost = set(report.overdue) | set(report.booted)
+        if not lost:
+            return []
+        logger.warning("node(s) %s lost or rebooted before trial %d: waiting for them", sorted(lost), trial)
+        self._bring_up(lost, "after losing them")
+        for nid in sorted(lost):
+            self.recoveries.append({"node": nid, "before_trial": trial,
+                                    "heartbeat_lost": nid in report.overdue, "boot_up_seen": nid in report.booted})
+        return [DRIVE_NODE_IDS.index(n) for n in sorted(lost) if n in DRIVE_NODE_IDS]
+
+    def _check_health(self) -> None:
+        with self._lock:
+            report = self.heartbeats.check(time.monotonic())
+            faults, self._pending_faults = self._pending_faults, []
+        if report.overdue:
+            faults.append("heartbeat lost from node(s) " + ", ".join(map(str, sorted(report.overdue))))
+        if report.booted:
+            faults.append("node(s) rebooted: " + ", ".join(map(str, sorted(report.booted))))
+        if faults:
+            raise TrialFault("; ".join(faults))
+
+    def run_trial(self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray) -> None:
+        self._check_health()
+        try:
+            self.bench.start_trial(trial, n_ticks, q0, qd0)
+            # generous: lockstep over a loaded 2-core machine; faults come back much sooner
+            self.bench.wait_trial(timeout_s=60.0 + n_ticks * 0.01, poll_s=0.02)
+        except (BenchClientError, SdoAbort, SdoTransportError) as exc:
+            time.sleep(0.05)  # let EMCY frames of the drives arrive for the report
+            extra = ""
+            with self._lock:
+                if self._pending_faults:
+                    extra = " (" + "; ".join(self._pending_faults) + ")"
+                    self._pending_faults = []
+            raise TrialFault(f"trial {trial}: {exc}{extra}") from exc
+        self._check_health()
+
+    def info(self) -> dict[str, Any]:
+        wall = time.monotonic() - self._t_start
+        channels = {}
+        for m in self.monitors:
+            with m.lock:
+                c = m.counter
+                channels[m.name] = {
+                    **c.as_dict(),
+                    "load_percent_worst_case": c.load_percent(wall, worst_case=True),
+                    "load_percent_no_stuffing": c.load_percent(wall, worst_case=False),
+                    "log": f"{m.name}.log" if m.log is not None else None,
+                }
+        return {
+            "transport": self.transport.as_dict(),
+            "channels": channels,
+            "bus_load_basis": "bits of every frame seen on the channel (classic CAN, worst-case stuffing) "
+                              "divided by the run's wall time at 1 Mbit/s",
+            "elapsed_s": wall,
+            "emcy": self.emcy,
+            "recoveries": self.recoveries,
+        }
+
+    def close(self) -> None:
+        try:
+            if self.network.bus is not None:
+                for d in self.drives:
+                    try:
+                        d.disable()
+                    except Exception:  # closing must never hide the original error
+                        logger.debug("disable failed", exc_info=True)
+                self.network.nmt.send_command(NmtCommand.STOP)  # all nodes: torque off
+        except Exception:
+            logger.debug("NMT stop failed", exc_info=True)
+        try:
+            self.network.disconnect()
+        except Exception:
+            logger.debug("disconnect failed", exc_info=True)
+        for m in self.monitors:
+            try:
+                m.close()
+            except Exception:
+                logger.warning("closing the %s monitor failed", m.name, exc_info=True)
+        self.monitors = []
+
+
+def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) -> int:
+    """``ilcrig host``: run the experiment over the bus; summary mode ``rig``."""
+    out = Path(args.out) if args.out else Path("runs") / time.strftime("rig-%Y%m%d-%H%M%S")
+    plan = prepare(cfg)
+    print_plan(sys.stdout, "host", plan, extra=f", transport {transport.name}")
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        bench = RigBench(cfg, transport, out_dir=out, wait_s=args.wait, pause_s=args.pause)
+    except (OSError, can.CanError, IlcrigError) as exc:
+        sys.stderr.write(f"ilcrig: error: cannot open the bus ({transport.name}): {exc}\n")
+        return EXIT_FAULT
+    res = run_session(plan, bench, out, mode="rig", stream=sys.stdout)
+    s = res.summary
+    ch = s.get("bench", {}).get("channels", {})
+    fb = ch.get(FIELDBUS, {})
+    sys.stdout.write(
+        f"{s['ticks']} ticks, {s['ticks_per_s']:.0f} ticks/s in trials; fieldbus {fb.get('frames', 0)} frames "
+        f"({fb.get('load_percent_worst_case', 0.0):.1f} % of 1 Mbit/s), io {ch.get(IO, {}).get('frames', 0)} frames; "
+        f"trace_sha256 {s['trace_sha256'][:16]}…; summary: {out / 'summary.json'}\n")
+    sys.stdout.flush()
+    return report_fault(res)
