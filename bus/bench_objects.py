@@ -8,6 +8,7 @@ Both :mod:`plant.node` (server) and :mod:`host.nodes.bench_client` (client) use 
 ======  ===  ========================  =======  ==========================================
 index   sub  name                      type     meaning / unit
 ======  ===  ========================  =======  ==========================================
+0x1016  1    consumer heartbeat        U32      node id << 16 | ms (the host's heartbeat), 0 = off
 0x1017  0    producer heartbeat        U16      ms, 0 = off
 0x1018  1-4  identity                  U32      vendor, product 0xBE4C, revision, serial
 0x2400  1    control period            U32      µs (Ts), 1..1 000 000, default 1000
@@ -19,7 +20,7 @@ index   sub  name                      type     meaning / unit
 0x2410  3    command                   U8       wo: :class:`BenchCommand` 1 start, 2 abort
 0x2410  4    status                    U8       ro: :class:`BenchStatus`
 0x2410  5    ticks done                U32      ro: plant steps completed in this trial
-0x2410  6    fault code                U8       ro: :class:`BenchFault`
+0x2410  6    fault code                U8       ro: :class:`BenchFault` (0..6)
 0x2410  7    fault tick                U32      ro: tick n at which the fault happened
 0x2410  8    fault node                U8       ro: drive node id involved (0 = none)
 0x2420  0    initial state             DOMAIN   64 bytes: q0[4] rad, qd0[4] rad/s, float64 LE
@@ -114,7 +115,8 @@ class BenchFault(IntEnum):
     TICK_TIMEOUT = 2  #: a drive did not answer a tick in time
     TICK_SEQUENCE = 3  #: a torque frame was missing, duplicated, stale or early
     ABORTED = 4  #: the host aborted (command 2) or NMT stopped/reset the node
-    BAD_FRAME = 5  #: a malformed torque frame
+    BAD_FRAME = 5  #: a malformed torque frame, or a bus error frame on io (a frame damaged on the wire)
+    HOST_LOST = 6  #: the host's heartbeat was lost (consumer 0x1016)
 
 
 class DisturbanceKind(IntEnum):
@@ -152,6 +154,7 @@ FAULT_EMCY: Final[dict[BenchFault, tuple[int, int]]] = {
     BenchFault.TICK_SEQUENCE: (0x8200, 0x11),  # protocol error
     BenchFault.ABORTED: (0xFF01, 0x81),
     BenchFault.BAD_FRAME: (0x8200, 0x11),
+    BenchFault.HOST_LOST: (0x8130, 0x11),  # heartbeat consumer (life guard) event
 }
 
 _EMCY_DATA = struct.Struct("<BBH")

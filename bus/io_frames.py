@@ -25,6 +25,13 @@ Tick counter
     such stream and raises :class:`TickError` with the kind ``MISSING`` (frames skipped),
     ``DUPLICATE`` (the last tick again) or ``STALE`` (an older tick). :func:`check_tick`
     compares one frame with the tick the receiver is waiting for.
+
+Deadlines
+    The plant waits at most :data:`TICK_TIMEOUT_S` for the four torque frames of a tick
+    (:data:`FIRST_TICK_TIMEOUT_S` for tick 0), both × ``ILCRIG_TIMEOUT_SCALE``: a frame later
+    than that is *late* — the trial faults at that tick and the late frame, when it comes, is
+    recognised as stale. A frame delayed less is absorbed by the lockstep (no fault, no change
+    in the traces).
 """
 
 from __future__ import annotations
@@ -45,6 +52,11 @@ N_JOINTS: int = 4
 CONTROL_COB_ID: int = 0x010
 ENCODER_COB_BASE: int = 0x101
 TORQUE_COB_BASE: int = 0x181
+
+#: longest wait of the plant for the torque frames of one tick, s (× ILCRIG_TIMEOUT_SCALE)
+TICK_TIMEOUT_S: float = 0.5
+#: the same for tick 0 of a trial, s (× ILCRIG_TIMEOUT_SCALE)
+FIRST_TICK_TIMEOUT_S: float = 2.0
 
 TICK_BITS: int = 16
 TICK_MODULUS: int = 1 << TICK_BITS

@@ -62,6 +62,7 @@ class Obj(IntEnum):
     COMM_CYCLE_PERIOD = 0x1006
     COB_ID_EMCY = 0x1014
     INHIBIT_TIME_EMCY = 0x1015
+    CONSUMER_HEARTBEAT = 0x1016
     PRODUCER_HEARTBEAT = 0x1017
     IDENTITY = 0x1018
     SDO_SERVER = 0x1200
@@ -159,6 +160,8 @@ class FaultCause(IntEnum):
     NONE = 0
     FOLLOWING_ERROR = 1
     TICK_SEQUENCE = 2
+    HEARTBEAT = 3  #: the host's heartbeat was lost (consumer 0x1016): EMCY 0x8130
+    BUS_LOST = 4  #: the bus itself failed (no EMCY possible)
 
 
 class ModeOfOperation(IntEnum):
@@ -263,7 +266,8 @@ DRIVE_EDS_PATH: Final[Path] = Path(__file__).resolve().parent / "drive.eds"
 DEVICE_TYPE_VALUE: Final[int] = 0x00020192
 #: 0x6076 default: joint-side rated torque in mN·m (88.2 N·m)
 RATED_TORQUE_MNM: Final[int] = 88_200
-#: 0x6072 default: max torque in per-thousand of rated (3000 -> 264.6 N·m)
+#: 0x6072 default and EDS HighLimit: max torque in per-thousand of rated (3000 -> 264.6 N·m,
+#: the motor's peak rating; more is refused with 0x06090031)
 MAX_TORQUE_PERMILLE: Final[int] = 3000
 #: 0x2300 default control period, µs
 CONTROL_PERIOD_US: Final[int] = 1000

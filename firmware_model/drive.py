@@ -26,6 +26,14 @@ Tick semantics (:meth:`Drive.io_tick`):
 
 If the torque enable is lost while a trial is running (disable, NMT stop), the trial
 ends in state FAULT (cause NONE) and the recorder is STOPPED.
+
+Loss of the host (heartbeat consumer 0x1016, :meth:`Drive.heartbeat_lost`) or of the bus
+(:meth:`Drive.bus_lost`) is a fault like the others: torque off, CiA 402 Fault, EMCY 0x8130
+(heartbeat; a lost bus cannot carry one).  Only in NMT STOPPED, where torque is off already and
+the master stopped the node on purpose, a lost heartbeat is just logged.  Gains (0x2110), the
+following-error window (0x6065), the max torque (0x6072), the tables and the control period
+cannot change while a trial is armed or running (abort 0x08000022).  Every time torque goes
+off, one ``SAFE-STATE`` record (:mod:`bus.safe_state`) is logged with the reason.
 """
 
 from __future__ import annotations
@@ -57,6 +65,7 @@ from bus.objects import (
     TrialState,
     TrialSub,
 )
+from bus.safe_state import format_safe_state
 from firmware_model import loop
 from firmware_model.cia402 import Cia402StateMachine
 
@@ -133,6 +142,35 @@ class Drive:
         oldest first; the queue is emptied."""
         out, self._emcy = self._emcy, []
         return out
+
+    def heartbeat_lost(self, node_id: int) -> None:
+        """CiA 301 heartbeat consumer event: producer ``node_id`` (the host) went silent.
+
+        In NMT STOPPED only logged (torque is off and the master stopped the node on purpose);
+        otherwise a fault: torque off, CiA 402 Fault, trial stopped, EMCY 0x8130."""
+        if self.nmt_state == NmtState.STOPPED:
+            logger.info("node %d: heartbeat of node %d lost while NMT STOPPED (torque off already)",
+                        self.node_id, node_id)
+            return
+        self._fault_reason = f"heartbeat-of-node-{node_id}-lost"
+        self._fault(EmcyCode.HEARTBEAT_ERROR, ErrorRegister.GENERIC | ErrorRegister.COMMUNICATION,
+                    FaultCause.HEARTBEAT, struct.pack("<BB3x", FaultCause.HEARTBEAT, node_id & 0xFF))
+
+    def bus_lost(self, reason: str) -> None:
+        """The fieldbus or io bus failed (e.g. the hub is gone): torque off, CiA 402 Fault (no
+        EMCY can be sent)."""
+        self._fault_reason = "bus-lost"
+        self._fault(EmcyCode.COMMUNICATION, ErrorRegister.GENERIC | ErrorRegister.COMMUNICATION,
+                    FaultCause.BUS_LOST, struct.pack("<B4x", FaultCause.BUS_LOST))
+        logger.warning("node %d: bus lost (%s): torque off", self.node_id, reason)
+
+    def power_off(self, reason: str) -> None:
+        """The drive process stops (SIGTERM, the end of a run): the power stage goes off; a
+        SAFE-STATE record is logged if torque was still on."""
+        if self._power:
+            self._power = False
+            logger.info(format_safe_state(f"drive{self.node_id}", reason, cia402=self._sm.state.name,
+                                          nmt=NmtState(self.nmt_state).name, tick="-"))
 
     def nmt_command(self, cs: int) -> NmtState:
         """Apply an NMT command specifier; returns the new NMT state.
@@ -249,6 +287,7 @@ class Drive:
         return self._next_tick
 
     def _fault(self, code: EmcyCode, register: int, cause: FaultCause, mfr: bytes) -> int:
+        self._fault_tick = self._next_tick if self._trial_state == TrialState.RUNNING else -1
         if self._trial_state in (TrialState.RUNNING, TrialState.ARMED):
             self._stop_trial(TrialState.FAULT)
         self._fault_cause = cause
@@ -256,8 +295,12 @@ class Drive:
         self._error_register = int(register)
         self._error_code = int(code)
         self._emcy.append((int(code), int(register), mfr))
-        self._update_power()
         logger.warning("node %d fault %s (EMCY 0x%04X)", self.node_id, cause.name, code)
+        was_on = self._power
+        self._update_power()
+        if not was_on:  # torque was off already: record the fault reaction all the same
+            self._log_safe_state(self._fault_tick)
+        self._fault_reason = ""
         return 0
 
     def _following_error_fault(self, n: int) -> int:
@@ -287,13 +330,26 @@ class Drive:
             st[loop.S_VEST] = 0
             self._capture_hold = self._trial_state != TrialState.DONE
         elif was and not power:
+            tick = self._next_tick if self._trial_state == TrialState.RUNNING else self._fault_tick
             if self._trial_state == TrialState.RUNNING:
                 logger.warning("node %d torque enable lost during a trial", self.node_id)
                 self._stop_trial(TrialState.FAULT)
+            self._log_safe_state(tick)
             st[loop.S_TAU] = 0
             st[loop.S_TAU_FB] = 0
             st[loop.S_VEST] = 0
             st[loop.S_LIMITED] = 0
+
+    def _log_safe_state(self, tick: int) -> None:
+        """One SAFE-STATE record: torque is off now, and why."""
+        if self._sm.state in (Cia402State.FAULT, Cia402State.FAULT_REACTION_ACTIVE):
+            reason = self._fault_reason or f"fault-{FaultCause(self._fault_cause).name.lower()}"
+        elif self.nmt_state != NmtState.OPERATIONAL:
+            reason = f"nmt-{NmtState(self.nmt_state).name.lower()}"
+        else:
+            reason = f"cia402-{self._sm.state.name.lower()}"
+        logger.info(format_safe_state(f"drive{self.node_id}", reason, cia402=self._sm.state.name,
+                                      nmt=NmtState(self.nmt_state).name, tick=tick if tick >= 0 else "-"))
 
     # ------------------------------------------------------------------ resets
 
@@ -308,6 +364,8 @@ class Drive:
         self._rec_status = RecorderStatus.EMPTY
         self._next_tick = 0
         self._fault_cause = FaultCause.NONE
+        self._fault_reason = ""
+        self._fault_tick = -1
         self._error_register = 0
         self._error_code = 0
         self._capture_hold = True
@@ -354,11 +412,11 @@ class Drive:
 
         w[(Obj.CONTROLWORD, 0)] = self._write_controlword  # type: ignore[assignment]
         w[(Obj.MODES_OF_OPERATION, 0)] = self._write_mode  # type: ignore[assignment]
-        w[(Obj.FOLLOWING_ERROR_WINDOW, 0)] = lambda v: self._set_fe_window(int(v))  # type: ignore[arg-type]
-        w[(Obj.MAX_TORQUE, 0)] = lambda v: self._set_max_torque(int(v))  # type: ignore[arg-type]
+        w[(Obj.FOLLOWING_ERROR_WINDOW, 0)] = lambda v: self._write_fe_window(int(v))  # type: ignore[arg-type]
+        w[(Obj.MAX_TORQUE, 0)] = lambda v: self._write_max_torque(int(v))  # type: ignore[arg-type]
         w[(Obj.TABLE, TableSub.LENGTH)] = self._write_table_length  # type: ignore[assignment]
         for sub in GainsSub:
-            w[(Obj.GAINS, sub)] = (lambda v, s=sub: self._set_gains(s, int(v)))  # type: ignore[misc]
+            w[(Obj.GAINS, sub)] = (lambda v, s=sub: self._write_gains(s, int(v)))  # type: ignore[misc]
         w[(Obj.TRIAL, TrialSub.COMMAND)] = self._write_trial_command  # type: ignore[assignment]
         w[(Obj.CONTROL_PERIOD, 0)] = self._write_period  # type: ignore[assignment]
         w[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.VALUE)] = (
@@ -386,6 +444,18 @@ class Drive:
     def _write_mode(self, value: Value) -> None:
         if value != ModeOfOperation.TABLE_PLAYBACK:
             raise SdoAbort(AbortCode.VALUE_RANGE, f"mode of operation {value} not supported (only -1)")
+
+    def _write_fe_window(self, value: int) -> None:
+        self._require_not_playing("changing the following-error window")
+        self._set_fe_window(value)
+
+    def _write_max_torque(self, permille: int) -> None:
+        self._require_not_playing("changing the max torque")
+        self._set_max_torque(permille)
+
+    def _write_gains(self, sub: int, value: int) -> None:
+        self._require_not_playing("changing the gains")
+        self._set_gains(sub, value)
 
     def _set_fe_window(self, value: int) -> None:
         self._st[loop.P_FE_WINDOW] = -1 if value == 0xFFFFFFFF else value

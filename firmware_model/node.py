@@ -122,13 +122,14 @@ class DriveNode(SlaveNode):
 
 
 def run_node(node_id: int, fieldbus_config: dict[str, Any], io_config: dict[str, Any],
-             stop: threading.Event | None = None) -> None:
+             stop: threading.Event | None = None) -> str | None:
     """Drive process entry: build the Drive and both buses, serve until stopped, clean up.
 
     :param node_id: CANopen node id 1..4.
     :param fieldbus_config: keyword arguments of ``can.Bus`` for the fieldbus.
     :param io_config: keyword arguments of ``can.Bus`` for the io channel.
     :param stop: stop event; by default a new one set by SIGTERM/SIGINT.
+    :returns: None, or why the node stopped early (a bus failed; the drive faulted first).
     """
     from firmware_model.drive import Drive  # the firmware is only needed in the process
     from firmware_model.loop import warm_up
@@ -138,8 +139,26 @@ def run_node(node_id: int, fieldbus_config: dict[str, Any], io_config: dict[str,
         stop = threading.Event()
         install_sigterm(stop)
     drive = Drive(node_id)
-    with can.Bus(**fieldbus_config) as fieldbus, can.Bus(**io_config) as io:
-        DriveNode(drive, fieldbus, io, node_id=node_id).run(stop)
+    fieldbus = can.Bus(**fieldbus_config)
+    try:
+        io = can.Bus(**io_config)
+        try:
+            node = DriveNode(drive, fieldbus, io, node_id=node_id)
+            node.run(stop)
+        finally:
+            _quiet_shutdown(io)
+    finally:
+        _quiet_shutdown(fieldbus)
+    drive.power_off("process-stop")
+    return node.bus_error
+
+
+def _quiet_shutdown(bus: can.BusABC) -> None:
+    """Close a bus that may have failed already (the hub gone): never raise on the way out."""
+    try:
+        bus.shutdown()
+    except (can.CanError, OSError) as err:
+        logger.debug("closing %s: %s", bus, err)
 
 
 def main(argv: Sequence[str] | None = None) -> None:

@@ -31,7 +31,10 @@ After tick N-1: TRIAL_STOP, status DONE.  The trial is event driven inside the s
 loop, so SDO requests (status polls) are answered during a trial by the same thread, between
 ticks.  No answer within ``tick_timeout_s`` [s] (``first_tick_timeout_s`` for tick 0) is a fault
 ("drive j did not answer tick n").
-A fault (plant error, tick error, timeout, host abort, NMT stop/reset) ends the trial:
+A bus error frame on io during a trial (a frame damaged on the wire, e.g. ``--inject corrupt``) is a
+BAD_FRAME fault.  The host's heartbeat is consumed (0x1016): losing it during a trial is a
+HOST_LOST fault (EMCY 0x8130); a failing bus ends the node's loop (:meth:`bus_lost`).
+A fault (plant error, tick error, timeout, host abort, host lost, NMT stop/reset) ends the trial:
 TRIAL_STOP, one EMCY frame (:data:`bus.bench_objects.FAULT_EMCY`, manufacturer bytes
 :func:`bus.bench_objects.fault_emcy_data`), status FAULT with code, tick and node in 0x2410;
 the node keeps serving and the next start begins afresh.
@@ -115,9 +118,9 @@ class BenchNode(SlaveNode):
     """
 
     #: Default longest wait for the four torque frames of one tick, s.
-    TICK_TIMEOUT_S: float = 2.0
+    TICK_TIMEOUT_S: float = io_frames.TICK_TIMEOUT_S
     #: Default longest wait for the torque frames of tick 0, s.
-    FIRST_TICK_TIMEOUT_S: float = 10.0
+    FIRST_TICK_TIMEOUT_S: float = io_frames.FIRST_TICK_TIMEOUT_S
 
     def __init__(self, fieldbus: can.BusABC, io: can.BusABC, *, plant_factory: PlantFactory,
                  disturbance_fn: DisturbanceFn, node_id: int = DEFAULT_BENCH_NODE_ID,
@@ -202,6 +205,29 @@ class BenchNode(SlaveNode):
     def pop_emcy(self) -> list[tuple[int, int, bytes]]:
         """Always empty: the bench sends its EMCY frames at once (:meth:`SlaveNode.send_emcy`)."""
         return []
+
+    def heartbeat_lost(self, node_id: int) -> None:
+        """The heartbeat consumer lost ``node_id`` (the host): a running trial ends with
+        HOST_LOST (EMCY 0x8130); outside a trial only the EMCY is sent (logged in NMT STOPPED)."""
+        if self._nmt_state == NmtState.STOPPED:
+            logger.info("node %d: heartbeat of node %d lost while NMT STOPPED", self.node_id, node_id)
+            return
+        if self._running or self._pending_start:
+            self._fail(BenchFault.HOST_LOST, 0, f"heartbeat of node {node_id} (the host) lost at tick {self._tick}",
+                       started=self._running)
+        else:
+            code, register = FAULT_EMCY[BenchFault.HOST_LOST]
+            logger.warning("node %d: heartbeat of node %d (the host) lost", self.node_id, node_id)
+            self.send_emcy(code, register, fault_emcy_data(BenchFault.HOST_LOST, 0, self._tick))
+
+    def bus_lost(self, reason: str) -> None:
+        """A bus failed (the hub gone): the trial, if any, ends here (nothing can be sent)."""
+        if self._running or self._pending_start:
+            self._running = self._pending_start = False
+            self._status = BenchStatus.FAULT
+            self._fault = BenchFault.ABORTED
+            self._fault_tick = self._tick
+            logger.warning("node %d: trial aborted at tick %d: bus lost (%s)", self.node_id, self._tick, reason)
 
     # ------------------------------------------------------------------ public state
 
@@ -307,6 +333,10 @@ class BenchNode(SlaveNode):
                        f"(missing drives: {[j + 1 for j in missing]})")
 
     def on_io(self, msg: can.Message) -> None:
+        if msg.is_error_frame:  # a frame damaged on the wire: the receivers' controllers saw a CRC error
+            if self._running:
+                self._fail(BenchFault.BAD_FRAME, 0, f"tick {self._tick}: bus error frame on io (a damaged frame)")
+            return
         cob = msg.arbitration_id
         if not _TORQUE_LO <= cob < _TORQUE_HI:
             return  # our own encoder/control frames echoed, or foreign frames
@@ -467,10 +497,11 @@ class BenchNode(SlaveNode):
 
 
 def run_plant_role(transport: TransportConfig, node_id: int = DEFAULT_BENCH_NODE_ID,
-                   stop: threading.Event | None = None) -> None:
+                   stop: threading.Event | None = None) -> str | None:
     """Plant process entry (``ilcrig plant``): the test-bench node on both buses of
     ``transport`` (a :class:`bus.transports.config.TransportConfig`), serving until SIGTERM/SIGINT or
     ``stop`` (a :class:`threading.Event`) is set; the buses are closed on the way out.
+    Returns None, or why the node stopped early (a bus failed).
 
     The plant is the true plant (``plant.params.default_true_plant``, encoder and
     torque LSBs of :mod:`bus.units`), rebuilt only when the host changes Ts or the sub-steps;
@@ -494,9 +525,20 @@ def run_plant_role(transport: TransportConfig, node_id: int = DEFAULT_BENCH_NODE
         io = transport.open("io")
         try:
             scale = units.timeout_scale()
-            BenchNode(fieldbus, io, plant_factory=plant_factory, disturbance_fn=disturbance_torque,
-                      node_id=node_id, tick_timeout_s=2.0 * scale, first_tick_timeout_s=10.0 * scale).run(stop)
+            node = BenchNode(fieldbus, io, plant_factory=plant_factory, disturbance_fn=disturbance_torque,
+                             node_id=node_id, tick_timeout_s=io_frames.TICK_TIMEOUT_S * scale,
+                             first_tick_timeout_s=io_frames.FIRST_TICK_TIMEOUT_S * scale)
+            node.run(stop)
+            return node.bus_error
         finally:
-            io.shutdown()
+            _quiet_shutdown(io)
     finally:
-        fieldbus.shutdown()
+        _quiet_shutdown(fieldbus)
+
+
+def _quiet_shutdown(bus: can.BusABC) -> None:
+    """Close a bus that may have failed already (the hub gone): never raise on the way out."""
+    try:
+        bus.shutdown()
+    except (can.CanError, OSError) as err:
+        logger.debug("closing %s: %s", bus, err)

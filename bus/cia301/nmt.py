@@ -4,6 +4,19 @@ host-side heartbeat consumer.  Pure codecs and state; no I/O, no clock (time is 
 * NMT command: COB-ID 0x000, 2 bytes ``[cs, node_id]``; node id 0 addresses all nodes.
 * Heartbeat / boot-up: COB-ID ``0x700 + node_id``, 1 byte = node state (bit 7 is the node
   guarding toggle bit and is ignored on decode).
+* Heartbeat consumer entries (object 0x1016, CiA 301 §7.5.2.3): U32 ``node_id << 16 | time_ms``;
+  :class:`NodeHeartbeatConsumer` is a node's consumer, :class:`HeartbeatConsumer` the host's.
+
+The heartbeat timing of the rig is defined here, once (both sides must agree):
+
+* :data:`HOST_NODE_ID` — the host (NMT master) is node **127** on the fieldbus; it produces its
+  heartbeat on COB-ID ``0x77F`` every :data:`HOST_HEARTBEAT_MS`;
+* the nodes (drives 1–4, test bench 32) produce theirs every :data:`NODE_HEARTBEAT_MS`
+  (the host writes it to 0x1017);
+* every consumer — the nodes consuming the host (0x1016, written by the host) and the host
+  consuming the nodes — declares a producer lost after :data:`CONSUMER_TIME_MS`
+  (2.5 producer periods; × ``ILCRIG_TIMEOUT_SCALE``), so a lost producer is noticed within
+  3 heartbeat periods.
 """
 
 from __future__ import annotations
@@ -20,6 +33,17 @@ NMT_COB_ID = 0x000
 HEARTBEAT_BASE = 0x700
 #: Node id 0 in an NMT command: every node.
 ALL_NODES = 0
+#: The host's (NMT master's) node id on the fieldbus; its heartbeat COB-ID is 0x77F.
+HOST_NODE_ID = 0x7F
+#: Producer heartbeat period of the host, ms.
+HOST_HEARTBEAT_MS = 100
+#: Producer heartbeat period the host gives every node (object 0x1017), ms.
+NODE_HEARTBEAT_MS = 100
+#: Consumer heartbeat time of every consumer (nodes: object 0x1016; host), ms, before
+#: ``ILCRIG_TIMEOUT_SCALE``: 2.5 producer periods.
+CONSUMER_TIME_MS = 250
+#: Object index of the consumer heartbeat time (ARRAY of U32 ``node_id << 16 | time_ms``).
+CONSUMER_HEARTBEAT_INDEX = 0x1016
 
 
 class NmtFrameError(ValueError):
@@ -218,3 +242,70 @@ class HeartbeatConsumer:
                 overdue.append(node_id)
         booted, self._booted = self._booted, []
         return HeartbeatReport(sorted(overdue), booted, dict(self._states))
+
+
+def consumer_entry(node_id: int, time_ms: int) -> int:
+    """A 0x1016 sub-entry: ``node_id << 16 | time_ms`` (time 0 or node 0 = entry unused).
+
+    :raises NmtFrameError: node id outside 0..127 or time outside 0..65535 ms.
+    """
+    if not 0 <= node_id <= 127:
+        raise NmtFrameError(f"node id must be 0..127, got {node_id}")
+    if not 0 <= time_ms <= 0xFFFF:
+        raise NmtFrameError(f"consumer time must be 0..65535 ms, got {time_ms}")
+    return (int(node_id) << 16) | int(time_ms)
+
+
+def decode_consumer_entry(value: int) -> tuple[int, int] | None:
+    """``(node_id, time_ms)`` of a 0x1016 sub-entry, or None when the entry is unused
+    (node id 0 or > 127, or time 0)."""
+    node_id, time_ms = (int(value) >> 16) & 0xFF, int(value) & 0xFFFF
+    if not 1 <= node_id <= 127 or time_ms == 0:
+        return None
+    return node_id, time_ms
+
+
+class NodeHeartbeatConsumer:
+    """A node's heartbeat consumer (CiA 301, object 0x1016), pure (time is passed in).
+
+    Monitoring of a producer starts with the first heartbeat (or boot-up) received from it after
+    it was configured; when nothing more arrives for its consumer time the producer is reported
+    lost once by :meth:`expired`; the next heartbeat from it arms the monitoring again.
+    """
+
+    def __init__(self) -> None:
+        self._time_s: dict[int, float] = {}
+        self._last_s: dict[int, float] = {}
+
+    @property
+    def producers(self) -> dict[int, float]:
+        """Monitored node id → consumer time, s."""
+        return dict(self._time_s)
+
+    def configure(self, entries: dict[int, float]) -> None:
+        """Monitor exactly ``entries`` (node id → consumer time, s); a producer whose entry is
+        unchanged keeps its state, a new or changed one waits for its first heartbeat."""
+        for node_id in list(self._time_s):
+            if entries.get(node_id) != self._time_s[node_id]:
+                del self._time_s[node_id]
+                self._last_s.pop(node_id, None)
+        for node_id, time_s in entries.items():
+            if time_s > 0:
+                self._time_s[node_id] = float(time_s)
+
+    def on_heartbeat(self, node_id: int, now_s: float) -> None:
+        """A heartbeat (or boot-up) frame of ``node_id`` arrived at ``now_s``."""
+        if node_id in self._time_s:
+            self._last_s[node_id] = now_s
+
+    def next_deadline(self) -> float | None:
+        """Earliest time [s] at which a monitored producer becomes lost (None: none armed)."""
+        due = [last + self._time_s[n] for n, last in self._last_s.items()]
+        return min(due) if due else None
+
+    def expired(self, now_s: float) -> list[int]:
+        """Producers lost at ``now_s`` (each reported once per loss, sorted)."""
+        lost = sorted(n for n, last in self._last_s.items() if now_s - last >= self._time_s[n])
+        for n in lost:
+            del self._last_s[n]  # disarmed until its next heartbeat
+        return lost

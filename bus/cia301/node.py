@@ -8,7 +8,11 @@ This module owns what every node of the rig does on the wire, independent of its
   object access, responses on 0x580 + id; boot-up on start and after an NMT reset; producer
   heartbeat (0x700 + id) every 0x1017 ms (re-read after every completed SDO transfer); EMCY
   frames (0x080 + id) for every entry of ``app.pop_emcy()``.  SDO and EMCY are silent in the
-  NMT state STOPPED (CiA 301); NMT and heartbeat always work.  Frames carrying this node's own
+  NMT state STOPPED (CiA 301); NMT and heartbeat always work.  Heartbeat consumer (object 0x1016,
+  re-read like 0x1017): a configured producer (the host) silent for its consumer time calls the
+  app's optional ``heartbeat_lost(node_id)`` once.  A bus that fails (the hub gone) ends
+  :meth:`SlaveNode.run` after calling the app's optional ``bus_lost(reason)``; :attr:`SlaveNode.bus_error`
+  then says why.  Frames carrying this node's own
   COB-IDs are ignored (udp_multicast echoes a sender's frames back to it).  io frames are
   handed to the subclass hook :meth:`SlaveNode.on_io`; :meth:`SlaveNode.on_service` and
   :meth:`SlaveNode.next_deadline` let a subclass run its own timers in the same loop.
@@ -43,12 +47,16 @@ from canopen.objectdictionary import datatypes as dt
 
 from bus.cia301.emcy import emcy_cob_id, encode_emcy
 from bus.cia301.nmt import (
+    CONSUMER_HEARTBEAT_INDEX,
     NMT_COB_ID,
     NmtCommand,
     NmtFrameError,
     NmtState,
+    NodeHeartbeatConsumer,
+    decode_consumer_entry,
     encode_heartbeat,
     heartbeat_cob_id,
+    heartbeat_node_id,
     nmt_addresses,
 )
 from bus.cia301.sdo import SdoServer, sdo_request_cob_id, sdo_response_cob_id
@@ -105,9 +113,12 @@ class SlaveNode:
         self._own_fieldbus_ids = {self._sdo_tx, self._hb_id, self._emcy_id}
         self._heartbeat_ms = 0
         self._next_heartbeat_s: float | None = None
+        self.consumer = NodeHeartbeatConsumer()
         self._fds = self._filenos()
         self.frames_in = 0
         self.frames_out = 0
+        #: why :meth:`run` ended early: the bus failed (None while it works)
+        self.bus_error: str | None = None
 
     def _filenos(self) -> list[int] | None:
         fds = []
@@ -136,20 +147,37 @@ class SlaveNode:
     def on_nmt_reset(self, command: NmtCommand) -> None:
         """Called after the app handled an NMT reset, before the boot-up frame is sent."""
 
+    def on_heartbeat_lost(self, node_id: int) -> None:
+        """The heartbeat consumer lost producer ``node_id`` (default: the app's optional
+        ``heartbeat_lost(node_id)``)."""
+        hook = getattr(self.app, "heartbeat_lost", None)
+        if hook is not None:
+            hook(node_id)
+
     # ------------------------------------------------------------------ lifecycle
 
     def start(self) -> None:
         """Send the boot-up frame and start the heartbeat."""
         self._send(self.fieldbus, self._hb_id, encode_heartbeat(NmtState.BOOT_UP))
         self._reload_heartbeat(force=True)
+        self._reload_consumers()
         logger.info("node %d: booted, heartbeat %d ms, %s", self.node_id, self._heartbeat_ms,
                     "select()" if self._fds else "polling")
 
     def run(self, stop: threading.Event) -> None:
-        """:meth:`start`, then serve until ``stop`` is set."""
-        self.start()
-        while not stop.is_set():
-            self.step(self.MAX_WAIT_S)
+        """:meth:`start`, then serve until ``stop`` is set or a bus fails (then the app's optional
+        ``bus_lost(reason)`` is called and :attr:`bus_error` is set; no exception escapes)."""
+        try:
+            self.start()
+            while not stop.is_set():
+                self.step(self.MAX_WAIT_S)
+        except (can.CanError, OSError) as exc:
+            self.bus_error = f"{type(exc).__name__}: {exc}"
+            logger.error("node %d: bus lost (%s): stopping", self.node_id, self.bus_error)
+            hook = getattr(self.app, "bus_lost", None)
+            if hook is not None:
+                hook(self.bus_error)
+            return
         logger.info("node %d: stopped (%d frames in, %d out)", self.node_id,
                     self.frames_in, self.frames_out)
 
@@ -164,13 +192,16 @@ class SlaveNode:
         wait = max_wait_s
         if self._next_heartbeat_s is not None:
             wait = min(wait, self._next_heartbeat_s - now)
-        deadline = self.next_deadline()
-        if deadline is not None:
-            wait = min(wait, deadline - now)
+        for deadline in (self.next_deadline(), self.consumer.next_deadline()):
+            if deadline is not None:
+                wait = min(wait, deadline - now)
         wait = max(0.0, wait)
         handled = 0
         if self._fds is not None:
-            ready, _, _ = select.select(self._fds, [], [], wait)
+            try:
+                ready, _, _ = select.select(self._fds, [], [], wait)
+            except ValueError as err:  # a bus closed its descriptor under us
+                raise can.CanOperationError(f"bus closed: {err}") from err
             if ready:
                 handled += self._drain(self.io)
                 handled += self._drain(self.fieldbus)
@@ -211,6 +242,10 @@ class SlaveNode:
     # ------------------------------------------------------------------ periodic
 
     def _service(self, now: float) -> None:
+        for producer in self.consumer.expired(now):
+            logger.warning("node %d: heartbeat of node %d lost (consumer time %.0f ms)", self.node_id, producer,
+                           1000 * self.consumer.producers.get(producer, 0.0))
+            self.on_heartbeat_lost(producer)
         state = int(self.app.nmt_state)
         if state != NmtState.STOPPED:
             for code, register, data in self.app.pop_emcy():
@@ -239,6 +274,24 @@ class SlaveNode:
         self._heartbeat_ms = period_ms
         self._next_heartbeat_s = self._clock() + period_ms / 1000.0 if period_ms else None
 
+    def _reload_consumers(self) -> None:
+        """Re-read the consumer heartbeat entries 0x1016:1..n (an app without 0x1016 consumes
+        nothing)."""
+        entries: dict[int, float] = {}
+        try:
+            count = self.app.read_object(CONSUMER_HEARTBEAT_INDEX, 0)[0]
+            for sub in range(1, count + 1):
+                entry = decode_consumer_entry(
+                    int.from_bytes(self.app.read_object(CONSUMER_HEARTBEAT_INDEX, sub)[:4], "little"))
+                if entry is not None:
+                    entries[entry[0]] = entry[1] / 1000.0
+        except (SdoAbort, IndexError):
+            entries = {}
+        if entries != self.consumer.producers:
+            logger.info("node %d: heartbeat consumer %s", self.node_id,
+                        {n: f"{1000 * t:.0f} ms" for n, t in entries.items()} or "off")
+        self.consumer.configure(entries)
+
     # ------------------------------------------------------------------ fieldbus
 
     def _on_fieldbus(self, msg: can.Message) -> None:
@@ -247,7 +300,10 @@ class SlaveNode:
         cob = msg.arbitration_id
         if cob in self._own_fieldbus_ids:
             return  # our own frame, echoed
-        if cob == NMT_COB_ID:
+        producer = heartbeat_node_id(cob)
+        if producer is not None:
+            self.consumer.on_heartbeat(producer, self._clock())
+        elif cob == NMT_COB_ID:
             self._on_nmt(bytes(msg.data))
         elif cob == self._sdo_rx:
             if int(self.app.nmt_state) == NmtState.STOPPED:
@@ -258,6 +314,7 @@ class SlaveNode:
                     self._send(self.fieldbus, self._sdo_tx, data)
             if not self.sdo.busy:
                 self._reload_heartbeat()
+                self._reload_consumers()
 
     def _on_nmt(self, data: bytes) -> None:
         try:
@@ -274,6 +331,7 @@ class SlaveNode:
             self.on_nmt_reset(command)
             self._send(self.fieldbus, self._hb_id, encode_heartbeat(NmtState.BOOT_UP))
             self._reload_heartbeat(force=True)
+            self._reload_consumers()
 
     # ------------------------------------------------------------------ send
 

@@ -83,7 +83,10 @@ class BenchState:
         elif self.fault == BenchFault.TICK_SEQUENCE:
             what = f"torque frame of drive {self.fault_node} out of sequence at tick {self.fault_tick}"
         elif self.fault == BenchFault.BAD_FRAME:
-            what = f"malformed torque frame of drive {self.fault_node} at tick {self.fault_tick}"
+            what = (f"malformed torque frame of drive {self.fault_node} at tick {self.fault_tick}" if self.fault_node
+                    else f"bus error frame (a damaged frame) on io at tick {self.fault_tick}")
+        elif self.fault == BenchFault.HOST_LOST:
+            what = f"the host's heartbeat was lost at tick {self.fault_tick}"
         elif self.fault == BenchFault.PLANT:
             what = f"plant error at tick {self.fault_tick}"
         elif self.fault == BenchFault.ABORTED:

@@ -1,0 +1,300 @@
+"""Host loss is a fault on the bus (issue 9): the nodes consume the host's heartbeat (0x1016,
+CiA 301) and react — the drive with torque off, CiA 402 Fault and EMCY 0x8130, the test bench by
+ending a running trial (HOST_LOST, EMCY 0x8130).  Settings that shape the motion (gains, the
+following-error window, the max torque) are refused while a trial is armed or running, and the max
+torque is bounded by the motor's rating in the EDS.
+
+Timing is checked on a manual node clock (the node is stepped by the test, a virtual bus delivers
+on send), never against the wall clock."""
+
+from __future__ import annotations
+
+import itertools
+import struct
+
+import can
+import pytest
+
+from bus.bench_objects import BenchFault, BenchStatus
+from bus.cia301.nmt import (
+    CONSUMER_TIME_MS,
+    HOST_NODE_ID,
+    NmtCommand,
+    NmtState,
+    NodeHeartbeatConsumer,
+    consumer_entry,
+    decode_consumer_entry,
+)
+from bus.errors import AbortCode, SdoAbort
+from bus.objects import Cia402State, FaultCause, GainsSub, Obj, TableSub, TrialState, TrialSub
+from bus.safe_state import parse_safe_state
+from firmware_model.drive import Drive
+from firmware_model.node import DriveNode
+from plant.node import BenchNode
+
+_counter = itertools.count()
+
+
+class ManualClock:
+    def __init__(self, now: float) -> None:
+        self.now = now
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def u16(v: int) -> bytes:
+    return struct.pack("<H", v)
+
+
+def u32(v: int) -> bytes:
+    return struct.pack("<I", v)
+
+
+def enabled_drive(node_id: int = 2) -> Drive:
+    d = Drive(node_id)
+    d.nmt_command(NmtCommand.START)
+    for cw in (0x06, 0x07, 0x0F):
+        d.write_object(Obj.CONTROLWORD, 0, u16(cw))
+    assert d.torque_enabled
+    return d
+
+
+def armed_drive(n: int = 5) -> Drive:
+    d = enabled_drive()
+    d.write_object(Obj.TABLE, TableSub.LENGTH, u32(n))
+    for index in (Obj.REF_POSITION_TABLE, Obj.REF_VELOCITY_TABLE, Obj.FEEDFORWARD_TABLE):
+        d.write_object(index, 0, bytes(4 * n))
+    d.write_object(Obj.TRIAL, TrialSub.COMMAND, bytes([1]))
+    return d
+
+
+# --------------------------------------------------------------------------- consumer, pure
+
+
+def test_consumer_entry_codec() -> None:
+    assert consumer_entry(HOST_NODE_ID, 250) == 0x007F00FA
+    assert decode_consumer_entry(0x007F00FA) == (127, 250)
+    assert decode_consumer_entry(0) is None and decode_consumer_entry(0x007F0000) is None
+
+
+def test_node_consumer_starts_at_the_first_heartbeat_and_fires_once_per_loss() -> None:
+    c = NodeHeartbeatConsumer()
+    c.configure({127: 0.25})
+    assert c.next_deadline() is None and c.expired(100.0) == []  # never heard: not monitored yet
+    c.on_heartbeat(127, 10.0)
+    assert c.next_deadline() == pytest.approx(10.25)
+    assert c.expired(10.2499) == []
+    assert c.expired(10.25) == [127]
+    assert c.expired(11.0) == []  # once
+    c.on_heartbeat(127, 12.0)  # re-armed by the next heartbeat
+    assert c.expired(12.3) == [127]
+    c.configure({})
+    c.on_heartbeat(127, 13.0)
+    assert c.next_deadline() is None
+
+
+# --------------------------------------------------------------------------- drive firmware
+
+
+def test_drive_heartbeat_loss_is_a_fault_with_emcy_0x8130(caplog: pytest.LogCaptureFixture) -> None:
+    d = armed_drive()
+    d.io_tick(0, 0)
+    d.io_tick(1, 0)
+    caplog.set_level("INFO", logger="firmware_model.drive")
+    d.heartbeat_lost(HOST_NODE_ID)
+    assert not d.torque_enabled
+    assert d.cia402_state == Cia402State.FAULT
+    assert d.trial_state == TrialState.FAULT
+    assert d.read_object(Obj.TRIAL, TrialSub.FAULT_CAUSE) == bytes([FaultCause.HEARTBEAT])
+    assert d.pop_emcy() == [(0x8130, 0x11, bytes([FaultCause.HEARTBEAT, HOST_NODE_ID, 0, 0, 0]))]
+    assert d.io_tick(2, 0) == 0  # no torque any more
+    records = [r for r in map(parse_safe_state, caplog.messages) if r]
+    assert records[-1]["node"] == "drive2" and records[-1]["reason"] == "heartbeat-of-node-127-lost"
+    assert records[-1]["cia402"] == "FAULT" and records[-1]["tick"] == "2"
+
+
+def test_drive_heartbeat_loss_in_nmt_stopped_is_only_logged() -> None:
+    d = enabled_drive()
+    d.nmt_command(NmtCommand.STOP)
+    d.heartbeat_lost(HOST_NODE_ID)
+    assert d.cia402_state == Cia402State.OPERATION_ENABLED  # the master stopped it on purpose
+    assert d.pop_emcy() == []
+
+
+def test_drive_bus_loss_removes_torque() -> None:
+    d = enabled_drive()
+    d.bus_lost("hub closed the connection")
+    assert not d.torque_enabled and d.cia402_state == Cia402State.FAULT
+    assert d.read_object(Obj.TRIAL, TrialSub.FAULT_CAUSE) == bytes([FaultCause.BUS_LOST])
+
+
+@pytest.mark.parametrize(("index", "sub", "data"), [
+    (Obj.GAINS, GainsSub.KP, struct.pack("<i", 1000)),
+    (Obj.GAINS, GainsSub.KD, struct.pack("<i", 1000)),
+    (Obj.GAINS, GainsSub.VEL_FILTER, u16(1000)),
+    (Obj.FOLLOWING_ERROR_WINDOW, 0, u32(0xFFFFFFFF)),
+    (Obj.MAX_TORQUE, 0, u16(100)),
+])
+def test_motion_settings_are_refused_while_a_trial_is_armed_or_running(index: int, sub: int, data: bytes) -> None:
+    d = armed_drive()
+    with pytest.raises(SdoAbort) as exc:
+        d.write_object(index, sub, data)
+    assert exc.value.code == AbortCode.DEVICE_STATE
+    d.io_tick(0, 0)  # running
+    with pytest.raises(SdoAbort) as exc:
+        d.write_object(index, sub, data)
+    assert exc.value.code == AbortCode.DEVICE_STATE
+    for n in range(1, 5):
+        d.io_tick(n, 0)
+    assert d.trial_state == TrialState.DONE
+    d.write_object(index, sub, data)  # between trials: accepted
+
+
+def test_max_torque_is_bounded_by_the_motor_rating() -> None:
+    d = Drive(1)
+    assert d.store.lookup(Obj.MAX_TORQUE, 0).max == 3000
+    d.write_object(Obj.MAX_TORQUE, 0, u16(3000))
+    with pytest.raises(SdoAbort) as exc:
+        d.write_object(Obj.MAX_TORQUE, 0, u16(3001))
+    assert exc.value.code == AbortCode.VALUE_TOO_HIGH
+    with pytest.raises(SdoAbort) as exc:
+        d.write_object(Obj.MAX_TORQUE, 0, u16(65535))
+    assert exc.value.code == AbortCode.VALUE_TOO_HIGH
+
+
+# --------------------------------------------------------------------------- slave runtime
+
+
+class Stepped:
+    """A node stepped by the test on a manual clock, with a host bus on its fieldbus."""
+
+    def __init__(self, make) -> None:  # type: ignore[no-untyped-def]
+        k = next(_counter)
+        self.fb = can.Bus(interface="virtual", channel=f"hl-fb-{k}")
+        self.io = can.Bus(interface="virtual", channel=f"hl-io-{k}")
+        self.host = can.Bus(interface="virtual", channel=f"hl-fb-{k}")
+        self.plant = can.Bus(interface="virtual", channel=f"hl-io-{k}")
+        self.clock = ManualClock(1000.0)
+        self.node = make(self.fb, self.io, self.clock)
+        self.node.start()
+        self.sent()
+
+    def sent(self) -> list[tuple[int, bytes]]:
+        out = []
+        while (msg := self.host.recv(timeout=0)) is not None:
+            out.append((msg.arbitration_id, bytes(msg.data)))
+        return out
+
+    def step_at(self, t: float) -> list[tuple[int, bytes]]:
+        self.clock.now = t
+        self.node.step(0.0)
+        return self.sent()
+
+    def sdo_write(self, node_id: int, index: int, sub: int, value: int, t: float) -> None:
+        data = bytes([0x23, index & 0xFF, index >> 8, sub]) + u32(value)
+        self.host.send(can.Message(arbitration_id=0x600 + node_id, data=data, is_extended_id=False))
+        assert self.step_at(t) == [(0x580 + node_id, bytes([0x60, index & 0xFF, index >> 8, sub, 0, 0, 0, 0]))]
+
+    def host_beat(self) -> None:
+        self.host.send(can.Message(arbitration_id=0x700 + HOST_NODE_ID, data=b"\x05", is_extended_id=False))
+
+    def close(self) -> None:
+        for bus in (self.fb, self.io, self.host, self.plant):
+            bus.shutdown()
+
+
+def test_drive_node_consumes_the_host_heartbeat_within_the_consumer_time() -> None:
+    drive = enabled_drive(2)
+    rig = Stepped(lambda fb, io, clock: DriveNode(drive, fb, io, clock=clock))
+    try:
+        t0 = 1001.0
+        rig.sdo_write(2, 0x1016, 1, consumer_entry(HOST_NODE_ID, CONSUMER_TIME_MS), t0)
+        assert rig.node.consumer.producers == {HOST_NODE_ID: 0.25}
+        assert rig.step_at(t0 + 5.0) == []  # no heartbeat heard yet: nothing monitored
+        rig.host_beat()
+        assert rig.step_at(t0 + 5.1) == []
+        assert rig.node.consumer.next_deadline() == pytest.approx(t0 + 5.35)
+        rig.host_beat()
+        assert rig.step_at(t0 + 5.2) == []
+        assert rig.step_at(t0 + 5.449) == []
+        assert drive.torque_enabled
+        frames = rig.step_at(t0 + 5.45)  # 250 ms after the last heartbeat
+        assert (0x082, bytes([0x30, 0x81, 0x11, FaultCause.HEARTBEAT, HOST_NODE_ID, 0, 0, 0])) in frames
+        assert not drive.torque_enabled and drive.cia402_state == Cia402State.FAULT
+        assert rig.step_at(t0 + 7.0) == []  # reported once
+    finally:
+        rig.close()
+
+
+def test_bench_ends_a_running_trial_when_the_host_is_lost() -> None:
+    import numpy as np
+
+    class Plant:
+        def reset(self, q0, qd0) -> None:  # type: ignore[no-untyped-def]
+            pass
+
+        def encoder_counts(self) -> np.ndarray:
+            return np.zeros(4, dtype=np.int64)
+
+        def step(self, tau, dist) -> None:  # type: ignore[no-untyped-def]
+            pass
+
+    rig = Stepped(lambda fb, io, clock: BenchNode(
+        fb, io, plant_factory=lambda ts, n: Plant(), disturbance_fn=lambda *a: np.zeros((a[3], 4)),
+        clock=clock, tick_timeout_s=60.0, first_tick_timeout_s=60.0))
+    bench = rig.node
+    try:
+        t0 = 1001.0
+        bench.nmt_command(NmtCommand.START)
+        rig.sdo_write(32, 0x1016, 1, consumer_entry(HOST_NODE_ID, 250), t0)
+        rig.host_beat()
+        rig.step_at(t0 + 0.01)
+        bench.store.write_object(0x2420, 0, bytes(64))
+        bench.store.write_object(0x2410, 2, u32(10))
+        bench.store.write_object(0x2410, 3, bytes([1]))  # start
+        rig.step_at(t0 + 0.02)
+        assert bench.status == BenchStatus.RUNNING
+        frames = rig.step_at(t0 + 0.27)
+        assert bench.status == BenchStatus.FAULT and bench.fault == BenchFault.HOST_LOST
+        assert any(cob == 0x0A0 and data[:2] == b"\x30\x81" for cob, data in frames)
+        msg = rig.plant.recv(timeout=0)
+        stops = []
+        while msg is not None:
+            stops.append(msg.arbitration_id == 0x010 and msg.data[0] == 2)
+            msg = rig.plant.recv(timeout=0)
+        assert stops[-1]  # TRIAL_STOP went out to the drives
+    finally:
+        rig.close()
+
+
+def test_bench_faults_on_a_bus_error_frame_during_a_trial() -> None:
+    import numpy as np
+
+    class Plant:
+        def reset(self, q0, qd0) -> None:  # type: ignore[no-untyped-def]
+            pass
+
+        def encoder_counts(self) -> np.ndarray:
+            return np.zeros(4, dtype=np.int64)
+
+        def step(self, tau, dist) -> None:  # type: ignore[no-untyped-def]
+            pass
+
+    rig = Stepped(lambda fb, io, clock: BenchNode(
+        fb, io, plant_factory=lambda ts, n: Plant(), disturbance_fn=lambda *a: np.zeros((a[3], 4)),
+        clock=clock, tick_timeout_s=60.0, first_tick_timeout_s=60.0))
+    bench = rig.node
+    try:
+        bench.nmt_command(NmtCommand.START)
+        bench.store.write_object(0x2420, 0, bytes(64))
+        bench.store.write_object(0x2410, 2, u32(10))
+        bench.store.write_object(0x2410, 3, bytes([1]))
+        rig.step_at(1000.01)
+        assert bench.status == BenchStatus.RUNNING
+        rig.plant.send(can.Message(is_error_frame=True, arbitration_id=0x008, data=bytes(8)))
+        rig.step_at(1000.02)
+        assert bench.status == BenchStatus.FAULT and bench.fault == BenchFault.BAD_FRAME
+        assert int(bench.nmt_state) == NmtState.OPERATIONAL
+    finally:
+        rig.close()
