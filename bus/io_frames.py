@@ -331,3 +331,44 @@ def decode_io(msg: can.Message) -> IoFrame:
     if cob == CONTROL_COB_ID:
         return decode_control(msg)
     raise IoFrameError(f"unknown io COB-ID 0x{cob:03X}")
+
+
+class TrialTickFollower:
+    """Follows the trials and ticks of the io channel from the plant's frames, for observers of
+    the channel (the host's monitor, the hub's fault injector, the launcher's injector).
+
+    :ivar trial: index of the current (or last) trial, counted from its TRIAL_START frames
+        (−1 before the first)
+    :ivar in_trial: between a TRIAL_START and its TRIAL_STOP
+    :ivar tick: the tick of the current trial that the last encoder frame carried (None before it)
+    """
+
+    def __init__(self) -> None:
+        self.trial = -1
+        self.in_trial = False
+        self.tick: int | None = None
+        self.origin = 0
+
+    def frame_tick(self, wire: int) -> int:
+        """The tick within the current trial of a frame carrying wire tick ``wire``."""
+        rel = (wire - self.origin) & TICK_MASK
+        if self.tick is None:
+            return rel
+        return self.tick + tick_diff(rel, self.tick & TICK_MASK)
+
+    def on_frame(self, can_id: int, data: bytes | bytearray) -> int | None:
+        """Take one io frame into account; returns the tick it carries (None for others)."""
+        if can_id == CONTROL_COB_ID and len(data) >= 3:
+            wire = data[1] | data[2] << 8
+            if data[0] == ControlCommand.TRIAL_START:
+                self.trial += 1
+                self.origin, self.in_trial, self.tick = wire, True, None
+            elif data[0] == ControlCommand.TRIAL_STOP:
+                self.in_trial = False
+            return None
+        if ENCODER_COB_BASE <= can_id < ENCODER_COB_BASE + N_JOINTS and len(data) >= 6 and self.in_trial:
+            self.tick = self.frame_tick(data[4] | data[5] << 8)
+            return self.tick
+        if TORQUE_COB_BASE <= can_id < TORQUE_COB_BASE + N_JOINTS and len(data) >= 6 and self.in_trial:
+            return self.frame_tick(data[4] | data[5] << 8)
+        return None

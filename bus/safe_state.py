@@ -22,10 +22,12 @@ from typing import Any
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["TAG", "format_safe_state", "parse_safe_state"]
+__all__ = ["TAG", "TORQUE_ON_TAG", "format_safe_state", "parse_safe_state", "last_state_in_log"]
 
 #: first word of a safe-state record
 TAG = "SAFE-STATE"
+#: first word of the line a drive logs when its torque comes on (a later SAFE-STATE supersedes it)
+TORQUE_ON_TAG = "TORQUE-ON"
 
 
 def _clean(value: Any) -> str:
@@ -54,3 +56,17 @@ def parse_safe_state(line: str) -> dict[str, str] | None:
         if sep:
             out[key] = value
     return out if "node" in out else None
+
+
+def last_state_in_log(lines: list[str], node: str) -> tuple[dict[str, str] | None, bool]:
+    """``(last SAFE-STATE record of node, torque came on again after it)`` in a role's log lines."""
+    last: dict[str, str] | None = None
+    on_after = False
+    marker = f"{TORQUE_ON_TAG} node={node}"
+    for line in lines:
+        rec = parse_safe_state(line)
+        if rec is not None and rec.get("node") == node:
+            last, on_after = rec, False
+        elif marker in line:
+            on_after = True
+    return last, on_after

@@ -65,7 +65,7 @@ from bus.objects import (
     TrialState,
     TrialSub,
 )
-from bus.safe_state import format_safe_state
+from bus.safe_state import TORQUE_ON_TAG, format_safe_state
 from firmware_model import loop
 from firmware_model.cia402 import Cia402StateMachine
 
@@ -329,6 +329,7 @@ class Drive:
             st[loop.S_VF] = 0
             st[loop.S_VEST] = 0
             self._capture_hold = self._trial_state != TrialState.DONE
+            logger.info("%s node=drive%d", TORQUE_ON_TAG, self.node_id)
         elif was and not power:
             tick = self._next_tick if self._trial_state == TrialState.RUNNING else self._fault_tick
             if self._trial_state == TrialState.RUNNING:

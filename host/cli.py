@@ -25,6 +25,8 @@ from typing import TYPE_CHECKING, NoReturn
 
 from bus.bench_objects import DEFAULT_BENCH_NODE_ID
 from host.experiment.console import (
+    EXIT_FAULT,
+    EXIT_INTERRUPTED,
     EXIT_USAGE,
     add_experiment_args,
     experiment_config,
@@ -50,17 +52,22 @@ class _Parser(argparse.ArgumentParser):
 def cmd_sim(args: argparse.Namespace) -> int:
     from host.analysis.session import report_fault, run_session
     from host.experiment.inprocess import InProcessBench
+    from host.experiment.loop import interrupt_on_signals
+    from host.experiment.outputs import check_out_dir
     from host.experiment.plan import prepare
 
     cfg = experiment_config(args)
     out = Path(args.out) if args.out else Path("runs") / time.strftime("sim-%Y%m%d-%H%M%S")
+    check_out_dir(out, iterations=cfg.iterations, create=False)  # fast: before the preparation
     plan = prepare(cfg)
+    check_out_dir(out, iterations=cfg.iterations)
     print_plan(sys.stdout, "sim", plan)
-    res = run_session(plan, InProcessBench(cfg), out, mode="sim", stream=sys.stdout)
+    with interrupt_on_signals():
+        res = run_session(plan, InProcessBench(cfg), out, mode="sim", stream=sys.stdout)
     s = res.summary
     sys.stdout.write(f"{s['ticks']} ticks in {s['wall_s']:.2f} s ({s['ticks_per_s']:.0f} ticks/s); "
                      f"trace_sha256 {s['trace_sha256'][:16]}…; summary: {out / 'summary.json'}\n")
-    return report_fault(res)
+    return report_fault(res, out / "summary.json")
 
 
 def _add_bus_args(p: argparse.ArgumentParser, default: str = "auto") -> None:
@@ -84,15 +91,27 @@ def cmd_drive(args: argparse.Namespace) -> int:
     tc = transport_of(args)
     if not 1 <= args.node <= 127:
         raise ValueError(f"node id must be 1..127, got {args.node}")
-    run_node(args.node, resolve_bus_config(tc.fieldbus), resolve_bus_config(tc.io))
-    return 0
+    _role_logging()
+    lost = run_node(args.node, resolve_bus_config(tc.fieldbus), resolve_bus_config(tc.io))
+    return EXIT_FAULT if lost else 0
 
 
 def cmd_plant(args: argparse.Namespace) -> int:
     from plant.node import run_plant_role
 
-    run_plant_role(transport_of(args), node_id=args.node_id)
-    return 0
+    _role_logging()
+    lost = run_plant_role(transport_of(args), node_id=args.node_id)
+    return EXIT_FAULT if lost else 0
+
+
+def _role_logging() -> None:
+    """Node roles log the project's INFO records too (their SAFE-STATE records, NMT, trials) with
+    a time stamp: their output is a log file of ``ilcrig run``."""
+    root = logging.getLogger()
+    for handler in root.handlers:
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    for name in ("bus", "firmware_model", "plant"):
+        logging.getLogger(name).setLevel(min(logging.INFO, root.level))
 
 
 def cmd_hub(args: argparse.Namespace) -> int:
@@ -110,9 +129,7 @@ def cmd_host(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     from host.rig.launcher import launch_rig
 
-    cfg = experiment_config(args)  # validate before anything starts
-    del cfg
-    return launch_rig(args)
+    return launch_rig(args)  # validates everything (preflight) before anything starts
 
 
 def cmd_view(args: argparse.Namespace) -> int:
@@ -138,6 +155,10 @@ def build_parser() -> argparse.ArgumentParser:
     rp = sub.add_parser("run", help="run an experiment on the distributed rig (6 processes over CAN)")
     add_experiment_args(rp)
     _add_bus_args(rp)
+    rp.add_argument("--inject", action="append", metavar="SPEC",
+                    help="inject a fault (repeatable): kill|stall:ROLE@TRIAL:TICK[,for=S], "
+                         "drop|corrupt|duplicate|delay:io|fieldbus@TRIAL:TICK[,rate=P,seed=K,count=C,id=COBID,ms=D], "
+                         "emcy:NODE@TRIAL:TICK[,code=C], diskfull@TRIAL (README: Fault injection)")
     rp.set_defaults(func=cmd_run)
 
     hp = sub.add_parser("host", help="the host role alone (expects 4 drives and the plant on the bus)")
@@ -146,7 +167,11 @@ def build_parser() -> argparse.ArgumentParser:
     hp.add_argument("--wait", type=float, default=120.0,
                     help="seconds to wait for the nodes to answer (default 120: a first run compiles the numba kernels)")
     hp.add_argument("--pause", type=float, default=0.0,
-                    help="seconds to pause between trials (e.g. to restart a drive; a rebooted drive is set up again)")
+                    help="seconds to pause between trials (e.g. to restart a drive, with --recover)")
+    hp.add_argument("--recover", type=float, default=0.0,
+                    help="> 0: a node lost or rebooted between trials is waited for (up to --wait) and set up again "
+                         "instead of ending the run (default 0: every lost node is a fault)")
+    hp.add_argument("--inject-disk-full", type=int, default=None, metavar="TRIAL", help=argparse.SUPPRESS)
     hp.set_defaults(func=cmd_host)
 
     dp = sub.add_parser("drive", help="one servo-drive node (firmware) on the bus")
@@ -190,13 +215,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.func(args))
     except KeyboardInterrupt:
         sys.stderr.write("ilcrig: interrupted\n")
-        return 130
+        return EXIT_INTERRUPTED
     except (ValueError, FileNotFoundError) as exc:
         if args.debug:
             raise
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         sys.stderr.write(f"ilcrig: error: {msg}\n")
         return EXIT_USAGE
+    except Exception as exc:  # noqa: BLE001 - one line, never a traceback on the terminal
+        if args.debug:
+            raise
+        logger.debug("unexpected error", exc_info=True)
+        msg = str(exc).splitlines()[0] if str(exc) else ""
+        sys.stderr.write(f"ilcrig: internal error: {type(exc).__name__}: {msg} (run with --debug for details)\n")
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

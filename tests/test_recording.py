@@ -42,6 +42,13 @@ def series(chunks: dict, entity: str, index: str = "trial_time") -> tuple[np.nda
     return tt[o], vv[o]
 
 
+def iterations(chunks: dict, entity: str) -> tuple[np.ndarray, np.ndarray]:
+    """(times, values (rows, K)) of the per-iteration entities ``entity/iter{k}``, k = 0..K−1."""
+    k_max = max(int(e.rsplit("/iter", 1)[1]) for e, _ in chunks if e.startswith(entity + "/iter"))
+    cols = [series(chunks, f"{entity}/iter{k}") for k in range(k_max + 1)]
+    return cols[0][0], np.concatenate([v for _, v in cols], axis=1)
+
+
 def static_value(chunks: dict, entity: str, column: str) -> Any:
     return chunks[(entity, True)][-1].column(column).to_pylist()[-1]
 
@@ -70,10 +77,11 @@ def test_recording_layout_and_ids(sim_run) -> None:
         assert v.shape == (n, 1)
         np.testing.assert_allclose(t, np.arange(n) * 1e-3, atol=1e-12)
         for q in ("actual", "error", "torque_ff", "torque_fb"):
-            t, v = series(chunks, f"/joint{j}/{q}")
-            assert v.shape == (n, N_ITER), q  # N ticks, one value per iteration
-            names = static_value(chunks, f"/joint{j}/{q}", "SeriesLines:names")
-            assert names[0].startswith(f"{q} iter 0") and len(names) == N_ITER
+            t, v = iterations(chunks, f"/joint{j}/{q}")
+            assert v.shape == (n, N_ITER), q  # N ticks, one entity per iteration
+            for k in range(N_ITER):
+                names = static_value(chunks, f"/joint{j}/{q}/iter{k}", "SeriesLines:names")
+                assert names == [f"{q} iter {k} [{'deg' if q in ('actual', 'error') else 'N·m'}]"]
         for key in ("rmse_deg", "maxe_deg"):
             assert f"/metrics/{key}/joint{j}" in entities
     assert ("/robot", True) in chunks  # ViewCoordinates
@@ -84,9 +92,9 @@ def test_recording_layout_and_ids(sim_run) -> None:
 def test_logged_errors_reproduce_summary_metrics(sim_run) -> None:
     _, summary, chunks = sim_run
     for j in range(1, 5):
-        _, e = series(chunks, f"/joint{j}/error")
+        _, e = iterations(chunks, f"/joint{j}/error")
         _, ref = series(chunks, f"/joint{j}/reference")
-        _, act = series(chunks, f"/joint{j}/actual")
+        _, act = iterations(chunks, f"/joint{j}/actual")
         np.testing.assert_allclose(ref - act, e, atol=1e-9)  # e = q_d − q (deg)
         for k, it in enumerate(summary["iterations"]):
             rmse = float(np.sqrt(np.mean(e[:, k] ** 2)))
@@ -109,7 +117,8 @@ def test_3d_first_and_last_trial(sim_run) -> None:
                                  ("tool", "Points3D:positions", 1)):
             rbs = chunks[(f"/robot/{which}/{name}", False)]
             rows = [r for rb in rbs for r in rb.column(col).to_pylist()]
-            assert len(rows) == m and all(len(r) == width for r in rows)
+            # "first" once; "last" after every trial (the newest rows win in the viewer)
+            assert len(rows) == m * (1 if which == "first" else N_ITER) and all(len(r) == width for r in rows)
         assert (f"/robot/{which}/tcp_path", True) in chunks
     # the arms start at the motor axes (R = 0.2 m) and the tool follows the reference path
     arms = chunks[("/robot/first/arms", False)][0].column("LineStrips3D:strips").to_pylist()[0]
@@ -118,7 +127,7 @@ def test_3d_first_and_last_trial(sim_run) -> None:
         assert np.linalg.norm(np.subtract(strip[2], strip[1])) == pytest.approx(0.6, abs=1e-5)  # outer arm l_b
     ref_path = np.array(static_value(chunks, "/robot/reference_path", "LineStrips3D:strips")[0])  # (N, 3)
     tool = np.array([r[0] for rb in chunks[("/robot/last/tool", False)]
-                     for r in rb.column("Points3D:positions").to_pylist()])
+                     for r in rb.column("Points3D:positions").to_pylist()][-m:])
     dist = np.min(np.linalg.norm(tool[:, None, :] - ref_path[None, :, :], axis=2), axis=1)
     assert dist.max() < 0.01  # within 1 cm of the path (errors are a fraction of a degree)
 
@@ -141,7 +150,8 @@ def _timed_experiment(cfg: Any, plan: Any, tmp: Path | None) -> tuple[float, flo
 def test_recording_costs_less_than_10_percent(tmp_path: Path) -> None:
     """The recorder's cost (creation + log_trial + close, best of 3) against the experiment as
     ``ilcrig sim`` runs it (prepare + run_experiment).  Against run_experiment alone (about
-    0.15 s of in-process trials) the fixed ~20 ms of the file + blueprint is more: printed."""
+    0.15 s of in-process trials) the file, the blueprint and a write + flush per trial are more:
+    printed."""
     import rerun  # noqa: F401  (import cost is per process, not per experiment)
 
     from host.experiment.config import build_config
@@ -162,7 +172,9 @@ def test_recording_costs_less_than_10_percent(tmp_path: Path) -> None:
     print(f"recording: +{cost * 1e3:.1f} ms wall (run_experiment {wall0:.3f} s: {cost / wall0:.1%}; "
           f"with prepare {prepare_s:.2f} s: {cost / (prepare_s + wall0):.1%}), cpu {cpu0:.3f} -> {cpu1:.3f} s")
     assert cost / (prepare_s + wall0) < 0.10
-    assert cost < 0.5 * wall0  # and no per-sample logging hiding in there
+    # the recording grows trial by trial (a few record batches and a flush per trial, ~20 ms);
+    # per-sample logging would cost about N = 501 calls per trial
+    assert cost < 0.05 * cfg.iterations
 
 
 def test_log_trial_rejects_bad_shapes(tmp_path: Path) -> None:

@@ -169,7 +169,7 @@ def test_drive_killed_and_restarted_between_trials_is_set_up_again(tmp_path: Pat
             procs += [*drives.values(), role("plant")]
             out = tmp_path / "rig"
             host = subprocess.Popen([sys.executable, "-u", "-m", "host.cli", "host", "--iterations", "3", "--cycle", "0.15",
-                                     "--pause", "4", "--bus", "hub", "--hub", hub.address, "--out", str(out)],
+                                     "--pause", "4", "--recover", "60", "--bus", "hub", "--hub", hub.address, "--out", str(out)],
                                     start_new_session=True, cwd=REPO, stdout=subprocess.PIPE, text=True)
             procs.append(host)
             lines = []

@@ -324,7 +324,7 @@ def test_drive_killed_and_restarted_between_trials_is_recovered(tmp_path: Path) 
             roles[f"drive{node}"] = popen([sys.executable, "-m", "host.cli", "drive", "--node", str(node), *bus],
                                           tmp_path / f"drive{node}.log")
         host_argv = [sys.executable, "-u", "-m", "host.cli", "host", *EXP, "--iterations", "3", *bus,
-                     "--out", str(out), "--wait", str(BOOT_WAIT_S), "--pause", "10"]
+                     "--out", str(out), "--wait", str(BOOT_WAIT_S), "--pause", "10", "--recover", "60"]
         host = popen(host_argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         reader = LineReader(host)
         row0 = reader.wait_for(r"^\s*0\s+-?\d+\.\d+", RIG_TIMEOUT_S)  # the metrics row of trial 0

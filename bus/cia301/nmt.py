@@ -231,6 +231,20 @@ class HeartbeatConsumer:
         """Last state heard from ``node_id`` (None if never heard)."""
         return self._states.get(node_id)
 
+    def last_heard(self, node_id: int) -> float | None:
+        """When ``node_id`` was last heard [s] (None if never)."""
+        return self._last_s.get(node_id)
+
+    def grace(self, now_s: float) -> None:
+        """Count every monitored node as heard at ``now_s``: after the consumer itself could not
+        run (its process was stopped), the frames queued meanwhile are still to be read."""
+        for node_id in self._timeouts_s:
+            self._last_s[node_id] = now_s
+
+    def timeout(self, node_id: int) -> float | None:
+        """The consumer timeout of ``node_id`` [s] (None if not monitored)."""
+        return self._timeouts_s.get(node_id)
+
     def check(self, now_s: float) -> HeartbeatReport:
         """Overdue monitored nodes at ``now_s`` [s], and the boot-ups since the last check."""
         overdue = []

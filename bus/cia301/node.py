@@ -243,8 +243,9 @@ class SlaveNode:
 
     def _service(self, now: float) -> None:
         for producer in self.consumer.expired(now):
-            logger.warning("node %d: heartbeat of node %d lost (consumer time %.0f ms)", self.node_id, producer,
-                           1000 * self.consumer.producers.get(producer, 0.0))
+            level = logging.INFO if int(self.app.nmt_state) == NmtState.STOPPED else logging.WARNING
+            logger.log(level, "node %d: heartbeat of node %d lost (consumer time %.0f ms)", self.node_id, producer,
+                       1000 * self.consumer.producers.get(producer, 0.0))
             self.on_heartbeat_lost(producer)
         state = int(self.app.nmt_state)
         if state != NmtState.STOPPED:

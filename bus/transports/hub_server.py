@@ -28,12 +28,19 @@ Latency
     Non-blocking hub sockets in one ``epoll`` loop, no sleeps, ``TCP_NODELAY`` for TCP. A
     client that stops reading is dropped once more than :attr:`HubServer.MAX_OUTBUF_BYTES`
     are queued for it.
+
+Fault injection
+    An optional ``frame_hook`` (:class:`bus.transports.fault_inject.FrameFaultInjector`, from
+    ``--inject JSON``) decides for every frame what is delivered and when: nothing (lost), twice,
+    a bus error frame instead (damaged), or later (the loop wakes for held frames). Counting is
+    unchanged (the frames as sent).
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import heapq
 import json
 import logging
 import os
@@ -48,7 +55,7 @@ import time
 import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Self
+from typing import Any, Self
 
 from bus.busload import BusLoadCounter, bits_lookup
 from bus.transports.hub_wire import (
@@ -151,9 +158,12 @@ class HubServer:
     MAX_OUTBUF_BYTES: int = 8 << 20
     RECV_CHUNK: int = 1 << 16
 
-    def __init__(self, listen: Sequence[str | HubAddress]) -> None:
+    def __init__(self, listen: Sequence[str | HubAddress], frame_hook: Any = None) -> None:
         if not listen:
             raise HubAddressError("the hub needs at least one listen address")
+        self._hook = frame_hook
+        self._held: list[tuple[float, int, str, _Client, bytes]] = []  # (due, seq, bus, sender, record)
+        self._held_seq = 0
         self._sel = selectors.DefaultSelector()
         self._listeners: dict[socket.socket, HubAddress] = {}
         self._unix_paths: list[str] = []
@@ -237,7 +247,8 @@ class HubServer:
             self._sel.register(watch_fd, selectors.EVENT_READ, "watch")
         try:
             while True:
-                for key, events in self._sel.select():
+                timeout = max(0.0, self._held[0][0] - time.monotonic()) if self._held else None
+                for key, events in self._sel.select(timeout):
                     tag = key.data
                     if isinstance(tag, _Client):
                         if events & selectors.EVENT_READ:
@@ -251,6 +262,8 @@ class HubServer:
                     elif tag == "watch" and not os.read(watch_fd, 4096):  # type: ignore[arg-type]
                         logger.info("hub: watched descriptor closed, exiting")
                         return
+                if self._held:
+                    self._release_held()
         finally:
             if watch_fd is not None:
                 with contextlib.suppress(KeyError, ValueError):
@@ -407,15 +420,16 @@ class HubServer:
                     st.frames += 1
                     st.bits += nominal
                     st.bits_worst_case += worst
-                ext = 1 if ext else 0
-                for peer in members:
-                    if fd and peer.classic:
-                        continue  # a classic CAN member never sees FD frames (like a non-FD raw socket)
-                    if peer is sender:
-                        if peer.echo and peer.accepts(can_id, ext):
-                            out.setdefault(peer, []).append(rec[:1] + bytes([flags | FLAG_ECHO]) + rec[2:])
-                    elif peer.accepts(can_id, ext):
-                        out.setdefault(peer, []).append(rec)
+                if self._hook is None:
+                    self._fan_out(sender, members, rec, out)
+                else:
+                    data = bytes(rec[HEADER_SIZE - 8 : HEADER_SIZE - 8 + min(length, 8)])
+                    for delay, r in self._hook.deliveries(sender.bus, bytes(rec), can_id, data, bool(flags & FLAG_ERR)):
+                        if delay > 0:
+                            self._held_seq += 1
+                            heapq.heappush(self._held, (time.monotonic() + delay, self._held_seq, sender.bus, sender, r))
+                        else:
+                            self._fan_out(sender, members, bytearray(r), out)
             elif kind == KIND_FILTERS:
                 n = U32.unpack_from(buf, off + 4)[0]
                 total = HEADER_SIZE + n
@@ -430,6 +444,32 @@ class HubServer:
                 return
             off += total
         del buf[:off]
+        for peer, chunks in out.items():
+            self._send_to(peer, b"".join(chunks))
+
+    @staticmethod
+    def _fan_out(sender: _Client, members: list[_Client], rec: bytearray, out: dict[_Client, list[bytes | bytearray]]) -> None:
+        """Queue ``rec`` for every member of the sender's bus that takes it."""
+        flags = rec[1]
+        can_id = U32.unpack_from(rec, 4)[0]
+        ext = 1 if flags & FLAG_EXT else 0
+        fd = flags & FLAG_FD
+        for peer in members:
+            if fd and peer.classic:
+                continue  # a classic CAN member never sees FD frames (like a non-FD raw socket)
+            if peer is sender:
+                if peer.echo and peer.accepts(can_id, ext):
+                    out.setdefault(peer, []).append(rec[:1] + bytes([flags | FLAG_ECHO]) + rec[2:])
+            elif peer.accepts(can_id, ext):
+                out.setdefault(peer, []).append(rec)
+
+    def _release_held(self) -> None:
+        """Deliver the held (delayed) frames that are due."""
+        out: dict[_Client, list[bytes | bytearray]] = {}
+        now = time.monotonic()
+        while self._held and self._held[0][0] <= now:
+            _, _, bus, sender, rec = heapq.heappop(self._held)
+            self._fan_out(sender, self._buses.get(bus, []), bytearray(rec), out)
         for peer, chunks in out.items():
             self._send_to(peer, b"".join(chunks))
 
@@ -578,7 +618,8 @@ class HubHandle:
 
 
 def start_hub(
-    listen: str | Sequence[str] | None = None, *, timeout_s: float = 10.0, log_level: str = "WARNING"
+    listen: str | Sequence[str] | None = None, *, timeout_s: float = 10.0, log_level: str = "WARNING",
+    inject: str | None = None, stderr: Any = None,
 ) -> HubHandle:
     """Start a hub in a child process and wait until it accepts clients.
 
@@ -587,6 +628,9 @@ def start_hub(
     :param timeout_s: how long to wait for readiness, s
     :raises NonLoopbackAddressError: checked here already, before any process starts
     :raises HubStartError: the child exited or did not report ready in time (it is reaped)
+    :param inject: frame faults for the hub (``--inject``, JSON of
+        :meth:`bus.transports.fault_inject.FrameFaultInjector.from_json`)
+    :param stderr: where the hub's stderr goes (default: inherited)
 
     The child exits when :meth:`HubHandle.stop` closes its stdin, and also when this
     process dies (its stdin reaches EOF), so no hub outlives its parent.
@@ -602,7 +646,11 @@ def start_hub(
     cmd = [sys.executable, "-m", "bus.transports.hub_server", "--ready", "--exit-on-stdin-eof", "--log-level", log_level]
     for text in listen_list:
         cmd += ["--listen", text]
-    proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    if inject:
+        cmd += ["--inject", inject]
+    if tmpdir is not None:
+        cmd += ["--remove-dir", tmpdir]  # the hub removes it when it exits, even if this process was killed
+    proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=stderr)
     assert proc.stdout is not None
     deadline = time.monotonic() + timeout_s
     line = b""
@@ -638,10 +686,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--ready", action="store_true", help=f"print '{READY_PREFIX} <addresses>' when listening")
     parser.add_argument("--exit-on-stdin-eof", action="store_true", help="exit when stdin closes")
     parser.add_argument("--log-level", default="INFO")
+    parser.add_argument("--inject", default=None, help="frame faults (JSON: {\"specs\": [...], \"log\": path})")
+    parser.add_argument("--remove-dir", default=None, help="a private folder to remove on exit")
     args = parser.parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s hub %(levelname)s %(message)s")
+    hook = None
+    if args.inject:
+        from bus.transports.fault_inject import FrameFaultInjector
+
+        hook = FrameFaultInjector.from_json(args.inject)
     try:
-        server = HubServer(args.listen or [default_hub_address()])
+        server = HubServer(args.listen or [default_hub_address()], frame_hook=hook)
     except (HubAddressError, HubAddressInUseError, OSError) as err:
         sys.exit(f"error: {err}")
     signal.signal(signal.SIGTERM, lambda *_: server.wake())
@@ -652,6 +707,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         server.serve_forever(watch_fd=sys.stdin.fileno() if args.exit_on_stdin_eof else None)
     finally:
         server.close()
+        if args.remove_dir:
+            with contextlib.suppress(OSError):
+                os.rmdir(args.remove_dir)
     return 0
 
 

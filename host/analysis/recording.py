@@ -8,31 +8,34 @@ to a file (no viewer, no network).
 Layout (entity paths; timelines ``trial_time`` = t_n = n·Ts as a duration, ``iteration`` = k):
 
 * ``/joint{j}/reference``  q_d of joint j (1..4), deg — one series (the same in every trial)
-* ``/joint{j}/actual``     measured q (encoder), deg
-* ``/joint{j}/error``      e = q_d − q, deg
-* ``/joint{j}/torque_ff``  feed-forward u_k sent to the drive, N·m
-* ``/joint{j}/torque_fb``  feedback torque recorded by the drive, N·m
-  All on ``trial_time`` with N rows (one per tick).  Equivalent to one entity per iteration:
-  row n of ``actual``/``error``/``torque_*`` holds K values, value k is iteration k, and the
-  static ``SeriesLines`` names them ``<quantity> iter k [unit]`` (colour red = first → blue =
-  last; reference grey), so the iterations overlay as K lines.
+* ``/joint{j}/actual/iter{k}``     measured q (encoder) in trial k, deg
+* ``/joint{j}/error/iter{k}``      e = q_d − q, deg
+* ``/joint{j}/torque_ff/iter{k}``  feed-forward u_k sent to the drive, N·m
+* ``/joint{j}/torque_fb/iter{k}``  feedback torque recorded by the drive, N·m
+  All on ``trial_time`` with N rows (one per tick), one entity per iteration; the static
+  ``SeriesLines`` name it ``<quantity> iter k [unit]`` (colour red = first → blue = last
+  planned trial; reference grey), so the iterations overlay as K lines under
+  ``/joint{j}/<quantity>``.
 * ``/metrics/rmse_deg/joint{j}``, ``/metrics/maxe_deg/joint{j}``: one row per trial on the
   ``iteration`` sequence timeline (the values of the summary, deg).
 * ``/robot`` (``ViewCoordinates.RIGHT_HAND_Z_UP``, base frame, m): static ``/robot/base``
   (motor-axis points A_i), ``/robot/base/motor_axes``, ``/robot/reference_path`` (reference TCP
-  path); ``/robot/first/...`` (trial 0) and ``/robot/last/...`` (the last completed trial), on
-  ``trial_time`` every ``decimate_3d``-th sample, by forward kinematics from the MEASURED joint
-  angles: ``arms`` (4 strips A_i → elbow B_i → ball-bar midpoint C_i: inner then outer arm),
-  ``sub_platforms`` (upper bar C_1–C_3, lower bar C_2–C_4, screw shaft down to the tool with a
-  5 cm blade along θ), ``tool`` (TCP point) and a static ``tcp_path``.
+  path); ``/robot/first/...`` (trial 0) and ``/robot/last/...`` (the last completed trial: logged
+  again after every trial, the newest rows win), on ``trial_time`` every ``decimate_3d``-th
+  sample, by forward kinematics from the MEASURED joint angles: ``arms`` (4 strips A_i → elbow
+  B_i → ball-bar midpoint C_i: inner then outer arm), ``sub_platforms`` (upper bar C_1–C_3,
+  lower bar C_2–C_4, screw shaft down to the tool with a 5 cm blade along θ), ``tool`` (TCP
+  point) and a static ``tcp_path``.
 * ``/run_info``: static text (configuration and how to read the recording).
 
-Cost (Rerun's cost is per entity and per call, hardly per value): :meth:`RunRecorder.log_trial`
-only copies the trial's arrays; :meth:`RunRecorder.close` sends everything as five multi-entity
-Arrow record batches (``send_record_batch``: one column per entity, split by Rerun into one
-chunk per entity, the same chunks ``send_columns`` makes).  Nothing is logged per sample.
-The recording is therefore written at the end of the run (also after a fault: ``close`` is
-called by ``run_experiment``'s ``finally``); a killed process leaves an empty recording.
+The recording grows trial by trial: :meth:`RunRecorder.log_trial` sends the trial as a few
+multi-entity Arrow record batches (``send_record_batch``: one column per entity, split by Rerun
+into one chunk per entity, the same chunks ``send_columns`` makes) and flushes the file, so a
+killed or interrupted run keeps every completed trial (the file then lacks only Rerun's footer
+index, which readers do without). :meth:`RunRecorder.close` finishes the file (footer).  Nothing
+is logged per sample.  Before a trial is written its size is checked against the free space of
+the filesystem (the previous trial's growth, ×1.5): a full disk is one
+:class:`host.experiment.outputs.DiskFullError` before anything is half written.
 """
 
 from __future__ import annotations
@@ -50,6 +53,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from host.experiment.outputs import DiskFullError, OutputError, RunFolder, output_error
 from host.learning.metrics import TrialMetrics
 from host.planning.trajectory import JointReference
 
@@ -163,24 +167,31 @@ class _Batch:
 
 
 class RunRecorder:
-    """Writes ``recording.rrd`` of one run; implements :class:`host.experiment.loop.TrialRecorder`.
+    """Writes ``recording.rrd`` of one run, trial by trial; implements
+    :class:`host.experiment.loop.TrialRecorder`.
 
-    :meth:`log_trial` only keeps a copy of the trial's arrays (about 0.1 ms); :meth:`close` writes
-    everything in five Arrow record batches (Rerun's cost is per entity and per call, not per
-    value) and finalises the file.  The stream and its file (with the default blueprint) are
-    created by the constructor, so a bad path fails before the experiment starts.  A failure
-    while writing is logged (``logger.error``) and kept in :attr:`error`; :meth:`close` never
-    raises into the experiment (its summary must still be written).
+    :meth:`log_trial` writes the trial (a few Arrow record batches: Rerun's cost is per entity and
+    per call, not per value) and flushes the file; :meth:`close` finishes it.  The stream and its
+    file (with the default blueprint) are created by the constructor, so a bad path fails before
+    the experiment starts.  :meth:`log_trial` raises :class:`host.experiment.outputs.OutputError`
+    when the trial cannot be written (a full disk): the experiment makes that a fault;
+    :meth:`close` never raises (a failure is logged and kept in :attr:`error`).
 
     :param path: the ``.rrd`` file to write (its folder is created).
     :param application_id: Rerun application id.
     :param recording_id: Rerun recording id (default: the run folder's name).
-    :param config_summary: the run's configuration (shown as ``/run_info``).
+    :param config_summary: the run's configuration (shown as ``/run_info``; its ``iterations``
+        sets the colour scale).
     :param decimate_3d: 3D frames every this many samples (≥ 1).
+    :param folder: the run folder's write-failure switch (fault injection), if any.
     """
 
+    #: free space asked for before the first trial is written, bytes (later: the last trial's growth × 1.5)
+    FIRST_TRIAL_BYTES: int = 512 * 1024
+
     def __init__(self, path: str | Path, *, application_id: str = "ilcrig", recording_id: str | None = None,
-                 config_summary: Mapping[str, Any] | None = None, decimate_3d: int = 5) -> None:
+                 config_summary: Mapping[str, Any] | None = None, decimate_3d: int = 5,
+                 folder: RunFolder | None = None) -> None:
         import pyarrow as pa
         import rerun as rr
         import rerun.blueprint  # noqa: F401
@@ -194,33 +205,33 @@ class RunRecorder:
         self.recording_id = recording_id if recording_id is not None else self.path.parent.resolve().name
         self.config_summary: dict[str, Any] = dict(config_summary or {})
         self.decimate_3d = int(decimate_3d)
+        self.folder = folder
         self.error: str | None = None
         self._closed = False
+        self._failed = False
         self._ref: JointReference | None = None
         self._k: list[int] = []
-        self._q: list[np.ndarray] = []  # (N, 4) rad per trial
-        self._e: list[np.ndarray] = []  # (N, 4) rad
-        self._u: list[np.ndarray] = []  # (N, 4) N·m
-        self._fb: list[np.ndarray] = []  # (N, 4) N·m
-        self._rmse: list[tuple[float, ...]] = []
-        self._maxe: list[tuple[float, ...]] = []
+        self._trial_bytes = self.FIRST_TRIAL_BYTES
+        n_planned = self.config_summary.get("iterations")
+        self._n_expected = int(n_planned) if isinstance(n_planned, int) else None
         self._rec = rr.RecordingStream(application_id, recording_id=self.recording_id)
         self._rec.save(str(self.path), default_blueprint=default_blueprint())
 
     @property
     def trials(self) -> int:
-        """Number of trials logged so far."""
+        """Number of trials written so far."""
         return len(self._k)
 
     # ---- TrialRecorder ------------------------------------------------------------------------
 
     def log_trial(self, k: int, ref: JointReference, traces: Sequence[Any], u: np.ndarray,
                   error_rad: np.ndarray, metrics: TrialMetrics) -> None:
-        """Keep trial ``k`` for the recording (written by :meth:`close`).
+        """Write trial ``k`` to the recording and flush it.
 
         :param traces: one DriveTrace per joint (``q_rad``, ``tau_fb_nm``).
         :param u: (N, 4) feed-forward of trial k, N·m.  :param error_rad: (N, 4) q_d − q, rad.
         :raises RecordingError: shapes that do not match the reference, or after :meth:`close`.
+        :raises OutputError: the trial cannot be written (:class:`DiskFullError`: no room for it).
         """
         if self._closed:
             raise RecordingError("log_trial after close()")
@@ -236,29 +247,43 @@ class RunRecorder:
         tau_fb = np.stack([np.asarray(tr.tau_fb_nm, dtype=np.float64) for tr in traces], axis=1)
         if q_meas.shape != (n, N_JOINTS) or tau_fb.shape != (n, N_JOINTS):
             raise RecordingError(f"trial {k}: traces have {q_meas.shape[0]} samples, the reference {n}")
-        if self._ref is None:
-            self._ref = ref
-        self._k.append(int(k))
-        self._q.append(q_meas)
-        self._e.append(error_rad)
-        self._u.append(u)
-        self._fb.append(tau_fb)
-        self._rmse.append(tuple(float(v) for v in metrics.rmse_deg))
-        self._maxe.append(tuple(float(v) for v in metrics.max_abs_deg))
+        if self._failed:
+            return  # the file is broken already (reported once)
+        self._check_space(k)
+        size0 = self._size()
+        try:
+            first = self._ref is None
+            if first:
+                self._ref = ref
+            self._write_trial(int(k), q_meas, error_rad, u, tau_fb, metrics, first)
+            self._k.append(int(k))
+            self._rec.flush()
+        except OutputError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - rerun's own errors: one output fault
+            self._failed = True
+            self.error = f"{type(exc).__name__}: {exc}"
+            raise OutputError(f"cannot write the recording {self.path}: {self.error}") from exc
+        grown = self._size() - size0
+        if grown > 0:
+            self._trial_bytes = grown
 
     def close(self) -> None:
-        """Write the series, metrics and 3D views of the kept trials, flush and finalise the file.
-        Idempotent; never raises (a failure is logged and kept in :attr:`error`)."""
+        """Update ``/run_info``, flush and finish the file (footer).  Idempotent; never raises (a
+        failure is logged and kept in :attr:`error`)."""
         if self._closed:
             return
         self._closed = True
         try:
-            if self._ref is not None:
-                self._write_all()
-            else:
-                self._write_static_scene(None)
+            if not self._failed:
+                static = _Batch(self._pa)
+                if self._ref is None:
+                    self._write_static_scene(static)  # no trial: the scene and the run info only
+                else:
+                    self._add_run_info(static)
+                    static.send(self._rec)
         except Exception as exc:  # noqa: BLE001 - the recording must never break the experiment
-            self.error = f"{type(exc).__name__}: {exc}"
+            self.error = self.error or f"{type(exc).__name__}: {exc}"
             logger.error("recording %s: writing failed: %s", self.path, self.error)
         finally:
             try:
@@ -277,64 +302,96 @@ class RunRecorder:
 
     # ---- writing ------------------------------------------------------------------------------
 
-    def _write_all(self) -> None:
+    def _size(self) -> int:
+        try:
+            return self.path.stat().st_size
+        except OSError:
+            return 0
+
+    def _check_space(self, k: int) -> None:
+        """Refuse to start writing trial ``k`` without room for it (:class:`DiskFullError`)."""
+        need = int(1.5 * self._trial_bytes)
+        try:
+            if self.folder is not None:
+                self.folder.check_write(k)
+            free = shutil.disk_usage(self.path.parent).free
+        except OSError as err:
+            raise output_error(f"the recording {self.path}", err) from None
+        if free < need:
+            raise DiskFullError(f"disk full: {free // 1024} KiB free, trial {k} of the recording {self.path} "
+                                f"needs about {need // 1024} KiB")
+
+    def _write_trial(self, k: int, q: np.ndarray, e: np.ndarray, u: np.ndarray, fb: np.ndarray,
+                     metrics: TrialMetrics, first: bool) -> None:
         pa, rec = self._pa, self._rec
         ref = self._ref
         assert ref is not None
-        n, n_tr = int(ref.t.shape[0]), len(self._k)
+        n = int(ref.t.shape[0])
         t_ns = pa.array(np.rint(np.asarray(ref.t, dtype=np.float64) * 1e9).astype(np.int64), pa.duration("ns"))
         comp = _components()
         scal = comp["Scalars:scalars"][0]
-        sl = {k: comp[k][0] for k in ("SeriesLines:names", "SeriesLines:colors")}
+        sl = {c: comp[c][0] for c in ("SeriesLines:names", "SeriesLines:colors")}
         static = _Batch(pa)
         series = _Batch(pa)
-        # (quantity, N, 4, K) in display units
-        stacks = {
-            "actual": np.degrees(np.stack(self._q, axis=-1)),
-            "error": np.degrees(np.stack(self._e, axis=-1)),
-            "torque_ff": np.stack(self._u, axis=-1),
-            "torque_fb": np.stack(self._fb, axis=-1),
-        }
-        colors = [_rgba_u32(_iteration_color(i, n_tr)) for i in range(n_tr)]
         str_list, u32_list = pa.list_(pa.utf8()), pa.list_(pa.uint32())
-        off_k = pa.array(np.arange(0, n * n_tr + 1, n_tr, dtype=np.int32))
         off_1 = pa.array(np.arange(n + 1, dtype=np.int32))
-        ref_deg = np.degrees(np.asarray(ref.q, dtype=np.float64))
+        values = {"actual": np.degrees(q), "error": np.degrees(e), "torque_ff": u, "torque_fb": fb}
+        if first:
+            ref_deg = np.degrees(np.asarray(ref.q, dtype=np.float64))
+            for j in range(N_JOINTS):
+                ent = f"/joint{j + 1}/reference"
+                series.add_array(ent, scal, pa.ListArray.from_arrays(off_1, pa.array(np.ascontiguousarray(ref_deg[:, j]))))
+                static.add_array(ent, sl["SeriesLines:names"], pa.array([["reference [deg]"]], str_list))
+                static.add_array(ent, sl["SeriesLines:colors"], pa.array([[_rgba_u32(_REFERENCE_GREY)]], u32_list))
+        # names and colours of every planned iteration's lines go out once, with the first trial
+        named = range(max(self._n_expected or 0, k + 1)) if first else ([] if k < (self._n_expected or 0) else [k])
         for j in range(N_JOINTS):
-            ent = f"/joint{j + 1}/reference"
-            series.add_array(ent, scal, pa.ListArray.from_arrays(off_1, pa.array(np.ascontiguousarray(ref_deg[:, j]))))
-            static.add_array(ent, sl["SeriesLines:names"], pa.array([["reference [deg]"]], str_list))
-            static.add_array(ent, sl["SeriesLines:colors"], pa.array([[_rgba_u32(_REFERENCE_GREY)]], u32_list))
             for name, unit in SERIES[1:]:
-                ent = f"/joint{j + 1}/{name}"
-                vals = np.ascontiguousarray(stacks[name][:, j, :]).ravel()  # row n: the K iterations
-                series.add_array(ent, scal, pa.ListArray.from_arrays(off_k, pa.array(vals)))
-                static.add_array(ent, sl["SeriesLines:names"],
-                                 pa.array([[f"{name} iter {k} [{unit}]" for k in self._k]], str_list))
-                static.add_array(ent, sl["SeriesLines:colors"], pa.array([colors], u32_list))
+                ent = f"/joint{j + 1}/{name}/iter{k}"
+                col = np.ascontiguousarray(values[name][:, j])
+                series.add_array(ent, scal, pa.ListArray.from_arrays(off_1, pa.array(col)))
+                for i in named:
+                    ent_i = f"/joint{j + 1}/{name}/iter{i}"
+                    color = _rgba_u32(_iteration_color(i, self._n_expected))
+                    static.add_array(ent_i, sl["SeriesLines:names"], pa.array([[f"{name} iter {i} [{unit}]"]], str_list))
+                    static.add_array(ent_i, sl["SeriesLines:colors"], pa.array([[color]], u32_list))
         series.send(rec, "trial_time", t_ns)
 
         met = _Batch(pa)
         f64_list = pa.list_(pa.float64())
-        for key, vals in (("rmse_deg", self._rmse), ("maxe_deg", self._maxe)):
-            arr = np.asarray(vals, dtype=np.float64)  # (K, 4)
+        for key, vals in (("rmse_deg", metrics.rmse_deg), ("maxe_deg", metrics.max_abs_deg)):
             for j in range(N_JOINTS):
-                met.add_array(f"/metrics/{key}/joint{j + 1}", scal, pa.array([[v] for v in arr[:, j]], f64_list))
-        met.send(rec, "iteration", pa.array(self._k, pa.int64()))
+                met.add_array(f"/metrics/{key}/joint{j + 1}", scal, pa.array([[float(vals[j])]], f64_list))
+        met.send(rec, "iteration", pa.array([k], pa.int64()))
 
-        step = self.decimate_3d
-        idx = np.unique(np.r_[np.arange(0, n, step), n - 1])
+        idx = np.unique(np.r_[np.arange(0, n, self.decimate_3d), n - 1])
         y_guess = None
         if ref.task is not None:
             from plant.kinematics import subplatform_from_task
 
             y_guess = subplatform_from_task(ref.task.X[0])
         robot = _Batch(pa)
-        for which, q, color in (("first", self._q[0], _COLOR_FIRST), ("last", self._q[-1], _COLOR_LAST)):
-            self._add_robot(robot, static, which, q[idx], y_guess, color)
+        views = (("first", _COLOR_FIRST), ("last", _COLOR_LAST)) if first else (("last", _COLOR_LAST),)
+        for which, c in views:
+            self._add_robot(robot, static, which, q[idx], y_guess, c)
         if robot.fields:
             robot.send(rec, "trial_time", t_ns.take(pa.array(idx)))
-        self._write_static_scene(static)
+        if first:
+            self._write_static_scene(static)
+        else:
+            static.send(rec)
+
+    def _add_run_info(self, st: _Batch) -> None:
+        text = ("# ilcrig run\n\n"
+                f"{self.trials} trials recorded.\n\n"
+                "* joint plots: timeline **trial_time**; one line per iteration (red = first, blue = last), "
+                "reference grey.\n"
+                "* metrics (RMSE, MaxE per joint, deg): select the timeline **iteration**.\n"
+                "* 3D: orange = first trial, blue = last trial, grey = reference TCP path; "
+                "from the measured joint angles by forward kinematics.\n\n"
+                "```json\n" + json.dumps(self.config_summary, indent=2, default=str) + "\n```\n")
+        st.put("/run_info", "TextDocument:text", [[text]])
+        st.put("/run_info", "TextDocument:media_type", [["text/markdown"]])
 
     def _write_static_scene(self, static: _Batch | None) -> None:
         rr, rec, pa = self._rr, self._rec, self._pa
@@ -347,16 +404,7 @@ class RunRecorder:
         u_axis = np.stack([-np.sin(phi), np.cos(phi), np.zeros(4)], axis=1)
         A = g.R * e
         rec.log("/robot", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        text = ("# ilcrig run\n\n"
-                f"{self.trials} trials recorded.\n\n"
-                "* joint plots: timeline **trial_time**; one line per iteration (red = first, blue = last), "
-                "reference grey.\n"
-                "* metrics (RMSE, MaxE per joint, deg): select the timeline **iteration**.\n"
-                "* 3D: orange = first trial, blue = last trial, grey = reference TCP path; "
-                "from the measured joint angles by forward kinematics.\n\n"
-                "```json\n" + json.dumps(self.config_summary, indent=2, default=str) + "\n```\n")
-        st.put("/run_info", "TextDocument:text", [[text]])
-        st.put("/run_info", "TextDocument:media_type", [["text/markdown"]])
+        self._add_run_info(st)
         grey = _rgba_u32((90, 90, 90, 255))
         st.put("/robot/base", "Points3D:positions", A[None])
         st.put("/robot/base", "Points3D:radii", [[0.012]])

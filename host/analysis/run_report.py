@@ -1,8 +1,12 @@
 """The report of one run folder (``ilcrig sim`` / ``ilcrig run``): ``report.md`` with the
-per-trial RMSE / MaxE / MAE table, the convergence check, any fault, and ``convergence.png``."""
+per-trial RMSE / MaxE / MAE table, the convergence check, any fault (kind, node, trial, tick, who
+detected it and how fast) or interrupt, the drives' safe state after it, and ``convergence.png``
+over the completed trials.  Both files are replaced atomically (a failing write leaves no
+temporary file behind)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -31,7 +35,20 @@ def write_run_report(run_dir: str | Path, summary: Mapping[str, Any]) -> Path:
         lines += [f"Convergence check: spectral radius {fmt(chk.get('rho_max'), 4)} "
                   f"({'ok' if chk.get('ok') else 'VIOLATED'}), 2-norm {fmt(chk.get('norm2'), 4)}.", ""]
     for f in summary.get("faults", []):
-        lines += [f"**Fault** at trial {f.get('trial')}: {f.get('message')}", ""]
+        lat = f.get("latency_ms")
+        lines += [f"**Fault** ({f.get('kind', '?')}) at trial {f.get('trial')}, tick "
+                  f"{f.get('tick') if f.get('tick') is not None else '?'}"
+                  f"{', ' + str(f.get('node')) if f.get('node') else ''}: {f.get('message')} — detected by "
+                  f"{f.get('detected_by', '?')}{f' after {lat:.0f} ms' if isinstance(lat, int | float) else ''}.", ""]
+    if summary.get("interrupted"):
+        i = summary["interrupted"]
+        lines += [f"**Interrupted** by {i.get('signal')} during trial {i.get('trial')}.", ""]
+    safe = summary.get("safe_state") or []
+    if safe and (summary.get("faults") or summary.get("interrupted")):
+        lines += ["Safe state after the run:", ""]
+        lines += md_table(["node", "torque", "evidence"],
+                          [[str(x.get("node")), str(x.get("torque")), str(x.get("evidence"))] for x in safe])
+        lines += [""]
     rows = [[str(it["k"])] + [fmt(v) for v in it["rmse_deg"]] + [fmt(v) for v in it["max_abs_deg"]]
             + [fmt(v) for v in it["mae_deg"]] for it in its]
     lines += md_table(["k"] + [f"RMSE j{j}" for j in JOINTS] + [f"MaxE j{j}" for j in JOINTS]
@@ -50,10 +67,20 @@ def write_run_report(run_dir: str | Path, summary: Mapping[str, Any]) -> Path:
         a.grid(True, which="both", alpha=0.3)
         a.legend()
         a.set_title(f"{cfg.get('law', '?')}: RMSE per trial")
-        save_png(fig, d / "convergence.png")
-        lines += ["![convergence](convergence.png)", ""]
+        try:
+            save_png(fig, d / "convergence.png")
+            lines += ["![convergence](convergence.png)", ""]
+        except OSError as err:
+            with contextlib.suppress(OSError):
+                (d / "convergence.tmp.png").unlink()
+            lines += [f"(convergence.png could not be written: {err.strerror or err})", ""]
     path = d / "report.md"
     tmp = d / "report.md.tmp"
-    tmp.write_text("\n".join(lines))
-    os.replace(tmp, path)
+    try:
+        tmp.write_text("\n".join(lines))
+        os.replace(tmp, path)
+    except OSError:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
     return path

@@ -1,41 +1,69 @@
 """One experiment with all its outputs, as ``ilcrig sim`` and ``ilcrig host`` run it.
 
-This module owns what both commands do around :func:`host.experiment.loop.run_experiment`: the
-Rerun recording (:mod:`host.analysis.recording`), one console row per trial, ``report.md`` with its
-convergence plot after the last completed trial (:mod:`host.analysis.report`), and the closing fault
-line with its exit code.
+This module owns what both commands do around :func:`host.experiment.loop.run_experiment`: the run
+folder's space reserve (:class:`host.experiment.outputs.RunFolder`), the Rerun recording
+(:mod:`host.analysis.recording`, written trial by trial), one console row per trial,
+``report.md`` with its convergence plot after the last completed trial — also after a fault or an
+interrupt (:mod:`host.analysis.run_report`) — and the closing line with its exit code: one line
+``ilcrig: fault: …`` and 3 after a fault, 130 / 143 after SIGINT / SIGTERM.
 """
 
 from __future__ import annotations
 
+import logging
+import signal
 import sys
 from pathlib import Path
 from typing import TextIO
 
 from host.analysis.recording import RunRecorder
 from host.analysis.run_report import write_run_report
-from host.experiment.console import EXIT_FAULT, EXIT_OK, print_header, print_row
+from host.experiment.console import EXIT_FAULT, EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATED, print_header, print_row
+from host.experiment.faults import fault_line
 from host.experiment.loop import Bench, ExperimentResult, run_experiment
+from host.experiment.outputs import RunFolder
 from host.experiment.plan import Plan
+
+logger = logging.getLogger(__name__)
 
 __all__ = ["run_session", "report_fault"]
 
 
-def run_session(plan: Plan, bench: Bench, out: Path, *, mode: str, stream: TextIO) -> ExperimentResult:
+def run_session(plan: Plan, bench: Bench, out: Path, *, mode: str, stream: TextIO,
+                fail_writes_from_trial: int | None = None) -> ExperimentResult:
     """Run ``plan`` on ``bench`` with a recording in ``out`` and a console row per trial; write
-    ``report.md`` when at least one trial completed."""
+    ``report.md`` when at least one trial completed.
+
+    :param fail_writes_from_trial: fault injection: the outputs' writes fail with ``ENOSPC`` from
+        this trial on (``--inject diskfull@K``)
+    """
     print_header(stream)
-    recorder = RunRecorder(out / "recording.rrd", recording_id=out.name, config_summary=plan.cfg.as_dict())
-    res = run_experiment(plan, bench, out, mode=mode, on_trial=lambda m: print_row(stream, m), recorder=recorder)
-    if res.summary["iterations"]:
-        write_run_report(out, res.summary)  # report.md + convergence plot next to the summary
+    folder = RunFolder(out, plan.cfg.iterations)
+    folder.reserve()
+    folder.fail_writes_from_trial = fail_writes_from_trial
+    recorder = RunRecorder(out / "recording.rrd", recording_id=out.name, config_summary=plan.cfg.as_dict(),
+                           folder=folder)
+    res = run_experiment(plan, bench, out, mode=mode, on_trial=lambda m: print_row(stream, m), recorder=recorder,
+                         folder=folder)
+    if res.summary["iterations"] or res.summary["faults"] or res.interrupted:
+        try:
+            write_run_report(out, res.summary)  # report.md + convergence plot next to the summary
+        except OSError as err:
+            logger.error("report.md could not be written: %s", err)
     return res
 
 
-def report_fault(res: ExperimentResult) -> int:
+def report_fault(res: ExperimentResult, summary_path: Path | None = None) -> int:
     """The exit code of a finished run; a fault gets its one line on stderr."""
+    kept = len(res.summary["iterations"])
+    if res.interrupted is not None:
+        return EXIT_TERMINATED if res.interrupted == signal.SIGTERM else EXIT_INTERRUPTED if \
+            res.interrupted == signal.SIGINT else 128 + res.interrupted
+    if res.fault_record is not None:
+        sys.stderr.write(fault_line(res.fault_record, kept, summary_path=summary_path) + "\n")
+        sys.stderr.flush()
+        return EXIT_FAULT
     if res.fault:
-        sys.stderr.write(f"ilcrig: fault: {res.fault} (torque removed; {len(res.summary['iterations'])} "
-                         "trials kept)\n")
+        sys.stderr.write(f"ilcrig: fault: {res.fault} (torque removed; {kept} trials kept)\n")
         return EXIT_FAULT
     return EXIT_OK

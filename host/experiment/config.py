@@ -1,8 +1,14 @@
 """Experiment configuration: one frozen dataclass, built from a TOML file and/or CLI options.
 
 Precedence (one place, :func:`build_config`): command-line option > TOML file (``--config``) >
-defaults below.  Unknown keys and bad values are :class:`ConfigError` (a ``ValueError``) with a
-one-line message; the CLI turns them into exit code 2 before anything moves.
+defaults below; the ``[gains]`` table merges key by key (a ``--lp`` on the command line keeps the
+file's ``alpha``).  Unknown keys and bad values are :class:`ConfigError` (a ``ValueError``) with a
+one-line message naming the key (and the file); the CLI turns them into exit code 2 before anything
+moves.  Refused: an unreadable, binary or invalid TOML file; a key of the wrong type
+(``gains = 5``, ``law = 3``); NaN or ±inf anywhere; values out of range, among them more than
+:data:`MAX_ITERATIONS` trials and a seed outside the bench's 32 bits.  A relative ``path`` given
+in the file is a path file relative to the file's folder (on the command line: to the working
+directory).
 
 TOML layout::
 
@@ -37,8 +43,15 @@ from host.learning.ilc import GAIN_PRESETS, LAWS, GainSpec
 from host.planning.trajectory import PROFILES
 from plant.disturbance import KINDS as DISTURBANCES
 
-__all__ = ["ConfigError", "ExperimentConfig", "build_config", "PROFILES", "DISTURBANCES"]
+__all__ = ["ConfigError", "ExperimentConfig", "build_config", "validate", "PROFILES", "DISTURBANCES",
+           "MAX_ITERATIONS", "MAX_SEED"]
 
+#: the largest number of trials of one experiment (the convergence prediction, the summary and the
+#: recording grow with it; 1000 trials of the default experiment take about 10 min in ``sim``)
+MAX_ITERATIONS: int = 1000
+#: the largest seed (the test bench's 0x2400:4 is 32 bits)
+MAX_SEED: int = 0xFFFFFFFF
+_BUILTIN_PATH_NAMES = {"1", "2", "3", "4"}
 
 
 class ConfigError(ValueError):
@@ -77,13 +90,18 @@ def _check_number(name: str, v: Any, *, integer: bool = False) -> None:
         raise ConfigError(f"{name} must be finite, got {v!r}")
 
 
-def _gain_spec(table: Mapping[str, Any]) -> GainSpec:
+def _check_str(name: str, v: Any) -> None:
+    if not isinstance(v, str):
+        raise ConfigError(f"{name} must be a string, got {v!r}")
+
+
+def _gain_spec(table: Mapping[str, Any], where: str = "") -> GainSpec:
     unknown = set(table) - _GAIN_KEYS
     if unknown:
-        raise ConfigError(f"unknown key(s) in [gains]: {', '.join(sorted(unknown))}")
+        raise ConfigError(f"{where}unknown key(s) in [gains]: {', '.join(sorted(unknown))}")
     preset = table.get("preset", "normalized")
-    if preset not in GAIN_PRESETS:
-        raise ConfigError(f"unknown gain preset {preset!r}; choose one of {', '.join(GAIN_PRESETS)}")
+    if not isinstance(preset, str) or preset not in GAIN_PRESETS:
+        raise ConfigError(f"{where}unknown gain preset {preset!r}; choose one of {', '.join(GAIN_PRESETS)}")
     base = GAIN_PRESETS[preset]
     changes: dict[str, Any] = {}
     for k, v in table.items():
@@ -92,26 +110,82 @@ def _gain_spec(table: Mapping[str, Any]) -> GainSpec:
         if v is None:
             changes[k] = None
             continue
-        _check_number(f"gains.{k}", v, integer=k in ("lead", "q_order"))
+        try:
+            _check_number(f"gains.{k}", v, integer=k in ("lead", "q_order"))
+        except ConfigError as err:
+            raise ConfigError(f"{where}{err}") from None
         changes[k] = v
     if changes:
         changes["name"] = f"{preset}+custom"
     return dataclasses.replace(base, **changes)
 
 
+def _read_toml(p: Path) -> dict[str, Any]:
+    """The TOML file ``p`` as a dict; every problem is one line naming the file."""
+    try:
+        raw = p.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(f"config file not found: {p}") from None
+    except IsADirectoryError:
+        raise ConfigError(f"config file {p} is a folder, not a TOML file") from None
+    except OSError as err:
+        raise ConfigError(f"cannot read config file {p}: {err.strerror or err}") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise ConfigError(f"config file {p} is not a text (UTF-8) TOML file") from None
+    if "\x00" in text:
+        raise ConfigError(f"config file {p} is not a text (UTF-8) TOML file (it holds NUL bytes)")
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"config file {p} is not valid TOML: {exc}") from None
+
+
 def build_config(toml_path: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> ExperimentConfig:
-    """Merge defaults < TOML file < ``overrides`` (CLI options that were given) and validate."""
+    """Merge defaults < TOML file < ``overrides`` (CLI options that were given) and validate.
+
+    ``overrides["gains"]`` may be a dict of ``[gains]`` keys (merged over the file's table) or a
+    :class:`GainSpec` (replaces it).
+    """
     data: dict[str, Any] = {}
+    where = ""
+    base_dir: Path | None = None
     if toml_path is not None:
         p = Path(toml_path)
-        try:
-            data = tomllib.loads(p.read_text())
-        except FileNotFoundError:
-            raise ConfigError(f"config file not found: {p}") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"config file {p} is not valid TOML: {exc}") from None
+        data = _read_toml(p)
+        where = f"config file {p}: "
+        base_dir = p.resolve().parent
+        unknown = set(data) - _TOP_KEYS
+        if unknown:
+            raise ConfigError(f"{where}unknown key(s): {', '.join(sorted(unknown))}")
+        if "gains" in data and not isinstance(data["gains"], dict):
+            raise ConfigError(f"{where}gains must be a table ([gains] with keys such as alpha, lp), "
+                              f"got {data['gains']!r}")
+        if "path" in data:
+            path = data["path"]
+            if isinstance(path, bool) or not isinstance(path, (str, int)):
+                raise ConfigError(f"{where}path must be 1-4 or a path file name, got {path!r}")
+            path = str(path)
+            if path not in _BUILTIN_PATH_NAMES and not Path(path).is_absolute():
+                path = str(base_dir / path)  # relative to the config file's folder
+            data["path"] = path
+        for k in ("law", "profile", "disturbance", "ff0"):
+            if k in data:
+                try:
+                    _check_str(k, data[k])
+                except ConfigError as err:
+                    raise ConfigError(f"{where}{err}") from None
+    file_gains = data.get("gains", {})
+    from_file = {k for k in data if k != "gains"} | {f"gains.{k}" for k in (file_gains or {})}
     for k, v in (overrides or {}).items():
         if v is not None:
+            from_file -= {k} if k != "gains" else {f"gains.{g}" for g in (v if isinstance(v, Mapping) else {})}
+        if v is None:
+            continue
+        if k == "gains" and isinstance(v, Mapping) and isinstance(file_gains, dict):
+            data["gains"] = {**file_gains, **v}
+        else:
             data[k] = v
     unknown = set(data) - _TOP_KEYS
     if unknown:
@@ -121,22 +195,43 @@ def build_config(toml_path: str | Path | None = None, overrides: Mapping[str, An
         spec = gains_table
     else:
         if not isinstance(gains_table, dict):
-            raise ConfigError("gains must be a table")
-        spec = _gain_spec(gains_table)
+            raise ConfigError(f"{where}gains must be a table ([gains] with keys such as alpha, lp), got {gains_table!r}")
+        spec = _gain_spec(gains_table, where if file_gains else "")
     if "path" in data:
+        if isinstance(data["path"], bool) or not isinstance(data["path"], (str, int, Path)):
+            raise ConfigError(f"path must be 1-4 or a path file name, got {data['path']!r}")
         data["path"] = str(data["path"])
-    cfg = ExperimentConfig(**data, gains=spec)
-    validate(cfg)
+    try:
+        cfg = ExperimentConfig(**data, gains=spec)
+        validate(cfg)
+    except ConfigError as err:
+        text = str(err)
+        if where and not text.startswith(where) and _key_of(text) in from_file:
+            text = where + text  # the value came from the file: name it
+        raise ConfigError(text) from None
     return cfg
+
+
+def _key_of(message: str) -> str:
+    """The configuration key a validation message is about (its first word, or the word after
+    ``unknown``)."""
+    words = message.split()
+    if len(words) > 1 and words[0] == "unknown":
+        return {"gain": "gains.preset"}.get(words[1], words[1])
+    return words[0] if words else ""
 
 
 def validate(cfg: ExperimentConfig) -> None:
     """Raise :class:`ConfigError` on any value that cannot run."""
+    for name in ("law", "path", "profile", "disturbance", "ff0"):
+        _check_str(name, getattr(cfg, name))
     if cfg.law not in LAWS:
         raise ConfigError(f"unknown law {cfg.law!r}; choose one of {', '.join(LAWS)}")
     _check_number("iterations", cfg.iterations, integer=True)
     if cfg.iterations < 1:
         raise ConfigError(f"iterations must be >= 1, got {cfg.iterations}")
+    if cfg.iterations > MAX_ITERATIONS:
+        raise ConfigError(f"iterations must be at most {MAX_ITERATIONS} (MAX_ITERATIONS), got {cfg.iterations}")
     _check_number("cycle_s", cfg.cycle_s)
     if cfg.cycle_s <= 0:
         raise ConfigError(f"cycle_s must be > 0, got {cfg.cycle_s}")
@@ -145,8 +240,8 @@ def validate(cfg: ExperimentConfig) -> None:
     if cfg.disturbance not in DISTURBANCES:
         raise ConfigError(f"unknown disturbance {cfg.disturbance!r}; choose one of {', '.join(DISTURBANCES)}")
     _check_number("seed", cfg.seed, integer=True)
-    if cfg.seed < 0:
-        raise ConfigError(f"seed must be >= 0, got {cfg.seed}")
+    if not 0 <= cfg.seed <= MAX_SEED:
+        raise ConfigError(f"seed must be 0..{MAX_SEED}, got {cfg.seed}")
     _check_number("ts_s", cfg.ts_s)
     if not 1e-4 <= cfg.ts_s <= 1e-2:
         raise ConfigError(f"ts_s must be between 0.0001 and 0.01 s, got {cfg.ts_s}")
@@ -159,12 +254,13 @@ def validate(cfg: ExperimentConfig) -> None:
     if cfg.following_error_deg <= 0:
         raise ConfigError(f"following_error_deg must be > 0, got {cfg.following_error_deg}")
     g = cfg.gains
-    for name in ("alpha", "beta", "lp_norm", "ld_norm", "q_cutoff_hz", "no_weight", "lp", "ld"):
-        v = getattr(g, name)
-        if v is not None and (not math.isfinite(v)):
-            raise ConfigError(f"gains.{name} must be finite, got {v}")
-        if v is not None and v < 0:
-            raise ConfigError(f"gains.{name} must be >= 0, got {v}")
+    for f in dataclasses.fields(GainSpec):
+        v = getattr(g, f.name)
+        if f.name == "name" or v is None:
+            continue
+        _check_number(f"gains.{f.name}", v, integer=f.name in ("lead", "q_order"))
+        if v < 0:
+            raise ConfigError(f"gains.{f.name} must be >= 0, got {v}")
     if g.alpha < 1 or g.beta < 1:
         raise ConfigError(f"gains.alpha and gains.beta must be >= 1, got {g.alpha}, {g.beta}")
     if g.lead < 0:

@@ -11,7 +11,6 @@ import-light: every role parses the command line.
 from __future__ import annotations
 
 import argparse
-import tomllib
 from typing import TYPE_CHECKING, Any, TextIO
 
 from host.learning.names import GAIN_PRESET_NAMES, LAWS
@@ -31,9 +30,11 @@ __all__ = [
 EXIT_OK: int = 0
 #: bad input (one line ``ilcrig: error: …``), nothing was started
 EXIT_USAGE: int = 2
-#: a fault during a trial: torque removed, the completed trials kept in summary.json
+#: a fault during a run — a drive, the plant, the hub or the host dying or stalling, io frames lost,
+#: damaged, duplicated or late, an EMCY, a full disk: one line ``ilcrig: fault: …``, torque removed,
+#: the completed trials kept in summary.json (``completed: false`` and a ``faults`` entry)
 EXIT_FAULT: int = 3
-#: ``ilcrig run``: a role process ended while the host was running
+#: ``ilcrig run``: a role process could not be started
 EXIT_CHILD_FAILED: int = 4
 #: interrupted by Ctrl-C (SIGINT)
 EXIT_INTERRUPTED: int = 130
@@ -87,13 +88,7 @@ def experiment_config(args: argparse.Namespace) -> ExperimentConfig:
 
     overrides: dict[str, Any] = {k: getattr(args, k) for k in (
         "law", "iterations", "path", "cycle_s", "profile", "disturbance", "seed", "ff0")}
-    gains: dict[str, Any] = {}
-    if args.config:
-        try:
-            with open(args.config, "rb") as fh:
-                gains = dict(tomllib.load(fh).get("gains", {}))
-        except (OSError, tomllib.TOMLDecodeError, TypeError, ValueError):
-            gains = {}  # build_config reports the file problem
+    gains: dict[str, Any] = {}  # merged over the file's [gains] table by build_config
     if args.preset is not None:
         gains["preset"] = args.preset
     for k, v in vars(args).items():

@@ -21,6 +21,7 @@ from bus.cia301.nmt import NmtCommand
 from bus.objects import DRIVE_NODE_IDS
 from firmware_model.drive import Drive
 from host.experiment.config import ExperimentConfig
+from host.experiment.faults import FaultKind, FaultRecord
 from host.experiment.loop import TrialFault
 from host.nodes.drive_client import DriveClient
 from plant.disturbance import disturbance_torque
@@ -45,6 +46,7 @@ class InProcessBench:
         self.firmware = [Drive(node) for node in DRIVE_NODE_IDS]
         self.drives = [DriveClient(fw, node) for fw, node in zip(self.firmware, DRIVE_NODE_IDS)]
         self.emcy: list[dict[str, Any]] = []
+        self._tick: int | None = None
 
     def start(self) -> None:
         for fw in self.firmware:
@@ -56,8 +58,10 @@ class InProcessBench:
         plant.reset(q0, qd0)
         tau = np.zeros(4, dtype=np.int64)
         ticks = [fw.io_tick for fw in fws]
+        n = 0
         try:
             for n in range(n_ticks):
+                self._tick = n
                 c = plant.encoder_counts()
                 tau[0] = ticks[0](n, int(c[0]))
                 tau[1] = ticks[1](n, int(c[1]))
@@ -66,10 +70,20 @@ class InProcessBench:
                 plant.step(tau, dist[n])
         except PlantError as exc:
             self._collect_emcy(trial)
-            raise TrialFault(f"plant error at tick {n} of trial {trial}: {exc}") from exc
+            msg = f"plant error at tick {n} of trial {trial}: {exc}"
+            raise TrialFault(msg, FaultRecord(kind=FaultKind.PLANT_ERROR, message=msg, node="plant", trial=trial,
+                                              tick=n, detected_by="plant")) from exc
+        self._tick = None
         faults = self._collect_emcy(trial)
         if faults:
-            raise TrialFault("; ".join(f"node {e['node']}: EMCY 0x{e['code']:04X}" for e in faults))
+            first = faults[0]
+            fw = self.firmware[DRIVE_NODE_IDS.index(first["node"])]
+            tick = int.from_bytes(fw.read_object(0x2120, 3), "little")
+            msg = "; ".join(f"node {e['node']}: EMCY 0x{e['code']:04X}" for e in faults)
+            raise TrialFault(msg, FaultRecord(kind=FaultKind.EMCY, message=msg, node=f"drive{first['node']}",
+                                              node_id=first["node"], trial=trial, tick=tick,
+                                              detected_by=f"drive{first['node']}", latency_ms=0.0,
+                                              latency_basis="same process"))
 
     def _collect_emcy(self, trial: int) -> list[dict[str, Any]]:
         """Move pending EMCY frames into the log; return the new fault (non-reset) ones."""
@@ -89,9 +103,20 @@ class InProcessBench:
     def info(self) -> dict[str, Any]:
         return {"emcy": self.emcy}
 
+    def progress(self) -> int | None:
+        """The tick of the trial in progress (None between trials)."""
+        return self._tick
+
     def close(self) -> None:
         for fw in self.firmware:
             try:
                 fw.nmt_command(NmtCommand.STOP)  # removes torque
             except Exception:  # closing must never hide the original error
                 logger.debug("stopping drive failed", exc_info=True)
+
+    def safe_state(self) -> list[dict[str, Any]]:
+        """Per drive after :meth:`close`: torque off (NMT STOPPED), its CiA 402 state."""
+        return [{"node": f"drive{nid}", "node_id": nid, "torque": "on" if fw.torque_enabled else "off",
+                 "nmt": fw.nmt_state.name, "cia402": fw.cia402_state.name,
+                 "evidence": "in-process firmware: NMT STOPPED"}
+                for nid, fw in zip(DRIVE_NODE_IDS, self.firmware)]

@@ -5,15 +5,27 @@ The host side is the same for every mode: it talks to the four drives only throu
 :class:`Bench` to run a trial.  ``ilcrig sim`` uses the in-process bench of
 :mod:`host.experiment.inprocess`; ``ilcrig run`` a bench whose drives and plant are other processes on CAN.
 
-The run folder gets ``summary.json`` (:mod:`host.experiment.summary`), rewritten atomically after
-every trial so a fault or Ctrl-C never corrupts the results of earlier trials.
+The run folder gets ``summary.json`` (:mod:`host.experiment.summary`), written before the first
+trial and rewritten atomically after every trial so a fault or Ctrl-C never corrupts the results
+of earlier trials.
+
+One fault path: whatever ends a run early — a :class:`TrialFault` of the bench, a node that
+stopped answering, a failing write of the outputs (a full disk), Ctrl-C / SIGTERM — ends it the
+same way: the bench is closed (every live drive brought to a torque-free safe state, reported by
+the bench's optional ``safe_state()`` into ``summary["safe_state"]``), the fault goes into
+``summary["faults"]`` as a :class:`host.experiment.faults.FaultRecord` (an interrupt into
+``summary["interrupted"]``), and the summary is written with every completed trial (after giving
+back the run folder's space reserve when the disk was full).
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import signal
+import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -21,7 +33,9 @@ from typing import Any, Protocol
 import numpy as np
 
 from bus import units
-from bus.errors import IlcrigError
+from bus.errors import IlcrigError, SdoAbort
+from host.experiment.faults import FaultKind, FaultRecord, attach_injection, read_injections
+from host.experiment.outputs import OutputError, RunFolder
 from host.experiment.plan import Plan, reference_tables
 from host.experiment.summary import SCHEMA, jsonable, write_summary
 from host.learning.metrics import TraceDigest, TrialMetrics, trial_metrics
@@ -30,11 +44,65 @@ from host.planning.trajectory import JointReference
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Bench", "TrialRecorder", "TrialFault", "run_experiment", "ExperimentResult", "new_summary"]
+__all__ = ["Bench", "TrialRecorder", "TrialFault", "Interrupted", "interrupt_on_signals", "run_experiment",
+           "ExperimentResult", "new_summary"]
 
 
 class TrialFault(IlcrigError):
-    """A trial could not complete (drive fault, plant error, lost node); torque was removed."""
+    """A trial could not complete (drive fault, plant error, lost node); torque was removed.
+
+    :ivar record: what the bench knows about it (kind, node, tick, who detected it), if anything
+    """
+
+    def __init__(self, message: str, record: FaultRecord | None = None) -> None:
+        super().__init__(message)
+        self.record = record
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGINT / SIGTERM during a run (raised by the signal handler of the process)."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+class _Shield:
+    """While :attr:`active` (the end of a run: safe state, summary), the signal handler of
+    :func:`interrupt_on_signals` records a signal in :attr:`pending` instead of raising."""
+
+    active: bool = False
+    pending: int | None = None
+
+
+_SHIELD = _Shield()
+
+
+@contextlib.contextmanager
+def interrupt_on_signals(signals: Sequence[int] = (signal.SIGINT, signal.SIGTERM)) -> Iterator[None]:
+    """While inside: SIGINT / SIGTERM raise :class:`Interrupted` in the main thread (the run then
+    ends through its fault path: safe state, summary with an ``interrupted`` marker); a second
+    signal during that shutdown is ignored so the summary gets written. Restores the handlers."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    fired: list[int] = []
+
+    def handler(signum: int, _frame: object) -> None:
+        if fired or _SHIELD.active:
+            if _SHIELD.active and _SHIELD.pending is None:
+                _SHIELD.pending = signum  # the run is ending already: marked, not raised
+            logger.warning("signal %d while stopping: the run ends as soon as its outputs are written", signum)
+            return
+        fired.append(signum)
+        raise Interrupted(signum)
+
+    old = {s: signal.signal(s, handler) for s in signals}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
 
 
 class TrialRecorder(Protocol):
@@ -69,7 +137,12 @@ class Bench(Protocol):
         rig detects a heartbeat loss followed by a boot-up; in-process nothing reboots: [])."""
 
     def close(self) -> None:
-        """Remove torque and release every resource (processes, buses)."""
+        """Remove torque and release every resource (processes, buses).
+
+        Optional, used when present: ``safe_state() -> list[dict]`` (after close: per drive the
+        evidence of its torque-free state), ``describe_fault(exc, trial) -> FaultRecord | None``
+        (what the bench knows about the fault ``exc``), ``progress() -> int | None`` (the tick of
+        the trial in progress)."""
 
 
 @dataclass
@@ -82,6 +155,8 @@ class ExperimentResult:
     traces: list[list[Any]] = field(default_factory=list)  # per trial: DriveTrace per drive
     feedforward: list[np.ndarray] = field(default_factory=list)  # (N, 4) N·m per trial
     fault: str | None = None
+    fault_record: FaultRecord | None = None
+    interrupted: int | None = None  # the signal number
 
 
 def new_summary(plan: Plan, mode: str, digest: TraceDigest) -> dict[str, Any]:
@@ -118,6 +193,7 @@ class _Trials:
         self.qd_ref_rad_s = ref_vel * units.RAD_PER_COUNT
         self.u = plan.u0.copy()  # (N, 4) feed-forward of the next trial, N·m
         self.wall_s = 0.0
+        self.last_traces: list[Any] = []
 
     def setup_drive(self, j: int) -> None:
         """Gains, limits, reference tables, then enable (CiA 402 Operation enabled)."""
@@ -159,9 +235,31 @@ class _Trials:
         res.feedforward.append(self.u.copy())
         if self.keep_traces:
             res.traces.append(traces)
-        if self.recorder is not None:
-            self.recorder.log_trial(k, ref, traces, self.u, e, m)
+        self.last_traces = traces
         return m, e, tau
+
+    def learn(self, e: np.ndarray, tau: np.ndarray, next_trial: int) -> np.ndarray:
+        """The feed-forward of ``next_trial`` from the learning law; one that is not finite or
+        beyond the drive's int32 µN·m table is a fault (the law diverged), never a table."""
+        limit = units.INT32_MAX * units.TORQUE_LSB_NM
+        try:
+            with np.errstate(over="ignore", invalid="ignore"):
+                u = self.plan.law.update(self.u, e, tau)
+            ok = bool(np.all(np.isfinite(u))) and float(np.max(np.abs(u), initial=0.0)) <= limit
+        except FloatingPointError:
+            ok, u = False, self.u
+        if not ok:
+            msg = (f"the learning law {self.plan.law.name} diverged: the feed-forward for trial {next_trial} is not "
+                   f"finite or beyond the drive's ±{limit:.0f} N·m table range")
+            raise TrialFault(msg, FaultRecord(kind=FaultKind.LEARNING_DIVERGED, message=msg, trial=next_trial, tick=0,
+                                              detected_by="host", latency_ms=0.0, latency_basis="same process"))
+        return u
+
+    def log_recording(self, k: int, m: TrialMetrics, e: np.ndarray) -> None:
+        """Trial ``k`` into the recording (after it is in the summary: a failing recording
+        write never loses a completed trial)."""
+        if self.recorder is not None:
+            self.recorder.log_trial(k, self.plan.ref, self.last_traces, self.u, e, m)
 
     def record(self, m: TrialMetrics) -> None:
         """Add trial ``m`` to the summary."""
@@ -173,6 +271,31 @@ class _Trials:
         s["trace_sha256"] = self.digest.hexdigest()
 
 
+def _fault_record(bench: Bench, exc: IlcrigError, trial: int, out_dir: Path | None = None) -> FaultRecord:
+    """The :class:`FaultRecord` of ``exc``: the bench's own description when it has one."""
+    record = exc.record if isinstance(exc, TrialFault) else None
+    describe = getattr(bench, "describe_fault", None)
+    if record is None and describe is not None:
+        record = describe(exc, trial)
+    if record is None:
+        message = str(exc) if isinstance(exc, TrialFault | OutputError) else f"{type(exc).__name__}: {exc}"
+        if isinstance(exc, OutputError):
+            kind = str(exc.kind)
+        elif isinstance(exc, SdoAbort) or "Sdo" in type(exc).__name__:
+            kind = FaultKind.SDO_ERROR
+        else:
+            kind = FaultKind.TRIAL_FAULT
+        record = FaultRecord(kind=kind, message=message, t_detected_mono=time.monotonic(), t_detected_wall=time.time())
+    if record.trial is None:
+        record.trial = trial
+    if record.injected is None and out_dir is not None:
+        attach_injection(record, read_injections(out_dir))
+    if record.tick is None:
+        progress = getattr(bench, "progress", None)
+        record.tick = progress() if progress is not None else None
+    return record
+
+
 def run_experiment(
     plan: Plan,
     bench: Bench,
@@ -182,45 +305,103 @@ def run_experiment(
     on_trial: Callable[[TrialMetrics], None] | None = None,
     keep_traces: bool = False,
     recorder: TrialRecorder | None = None,
+    folder: RunFolder | None = None,
 ) -> ExperimentResult:
-    """Run ``plan.cfg.iterations`` trials on ``bench``; write ``summary.json`` after each.
+    """Run ``plan.cfg.iterations`` trials on ``bench``; write ``summary.json`` before the first
+    and after each.
 
-    A fault (:class:`TrialFault`, or a node that stopped answering between trials) ends the run:
-    torque is removed by closing the bench, the completed trials are kept and the fault is in
-    ``summary["faults"]`` and ``result.fault``."""
+    A fault (:class:`TrialFault`, a node that stopped answering, a failing write of the outputs)
+    or an interrupt ends the run (module docstring): torque is removed by closing the bench, the
+    completed trials are kept, the fault is in ``summary["faults"]`` / ``result.fault_record``, an
+    interrupt in ``summary["interrupted"]`` / ``result.interrupted``.
+
+    :param folder: the run folder's space reserve (given back on a full disk before the final write)
+    """
     out = Path(out_dir) if out_dir is not None else None
     result = ExperimentResult(summary={})
     trials = _Trials(plan, bench, result, keep_traces, recorder)
     summary = result.summary
     summary.update(new_summary(plan, mode, trials.digest))
+    k = 0
     try:
+        if out is not None:
+            write_summary(out, summary, folder=folder, trial=0)
         bench.start()
         for j in range(len(bench.drives)):
             trials.setup_drive(j)
         for k in range(plan.cfg.iterations):
             m, e, tau = trials.run_trial(k)
             trials.record(m)
-            if out is not None:
-                write_summary(out, summary)
             if on_trial is not None:
                 on_trial(m)
+            if out is not None:
+                write_summary(out, summary, folder=folder, trial=k)
+            trials.log_recording(k, m, e)
             if k + 1 < plan.cfg.iterations:
-                trials.u = plan.law.update(trials.u, e, tau)
+                trials.u = trials.learn(e, tau, k + 1)
         summary["completed"] = True
     except IlcrigError as exc:
-        # a fault, or a drive that stopped answering between trials (SDO timeout/abort while
-        # downloading a table or uploading the recorder): torque is removed by closing the
-        # bench, the trials so far are kept
-        result.fault = str(exc) if isinstance(exc, TrialFault) else f"{type(exc).__name__}: {exc}"
-        summary["faults"].append({"trial": len(summary["iterations"]), "message": str(exc)})
-        logger.error("trial %d faulted: %s", len(summary["iterations"]), exc)
+        # a fault, a drive that stopped answering between trials (SDO timeout/abort while
+        # downloading a table or uploading the recorder), a failing write: torque is removed by
+        # closing the bench, the trials so far are kept
+        done = len(summary["iterations"])
+        record = _fault_record(bench, exc, done, out)
+        result.fault_record = record
+        result.fault = record.message
+        summary["faults"].append(record.as_dict())
+        logger.info("trial %d faulted: %s", done, exc)  # the run's closing line says it
+    except KeyboardInterrupt as exc:  # Ctrl-C, or Interrupted from the SIGTERM/SIGINT handler
+        signum = getattr(exc, "signum", signal.SIGINT)
+        result.interrupted = int(signum)
+        progress = getattr(bench, "progress", None)
+        summary["interrupted"] = {"signal": signal.Signals(signum).name, "trial": len(summary["iterations"]),
+                                  "tick": progress() if progress is not None else None}
+        logger.info("interrupted by %s during trial %d", signal.Signals(signum).name, len(summary["iterations"]))
     finally:
+        _SHIELD.active, _SHIELD.pending = True, None
         try:
-            summary["bench"] = jsonable(bench.info())
+            _finish(bench, summary, recorder, out, folder, result)
         finally:
-            bench.close()
-            if recorder is not None:
-                recorder.close()
-        if out is not None:
-            write_summary(out, summary)
+            _SHIELD.active = False
+            if _SHIELD.pending is not None and result.interrupted is None and not summary.get("completed"):
+                result.interrupted = _SHIELD.pending
     return result
+
+
+def _finish(bench: Bench, summary: dict[str, Any], recorder: TrialRecorder | None, out: Path | None,
+            folder: RunFolder | None, result: ExperimentResult) -> None:
+    """The end of every run: bench info, close (safe state), recording, the final summary."""
+    try:
+        summary["bench"] = jsonable(bench.info())
+    except Exception:  # noqa: BLE001 - the summary must still be written
+        logger.warning("bench info unavailable", exc_info=True)
+    try:
+        bench.close()
+    finally:
+        safe_state = getattr(bench, "safe_state", None)
+        if safe_state is not None:
+            summary["safe_state"] = jsonable(safe_state())
+        if recorder is not None:
+            recorder.close()
+        _final_write(out, summary, folder, result)
+
+
+def _final_write(out: Path | None, summary: dict[str, Any], folder: RunFolder | None,
+                 result: ExperimentResult) -> None:
+    """The last summary write, after giving back the run folder's space reserve (room for it on
+    a full disk). A failure here is logged and recorded in the result (the previous summary stays
+    valid)."""
+    if folder is not None:
+        folder.release()
+    if out is None:
+        return
+    try:
+        write_summary(out, summary, folder=folder)
+    except OutputError as exc:
+        logger.error("the final summary could not be written (the last one written stays): %s", exc)
+        if result.fault_record is None:
+            record = FaultRecord(kind=exc.kind, message=str(exc), trial=len(summary["iterations"]),
+                                 t_detected_mono=time.monotonic(), t_detected_wall=time.time())
+            result.fault_record = record
+            result.fault = record.message
+            summary["faults"].append(record.as_dict())

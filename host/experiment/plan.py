@@ -3,29 +3,125 @@
 This module owns :func:`prepare`: plan the task trajectory, map it to joint references,
 check feasibility, resolve the gains, build the learning law and run its convergence check,
 and compute the initial feed-forward.  Anything infeasible raises a ``ValueError`` subclass
-with a one-line message, before a process starts or a drive is configured.
+(:class:`PlanError` for the checks made here) with a one-line message naming the option, before a
+process starts or a drive is configured.  The cheap checks come first, so a bad input is refused
+in well under a second: the trial length against the drives' table capacity and the memory the
+preparation needs (:func:`prepare_memory_bytes`, an estimate easy to change), the learning lead
+against N, then path, trajectory and feasibility, then the feedback gains against the drive's
+fixed-point range (:mod:`bus.fixedpoint`), and only then the lifted model and its convergence
+check (whose non-finite results, e.g. of absurd learning gains, count as "diverges").
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import math
+import os
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from bus import fixedpoint as fp
 from bus import units
+from bus.objects import TABLE_CAPACITY
 from host.experiment.config import ExperimentConfig
 from host.experiment.summary import jsonable
 from host.learning.ilc import ConvergenceReport, Gains, LearningLaw, LiftedModel, make_law, resolve_gains
 from host.planning.paths import resolve_path
-from host.planning.trajectory import JointReference, check_feasibility, joint_reference, plan_task
+from host.planning.trajectory import JointReference, check_feasibility, joint_reference, plan_task, trial_samples
 from plant.dynamics import inverse_dynamics, mass_matrix
 from plant.params import default_true_plant, nominal_mass_model
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Plan", "prepare", "reference_tables"]
+__all__ = ["Plan", "PlanError", "prepare", "preflight", "prepare_memory_bytes", "reference_tables"]
+
+#: the preparation holds about this many dense (4N × 4N) float64 matrices at its peak (the lifted
+#: model G, the iteration map and their temporaries; measured: 0.35 GB more at N = 1001 than at
+#: N = 501).  Issue 11 makes the preparation O(N); then change :func:`prepare_memory_bytes`.
+PREPARE_DENSE_MATRICES: float = 4.0
+#: fixed part of the preparation's memory, bytes
+PREPARE_BASE_BYTES: int = 300 * 1024**2
+
+
+class PlanError(ValueError):
+    """The experiment cannot be prepared (one line naming the option and the allowed range)."""
+
+
+def prepare_memory_bytes(n_ticks: int, joints: int = 4) -> int:
+    """Estimated peak memory of :func:`prepare` for trials of ``n_ticks`` samples, bytes."""
+    return int(PREPARE_BASE_BYTES + PREPARE_DENSE_MATRICES * 8 * (joints * n_ticks) ** 2)
+
+
+def available_memory_bytes() -> int | None:
+    """MemAvailable of /proc/meminfo (else physical memory), bytes; None if unknown."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _gib(n: float) -> str:
+    return f"{n / 1024**3:.1f} GiB"
+
+
+def preflight(cfg: ExperimentConfig) -> int:
+    """The cheap checks that need no planning: the trial length N against the drives' table
+    capacity and the machine's memory, the learning lead against N. Returns N.
+
+    :raises PlanError: one line naming the option.
+    """
+    n = trial_samples(cfg.cycle_s, cfg.ts_s)
+    if n > TABLE_CAPACITY:
+        max_cycle = (TABLE_CAPACITY - 1) // 2 * cfg.ts_s
+        raise PlanError(f"--cycle {cfg.cycle_s:g}: a trial of N = {n} samples exceeds the drives' table capacity "
+                        f"of {TABLE_CAPACITY} samples (0x2103:2); use a cycle of at most {max_cycle:g} s")
+    need = prepare_memory_bytes(n)
+    have = available_memory_bytes()
+    if have is not None and need > have:
+        # the largest N whose estimate fits, as a cycle time
+        n_fit = int(math.sqrt(max(have - PREPARE_BASE_BYTES, 0) / (PREPARE_DENSE_MATRICES * 8)) / 4)
+        max_cycle = max((n_fit - 1) // 2, 0) * cfg.ts_s
+        raise PlanError(f"--cycle {cfg.cycle_s:g}: preparing a trial of N = {n} samples needs about {_gib(need)} of "
+                        f"memory (the convergence check's lifted model), this machine has {_gib(have)} available; "
+                        f"use a cycle of at most about {max_cycle:.2f} s")
+    if cfg.gains.lead >= n:
+        raise PlanError(f"--lead {cfg.gains.lead}: the learning lead must be less than N = {n} samples per trial "
+                        f"(0..{n - 1})")
+    return n
+
+
+def _check_gain_range(gains: Gains) -> None:
+    """The feedback gains must be representable in the drive's Q16 formats (bus.fixedpoint)."""
+    for what, values, top, option in (("Kp", gains.kp, fp.KP_MAX_NM_PER_RAD, "--alpha/--lp/--lp-norm"),
+                                      ("Kd", gains.kd, fp.KD_MAX_NMS_PER_RAD, "--beta/--ld/--ld-norm")):
+        unit = "N·m/rad" if what == "Kp" else "N·m·s/rad"
+        for j, v in enumerate(np.asarray(values, dtype=float)):
+            if not math.isfinite(v) or not 0.0 <= v <= top:
+                raise PlanError(f"{option}: the feedback gain {what} of joint {j + 1} = {v:.6g} {unit} is outside the "
+                                f"drive's fixed-point range 0..{top:.6g} {unit} (bus/fixedpoint.py)")
+
+
+def _finite_check(check: ConvergenceReport) -> ConvergenceReport:
+    """Non-finite numbers of the convergence check (overflowing predictions) → inf, not ok."""
+    changes: dict[str, Any] = {}
+    for f in dataclasses.fields(check):
+        v = getattr(check, f.name)
+        if isinstance(v, float) and not math.isfinite(v):
+            changes[f.name] = math.inf
+    if not changes:
+        return check
+    logger.warning("convergence check: non-finite %s (the linearised model diverges)", ", ".join(sorted(changes)))
+    return dataclasses.replace(check, ok=False, **changes)
 
 
 @dataclass
@@ -49,6 +145,7 @@ class Plan:
 def prepare(cfg: ExperimentConfig) -> Plan:
     """Plan the task, map it to joints, check feasibility and convergence (raise ValueError
     subclasses with one-line messages on anything infeasible)."""
+    preflight(cfg)
     path = resolve_path(cfg.path)
     task = plan_task(path, cfg.cycle_s, cfg.profile, cfg.ts_s)
     ref = joint_reference(task)
@@ -57,10 +154,13 @@ def prepare(cfg: ExperimentConfig) -> Plan:
     feas = check_feasibility(ref, model)
     inertia_seq = np.array([mass_matrix(q, model) for q in ref.q])
     mean_inertia = np.mean(np.diagonal(inertia_seq, axis1=1, axis2=2), axis=0)
-    gains = resolve_gains(cfg.gains, mean_inertia, cfg.ts_s)
+    with np.errstate(over="ignore", invalid="ignore"):
+        gains = resolve_gains(cfg.gains, mean_inertia, cfg.ts_s)
+    _check_gain_range(gains)
     lifted = LiftedModel(inertia_seq, gains.kp, gains.kd, cfg.ts_s)
     law = make_law(cfg.law, gains, cfg.ts_s, model=lifted)
-    check = law.check(lifted, None, cfg.iterations)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        check = _finite_check(law.check(lifted, None, cfg.iterations))
     if not check.ok:
         logger.warning("convergence check failed for law %s: spectral radius %.3f, predicted error ratio "
                        "after %d trials %.3g: expect divergence", cfg.law, check.rho_max, check.iterations,

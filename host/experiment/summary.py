@@ -1,20 +1,30 @@
 """The run summary, ``summary.json`` (schema ``ilcrig.summary/1``).
 
 This module owns the summary's schema name, its skeleton before the first trial, the per-trial
-update, the conversion of results to JSON-safe values, and the atomic write (temporary file,
-fsync, rename) so that a failing write or a fault never leaves a corrupt or partial summary.
+update, the conversion of results to JSON-safe values (a non-finite number becomes ``null``, with a
+warning: a NaN never reaches the file), and the atomic write (temporary file, fsync, rename) so
+that a failing write or a fault never leaves a corrupt or partial summary: when the write fails
+the previous ``summary.json`` stays as it was, the temporary file is removed and one
+:class:`host.experiment.outputs.OutputError` is raised.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
+import math
 import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["SCHEMA", "jsonable", "write_summary"]
+from host.experiment.outputs import OutputError, RunFolder, output_error
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["SCHEMA", "finite", "jsonable", "write_summary"]
 
 #: the summary's schema name and version
 SCHEMA = "ilcrig.summary/1"
@@ -37,13 +47,44 @@ def jsonable(obj: Any) -> Any:
     return obj
 
 
-def write_summary(out_dir: Path, summary: dict[str, Any]) -> None:
-    """Replace ``out_dir/summary.json`` atomically: write a temporary file, fsync, rename."""
-    out_dir.mkdir(parents=True, exist_ok=True)
+def finite(obj: Any, where: str = "summary") -> Any:
+    """``obj`` with every non-finite float replaced by None (logged with its place)."""
+    if isinstance(obj, float):
+        if math.isfinite(obj):
+            return obj
+        logger.warning("%s: non-finite value %r written as null", where, obj)
+        return None
+    if isinstance(obj, dict):
+        return {k: finite(v, f"{where}.{k}") for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [finite(v, f"{where}[{i}]") for i, v in enumerate(obj)]
+    return obj
+
+
+def write_summary(out_dir: Path, summary: dict[str, Any], *, folder: RunFolder | None = None,
+                  trial: int | None = None) -> None:
+    """Replace ``out_dir/summary.json`` atomically: write a temporary file, fsync, rename.
+
+    :param folder: the run folder's reserve / write-failure switch (fault injection)
+    :param trial: the trial this write belongs to (for the injected failure)
+    :raises OutputError: the write failed (a :class:`~host.experiment.outputs.DiskFullError` on a
+        full disk); the previous summary is untouched and no temporary file is left.
+    """
     tmp = out_dir / "summary.json.tmp"
-    data = json.dumps(summary, indent=2, allow_nan=False)
-    with open(tmp, "w", encoding="utf-8") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, out_dir / "summary.json")
+    data = json.dumps(finite(jsonable(summary)), indent=2, allow_nan=False)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        if folder is not None:
+            folder.check_write(trial)
+        with open(tmp, "w", encoding="utf-8") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, out_dir / "summary.json")
+    except OSError as err:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise output_error(str(out_dir / "summary.json"), err) from None
+
+
+__all__ += ["OutputError"]

@@ -6,6 +6,9 @@ client: the rig's implementation of the object-access protocol :class:`bus.cia30
 This module owns the mapping of canopen's SDO errors to the project's: an SDO abort from the
 node becomes :class:`bus.errors.SdoAbort` (same code, exactly what the in-process access
 raises), a transport failure (no answer, unexpected response) :class:`SdoTransportError`.
+:meth:`SdoAccess.cancel` (from another thread: the host's watchdog that declared the node or the
+run lost) wakes a request waiting for its answer at once and refuses every later one, so a lost
+node never holds the host for the SDO response timeout.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from __future__ import annotations
 import logging
 from typing import Any
 
+import can
 import canopen
 
 from bus.errors import IlcrigError, SdoAbort
@@ -21,7 +25,21 @@ logger = logging.getLogger(__name__)
 
 
 class SdoTransportError(IlcrigError):
-    """The node did not answer an SDO request (timeout) or answered out of protocol."""
+    """The node did not answer an SDO request (timeout) or answered out of protocol, or the access
+    was cancelled (:attr:`cancelled`).
+
+    :ivar node_id: the node's id
+    """
+
+    def __init__(self, message: str, node_id: int | None = None, cancelled: bool = False) -> None:
+        super().__init__(message)
+        self.node_id = node_id
+        self.cancelled = cancelled
+
+
+#: an SDO abort response (0x80, code 0x05040000) that :meth:`SdoAccess.cancel` puts into the
+#: canopen client's response queue to wake a waiting request
+_WAKE = bytes([0x80, 0, 0, 0, 0x00, 0x00, 0x04, 0x05])
 
 
 class SdoAccess:
@@ -36,6 +54,29 @@ class SdoAccess:
     def __init__(self, node: Any, block_transfer: bool = True) -> None:
         self.node = node
         self.block_transfer = block_transfer
+        self.cancelled: str | None = None
+
+    def cancel(self, reason: str) -> None:
+        """Refuse every further request (:class:`SdoTransportError` with ``reason``) and wake the
+        one waiting for its response now (thread-safe)."""
+        self.cancelled = reason
+        responses = getattr(getattr(self.node, "sdo", None), "responses", None)
+        if responses is not None:
+            responses.put(_WAKE)
+
+    def _check(self) -> None:
+        if self.cancelled is not None:
+            raise SdoTransportError(f"node {self.node.id}: {self.cancelled}", self.node.id, cancelled=True)
+
+    def _aborted(self, err: Any, what: str) -> IlcrigError:
+        if self.cancelled is not None:
+            return SdoTransportError(f"node {self.node.id}: {self.cancelled}", self.node.id, cancelled=True)
+        return SdoAbort(err.code, f"node {self.node.id} {what}")
+
+    def _failed(self, err: Exception, what: str) -> SdoTransportError:
+        if self.cancelled is not None:
+            return SdoTransportError(f"node {self.node.id}: {self.cancelled}", self.node.id, cancelled=True)
+        return SdoTransportError(f"node {self.node.id}: {what} failed: {err}", self.node.id)
 
     def _is_domain(self, index: int, sub: int) -> bool:
         """True when the node's object dictionary declares ``index:sub`` a DOMAIN (tables,
@@ -49,13 +90,14 @@ class SdoAccess:
 
     def read_block(self, index: int, sub: int) -> bytes:
         """SDO block upload (for the recorder DOMAIN)."""
+        self._check()
         try:
             with self.node.sdo.open(index, sub, "rb", block_transfer=True) as fh:
                 return bytes(fh.read())
         except canopen.SdoAbortedError as err:
-            raise SdoAbort(err.code, f"node {self.node.id} read 0x{index:04X}:{sub}") from None
-        except canopen.SdoCommunicationError as err:
-            raise SdoTransportError(f"node {self.node.id}: read 0x{index:04X}:{sub} failed: {err}") from err
+            raise self._aborted(err, f"read 0x{index:04X}:{sub}") from None
+        except (canopen.SdoCommunicationError, can.CanError) as err:
+            raise self._failed(err, f"read 0x{index:04X}:{sub}") from err
 
     def read_object(self, index: int, sub: int) -> bytes:
         """SDO upload of ``index:sub``.
@@ -65,12 +107,13 @@ class SdoAccess:
         """
         if self.block_transfer and self._is_domain(index, sub):
             return self.read_block(index, sub)
+        self._check()
         try:
             return bytes(self.node.sdo.upload(index, sub))
         except canopen.SdoAbortedError as err:
-            raise SdoAbort(err.code, f"node {self.node.id} read 0x{index:04X}:{sub}") from None
-        except canopen.SdoCommunicationError as err:
-            raise SdoTransportError(f"node {self.node.id}: read 0x{index:04X}:{sub} failed: {err}") from err
+            raise self._aborted(err, f"read 0x{index:04X}:{sub}") from None
+        except (canopen.SdoCommunicationError, can.CanError) as err:
+            raise self._failed(err, f"read 0x{index:04X}:{sub}") from err
 
     def write_object(self, index: int, sub: int, data: bytes) -> None:
         """SDO download of ``data`` to ``index:sub`` (expedited up to 4 bytes, else segmented).
@@ -78,6 +121,7 @@ class SdoAccess:
         :raises SdoAbort: the node refused (abort code as sent).
         :raises SdoTransportError: no (valid) answer.
         """
+        self._check()
         try:
             if self.block_transfer and len(data) >= self.BLOCK_THRESHOLD:
                 with self.node.sdo.open(index, sub, "wb", size=len(data), block_transfer=True) as fh:
@@ -85,6 +129,6 @@ class SdoAccess:
             else:
                 self.node.sdo.download(index, sub, bytes(data))
         except canopen.SdoAbortedError as err:
-            raise SdoAbort(err.code, f"node {self.node.id} write 0x{index:04X}:{sub}") from None
-        except canopen.SdoCommunicationError as err:
-            raise SdoTransportError(f"node {self.node.id}: write 0x{index:04X}:{sub} failed: {err}") from err
+            raise self._aborted(err, f"write 0x{index:04X}:{sub}") from None
+        except (canopen.SdoCommunicationError, can.CanError) as err:
+            raise self._failed(err, f"write 0x{index:04X}:{sub}") from err

@@ -1,0 +1,166 @@
+"""Faults of a run: the summary's ``faults`` entries, the injection records, the one terminal line.
+
+This module owns
+
+* :class:`FaultKind` — the vocabulary of fault kinds (a lost node, a lost or silent bus, a lost,
+  late, duplicated or damaged io frame, an EMCY, a full disk …);
+* :class:`FaultRecord` — one ``faults`` entry of ``summary.json``: kind, node, trial, tick, who
+  detected it and the detection latency in ms (with what the latency was measured against);
+* the injection records that ``ilcrig run --inject`` leaves in ``RUN_DIR/logs/injections*.jsonl``
+  (one JSON object per line: ``kind``, ``target``, ``trial``, ``tick``, ``t_mono``, ``t_wall``, …) and
+  :func:`attach_injection`, which measures a detection against the injection that caused it;
+* :func:`fault_line` — the one line ``ilcrig: fault: …`` a faulted run ends with.
+
+Latency: ``t_mono`` values are ``time.monotonic()`` (CLOCK_MONOTONIC, one clock for every process
+of the machine), ``t_wall`` values ``time.time()``; a latency is taken on the monotonic clock when
+both ends have it, else on the wall clock.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+from dataclasses import dataclass, field
+from enum import StrEnum
+from pathlib import Path
+from typing import Any
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["FaultKind", "FaultRecord", "attach_injection", "fault_line", "read_injections", "INJECTION_LOG_GLOB"]
+
+#: where the injectors write their records, relative to the run folder
+INJECTION_LOG_GLOB = "logs/injections*.jsonl"
+
+
+class FaultKind(StrEnum):
+    """What went wrong (``faults[].kind`` in the summary)."""
+
+    PROCESS_DIED = "process_died"  #: a role process ended (seen by the launcher)
+    NODE_LOST = "node_lost"  #: a node's heartbeat stopped (host heartbeat consumer): a dead or stalled node
+    HOST_LOST = "host_lost"  #: the host's heartbeat stopped (the nodes' consumer, EMCY 0x8130)
+    BUS_LOST = "bus_lost"  #: the bus itself failed (the hub is gone)
+    BUS_SILENT = "bus_silent"  #: no node heard at all (the hub stalled)
+    FRAME_LOST = "frame_lost"  #: a tick's deadline passed: an io frame lost or late
+    FRAME_SEQUENCE = "frame_sequence"  #: an io frame duplicated, stale or out of sequence
+    FRAME_ERROR = "frame_error"  #: an io frame damaged on the wire (bus error frame) or malformed
+    EMCY = "emcy"  #: a node reported a fault (drive following error, …)
+    PLANT_ERROR = "plant_error"  #: the plant model failed
+    LEARNING_DIVERGED = "learning_diverged"  #: the learned feed-forward is not finite or beyond the drive's table range
+    SDO_ERROR = "sdo_error"  #: a node refused or did not answer an SDO request
+    DISK_FULL = "disk_full"  #: the run folder's filesystem is full
+    OUTPUT_ERROR = "output_error"  #: another failing write of the run's outputs
+    TRIAL_FAULT = "trial_fault"  #: anything else that ended a trial
+
+
+@dataclass
+class FaultRecord:
+    """One fault of a run (an entry of ``summary["faults"]``).
+
+    :ivar kind: a :class:`FaultKind` value
+    :ivar message: one line saying what happened
+    :ivar node: the node or process it concerns: ``drive1`` … ``drive4``, ``plant``, ``hub``, ``host``
+    :ivar node_id: its CANopen node id, if it has one
+    :ivar trial: the trial in progress (0-based; = the number of completed trials)
+    :ivar tick: the tick of that trial, if known
+    :ivar detected_by: who noticed: ``host``, ``plant``, ``drive2``, ``launcher`` …
+    :ivar latency_ms: detection latency, ms (None if nothing to measure it against)
+    :ivar latency_basis: what the latency was measured from (``injection``, ``process exit``, …)
+    """
+
+    kind: str
+    message: str
+    node: str | None = None
+    node_id: int | None = None
+    trial: int | None = None
+    tick: int | None = None
+    detected_by: str = "host"
+    latency_ms: float | None = None
+    latency_basis: str | None = None
+    t_detected_mono: float | None = None
+    t_detected_wall: float | None = None
+    injected: dict[str, Any] | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready (no NaN)."""
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "extra"}
+        d.update(self.extra)
+        if d["latency_ms"] is not None:
+            d["latency_ms"] = round(float(d["latency_ms"]), 3) if math.isfinite(d["latency_ms"]) else None
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> FaultRecord:
+        names = {f.name for f in dataclasses.fields(cls)} - {"extra"}
+        rec = cls(**{k: v for k, v in d.items() if k in names})
+        rec.extra = {k: v for k, v in d.items() if k not in names}
+        return rec
+
+    def where(self) -> str:
+        """``drive2 (node 2), trial 1, tick 150`` (the parts that are known)."""
+        parts = []
+        if self.node:
+            parts.append(self.node + (f" (node {self.node_id})" if self.node_id is not None
+                                      and not self.node.endswith(str(self.node_id)) else ""))
+        parts.append(f"trial {self.trial if self.trial is not None else '?'}")
+        parts.append(f"tick {self.tick}" if self.tick is not None else "tick unknown")
+        return ", ".join(parts)
+
+
+def fault_line(record: FaultRecord, kept: int, *, summary_path: str | Path | None = None, extra: str = "") -> str:
+    """The one terminal line of a faulted run: ``ilcrig: fault: <what>: <node>, trial k, tick n; …``."""
+    latency = (f" after {record.latency_ms:.0f} ms" if record.latency_ms is not None else "")
+    text = (f"ilcrig: fault: {record.message} [{record.kind}]: {record.where()}; detected by {record.detected_by}"
+            f"{latency}; torque removed, {kept} completed trial{'s' if kept != 1 else ''} kept")
+    if extra:
+        text += f"; {extra}"
+    if summary_path is not None:
+        text += f"; summary: {summary_path}"
+    return text
+
+
+def read_injections(run_dir: str | Path) -> list[dict[str, Any]]:
+    """Every injection record of a run folder (``logs/injections*.jsonl``), oldest first."""
+    out: list[dict[str, Any]] = []
+    for path in sorted(Path(run_dir).glob(INJECTION_LOG_GLOB)):
+        try:
+            lines = path.read_text(encoding="utf-8").splitlines()
+        except OSError as err:
+            logger.warning("cannot read %s: %s", path, err)
+            continue
+        for line in lines:
+            try:
+                rec = json.loads(line)
+            except ValueError:
+                continue  # a torn last line of a killed injector
+            if isinstance(rec, dict):
+                out.append(rec)
+    out.sort(key=lambda r: float(r.get("t_mono", r.get("t_wall", 0.0)) or 0.0))
+    return out
+
+
+def attach_injection(record: FaultRecord, injections: list[dict[str, Any]]) -> FaultRecord:
+    """Measure ``record``'s detection against the earliest injection before it (if any): sets
+    ``injected``, ``latency_ms`` and ``latency_basis = "injection"``. Returns ``record``."""
+    best = None
+    for inj in injections:
+        if record.t_detected_mono is not None and inj.get("t_mono") is not None:
+            if float(inj["t_mono"]) <= record.t_detected_mono + 1e-3:
+                best = inj
+                break
+        elif record.t_detected_wall is not None and inj.get("t_wall") is not None:
+            if float(inj["t_wall"]) <= record.t_detected_wall + 1e-3:
+                best = inj
+                break
+    if best is None:
+        return record
+    record.injected = {k: best[k] for k in ("spec", "kind", "target", "trial", "tick", "by", "t_mono") if k in best}
+    if record.t_detected_mono is not None and best.get("t_mono") is not None:
+        record.latency_ms = max(0.0, 1000.0 * (record.t_detected_mono - float(best["t_mono"])))
+    elif record.t_detected_wall is not None and best.get("t_wall") is not None:
+        record.latency_ms = max(0.0, 1000.0 * (record.t_detected_wall - float(best["t_wall"])))
+    record.latency_basis = "injection"
+    return record
