@@ -50,16 +50,19 @@ class _Parser(argparse.ArgumentParser):
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
+    from host.experiment.outputs import check_out_dir
+
+    out = Path(args.out) if args.out else Path("runs") / time.strftime("sim-%Y%m%d-%H%M%S")
+    check_out_dir(out, create=False)  # fast: before the configuration and the preparation
+    cfg = experiment_config(args)
+    check_out_dir(out, iterations=cfg.iterations, create=False)
+    from host.experiment.plan import prepare
+
+    plan = prepare(cfg)
     from host.analysis.session import report_fault, run_session
     from host.experiment.inprocess import InProcessBench
     from host.experiment.loop import interrupt_on_signals
-    from host.experiment.outputs import check_out_dir
-    from host.experiment.plan import prepare
 
-    cfg = experiment_config(args)
-    out = Path(args.out) if args.out else Path("runs") / time.strftime("sim-%Y%m%d-%H%M%S")
-    check_out_dir(out, iterations=cfg.iterations, create=False)  # fast: before the preparation
-    plan = prepare(cfg)
     check_out_dir(out, iterations=cfg.iterations)
     print_plan(sys.stdout, "sim", plan)
     with interrupt_on_signals():

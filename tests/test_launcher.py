@@ -25,8 +25,8 @@ from pathlib import Path
 import pytest
 
 from host.cli import build_parser
-from host.rig import launcher
 from host.experiment.console import EXIT_FAULT
+from host.rig import launcher
 from host.rig.launcher import EXIT_CHILD_FAILED, RigLauncher, host_role_args, role_command
 
 pytestmark = pytest.mark.multiprocess

@@ -134,9 +134,9 @@ def test_3d_first_and_last_trial(sim_run) -> None:
 
 def _timed_experiment(cfg: Any, plan: Any, tmp: Path | None) -> tuple[float, float]:
     """(wall s, process CPU s) of one run_experiment, including the recorder's creation."""
+    from host.analysis.recording import RunRecorder
     from host.experiment.inprocess import InProcessBench
     from host.experiment.loop import run_experiment
-    from host.analysis.recording import RunRecorder
 
     w0, c0 = time.perf_counter(), time.process_time()
     rec = RunRecorder(tmp / "recording.rrd", config_summary=cfg.as_dict()) if tmp is not None else None
@@ -178,8 +178,8 @@ def test_recording_costs_less_than_10_percent(tmp_path: Path) -> None:
 
 
 def test_log_trial_rejects_bad_shapes(tmp_path: Path) -> None:
-    from host.learning.metrics import trial_metrics
     from host.analysis.recording import RecordingError, RunRecorder
+    from host.learning.metrics import trial_metrics
     from host.planning.trajectory import JointReference
 
     n = 11

@@ -284,6 +284,8 @@ def preflight(args: argparse.Namespace) -> list[FaultSpec]:
     from host.experiment.plan import prepare
 
     specs = parse_specs(getattr(args, "inject", None))
+    if args.out:
+        check_out_dir(args.out, create=False)  # fast: before the configuration and the preparation
     cfg = experiment_config(args)
     if args.out:
         check_out_dir(args.out, iterations=cfg.iterations, create=False)

@@ -1,0 +1,126 @@
+"""The fault matrix (issue 9): every fault kind injected into a real multi-process ``ilcrig run``
+(hub, plant, four drives, host) with ``--inject``, during trial 1 of 2 (short trials), ends the same
+way — exit code 3, one terminal line ``ilcrig: fault: …``, ``summary.json`` with the completed
+trial (its digest equal to ``ilcrig sim --iterations 1``), ``completed: false`` and a ``faults``
+entry naming the kind, node, trial and tick and who detected it, every drive torque-free (on the
+bus or in its log), ``report.md``, and no process or temp folder left.  An interrupt keeps 143 and
+an ``interrupted`` marker.
+
+Runs one rig at a time (they are timing-sensitive on 2 cores); each waits for the launcher to end.
+Marker ``faultmatrix`` (the normal ``pytest`` command runs it; ``-m "not faultmatrix"`` skips it).
+Latency goals are measured by ``benchmarks/fault_matrix.py``, not asserted here.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+from pathlib import Path
+
+import pytest
+from fault_harness import Outcome, kill_session, recorded_trials, run_rig, sim_digest
+
+pytestmark = [pytest.mark.faultmatrix, pytest.mark.multiprocess, pytest.mark.slow]
+
+TICK = 120
+
+# (id, spec, kinds the fault may be reported as, the node it names, who may have detected it)
+CASES = [
+    ("kill-drive", f"kill:drive2@1:{TICK}", {"node_lost"}, "drive2", {"host"}),
+    ("kill-plant", f"kill:plant@1:{TICK}", {"node_lost"}, "plant", {"host"}),
+    ("kill-hub", f"kill:hub@1:{TICK}", {"bus_lost", "bus_silent"}, "hub", {"host"}),
+    ("kill-host", f"kill:host@1:{TICK}", {"process_died"}, "host", {"launcher"}),
+    ("stall-drive", f"stall:drive3@1:{TICK},for=2", {"node_lost"}, "drive3", {"host"}),
+    ("stall-plant", f"stall:plant@1:{TICK},for=2", {"node_lost"}, "plant", {"host"}),
+    ("stall-hub", f"stall:hub@1:{TICK},for=2", {"bus_silent"}, "hub", {"host"}),
+    ("stall-host", f"stall:host@1:{TICK},for=2", {"host_lost"}, "host",
+     {"drive1", "drive2", "drive3", "drive4", "plant"}),
+    ("drop-io", f"drop:io@1:{TICK}", {"frame_lost"}, None, {"plant"}),
+    ("corrupt-io", f"corrupt:io@1:{TICK}", {"frame_error"}, None, {"host", "plant"}),
+    ("duplicate-io", f"duplicate:io@1:{TICK}", {"frame_sequence"}, None,
+     {"drive1", "drive2", "drive3", "drive4", "plant"}),
+    ("delay-io", f"delay:io@1:{TICK}", {"frame_lost"}, None, {"plant"}),
+    ("emcy", f"emcy:drive2@1:{TICK},code=0x8611", {"emcy"}, "drive2", {"drive2"}),
+]
+
+
+def check_common(o: Outcome, kept: int) -> dict:
+    """What every faulted run must show; returns the fault entry."""
+    assert o.code == 3, (o.stdout[-1500:], o.stderr)
+    assert o.left == [], f"processes left: {o.left}"
+    assert o.hub_dir is not None and not os.path.exists(o.hub_dir), "the hub's temp folder is left"
+    assert "Traceback" not in o.stderr and "Traceback" not in o.stdout
+    assert len(o.lines) == 1 and o.lines[0].startswith("ilcrig: fault: "), o.stderr
+    s = o.summary
+    assert s is not None and s["completed"] is False
+    assert o.kept == kept
+    assert s["trace_sha256"] == sim_digest(kept)  # the kept trials are exactly `ilcrig sim --iterations k`'s
+    f = o.fault
+    assert f is not None
+    for key in ("kind", "node", "trial", "tick", "detected_by", "latency_ms", "message"):
+        assert key in f, key
+    # one line: what, which node, trial, tick
+    assert f"trial {f['trial']}" in o.lines[0] and f"[{f['kind']}]" in o.lines[0]
+    drives = {e["node"]: e for e in s["safe_state"] if str(e["node"]).startswith("drive")}
+    assert sorted(drives) == ["drive1", "drive2", "drive3", "drive4"]
+    for e in drives.values():
+        assert e["torque"] == "off", e
+    report = (o.out / "report.md").read_text()
+    assert "**Fault**" in report and (o.out / "convergence.png").exists()
+    return f
+
+
+@pytest.mark.parametrize(("spec", "kinds", "node", "detectors"), [c[1:] for c in CASES], ids=[c[0] for c in CASES])
+def test_injected_fault_ends_the_run_the_one_way(tmp_path: Path, spec: str, kinds: set[str], node: str | None,
+                                                 detectors: set[str]) -> None:
+    o = run_rig(tmp_path / "run", "--inject", spec)
+    try:
+        f = check_common(o, kept=1)
+        assert f["kind"] in kinds, f
+        assert f["detected_by"] in detectors, f
+        if node is not None:
+            assert f["node"] == node, f
+        assert f["trial"] == 1
+        if f["kind"] not in ("bus_lost",):
+            assert f["tick"] is not None and f["tick"] >= TICK, f  # at (or just after) the injection
+        assert f["injected"]["spec"] == spec and f["latency_basis"] == "injection"
+        if spec.startswith("kill:host"):
+            # the host died: the launcher recorded it; the drives saw the host's heartbeat stop
+            assert recorded_trials(o.out / "recording.rrd") == [0]  # the recording kept the completed trial
+            reasons = {e["evidence"] for e in o.summary["safe_state"] if str(e["node"]).startswith("drive")}
+            assert all("heartbeat-of-node-127-lost" in r for r in reasons), reasons
+        if spec.startswith(("kill:drive", "kill:plant", "kill:hub")):
+            assert f["process_ended"]["name"] == spec.split(":")[1].split("@")[0]
+    finally:
+        kill_session(o)
+
+
+def test_full_disk_is_a_fault_with_the_results_kept(tmp_path: Path) -> None:
+    """The run folder's writes fail with ENOSPC from trial 1 on (injected in the host): the space
+    reserve lets the final summary and report be written with both completed trials."""
+    o = run_rig(tmp_path / "run", "--inject", "diskfull@1", iterations=3)
+    try:
+        f = check_common(o, kept=2)
+        assert f["kind"] == "disk_full" and f["detected_by"] == "host"
+        assert not (o.out / "summary.json.tmp").exists() and not (o.out / ".ilcrig-reserve").exists()
+    finally:
+        kill_session(o)
+
+
+def test_sigterm_keeps_143_and_marks_the_summary(tmp_path: Path) -> None:
+    def on_line(line: str, proc) -> None:  # type: ignore[no-untyped-def]
+        if line.split()[:1] == ["0"]:  # the row of trial 0: interrupt during trial 1
+            os.kill(proc.pid, signal.SIGTERM)
+
+    o = run_rig(tmp_path / "run", on_line=on_line)
+    try:
+        assert o.code == 143, o.stderr
+        assert o.left == []
+        assert o.lines == ["ilcrig: interrupted (SIGTERM); stopping 6 processes"]
+        s = o.summary
+        assert s is not None and s["completed"] is False and s["faults"] == []
+        assert s["interrupted"]["signal"] == "SIGTERM" and s["interrupted"]["trial"] == 1
+        assert o.kept == 1 and s["trace_sha256"] == sim_digest(1)
+        assert all(e["torque"] == "off" for e in s["safe_state"])
+    finally:
+        kill_session(o)
