@@ -38,6 +38,7 @@ off, one ``SAFE-STATE`` record (:mod:`bus.safe_state`) is logged with the reason
 
 from __future__ import annotations
 
+import functools
 import logging
 import struct
 from pathlib import Path
@@ -92,6 +93,10 @@ class Drive:
     :raises ValueError: bad node id.
     """
 
+    _power: bool
+    _next_tick: int
+    _capture_hold: bool
+
     def __init__(self, node_id: int, eds_path: str | Path = DEFAULT_EDS_PATH) -> None:
         if not 1 <= int(node_id) <= 127:
             raise ValueError(f"node id must be 1..127, got {node_id}")
@@ -101,8 +106,8 @@ class Drive:
         self.store = ObjectStore(eds_path, self.node_id)
         self.od = self.store.od
         self._vars = self.store.vars
-        self._capacity = int(self._vars[(Obj.TABLE, TableSub.CAPACITY)].default)
-        self._rated_mnm = int(self._vars[(Obj.RATED_TORQUE, 0)].default)
+        self._capacity = int(self._vars[(Obj.TABLE, TableSub.CAPACITY)].default or 0)
+        self._rated_mnm = int(self._vars[(Obj.RATED_TORQUE, 0)].default or 0)
         self._st = loop.new_state()
         self._tables = loop.new_tables(self._capacity)
         self._rec = loop.new_recorder(self._capacity)
@@ -400,7 +405,7 @@ class Drive:
         r[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.VALUE)] = lambda: self._period_repr()[0]
         r[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.INDEX)] = lambda: self._period_repr()[1]
         for index in _TABLE_ROWS:
-            r[(index, 0)] = (lambda i=index: self._read_table(i))
+            r[(index, 0)] = functools.partial(self._read_table, index)
             w[(index, 0)] = (lambda v, i=index: self._write_table(i, v))  # type: ignore[misc]
         r[(Obj.TABLE, TableSub.LENGTH)] = lambda: self._n_table
         r[(Obj.TABLE, TableSub.LOADED)] = lambda: self._loaded
@@ -411,19 +416,19 @@ class Drive:
         r[(Obj.RECORDER, RecorderSub.SAMPLES)] = lambda: self._recorded
         r[(Obj.RECORDER_DATA, 0)] = self._read_recorder
 
-        w[(Obj.CONTROLWORD, 0)] = self._write_controlword  # type: ignore[assignment]
-        w[(Obj.MODES_OF_OPERATION, 0)] = self._write_mode  # type: ignore[assignment]
-        w[(Obj.FOLLOWING_ERROR_WINDOW, 0)] = lambda v: self._write_fe_window(int(v))  # type: ignore[arg-type]
-        w[(Obj.MAX_TORQUE, 0)] = lambda v: self._write_max_torque(int(v))  # type: ignore[arg-type]
-        w[(Obj.TABLE, TableSub.LENGTH)] = self._write_table_length  # type: ignore[assignment]
+        w[(Obj.CONTROLWORD, 0)] = self._write_controlword
+        w[(Obj.MODES_OF_OPERATION, 0)] = self._write_mode
+        w[(Obj.FOLLOWING_ERROR_WINDOW, 0)] = lambda v: self._write_fe_window(int(v))
+        w[(Obj.MAX_TORQUE, 0)] = lambda v: self._write_max_torque(int(v))
+        w[(Obj.TABLE, TableSub.LENGTH)] = self._write_table_length
         for sub in GainsSub:
             w[(Obj.GAINS, sub)] = (lambda v, s=sub: self._write_gains(s, int(v)))  # type: ignore[misc]
-        w[(Obj.TRIAL, TrialSub.COMMAND)] = self._write_trial_command  # type: ignore[assignment]
-        w[(Obj.CONTROL_PERIOD, 0)] = self._write_period  # type: ignore[assignment]
+        w[(Obj.TRIAL, TrialSub.COMMAND)] = self._write_trial_command
+        w[(Obj.CONTROL_PERIOD, 0)] = self._write_period
         w[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.VALUE)] = (
-            lambda v: self._write_interp(int(v), None))  # type: ignore[arg-type]
+            lambda v: self._write_interp(int(v), None))
         w[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.INDEX)] = (
-            lambda v: self._write_interp(None, int(v)))  # type: ignore[arg-type]
+            lambda v: self._write_interp(None, int(v)))
 
     # ------------------------------------------------------------------ object callbacks
 
@@ -434,7 +439,7 @@ class Drive:
 
     def _write_controlword(self, value: Value) -> None:
         before = self._sm.state
-        self._sm.controlword(int(value))  # type: ignore[arg-type]
+        self._sm.controlword(int(value))
         if before == Cia402State.FAULT and self._sm.state != Cia402State.FAULT:
             self._error_register = 0
             self._error_code = 0
@@ -444,7 +449,7 @@ class Drive:
 
     def _write_mode(self, value: Value) -> None:
         if value != ModeOfOperation.TABLE_PLAYBACK:
-            raise SdoAbort(AbortCode.VALUE_RANGE, f"mode of operation {value} not supported (only -1)")
+            raise SdoAbort(AbortCode.VALUE_RANGE, f"mode of operation {value!r} not supported (only -1)")
 
     def _write_fe_window(self, value: int) -> None:
         self._require_not_playing("changing the following-error window")
@@ -465,7 +470,7 @@ class Drive:
         self._st[loop.P_TLIM] = fp.torque_limit_units(permille, self._rated_mnm)
 
     def _set_gains(self, sub: int, value: int) -> None:
-        slot = {GainsSub.KP: loop.P_KP, GainsSub.KD: loop.P_KD, GainsSub.VEL_FILTER: loop.P_ALPHA}[sub]
+        slot = {GainsSub.KP: loop.P_KP, GainsSub.KD: loop.P_KD, GainsSub.VEL_FILTER: loop.P_ALPHA}[GainsSub(sub)]
         self._st[slot] = value
 
     def _set_period(self, period_us: int) -> None:
@@ -473,7 +478,7 @@ class Drive:
 
     def _write_period(self, value: Value) -> None:
         self._require_not_playing("changing the control period")
-        self._set_period(int(value))  # type: ignore[arg-type]
+        self._set_period(int(value))
 
     def _period_repr(self) -> tuple[int, int]:
         """0x60C2 (value, index) for the control period: period = value · 10^index s."""
@@ -493,20 +498,22 @@ class Drive:
         i = cur_i if index is None else index
         scaled = v * 10 ** (i + 6)  # µs; the EDS limits the index to -6..-1
         period = self._vars[(Obj.CONTROL_PERIOD, 0)]
-        if not period.min <= int(scaled) <= period.max:
+        lo = period.min if period.min is not None else 0
+        hi = period.max if period.max is not None else fp.UINT32_MAX
+        if not lo <= int(scaled) <= hi:
             raise SdoAbort(AbortCode.VALUE_RANGE, f"period {scaled} µs outside [{period.min}, {period.max}]")
         self._write_period(int(scaled))
         self._values[(Obj.CONTROL_PERIOD, 0)] = int(scaled)
 
     def _write_table_length(self, value: Value) -> None:
         self._require_not_playing("changing the table length")
-        n = int(value)  # type: ignore[arg-type]
+        n = int(value)
         if n != self._n_table:
             self._loaded = 0
             self._n_table = n
 
     def _read_table(self, index: int) -> bytes:
-        row = _TABLE_ROWS[index]
+        row = _TABLE_ROWS[Obj(index)]
         if not self._loaded & _TABLE_BITS[row]:
             return b""
         return self._tables[row, : self._n_table].astype("<i4").tobytes()
@@ -519,7 +526,7 @@ class Drive:
             raise SdoAbort(AbortCode.DEVICE_STATE, "set the table length 0x2103:1 first")
         if len(data) != 4 * n:
             raise SdoAbort(AbortCode.LENGTH_MISMATCH, f"table needs {4 * n} bytes (N={n}), got {len(data)}")
-        row = _TABLE_ROWS[index]
+        row = _TABLE_ROWS[Obj(index)]
         self._tables[row, :n] = np.frombuffer(data, dtype="<i4")
         self._loaded |= _TABLE_BITS[row]
 

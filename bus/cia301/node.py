@@ -450,7 +450,7 @@ class ObjectStore:
 
     @staticmethod
     def encode(var: ODVariable, value: Value) -> bytes:
-        s = _STRUCTS.get(var.data_type)
+        s = _STRUCTS.get(var.data_type) if var.data_type is not None else None
         if s is not None:
             return s.pack(value)
         if isinstance(value, str):
@@ -460,7 +460,7 @@ class ObjectStore:
     @staticmethod
     def decode(var: ODVariable, data: bytes) -> Value:
         """:raises SdoAbort: 0x06070010 length, 0x06090031/32 limits, 0x06090030 non-ASCII."""
-        s = _STRUCTS.get(var.data_type)
+        s = _STRUCTS.get(var.data_type) if var.data_type is not None else None
         if s is None:
             if var.data_type in (dt.VISIBLE_STRING, dt.UNICODE_STRING):
                 try:

@@ -253,9 +253,8 @@ class RunRecorder:
         size0 = self._size()
         try:
             first = self._ref is None
-            if first:
-                self._ref = ref
-            self._write_trial(int(k), q_meas, error_rad, u, tau_fb, metrics, first)
+            self._write_trial(ref, int(k), q_meas, error_rad, u, tau_fb, metrics, first)
+            self._ref = ref  # after the write: an interrupted first trial is written in full next time
             self._k.append(int(k))
             self._rec.flush()
         except OutputError:
@@ -321,11 +320,9 @@ class RunRecorder:
             raise DiskFullError(f"disk full: {free // 1024} KiB free, trial {k} of the recording {self.path} "
                                 f"needs about {need // 1024} KiB")
 
-    def _write_trial(self, k: int, q: np.ndarray, e: np.ndarray, u: np.ndarray, fb: np.ndarray,
+    def _write_trial(self, ref: JointReference, k: int, q: np.ndarray, e: np.ndarray, u: np.ndarray, fb: np.ndarray,
                      metrics: TrialMetrics, first: bool) -> None:
         pa, rec = self._pa, self._rec
-        ref = self._ref
-        assert ref is not None
         n = int(ref.t.shape[0])
         t_ns = pa.array(np.rint(np.asarray(ref.t, dtype=np.float64) * 1e9).astype(np.int64), pa.duration("ns"))
         comp = _components()
@@ -377,7 +374,7 @@ class RunRecorder:
         if robot.fields:
             robot.send(rec, "trial_time", t_ns.take(pa.array(idx)))
         if first:
-            self._write_static_scene(static)
+            self._write_static_scene(static, ref)
         else:
             static.send(rec)
 
@@ -393,7 +390,7 @@ class RunRecorder:
         st.put("/run_info", "TextDocument:text", [[text]])
         st.put("/run_info", "TextDocument:media_type", [["text/markdown"]])
 
-    def _write_static_scene(self, static: _Batch | None) -> None:
+    def _write_static_scene(self, static: _Batch | None, ref: JointReference | None = None) -> None:
         rr, rec, pa = self._rr, self._rec, self._pa
         from plant.params import Geometry
 
@@ -413,8 +410,9 @@ class RunRecorder:
         st.put("/robot/base/motor_axes", "LineStrips3D:strips", np.stack([A - 0.04 * u_axis, A + 0.04 * u_axis], axis=1)[None])
         st.put("/robot/base/motor_axes", "LineStrips3D:radii", [[0.006]])
         st.put("/robot/base/motor_axes", "LineStrips3D:colors", [[grey]])
-        if self._ref is not None:
-            xyz = self._reference_xyz(self._ref)
+        ref = ref if ref is not None else self._ref
+        if ref is not None:
+            xyz = self._reference_xyz(ref)
             if xyz is not None:
                 st.put("/robot/reference_path", "LineStrips3D:strips", xyz[None, None])
                 st.put("/robot/reference_path", "LineStrips3D:radii", [[0.0015]])

@@ -120,7 +120,9 @@ class TrialRecorder(Protocol):
 class Bench(Protocol):
     """What the host needs from a set of drives plus a plant, whatever connects them."""
 
-    drives: Sequence[DriveClient]
+    @property
+    def drives(self) -> Sequence[DriveClient]:
+        """One client per drive, joint order."""
 
     def start(self) -> None:
         """Bring the nodes to operational (NMT) so they can be configured and enabled."""
@@ -194,6 +196,7 @@ class _Trials:
         self.u = plan.u0.copy()  # (N, 4) feed-forward of the next trial, N·m
         self.wall_s = 0.0
         self.last_traces: list[Any] = []
+        self.pending: tuple[int, TrialMetrics, np.ndarray] | None = None  # in the summary, not yet recorded
 
     def setup_drive(self, j: int) -> None:
         """Gains, limits, reference tables, then enable (CiA 402 Operation enabled)."""
@@ -238,6 +241,18 @@ class _Trials:
         self.last_traces = traces
         return m, e, tau
 
+    def record_pending(self) -> None:
+        """After an interrupt or a fault between a trial's summary entry and its recording: the
+        recording gets the trial too (a failure is logged, never raised)."""
+        if self.pending is None or self.recorder is None:
+            return
+        k, m, e = self.pending
+        self.pending = None
+        try:
+            self.log_recording(k, m, e)
+        except IlcrigError as exc:
+            logger.info("trial %d not recorded: %s", k, exc)
+
     def learn(self, e: np.ndarray, tau: np.ndarray, next_trial: int) -> np.ndarray:
         """The feed-forward of ``next_trial`` from the learning law; one that is not finite or
         beyond the drive's int32 µN·m table is a fault (the law diverged), never a table."""
@@ -260,6 +275,7 @@ class _Trials:
         write never loses a completed trial)."""
         if self.recorder is not None:
             self.recorder.log_trial(k, self.plan.ref, self.last_traces, self.u, e, m)
+        self.pending = None
 
     def record(self, m: TrialMetrics) -> None:
         """Add trial ``m`` to the summary."""
@@ -332,11 +348,12 @@ def run_experiment(
         for k in range(plan.cfg.iterations):
             m, e, tau = trials.run_trial(k)
             trials.record(m)
+            trials.pending = (k, m, e)
             if on_trial is not None:
                 on_trial(m)
+            trials.log_recording(k, m, e)
             if out is not None:
                 write_summary(out, summary, folder=folder, trial=k)
-            trials.log_recording(k, m, e)
             if k + 1 < plan.cfg.iterations:
                 trials.u = trials.learn(e, tau, k + 1)
         summary["completed"] = True
@@ -360,7 +377,7 @@ def run_experiment(
     finally:
         _SHIELD.active, _SHIELD.pending = True, None
         try:
-            _finish(bench, summary, recorder, out, folder, result)
+            _finish(bench, summary, recorder, out, folder, result, trials)
         finally:
             _SHIELD.active = False
             if _SHIELD.pending is not None and result.interrupted is None and not summary.get("completed"):
@@ -369,7 +386,7 @@ def run_experiment(
 
 
 def _finish(bench: Bench, summary: dict[str, Any], recorder: TrialRecorder | None, out: Path | None,
-            folder: RunFolder | None, result: ExperimentResult) -> None:
+            folder: RunFolder | None, result: ExperimentResult, trials: _Trials) -> None:
     """The end of every run: bench info, close (safe state), recording, the final summary."""
     try:
         summary["bench"] = jsonable(bench.info())
@@ -382,6 +399,7 @@ def _finish(bench: Bench, summary: dict[str, Any], recorder: TrialRecorder | Non
         if safe_state is not None:
             summary["safe_state"] = jsonable(safe_state())
         if recorder is not None:
+            trials.record_pending()
             recorder.close()
         _final_write(out, summary, folder, result)
 

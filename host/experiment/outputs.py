@@ -19,9 +19,11 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import json
 import logging
 import os
 import shutil
+import time
 from pathlib import Path
 
 from bus.errors import IlcrigError
@@ -175,6 +177,17 @@ class RunFolder:
         self.reserved = False
         self.released = True
 
+    def _record_injection(self, trial: int) -> None:
+        """The injection record (the format of :func:`bus.transports.fault_inject.write_record`)."""
+        logs = self.path / "logs"
+        if not logs.is_dir():
+            return
+        record = {"by": "host", "spec": f"diskfull@{self.fail_writes_from_trial}", "kind": "diskfull",
+                  "target": str(self.path), "trial": trial, "tick": None, "t_mono": time.monotonic(),
+                  "t_wall": time.time()}
+        with contextlib.suppress(OSError), open(logs / "injections-host.jsonl", "a", encoding="utf-8") as fh:
+            fh.write(json.dumps(record) + "\n")
+
     def check_write(self, trial: int | None) -> None:
         """Raise the injected ``ENOSPC`` when writes must fail at ``trial`` (see
         :attr:`fail_writes_from_trial`)."""
@@ -182,10 +195,5 @@ class RunFolder:
                 and trial >= self.fail_writes_from_trial):
             if not self._injected:
                 self._injected = True
-                from bus.transports.fault_inject import write_record
-
-                logs = self.path / "logs"
-                write_record(logs / "injections-host.jsonl" if logs.is_dir() else None,
-                             {"by": "host", "spec": f"diskfull@{self.fail_writes_from_trial}", "kind": "diskfull",
-                              "target": str(self.path), "trial": trial, "tick": None})
+                self._record_injection(trial)
             raise OSError(errno.ENOSPC, "No space left on device (injected)")

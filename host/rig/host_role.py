@@ -37,7 +37,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import can
 import canopen
@@ -270,7 +270,7 @@ class RigBench:
                 if log is not None:
                     log.parent.mkdir(parents=True, exist_ok=True)
                 self.monitors.append(ChannelMonitor(transport.open(name), name, log))
-            self.network.listeners.append(self._fieldbus_errors)
+            cast(list[Any], self.network.listeners).append(self._fieldbus_errors)  # notes a failing fieldbus
             self.network.connect()
             self.drive_nodes = [self.network.add_node(n, str(DRIVE_EDS_PATH)) for n in DRIVE_NODE_IDS]
             self.bench_node = self.network.add_node(BENCH_NODE_ID, str(BENCH_EDS_PATH))
@@ -278,14 +278,14 @@ class RigBench:
                 # generous: 7 processes share 2 cores; a starved node answers late, not never
                 node.sdo.RESPONSE_TIMEOUT = 5.0 * self.scale
             self._accesses = [SdoAccess(node) for node in self.drive_nodes]
-            self.drives = [DriveClient(acc, node.id) for acc, node in zip(self._accesses, self.drive_nodes)]
+            self.drives = [DriveClient(acc, nid) for acc, nid in zip(self._accesses, DRIVE_NODE_IDS)]
             self._bench_access = SdoAccess(self.bench_node)
             self._accesses.append(self._bench_access)
             self.bench = BenchClient(self._bench_access)
-            for node in (*self.drive_nodes, self.bench_node):
+            for nid, node in zip((*DRIVE_NODE_IDS, BENCH_NODE_ID), (*self.drive_nodes, self.bench_node)):
                 # canopen's own consumers: RemoteNode.nmt hears the heartbeats, .emcy the EMCYs
-                node.nmt.add_heartbeat_callback(functools.partial(self._on_heartbeat, node.id))
-                node.emcy.add_callback(functools.partial(self._on_emcy, node.id))
+                node.nmt.add_heartbeat_callback(functools.partial(self._on_heartbeat, nid))
+                node.emcy.add_callback(functools.partial(self._on_emcy, nid))
             self._heartbeat = HostHeartbeat(self.network, HOST_HEARTBEAT_MS / 1000.0)
             self._heartbeat.start()
             self._watchdog = threading.Thread(target=self._watch_loop, name="host watchdog", daemon=True)
@@ -469,7 +469,7 @@ class RigBench:
     # -- Bench protocol ----------------------------------------------------------------
     @property
     def _nodes(self) -> dict[int, Any]:
-        return {n.id: n for n in (*self.drive_nodes, self.bench_node)}
+        return dict(zip((*DRIVE_NODE_IDS, BENCH_NODE_ID), (*self.drive_nodes, self.bench_node)))
 
     def _bring_up(self, node_ids: set[int], what: str) -> None:
         """Wait until ``node_ids`` answer SDO, give them a heartbeat and a consumer of the host's,

@@ -605,7 +605,7 @@ class RigLauncher:
             if self.out_dir is not None:
                 attach_injection(record, read_injections(self.out_dir))
             if record.tick is None and record.injected and record.injected.get("trial") == record.trial:
-                record.tick = record.injected.get("tick")  # type: ignore[assignment]
+                record.tick = record.injected.get("tick")
             if summary is not None:
                 summary["faults"].append(record.as_dict())
         if first is not None:
@@ -616,7 +616,7 @@ class RigLauncher:
             summary["faults"][0] = record.as_dict()
             since = first.t_mono if first is not None else (record.t_detected_mono or time.monotonic())
             if record.injected and record.injected.get("t_mono") is not None:
-                since = float(record.injected["t_mono"])  # type: ignore[arg-type]
+                since = float(record.injected["t_mono"])
             summary["safe_state"] = self._drive_evidence(summary.get("safe_state") or [], since)
             self._save(summary, report=True)
         concerned = next((c for c in self.children if c.name == record.node), None)

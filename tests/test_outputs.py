@@ -1,0 +1,201 @@
+"""Nothing lost (issue 9): ``summary.json`` is replaced atomically and a failing write leaves the
+previous one (and no temporary file); a full disk is a fault like the others — one line, exit code
+3, the earlier results kept, the final summary and report written into the space reserve; a NaN
+never reaches the summary; an interrupt is marked; a run killed after trial k keeps a recording
+with k trials."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import signal
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from host.experiment import summary as summary_mod
+from host.experiment.faults import FaultKind
+from host.experiment.outputs import RESERVE_NAME, DiskFullError, RunFolder, check_out_dir, reserve_bytes
+from host.experiment.summary import finite, write_summary
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def test_a_failing_write_keeps_the_previous_summary(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    write_summary(tmp_path, {"iterations": [1], "completed": False})
+    before = (tmp_path / "summary.json").read_text()
+
+    def full(fd: int) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(summary_mod.os, "fsync", full)
+    with pytest.raises(DiskFullError, match="disk full"):
+        write_summary(tmp_path, {"iterations": [1, 2], "completed": False})
+    assert (tmp_path / "summary.json").read_text() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["summary.json"]  # no summary.json.tmp
+
+
+def test_no_nan_reaches_the_summary(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    assert finite({"a": [1.0, float("nan")], "b": {"c": float("inf")}, "d": "x"}) == {"a": [1.0, None], "b": {"c": None},
+                                                                                      "d": "x"}
+    write_summary(tmp_path, {"x": np.float64("nan"), "y": [np.inf]})
+    assert json.loads((tmp_path / "summary.json").read_text()) == {"x": None, "y": [None]}
+    assert "non-finite" in caplog.text
+
+
+def test_the_space_reserve(tmp_path: Path) -> None:
+    folder = RunFolder(tmp_path, iterations=10)
+    assert folder.reserve() and (tmp_path / RESERVE_NAME).stat().st_size == reserve_bytes(10)
+    folder.fail_writes_from_trial = 2
+    folder.check_write(1)
+    with pytest.raises(OSError) as exc:
+        folder.check_write(2)
+    assert exc.value.errno == errno.ENOSPC
+    folder.release()
+    assert not (tmp_path / RESERVE_NAME).exists()
+    folder.check_write(3)  # the reserve's space is what the final results are written into
+    (tmp_path / "f.txt").write_text("x")
+    with pytest.raises(ValueError, match="exists and is not a folder"):
+        check_out_dir(tmp_path / "f.txt", create=False)
+    assert check_out_dir(tmp_path / "new" / "run", create=False) == tmp_path / "new" / "run"
+    assert not (tmp_path / "new").exists()  # checked, not made
+
+
+def sim_with_full_disk(out: Path, from_trial: int):  # type: ignore[no-untyped-def]
+    from host.analysis.session import report_fault, run_session
+    from host.experiment.config import build_config
+    from host.experiment.inprocess import InProcessBench
+    from host.experiment.plan import prepare
+
+    cfg = build_config(None, {"iterations": 3, "cycle_s": 0.15})
+    import io
+
+    res = run_session(prepare(cfg), InProcessBench(cfg), out, mode="sim", stream=io.StringIO(),
+                      fail_writes_from_trial=from_trial)
+    return res, report_fault(res, out / "summary.json")
+
+
+@pytest.mark.slow
+def test_full_disk_is_a_fault_with_the_results_kept(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "run"
+    (out / "logs").mkdir(parents=True)  # where the injection record goes (as in `ilcrig run`)
+    res, code = sim_with_full_disk(out, from_trial=1)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 3 and len(err) == 1 and err[0].startswith("ilcrig: fault: disk full") and "[disk_full]" in err[0]
+    s = json.loads((out / "summary.json").read_text())
+    assert s["completed"] is False and len(s["iterations"]) == 2  # trial 1 completed: kept
+    f = s["faults"][0]
+    assert f["kind"] == FaultKind.DISK_FULL and f["trial"] == 2 and f["injected"]["kind"] == "diskfull"
+    assert (out / "report.md").exists() and "**Fault** (disk_full)" in (out / "report.md").read_text()
+    assert not (out / RESERVE_NAME).exists() and not (out / "summary.json.tmp").exists()
+
+
+def _can_mount_tmpfs(path: Path, size: str) -> bool:
+    if os.geteuid() != 0:
+        return False
+    return subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)],
+                          capture_output=True).returncode == 0
+
+
+@pytest.mark.slow
+def test_a_really_full_disk(tmp_path: Path) -> None:
+    """``ilcrig sim --out`` on a 1.5 MB tmpfs: the recording fills it during the run."""
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    if not _can_mount_tmpfs(mnt, "1500k"):
+        pytest.skip("needs root and tmpfs to make a small filesystem")
+    try:
+        res = subprocess.run([sys.executable, "-m", "host.cli", "sim", "--iterations", "10", "--out", str(mnt / "run")],
+                             capture_output=True, text=True, cwd=REPO, timeout=600)
+        assert res.returncode == 3, res.stderr
+        lines = res.stderr.strip().splitlines()
+        assert len(lines) == 1 and "[disk_full]" in lines[0] and "Traceback" not in res.stderr
+        s = json.loads((mnt / "run" / "summary.json").read_text())
+        assert s["completed"] is False and s["faults"][0]["kind"] == "disk_full" and s["iterations"]
+        assert not (mnt / "run" / "summary.json.tmp").exists() and not (mnt / "run" / RESERVE_NAME).exists()
+    finally:
+        subprocess.run(["umount", str(mnt)], capture_output=True)
+
+
+@pytest.mark.slow
+def test_learning_that_diverges_is_a_fault_and_no_nan_is_written(tmp_path: Path) -> None:
+    """No feedback (α = 1 → Kp = 0) and an absurd learning gain: the check says it diverges, the
+    run faults cleanly when the feed-forward leaves the drive's range; the summary is valid JSON."""
+    from host.analysis.session import report_fault, run_session
+    from host.experiment.config import build_config
+    from host.experiment.inprocess import InProcessBench
+    from host.experiment.plan import prepare
+
+    cfg = build_config(None, {"iterations": 3, "cycle_s": 0.15, "gains": {"alpha": 1.0, "lp": 1e12}})
+    plan = prepare(cfg)
+    assert not plan.check.ok
+    import io
+
+    res = run_session(plan, InProcessBench(cfg), tmp_path, mode="sim", stream=io.StringIO())
+    assert report_fault(res) == 3
+    text = (tmp_path / "summary.json").read_text()
+    assert "NaN" not in text and "Infinity" not in text
+    s = json.loads(text)
+    assert s["faults"][0]["kind"] in ("learning_diverged", "emcy")
+
+
+def test_sigterm_during_sim_is_marked(tmp_path: Path) -> None:
+    """``ilcrig sim`` killed with SIGTERM after its first trial: exit 143, ``interrupted`` in the
+    summary, the completed trial kept."""
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-u", "-m", "host.cli", "sim", "--iterations", "1000", "--cycle", "0.15",
+                             "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            if line.split()[:1] == ["0"]:  # the row of trial 0
+                proc.send_signal(signal.SIGTERM)
+                break
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 143, err
+    # nothing on stderr but the plan's warning that 1000 trials of this law would diverge
+    assert "Traceback" not in err
+    assert [ln for ln in err.splitlines() if ln.strip() and "convergence check failed" not in ln] == []
+    s = json.loads((out / "summary.json").read_text())
+    assert s["interrupted"]["signal"] == "SIGTERM" and s["completed"] is False and len(s["iterations"]) >= 1
+    from fault_harness import recorded_trials
+
+    assert recorded_trials(out / "recording.rrd") == list(range(len(s["iterations"])))
+
+
+def test_a_killed_run_keeps_a_recording_of_its_completed_trials(tmp_path: Path) -> None:
+    """SIGKILL after trial k: the recording holds exactly the trials the summary holds, readable
+    by rerun (its footer index is missing, which readers do without)."""
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-u", "-m", "host.cli", "sim", "--iterations", "1000", "--cycle", "0.15",
+                             "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, cwd=REPO)
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            if line.split()[:1] == ["1"]:  # the row of trial 1: trials 0 and 1 are complete
+                proc.kill()
+                break
+        proc.wait(60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    s = json.loads((out / "summary.json").read_text())
+    k = len(s["iterations"])
+    assert k >= 1  # trial 0 was written before the row of trial 1 was printed
+    from fault_harness import recorded_trials
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rec = recorded_trials(out / "recording.rrd")
+    # every trial in the summary is in the recording (it is written first; the kill may fall between)
+    assert rec[:k] == list(range(k)) and len(rec) in (k, k + 1)
