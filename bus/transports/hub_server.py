@@ -420,8 +420,16 @@ class HubServer:
                     st.frames += 1
                     st.bits += nominal
                     st.bits_worst_case += worst
-                if self._hook is None:
-                    self._fan_out(sender, members, rec, out)
+                if self._hook is None:  # the hot path, as it always was
+                    ext = 1 if ext else 0
+                    for peer in members:
+                        if fd and peer.classic:
+                            continue  # a classic CAN member never sees FD frames (like a non-FD raw socket)
+                        if peer is sender:
+                            if peer.echo and peer.accepts(can_id, ext):
+                                out.setdefault(peer, []).append(rec[:1] + bytes([flags | FLAG_ECHO]) + rec[2:])
+                        elif peer.accepts(can_id, ext):
+                            out.setdefault(peer, []).append(rec)
                 else:
                     data = bytes(rec[HEADER_SIZE - 8 : HEADER_SIZE - 8 + min(length, 8)])
                     for delay, r in self._hook.deliveries(sender.bus, bytes(rec), can_id, data, bool(flags & FLAG_ERR)):
@@ -449,7 +457,8 @@ class HubServer:
 
     @staticmethod
     def _fan_out(sender: _Client, members: list[_Client], rec: bytearray, out: dict[_Client, list[bytes | bytearray]]) -> None:
-        """Queue ``rec`` for every member of the sender's bus that takes it."""
+        """Queue ``rec`` for every member of the sender's bus that takes it (the frame-fault
+        path; the same rules as the hot path in :meth:`_route`)."""
         flags = rec[1]
         can_id = U32.unpack_from(rec, 4)[0]
         ext = 1 if flags & FLAG_EXT else 0
