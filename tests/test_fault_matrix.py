@@ -82,7 +82,9 @@ def test_injected_fault_ends_the_run_the_one_way(tmp_path: Path, spec: str, kind
             assert f["node"] == node, f
         assert f["trial"] == 1
         if f["kind"] not in ("bus_lost",):
-            assert f["tick"] is not None and f["tick"] >= TICK, f  # at (or just after) the injection
+            # at (or just after) the injection, as the detector saw the io channel: a frame in flight
+            # when the hub stalls may never reach it (one tick earlier)
+            assert f["tick"] is not None and f["tick"] >= TICK - 1, f
         assert f["injected"]["spec"] == spec and f["latency_basis"] == "injection"
         if spec.startswith("kill:host"):
             # the host died: the launcher recorded it; the drives saw the host's heartbeat stop

@@ -279,17 +279,19 @@ def preflight(args: argparse.Namespace) -> list[FaultSpec]:
 
     :raises ValueError: one line naming the option or file (the CLI's exit code 2).
     """
-    from host.experiment.console import experiment_config
     from host.experiment.outputs import check_out_dir
-    from host.experiment.plan import prepare
 
     specs = parse_specs(getattr(args, "inject", None))
     if args.out:
         check_out_dir(args.out, create=False)  # fast: before the configuration and the preparation
+    from host.experiment.console import experiment_config
+
     cfg = experiment_config(args)
     if args.out:
         check_out_dir(args.out, iterations=cfg.iterations, create=False)
     _check_specs(specs, args.bus, cfg.iterations)
+    from host.experiment.plan import prepare
+
     prepare(cfg)
     return specs
 
