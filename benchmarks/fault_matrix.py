@@ -11,7 +11,7 @@ that many trials), no process is left, and the detection latency (the ``faults``
 frame faults, the tick latency (the tick the fault was reported at minus the injected tick).
 Prints one row per run as it goes, then the table: injected, detected, completed trials lost,
 latency p50 / p99 per kind.  Goal: every fault detected, no completed trial lost, latency within
-3 heartbeat periods (300 ms) for lost or stalled processes, within 2 ticks for frame faults.
+3 heartbeat periods (600 ms) for lost or stalled processes, within 2 ticks for frame faults.
 """
 
 from __future__ import annotations

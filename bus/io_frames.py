@@ -54,7 +54,7 @@ ENCODER_COB_BASE: int = 0x101
 TORQUE_COB_BASE: int = 0x181
 
 #: longest wait of the plant for the torque frames of one tick, s (× ILCRIG_TIMEOUT_SCALE)
-TICK_TIMEOUT_S: float = 0.5
+TICK_TIMEOUT_S: float = 1.0
 #: the same for tick 0 of a trial, s (× ILCRIG_TIMEOUT_SCALE)
 FIRST_TICK_TIMEOUT_S: float = 2.0
 

@@ -53,7 +53,7 @@ def check_common(o: Outcome, kept: int) -> dict:
     assert len(o.lines) == 1 and o.lines[0].startswith("ilcrig: fault: "), o.stderr
     s = o.summary
     assert s is not None and s["completed"] is False
-    assert o.kept == kept
+    assert o.kept == kept, (o.fault, o.lines)
     assert s["trace_sha256"] == sim_digest(kept)  # the kept trials are exactly `ilcrig sim --iterations k`'s
     f = o.fault
     assert f is not None

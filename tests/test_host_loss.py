@@ -209,20 +209,21 @@ def test_drive_node_consumes_the_host_heartbeat_within_the_consumer_time() -> No
     rig = Stepped(lambda fb, io, clock: DriveNode(drive, fb, io, clock=clock))
     try:
         t0 = 1001.0
+        c = CONSUMER_TIME_MS / 1000.0
         rig.sdo_write(2, 0x1016, 1, consumer_entry(HOST_NODE_ID, CONSUMER_TIME_MS), t0)
-        assert rig.node.consumer.producers == {HOST_NODE_ID: 0.25}
+        assert rig.node.consumer.producers == {HOST_NODE_ID: c}
         assert rig.step_at(t0 + 5.0) == []  # no heartbeat heard yet: nothing monitored
         rig.host_beat()
         assert rig.step_at(t0 + 5.1) == []
-        assert rig.node.consumer.next_deadline() == pytest.approx(t0 + 5.35)
+        assert rig.node.consumer.next_deadline() == pytest.approx(t0 + 5.1 + c)
         rig.host_beat()
         assert rig.step_at(t0 + 5.2) == []
-        assert rig.step_at(t0 + 5.449) == []
+        assert rig.step_at(t0 + 5.2 + c - 0.001) == []
         assert drive.torque_enabled
-        frames = rig.step_at(t0 + 5.45)  # 250 ms after the last heartbeat
+        frames = rig.step_at(t0 + 5.2 + c)  # one consumer time after the last heartbeat
         assert (0x082, bytes([0x30, 0x81, 0x11, FaultCause.HEARTBEAT, HOST_NODE_ID, 0, 0, 0])) in frames
         assert not drive.torque_enabled and drive.cia402_state == Cia402State.FAULT
-        assert rig.step_at(t0 + 7.0) == []  # reported once
+        assert rig.step_at(t0 + 5.2 + 3 * c) == []  # reported once
     finally:
         rig.close()
 

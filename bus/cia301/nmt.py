@@ -36,12 +36,12 @@ ALL_NODES = 0
 #: The host's (NMT master's) node id on the fieldbus; its heartbeat COB-ID is 0x77F.
 HOST_NODE_ID = 0x7F
 #: Producer heartbeat period of the host, ms.
-HOST_HEARTBEAT_MS = 100
+HOST_HEARTBEAT_MS = 200
 #: Producer heartbeat period the host gives every node (object 0x1017), ms.
-NODE_HEARTBEAT_MS = 100
+NODE_HEARTBEAT_MS = 200
 #: Consumer heartbeat time of every consumer (nodes: object 0x1016; host), ms, before
 #: ``ILCRIG_TIMEOUT_SCALE``: 2.5 producer periods.
-CONSUMER_TIME_MS = 250
+CONSUMER_TIME_MS = 500
 #: Object index of the consumer heartbeat time (ARRAY of U32 ``node_id << 16 | time_ms``).
 CONSUMER_HEARTBEAT_INDEX = 0x1016
 
