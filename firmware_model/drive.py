@@ -30,8 +30,10 @@ ends in state FAULT (cause NONE) and the recorder is STOPPED.
 
 from __future__ import annotations
 
+import functools
 import logging
 import struct
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -64,7 +66,7 @@ logger = logging.getLogger(__name__)
 
 DEFAULT_EDS_PATH: Path = DRIVE_EDS_PATH
 
-_TABLE_ROWS = {Obj.REF_POSITION_TABLE: 0, Obj.REF_VELOCITY_TABLE: 1, Obj.FEEDFORWARD_TABLE: 2}
+_TABLE_ROWS: dict[int, int] = {Obj.REF_POSITION_TABLE: 0, Obj.REF_VELOCITY_TABLE: 1, Obj.FEEDFORWARD_TABLE: 2}
 _TABLE_BITS = (TableLoaded.REF_POSITION, TableLoaded.REF_VELOCITY, TableLoaded.FEEDFORWARD)
 
 Value = int | float | bytes | str
@@ -80,8 +82,20 @@ class Drive:
 
     :param node_id: CANopen node id 1..127.
     :param eds_path: EDS describing the object dictionary.
-    :raises ValueError: bad node id.
+    :raises ValueError: bad node id, or an EDS without the defaults/limits the drive needs.
     """
+
+    # trial and fault state, set by _reset_application (called from __init__)
+    _n_table: int
+    _loaded: int
+    _trial_state: TrialState
+    _rec_status: RecorderStatus
+    _next_tick: int
+    _fault_cause: FaultCause
+    _error_register: int
+    _error_code: int
+    _capture_hold: bool
+    _power: bool
 
     def __init__(self, node_id: int, eds_path: str | Path = DEFAULT_EDS_PATH) -> None:
         if not 1 <= int(node_id) <= 127:
@@ -92,8 +106,8 @@ class Drive:
         self.store = ObjectStore(eds_path, self.node_id)
         self.od = self.store.od
         self._vars = self.store.vars
-        self._capacity = int(self._vars[(Obj.TABLE, TableSub.CAPACITY)].default)
-        self._rated_mnm = int(self._vars[(Obj.RATED_TORQUE, 0)].default)
+        self._capacity = self._eds_default(Obj.TABLE, TableSub.CAPACITY)
+        self._rated_mnm = self._eds_default(Obj.RATED_TORQUE, 0)
         self._st = loop.new_state()
         self._tables = loop.new_tables(self._capacity)
         self._rec = loop.new_recorder(self._capacity)
@@ -327,6 +341,16 @@ class Drive:
 
     # ------------------------------------------------------------------ object plumbing
 
+    def _eds_default(self, index: int, sub: int) -> int:
+        """The EDS DefaultValue of a numeric object.
+
+        :raises ValueError: the EDS gives none.
+        """
+        default = self._vars[(index, sub)].default
+        if default is None:
+            raise ValueError(f"the EDS gives no DefaultValue for 0x{index:04X}:{sub}")
+        return int(default)
+
     def _install_hooks(self) -> None:
         r = self._read_hooks
         w = self._write_hooks
@@ -341,8 +365,8 @@ class Drive:
         r[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.VALUE)] = lambda: self._period_repr()[0]
         r[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.INDEX)] = lambda: self._period_repr()[1]
         for index in _TABLE_ROWS:
-            r[(index, 0)] = (lambda i=index: self._read_table(i))
-            w[(index, 0)] = (lambda v, i=index: self._write_table(i, v))  # type: ignore[misc]
+            r[(index, 0)] = functools.partial(self._read_table, index)
+            w[(index, 0)] = functools.partial(self._write_table, index)
         r[(Obj.TABLE, TableSub.LENGTH)] = lambda: self._n_table
         r[(Obj.TABLE, TableSub.LOADED)] = lambda: self._loaded
         r[(Obj.TRIAL, TrialSub.STATE)] = lambda: int(self._trial_state)
@@ -352,19 +376,19 @@ class Drive:
         r[(Obj.RECORDER, RecorderSub.SAMPLES)] = lambda: self._recorded
         r[(Obj.RECORDER_DATA, 0)] = self._read_recorder
 
-        w[(Obj.CONTROLWORD, 0)] = self._write_controlword  # type: ignore[assignment]
-        w[(Obj.MODES_OF_OPERATION, 0)] = self._write_mode  # type: ignore[assignment]
-        w[(Obj.FOLLOWING_ERROR_WINDOW, 0)] = lambda v: self._set_fe_window(int(v))  # type: ignore[arg-type]
-        w[(Obj.MAX_TORQUE, 0)] = lambda v: self._set_max_torque(int(v))  # type: ignore[arg-type]
-        w[(Obj.TABLE, TableSub.LENGTH)] = self._write_table_length  # type: ignore[assignment]
+        w[(Obj.CONTROLWORD, 0)] = self._write_controlword
+        w[(Obj.MODES_OF_OPERATION, 0)] = self._write_mode
+        w[(Obj.FOLLOWING_ERROR_WINDOW, 0)] = lambda v: self._set_fe_window(int(v))
+        w[(Obj.MAX_TORQUE, 0)] = lambda v: self._set_max_torque(int(v))
+        w[(Obj.TABLE, TableSub.LENGTH)] = self._write_table_length
         for sub in GainsSub:
-            w[(Obj.GAINS, sub)] = (lambda v, s=sub: self._set_gains(s, int(v)))  # type: ignore[misc]
-        w[(Obj.TRIAL, TrialSub.COMMAND)] = self._write_trial_command  # type: ignore[assignment]
-        w[(Obj.CONTROL_PERIOD, 0)] = self._write_period  # type: ignore[assignment]
+            w[(Obj.GAINS, sub)] = self._gains_hook(sub)
+        w[(Obj.TRIAL, TrialSub.COMMAND)] = self._write_trial_command
+        w[(Obj.CONTROL_PERIOD, 0)] = self._write_period
         w[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.VALUE)] = (
-            lambda v: self._write_interp(int(v), None))  # type: ignore[arg-type]
+            lambda v: self._write_interp(int(v), None))
         w[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.INDEX)] = (
-            lambda v: self._write_interp(None, int(v)))  # type: ignore[arg-type]
+            lambda v: self._write_interp(None, int(v)))
 
     # ------------------------------------------------------------------ object callbacks
 
@@ -375,7 +399,7 @@ class Drive:
 
     def _write_controlword(self, value: Value) -> None:
         before = self._sm.state
-        self._sm.controlword(int(value))  # type: ignore[arg-type]
+        self._sm.controlword(int(value))
         if before == Cia402State.FAULT and self._sm.state != Cia402State.FAULT:
             self._error_register = 0
             self._error_code = 0
@@ -385,7 +409,7 @@ class Drive:
 
     def _write_mode(self, value: Value) -> None:
         if value != ModeOfOperation.TABLE_PLAYBACK:
-            raise SdoAbort(AbortCode.VALUE_RANGE, f"mode of operation {value} not supported (only -1)")
+            raise SdoAbort(AbortCode.VALUE_RANGE, f"mode of operation {value!r} not supported (only -1)")
 
     def _set_fe_window(self, value: int) -> None:
         self._st[loop.P_FE_WINDOW] = -1 if value == 0xFFFFFFFF else value
@@ -393,7 +417,11 @@ class Drive:
     def _set_max_torque(self, permille: int) -> None:
         self._st[loop.P_TLIM] = fp.torque_limit_units(permille, self._rated_mnm)
 
-    def _set_gains(self, sub: int, value: int) -> None:
+    def _gains_hook(self, sub: GainsSub) -> Callable[[Value], None]:
+        """The write hook of 0x2110:``sub``."""
+        return lambda v: self._set_gains(sub, int(v))
+
+    def _set_gains(self, sub: GainsSub, value: int) -> None:
         slot = {GainsSub.KP: loop.P_KP, GainsSub.KD: loop.P_KD, GainsSub.VEL_FILTER: loop.P_ALPHA}[sub]
         self._st[slot] = value
 
@@ -402,7 +430,7 @@ class Drive:
 
     def _write_period(self, value: Value) -> None:
         self._require_not_playing("changing the control period")
-        self._set_period(int(value))  # type: ignore[arg-type]
+        self._set_period(int(value))
 
     def _period_repr(self) -> tuple[int, int]:
         """0x60C2 (value, index) for the control period: period = value · 10^index s."""
@@ -422,6 +450,8 @@ class Drive:
         i = cur_i if index is None else index
         scaled = v * 10 ** (i + 6)  # µs; the EDS limits the index to -6..-1
         period = self._vars[(Obj.CONTROL_PERIOD, 0)]
+        if period.min is None or period.max is None:
+            raise ValueError("the EDS gives no LowLimit/HighLimit for 0x2300")
         if not period.min <= int(scaled) <= period.max:
             raise SdoAbort(AbortCode.VALUE_RANGE, f"period {scaled} µs outside [{period.min}, {period.max}]")
         self._write_period(int(scaled))
@@ -429,7 +459,7 @@ class Drive:
 
     def _write_table_length(self, value: Value) -> None:
         self._require_not_playing("changing the table length")
-        n = int(value)  # type: ignore[arg-type]
+        n = int(value)
         if n != self._n_table:
             self._loaded = 0
             self._n_table = n

@@ -253,7 +253,9 @@ class BenchNode(SlaveNode):
     def _write_initial_state(self, value: Value) -> None:
         if self._busy():
             raise SdoAbort(AbortCode.DEVICE_STATE, "initial state cannot change while a trial runs")
-        data = bytes(value)  # type: ignore[arg-type]
+        if not isinstance(value, bytes):  # the EDS makes 0x2420 a DOMAIN: decoded as bytes
+            raise TypeError(f"initial state 0x2420 must be bytes, got {type(value).__name__}")
+        data = bytes(value)
         try:
             unpack_initial_state(data)
         except InitialStateError as err:
@@ -261,11 +263,11 @@ class BenchNode(SlaveNode):
             raise SdoAbort(code, str(err)) from None
 
     def _on_command(self, value: Value) -> None:
-        cmd = int(value)  # type: ignore[arg-type]
+        cmd = int(value)
         if cmd == BenchCommand.START:
             if self._busy():
                 raise SdoAbort(AbortCode.DEVICE_STATE, "a trial is already running")
-            if len(self.store.get(BenchObj.INITIAL_STATE)) == 0:  # type: ignore[arg-type]
+            if len(self.store.get_bytes(BenchObj.INITIAL_STATE)) == 0:
                 raise SdoAbort(AbortCode.DEVICE_STATE, "initial state 0x2420 not set")
             # the trial begins after the SDO response is out (on_service), so the host gets
             # its answer at once; the status says RUNNING from now on
@@ -342,8 +344,8 @@ class BenchNode(SlaveNode):
     # ------------------------------------------------------------------ trial
 
     def _config_ts_substeps(self) -> tuple[float, int]:
-        period_us = int(self.store.get(BenchObj.CONFIG, ConfigSub.CONTROL_PERIOD_US))  # type: ignore[arg-type]
-        substeps = int(self.store.get(BenchObj.CONFIG, ConfigSub.SUBSTEPS))  # type: ignore[arg-type]
+        period_us = int(self.store.get(BenchObj.CONFIG, ConfigSub.CONTROL_PERIOD_US))
+        substeps = int(self.store.get(BenchObj.CONFIG, ConfigSub.SUBSTEPS))
         return period_us / 1_000_000, substeps
 
     def _get_plant(self, ts_s: float, substeps: int) -> PlantLike:
@@ -358,11 +360,11 @@ class BenchNode(SlaveNode):
     def _begin_trial(self) -> None:
         store = self.store
         ts_s, substeps = self._config_ts_substeps()
-        kind = int(store.get(BenchObj.CONFIG, ConfigSub.DISTURBANCE))  # type: ignore[arg-type]
-        seed = int(store.get(BenchObj.CONFIG, ConfigSub.SEED))  # type: ignore[arg-type]
-        trial = int(store.get(BenchObj.TRIAL, BenchTrialSub.TRIAL_INDEX))  # type: ignore[arg-type]
-        n_ticks = int(store.get(BenchObj.TRIAL, BenchTrialSub.N_TICKS))  # type: ignore[arg-type]
-        q0, qd0 = unpack_initial_state(store.get(BenchObj.INITIAL_STATE))  # type: ignore[arg-type]
+        kind = int(store.get(BenchObj.CONFIG, ConfigSub.DISTURBANCE))
+        seed = int(store.get(BenchObj.CONFIG, ConfigSub.SEED))
+        trial = int(store.get(BenchObj.TRIAL, BenchTrialSub.TRIAL_INDEX))
+        n_ticks = int(store.get(BenchObj.TRIAL, BenchTrialSub.N_TICKS))
+        q0, qd0 = unpack_initial_state(store.get_bytes(BenchObj.INITIAL_STATE))
         self._n_ticks = n_ticks
         self._tick = 0
         self._origin = self._wire_next

@@ -309,6 +309,11 @@ Value = int | float | bytes | str
 Key = tuple[int, int]
 
 
+def _struct_of(var: ODVariable) -> struct.Struct | None:
+    """The packing of a numeric ``var``; None for DOMAIN, strings and a missing data type."""
+    return None if var.data_type is None else _STRUCTS.get(var.data_type)
+
+
 class ObjectStore:
     """Object values of one node, described by an EDS (``canopen.objectdictionary.import_od``).
 
@@ -370,6 +375,16 @@ class ObjectStore:
         hook = self.read_hooks.get((index, sub))
         return hook() if hook is not None else self.values[(index, sub)]
 
+    def get_bytes(self, index: int, sub: int = 0) -> bytes:
+        """:meth:`get` of a DOMAIN / OCTET_STRING object.
+
+        :raises TypeError: the object holds a number or a string.
+        """
+        value = self.get(index, sub)
+        if not isinstance(value, bytes):
+            raise TypeError(f"0x{index:04X}:{sub} holds {type(value).__name__}, not bytes")
+        return value
+
     def read_object(self, index: int, sub: int) -> bytes:
         """:raises SdoAbort: unknown object/sub-index, write-only."""
         var = self.lookup(index, sub)
@@ -391,17 +406,20 @@ class ObjectStore:
 
     @staticmethod
     def encode(var: ODVariable, value: Value) -> bytes:
-        s = _STRUCTS.get(var.data_type)
+        s = _struct_of(var)
         if s is not None:
             return s.pack(value)
         if isinstance(value, str):
             return value.encode("ascii")
-        return bytes(value)  # type: ignore[arg-type]
+        if not isinstance(value, bytes):
+            raise TypeError(f"0x{var.index:04X}:{var.subindex} (DOMAIN/string) holds {type(value).__name__}, "
+                            "not bytes")
+        return bytes(value)
 
     @staticmethod
     def decode(var: ODVariable, data: bytes) -> Value:
         """:raises SdoAbort: 0x06070010 length, 0x06090031/32 limits, 0x06090030 non-ASCII."""
-        s = _STRUCTS.get(var.data_type)
+        s = _struct_of(var)
         if s is None:
             if var.data_type in (dt.VISIBLE_STRING, dt.UNICODE_STRING):
                 try:

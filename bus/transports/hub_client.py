@@ -19,7 +19,9 @@ Forwarding
 Timestamps
     ``msg.timestamp`` is the time (``time.time()`` scale, s since the epoch) at which the
     hub received the frame, not the time the application read it: frames read late keep
-    their true spacing, as with SocketCAN's kernel timestamps.
+    their true spacing, as with SocketCAN's kernel timestamps. The hub process takes it
+    when it reads the frame, typically ~0.1 ms after the send (later when the machine is
+    busy and the hub waits for a core).
 
 Channel
     ``msg.channel`` is the channel string the receiving bus was opened with (e.g.
@@ -40,12 +42,13 @@ CAN FD, classic CAN and bitrates
     (``CAN_20``): :meth:`send` refuses FD frames and frames longer than 8 bytes with
     :class:`can.CanOperationError` (as SocketCAN does, ``EINVAL``), and the hub forwards no
     FD frames to it (as a non-FD SocketCAN raw socket never sees them). ``bitrate`` and
-    ``data_bitrate`` (bit/s; also taken from a ``timing`` :class:`can.BitTiming` /
-    :class:`can.BitTimingFd`) are kept: the first member of an empty logical bus sets the
-    bus's bitrates, a member asking for different ones is refused (like a node at the
-    wrong bitrate), a member giving none adopts the bus's. They are exposed as
-    :attr:`HubBus.bitrate` / :attr:`HubBus.data_bitrate` (None = unknown), in
-    :attr:`channel_info` and in the hub stats (:class:`~bus.transports.hub_server.HubChannelStats`).
+    ``data_bitrate`` (bit/s, the latter only with ``fd=True``; also taken from a ``timing``
+    :class:`can.BitTiming` / :class:`can.BitTimingFd`) are kept: the first member of an
+    empty logical bus sets the bus's bitrates, a member asking for different ones is
+    refused (like a node at the wrong bitrate), a member giving none adopts the bus's.
+    They are exposed as :attr:`HubBus.bitrate` / :attr:`HubBus.data_bitrate` (None =
+    unknown), in :attr:`channel_info` and in the hub stats
+    (:class:`~bus.transports.hub_server.HubChannelStats`).
 
 Acceptance filters
     ``can_filters`` / :meth:`can.BusABC.set_filters` are pushed to the hub, which then only
@@ -88,6 +91,7 @@ from bus.transports.hub_wire import (
     HEADER,
     HEADER_SIZE,
     KIND_FRAME,
+    PROTOCOL_VERSION,
     ROLE_MEMBER,
     HubAddressError,
     HubProtocolError,
@@ -167,7 +171,7 @@ class HubBus(can.BusABC):
         elif isinstance(timing, can.BitTiming):
             bitrate = timing.bitrate if bitrate is None else bitrate
         self.fd = fd is None or bool(fd)
-        asked = _bitrate_arg("bitrate", bitrate), _bitrate_arg("data_bitrate", data_bitrate)
+        asked = _bitrate_arg("bitrate", bitrate), _bitrate_arg("data_bitrate", data_bitrate) if self.fd else 0
         timeout = self.CONNECT_TIMEOUT_S if connect_timeout_s is None else connect_timeout_s
         try:
             sock = connect(addr, timeout)
@@ -180,7 +184,9 @@ class HubBus(can.BusABC):
             sock.settimeout(None)  # blocking from now on
         except (OSError, HubProtocolError) as err:
             sock.close()
-            raise can.CanInitializationError(f"hub handshake with {addr} failed: {err}") from err
+            old_hub = "bad hello" in str(err)  # a version-1 hub's words for any other version
+            hint = f" (this client speaks hub protocol version {PROTOCOL_VERSION}: an older hub?)" if old_hub else ""
+            raise can.CanInitializationError(f"hub handshake with {addr} failed: {err}{hint}") from err
         self._sock = sock
         self._closed = False
         self._send_lock = threading.Lock()

@@ -15,10 +15,21 @@ Forwarding
     gets its own frames back flagged as echo). A listen address that is not loopback is
     refused (:class:`~bus.transports.hub_wire.NonLoopbackAddressError`).
 
+Timestamps
+    Every frame is stamped with the hub's receive time (``time.time_ns()`` taken right after
+    the read that completed it) in the record it forwards; clients deliver it as
+    ``msg.timestamp``.
+
+Classic CAN members and bitrates
+    A member that joined with the classic-CAN flag (``fd=False``) gets no FD frames. The
+    first member of an empty logical bus sets the bus's bitrate and data bitrate (0 = not
+    given); a later member asking for a different non-zero one is refused, one giving none
+    adopts the bus's (sent back in the handshake answer).
+
 Counting
     The hub counts, per logical bus, frames and bits (without and with worst-case
-    stuffing, :mod:`bus.busload`), FD and error frames, and clients. Read them with
-    :func:`query_hub_stats` or :meth:`HubHandle.stats`.
+    stuffing, :mod:`bus.busload`), FD and error frames, and clients, and reports the bus's
+    bitrates. Read them with :func:`query_hub_stats` or :meth:`HubHandle.stats`.
 
 Acceptance filters
     A member's filters (a filter record, see :mod:`bus.transports.hub_wire`) are applied

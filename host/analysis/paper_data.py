@@ -49,8 +49,12 @@ class PaperTable:
     rows: Mapping[str, PaperRow]
 
 
+def _floats4(v: Joint4) -> Joint4:
+    return float(v[0]), float(v[1]), float(v[2]), float(v[3])
+
+
 def _row(case: str, maxe: Joint4, mean: Joint4) -> PaperRow:
-    return PaperRow(case, tuple(float(v) for v in maxe), tuple(float(v) for v in mean))  # type: ignore[arg-type]
+    return PaperRow(case, _floats4(maxe), _floats4(mean))
 
 
 TABLE2 = PaperTable("table2", 2, "The tracking errors of joints under D-ILC and PD-ILC law", "§5.1", {

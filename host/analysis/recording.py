@@ -316,8 +316,8 @@ class RunRecorder:
 
         met = _Batch(pa)
         f64_list = pa.list_(pa.float64())
-        for key, vals in (("rmse_deg", self._rmse), ("maxe_deg", self._maxe)):
-            arr = np.asarray(vals, dtype=np.float64)  # (K, 4)
+        for key, per_trial in (("rmse_deg", self._rmse), ("maxe_deg", self._maxe)):
+            arr = np.asarray(per_trial, dtype=np.float64)  # (K, 4)
             for j in range(N_JOINTS):
                 met.add_array(f"/metrics/{key}/joint{j + 1}", scal, pa.array([[v] for v in arr[:, j]], f64_list))
         met.send(rec, "iteration", pa.array(self._k, pa.int64()))

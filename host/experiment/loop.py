@@ -52,7 +52,9 @@ class TrialRecorder(Protocol):
 class Bench(Protocol):
     """What the host needs from a set of drives plus a plant, whatever connects them."""
 
-    drives: Sequence[DriveClient]
+    @property
+    def drives(self) -> Sequence[DriveClient]:
+        """The drives in joint order (read-only here: an implementation may keep a list)."""
 
     def start(self) -> None:
         """Bring the nodes to operational (NMT) so they can be configured and enabled."""

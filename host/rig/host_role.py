@@ -54,6 +54,17 @@ HEARTBEAT_MS = 100
 HEARTBEAT_TIMEOUT_S = 1.0
 
 
+def _node_id(node: canopen.RemoteNode) -> int:
+    """``node.id``, which canopen types as Optional (a node may take its id from the EDS); the host
+    always adds its nodes by id.
+
+    :raises ValueError: the node has no id.
+    """
+    if node.id is None:
+        raise ValueError(f"canopen node {node!r} has no node id")
+    return node.id
+
+
 class ChannelMonitor(can.Listener):
     """Counts frames/bits of one channel and writes its candump log (a plain bus member)."""
 
@@ -115,12 +126,12 @@ class RigBench:
                 # generous: 7 processes share 2 cores; a starved node answers late, not never
                 node.sdo.RESPONSE_TIMEOUT = 5.0 * timeout_scale()
             self.bench_node.sdo.RESPONSE_TIMEOUT = 5.0 * timeout_scale()
-            self.drives = [DriveClient(SdoAccess(node), node.id) for node in self.drive_nodes]
+            self.drives = [DriveClient(SdoAccess(node), _node_id(node)) for node in self.drive_nodes]
             self.bench = BenchClient(SdoAccess(self.bench_node))
             for node in (*self.drive_nodes, self.bench_node):
                 # canopen's own consumers: RemoteNode.nmt hears the heartbeats, .emcy the EMCYs
-                node.nmt.add_heartbeat_callback(functools.partial(self._on_heartbeat, node.id))
-                node.emcy.add_callback(functools.partial(self._on_emcy, node.id))
+                node.nmt.add_heartbeat_callback(functools.partial(self._on_heartbeat, _node_id(node)))
+                node.emcy.add_callback(functools.partial(self._on_emcy, _node_id(node)))
         except Exception:
             self.close()
             raise
@@ -140,7 +151,7 @@ class RigBench:
     # -- Bench protocol ----------------------------------------------------------------
     @property
     def _nodes(self) -> dict[int, Any]:
-        return {n.id: n for n in (*self.drive_nodes, self.bench_node)}
+        return {_node_id(n): n for n in (*self.drive_nodes, self.bench_node)}
 
     def _bring_up(self, node_ids: set[int], what: str) -> None:
         """Wait until ``node_ids`` answer SDO, give them a heartbeat, NMT-start them and wait
@@ -179,9 +190,35 @@ class RigBench:
             self.heartbeats.check(time.monotonic())  # forget the boot-ups seen while starting
 
     def start(self) -> None:
-        """Wait until all five nodes answer SDO, NMT-start them, set up heartbeats."""
-        self._bring_up(set(DRIVE_NODE_IDS) | {BENCH_NODE_ID},
-                       "(are the drive and plant processes running on this bus?)")
+        """Wait for all five nodes' boot-up, then as :meth:`_bring_up`."""
+        node_ids, what = set(DRIVE_NODE_IDS) | {BENCH_NODE_ID}, "(are the drive and plant processes running on this bus?)"
+        self._await_boot_ups(node_ids, what)
+        self._bring_up(node_ids, what)
+
+    def _await_boot_ups(self, node_ids: set[int], what: str) -> None:
+        """NMT reset communication (broadcast), then wait for every node's boot-up: a running node
+        announces itself again, one still starting (compiling) when it is up. So no SDO request
+        goes to a node that is not running yet (it would time out, and canopen logs the abort
+        at ERROR level)."""
+        booted: set[int] = set()
+        all_booted = threading.Event()
+
+        def on_boot_up(can_id: int, data: bytearray, timestamp: float) -> None:
+            if data[:1] == bytes([NmtState.BOOT_UP]):
+                booted.add(can_id - 0x700)
+                if booted >= node_ids:
+                    all_booted.set()
+
+        for nid in node_ids:
+            self.network.subscribe(0x700 + nid, on_boot_up)
+        try:
+            self.network.nmt.send_command(NmtCommand.RESET_COMMUNICATION)
+            if not all_booted.wait(self.wait_s):
+                raise TrialFault(f"no boot-up from node(s) {', '.join(map(str, sorted(node_ids - booted)))} "
+                                 f"within {self.wait_s:g} s {what}")
+        finally:
+            for nid in node_ids:
+                self.network.unsubscribe(0x700 + nid, on_boot_up)
 
     def recover(self, trial: int) -> list[int]:
         """Before ``trial``: nodes whose heartbeat was lost or that booted again are waited for
