@@ -102,7 +102,7 @@ class Drive:
             raise ValueError(f"node id must be 1..127, got {node_id}")
         self.node_id = int(node_id)
         # object values, access/size/limit checks and hooks: the CANopen slave object store
-        # that the test-bench node uses too (bus/slave.py)
+        # that the test-bench node uses too (bus/cia301/node.py)
         self.store = ObjectStore(eds_path, self.node_id)
         self.od = self.store.od
         self._vars = self.store.vars

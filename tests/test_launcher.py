@@ -1,4 +1,4 @@
-"""Tests of host/launcher.py: `ilcrig run` starts every role and leaves no process behind.
+"""Tests of host/rig/launcher.py: `ilcrig run` starts every role and leaves no process behind.
 
 Fake roles (tests/fake_role.py) stand in for the host and the plant (and for a failing drive);
 the other drives are real `ilcrig drive` processes on a private hub. "No process left" is checked
