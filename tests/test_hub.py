@@ -432,12 +432,13 @@ def test_timestamps_are_the_hubs_receive_time_and_keep_the_spacing() -> None:
     """Frames sent 100 ms apart and read together, 0.5 s after the first arrived, keep their
     100 ms spacing within 1 ms: msg.timestamp is when the hub received the frame.
 
-    The 1 ms bound measures the scheduling of two processes (sender pacing, hub wake-up),
-    so a run on a machine busy with other work may miss it: up to three runs, one must meet
-    it. Stamping at read time fails every run (the spacing collapses to ~0)."""
+    The 1 ms bound also measures the scheduling of two processes (the sender's pacing, the
+    hub's wake-up: a busy machine can keep either off a core for a few ms), so up to five
+    runs are made and one must meet it. Stamping at read time fails every run (the spacing
+    collapses to ~0), which the hard assertions catch in the first."""
     misses = []
     with start_hub() as hub:
-        for attempt in range(3):
+        for attempt in range(5):
             sent, stamps, read_at = _spacing_run(hub, f"ts{attempt}")
             assert read_at - stamps[0] > 0.45  # read late: ~0.5 s after the first frame reached the hub
             assert all(s <= t for s, t in zip(sent, stamps, strict=True))  # stamped after it was sent
