@@ -27,7 +27,7 @@ Tick semantics (:meth:`Drive.io_tick`):
 If the torque enable is lost while a trial is running (disable, NMT stop), the trial
 ends in state FAULT (cause NONE) and the recorder is STOPPED.
 
-Cyclic synchronous modes (0x6060 = 8 CSP, 10 CST; docs/canopen-objects.md §6, docs/timing.md §7):
+Cyclic synchronous modes (0x6060 = 8 CSP, 10 CST; docs/canopen-objects.md §10, docs/timing.md §7):
 the set-points arrive by RPDO (or SDO) in 0x607A target position [counts], 0x6071 target
 torque and 0x60B2 torque offset [‰ of 0x6076]; the PDO service is :class:`bus.cia301.pdo.PdoEngine`.
 
