@@ -165,9 +165,10 @@ def _require_loopback(host: str, port: int, allow_remote: bool = False) -> str:
     except socket.gaierror as err:
         raise HubAddressError(f"cannot resolve hub host {host!r}: {err}") from err
     addrs = [str(info[4][0]) for info in infos]
-    if any(ipaddress.ip_address(a.split("%")[0]).is_unspecified for a in addrs):
-        raise NonLoopbackAddressError(f"refusing the wildcard hub address {host!r}: name one interface's address")
     if allow_remote and addrs:
+        if any(ipaddress.ip_address(a.split("%")[0]).is_unspecified for a in addrs):
+            raise NonLoopbackAddressError(f"refusing the non-loopback wildcard hub address {host!r} (all "
+                                          "interfaces): name one interface's address")
         return addrs[0]
     bad = [a for a in addrs if not ipaddress.ip_address(a.split("%")[0]).is_loopback]
     if bad or not addrs:
