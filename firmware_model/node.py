@@ -12,6 +12,11 @@ test-bench node (:mod:`plant.node`); :class:`DriveNode` adds the io side:
   (architecture.md: n = 0..N-1): the 16-bit wire tick is taken relative to the TRIAL_START
   frame's tick and unwrapped, so trials longer than 65536 ticks work.
 * frames of other joints and the node's own torque echo are ignored.
+* fieldbus SYNC and RPDO frames go to the firmware's PDO service (``drive.on_sync`` /
+  ``drive.on_rpdo``).  In a cyclic synchronous mode an encoder frame that arrives before its
+  SYNC is held and run when the SYNC comes (``drive.tick_ready``); after every io tick the
+  torque frame goes out on io first, then the TPDOs due (``drive.pop_tpdos``) on the fieldbus
+  (docs/timing.md §7, the SYNC/PDO lockstep handshake).
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ from bus.cia301.node import PRODUCER_HEARTBEAT_INDEX, SlaveApp, SlaveNode, insta
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["DriveLike", "DriveNode", "PRODUCER_HEARTBEAT_INDEX", "install_sigterm", "run_node", "main"]
+__all__ = ["CyclicDriveLike", "DriveLike", "DriveNode", "PRODUCER_HEARTBEAT_INDEX", "install_sigterm", "run_node", "main"]
 
 
 class DriveLike(SlaveApp, Protocol):
@@ -55,6 +60,32 @@ class DriveLike(SlaveApp, Protocol):
         ...
 
 
+class CyclicDriveLike(DriveLike, Protocol):
+    """A drive with the SYNC/PDO service (``firmware_model.drive.Drive``); a :class:`DriveLike`
+    without these members runs without PDOs."""
+
+    @property
+    def tick_ready(self) -> bool:
+        """False while an io tick must wait for its SYNC."""
+        ...
+
+    def on_sync(self) -> None:
+        """A SYNC frame arrived."""
+        ...
+
+    def on_rpdo(self, can_id: int, data: bytes) -> bool:
+        """A fieldbus frame that may be an RPDO; True if it was one."""
+        ...
+
+    def pop_tpdos(self) -> list[tuple[int, bytes]]:
+        """(COB-ID, payload) of the TPDOs due after the last io tick."""
+        ...
+
+    def sync_cob_id(self) -> int:
+        """The SYNC COB-ID consumed (0x1005)."""
+        ...
+
+
 class DriveNode(SlaveNode):
     """Runs one drive on a fieldbus and an io bus.
 
@@ -76,6 +107,12 @@ class DriveNode(SlaveNode):
         self._torque_id = io_frames.torque_cob_id(self.joint)
         self._next_full_tick = 0  # tick number (within the trial) expected next
         self._tick_origin = 0  # wire tick of the trial's tick 0 (from TRIAL_START)
+        self._held: io_frames.EncoderFrame | None = None  # encoder frame waiting for its SYNC
+        self._cyclic: CyclicDriveLike | None = (
+            drive if all(hasattr(drive, a) for a in ("tick_ready", "on_sync", "on_rpdo", "pop_tpdos",
+                                                    "sync_cob_id")) else None)  # type: ignore[assignment]
+        self.syncs_in = 0
+        self.tpdos_out = 0
 
     # ------------------------------------------------------------------ io
 
@@ -87,13 +124,13 @@ class DriveNode(SlaveNode):
             except io_frames.IoFrameError as err:
                 logger.warning("node %d: bad encoder frame: %s", self.node_id, err)
                 return
-            rel = (frame.tick - self._tick_origin) & io_frames.TICK_MASK
-            tick = self._next_full_tick + io_frames.tick_diff(rel, self._next_full_tick)
-            self._next_full_tick = tick + 1
-            torque = int(self.drive.io_tick(tick, frame.count))
-            status = int(self._torque_status())
-            self.io.send(io_frames.encode_torque(self.joint, frame.tick, torque, status))
-            self.frames_out += 1
+            if self._cyclic is None or self._cyclic.tick_ready:
+                self._run_tick(frame)
+            else:
+                if self._held is not None:
+                    logger.warning("node %d: encoder frame of wire tick %d replaced before its SYNC",
+                                   self.node_id, self._held.tick)
+                self._held = frame
         elif cob == io_frames.CONTROL_COB_ID:
             try:
                 control = io_frames.decode_control(msg)
@@ -103,7 +140,36 @@ class DriveNode(SlaveNode):
             if control.command == io_frames.ControlCommand.TRIAL_START:
                 self._tick_origin = control.tick
                 self._next_full_tick = 0
+            self._held = None
         # anything else (our own torque echo, other joints' frames) is not for us
+
+    def _run_tick(self, frame: io_frames.EncoderFrame) -> None:
+        """Run the io tick of ``frame``: torque frame on io, then the TPDOs due on the fieldbus."""
+        rel = (frame.tick - self._tick_origin) & io_frames.TICK_MASK
+        tick = self._next_full_tick + io_frames.tick_diff(rel, self._next_full_tick)
+        self._next_full_tick = tick + 1
+        torque = int(self.drive.io_tick(tick, frame.count))
+        status = int(self._torque_status())
+        self.io.send(io_frames.encode_torque(self.joint, frame.tick, torque, status))
+        self.frames_out += 1
+        if self._cyclic is not None:
+            for cob_id, data in self._cyclic.pop_tpdos():
+                self._send(self.fieldbus, cob_id, data)
+                self.tpdos_out += 1
+
+    def on_fieldbus(self, msg: can.Message) -> None:
+        drive = self._cyclic
+        if drive is None:
+            return
+        cob = msg.arbitration_id
+        if cob == drive.sync_cob_id():
+            self.syncs_in += 1
+            drive.on_sync()
+            if self._held is not None and drive.tick_ready:
+                frame, self._held = self._held, None
+                self._run_tick(frame)
+        else:
+            drive.on_rpdo(cob, bytes(msg.data))
 
     def _torque_status(self) -> int:
         """Torque-frame status bits from ``drive.torque_enabled`` and the CiA 402 statusword

@@ -69,12 +69,14 @@ def _add_bus_args(p: argparse.ArgumentParser, default: str = "auto") -> None:
                         "socketcan on vcan0/vcan1 when they exist, else the zero-privilege hub)")
     p.add_argument("--hub", default=None, metavar="ADDRESS",
                    help="hub address, unix:/path or tcp:127.0.0.1:PORT (default: $ILCRIG_HUB or a per-user socket)")
+    p.add_argument("--allow-remote", action="store_true",
+                   help="the hub may be on another machine (a non-loopback tcp: address); off by default")
 
 
 def transport_of(args: argparse.Namespace) -> TransportConfig:
     from bus.transports.config import transport_from_name
 
-    return transport_from_name(args.bus, args.hub)
+    return transport_from_name(args.bus, args.hub, bool(getattr(args, "allow_remote", False)))
 
 
 def cmd_drive(args: argparse.Namespace) -> int:
@@ -98,7 +100,8 @@ def cmd_plant(args: argparse.Namespace) -> int:
 def cmd_hub(args: argparse.Namespace) -> int:
     from bus.transports.hub_server import main as hub_main
 
-    return int(hub_main([x for a in (args.listen or []) for x in ("--listen", a)]) or 0)
+    argv = [x for a in (args.listen or []) for x in ("--listen", a)]
+    return int(hub_main(argv + (["--allow-remote"] if args.allow_remote else [])) or 0)
 
 
 def cmd_host(args: argparse.Namespace) -> int:
@@ -172,8 +175,10 @@ def build_parser() -> argparse.ArgumentParser:
     xp.add_argument("--fresh", action="store_true", help="ignore finished experiments in --out and redo all")
     xp.set_defaults(func=cmd_reproduce)
 
-    bp = sub.add_parser("hub", help="the zero-privilege CAN hub (loopback / Unix socket only)")
+    bp = sub.add_parser("hub", help="the zero-privilege CAN hub (loopback / Unix socket unless --allow-remote)")
     bp.add_argument("--listen", action="append", help="unix:/path or tcp:127.0.0.1:PORT (repeatable)")
+    bp.add_argument("--allow-remote", action="store_true",
+                    help="also accept a non-loopback tcp:ADDRESS:PORT, to serve roles on other machines")
     bp.set_defaults(func=cmd_hub)
     return p
 

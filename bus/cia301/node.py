@@ -136,6 +136,10 @@ class SlaveNode:
     def on_nmt_reset(self, command: NmtCommand) -> None:
         """Called after the app handled an NMT reset, before the boot-up frame is sent."""
 
+    def on_fieldbus(self, msg: can.Message) -> None:
+        """A fieldbus frame that is not NMT, this node's SDO request or its own (e.g. SYNC, PDOs;
+        default: ignored)."""
+
     # ------------------------------------------------------------------ lifecycle
 
     def start(self) -> None:
@@ -258,6 +262,8 @@ class SlaveNode:
                     self._send(self.fieldbus, self._sdo_tx, data)
             if not self.sdo.busy:
                 self._reload_heartbeat()
+        else:
+            self.on_fieldbus(msg)
 
     def _on_nmt(self, data: bytes) -> None:
         try:

@@ -210,19 +210,22 @@ class TransportConfig:
         }
 
 
-def hub_transport(address: str | None = None) -> TransportConfig:
+def hub_transport(address: str | None = None, allow_remote: bool = False) -> TransportConfig:
     """Both channels as logical buses ``fieldbus`` / ``io`` of the hub at ``address``.
 
     :param address: ``unix:/path`` or ``tcp:127.0.0.1:PORT``; default
         :func:`bus.transports.hub_wire.default_hub_address`
-    :raises bus.transports.hub_wire.HubAddressError: malformed or non-loopback address
+    :param allow_remote: a hub on another machine (non-loopback TCP address): explicit opt-in
+    :raises bus.transports.hub_wire.HubAddressError: malformed or (without ``allow_remote``)
+        non-loopback address
     """
     addr = address or default_hub_address()
-    parse_address(addr)
+    parse_address(addr, allow_remote)
+    kwargs = {"allow_remote": True} if allow_remote else {}
     return TransportConfig(
         "hub",
-        ChannelConfig(HUB_INTERFACE, f"{addr}#{FIELDBUS}", context=FIELDBUS),
-        ChannelConfig(HUB_INTERFACE, f"{addr}#{IO}", context=IO),
+        ChannelConfig(HUB_INTERFACE, f"{addr}#{FIELDBUS}", kwargs, context=FIELDBUS),
+        ChannelConfig(HUB_INTERFACE, f"{addr}#{IO}", kwargs, context=IO),
         hub_address=addr,
     )
 
@@ -262,12 +265,12 @@ def can_config_transport() -> TransportConfig:
     return TransportConfig("can_config", ChannelConfig(context=FIELDBUS), ChannelConfig(context=IO))
 
 
-def auto_transport(hub_address: str | None = None) -> TransportConfig:
+def auto_transport(hub_address: str | None = None, allow_remote: bool = False) -> TransportConfig:
     """SocketCAN when ``vcan0`` and ``vcan1`` both exist, else the hub at ``hub_address``."""
     if vcan_available():
         logger.info("auto transport: socketcan on %s/%s", VCAN_FIELDBUS, VCAN_IO)
         return socketcan_transport()
-    cfg = hub_transport(hub_address)
+    cfg = hub_transport(hub_address, allow_remote)
     logger.info("auto transport: hub at %s", cfg.hub_address)
     return cfg
 
@@ -275,15 +278,16 @@ def auto_transport(hub_address: str | None = None) -> TransportConfig:
 TRANSPORT_NAMES: tuple[str, ...] = ("auto", "hub", "socketcan", "udp_multicast", "virtual", "can_config")
 
 
-def transport_from_name(name: str, hub_address: str | None = None) -> TransportConfig:
-    """Factory by name (for CLIs): one of :data:`TRANSPORT_NAMES`.
+def transport_from_name(name: str, hub_address: str | None = None, allow_remote: bool = False) -> TransportConfig:
+    """Factory by name (for CLIs): one of :data:`TRANSPORT_NAMES`; ``allow_remote`` lets the hub
+    transport reach a hub on another machine.
 
     :raises TransportConfigError: unknown name
     """
     if name == "auto":
-        return auto_transport(hub_address)
+        return auto_transport(hub_address, allow_remote)
     if name == "hub":
-        return hub_transport(hub_address)
+        return hub_transport(hub_address, allow_remote)
     if name == "socketcan":
         return socketcan_transport()
     if name == "udp_multicast":

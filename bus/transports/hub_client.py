@@ -133,6 +133,7 @@ class HubBus(can.BusABC):
     :param timing: :class:`can.BitTiming` or :class:`can.BitTimingFd`; gives the bitrates
         (a BitTimingFd also means ``fd=True``) when they are not given
     :param connect_timeout_s: connect + handshake timeout, s
+    :param allow_remote: connect to a hub on a non-loopback TCP address (explicit opt-in)
     :raises can.CanInitializationError: no hub at the address, or the hub refused (e.g.
         another bitrate on that bus, another protocol version)
     :raises HubAddressError: malformed channel string (a ValueError)
@@ -158,12 +159,13 @@ class HubBus(can.BusABC):
         data_bitrate: int | None = None,
         timing: can.BitTiming | can.BitTimingFd | None = None,
         connect_timeout_s: float | None = None,
+        allow_remote: bool = False,
         **kwargs: Any,
     ) -> None:
         self._closed = True  # until connected: nothing to operate on
         if channel is None:
             raise HubAddressError("HubBus needs a channel such as 'unix:/tmp/hub.sock#io'")
-        addr, name = parse_channel(str(channel))
+        addr, name = parse_channel(str(channel), bool(allow_remote))
         if isinstance(timing, can.BitTimingFd):
             bitrate = timing.nom_bitrate if bitrate is None else bitrate
             data_bitrate = timing.data_bitrate if data_bitrate is None else data_bitrate

@@ -154,7 +154,9 @@ class HubServer:
     """The hub: binds its listen addresses at construction, serves in :meth:`serve_forever`.
 
     :param listen: addresses (strings or :class:`HubAddress`); TCP port 0 picks a free port
-    :raises NonLoopbackAddressError: a TCP address is not loopback
+    :param allow_remote: accept non-loopback TCP addresses (explicit opt-in: the hub then serves
+        other machines)
+    :raises NonLoopbackAddressError: a TCP address is not loopback (without ``allow_remote``)
     :raises HubAddressInUseError: a live hub already owns a Unix path
     """
 
@@ -162,7 +164,7 @@ class HubServer:
     MAX_OUTBUF_BYTES: int = 8 << 20
     RECV_CHUNK: int = 1 << 16
 
-    def __init__(self, listen: Sequence[str | HubAddress]) -> None:
+    def __init__(self, listen: Sequence[str | HubAddress], allow_remote: bool = False) -> None:
         if not listen:
             raise HubAddressError("the hub needs at least one listen address")
         self._sel = selectors.DefaultSelector()
@@ -177,7 +179,7 @@ class HubServer:
         self.addresses: list[HubAddress] = []
         try:
             for item in listen:
-                addr = item if isinstance(item, HubAddress) else parse_address(item)
+                addr = item if isinstance(item, HubAddress) else parse_address(item, allow_remote)
                 self.addresses.append(self._bind(addr))
         except BaseException:
             self.close()
@@ -649,10 +651,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--ready", action="store_true", help=f"print '{READY_PREFIX} <addresses>' when listening")
     parser.add_argument("--exit-on-stdin-eof", action="store_true", help="exit when stdin closes")
     parser.add_argument("--log-level", default="INFO")
+    parser.add_argument("--allow-remote", action="store_true",
+                        help="accept non-loopback TCP listen addresses (the hub then serves other machines)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s hub %(levelname)s %(message)s")
     try:
-        server = HubServer(args.listen or [default_hub_address()])
+        server = HubServer(args.listen or [default_hub_address()], allow_remote=args.allow_remote)
+        if args.allow_remote:
+            logger.warning("hub accepts remote members on %s", ", ".join(map(str, server.addresses)))
     except (HubAddressError, HubAddressInUseError, OSError) as err:
         sys.exit(f"error: {err}")
     signal.signal(signal.SIGTERM, lambda *_: server.wake())

@@ -17,6 +17,9 @@ TOML layout::
     substeps = 4            # RK4 sub-steps per control period
     ff0 = "model"           # initial feed-forward: "model" (nominal inverse dynamics) | "zero"
     following_error_deg = 10.0
+    ff_transport = "table"  # feed-forward by SDO tables ("table") or each tick by SYNC + PDOs ("pdo")
+    fieldbus_bitrate = 1000000  # bit/s, for the bus-fit check of the pdo transport
+    force_bus_fit = false   # run a pdo configuration even if it does not fit the fieldbus
 
     [gains]                 # host.learning.ilc.GainSpec fields; preset = "normalized" | "paper"
     preset = "normalized"
@@ -33,6 +36,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from bus.busload import DEFAULT_BITRATE_BPS
+from bus.cyclic import FF_TRANSPORTS, cyclic_bus_fit
 from host.learning.ilc import GAIN_PRESETS, LAWS, GainSpec
 from host.planning.trajectory import PROFILES
 from plant.disturbance import KINDS as DISTURBANCES
@@ -58,6 +63,9 @@ class ExperimentConfig:
     substeps: int = 4
     ff0: str = "model"
     following_error_deg: float = 10.0
+    ff_transport: str = "table"
+    fieldbus_bitrate: int = DEFAULT_BITRATE_BPS
+    force_bus_fit: bool = False
     gains: GainSpec = field(default_factory=GainSpec)
 
     def as_dict(self) -> dict[str, Any]:
@@ -158,6 +166,20 @@ def validate(cfg: ExperimentConfig) -> None:
     _check_number("following_error_deg", cfg.following_error_deg)
     if cfg.following_error_deg <= 0:
         raise ConfigError(f"following_error_deg must be > 0, got {cfg.following_error_deg}")
+    if cfg.ff_transport not in FF_TRANSPORTS:
+        raise ConfigError(f"ff_transport must be one of {', '.join(FF_TRANSPORTS)}, got {cfg.ff_transport!r}")
+    _check_number("fieldbus_bitrate", cfg.fieldbus_bitrate, integer=True)
+    if cfg.fieldbus_bitrate <= 0:
+        raise ConfigError(f"fieldbus_bitrate must be > 0 bit/s, got {cfg.fieldbus_bitrate}")
+    if not isinstance(cfg.force_bus_fit, bool):
+        raise ConfigError(f"force_bus_fit must be true or false, got {cfg.force_bus_fit!r}")
+    if cfg.ff_transport == "pdo":
+        fit = cyclic_bus_fit(cfg.ts_s, cfg.fieldbus_bitrate)
+        if not fit.fits and not cfg.force_bus_fit:
+            raise ConfigError(
+                f"the cyclic PDO exchange does not fit the fieldbus: {fit.message()}; a real master would "
+                "lower the control rate, map fewer objects or use several PDOs per drive at a lower rate "
+                "(docs/timing.md §7); --force-bus-fit runs it anyway")
     g = cfg.gains
     for name in ("alpha", "beta", "lp_norm", "ld_norm", "q_cutoff_hz", "no_weight", "lp", "ld"):
         v = getattr(g, name)

@@ -68,6 +68,13 @@ def add_experiment_args(p: argparse.ArgumentParser) -> None:
                       ("q-cutoff-hz", "Q-filter cut-off of q-ilc, Hz")):
         p.add_argument(f"--{name}", type=float, dest=f"g_{name.replace('-', '_')}", help=hlp)
     p.add_argument("--lead", type=int, dest="g_lead", help="learning lead in samples (default 1)")
+    p.add_argument("--ff-transport", dest="ff_transport",
+                   help="feed-forward transport: table (SDO tables before each trial) | pdo (CiA 402 CSP, "
+                        "SYNC + RPDO/TPDO every tick) (default table)")
+    p.add_argument("--fieldbus-bitrate", type=int, dest="fieldbus_bitrate",
+                   help="fieldbus bit rate in bit/s for the bus-fit check (default 1000000)")
+    p.add_argument("--force-bus-fit", action="store_true", default=None, dest="force_bus_fit",
+                   help="run a pdo configuration even if its cyclic frames do not fit the fieldbus")
     p.add_argument("--out", default=None, help="run folder (default runs/<mode>-<time>)")
 
 
@@ -86,7 +93,8 @@ def experiment_config(args: argparse.Namespace) -> ExperimentConfig:
     from host.experiment.config import build_config  # heavy (plant, learning): only when needed
 
     overrides: dict[str, Any] = {k: getattr(args, k) for k in (
-        "law", "iterations", "path", "cycle_s", "profile", "disturbance", "seed", "ff0")}
+        "law", "iterations", "path", "cycle_s", "profile", "disturbance", "seed", "ff0", "ff_transport",
+        "fieldbus_bitrate", "force_bus_fit")}
     gains: dict[str, Any] = {}
     if args.config:
         try:
@@ -115,6 +123,9 @@ def print_plan(stream: TextIO, role: str, plan: Plan, extra: str = "") -> None:
         f"{c.paper_rho18:.3f}; predicted error ratio after {c.iterations} trials {c.predicted_ratio:.3g}, after "
         f"{c.long_horizon} {c.predicted_ratio_long:.3g}"
         f"{' (diverges if run longer)' if c.predicted_ratio_long > 1 else ''}\n")
+    if plan.bus_fit is not None:
+        stream.write(f"feed-forward by SYNC + PDOs (CiA 402 cyclic synchronous position); fieldbus: "
+                     f"{plan.bus_fit['message']}\n")
     stream.flush()
 
 

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from bus import units
+from bus.cyclic import cyclic_bus_fit
 from host.experiment.config import ExperimentConfig
 from host.experiment.summary import jsonable
 from host.learning.ilc import ConvergenceReport, Gains, LearningLaw, LiftedModel, make_law, resolve_gains
@@ -40,6 +41,7 @@ class Plan:
     u0: np.ndarray  # (N, 4) initial feed-forward, N·m
     feasibility: dict[str, Any]
     torque_limit_nm: float
+    bus_fit: dict[str, Any] | None = None  # pdo transport: the cyclic exchange against the fieldbus
 
     @property
     def n_ticks(self) -> int:
@@ -69,8 +71,12 @@ def prepare(cfg: ExperimentConfig) -> Plan:
         u0 = np.asarray(inverse_dynamics(ref.q, ref.qd, ref.qdd, model), dtype=float)
     else:
         u0 = np.zeros_like(ref.q)
+    bus_fit = None
+    if cfg.ff_transport == "pdo":
+        fit = cyclic_bus_fit(cfg.ts_s, cfg.fieldbus_bitrate)
+        bus_fit = fit.as_dict() | {"message": fit.message(), "forced": bool(cfg.force_bus_fit and not fit.fits)}
     return Plan(cfg=cfg, ref=ref, gains=gains, law=law, check=check, u0=u0,
-                feasibility=jsonable(feas), torque_limit_nm=float(true_cfg.joint_torque_limit_nm))
+                feasibility=jsonable(feas), torque_limit_nm=float(true_cfg.joint_torque_limit_nm), bus_fit=bus_fit)
 
 
 def reference_tables(ref: JointReference) -> tuple[np.ndarray, np.ndarray]:

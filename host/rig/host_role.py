@@ -7,7 +7,13 @@ and plant are other processes, reached only over CAN with the ``canopen`` librar
 * NMT start/stop, heartbeat consumption (0x1017 set by the host) and EMCY listening: a lost
   node or an EMCY during a trial is a :class:`host.experiment.loop.TrialFault`;
 * a passive monitor (a second python-can bus per channel, i.e. an ordinary bus member) counts
-  frames and bits per channel and writes candump logs with python-can's own writer.
+  frames and bits per channel and writes candump logs with python-can's own writer;
+* with the pdo feed-forward transport, the host configures each drive's RPDO1/TPDO1 with the
+  canopen library's PDO API (``node.rpdo`` / ``node.tpdo``: read, map, save) in NMT
+  PRE-OPERATIONAL, and during a trial is the SYNC producer of the SYNC/PDO lockstep handshake
+  (docs/timing.md §7): per tick it sends the four RPDOs (target position, torque offset) and one
+  SYNC, then waits for the four TPDOs of that tick (position actual, torque actual) before the
+  next tick's set-points.
 
 :func:`run_host_role` is the ``ilcrig host`` entry point (also what ``ilcrig run`` starts).
 """
@@ -16,6 +22,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import queue
 import sys
 import threading
 import time
@@ -31,6 +38,16 @@ from bus.bench_objects import DEFAULT_BENCH_NODE_ID as BENCH_NODE_ID
 from bus.busload import BusLoadCounter
 from bus.canlog import open_log
 from bus.cia301.nmt import HeartbeatConsumer, NmtCommand, NmtState
+from bus.cyclic import (
+    CSP_RPDO_MAP,
+    RPDO_NUMBER,
+    TPDO_MAP,
+    TPDO_NUMBER,
+    TRANSMISSION_TYPE,
+    decode_tpdo,
+    rpdo_cob_id,
+    tpdo_cob_id,
+)
 from bus.errors import IlcrigError, SdoAbort
 from bus.objects import DRIVE_EDS_PATH, DRIVE_NODE_IDS
 from bus.transports.config import FIELDBUS, IO, TransportConfig
@@ -38,7 +55,7 @@ from bus.units import timeout_scale
 from host.analysis.session import report_fault, run_session
 from host.experiment.config import ExperimentConfig
 from host.experiment.console import EXIT_FAULT, print_plan
-from host.experiment.loop import TrialFault
+from host.experiment.loop import CyclicActuals, CyclicSetpoints, TrialFault
 from host.experiment.plan import prepare
 from host.nodes.bench_client import BenchClient, BenchClientError
 from host.nodes.drive_client import DriveClient
@@ -52,6 +69,10 @@ __all__ = ["RigBench", "run_host_role"]
 HEARTBEAT_MS = 100
 #: the host's consumer timeout: 10 missed periods, generous (2 cores for 7 processes), s
 HEARTBEAT_TIMEOUT_S = 1.0
+#: longest wait for the four TPDOs of one tick (× ILCRIG_TIMEOUT_SCALE), s; the first tick of a
+#: trial waits as long as the plant does for its first torque frames
+TPDO_TIMEOUT_S = 2.0
+FIRST_TPDO_TIMEOUT_S = 10.0
 
 
 def _node_id(node: canopen.RemoteNode) -> int:
@@ -112,6 +133,11 @@ class RigBench:
         self.monitors: list[ChannelMonitor] = []
         self.drives: list[DriveClient] = []
         self._t_start = time.monotonic()
+        self.cyclic = cfg.ff_transport == "pdo"
+        self._tpdos: queue.Queue[tuple[int, bytes]] = queue.Queue()
+        self._rpdo_maps: dict[int, Any] = {}
+        self._tpdo_subscribed: set[int] = set()
+        self.pdo_frames = {"sync": 0, "rpdo": 0, "tpdo": 0}
         self.network = canopen.Network(transport.open(FIELDBUS))
         try:
             for name in (FIELDBUS, IO):
@@ -171,6 +197,9 @@ class RigBench:
                                  f"{self.wait_s:g} s {what}")
         for nid in sorted(node_ids):
             nodes[nid].sdo.download(0x1017, 0, HEARTBEAT_MS.to_bytes(2, "little"))
+        if self.cyclic:
+            for nid in sorted(node_ids & set(DRIVE_NODE_IDS)):
+                self._configure_pdos(nodes[nid])
             with self._lock:
                 self.heartbeats.watch(nid, HEARTBEAT_TIMEOUT_S * timeout_scale())
         for nid in sorted(node_ids):
@@ -188,6 +217,30 @@ class RigBench:
             time.sleep(0.02)
         with self._lock:
             self.heartbeats.check(time.monotonic())  # forget the boot-ups seen while starting
+
+    def _configure_pdos(self, node: Any) -> None:
+        """RPDO1 (target position, torque offset) and TPDO1 (position actual, torque actual), both
+        synchronous, with the canopen library's PDO API; the mapping may change only in NMT
+        PRE-OPERATIONAL (CiA 301), so the node is put there first."""
+        node.nmt.send_command(NmtCommand.ENTER_PRE_OPERATIONAL)
+        node.rpdo.read()
+        node.tpdo.read()
+        for pdo_map, mapping, cob_id in ((node.rpdo[RPDO_NUMBER], CSP_RPDO_MAP, rpdo_cob_id(node.id)),
+                                         (node.tpdo[TPDO_NUMBER], TPDO_MAP, tpdo_cob_id(node.id))):
+            pdo_map.clear()
+            for index, sub, bits in mapping:
+                pdo_map.add_variable(index, sub, bits)
+            pdo_map.cob_id = cob_id
+            pdo_map.trans_type = TRANSMISSION_TYPE
+            pdo_map.enabled = True
+            pdo_map.save()
+        self._rpdo_maps[node.id] = node.rpdo[RPDO_NUMBER]
+        if node.id not in self._tpdo_subscribed:  # the map object (and its callbacks) lives on
+            self._tpdo_subscribed.add(node.id)
+            node.tpdo[TPDO_NUMBER].add_callback(
+                lambda m, nid=node.id: self._tpdos.put((nid, bytes(m.data))))
+        logger.info("node %d: RPDO1 0x%03X and TPDO1 0x%03X configured", node.id, rpdo_cob_id(node.id),
+                    tpdo_cob_id(node.id))
 
     def start(self) -> None:
         """Wait for all five nodes' boot-up, then as :meth:`_bring_up`."""
@@ -252,10 +305,14 @@ class RigBench:
         if faults:
             raise TrialFault("; ".join(faults))
 
-    def run_trial(self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray) -> None:
+    def run_trial(self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray,
+                  cyclic: CyclicSetpoints | None = None) -> CyclicActuals | None:
         self._check_health()
+        actuals = None
         try:
             self.bench.start_trial(trial, n_ticks, q0, qd0)
+            if cyclic is not None:
+                actuals = self._stream(trial, n_ticks, cyclic)
             # generous: lockstep over a loaded 2-core machine; faults come back much sooner
             self.bench.wait_trial(timeout_s=60.0 + n_ticks * 0.01, poll_s=0.02)
         except (BenchClientError, SdoAbort, SdoTransportError) as exc:
@@ -267,6 +324,48 @@ class RigBench:
                     self._pending_faults = []
             raise TrialFault(f"trial {trial}: {exc}{extra}") from exc
         self._check_health()
+        return actuals
+
+    def _stream(self, trial: int, n_ticks: int, cyclic: CyclicSetpoints) -> CyclicActuals:
+        """The SYNC producer's side of the lockstep handshake (docs/timing.md §7): per tick n the
+        four RPDOs with the set-points of n, one SYNC, then the four TPDOs of n."""
+        while True:  # TPDOs of an earlier, faulted trial
+            try:
+                self._tpdos.get_nowait()
+            except queue.Empty:
+                break
+        index = {nid: j for j, nid in enumerate(DRIVE_NODE_IDS)}
+        rpdos = [self._rpdo_maps[nid] for nid in DRIVE_NODE_IDS]
+        n_drives = len(rpdos)
+        pos = np.zeros((n_ticks, n_drives), dtype=np.int64)
+        torque = np.zeros((n_ticks, n_drives), dtype=np.int64)
+        target, offset = cyclic.target_counts, cyclic.torque_offset_permille
+        scale = timeout_scale()
+        sync = self.network.sync
+        for n in range(n_ticks):
+            for j, rpdo in enumerate(rpdos):
+                rpdo[0].raw = int(target[n, j])
+                rpdo[1].raw = int(offset[n, j])
+                rpdo.transmit()
+            sync.transmit()
+            self.pdo_frames["rpdo"] += n_drives
+            self.pdo_frames["sync"] += 1
+            seen = [False] * n_drives
+            deadline = time.monotonic() + (FIRST_TPDO_TIMEOUT_S if n == 0 else TPDO_TIMEOUT_S) * scale
+            for _ in range(n_drives):
+                try:
+                    nid, data = self._tpdos.get(timeout=max(0.0, deadline - time.monotonic()))
+                except queue.Empty:
+                    missing = [DRIVE_NODE_IDS[j] for j in range(n_drives) if not seen[j]]
+                    self.bench.wait_trial(timeout_s=1.0 * scale)  # a bench fault explains it better
+                    raise TrialFault(f"trial {trial}: no TPDO from drive(s) {missing} for tick {n}") from None
+                j = index[nid]
+                if seen[j]:
+                    raise TrialFault(f"trial {trial}: two TPDOs from drive {nid} in tick {n}")
+                seen[j] = True
+                pos[n, j], torque[n, j] = decode_tpdo(data)
+            self.pdo_frames["tpdo"] += n_drives
+        return CyclicActuals(pos, torque)
 
     def info(self) -> dict[str, Any]:
         wall = time.monotonic() - self._t_start
@@ -288,7 +387,7 @@ class RigBench:
             "elapsed_s": wall,
             "emcy": self.emcy,
             "recoveries": self.recoveries,
-        }
+        } | ({"pdo_frames": dict(self.pdo_frames)} if self.cyclic else {})
 
     def close(self) -> None:
         try:
