@@ -40,8 +40,9 @@ def assert_one_line_error(code: int, err: str, fragment: str) -> None:
     [
         (["--path", "7"], "path"),
         (["--law", "x-ilc"], "unknown law 'x-ilc'"),
-        (["--iterations", "0"], "iterations must be >= 1"),
-        (["--iterations", "-3"], "iterations must be >= 1"),
+        (["--iterations", "0"], "iterations must be between 1 and 1000"),
+        (["--iterations", "-3"], "iterations must be between 1 and 1000"),
+        (["--iterations", "1001"], "iterations must be between 1 and 1000"),
         (["--cycle", "0.05"], "too short"),
         (["--cycle", "-1"], "cycle_s must be > 0"),
         (["--alpha", "nan"], "gains.alpha must be finite"),
