@@ -65,4 +65,9 @@ def dense_l(n: int, lp: np.ndarray, ld: np.ndarray, ts: float, m: int, use_p: bo
 def dense_norm_optimal(G: np.ndarray, w: float) -> np.ndarray:
     """L_no = −(GᵀG + w·s·I)⁻¹Gᵀ with s the largest squared column norm of G."""
     scale = float(np.max(np.sum(G * G, axis=0)))
-    return -np.linalg.solve(G.T @ G + (w * scale + 1e-300) * np.eye(G.shape[0]), G.T)
+    r = w * scale + 1e-300
+    # least squares on the stacked system [G; √r I] (better conditioned than the normal equations)
+    n = G.shape[0]
+    stacked = np.vstack([G, np.sqrt(r) * np.eye(n)])
+    rhs = np.vstack([np.eye(n), np.zeros((n, n))])
+    return -np.linalg.lstsq(stacked, rhs, rcond=None)[0]

@@ -6,7 +6,7 @@ one-line message; the CLI turns them into exit code 2 before anything moves.
 
 TOML layout::
 
-    law = "pd-ilc-q"        # see host.learning.names.LAWS (default DEFAULT_LAW)
+    law = "no-ilc-id"       # see host.learning.names.LAWS (default DEFAULT_LAW)
     iterations = 10         # 1 .. host.learning.names.MAX_ITERATIONS
     path = "1"              # 1..4 or a path TOML file
     cycle_s = 0.25          # single-journey time, s

@@ -61,8 +61,10 @@ class GainSpec:
     #: cut-off of the zero-phase Q filter of ``pd-ilc-q`` (the paper's law, robust form), Hz
     pdq_cutoff_hz: float = 40.0
     #: weight of the input change in the norm-optimal laws, relative to the largest squared
-    #: column norm of G (dimensionless)
-    no_weight: float = 1e-9
+    #: column norm of G (dimensionless).  1e-5: smaller weights invert G further into the high
+    #: frequencies, where the model is wrong (Coulomb reversals) and the error is encoder noise, and
+    #: the error grows again after a few trials (the 0.5 s anomaly, docs/learning-laws.md §8)
+    no_weight: float = 1e-5
     name: str = "normalized"
 
 

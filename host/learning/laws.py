@@ -31,6 +31,7 @@ import numpy.typing as npt
 
 from host.learning.check import (
     LONG_HORIZON,
+    ROBUST_INERTIA_SCALES,
     ConvergenceReport,
     IterationMap,
     check_iteration_map,
@@ -108,14 +109,21 @@ class LearningLaw(ABC):
 
     @abstractmethod
     def iteration_map(self, model: ClosedLoopModel) -> IterationMap:
-        """The law's linear trial-to-trial map on ``model`` (for the convergence check)."""
+        """The law's linear trial-to-trial map when the plant is ``model`` (the law's own operators —
+        its filters, its norm-optimal gains — stay the ones it was built with)."""
 
     def check(self, model: ClosedLoopModel | None = None, probe_torque: Array | None = None,
-              iterations: int = 10, long_horizon: int = LONG_HORIZON) -> ConvergenceReport:
-        """The convergence check of :mod:`host.learning.check` on ``model`` (default: the law's)."""
+              iterations: int = 10, long_horizon: int = LONG_HORIZON,
+              inertia_scales: tuple[float, ...] = ROBUST_INERTIA_SCALES) -> ConvergenceReport:
+        """The convergence check of :mod:`host.learning.check` on ``model`` (default: the law's), with
+        the long-run verdict also on the plant whose inertia is scaled by each of ``inertia_scales``."""
         mdl = model if model is not None else self.ctx.model
+        perturbed = []
+        for scale in inertia_scales:
+            plant = mdl.corrected(mdl.inertia * scale)
+            perturbed.append((scale, self.iteration_map(plant), plant))
         return check_iteration_map(self.iteration_map(mdl), mdl, self.gains.ld, self.ts_s, probe_torque,
-                                   iterations, long_horizon)
+                                   iterations, long_horizon, perturbed)
 
 
 # ------------------------------------------------------------------------------ PD-type laws
@@ -297,9 +305,10 @@ class NoIlc(LearningLaw):
         return u_k + self.step(e_k)
 
     def iteration_map(self, model: ClosedLoopModel) -> IterationMap:
-        step = self.step if model is self.ctx.model else NormOptimalStep(model, self.gains.spec.no_weight)
-        # e_{k+1} = (I − G(GᵀG + rI)⁻¹Gᵀ) e_k: symmetric, eigenvalues r/(σ² + r) in (0, 1]
-        return IterationMap("error", apply=lambda e: e + model.g(step(e)), symmetric=True)
+        step = self.step
+        # e_{k+1} = (I + G_plant L_no) e_k; on the law's own model I − G(GᵀG + rI)⁻¹Gᵀ: symmetric,
+        # eigenvalues r/(σ² + r) in (0, 1]
+        return IterationMap("error", apply=lambda e: e + model.g(step(e)), symmetric=model is step.model)
 
 
 class NoIlcId(NoIlc):

@@ -8,9 +8,10 @@ from __future__ import annotations
 #: learning laws; :func:`host.learning.laws.make_law` builds each (its registry is checked
 #: against this tuple at import)
 LAWS: tuple[str, ...] = ("pd-ilc", "pd-ilc-q", "pd-ol", "p-ol", "d-ilc", "q-ilc", "no-ilc", "no-ilc-id")
-#: the law of the default experiment: the paper's law in its robust (Q-filtered) form, which stays
-#: bounded over long runs (the literal ``pd-ilc`` diverges after about a dozen trials)
-DEFAULT_LAW: str = "pd-ilc-q"
+#: the law of the default experiment: norm-optimal ILC on the model estimated from the first trial,
+#: bounded over long runs and settled by the third trial (the paper's literal ``pd-ilc`` diverges
+#: after about a dozen trials; its robust form is ``pd-ilc-q``)
+DEFAULT_LAW: str = "no-ilc-id"
 #: gain presets, see :data:`host.learning.gains.GAIN_PRESETS`
 GAIN_PRESET_NAMES: tuple[str, ...] = ("normalized", "paper")
 #: the largest number of trials of one experiment.  A run keeps every trial's error and
