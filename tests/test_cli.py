@@ -125,7 +125,7 @@ def test_best_law_reaches_encoder_lsb_level() -> None:
 
 @pytest.mark.slow
 def test_paper_literal_gains_are_flagged_and_fault_cleanly(tmp_path: Path) -> None:
-    cfg = build_config(None, {"iterations": 8, "gains": {"preset": "paper"}})
+    cfg = build_config(None, {"law": "pd-ilc", "iterations": 8, "gains": {"preset": "paper"}})
     plan = prepare(cfg)
     assert not plan.check.ok
     res = run_experiment(plan, InProcessBench(cfg), tmp_path, mode="sim")
