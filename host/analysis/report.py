@@ -640,7 +640,7 @@ def _long_section(runs: _Runs, out: Path, claims: Mapping[str, Verdict]) -> list
         blk = np.convolve(m, np.ones(LONG_BLOCK) / LONG_BLOCK, mode="valid") if len(m) >= LONG_BLOCK else m
         said = chk.get("long_bounded")
         check_word = "—" if said is None else ("bounded" if said else
-                                               f"NOT bounded ({fmt(chk.get('predicted_long_growth'), 2)}×)")
+                                               f"NOT bounded ({chk.get('predicted_long_growth', 0.0):.2g}×)")
         rows.append([LAW_LABEL.get(law, law), dist, fmt(m[min(9, len(m) - 1)]), fmt(float(np.min(blk))),
                      fmt(float(blk[-1])), fmt(float(blk[-1] / np.min(blk)), 3), v.word, check_word,
                      fmt(chk.get("norm2"), 3)])
