@@ -325,7 +325,7 @@ def test_identification_recovers_the_true_parameters() -> None:
     tau[0] = b[0]
     for n in range(1, len(q) - 1):
         tau[n] = 2 * b[n - 1] - tau[n - 1]
-    est.add_trial(q, tau)
+    est.add_trial(q, np.zeros_like(q), tau)
     assert len(PARAMETER_NAMES) == 13
     np.testing.assert_allclose(est.theta[:5], theta_true[:5], rtol=2e-3)
     assert est.residual_rms_nm < 1e-3

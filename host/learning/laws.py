@@ -329,7 +329,7 @@ class NoIlcId(NoIlc):
         assert ref is not None
         if self.updates >= self.ESTIMATION_TRIALS:
             return u_k + self.step(e_k)
-        self.estimate.add_trial(ref.q - e_k, tau_k)
+        self.estimate.add_trial(ref.q, e_k, tau_k)
         # corrected feed-forward: the estimated inverse dynamics along the reference, at the middle
         # of each hold interval (the torque u[n] acts over [t_n, t_n + Ts])
         t_ref = self.estimate.inverse_dynamics(ref.q, ref.qd, ref.qdd)
