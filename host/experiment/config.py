@@ -6,8 +6,8 @@ one-line message; the CLI turns them into exit code 2 before anything moves.
 
 TOML layout::
 
-    law = "pd-ilc"          # see host.learning.ilc.LAWS
-    iterations = 10
+    law = "no-ilc-id"       # see host.learning.names.LAWS (default DEFAULT_LAW)
+    iterations = 10         # 1 .. host.learning.names.MAX_ITERATIONS
     path = "1"              # 1..4 or a path TOML file
     cycle_s = 0.25          # single-journey time, s
     profile = "ruckig"      # ruckig | poly4567 | poly5
@@ -21,7 +21,7 @@ TOML layout::
     fieldbus_bitrate = 1000000  # bit/s, for the bus-fit check of the pdo transport
     force_bus_fit = false   # run a pdo configuration even if it does not fit the fieldbus
 
-    [gains]                 # host.learning.ilc.GainSpec fields; preset = "normalized" | "paper"
+    [gains]                 # host.learning.gains.GainSpec fields; preset = "normalized" | "paper"
     preset = "normalized"
     alpha = 3.0
 """
@@ -38,7 +38,8 @@ from typing import Any
 
 from bus.busload import DEFAULT_BITRATE_BPS
 from bus.cyclic import FF_TRANSPORTS, cyclic_bus_fit
-from host.learning.ilc import GAIN_PRESETS, LAWS, GainSpec
+from host.learning.gains import GAIN_PRESETS, GainSpec
+from host.learning.names import DEFAULT_LAW, LAWS, MAX_ITERATIONS
 from host.planning.trajectory import PROFILES
 from plant.disturbance import KINDS as DISTURBANCES
 
@@ -52,7 +53,7 @@ class ConfigError(ValueError):
 
 @dataclass(frozen=True)
 class ExperimentConfig:
-    law: str = "pd-ilc"
+    law: str = DEFAULT_LAW
     iterations: int = 10
     path: str = "1"
     cycle_s: float = 0.25
@@ -143,8 +144,8 @@ def validate(cfg: ExperimentConfig) -> None:
     if cfg.law not in LAWS:
         raise ConfigError(f"unknown law {cfg.law!r}; choose one of {', '.join(LAWS)}")
     _check_number("iterations", cfg.iterations, integer=True)
-    if cfg.iterations < 1:
-        raise ConfigError(f"iterations must be >= 1, got {cfg.iterations}")
+    if not 1 <= cfg.iterations <= MAX_ITERATIONS:
+        raise ConfigError(f"iterations must be between 1 and {MAX_ITERATIONS}, got {cfg.iterations}")
     _check_number("cycle_s", cfg.cycle_s)
     if cfg.cycle_s <= 0:
         raise ConfigError(f"cycle_s must be > 0, got {cfg.cycle_s}")
@@ -181,7 +182,7 @@ def validate(cfg: ExperimentConfig) -> None:
                 "lower the control rate, map fewer objects or use several PDOs per drive at a lower rate "
                 "(docs/timing.md §7); --force-bus-fit runs it anyway")
     g = cfg.gains
-    for name in ("alpha", "beta", "lp_norm", "ld_norm", "q_cutoff_hz", "no_weight", "lp", "ld"):
+    for name in ("alpha", "beta", "lp_norm", "ld_norm", "q_cutoff_hz", "pdq_cutoff_hz", "no_weight", "lp", "ld"):
         v = getattr(g, name)
         if v is not None and (not math.isfinite(v)):
             raise ConfigError(f"gains.{name} must be finite, got {v}")
@@ -191,3 +192,11 @@ def validate(cfg: ExperimentConfig) -> None:
         raise ConfigError(f"gains.alpha and gains.beta must be >= 1, got {g.alpha}, {g.beta}")
     if g.lead < 0:
         raise ConfigError(f"gains.lead must be >= 0, got {g.lead}")
+    nyquist_hz = 0.5 / cfg.ts_s
+    for name in ("q_cutoff_hz", "pdq_cutoff_hz"):
+        if not 0 < getattr(g, name) < nyquist_hz:
+            raise ConfigError(f"gains.{name} must be between 0 and {nyquist_hz:g} Hz (Nyquist), got {getattr(g, name)}")
+    if g.q_order < 1:
+        raise ConfigError(f"gains.q_order must be >= 1, got {g.q_order}")
+    if not g.no_weight > 0:
+        raise ConfigError(f"gains.no_weight must be > 0, got {g.no_weight}")

@@ -1,9 +1,10 @@
 """The plan of an experiment: everything decided before anything moves.
 
 This module owns :func:`prepare`: plan the task trajectory, map it to joint references,
-check feasibility, resolve the gains, build the learning law and run its convergence check,
-and compute the initial feed-forward.  Anything infeasible raises a ``ValueError`` subclass
-with a one-line message, before a process starts or a drive is configured.
+check feasibility, resolve the gains, build the closed-loop model along the reference, the
+learning law and its convergence check, and compute the initial feed-forward.  Anything
+infeasible raises a ``ValueError`` subclass with a one-line message, before a process starts or a
+drive is configured.
 """
 
 from __future__ import annotations
@@ -18,11 +19,14 @@ from bus import units
 from bus.cyclic import cyclic_bus_fit
 from host.experiment.config import ExperimentConfig
 from host.experiment.summary import jsonable
-from host.learning.ilc import ConvergenceReport, Gains, LearningLaw, LiftedModel, make_law, resolve_gains
+from host.learning.check import BOUNDED_BLOCK, PROBE_TORQUE_FRACTION, ConvergenceReport
+from host.learning.gains import Gains, resolve_gains
+from host.learning.laws import LawContext, LearningLaw, make_law
+from host.learning.model import ClosedLoopModel
 from host.planning.paths import resolve_path
 from host.planning.trajectory import JointReference, check_feasibility, joint_reference, plan_task
 from plant.dynamics import inverse_dynamics, mass_matrix
-from plant.params import default_true_plant, nominal_mass_model
+from plant.params import Geometry, default_true_plant, nominal_mass_model
 
 logger = logging.getLogger(__name__)
 
@@ -60,21 +64,25 @@ def prepare(cfg: ExperimentConfig) -> Plan:
     inertia_seq = np.array([mass_matrix(q, model) for q in ref.q])
     mean_inertia = np.mean(np.diagonal(inertia_seq, axis1=1, axis2=2), axis=0)
     gains = resolve_gains(cfg.gains, mean_inertia, cfg.ts_s)
-    lifted = LiftedModel(inertia_seq, gains.kp, gains.kd, cfg.ts_s)
-    law = make_law(cfg.law, gains, cfg.ts_s, model=lifted)
-    check = law.check(lifted, None, cfg.iterations)
+    closed_loop = ClosedLoopModel(inertia_seq, gains.kp, gains.kd, cfg.ts_s)
+    tau_nominal = np.asarray(inverse_dynamics(ref.q, ref.qd, ref.qdd, model), dtype=float)
+    u0 = tau_nominal if cfg.ff0 == "model" else np.zeros_like(ref.q)
+    ctx = LawContext(gains=gains, ts_s=cfg.ts_s, model=closed_loop, reference=ref, u0_nm=u0, mass_model=model,
+                     geometry=Geometry())
+    law = make_law(cfg.law, ctx)
+    # the prediction starts from the error a PROBE_TORQUE_FRACTION error of the nominal torque causes
+    check = law.check(closed_loop, PROBE_TORQUE_FRACTION * tau_nominal, cfg.iterations)
     if not check.ok:
         logger.warning("convergence check failed for law %s: spectral radius %.3f, predicted error ratio "
                        "after %d trials %.3g: expect divergence", cfg.law, check.rho_max, check.iterations,
                        check.predicted_ratio)
-    if cfg.ff0 == "model":
-        u0 = np.asarray(inverse_dynamics(ref.q, ref.qd, ref.qdd, model), dtype=float)
-    else:
-        u0 = np.zeros_like(ref.q)
     bus_fit = None
     if cfg.ff_transport == "pdo":
         fit = cyclic_bus_fit(cfg.ts_s, cfg.fieldbus_bitrate)
         bus_fit = fit.as_dict() | {"message": fit.message(), "forced": bool(cfg.force_bus_fit and not fit.fits)}
+    if not check.long_bounded:
+        logger.warning("law %s is predicted to grow again within %d trials (last %d trials %.3g x the best)",
+                       cfg.law, check.long_horizon, BOUNDED_BLOCK, check.predicted_long_growth)
     return Plan(cfg=cfg, ref=ref, gains=gains, law=law, check=check, u0=u0,
                 feasibility=jsonable(feas), torque_limit_nm=float(true_cfg.joint_torque_limit_nm), bus_fit=bus_fit)
 
