@@ -72,6 +72,7 @@ from bus.bench_objects import (
     fault_emcy_data,
     unpack_initial_state,
 )
+from bus.bus_features import batch_sender
 from bus.cia301.nmt import NmtCommand, NmtState, next_state
 from bus.cia301.node import ObjectStore, SlaveNode, Value, install_sigterm
 from bus.errors import AbortCode, SdoAbort
@@ -155,6 +156,8 @@ class BenchNode(SlaveNode):
         self._t_start = 0.0
         self._tau = np.zeros(io_frames.N_JOINTS, dtype=np.int64)
         self._dist: np.ndarray = np.zeros((0, io_frames.N_JOINTS))
+        # the four encoder frames of a tick go out in one write where the bus can (the hub)
+        self._send_batch = batch_sender(io)
         self._trackers = [io_frames.TickTracker(0, f"torque frames of drive {j + 1}")
                           for j in range(io_frames.N_JOINTS)]
         # counters (0x2430)
@@ -318,14 +321,14 @@ class BenchNode(SlaveNode):
             return
         j = cob - _TORQUE_LO
         try:
-            frame = io_frames.decode_torque(msg)
-            if io_frames.tick_diff(frame.tick, io_frames.wire_tick(self._origin)) < 0:
+            torque, wire, status = io_frames.torque_fields(msg)
+            if io_frames.tick_diff(wire, self._origin) < 0:
                 # an answer to a tick of an earlier (e.g. aborted) trial arriving late: wire ticks
                 # keep counting across trials, so it cannot be mistaken for one of this trial
                 logger.debug("node %d: late torque frame of drive %d from an earlier trial ignored",
                               self.node_id, j + 1)
                 return
-            tick = self._trackers[j].accept(frame.tick)
+            tick = self._trackers[j].accept(wire)
         except io_frames.TickError as err:
             self._fail(BenchFault.TICK_SEQUENCE, j + 1, f"tick {self._tick}: {err}")
             return
@@ -336,7 +339,7 @@ class BenchNode(SlaveNode):
             self._fail(BenchFault.TICK_SEQUENCE, j + 1,
                        f"drive {j + 1} sent tick {tick - self._origin} during tick {self._tick}")
             return
-        self._tau[j] = 0 if frame.status & _FAULT_BIT else frame.torque_units
+        self._tau[j] = 0 if status & _FAULT_BIT else torque
         self._got += 1
         if self._got == io_frames.N_JOINTS:
             self._advance()
@@ -393,9 +396,7 @@ class BenchNode(SlaveNode):
 
     def _send_encoders(self, counts: np.ndarray) -> None:
         wire = self._origin + self._tick
-        send = self.io.send
-        for j in range(io_frames.N_JOINTS):
-            send(io_frames.encode_encoder(j, wire, int(counts[j])))
+        self._send_batch([io_frames.encode_encoder(j, wire, int(counts[j])) for j in range(io_frames.N_JOINTS)])
         self.io_sent += io_frames.N_JOINTS
         self.frames_out += io_frames.N_JOINTS
         self._got = 0

@@ -6,8 +6,9 @@ and plant are other processes, reached only over CAN with the ``canopen`` librar
   hand-written drives are checked against an independent CANopen implementation;
 * NMT start/stop, heartbeat consumption (0x1017 set by the host) and EMCY listening: a lost
   node or an EMCY during a trial is a :class:`host.experiment.loop.TrialFault`;
-* a passive monitor (a second python-can bus per channel, i.e. an ordinary bus member) counts
-  frames and bits per channel and writes candump logs with python-can's own writer.
+* a passive monitor (a second python-can bus per channel, i.e. an ordinary bus member,
+  :class:`host.rig.monitor.ChannelMonitor`) counts frames and bits per channel and writes candump
+  logs with python-can's own writer.
 
 :func:`run_host_role` is the ``ilcrig host`` entry point (also what ``ilcrig run`` starts).
 """
@@ -28,8 +29,6 @@ import numpy as np
 
 from bus.bench_objects import BENCH_EDS_PATH
 from bus.bench_objects import DEFAULT_BENCH_NODE_ID as BENCH_NODE_ID
-from bus.busload import BusLoadCounter
-from bus.canlog import open_log
 from bus.cia301.nmt import HeartbeatConsumer, NmtCommand, NmtState
 from bus.errors import IlcrigError, SdoAbort
 from bus.objects import DRIVE_EDS_PATH, DRIVE_NODE_IDS
@@ -43,6 +42,7 @@ from host.experiment.plan import prepare
 from host.nodes.bench_client import BenchClient, BenchClientError
 from host.nodes.drive_client import DriveClient
 from host.nodes.sdo_access import SdoAccess, SdoTransportError
+from host.rig.monitor import ChannelMonitor
 
 logger = logging.getLogger(__name__)
 
@@ -63,36 +63,6 @@ def _node_id(node: canopen.RemoteNode) -> int:
     if node.id is None:
         raise ValueError(f"canopen node {node!r} has no node id")
     return node.id
-
-
-class ChannelMonitor(can.Listener):
-    """Counts frames/bits of one channel and writes its candump log (a plain bus member)."""
-
-    def __init__(self, bus: can.BusABC, name: str, log_path: Path | None) -> None:
-        self.bus = bus
-        self.name = name
-        self.counter = BusLoadCounter()
-        self.log = open_log(log_path, name) if log_path is not None else None
-        self.lock = threading.Lock()
-        listeners: list[can.Listener] = [self]
-        self.notifier = can.Notifier(bus, listeners, timeout=0.1)
-
-    def on_message_received(self, msg: can.Message) -> None:
-        with self.lock:
-            self.counter.add(msg)
-            if self.log is not None:
-                self.log.on_message_received(msg)
-
-    def stop(self) -> None:
-        """can.Listener hook (called by the notifier when it stops): nothing to do here."""
-
-    def close(self) -> None:
-        """Stop receiving, close the log and the bus."""
-        self.notifier.stop(timeout=2.0)
-        with self.lock:
-            if self.log is not None:
-                self.log.stop()
-        self.bus.shutdown()
 
 
 class RigBench:
@@ -272,6 +242,7 @@ class RigBench:
         wall = time.monotonic() - self._t_start
         channels = {}
         for m in self.monitors:
+            m.catch_up()
             with m.lock:
                 c = m.counter
                 channels[m.name] = {
