@@ -34,13 +34,13 @@ from bus.transports.hub_server import HubError, query_hub_stats  # noqa: E402
 _TICKS = os.sysconf("SC_CLK_TCK")
 
 
-def cpu_s(pid: int) -> float | None:
-    """User + system CPU seconds of process ``pid`` (all its threads), None if gone."""
+def cpu_s(pid: int) -> tuple[float, float] | None:
+    """(user, system) CPU seconds of process ``pid`` (all its threads), None if gone."""
     try:
         fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     except OSError:
         return None
-    return (int(fields[11]) + int(fields[12])) / _TICKS
+    return int(fields[11]) / _TICKS, int(fields[12]) / _TICKS
 
 
 def children_of(pid: int) -> list[int]:
@@ -80,7 +80,7 @@ def main() -> None:
         host = [p for p in children_of(proc.pid) if p not in roles.values()]
         if host:
             roles["host"] = host[0]
-        samples: list[tuple[float, int, dict[str, float]]] = []
+        samples: list[tuple[float, int, dict[str, tuple[float, float]]]] = []
         while proc.poll() is None:
             try:
                 frames = query_hub_stats(hub)["io"].frames if hub else 0
@@ -94,7 +94,7 @@ def main() -> None:
     best = max(rates, default=0.0)
     ticks = 0.0
     wall = 0.0
-    cpu_tot: dict[str, float] = {}
+    cpu_tot: dict[str, list[float]] = {}
     for (a, b), rate in zip(zip(samples, samples[1:]), rates):
         if best <= 0 or rate < 0.5 * best:
             continue
@@ -102,15 +102,19 @@ def main() -> None:
         wall += b[0] - a[0]
         for name in a[2]:
             if name in b[2]:
-                cpu_tot[name] = cpu_tot.get(name, 0.0) + b[2][name] - a[2][name]
+                tot = cpu_tot.setdefault(name, [0.0, 0.0])
+                tot[0] += b[2][name][0] - a[2][name][0]
+                tot[1] += b[2][name][1] - a[2][name][1]
     print(f"load average {os.getloadavg()[0]:.2f}; {ticks:.0f} ticks counted in {wall:.2f} s "
           f"({ticks / wall if wall else 0:.0f} ticks/s); CPU µs per tick:")
-    total = 0.0
+    print(f"  {'role':<8}{'total':>8}{'user':>8}{'system':>8}")
+    sums = [0.0, 0.0]
     for name in sorted(cpu_tot):
-        us = 1e6 * cpu_tot[name] / ticks if ticks else 0.0
-        total += us
-        print(f"  {name:<8}{us:8.0f}")
-    print(f"  {'sum':<8}{total:8.0f}")
+        user, system = (1e6 * v / ticks if ticks else 0.0 for v in cpu_tot[name])
+        sums[0] += user
+        sums[1] += system
+        print(f"  {name:<8}{user + system:8.0f}{user:8.0f}{system:8.0f}")
+    print(f"  {'sum':<8}{sums[0] + sums[1]:8.0f}{sums[0]:8.0f}{sums[1]:8.0f}")
     last = [ln for ln in tail.splitlines() if "ticks" in ln]
     if last:
         print(last[-1])

@@ -183,7 +183,8 @@ class BenchClient:
         )
 
     def wait_trial(self, timeout_s: float, poll_s: float = 0.02) -> BenchState:
-        """Poll the status every ``poll_s`` s until the trial is no longer running.
+        """Poll the status (0x2410:4, one SDO upload) every ``poll_s`` s until the trial is no
+        longer running, then read the whole state.
 
         :return: the final state (status DONE).
         :raises BenchTrialFault: the trial ended in fault (or the bench is idle: never started).
@@ -191,6 +192,11 @@ class BenchClient:
         """
         deadline = time.monotonic() + timeout_s
         while True:
+            # while the trial runs, one SDO upload (the status) per poll; the whole state once it ended
+            if (self._read_uint(BenchObj.TRIAL, BenchTrialSub.STATUS) == BenchStatus.RUNNING
+                    and time.monotonic() < deadline):
+                time.sleep(poll_s)
+                continue
             state = self.status()
             if state.status == BenchStatus.DONE:
                 return state
