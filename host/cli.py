@@ -71,6 +71,13 @@ def _add_bus_args(p: argparse.ArgumentParser, default: str = "auto") -> None:
                    help="hub address, unix:/path or tcp:127.0.0.1:PORT (default: $ILCRIG_HUB or a per-user socket)")
 
 
+def _add_rig_args(p: argparse.ArgumentParser) -> None:
+    """Options of the rig that do not change the experiment (its results and digest)."""
+    p.add_argument("--realtime", action="store_true",
+                   help="pace the plant's ticks to the wall clock at the control period (tick n starts at t0 + n·Ts) "
+                        "and report deadline misses and tick lateness")
+
+
 def transport_of(args: argparse.Namespace) -> TransportConfig:
     from bus.transports.config import transport_from_name
 
@@ -138,11 +145,13 @@ def build_parser() -> argparse.ArgumentParser:
     rp = sub.add_parser("run", help="run an experiment on the distributed rig (6 processes over CAN)")
     add_experiment_args(rp)
     _add_bus_args(rp)
+    _add_rig_args(rp)
     rp.set_defaults(func=cmd_run)
 
     hp = sub.add_parser("host", help="the host role alone (expects 4 drives and the plant on the bus)")
     add_experiment_args(hp)
     _add_bus_args(hp)
+    _add_rig_args(hp)
     hp.add_argument("--wait", type=float, default=120.0,
                     help="seconds to wait for the nodes to answer (default 120: a first run compiles the numba kernels)")
     hp.add_argument("--pause", type=float, default=0.0,

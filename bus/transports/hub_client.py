@@ -146,6 +146,9 @@ class HubBus(can.BusABC):
     :param timing: :class:`can.BitTiming` or :class:`can.BitTimingFd`; gives the bitrates
         (a BitTimingFd also means ``fd=True``) when they are not given
     :param connect_timeout_s: connect + handshake timeout, s
+    :param bulk_delivery: a passive member (a logger, a monitor): the hub may hold this
+        client's frames up to :data:`~bus.transports.hub_wire.BULK_HOLD_S` and deliver them in
+        fewer, larger writes (timestamps stay the hub's receive times)
     :raises can.CanInitializationError: no hub at the address, or the hub refused (e.g.
         another bitrate on that bus, another protocol version)
     :raises HubAddressError: malformed channel string (a ValueError)
@@ -173,6 +176,7 @@ class HubBus(can.BusABC):
         data_bitrate: int | None = None,
         timing: can.BitTiming | can.BitTimingFd | None = None,
         connect_timeout_s: float | None = None,
+        bulk_delivery: bool = False,
         **kwargs: Any,
     ) -> None:
         self._closed = True  # until connected: nothing to operate on
@@ -196,7 +200,7 @@ class HubBus(can.BusABC):
             raise can.CanInitializationError(f"cannot reach ilcrig hub at {addr}: {err}") from err
         try:
             sock.sendall(hello(ROLE_MEMBER, name, echo=receive_own_messages, classic=not self.fd,
-                               bitrate=asked[0], data_bitrate=asked[1]))
+                               bitrate=asked[0], data_bitrate=asked[1], bulk=bulk_delivery))
             bus_bitrate, bus_data_bitrate = read_member_reply(sock)
             sock.settimeout(None)  # blocking from now on
         except (OSError, HubProtocolError) as err:
@@ -210,6 +214,7 @@ class HubBus(can.BusABC):
         self._address = addr
         self.bus_name = name
         self.receive_own_messages = receive_own_messages
+        self.bulk_delivery = bool(bulk_delivery)
         self.channel = str(channel)
         self.bitrate: int | None = bus_bitrate or None
         self.data_bitrate: int | None = bus_data_bitrate or None

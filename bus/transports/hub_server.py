@@ -38,7 +38,9 @@ Acceptance filters
 Latency and cost
     Non-blocking hub sockets in one ``epoll`` loop, no sleeps, ``TCP_NODELAY`` for TCP. The
     frames read in one round of the loop (all ready members) are queued per destination and
-    written with one ``send`` per destination at the end of the round; who gets a frame of a
+    written with one ``send`` per destination at the end of the round (a member that joined
+    for bulk delivery, e.g. a monitor, gets them held up to ``BULK_HOLD_S``, in fewer
+    writes); who gets a frame of a
     given sender and identifier is cached per logical bus until a member joins, leaves or
     changes its filters. A client that stops reading is dropped once more than
     :attr:`HubServer.MAX_OUTBUF_BYTES` are queued for it.
@@ -67,6 +69,8 @@ from typing import Self
 from bus.busload import BusLoadCounter, bits_lookup
 from bus.transports.hub_wire import (
     BITRATES,
+    BULK_HOLD_S,
+    BULK_MAX_BYTES,
     FILTER_ENTRY,
     FLAG_ECHO,
     FLAG_ERR,
@@ -75,6 +79,7 @@ from bus.transports.hub_wire import (
     FLAG_RTR,
     HEADER_SIZE,
     HELLO_FIXED,
+    HELLO_FLAG_BULK,
     HELLO_FLAG_CLASSIC,
     HELLO_FLAG_ECHO,
     KIND_FILTERS,
@@ -141,6 +146,10 @@ class _Client:
     inbuf: bytearray = field(default_factory=bytearray)
     outbuf: bytearray = field(default_factory=bytearray)
     writing: bool = False
+    bulk: bool = False
+    held: list[bytes] = field(default_factory=list)
+    held_bytes: int = 0
+    held_since_s: float = 0.0
 
     def accepts(self, can_id: int, ext: int) -> bool:
         if not self.filters:
@@ -178,6 +187,8 @@ class HubServer:
         self._route_cache: dict[str, dict[tuple[_Client, int, int, int], list[tuple[_Client, bool]]]] = {}
         #: frames routed in the current select round, per destination (see _send_pending)
         self._pending: dict[_Client, list[bytes]] = {}
+        #: bulk members holding frames (see _send_pending, _send_held)
+        self._held: dict[_Client, None] = {}
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_w, False)
         self._sel.register(self._wake_r, selectors.EVENT_READ, "wake")
@@ -255,7 +266,10 @@ class HubServer:
             self._sel.register(watch_fd, selectors.EVENT_READ, "watch")
         try:
             while True:
-                for key, events in self._sel.select():
+                timeout = None
+                if self._held:
+                    timeout = max(0.0, min(c.held_since_s for c in self._held) + BULK_HOLD_S - time.monotonic())
+                for key, events in self._sel.select(timeout):
                     tag = key.data
                     if isinstance(tag, _Client):
                         if events & selectors.EVENT_READ:
@@ -270,6 +284,8 @@ class HubServer:
                         logger.info("hub: watched descriptor closed, exiting")
                         return
                 self._send_pending()
+                if self._held:
+                    self._send_held(time.monotonic())
         finally:
             if watch_fd is not None:
                 with contextlib.suppress(KeyError, ValueError):
@@ -322,6 +338,7 @@ class HubServer:
         client.sock.close()
         members = self._buses.get(client.bus)
         self._pending.pop(client, None)
+        self._held.pop(client, None)
         if members and client in members:
             members.remove(client)
             self._route_cache.pop(client.bus, None)
@@ -384,6 +401,7 @@ class HubServer:
         client.bus = name
         client.echo = bool(flags & HELLO_FLAG_ECHO)
         client.classic = bool(flags & HELLO_FLAG_CLASSIC)
+        client.bulk = bool(flags & HELLO_FLAG_BULK)
         members.append(client)
         self._route_cache.pop(name, None)
         st.connections += 1
@@ -474,12 +492,34 @@ class HubServer:
         del buf[:off]
 
     def _send_pending(self) -> None:
-        """One send per destination of everything routed in this select round."""
+        """One send per destination of everything routed in this select round; a bulk member's
+        frames are held instead (see :meth:`_send_held`)."""
         pending = self._pending
         if pending:
             self._pending = {}
             for peer, chunks in pending.items():
-                self._send_to(peer, chunks[0] if len(chunks) == 1 else b"".join(chunks))
+                if peer.bulk:
+                    if not peer.held:
+                        peer.held_since_s = time.monotonic()
+                        self._held[peer] = None
+                    peer.held += chunks
+                    peer.held_bytes += sum(map(len, chunks))
+                    if peer.held_bytes >= BULK_MAX_BYTES:
+                        self._release(peer)
+                else:
+                    self._send_to(peer, chunks[0] if len(chunks) == 1 else b"".join(chunks))
+
+    def _send_held(self, now_s: float) -> None:
+        """Send what bulk members held for :data:`BULK_HOLD_S` or longer."""
+        for peer in [c for c in self._held if now_s - c.held_since_s >= BULK_HOLD_S]:
+            self._release(peer)
+
+    def _release(self, peer: _Client) -> None:
+        data = b"".join(peer.held)
+        peer.held = []
+        peer.held_bytes = 0
+        self._held.pop(peer, None)
+        self._send_to(peer, data)
 
     def _send_to(self, client: _Client, data: bytes) -> None:
         if client.sock not in self._clients:

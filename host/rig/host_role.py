@@ -27,7 +27,7 @@ import can
 import canopen
 import numpy as np
 
-from bus.bench_objects import BENCH_EDS_PATH
+from bus.bench_objects import BENCH_EDS_PATH, TrialTiming
 from bus.bench_objects import DEFAULT_BENCH_NODE_ID as BENCH_NODE_ID
 from bus.cia301.nmt import HeartbeatConsumer, NmtCommand, NmtState
 from bus.errors import IlcrigError, SdoAbort
@@ -43,6 +43,7 @@ from host.nodes.bench_client import BenchClient, BenchClientError
 from host.nodes.drive_client import DriveClient
 from host.nodes.sdo_access import SdoAccess, SdoTransportError
 from host.rig.monitor import ChannelMonitor
+from host.rig.realtime import timing_line, timing_summary
 
 logger = logging.getLogger(__name__)
 
@@ -69,8 +70,10 @@ class RigBench:
     """Drives and plant as CANopen nodes on the fieldbus (see module docstring)."""
 
     def __init__(self, cfg: ExperimentConfig, transport: TransportConfig, *,
-                 out_dir: Path | None, wait_s: float = 20.0, pause_s: float = 0.0) -> None:
+                 out_dir: Path | None, wait_s: float = 20.0, pause_s: float = 0.0, realtime: bool = False) -> None:
         self.cfg = cfg
+        self.realtime = realtime
+        self.timings: list[TrialTiming] = []
         self.pause_s = pause_s
         self.recoveries: list[dict[str, Any]] = []
         self.transport = transport
@@ -88,7 +91,7 @@ class RigBench:
                 log = (out_dir / f"{name}.log") if out_dir is not None else None
                 if log is not None:
                     log.parent.mkdir(parents=True, exist_ok=True)
-                self.monitors.append(ChannelMonitor(transport.open(name), name, log))
+                self.monitors.append(ChannelMonitor(transport.open(name, passive=True), name, log))
             self.network.connect()
             self.drive_nodes = [self.network.add_node(n, str(DRIVE_EDS_PATH)) for n in DRIVE_NODE_IDS]
             self.bench_node = self.network.add_node(BENCH_NODE_ID, str(BENCH_EDS_PATH))
@@ -146,7 +149,8 @@ class RigBench:
         for nid in sorted(node_ids):
             nodes[nid].nmt.send_command(NmtCommand.START)
         if BENCH_NODE_ID in node_ids:
-            self.bench.configure(self.cfg.ts_s, self.cfg.substeps, self.cfg.disturbance, self.cfg.seed)
+            self.bench.configure(self.cfg.ts_s, self.cfg.substeps, self.cfg.disturbance, self.cfg.seed,
+                                 paced=self.realtime)
         t_end = time.monotonic() + 5.0
         while True:
             with self._lock:
@@ -237,6 +241,7 @@ class RigBench:
                     self._pending_faults = []
             raise TrialFault(f"trial {trial}: {exc}{extra}") from exc
         self._check_health()
+        self.timings.append(self.bench.trial_timing())
 
     def info(self) -> dict[str, Any]:
         wall = time.monotonic() - self._t_start
@@ -257,6 +262,7 @@ class RigBench:
             "bus_load_basis": "bits of every frame seen on the channel (classic CAN, worst-case stuffing) "
                               "divided by the run's wall time at 1 Mbit/s",
             "elapsed_s": wall,
+            "timing": timing_summary(self.timings, self.cfg.ts_s, self.realtime),
             "emcy": self.emcy,
             "recoveries": self.recoveries,
         }
@@ -291,7 +297,8 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
     print_plan(sys.stdout, "host", plan, extra=f", transport {transport.name}")
     out.mkdir(parents=True, exist_ok=True)
     try:
-        bench = RigBench(cfg, transport, out_dir=out, wait_s=args.wait, pause_s=args.pause)
+        bench = RigBench(cfg, transport, out_dir=out, wait_s=args.wait, pause_s=args.pause,
+                         realtime=bool(getattr(args, "realtime", False)))
     except (OSError, can.CanError, IlcrigError) as exc:
         sys.stderr.write(f"ilcrig: error: cannot open the bus ({transport.name}): {exc}\n")
         return EXIT_FAULT
@@ -299,6 +306,9 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
     s = res.summary
     ch = s.get("bench", {}).get("channels", {})
     fb = ch.get(FIELDBUS, {})
+    timing = s.get("bench", {}).get("timing")
+    if timing and timing.get("trials"):
+        sys.stdout.write(timing_line(timing) + "\n")
     sys.stdout.write(
         f"{s['ticks']} ticks, {s['ticks_per_s']:.0f} ticks/s in trials; fieldbus {fb.get('frames', 0)} frames "
         f"({fb.get('load_percent_worst_case', 0.0):.1f} % of 1 Mbit/s), io {ch.get(IO, {}).get('frames', 0)} frames; "

@@ -78,6 +78,7 @@ __all__ = [
     "child_argv",
     "host_role_args",
     "launch_rig",
+    "rig_role_args",
     "role_command",
 ]
 
@@ -149,6 +150,11 @@ def host_role_args(args: argparse.Namespace) -> list[str]:
             continue
         argv += [flag, repr(value) if isinstance(value, float) else str(value)]
     return argv
+
+
+def rig_role_args(args: argparse.Namespace) -> list[str]:
+    """The rig options of ``args`` (``--realtime``) that the host role takes too."""
+    return ["--realtime"] if getattr(args, "realtime", False) else []
 
 
 def child_argv(role: str, bus_args: Sequence[str], *, node: int | None = None, extra: Sequence[str] = (),
@@ -314,7 +320,7 @@ class RigLauncher:
         pids = ([f"hub {self.hub.pid}"] if self.hub is not None else []) + [f"{c.name} {c.pid}" for c in self.children]
         self._say_out(f"ilcrig run: transport {tc.name}{where}; processes: {', '.join(pids)}; "
                       f"role logs in {log_dir}; starting host")
-        host_extra = host_role_args(args) + ["--out", str(self.out_dir)]
+        host_extra = host_role_args(args) + rig_role_args(args) + ["--out", str(self.out_dir)]
         host = self._spawn("host", child_argv("host", bus_args, extra=host_extra, debug=debug), None)
         logger.info("host pid %d: %s", host.pid, " ".join(host.argv))
         return self._watch(host)
