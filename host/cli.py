@@ -76,6 +76,20 @@ def _add_rig_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--realtime", action="store_true",
                    help="pace the plant's ticks to the wall clock at the control period (tick n starts at t0 + n·Ts) "
                         "and report deadline misses and tick lateness")
+    for name in ("fieldbus", "io"):
+        p.add_argument(f"--{name}-bitrate", type=_bitrate, default=None, metavar="BIT_S",
+                       help=f"bit rate of the {name} channel for the bus-time figures (default 1000000)")
+
+
+def _bitrate(text: str) -> int:
+    """A bit rate option: a positive integer, bit/s."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"bit rate must be an integer in bit/s, got {text!r}") from None
+    if not 1000 <= value <= 1_000_000:
+        raise argparse.ArgumentTypeError(f"a classic CAN bit rate is 1000..1000000 bit/s, got {value}")
+    return value
 
 
 def transport_of(args: argparse.Namespace) -> TransportConfig:

@@ -29,6 +29,7 @@ import numpy as np
 
 from bus.bench_objects import BENCH_EDS_PATH, TrialTiming
 from bus.bench_objects import DEFAULT_BENCH_NODE_ID as BENCH_NODE_ID
+from bus.bustime import DEFAULT_BITRATE
 from bus.cia301.nmt import HeartbeatConsumer, NmtCommand, NmtState
 from bus.errors import IlcrigError, SdoAbort
 from bus.objects import DRIVE_EDS_PATH, DRIVE_NODE_IDS
@@ -42,6 +43,7 @@ from host.experiment.plan import prepare
 from host.nodes.bench_client import BenchClient, BenchClientError
 from host.nodes.drive_client import DriveClient
 from host.nodes.sdo_access import SdoAccess, SdoTransportError
+from host.rig.bus_time import BusTimeAccounting, bus_time_lines
 from host.rig.monitor import ChannelMonitor
 from host.rig.realtime import timing_line, timing_summary
 
@@ -70,8 +72,13 @@ class RigBench:
     """Drives and plant as CANopen nodes on the fieldbus (see module docstring)."""
 
     def __init__(self, cfg: ExperimentConfig, transport: TransportConfig, *,
-                 out_dir: Path | None, wait_s: float = 20.0, pause_s: float = 0.0, realtime: bool = False) -> None:
+                 out_dir: Path | None, wait_s: float = 20.0, pause_s: float = 0.0, realtime: bool = False,
+                 io_bitrate: int = DEFAULT_BITRATE, fieldbus_bitrate: int = DEFAULT_BITRATE) -> None:
         self.cfg = cfg
+        self.bus_time = BusTimeAccounting(
+            io_bitrate=io_bitrate, fieldbus_bitrate=fieldbus_bitrate, ts_s=cfg.ts_s,
+            trial_s=round(2 * cfg.cycle_s / cfg.ts_s) * cfg.ts_s, heartbeat_ms=HEARTBEAT_MS,
+            n_nodes=len(DRIVE_NODE_IDS) + 1)
         self.realtime = realtime
         self.timings: list[TrialTiming] = []
         self.pause_s = pause_s
@@ -91,7 +98,8 @@ class RigBench:
                 log = (out_dir / f"{name}.log") if out_dir is not None else None
                 if log is not None:
                     log.parent.mkdir(parents=True, exist_ok=True)
-                self.monitors.append(ChannelMonitor(transport.open(name, passive=True), name, log))
+                classify = self.bus_time.add_io if name == IO else self.bus_time.add_fieldbus
+                self.monitors.append(ChannelMonitor(transport.open(name, passive=True), name, log, classify))
             self.network.connect()
             self.drive_nodes = [self.network.add_node(n, str(DRIVE_EDS_PATH)) for n in DRIVE_NODE_IDS]
             self.bench_node = self.network.add_node(BENCH_NODE_ID, str(BENCH_EDS_PATH))
@@ -252,15 +260,16 @@ class RigBench:
                 c = m.counter
                 channels[m.name] = {
                     **c.as_dict(),
-                    "load_percent_worst_case": c.load_percent(wall, worst_case=True),
-                    "load_percent_no_stuffing": c.load_percent(wall, worst_case=False),
+                    "emulator_throughput_bits_per_s": c.bits_worst_case / wall if wall > 0 else 0.0,
                     "log": f"{m.name}.log" if m.log is not None else None,
                 }
         return {
             "transport": self.transport.as_dict(),
             "channels": channels,
-            "bus_load_basis": "bits of every frame seen on the channel (classic CAN, worst-case stuffing) "
-                              "divided by the run's wall time at 1 Mbit/s",
+            "channels_basis": "every frame seen on the channel since the host started; emulator_throughput_bits_per_s: "
+                              "their bits (worst-case stuffing) per second of wall time, a speed of the emulator, "
+                              "not a bus load (see bus_time)",
+            "bus_time": self.bus_time.summary(len(self.timings)),
             "elapsed_s": wall,
             "timing": timing_summary(self.timings, self.cfg.ts_s, self.realtime),
             "emcy": self.emcy,
@@ -298,7 +307,9 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
     out.mkdir(parents=True, exist_ok=True)
     try:
         bench = RigBench(cfg, transport, out_dir=out, wait_s=args.wait, pause_s=args.pause,
-                         realtime=bool(getattr(args, "realtime", False)))
+                         realtime=bool(getattr(args, "realtime", False)),
+                         io_bitrate=getattr(args, "io_bitrate", None) or DEFAULT_BITRATE,
+                         fieldbus_bitrate=getattr(args, "fieldbus_bitrate", None) or DEFAULT_BITRATE)
     except (OSError, can.CanError, IlcrigError) as exc:
         sys.stderr.write(f"ilcrig: error: cannot open the bus ({transport.name}): {exc}\n")
         return EXIT_FAULT
@@ -309,9 +320,12 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
     timing = s.get("bench", {}).get("timing")
     if timing and timing.get("trials"):
         sys.stdout.write(timing_line(timing) + "\n")
+    bus_time = s.get("bench", {}).get("bus_time")
+    if bus_time and s["iterations"]:
+        sys.stdout.write("".join(line + "\n" for line in bus_time_lines(bus_time)))
     sys.stdout.write(
-        f"{s['ticks']} ticks, {s['ticks_per_s']:.0f} ticks/s in trials; fieldbus {fb.get('frames', 0)} frames "
-        f"({fb.get('load_percent_worst_case', 0.0):.1f} % of 1 Mbit/s), io {ch.get(IO, {}).get('frames', 0)} frames; "
+        f"{s['ticks']} ticks, {s['ticks_per_s']:.0f} ticks/s in trials (host's wall clock); fieldbus {fb.get('frames', 0)} "
+        f"frames, io {ch.get(IO, {}).get('frames', 0)} frames; "
         f"trace_sha256 {s['trace_sha256'][:16]}…; summary: {out / 'summary.json'}\n")
     sys.stdout.flush()
     return report_fault(res)

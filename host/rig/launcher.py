@@ -153,8 +153,14 @@ def host_role_args(args: argparse.Namespace) -> list[str]:
 
 
 def rig_role_args(args: argparse.Namespace) -> list[str]:
-    """The rig options of ``args`` (``--realtime``) that the host role takes too."""
-    return ["--realtime"] if getattr(args, "realtime", False) else []
+    """The rig options of ``args`` (``--realtime``, ``--fieldbus-bitrate``, ``--io-bitrate``) that the
+    host role takes too."""
+    argv = ["--realtime"] if getattr(args, "realtime", False) else []
+    for name in ("fieldbus", "io"):
+        value = getattr(args, f"{name}_bitrate", None)
+        if value is not None:
+            argv += [f"--{name}-bitrate", str(value)]
+    return argv
 
 
 def child_argv(role: str, bus_args: Sequence[str], *, node: int | None = None, extra: Sequence[str] = (),
