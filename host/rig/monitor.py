@@ -11,13 +11,15 @@ Reading in bulk
     frame that is waiting, processes them together and then pauses :attr:`ChannelMonitor.ROUND_S`
     before the next round (the frames meanwhile wait in the transport's receive buffer). That
     keeps the monitor from waking up for every frame and competing with the lockstep processes
-    for the cores. :meth:`ChannelMonitor.catch_up` waits until everything sent before the call
+    for the cores; its thread also runs at a lower priority (nice + :attr:`ChannelMonitor.NICE_INCREMENT`).
+    :meth:`ChannelMonitor.catch_up` waits until everything sent before the call
     has been processed (the summary reads the counters after it).
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -46,6 +48,9 @@ class ChannelMonitor:
     ROUND_S: float = 0.02
     #: longest blocking wait for a frame, s (bounds the reaction to :meth:`close`)
     WAIT_S: float = 0.1
+    #: the reading thread's nice increment: nobody waits for a monitor, so it yields the cores
+    #: to the lockstep processes (Linux sets the nice value per thread)
+    NICE_INCREMENT: int = 10
 
     def __init__(self, bus: can.BusABC, name: str, log_path: Path | None,
                  classify: Callable[[can.Message], None] | None = None) -> None:
@@ -65,6 +70,7 @@ class ChannelMonitor:
 
     def _run(self) -> None:
         bus = self.bus
+        _lower_own_priority(self.NICE_INCREMENT)
         try:
             while not self._stop.is_set():
                 msg = bus.recv(self.WAIT_S)
@@ -124,3 +130,15 @@ class ChannelMonitor:
             if self.log is not None:
                 self.log.stop()
         self.bus.shutdown()
+
+
+def _lower_own_priority(increment: int) -> None:
+    """Raise the calling thread's nice value by ``increment`` (Linux: per thread; elsewhere, or if
+    refused, nothing happens)."""
+    if increment <= 0 or not hasattr(os, "setpriority"):
+        return
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + increment))
+    except OSError as err:
+        logger.debug("cannot lower the monitor thread's priority: %s", err)
