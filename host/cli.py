@@ -73,6 +73,27 @@ def _add_bus_args(p: argparse.ArgumentParser, default: str = "auto") -> None:
                    help="the hub may be on another machine (a non-loopback tcp: address); off by default")
 
 
+def _add_rig_args(p: argparse.ArgumentParser) -> None:
+    """Options of the rig that do not change the experiment (its results and digest)."""
+    p.add_argument("--realtime", action="store_true",
+                   help="pace the plant's ticks to the wall clock at the control period (tick n starts at t0 + n·Ts) "
+                        "and report deadline misses and tick lateness")
+    # the fieldbus bit rate is an experiment option (--fieldbus-bitrate: also the pdo bus-fit check)
+    p.add_argument("--io-bitrate", type=_bitrate, default=None, metavar="BIT_S",
+                   help="bit rate of the io channel for the bus-time figures (default 1000000)")
+
+
+def _bitrate(text: str) -> int:
+    """A bit rate option: a positive integer, bit/s."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"bit rate must be an integer in bit/s, got {text!r}") from None
+    if not 1000 <= value <= 1_000_000:
+        raise argparse.ArgumentTypeError(f"a classic CAN bit rate is 1000..1000000 bit/s, got {value}")
+    return value
+
+
 def transport_of(args: argparse.Namespace) -> TransportConfig:
     from bus.transports.config import transport_from_name
 
@@ -141,11 +162,13 @@ def build_parser() -> argparse.ArgumentParser:
     rp = sub.add_parser("run", help="run an experiment on the distributed rig (6 processes over CAN)")
     add_experiment_args(rp)
     _add_bus_args(rp)
+    _add_rig_args(rp)
     rp.set_defaults(func=cmd_run)
 
     hp = sub.add_parser("host", help="the host role alone (expects 4 drives and the plant on the bus)")
     add_experiment_args(hp)
     _add_bus_args(hp)
+    _add_rig_args(hp)
     hp.add_argument("--wait", type=float, default=120.0,
                     help="seconds to wait for the nodes to answer (default 120: a first run compiles the numba kernels)")
     hp.add_argument("--pause", type=float, default=0.0,

@@ -18,7 +18,9 @@ This module owns what every node of the rig does on the wire, independent of its
 * :func:`install_sigterm` — SIGTERM/SIGINT set a stop event (process entry points).
 
 Waiting: ``select()`` on both buses' ``fileno()`` where both have one (udp_multicast,
-socketcan, the ilcrig hub), otherwise short-timeout polling (``virtual``).
+socketcan, the ilcrig hub), otherwise short-timeout polling (``virtual``); a bus that keeps
+frames in a local queue (:class:`bus.bus_features.BufferedReceiver`, the ilcrig hub) is read
+without waiting while its queue holds frames.
 
 Time: heartbeat period, SDO transfer timeout and subclass deadlines use ``clock`` (monotonic
 wall clock by default: protocol timing only, never a model; the control loop is paced by the
@@ -41,6 +43,7 @@ import can
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, import_od
 from canopen.objectdictionary import datatypes as dt
 
+from bus.bus_features import pending_check
 from bus.cia301.emcy import emcy_cob_id, encode_emcy
 from bus.cia301.nmt import (
     NMT_COB_ID,
@@ -53,6 +56,7 @@ from bus.cia301.nmt import (
 )
 from bus.cia301.sdo import SdoServer, sdo_request_cob_id, sdo_response_cob_id
 from bus.errors import AbortCode, SdoAbort
+from bus.fastmsg import new_message
 
 logger = logging.getLogger(__name__)
 
@@ -106,6 +110,10 @@ class SlaveNode:
         self._heartbeat_ms = 0
         self._next_heartbeat_s: float | None = None
         self._fds = self._filenos()
+        # buses that read several frames per system call keep them in a local queue that
+        # select() does not see (bus.bus_features.BufferedReceiver)
+        self._io_pending = pending_check(io)
+        self._fieldbus_pending = pending_check(fieldbus)
         self.frames_in = 0
         self.frames_out = 0
 
@@ -174,9 +182,15 @@ class SlaveNode:
         wait = max(0.0, wait)
         handled = 0
         if self._fds is not None:
-            ready, _, _ = select.select(self._fds, [], [], wait)
-            if ready:
+            io_ready = self._io_pending()
+            fieldbus_ready = self._fieldbus_pending()
+            if not (io_ready or fieldbus_ready):
+                ready, _, _ = select.select(self._fds, [], [], wait)
+                io_ready = self._fds[1] in ready
+                fieldbus_ready = self._fds[0] in ready
+            if io_ready:
                 handled += self._drain(self.io)
+            if fieldbus_ready:
                 handled += self._drain(self.fieldbus)
         else:
             handled += self._drain(self.io)
@@ -289,7 +303,7 @@ class SlaveNode:
             self._send(self.fieldbus, self._emcy_id, encode_emcy(int(code), int(register), data[:5]))
 
     def _send(self, bus: can.BusABC, cob_id: int, data: bytes) -> None:
-        bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
+        bus.send(new_message(cob_id, bytearray(data)))
         self.frames_out += 1
 
 

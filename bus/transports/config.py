@@ -32,6 +32,7 @@ Transports
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import socket
@@ -183,9 +184,17 @@ class TransportConfig:
             return self.io
         raise TransportConfigError(f"unknown logical channel {logical!r}; use {LOGICAL_CHANNELS}")
 
-    def open(self, logical: str) -> can.BusABC:
-        """Open the bus of logical channel ``logical``."""
-        return open_bus(self.channel(logical))
+    def open(self, logical: str, *, passive: bool = False) -> can.BusABC:
+        """Open the bus of logical channel ``logical``.
+
+        :param passive: for a member that only listens and nobody waits for (a monitor, a
+            logger): on the hub it joins for bulk delivery (frames held up to
+            :data:`bus.transports.hub_wire.BULK_HOLD_S`, fewer writes); other transports ignore it
+        """
+        cfg = self.channel(logical)
+        if passive and cfg.interface == HUB_INTERFACE:
+            cfg = dataclasses.replace(cfg, kwargs={**cfg.kwargs, "bulk_delivery": True})
+        return open_bus(cfg)
 
     @property
     def needs_hub(self) -> bool:

@@ -35,10 +35,15 @@ Acceptance filters
     A member's filters (a filter record, see :mod:`bus.transports.hub_wire`) are applied
     here: only matching frames are forwarded to it (like SocketCAN's kernel filters).
 
-Latency
-    Non-blocking hub sockets in one ``epoll`` loop, no sleeps, ``TCP_NODELAY`` for TCP. A
-    client that stops reading is dropped once more than :attr:`HubServer.MAX_OUTBUF_BYTES`
-    are queued for it.
+Latency and cost
+    Non-blocking hub sockets in one ``epoll`` loop, no sleeps, ``TCP_NODELAY`` for TCP. The
+    frames read in one round of the loop (all ready members) are queued per destination and
+    written with one ``send`` per destination at the end of the round (a member that joined
+    for bulk delivery, e.g. a monitor, gets them held up to ``BULK_HOLD_S``, in fewer
+    writes); who gets a frame of a
+    given sender and identifier is cached per logical bus until a member joins, leaves or
+    changes its filters. A client that stops reading is dropped once more than
+    :attr:`HubServer.MAX_OUTBUF_BYTES` are queued for it.
 """
 
 from __future__ import annotations
@@ -64,6 +69,8 @@ from typing import Self
 from bus.busload import BusLoadCounter, bits_lookup
 from bus.transports.hub_wire import (
     BITRATES,
+    BULK_HOLD_S,
+    BULK_MAX_BYTES,
     FILTER_ENTRY,
     FLAG_ECHO,
     FLAG_ERR,
@@ -72,6 +79,7 @@ from bus.transports.hub_wire import (
     FLAG_RTR,
     HEADER_SIZE,
     HELLO_FIXED,
+    HELLO_FLAG_BULK,
     HELLO_FLAG_CLASSIC,
     HELLO_FLAG_ECHO,
     KIND_FILTERS,
@@ -138,6 +146,10 @@ class _Client:
     inbuf: bytearray = field(default_factory=bytearray)
     outbuf: bytearray = field(default_factory=bytearray)
     writing: bool = False
+    bulk: bool = False
+    held: list[bytes] = field(default_factory=list)
+    held_bytes: int = 0
+    held_since_s: float = 0.0
 
     def accepts(self, can_id: int, ext: int) -> bool:
         if not self.filters:
@@ -173,6 +185,12 @@ class HubServer:
         self._clients: dict[socket.socket, _Client] = {}
         self._buses: dict[str, list[_Client]] = {}
         self._stats: dict[str, HubChannelStats] = {}
+        #: per bus: (sender, can_id, extended, fd) -> [(member, as echo)], see _recipients
+        self._route_cache: dict[str, dict[tuple[_Client, int, int, int], list[tuple[_Client, bool]]]] = {}
+        #: frames routed in the current select round, per destination (see _send_pending)
+        self._pending: dict[_Client, list[bytes]] = {}
+        #: bulk members holding frames (see _send_pending, _send_held)
+        self._held: dict[_Client, None] = {}
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_w, False)
         self._sel.register(self._wake_r, selectors.EVENT_READ, "wake")
@@ -250,7 +268,10 @@ class HubServer:
             self._sel.register(watch_fd, selectors.EVENT_READ, "watch")
         try:
             while True:
-                for key, events in self._sel.select():
+                timeout = None
+                if self._held:
+                    timeout = max(0.0, min(c.held_since_s for c in self._held) + BULK_HOLD_S - time.monotonic())
+                for key, events in self._sel.select(timeout):
                     tag = key.data
                     if isinstance(tag, _Client):
                         if events & selectors.EVENT_READ:
@@ -264,6 +285,9 @@ class HubServer:
                     elif tag == "watch" and not os.read(watch_fd, 4096):  # type: ignore[arg-type]
                         logger.info("hub: watched descriptor closed, exiting")
                         return
+                self._send_pending()
+                if self._held:
+                    self._send_held(time.monotonic())
         finally:
             if watch_fd is not None:
                 with contextlib.suppress(KeyError, ValueError):
@@ -315,8 +339,11 @@ class HubServer:
             self._sel.unregister(client.sock)
         client.sock.close()
         members = self._buses.get(client.bus)
+        self._pending.pop(client, None)
+        self._held.pop(client, None)
         if members and client in members:
             members.remove(client)
+            self._route_cache.pop(client.bus, None)
             logger.info("hub: client left bus %r (%s)", client.bus, reason)
 
     def _on_readable(self, client: _Client) -> None:
@@ -376,7 +403,9 @@ class HubServer:
         client.bus = name
         client.echo = bool(flags & HELLO_FLAG_ECHO)
         client.classic = bool(flags & HELLO_FLAG_CLASSIC)
+        client.bulk = bool(flags & HELLO_FLAG_BULK)
         members.append(client)
+        self._route_cache.pop(name, None)
         st.connections += 1
         logger.info("hub: client %s joined bus %r%s", client.peer, name, " (classic CAN)" if client.classic else "")
         self._send_to(client, MAGIC_OK + BITRATES.pack(st.bitrate, st.data_bitrate))
@@ -388,15 +417,36 @@ class HubServer:
             client.sock.send(MAGIC_NO + bytes([len(raw)]) + raw)
         self._drop(client, text)
 
+    def _recipients(self, sender: _Client, can_id: int, ext: int, fd: int) -> list[tuple[_Client, bool]]:
+        """(member, as echo) pairs that get a frame of ``sender`` (cached per bus until a member
+        joins, leaves or changes its filters)."""
+        cache = self._route_cache.setdefault(sender.bus, {})
+        key = (sender, can_id, ext, fd)
+        found = cache.get(key)
+        if found is None:
+            found = []
+            for peer in self._buses[sender.bus]:
+                if fd and peer.classic:
+                    continue  # a classic CAN member never sees FD frames (like a non-FD raw socket)
+                if peer is sender:
+                    if peer.echo and peer.accepts(can_id, ext):
+                        found.append((peer, True))
+                elif peer.accepts(can_id, ext):
+                    found.append((peer, False))
+            cache[key] = found
+        return found
+
     def _route(self, sender: _Client, stamp_ns: int) -> None:
+        """Forward every whole record of ``sender``'s input buffer: frames are stamped in place
+        and queued per destination (:meth:`_send_pending` writes each destination's queue with
+        one send after the whole select round)."""
         if sender.role != ROLE_MEMBER:
             sender.inbuf.clear()  # a stats connection has nothing more to say
             return
         buf = sender.inbuf
         size = len(buf)
-        members = self._buses[sender.bus]
         st = self._stats[sender.bus]
-        out: dict[_Client, list[bytes | bytearray]] = {}
+        pending = self._pending
         off = 0
         while size - off >= HEADER_SIZE:
             kind = buf[off]
@@ -406,10 +456,10 @@ class HubServer:
                 total = HEADER_SIZE + (length - 8 if length > 8 else 0)
                 if size - off < total:
                     break
-                rec = bytearray(buf[off : off + total])
-                STAMP.pack_into(rec, STAMP_OFFSET, stamp_ns)
+                STAMP.pack_into(buf, off + STAMP_OFFSET, stamp_ns)
+                rec = bytes(buf[off : off + total])
                 can_id = U32.unpack_from(buf, off + 4)[0]
-                ext = flags & FLAG_EXT
+                ext = 1 if flags & FLAG_EXT else 0
                 fd = flags & FLAG_FD
                 if flags & FLAG_ERR:
                     st.error_frames += 1
@@ -420,15 +470,13 @@ class HubServer:
                     st.frames += 1
                     st.bits += nominal
                     st.bits_worst_case += worst
-                ext = 1 if ext else 0
-                for peer in members:
-                    if fd and peer.classic:
-                        continue  # a classic CAN member never sees FD frames (like a non-FD raw socket)
-                    if peer is sender:
-                        if peer.echo and peer.accepts(can_id, ext):
-                            out.setdefault(peer, []).append(rec[:1] + bytes([flags | FLAG_ECHO]) + rec[2:])
-                    elif peer.accepts(can_id, ext):
-                        out.setdefault(peer, []).append(rec)
+                for peer, echo in self._recipients(sender, can_id, ext, fd):
+                    chunk = rec[:1] + bytes([flags | FLAG_ECHO]) + rec[2:] if echo else rec
+                    queue = pending.get(peer)
+                    if queue is None:
+                        pending[peer] = [chunk]
+                    else:
+                        queue.append(chunk)
             elif kind == KIND_FILTERS:
                 n = U32.unpack_from(buf, off + 4)[0]
                 total = HEADER_SIZE + n
@@ -438,13 +486,42 @@ class HubServer:
                 sender.filters = [
                     FILTER_ENTRY.unpack_from(body, i) for i in range(0, n - n % FILTER_ENTRY.size, FILTER_ENTRY.size)
                 ] or None
+                self._route_cache.pop(sender.bus, None)
             else:
                 self._refuse(sender, f"unknown record kind {kind}")
                 return
             off += total
         del buf[:off]
-        for peer, chunks in out.items():
-            self._send_to(peer, b"".join(chunks))
+
+    def _send_pending(self) -> None:
+        """One send per destination of everything routed in this select round; a bulk member's
+        frames are held instead (see :meth:`_send_held`)."""
+        pending = self._pending
+        if pending:
+            self._pending = {}
+            for peer, chunks in pending.items():
+                if peer.bulk:
+                    if not peer.held:
+                        peer.held_since_s = time.monotonic()
+                        self._held[peer] = None
+                    peer.held += chunks
+                    peer.held_bytes += sum(map(len, chunks))
+                    if peer.held_bytes >= BULK_MAX_BYTES:
+                        self._release(peer)
+                else:
+                    self._send_to(peer, chunks[0] if len(chunks) == 1 else b"".join(chunks))
+
+    def _send_held(self, now_s: float) -> None:
+        """Send what bulk members held for :data:`BULK_HOLD_S` or longer."""
+        for peer in [c for c in self._held if now_s - c.held_since_s >= BULK_HOLD_S]:
+            self._release(peer)
+
+    def _release(self, peer: _Client) -> None:
+        data = b"".join(peer.held)
+        peer.held = []
+        peer.held_bytes = 0
+        self._held.pop(peer, None)
+        self._send_to(peer, data)
 
     def _send_to(self, client: _Client, data: bytes) -> None:
         if client.sock not in self._clients:

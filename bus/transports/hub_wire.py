@@ -18,7 +18,9 @@ Channels
 Wire format (all little-endian), protocol version 2
     Handshake, client → hub: ``b"ILCH"``, u8 version (2), u8 role (1 member, 2 stats,
     3 stats and reset), u8 flags (bit 0 receive own messages, bit 1 classic CAN: the client
-    was opened with ``fd=False`` and gets no CAN FD frames), u8 n, n bytes bus name (UTF-8),
+    was opened with ``fd=False`` and gets no CAN FD frames, bit 2 bulk delivery: a passive
+    member that accepts its frames up to ``BULK_HOLD_S`` late, in fewer writes; a hub that
+    does not know a bit ignores it), u8 n, n bytes bus name (UTF-8),
     then u32 bitrate, u32 data bitrate (bit/s; 0 = not given). The first five fields keep
     version 1's layout, so a hub reads any client's version before anything else and
     refuses another version with a message naming both (:func:`version_refusal`).
@@ -66,6 +68,10 @@ ROLE_STATS = 2
 ROLE_STATS_RESET = 3
 HELLO_FLAG_ECHO = 0x01
 HELLO_FLAG_CLASSIC = 0x02
+HELLO_FLAG_BULK = 0x04
+#: bulk delivery: longest a hub holds a bulk member's frames, s, and most bytes it holds
+BULK_HOLD_S = 0.02
+BULK_MAX_BYTES = 32 << 10
 
 KIND_FRAME = 1
 KIND_FILTERS = 2
@@ -274,10 +280,11 @@ def recv_exact(sock: socket.socket, n: int) -> bytes:
 
 
 def hello(role: int, name: str, *, echo: bool = False, classic: bool = False, bitrate: int = 0,
-          data_bitrate: int = 0) -> bytes:
+          data_bitrate: int = 0, bulk: bool = False) -> bytes:
     """The client's handshake message (bitrates in bit/s, 0 = not given)."""
     raw = name.encode()
-    flags = (HELLO_FLAG_ECHO if echo else 0) | (HELLO_FLAG_CLASSIC if classic else 0)
+    flags = ((HELLO_FLAG_ECHO if echo else 0) | (HELLO_FLAG_CLASSIC if classic else 0)
+             | (HELLO_FLAG_BULK if bulk else 0))
     return (HELLO_FIXED.pack(MAGIC_HELLO, PROTOCOL_VERSION, role, flags, len(raw)) + raw
             + BITRATES.pack(bitrate, data_bitrate))
 

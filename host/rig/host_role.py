@@ -6,8 +6,9 @@ and plant are other processes, reached only over CAN with the ``canopen`` librar
   hand-written drives are checked against an independent CANopen implementation;
 * NMT start/stop, heartbeat consumption (0x1017 set by the host) and EMCY listening: a lost
   node or an EMCY during a trial is a :class:`host.experiment.loop.TrialFault`;
-* a passive monitor (a second python-can bus per channel, i.e. an ordinary bus member) counts
-  frames and bits per channel and writes candump logs with python-can's own writer;
+* a passive monitor (a second python-can bus per channel, i.e. an ordinary bus member,
+  :class:`host.rig.monitor.ChannelMonitor`) counts frames and bits per channel and writes candump
+  logs with python-can's own writer;
 * with the pdo feed-forward transport, the host configures each drive's RPDO1/TPDO1 with the
   canopen library's PDO API (``node.rpdo`` / ``node.tpdo``: read, map, save) in NMT
   PRE-OPERATIONAL, and during a trial is the SYNC producer of the SYNC/PDO lockstep handshake
@@ -33,10 +34,9 @@ import can
 import canopen
 import numpy as np
 
-from bus.bench_objects import BENCH_EDS_PATH
+from bus.bench_objects import BENCH_EDS_PATH, TrialTiming
 from bus.bench_objects import DEFAULT_BENCH_NODE_ID as BENCH_NODE_ID
-from bus.busload import BusLoadCounter
-from bus.canlog import open_log
+from bus.bustime import DEFAULT_BITRATE
 from bus.cia301.nmt import HeartbeatConsumer, NmtCommand, NmtState
 from bus.cyclic import (
     CSP_RPDO_MAP,
@@ -60,6 +60,9 @@ from host.experiment.plan import prepare
 from host.nodes.bench_client import BenchClient, BenchClientError
 from host.nodes.drive_client import DriveClient
 from host.nodes.sdo_access import SdoAccess, SdoTransportError
+from host.rig.bus_time import BusTimeAccounting, bus_time_lines
+from host.rig.monitor import ChannelMonitor
+from host.rig.realtime import timing_line, timing_summary
 
 logger = logging.getLogger(__name__)
 
@@ -86,42 +89,19 @@ def _node_id(node: canopen.RemoteNode) -> int:
     return node.id
 
 
-class ChannelMonitor(can.Listener):
-    """Counts frames/bits of one channel and writes its candump log (a plain bus member)."""
-
-    def __init__(self, bus: can.BusABC, name: str, log_path: Path | None) -> None:
-        self.bus = bus
-        self.name = name
-        self.counter = BusLoadCounter()
-        self.log = open_log(log_path, name) if log_path is not None else None
-        self.lock = threading.Lock()
-        listeners: list[can.Listener] = [self]
-        self.notifier = can.Notifier(bus, listeners, timeout=0.1)
-
-    def on_message_received(self, msg: can.Message) -> None:
-        with self.lock:
-            self.counter.add(msg)
-            if self.log is not None:
-                self.log.on_message_received(msg)
-
-    def stop(self) -> None:
-        """can.Listener hook (called by the notifier when it stops): nothing to do here."""
-
-    def close(self) -> None:
-        """Stop receiving, close the log and the bus."""
-        self.notifier.stop(timeout=2.0)
-        with self.lock:
-            if self.log is not None:
-                self.log.stop()
-        self.bus.shutdown()
-
-
 class RigBench:
     """Drives and plant as CANopen nodes on the fieldbus (see module docstring)."""
 
     def __init__(self, cfg: ExperimentConfig, transport: TransportConfig, *,
-                 out_dir: Path | None, wait_s: float = 20.0, pause_s: float = 0.0) -> None:
+                 out_dir: Path | None, wait_s: float = 20.0, pause_s: float = 0.0, realtime: bool = False,
+                 io_bitrate: int = DEFAULT_BITRATE, fieldbus_bitrate: int = DEFAULT_BITRATE) -> None:
         self.cfg = cfg
+        self.bus_time = BusTimeAccounting(
+            io_bitrate=io_bitrate, fieldbus_bitrate=fieldbus_bitrate, ts_s=cfg.ts_s,
+            trial_s=round(2 * cfg.cycle_s / cfg.ts_s) * cfg.ts_s, heartbeat_ms=HEARTBEAT_MS,
+            n_nodes=len(DRIVE_NODE_IDS) + 1)
+        self.realtime = realtime
+        self.timings: list[TrialTiming] = []
         self.pause_s = pause_s
         self.recoveries: list[dict[str, Any]] = []
         self.transport = transport
@@ -144,7 +124,8 @@ class RigBench:
                 log = (out_dir / f"{name}.log") if out_dir is not None else None
                 if log is not None:
                     log.parent.mkdir(parents=True, exist_ok=True)
-                self.monitors.append(ChannelMonitor(transport.open(name), name, log))
+                classify = self.bus_time.add_io if name == IO else self.bus_time.add_fieldbus
+                self.monitors.append(ChannelMonitor(transport.open(name, passive=True), name, log, classify))
             self.network.connect()
             self.drive_nodes = [self.network.add_node(n, str(DRIVE_EDS_PATH)) for n in DRIVE_NODE_IDS]
             self.bench_node = self.network.add_node(BENCH_NODE_ID, str(BENCH_EDS_PATH))
@@ -205,7 +186,8 @@ class RigBench:
         for nid in sorted(node_ids):
             nodes[nid].nmt.send_command(NmtCommand.START)
         if BENCH_NODE_ID in node_ids:
-            self.bench.configure(self.cfg.ts_s, self.cfg.substeps, self.cfg.disturbance, self.cfg.seed)
+            self.bench.configure(self.cfg.ts_s, self.cfg.substeps, self.cfg.disturbance, self.cfg.seed,
+                                 paced=self.realtime)
         t_end = time.monotonic() + 5.0
         while True:
             with self._lock:
@@ -324,6 +306,7 @@ class RigBench:
                     self._pending_faults = []
             raise TrialFault(f"trial {trial}: {exc}{extra}") from exc
         self._check_health()
+        self.timings.append(self.bench.trial_timing())
         return actuals
 
     def _stream(self, trial: int, n_ticks: int, cyclic: CyclicSetpoints) -> CyclicActuals:
@@ -371,20 +354,23 @@ class RigBench:
         wall = time.monotonic() - self._t_start
         channels = {}
         for m in self.monitors:
+            m.catch_up()
             with m.lock:
                 c = m.counter
                 channels[m.name] = {
                     **c.as_dict(),
-                    "load_percent_worst_case": c.load_percent(wall, worst_case=True),
-                    "load_percent_no_stuffing": c.load_percent(wall, worst_case=False),
+                    "emulator_throughput_bits_per_s": c.bits_worst_case / wall if wall > 0 else 0.0,
                     "log": f"{m.name}.log" if m.log is not None else None,
                 }
         return {
             "transport": self.transport.as_dict(),
             "channels": channels,
-            "bus_load_basis": "bits of every frame seen on the channel (classic CAN, worst-case stuffing) "
-                              "divided by the run's wall time at 1 Mbit/s",
+            "channels_basis": "every frame seen on the channel since the host started; emulator_throughput_bits_per_s: "
+                              "their bits (worst-case stuffing) per second of wall time, a speed of the emulator, "
+                              "not a bus load (see bus_time)",
+            "bus_time": self.bus_time.summary(len(self.timings)),
             "elapsed_s": wall,
+            "timing": timing_summary(self.timings, self.cfg.ts_s, self.realtime),
             "emcy": self.emcy,
             "recoveries": self.recoveries,
         } | ({"pdo_frames": dict(self.pdo_frames)} if self.cyclic else {})
@@ -419,7 +405,10 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
     print_plan(sys.stdout, "host", plan, extra=f", transport {transport.name}")
     out.mkdir(parents=True, exist_ok=True)
     try:
-        bench = RigBench(cfg, transport, out_dir=out, wait_s=args.wait, pause_s=args.pause)
+        bench = RigBench(cfg, transport, out_dir=out, wait_s=args.wait, pause_s=args.pause,
+                         realtime=bool(args.realtime),
+                         io_bitrate=args.io_bitrate or DEFAULT_BITRATE,
+                         fieldbus_bitrate=cfg.fieldbus_bitrate)
     except (OSError, can.CanError, IlcrigError) as exc:
         sys.stderr.write(f"ilcrig: error: cannot open the bus ({transport.name}): {exc}\n")
         return EXIT_FAULT
@@ -427,9 +416,15 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
     s = res.summary
     ch = s.get("bench", {}).get("channels", {})
     fb = ch.get(FIELDBUS, {})
+    timing = s.get("bench", {}).get("timing")
+    if timing and timing.get("trials"):
+        sys.stdout.write(timing_line(timing) + "\n")
+    bus_time = s.get("bench", {}).get("bus_time")
+    if bus_time and s["iterations"]:
+        sys.stdout.write("".join(line + "\n" for line in bus_time_lines(bus_time)))
     sys.stdout.write(
-        f"{s['ticks']} ticks, {s['ticks_per_s']:.0f} ticks/s in trials; fieldbus {fb.get('frames', 0)} frames "
-        f"({fb.get('load_percent_worst_case', 0.0):.1f} % of 1 Mbit/s), io {ch.get(IO, {}).get('frames', 0)} frames; "
+        f"{s['ticks']} ticks, {s['ticks_per_s']:.0f} ticks/s in trials (host's wall clock); fieldbus {fb.get('frames', 0)} "
+        f"frames, io {ch.get(IO, {}).get('frames', 0)} frames; "
         f"trace_sha256 {s['trace_sha256'][:16]}…; summary: {out / 'summary.json'}\n")
     sys.stdout.flush()
     return report_fault(res)
