@@ -50,7 +50,7 @@ from bus.cyclic import (
 )
 from bus.errors import IlcrigError, SdoAbort
 from bus.objects import DRIVE_EDS_PATH, DRIVE_NODE_IDS
-from bus.transports.config import FIELDBUS, IO, TransportConfig
+from bus.transports.config import FIELDBUS, HUB_INTERFACE, IO, TransportConfig
 from bus.units import timeout_scale
 from host.analysis.session import report_fault, run_session
 from host.experiment.config import ExperimentConfig
@@ -125,7 +125,10 @@ class RigBench:
                 if log is not None:
                     log.parent.mkdir(parents=True, exist_ok=True)
                 classify = self.bus_time.add_io if name == IO else self.bus_time.add_fieldbus
-                self.monitors.append(ChannelMonitor(transport.open(name, passive=True), name, log, classify))
+                # rounds with pauses only where the hub holds the frames; a kernel socket would drop them
+                bulk = transport.channel(name).interface == HUB_INTERFACE
+                self.monitors.append(ChannelMonitor(transport.open(name, passive=True), name, log, classify,
+                                                    bulk=bulk))
             self.network.connect()
             self.drive_nodes = [self.network.add_node(n, str(DRIVE_EDS_PATH)) for n in DRIVE_NODE_IDS]
             self.bench_node = self.network.add_node(BENCH_NODE_ID, str(BENCH_EDS_PATH))

@@ -7,7 +7,8 @@ accounting of :mod:`bus.bustime`) and writes the channel's candump log (:mod:`bu
 
 Reading in bulk
     The monitor sees every frame of the channel — on the io channel 8 per control period — but
-    nobody waits for it, so it reads in rounds: it blocks until a frame is there, takes every
+    nobody waits for it, so on the hub (whose bulk delivery holds a passive member's frames) it
+    reads in rounds: it blocks until a frame is there, takes every
     frame that is waiting, processes them together and then pauses :attr:`ChannelMonitor.ROUND_S`
     before the next round (the frames meanwhile wait in the transport's receive buffer). That
     keeps the monitor from waking up for every frame and competing with the lockstep processes
@@ -42,6 +43,9 @@ class ChannelMonitor:
     :param name: the channel's name (``fieldbus``, ``io``), also the log's channel column
     :param log_path: candump log to write, or None
     :param classify: called with every frame, in order, under :attr:`lock` (or None)
+    :param bulk: read in rounds with a pause and at a lower priority; only for a bus that holds the
+        frames for its reader meanwhile (the hub's bulk delivery).  A kernel socket (SocketCAN,
+        UDP) drops frames once its receive buffer is full, so there the monitor reads continuously.
     """
 
     #: pause between two reading rounds, s
@@ -53,8 +57,9 @@ class ChannelMonitor:
     NICE_INCREMENT: int = 10
 
     def __init__(self, bus: can.BusABC, name: str, log_path: Path | None,
-                 classify: Callable[[can.Message], None] | None = None) -> None:
+                 classify: Callable[[can.Message], None] | None = None, *, bulk: bool = True) -> None:
         self.bus = bus
+        self.bulk = bool(bulk)
         self.name = name
         self.counter = BusLoadCounter()
         self.log = open_log(log_path, name) if log_path is not None else None
@@ -70,7 +75,8 @@ class ChannelMonitor:
 
     def _run(self) -> None:
         bus = self.bus
-        _lower_own_priority(self.NICE_INCREMENT)
+        if self.bulk:
+            _lower_own_priority(self.NICE_INCREMENT)
         try:
             while not self._stop.is_set():
                 msg = bus.recv(self.WAIT_S)
@@ -83,7 +89,7 @@ class ChannelMonitor:
                 with self._round_done:
                     self._rounds += 1
                     self._round_done.notify_all()
-                if batch and not self._kick.is_set():
+                if self.bulk and batch and not self._kick.is_set():
                     self._kick.wait(self.ROUND_S)
         except can.CanOperationError as err:
             if not self._stop.is_set():
