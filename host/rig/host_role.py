@@ -181,11 +181,11 @@ class RigBench:
                                  f"{self.wait_s:g} s {what}")
         for nid in sorted(node_ids):
             nodes[nid].sdo.download(0x1017, 0, HEARTBEAT_MS.to_bytes(2, "little"))
+            with self._lock:
+                self.heartbeats.watch(nid, HEARTBEAT_TIMEOUT_S * timeout_scale())
         if self.cyclic:
             for nid in sorted(node_ids & set(DRIVE_NODE_IDS)):
                 self._configure_pdos(nodes[nid])
-            with self._lock:
-                self.heartbeats.watch(nid, HEARTBEAT_TIMEOUT_S * timeout_scale())
         for nid in sorted(node_ids):
             nodes[nid].nmt.send_command(NmtCommand.START)
         if BENCH_NODE_ID in node_ids:
