@@ -160,7 +160,32 @@ def open_bus(cfg: ChannelConfig) -> can.BusABC:
             f"or set {PRIVATE_NETNS_ENV}=1 / ChannelConfig(private_netns=True) if it is one"
         )
     logger.debug("opening bus %s", config)
-    return can.Bus(ignore_config=True, **config)
+    bus = can.Bus(ignore_config=True, **config)
+    if config["interface"] == "socketcan":
+        _enlarge_receive_buffer(bus)
+    return bus
+
+
+#: receive buffer asked for a SocketCAN socket, bytes: a burst (an SDO block of 127 frames, a
+#: tick's frames while a reader is descheduled) must not overflow the kernel's default buffer,
+#: which silently drops frames
+SOCKETCAN_RCVBUF_BYTES: int = 8 << 20
+
+
+def _enlarge_receive_buffer(bus: can.BusABC) -> None:
+    """Raise a SocketCAN bus's socket receive buffer to :data:`SOCKETCAN_RCVBUF_BYTES` (root may
+    exceed net.core.rmem_max with SO_RCVBUFFORCE; otherwise the kernel caps SO_RCVBUF)."""
+    sock = getattr(bus, "socket", None)  # python-can's SocketcanBus keeps its socket here
+    if sock is None:
+        return
+    for option in (getattr(socket, "SO_RCVBUFFORCE", None), socket.SO_RCVBUF):
+        if option is None:
+            continue
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, option, SOCKETCAN_RCVBUF_BYTES)
+            return
+        except OSError as err:
+            logger.debug("receive buffer option %s refused: %s", option, err)
 
 
 @dataclass(frozen=True)
