@@ -39,7 +39,6 @@ from typing import Any
 
 import can
 
-from bus.transports.hub_server import start_hub
 from bus.io_frames import (
     N_JOINTS,
     TickTracker,
@@ -52,6 +51,7 @@ from bus.io_frames import (
     torque_cob_id,
 )
 from bus.transports.config import ChannelConfig, open_bus, udp_multicast_transport
+from bus.transports.hub_server import start_hub
 
 CTX = mp.get_context("fork")
 PING_ID, PONG_ID = 0x100, 0x101
@@ -151,7 +151,9 @@ def lockstep(opener: Opener, seconds: float, mode: str, threads: bool) -> dict[s
     workers = [make(target=_drive, args=(opener, j, mode, ready)) for j in range(N_JOINTS)]
     for w in workers:
         w.start()
-    answer_ids = [ANSWER_BASE + j for j in range(N_JOINTS)] if mode == "broadcast" else [torque_cob_id(j) for j in range(N_JOINTS)]
+    answer_ids = (
+        [ANSWER_BASE + j for j in range(N_JOINTS)] if mode == "broadcast" else [torque_cob_id(j) for j in range(N_JOINTS)]
+    )
     bus = opener(_filters(*answer_ids))
     trackers = [TickTracker(0, f"torque joint {j}") for j in range(N_JOINTS)]
     tick_ns: list[int] = []

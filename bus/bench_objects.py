@@ -15,6 +15,7 @@ index   sub  name                      type     meaning / unit
 0x2400  2    RK4 sub-steps             U16      per control period, 1..1000, default 4
 0x2400  3    disturbance kind          U8       :class:`DisturbanceKind` 0..3
 0x2400  4    seed                      U32      seed of the non-repetitive disturbance
+0x2400  5    pacing                    U8       0 lockstep as fast as possible, 1 real time
 0x2410  1    trial index               U32      k (selects the non-repetitive draw)
 0x2410  2    number of ticks           U32      N ≥ 1
 0x2410  3    command                   U8       wo: :class:`BenchCommand` 1 start, 2 abort
@@ -29,7 +30,13 @@ index   sub  name                      type     meaning / unit
 0x2430  3    tick timeouts             U32      ro, since boot
 0x2430  4    trials completed          U32      ro, since boot
 0x2430  5    last trial duration       U32      ro, µs wall clock (diagnostics only)
+0x2440  0    last trial timing         DOMAIN   ro, 25 bytes: :class:`TrialTiming` (wall clock)
 ======  ===  ========================  =======  ==========================================
+
+Pacing (0x2400:5 = 1, ``ilcrig run --realtime``): tick n of a trial starts (its encoder frames go
+out) at t0 + n·Ts on the plant's monotonic clock, t0 being the moment the trial starts; a tick
+whose torques arrive after t0 + (n + 1)·Ts misses its deadline and the next one starts late.
+0x2440 reports the last trial's timing in either mode (lateness only when paced).
 
 Configuration, trial index, number of ticks and initial state cannot be written while a trial
 runs (abort 0x08000022).
@@ -40,6 +47,7 @@ from __future__ import annotations
 import logging
 import math
 import struct
+from dataclasses import dataclass
 from enum import IntEnum
 from pathlib import Path
 from typing import Final
@@ -67,6 +75,7 @@ class BenchObj(IntEnum):
     TRIAL = 0x2410
     INITIAL_STATE = 0x2420
     COUNTERS = 0x2430
+    TRIAL_TIMING = 0x2440
 
 
 class ConfigSub(IntEnum):
@@ -74,6 +83,7 @@ class ConfigSub(IntEnum):
     SUBSTEPS = 2
     DISTURBANCE = 3
     SEED = 4
+    PACING = 5
 
 
 class BenchTrialSub(IntEnum):
@@ -201,3 +211,54 @@ def unpack_initial_state(data: bytes) -> tuple[npt.NDArray[np.float64], npt.NDAr
     if not np.all(np.isfinite(vals)):
         raise InitialStateError("initial state must be finite")
     return vals[:4].copy(), vals[4:].copy()
+
+
+# -- trial timing -------------------------------------------------------------------------
+
+_TIMING = struct.Struct("<B6I")
+TRIAL_TIMING_BYTES: Final[int] = _TIMING.size  # 25
+
+
+@dataclass(frozen=True)
+class TrialTiming:
+    """Wall-clock timing of one trial as the plant measured it (0x2440), diagnostics only.
+
+    :ivar paced: the trial was paced to the wall clock (real-time mode)
+    :ivar ticks: ticks completed
+    :ivar duration_us: from the trial start (tick 0 sent) to the last tick completed, µs
+    :ivar deadline_misses: ticks whose torques arrived after the start of the next period (paced)
+    :ivar lateness_p50_us: median of (start of tick n − (t0 + n·Ts)) over the ticks, µs (paced)
+    :ivar lateness_p99_us: its 99th percentile, µs (paced)
+    :ivar lateness_max_us: its maximum, µs (paced)
+    """
+
+    paced: bool
+    ticks: int
+    duration_us: int
+    deadline_misses: int
+    lateness_p50_us: int
+    lateness_p99_us: int
+    lateness_max_us: int
+
+    @property
+    def ticks_per_s(self) -> float:
+        """The rate the trial ran at (ticks over the duration), 0 if unknown."""
+        return self.ticks / (self.duration_us * 1e-6) if self.duration_us > 0 else 0.0
+
+
+def pack_trial_timing(t: TrialTiming) -> bytes:
+    """:class:`TrialTiming` as the 25 bytes of 0x2440 (values clamped to u32)."""
+    u32 = [min(max(int(v), 0), 0xFFFFFFFF) for v in (t.ticks, t.duration_us, t.deadline_misses, t.lateness_p50_us,
+                                                      t.lateness_p99_us, t.lateness_max_us)]
+    return _TIMING.pack(int(bool(t.paced)), *u32)
+
+
+def unpack_trial_timing(data: bytes) -> TrialTiming:
+    """Inverse of :func:`pack_trial_timing`.
+
+    :raises ValueError: not 25 bytes
+    """
+    if len(data) != TRIAL_TIMING_BYTES:
+        raise ValueError(f"trial timing must be {TRIAL_TIMING_BYTES} bytes, got {len(data)}")
+    paced, *vals = _TIMING.unpack(bytes(data))
+    return TrialTiming(bool(paced), *vals)

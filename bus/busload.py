@@ -25,6 +25,9 @@ import can
 
 logger = logging.getLogger(__name__)
 
+#: the fieldbus bit rate assumed when none is given, bit/s (classic CAN's highest)
+DEFAULT_BITRATE_BPS: int = 1_000_000
+
 #: bits outside the stuffed region plus the stuffed region without data, 11-bit ID
 _BASE_BITS_STD = 47
 #: same for a 29-bit ID

@@ -25,6 +25,8 @@ from pathlib import Path
 
 import can
 
+from bus.fastmsg import new_message
+
 logger = logging.getLogger(__name__)
 
 
@@ -80,21 +82,11 @@ class ChannelLog(can.Listener):
 
 
 def _with_channel(msg: can.Message, channel: str) -> can.Message:
-    return can.Message(
-        timestamp=msg.timestamp,
-        arbitration_id=msg.arbitration_id,
-        is_extended_id=msg.is_extended_id,
-        is_remote_frame=msg.is_remote_frame,
-        is_error_frame=msg.is_error_frame,
-        is_fd=msg.is_fd,
-        bitrate_switch=msg.bitrate_switch,
-        error_state_indicator=msg.error_state_indicator,
-        is_rx=msg.is_rx,
-        dlc=msg.dlc,
-        data=msg.data,
-        channel=channel,
-        check=False,
-    )
+    return new_message(msg.arbitration_id, bytearray(msg.data), timestamp=msg.timestamp,
+                       is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame,
+                       is_error_frame=msg.is_error_frame, channel=channel, dlc=msg.dlc, is_fd=msg.is_fd,
+                       is_rx=msg.is_rx, bitrate_switch=msg.bitrate_switch,
+                       error_state_indicator=msg.error_state_indicator)
 
 
 def open_log(path: str | os.PathLike[str], channel_name: str, append: bool = False) -> ChannelLog:

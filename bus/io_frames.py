@@ -44,6 +44,7 @@ from dataclasses import dataclass
 import can
 
 from bus.errors import IlcrigError
+from bus.fastmsg import new_message
 from bus.units import INT32_MAX, INT32_MIN
 
 logger = logging.getLogger(__name__)
@@ -240,12 +241,7 @@ def encode_encoder(joint: int, tick: int, count: int) -> can.Message:
     """
     _check_joint(joint)
     _check_i32(count, "encoder count")
-    return can.Message(
-        arbitration_id=ENCODER_COB_BASE + joint,
-        is_extended_id=False,
-        data=_ENCODER.pack(count, tick & TICK_MASK),
-        check=False,
-    )
+    return new_message(ENCODER_COB_BASE + joint, bytearray(_ENCODER.pack(count, tick & TICK_MASK)))
 
 
 def encode_torque(joint: int, tick: int, torque_units: int, status: TorqueStatus | int) -> can.Message:
@@ -257,12 +253,7 @@ def encode_torque(joint: int, tick: int, torque_units: int, status: TorqueStatus
     _check_i32(torque_units, "torque")
     if not 0 <= int(status) <= 0xFF:
         raise IoFrameError(f"status {status} does not fit u8")
-    return can.Message(
-        arbitration_id=TORQUE_COB_BASE + joint,
-        is_extended_id=False,
-        data=_TORQUE.pack(torque_units, tick & TICK_MASK, int(status)),
-        check=False,
-    )
+    return new_message(TORQUE_COB_BASE + joint, bytearray(_TORQUE.pack(torque_units, tick & TICK_MASK, int(status))))
 
 
 def encode_control(command: ControlCommand | int, tick: int, n_ticks: int = 0) -> can.Message:
@@ -276,12 +267,7 @@ def encode_control(command: ControlCommand | int, tick: int, n_ticks: int = 0) -
         raise IoFrameError(f"unknown control command {command}") from err
     if not 0 <= n_ticks <= 0xFFFFFFFF:
         raise IoFrameError(f"n_ticks {n_ticks} does not fit u32")
-    return can.Message(
-        arbitration_id=CONTROL_COB_ID,
-        is_extended_id=False,
-        data=_CONTROL.pack(cmd, tick & TICK_MASK, n_ticks),
-        check=False,
-    )
+    return new_message(CONTROL_COB_ID, bytearray(_CONTROL.pack(cmd, tick & TICK_MASK, n_ticks)))
 
 
 def _payload(msg: can.Message, cob_base: int, n_ids: int, size: int, what: str) -> tuple[int, bytes]:
@@ -298,6 +284,34 @@ def decode_encoder(msg: can.Message) -> EncoderFrame:
     joint, data = _payload(msg, ENCODER_COB_BASE, N_JOINTS, _ENCODER.size, "encoder")
     count, tick = _ENCODER.unpack(data)
     return EncoderFrame(joint, tick, count)
+
+
+def encoder_fields(msg: can.Message) -> tuple[int, int]:
+    """(count, wire tick) of an encoder frame: :func:`decode_encoder` without building a
+    dataclass (the drives' per-tick path); the joint is the caller's (it filtered the COB-ID).
+
+    :raises IoFrameError: not an encoder frame (ID, flags, length)
+    """
+    data = msg.data
+    if (len(data) != 6 or msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame or msg.is_fd
+            or not 0 <= msg.arbitration_id - ENCODER_COB_BASE < N_JOINTS):
+        decode_encoder(msg)  # raises with the precise reason
+    count, tick = _ENCODER.unpack(data)
+    return count, tick
+
+
+def torque_fields(msg: can.Message) -> tuple[int, int, int]:
+    """(torque µN·m, wire tick, status bits) of a torque frame: :func:`decode_torque` without
+    building a dataclass (the plant's per-tick path).
+
+    :raises IoFrameError: not a torque frame (ID, flags, length)
+    """
+    data = msg.data
+    if (len(data) != 7 or msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame or msg.is_fd
+            or not 0 <= msg.arbitration_id - TORQUE_COB_BASE < N_JOINTS):
+        decode_torque(msg)  # raises with the precise reason
+    torque, tick, status = _TORQUE.unpack(data)
+    return torque, tick, status
 
 
 def decode_torque(msg: can.Message) -> TorqueFrame:

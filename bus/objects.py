@@ -75,9 +75,12 @@ class Obj(IntEnum):
     POSITION_ACTUAL = 0x6064
     FOLLOWING_ERROR_WINDOW = 0x6065
     VELOCITY_ACTUAL = 0x606C
+    TARGET_TORQUE = 0x6071  # I16, per thousand of 0x6076 (CST)
     MAX_TORQUE = 0x6072
     RATED_TORQUE = 0x6076
     TORQUE_ACTUAL = 0x6077
+    TARGET_POSITION = 0x607A  # I32, counts (CSP)
+    TORQUE_OFFSET = 0x60B2  # I16, per thousand of 0x6076 (CSP/CST feed-forward)
     INTERPOLATION_PERIOD = 0x60C2
     SUPPORTED_DRIVE_MODES = 0x6502
     # manufacturer
@@ -165,7 +168,7 @@ class FaultCause(IntEnum):
 
 
 class ModeOfOperation(IntEnum):
-    """0x6060 values; the drive implements only its manufacturer table-playback mode."""
+    """0x6060 values; the drive implements table playback (-1), CSP (8) and CST (10), not CSV."""
 
     TABLE_PLAYBACK = -1  # manufacturer-specific: internal PD + feed-forward table playback
     CSP = 8

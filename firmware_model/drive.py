@@ -34,6 +34,21 @@ the master stopped the node on purpose, a lost heartbeat is just logged.  Gains 
 following-error window (0x6065), the max torque (0x6072), the tables and the control period
 cannot change while a trial is armed or running (abort 0x08000022).  Every time torque goes
 off, one ``SAFE-STATE`` record (:mod:`bus.safe_state`) is logged with the reason.
+
+Cyclic synchronous modes (0x6060 = 8 CSP, 10 CST; docs/canopen-objects.md §10, docs/timing.md §7):
+the set-points arrive by RPDO (or SDO) in 0x607A target position [counts], 0x6071 target
+torque and 0x60B2 torque offset [‰ of 0x6076]; the PDO service is :class:`bus.cia301.pdo.PdoEngine`.
+
+* CSP: the PD loop closes on 0x607A; the velocity reference is the backward difference of
+  successive targets, ``(p[n] − p[n−1])·rate`` in the loop's Q12 arithmetic (0 on the first tick
+  of a trial, as the table's velocity sample 0); the feed-forward is 0x60B2.
+* CST: torque = 0x6071 + 0x60B2 (no feedback, no following-error check), clamped to 0x6072.
+* While the drive is NMT OPERATIONAL in a cyclic mode, an io tick may run only after a SYNC
+  (:meth:`Drive.on_sync`, one credit per SYNC, not accumulated): the node runtime holds the
+  encoder frame until the SYNC came (:attr:`Drive.tick_ready`); after the tick the cycle's
+  TPDOs are due (:meth:`Drive.pop_tpdos`).
+* a trial (arm 0x2120:1 = 1, needs only the table length 0x2103:1 = N, no tables) records N
+  samples from tick 0, exactly as in table playback.
 """
 
 from __future__ import annotations
@@ -41,6 +56,7 @@ from __future__ import annotations
 import functools
 import logging
 import struct
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -49,6 +65,7 @@ from bus import fixedpoint as fp
 from bus.cia301.emcy import EmcyCode, ErrorRegister
 from bus.cia301.nmt import NmtCommand, NmtState
 from bus.cia301.node import ObjectStore
+from bus.cia301.pdo import PdoEngine
 from bus.errors import AbortCode, IlcrigError, SdoAbort
 from bus.objects import (
     DRIVE_EDS_PATH,
@@ -74,7 +91,7 @@ logger = logging.getLogger(__name__)
 
 DEFAULT_EDS_PATH: Path = DRIVE_EDS_PATH
 
-_TABLE_ROWS = {Obj.REF_POSITION_TABLE: 0, Obj.REF_VELOCITY_TABLE: 1, Obj.FEEDFORWARD_TABLE: 2}
+_TABLE_ROWS: dict[int, int] = {Obj.REF_POSITION_TABLE: 0, Obj.REF_VELOCITY_TABLE: 1, Obj.FEEDFORWARD_TABLE: 2}
 _TABLE_BITS = (TableLoaded.REF_POSITION, TableLoaded.REF_VELOCITY, TableLoaded.FEEDFORWARD)
 
 Value = int | float | bytes | str
@@ -90,24 +107,32 @@ class Drive:
 
     :param node_id: CANopen node id 1..127.
     :param eds_path: EDS describing the object dictionary.
-    :raises ValueError: bad node id.
+    :raises ValueError: bad node id, or an EDS without the defaults/limits the drive needs.
     """
 
-    _power: bool
+    # trial and fault state, set by _reset_application (called from __init__)
+    _n_table: int
+    _loaded: int
+    _trial_state: TrialState
+    _rec_status: RecorderStatus
     _next_tick: int
+    _fault_cause: FaultCause
+    _error_register: int
+    _error_code: int
     _capture_hold: bool
+    _power: bool
 
     def __init__(self, node_id: int, eds_path: str | Path = DEFAULT_EDS_PATH) -> None:
         if not 1 <= int(node_id) <= 127:
             raise ValueError(f"node id must be 1..127, got {node_id}")
         self.node_id = int(node_id)
         # object values, access/size/limit checks and hooks: the CANopen slave object store
-        # that the test-bench node uses too (bus/slave.py)
+        # that the test-bench node uses too (bus/cia301/node.py)
         self.store = ObjectStore(eds_path, self.node_id)
         self.od = self.store.od
         self._vars = self.store.vars
-        self._capacity = int(self._vars[(Obj.TABLE, TableSub.CAPACITY)].default or 0)
-        self._rated_mnm = int(self._vars[(Obj.RATED_TORQUE, 0)].default or 0)
+        self._capacity = self._eds_default(Obj.TABLE, TableSub.CAPACITY)
+        self._rated_mnm = self._eds_default(Obj.RATED_TORQUE, 0)
         self._st = loop.new_state()
         self._tables = loop.new_tables(self._capacity)
         self._rec = loop.new_recorder(self._capacity)
@@ -116,6 +141,10 @@ class Drive:
         self._values = self.store.values
         self._read_hooks = self.store.read_hooks
         self._write_hooks = self.store.write_hooks
+        self.pdo = PdoEngine(self.store, lambda: int(self.nmt_state))
+        self._cyc = loop.new_tables(0)  # column 0: the cyclic set-points of the tick
+        self._cyc_prev_target: int | None = None
+        self._sync_credit = 0
         self._install_hooks()
         self.nmt_state: NmtState = NmtState.INITIALISING
         self._reset_application()
@@ -131,7 +160,44 @@ class Drive:
 
     @property
     def statusword(self) -> int:
-        return self._sm.statusword(bool(self._st[loop.S_LIMITED]) and self._power)
+        sw = self._sm.statusword(bool(self._st[loop.S_LIMITED]) and self._power)
+        if self._power and self._mode != ModeOfOperation.TABLE_PLAYBACK:
+            sw |= 0x1000  # CSx: drive follows the command value
+        return sw
+
+    @property
+    def _mode(self) -> int:
+        return int(self._values[(Obj.MODES_OF_OPERATION, 0)])
+
+    # ------------------------------------------------------------------ SYNC and PDOs
+
+    @property
+    def cyclic_active(self) -> bool:
+        """True when io ticks are paced by SYNC: a cyclic mode and NMT OPERATIONAL."""
+        return self._mode != ModeOfOperation.TABLE_PLAYBACK and self.pdo.active
+
+    @property
+    def tick_ready(self) -> bool:
+        """False while an io tick must wait for its SYNC (see the module docstring)."""
+        return self._sync_credit > 0 or not self.cyclic_active
+
+    def on_sync(self) -> None:
+        """A SYNC frame: synchronous RPDOs take effect, the next io tick may run."""
+        if self.pdo.active:
+            self.pdo.on_sync()
+            self._sync_credit = 1
+
+    def on_rpdo(self, can_id: int, data: bytes) -> bool:
+        """A fieldbus frame that may be an RPDO; True when it was one (handled)."""
+        return self.pdo.on_rpdo(can_id, data)
+
+    def sync_cob_id(self) -> int:
+        """The SYNC COB-ID this drive consumes (0x1005)."""
+        return self.pdo.sync_cob_id()
+
+    def pop_tpdos(self) -> list[tuple[int, bytes]]:
+        """(COB-ID, payload) of the TPDOs due after the last io tick."""
+        return self.pdo.collect_tpdos()
 
     @property
     def trial_state(self) -> TrialState:
@@ -230,7 +296,10 @@ class Drive:
         """One control tick: encoder count (int32 counts) in, torque command (µN·m) out."""
         if not self._power:
             self._st[loop.S_POS] = min(max(encoder_count, fp.INT32_MIN), fp.INT32_MAX)
+            self._sync_credit = 0
             return 0
+        if self._mode != ModeOfOperation.TABLE_PLAYBACK:
+            return self._cyclic_tick(tick, encoder_count)
         ts = self._trial_state
         if ts == TrialState.RUNNING:
             if tick != self._next_tick:
@@ -258,12 +327,58 @@ class Drive:
             self._finish_trial()
         return tau
 
+    def _cyclic_tick(self, tick: int, encoder_count: int) -> int:
+        """One tick in CSP / CST with the set-points in 0x607A, 0x6071, 0x60B2."""
+        self._sync_credit = 0
+        ts = self._trial_state
+        if ts == TrialState.RUNNING:
+            if tick != self._next_tick:
+                return self._sequence_fault(tick)
+        elif ts == TrialState.ARMED:
+            if tick != 0:
+                return self._sequence_fault(tick)
+            self._start_trial()
+            self._cyc_prev_target = None
+        playing = self._trial_state == TrialState.RUNNING
+        rec_idx = tick if playing else -1
+        st, v, cyc = self._st, self._values, self._cyc
+        offset = int(v[(Obj.TORQUE_OFFSET, 0)]) * self._rated_mnm  # ‰ → µN·m
+        if self._mode == ModeOfOperation.CSP:
+            target = int(v[(Obj.TARGET_POSITION, 0)])
+            prev = self._cyc_prev_target
+            vref = 0 if prev is None else fp.sat32(
+                fp.rshift_round(fp.sat32(target - prev) * int(st[loop.P_RATE]), fp.VEL_STATE_Q))
+            self._cyc_prev_target = target
+            cyc[0, 0], cyc[1, 0], cyc[2, 0] = target, vref, fp.sat32(offset)
+            tau, status = loop.control_tick(encoder_count, 0, rec_idx, st, cyc, self._rec)
+        else:  # CST: no feedback, no following-error check
+            target_torque = int(v[(Obj.TARGET_TORQUE, 0)]) * self._rated_mnm
+            saved = int(st[loop.P_KP]), int(st[loop.P_KD]), int(st[loop.P_FE_WINDOW])
+            st[loop.P_KP] = st[loop.P_KD] = 0
+            st[loop.P_FE_WINDOW] = -1
+            cyc[0, 0] = fp.sat32(encoder_count)
+            cyc[1, 0] = 0
+            cyc[2, 0] = fp.sat32(target_torque + offset)
+            try:
+                tau, status = loop.control_tick(encoder_count, 0, rec_idx, st, cyc, self._rec)
+            finally:
+                st[loop.P_KP], st[loop.P_KD], st[loop.P_FE_WINDOW] = saved
+        if playing:
+            self._next_tick = tick + 1
+        if status:
+            return self._following_error_fault(rec_idx)
+        if playing and self._next_tick == self._n_table:
+            self._finish_trial()
+        return tau
+
     # ------------------------------------------------------------------ trial logic
 
     def _start_trial(self) -> None:
         st = self._st
         st[loop.S_HAVE_PREV] = 0
-        st[loop.S_VF] = int(self._tables[1, 0]) << fp.VEL_STATE_Q
+        # table playback: the reference velocity of sample 0; CSP/CST: 0 (no previous target)
+        v0 = int(self._tables[1, 0]) if self._mode == ModeOfOperation.TABLE_PLAYBACK else 0
+        st[loop.S_VF] = v0 << fp.VEL_STATE_Q
         self._trial_state = TrialState.RUNNING
         self._rec_status = RecorderStatus.RECORDING
         self._next_tick = 0
@@ -375,6 +490,8 @@ class Drive:
         self._error_register = 0
         self._error_code = 0
         self._capture_hold = True
+        self._cyc_prev_target = None
+        self._sync_credit = 0
         self._emcy.clear()
         st = loop.new_state()
         self._st[:] = st
@@ -388,8 +505,20 @@ class Drive:
 
     def _reset_communication(self) -> None:
         self.store.reset(0x1000, 0x1FFF)
+        self.pdo.reset()
+        self._sync_credit = 0
 
     # ------------------------------------------------------------------ object plumbing
+
+    def _eds_default(self, index: int, sub: int) -> int:
+        """The EDS DefaultValue of a numeric object.
+
+        :raises ValueError: the EDS gives none.
+        """
+        default = self._vars[(index, sub)].default
+        if default is None:
+            raise ValueError(f"the EDS gives no DefaultValue for 0x{index:04X}:{sub}")
+        return int(default)
 
     def _install_hooks(self) -> None:
         r = self._read_hooks
@@ -406,7 +535,7 @@ class Drive:
         r[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.INDEX)] = lambda: self._period_repr()[1]
         for index in _TABLE_ROWS:
             r[(index, 0)] = functools.partial(self._read_table, index)
-            w[(index, 0)] = (lambda v, i=index: self._write_table(i, v))  # type: ignore[misc]
+            w[(index, 0)] = functools.partial(self._write_table, index)
         r[(Obj.TABLE, TableSub.LENGTH)] = lambda: self._n_table
         r[(Obj.TABLE, TableSub.LOADED)] = lambda: self._loaded
         r[(Obj.TRIAL, TrialSub.STATE)] = lambda: int(self._trial_state)
@@ -422,7 +551,7 @@ class Drive:
         w[(Obj.MAX_TORQUE, 0)] = lambda v: self._write_max_torque(int(v))
         w[(Obj.TABLE, TableSub.LENGTH)] = self._write_table_length
         for sub in GainsSub:
-            w[(Obj.GAINS, sub)] = (lambda v, s=sub: self._write_gains(s, int(v)))  # type: ignore[misc]
+            w[(Obj.GAINS, sub)] = self._gains_hook(sub)
         w[(Obj.TRIAL, TrialSub.COMMAND)] = self._write_trial_command
         w[(Obj.CONTROL_PERIOD, 0)] = self._write_period
         w[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.VALUE)] = (
@@ -448,8 +577,13 @@ class Drive:
         self._update_power()
 
     def _write_mode(self, value: Value) -> None:
-        if value != ModeOfOperation.TABLE_PLAYBACK:
-            raise SdoAbort(AbortCode.VALUE_RANGE, f"mode of operation {value!r} not supported (only -1)")
+        if value not in (ModeOfOperation.TABLE_PLAYBACK, ModeOfOperation.CSP, ModeOfOperation.CST):
+            raise SdoAbort(AbortCode.VALUE_RANGE, f"mode of operation {value!r} not supported (-1, 8, 10)")
+        if value != self._mode:
+            self._require_not_playing("changing the mode of operation")
+            self._cyc_prev_target = None
+            self._capture_hold = True  # table playback holds where the drive is now
+            logger.debug("node %d mode of operation %s", self.node_id, value)
 
     def _write_fe_window(self, value: int) -> None:
         self._require_not_playing("changing the following-error window")
@@ -459,7 +593,7 @@ class Drive:
         self._require_not_playing("changing the max torque")
         self._set_max_torque(permille)
 
-    def _write_gains(self, sub: int, value: int) -> None:
+    def _write_gains(self, sub: GainsSub, value: int) -> None:
         self._require_not_playing("changing the gains")
         self._set_gains(sub, value)
 
@@ -469,8 +603,12 @@ class Drive:
     def _set_max_torque(self, permille: int) -> None:
         self._st[loop.P_TLIM] = fp.torque_limit_units(permille, self._rated_mnm)
 
-    def _set_gains(self, sub: int, value: int) -> None:
-        slot = {GainsSub.KP: loop.P_KP, GainsSub.KD: loop.P_KD, GainsSub.VEL_FILTER: loop.P_ALPHA}[GainsSub(sub)]
+    def _gains_hook(self, sub: GainsSub) -> Callable[[Value], None]:
+        """The write hook of 0x2110:``sub`` (refused while a trial is armed or running)."""
+        return lambda v: self._write_gains(sub, int(v))
+
+    def _set_gains(self, sub: GainsSub, value: int) -> None:
+        slot = {GainsSub.KP: loop.P_KP, GainsSub.KD: loop.P_KD, GainsSub.VEL_FILTER: loop.P_ALPHA}[sub]
         self._st[slot] = value
 
     def _set_period(self, period_us: int) -> None:
@@ -498,9 +636,9 @@ class Drive:
         i = cur_i if index is None else index
         scaled = v * 10 ** (i + 6)  # µs; the EDS limits the index to -6..-1
         period = self._vars[(Obj.CONTROL_PERIOD, 0)]
-        lo = period.min if period.min is not None else 0
-        hi = period.max if period.max is not None else fp.UINT32_MAX
-        if not lo <= int(scaled) <= hi:
+        if period.min is None or period.max is None:
+            raise ValueError("the EDS gives no LowLimit/HighLimit for 0x2300")
+        if not period.min <= int(scaled) <= period.max:
             raise SdoAbort(AbortCode.VALUE_RANGE, f"period {scaled} µs outside [{period.min}, {period.max}]")
         self._write_period(int(scaled))
         self._values[(Obj.CONTROL_PERIOD, 0)] = int(scaled)
@@ -536,7 +674,10 @@ class Drive:
                 raise SdoAbort(AbortCode.DEVICE_STATE, "trial already running")
             if self._sm.state in (Cia402State.FAULT, Cia402State.FAULT_REACTION_ACTIVE):
                 raise SdoAbort(AbortCode.DEVICE_STATE, "drive in fault; reset it first")
-            if self._n_table == 0 or self._loaded != TableLoaded.ALL:
+            if self._mode != ModeOfOperation.TABLE_PLAYBACK:
+                if self._n_table == 0:
+                    raise SdoAbort(AbortCode.DEVICE_STATE, "set the trial length 0x2103:1 first")
+            elif self._n_table == 0 or self._loaded != TableLoaded.ALL:
                 raise SdoAbort(AbortCode.DEVICE_STATE,
                                f"tables not loaded (mask 0x{self._loaded:X}, N={self._n_table})")
             self._trial_state = TrialState.ARMED

@@ -22,6 +22,8 @@ Arrays the kernel works on (allocate them with :func:`new_state`, :func:`new_tab
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
+from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -31,9 +33,15 @@ from bus import fixedpoint as fp
 
 logger = logging.getLogger(__name__)
 
-_sat32 = njit(inline="always")(fp.sat32)
-_sat = njit(inline="always")(fp.sat)
-_rshift_round = njit(inline="always")(fp.rshift_round)
+#: An integer scalar inside the kernel: a Python int or a numpy integer (numba: int64).
+_Int = int | np.integer[Any]
+
+# numba's stubs give a dispatcher the call signature of the Python function (``x: int``), but
+# the compiled helpers take any integer scalar, here also the np.int64 values of the kernel:
+# the casts declare that (they return the dispatchers unchanged).
+_sat32 = cast(Callable[[_Int], int], njit(inline="always")(fp.sat32))
+_sat = cast(Callable[[_Int, _Int, _Int], int], njit(inline="always")(fp.sat))
+_rshift_round = cast(Callable[[_Int, int], int], njit(inline="always")(fp.rshift_round))
 
 # ---------------------------------------------------------------- st[] layout
 P_KP = 0  #: Kp, Q16 µN·m/count

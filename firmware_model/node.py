@@ -11,7 +11,14 @@ test-bench node (:mod:`plant.node`); :class:`DriveNode` adds the io side:
   origin.  The drive gets the tick number *within the trial*
   (architecture.md: n = 0..N-1): the 16-bit wire tick is taken relative to the TRIAL_START
   frame's tick and unwrapped, so trials longer than 65536 ticks work.
-* frames of other joints and the node's own torque echo are ignored.
+* the io bus gets acceptance filters (:meth:`DriveNode.io_filters`: this joint's encoder
+  frame and the control frame), so other joints' frames do not even reach the process; any that
+  still arrive (a transport without filters) and the node's own torque echo are ignored.
+* fieldbus SYNC and RPDO frames go to the firmware's PDO service (``drive.on_sync`` /
+  ``drive.on_rpdo``).  In a cyclic synchronous mode an encoder frame that arrives before its
+  SYNC is held and run when the SYNC comes (``drive.tick_ready``); after every io tick the
+  torque frame goes out on io first, then the TPDOs due (``drive.pop_tpdos``) on the fieldbus
+  (docs/timing.md §7, the SYNC/PDO lockstep handshake).
 """
 
 from __future__ import annotations
@@ -21,7 +28,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Sequence
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import can
 
@@ -30,7 +37,12 @@ from bus.cia301.node import PRODUCER_HEARTBEAT_INDEX, SlaveApp, SlaveNode, insta
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["DriveLike", "DriveNode", "PRODUCER_HEARTBEAT_INDEX", "install_sigterm", "run_node", "main"]
+_ENABLED = int(io_frames.TorqueStatus.ENABLED)
+_FAULT = int(io_frames.TorqueStatus.FAULT)
+_SATURATED = int(io_frames.TorqueStatus.SATURATED)
+_WARNING = int(io_frames.TorqueStatus.WARNING)
+
+__all__ = ["CyclicDriveLike", "DriveLike", "DriveNode", "PRODUCER_HEARTBEAT_INDEX", "install_sigterm", "run_node", "main"]
 
 
 class DriveLike(SlaveApp, Protocol):
@@ -55,6 +67,33 @@ class DriveLike(SlaveApp, Protocol):
         ...
 
 
+@runtime_checkable
+class CyclicDriveLike(DriveLike, Protocol):
+    """A drive with the SYNC/PDO service (``firmware_model.drive.Drive``); a :class:`DriveLike`
+    without these members runs without PDOs."""
+
+    @property
+    def tick_ready(self) -> bool:
+        """False while an io tick must wait for its SYNC."""
+        ...
+
+    def on_sync(self) -> None:
+        """A SYNC frame arrived."""
+        ...
+
+    def on_rpdo(self, can_id: int, data: bytes) -> bool:
+        """A fieldbus frame that may be an RPDO; True if it was one."""
+        ...
+
+    def pop_tpdos(self) -> list[tuple[int, bytes]]:
+        """(COB-ID, payload) of the TPDOs due after the last io tick."""
+        ...
+
+    def sync_cob_id(self) -> int:
+        """The SYNC COB-ID consumed (0x1005)."""
+        ...
+
+
 class DriveNode(SlaveNode):
     """Runs one drive on a fieldbus and an io bus.
 
@@ -76,24 +115,37 @@ class DriveNode(SlaveNode):
         self._torque_id = io_frames.torque_cob_id(self.joint)
         self._next_full_tick = 0  # tick number (within the trial) expected next
         self._tick_origin = 0  # wire tick of the trial's tick 0 (from TRIAL_START)
+        self._held: tuple[int, int] | None = None  # (count, wire tick) of an encoder frame waiting for its SYNC
+        # the SYNC/PDO service is a declared optional capability (CyclicDriveLike)
+        self._cyclic: CyclicDriveLike | None = drive if isinstance(drive, CyclicDriveLike) else None
+        self.syncs_in = 0
+        self.tpdos_out = 0
+        io.set_filters(self.io_filters())
 
     # ------------------------------------------------------------------ io
+
+    def io_filters(self) -> can.typechecking.CanFilters:
+        """Acceptance filters of the io bus: this joint's encoder frame and the control frame
+        (a drive's CAN controller filters in hardware; here the transport does, so the frames
+        of the other joints never reach this process)."""
+        return [can.typechecking.CanFilter(can_id=cob, can_mask=0x7FF, extended=False)
+                for cob in (self._encoder_id, io_frames.CONTROL_COB_ID)]
 
     def on_io(self, msg: can.Message) -> None:
         cob = msg.arbitration_id
         if cob == self._encoder_id:
             try:
-                frame = io_frames.decode_encoder(msg)
+                count, wire = io_frames.encoder_fields(msg)
             except io_frames.IoFrameError as err:
                 logger.warning("node %d: bad encoder frame: %s", self.node_id, err)
                 return
-            rel = (frame.tick - self._tick_origin) & io_frames.TICK_MASK
-            tick = self._next_full_tick + io_frames.tick_diff(rel, self._next_full_tick)
-            self._next_full_tick = tick + 1
-            torque = int(self.drive.io_tick(tick, frame.count))
-            status = int(self._torque_status())
-            self.io.send(io_frames.encode_torque(self.joint, frame.tick, torque, status))
-            self.frames_out += 1
+            if self._cyclic is None or self._cyclic.tick_ready:
+                self._run_tick(count, wire)
+            else:
+                if self._held is not None:
+                    logger.warning("node %d: encoder frame of wire tick %d replaced before its SYNC",
+                                   self.node_id, self._held[1])
+                self._held = (count, wire)
         elif cob == io_frames.CONTROL_COB_ID:
             try:
                 control = io_frames.decode_control(msg)
@@ -103,22 +155,49 @@ class DriveNode(SlaveNode):
             if control.command == io_frames.ControlCommand.TRIAL_START:
                 self._tick_origin = control.tick
                 self._next_full_tick = 0
+            self._held = None
         # anything else (our own torque echo, other joints' frames) is not for us
+
+    def _run_tick(self, count: int, wire: int) -> None:
+        """Run the io tick of the encoder frame (``count``, ``wire`` tick): torque frame on io, then
+        the TPDOs due on the fieldbus."""
+        rel = (wire - self._tick_origin) & io_frames.TICK_MASK
+        tick = self._next_full_tick + io_frames.tick_diff(rel, self._next_full_tick)
+        self._next_full_tick = tick + 1
+        torque = int(self.drive.io_tick(tick, count))
+        self.io.send(io_frames.encode_torque(self.joint, wire, torque, self._torque_status()))
+        self.frames_out += 1
+        if self._cyclic is not None:
+            for cob_id, data in self._cyclic.pop_tpdos():
+                self._send(self.fieldbus, cob_id, data)
+                self.tpdos_out += 1
+
+    def on_fieldbus(self, msg: can.Message) -> None:
+        drive = self._cyclic
+        if drive is None:
+            return
+        cob = msg.arbitration_id
+        if cob == drive.sync_cob_id():
+            self.syncs_in += 1
+            drive.on_sync()
+            if self._held is not None and drive.tick_ready:
+                (count, wire), self._held = self._held, None
+                self._run_tick(count, wire)
+        else:
+            drive.on_rpdo(cob, bytes(msg.data))
 
     def _torque_status(self) -> int:
         """Torque-frame status bits from ``drive.torque_enabled`` and the CiA 402 statusword
         (fault 0x0008, warning 0x0080, internal limit 0x0800 → SATURATED)."""
-        bits = io_frames.TorqueStatus(0)
-        if self.drive.torque_enabled:
-            bits |= io_frames.TorqueStatus.ENABLED
+        bits = _ENABLED if self.drive.torque_enabled else 0
         sw = int(self.drive.statusword)
         if sw & 0x0008:
-            bits |= io_frames.TorqueStatus.FAULT
+            bits |= _FAULT
         if sw & 0x0800:
-            bits |= io_frames.TorqueStatus.SATURATED
+            bits |= _SATURATED
         if sw & 0x0080:
-            bits |= io_frames.TorqueStatus.WARNING
-        return int(bits)
+            bits |= _WARNING
+        return bits
 
 
 def run_node(node_id: int, fieldbus_config: dict[str, Any], io_config: dict[str, Any],

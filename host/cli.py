@@ -79,12 +79,35 @@ def _add_bus_args(p: argparse.ArgumentParser, default: str = "auto") -> None:
                         "socketcan on vcan0/vcan1 when they exist, else the zero-privilege hub)")
     p.add_argument("--hub", default=None, metavar="ADDRESS",
                    help="hub address, unix:/path or tcp:127.0.0.1:PORT (default: $ILCRIG_HUB or a per-user socket)")
+    p.add_argument("--allow-remote", action="store_true",
+                   help="the hub may be on another machine (a non-loopback tcp: address); off by default")
+
+
+def _add_rig_args(p: argparse.ArgumentParser) -> None:
+    """Options of the rig that do not change the experiment (its results and digest)."""
+    p.add_argument("--realtime", action="store_true",
+                   help="pace the plant's ticks to the wall clock at the control period (tick n starts at t0 + n·Ts) "
+                        "and report deadline misses and tick lateness")
+    # the fieldbus bit rate is an experiment option (--fieldbus-bitrate: also the pdo bus-fit check)
+    p.add_argument("--io-bitrate", type=_bitrate, default=None, metavar="BIT_S",
+                   help="bit rate of the io channel for the bus-time figures (default 1000000)")
+
+
+def _bitrate(text: str) -> int:
+    """A bit rate option: a positive integer, bit/s."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"bit rate must be an integer in bit/s, got {text!r}") from None
+    if not 1000 <= value <= 1_000_000:
+        raise argparse.ArgumentTypeError(f"a classic CAN bit rate is 1000..1000000 bit/s, got {value}")
+    return value
 
 
 def transport_of(args: argparse.Namespace) -> TransportConfig:
     from bus.transports.config import transport_from_name
 
-    return transport_from_name(args.bus, args.hub)
+    return transport_from_name(args.bus, args.hub, bool(getattr(args, "allow_remote", False)))
 
 
 def cmd_drive(args: argparse.Namespace) -> int:
@@ -120,7 +143,8 @@ def _role_logging() -> None:
 def cmd_hub(args: argparse.Namespace) -> int:
     from bus.transports.hub_server import main as hub_main
 
-    return int(hub_main([x for a in (args.listen or []) for x in ("--listen", a)]) or 0)
+    argv = [x for a in (args.listen or []) for x in ("--listen", a)]
+    return int(hub_main(argv + (["--allow-remote"] if args.allow_remote else [])) or 0)
 
 
 def cmd_host(args: argparse.Namespace) -> int:
@@ -158,6 +182,7 @@ def build_parser() -> argparse.ArgumentParser:
     rp = sub.add_parser("run", help="run an experiment on the distributed rig (6 processes over CAN)")
     add_experiment_args(rp)
     _add_bus_args(rp)
+    _add_rig_args(rp)
     rp.add_argument("--inject", action="append", metavar="SPEC",
                     help="inject a fault (repeatable): kill|stall:ROLE@TRIAL:TICK[,for=S], "
                          "drop|corrupt|duplicate|delay:io|fieldbus@TRIAL:TICK[,rate=P,seed=K,count=C,id=COBID,ms=D], "
@@ -167,6 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
     hp = sub.add_parser("host", help="the host role alone (expects 4 drives and the plant on the bus)")
     add_experiment_args(hp)
     _add_bus_args(hp)
+    _add_rig_args(hp)
     hp.add_argument("--wait", type=float, default=120.0,
                     help="seconds to wait for the nodes to answer (default 120: a first run compiles the numba kernels)")
     hp.add_argument("--pause", type=float, default=0.0,
@@ -200,8 +226,10 @@ def build_parser() -> argparse.ArgumentParser:
     xp.add_argument("--fresh", action="store_true", help="ignore finished experiments in --out and redo all")
     xp.set_defaults(func=cmd_reproduce)
 
-    bp = sub.add_parser("hub", help="the zero-privilege CAN hub (loopback / Unix socket only)")
+    bp = sub.add_parser("hub", help="the zero-privilege CAN hub (loopback / Unix socket unless --allow-remote)")
     bp.add_argument("--listen", action="append", help="unix:/path or tcp:127.0.0.1:PORT (repeatable)")
+    bp.add_argument("--allow-remote", action="store_true",
+                    help="also accept a non-loopback tcp:ADDRESS:PORT, to serve roles on other machines")
     bp.set_defaults(func=cmd_hub)
     return p
 

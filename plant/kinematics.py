@@ -199,7 +199,7 @@ def _joint_rates(q: np.ndarray, Y: np.ndarray, Yd: np.ndarray, Ydd: np.ndarray |
     ys, _ = _as_batch(Y, "Y")
     yds, _ = _as_batch(Yd, "Yd")
     want = Ydd is not None
-    ydds = _as_batch(Ydd, "Ydd")[0] if want else yds
+    ydds = _as_batch(Ydd, "Ydd")[0] if Ydd is not None else yds
     qds = np.empty_like(qs)
     qdds = np.empty_like(qs)
     r = K.joint_rates_batch(qs, ys, yds, ydds, _params(geometry), qds, qdds, want)

@@ -27,6 +27,13 @@ goes out, then per tick n = 0..N-1:
    is applied as zero torque;
 3. the plant integrates [t_n, t_n + Ts] with the four torques held and disturbance[n].
 
+Real time (0x2400:5 pacing = 1, ``ilcrig run --realtime``): tick n's encoder frames are held
+until t0 + n·Ts on the node clock (t0 = the trial's start), the wait being part of the select
+loop (SDO is served meanwhile); a tick whose torques arrive after t0 + (n + 1)·Ts is a deadline
+miss and the next tick starts late.  Either way the trial's timing (duration, and when paced the
+misses and the lateness of the ticks, :class:`plant.pacing.TickPacer`) is kept in 0x2440.
+Pacing delays frames only; what the plant computes is the same.
+
 After tick N-1: TRIAL_STOP, status DONE.  The trial is event driven inside the slave's select
 loop, so SDO requests (status polls) are answered during a trial by the same thread, between
 ticks.  No answer within ``tick_timeout_s`` [s] (``first_tick_timeout_s`` for tick 0) is a fault
@@ -72,13 +79,17 @@ from bus.bench_objects import (
     CounterSub,
     DisturbanceKind,
     InitialStateError,
+    TrialTiming,
     fault_emcy_data,
+    pack_trial_timing,
     unpack_initial_state,
 )
+from bus.bus_features import batch_sender
 from bus.cia301.nmt import NmtCommand, NmtState, next_state
 from bus.cia301.node import ObjectStore, SlaveNode, Value, install_sigterm
 from bus.errors import AbortCode, SdoAbort
 from bus.transports.config import TransportConfig
+from plant.pacing import TickPacer
 
 logger = logging.getLogger(__name__)
 
@@ -156,8 +167,14 @@ class BenchNode(SlaveNode):
         self._got = 0  # torque frames received for tick n
         self._deadline = 0.0
         self._t_start = 0.0
+        self._pacer: TickPacer | None = None
+        self._send_at: float | None = None  # paced: when the held encoder frames are due
+        self._held_counts: np.ndarray | None = None
+        self._timing = TrialTiming(False, 0, 0, 0, 0, 0, 0)
         self._tau = np.zeros(io_frames.N_JOINTS, dtype=np.int64)
         self._dist: np.ndarray = np.zeros((0, io_frames.N_JOINTS))
+        # the four encoder frames of a tick go out in one write where the bus can (the hub)
+        self._send_batch = batch_sender(io)
         self._trackers = [io_frames.TickTracker(0, f"torque frames of drive {j + 1}")
                           for j in range(io_frames.N_JOINTS)]
         # counters (0x2430)
@@ -260,6 +277,7 @@ class BenchNode(SlaveNode):
         r[(c, CounterSub.TICK_TIMEOUTS)] = lambda: self.tick_timeouts & _U32
         r[(c, CounterSub.TRIALS_DONE)] = lambda: self.trials_done & _U32
         r[(c, CounterSub.LAST_TRIAL_US)] = lambda: min(int(self.last_trial_s * 1e6), _U32)
+        r[(BenchObj.TRIAL_TIMING, 0)] = lambda: pack_trial_timing(self._timing)
         for sub in ConfigSub:
             w[(BenchObj.CONFIG, sub)] = self._require_idle_hook(f"configuration 0x2400:{int(sub)}")
         w[(t, BenchTrialSub.TRIAL_INDEX)] = self._require_idle_hook("trial index")
@@ -279,7 +297,9 @@ class BenchNode(SlaveNode):
     def _write_initial_state(self, value: Value) -> None:
         if self._busy():
             raise SdoAbort(AbortCode.DEVICE_STATE, "initial state cannot change while a trial runs")
-        data = bytes(value)  # type: ignore[arg-type]
+        if not isinstance(value, bytes):  # the EDS makes 0x2420 a DOMAIN: decoded as bytes
+            raise TypeError(f"initial state 0x2420 must be bytes, got {type(value).__name__}")
+        data = bytes(value)
         try:
             unpack_initial_state(data)
         except InitialStateError as err:
@@ -291,7 +311,7 @@ class BenchNode(SlaveNode):
         if cmd == BenchCommand.START:
             if self._busy():
                 raise SdoAbort(AbortCode.DEVICE_STATE, "a trial is already running")
-            if len(self.store.get(BenchObj.INITIAL_STATE)) == 0:  # type: ignore[arg-type]
+            if len(self.store.get_bytes(BenchObj.INITIAL_STATE)) == 0:
                 raise SdoAbort(AbortCode.DEVICE_STATE, "initial state 0x2420 not set")
             # the trial begins after the SDO response is out (on_service), so the host gets
             # its answer at once; the status says RUNNING from now on
@@ -316,12 +336,19 @@ class BenchNode(SlaveNode):
         super().start()
 
     def next_deadline(self) -> float | None:
-        return self._deadline if self._running else None
+        if not self._running:
+            return None
+        return self._send_at if self._send_at is not None else self._deadline
 
     def on_service(self, now: float) -> None:
         if self._pending_start:
             self._pending_start = False
             self._begin_trial()
+        elif self._running and self._send_at is not None:
+            if now >= self._send_at:  # paced: the held tick is due
+                counts, self._held_counts, self._send_at = self._held_counts, None, None
+                assert counts is not None
+                self._send_encoders(counts)
         elif self._running and now >= self._deadline:
             missing = [j for j in range(io_frames.N_JOINTS)
                        if self._trackers[j].next_tick == self._origin + self._tick]
@@ -346,14 +373,14 @@ class BenchNode(SlaveNode):
             return
         j = cob - _TORQUE_LO
         try:
-            frame = io_frames.decode_torque(msg)
-            if io_frames.tick_diff(frame.tick, io_frames.wire_tick(self._origin)) < 0:
+            torque, wire, status = io_frames.torque_fields(msg)
+            if io_frames.tick_diff(wire, self._origin) < 0:
                 # an answer to a tick of an earlier (e.g. aborted) trial arriving late: wire ticks
                 # keep counting across trials, so it cannot be mistaken for one of this trial
                 logger.debug("node %d: late torque frame of drive %d from an earlier trial ignored",
                               self.node_id, j + 1)
                 return
-            tick = self._trackers[j].accept(frame.tick)
+            tick = self._trackers[j].accept(wire)
         except io_frames.TickError as err:
             self._fail(BenchFault.TICK_SEQUENCE, j + 1, f"tick {self._tick}: {err}")
             return
@@ -364,7 +391,7 @@ class BenchNode(SlaveNode):
             self._fail(BenchFault.TICK_SEQUENCE, j + 1,
                        f"drive {j + 1} sent tick {tick - self._origin} during tick {self._tick}")
             return
-        self._tau[j] = 0 if frame.status & _FAULT_BIT else frame.torque_units
+        self._tau[j] = 0 if status & _FAULT_BIT else torque
         self._got += 1
         if self._got == io_frames.N_JOINTS:
             self._advance()
@@ -392,7 +419,7 @@ class BenchNode(SlaveNode):
         seed = int(store.get(BenchObj.CONFIG, ConfigSub.SEED))
         trial = int(store.get(BenchObj.TRIAL, BenchTrialSub.TRIAL_INDEX))
         n_ticks = int(store.get(BenchObj.TRIAL, BenchTrialSub.N_TICKS))
-        q0, qd0 = unpack_initial_state(store.get(BenchObj.INITIAL_STATE))  # type: ignore[arg-type]
+        q0, qd0 = unpack_initial_state(store.get_bytes(BenchObj.INITIAL_STATE))
         self._n_ticks = n_ticks
         self._tick = 0
         self._origin = self._wire_next
@@ -414,20 +441,23 @@ class BenchNode(SlaveNode):
             tracker.reset(self._origin)
         self._error_register = 0
         self._running = True
+        self._send_at = self._held_counts = None
         self._send_io(io_frames.encode_control(io_frames.ControlCommand.TRIAL_START, self._origin, n_ticks))
+        self._pacer = TickPacer(ts_s, n_ticks, bool(store.get(BenchObj.CONFIG, ConfigSub.PACING)), self._clock())
         logger.info("node %d: trial %d started (N = %d, Ts = %g s, %d sub-steps, disturbance %s, seed %d)",
                     self.node_id, trial, n_ticks, ts_s, substeps, DisturbanceKind(kind).label, seed)
         self._send_encoders(counts)
 
     def _send_encoders(self, counts: np.ndarray) -> None:
         wire = self._origin + self._tick
-        send = self.io.send
-        for j in range(io_frames.N_JOINTS):
-            send(io_frames.encode_encoder(j, wire, int(counts[j])))
+        self._send_batch([io_frames.encode_encoder(j, wire, int(counts[j])) for j in range(io_frames.N_JOINTS)])
         self.io_sent += io_frames.N_JOINTS
         self.frames_out += io_frames.N_JOINTS
         self._got = 0
-        self._deadline = self._clock() + (self.tick_timeout_s if self._tick else self.first_tick_timeout_s)
+        now = self._clock()
+        if self._pacer is not None:
+            self._pacer.started(self._tick, now)
+        self._deadline = now + (self.tick_timeout_s if self._tick else self.first_tick_timeout_s)
 
     def _advance(self) -> None:
         """All four torques of tick n are in: integrate [t_n, t_n + Ts], then tick n + 1."""
@@ -441,6 +471,13 @@ class BenchNode(SlaveNode):
             self._fail(BenchFault.PLANT, 0, f"plant error at tick {n}: {type(err).__name__}: {err}")
             return
         self._tick = n + 1
+        pacer = self._pacer
+        if pacer is not None:
+            now = self._clock()
+            pacer.completed(n, now)
+            if counts is not None and pacer.paced and now < pacer.due_s(n + 1):
+                self._send_at, self._held_counts = pacer.due_s(n + 1), counts  # sent by on_service
+                return
         if counts is None:
             self._finish()
         else:
@@ -452,8 +489,22 @@ class BenchNode(SlaveNode):
         self._status = BenchStatus.DONE
         self.trials_done += 1
         self.last_trial_s = self._clock() - self._t_start
+        self._record_timing()
         logger.info("node %d: trial done, %d ticks in %.3f s (%.0f ticks/s)", self.node_id, self._n_ticks,
                     self.last_trial_s, self._n_ticks / self.last_trial_s if self.last_trial_s > 0 else 0.0)
+
+    def _record_timing(self) -> None:
+        """Keep the ended trial's timing for 0x2440."""
+        if self._pacer is None:
+            return
+        r = self._pacer.result()
+        self._timing = TrialTiming(r.paced, r.ticks, round(r.duration_s * 1e6), r.deadline_misses,
+                                   round(r.lateness_p50_s * 1e6), round(r.lateness_p99_s * 1e6),
+                                   round(r.lateness_max_s * 1e6))
+        if r.paced:
+            logger.info("node %d: paced trial: %d deadline misses, lateness p50 %.0f µs, p99 %.0f µs, max %.0f µs",
+                        self.node_id, r.deadline_misses, r.lateness_p50_s * 1e6, r.lateness_p99_s * 1e6,
+                        r.lateness_max_s * 1e6)
 
     def _stop_io(self) -> None:
         self._send_io(io_frames.encode_control(io_frames.ControlCommand.TRIAL_STOP,
@@ -469,8 +520,10 @@ class BenchNode(SlaveNode):
         """End the trial with ``fault``: TRIAL_STOP (if started), EMCY, status FAULT."""
         self._running = False
         self._pending_start = False
+        self._send_at = self._held_counts = None
         if started:
             self._stop_io()
+            self._record_timing()
         self._status = BenchStatus.FAULT
         self._fault = fault
         self._fault_tick = self._tick
@@ -496,6 +549,26 @@ class BenchNode(SlaveNode):
                 "trials_done": self.trials_done, "last_trial_s": self.last_trial_s}
 
 
+#: prctl option: the process's timer slack, ns (Linux)
+_PR_SET_TIMERSLACK = 29
+
+
+def _fine_timer_slack(slack_ns: int = 1000) -> None:
+    """Make the kernel wake this process's timed waits within ``slack_ns`` (default slack: 50 µs),
+    so paced ticks start on time; nothing happens where prctl is unavailable."""
+    import ctypes
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(_PR_SET_TIMERSLACK, ctypes.c_ulong(slack_ns), 0, 0, 0) != 0:
+            logger.debug("prctl(PR_SET_TIMERSLACK) failed: errno %d", ctypes.get_errno())
+    except (OSError, AttributeError):
+        logger.debug("no prctl: default timer slack")
+
+
 def run_plant_role(transport: TransportConfig, node_id: int = DEFAULT_BENCH_NODE_ID,
                    stop: threading.Event | None = None) -> str | None:
     """Plant process entry (``ilcrig plant``): the test-bench node on both buses of
@@ -514,8 +587,15 @@ def run_plant_role(transport: TransportConfig, node_id: int = DEFAULT_BENCH_NODE
     if stop is None:
         stop = threading.Event()
         install_sigterm(stop)
+    _fine_timer_slack()
     true_plant = default_true_plant()
     logger.info("plant role: kernels ready in %.2f s", warm_up(true_plant))
+    # the non-repetitive disturbance imports and runs scipy's filter design on first use: do it
+    # now, before the boot-up frame, so that the first disturbed trial is not delayed by it (a
+    # slow machine or a VM can take longer than the host's SDO timeout for that import)
+    t0 = time.perf_counter()
+    disturbance_torque("both", 0, 0, 2, 1e-3)
+    logger.info("plant role: disturbance model ready in %.2f s", time.perf_counter() - t0)
 
     def plant_factory(ts_s: float, substeps: int) -> Plant:
         return Plant(true_plant, ts_s, substeps, units.RAD_PER_COUNT, units.TORQUE_LSB_NM)

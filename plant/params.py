@@ -210,6 +210,11 @@ def robot_md_mass_model() -> MassModel:
     return replace(MassModel(), J_m=1.74e-4 + 0.16e-4)
 
 
+def _scaled4(k: float, v: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
+    """``k`` times each of the four joint values."""
+    return k * v[0], k * v[1], k * v[2], k * v[3]
+
+
 def default_true_plant() -> TruePlantConfig:
     """The emulated robot of docs/robot-model.md §5.1 (all differences [P]).
 
@@ -236,8 +241,8 @@ def default_true_plant() -> TruePlantConfig:
     return TruePlantConfig(
         mass=mass,
         geometry=Geometry(),
-        coulomb_nm=tuple(1.5 * f for f in COULOMB_SPREAD),  # type: ignore[arg-type]
-        viscous_nm_s_per_rad=tuple(0.4 * f for f in VISCOUS_SPREAD),  # type: ignore[arg-type]
+        coulomb_nm=_scaled4(1.5, COULOMB_SPREAD),
+        viscous_nm_s_per_rad=_scaled4(0.4, VISCOUS_SPREAD),
     )
 
 

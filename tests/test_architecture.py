@@ -155,9 +155,10 @@ def test_every_package_says_what_it_owns_and_may_import() -> None:
 def test_cli_names_match_the_code() -> None:
     from bus.bench_objects import DisturbanceKind
     from host.experiment import console
-    from host.learning import ilc, names
+    from host.learning import gains, laws, names
     from plant.disturbance import KINDS
 
-    assert set(names.GAIN_PRESET_NAMES) == set(ilc.GAIN_PRESETS)
+    assert set(names.GAIN_PRESET_NAMES) == set(gains.GAIN_PRESETS)
+    assert set(names.LAWS) == set(laws.LAW_CLASSES) and names.DEFAULT_LAW in names.LAWS
     assert tuple(k.label for k in DisturbanceKind) == KINDS
     assert console._DISTURBANCE_HELP == ", ".join(KINDS)

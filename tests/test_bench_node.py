@@ -27,9 +27,10 @@ import numpy as np
 import pytest
 from canopen.objectdictionary import ODRecord, ODVariable, import_od
 from canopen.objectdictionary import datatypes as dt
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from bus import io_frames, units
-from plant.node import BenchNode
 from bus.bench_objects import (
     BENCH_EDS_PATH,
     BenchFault,
@@ -51,8 +52,7 @@ from host.nodes.bench_client import (
     BenchTrialFault,
 )
 from host.nodes.sdo_access import SdoAccess, SdoTransportError
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from plant.node import BenchNode
 
 ROOT = Path(__file__).resolve().parents[1]
 DRIVE_EDS = ROOT / "bus" / "drive.eds"
@@ -691,8 +691,8 @@ def test_run_plant_role_serves_until_stopped() -> None:
     """plant.node.run_plant_role on a virtual transport: boots, runs a trial with the real
     plant (scripted zero-torque drives), stops on the event and closes its buses."""
     from bus.transports.config import virtual_transport
-    from plant.node import run_plant_role
     from plant.kinematics import inverse_kinematics
+    from plant.node import run_plant_role
 
     transport = virtual_transport(f"plant-role-{next(_counter)}")
     host = Host(transport.fieldbus.channel)
@@ -751,8 +751,8 @@ def _configure_drives(drives: list[Any], q: np.ndarray, qd: np.ndarray) -> None:
 
 
 def _in_process_traces(n: int, trials: int, disturbance: str, seed: int) -> list[list[Any]]:
-    from host.experiment.inprocess import InProcessBench
     from host.experiment.config import ExperimentConfig
+    from host.experiment.inprocess import InProcessBench
 
     q, qd, ff, q0 = _short_reference(n)
     bench = InProcessBench(ExperimentConfig(ts_s=TS_S, substeps=4, disturbance=disturbance, seed=seed))
@@ -772,8 +772,8 @@ def _in_process_traces(n: int, trials: int, disturbance: str, seed: int) -> list
 def test_rig_on_virtual_buses_is_bit_identical_to_in_process() -> None:
     from firmware_model.drive import Drive
     from firmware_model.node import DriveNode
-    from host.experiment.inprocess import make_plant
     from host.experiment.config import ExperimentConfig
+    from host.experiment.inprocess import make_plant
     from host.nodes.drive_client import DriveClient
     from plant.disturbance import disturbance_torque
 

@@ -114,8 +114,9 @@ def test_python_can_logger_records_a_hub_channel(tmp_path: Path) -> None:
 
     path = tmp_path / "io.log"
     with start_hub() as hub:
+        channel = hub.channel("io")
         proc = subprocess.Popen(
-            [sys.executable, "-m", "can.logger", "-i", "ilcrig_hub", "-c", hub.channel("io"), "-f", str(path)],
+            [sys.executable, "-m", "can.logger", "-i", "ilcrig_hub", "-c", channel, "-f", str(path)],
             stdout=subprocess.PIPE,
             stderr=subprocess.DEVNULL,
             text=True,
@@ -142,6 +143,7 @@ def test_python_can_logger_records_a_hub_channel(tmp_path: Path) -> None:
                     proc.wait()
             proc.stdout.close()
     back = list(read_log(path))
+    # can.logger writes msg.channel as it is: the full hub channel string (bus.transports.hub_client)
     assert [(m.arbitration_id, bytes(m.data), m.channel) for m in back] == [
-        (m.arbitration_id, bytes(m.data), "io") for m in sent
+        (m.arbitration_id, bytes(m.data), channel) for m in sent
     ]

@@ -40,8 +40,9 @@ def assert_one_line_error(code: int, err: str, fragment: str) -> None:
     [
         (["--path", "7"], "path"),
         (["--law", "x-ilc"], "unknown law 'x-ilc'"),
-        (["--iterations", "0"], "iterations must be >= 1"),
-        (["--iterations", "-3"], "iterations must be >= 1"),
+        (["--iterations", "0"], "iterations must be between 1 and 1000"),
+        (["--iterations", "-3"], "iterations must be between 1 and 1000"),
+        (["--iterations", "1001"], "iterations must be between 1 and 1000"),
         (["--cycle", "0.05"], "too short"),
         (["--cycle", "-1"], "cycle_s must be > 0"),
         (["--alpha", "nan"], "gains.alpha must be finite"),
@@ -124,7 +125,7 @@ def test_best_law_reaches_encoder_lsb_level() -> None:
 
 @pytest.mark.slow
 def test_paper_literal_gains_are_flagged_and_fault_cleanly(tmp_path: Path) -> None:
-    cfg = build_config(None, {"iterations": 8, "gains": {"preset": "paper"}})
+    cfg = build_config(None, {"law": "pd-ilc", "iterations": 8, "gains": {"preset": "paper"}})
     plan = prepare(cfg)
     assert not plan.check.ok
     res = run_experiment(plan, InProcessBench(cfg), tmp_path, mode="sim")

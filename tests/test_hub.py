@@ -3,6 +3,7 @@ disconnects, stats, filters, and that the hub child process is always reaped."""
 
 from __future__ import annotations
 
+import errno
 import multiprocessing as mp
 import os
 import select
@@ -11,6 +12,7 @@ import socket
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -21,8 +23,9 @@ import pytest
 
 from bus.busload import frame_bits, frame_bits_worst_case
 from bus.transports.hub_client import HubBus
-from bus.transports.hub_server import HubServer, query_hub_stats, start_hub
+from bus.transports.hub_server import HubHandle, HubServer, query_hub_stats, start_hub
 from bus.transports.hub_wire import (
+    PROTOCOL_VERSION,
     HubAddressError,
     HubAddressInUseError,
     HubStartError,
@@ -137,7 +140,9 @@ def _check_exact(results: dict[int, list[Frame]], n: int, k: int) -> None:
     for me, got in results.items():
         assert len(got) == (n - 1) * k, f"client {me} got {len(got)} frames"
         for s in range(n):
-            from_s = [f for f in got if _sender_of(can.Message(arbitration_id=f[0], is_extended_id=f[1], is_remote_frame=f[2])) == s]
+            from_s = [
+                f for f in got if _sender_of(can.Message(arbitration_id=f[0], is_extended_id=f[1], is_remote_frame=f[2])) == s
+            ]
             if s == me:
                 assert from_s == [], "a client received its own frames (echo)"
             else:
@@ -267,7 +272,8 @@ def test_non_loopback_listen_refused(addr: str) -> None:
 
 def test_cli_refuses_non_loopback() -> None:
     res = subprocess.run(
-        [sys.executable, "-m", "bus.transports.hub_server", "--listen", "tcp:0.0.0.0:0"], capture_output=True, text=True, timeout=30
+        [sys.executable, "-m", "bus.transports.hub_server", "--listen", "tcp:0.0.0.0:0"],
+        capture_output=True, text=True, timeout=30, check=False,
     )
     assert res.returncode != 0 and "non-loopback" in res.stderr
 
@@ -390,3 +396,202 @@ def test_hub_refuses_bad_hello_and_keeps_serving() -> None:
             x.send(can.Message(arbitration_id=5, is_extended_id=False, data=b"ok"))
             m = y.recv(2.0)
             assert m is not None and bytes(m.data) == b"ok"
+
+
+# -- issue 13: a first-class python-can interface ------------------------------------------------
+
+
+def _stamping_run(hub: HubHandle, bus_name: str) -> tuple[list[float], list[float], list[float], float]:
+    """Send six frames, each after the hub has stamped the one before, then read them all:
+    (send times, times the hub had stamped each, timestamps, read time)."""
+    with HubBus(hub.channel(bus_name)) as tx, HubBus(hub.channel(bus_name)) as rx:
+        sent: list[float] = []
+        stamped: list[float] = []
+        for i in range(6):
+            sent.append(time.time())
+            tx.send(can.Message(arbitration_id=0x100 + i, is_extended_id=False, data=bytes([i])))
+            assert _wait_until(lambda n=i + 1: hub.stats()[bus_name].frames == n, 5.0)  # the hub has it
+            stamped.append(time.time())
+        got = [rx.recv(2.0) for _ in range(6)]
+        read_at = time.time()
+    assert [m.data[0] if m is not None else None for m in got] == list(range(6))
+    return sent, stamped, [m.timestamp for m in got if m is not None], read_at
+
+
+def test_timestamps_are_the_hubs_receive_time() -> None:
+    """msg.timestamp is when the hub received the frame: each of six frames, read together at
+    the end, carries a time between its send and the moment the hub had counted it, so before
+    the next frame was sent. Stamping at read time (or at send time of a later frame) would put
+    every stamp after the last send. Ordering only: no bound on how fast anything runs."""
+    with start_hub() as hub:
+        sent, stamped, stamps, read_at = _stamping_run(hub, "ts")
+    for i in range(6):
+        assert sent[i] <= stamps[i] <= stamped[i], (i, sent[i], stamps[i], stamped[i])
+        if i + 1 < 6:
+            assert stamps[i] < sent[i + 1]
+    assert stamps == sorted(stamps) and stamps[-1] <= read_at
+
+
+@pytest.mark.parametrize("kind", ["unix", "tcp"])
+def test_received_channel_is_the_channel_string(kind: str) -> None:
+    """msg.channel is the channel string the receiving bus was opened with (python-can's rule)."""
+    with start_hub(None if kind == "unix" else "tcp:127.0.0.1:0") as hub:
+        channel = hub.channel("io")
+        with can.Bus(interface="ilcrig_hub", channel=channel, receive_own_messages=True) as a, HubBus(channel) as b:
+            a.send(can.Message(arbitration_id=0x181, is_extended_id=False, data=b"\x01"))
+            got, own = b.recv(2.0), a.recv(2.0)
+            assert got is not None and own is not None
+            assert (got.channel, own.channel, own.is_rx, a.channel) == (channel, channel, False, channel)
+
+
+def test_notifier_over_two_hub_buses_keeps_each_channel() -> None:
+    """python-can's notifier_test.test_multiple_bus with the hub's channel strings."""
+    with start_hub() as hub:
+        c0, c1 = hub.channel("n0"), hub.channel("n1")
+        with HubBus(c0, receive_own_messages=True) as bus0, HubBus(c1, receive_own_messages=True) as bus1:
+            reader = can.BufferedReader()
+            notifier = can.Notifier([bus0, bus1], [reader], 0.1)
+            try:
+                bus0.send(can.Message())
+                first = reader.get_message(2.0)
+                bus1.send(can.Message())
+                second = reader.get_message(2.0)
+            finally:
+                notifier.stop()
+    assert first is not None and first.channel == c0
+    assert second is not None and second.channel == c1
+
+
+def test_after_shutdown_every_method_raises_can_operation_error() -> None:
+    closed = "closed bus"
+    with start_hub() as hub:
+        bus = HubBus(hub.channel("x"))
+        bus.shutdown()
+        bus.shutdown()  # again: nothing
+        for call in (
+            lambda: bus.recv(0),
+            lambda: bus.recv(0.2),
+            lambda: bus.recv(),
+            lambda: bus.send(can.Message()),
+            lambda: bus.set_filters([{"can_id": 1, "can_mask": 0x7FF}]),
+            lambda: bus.flush_tx_buffer(),
+            lambda: bus.send_periodic(can.Message(), 0.01),
+        ):
+            with pytest.raises(can.CanOperationError, match=closed):
+                call()
+        assert bus.fileno() == -1  # as a closed SocketCAN bus
+        safe = can.ThreadSafeBus(interface="ilcrig_hub", channel=hub.channel("x"))
+        safe.shutdown()
+        for call in (lambda: safe.recv(0.1), lambda: safe.send(can.Message())):
+            with pytest.raises(can.CanOperationError, match=closed):
+                call()
+
+
+@pytest.mark.parametrize("timeout", [None, 30.0])
+def test_shutdown_wakes_a_thread_blocked_in_recv(timeout: float | None) -> None:
+    with start_hub() as hub:
+        bus = HubBus(hub.channel("x"))
+        entering = threading.Event()
+        outcome: list[BaseException | can.Message | None] = []
+
+        def reader() -> None:
+            entering.set()
+            try:
+                outcome.append(bus.recv(timeout))
+            except BaseException as err:  # recorded for the assertion below
+                outcome.append(err)
+
+        t = threading.Thread(target=reader)
+        t.start()
+        assert entering.wait(5.0)
+        bus.shutdown()  # whether the reader is already blocked in recv or about to enter it
+        t.join(10.0)
+        assert not t.is_alive()
+    assert len(outcome) == 1 and isinstance(outcome[0], can.CanOperationError), outcome
+    assert "closed bus" in str(outcome[0])
+
+
+def test_classic_bus_refuses_fd_frames_and_reports_can20() -> None:
+    with start_hub() as hub:
+        ch = hub.channel("c")
+        with can.Bus(interface="ilcrig_hub", channel=ch, fd=False) as classic, HubBus(ch) as fd_rx, HubBus(ch) as fd_tx:
+            assert classic.protocol is can.CanProtocol.CAN_20 and "classic CAN" in classic.channel_info
+            assert fd_rx.protocol is can.CanProtocol.CAN_FD
+            for bad in (
+                can.Message(arbitration_id=1, is_fd=True, data=b"\x01"),
+                can.Message(arbitration_id=1, is_fd=True, data=bytes(64)),
+                can.Message(arbitration_id=1, data=bytes(12), check=False),
+            ):
+                with pytest.raises(can.CanOperationError, match="classic CAN") as exc:
+                    classic.send(bad)
+                assert exc.value.error_code == errno.EINVAL  # as SocketCAN's "Invalid argument"
+            classic.send(can.Message(arbitration_id=2, is_extended_id=False, data=b"ok"))
+            for member in (fd_rx, fd_tx):
+                got = member.recv(2.0)
+                assert got is not None and bytes(got.data) == b"ok"
+            fd_tx.send(can.Message(arbitration_id=3, is_fd=True, data=bytes(20)))
+            fd_tx.send(can.Message(arbitration_id=4, is_extended_id=False, data=b"after"))
+            # one sender's frames arrive in order: the classic member's first frame is the
+            # classic one, so the FD frame was not delivered to it (a non-FD controller never sees it)
+            first = classic.recv(2.0)
+            assert first is not None and first.arbitration_id == 4
+            assert [m.arbitration_id for m in (fd_rx.recv(2.0), fd_rx.recv(2.0)) if m is not None] == [3, 4]
+
+
+def test_bitrates_are_kept_reported_and_enforced_per_bus() -> None:
+    with start_hub() as hub:
+        ch = hub.channel("b")
+        with HubBus(ch, bitrate=500_000, data_bitrate=2_000_000) as a:
+            assert (a.bitrate, a.data_bitrate, a.protocol) == (500_000, 2_000_000, can.CanProtocol.CAN_FD)
+            assert "500000 bit/s" in a.channel_info and "data 2000000 bit/s" in a.channel_info
+            with can.Bus(interface="ilcrig_hub", channel=ch) as b:  # gives none: adopts the bus's
+                assert (b.bitrate, b.data_bitrate) == (500_000, 2_000_000)
+            with pytest.raises(can.CanInitializationError, match="bitrate 500000 bit/s.*asked for 250000"):
+                HubBus(ch, bitrate=250_000)
+            st = hub.stats()["b"]
+            assert (st.bitrate, st.data_bitrate) == (500_000, 2_000_000)
+        assert _wait_until(lambda: hub.stats()["b"].clients == 0, 5.0)
+        # an empty bus takes the next first member's bitrates; a BitTiming gives them too
+        timing = can.BitTiming(f_clock=8_000_000, brp=1, tseg1=5, tseg2=2, sjw=1)
+        with HubBus(ch, timing=timing, fd=False) as c:
+            assert (c.bitrate, c.data_bitrate, c.protocol) == (1_000_000, None, can.CanProtocol.CAN_20)
+            assert hub.stats()["b"].bitrate == 1_000_000
+        with HubBus(hub.channel("none")) as d:
+            assert (d.bitrate, d.data_bitrate) == (None, None)
+        with pytest.raises(ValueError, match="bitrate"):
+            HubBus(hub.channel("x"), bitrate=-5)
+
+
+def test_old_protocol_version_is_refused_with_a_clear_message() -> None:
+    with start_hub() as hub:
+        raw = socket.socket(socket.AF_UNIX)
+        try:
+            raw.settimeout(5)
+            raw.connect(parse_address(hub.address).path)
+            raw.sendall(b"ILCH" + bytes([1, 1, 0, 2]) + b"io")  # a version-1 member hello
+            reply = raw.recv(256)
+        finally:
+            raw.close()
+        assert reply.startswith(b"ILNO")
+        text = reply[5:].decode()
+        assert f"protocol version 1 not supported: this hub speaks version {PROTOCOL_VERSION}" in text
+        with HubBus(hub.channel("io")) as x, HubBus(hub.channel("io")) as y:  # and it keeps serving
+            x.send(can.Message(arbitration_id=5, is_extended_id=False, data=b"ok"))
+            assert y.recv(2.0) is not None
+
+
+def test_every_frame_kind_is_carried() -> None:
+    frames = [
+        can.Message(arbitration_id=0x7FF, is_extended_id=False, is_fd=True, bitrate_switch=True, data=bytes(range(64))),
+        can.Message(arbitration_id=0x1FFFFFFF, is_extended_id=True, is_fd=True, error_state_indicator=True, data=bytes(7)),
+        can.Message(arbitration_id=0x123, is_extended_id=False, is_remote_frame=True, dlc=5),
+        can.Message(arbitration_id=0x20000004, is_error_frame=True, dlc=8, data=bytes([0, 0, 0x04, 0, 0, 0, 0, 0])),
+        can.Message(arbitration_id=0x100, is_extended_id=False, data=b""),
+        can.Message(arbitration_id=0x18DAF110, is_extended_id=True, is_fd=True, data=b""),
+    ]
+    with start_hub() as hub, HubBus(hub.channel("k")) as tx, HubBus(hub.channel("k")) as rx:
+        for m in frames:
+            tx.send(m)
+        got = [rx.recv(2.0) for _ in frames]
+    for g, m in zip(got, frames, strict=True):
+        assert g is not None and g.equals(m, timestamp_delta=None, check_channel=False), (g, m)

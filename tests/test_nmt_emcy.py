@@ -1,4 +1,4 @@
-"""Tests of bus/nmt.py (NMT command and heartbeat codecs, heartbeat consumer) and bus/emcy.py."""
+"""Tests of bus/cia301/nmt.py (NMT command and heartbeat codecs, heartbeat consumer) and bus/cia301/emcy.py."""
 
 from __future__ import annotations
 

@@ -22,8 +22,8 @@ import pytest
 
 from bus import io_frames
 from bus.cia301.emcy import EmcyCode
-from bus.errors import AbortCode, SdoAbort
 from bus.cia301.nmt import NmtCommand, NmtState, next_state
+from bus.errors import AbortCode, SdoAbort
 from firmware_model.node import DriveNode
 
 EDS = Path(__file__).resolve().parents[1] / "bus" / "drive.eds"
@@ -314,7 +314,9 @@ def test_real_drive_enable_sequence() -> None:
     heartbeat."""
     drive_mod = pytest.importorskip("firmware_model.drive")
     from bus.objects import Cia402State, ControlCommand, state_from_statusword
+    from firmware_model.loop import warm_up
 
+    warm_up()  # compile the control kernel first (as run_node does), not inside the first io tick
     rig = Rig(drive_mod.Drive(NODE))
     try:
         remote = rig.remote
@@ -335,14 +337,14 @@ def test_real_drive_enable_sequence() -> None:
         assert remote.nmt.state == "OPERATIONAL"
         # one io tick: the enabled drive answers with a torque frame, status ENABLED
         rig.plant.send(io_frames.encode_encoder(NODE - 1, 0, 12345))
-        msg = rig.plant.recv(timeout=1.0)
+        msg = rig.plant.recv(timeout=10.0)  # bounds a failure only
         assert msg is not None
         torque = io_frames.decode_torque(msg)
         assert torque.tick == 0 and torque.status & io_frames.TorqueStatus.ENABLED
         # disable voltage: torque removed, status no longer ENABLED
         remote.sdo[0x6040].raw = int(ControlCommand.DISABLE_VOLTAGE)
         rig.plant.send(io_frames.encode_encoder(NODE - 1, 1, 12345))
-        msg = rig.plant.recv(timeout=1.0)
+        msg = rig.plant.recv(timeout=10.0)
         assert msg is not None
         torque = io_frames.decode_torque(msg)
         assert torque.torque_units == 0 and not torque.status & io_frames.TorqueStatus.ENABLED

@@ -131,7 +131,8 @@ def test_learning_that_diverges_is_a_fault_and_no_nan_is_written(tmp_path: Path)
     from host.experiment.inprocess import InProcessBench
     from host.experiment.plan import prepare
 
-    cfg = build_config(None, {"iterations": 3, "cycle_s": 0.15, "gains": {"alpha": 1.0, "lp": 1e12}})
+    cfg = build_config(None, {"law": "pd-ilc", "iterations": 3, "cycle_s": 0.15,
+                                "gains": {"alpha": 1.0, "lp": 1e12}})
     plan = prepare(cfg)
     assert not plan.check.ok
     import io

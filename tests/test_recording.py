@@ -1,5 +1,7 @@
 """recording.rrd of a run (host.analysis.recording): layout, values that reproduce the summary's metrics,
-the 3D view, the cost of recording, and `ilcrig view` without a display / without a recording."""
+the 3D view, the recorder's calls into Rerun (none per sample or per trial), and `ilcrig view`
+without a display / without a recording.  What recording costs in time is a benchmark:
+benchmarks/bench_recording.py."""
 
 from __future__ import annotations
 
@@ -7,8 +9,8 @@ import io
 import json
 import subprocess
 import sys
-import time
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -132,49 +134,72 @@ def test_3d_first_and_last_trial(sim_run) -> None:
     assert dist.max() < 0.01  # within 1 cm of the path (errors are a fraction of a degree)
 
 
-def _timed_experiment(cfg: Any, plan: Any, tmp: Path | None) -> tuple[float, float]:
-    """(wall s, process CPU s) of one run_experiment, including the recorder's creation."""
+class _CallLog:
+    """Stands in front of a RunRecorder's Rerun stream and notes the name of every method called."""
+
+    def __init__(self, stream: Any) -> None:
+        self._stream = stream
+        self.calls: list[str] = []
+
+    def __getattr__(self, name: str) -> Any:
+        attr = getattr(self._stream, name)
+        if not callable(attr):
+            return attr
+
+        def call(*args: Any, **kwargs: Any) -> Any:
+            self.calls.append(name)
+            return attr(*args, **kwargs)
+
+        return call
+
+
+def _record(folder: Path, n: int, trials: int) -> tuple[list[list[str]], list[str]]:
+    """Record ``trials`` synthetic trials of ``n`` samples (a reachable pose, small errors);
+    returns the stream calls made by each log_trial call and by close."""
     from host.analysis.recording import RunRecorder
-    from host.experiment.inprocess import InProcessBench
-    from host.experiment.loop import run_experiment
+    from host.learning.metrics import trial_metrics
+    from host.planning.trajectory import JointReference
+    from plant.kinematics import inverse_kinematics
 
-    w0, c0 = time.perf_counter(), time.process_time()
-    rec = RunRecorder(tmp / "recording.rrd", config_summary=cfg.as_dict()) if tmp is not None else None
-    run_experiment(plan, InProcessBench(cfg), None, mode="sim", recorder=rec)
-    if rec is not None:
-        assert rec.error is None
-    return time.perf_counter() - w0, time.process_time() - c0
+    q0 = inverse_kinematics(np.array([0.0, 0.0, -0.65, 0.0]))
+    q = np.tile(q0, (n, 1))
+    ref = JointReference(t=np.arange(n) * 1e-3, q=q, qd=np.zeros((n, 4)), qdd=np.zeros((n, 4)))
+    rec = RunRecorder(folder / "recording.rrd", config_summary={"iterations": trials})
+    log = _CallLog(rec._rec)
+    rec._rec = log  # type: ignore[assignment]
+    per_trial: list[list[str]] = []
+    for k in range(trials):
+        before = len(log.calls)
+        e = np.full((n, 4), 1e-3 / (k + 1)) * np.sin(np.arange(n) / 7.0)[:, None]
+        traces = [SimpleNamespace(q_rad=q[:, j] - e[:, j], tau_fb_nm=np.full(n, 0.1 * j)) for j in range(4)]
+        u = np.full((n, 4), float(k))
+        rec.log_trial(k, ref, traces, u, e, trial_metrics(k, e, u))
+        per_trial.append(log.calls[before:])
+    before = len(log.calls)
+    rec.close()
+    assert rec.error is None
+    return per_trial, log.calls[before:]
 
 
-@pytest.mark.slow
-def test_recording_costs_less_than_10_percent(tmp_path: Path) -> None:
-    """The recorder's cost (creation + log_trial + close, best of 3) against the experiment as
-    ``ilcrig sim`` runs it (prepare + run_experiment).  Against run_experiment alone (about
-    0.15 s of in-process trials) the file, the blueprint and a write + flush per trial are more:
-    printed."""
-    import rerun  # noqa: F401  (import cost is per process, not per experiment)
-
-    from host.experiment.config import build_config
-    from host.experiment.plan import prepare
-
-    cfg = build_config(None, {"iterations": 10})  # the default experiment: cycle 0.25 s, N = 501
-    t0 = time.perf_counter()
-    plan = prepare(cfg)
-    prepare_s = time.perf_counter() - t0
-    _timed_experiment(cfg, plan, tmp_path / "warm")  # warm caches (numba, rerun)
-    without, with_rec = [], []
-    for i in range(3):
-        without.append(_timed_experiment(cfg, plan, None))
-        with_rec.append(_timed_experiment(cfg, plan, tmp_path / f"r{i}"))
-    wall0, wall1 = min(w for w, _ in without), min(w for w, _ in with_rec)
-    cpu0, cpu1 = min(c for _, c in without), min(c for _, c in with_rec)
-    cost = wall1 - wall0
-    print(f"recording: +{cost * 1e3:.1f} ms wall (run_experiment {wall0:.3f} s: {cost / wall0:.1%}; "
-          f"with prepare {prepare_s:.2f} s: {cost / (prepare_s + wall0):.1%}), cpu {cpu0:.3f} -> {cpu1:.3f} s")
-    assert cost / (prepare_s + wall0) < 0.10
-    # the recording grows trial by trial (a few record batches and a flush per trial, ~20 ms);
-    # per-sample logging would cost about N = 501 calls per trial
-    assert cost < 0.05 * cfg.iterations
+def test_recorder_calls_do_not_grow_with_samples_or_trials(tmp_path: Path) -> None:
+    """The recording grows trial by trial (a killed run keeps every completed trial), with a
+    fixed number of calls into the Rerun stream per trial, ending with a flush: none per sample,
+    the same for 51 samples as for 2001, the same for every trial after the first; close makes
+    the same calls for 2 trials as for 6."""
+    small_trials, small_close = _record(tmp_path / "small", 51, 2)
+    large_trials, large_close = _record(tmp_path / "large", 2001, 6)
+    assert small_trials[0] == large_trials[0]
+    assert small_trials[1:] == large_trials[1:2] and all(c == large_trials[1] for c in large_trials[1:])
+    for calls in large_trials:
+        assert calls.count("send_record_batch") >= 1 and calls[-1] == "flush"
+        assert len(calls) < 100
+    assert small_close == large_close and small_close[-2:] == ["flush", "disconnect"]
+    chunks = read_rrd(tmp_path / "large" / "recording.rrd")
+    for k in range(6):
+        t, v = series(chunks, f"/joint1/error/iter{k}")
+        assert v.shape == (2001, 1)
+        np.testing.assert_allclose(t, np.arange(2001) * 1e-3, atol=1e-12)
+    assert ("/robot/last/tool", False) in chunks  # the 3D view was written too
 
 
 def test_log_trial_rejects_bad_shapes(tmp_path: Path) -> None:

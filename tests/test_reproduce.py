@@ -45,6 +45,7 @@ from host.analysis.sweep_plan import (
     run_dir_of,
     table_rows,
 )
+from host.learning.names import LAWS
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -99,13 +100,13 @@ def test_each_table_varies_one_thing() -> None:
 def test_full_list_is_deduplicated_and_covers_beyond() -> None:
     exps = all_experiments()
     ids = [e.id for e in exps]
-    assert len(ids) == len(set(ids)) == 42
+    assert len(ids) == len(set(ids)) == 62
     long = [e for e in exps if e.trials is not None]
-    assert len(long) == 12 and all(e.trials == 40 and e.id.endswith("_k40") for e in long)
-    assert long[0].config(10).iterations == 40
+    assert len(long) == 2 * len(LAWS) == 16 and all(e.trials == 200 and e.id.endswith("_k200") for e in long)
+    assert long[0].config(10).iterations == 200
     assert "pd-ilc_p1_250ms_poly4567_none" in ids
-    assert {e.law for e in exps} == {"pd-ilc", "d-ilc", "q-ilc", "no-ilc", "pd-ol", "p-ol"}
-    for law in ("q-ilc", "no-ilc"):  # Tables 2-5 rows beyond the paper
+    assert {e.law for e in exps} == set(LAWS)
+    for law in ("pd-ilc-q", "q-ilc", "no-ilc", "no-ilc-id"):  # Tables 2-5 rows beyond the paper
         for e in (Experiment(law), Experiment(law, disturbance="both"), Experiment(law, path="3"),
                   Experiment(law, cycle_s=0.15), Experiment(law, cycle_s=0.5)):
             assert e.id in ids
@@ -345,11 +346,11 @@ def test_near_misses_are_flagged_as_ties() -> None:
 
 
 def test_verdict_long_bounded() -> None:
-    settled = np.array([[0.2 * 0.5**k + 0.001] * 4 for k in range(40)])
+    settled = np.array([[0.2 * 0.5**k + 0.001] * 4 for k in range(200)])
     v = verdict_long_bounded(settled)
-    assert v.holds is True and "over 40 trials" in v.detail
+    assert v.holds is True and "over 200 trials" in v.detail and "best 20 trials" in v.detail
     diverging = settled.copy()
-    diverging[20:] *= np.geomspace(1, 100, 20)[:, None]
+    diverging[100:] *= np.geomspace(1, 100, 100)[:, None]
     v = verdict_long_bounded(diverging)
     assert v.holds is False and "grows again" in v.detail
-    assert verdict_long_bounded(settled[:6]).holds is None
+    assert verdict_long_bounded(settled[:30]).holds is None  # fewer than two blocks of 20

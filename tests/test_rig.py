@@ -80,14 +80,32 @@ def check_run(res: subprocess.CompletedProcess[str], out: Path, digest: str, tra
     fb, io = info["channels"]["fieldbus"], info["channels"]["io"]
     # io: per tick 4 encoder + 4 torque frames, plus start/stop control frames per trial
     assert io["frames"] == 2 * 301 * 8 + 2 * 2
-    assert fb["frames"] > 1000 and 0 < fb["load_percent_worst_case"]
+    assert fb["frames"] > 1000 and 0 < fb["emulator_throughput_bits_per_s"]
+    bt = info["bus_time"]
+    assert bt["io"]["ticks"] == 2 * 301 and bt["io"]["worst_tick"]["bits"] == 960
+    assert bt["fieldbus"]["between_trials"]["bits_per_trial"] > 0
     return s
 
 
-def test_rig_over_hub_equals_sim_and_logs_read_back(tmp_path: Path, sim_digest: str) -> None:
-    out = tmp_path / "rig"
+def experiment_bus_time(s: dict) -> dict:
+    """The bus-time figures of the traffic the experiment defines (bits; seconds depend on the rate)."""
+    bt = s["bench"]["bus_time"]
+    between = bt["fieldbus"]["between_trials"]
+    return {"io": {k: bt["io"][k] for k in ("ticks", "frames_in_ticks", "control_frames", "control_bits_per_trial")}
+            | {"mean_bits": bt["io"]["mean_tick"]["bits"], "worst_bits": bt["io"]["worst_tick"]["bits"]},
+            "between_trials": {k: between[k] for k in ("bits_per_trial", "trials")}
+            | {kind: e["bits"] for kind, e in between["by_kind_per_trial"].items()}}
+
+
+@pytest.fixture(scope="module")
+def hub_run(tmp_path_factory: pytest.TempPathFactory, sim_digest: str) -> tuple[subprocess.CompletedProcess[str], Path, dict]:
+    out = tmp_path_factory.mktemp("hub") / "rig"
     res = run_rig([sys.executable, "-m", "host.cli", "run", *EXP, "--bus", "hub", "--out", str(out)])
-    s = check_run(res, out, sim_digest, "hub")
+    return res, out, check_run(res, out, sim_digest, "hub")
+
+
+def test_rig_over_hub_equals_sim_and_logs_read_back(hub_run: tuple[subprocess.CompletedProcess[str], Path, dict]) -> None:
+    res, out, s = hub_run
     assert "RMSE j1" in res.stdout
     io_frames = list(can.LogReader(out / "io.log"))
     assert len(io_frames) == s["bench"]["channels"]["io"]["frames"]
@@ -99,6 +117,29 @@ def test_rig_over_hub_equals_sim_and_logs_read_back(tmp_path: Path, sim_digest: 
     assert 0 <= len(fb_frames) - s["bench"]["channels"]["fieldbus"]["frames"] < 300
     assert any(m.arbitration_id == 0x601 for m in fb_frames)  # SDO requests to drive 1
     assert any(m.arbitration_id == 0x701 for m in fb_frames)  # heartbeats of drive 1
+
+
+def test_realtime_run_has_the_same_results_and_bus_time_figures(
+        tmp_path: Path, sim_digest: str, hub_run: tuple[subprocess.CompletedProcess[str], Path, dict]) -> None:
+    """A second run of the same experiment, paced to the wall clock and accounted at 500 kbit/s on
+    the io channel: the same digest, the same bits for every part of the traffic the experiment
+    defines (io ticks, table downloads, trial set-up, recorder uploads), whatever the speed; the
+    real-time statistics and the io verdict (960 bits do not fit 500 per period) are reported."""
+    out = tmp_path / "rt"
+    res = run_rig([sys.executable, "-m", "host.cli", "run", *EXP, "--bus", "hub", "--realtime",
+                   "--io-bitrate", "500000", "--out", str(out)])
+    s = check_run(res, out, sim_digest, "hub")
+    first = hub_run[2]
+    assert experiment_bus_time(s) == experiment_bus_time(first)
+    timing = s["bench"]["timing"]
+    assert timing["mode"] == "realtime" and timing["ticks"] == 2 * 301
+    assert {"deadline_misses", "lateness_p50_s", "lateness_p99_s", "lateness_max_s", "kept_up"} <= set(timing)
+    assert timing["achieved_ticks_per_s"] > 0
+    io = s["bench"]["bus_time"]["io"]
+    assert io["bitrate"] == 500_000 and not io["worst_tick"]["fits"] and io["worst_tick"]["excess_bits"] == 460
+    assert "real time:" in res.stdout and "does NOT fit" in res.stdout
+    apart = s["bench"]["bus_time"]["fieldbus"]["counted_apart"]
+    assert "emulator" in apart["note"] and apart["sdo"]["status polls"]["frames"] > 0
 
 
 @pytest.mark.netns

@@ -1,4 +1,4 @@
-"""Tests of bus/sdo.py: byte-exact scripted exchanges, property round trips and a conformance
+"""Tests of bus/cia301/sdo.py: byte-exact scripted exchanges, property round trips and a conformance
 test against the canopen library's SDO client over python-can's virtual bus."""
 
 from __future__ import annotations

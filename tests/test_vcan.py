@@ -358,3 +358,37 @@ def test_drive_killed_and_restarted_between_trials_is_recovered(tmp_path: Path) 
     assert rec[0]["heartbeat_lost"] or rec[0]["boot_up_seen"]
     # the restarted drive is set up from scratch: the run is still the deterministic experiment
     assert s["trace_sha256"] == sim_digest(exp_cfg)
+
+
+# ---------------------------------------------------------------------------------------
+# the pdo feed-forward transport on SocketCAN: SYNC + RPDO/TPDO every tick on vcan0
+# ---------------------------------------------------------------------------------------
+
+
+def test_pdo_transport_over_socketcan_equals_sim(tmp_path: Path) -> None:
+    """``ilcrig run --bus socketcan --ff-transport pdo``: CiA 402 CSP with SYNC + PDOs on vcan0,
+    the digest equals ``ilcrig sim --ff-transport pdo``, and vcan0 carried one SYNC, four RPDOs
+    and four TPDOs per tick (the host's own monitor on vcan0 counts them)."""
+    out = tmp_path / "run"
+    env = {**os.environ, "ILCRIG_ROLE_CMD_HOST": f"{sys.executable} -m host.cli host --wait {BOOT_WAIT_S:g}"}
+    rig = popen([sys.executable, "-m", "host.cli", "run", *EXP, "--ff-transport", "pdo", "--bus", "socketcan",
+                 "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        so, se = rig.communicate(timeout=RIG_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        stop(rig, signal.SIGKILL)
+        so, se = rig.communicate()
+        pytest.fail(f"pdo rig over socketcan timed out after {RIG_TIMEOUT_S:g} s:\n{so[-3000:]}\n{se[-3000:]}")
+    finally:
+        stop(rig, signal.SIGKILL)
+    logs = "\n".join(f"--- {p.name}\n{tail(p, 15)}" for p in sorted((out / "logs").glob("*.log")))
+    assert rig.returncode == 0, so[-3000:] + se[-3000:] + logs
+    s = json.loads((out / "summary.json").read_text())
+    assert s["completed"] is True and s["config"]["ff_transport"] == "pdo"
+    assert s["trace_sha256"] == sim_digest({**EXP_CFG, "ff_transport": "pdo"})
+    n = s["ticks"]
+    assert s["bench"]["pdo_frames"] == {"sync": n, "rpdo": 4 * n, "tpdo": 4 * n}
+    ids = [m.arbitration_id for m in can.LogReader(out / "fieldbus.log")]
+    assert ids.count(0x080) == n
+    for node in (1, 2, 3, 4):
+        assert ids.count(0x200 + node) == n and ids.count(0x180 + node) == n

@@ -22,7 +22,9 @@ This module owns what every node of the rig does on the wire, independent of its
 * :func:`install_sigterm` — SIGTERM/SIGINT set a stop event (process entry points).
 
 Waiting: ``select()`` on both buses' ``fileno()`` where both have one (udp_multicast,
-socketcan, the ilcrig hub), otherwise short-timeout polling (``virtual``).
+socketcan, the ilcrig hub), otherwise short-timeout polling (``virtual``); a bus that keeps
+frames in a local queue (:class:`bus.bus_features.BufferedReceiver`, the ilcrig hub) is read
+without waiting while its queue holds frames.
 
 Time: heartbeat period, SDO transfer timeout and subclass deadlines use ``clock`` (monotonic
 wall clock by default: protocol timing only, never a model; the control loop is paced by the
@@ -45,6 +47,7 @@ import can
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, import_od
 from canopen.objectdictionary import datatypes as dt
 
+from bus.bus_features import pending_check
 from bus.cia301.emcy import emcy_cob_id, encode_emcy
 from bus.cia301.nmt import (
     CONSUMER_HEARTBEAT_INDEX,
@@ -61,6 +64,7 @@ from bus.cia301.nmt import (
 )
 from bus.cia301.sdo import SdoServer, sdo_request_cob_id, sdo_response_cob_id
 from bus.errors import AbortCode, SdoAbort
+from bus.fastmsg import new_message
 
 logger = logging.getLogger(__name__)
 
@@ -115,6 +119,10 @@ class SlaveNode:
         self._next_heartbeat_s: float | None = None
         self.consumer = NodeHeartbeatConsumer()
         self._fds = self._filenos()
+        # buses that read several frames per system call keep them in a local queue that
+        # select() does not see (bus.bus_features.BufferedReceiver)
+        self._io_pending = pending_check(io)
+        self._fieldbus_pending = pending_check(fieldbus)
         self.frames_in = 0
         self.frames_out = 0
         #: why :meth:`run` ended early: the bus failed (None while it works)
@@ -153,6 +161,10 @@ class SlaveNode:
         hook = getattr(self.app, "heartbeat_lost", None)
         if hook is not None:
             hook(node_id)
+
+    def on_fieldbus(self, msg: can.Message) -> None:
+        """A fieldbus frame that is not NMT, this node's SDO request or its own (e.g. SYNC, PDOs;
+        default: ignored)."""
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -198,12 +210,18 @@ class SlaveNode:
         wait = max(0.0, wait)
         handled = 0
         if self._fds is not None:
-            try:
-                ready, _, _ = select.select(self._fds, [], [], wait)
-            except ValueError as err:  # a bus closed its descriptor under us
-                raise can.CanOperationError(f"bus closed: {err}") from err
-            if ready:
+            io_ready = self._io_pending()
+            fieldbus_ready = self._fieldbus_pending()
+            if not (io_ready or fieldbus_ready):
+                try:
+                    ready, _, _ = select.select(self._fds, [], [], wait)
+                except ValueError as err:  # a bus closed its descriptor under us
+                    raise can.CanOperationError(f"bus closed: {err}") from err
+                io_ready = self._fds[1] in ready
+                fieldbus_ready = self._fds[0] in ready
+            if io_ready:
                 handled += self._drain(self.io)
+            if fieldbus_ready:
                 handled += self._drain(self.fieldbus)
         else:
             handled += self._drain(self.io)
@@ -316,6 +334,8 @@ class SlaveNode:
             if not self.sdo.busy:
                 self._reload_heartbeat()
                 self._reload_consumers()
+        else:
+            self.on_fieldbus(msg)
 
     def _on_nmt(self, data: bytes) -> None:
         try:
@@ -342,7 +362,7 @@ class SlaveNode:
             self._send(self.fieldbus, self._emcy_id, encode_emcy(int(code), int(register), data[:5]))
 
     def _send(self, bus: can.BusABC, cob_id: int, data: bytes) -> None:
-        bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
+        bus.send(new_message(cob_id, bytearray(data)))
         self.frames_out += 1
 
 
@@ -366,6 +386,11 @@ _STRUCTS: dict[int, struct.Struct] = {
 
 Value = int | float | bytes | str
 Key = tuple[int, int]
+
+
+def _struct_of(var: ODVariable) -> struct.Struct | None:
+    """The packing of a numeric ``var``; None for DOMAIN, strings and a missing data type."""
+    return None if var.data_type is None else _STRUCTS.get(var.data_type)
 
 
 class ObjectStore:
@@ -429,6 +454,16 @@ class ObjectStore:
         hook = self.read_hooks.get((index, sub))
         return hook() if hook is not None else self.values[(index, sub)]
 
+    def get_bytes(self, index: int, sub: int = 0) -> bytes:
+        """:meth:`get` of a DOMAIN / OCTET_STRING object.
+
+        :raises TypeError: the object holds a number or a string.
+        """
+        value = self.get(index, sub)
+        if not isinstance(value, bytes):
+            raise TypeError(f"0x{index:04X}:{sub} holds {type(value).__name__}, not bytes")
+        return value
+
     def read_object(self, index: int, sub: int) -> bytes:
         """:raises SdoAbort: unknown object/sub-index, write-only."""
         var = self.lookup(index, sub)
@@ -450,17 +485,20 @@ class ObjectStore:
 
     @staticmethod
     def encode(var: ODVariable, value: Value) -> bytes:
-        s = _STRUCTS.get(var.data_type) if var.data_type is not None else None
+        s = _struct_of(var)
         if s is not None:
             return s.pack(value)
         if isinstance(value, str):
             return value.encode("ascii")
-        return bytes(value)  # type: ignore[arg-type]
+        if not isinstance(value, bytes):
+            raise TypeError(f"0x{var.index:04X}:{var.subindex} (DOMAIN/string) holds {type(value).__name__}, "
+                            "not bytes")
+        return bytes(value)
 
     @staticmethod
     def decode(var: ODVariable, data: bytes) -> Value:
         """:raises SdoAbort: 0x06070010 length, 0x06090031/32 limits, 0x06090030 non-ASCII."""
-        s = _STRUCTS.get(var.data_type) if var.data_type is not None else None
+        s = _struct_of(var)
         if s is None:
             if var.data_type in (dt.VISIBLE_STRING, dt.UNICODE_STRING):
                 try:

@@ -161,6 +161,9 @@ class SdoServer:
     #: Largest download the server accepts, bytes (larger: abort 0x05040005).
     MAX_DOWNLOAD_BYTES: int = 1 << 20
 
+    #: Clock time [s] of the last request of the transfer in progress (None: not yet known).
+    _last_activity_s: float | None
+
     def __init__(self, node_id: int, access: ObjectAccess) -> None:
         _check_node_id(node_id)
         if not 1 <= self.BLOCK_SIZE <= MAX_BLOCK_SIZE:
@@ -237,7 +240,7 @@ class SdoServer:
         self._block_data = bytearray()
         self._last_segment_seen = False
         self._sent = 0
-        self._last_activity_s: float | None = None
+        self._last_activity_s = None
 
     def _begin(self, state: _State, index: int, sub: int) -> None:
         if self._state is not _State.IDLE:
@@ -256,11 +259,13 @@ class SdoServer:
             # In the sub-block phase every frame is a segment (seqno | c); 0x80 (seqno 0) can
             # only be the client's abort.
             if b0 == SCS_ABORT << 5:
-                return self._client_abort(frame)
+                self._client_abort(frame)
+                return None
             return self._block_download_segment(frame)
         ccs = b0 >> 5
         if ccs == CCS_ABORT:
-            return self._client_abort(frame)
+            self._client_abort(frame)
+            return None
         if ccs == CCS_DOWNLOAD_INITIATE:
             return self._download_initiate(frame)
         if ccs == CCS_UPLOAD_INITIATE:

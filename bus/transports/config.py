@@ -32,6 +32,7 @@ Transports
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import socket
@@ -159,7 +160,32 @@ def open_bus(cfg: ChannelConfig) -> can.BusABC:
             f"or set {PRIVATE_NETNS_ENV}=1 / ChannelConfig(private_netns=True) if it is one"
         )
     logger.debug("opening bus %s", config)
-    return can.Bus(ignore_config=True, **config)
+    bus = can.Bus(ignore_config=True, **config)
+    if config["interface"] == "socketcan":
+        _enlarge_receive_buffer(bus)
+    return bus
+
+
+#: receive buffer asked for a SocketCAN socket, bytes: a burst (an SDO block of 127 frames, a
+#: tick's frames while a reader is descheduled) must not overflow the kernel's default buffer,
+#: which silently drops frames
+SOCKETCAN_RCVBUF_BYTES: int = 8 << 20
+
+
+def _enlarge_receive_buffer(bus: can.BusABC) -> None:
+    """Raise a SocketCAN bus's socket receive buffer to :data:`SOCKETCAN_RCVBUF_BYTES` (root may
+    exceed net.core.rmem_max with SO_RCVBUFFORCE; otherwise the kernel caps SO_RCVBUF)."""
+    sock = getattr(bus, "socket", None)  # python-can's SocketcanBus keeps its socket here
+    if sock is None:
+        return
+    for option in (getattr(socket, "SO_RCVBUFFORCE", None), socket.SO_RCVBUF):
+        if option is None:
+            continue
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, option, SOCKETCAN_RCVBUF_BYTES)
+            return
+        except OSError as err:
+            logger.debug("receive buffer option %s refused: %s", option, err)
 
 
 @dataclass(frozen=True)
@@ -183,9 +209,17 @@ class TransportConfig:
             return self.io
         raise TransportConfigError(f"unknown logical channel {logical!r}; use {LOGICAL_CHANNELS}")
 
-    def open(self, logical: str) -> can.BusABC:
-        """Open the bus of logical channel ``logical``."""
-        return open_bus(self.channel(logical))
+    def open(self, logical: str, *, passive: bool = False) -> can.BusABC:
+        """Open the bus of logical channel ``logical``.
+
+        :param passive: for a member that only listens and nobody waits for (a monitor, a
+            logger): on the hub it joins for bulk delivery (frames held up to
+            :data:`bus.transports.hub_wire.BULK_HOLD_S`, fewer writes); other transports ignore it
+        """
+        cfg = self.channel(logical)
+        if passive and cfg.interface == HUB_INTERFACE:
+            cfg = dataclasses.replace(cfg, kwargs={**cfg.kwargs, "bulk_delivery": True})
+        return open_bus(cfg)
 
     @property
     def needs_hub(self) -> bool:
@@ -210,19 +244,22 @@ class TransportConfig:
         }
 
 
-def hub_transport(address: str | None = None) -> TransportConfig:
+def hub_transport(address: str | None = None, allow_remote: bool = False) -> TransportConfig:
     """Both channels as logical buses ``fieldbus`` / ``io`` of the hub at ``address``.
 
     :param address: ``unix:/path`` or ``tcp:127.0.0.1:PORT``; default
         :func:`bus.transports.hub_wire.default_hub_address`
-    :raises bus.transports.hub_wire.HubAddressError: malformed or non-loopback address
+    :param allow_remote: a hub on another machine (non-loopback TCP address): explicit opt-in
+    :raises bus.transports.hub_wire.HubAddressError: malformed or (without ``allow_remote``)
+        non-loopback address
     """
     addr = address or default_hub_address()
-    parse_address(addr)
+    parse_address(addr, allow_remote)
+    kwargs = {"allow_remote": True} if allow_remote else {}
     return TransportConfig(
         "hub",
-        ChannelConfig(HUB_INTERFACE, f"{addr}#{FIELDBUS}", context=FIELDBUS),
-        ChannelConfig(HUB_INTERFACE, f"{addr}#{IO}", context=IO),
+        ChannelConfig(HUB_INTERFACE, f"{addr}#{FIELDBUS}", kwargs, context=FIELDBUS),
+        ChannelConfig(HUB_INTERFACE, f"{addr}#{IO}", kwargs, context=IO),
         hub_address=addr,
     )
 
@@ -262,12 +299,12 @@ def can_config_transport() -> TransportConfig:
     return TransportConfig("can_config", ChannelConfig(context=FIELDBUS), ChannelConfig(context=IO))
 
 
-def auto_transport(hub_address: str | None = None) -> TransportConfig:
+def auto_transport(hub_address: str | None = None, allow_remote: bool = False) -> TransportConfig:
     """SocketCAN when ``vcan0`` and ``vcan1`` both exist, else the hub at ``hub_address``."""
     if vcan_available():
         logger.info("auto transport: socketcan on %s/%s", VCAN_FIELDBUS, VCAN_IO)
         return socketcan_transport()
-    cfg = hub_transport(hub_address)
+    cfg = hub_transport(hub_address, allow_remote)
     logger.info("auto transport: hub at %s", cfg.hub_address)
     return cfg
 
@@ -275,15 +312,16 @@ def auto_transport(hub_address: str | None = None) -> TransportConfig:
 TRANSPORT_NAMES: tuple[str, ...] = ("auto", "hub", "socketcan", "udp_multicast", "virtual", "can_config")
 
 
-def transport_from_name(name: str, hub_address: str | None = None) -> TransportConfig:
-    """Factory by name (for CLIs): one of :data:`TRANSPORT_NAMES`.
+def transport_from_name(name: str, hub_address: str | None = None, allow_remote: bool = False) -> TransportConfig:
+    """Factory by name (for CLIs): one of :data:`TRANSPORT_NAMES`; ``allow_remote`` lets the hub
+    transport reach a hub on another machine.
 
     :raises TransportConfigError: unknown name
     """
     if name == "auto":
-        return auto_transport(hub_address)
+        return auto_transport(hub_address, allow_remote)
     if name == "hub":
-        return hub_transport(hub_address)
+        return hub_transport(hub_address, allow_remote)
     if name == "socketcan":
         return socketcan_transport()
     if name == "udp_multicast":

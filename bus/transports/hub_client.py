@@ -1,4 +1,4 @@
-"""Hub client: :class:`HubBus`, the python-can interface ``ilcrig_hub``.
+r"""Hub client: :class:`HubBus`, the python-can interface ``ilcrig_hub``.
 
 This module owns the client side of the zero-privilege CAN hub: one :class:`HubBus` is one
 member of one logical bus on a hub (:mod:`bus.transports.hub_server`), speaking the wire
@@ -19,7 +19,9 @@ Forwarding
 Timestamps
     ``msg.timestamp`` is the time (``time.time()`` scale, s since the epoch) at which the
     hub received the frame, not the time the application read it: frames read late keep
-    their true spacing, as with SocketCAN's kernel timestamps.
+    their true spacing, as with SocketCAN's kernel timestamps. The hub process takes it
+    when it reads the frame, typically ~0.1 ms after the send (later when the machine is
+    busy and the hub waits for a core).
 
 Channel
     ``msg.channel`` is the channel string the receiving bus was opened with (e.g.
@@ -40,12 +42,13 @@ CAN FD, classic CAN and bitrates
     (``CAN_20``): :meth:`send` refuses FD frames and frames longer than 8 bytes with
     :class:`can.CanOperationError` (as SocketCAN does, ``EINVAL``), and the hub forwards no
     FD frames to it (as a non-FD SocketCAN raw socket never sees them). ``bitrate`` and
-    ``data_bitrate`` (bit/s; also taken from a ``timing`` :class:`can.BitTiming` /
-    :class:`can.BitTimingFd`) are kept: the first member of an empty logical bus sets the
-    bus's bitrates, a member asking for different ones is refused (like a node at the
-    wrong bitrate), a member giving none adopts the bus's. They are exposed as
-    :attr:`HubBus.bitrate` / :attr:`HubBus.data_bitrate` (None = unknown), in
-    :attr:`channel_info` and in the hub stats (:class:`~bus.transports.hub_server.HubChannelStats`).
+    ``data_bitrate`` (bit/s, the latter only with ``fd=True``; also taken from a ``timing``
+    :class:`can.BitTiming` / :class:`can.BitTimingFd`) are kept: the first member of an
+    empty logical bus sets the bus's bitrates, a member asking for different ones is
+    refused (like a node at the wrong bitrate), a member giving none adopts the bus's.
+    They are exposed as :attr:`HubBus.bitrate` / :attr:`HubBus.data_bitrate` (None =
+    unknown), in :attr:`channel_info` and in the hub stats
+    (:class:`~bus.transports.hub_server.HubChannelStats`).
 
 Acceptance filters
     ``can_filters`` / :meth:`can.BusABC.set_filters` are pushed to the hub, which then only
@@ -53,9 +56,16 @@ Acceptance filters
     them in software, so frames in flight while filters change are filtered too.
 
 Reading
-    Clients read exactly one record per ``recv`` (header with ``MSG_WAITALL``), so a
-    readable :meth:`HubBus.fileno` always means a frame is waiting: callers may
-    ``select()`` over several buses. Blocking client sockets + ``select``, no sleeps.
+    A client reads as many records as are there (up to :attr:`HubBus.RECV_CHUNK` bytes) per
+    system call into a local queue, and :meth:`recv` returns from that queue first. So a frame
+    may be waiting although :meth:`HubBus.fileno` is not readable: a caller that waits with
+    ``select()`` over several buses must first ask :meth:`HubBus.frames_pending` (the documented extra of
+    :class:`bus.bus_features.BufferedReceiver`; :func:`bus.bus_features.pending_check`).
+    Blocking client sockets + ``select``, no sleeps.
+
+Sending several frames
+    :meth:`HubBus.send_batch` (:class:`bus.bus_features.BatchSender`) writes several frames
+    in one system call; the hub forwards them as if sent one by one.
 
 After :meth:`shutdown`
     ``recv``, ``send``, ``set_filters``, ``flush_tx_buffer`` and ``send_periodic`` raise
@@ -67,16 +77,20 @@ After :meth:`shutdown`
 
 from __future__ import annotations
 
+import collections
 import errno
 import logging
 import select
 import socket
 import threading
+import time
+from collections.abc import Sequence
 from typing import Any
 
 import can
 from can import CanProtocol
 
+from bus.fastmsg import FAST, new_message
 from bus.transports.hub_wire import (
     FLAG_BRS,
     FLAG_ECHO,
@@ -88,6 +102,7 @@ from bus.transports.hub_wire import (
     HEADER,
     HEADER_SIZE,
     KIND_FRAME,
+    PROTOCOL_VERSION,
     ROLE_MEMBER,
     HubAddressError,
     HubProtocolError,
@@ -101,6 +116,8 @@ from bus.transports.hub_wire import (
 
 logger = logging.getLogger(__name__)
 
+_new = can.Message.__new__
+_Message = can.Message
 _CLOSED = "Cannot operate on a closed bus"
 
 
@@ -129,6 +146,10 @@ class HubBus(can.BusABC):
     :param timing: :class:`can.BitTiming` or :class:`can.BitTimingFd`; gives the bitrates
         (a BitTimingFd also means ``fd=True``) when they are not given
     :param connect_timeout_s: connect + handshake timeout, s
+    :param allow_remote: connect to a hub on a non-loopback TCP address (explicit opt-in)
+    :param bulk_delivery: a passive member (a logger, a monitor): the hub may hold this
+        client's frames up to :data:`~bus.transports.hub_wire.BULK_HOLD_S` and deliver them in
+        fewer, larger writes (timestamps stay the hub's receive times)
     :raises can.CanInitializationError: no hub at the address, or the hub refused (e.g.
         another bitrate on that bus, another protocol version)
     :raises HubAddressError: malformed channel string (a ValueError)
@@ -143,6 +164,8 @@ class HubBus(can.BusABC):
 
     #: connect + handshake timeout, s
     CONNECT_TIMEOUT_S: float = 5.0
+    #: most bytes read from the hub socket at once (many records per system call), bytes
+    RECV_CHUNK: int = 1 << 16
 
     def __init__(
         self,
@@ -154,12 +177,16 @@ class HubBus(can.BusABC):
         data_bitrate: int | None = None,
         timing: can.BitTiming | can.BitTimingFd | None = None,
         connect_timeout_s: float | None = None,
+        allow_remote: bool = False,
+        bulk_delivery: bool = False,
         **kwargs: Any,
     ) -> None:
         self._closed = True  # until connected: nothing to operate on
+        self._rxq: collections.deque[can.Message] = collections.deque()
+        self._rxbuf = bytearray()
         if channel is None:
             raise HubAddressError("HubBus needs a channel such as 'unix:/tmp/hub.sock#io'")
-        addr, name = parse_channel(str(channel))
+        addr, name = parse_channel(str(channel), bool(allow_remote))
         if isinstance(timing, can.BitTimingFd):
             bitrate = timing.nom_bitrate if bitrate is None else bitrate
             data_bitrate = timing.data_bitrate if data_bitrate is None else data_bitrate
@@ -167,7 +194,7 @@ class HubBus(can.BusABC):
         elif isinstance(timing, can.BitTiming):
             bitrate = timing.bitrate if bitrate is None else bitrate
         self.fd = fd is None or bool(fd)
-        asked = _bitrate_arg("bitrate", bitrate), _bitrate_arg("data_bitrate", data_bitrate)
+        asked = _bitrate_arg("bitrate", bitrate), _bitrate_arg("data_bitrate", data_bitrate) if self.fd else 0
         timeout = self.CONNECT_TIMEOUT_S if connect_timeout_s is None else connect_timeout_s
         try:
             sock = connect(addr, timeout)
@@ -175,18 +202,21 @@ class HubBus(can.BusABC):
             raise can.CanInitializationError(f"cannot reach ilcrig hub at {addr}: {err}") from err
         try:
             sock.sendall(hello(ROLE_MEMBER, name, echo=receive_own_messages, classic=not self.fd,
-                               bitrate=asked[0], data_bitrate=asked[1]))
+                               bitrate=asked[0], data_bitrate=asked[1], bulk=bulk_delivery))
             bus_bitrate, bus_data_bitrate = read_member_reply(sock)
             sock.settimeout(None)  # blocking from now on
         except (OSError, HubProtocolError) as err:
             sock.close()
-            raise can.CanInitializationError(f"hub handshake with {addr} failed: {err}") from err
+            old_hub = "bad hello" in str(err)  # a version-1 hub's words for any other version
+            hint = f" (this client speaks hub protocol version {PROTOCOL_VERSION}: an older hub?)" if old_hub else ""
+            raise can.CanInitializationError(f"hub handshake with {addr} failed: {err}{hint}") from err
         self._sock = sock
         self._closed = False
         self._send_lock = threading.Lock()
         self._address = addr
         self.bus_name = name
         self.receive_own_messages = receive_own_messages
+        self.bulk_delivery = bool(bulk_delivery)
         self.channel = str(channel)
         self.bitrate: int | None = bus_bitrate or None
         self.data_bitrate: int | None = bus_data_bitrate or None
@@ -208,57 +238,96 @@ class HubBus(can.BusABC):
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         if self._closed:
             raise can.CanOperationError(_CLOSED)
-        sock = self._sock
+        rxq = self._rxq
+        if rxq:
+            return rxq.popleft(), False
         try:
-            if timeout is not None:
-                ready, _, _ = select.select((sock,), (), (), max(timeout, 0.0))
-                if not ready:
-                    return None, False
-            head = sock.recv(HEADER_SIZE, socket.MSG_WAITALL)
-            if len(head) != HEADER_SIZE:
-                head = self._complete(head, HEADER_SIZE)
-            kind, flags, dlc, length, can_id, stamp_ns, inline = HEADER.unpack(head)
-            if kind != KIND_FRAME:
-                raise HubProtocolError(f"unexpected record kind {kind} from hub")
-            if length > 8:
-                data = inline + self._complete(b"", length - 8)
+            if timeout is None:
+                while not rxq:
+                    self._fill(block=True)
+            elif timeout <= 0:
+                self._fill(block=False)
             else:
-                data = inline[:length]
+                deadline = time.monotonic() + timeout
+                while not rxq:
+                    left = deadline - time.monotonic()
+                    if left < 0 or not select.select((self._sock,), (), (), left)[0]:
+                        return None, False
+                    self._fill(block=False)
         except (OSError, ValueError) as err:  # ValueError: select() on a socket closed meanwhile
             if self._closed:
                 raise can.CanOperationError(_CLOSED) from err
             raise can.CanOperationError(f"hub receive failed: {err}") from err
-        msg = can.Message(
-            timestamp=stamp_ns / 1e9,
-            arbitration_id=can_id,
-            is_extended_id=bool(flags & FLAG_EXT),
-            is_remote_frame=bool(flags & FLAG_RTR),
-            is_error_frame=bool(flags & FLAG_ERR),
-            is_fd=bool(flags & FLAG_FD),
-            bitrate_switch=bool(flags & FLAG_BRS),
-            error_state_indicator=bool(flags & FLAG_ESI),
-            dlc=dlc,
-            data=data,
-            channel=self.channel,
-            is_rx=not flags & FLAG_ECHO,
-            check=False,
-        )
-        return msg, False
+        return (rxq.popleft() if rxq else None), False
 
-    def _complete(self, part: bytes, n: int) -> bytes:
-        """Read until ``n`` bytes (a signal may cut a MSG_WAITALL read short)."""
-        while len(part) < n:
-            chunk = self._sock.recv(n - len(part), socket.MSG_WAITALL)
-            if not chunk:
-                if self._closed:
-                    raise can.CanOperationError(_CLOSED)
-                raise can.CanOperationError(f"ilcrig hub closed the connection ({self.channel_info})")
-            part += chunk
-        return part
+    def _fill(self, block: bool) -> None:
+        """One read of up to :attr:`RECV_CHUNK` bytes; every whole record read goes to the local
+        queue, a partial one waits in the buffer for its rest. Non-blocking reads return at once
+        when nothing is there.
+
+        :raises can.CanOperationError: the hub closed the connection
+        :raises HubProtocolError: a record of another kind than a frame
+        """
+        try:
+            data = self._sock.recv(self.RECV_CHUNK) if block else self._sock.recv(self.RECV_CHUNK, socket.MSG_DONTWAIT)
+        except BlockingIOError:
+            return
+        if not data:
+            if self._closed:
+                raise can.CanOperationError(_CLOSED)
+            raise can.CanOperationError(f"ilcrig hub closed the connection ({self.channel_info})")
+        buf = self._rxbuf
+        if buf:
+            buf += data
+            data = bytes(buf)
+        size = len(data)
+        off = 0
+        append = self._rxq.append
+        unpack = HEADER.unpack_from
+        new = _new
+        channel = self.channel
+        while size - off >= HEADER_SIZE:
+            kind, flags, dlc, length, can_id, stamp_ns, inline = unpack(data, off)
+            if kind != KIND_FRAME:
+                raise HubProtocolError(f"unexpected record kind {kind} from hub")
+            end = off + HEADER_SIZE
+            if length > 8:
+                end += length - 8
+                if end > size:
+                    break
+                payload = bytearray(inline + data[off + HEADER_SIZE:end])
+            else:
+                payload = bytearray(inline[:length])
+            if flags or not FAST:
+                msg = new_message(can_id, payload, timestamp=stamp_ns / 1e9, is_extended_id=bool(flags & FLAG_EXT),
+                                  is_remote_frame=bool(flags & FLAG_RTR), is_error_frame=bool(flags & FLAG_ERR),
+                                  channel=channel, dlc=dlc, is_fd=bool(flags & FLAG_FD),
+                                  is_rx=not flags & FLAG_ECHO, bitrate_switch=bool(flags & FLAG_BRS),
+                                  error_state_indicator=bool(flags & FLAG_ESI))
+            else:  # the common case: a classic data frame with an 11-bit id
+                msg = new(_Message)
+                msg.timestamp = stamp_ns / 1e9
+                msg.arbitration_id = can_id
+                msg.is_extended_id = msg.is_remote_frame = msg.is_error_frame = msg.is_fd = False
+                msg.bitrate_switch = msg.error_state_indicator = False
+                msg.is_rx = True
+                msg.channel = channel
+                msg.data = payload
+                msg.dlc = dlc
+            append(msg)
+            off = end
+        self._rxbuf = bytearray(data[off:]) if off < size else bytearray()
+
+    def frames_pending(self) -> bool:
+        """True when frames wait in the local queue (:class:`bus.bus_features.BufferedReceiver`):
+        :meth:`recv` returns one without reading the socket, although :meth:`fileno` may not be
+        readable."""
+        return bool(self._rxq)
 
     def fileno(self) -> int:
-        """The socket's descriptor: readable ⇔ a frame is waiting (one record per recv);
-        -1 after :meth:`shutdown`."""
+        """The socket's descriptor, -1 after :meth:`shutdown`. Readable ⇒ bytes from the hub
+        are waiting; frames already read may also wait in the local queue: a frame is waiting
+        ⇔ readable or :meth:`frames_pending`."""
         return self._sock.fileno()
 
     # -- sending --------------------------------------------------------------------------
@@ -279,6 +348,21 @@ class HubBus(can.BusABC):
                 "Failed to transmit: CAN FD frame on a classic CAN bus (opened with fd=False)", errno.EINVAL
             )
         self._sock_send(encode_record(msg))
+
+    def send_batch(self, msgs: Sequence[can.Message]) -> None:
+        """Send ``msgs`` in order in one socket write (:class:`bus.bus_features.BatchSender`):
+        the hub forwards them exactly as if each had been sent with :meth:`send`.
+
+        :raises can.CanOperationError: as :meth:`send` (nothing is sent if a frame is refused)
+        """
+        if self._closed:
+            raise can.CanOperationError(_CLOSED)
+        if not self.fd:
+            for msg in msgs:
+                if msg.is_fd or (not msg.is_remote_frame and len(msg.data) > 8):
+                    raise can.CanOperationError(
+                        "Failed to transmit: CAN FD frame on a classic CAN bus (opened with fd=False)", errno.EINVAL)
+        self._sock_send(b"".join([encode_record(msg) for msg in msgs]))
 
     def _sock_send(self, data: bytes) -> None:
         if self._closed:

@@ -15,25 +15,41 @@ Forwarding
     gets its own frames back flagged as echo). A listen address that is not loopback is
     refused (:class:`~bus.transports.hub_wire.NonLoopbackAddressError`).
 
+Timestamps
+    Every frame is stamped with the hub's receive time (``time.time_ns()`` taken right after
+    the read that completed it) in the record it forwards; clients deliver it as
+    ``msg.timestamp``.
+
+Classic CAN members and bitrates
+    A member that joined with the classic-CAN flag (``fd=False``) gets no FD frames. The
+    first member of an empty logical bus sets the bus's bitrate and data bitrate (0 = not
+    given); a later member asking for a different non-zero one is refused, one giving none
+    adopts the bus's (sent back in the handshake answer).
+
 Counting
     The hub counts, per logical bus, frames and bits (without and with worst-case
-    stuffing, :mod:`bus.busload`), FD and error frames, and clients. Read them with
-    :func:`query_hub_stats` or :meth:`HubHandle.stats`.
+    stuffing, :mod:`bus.busload`), FD and error frames, and clients, and reports the bus's
+    bitrates. Read them with :func:`query_hub_stats` or :meth:`HubHandle.stats`.
 
 Acceptance filters
     A member's filters (a filter record, see :mod:`bus.transports.hub_wire`) are applied
     here: only matching frames are forwarded to it (like SocketCAN's kernel filters).
 
-Latency
-    Non-blocking hub sockets in one ``epoll`` loop, no sleeps, ``TCP_NODELAY`` for TCP. A
-    client that stops reading is dropped once more than :attr:`HubServer.MAX_OUTBUF_BYTES`
-    are queued for it.
+Latency and cost
+    Non-blocking hub sockets in one ``epoll`` loop, no sleeps, ``TCP_NODELAY`` for TCP. The
+    frames read in one round of the loop (all ready members) are queued per destination and
+    written with one ``send`` per destination at the end of the round (a member that joined
+    for bulk delivery, e.g. a monitor, gets them held up to ``BULK_HOLD_S``, in fewer
+    writes); who gets a frame of a
+    given sender and identifier is cached per logical bus until a member joins, leaves or
+    changes its filters. A client that stops reading is dropped once more than
+    :attr:`HubServer.MAX_OUTBUF_BYTES` are queued for it.
 
 Fault injection
     An optional ``frame_hook`` (:class:`bus.transports.fault_inject.FrameFaultInjector`, from
     ``--inject JSON``) decides for every frame what is delivered and when: nothing (lost), twice,
-    a bus error frame instead (damaged), or later (the loop wakes for held frames). Counting is
-    unchanged (the frames as sent).
+    a bus error frame instead (damaged), or later (the loop wakes for delayed frames). Counting is
+    unchanged (the frames as sent). Without a hook the forwarding path is the plain one.
 """
 
 from __future__ import annotations
@@ -60,6 +76,8 @@ from typing import Any, Self
 from bus.busload import BusLoadCounter, bits_lookup
 from bus.transports.hub_wire import (
     BITRATES,
+    BULK_HOLD_S,
+    BULK_MAX_BYTES,
     FILTER_ENTRY,
     FLAG_ECHO,
     FLAG_ERR,
@@ -68,6 +86,7 @@ from bus.transports.hub_wire import (
     FLAG_RTR,
     HEADER_SIZE,
     HELLO_FIXED,
+    HELLO_FLAG_BULK,
     HELLO_FLAG_CLASSIC,
     HELLO_FLAG_ECHO,
     KIND_FILTERS,
@@ -134,6 +153,10 @@ class _Client:
     inbuf: bytearray = field(default_factory=bytearray)
     outbuf: bytearray = field(default_factory=bytearray)
     writing: bool = False
+    bulk: bool = False
+    held: list[bytes] = field(default_factory=list)
+    held_bytes: int = 0
+    held_since_s: float = 0.0
 
     def accepts(self, can_id: int, ext: int) -> bool:
         if not self.filters:
@@ -150,7 +173,9 @@ class HubServer:
     """The hub: binds its listen addresses at construction, serves in :meth:`serve_forever`.
 
     :param listen: addresses (strings or :class:`HubAddress`); TCP port 0 picks a free port
-    :raises NonLoopbackAddressError: a TCP address is not loopback
+    :param allow_remote: accept non-loopback TCP addresses (explicit opt-in: the hub then serves
+        other machines)
+    :raises NonLoopbackAddressError: a TCP address is not loopback (without ``allow_remote``)
     :raises HubAddressInUseError: a live hub already owns a Unix path
     """
 
@@ -158,25 +183,32 @@ class HubServer:
     MAX_OUTBUF_BYTES: int = 8 << 20
     RECV_CHUNK: int = 1 << 16
 
-    def __init__(self, listen: Sequence[str | HubAddress], frame_hook: Any = None) -> None:
+    def __init__(self, listen: Sequence[str | HubAddress], allow_remote: bool = False, frame_hook: Any = None) -> None:
         if not listen:
             raise HubAddressError("the hub needs at least one listen address")
         self._hook = frame_hook
-        self._held: list[tuple[float, int, str, _Client, bytes]] = []  # (due, seq, bus, sender, record)
-        self._held_seq = 0
+        #: frames the hook delays: (due [s, monotonic], sequence, sender, record), a heap
+        self._delayed: list[tuple[float, int, _Client, bytes]] = []
+        self._delayed_seq = 0
         self._sel = selectors.DefaultSelector()
         self._listeners: dict[socket.socket, HubAddress] = {}
         self._unix_paths: list[str] = []
         self._clients: dict[socket.socket, _Client] = {}
         self._buses: dict[str, list[_Client]] = {}
         self._stats: dict[str, HubChannelStats] = {}
+        #: per bus: (sender, can_id, extended, fd) -> [(member, as echo)], see _recipients
+        self._route_cache: dict[str, dict[tuple[_Client, int, int, int], list[tuple[_Client, bool]]]] = {}
+        #: frames routed in the current select round, per destination (see _send_pending)
+        self._pending: dict[_Client, list[bytes]] = {}
+        #: bulk members holding frames (see _send_pending, _send_held)
+        self._held: dict[_Client, None] = {}
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_w, False)
         self._sel.register(self._wake_r, selectors.EVENT_READ, "wake")
         self.addresses: list[HubAddress] = []
         try:
             for item in listen:
-                addr = item if isinstance(item, HubAddress) else parse_address(item)
+                addr = item if isinstance(item, HubAddress) else parse_address(item, allow_remote)
                 self.addresses.append(self._bind(addr))
         except BaseException:
             self.close()
@@ -247,7 +279,12 @@ class HubServer:
             self._sel.register(watch_fd, selectors.EVENT_READ, "watch")
         try:
             while True:
-                timeout = max(0.0, self._held[0][0] - time.monotonic()) if self._held else None
+                timeout = None
+                if self._held:
+                    timeout = max(0.0, min(c.held_since_s for c in self._held) + BULK_HOLD_S - time.monotonic())
+                if self._delayed:
+                    due = max(0.0, self._delayed[0][0] - time.monotonic())
+                    timeout = due if timeout is None else min(timeout, due)
                 for key, events in self._sel.select(timeout):
                     tag = key.data
                     if isinstance(tag, _Client):
@@ -262,8 +299,11 @@ class HubServer:
                     elif tag == "watch" and not os.read(watch_fd, 4096):  # type: ignore[arg-type]
                         logger.info("hub: watched descriptor closed, exiting")
                         return
+                if self._delayed:
+                    self._release_delayed()
+                self._send_pending()
                 if self._held:
-                    self._release_held()
+                    self._send_held(time.monotonic())
         finally:
             if watch_fd is not None:
                 with contextlib.suppress(KeyError, ValueError):
@@ -315,8 +355,11 @@ class HubServer:
             self._sel.unregister(client.sock)
         client.sock.close()
         members = self._buses.get(client.bus)
+        self._pending.pop(client, None)
+        self._held.pop(client, None)
         if members and client in members:
             members.remove(client)
+            self._route_cache.pop(client.bus, None)
             logger.info("hub: client left bus %r (%s)", client.bus, reason)
 
     def _on_readable(self, client: _Client) -> None:
@@ -376,7 +419,9 @@ class HubServer:
         client.bus = name
         client.echo = bool(flags & HELLO_FLAG_ECHO)
         client.classic = bool(flags & HELLO_FLAG_CLASSIC)
+        client.bulk = bool(flags & HELLO_FLAG_BULK)
         members.append(client)
+        self._route_cache.pop(name, None)
         st.connections += 1
         logger.info("hub: client %s joined bus %r%s", client.peer, name, " (classic CAN)" if client.classic else "")
         self._send_to(client, MAGIC_OK + BITRATES.pack(st.bitrate, st.data_bitrate))
@@ -388,15 +433,36 @@ class HubServer:
             client.sock.send(MAGIC_NO + bytes([len(raw)]) + raw)
         self._drop(client, text)
 
+    def _recipients(self, sender: _Client, can_id: int, ext: int, fd: int) -> list[tuple[_Client, bool]]:
+        """(member, as echo) pairs that get a frame of ``sender`` (cached per bus until a member
+        joins, leaves or changes its filters)."""
+        cache = self._route_cache.setdefault(sender.bus, {})
+        key = (sender, can_id, ext, fd)
+        found = cache.get(key)
+        if found is None:
+            found = []
+            for peer in self._buses[sender.bus]:
+                if fd and peer.classic:
+                    continue  # a classic CAN member never sees FD frames (like a non-FD raw socket)
+                if peer is sender:
+                    if peer.echo and peer.accepts(can_id, ext):
+                        found.append((peer, True))
+                elif peer.accepts(can_id, ext):
+                    found.append((peer, False))
+            cache[key] = found
+        return found
+
     def _route(self, sender: _Client, stamp_ns: int) -> None:
+        """Forward every whole record of ``sender``'s input buffer: frames are stamped in place
+        and queued per destination (:meth:`_send_pending` writes each destination's queue with
+        one send after the whole select round)."""
         if sender.role != ROLE_MEMBER:
             sender.inbuf.clear()  # a stats connection has nothing more to say
             return
         buf = sender.inbuf
         size = len(buf)
-        members = self._buses[sender.bus]
         st = self._stats[sender.bus]
-        out: dict[_Client, list[bytes | bytearray]] = {}
+        pending = self._pending
         off = 0
         while size - off >= HEADER_SIZE:
             kind = buf[off]
@@ -406,10 +472,10 @@ class HubServer:
                 total = HEADER_SIZE + (length - 8 if length > 8 else 0)
                 if size - off < total:
                     break
-                rec = bytearray(buf[off : off + total])
-                STAMP.pack_into(rec, STAMP_OFFSET, stamp_ns)
+                STAMP.pack_into(buf, off + STAMP_OFFSET, stamp_ns)
+                rec = bytes(buf[off : off + total])
                 can_id = U32.unpack_from(buf, off + 4)[0]
-                ext = flags & FLAG_EXT
+                ext = 1 if flags & FLAG_EXT else 0
                 fd = flags & FLAG_FD
                 if flags & FLAG_ERR:
                     st.error_frames += 1
@@ -420,24 +486,22 @@ class HubServer:
                     st.frames += 1
                     st.bits += nominal
                     st.bits_worst_case += worst
-                if self._hook is None:  # the hot path, as it always was
-                    ext = 1 if ext else 0
-                    for peer in members:
-                        if fd and peer.classic:
-                            continue  # a classic CAN member never sees FD frames (like a non-FD raw socket)
-                        if peer is sender:
-                            if peer.echo and peer.accepts(can_id, ext):
-                                out.setdefault(peer, []).append(rec[:1] + bytes([flags | FLAG_ECHO]) + rec[2:])
-                        elif peer.accepts(can_id, ext):
-                            out.setdefault(peer, []).append(rec)
-                else:
-                    data = bytes(rec[HEADER_SIZE - 8 : HEADER_SIZE - 8 + min(length, 8)])
-                    for delay, r in self._hook.deliveries(sender.bus, bytes(rec), can_id, data, bool(flags & FLAG_ERR)):
-                        if delay > 0:
-                            self._held_seq += 1
-                            heapq.heappush(self._held, (time.monotonic() + delay, self._held_seq, sender.bus, sender, r))
+                if self._hook is None:  # the plain path
+                    for peer, echo in self._recipients(sender, can_id, ext, fd):
+                        chunk = rec[:1] + bytes([flags | FLAG_ECHO]) + rec[2:] if echo else rec
+                        queue = pending.get(peer)
+                        if queue is None:
+                            pending[peer] = [chunk]
                         else:
-                            self._fan_out(sender, members, bytearray(r), out)
+                            queue.append(chunk)
+                else:
+                    data = rec[HEADER_SIZE - 8 : HEADER_SIZE - 8 + min(length, 8)]
+                    for delay, r in self._hook.deliveries(sender.bus, rec, can_id, data, bool(flags & FLAG_ERR)):
+                        if delay > 0:
+                            self._delayed_seq += 1
+                            heapq.heappush(self._delayed, (time.monotonic() + delay, self._delayed_seq, sender, bytes(r)))
+                        else:
+                            self._fan_out(sender, bytes(r))
             elif kind == KIND_FILTERS:
                 n = U32.unpack_from(buf, off + 4)[0]
                 total = HEADER_SIZE + n
@@ -447,40 +511,62 @@ class HubServer:
                 sender.filters = [
                     FILTER_ENTRY.unpack_from(body, i) for i in range(0, n - n % FILTER_ENTRY.size, FILTER_ENTRY.size)
                 ] or None
+                self._route_cache.pop(sender.bus, None)
             else:
                 self._refuse(sender, f"unknown record kind {kind}")
                 return
             off += total
         del buf[:off]
-        for peer, chunks in out.items():
-            self._send_to(peer, b"".join(chunks))
 
-    @staticmethod
-    def _fan_out(sender: _Client, members: list[_Client], rec: bytearray, out: dict[_Client, list[bytes | bytearray]]) -> None:
-        """Queue ``rec`` for every member of the sender's bus that takes it (the frame-fault
-        path; the same rules as the hot path in :meth:`_route`)."""
+    def _send_pending(self) -> None:
+        """One send per destination of everything routed in this select round; a bulk member's
+        frames are held instead (see :meth:`_send_held`)."""
+        pending = self._pending
+        if pending:
+            self._pending = {}
+            for peer, chunks in pending.items():
+                if peer.bulk:
+                    if not peer.held:
+                        peer.held_since_s = time.monotonic()
+                        self._held[peer] = None
+                    peer.held += chunks
+                    peer.held_bytes += sum(map(len, chunks))
+                    if peer.held_bytes >= BULK_MAX_BYTES:
+                        self._release(peer)
+                else:
+                    self._send_to(peer, chunks[0] if len(chunks) == 1 else b"".join(chunks))
+
+    def _send_held(self, now_s: float) -> None:
+        """Send what bulk members held for :data:`BULK_HOLD_S` or longer."""
+        for peer in [c for c in self._held if now_s - c.held_since_s >= BULK_HOLD_S]:
+            self._release(peer)
+
+    def _release(self, peer: _Client) -> None:
+        data = b"".join(peer.held)
+        peer.held = []
+        peer.held_bytes = 0
+        self._held.pop(peer, None)
+        self._send_to(peer, data)
+
+    def _fan_out(self, sender: _Client, rec: bytes) -> None:
+        """Queue ``rec`` (a frame record of ``sender``) for every member of its bus that takes it
+        (the frame-fault path; the same rules as the plain path in :meth:`_route`)."""
+        if sender.bus not in self._buses:
+            return
         flags = rec[1]
         can_id = U32.unpack_from(rec, 4)[0]
         ext = 1 if flags & FLAG_EXT else 0
         fd = flags & FLAG_FD
-        for peer in members:
-            if fd and peer.classic:
-                continue  # a classic CAN member never sees FD frames (like a non-FD raw socket)
-            if peer is sender:
-                if peer.echo and peer.accepts(can_id, ext):
-                    out.setdefault(peer, []).append(rec[:1] + bytes([flags | FLAG_ECHO]) + rec[2:])
-            elif peer.accepts(can_id, ext):
-                out.setdefault(peer, []).append(rec)
+        pending = self._pending
+        for peer, echo in self._recipients(sender, can_id, ext, fd):
+            pending.setdefault(peer, []).append(rec[:1] + bytes([flags | FLAG_ECHO]) + rec[2:] if echo else rec)
 
-    def _release_held(self) -> None:
-        """Deliver the held (delayed) frames that are due."""
-        out: dict[_Client, list[bytes | bytearray]] = {}
+    def _release_delayed(self) -> None:
+        """Queue the delayed frames that are due (sent with the round's other frames)."""
         now = time.monotonic()
-        while self._held and self._held[0][0] <= now:
-            _, _, bus, sender, rec = heapq.heappop(self._held)
-            self._fan_out(sender, self._buses.get(bus, []), bytearray(rec), out)
-        for peer, chunks in out.items():
-            self._send_to(peer, b"".join(chunks))
+        while self._delayed and self._delayed[0][0] <= now:
+            _, _, sender, rec = heapq.heappop(self._delayed)
+            self._fan_out(sender, rec)
 
     def _send_to(self, client: _Client, data: bytes) -> None:
         if client.sock not in self._clients:
@@ -695,6 +781,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--ready", action="store_true", help=f"print '{READY_PREFIX} <addresses>' when listening")
     parser.add_argument("--exit-on-stdin-eof", action="store_true", help="exit when stdin closes")
     parser.add_argument("--log-level", default="INFO")
+    parser.add_argument("--allow-remote", action="store_true",
+                        help="accept non-loopback TCP listen addresses (the hub then serves other machines)")
     parser.add_argument("--inject", default=None, help="frame faults (JSON: {\"specs\": [...], \"log\": path})")
     parser.add_argument("--remove-dir", default=None, help="a private folder to remove on exit")
     args = parser.parse_args(argv)
@@ -705,7 +793,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         hook = FrameFaultInjector.from_json(args.inject)
     try:
-        server = HubServer(args.listen or [default_hub_address()], frame_hook=hook)
+        server = HubServer(args.listen or [default_hub_address()], allow_remote=args.allow_remote, frame_hook=hook)
+        if args.allow_remote:
+            logger.warning("hub accepts remote members on %s", ", ".join(map(str, server.addresses)))
     except (HubAddressError, HubAddressInUseError, OSError) as err:
         sys.exit(f"error: {err}")
     signal.signal(signal.SIGTERM, lambda *_: server.wake())

@@ -5,8 +5,9 @@ server (:mod:`bus.transports.hub_server`) must agree on: the protocol constants,
 handshake (:func:`hello`, :func:`read_reply`), the frame and filter records
 (:func:`encode_record`), the hub errors, and the addresses: :func:`parse_address`,
 :func:`parse_channel`, :func:`default_hub_address` and the loopback rule (a TCP address
-that is not loopback is refused, :class:`NonLoopbackAddressError`; the hub never leaves
-this machine).
+that is not loopback is refused, :class:`NonLoopbackAddressError`, unless the caller passes
+``allow_remote=True`` — ``ilcrig hub --allow-remote``, ``--allow-remote`` of the roles — to span
+machines; a wildcard address (all interfaces) is refused even then).
 
 Channels
     One hub serves several logical buses. The channel string is
@@ -17,7 +18,9 @@ Channels
 Wire format (all little-endian), protocol version 2
     Handshake, client → hub: ``b"ILCH"``, u8 version (2), u8 role (1 member, 2 stats,
     3 stats and reset), u8 flags (bit 0 receive own messages, bit 1 classic CAN: the client
-    was opened with ``fd=False`` and gets no CAN FD frames), u8 n, n bytes bus name (UTF-8),
+    was opened with ``fd=False`` and gets no CAN FD frames, bit 2 bulk delivery: a passive
+    member that accepts its frames up to ``BULK_HOLD_S`` late, in fewer writes; a hub that
+    does not know a bit ignores it), u8 n, n bytes bus name (UTF-8),
     then u32 bitrate, u32 data bitrate (bit/s; 0 = not given). The first five fields keep
     version 1's layout, so a hub reads any client's version before anything else and
     refuses another version with a message naming both (:func:`version_refusal`).
@@ -65,6 +68,10 @@ ROLE_STATS = 2
 ROLE_STATS_RESET = 3
 HELLO_FLAG_ECHO = 0x01
 HELLO_FLAG_CLASSIC = 0x02
+HELLO_FLAG_BULK = 0x04
+#: bulk delivery: longest a hub holds a bulk member's frames, s, and most bytes it holds
+BULK_HOLD_S = 0.02
+BULK_MAX_BYTES = 32 << 10
 
 KIND_FRAME = 1
 KIND_FILTERS = 2
@@ -150,10 +157,12 @@ class HubAddress:
         return self.path if self.kind == "unix" else (self.host, self.port)
 
 
-def _require_loopback(host: str, port: int) -> str:
-    """Resolve ``host`` and return a numeric loopback address.
+def _require_loopback(host: str, port: int, allow_remote: bool = False) -> str:
+    """Resolve ``host`` and return a numeric loopback address (any one address when
+    ``allow_remote``, but never a wildcard).
 
-    :raises NonLoopbackAddressError: empty host, or any resolved address not loopback
+    :raises NonLoopbackAddressError: empty or wildcard host, or (without ``allow_remote``) any
+        resolved address not loopback
     """
     if not host:
         raise NonLoopbackAddressError("the hub listens on loopback only; an empty host means all interfaces")
@@ -162,19 +171,25 @@ def _require_loopback(host: str, port: int) -> str:
     except socket.gaierror as err:
         raise HubAddressError(f"cannot resolve hub host {host!r}: {err}") from err
     addrs = [str(info[4][0]) for info in infos]
+    if allow_remote and addrs:
+        if any(ipaddress.ip_address(a.split("%")[0]).is_unspecified for a in addrs):
+            raise NonLoopbackAddressError(f"refusing the non-loopback wildcard hub address {host!r} (all "
+                                          "interfaces): name one interface's address")
+        return addrs[0]
     bad = [a for a in addrs if not ipaddress.ip_address(a.split("%")[0]).is_loopback]
     if bad or not addrs:
         raise NonLoopbackAddressError(
             f"refusing non-loopback hub address {host!r} (resolves to {', '.join(addrs)}); "
-            "use 127.0.0.1, ::1, localhost or a unix: path"
+            "use 127.0.0.1, ::1, localhost or a unix: path (or --allow-remote to span machines)"
         )
     return addrs[0]
 
 
-def parse_address(text: str) -> HubAddress:
+def parse_address(text: str, allow_remote: bool = False) -> HubAddress:
     """Parse ``unix:/path``, a bare path, ``tcp:HOST:PORT`` or ``tcp:[v6]:PORT``.
 
-    :raises NonLoopbackAddressError: a TCP host that is not loopback
+    :param allow_remote: accept a TCP host that is not loopback (explicit opt-in)
+    :raises NonLoopbackAddressError: a TCP host that is not loopback (without ``allow_remote``)
     :raises HubAddressError: anything else malformed
     """
     if not text:
@@ -198,13 +213,13 @@ def parse_address(text: str) -> HubAddress:
             raise HubAddressError(f"bad TCP port in {text!r}") from err
         if not 0 <= port <= 65535:
             raise HubAddressError(f"TCP port out of range in {text!r}")
-        return HubAddress("tcp", host=_require_loopback(host, port), port=port)
+        return HubAddress("tcp", host=_require_loopback(host, port, allow_remote), port=port)
     if "/" in text or text.endswith(".sock"):
         return HubAddress("unix", path=text)
     raise HubAddressError(f"unknown hub address {text!r}; use unix:/path or tcp:127.0.0.1:PORT")
 
 
-def parse_channel(channel: str) -> tuple[HubAddress, str]:
+def parse_channel(channel: str, allow_remote: bool = False) -> tuple[HubAddress, str]:
     """Split ``<address>#<bus name>`` into (address, bus name); the name defaults to ``default``.
 
     :raises HubAddressError: malformed address or bus name
@@ -216,7 +231,7 @@ def parse_channel(channel: str) -> tuple[HubAddress, str]:
         addr_text, name = channel, DEFAULT_BUS_NAME
     if not name or len(name.encode()) > MAX_BUS_NAME_BYTES or any(c.isspace() for c in name):
         raise HubAddressError(f"bad bus name {name!r} in channel {channel!r}")
-    return parse_address(addr_text), name
+    return parse_address(addr_text, allow_remote), name
 
 
 def default_hub_address() -> str:
@@ -265,10 +280,11 @@ def recv_exact(sock: socket.socket, n: int) -> bytes:
 
 
 def hello(role: int, name: str, *, echo: bool = False, classic: bool = False, bitrate: int = 0,
-          data_bitrate: int = 0) -> bytes:
+          data_bitrate: int = 0, bulk: bool = False) -> bytes:
     """The client's handshake message (bitrates in bit/s, 0 = not given)."""
     raw = name.encode()
-    flags = (HELLO_FLAG_ECHO if echo else 0) | (HELLO_FLAG_CLASSIC if classic else 0)
+    flags = ((HELLO_FLAG_ECHO if echo else 0) | (HELLO_FLAG_CLASSIC if classic else 0)
+             | (HELLO_FLAG_BULK if bulk else 0))
     return (HELLO_FIXED.pack(MAGIC_HELLO, PROTOCOL_VERSION, role, flags, len(raw)) + raw
             + BITRATES.pack(bitrate, data_bitrate))
 

@@ -32,8 +32,13 @@ def write_run_report(run_dir: str | Path, summary: Mapping[str, Any]) -> Path:
              f"{' (completed)' if summary.get('completed') else ''}; N = {cfg.get('n_ticks', '?')} ticks per trial; "
              f"trace_sha256 `{str(summary.get('trace_sha256', ''))[:16]}…`.", ""]
     if chk:
+        long = chk.get("long_bounded")
+        long_txt = "" if long is None else (
+            f"; over {chk.get('long_horizon')} trials {'bounded' if long else 'NOT bounded'}"
+            + ("" if long else f" (predicted growth {chk.get('predicted_long_growth', 0.0):.2g}×, "
+                               f"{chk.get('long_worst_case', '?')})"))
         lines += [f"Convergence check: spectral radius {fmt(chk.get('rho_max'), 4)} "
-                  f"({'ok' if chk.get('ok') else 'VIOLATED'}), 2-norm {fmt(chk.get('norm2'), 4)}.", ""]
+                  f"({'ok' if chk.get('ok') else 'VIOLATED'}), 2-norm {fmt(chk.get('norm2'), 4)}{long_txt}.", ""]
     for f in summary.get("faults", []):
         lat = f.get("latency_ms")
         lines += [f"**Fault** ({f.get('kind', '?')}) at trial {f.get('trial')}, tick "

@@ -18,7 +18,7 @@ or a recorded fault — both are deterministic results) with the same configurat
 started, terminates the workers, keeps every finished experiment and returns 130.
 
 Beyond the paper: the same tables for ``q-ilc`` and ``no-ilc``, every law on path 1 with and
-without disturbance, and every law for a fixed ``LONG_TRIALS`` = 40 trials (long-run stability).
+without disturbance, and every law for a fixed ``LONG_TRIALS`` = 200 trials (long-run stability).
 
 Motion law: the paper's Tables 2–5 use its 4-5-6-7 polynomial law (Table 6 compares it with the
 5th-order law), so every paper-table experiment here uses ``profile = "poly4567"`` — Table 6 then

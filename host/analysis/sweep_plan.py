@@ -7,7 +7,7 @@ Motion law: the paper's Tables 2–5 use its 4-5-6-7 polynomial law (Table 6 com
 compares 4567 and 5 on the same footing.
 
 Beyond the paper: the same tables for ``q-ilc`` and ``no-ilc``, every law on path 1 with and
-without disturbance, and every law for a fixed ``LONG_TRIALS`` = 40 trials (long-run stability).
+without disturbance, and every law for a fixed ``LONG_TRIALS`` = 200 trials (long-run stability).
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ __all__ = [
 #: the paper's law, its baseline, and the laws shown beyond the paper's tables
 PAPER_LAW = "pd-ilc"
 BASELINE_LAW = "d-ilc"
-BEYOND_LAWS: tuple[str, ...] = ("q-ilc", "no-ilc")
+BEYOND_LAWS: tuple[str, ...] = ("pd-ilc-q", "q-ilc", "no-ilc", "no-ilc-id")
 #: motion law of every paper-table experiment (the paper's 4-5-6-7 polynomial law)
 PROFILE = "poly4567"
 #: base condition of the paper: path 1, 0.25 s single journey
@@ -50,7 +50,7 @@ PROFILES_T6: tuple[str, ...] = ("poly4567", "poly5")
 #: the paper's disturbed case ("repetitive and non-repetitive", §5.2)
 DISTURBED = "both"
 #: trials of the long-run stability experiments (beyond the paper's horizon of about 10)
-LONG_TRIALS = 40
+LONG_TRIALS = 200
 
 
 class ReproduceError(ValueError):
@@ -73,7 +73,7 @@ class Experiment:
 
     @property
     def id(self) -> str:
-        """Folder name, e.g. ``pd-ilc_p1_250ms_poly4567_none`` (``…_k40`` for a fixed 40 trials)."""
+        """Folder name, e.g. ``pd-ilc_p1_250ms_poly4567_none`` (``…_k200`` for a fixed 200 trials)."""
         base = f"{self.law}_p{self.path}_{round(self.cycle_s * 1000)}ms_{self.profile}_{self.disturbance}"
         return base if self.trials is None else f"{base}_k{self.trials}"
 
@@ -167,7 +167,7 @@ def experiment_list(only: str | Iterable[str] | None = None) -> list[Experiment]
     for g in _parse_only(only):
         for e in group_experiments(g):
             seen.setdefault(e.id, e)
-    cost = {"q-ilc": 3.0, "no-ilc": 2.0}
+    cost = {"q-ilc": 1.5, "pd-ilc-q": 1.5, "no-ilc": 1.2, "no-ilc-id": 1.2}
     return sorted(seen.values(), key=lambda e: (-e.cycle_s * cost.get(e.law, 1.0) * (e.trials or 10) / 10, e.id))
 
 

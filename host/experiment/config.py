@@ -12,8 +12,8 @@ directory).
 
 TOML layout::
 
-    law = "pd-ilc"          # see host.learning.ilc.LAWS
-    iterations = 10
+    law = "no-ilc-id"       # see host.learning.names.LAWS (default DEFAULT_LAW)
+    iterations = 10         # 1 .. host.learning.names.MAX_ITERATIONS
     path = "1"              # 1..4 or a path TOML file
     cycle_s = 0.25          # single-journey time, s
     profile = "ruckig"      # ruckig | poly4567 | poly5
@@ -23,8 +23,11 @@ TOML layout::
     substeps = 4            # RK4 sub-steps per control period
     ff0 = "model"           # initial feed-forward: "model" (nominal inverse dynamics) | "zero"
     following_error_deg = 10.0
+    ff_transport = "table"  # feed-forward by SDO tables ("table") or each tick by SYNC + PDOs ("pdo")
+    fieldbus_bitrate = 1000000  # bit/s, for the bus-fit check of the pdo transport
+    force_bus_fit = false   # run a pdo configuration even if it does not fit the fieldbus
 
-    [gains]                 # host.learning.ilc.GainSpec fields; preset = "normalized" | "paper"
+    [gains]                 # host.learning.gains.GainSpec fields; preset = "normalized" | "paper"
     preset = "normalized"
     alpha = 3.0
 """
@@ -39,16 +42,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from host.learning.ilc import GAIN_PRESETS, LAWS, GainSpec
+from bus.busload import DEFAULT_BITRATE_BPS
+from bus.cyclic import FF_TRANSPORTS, cyclic_bus_fit
+from host.learning.gains import GAIN_PRESETS, GainSpec
+from host.learning.names import DEFAULT_LAW, LAWS, MAX_ITERATIONS
 from host.planning.trajectory import PROFILES
 from plant.disturbance import KINDS as DISTURBANCES
 
 __all__ = ["ConfigError", "ExperimentConfig", "build_config", "validate", "PROFILES", "DISTURBANCES",
            "MAX_ITERATIONS", "MAX_SEED"]
 
-#: the largest number of trials of one experiment (the convergence prediction, the summary and the
-#: recording grow with it; 1000 trials of the default experiment take about 10 min in ``sim``)
-MAX_ITERATIONS: int = 1000
 #: the largest seed (the test bench's 0x2400:4 is 32 bits)
 MAX_SEED: int = 0xFFFFFFFF
 _BUILTIN_PATH_NAMES = {"1", "2", "3", "4"}
@@ -60,7 +63,7 @@ class ConfigError(ValueError):
 
 @dataclass(frozen=True)
 class ExperimentConfig:
-    law: str = "pd-ilc"
+    law: str = DEFAULT_LAW
     iterations: int = 10
     path: str = "1"
     cycle_s: float = 0.25
@@ -71,6 +74,9 @@ class ExperimentConfig:
     substeps: int = 4
     ff0: str = "model"
     following_error_deg: float = 10.0
+    ff_transport: str = "table"
+    fieldbus_bitrate: int = DEFAULT_BITRATE_BPS
+    force_bus_fit: bool = False
     gains: GainSpec = field(default_factory=GainSpec)
 
     def as_dict(self) -> dict[str, Any]:
@@ -228,10 +234,8 @@ def validate(cfg: ExperimentConfig) -> None:
     if cfg.law not in LAWS:
         raise ConfigError(f"unknown law {cfg.law!r}; choose one of {', '.join(LAWS)}")
     _check_number("iterations", cfg.iterations, integer=True)
-    if cfg.iterations < 1:
-        raise ConfigError(f"iterations must be >= 1, got {cfg.iterations}")
-    if cfg.iterations > MAX_ITERATIONS:
-        raise ConfigError(f"iterations must be at most {MAX_ITERATIONS} (MAX_ITERATIONS), got {cfg.iterations}")
+    if not 1 <= cfg.iterations <= MAX_ITERATIONS:
+        raise ConfigError(f"iterations must be between 1 and {MAX_ITERATIONS}, got {cfg.iterations}")
     _check_number("cycle_s", cfg.cycle_s)
     if cfg.cycle_s <= 0:
         raise ConfigError(f"cycle_s must be > 0, got {cfg.cycle_s}")
@@ -253,6 +257,20 @@ def validate(cfg: ExperimentConfig) -> None:
     _check_number("following_error_deg", cfg.following_error_deg)
     if cfg.following_error_deg <= 0:
         raise ConfigError(f"following_error_deg must be > 0, got {cfg.following_error_deg}")
+    if cfg.ff_transport not in FF_TRANSPORTS:
+        raise ConfigError(f"ff_transport must be one of {', '.join(FF_TRANSPORTS)}, got {cfg.ff_transport!r}")
+    _check_number("fieldbus_bitrate", cfg.fieldbus_bitrate, integer=True)
+    if cfg.fieldbus_bitrate <= 0:
+        raise ConfigError(f"fieldbus_bitrate must be > 0 bit/s, got {cfg.fieldbus_bitrate}")
+    if not isinstance(cfg.force_bus_fit, bool):
+        raise ConfigError(f"force_bus_fit must be true or false, got {cfg.force_bus_fit!r}")
+    if cfg.ff_transport == "pdo":
+        fit = cyclic_bus_fit(cfg.ts_s, cfg.fieldbus_bitrate)
+        if not fit.fits and not cfg.force_bus_fit:
+            raise ConfigError(
+                f"the cyclic PDO exchange does not fit the fieldbus: {fit.message()}; a real master would "
+                "lower the control rate, map fewer objects or use several PDOs per drive at a lower rate "
+                "(docs/timing.md §7); --force-bus-fit runs it anyway")
     g = cfg.gains
     for f in dataclasses.fields(GainSpec):
         v = getattr(g, f.name)
@@ -265,3 +283,11 @@ def validate(cfg: ExperimentConfig) -> None:
         raise ConfigError(f"gains.alpha and gains.beta must be >= 1, got {g.alpha}, {g.beta}")
     if g.lead < 0:
         raise ConfigError(f"gains.lead must be >= 0, got {g.lead}")
+    nyquist_hz = 0.5 / cfg.ts_s
+    for name in ("q_cutoff_hz", "pdq_cutoff_hz"):
+        if not 0 < getattr(g, name) < nyquist_hz:
+            raise ConfigError(f"gains.{name} must be between 0 and {nyquist_hz:g} Hz (Nyquist), got {getattr(g, name)}")
+    if g.q_order < 1:
+        raise ConfigError(f"gains.q_order must be >= 1, got {g.q_order}")
+    if not g.no_weight > 0:
+        raise ConfigError(f"gains.no_weight must be > 0, got {g.no_weight}")

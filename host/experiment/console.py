@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 from typing import TYPE_CHECKING, Any, TextIO
 
-from host.learning.names import GAIN_PRESET_NAMES, LAWS
+from host.learning.names import DEFAULT_LAW, GAIN_PRESET_NAMES, LAWS, MAX_ITERATIONS
 from host.planning.trajectory import PROFILES
 
 if TYPE_CHECKING:
@@ -52,8 +52,8 @@ NOT_EXPERIMENT: frozenset[str] = frozenset({"help", "out", "bus", "hub"})
 def add_experiment_args(p: argparse.ArgumentParser) -> None:
     """The experiment options (``--law``, ``--iterations``, …, ``--out``) on ``p``."""
     p.add_argument("--config", metavar="TOML", help="experiment file (keys as the options; unknown keys are errors)")
-    p.add_argument("--law", help=f"learning law: {', '.join(LAWS)} (default pd-ilc)")
-    p.add_argument("--iterations", type=int, help="number of trials (default 10)")
+    p.add_argument("--law", help=f"learning law: {', '.join(LAWS)} (default {DEFAULT_LAW})")
+    p.add_argument("--iterations", type=int, help=f"number of trials, 1..{MAX_ITERATIONS} (default 10)")
     p.add_argument("--path", help="1-4 or a path TOML file (default 1)")
     p.add_argument("--cycle", type=float, dest="cycle_s", help="single-journey time in s (default 0.25)")
     p.add_argument("--profile", help=f"motion law: {', '.join(PROFILES)} (default ruckig)")
@@ -66,9 +66,17 @@ def add_experiment_args(p: argparse.ArgumentParser) -> None:
                       ("lp", "learning P gain, N·m/rad (overrides lp_norm)"),
                       ("ld", "learning D gain, N·m·s/rad (overrides ld_norm)"),
                       ("lp-norm", "Lp·Ts²/I_joint"), ("ld-norm", "Ld·Ts/I_joint"),
-                      ("q-cutoff-hz", "Q-filter cut-off of q-ilc, Hz")):
+                      ("q-cutoff-hz", "Q-filter cut-off of q-ilc, Hz"),
+                      ("pdq-cutoff-hz", "Q-filter cut-off of pd-ilc-q, Hz")):
         p.add_argument(f"--{name}", type=float, dest=f"g_{name.replace('-', '_')}", help=hlp)
     p.add_argument("--lead", type=int, dest="g_lead", help="learning lead in samples (default 1)")
+    p.add_argument("--ff-transport", dest="ff_transport",
+                   help="feed-forward transport: table (SDO tables before each trial) | pdo (CiA 402 CSP, "
+                        "SYNC + RPDO/TPDO every tick) (default table)")
+    p.add_argument("--fieldbus-bitrate", type=int, dest="fieldbus_bitrate",
+                   help="fieldbus bit rate in bit/s for the bus-fit check (default 1000000)")
+    p.add_argument("--force-bus-fit", action="store_true", default=None, dest="force_bus_fit",
+                   help="run a pdo configuration even if its cyclic frames do not fit the fieldbus")
     p.add_argument("--out", default=None, help="run folder (default runs/<mode>-<time>)")
 
 
@@ -87,7 +95,8 @@ def experiment_config(args: argparse.Namespace) -> ExperimentConfig:
     from host.experiment.config import build_config  # heavy (plant, learning): only when needed
 
     overrides: dict[str, Any] = {k: getattr(args, k) for k in (
-        "law", "iterations", "path", "cycle_s", "profile", "disturbance", "seed", "ff0")}
+        "law", "iterations", "path", "cycle_s", "profile", "disturbance", "seed", "ff0", "ff_transport",
+        "fieldbus_bitrate", "force_bus_fit")}
     gains: dict[str, Any] = {}  # merged over the file's [gains] table by build_config
     if args.preset is not None:
         gains["preset"] = args.preset
@@ -108,8 +117,11 @@ def print_plan(stream: TextIO, role: str, plan: Plan, extra: str = "") -> None:
         f"convergence check: spectral radius {c.rho_max:.4f} ({'ok' if c.ok else 'VIOLATED: expect divergence'}), "
         f"2-norm {c.norm2:.3f} ({'monotonic' if c.norm2 < 1 else 'not monotonic'}), paper eq.(18) rho "
         f"{c.paper_rho18:.3f}; predicted error ratio after {c.iterations} trials {c.predicted_ratio:.3g}, after "
-        f"{c.long_horizon} {c.predicted_ratio_long:.3g}"
-        f"{' (diverges if run longer)' if c.predicted_ratio_long > 1 else ''}\n")
+        f"{c.long_horizon} {c.predicted_ratio_long:.3g}; over {c.long_horizon} trials "
+        f"{'bounded' if c.long_bounded else f'NOT bounded (grows {c.predicted_long_growth:.3g}x from its best)'}\n")
+    if plan.bus_fit is not None:
+        stream.write(f"feed-forward by SYNC + PDOs (CiA 402 cyclic synchronous position); fieldbus: "
+                     f"{plan.bus_fit['message']}\n")
     stream.flush()
 
 

@@ -7,6 +7,12 @@ encoder counts go to each drive's ``io_tick`` and the returned integer torques d
 plant's zero-order-hold step.  The host talks to the drives through their object dictionary
 (the :class:`~firmware_model.drive.Drive` implements the object-access protocol
 :class:`bus.cia301.sdo.ObjectAccess`), the same path an SDO client takes in the rig.
+
+With the pdo feed-forward transport the bench configures each drive's PDOs with the same CiA 301
+writes the rig host makes through the canopen library (:func:`bus.cyclic.pdo_config_writes`, in
+PRE-OPERATIONAL before NMT start) and runs per tick exactly the rig's SYNC/PDO handshake without
+frames (docs/timing.md §7): RPDO1 payload bytes → ``Drive.on_rpdo``, ``Drive.on_sync``, the io tick,
+then the TPDO bytes of ``Drive.pop_tpdos`` decoded as the host decodes them.
 """
 
 from __future__ import annotations
@@ -18,18 +24,18 @@ import numpy as np
 
 from bus import units
 from bus.cia301.nmt import NmtCommand
+from bus.cyclic import decode_tpdo, encode_csp_rpdo, pdo_config_writes, rpdo_cob_id, tpdo_cob_id
 from bus.objects import DRIVE_NODE_IDS
 from firmware_model.drive import Drive
 from host.experiment.config import ExperimentConfig
 from host.experiment.faults import FaultKind, FaultRecord
-from host.experiment.loop import TrialFault
+from host.experiment.loop import CyclicActuals, CyclicSetpoints, TrialFault
 from host.nodes.drive_client import DriveClient
 from plant.disturbance import disturbance_torque
 from plant.params import default_true_plant
 from plant.simulator import Plant, PlantError
 
 logger = logging.getLogger(__name__)
-
 
 
 def make_plant(cfg: ExperimentConfig) -> Plant:
@@ -49,10 +55,16 @@ class InProcessBench:
         self._tick: int | None = None
 
     def start(self) -> None:
-        for fw in self.firmware:
+        for node, fw in zip(DRIVE_NODE_IDS, self.firmware):
+            if self.cfg.ff_transport == "pdo":  # PDO mapping: in PRE-OPERATIONAL, as in the rig
+                for index, sub, value, size in pdo_config_writes(node):
+                    fw.write_object(index, sub, value.to_bytes(size, "little"))
             fw.nmt_command(NmtCommand.START)
 
-    def run_trial(self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray) -> None:
+    def run_trial(self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray,
+                  cyclic: CyclicSetpoints | None = None) -> CyclicActuals | None:
+        if cyclic is not None:
+            return self._run_cyclic_trial(trial, n_ticks, q0, qd0, cyclic)
         dist = disturbance_torque(self.cfg.disturbance, self.cfg.seed, trial, n_ticks, self.cfg.ts_s)
         plant, fws = self.plant, self.firmware
         plant.reset(q0, qd0)
@@ -76,14 +88,57 @@ class InProcessBench:
         self._tick = None
         faults = self._collect_emcy(trial)
         if faults:
-            first = faults[0]
-            fw = self.firmware[DRIVE_NODE_IDS.index(first["node"])]
-            tick = int.from_bytes(fw.read_object(0x2120, 3), "little")
-            msg = "; ".join(f"node {e['node']}: EMCY 0x{e['code']:04X}" for e in faults)
-            raise TrialFault(msg, FaultRecord(kind=FaultKind.EMCY, message=msg, node=f"drive{first['node']}",
-                                              node_id=first["node"], trial=trial, tick=tick,
-                                              detected_by=f"drive{first['node']}", latency_ms=0.0,
-                                              latency_basis="same process"))
+            raise self._emcy_fault(trial, faults)
+        return None
+
+    def _emcy_fault(self, trial: int, faults: list[dict[str, Any]]) -> TrialFault:
+        """The trial's fault for the EMCYs ``faults`` (the first names node and tick)."""
+        first = faults[0]
+        fw = self.firmware[DRIVE_NODE_IDS.index(first["node"])]
+        tick = int.from_bytes(fw.read_object(0x2120, 3), "little")
+        msg = "; ".join(f"node {e['node']}: EMCY 0x{e['code']:04X}" for e in faults)
+        return TrialFault(msg, FaultRecord(kind=FaultKind.EMCY, message=msg, node=f"drive{first['node']}",
+                                           node_id=first["node"], trial=trial, tick=tick,
+                                           detected_by=f"drive{first['node']}", latency_ms=0.0,
+                                           latency_basis="same process"))
+
+    def _run_cyclic_trial(self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray,
+                          cyclic: CyclicSetpoints) -> CyclicActuals:
+        """The rig's per-tick SYNC/PDO handshake without frames: RPDO1 bytes, SYNC, io tick, TPDO1."""
+        dist = disturbance_torque(self.cfg.disturbance, self.cfg.seed, trial, n_ticks, self.cfg.ts_s)
+        plant, fws = self.plant, self.firmware
+        plant.reset(q0, qd0)
+        tau = np.zeros(4, dtype=np.int64)
+        pos = np.zeros((n_ticks, 4), dtype=np.int64)
+        torque = np.zeros((n_ticks, 4), dtype=np.int64)
+        rx = [rpdo_cob_id(node) for node in DRIVE_NODE_IDS]
+        tx = [tpdo_cob_id(node) for node in DRIVE_NODE_IDS]
+        target, offset = cyclic.target_counts, cyclic.torque_offset_permille
+        n = 0
+        try:
+            for n in range(n_ticks):
+                self._tick = n
+                c = plant.encoder_counts()
+                for j, fw in enumerate(fws):
+                    fw.on_rpdo(rx[j], encode_csp_rpdo(int(target[n, j]), int(offset[n, j])))
+                for fw in fws:
+                    fw.on_sync()
+                for j, fw in enumerate(fws):
+                    tau[j] = fw.io_tick(n, int(c[j]))
+                    for cob, data in fw.pop_tpdos():
+                        if cob == tx[j]:
+                            pos[n, j], torque[n, j] = decode_tpdo(data)
+                plant.step(tau, dist[n])
+        except PlantError as exc:
+            self._collect_emcy(trial)
+            msg = f"plant error at tick {n} of trial {trial}: {exc}"
+            raise TrialFault(msg, FaultRecord(kind=FaultKind.PLANT_ERROR, message=msg, node="plant", trial=trial,
+                                              tick=n, detected_by="plant")) from exc
+        self._tick = None
+        faults = self._collect_emcy(trial)
+        if faults:
+            raise self._emcy_fault(trial, faults)
+        return CyclicActuals(pos, torque)
 
     def _collect_emcy(self, trial: int) -> list[dict[str, Any]]:
         """Move pending EMCY frames into the log; return the new fault (non-reset) ones."""

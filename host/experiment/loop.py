@@ -5,6 +5,13 @@ The host side is the same for every mode: it talks to the four drives only throu
 :class:`Bench` to run a trial.  ``ilcrig sim`` uses the in-process bench of
 :mod:`host.experiment.inprocess`; ``ilcrig run`` a bench whose drives and plant are other processes on CAN.
 
+Feed-forward transport (``cfg.ff_transport``): ``table`` downloads the learned feed-forward by SDO
+before every trial (the drives play it back in their manufacturer mode −1); ``pdo`` puts the drives
+in cyclic synchronous position (CSP) and hands the bench the per-tick set-points (target position,
+counts, and torque offset, ‰ of the rated torque) that it streams by SYNC + RPDO; the bench returns
+the TPDO actuals (position counts, torque ‰), from which the learning takes q and τ.  The recorder
+is uploaded in both modes (the trace digest, the recording) and must agree with the TPDOs.
+
 The run folder gets ``summary.json`` (:mod:`host.experiment.summary`), written before the first
 trial and rewritten atomically after every trial so a fault or Ctrl-C never corrupts the results
 of earlier trials.
@@ -33,6 +40,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from bus import units
+from bus.cyclic import PDO_MODE, nm_to_permille_array, permille_to_nm_array
 from bus.errors import IlcrigError, SdoAbort
 from host.experiment.faults import FaultKind, FaultRecord, attach_injection, read_injections
 from host.experiment.outputs import OutputError, RunFolder
@@ -44,8 +52,8 @@ from host.planning.trajectory import JointReference
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Bench", "TrialRecorder", "TrialFault", "Interrupted", "interrupt_on_signals", "run_experiment",
-           "ExperimentResult", "new_summary"]
+__all__ = ["Bench", "CyclicActuals", "CyclicSetpoints", "TrialRecorder", "TrialFault", "Interrupted",
+           "interrupt_on_signals", "run_experiment", "ExperimentResult", "new_summary"]
 
 
 class TrialFault(IlcrigError):
@@ -117,18 +125,44 @@ class TrialRecorder(Protocol):
         """Finish the recording (called once, also after a fault)."""
 
 
+@dataclass(frozen=True)
+class CyclicSetpoints:
+    """What the host streams each tick in the pdo transport (RPDO1 of every drive).
+
+    :ivar target_counts: (N, 4) int32, 0x607A target position, counts
+    :ivar torque_offset_permille: (N, 4) int16, 0x60B2 torque offset, ‰ of 0x6076
+    """
+
+    target_counts: np.ndarray
+    torque_offset_permille: np.ndarray
+
+
+@dataclass(frozen=True)
+class CyclicActuals:
+    """What the drives' TPDOs reported each tick (TPDO1 of every drive).
+
+    :ivar position_counts: (N, 4) 0x6064 position actual, counts
+    :ivar torque_permille: (N, 4) 0x6077 torque actual, ‰ of 0x6076
+    """
+
+    position_counts: np.ndarray
+    torque_permille: np.ndarray
+
+
 class Bench(Protocol):
     """What the host needs from a set of drives plus a plant, whatever connects them."""
 
     @property
     def drives(self) -> Sequence[DriveClient]:
-        """One client per drive, joint order."""
+        """The drives in joint order (read-only here: an implementation may keep a list)."""
 
     def start(self) -> None:
         """Bring the nodes to operational (NMT) so they can be configured and enabled."""
 
-    def run_trial(self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray) -> None:
-        """Reset the plant to (q0, qd0) and run ``n_ticks`` lockstep ticks with the armed drives.
+    def run_trial(self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray,
+                  cyclic: CyclicSetpoints | None = None) -> CyclicActuals | None:
+        """Reset the plant to (q0, qd0) and run ``n_ticks`` lockstep ticks with the armed drives;
+        with ``cyclic`` stream its set-points by SYNC + RPDO each tick and return the TPDO actuals.
         Raises :class:`TrialFault` if the trial did not complete."""
 
     def info(self) -> dict[str, Any]:
@@ -179,7 +213,7 @@ def new_summary(plan: Plan, mode: str, digest: TraceDigest) -> dict[str, Any]:
         "trace_sha256": digest.hexdigest(),
         "faults": [],
         "completed": False,
-    }
+    } | ({"bus_fit": plan.bus_fit} if plan.bus_fit is not None else {})
 
 
 class _Trials:
@@ -197,6 +231,8 @@ class _Trials:
         self.wall_s = 0.0
         self.last_traces: list[Any] = []
         self.pending: tuple[int, TrialMetrics, np.ndarray] | None = None  # in the summary, not yet recorded
+        self.pdo = plan.cfg.ff_transport == "pdo"
+        self.ref_counts = ref_counts.astype(np.int32)
 
     def setup_drive(self, j: int) -> None:
         """Gains, limits, reference tables, then enable (CiA 402 Operation enabled)."""
@@ -207,7 +243,11 @@ class _Trials:
             torque_limit_nm=plan.torque_limit_nm,
             following_error_rad=float(np.radians(plan.cfg.following_error_deg)),
         )
-        drive.load_reference(self.q_ref_rad[:, j], self.qd_ref_rad_s[:, j])
+        if self.pdo:  # the reference is streamed as 0x607A; the drive needs only the trial length
+            drive.set_trial_length(plan.n_ticks)
+            drive.set_mode(PDO_MODE)
+        else:
+            drive.load_reference(self.q_ref_rad[:, j], self.qd_ref_rad_s[:, j])
         drive.enable()
 
     def run_trial(self, k: int) -> tuple[TrialMetrics, np.ndarray, np.ndarray]:
@@ -219,17 +259,29 @@ class _Trials:
             # again from scratch; it then gets this trial's feed-forward like the others
             logger.warning("drive %d rebooted: configured again before trial %d", j + 1, k)
             self.setup_drive(j)
+        cyclic = None
         for j, drive in enumerate(bench.drives):
-            drive.load_feedforward(self.u[:, j])
+            if not self.pdo:
+                drive.load_feedforward(self.u[:, j])
             drive.arm_trial()
+        if self.pdo:
+            cyclic = CyclicSetpoints(self.ref_counts, nm_to_permille_array(self.u))
         t0 = time.perf_counter()
-        bench.run_trial(k, plan.n_ticks, ref.q[0].copy(), ref.qd[0].copy())
+        actuals = bench.run_trial(k, plan.n_ticks, ref.q[0].copy(), ref.qd[0].copy(), cyclic=cyclic)
         self.wall_s += time.perf_counter() - t0
         traces = [drive.read_trace() for drive in bench.drives]
         self.digest.add_trial([(tr.position_counts, tr.velocity_counts_s, tr.torque_units, tr.torque_fb_units)
                                for tr in traces])
-        q_meas = np.stack([tr.q_rad for tr in traces], axis=1)
-        tau = np.stack([tr.tau_nm for tr in traces], axis=1)
+        if self.pdo:
+            if actuals is None:
+                raise TrialFault(f"trial {k}: the bench returned no TPDO actuals")
+            _check_tpdos_against_recorder(k, actuals, traces, [d.rated_torque_mnm() for d in bench.drives])
+            q_meas = actuals.position_counts * units.RAD_PER_COUNT
+            tau = np.stack([permille_to_nm_array(actuals.torque_permille[:, j], bench.drives[j].rated_torque_mnm())
+                            for j in range(len(traces))], axis=1)
+        else:
+            q_meas = np.stack([tr.q_rad for tr in traces], axis=1)
+            tau = np.stack([tr.tau_nm for tr in traces], axis=1)
         e = ref.q - q_meas
         m = trial_metrics(k, e, tau)
         res = self.result
@@ -310,6 +362,18 @@ def _fault_record(bench: Bench, exc: IlcrigError, trial: int, out_dir: Path | No
         progress = getattr(bench, "progress", None)
         record.tick = progress() if progress is not None else None
     return record
+
+
+def _check_tpdos_against_recorder(k: int, actuals: CyclicActuals, traces: Sequence[Any],
+                                  rated_mnm: Sequence[int]) -> None:
+    """The TPDO of tick n must carry the recorder's sample n (position, torque in ‰, rounded as
+    the drive's 0x6077 rounds: half up): anything else is a fault of the data path."""
+    for j, tr in enumerate(traces):
+        r = int(rated_mnm[j])
+        expected_permille = np.clip((2 * tr.torque_units.astype(np.int64) + r) // (2 * r), -(1 << 15), (1 << 15) - 1)
+        if (not np.array_equal(actuals.position_counts[:, j], tr.position_counts)
+                or not np.array_equal(actuals.torque_permille[:, j], expected_permille)):
+            raise TrialFault(f"trial {k}: drive {j + 1}'s TPDOs differ from its recorder")
 
 
 def run_experiment(

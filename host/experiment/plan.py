@@ -1,15 +1,16 @@
 """The plan of an experiment: everything decided before anything moves.
 
 This module owns :func:`prepare`: plan the task trajectory, map it to joint references,
-check feasibility, resolve the gains, build the learning law and run its convergence check,
-and compute the initial feed-forward.  Anything infeasible raises a ``ValueError`` subclass
-(:class:`PlanError` for the checks made here) with a one-line message naming the option, before a
-process starts or a drive is configured.  The cheap checks come first, so a bad input is refused
-in well under a second: the trial length against the drives' table capacity and the memory the
-preparation needs (:func:`prepare_memory_bytes`, an estimate easy to change), the learning lead
-against N, then path, trajectory and feasibility, then the feedback gains against the drive's
-fixed-point range (:mod:`bus.fixedpoint`), and only then the lifted model and its convergence
-check (whose non-finite results, e.g. of absurd learning gains, count as "diverges").
+check feasibility, resolve the gains, build the closed-loop model along the reference, the
+learning law and its convergence check, and compute the initial feed-forward.  Anything
+infeasible raises a ``ValueError`` subclass (:class:`PlanError` for the checks made here) with a
+one-line message naming the option, before a process starts or a drive is configured.  The cheap
+checks come first, so a bad input is refused in well under a second: the trial length against the
+drives' table capacity and the memory the preparation needs (:func:`prepare_memory_bytes`, an
+estimate easy to change), the learning lead against N, then path, trajectory and feasibility, then
+the feedback gains against the drive's fixed-point range (:mod:`bus.fixedpoint`), and only then
+the closed-loop model and the convergence check (whose non-finite results, e.g. of absurd learning
+gains, count as "diverges").
 """
 
 from __future__ import annotations
@@ -25,14 +26,18 @@ import numpy as np
 
 from bus import fixedpoint as fp
 from bus import units
+from bus.cyclic import cyclic_bus_fit
 from bus.objects import TABLE_CAPACITY
 from host.experiment.config import ExperimentConfig
 from host.experiment.summary import jsonable
-from host.learning.ilc import ConvergenceReport, Gains, LearningLaw, LiftedModel, make_law, resolve_gains
+from host.learning.check import BOUNDED_BLOCK, PROBE_TORQUE_FRACTION, ConvergenceReport
+from host.learning.gains import Gains, resolve_gains
+from host.learning.laws import LawContext, LearningLaw, make_law
+from host.learning.model import ClosedLoopModel
 from host.planning.paths import resolve_path
 from host.planning.trajectory import JointReference, check_feasibility, joint_reference, plan_task, trial_samples
 from plant.dynamics import inverse_dynamics, mass_matrix
-from plant.params import default_true_plant, nominal_mass_model
+from plant.params import Geometry, default_true_plant, nominal_mass_model
 
 logger = logging.getLogger(__name__)
 
@@ -136,6 +141,7 @@ class Plan:
     u0: np.ndarray  # (N, 4) initial feed-forward, N·m
     feasibility: dict[str, Any]
     torque_limit_nm: float
+    bus_fit: dict[str, Any] | None = None  # pdo transport: the cyclic exchange against the fieldbus
 
     @property
     def n_ticks(self) -> int:
@@ -157,20 +163,28 @@ def prepare(cfg: ExperimentConfig) -> Plan:
     with np.errstate(over="ignore", invalid="ignore"):
         gains = resolve_gains(cfg.gains, mean_inertia, cfg.ts_s)
     _check_gain_range(gains)
-    lifted = LiftedModel(inertia_seq, gains.kp, gains.kd, cfg.ts_s)
-    law = make_law(cfg.law, gains, cfg.ts_s, model=lifted)
+    closed_loop = ClosedLoopModel(inertia_seq, gains.kp, gains.kd, cfg.ts_s)
+    tau_nominal = np.asarray(inverse_dynamics(ref.q, ref.qd, ref.qdd, model), dtype=float)
+    u0 = tau_nominal if cfg.ff0 == "model" else np.zeros_like(ref.q)
+    ctx = LawContext(gains=gains, ts_s=cfg.ts_s, model=closed_loop, reference=ref, u0_nm=u0, mass_model=model,
+                     geometry=Geometry())
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        check = _finite_check(law.check(lifted, None, cfg.iterations))
+        law = make_law(cfg.law, ctx)
+        # the prediction starts from the error a PROBE_TORQUE_FRACTION error of the nominal torque causes
+        check = _finite_check(law.check(closed_loop, PROBE_TORQUE_FRACTION * tau_nominal, cfg.iterations))
     if not check.ok:
         logger.warning("convergence check failed for law %s: spectral radius %.3f, predicted error ratio "
                        "after %d trials %.3g: expect divergence", cfg.law, check.rho_max, check.iterations,
                        check.predicted_ratio)
-    if cfg.ff0 == "model":
-        u0 = np.asarray(inverse_dynamics(ref.q, ref.qd, ref.qdd, model), dtype=float)
-    else:
-        u0 = np.zeros_like(ref.q)
+    bus_fit = None
+    if cfg.ff_transport == "pdo":
+        fit = cyclic_bus_fit(cfg.ts_s, cfg.fieldbus_bitrate)
+        bus_fit = fit.as_dict() | {"message": fit.message(), "forced": bool(cfg.force_bus_fit and not fit.fits)}
+    if not check.long_bounded:
+        logger.warning("law %s is predicted to grow again within %d trials (last %d trials %.3g x the best)",
+                       cfg.law, check.long_horizon, BOUNDED_BLOCK, check.predicted_long_growth)
     return Plan(cfg=cfg, ref=ref, gains=gains, law=law, check=check, u0=u0,
-                feasibility=jsonable(feas), torque_limit_nm=float(true_cfg.joint_torque_limit_nm))
+                feasibility=jsonable(feas), torque_limit_nm=float(true_cfg.joint_torque_limit_nm), bus_fit=bus_fit)
 
 
 def reference_tables(ref: JointReference) -> tuple[np.ndarray, np.ndarray]:

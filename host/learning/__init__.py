@@ -1,8 +1,20 @@
 """host.learning: the iterative learning laws.
 
-Owns the law names (:mod:`host.learning.names`), the gains and their normalisation, the laws and
-their registry, the lifted model and the convergence check run before an experiment
-(:mod:`host.learning.ilc`), and the trial metrics and trace digest (:mod:`host.learning.metrics`).
+Owns, one concern per module:
+
+* :mod:`host.learning.names` — the law names, the default law, the preset names and the largest
+  number of trials (import-light: the command line reads them);
+* :mod:`host.learning.gains` — the gains, their presets and their normalisation to the plant;
+* :mod:`host.learning.signals` — lead, backward difference and the zero-phase Q filter, each with
+  its transpose;
+* :mod:`host.learning.model` — the closed loop linearised along the reference as a time-varying
+  state-space model: G, Gᵀ and the drive's feedback K applied in O(N);
+* :mod:`host.learning.norm_optimal` — norm-optimal ILC in its Riccati form (O(N) per update);
+* :mod:`host.learning.identification` — the dynamic parameters estimated from measured trials;
+* :mod:`host.learning.check` — the convergence check run before an experiment (matrix-free);
+* :mod:`host.learning.laws` — one class per law, the registry and ``make_law``;
+* :mod:`host.learning.metrics` — the trial metrics and the trace digest.
 
 May import: ``bus``, ``plant`` and :mod:`host.planning`.  Never the nodes, the experiment or the rig.
+No dense lifted (NJ × NJ) matrix is formed anywhere in this package.
 """

@@ -1,11 +1,21 @@
-"""The names of the learning laws and gain presets: the one list the command line, the
-configuration and the law registry (:mod:`host.learning.ilc`) share.  Import-light on
-purpose: every role parses the command line, and the laws themselves pull in scipy."""
+"""The names of the learning laws and gain presets, the default law and the largest number of
+trials: what the command line, the configuration and the law registry
+(:data:`host.learning.laws.LAW_CLASSES`) share.  Import-light on purpose: every role parses the
+command line, and the laws themselves pull in scipy and numba."""
 
 from __future__ import annotations
 
-#: learning laws; :func:`host.learning.ilc.make_law` builds each (its registry is checked
+#: learning laws; :func:`host.learning.laws.make_law` builds each (its registry is checked
 #: against this tuple at import)
-LAWS: tuple[str, ...] = ("pd-ilc", "pd-ol", "p-ol", "d-ilc", "q-ilc", "no-ilc")
-#: gain presets, see :data:`host.learning.ilc.GAIN_PRESETS`
+LAWS: tuple[str, ...] = ("pd-ilc", "pd-ilc-q", "pd-ol", "p-ol", "d-ilc", "q-ilc", "no-ilc", "no-ilc-id")
+#: the law of the default experiment: norm-optimal ILC on the model estimated from the first trial,
+#: bounded over long runs and settled by the third trial (the paper's literal ``pd-ilc`` diverges
+#: after about a dozen trials; its robust form is ``pd-ilc-q``)
+DEFAULT_LAW: str = "no-ilc-id"
+#: gain presets, see :data:`host.learning.gains.GAIN_PRESETS`
 GAIN_PRESET_NAMES: tuple[str, ...] = ("normalized", "paper")
+#: the largest number of trials of one experiment.  A run keeps every trial's error and
+#: feed-forward ((N, 4) float64 each) for its summary, report and recording, so memory grows as
+#: trials × ticks: 1000 trials of the default 501-tick trial take 32 MB, of a 20 s (20,001-tick)
+#: trial 1.3 GB.  The convergence check's cost does not depend on it.
+MAX_ITERATIONS: int = 1000

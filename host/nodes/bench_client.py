@@ -27,8 +27,10 @@ from bus.bench_objects import (
     CounterSub,
     DisturbanceKind,
     InitialStateError,
+    TrialTiming,
     disturbance_code,
     pack_initial_state,
+    unpack_trial_timing,
 )
 from bus.cia301.sdo import ObjectAccess
 from bus.errors import IlcrigError
@@ -110,8 +112,11 @@ class BenchClient:
 
     # ------------------------------------------------------------------ configuration
 
-    def configure(self, ts_s: float, substeps: int, disturbance: str | int, seed: int) -> None:
-        """Write the control period, RK4 sub-steps, disturbance kind and seed (0x2400).
+    def configure(self, ts_s: float, substeps: int, disturbance: str | int, seed: int, *, paced: bool = False) -> None:
+        """Write the control period, RK4 sub-steps, disturbance kind, seed and pacing (0x2400).
+
+        :param paced: real time: tick n starts at t0 + n·Ts on the plant's clock (else lockstep as
+            fast as possible).
 
         :param ts_s: control period, s; must be a whole number of µs so the bench's
             Ts = µs / 10⁶ is the very same float (determinism).
@@ -136,8 +141,13 @@ class BenchClient:
         self.access.write_object(cfg, ConfigSub.SUBSTEPS, _u16(int(substeps)))
         self.access.write_object(cfg, ConfigSub.DISTURBANCE, _u8(int(kind)))
         self.access.write_object(cfg, ConfigSub.SEED, _u32(int(seed)))
-        logger.debug("bench configured: Ts = %d µs, %d sub-steps, disturbance %s, seed %d",
-                     period_us, substeps, kind.label, seed)
+        self.access.write_object(cfg, ConfigSub.PACING, _u8(int(bool(paced))))
+        logger.debug("bench configured: Ts = %d µs, %d sub-steps, disturbance %s, seed %d, %s",
+                     period_us, substeps, kind.label, seed, "paced" if paced else "lockstep")
+
+    def trial_timing(self) -> TrialTiming:
+        """0x2440: the last trial's wall-clock timing as the plant measured it (diagnostics)."""
+        return unpack_trial_timing(self.access.read_object(BenchObj.TRIAL_TIMING, 0))
 
     def configuration(self) -> dict[str, Any]:
         """0x2400 as read back: ts_s, substeps, disturbance (name), seed."""
@@ -186,7 +196,8 @@ class BenchClient:
         )
 
     def wait_trial(self, timeout_s: float, poll_s: float = 0.02) -> BenchState:
-        """Poll the status every ``poll_s`` s until the trial is no longer running.
+        """Poll the status (0x2410:4, one SDO upload) every ``poll_s`` s until the trial is no
+        longer running, then read the whole state.
 
         :return: the final state (status DONE).
         :raises BenchTrialFault: the trial ended in fault (or the bench is idle: never started).
@@ -194,6 +205,11 @@ class BenchClient:
         """
         deadline = time.monotonic() + timeout_s
         while True:
+            # while the trial runs, one SDO upload (the status) per poll; the whole state once it ended
+            if (self._read_uint(BenchObj.TRIAL, BenchTrialSub.STATUS) == BenchStatus.RUNNING
+                    and time.monotonic() < deadline):
+                time.sleep(poll_s)
+                continue
             state = self.status()
             if state.status == BenchStatus.DONE:
                 return state

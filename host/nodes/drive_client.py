@@ -188,6 +188,23 @@ class DriveClient:
         if self.table_length() != n:  # rewriting the same length keeps loaded tables
             self.access.write_object(Obj.TABLE, TableSub.LENGTH, _u32(n))
 
+    def set_trial_length(self, n: int) -> None:
+        """0x2103:1 = ``n`` samples: the recorder length of a trial in a cyclic mode (no tables).
+
+        :raises DriveInputError: ``n`` < 1.
+        """
+        self._set_length(int(n))
+
+    def set_mode(self, mode: int) -> None:
+        """0x6060 modes of operation (-1 table playback, 8 CSP, 10 CST), checked with 0x6061.
+
+        :raises DriveStateError: the display does not show the new mode.
+        """
+        self.access.write_object(Obj.MODES_OF_OPERATION, 0, int(mode).to_bytes(1, "little", signed=True))
+        shown = self._read_int(Obj.MODES_OF_OPERATION_DISPLAY, 0)
+        if shown != int(mode):
+            raise DriveStateError(f"node {self.node_id}: mode of operation display is {shown}, expected {mode}")
+
     def table_length(self) -> int:
         """0x2103:1, samples (0 = not set)."""
         return self._read_uint(Obj.TABLE, TableSub.LENGTH)

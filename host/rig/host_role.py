@@ -21,10 +21,16 @@ and plant are other processes, reached only over CAN with the ``canopen`` librar
   completed run: CiA 402 disable voltage, then NMT STOP; after a fault: NMT STOP) and takes the
   evidence from the bus: each live drive's next heartbeat reporting STOPPED
   (:meth:`RigBench.safe_state`, into the summary);
-* a passive monitor (a second python-can bus per channel, i.e. an ordinary bus member) counts
-  frames and bits per channel, writes candump logs with python-can's own writer (a full disk
-  stops the log and is a fault) and follows the io channel's trial and tick (for the faults'
-  ``tick``).
+* a passive monitor (a second python-can bus per channel, i.e. an ordinary bus member,
+  :class:`host.rig.monitor.ChannelMonitor`) counts frames and bits per channel, writes candump
+  logs with python-can's own writer (a full disk stops the log and is a fault) and follows the io
+  channel's trial and tick (for the faults' ``tick``);
+* with the pdo feed-forward transport, the host configures each drive's RPDO1/TPDO1 with the
+  canopen library's PDO API (``node.rpdo`` / ``node.tpdo``: read, map, save) in NMT
+  PRE-OPERATIONAL, and during a trial is the SYNC producer of the SYNC/PDO lockstep handshake
+  (docs/timing.md §7): per tick it sends the four RPDOs (target position, torque offset) and one
+  SYNC, then waits for the four TPDOs of that tick (position actual, torque actual) before the
+  next tick's set-points.
 
 :func:`run_host_role` is the ``ilcrig host`` entry point (also what ``ilcrig run`` starts).
 """
@@ -33,6 +39,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import queue
 import sys
 import threading
 import time
@@ -43,11 +50,9 @@ import can
 import canopen
 import numpy as np
 
-from bus import io_frames
-from bus.bench_objects import BENCH_EDS_PATH, BenchFault
+from bus.bench_objects import BENCH_EDS_PATH, BenchFault, TrialTiming
 from bus.bench_objects import DEFAULT_BENCH_NODE_ID as BENCH_NODE_ID
-from bus.busload import BusLoadCounter
-from bus.canlog import open_log
+from bus.bustime import DEFAULT_BITRATE
 from bus.cia301.nmt import (
     CONSUMER_HEARTBEAT_INDEX,
     CONSUMER_TIME_MS,
@@ -60,20 +65,32 @@ from bus.cia301.nmt import (
     consumer_entry,
     heartbeat_cob_id,
 )
+from bus.cyclic import (
+    CSP_RPDO_MAP,
+    RPDO_NUMBER,
+    TPDO_MAP,
+    TPDO_NUMBER,
+    TRANSMISSION_TYPE,
+    decode_tpdo,
+    rpdo_cob_id,
+    tpdo_cob_id,
+)
 from bus.errors import IlcrigError, SdoAbort
 from bus.objects import DRIVE_EDS_PATH, DRIVE_NODE_IDS
-from bus.transports.config import FIELDBUS, IO, TransportConfig
+from bus.transports.config import FIELDBUS, HUB_INTERFACE, IO, TransportConfig
 from bus.units import timeout_scale
 from host.analysis.session import report_fault, run_session
 from host.experiment.config import ExperimentConfig
 from host.experiment.console import EXIT_FAULT, print_plan
 from host.experiment.faults import FaultKind, FaultRecord, attach_injection, read_injections
-from host.experiment.loop import TrialFault, interrupt_on_signals
-from host.experiment.outputs import is_disk_full
+from host.experiment.loop import CyclicActuals, CyclicSetpoints, TrialFault, interrupt_on_signals
 from host.experiment.plan import prepare
 from host.nodes.bench_client import BenchClient, BenchClientError, BenchTrialFault
 from host.nodes.drive_client import DriveClient
 from host.nodes.sdo_access import SdoAccess, SdoTransportError
+from host.rig.bus_time import BusTimeAccounting, bus_time_lines
+from host.rig.monitor import ChannelMonitor
+from host.rig.realtime import timing_line, timing_summary
 
 logger = logging.getLogger(__name__)
 
@@ -131,82 +148,21 @@ class HostHeartbeat(threading.Thread):
         self._stop_event.set()
         if self.is_alive() and self is not threading.current_thread():
             self.join(timeout=1.0)
+#: longest wait for the four TPDOs of one tick (× ILCRIG_TIMEOUT_SCALE), s; the first tick of a
+#: trial waits as long as the plant does for its first torque frames
+TPDO_TIMEOUT_S = 2.0
+FIRST_TPDO_TIMEOUT_S = 10.0
 
 
-class ChannelMonitor(can.Listener):
-    """Counts frames/bits of one channel and writes its candump log (a plain bus member); notes
-    bus error frames, a failing bus and a failing log; on io it follows the trials and ticks."""
+def _node_id(node: canopen.RemoteNode) -> int:
+    """``node.id``, which canopen types as Optional (a node may take its id from the EDS); the host
+    always adds its nodes by id.
 
-    def __init__(self, bus: can.BusABC, name: str, log_path: Path | None) -> None:
-        self.bus = bus
-        self.name = name
-        self.counter = BusLoadCounter()
-        self.log = open_log(log_path, name) if log_path is not None else None
-        self.log_error: str | None = None
-        self.log_disk_full = False
-        self.log_error_t: float | None = None
-        self.bus_error: str | None = None
-        self.bus_error_t: float | None = None
-        self.error_frames = 0
-        self.first_error_frame_t: float | None = None
-        # io: trials and ticks as the plant's frames show them
-        self.follower = io_frames.TrialTickFollower()
-        self.lock = threading.Lock()
-        listeners: list[can.Listener] = [self]
-        self.notifier = can.Notifier(bus, listeners, timeout=0.1)
-
-    def on_message_received(self, msg: can.Message) -> None:
-        with self.lock:
-            self.counter.add(msg)
-            if msg.is_error_frame:
-                self.error_frames += 1
-                if self.first_error_frame_t is None:
-                    self.first_error_frame_t = time.monotonic()
-            elif self.name == IO:
-                self.follower.on_frame(msg.arbitration_id, msg.data)
-            if self.log is not None:
-                try:
-                    self.log.on_message_received(msg)
-                except (OSError, ValueError) as err:  # ValueError: a write to a file closed by a failure
-                    self._log_failed(err)
-
-    def _log_failed(self, err: BaseException) -> None:
-        self.log_error = f"{getattr(err, 'strerror', None) or err}"
-        self.log_disk_full = is_disk_full(err)
-        self.log_error_t = time.monotonic()
-        logger.warning("%s log stopped: %s", self.name, self.log_error)
-        log, self.log = self.log, None
-        try:
-            if log is not None:
-                log.stop()
-        except (OSError, ValueError):
-            pass
-
-    def on_error(self, exc: Exception) -> None:
-        """The bus failed (python-can's notifier calls this instead of raising): noted once; the
-        notifier retries, so this also paces it."""
-        if self.bus_error is None:
-            self.bus_error = f"{type(exc).__name__}: {exc}"
-            self.bus_error_t = time.monotonic()
-            logger.warning("%s monitor: bus failed: %s", self.name, self.bus_error)
-        time.sleep(0.1)
-
-    def stop(self) -> None:
-        """can.Listener hook (called by the notifier when it stops): nothing to do here."""
-
-    def close(self) -> None:
-        """Stop receiving, close the log and the bus."""
-        self.notifier.stop(timeout=2.0)
-        with self.lock:
-            if self.log is not None:
-                try:
-                    self.log.stop()
-                except (OSError, ValueError) as err:
-                    self._log_failed(err)
-        try:
-            self.bus.shutdown()
-        except (can.CanError, OSError) as err:
-            logger.debug("closing the %s monitor bus: %s", self.name, err)
+    :raises ValueError: the node has no id.
+    """
+    if node.id is None:
+        raise ValueError(f"canopen node {node!r} has no node id")
+    return node.id
 
 
 class _FieldbusErrors(can.Listener):
@@ -235,9 +191,17 @@ class RigBench:
     """
 
     def __init__(self, cfg: ExperimentConfig, transport: TransportConfig, *,
-                 out_dir: Path | None, wait_s: float = 20.0, pause_s: float = 0.0, recover_s: float = 0.0) -> None:
+                 out_dir: Path | None, wait_s: float = 20.0, pause_s: float = 0.0, recover_s: float = 0.0,
+                 realtime: bool = False, io_bitrate: int = DEFAULT_BITRATE,
+                 fieldbus_bitrate: int = DEFAULT_BITRATE) -> None:
         self.cfg = cfg
         self.out_dir = out_dir
+        self.bus_time = BusTimeAccounting(
+            io_bitrate=io_bitrate, fieldbus_bitrate=fieldbus_bitrate, ts_s=cfg.ts_s,
+            trial_s=round(2 * cfg.cycle_s / cfg.ts_s) * cfg.ts_s, heartbeat_ms=NODE_HEARTBEAT_MS,
+            n_nodes=len(DRIVE_NODE_IDS) + 2)  # the drives, the bench and the host (HOST_HEARTBEAT_MS, the same)
+        self.realtime = realtime
+        self.timings: list[TrialTiming] = []
         self.pause_s = pause_s
         self.recover_s = recover_s
         self.recoveries: list[dict[str, Any]] = []
@@ -253,6 +217,7 @@ class RigBench:
         self.drives: list[DriveClient] = []
         self._accesses: list[SdoAccess] = []
         self._fault: FaultRecord | None = None
+        self._declaring = False
         self._watching = False
         self._in_trial = False
         self._trial = 0
@@ -263,13 +228,22 @@ class RigBench:
         self._heartbeat: HostHeartbeat | None = None
         self._stop_watch = threading.Event()
         self._watchdog: threading.Thread | None = None
+        self.cyclic = cfg.ff_transport == "pdo"
+        self._tpdos: queue.Queue[tuple[int, bytes]] = queue.Queue()
+        self._rpdo_maps: dict[int, Any] = {}
+        self._tpdo_subscribed: set[int] = set()
+        self.pdo_frames = {"sync": 0, "rpdo": 0, "tpdo": 0}
         self.network = canopen.Network(transport.open(FIELDBUS))
         try:
             for name in (FIELDBUS, IO):
                 log = (out_dir / f"{name}.log") if out_dir is not None else None
                 if log is not None:
                     log.parent.mkdir(parents=True, exist_ok=True)
-                self.monitors.append(ChannelMonitor(transport.open(name), name, log))
+                classify = self.bus_time.add_io if name == IO else self.bus_time.add_fieldbus
+                # rounds with pauses only where the hub holds the frames; a kernel socket would drop them
+                bulk = transport.channel(name).interface == HUB_INTERFACE
+                self.monitors.append(ChannelMonitor(transport.open(name, passive=True), name, log, classify,
+                                                    bulk=bulk))
             cast(list[Any], self.network.listeners).append(self._fieldbus_errors)  # notes a failing fieldbus
             self.network.connect()
             self.drive_nodes = [self.network.add_node(n, str(DRIVE_EDS_PATH)) for n in DRIVE_NODE_IDS]
@@ -334,8 +308,12 @@ class RigBench:
             self._declare(record)
 
     def _tick(self) -> int | None:
+        """The io channel's tick now (the monitor reads in rounds: it catches up first)."""
         io_mon = next((m for m in self.monitors if m.name == IO), None)
-        return io_mon.follower.tick if io_mon is not None and io_mon.follower.in_trial else None
+        if io_mon is None:
+            return None
+        io_mon.catch_up(timeout_s=0.2)
+        return io_mon.follower.tick if io_mon.follower.in_trial else None
 
     def _detect(self, now: float) -> FaultRecord | None:
         """The first fault visible now (None: all is well), in order: the bus, the logs, error
@@ -438,6 +416,11 @@ class RigBench:
     def _declare(self, record: FaultRecord) -> None:
         """The run is over: keep ``record`` (the first fault), torque off everywhere at once
         (NMT STOP broadcast), wake the main thread's SDO requests."""
+        with self._lock:
+            if self._fault is not None or self._declaring:
+                return
+            self._declaring = True
+        self._nmt_stop_all()  # first: torque off
         if record.trial is None:
             record.trial = self._trial
         if record.tick is None:
@@ -445,14 +428,12 @@ class RigBench:
         if self.out_dir is not None:
             attach_injection(record, read_injections(self.out_dir))
         with self._lock:
-            if self._fault is not None:
-                return
             self._fault = record
         logger.warning("fault: %s (%s) at trial %s, tick %s, detected by %s", record.message, record.kind,
                        record.trial, record.tick, record.detected_by)
-        self._nmt_stop_all()
         for acc in self._accesses:
             acc.cancel(f"the run stopped: {record.message}")
+        self._tpdos.put((0, b""))  # wakes a SYNC producer waiting for TPDOs
 
     def _nmt_stop_all(self) -> bool:
         try:
@@ -495,10 +476,14 @@ class RigBench:
                                     consumer_entry(HOST_NODE_ID, consumer_ms).to_bytes(4, "little"))
             with self._lock:
                 self.heartbeats.watch(nid, self.consumer_s)
+        if self.cyclic:
+            for nid in sorted(node_ids & set(DRIVE_NODE_IDS)):
+                self._configure_pdos(nodes[nid])
         for nid in sorted(node_ids):
             nodes[nid].nmt.send_command(NmtCommand.START)
         if BENCH_NODE_ID in node_ids:
-            self.bench.configure(self.cfg.ts_s, self.cfg.substeps, self.cfg.disturbance, self.cfg.seed)
+            self.bench.configure(self.cfg.ts_s, self.cfg.substeps, self.cfg.disturbance, self.cfg.seed,
+                                 paced=self.realtime)
         t_end = time.monotonic() + 5.0
         while True:
             with self._lock:
@@ -511,12 +496,62 @@ class RigBench:
         with self._lock:
             self.heartbeats.check(time.monotonic())  # forget the boot-ups seen while starting
 
+    def _configure_pdos(self, node: Any) -> None:
+        """RPDO1 (target position, torque offset) and TPDO1 (position actual, torque actual), both
+        synchronous, with the canopen library's PDO API; the mapping may change only in NMT
+        PRE-OPERATIONAL (CiA 301), so the node is put there first."""
+        node.nmt.send_command(NmtCommand.ENTER_PRE_OPERATIONAL)
+        node.rpdo.read()
+        node.tpdo.read()
+        for pdo_map, mapping, cob_id in ((node.rpdo[RPDO_NUMBER], CSP_RPDO_MAP, rpdo_cob_id(node.id)),
+                                         (node.tpdo[TPDO_NUMBER], TPDO_MAP, tpdo_cob_id(node.id))):
+            pdo_map.clear()
+            for index, sub, bits in mapping:
+                pdo_map.add_variable(index, sub, bits)
+            pdo_map.cob_id = cob_id
+            pdo_map.trans_type = TRANSMISSION_TYPE
+            pdo_map.enabled = True
+            pdo_map.save()
+        self._rpdo_maps[node.id] = node.rpdo[RPDO_NUMBER]
+        if node.id not in self._tpdo_subscribed:  # the map object (and its callbacks) lives on
+            self._tpdo_subscribed.add(node.id)
+            node.tpdo[TPDO_NUMBER].add_callback(
+                lambda m, nid=node.id: self._tpdos.put((nid, bytes(m.data))))
+        logger.info("node %d: RPDO1 0x%03X and TPDO1 0x%03X configured", node.id, rpdo_cob_id(node.id),
+                    tpdo_cob_id(node.id))
+
     def start(self) -> None:
-        """Wait until all five nodes answer SDO, NMT-start them, set up heartbeats; from now on the
-        watchdog ends the run on any fault."""
-        self._bring_up(set(DRIVE_NODE_IDS) | {BENCH_NODE_ID},
-                       "(are the drive and plant processes running on this bus?)")
+        """Wait for all five nodes' boot-up, then as :meth:`_bring_up`; from now on the watchdog
+        ends the run on any fault."""
+        node_ids, what = set(DRIVE_NODE_IDS) | {BENCH_NODE_ID}, "(are the drive and plant processes running on this bus?)"
+        self._await_boot_ups(node_ids, what)
+        self._bring_up(node_ids, what)
         self._watching = True
+
+    def _await_boot_ups(self, node_ids: set[int], what: str) -> None:
+        """NMT reset communication (broadcast), then wait for every node's boot-up: a running node
+        announces itself again, one still starting (compiling) when it is up. So no SDO request
+        goes to a node that is not running yet (it would time out, and canopen logs the abort
+        at ERROR level)."""
+        booted: set[int] = set()
+        all_booted = threading.Event()
+
+        def on_boot_up(can_id: int, data: bytearray, timestamp: float) -> None:
+            if data[:1] == bytes([NmtState.BOOT_UP]):
+                booted.add(can_id - 0x700)
+                if booted >= node_ids:
+                    all_booted.set()
+
+        for nid in node_ids:
+            self.network.subscribe(0x700 + nid, on_boot_up)
+        try:
+            self.network.nmt.send_command(NmtCommand.RESET_COMMUNICATION)
+            if not all_booted.wait(self.wait_s):
+                raise TrialFault(f"no boot-up from node(s) {', '.join(map(str, sorted(node_ids - booted)))} "
+                                 f"within {self.wait_s:g} s {what}")
+        finally:
+            for nid in node_ids:
+                self.network.unsubscribe(0x700 + nid, on_boot_up)
 
     def recover(self, trial: int) -> list[int]:
         """Before ``trial``: with ``recover_s`` > 0, nodes whose heartbeat was lost or that booted
@@ -543,12 +578,16 @@ class RigBench:
                                     "heartbeat_lost": nid in report.overdue, "boot_up_seen": nid in report.booted})
         return [DRIVE_NODE_IDS.index(n) for n in sorted(lost) if n in DRIVE_NODE_IDS]
 
-    def run_trial(self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray) -> None:
+    def run_trial(self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray,
+                  cyclic: CyclicSetpoints | None = None) -> CyclicActuals | None:
         self._trial = trial
         self._raise_if_fault()
         self._in_trial = True
+        actuals = None
         try:
             self.bench.start_trial(trial, n_ticks, q0, qd0)
+            if cyclic is not None:
+                actuals = self._stream(trial, n_ticks, cyclic)
             # generous: lockstep over a loaded 2-core machine; faults come back much sooner
             self.bench.wait_trial(timeout_s=60.0 + n_ticks * 0.01, poll_s=0.02)
         except (BenchClientError, SdoAbort, SdoTransportError) as exc:
@@ -561,6 +600,8 @@ class RigBench:
             self._in_trial = False
         self._watch_once()
         self._raise_if_fault()
+        self.timings.append(self.bench.trial_timing())
+        return actuals
 
     def describe_fault(self, exc: BaseException, trial: int) -> FaultRecord | None:
         """What the host knows about ``exc``: the watchdog's record, else the bench's state."""
@@ -590,30 +631,77 @@ class RigBench:
         """The tick of the trial in progress as the io channel shows it (None between trials)."""
         return self._tick()
 
+    def _stream(self, trial: int, n_ticks: int, cyclic: CyclicSetpoints) -> CyclicActuals:
+        """The SYNC producer's side of the lockstep handshake (docs/timing.md §7): per tick n the
+        four RPDOs with the set-points of n, one SYNC, then the four TPDOs of n."""
+        while True:  # TPDOs of an earlier, faulted trial
+            try:
+                self._tpdos.get_nowait()
+            except queue.Empty:
+                break
+        index = {nid: j for j, nid in enumerate(DRIVE_NODE_IDS)}
+        rpdos = [self._rpdo_maps[nid] for nid in DRIVE_NODE_IDS]
+        n_drives = len(rpdos)
+        pos = np.zeros((n_ticks, n_drives), dtype=np.int64)
+        torque = np.zeros((n_ticks, n_drives), dtype=np.int64)
+        target, offset = cyclic.target_counts, cyclic.torque_offset_permille
+        scale = timeout_scale()
+        sync = self.network.sync
+        for n in range(n_ticks):
+            for j, rpdo in enumerate(rpdos):
+                rpdo[0].raw = int(target[n, j])
+                rpdo[1].raw = int(offset[n, j])
+                rpdo.transmit()
+            sync.transmit()
+            self.pdo_frames["rpdo"] += n_drives
+            self.pdo_frames["sync"] += 1
+            seen = [False] * n_drives
+            deadline = time.monotonic() + (FIRST_TPDO_TIMEOUT_S if n == 0 else TPDO_TIMEOUT_S) * scale
+            for _ in range(n_drives):
+                try:
+                    nid, data = self._tpdos.get(timeout=max(0.0, deadline - time.monotonic()))
+                except queue.Empty:
+                    missing = [DRIVE_NODE_IDS[j] for j in range(n_drives) if not seen[j]]
+                    self.bench.wait_trial(timeout_s=1.0 * scale)  # a bench fault explains it better
+                    raise TrialFault(f"trial {trial}: no TPDO from drive(s) {missing} for tick {n}") from None
+                if nid == 0:  # the watchdog declared a fault
+                    self._raise_if_fault()
+                    continue
+                j = index[nid]
+                if seen[j]:
+                    raise TrialFault(f"trial {trial}: two TPDOs from drive {nid} in tick {n}")
+                seen[j] = True
+                pos[n, j], torque[n, j] = decode_tpdo(data)
+            self.pdo_frames["tpdo"] += n_drives
+        return CyclicActuals(pos, torque)
+
     def info(self) -> dict[str, Any]:
         wall = time.monotonic() - self._t_start
         channels = {}
         for m in self.monitors:
+            m.catch_up()
             with m.lock:
                 c = m.counter
                 channels[m.name] = {
                     **c.as_dict(),
-                    "load_percent_worst_case": c.load_percent(wall, worst_case=True),
-                    "load_percent_no_stuffing": c.load_percent(wall, worst_case=False),
+                    "emulator_throughput_bits_per_s": c.bits_worst_case / wall if wall > 0 else 0.0,
                     "log": f"{m.name}.log" if m.log is not None or m.log_error else None,
                     "error_frames": m.error_frames,
                 }
         return {
             "transport": self.transport.as_dict(),
             "channels": channels,
-            "bus_load_basis": "bits of every frame seen on the channel (classic CAN, worst-case stuffing) "
-                              "divided by the run's wall time at 1 Mbit/s",
+            "channels_basis": "every frame seen on the channel since the host started; emulator_throughput_bits_per_s: "
+                              "their bits (worst-case stuffing) per second of wall time, a speed of the emulator, "
+                              "not a bus load (see bus_time)",
+            "bus_time": self.bus_time.summary(len(self.timings)),
             "elapsed_s": wall,
             "heartbeat": {"host_node_id": HOST_NODE_ID, "host_period_ms": HOST_HEARTBEAT_MS,
                           "node_period_ms": NODE_HEARTBEAT_MS, "consumer_time_ms": CONSUMER_TIME_MS * self.scale},
+            "timing": timing_summary(self.timings, self.cfg.ts_s, self.realtime),
             "emcy": self.emcy,
             "recoveries": self.recoveries,
-        }
+        } | ({"pdo_frames": dict(self.pdo_frames)} if self.cyclic else {})
 
     def safe_state(self) -> list[dict[str, Any]]:
         """Per drive, after :meth:`close`: torque off and the evidence from the bus."""
@@ -708,7 +796,10 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
     print_plan(sys.stdout, "host", plan, extra=f", transport {transport.name}")
     try:
         bench = RigBench(cfg, transport, out_dir=out, wait_s=args.wait, pause_s=args.pause,
-                         recover_s=getattr(args, "recover", 0.0) or 0.0)
+                         recover_s=getattr(args, "recover", 0.0) or 0.0,
+                         realtime=bool(args.realtime),
+                         io_bitrate=args.io_bitrate or DEFAULT_BITRATE,
+                         fieldbus_bitrate=cfg.fieldbus_bitrate)
     except (OSError, can.CanError, IlcrigError) as exc:
         sys.stderr.write(f"ilcrig: error: cannot open the bus ({transport.name}): {exc}\n")
         return EXIT_FAULT
@@ -718,9 +809,15 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
     s = res.summary
     ch = s.get("bench", {}).get("channels", {})
     fb = ch.get(FIELDBUS, {})
+    timing = s.get("bench", {}).get("timing")
+    if timing and timing.get("trials"):
+        sys.stdout.write(timing_line(timing) + "\n")
+    bus_time = s.get("bench", {}).get("bus_time")
+    if bus_time and s["iterations"]:
+        sys.stdout.write("".join(line + "\n" for line in bus_time_lines(bus_time)))
     sys.stdout.write(
-        f"{s['ticks']} ticks, {s['ticks_per_s']:.0f} ticks/s in trials; fieldbus {fb.get('frames', 0)} frames "
-        f"({fb.get('load_percent_worst_case', 0.0):.1f} % of 1 Mbit/s), io {ch.get(IO, {}).get('frames', 0)} frames; "
+        f"{s['ticks']} ticks, {s['ticks_per_s']:.0f} ticks/s in trials (host's wall clock); fieldbus {fb.get('frames', 0)} "
+        f"frames, io {ch.get(IO, {}).get('frames', 0)} frames; "
         f"trace_sha256 {s['trace_sha256'][:16]}…; summary: {out / 'summary.json'}\n")
     sys.stdout.flush()
     return report_fault(res, out / "summary.json")

@@ -96,6 +96,7 @@ __all__ = [
     "host_role_args",
     "launch_rig",
     "preflight",
+    "rig_role_args",
     "role_command",
 ]
 
@@ -166,6 +167,15 @@ def host_role_args(args: argparse.Namespace) -> list[str]:
                 argv.append(flag)
             continue
         argv += [flag, repr(value) if isinstance(value, float) else str(value)]
+    return argv
+
+
+def rig_role_args(args: argparse.Namespace) -> list[str]:
+    """The rig options of ``args`` (``--realtime``, ``--io-bitrate``) that the host role takes too
+    (``--fieldbus-bitrate`` is an experiment option and goes with :func:`host_role_args`)."""
+    argv = ["--realtime"] if args.realtime else []
+    if args.io_bitrate is not None:
+        argv += ["--io-bitrate", str(args.io_bitrate)]
     return argv
 
 
@@ -409,7 +419,7 @@ class RigLauncher:
         pids = ([f"hub {self.hub.pid}"] if self.hub is not None else []) + [f"{c.name} {c.pid}" for c in self.children]
         self._say_out(f"ilcrig run: transport {tc.name}{where}; processes: {', '.join(pids)}; "
                       f"role logs in {log_dir}; starting host")
-        host_extra = host_role_args(args) + ["--out", str(self.out_dir)]
+        host_extra = host_role_args(args) + rig_role_args(args) + ["--out", str(self.out_dir)]
         disk = [sp.trial for sp in specs if sp.action == "diskfull"]
         if disk:
             host_extra += ["--inject-disk-full", str(min(disk))]

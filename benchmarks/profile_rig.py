@@ -1,0 +1,124 @@
+"""Profile of the distributed rig: CPU time per tick of every role process (hub, plant, drives, host).
+
+Starts ``ilcrig run`` on the hub transport, reads the process ids from the launcher's status line,
+and samples every ``--every`` seconds the CPU time (user + system, ``/proc/<pid>/stat``) of each
+role and the io frame count of the hub (:func:`bus.transports.hub_server.query_hub_stats`; one
+lockstep tick = 8 io frames). Only the sampling intervals in which ticks ran at no less than half
+the best rate seen are counted (so the start-up, the SDO exchange between trials and the
+shutdown are left out), and the figures are CPU µs per tick for each role, their sum, and the
+load average.
+
+    python benchmarks/profile_rig.py [--iterations 3] [--cycle 0.5] [--every 0.25]
+
+A wall-clock measurement: run it beside ``benchmarks/bench_rig.py`` and read the figures as
+shares of the total, not as absolute numbers on a shared machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+sys.path.insert(0, str(REPO))
+
+from bus.transports.hub_server import HubError, query_hub_stats  # noqa: E402
+
+_TICKS = os.sysconf("SC_CLK_TCK")
+
+
+def cpu_s(pid: int) -> tuple[float, float] | None:
+    """(user, system) CPU seconds of process ``pid`` (all its threads), None if gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return int(fields[11]) / _TICKS, int(fields[12]) / _TICKS
+
+
+def children_of(pid: int) -> list[int]:
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                fields = (d / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid:
+                out.append(int(d.name))
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--iterations", type=int, default=3)
+    ap.add_argument("--cycle", type=float, default=0.5)
+    ap.add_argument("--every", type=float, default=0.25, help="sampling period, s")
+    ap.add_argument("extra", nargs="*", help="more `ilcrig run` options")
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        cmd = [sys.executable, "-u", "-m", "host.cli", "run", "--iterations", str(args.iterations), "--cycle",
+               str(args.cycle), "--bus", "hub", "--out", str(Path(tmp) / "run"), *args.extra]
+        proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, text=True, start_new_session=True)
+        assert proc.stdout is not None
+        roles: dict[str, int] = {}
+        hub = ""
+        for line in proc.stdout:
+            m = re.search(r"transport hub \((\S+)\); processes: (.*); role logs", line)
+            if m:
+                hub = m.group(1)
+                roles = {name: int(pid) for name, pid in (p.split() for p in m.group(2).split(", "))}
+                break
+        time.sleep(0.5)
+        host = [p for p in children_of(proc.pid) if p not in roles.values()]
+        if host:
+            roles["host"] = host[0]
+        samples: list[tuple[float, int, dict[str, tuple[float, float]]]] = []
+        while proc.poll() is None:
+            try:
+                frames = query_hub_stats(hub)["io"].frames if hub else 0
+            except (HubError, KeyError, OSError):
+                frames = 0
+            cpu = {name: cpu_s(pid) for name, pid in roles.items()}
+            samples.append((time.monotonic(), frames, {k: v for k, v in cpu.items() if v is not None}))
+            time.sleep(args.every)
+        tail = proc.stdout.read()
+    rates = [(b[1] - a[1]) / 8 / (b[0] - a[0]) for a, b in zip(samples, samples[1:])]
+    best = max(rates, default=0.0)
+    ticks = 0.0
+    wall = 0.0
+    cpu_tot: dict[str, list[float]] = {}
+    for (a, b), rate in zip(zip(samples, samples[1:]), rates):
+        if best <= 0 or rate < 0.5 * best:
+            continue
+        ticks += (b[1] - a[1]) / 8
+        wall += b[0] - a[0]
+        for name in a[2]:
+            if name in b[2]:
+                tot = cpu_tot.setdefault(name, [0.0, 0.0])
+                tot[0] += b[2][name][0] - a[2][name][0]
+                tot[1] += b[2][name][1] - a[2][name][1]
+    print(f"load average {os.getloadavg()[0]:.2f}; {ticks:.0f} ticks counted in {wall:.2f} s "
+          f"({ticks / wall if wall else 0:.0f} ticks/s); CPU µs per tick:")
+    print(f"  {'role':<8}{'total':>8}{'user':>8}{'system':>8}")
+    sums = [0.0, 0.0]
+    for name in sorted(cpu_tot):
+        user, system = (1e6 * v / ticks if ticks else 0.0 for v in cpu_tot[name])
+        sums[0] += user
+        sums[1] += system
+        print(f"  {name:<8}{user + system:8.0f}{user:8.0f}{system:8.0f}")
+    print(f"  {'sum':<8}{sums[0] + sums[1]:8.0f}{sums[0]:8.0f}{sums[1]:8.0f}")
+    last = [ln for ln in tail.splitlines() if "ticks" in ln]
+    if last:
+        print(last[-1])
+
+
+if __name__ == "__main__":
+    main()

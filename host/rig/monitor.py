@@ -1,0 +1,204 @@
+"""Passive channel monitors of the host: every frame of a channel counted, classified and logged.
+
+This module owns :class:`ChannelMonitor`: one more plain member of a channel's bus (any
+python-can ``BusABC``) read by its own thread, which counts frames and bits
+(:class:`bus.busload.BusLoadCounter`), hands every frame to an optional classifier (the bus-time
+accounting of :mod:`bus.bustime`) and writes the channel's candump log (:mod:`bus.canlog`).
+
+What can go wrong is noted, with the monotonic time it was seen, for the host's watchdog: the bus
+failing (:attr:`ChannelMonitor.bus_error`), bus error frames (:attr:`ChannelMonitor.error_frames`),
+the log failing, e.g. on a full disk (:attr:`ChannelMonitor.log_error`: the log stops, the
+counting goes on).  On the io channel the monitor also follows the trials and ticks as the plant's
+frames show them (:attr:`ChannelMonitor.follower`, for a fault's ``tick``).
+
+Reading in bulk
+    The monitor sees every frame of the channel — on the io channel 8 per control period — but
+    nobody waits for it, so on the hub (whose bulk delivery holds a passive member's frames) it
+    reads in rounds: it blocks until a frame is there, takes every
+    frame that is waiting, processes them together and then pauses :attr:`ChannelMonitor.ROUND_S`
+    before the next round (the frames meanwhile wait in the transport's receive buffer). That
+    keeps the monitor from waking up for every frame and competing with the lockstep processes
+    for the cores; its thread also runs at a lower priority (nice + :attr:`ChannelMonitor.NICE_INCREMENT`).
+    :meth:`ChannelMonitor.catch_up` waits until everything sent before the call
+    has been processed (the summary reads the counters after it).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import can
+
+from bus import io_frames
+from bus.busload import BusLoadCounter
+from bus.canlog import open_log
+from bus.transports.config import IO
+from host.experiment.outputs import is_disk_full
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["ChannelMonitor"]
+
+
+class ChannelMonitor:
+    """Counts, classifies and logs the frames of one channel (see the module docstring).
+
+    :param bus: a bus of the channel, owned by the monitor from now on (closed by :meth:`close`)
+    :param name: the channel's name (``fieldbus``, ``io``), also the log's channel column
+    :param log_path: candump log to write, or None
+    :param classify: called with every frame, in order, under :attr:`lock` (or None)
+    :param bulk: read in rounds with a pause and at a lower priority; only for a bus that holds the
+        frames for its reader meanwhile (the hub's bulk delivery).  A kernel socket (SocketCAN,
+        UDP) drops frames once its receive buffer is full, so there the monitor reads continuously.
+    """
+
+    #: pause between two reading rounds, s
+    ROUND_S: float = 0.02
+    #: longest blocking wait for a frame, s (bounds the reaction to :meth:`close`)
+    WAIT_S: float = 0.1
+    #: the reading thread's nice increment: nobody waits for a monitor, so it yields the cores
+    #: to the lockstep processes (Linux sets the nice value per thread)
+    NICE_INCREMENT: int = 10
+
+    def __init__(self, bus: can.BusABC, name: str, log_path: Path | None,
+                 classify: Callable[[can.Message], None] | None = None, *, bulk: bool = True) -> None:
+        self.bus = bus
+        self.bulk = bool(bulk)
+        self.name = name
+        self.counter = BusLoadCounter()
+        self.log = open_log(log_path, name) if log_path is not None else None
+        self.lock = threading.Lock()
+        self._classify = classify
+        self._stop = threading.Event()
+        self._kick = threading.Event()
+        self._rounds = 0
+        self._round_done = threading.Condition()
+        self.error: BaseException | None = None
+        #: the bus failed: description and monotonic time [s]
+        self.bus_error: str | None = None
+        self.bus_error_t: float | None = None
+        #: the log stopped (a failing write): description, monotonic time [s], was the disk full
+        self.log_error: str | None = None
+        self.log_error_t: float | None = None
+        self.log_disk_full = False
+        #: bus error frames seen, and when the first came (monotonic, s)
+        self.error_frames = 0
+        self.first_error_frame_t: float | None = None
+        #: io: trials and ticks as the plant's frames show them
+        self.follower = io_frames.TrialTickFollower()
+        self._is_io = name == IO
+        self._thread = threading.Thread(target=self._run, name=f"monitor {name}", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        bus = self.bus
+        if self.bulk:
+            _lower_own_priority(self.NICE_INCREMENT)
+        try:
+            while not self._stop.is_set():
+                msg = bus.recv(self.WAIT_S)
+                batch: list[can.Message] = []
+                while msg is not None:
+                    batch.append(msg)
+                    msg = bus.recv(0)
+                if batch:
+                    self._process(batch)
+                with self._round_done:
+                    self._rounds += 1
+                    self._round_done.notify_all()
+                if self.bulk and batch and not self._kick.is_set():
+                    self._kick.wait(self.ROUND_S)
+        except (can.CanError, OSError, ValueError) as err:  # ValueError: a descriptor closed under us
+            if not self._stop.is_set():
+                self.error = err
+                self.bus_error = f"{type(err).__name__}: {err}"
+                self.bus_error_t = time.monotonic()
+                logger.warning("monitor of %s stopped: %s", self.name, err)
+        finally:
+            with self._round_done:
+                self._rounds += 1
+                self._round_done.notify_all()
+
+    def _process(self, batch: list[can.Message]) -> None:
+        with self.lock:
+            counter, log, classify = self.counter, self.log, self._classify
+            follower = self.follower if self._is_io else None
+            for msg in batch:
+                counter.add(msg)
+                if classify is not None:
+                    classify(msg)
+                if msg.is_error_frame:
+                    self.error_frames += 1
+                    if self.first_error_frame_t is None:
+                        self.first_error_frame_t = time.monotonic()
+                elif follower is not None:
+                    follower.on_frame(msg.arbitration_id, msg.data)
+            if log is not None:
+                try:
+                    for msg in batch:
+                        log.on_message_received(msg)
+                except (OSError, ValueError) as err:  # ValueError: a write to a file closed by a failure
+                    self._log_failed(err)
+
+    def _log_failed(self, err: BaseException) -> None:
+        """The log stopped (noted once; the frames are still counted)."""
+        self.log_error = f"{getattr(err, 'strerror', None) or err}"
+        self.log_disk_full = is_disk_full(err)
+        self.log_error_t = time.monotonic()
+        logger.warning("%s log stopped: %s", self.name, self.log_error)
+        log, self.log = self.log, None
+        try:
+            if log is not None:
+                log.stop()
+        except (OSError, ValueError):
+            pass
+
+    def catch_up(self, timeout_s: float = 2.0) -> None:
+        """Return once every frame that reached this monitor's bus before the call is processed
+        (two complete reading rounds later), or after ``timeout_s``."""
+        if not self._thread.is_alive():
+            return
+        with self._round_done:
+            target = self._rounds + 2
+            self._kick.set()
+            try:
+                deadline = time.monotonic() + timeout_s
+                while self._rounds < target and self._thread.is_alive():
+                    left = deadline - time.monotonic()
+                    if left <= 0 or not self._round_done.wait(left):
+                        break
+            finally:
+                self._kick.clear()
+
+    def close(self) -> None:
+        """Stop reading, close the log and the bus."""
+        self._stop.set()
+        self._kick.set()
+        self._thread.join(timeout=2.0)
+        with self.lock:
+            if self.log is not None:
+                try:
+                    self.log.stop()
+                except (OSError, ValueError) as err:
+                    self._log_failed(err)
+        try:
+            self.bus.shutdown()
+        except (can.CanError, OSError) as err:
+            logger.debug("closing the %s monitor bus: %s", self.name, err)
+
+
+def _lower_own_priority(increment: int) -> None:
+    """Raise the calling thread's nice value by ``increment`` (Linux: per thread; elsewhere, or if
+    refused, nothing happens)."""
+    if increment <= 0 or not hasattr(os, "setpriority"):
+        return
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + increment))
+    except OSError as err:
+        logger.debug("cannot lower the monitor thread's priority: %s", err)

@@ -1,0 +1,138 @@
+"""Real-time mode: the plant's pacing and its statistics on an injected clock (never the wall
+clock): ticks start at t0 + n·Ts, not before; late ticks and deadline misses are counted exactly;
+the host's figures and console line say plainly whether the run kept up."""
+
+from __future__ import annotations
+
+import itertools
+import struct
+
+import can
+import pytest
+from test_bench_node import Q0, QD0, ManualClock, PlantBox, fake_disturbance
+
+from bus import io_frames
+from bus.bench_objects import (
+    BenchObj,
+    BenchStatus,
+    BenchTrialSub,
+    ConfigSub,
+    TrialTiming,
+    pack_initial_state,
+    pack_trial_timing,
+    unpack_trial_timing,
+)
+from host.rig.realtime import timing_line, timing_summary
+from plant.node import BenchNode
+from plant.pacing import TickPacer
+
+_counter = itertools.count()
+
+
+def test_pacer_statistics_from_scripted_times() -> None:
+    p = TickPacer(ts_s=0.001, n_ticks=4, paced=True, t0_s=10.0)
+    assert [p.due_s(n) for n in range(3)] == pytest.approx([10.0, 10.001, 10.002])
+    # tick 0 on time, done in 0.5 ms; tick 1 starts 0.2 ms late, done after tick 2's start (miss);
+    # tick 2 starts 0.4 ms late and is done in time; tick 3 starts 1.5 ms late (more than a period)
+    # and is done after tick 4's start (a second miss)
+    for n, start, done in ((0, 10.0, 10.0005), (1, 10.0012, 10.0021), (2, 10.0024, 10.0029), (3, 10.0045, 10.0049)):
+        p.started(n, start)
+        p.completed(n, done)
+    r = p.result()
+    assert (r.paced, r.ticks, r.deadline_misses) == (True, 4, 2)
+    assert r.duration_s == pytest.approx(0.0049)
+    assert r.lateness_max_s == pytest.approx(0.0015)
+    assert r.lateness_p50_s == pytest.approx(0.0003)  # median of 0, 0.2, 0.4, 1.5 ms
+
+
+def test_unpaced_trial_has_duration_but_no_lateness() -> None:
+    p = TickPacer(ts_s=0.001, n_ticks=2, paced=False, t0_s=0.0)
+    p.started(0, 0.0)
+    p.completed(0, 0.01)  # ten periods late: not a miss when nothing is paced
+    p.started(1, 0.01)
+    p.completed(1, 0.02)
+    r = p.result()
+    assert (r.ticks, r.deadline_misses, r.lateness_max_s) == (2, 0, 0.0)
+    assert r.duration_s == pytest.approx(0.02)
+
+
+def test_paced_bench_holds_each_tick_until_its_time() -> None:
+    """The bench stepped by the test on a manual clock (virtual buses deliver on send): tick n's
+    encoder frames go out at t0 + n·Ts, not a microsecond before; a tick answered late starts the
+    next one late and is a deadline miss; 0x2440 reports it."""
+    k = next(_counter)
+    clock = ManualClock(100.0)
+    fb = can.Bus(interface="virtual", channel=f"rt-fb-{k}")
+    io = can.Bus(interface="virtual", channel=f"rt-io-{k}")
+    drives = can.Bus(interface="virtual", channel=f"rt-io-{k}")
+    bench = BenchNode(fb, io, plant_factory=PlantBox(), disturbance_fn=fake_disturbance, clock=clock)
+
+    def encoder_ticks() -> list[int]:
+        got = []
+        while (msg := drives.recv(timeout=0)) is not None:
+            frame = io_frames.decode_io(msg)
+            if isinstance(frame, io_frames.EncoderFrame):
+                got.append(frame.tick)
+        return got
+
+    def answer(wire: int, at: float) -> None:
+        clock.now = at
+        for j in range(4):
+            drives.send(io_frames.encode_torque(j, wire, 0, io_frames.TorqueStatus.ENABLED))
+        bench.step(0.0)
+
+    try:
+        bench.start()
+        bench.write_object(BenchObj.CONFIG, ConfigSub.PACING, b"\x01")
+        bench.write_object(BenchObj.INITIAL_STATE, 0, pack_initial_state(Q0, QD0))
+        bench.write_object(BenchObj.TRIAL, BenchTrialSub.N_TICKS, struct.pack("<I", 4))
+        bench.write_object(BenchObj.TRIAL, BenchTrialSub.COMMAND, b"\x01")
+        bench.step(0.0)  # t0 = 100.0: TRIAL_START and tick 0 at once
+        assert encoder_ticks() == [0] * 4
+        answer(0, 100.0003)  # tick 0 done after 0.3 ms: tick 1 is held until 100.001
+        assert encoder_ticks() == []
+        assert bench.next_deadline() == pytest.approx(100.001)
+        clock.now = 100.000999
+        bench.step(0.0)
+        assert encoder_ticks() == []
+        clock.now = 100.001
+        bench.step(0.0)
+        assert encoder_ticks() == [1] * 4
+        answer(1, 100.0025)  # done after tick 2's start (100.002): a miss, tick 2 starts 0.5 ms late
+        assert encoder_ticks() == [2] * 4
+        answer(2, 100.0026)
+        clock.now = 100.003
+        bench.step(0.0)
+        assert encoder_ticks() == [3] * 4
+        answer(3, 100.0031)
+        assert bench.status == BenchStatus.DONE
+        t = unpack_trial_timing(bench.read_object(BenchObj.TRIAL_TIMING, 0))
+        assert (t.paced, t.ticks, t.deadline_misses, t.lateness_max_us) == (True, 4, 1, 500)
+        assert t.duration_us == 3100
+    finally:
+        for bus in (fb, io, drives):
+            bus.shutdown()
+
+
+def test_trial_timing_round_trips_through_its_bytes() -> None:
+    t = TrialTiming(True, 501, 500_123, 2, 40, 300, 1200)
+    assert unpack_trial_timing(pack_trial_timing(t)) == t
+    assert t.ticks_per_s == pytest.approx(501 / 0.500123)
+
+
+def test_host_figures_say_whether_the_run_kept_up() -> None:
+    good = [TrialTiming(True, 501, 501_000, 0, 50, 200, 400), TrialTiming(True, 501, 501_000, 0, 60, 300, 900)]
+    s = timing_summary(good, 1e-3, realtime=True)
+    assert s["kept_up"] and s["deadline_misses"] == 0
+    assert s["lateness_max_s"] == pytest.approx(900e-6) and s["lateness_p99_s"] == pytest.approx(300e-6)
+    assert s["lateness_p50_s"] == pytest.approx(55e-6)
+    assert s["achieved_ticks_per_s"] == pytest.approx(1000.0)
+    assert timing_line(s).startswith("real time: kept up")
+    bad = good + [TrialTiming(True, 501, 801_600, 300, 20_000, 290_000, 300_000)]
+    s = timing_summary(bad, 1e-3, realtime=True)
+    assert not s["kept_up"] and s["deadline_misses"] == 300
+    line = timing_line(s)
+    assert "could NOT keep up" in line and "held" in line and f"{s['achieved_ticks_per_s']:,.1f} ticks/s" in line
+    lock = timing_summary([TrialTiming(False, 501, 250_500, 0, 0, 0, 0)], 1e-3, realtime=False)
+    assert "deadline_misses" not in lock and timing_line(lock).startswith("emulator throughput")
+    assert lock["achieved_ticks_per_s"] == pytest.approx(2000.0)
