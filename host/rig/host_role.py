@@ -308,12 +308,20 @@ class RigBench:
             self._declare(record)
 
     def _tick(self) -> int | None:
-        """The io channel's tick now (the monitor reads in rounds: it catches up first)."""
+        """The tick of the trial running now on the io channel (None between trials)."""
+        io_mon = next((m for m in self.monitors if m.name == IO), None)
+        return io_mon.follower.tick if io_mon is not None and io_mon.follower.in_trial else None
+
+    def _fault_tick(self) -> int | None:
+        """The last tick of the host's current trial seen on the io channel, also when the plant
+        has stopped the trial already (it does so on a fault it sees); the monitor reads in rounds,
+        so it catches up first."""
         io_mon = next((m for m in self.monitors if m.name == IO), None)
         if io_mon is None:
             return None
         io_mon.catch_up(timeout_s=0.2)
-        return io_mon.follower.tick if io_mon.follower.in_trial else None
+        f = io_mon.follower
+        return f.tick if f.trial == self._trial else None
 
     def _detect(self, now: float) -> FaultRecord | None:
         """The first fault visible now (None: all is well), in order: the bus, the logs, error
@@ -424,7 +432,7 @@ class RigBench:
         if record.trial is None:
             record.trial = self._trial
         if record.tick is None:
-            record.tick = self._tick()
+            record.tick = self._fault_tick()
         if self.out_dir is not None:
             attach_injection(record, read_injections(self.out_dir))
         with self._lock:
@@ -628,8 +636,8 @@ class RigBench:
         return record
 
     def progress(self) -> int | None:
-        """The tick of the trial in progress as the io channel shows it (None between trials)."""
-        return self._tick()
+        """The last tick of the current trial as the io channel shows it (None before its first)."""
+        return self._fault_tick()
 
     def _stream(self, trial: int, n_ticks: int, cyclic: CyclicSetpoints) -> CyclicActuals:
         """The SYNC producer's side of the lockstep handshake (docs/timing.md §7): per tick n the
