@@ -174,3 +174,27 @@ def test_command_line_gains_merge_over_the_file_table(tmp_path: Path) -> None:
     (tmp_path / "exp.toml").write_text("[gains]\nalpha = 2.0\nld_norm = 0.1\n")
     cfg = build_config(tmp_path / "exp.toml", {"gains": {"lp_norm": 0.002}})
     assert (cfg.gains.alpha, cfg.gains.ld_norm, cfg.gains.lp_norm) == (2.0, 0.1, 0.002)
+
+
+@pytest.mark.parametrize("argv", [
+    ["--lead", "600"],
+    ["--lp", "1e12"],
+    ["--cycle", "10"],
+    ["--path", "/nonexistent.toml"],
+])
+def test_cheap_refusals_come_before_planning(tmp_path: Path, argv: list[str]) -> None:
+    """These are refused before the trajectory is planned and the learning law is built: in a
+    fresh interpreter scipy.signal (about 1 s to import, needed by the laws) was never imported."""
+    import sys
+
+    code = (
+        "import sys\n"
+        "from host.cli import main\n"
+        f"code = main({['sim', *argv, '--out', str(tmp_path / 'o')]!r})\n"
+        "print(code, 'scipy.signal' in sys.modules)\n"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                         cwd=Path(__file__).resolve().parent.parent)
+    assert res.stdout.split() == ["2", "False"], (res.stdout, res.stderr)
+    assert res.stderr.startswith("ilcrig: error: ") and len(res.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "o").exists()

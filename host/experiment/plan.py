@@ -102,13 +102,26 @@ def preflight(cfg: ExperimentConfig) -> int:
     if cfg.gains.lead >= n:
         raise PlanError(f"--lead {cfg.gains.lead}: the learning lead must be less than N = {n} samples per trial "
                         f"(0..{n - 1})")
+    g = cfg.gains
+    if g.lp is not None or g.ld is not None:
+        # absolute learning gains fix the feedback gains without the inertia along the path: checked
+        # here, before the planning (normalised ones are checked once the inertia is known)
+        kp = np.full(4, (g.alpha - 1.0) * g.lp if g.lp is not None else 0.0)
+        kd = np.full(4, (g.beta - 1.0) * g.ld if g.ld is not None else 0.0)
+        with np.errstate(over="ignore", invalid="ignore"):
+            _check_gain_values(kp, kd)
     return n
 
 
 def _check_gain_range(gains: Gains) -> None:
     """The feedback gains must be representable in the drive's Q16 formats (bus.fixedpoint)."""
-    for what, values, top, option in (("Kp", gains.kp, fp.KP_MAX_NM_PER_RAD, "--alpha/--lp/--lp-norm"),
-                                      ("Kd", gains.kd, fp.KD_MAX_NMS_PER_RAD, "--beta/--ld/--ld-norm")):
+    _check_gain_values(gains.kp, gains.kd)
+
+
+def _check_gain_values(kp_nm_per_rad: Any, kd_nms_per_rad: Any) -> None:
+    """Per-joint Kp [N·m/rad] and Kd [N·m·s/rad] against the drive's fixed-point range."""
+    for what, values, top, option in (("Kp", kp_nm_per_rad, fp.KP_MAX_NM_PER_RAD, "--alpha/--lp/--lp-norm"),
+                                      ("Kd", kd_nms_per_rad, fp.KD_MAX_NMS_PER_RAD, "--beta/--ld/--ld-norm")):
         unit = "N·m/rad" if what == "Kp" else "N·m·s/rad"
         for j, v in enumerate(np.asarray(values, dtype=float)):
             if not math.isfinite(v) or not 0.0 <= v <= top:

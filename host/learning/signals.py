@@ -10,16 +10,24 @@ transposes of the same linear maps (tests compare both with dense matrices on sm
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy import signal
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["lead", "lead_t", "backward_difference", "backward_difference_t", "ZeroPhaseFilter"]
 
 Array = npt.NDArray[np.float64]
+
+
+def _scipy_signal() -> Any:
+    """``scipy.signal``, imported on first use: it takes about 1 s to import, and a bad input must
+    be refused before that (the CLI's checks import this module)."""
+    from scipy import signal
+
+    return signal
 
 
 def backward_difference(x: Array, ts_s: float) -> Array:
@@ -77,6 +85,7 @@ class ZeroPhaseFilter:
         if order < 1:
             raise ValueError(f"Q-filter order must be >= 1, got {order}")
         self.cutoff_hz, self.order, self.ts_s = float(cutoff_hz), int(order), float(ts_s)
+        signal = _scipy_signal()
         self.b, self.a = signal.butter(order, cutoff_hz / nyq_hz)
         self._zi = signal.lfilter_zi(self.b, self.a)
         self._free: dict[int, Array] = {}
@@ -86,6 +95,7 @@ class ZeroPhaseFilter:
 
     def __call__(self, x: Array) -> Array:
         """Q x along axis 0 (what the laws apply)."""
+        signal = _scipy_signal()
         return np.asarray(signal.filtfilt(self.b, self.a, x, axis=0, padtype="odd", padlen=self.padlen(x.shape[0])))
 
     # -- transpose ------------------------------------------------------------------------------
@@ -93,12 +103,12 @@ class ZeroPhaseFilter:
     def _free_response(self, n: int) -> Array:
         """Response of one pass to the initial state ``zi`` with zero input (length n)."""
         if n not in self._free:
-            self._free[n] = signal.lfilter(self.b, self.a, np.zeros(n), zi=self._zi)[0]
+            self._free[n] = _scipy_signal().lfilter(self.b, self.a, np.zeros(n), zi=self._zi)[0]
         return self._free[n]
 
     def _pass_t(self, w: Array) -> Array:
         """Transpose of one pass y = lfilter(b, a, v, zi=zi·v[0]) (along axis 0)."""
-        out = signal.lfilter(self.b, self.a, w[::-1], axis=0)[::-1]
+        out = _scipy_signal().lfilter(self.b, self.a, w[::-1], axis=0)[::-1]
         out[0] += self._free_response(w.shape[0]) @ w
         return np.asarray(out)
 
