@@ -65,11 +65,10 @@ class InProcessBench:
                   cyclic: CyclicSetpoints | None = None) -> CyclicActuals | None:
         if cyclic is not None:
             return self._run_cyclic_trial(trial, n_ticks, q0, qd0, cyclic)
-        dist = disturbance_torque(self.cfg.disturbance, self.cfg.seed, trial, n_ticks, self.cfg.ts_s)
-        plant, fws = self.plant, self.firmware
-        plant.reset(q0, qd0)
+        dist = self._begin(trial, n_ticks, q0, qd0)
+        plant = self.plant
         tau = np.zeros(4, dtype=np.int64)
-        ticks = [fw.io_tick for fw in fws]
+        ticks = [fw.io_tick for fw in self.firmware]
         n = 0
         try:
             for n in range(n_ticks):
@@ -81,15 +80,28 @@ class InProcessBench:
                 tau[3] = ticks[3](n, int(c[3]))
                 plant.step(tau, dist[n])
         except PlantError as exc:
-            self._collect_emcy(trial)
-            msg = f"plant error at tick {n} of trial {trial}: {exc}"
-            raise TrialFault(msg, FaultRecord(kind=FaultKind.PLANT_ERROR, message=msg, node="plant", trial=trial,
-                                              tick=n, detected_by="plant")) from exc
+            raise self._plant_fault(trial, n, exc) from exc
+        self._end(trial)
+        return None
+
+    def _begin(self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray) -> np.ndarray:
+        """Reset the plant to (q0 [rad], qd0 [rad/s]); the trial's disturbance torque (N, 4) [N·m]."""
+        self.plant.reset(q0, qd0)
+        return disturbance_torque(self.cfg.disturbance, self.cfg.seed, trial, n_ticks, self.cfg.ts_s)
+
+    def _plant_fault(self, trial: int, n: int, exc: PlantError) -> TrialFault:
+        """The trial's fault for a plant error at tick ``n`` (the drives' EMCYs are collected)."""
+        self._collect_emcy(trial)
+        msg = f"plant error at tick {n} of trial {trial}: {exc}"
+        return TrialFault(msg, FaultRecord(kind=FaultKind.PLANT_ERROR, message=msg, node="plant", trial=trial,
+                                           tick=n, detected_by="plant"))
+
+    def _end(self, trial: int) -> None:
+        """After the last tick: an EMCY of the trial is its fault."""
         self._tick = None
         faults = self._collect_emcy(trial)
         if faults:
             raise self._emcy_fault(trial, faults)
-        return None
 
     def _emcy_fault(self, trial: int, faults: list[dict[str, Any]]) -> TrialFault:
         """The trial's fault for the EMCYs ``faults`` (the first names node and tick)."""
@@ -105,9 +117,8 @@ class InProcessBench:
     def _run_cyclic_trial(self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray,
                           cyclic: CyclicSetpoints) -> CyclicActuals:
         """The rig's per-tick SYNC/PDO handshake without frames: RPDO1 bytes, SYNC, io tick, TPDO1."""
-        dist = disturbance_torque(self.cfg.disturbance, self.cfg.seed, trial, n_ticks, self.cfg.ts_s)
+        dist = self._begin(trial, n_ticks, q0, qd0)
         plant, fws = self.plant, self.firmware
-        plant.reset(q0, qd0)
         tau = np.zeros(4, dtype=np.int64)
         pos = np.zeros((n_ticks, 4), dtype=np.int64)
         torque = np.zeros((n_ticks, 4), dtype=np.int64)
@@ -130,14 +141,8 @@ class InProcessBench:
                             pos[n, j], torque[n, j] = decode_tpdo(data)
                 plant.step(tau, dist[n])
         except PlantError as exc:
-            self._collect_emcy(trial)
-            msg = f"plant error at tick {n} of trial {trial}: {exc}"
-            raise TrialFault(msg, FaultRecord(kind=FaultKind.PLANT_ERROR, message=msg, node="plant", trial=trial,
-                                              tick=n, detected_by="plant")) from exc
-        self._tick = None
-        faults = self._collect_emcy(trial)
-        if faults:
-            raise self._emcy_fault(trial, faults)
+            raise self._plant_fault(trial, n, exc) from exc
+        self._end(trial)
         return CyclicActuals(pos, torque)
 
     def _collect_emcy(self, trial: int) -> list[dict[str, Any]]:
