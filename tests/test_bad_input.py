@@ -10,20 +10,11 @@ import subprocess
 from pathlib import Path
 
 import pytest
+from cli_util import run_cli
 
-from host.cli import main
 from host.experiment import plan as plan_mod
 from host.experiment.config import MAX_ITERATIONS, build_config
 from host.rig import launcher
-
-
-def run_cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
-    try:
-        code = main(list(argv))
-    except SystemExit as exc:  # argparse's own errors
-        code = int(exc.code or 0)
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def assert_refused(code: int, err: str, *fragments: str) -> str:

@@ -8,22 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_util import run_cli
 
 from bus import units
-from host.cli import main
 from host.experiment.config import build_config
 from host.experiment.inprocess import InProcessBench
 from host.experiment.loop import run_experiment
 from host.experiment.plan import prepare
-
-
-def run_cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
-    try:
-        code = main(list(argv))
-    except SystemExit as exc:  # argparse's own errors
-        code = int(exc.code or 0)
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def assert_one_line_error(code: int, err: str, fragment: str) -> None:

@@ -54,21 +54,6 @@ def run_rig(cmd: list[str], timeout_s: float = 300.0) -> subprocess.CompletedPro
     return subprocess.CompletedProcess(cmd, proc.returncode, out, err)
 
 
-def no_process_left(session_pid: int) -> bool:
-    """True when no process of the launcher's session is alive any more."""
-    for d in Path("/proc").iterdir():
-        if not d.name.isdigit():
-            continue
-        try:
-            stat = (d / "stat").read_text()
-        except OSError:
-            continue
-        fields = stat.rsplit(")", 1)[1].split()
-        if int(fields[3]) == session_pid and fields[0] != "Z":  # fields[3] = session id
-            return False
-    return True
-
-
 def check_run(res: subprocess.CompletedProcess[str], out: Path, digest: str, transport: str) -> dict:
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     s = json.loads((out / "summary.json").read_text())
