@@ -1,6 +1,6 @@
 """Optional capabilities of a python-can bus beyond :class:`can.BusABC`, and how callers use them.
 
-This module owns the three documented extras a transport may offer on top of python-can's
+This module owns the four documented extras a transport may offer on top of python-can's
 ``BusABC`` (which stays the interface of every transport); callers use an extra only when the
 bus declares it — an ``isinstance`` check against the :class:`typing.Protocol` below, done once
 when the caller is built — and fall back to plain ``BusABC`` calls otherwise:
@@ -13,6 +13,10 @@ when the caller is built — and fall back to plain ``BusABC`` calls otherwise:
   call into a local queue, so a frame may be waiting although ``fileno()`` is not readable. A
   ``select()``-based caller must not wait while ``frames_pending()`` is true
   (:func:`pending_check` gives it a cheap callable, always False for a bus without a queue).
+* :class:`BatchReceiver` — ``recv_batch()``: every frame waiting now, at most one read of the
+  socket, no waiting: a ``select()``-based caller takes all the frames of one readiness in one
+  call instead of one :meth:`can.BusABC.recv` per frame and a last one that finds nothing.
+  :func:`batch_receiver` returns ``recv_batch`` or a loop over ``recv(0)``.
 * :class:`FrameArrayReceiver` — ``recv_frames(timeout)``: every frame waiting, as one numpy
   array of :data:`FRAME_DTYPE` (one row per frame, in order), without building a
   :class:`can.Message` per frame; for a reader that looks at every frame of a busy channel (the
@@ -34,7 +38,7 @@ from bus.fastmsg import new_message
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["FRAME_DTYPE", "BatchSender", "BufferedReceiver", "FrameArrayReceiver", "batch_sender", "frame_bits",
+__all__ = ["FRAME_DTYPE", "BatchReceiver", "BatchSender", "BufferedReceiver", "FrameArrayReceiver", "batch_receiver", "batch_sender", "frame_bits",
            "frames_from_messages", "load_of", "messages_from_frames", "pending_check",
            "recv_waiting"]
 
@@ -83,6 +87,32 @@ def batch_sender(bus: can.BusABC) -> Callable[[Sequence[can.Message]], None]:
             bus.send(msg)
 
     return send_each
+
+
+@runtime_checkable
+class BatchReceiver(Protocol):
+    """A bus that returns every frame waiting at once."""
+
+    def recv_batch(self) -> list[can.Message]:
+        """Every frame waiting now (filtered as :meth:`can.BusABC.recv` filters), in order, after
+        at most one non-blocking read; an empty list when none is there. Frames that arrive
+        later make the bus readable (or :meth:`BufferedReceiver.frames_pending` true) again.
+
+        :raises can.CanOperationError: as :meth:`can.BusABC.recv`
+        """
+        ...
+
+
+def batch_receiver(bus: can.BusABC) -> Callable[[], list[can.Message]]:
+    """``bus.recv_batch`` when ``bus`` is a :class:`BatchReceiver`, else a callable that calls
+    ``bus.recv(0)`` until it returns None."""
+    if isinstance(bus, BatchReceiver):
+        return bus.recv_batch
+
+    def recv_each() -> list[can.Message]:
+        return recv_waiting(bus, 0)
+
+    return recv_each
 
 
 def _never() -> bool:

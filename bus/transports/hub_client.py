@@ -342,6 +342,31 @@ class HubBus(can.BusABC):
             off = end
         self._rxbuf = bytearray(data[off:]) if off < size else bytearray()
 
+    def recv_batch(self) -> list[can.Message]:
+        """Every frame waiting now, in order (:class:`bus.bus_features.BatchReceiver`): the local
+        queue, or what one non-blocking read of the socket brings; never waits.
+
+        :raises can.CanOperationError: as :meth:`recv`
+        """
+        if self._closed:
+            raise can.CanOperationError(_CLOSED)
+        rxq = self._rxq
+        if not rxq:
+            try:
+                self._fill(block=False)
+            except (OSError, ValueError) as err:
+                if self._closed:
+                    raise can.CanOperationError(_CLOSED) from err
+                raise can.CanOperationError(f"hub receive failed: {err}") from err
+            if not rxq:
+                return []
+        msgs = list(rxq)
+        rxq.clear()
+        if self._filters is not None:  # the hub filtered too, but maybe with filters set before
+            matches = self._matches_filters
+            msgs = [m for m in msgs if matches(m)]
+        return msgs
+
     def recv_frames(self, timeout: float | None = None) -> np.ndarray:
         """Every frame waiting, as one array of :data:`bus.bus_features.FRAME_DTYPE`
         (:class:`bus.bus_features.FrameArrayReceiver`): the frames already in the local queue, then
