@@ -38,9 +38,9 @@ from bus.fastmsg import new_message
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["FRAME_DTYPE", "BatchReceiver", "BatchSender", "BufferedReceiver", "FrameArrayReceiver", "batch_receiver", "batch_sender", "frame_bits",
-           "frames_from_messages", "load_of", "messages_from_frames", "pending_check",
-           "recv_waiting"]
+__all__ = ["FRAME_DTYPE", "BatchReceiver", "BatchSender", "BufferedReceiver", "FrameArrayReceiver",
+           "batch_receiver", "batch_sender", "frame_bits", "frames_from_messages", "load_of",
+           "messages_from_frames", "pending_check", "recv_waiting"]
 
 #: one frame per row (:class:`FrameArrayReceiver`): receive time (s, as ``Message.timestamp``),
 #: identifier, flag bits (``FRAME_*``), DLC, number of data bytes, the data (zero padded)

@@ -153,7 +153,10 @@ class IoTickCounter:
         self.frames += len(idx)
         data = frames["data"][idx]
         ticks = data[:, 4].astype(np.int64) | data[:, 5].astype(np.int64) << 8
-        starts = np.flatnonzero(np.r_[True, ticks[1:] != ticks[:-1]])
+        change = np.empty(len(ticks), dtype=bool)
+        change[0] = True
+        np.not_equal(ticks[1:], ticks[:-1], out=change[1:])
+        starts = np.flatnonzero(change)
         for tick, run_bits in zip(ticks[starts].tolist(), np.add.reduceat(bits[idx], starts).tolist(), strict=True):
             self._add_tick(tick, run_bits)
 

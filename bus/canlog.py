@@ -35,6 +35,11 @@ logger = logging.getLogger(__name__)
 #: most digits of the seconds in a line written with numpy (:meth:`ChannelLog.write_frames`)
 _SEC_DIGITS = 12
 _HEX = np.frombuffer(b"0123456789ABCDEF", dtype=np.uint8)
+_SEC_POW = 10 ** np.arange(_SEC_DIGITS - 1, -1, -1, dtype=np.int64)
+_SEC_LAST = np.arange(_SEC_DIGITS) == _SEC_DIGITS - 1
+_USEC_POW = 10 ** np.arange(5, -1, -1, dtype=np.int64)
+_ID_SHIFT = np.array([8, 4, 0], dtype=np.uint32)
+_BYTE_INDEX = np.arange(8)
 
 
 class CanLogError(ValueError):
@@ -93,26 +98,21 @@ class ChannelLog(can.Listener):
         sec_i = sec.astype(np.int64) + (usec // 1_000_000)
         usec %= 1_000_000
         head = f") {self._log_channel} ".encode()
-        width = 1 + _SEC_DIGITS + 7 + len(head) + 4 + 16 + 3
-        rows = np.zeros((n, width), dtype=np.uint8)
+        rows = np.empty((n, _SEC_DIGITS + 8 + len(head) + 4 + 16 + 3), dtype=np.uint8)
         rows[:, 0] = ord("(")
-        for k in range(_SEC_DIGITS):  # seconds without leading zeros, at least one digit
-            p10 = 10 ** k
-            rows[:, _SEC_DIGITS - k] = np.where((sec_i >= p10) | (k == 0), 48 + (sec_i // p10) % 10, 0)
-        col = 1 + _SEC_DIGITS
+        col = 1 + _SEC_DIGITS  # the seconds without leading zeros (at least one digit)
+        sec_col = sec_i[:, None]
+        rows[:, 1:col] = np.where((sec_col >= _SEC_POW) | _SEC_LAST, 48 + sec_col // _SEC_POW % 10, 0)
         rows[:, col] = ord(".")
-        for k in range(6):
-            rows[:, col + 6 - k] = 48 + (usec // 10 ** k) % 10
+        rows[:, col + 1:col + 7] = 48 + usec[:, None] // _USEC_POW % 10
         col += 7
         rows[:, col:col + len(head)] = np.frombuffer(head, dtype=np.uint8)
         col += len(head)
-        cob = frames["arbitration_id"]
-        for k in range(3):
-            rows[:, col + 2 - k] = _HEX[(cob >> (4 * k)) & 0xF]
+        rows[:, col:col + 3] = _HEX[frames["arbitration_id"][:, None] >> _ID_SHIFT & 0xF]
         rows[:, col + 3] = ord("#")
         col += 4
         data = frames["data"][:, :8]
-        shown = np.arange(8) < frames["length"][:, None]
+        shown = _BYTE_INDEX < frames["length"][:, None]
         rows[:, col:col + 16:2] = np.where(shown, _HEX[data >> 4], 0)
         rows[:, col + 1:col + 16:2] = np.where(shown, _HEX[data & 0xF], 0)
         col += 16

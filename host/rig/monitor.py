@@ -15,7 +15,8 @@ Reading in bulk
     for the cores; its thread also runs at a lower priority (nice + :attr:`ChannelMonitor.NICE_INCREMENT`).
     Where the bus returns the waiting frames as one array (:class:`bus.bus_features.FrameArrayReceiver`,
     the hub) and the classifier takes arrays (``classify_frames``), a round is counted, classified and
-    logged with numpy, without a Python step (nor a :class:`can.Message`) per frame.
+    logged with numpy, without a Python step (nor a :class:`can.Message`) per frame, and the
+    pause between rounds is longer (:attr:`ChannelMonitor.FRAMES_ROUND_S`): more frames per round.
     :meth:`ChannelMonitor.catch_up` waits until everything sent before the call
     has been processed (the summary reads the counters after it).
 """
@@ -58,6 +59,8 @@ class ChannelMonitor:
 
     #: pause between two reading rounds, s
     ROUND_S: float = 0.02
+    #: the pause when a round is read as arrays: their cost is mostly per round, not per frame
+    FRAMES_ROUND_S: float = 0.1
     #: longest blocking wait for a frame, s (bounds the reaction to :meth:`close`)
     WAIT_S: float = 0.1
     #: the reading thread's nice increment: nobody waits for a monitor, so it yields the cores
@@ -102,7 +105,7 @@ class ChannelMonitor:
                     self._rounds += 1
                     self._round_done.notify_all()
                 if self.bulk and len(batch) and not self._kick.is_set():
-                    self._kick.wait(self.ROUND_S)
+                    self._kick.wait(self.ROUND_S if self._recv_frames is None else self.FRAMES_ROUND_S)
         except can.CanOperationError as err:
             if not self._stop.is_set():
                 self.error = err
