@@ -61,7 +61,11 @@ Reading
     may be waiting although :meth:`HubBus.fileno` is not readable: a caller that waits with
     ``select()`` over several buses must first ask :meth:`HubBus.frames_pending` (the documented extra of
     :class:`bus.bus_features.BufferedReceiver`; :func:`bus.bus_features.pending_check`).
-    Blocking client sockets + ``select``, no sleeps.
+    :meth:`HubBus.recv_batch` (:class:`bus.bus_features.BatchReceiver`) returns every frame
+    waiting after at most one non-blocking read; :meth:`HubBus.recv_frames`
+    (:class:`bus.bus_features.FrameArrayReceiver`) returns them as one numpy array
+    (:data:`bus.bus_features.FRAME_DTYPE`), classic frames straight from the records, without a
+    :class:`can.Message` each. Blocking client sockets + ``select``, no sleeps.
 
 Sending several frames
     :meth:`HubBus.send_batch` (:class:`bus.bus_features.BatchSender`) writes several frames
