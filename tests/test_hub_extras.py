@@ -18,9 +18,11 @@ import pytest
 from bus import io_frames
 from bus.bus_features import (
     FRAME_DTYPE,
+    BatchReceiver,
     BatchSender,
     BufferedReceiver,
     FrameArrayReceiver,
+    batch_receiver,
     batch_sender,
     frames_from_messages,
     load_of,
@@ -196,3 +198,32 @@ def test_load_of_counts_as_the_counter_does_one_by_one() -> None:
     for m in msgs:
         one_by_one.add(m)
     assert load_of(frames_from_messages(msgs)) == one_by_one
+
+
+def test_recv_batch_takes_every_frame_of_one_read_and_filters_in_software_too() -> None:
+    with start_hub() as hub, HubBus(hub.channel("r")) as tx, HubBus(hub.channel("r")) as rx:
+        assert isinstance(rx, BatchReceiver) and batch_receiver(rx) == rx.recv_batch
+        assert rx.recv_batch() == []  # nothing waiting: no wait
+        tx.send_batch(frames(3))
+        assert wait_until(lambda: bool(select.select([rx.fileno()], [], [], 0)[0]))
+        assert [m.arbitration_id for m in rx.recv_batch()] == [0x100, 0x101, 0x102]
+        assert not rx.frames_pending() and rx.recv_batch() == []
+        tx.send_batch(frames(3))
+        first = rx.recv(2.0)  # the rest waits in the queue, read before the new filters
+        assert first is not None
+        rx.set_filters([{"can_id": 0x102, "can_mask": 0x7FF, "extended": False}])
+        assert [m.arbitration_id for m in rx.recv_batch()] == [0x102]
+
+
+def test_batch_receiver_of_a_plain_bus_reads_until_nothing_is_left() -> None:
+    bus = can.Bus(interface="virtual", channel="batch-fallback")
+    peer = can.Bus(interface="virtual", channel="batch-fallback")
+    try:
+        assert not isinstance(bus, BatchReceiver)
+        for msg in frames(2):
+            peer.send(msg)
+        assert [m.arbitration_id for m in batch_receiver(bus)()] == [0x100, 0x101]
+        assert batch_receiver(bus)() == []
+    finally:
+        bus.shutdown()
+        peer.shutdown()
