@@ -1,6 +1,6 @@
 """Optional capabilities of a python-can bus beyond :class:`can.BusABC`, and how callers use them.
 
-This module owns the two documented extras a transport may offer on top of python-can's
+This module owns the four documented extras a transport may offer on top of python-can's
 ``BusABC`` (which stays the interface of every transport); callers use an extra only when the
 bus declares it — an ``isinstance`` check against the :class:`typing.Protocol` below, done once
 when the caller is built — and fall back to plain ``BusABC`` calls otherwise:
@@ -13,6 +13,15 @@ when the caller is built — and fall back to plain ``BusABC`` calls otherwise:
   call into a local queue, so a frame may be waiting although ``fileno()`` is not readable. A
   ``select()``-based caller must not wait while ``frames_pending()`` is true
   (:func:`pending_check` gives it a cheap callable, always False for a bus without a queue).
+* :class:`BatchReceiver` — ``recv_batch()``: every frame waiting now, at most one read of the
+  socket, no waiting: a ``select()``-based caller takes all the frames of one readiness in one
+  call instead of one :meth:`can.BusABC.recv` per frame and a last one that finds nothing.
+  :func:`batch_receiver` returns ``recv_batch`` or a loop over ``recv(0)``.
+* :class:`FrameArrayReceiver` — ``recv_frames(timeout)``: every frame waiting, as one numpy
+  array of :data:`FRAME_DTYPE` (one row per frame, in order), without building a
+  :class:`can.Message` per frame; for a reader that looks at every frame of a busy channel (the
+  host's io monitor). :func:`frames_from_messages` and :func:`messages_from_frames` convert;
+  :func:`frame_bits` and :func:`load_of` give the frames' classic-CAN bit lengths and totals.
 """
 
 from __future__ import annotations
@@ -22,10 +31,29 @@ from collections.abc import Callable, Sequence
 from typing import Protocol, runtime_checkable
 
 import can
+import numpy as np
+
+from bus.busload import BusLoadCounter, bits_lookup
+from bus.fastmsg import new_message
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["BatchSender", "BufferedReceiver", "batch_sender", "pending_check"]
+__all__ = ["FRAME_DTYPE", "BatchReceiver", "BatchSender", "BufferedReceiver", "FrameArrayReceiver",
+           "batch_receiver", "batch_sender", "frame_bits", "frames_from_messages", "load_of",
+           "messages_from_frames", "pending_check", "recv_waiting"]
+
+#: one frame per row (:class:`FrameArrayReceiver`): receive time (s, as ``Message.timestamp``),
+#: identifier, flag bits (``FRAME_*``), DLC, number of data bytes, the data (zero padded)
+FRAME_DTYPE = np.dtype([("timestamp", "<f8"), ("arbitration_id", "<u4"), ("flags", "u1"), ("dlc", "u1"),
+                        ("length", "u1"), ("data", "u1", (64,))])
+FRAME_EXT = 0x01
+FRAME_RTR = 0x02
+FRAME_ERR = 0x04
+FRAME_FD = 0x08
+FRAME_BRS = 0x10
+FRAME_ESI = 0x20
+#: the frame was sent by this bus (``Message.is_rx`` False)
+FRAME_TX = 0x40
 
 
 @runtime_checkable
@@ -61,6 +89,32 @@ def batch_sender(bus: can.BusABC) -> Callable[[Sequence[can.Message]], None]:
     return send_each
 
 
+@runtime_checkable
+class BatchReceiver(Protocol):
+    """A bus that returns every frame waiting at once."""
+
+    def recv_batch(self) -> list[can.Message]:
+        """Every frame waiting now (filtered as :meth:`can.BusABC.recv` filters), in order, after
+        at most one non-blocking read; an empty list when none is there. Frames that arrive
+        later make the bus readable (or :meth:`BufferedReceiver.frames_pending` true) again.
+
+        :raises can.CanOperationError: as :meth:`can.BusABC.recv`
+        """
+        ...
+
+
+def batch_receiver(bus: can.BusABC) -> Callable[[], list[can.Message]]:
+    """``bus.recv_batch`` when ``bus`` is a :class:`BatchReceiver`, else a callable that calls
+    ``bus.recv(0)`` until it returns None."""
+    if isinstance(bus, BatchReceiver):
+        return bus.recv_batch
+
+    def recv_each() -> list[can.Message]:
+        return recv_waiting(bus, 0)
+
+    return recv_each
+
+
 def _never() -> bool:
     return False
 
@@ -71,3 +125,80 @@ def pending_check(bus: can.BusABC) -> Callable[[], bool]:
     if isinstance(bus, BufferedReceiver):
         return bus.frames_pending
     return _never
+
+
+@runtime_checkable
+class FrameArrayReceiver(Protocol):
+    """A bus that returns every waiting frame at once, as an array of :data:`FRAME_DTYPE`."""
+
+    def recv_frames(self, timeout: float | None = None) -> np.ndarray:
+        """Every frame waiting (filtered as :meth:`can.BusABC.recv` filters), in order; waits up to
+        ``timeout`` s (None: forever) for the first. An empty array when none came.
+
+        :raises can.CanOperationError: as :meth:`can.BusABC.recv`
+        """
+        ...
+
+
+def frames_from_messages(msgs: Sequence[can.Message]) -> np.ndarray:
+    """``msgs`` as an array of :data:`FRAME_DTYPE`."""
+    out = np.zeros(len(msgs), dtype=FRAME_DTYPE)
+    for i, msg in enumerate(msgs):
+        data = b"" if msg.is_remote_frame else bytes(msg.data)
+        row = out[i]
+        row["timestamp"] = msg.timestamp
+        row["arbitration_id"] = msg.arbitration_id
+        row["flags"] = ((FRAME_EXT if msg.is_extended_id else 0) | (FRAME_RTR if msg.is_remote_frame else 0)
+                        | (FRAME_ERR if msg.is_error_frame else 0) | (FRAME_FD if msg.is_fd else 0)
+                        | (FRAME_BRS if msg.bitrate_switch else 0) | (FRAME_ESI if msg.error_state_indicator else 0)
+                        | (0 if msg.is_rx else FRAME_TX))
+        row["dlc"] = msg.dlc
+        row["length"] = len(data)
+        row["data"][:len(data)] = np.frombuffer(data, dtype=np.uint8)
+    return out
+
+
+def messages_from_frames(frames: np.ndarray, channel: str | None = None) -> list[can.Message]:
+    """The rows of ``frames`` (:data:`FRAME_DTYPE`) as :class:`can.Message` objects on ``channel``."""
+    out = []
+    for ts, can_id, flags, dlc, length, data in frames.tolist():
+        out.append(new_message(can_id, bytearray(data[:length]), timestamp=ts, is_extended_id=bool(flags & FRAME_EXT),
+                               is_remote_frame=bool(flags & FRAME_RTR), is_error_frame=bool(flags & FRAME_ERR),
+                               channel=channel, dlc=dlc, is_fd=bool(flags & FRAME_FD), is_rx=not flags & FRAME_TX,
+                               bitrate_switch=bool(flags & FRAME_BRS), error_state_indicator=bool(flags & FRAME_ESI)))
+    return out
+
+
+def load_of(frames: np.ndarray) -> BusLoadCounter:
+    """The frames and bits of ``frames`` as :meth:`BusLoadCounter.add` counts them one by one
+    (error frames ignored, CAN FD frames only counted)."""
+    classic, nominal, worst = frame_bits(frames)
+    fd = (frames["flags"] & (FRAME_ERR | FRAME_FD)) == FRAME_FD
+    return BusLoadCounter(int(classic.sum()), int(nominal.sum()), int(worst.sum()), int(fd.sum()))
+
+
+def recv_waiting(bus: can.BusABC, timeout: float | None) -> list[can.Message]:
+    """:meth:`can.BusABC.recv` waiting up to ``timeout`` s for the first frame, then every frame
+    already waiting (``recv(0)`` until None)."""
+    msgs = []
+    msg = bus.recv(timeout)
+    while msg is not None:
+        msgs.append(msg)
+        msg = bus.recv(0)
+    return msgs
+
+
+#: (nominal, worst-case) bits of a classic frame by [extended, data bytes]
+_BITS = np.array([[bits_lookup(n, ext) for n in range(9)] for ext in (False, True)], dtype=np.int64)
+
+
+def frame_bits(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(classic, nominal bits, worst-case bits) of every row of ``frames``: ``classic`` is False for
+    error and CAN FD frames, whose bits are 0 (not modelled, as in :mod:`bus.busload`)."""
+    flags = frames["flags"]
+    classic = (flags & (FRAME_ERR | FRAME_FD)) == 0
+    n = np.where(flags & FRAME_RTR, 0, np.minimum(frames["length"], 8))
+    bits = _BITS[(flags & FRAME_EXT).astype(bool).astype(np.intp), n]
+    nominal = np.where(classic, bits[:, 0], 0)
+    worst = np.where(classic, bits[:, 1], 0)
+    return classic, nominal, worst

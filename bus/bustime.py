@@ -9,7 +9,8 @@ traffic the experiment defines.
 
 * :class:`IoTickCounter` — the io channel: bits per control period, binned by the tick counter
   every encoder and torque frame carries (:mod:`bus.io_frames`); control frames (trial
-  start/stop) are counted apart, per trial.
+  start/stop) are counted apart, per trial. Frames come one by one (``add``) or many at once
+  as an array (``add_frames``, :data:`bus.bus_features.FRAME_DTYPE`), with the same result.
 * :class:`SdoTransferCounter` — the fieldbus: every frame on a node's SDO COB-IDs belongs to the
   transfer (node, index, sub-index, upload/download) opened by the last initiate request on that
   node's request COB-ID (block-download data segments are recognised as such), and the transfers
@@ -27,7 +28,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import can
+import numpy as np
 
+from bus.bus_features import FRAME_EXT, frame_bits
 from bus.busload import DEFAULT_BITRATE_BPS, bits_lookup
 from bus.io_frames import CONTROL_COB_ID, ENCODER_COB_BASE, N_JOINTS, TORQUE_COB_BASE, tick_diff
 
@@ -116,21 +119,57 @@ class IoTickCounter:
         data = msg.data
         if not msg.is_extended_id and len(data) >= 6 and (
                 0 <= cob - ENCODER_COB_BASE < N_JOINTS or 0 <= cob - TORQUE_COB_BASE < N_JOINTS):
-            tick = data[4] | data[5] << 8
             self.frames += 1
-            if tick in self._open:
-                self._open[tick] += bits
-                return
-            self._open[tick] = bits
-            stale = [t for t in self._open if tick_diff(tick, t) > self.WINDOW]
-            for t in stale:
-                self._close_bin(t)
+            self._add_tick(data[4] | data[5] << 8, bits)
         elif cob == CONTROL_COB_ID and not msg.is_extended_id:
             self.control_frames += 1
             self.control_bits += bits
         else:
             self.other_frames += 1
             self.other_bits += bits
+
+    def add_frames(self, frames: np.ndarray) -> None:
+        """Count the rows of ``frames`` (:data:`bus.bus_features.FRAME_DTYPE`, in the order seen)
+        exactly as :meth:`add` counts them one by one, with numpy: the frames of one tick that
+        follow each other are added to its bin at once."""
+        if not len(frames):
+            return
+        _, nominal, worst = frame_bits(frames)
+        bits = worst if self.worst_case else nominal
+        cob = frames["arbitration_id"].astype(np.int64)
+        std = (frames["flags"] & FRAME_EXT) == 0
+        in_tick = std & (frames["length"] >= 6) & (
+            ((cob >= ENCODER_COB_BASE) & (cob < ENCODER_COB_BASE + N_JOINTS))
+            | ((cob >= TORQUE_COB_BASE) & (cob < TORQUE_COB_BASE + N_JOINTS)))
+        control = ~in_tick & std & (cob == CONTROL_COB_ID)
+        other = ~(in_tick | control)
+        self.control_frames += int(control.sum())
+        self.control_bits += int(bits[control].sum())
+        self.other_frames += int(other.sum())
+        self.other_bits += int(bits[other].sum())
+        idx = np.flatnonzero(in_tick)
+        if not len(idx):
+            return
+        self.frames += len(idx)
+        data = frames["data"][idx]
+        ticks = data[:, 4].astype(np.int64) | data[:, 5].astype(np.int64) << 8
+        change = np.empty(len(ticks), dtype=bool)
+        change[0] = True
+        np.not_equal(ticks[1:], ticks[:-1], out=change[1:])
+        starts = np.flatnonzero(change)
+        for tick, run_bits in zip(ticks[starts].tolist(), np.add.reduceat(bits[idx], starts).tolist(), strict=True):
+            self._add_tick(tick, run_bits)
+
+    def _add_tick(self, tick: int, bits: int) -> None:
+        """Add ``bits`` of frames of wire tick ``tick`` to its bin (opened if needed; bins more
+        than :attr:`WINDOW` ticks older are closed)."""
+        if tick in self._open:
+            self._open[tick] += bits
+            return
+        self._open[tick] = bits
+        stale = [t for t in self._open if tick_diff(tick, t) > self.WINDOW]
+        for t in stale:
+            self._close_bin(t)
 
     def _close_bin(self, tick: int) -> None:
         bits = self._open.pop(tick)

@@ -3,7 +3,8 @@
 This module owns how a run folder's channel logs are made (docs/architecture.md §7:
 candump-format logs of both channels): :func:`open_log` returns a :class:`ChannelLog`, a
 :class:`can.Listener` that writes every frame with :class:`can.CanutilsLogWriter` under a
-fixed channel name (``fieldbus``, ``io``), and :func:`read_log` reads a log back with
+fixed channel name (``fieldbus``, ``io``) — one by one, or many frames of an array at once
+(:meth:`ChannelLog.write_frames`, same lines) — and :func:`read_log` reads a log back with
 :class:`can.LogReader`.
 
 Line format (``candump -L`` plus python-can's direction column):
@@ -24,10 +25,21 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import can
+import numpy as np
 
+from bus.bus_features import FRAME_ERR, FRAME_EXT, FRAME_FD, FRAME_RTR, FRAME_TX, messages_from_frames
 from bus.fastmsg import new_message
 
 logger = logging.getLogger(__name__)
+
+#: most digits of the seconds in a line written with numpy (:meth:`ChannelLog.write_frames`)
+_SEC_DIGITS = 12
+_HEX = np.frombuffer(b"0123456789ABCDEF", dtype=np.uint8)
+_SEC_POW = 10 ** np.arange(_SEC_DIGITS - 1, -1, -1, dtype=np.int64)
+_SEC_LAST = np.arange(_SEC_DIGITS) == _SEC_DIGITS - 1
+_USEC_POW = 10 ** np.arange(5, -1, -1, dtype=np.int64)
+_ID_SHIFT = np.array([8, 4, 0], dtype=np.uint32)
+_BYTE_INDEX = np.arange(8)
 
 
 class CanLogError(ValueError):
@@ -52,6 +64,8 @@ class ChannelLog(can.Listener):
         self.frames = 0
         self._stopped = False
         self._writer = can.CanutilsLogWriter(self.path, channel=channel_name, append=append)
+        #: the channel column as the writer prints it (a number n becomes canN)
+        self._log_channel = f"can{channel_name}" if channel_name.isdigit() else channel_name
 
     def on_message_received(self, msg: can.Message) -> None:
         """Write one frame (its own channel attribute is replaced by ``channel_name``)."""
@@ -59,6 +73,54 @@ class ChannelLog(can.Listener):
             msg = _with_channel(msg, self.channel_name)
         self._writer.on_message_received(msg)
         self.frames += 1
+
+    def write_frames(self, frames: np.ndarray) -> None:
+        """Write the rows of ``frames`` (:data:`bus.bus_features.FRAME_DTYPE`, in order): the same
+        lines as :meth:`on_message_received` one by one, formatted with numpy for classic data
+        frames with 11-bit identifiers (the io channel), one by one otherwise."""
+        n = len(frames)
+        if not n:
+            return
+        writer = self._writer
+        ts = frames["timestamp"]
+        if writer.last_timestamp is None:
+            writer.last_timestamp = float(ts[0]) or 0.0
+        ts = np.maximum(ts, writer.last_timestamp)  # as the writer: never before the first frame
+        flags = frames["flags"]
+        if ((flags & (FRAME_EXT | FRAME_RTR | FRAME_ERR | FRAME_FD)).any() or (frames["length"] > 8).any()
+                or (frames["arbitration_id"] > 0x7FF).any() or not 0 <= ts.min() <= ts.max() < 1e12):
+            for msg in messages_from_frames(frames, self.channel_name):
+                self.on_message_received(msg)
+            return
+        # one padded row of bytes per line, zeros where a line is shorter; the zeros are dropped
+        sec = np.floor(ts)
+        usec = np.rint((ts - sec) * 1e6).astype(np.int64)
+        sec_i = sec.astype(np.int64) + (usec // 1_000_000)
+        usec %= 1_000_000
+        head = f") {self._log_channel} ".encode()
+        rows = np.empty((n, _SEC_DIGITS + 8 + len(head) + 4 + 16 + 3), dtype=np.uint8)
+        rows[:, 0] = ord("(")
+        col = 1 + _SEC_DIGITS  # the seconds without leading zeros (at least one digit)
+        sec_col = sec_i[:, None]
+        rows[:, 1:col] = np.where((sec_col >= _SEC_POW) | _SEC_LAST, 48 + sec_col // _SEC_POW % 10, 0)
+        rows[:, col] = ord(".")
+        rows[:, col + 1:col + 7] = 48 + usec[:, None] // _USEC_POW % 10
+        col += 7
+        rows[:, col:col + len(head)] = np.frombuffer(head, dtype=np.uint8)
+        col += len(head)
+        rows[:, col:col + 3] = _HEX[frames["arbitration_id"][:, None] >> _ID_SHIFT & 0xF]
+        rows[:, col + 3] = ord("#")
+        col += 4
+        data = frames["data"][:, :8]
+        shown = _BYTE_INDEX < frames["length"][:, None]
+        rows[:, col:col + 16:2] = np.where(shown, _HEX[data >> 4], 0)
+        rows[:, col + 1:col + 16:2] = np.where(shown, _HEX[data & 0xF], 0)
+        col += 16
+        rows[:, col] = ord(" ")
+        rows[:, col + 1] = np.where(flags & FRAME_TX, ord("T"), ord("R"))
+        rows[:, col + 2] = ord("\n")
+        writer.file.write(rows[rows != 0].tobytes().decode("ascii"))
+        self.frames += n
 
     def log_sent(self, msg: can.Message, timestamp: float) -> None:
         """Write a frame this process sent, with ``timestamp`` s (sent frames carry none)."""

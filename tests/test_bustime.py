@@ -9,6 +9,7 @@ import pytest
 
 from bus import io_frames
 from bus.bench_objects import DEFAULT_BENCH_NODE_ID, BenchObj
+from bus.bus_features import frames_from_messages
 from bus.bustime import IoTickCounter, SdoTransferCounter, TickBudget, bits_to_s, frame_bits_of
 from bus.objects import Obj
 from host.rig.bus_time import BusTimeAccounting, bus_time_lines, kind_of
@@ -144,3 +145,24 @@ def test_per_trial_exchange_follows_from_the_transfer_sizes_not_the_number_of_po
     lines = bus_time_lines(a)
     assert "does NOT fit: 460 bits over" in lines[0] and "500 kbit/s" in lines[0]
     assert "0.001 s per trial" in lines[1]
+
+
+def test_io_frames_counted_as_arrays_give_the_same_figures() -> None:
+    msgs = [io_frames.encode_control(io_frames.ControlCommand.TRIAL_START, 65_530, 30)]
+    for n in range(65_530, 65_530 + 30):  # wraps; the torque frames of a tick arrive late and mixed
+        tick = n & 0xFFFF
+        msgs += [io_frames.encode_encoder(j, tick, j) for j in range(4)]
+        msgs += [io_frames.encode_torque(j, (tick - (j % 2)) & 0xFFFF, 0, 0) for j in range(4)]
+    msgs += [io_frames.encode_torque(1, 65_531, 0, 0),  # a duplicate long after its tick: a bin of its own
+             frame(0x7FF, b"\x01"), frame(0x101, b"\x01\x02"),
+             io_frames.encode_control(io_frames.ControlCommand.TRIAL_STOP, 65_560, 30)]
+    one, many = IoTickCounter(), IoTickCounter()
+    for m in msgs:
+        one.add(m)
+    frames = frames_from_messages(msgs)
+    for part in (frames[:7], frames[7:8], frames[8:150], frames[150:150], frames[150:]):
+        many.add_frames(part)
+    one.close()
+    many.close()
+    assert vars(many) == vars(one)
+    assert one.ticks > 30

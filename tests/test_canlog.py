@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import random
 from pathlib import Path
 from typing import IO
 
 import can
 import pytest
 
+from bus.bus_features import frames_from_messages
 from bus.canlog import CanLogError, open_log, read_log
 from bus.io_frames import TorqueStatus, encode_encoder, encode_torque
 
@@ -147,3 +149,27 @@ def test_python_can_logger_records_a_hub_channel(tmp_path: Path) -> None:
     assert [(m.arbitration_id, bytes(m.data), m.channel) for m in back] == [
         (m.arbitration_id, bytes(m.data), channel) for m in sent
     ]
+
+
+def test_frames_written_as_arrays_give_the_same_lines(tmp_path: Path) -> None:
+    rng = random.Random(7)
+    msgs = _frames()
+    t = 1_795_403_351.3251324
+    for i in range(500):  # classic frames of every length, received and sent, some out of order
+        t += rng.random() * 1e-4
+        msgs.append(can.Message(timestamp=t - (10 if i == 3 else 0), arbitration_id=rng.choice([0, 0x10, 0x101, 0x7FF]),
+                                is_extended_id=False, is_rx=rng.random() < 0.8,
+                                data=bytes(rng.randrange(256) for _ in range(rng.randrange(9)))))
+    msgs.append(can.Message(timestamp=t + 1, arbitration_id=0x1, is_extended_id=False, data=b"\x01"))
+    one, many = tmp_path / "one.log", tmp_path / "many.log"
+    with open_log(one, "io") as log:
+        for m in msgs:
+            log(m)
+    frames = frames_from_messages(msgs)
+    with open_log(many, "io") as log:
+        log.write_frames(frames[:50])  # with the extended and remote frames: one by one
+        log.write_frames(frames[50:300])  # classic frames only: with numpy
+        log.write_frames(frames[300:])
+        log.write_frames(frames[:0])
+    assert log.frames == len(msgs)
+    assert many.read_text() == one.read_text()

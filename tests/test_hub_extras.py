@@ -12,10 +12,24 @@ import time
 from collections.abc import Callable
 
 import can
+import numpy as np
 import pytest
 
 from bus import io_frames
-from bus.bus_features import BatchSender, BufferedReceiver, batch_sender, pending_check
+from bus.bus_features import (
+    FRAME_DTYPE,
+    BatchReceiver,
+    BatchSender,
+    BufferedReceiver,
+    FrameArrayReceiver,
+    batch_receiver,
+    batch_sender,
+    frames_from_messages,
+    load_of,
+    messages_from_frames,
+    pending_check,
+)
+from bus.busload import BusLoadCounter
 from bus.transports.config import hub_transport
 from bus.transports.hub_client import HubBus
 from bus.transports.hub_server import start_hub
@@ -132,3 +146,84 @@ def test_drive_io_bus_gets_only_its_encoder_and_the_control_frames() -> None:
         finally:
             for bus in (fb, io, plant):
                 bus.shutdown()
+
+
+def _mixed_frames() -> list[can.Message]:
+    """Classic standard and extended data frames of every length, a remote frame and an FD frame."""
+    out = [can.Message(arbitration_id=0x100 + i, is_extended_id=False, data=bytes(range(i % 9))) for i in range(20)]
+    out.append(can.Message(arbitration_id=0x1ABCDEF, is_extended_id=True, data=b"\x01\x02"))
+    out.append(can.Message(arbitration_id=0x123, is_extended_id=False, is_remote_frame=True, dlc=3))
+    return out
+
+
+def test_recv_frames_gives_the_same_frames_as_recv_without_messages() -> None:
+    fd = can.Message(arbitration_id=0x55, is_extended_id=False, is_fd=True, bitrate_switch=True, data=bytes(range(20)))
+    with start_hub() as hub, HubBus(hub.channel("f")) as tx, HubBus(hub.channel("f")) as rx, \
+            HubBus(hub.channel("f")) as ref:
+        assert isinstance(rx, FrameArrayReceiver)
+        for sent in (_mixed_frames(), [*_mixed_frames()[:3], fd, *_mixed_frames()[3:6]]):
+            tx.send_batch(sent)
+            want = [ref.recv(2.0) for _ in sent]
+            got = rx.recv_frames(2.0)
+            while len(got) < len(sent):
+                more = rx.recv_frames(2.0)
+                assert len(more)
+                got = np.concatenate((got, more))
+            expected = frames_from_messages([m for m in want if m is not None])
+            assert expected.dtype == got.dtype == FRAME_DTYPE
+            for name in FRAME_DTYPE.names or ():
+                assert (got[name] == expected[name]).all(), name
+            back = messages_from_frames(got, "x")
+            assert [(m.arbitration_id, bytes(m.data), m.is_fd, m.is_remote_frame, m.dlc) for m in back] == \
+                [(m.arbitration_id, bytes(m.data), m.is_fd, m.is_remote_frame, m.dlc) for m in sent]
+        assert len(rx.recv_frames(0)) == 0
+
+
+def test_recv_frames_takes_the_frames_already_read_ahead_first() -> None:
+    with start_hub() as hub, HubBus(hub.channel("q")) as tx, HubBus(hub.channel("q")) as rx:
+        tx.send_batch(frames(3))
+        first = rx.recv(2.0)
+        assert first is not None and rx.frames_pending()
+        tx.send_batch(frames(2, 0x200))
+        got = rx.recv_frames(2.0)
+        while len(got) < 4:
+            got = np.concatenate((got, rx.recv_frames(2.0)))
+        assert got["arbitration_id"].tolist() == [0x101, 0x102, 0x200, 0x201]
+
+
+def test_load_of_counts_as_the_counter_does_one_by_one() -> None:
+    msgs = [*_mixed_frames(), can.Message(arbitration_id=1, is_fd=True, data=bytes(12)),
+            can.Message(arbitration_id=2, is_error_frame=True)]
+    one_by_one = BusLoadCounter()
+    for m in msgs:
+        one_by_one.add(m)
+    assert load_of(frames_from_messages(msgs)) == one_by_one
+
+
+def test_recv_batch_takes_every_frame_of_one_read_and_filters_in_software_too() -> None:
+    with start_hub() as hub, HubBus(hub.channel("r")) as tx, HubBus(hub.channel("r")) as rx:
+        assert isinstance(rx, BatchReceiver) and batch_receiver(rx) == rx.recv_batch
+        assert rx.recv_batch() == []  # nothing waiting: no wait
+        tx.send_batch(frames(3))
+        assert wait_until(lambda: bool(select.select([rx.fileno()], [], [], 0)[0]))
+        assert [m.arbitration_id for m in rx.recv_batch()] == [0x100, 0x101, 0x102]
+        assert not rx.frames_pending() and rx.recv_batch() == []
+        tx.send_batch(frames(3))
+        first = rx.recv(2.0)  # the rest waits in the queue, read before the new filters
+        assert first is not None
+        rx.set_filters([{"can_id": 0x102, "can_mask": 0x7FF, "extended": False}])
+        assert [m.arbitration_id for m in rx.recv_batch()] == [0x102]
+
+
+def test_batch_receiver_of_a_plain_bus_reads_until_nothing_is_left() -> None:
+    bus = can.Bus(interface="virtual", channel="batch-fallback")
+    peer = can.Bus(interface="virtual", channel="batch-fallback")
+    try:
+        assert not isinstance(bus, BatchReceiver)
+        for msg in frames(2):
+            peer.send(msg)
+        assert [m.arbitration_id for m in batch_receiver(bus)()] == [0x100, 0x101]
+        assert batch_receiver(bus)() == []
+    finally:
+        bus.shutdown()
+        peer.shutdown()

@@ -194,3 +194,45 @@ def test_check_tick(expected: int, d: int) -> None:
         check_tick(wire_tick(expected + d), expected)
     assert info.value.kind is (TickErrorKind.MISSING if d > 0 else TickErrorKind.STALE)
     assert isinstance(info.value, ValueError)
+
+
+@given(st.integers(0, TICK_MODULUS - 1), st.lists(st.integers(1, 300), min_size=1, max_size=4),
+       st.integers(0, 3), st.integers(0, 2 ** 32 - 1))
+def test_follower_on_arrays_equals_frame_by_frame(origin: int, trial_lengths: list[int], cut: int,
+                                                  seed: int) -> None:
+    """The host's io monitor reads frames as arrays: TrialTickFollower.on_frame_array ends in the
+    same state as on_frame per frame, however the stream is cut into rounds (an error frame and a
+    trial stopped early included)."""
+    import random
+
+    from bus.bus_features import FRAME_ERR, frames_from_messages
+    from bus.io_frames import TrialTickFollower
+
+    rng = random.Random(seed)
+    msgs: list[can.Message] = []
+    wire = origin
+    for n in trial_lengths:
+        msgs.append(encode_control(ControlCommand.TRIAL_START, wire, n))
+        ran = rng.randint(1, n)  # a fault may stop it early
+        for k in range(ran):
+            for j in range(4):
+                msgs.append(encode_encoder(j, wire + k, 1000 * j + k))
+            if k == ran // 2:
+                msgs.append(can.Message(is_error_frame=True, arbitration_id=0, data=b""))
+            for j in range(4):
+                msgs.append(encode_torque(j, wire + k, -k, TorqueStatus.ENABLED))
+        msgs.append(encode_control(ControlCommand.TRIAL_STOP, wire + ran))
+        wire = (wire + n + 7) % TICK_MODULUS
+        if rng.random() < 0.5:
+            break
+    one = TrialTickFollower()
+    for m in msgs:
+        if not m.is_error_frame:
+            one.on_frame(m.arbitration_id, m.data)
+    frames = frames_from_messages(msgs)
+    bounds = sorted({0, len(frames), *(rng.randrange(len(frames) + 1) for _ in range(cut))})
+    arr = TrialTickFollower()
+    for a, b in zip(bounds, bounds[1:]):
+        f = frames[a:b]
+        arr.on_frame_array(f["arbitration_id"], f["data"], f["length"], (f["flags"] & FRAME_ERR) == 0)
+    assert (arr.trial, arr.in_trial, arr.tick, arr.origin) == (one.trial, one.in_trial, one.tick, one.origin)

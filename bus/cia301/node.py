@@ -24,7 +24,8 @@ This module owns what every node of the rig does on the wire, independent of its
 Waiting: ``select()`` on both buses' ``fileno()`` where both have one (udp_multicast,
 socketcan, the ilcrig hub), otherwise short-timeout polling (``virtual``); a bus that keeps
 frames in a local queue (:class:`bus.bus_features.BufferedReceiver`, the ilcrig hub) is read
-without waiting while its queue holds frames.
+without waiting while its queue holds frames, and one that returns all waiting frames at once
+(:class:`bus.bus_features.BatchReceiver`, the ilcrig hub) is read with one call per readiness.
 
 Time: heartbeat period, SDO transfer timeout and subclass deadlines use ``clock`` (monotonic
 wall clock by default: protocol timing only, never a model; the control loop is paced by the
@@ -47,7 +48,7 @@ import can
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, import_od
 from canopen.objectdictionary import datatypes as dt
 
-from bus.bus_features import pending_check
+from bus.bus_features import batch_receiver, pending_check
 from bus.cia301.emcy import emcy_cob_id, encode_emcy
 from bus.cia301.nmt import (
     CONSUMER_HEARTBEAT_INDEX,
@@ -123,6 +124,9 @@ class SlaveNode:
         # select() does not see (bus.bus_features.BufferedReceiver)
         self._io_pending = pending_check(io)
         self._fieldbus_pending = pending_check(fieldbus)
+        # all frames of one readiness in one call where the bus can (bus.bus_features.BatchReceiver)
+        self._io_batch = batch_receiver(io)
+        self._fieldbus_batch = batch_receiver(fieldbus)
         self.frames_in = 0
         self.frames_out = 0
         #: why :meth:`run` ended early: the bus failed (None while it works)
@@ -248,14 +252,15 @@ class SlaveNode:
         return handled
 
     def _drain(self, bus: can.BusABC) -> int:
-        n = 0
-        handler = self.on_io if bus is self.io else self._on_fieldbus
-        while True:
-            msg = bus.recv(timeout=0)
-            if msg is None:
-                return n
-            n += 1
+        """Handle every frame waiting on ``bus`` (one batch: what arrives meanwhile makes the bus
+        ready again for the next :meth:`step`)."""
+        if bus is self.io:
+            handler, msgs = self.on_io, self._io_batch()
+        else:
+            handler, msgs = self._on_fieldbus, self._fieldbus_batch()
+        for msg in msgs:
             handler(msg)
+        return len(msgs)
 
     # ------------------------------------------------------------------ periodic
 

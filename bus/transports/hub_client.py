@@ -61,7 +61,11 @@ Reading
     may be waiting although :meth:`HubBus.fileno` is not readable: a caller that waits with
     ``select()`` over several buses must first ask :meth:`HubBus.frames_pending` (the documented extra of
     :class:`bus.bus_features.BufferedReceiver`; :func:`bus.bus_features.pending_check`).
-    Blocking client sockets + ``select``, no sleeps.
+    :meth:`HubBus.recv_batch` (:class:`bus.bus_features.BatchReceiver`) returns every frame
+    waiting after at most one non-blocking read; :meth:`HubBus.recv_frames`
+    (:class:`bus.bus_features.FrameArrayReceiver`) returns them as one numpy array
+    (:data:`bus.bus_features.FRAME_DTYPE`), classic frames straight from the records, without a
+    :class:`can.Message` each. Blocking client sockets + ``select``, no sleeps.
 
 Sending several frames
     :meth:`HubBus.send_batch` (:class:`bus.bus_features.BatchSender`) writes several frames
@@ -88,8 +92,10 @@ from collections.abc import Sequence
 from typing import Any
 
 import can
+import numpy as np
 from can import CanProtocol
 
+from bus.bus_features import FRAME_DTYPE, FRAME_TX, frames_from_messages, recv_waiting
 from bus.fastmsg import FAST, new_message
 from bus.transports.hub_wire import (
     FLAG_BRS,
@@ -119,6 +125,10 @@ logger = logging.getLogger(__name__)
 _new = can.Message.__new__
 _Message = can.Message
 _CLOSED = "Cannot operate on a closed bus"
+#: a classic frame's wire record (hub_wire.HEADER) as a numpy record
+_WIRE_DTYPE = np.dtype([("kind", "u1"), ("flags", "u1"), ("dlc", "u1"), ("length", "u1"), ("can_id", "<u4"),
+                        ("stamp", "<u8"), ("inline", "u1", (8,))])
+assert _WIRE_DTYPE.itemsize == HEADER_SIZE and FLAG_ECHO == FRAME_TX
 
 
 def _bitrate_arg(name: str, value: object) -> int:
@@ -268,10 +278,20 @@ class HubBus(can.BusABC):
         :raises can.CanOperationError: the hub closed the connection
         :raises HubProtocolError: a record of another kind than a frame
         """
+        data = self._read(block)
+        if data:
+            self._parse(data)
+
+    def _read(self, block: bool) -> bytes:
+        """One read of up to :attr:`RECV_CHUNK` bytes, after what the buffer holds of a partial
+        record (empty when a non-blocking read finds nothing).
+
+        :raises can.CanOperationError: the hub closed the connection
+        """
         try:
             data = self._sock.recv(self.RECV_CHUNK) if block else self._sock.recv(self.RECV_CHUNK, socket.MSG_DONTWAIT)
         except BlockingIOError:
-            return
+            return b""
         if not data:
             if self._closed:
                 raise can.CanOperationError(_CLOSED)
@@ -279,7 +299,15 @@ class HubBus(can.BusABC):
         buf = self._rxbuf
         if buf:
             buf += data
-            data = bytes(buf)
+            self._rxbuf = bytearray()
+            return bytes(buf)
+        return data
+
+    def _parse(self, data: bytes) -> None:
+        """Every whole record of ``data`` to the local queue; a partial one waits in the buffer.
+
+        :raises HubProtocolError: a record of another kind than a frame
+        """
         size = len(data)
         off = 0
         append = self._rxq.append
@@ -317,6 +345,82 @@ class HubBus(can.BusABC):
             append(msg)
             off = end
         self._rxbuf = bytearray(data[off:]) if off < size else bytearray()
+
+    def recv_batch(self) -> list[can.Message]:
+        """Every frame waiting now, in order (:class:`bus.bus_features.BatchReceiver`): the local
+        queue, or what one non-blocking read of the socket brings; never waits.
+
+        :raises can.CanOperationError: as :meth:`recv`
+        """
+        if self._closed:
+            raise can.CanOperationError(_CLOSED)
+        rxq = self._rxq
+        if not rxq:
+            try:
+                self._fill(block=False)
+            except (OSError, ValueError) as err:
+                if self._closed:
+                    raise can.CanOperationError(_CLOSED) from err
+                raise can.CanOperationError(f"hub receive failed: {err}") from err
+            if not rxq:
+                return []
+        msgs = list(rxq)
+        rxq.clear()
+        if self._filters is not None:  # the hub filtered too, but maybe with filters set before
+            matches = self._matches_filters
+            msgs = [m for m in msgs if matches(m)]
+        return msgs
+
+    def recv_frames(self, timeout: float | None = None) -> np.ndarray:
+        """Every frame waiting, as one array of :data:`bus.bus_features.FRAME_DTYPE`
+        (:class:`bus.bus_features.FrameArrayReceiver`): the frames already in the local queue, then
+        everything one read of the socket brings, without a :class:`can.Message` per frame (when
+        the read holds classic frames only; else through the queue). Waits up to ``timeout`` s
+        (None: forever) when nothing is waiting; an empty array when nothing came.
+
+        :raises can.CanOperationError: as :meth:`recv`
+        """
+        if self._closed:
+            raise can.CanOperationError(_CLOSED)
+        if self._filters:  # software filtering as recv() does it
+            return frames_from_messages(recv_waiting(self, timeout))
+        parts = []
+        if self._rxq:
+            parts.append(frames_from_messages(list(self._rxq)))
+            self._rxq.clear()
+        try:
+            if not parts and timeout != 0 and not select.select((self._sock,), (), (), timeout)[0]:
+                return np.zeros(0, dtype=FRAME_DTYPE)
+            data = self._read(block=False)
+        except (OSError, ValueError) as err:  # ValueError: select() on a socket closed meanwhile
+            if self._closed:
+                raise can.CanOperationError(_CLOSED) from err
+            raise can.CanOperationError(f"hub receive failed: {err}") from err
+        if data:
+            parts.append(self._frames_of(data))
+        if not parts:
+            return np.zeros(0, dtype=FRAME_DTYPE)
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+    def _frames_of(self, data: bytes) -> np.ndarray:
+        """The whole records of ``data`` as frames (a partial one waits in the buffer)."""
+        n = len(data) // HEADER_SIZE
+        wire = np.frombuffer(data, dtype=_WIRE_DTYPE, count=n)
+        if not ((wire["kind"] == KIND_FRAME) & (wire["length"] <= 8)).all():
+            self._parse(data)  # CAN FD records (or garbage): one at a time
+            msgs = list(self._rxq)
+            self._rxq.clear()
+            return frames_from_messages(msgs)
+        if len(data) > n * HEADER_SIZE:
+            self._rxbuf = bytearray(data[n * HEADER_SIZE:])
+        out = np.zeros(n, dtype=FRAME_DTYPE)
+        out["timestamp"] = wire["stamp"] / 1e9
+        out["arbitration_id"] = wire["can_id"]
+        out["flags"] = wire["flags"]  # the wire's flag bits are FRAME_* (echo = FRAME_TX)
+        out["dlc"] = wire["dlc"]
+        out["length"] = wire["length"]
+        out["data"][:, :8] = wire["inline"]
+        return out
 
     def frames_pending(self) -> bool:
         """True when frames wait in the local queue (:class:`bus.bus_features.BufferedReceiver`):

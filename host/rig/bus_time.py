@@ -29,6 +29,7 @@ import threading
 from typing import Any
 
 import can
+import numpy as np
 
 from bus.bench_objects import DEFAULT_BENCH_NODE_ID, BenchObj, BenchTrialSub
 from bus.busload import frame_bits_worst_case
@@ -111,6 +112,12 @@ class BusTimeAccounting:
         """Classify one io frame (called by the io monitor, in order)."""
         with self._lock:
             self.io.add(msg)
+
+    def add_io_frames(self, frames: np.ndarray) -> None:
+        """Classify many io frames at once (an array of :data:`bus.bus_features.FRAME_DTYPE`, in
+        order; the same counts as :meth:`add_io` one by one)."""
+        with self._lock:
+            self.io.add_frames(frames)
 
     def add_fieldbus(self, msg: can.Message) -> None:
         """Classify one fieldbus frame (called by the fieldbus monitor, in order)."""

@@ -242,8 +242,9 @@ class RigBench:
                 classify = self.bus_time.add_io if name == IO else self.bus_time.add_fieldbus
                 # rounds with pauses only where the hub holds the frames; a kernel socket would drop them
                 bulk = transport.channel(name).interface == HUB_INTERFACE
-                self.monitors.append(ChannelMonitor(transport.open(name, passive=True), name, log, classify,
-                                                    bulk=bulk))
+                self.monitors.append(ChannelMonitor(
+                    transport.open(name, passive=True), name, log, classify, bulk=bulk,
+                    classify_frames=self.bus_time.add_io_frames if name == IO else None))
             cast(list[Any], self.network.listeners).append(self._fieldbus_errors)  # notes a failing fieldbus
             self.network.connect()
             self.drive_nodes = [self.network.add_node(n, str(DRIVE_EDS_PATH)) for n in DRIVE_NODE_IDS]

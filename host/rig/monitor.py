@@ -5,12 +5,6 @@ python-can ``BusABC``) read by its own thread, which counts frames and bits
 (:class:`bus.busload.BusLoadCounter`), hands every frame to an optional classifier (the bus-time
 accounting of :mod:`bus.bustime`) and writes the channel's candump log (:mod:`bus.canlog`).
 
-What can go wrong is noted, with the monotonic time it was seen, for the host's watchdog: the bus
-failing (:attr:`ChannelMonitor.bus_error`), bus error frames (:attr:`ChannelMonitor.error_frames`),
-the log failing, e.g. on a full disk (:attr:`ChannelMonitor.log_error`: the log stops, the
-counting goes on).  On the io channel the monitor also follows the trials and ticks as the plant's
-frames show them (:attr:`ChannelMonitor.follower`, for a fault's ``tick``).
-
 Reading in bulk
     The monitor sees every frame of the channel — on the io channel 8 per control period — but
     nobody waits for it, so on the hub (whose bulk delivery holds a passive member's frames) it
@@ -19,8 +13,19 @@ Reading in bulk
     before the next round (the frames meanwhile wait in the transport's receive buffer). That
     keeps the monitor from waking up for every frame and competing with the lockstep processes
     for the cores; its thread also runs at a lower priority (nice + :attr:`ChannelMonitor.NICE_INCREMENT`).
+    Where the bus returns the waiting frames as one array (:class:`bus.bus_features.FrameArrayReceiver`,
+    the hub) and the classifier takes arrays (``classify_frames``), a round is counted, classified and
+    logged with numpy, without a Python step (nor a :class:`can.Message`) per frame, and the
+    pause between rounds is longer (:attr:`ChannelMonitor.FRAMES_ROUND_S`): more frames per round.
     :meth:`ChannelMonitor.catch_up` waits until everything sent before the call
     has been processed (the summary reads the counters after it).
+
+What can go wrong is noted, with the monotonic time it was seen, for the host's watchdog: the bus
+failing (:attr:`ChannelMonitor.bus_error`), bus error frames (:attr:`ChannelMonitor.error_frames`),
+the log failing, e.g. on a full disk (:attr:`ChannelMonitor.log_error`: the log stops, the
+counting goes on).  On the io channel the monitor also follows the trials and ticks as the plant's
+frames show them (:attr:`ChannelMonitor.follower`, for a fault's ``tick``; with arrays only the
+control frames and the last encoder frame between them are looked at).
 """
 
 from __future__ import annotations
@@ -29,12 +34,14 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sized
 from pathlib import Path
 
 import can
+import numpy as np
 
 from bus import io_frames
+from bus.bus_features import FRAME_ERR, FrameArrayReceiver, load_of, recv_waiting
 from bus.busload import BusLoadCounter
 from bus.canlog import open_log
 from bus.transports.config import IO
@@ -55,10 +62,15 @@ class ChannelMonitor:
     :param bulk: read in rounds with a pause and at a lower priority; only for a bus that holds the
         frames for its reader meanwhile (the hub's bulk delivery).  A kernel socket (SocketCAN,
         UDP) drops frames once its receive buffer is full, so there the monitor reads continuously.
+    :param classify_frames: the classifier for many frames at once (an array of
+        :data:`bus.bus_features.FRAME_DTYPE`, in order), used instead of ``classify`` when the bus
+        returns arrays (see the module docstring)
     """
 
     #: pause between two reading rounds, s
     ROUND_S: float = 0.02
+    #: the pause when a round is read as arrays: their cost is mostly per round, not per frame
+    FRAMES_ROUND_S: float = 0.1
     #: longest blocking wait for a frame, s (bounds the reaction to :meth:`close`)
     WAIT_S: float = 0.1
     #: the reading thread's nice increment: nobody waits for a monitor, so it yields the cores
@@ -66,8 +78,13 @@ class ChannelMonitor:
     NICE_INCREMENT: int = 10
 
     def __init__(self, bus: can.BusABC, name: str, log_path: Path | None,
-                 classify: Callable[[can.Message], None] | None = None, *, bulk: bool = True) -> None:
+                 classify: Callable[[can.Message], None] | None = None, *, bulk: bool = True,
+                 classify_frames: Callable[[np.ndarray], None] | None = None) -> None:
         self.bus = bus
+        # frames as arrays where the bus offers them (and the classifier takes them)
+        self._recv_frames = (bus.recv_frames if isinstance(bus, FrameArrayReceiver) and (
+            classify is None or classify_frames is not None) else None)
+        self._classify_frames = classify_frames
         self.bulk = bool(bulk)
         self.name = name
         self.counter = BusLoadCounter()
@@ -101,18 +118,17 @@ class ChannelMonitor:
             _lower_own_priority(self.NICE_INCREMENT)
         try:
             while not self._stop.is_set():
-                msg = bus.recv(self.WAIT_S)
-                batch: list[can.Message] = []
-                while msg is not None:
-                    batch.append(msg)
-                    msg = bus.recv(0)
-                if batch:
-                    self._process(batch)
+                if self._recv_frames is not None:
+                    batch: Sized = self._read_frames()
+                else:
+                    batch = recv_waiting(bus, self.WAIT_S)
+                    if batch:
+                        self._process(batch)
                 with self._round_done:
                     self._rounds += 1
                     self._round_done.notify_all()
-                if self.bulk and batch and not self._kick.is_set():
-                    self._kick.wait(self.ROUND_S)
+                if self.bulk and len(batch) and not self._kick.is_set():
+                    self._kick.wait(self.ROUND_S if self._recv_frames is None else self.FRAMES_ROUND_S)
         except (can.CanError, OSError, ValueError) as err:  # ValueError: a descriptor closed under us
             if not self._stop.is_set():
                 self.error = err
@@ -133,9 +149,7 @@ class ChannelMonitor:
                 if classify is not None:
                     classify(msg)
                 if msg.is_error_frame:
-                    self.error_frames += 1
-                    if self.first_error_frame_t is None:
-                        self.first_error_frame_t = time.monotonic()
+                    self._error_frames(1)
                 elif follower is not None:
                     follower.on_frame(msg.arbitration_id, msg.data)
             if log is not None:
@@ -144,6 +158,11 @@ class ChannelMonitor:
                         log.on_message_received(msg)
                 except (OSError, ValueError) as err:  # ValueError: a write to a file closed by a failure
                     self._log_failed(err)
+
+    def _error_frames(self, n: int) -> None:
+        if n and self.first_error_frame_t is None:
+            self.first_error_frame_t = time.monotonic()
+        self.error_frames += n
 
     def _log_failed(self, err: BaseException) -> None:
         """The log stopped (noted once; the frames are still counted)."""
@@ -157,6 +176,32 @@ class ChannelMonitor:
                 log.stop()
         except (OSError, ValueError):
             pass
+
+    def _read_frames(self) -> np.ndarray:
+        """Read and process every frame waiting (after waiting up to :attr:`WAIT_S` for one) as
+        arrays: counted, classified and logged without a Python step per frame."""
+        assert self._recv_frames is not None
+        frames = self._recv_frames(self.WAIT_S)
+        more = frames
+        while len(more):
+            more = self._recv_frames(0)
+            if len(more):
+                frames = np.concatenate((frames, more))
+        if len(frames):
+            with self.lock:
+                self.counter.merge(load_of(frames))
+                if self._classify_frames is not None:
+                    self._classify_frames(frames)
+                err = (frames["flags"] & FRAME_ERR) != 0
+                self._error_frames(int(err.sum()))
+                if self._is_io:
+                    self.follower.on_frame_array(frames["arbitration_id"], frames["data"], frames["length"], ~err)
+                if self.log is not None:
+                    try:
+                        self.log.write_frames(frames)
+                    except (OSError, ValueError) as exc:
+                        self._log_failed(exc)
+        return frames
 
     def catch_up(self, timeout_s: float = 2.0) -> None:
         """Return once every frame that reached this monitor's bus before the call is processed
