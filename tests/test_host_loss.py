@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import itertools
 import struct
+from typing import Any
 
 import can
 import pytest
@@ -228,22 +229,32 @@ def test_drive_node_consumes_the_host_heartbeat_within_the_consumer_time() -> No
         rig.close()
 
 
-def test_bench_ends_a_running_trial_when_the_host_is_lost() -> None:
+class _StillPlant:
+    """A plant that never moves (the bench node's trial logic is what is tested)."""
+
+    def reset(self, q0: Any, qd0: Any) -> None:
+        pass
+
+    def encoder_counts(self) -> Any:
+        import numpy as np
+
+        return np.zeros(4, dtype=np.int64)
+
+    def step(self, tau: Any, dist: Any) -> None:
+        pass
+
+
+def _stepped_bench() -> Any:
+    """A bench node on a :class:`Stepped` rig with a still plant and long tick deadlines."""
     import numpy as np
 
-    class Plant:
-        def reset(self, q0, qd0) -> None:  # type: ignore[no-untyped-def]
-            pass
-
-        def encoder_counts(self) -> np.ndarray:
-            return np.zeros(4, dtype=np.int64)
-
-        def step(self, tau, dist) -> None:  # type: ignore[no-untyped-def]
-            pass
-
-    rig = Stepped(lambda fb, io, clock: BenchNode(
-        fb, io, plant_factory=lambda ts, n: Plant(), disturbance_fn=lambda *a: np.zeros((a[3], 4)),
+    return Stepped(lambda fb, io, clock: BenchNode(
+        fb, io, plant_factory=lambda ts, n: _StillPlant(), disturbance_fn=lambda *a: np.zeros((a[3], 4)),
         clock=clock, tick_timeout_s=60.0, first_tick_timeout_s=60.0))
+
+
+def test_bench_ends_a_running_trial_when_the_host_is_lost() -> None:
+    rig = _stepped_bench()
     bench = rig.node
     try:
         t0 = 1001.0
@@ -270,21 +281,7 @@ def test_bench_ends_a_running_trial_when_the_host_is_lost() -> None:
 
 
 def test_bench_faults_on_a_bus_error_frame_during_a_trial() -> None:
-    import numpy as np
-
-    class Plant:
-        def reset(self, q0, qd0) -> None:  # type: ignore[no-untyped-def]
-            pass
-
-        def encoder_counts(self) -> np.ndarray:
-            return np.zeros(4, dtype=np.int64)
-
-        def step(self, tau, dist) -> None:  # type: ignore[no-untyped-def]
-            pass
-
-    rig = Stepped(lambda fb, io, clock: BenchNode(
-        fb, io, plant_factory=lambda ts, n: Plant(), disturbance_fn=lambda *a: np.zeros((a[3], 4)),
-        clock=clock, tick_timeout_s=60.0, first_tick_timeout_s=60.0))
+    rig = _stepped_bench()
     bench = rig.node
     try:
         bench.nmt_command(NmtCommand.START)
