@@ -22,7 +22,6 @@ transport's tick rate the rig keeps; ``x real time`` is node ticks/s at 1 kHz.
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import statistics
 import subprocess
@@ -35,44 +34,11 @@ HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(HERE))
+sys.path.insert(0, str(REPO / "tests"))
+
+from short_move import TS_S, configure_drives, short_reference  # noqa: E402
 
 BENCH_ID = 32
-TS_S = 0.001
-
-
-def short_reference(n: int) -> tuple[Any, Any, Any]:
-    """A smooth 1−cos joint move from a reachable pose (as tests/test_bench_node.py): q, qd
-    (rad, rad/s), ff (N·m)."""
-    import numpy as np
-
-    from plant.dynamics import inverse_dynamics
-    from plant.kinematics import inverse_kinematics
-    from plant.params import nominal_mass_model
-
-    q0 = inverse_kinematics(np.array([0.02, -0.01, -0.65, 0.1]))
-    t = np.arange(n) * TS_S
-    T = (n - 1) * TS_S
-    amp = np.array([0.03, -0.02, 0.025, -0.015])
-    s = (1 - np.cos(np.pi * t / T))[:, None] / 2
-    sd = (np.pi / T * np.sin(np.pi * t / T))[:, None] / 2
-    sdd = ((np.pi / T) ** 2 * np.cos(np.pi * t / T))[:, None] / 2
-    q = q0 + amp * s
-    qd = amp * sd
-    ff = inverse_dynamics(q, qd, amp * sdd, nominal_mass_model())
-    return q, qd, np.asarray(ff)
-
-
-def configure_drives(drives: list[Any], q: Any, qd: Any) -> None:
-    import numpy as np
-
-    from bus import units
-
-    counts = np.rint(q / units.RAD_PER_COUNT).astype(np.int64)
-    for j, d in enumerate(drives):
-        d.configure(kp_nm_per_rad=2400.0, kd_nms_per_rad=48.0, torque_limit_nm=200.0,
-                    following_error_rad=math.radians(10.0))
-        d.load_reference(counts[:, j] * units.RAD_PER_COUNT, qd[:, j])
-        d.enable()
 
 
 def floor(seconds: float, pings: int) -> dict[str, Any]:
@@ -133,7 +99,7 @@ def rig(ticks: int, trials: int, poll_s: float) -> list[dict[str, float]]:
                     network.add_node(node)
                 drives = [DriveClient(SdoAccess(nodes[i]), i) for i in (1, 2, 3, 4)]
                 bench = BenchClient(SdoAccess(nodes[BENCH_ID]))
-                q, qd, _ = short_reference(60)
+                q, qd, _, _ = short_reference(60)
                 configure_drives(drives, q, qd)  # enabled, not armed: PD holds the start pose
                 bench.configure(TS_S, 4, "none", 0)
                 for trial in range(trials):

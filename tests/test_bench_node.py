@@ -29,6 +29,7 @@ from canopen.objectdictionary import ODRecord, ODVariable, import_od
 from canopen.objectdictionary import datatypes as dt
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from short_move import TS_S, configure_drives, short_reference
 
 from bus import io_frames, units
 from bus.bench_objects import (
@@ -57,7 +58,7 @@ from plant.node import BenchNode
 ROOT = Path(__file__).resolve().parents[1]
 DRIVE_EDS = ROOT / "bus" / "drive.eds"
 BENCH_ID = 32
-TS_S = 0.001
+
 _counter = itertools.count()
 
 
@@ -722,42 +723,14 @@ def test_run_plant_role_serves_until_stopped() -> None:
 # ---------------------------------------------------------------------------------------
 
 
-def _short_reference(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """A smooth 1−cos joint move from a reachable pose: q, qd (rad, rad/s), ff (N·m), q0."""
-    from plant.dynamics import inverse_dynamics
-    from plant.kinematics import inverse_kinematics
-    from plant.params import nominal_mass_model
-
-    q0 = inverse_kinematics(np.array([0.02, -0.01, -0.65, 0.1]))
-    t = np.arange(n) * TS_S
-    T = (n - 1) * TS_S
-    amp = np.array([0.03, -0.02, 0.025, -0.015])
-    s = (1 - np.cos(np.pi * t / T))[:, None] / 2
-    sd = (np.pi / T * np.sin(np.pi * t / T))[:, None] / 2
-    sdd = ((np.pi / T) ** 2 * np.cos(np.pi * t / T))[:, None] / 2
-    q = q0 + amp * s
-    qd = amp * sd
-    ff = inverse_dynamics(q, qd, amp * sdd, nominal_mass_model())
-    return q, qd, np.asarray(ff), q0
-
-
-def _configure_drives(drives: list[Any], q: np.ndarray, qd: np.ndarray) -> None:
-    counts = np.rint(q / units.RAD_PER_COUNT).astype(np.int64)
-    for j, d in enumerate(drives):
-        d.configure(kp_nm_per_rad=2400.0, kd_nms_per_rad=48.0, torque_limit_nm=200.0,
-                    following_error_rad=math.radians(10.0))
-        d.load_reference(counts[:, j] * units.RAD_PER_COUNT, qd[:, j])
-        d.enable()
-
-
 def _in_process_traces(n: int, trials: int, disturbance: str, seed: int) -> list[list[Any]]:
     from host.experiment.config import ExperimentConfig
     from host.experiment.inprocess import InProcessBench
 
-    q, qd, ff, q0 = _short_reference(n)
+    q, qd, ff, q0 = short_reference(n)
     bench = InProcessBench(ExperimentConfig(ts_s=TS_S, substeps=4, disturbance=disturbance, seed=seed))
     bench.start()
-    _configure_drives(bench.drives, q, qd)
+    configure_drives(bench.drives, q, qd)
     out = []
     for k in range(trials):
         for j, d in enumerate(bench.drives):
@@ -799,8 +772,8 @@ def test_rig_on_virtual_buses_is_bit_identical_to_in_process() -> None:
         bench = BenchClient(SdoAccess(host.node(BENCH_ID, BENCH_EDS_PATH)))
         assert wait_for(lambda: len({c for c, s in host.heartbeats if s == 0}) == 5, 5.0)  # 5 boot-ups
         host.network.nmt.send_command(0x01)  # all nodes operational
-        q, qd, ff, _ = _short_reference(n)
-        _configure_drives(drives, q, qd)
+        q, qd, ff, _ = short_reference(n)
+        configure_drives(drives, q, qd)
         bench.configure(TS_S, 4, disturbance, seed)
         rig_traces = []
         for trial in range(trials):
