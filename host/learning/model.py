@@ -31,7 +31,7 @@ from host.learning.signals import backward_difference, backward_difference_t
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ClosedLoopModel", "state_matrices"]
+__all__ = ["ClosedLoopModel", "closed_loop_step", "state_matrices"]
 
 Array = npt.NDArray[np.float64]
 
@@ -49,15 +49,25 @@ def _simulate(minv: Array, fq: Array, fp: Array, ts: float, u: Array) -> Array:
     for n in range(n_s):
         for j in range(nj):
             e[n, j] = -q[j]
-            tau[j] = u[n, j] + fq[j] * q[j] + fp[j] * qp[j]
-        for i in range(nj):
-            a = 0.0
-            for j in range(nj):
-                a += minv[n, i, j] * tau[j]
-            qp[i] = q[i]
-            q[i] = q[i] + ts * v[i] + h2 * a
-            v[i] = v[i] + ts * a
+        closed_loop_step(minv, fq, fp, ts, h2, n, u[n], q, v, qp, tau)
     return e
+
+
+@njit(cache=True)
+def closed_loop_step(minv: Array, fq: Array, fp: Array, ts: float, h2: float, n: int, u_n: Array,
+                     q: Array, v: Array, qp: Array, tau: Array) -> None:
+    """One sample of the closed loop in place: τ = u_n + fq·q + fp·q_prev, a = M⁻¹[n] τ, then
+    q, v by a second-order step (h2 = Ts²/2); ``qp`` keeps the previous q, ``tau`` is scratch."""
+    nj = q.shape[0]
+    for j in range(nj):
+        tau[j] = u_n[j] + fq[j] * q[j] + fp[j] * qp[j]
+    for i in range(nj):
+        a = 0.0
+        for j in range(nj):
+            a += minv[n, i, j] * tau[j]
+        qp[i] = q[i]
+        q[i] = q[i] + ts * v[i] + h2 * a
+        v[i] = v[i] + ts * a
 
 
 @njit(cache=True)

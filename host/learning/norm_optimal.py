@@ -26,7 +26,7 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
-from host.learning.model import ClosedLoopModel, state_matrices
+from host.learning.model import ClosedLoopModel, closed_loop_step, state_matrices
 
 logger = logging.getLogger(__name__)
 
@@ -106,15 +106,7 @@ def _sweep(minv: Array, fq: Array, fp: Array, ts: float, kfb: Array, kff: Array,
             for c in range(ns):
                 acc += kff[n, i, c] * xi[n + 1, c]
             du[n, i] = -acc
-        for j in range(nj):
-            tau[j] = du[n, j] + fq[j] * q[j] + fp[j] * qp[j]
-        for i in range(nj):
-            a = 0.0
-            for j in range(nj):
-                a += minv[n, i, j] * tau[j]
-            qp[i] = q[i]
-            q[i] = q[i] + ts * v[i] + h2 * a
-            v[i] = v[i] + ts * a
+        closed_loop_step(minv, fq, fp, ts, h2, n, du[n], q, v, qp, tau)
     return du
 
 
