@@ -300,15 +300,9 @@ class Drive:
             return 0
         if self._mode != ModeOfOperation.TABLE_PLAYBACK:
             return self._cyclic_tick(tick, encoder_count)
-        ts = self._trial_state
-        if ts == TrialState.RUNNING:
-            if tick != self._next_tick:
-                return self._sequence_fault(tick)
-        elif ts == TrialState.ARMED:
-            if tick != 0:
-                return self._sequence_fault(tick)
-            self._start_trial()
-        else:
+        if not self._tick_in_sequence(tick):
+            return self._sequence_fault(tick)
+        if self._trial_state != TrialState.RUNNING:
             if self._capture_hold:
                 self._capture_hold = False
                 self._tables[:, self._capacity] = (
@@ -330,15 +324,8 @@ class Drive:
     def _cyclic_tick(self, tick: int, encoder_count: int) -> int:
         """One tick in CSP / CST with the set-points in 0x607A, 0x6071, 0x60B2."""
         self._sync_credit = 0
-        ts = self._trial_state
-        if ts == TrialState.RUNNING:
-            if tick != self._next_tick:
-                return self._sequence_fault(tick)
-        elif ts == TrialState.ARMED:
-            if tick != 0:
-                return self._sequence_fault(tick)
-            self._start_trial()
-            self._cyc_prev_target = None
+        if not self._tick_in_sequence(tick):
+            return self._sequence_fault(tick)
         playing = self._trial_state == TrialState.RUNNING
         rec_idx = tick if playing else -1
         st, v, cyc = self._st, self._values, self._cyc
@@ -373,6 +360,18 @@ class Drive:
 
     # ------------------------------------------------------------------ trial logic
 
+    def _tick_in_sequence(self, tick: int) -> bool:
+        """Trial bookkeeping before io tick ``tick``: running, it must be the next tick; armed, it
+        must be tick 0, which starts the trial; idle, any tick holds.  False: out of sequence."""
+        ts = self._trial_state
+        if ts == TrialState.RUNNING:
+            return tick == self._next_tick
+        if ts == TrialState.ARMED:
+            if tick != 0:
+                return False
+            self._start_trial()
+        return True
+
     def _start_trial(self) -> None:
         st = self._st
         st[loop.S_HAVE_PREV] = 0
@@ -382,6 +381,7 @@ class Drive:
         self._trial_state = TrialState.RUNNING
         self._rec_status = RecorderStatus.RECORDING
         self._next_tick = 0
+        self._cyc_prev_target = None  # CSP: no previous target in a new trial
         logger.debug("node %d trial started, N=%d", self.node_id, self._n_table)
 
     def _finish_trial(self) -> None:
