@@ -21,7 +21,10 @@ from bus.objects import (
     TableSub,
     TrialState,
     TrialSub,
+    i32,
     pack_int32,
+    u16,
+    u32,
     unpack_int32,
     unpack_recorder,
 )
@@ -29,18 +32,6 @@ from firmware_model.cia402 import Cia402State
 from firmware_model.drive import DEFAULT_EDS_PATH, Drive, NmtCommandError
 
 NODE = 3
-
-
-def u16(v: int) -> bytes:
-    return struct.pack("<H", v)
-
-
-def u32(v: int) -> bytes:
-    return struct.pack("<I", v)
-
-
-def i32(v: int) -> bytes:
-    return struct.pack("<i", v)
 
 
 def rd_u(d: Drive, index: int, sub: int = 0) -> int:

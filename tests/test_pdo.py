@@ -31,27 +31,11 @@ from bus.cyclic import (
     tpdo_cob_id,
 )
 from bus.errors import AbortCode, SdoAbort
-from bus.objects import DRIVE_EDS_PATH, RATED_TORQUE_MNM, GainsSub, ModeOfOperation, Obj, TableSub
+from bus.objects import DRIVE_EDS_PATH, RATED_TORQUE_MNM, GainsSub, ModeOfOperation, Obj, TableSub, i32, u8, u16, u32
 from firmware_model.drive import Drive
 from firmware_model.node import DriveNode
 
 NODE = 2
-
-
-def u8(v: int) -> bytes:
-    return struct.pack("<B", v)
-
-
-def u16(v: int) -> bytes:
-    return struct.pack("<H", v)
-
-
-def u32(v: int) -> bytes:
-    return struct.pack("<I", v)
-
-
-def i32(v: int) -> bytes:
-    return struct.pack("<i", v)
 
 
 def abort(fn, *args) -> int:  # type: ignore[no-untyped-def]
