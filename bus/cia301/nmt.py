@@ -290,6 +290,13 @@ class NodeHeartbeatConsumer:
     def __init__(self) -> None:
         self._time_s: dict[int, float] = {}
         self._last_s: dict[int, float] = {}
+        #: earliest loss time [s] of the armed producers (None: none armed); asked every loop of
+        #: the node, so kept up to date on each change instead of recomputed
+        self._due_s: float | None = None
+
+    def _update_due(self) -> None:
+        due = [last + self._time_s[n] for n, last in self._last_s.items()]
+        self._due_s = min(due) if due else None
 
     @property
     def producers(self) -> dict[int, float]:
@@ -306,20 +313,24 @@ class NodeHeartbeatConsumer:
         for node_id, time_s in entries.items():
             if time_s > 0:
                 self._time_s[node_id] = float(time_s)
+        self._update_due()
 
     def on_heartbeat(self, node_id: int, now_s: float) -> None:
         """A heartbeat (or boot-up) frame of ``node_id`` arrived at ``now_s``."""
         if node_id in self._time_s:
             self._last_s[node_id] = now_s
+            self._update_due()
 
     def next_deadline(self) -> float | None:
         """Earliest time [s] at which a monitored producer becomes lost (None: none armed)."""
-        due = [last + self._time_s[n] for n, last in self._last_s.items()]
-        return min(due) if due else None
+        return self._due_s
 
     def expired(self, now_s: float) -> list[int]:
         """Producers lost at ``now_s`` (each reported once per loss, sorted)."""
+        if self._due_s is None or now_s < self._due_s - 1e-9:  # margin: the exact test is below
+            return []
         lost = sorted(n for n, last in self._last_s.items() if now_s - last >= self._time_s[n])
         for n in lost:
             del self._last_s[n]  # disarmed until its next heartbeat
+        self._update_due()
         return lost

@@ -95,7 +95,6 @@ class ChannelMonitor:
         self._kick = threading.Event()
         self._rounds = 0
         self._round_done = threading.Condition()
-        self.error: BaseException | None = None
         #: the bus failed: description and monotonic time [s]
         self.bus_error: str | None = None
         self.bus_error_t: float | None = None
@@ -131,7 +130,6 @@ class ChannelMonitor:
                     self._kick.wait(self.ROUND_S if self._recv_frames is None else self.FRAMES_ROUND_S)
         except (can.CanError, OSError, ValueError) as err:  # ValueError: a descriptor closed under us
             if not self._stop.is_set():
-                self.error = err
                 self.bus_error = f"{type(err).__name__}: {err}"
                 self.bus_error_t = time.monotonic()
                 logger.warning("monitor of %s stopped: %s", self.name, err)
