@@ -43,6 +43,21 @@ def cpu_s(pid: int) -> tuple[float, float] | None:
     return int(fields[11]) / _TICKS, int(fields[12]) / _TICKS
 
 
+def ctx_switches(pid: int) -> tuple[int, int] | None:
+    """(voluntary, involuntary) context switches of process ``pid`` (all its threads), None if gone."""
+    vol = invol = 0
+    try:
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            for line in (task / "status").read_text().splitlines():
+                if line.startswith("voluntary_ctxt_switches:"):
+                    vol += int(line.split()[1])
+                elif line.startswith("nonvoluntary_ctxt_switches:"):
+                    invol += int(line.split()[1])
+    except (OSError, ValueError):
+        return None
+    return vol, invol
+
+
 def children_of(pid: int) -> list[int]:
     out = []
     for d in Path("/proc").iterdir():
@@ -80,14 +95,15 @@ def main() -> None:
         host = [p for p in children_of(proc.pid) if p not in roles.values()]
         if host:
             roles["host"] = host[0]
-        samples: list[tuple[float, int, dict[str, tuple[float, float]]]] = []
+        samples: list[tuple[float, int, dict[str, tuple[float, float, int, int]]]] = []
         while proc.poll() is None:
             try:
                 frames = query_hub_stats(hub)["io"].frames if hub else 0
             except (HubError, KeyError, OSError):
                 frames = 0
             cpu = {name: cpu_s(pid) for name, pid in roles.items()}
-            samples.append((time.monotonic(), frames, {k: v for k, v in cpu.items() if v is not None}))
+            ctx = {name: ctx_switches(pid) for name, pid in roles.items()}
+            samples.append((time.monotonic(), frames, {k: (*v, *(ctx[k] or (0, 0))) for k, v in cpu.items() if v is not None}))
             time.sleep(args.every)
         tail = proc.stdout.read()
     rates = [(b[1] - a[1]) / 8 / (b[0] - a[0]) for a, b in zip(samples, samples[1:])]
@@ -102,19 +118,20 @@ def main() -> None:
         wall += b[0] - a[0]
         for name in a[2]:
             if name in b[2]:
-                tot = cpu_tot.setdefault(name, [0.0, 0.0])
-                tot[0] += b[2][name][0] - a[2][name][0]
-                tot[1] += b[2][name][1] - a[2][name][1]
+                tot = cpu_tot.setdefault(name, [0.0, 0.0, 0.0, 0.0])
+                for i in range(4):
+                    tot[i] += b[2][name][i] - a[2][name][i]
     print(f"load average {os.getloadavg()[0]:.2f}; {ticks:.0f} ticks counted in {wall:.2f} s "
           f"({ticks / wall if wall else 0:.0f} ticks/s); CPU µs per tick:")
-    print(f"  {'role':<8}{'total':>8}{'user':>8}{'system':>8}")
-    sums = [0.0, 0.0]
+    print(f"  {'role':<8}{'total':>8}{'user':>8}{'system':>8}   context switches/tick: voluntary, involuntary")
+    sums = [0.0, 0.0, 0.0, 0.0]
     for name in sorted(cpu_tot):
-        user, system = (1e6 * v / ticks if ticks else 0.0 for v in cpu_tot[name])
-        sums[0] += user
-        sums[1] += system
-        print(f"  {name:<8}{user + system:8.0f}{user:8.0f}{system:8.0f}")
-    print(f"  {'sum':<8}{sums[0] + sums[1]:8.0f}{sums[0]:8.0f}{sums[1]:8.0f}")
+        user, system = (1e6 * v / ticks if ticks else 0.0 for v in cpu_tot[name][:2])
+        vol, invol = (v / ticks if ticks else 0.0 for v in cpu_tot[name][2:])
+        for i, v in enumerate((user, system, vol, invol)):
+            sums[i] += v
+        print(f"  {name:<8}{user + system:8.0f}{user:8.0f}{system:8.0f}{vol:10.2f}{invol:8.2f}")
+    print(f"  {'sum':<8}{sums[0] + sums[1]:8.0f}{sums[0]:8.0f}{sums[1]:8.0f}{sums[2]:10.2f}{sums[3]:8.2f}")
     last = [ln for ln in tail.splitlines() if "ticks" in ln]
     if last:
         print(last[-1])

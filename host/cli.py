@@ -91,6 +91,10 @@ def _add_rig_args(p: argparse.ArgumentParser) -> None:
     # the fieldbus bit rate is an experiment option (--fieldbus-bitrate: also the pdo bus-fit check)
     p.add_argument("--io-bitrate", type=_bitrate, default=None, metavar="BIT_S",
                    help="bit rate of the io channel for the bus-time figures (default 1000000)")
+    p.add_argument("--bus-time", action="store_true",
+                   help="the hub carries both channels in bus time at their bit rates (--io-bitrate, "
+                        "--fieldbus-bitrate): frames in arbitration order, each delivered after its bit time, so "
+                        "transfers take as long as on a real bus (hub transport only)")
 
 
 def _bitrate(text: str) -> int:

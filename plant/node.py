@@ -88,6 +88,7 @@ from bus.bus_features import batch_sender
 from bus.cia301.nmt import NmtCommand, NmtState, next_state
 from bus.cia301.node import ObjectStore, SlaveNode, Value, install_sigterm
 from bus.errors import AbortCode, SdoAbort
+from bus.timer_slack import fine_timer_slack
 from bus.transports.config import TransportConfig
 from plant.pacing import TickPacer
 
@@ -549,26 +550,6 @@ class BenchNode(SlaveNode):
                 "trials_done": self.trials_done, "last_trial_s": self.last_trial_s}
 
 
-#: prctl option: the process's timer slack, ns (Linux)
-_PR_SET_TIMERSLACK = 29
-
-
-def _fine_timer_slack(slack_ns: int = 1000) -> None:
-    """Make the kernel wake this process's timed waits within ``slack_ns`` (default slack: 50 µs),
-    so paced ticks start on time; nothing happens where prctl is unavailable."""
-    import ctypes
-    import sys
-
-    if not sys.platform.startswith("linux"):
-        return
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        if libc.prctl(_PR_SET_TIMERSLACK, ctypes.c_ulong(slack_ns), 0, 0, 0) != 0:
-            logger.debug("prctl(PR_SET_TIMERSLACK) failed: errno %d", ctypes.get_errno())
-    except (OSError, AttributeError):
-        logger.debug("no prctl: default timer slack")
-
-
 def run_plant_role(transport: TransportConfig, node_id: int = DEFAULT_BENCH_NODE_ID,
                    stop: threading.Event | None = None) -> str | None:
     """Plant process entry (``ilcrig plant``): the test-bench node on both buses of
@@ -587,7 +568,7 @@ def run_plant_role(transport: TransportConfig, node_id: int = DEFAULT_BENCH_NODE
     if stop is None:
         stop = threading.Event()
         install_sigterm(stop)
-    _fine_timer_slack()
+    fine_timer_slack()
     true_plant = default_true_plant()
     logger.info("plant role: kernels ready in %.2f s", warm_up(true_plant))
     # the non-repetitive disturbance imports and runs scipy's filter design on first use: do it

@@ -189,3 +189,9 @@ def test_cheap_refusals_come_before_planning(tmp_path: Path, argv: list[str]) ->
     assert res.stdout.split() == ["2", "False"], (res.stdout, res.stderr)
     assert res.stderr.startswith("ilcrig: error: ") and len(res.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "o").exists()
+
+
+def test_bus_time_needs_the_hub(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    code, _, err = run_cli(capsys, "run", "--bus-time", "--bus", "udp_multicast", "--out", str(tmp_path / "run"))
+    assert_refused(code, err, "--bus-time", "use --bus hub")
+    assert not (tmp_path / "run").exists()

@@ -17,6 +17,7 @@ import canopen
 import pytest
 from netns_util import NETNS_SETUP, netns_unavailable_reason
 
+from bus.busload import bits_lookup
 from bus.io_frames import ENCODER_COB_BASE, TORQUE_COB_BASE
 from bus.objects import Obj
 from bus.transports.config import hub_transport
@@ -125,6 +126,27 @@ def test_realtime_run_has_the_same_results_and_bus_time_figures(
     assert "real time:" in res.stdout and "does NOT fit" in res.stdout
     apart = s["bench"]["bus_time"]["fieldbus"]["counted_apart"]
     assert "emulator" in apart["note"] and apart["sdo"]["status polls"]["frames"] > 0
+
+
+def test_bus_time_hub_gives_the_same_results_and_real_bus_spacing(
+        tmp_path: Path, sim_digest: str, hub_run: tuple[subprocess.CompletedProcess[str], Path, dict]) -> None:
+    """``--bus-time`` with io at 500 kbit/s: the hub carries both channels as real buses would, so
+    the results and the experiment's bits are the same, and in both candump logs (timestamps: the end
+    of each frame on the hub's virtual bus clock) no frame follows the previous one sooner than its
+    own bit time at the channel's rate."""
+    out = tmp_path / "bt"
+    res = run_rig([sys.executable, "-m", "host.cli", "run", *EXP, "--bus", "hub", "--bus-time",
+                   "--io-bitrate", "500000", "--out", str(out)])
+    s = check_run(res, out, sim_digest, "hub")
+    assert experiment_bus_time(s) == experiment_bus_time(hub_run[2])
+    assert s["bench"]["bus_time_hub"] == {"fieldbus": 1_000_000, "io": 500_000}
+    assert "bus-time hub: io at 500 kbit/s, fieldbus at 1000 kbit/s" in res.stdout
+    for name, rate in (("io", 500_000), ("fieldbus", 1_000_000)):
+        frames = list(can.LogReader(out / f"{name}.log"))
+        assert len(frames) > 1000
+        for prev, m in zip(frames, frames[1:]):
+            n = 0 if m.is_remote_frame else len(m.data)
+            assert m.timestamp - prev.timestamp >= bits_lookup(n, m.is_extended_id)[1] / rate - 2e-6, (name, prev, m)
 
 
 @pytest.mark.netns

@@ -45,6 +45,23 @@ Latency and cost
     changes its filters. A client that stops reading is dropped once more than
     :attr:`HubServer.MAX_OUTBUF_BYTES` are queued for it.
 
+Bus time (``--bus-time BUS=BIT_S``, :class:`HubServer` ``bus_time``)
+    A logical bus given a bit rate this way is delivered as a real CAN bus would carry it: every
+    frame waits in its sender's transmit queue (first in, first out, like one controller's queue),
+    and whenever the bus is free the waiting frames compete in arbitration — the lowest identifier
+    wins (an 11-bit data frame before a remote frame or a 29-bit frame with the same base
+    identifier) among the frames that had arrived by then.  The winner occupies the bus for its
+    classic-CAN bit length with worst-case stuffing (:func:`bus.busload.bits_lookup`, the 3-bit
+    intermission included) at the bus's bit rate, on a virtual clock (monotonic ns) that runs
+    back to back while frames wait and never drifts: each frame starts when the previous one
+    ended, or when it arrived if the bus was idle.  It is delivered when its transmission ends,
+    stamped with that end time, so a receiver's timestamps show the bus time (two frames sent
+    back to back are exactly one bit time apart).  A damaged frame (a bus error frame from the fault
+    hook) occupies the bus like the frame it replaced; CAN FD frames are not modelled (as in the
+    bus-load counts) and pass at once.  A sender more than :attr:`HubServer.BUS_TIME_QUEUE`
+    frames ahead of the bus is not read until the bus has caught up (its ``send`` then blocks,
+    like a full transmit queue).  Buses without a bit rate here forward at once, as before.
+
 Fault injection
     An optional ``frame_hook`` (:class:`bus.transports.fault_inject.FrameFaultInjector`, from
     ``--inject JSON``) decides for every frame what is delivered and when: nothing (lost), twice,
@@ -69,11 +86,13 @@ import sys
 import tempfile
 import time
 import weakref
-from collections.abc import Sequence
+from collections import deque
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Self
 
 from bus.busload import BusLoadCounter, bits_lookup
+from bus.timer_slack import fine_timer_slack
 from bus.transports.hub_wire import (
     BITRATES,
     BULK_HOLD_S,
@@ -142,6 +161,41 @@ class HubChannelStats:
 
 
 @dataclass(eq=False)
+class _BusClock:
+    """Bus-time delivery of one logical bus (see the module docstring): the transmit queue of every
+    sender, the frame on the bus and the virtual clock (monotonic ns)."""
+
+    bitrate: int
+    #: per sender: (arrival [monotonic ns], arbitration key, bit time [ns], record), oldest first
+    queues: dict[_Client, deque[tuple[int, tuple[int, int, int, int], int, bytes]]] = field(default_factory=dict)
+    #: the frame on the bus: (end of its transmission [monotonic ns], sender, record)
+    current: tuple[int, _Client, bytes] | None = None
+    #: when the bus became free (the end of the last frame), monotonic ns
+    free_ns: int = 0
+    queued: int = 0
+
+
+def arbitration_key(can_id: int, flags: int) -> tuple[int, int, int, int]:
+    """The order in which CAN arbitration lets frames win (lower first): the 11 base identifier
+    bits, then an 11-bit frame before a 29-bit one (IDE), then the 18 extension bits, then a data
+    frame before a remote frame (RTR)."""
+    rtr = 1 if flags & FLAG_RTR else 0
+    if flags & FLAG_EXT:
+        return (can_id >> 18) & 0x7FF, 1, can_id & 0x3FFFF, rtr
+    return can_id & 0x7FF, 0, 0, rtr
+
+
+def bit_time_ns(length: int, flags: int, bitrate: int) -> int:
+    """How long a frame record (data ``length`` bytes, wire ``flags``) occupies a classic CAN bus
+    at ``bitrate`` bit/s, ns: worst-case stuffed bit length incl. the intermission (a remote
+    frame carries no data; an FD frame is not modelled: 0)."""
+    if flags & FLAG_FD:
+        return 0
+    bits = bits_lookup(0 if flags & FLAG_RTR else min(length, 8), bool(flags & FLAG_EXT))[1]
+    return (bits * 1_000_000_000 + bitrate // 2) // bitrate
+
+
+@dataclass(eq=False)
 class _Client:
     sock: socket.socket
     peer: str
@@ -157,6 +211,8 @@ class _Client:
     held: list[bytes] = field(default_factory=list)
     held_bytes: int = 0
     held_since_s: float = 0.0
+    #: not read for now: too many of its frames wait for bus time (see HubServer.BUS_TIME_QUEUE)
+    paused: bool = False
 
     def accepts(self, can_id: int, ext: int) -> bool:
         if not self.filters:
@@ -175,22 +231,39 @@ class HubServer:
     :param listen: addresses (strings or :class:`HubAddress`); TCP port 0 picks a free port
     :param allow_remote: accept non-loopback TCP addresses (explicit opt-in: the hub then serves
         other machines)
+    :param frame_hook: frame faults (see the module docstring)
+    :param bus_time: logical bus name → bit rate [bit/s]: these buses deliver frames in bus time
+        (see the module docstring)
     :raises NonLoopbackAddressError: a TCP address is not loopback (without ``allow_remote``)
     :raises HubAddressInUseError: a live hub already owns a Unix path
+    :raises ValueError: a bus-time bit rate that is not positive
     """
 
     #: a client with more than this many unsent bytes queued is dropped (it stopped reading)
     MAX_OUTBUF_BYTES: int = 8 << 20
     RECV_CHUNK: int = 1 << 16
+    #: bus time: a sender with this many frames waiting for the bus is not read until they are sent
+    BUS_TIME_QUEUE: int = 4096
 
-    def __init__(self, listen: Sequence[str | HubAddress], allow_remote: bool = False, frame_hook: Any = None) -> None:
+    def __init__(self, listen: Sequence[str | HubAddress], allow_remote: bool = False, frame_hook: Any = None,
+                 bus_time: Mapping[str, int] | None = None) -> None:
         if not listen:
             raise HubAddressError("the hub needs at least one listen address")
+        for name, rate in (bus_time or {}).items():
+            if int(rate) <= 0:
+                raise ValueError(f"bus time of {name!r}: the bit rate must be > 0 bit/s, got {rate}")
+        self._clocks: dict[str, _BusClock] = {name: _BusClock(int(rate)) for name, rate in (bus_time or {}).items()}
+        #: wall-clock ns minus monotonic ns: bus-time stamps are monotonic times shown as wall-clock ones
+        self._epoch_offset_ns = time.time_ns() - time.monotonic_ns()
         self._hook = frame_hook
+        if self._clocks:
+            fine_timer_slack()
         #: frames the hook delays: (due [s, monotonic], sequence, sender, record), a heap
         self._delayed: list[tuple[float, int, _Client, bytes]] = []
         self._delayed_seq = 0
-        self._sel = selectors.DefaultSelector()
+        # epoll rounds its timeout up to whole milliseconds; bus time waits for frame ends that are
+        # tens of µs apart, so it uses select(), which waits to the µs (the hub has a few clients)
+        self._sel: selectors.BaseSelector = selectors.SelectSelector() if self._clocks else selectors.DefaultSelector()
         self._listeners: dict[socket.socket, HubAddress] = {}
         self._unix_paths: list[str] = []
         self._clients: dict[socket.socket, _Client] = {}
@@ -285,6 +358,11 @@ class HubServer:
                 if self._delayed:
                     due = max(0.0, self._delayed[0][0] - time.monotonic())
                     timeout = due if timeout is None else min(timeout, due)
+                if self._clocks:
+                    ends = [c.current[0] for c in self._clocks.values() if c.current is not None]
+                    if ends:
+                        due = max(0.0, (min(ends) - time.monotonic_ns()) / 1e9)
+                        timeout = due if timeout is None else min(timeout, due)
                 for key, events in self._sel.select(timeout):
                     tag = key.data
                     if isinstance(tag, _Client):
@@ -301,6 +379,8 @@ class HubServer:
                         return
                 if self._delayed:
                     self._release_delayed()
+                if self._clocks:
+                    self._run_bus_time(time.monotonic_ns())
                 self._send_pending()
                 if self._held:
                     self._send_held(time.monotonic())
@@ -357,6 +437,10 @@ class HubServer:
         members = self._buses.get(client.bus)
         self._pending.pop(client, None)
         self._held.pop(client, None)
+        clock = self._clocks.get(client.bus)
+        if clock is not None:
+            gone = clock.queues.pop(client, None)
+            clock.queued -= len(gone) if gone else 0
         if members and client in members:
             members.remove(client)
             self._route_cache.pop(client.bus, None)
@@ -463,6 +547,8 @@ class HubServer:
         size = len(buf)
         st = self._stats[sender.bus]
         pending = self._pending
+        clock = self._clocks.get(sender.bus)
+        arrival_ns = time.monotonic_ns() if clock is not None else 0
         off = 0
         while size - off >= HEADER_SIZE:
             kind = buf[off]
@@ -486,7 +572,9 @@ class HubServer:
                     st.frames += 1
                     st.bits += nominal
                     st.bits_worst_case += worst
-                if self._hook is None:  # the plain path
+                if self._hook is None and clock is not None:
+                    self._enqueue(clock, sender, rec, arrival_ns)
+                elif self._hook is None:  # the plain path
                     for peer, echo in self._recipients(sender, can_id, ext, fd):
                         chunk = rec[:1] + bytes([flags | FLAG_ECHO]) + rec[2:] if echo else rec
                         queue = pending.get(peer)
@@ -500,6 +588,8 @@ class HubServer:
                         if delay > 0:
                             self._delayed_seq += 1
                             heapq.heappush(self._delayed, (time.monotonic() + delay, self._delayed_seq, sender, bytes(r)))
+                        elif clock is not None:
+                            self._enqueue(clock, sender, bytes(r), arrival_ns)
                         else:
                             self._fan_out(sender, bytes(r))
             elif kind == KIND_FILTERS:
@@ -517,6 +607,9 @@ class HubServer:
                 return
             off += total
         del buf[:off]
+        if clock is not None and clock.queues.get(sender) and len(clock.queues[sender]) >= self.BUS_TIME_QUEUE:
+            sender.paused = True  # its socket fills up: its send() blocks like a full transmit queue
+            self._update_events(sender)
 
     def _send_pending(self) -> None:
         """One send per destination of everything routed in this select round; a bulk member's
@@ -562,11 +655,74 @@ class HubServer:
             pending.setdefault(peer, []).append(rec[:1] + bytes([flags | FLAG_ECHO]) + rec[2:] if echo else rec)
 
     def _release_delayed(self) -> None:
-        """Queue the delayed frames that are due (sent with the round's other frames)."""
+        """Queue the delayed frames that are due (sent with the round's other frames; on a bus-time
+        bus they wait for the bus from now)."""
         now = time.monotonic()
         while self._delayed and self._delayed[0][0] <= now:
             _, _, sender, rec = heapq.heappop(self._delayed)
+            clock = self._clocks.get(sender.bus)
+            if clock is not None:
+                self._enqueue(clock, sender, rec, time.monotonic_ns())
+            else:
+                self._fan_out(sender, rec)
+
+    # -- bus time --------------------------------------------------------------------------
+
+    def _enqueue(self, clock: _BusClock, sender: _Client, rec: bytes, arrival_ns: int) -> None:
+        """``rec`` joins its sender's transmit queue (an FD frame, not modelled, goes at once)."""
+        flags = rec[1]
+        if flags & FLAG_FD:
             self._fan_out(sender, rec)
+            return
+        queue = clock.queues.get(sender)
+        if queue is None:
+            queue = clock.queues[sender] = deque()
+        queue.append((arrival_ns, arbitration_key(U32.unpack_from(rec, 4)[0], flags),
+                      bit_time_ns(rec[3], flags, clock.bitrate), rec))
+        clock.queued += 1
+
+    def _run_bus_time(self, now_ns: int) -> None:
+        """Every bus-time bus: deliver the frames whose transmission ended by ``now_ns`` and start
+        the next ones (arbitration among the frames that had arrived when the bus became free)."""
+        for clock in self._clocks.values():
+            while True:
+                if clock.current is not None:
+                    end_ns, sender, rec = clock.current
+                    if end_ns > now_ns:
+                        break
+                    clock.current = None
+                    clock.free_ns = end_ns
+                    stamped = bytearray(rec)
+                    STAMP.pack_into(stamped, STAMP_OFFSET, end_ns + self._epoch_offset_ns)
+                    self._fan_out(sender, bytes(stamped))
+                    if sender.paused and len(clock.queues.get(sender, ())) < self.BUS_TIME_QUEUE // 2:
+                        sender.paused = False
+                        self._update_events(sender)
+                if not clock.queued:
+                    break
+                heads = [(q[0][0], q[0][1], s) for s, q in clock.queues.items() if q]
+                start_ns = max(clock.free_ns, min(h[0] for h in heads))
+                winner = min((h for h in heads if h[0] <= start_ns), key=lambda h: h[1])[2]
+                _, _, bit_ns, rec = clock.queues[winner].popleft()
+                clock.queued -= 1
+                clock.current = (start_ns + bit_ns, winner, rec)
+
+    def _update_events(self, client: _Client) -> None:
+        """(Re)register ``client``'s socket for what it waits for: reading unless paused, writing
+        while output is queued."""
+        if client.sock not in self._clients:
+            return
+        events = (0 if client.paused else selectors.EVENT_READ) | (selectors.EVENT_WRITE if client.writing else 0)
+        try:
+            if events:
+                try:
+                    self._sel.modify(client.sock, events, client)
+                except KeyError:
+                    self._sel.register(client.sock, events, client)
+            else:
+                self._sel.unregister(client.sock)
+        except (KeyError, ValueError, OSError) as err:
+            logger.debug("hub: cannot update the events of %s: %s", client.peer, err)
 
     def _send_to(self, client: _Client, data: bytes) -> None:
         if client.sock not in self._clients:
@@ -593,7 +749,7 @@ class HubServer:
             return
         if not client.writing:
             client.writing = True
-            self._sel.modify(client.sock, selectors.EVENT_READ | selectors.EVENT_WRITE, client)
+            self._update_events(client)
 
     def _flush(self, client: _Client) -> None:
         try:
@@ -606,7 +762,7 @@ class HubServer:
         del client.outbuf[:sent]
         if not client.outbuf and client.writing:
             client.writing = False
-            self._sel.modify(client.sock, selectors.EVENT_READ, client)
+            self._update_events(client)
 
 
 def query_hub_stats(address: str, reset: bool = False, timeout_s: float = 2.0) -> dict[str, HubChannelStats]:
@@ -714,7 +870,7 @@ class HubHandle:
 
 def start_hub(
     listen: str | Sequence[str] | None = None, *, timeout_s: float = 10.0, log_level: str = "WARNING",
-    inject: str | None = None, stderr: Any = None,
+    inject: str | None = None, stderr: Any = None, bus_time: Mapping[str, int] | None = None,
 ) -> HubHandle:
     """Start a hub in a child process and wait until it accepts clients.
 
@@ -726,6 +882,7 @@ def start_hub(
     :param inject: frame faults for the hub (``--inject``, JSON of
         :meth:`bus.transports.fault_inject.FrameFaultInjector.from_json`)
     :param stderr: where the hub's stderr goes (default: inherited)
+    :param bus_time: logical bus → bit rate, bit/s: deliver these buses in bus time (``--bus-time``)
 
     The child exits when :meth:`HubHandle.stop` closes its stdin, and also when this
     process dies (its stdin reaches EOF), so no hub outlives its parent.
@@ -743,6 +900,10 @@ def start_hub(
         cmd += ["--listen", text]
     if inject:
         cmd += ["--inject", inject]
+    for name, rate in (bus_time or {}).items():
+        if int(rate) <= 0:
+            raise ValueError(f"bus time of {name!r}: the bit rate must be > 0 bit/s, got {rate}")
+        cmd += ["--bus-time", f"{name}={int(rate)}"]
     if tmpdir is not None:
         cmd += ["--remove-dir", tmpdir]  # the hub removes it when it exits, even if this process was killed
     proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=stderr)
@@ -770,6 +931,20 @@ def start_hub(
     return handle
 
 
+def parse_bus_time(items: Sequence[str]) -> dict[str, int]:
+    """``["io=500000", "fieldbus=1000000"]`` → ``{"io": 500000, "fieldbus": 1000000}``.
+
+    :raises ValueError: not ``BUS=BIT_S`` with a positive integer bit rate
+    """
+    out: dict[str, int] = {}
+    for item in items:
+        name, sep, rate = item.partition("=")
+        if not sep or not name or not rate.isdigit() or int(rate) <= 0:
+            raise ValueError(f"--bus-time {item!r}: expected BUS=BIT_S with a bit rate > 0, e.g. io=1000000")
+        out[name] = int(rate)
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m bus.transports.hub_server --listen unix:/path [--listen tcp:127.0.0.1:0]``."""
     parser = argparse.ArgumentParser(prog="python -m bus.transports.hub_server", description="ilcrig zero-privilege CAN hub")
@@ -785,7 +960,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="accept non-loopback TCP listen addresses (the hub then serves other machines)")
     parser.add_argument("--inject", default=None, help="frame faults (JSON: {\"specs\": [...], \"log\": path})")
     parser.add_argument("--remove-dir", default=None, help="a private folder to remove on exit")
+    parser.add_argument("--bus-time", action="append", default=[], metavar="BUS=BIT_S",
+                        help="deliver logical bus BUS in bus time at BIT_S bit/s: arbitration order, each frame "
+                             "after its bit time (repeatable)")
     args = parser.parse_args(argv)
+    try:
+        bus_time = parse_bus_time(args.bus_time)
+    except ValueError as err:
+        parser.error(str(err))
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s hub %(levelname)s %(message)s")
     hook = None
     if args.inject:
@@ -793,7 +975,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         hook = FrameFaultInjector.from_json(args.inject)
     try:
-        server = HubServer(args.listen or [default_hub_address()], allow_remote=args.allow_remote, frame_hook=hook)
+        server = HubServer(args.listen or [default_hub_address()], allow_remote=args.allow_remote, frame_hook=hook,
+                           bus_time=bus_time)
         if args.allow_remote:
             logger.warning("hub accepts remote members on %s", ", ".join(map(str, server.addresses)))
     except (HubAddressError, HubAddressInUseError, OSError) as err:

@@ -193,7 +193,7 @@ class RigBench:
     def __init__(self, cfg: ExperimentConfig, transport: TransportConfig, *,
                  out_dir: Path | None, wait_s: float = 20.0, pause_s: float = 0.0, recover_s: float = 0.0,
                  realtime: bool = False, io_bitrate: int = DEFAULT_BITRATE,
-                 fieldbus_bitrate: int = DEFAULT_BITRATE) -> None:
+                 fieldbus_bitrate: int = DEFAULT_BITRATE, bus_time_hub: bool = False) -> None:
         self.cfg = cfg
         self.out_dir = out_dir
         self.bus_time = BusTimeAccounting(
@@ -201,6 +201,8 @@ class RigBench:
             trial_s=round(2 * cfg.cycle_s / cfg.ts_s) * cfg.ts_s, heartbeat_ms=NODE_HEARTBEAT_MS,
             n_nodes=len(DRIVE_NODE_IDS) + 2)  # the drives, the bench and the host (HOST_HEARTBEAT_MS, the same)
         self.realtime = realtime
+        #: the hub carries the channels in bus time at these bit rates (``--bus-time``), or None
+        self.bus_time_hub = {FIELDBUS: int(fieldbus_bitrate), IO: int(io_bitrate)} if bus_time_hub else None
         self.timings: list[TrialTiming] = []
         self.pause_s = pause_s
         self.recover_s = recover_s
@@ -704,6 +706,7 @@ class RigBench:
                               "their bits (worst-case stuffing) per second of wall time, a speed of the emulator, "
                               "not a bus load (see bus_time)",
             "bus_time": self.bus_time.summary(len(self.timings)),
+            "bus_time_hub": self.bus_time_hub,
             "elapsed_s": wall,
             "heartbeat": {"host_node_id": HOST_NODE_ID, "host_period_ms": HOST_HEARTBEAT_MS,
                           "node_period_ms": NODE_HEARTBEAT_MS, "consumer_time_ms": CONSUMER_TIME_MS * self.scale},
@@ -808,7 +811,8 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
                          recover_s=getattr(args, "recover", 0.0) or 0.0,
                          realtime=bool(args.realtime),
                          io_bitrate=args.io_bitrate or DEFAULT_BITRATE,
-                         fieldbus_bitrate=cfg.fieldbus_bitrate)
+                         fieldbus_bitrate=cfg.fieldbus_bitrate,
+                         bus_time_hub=bool(getattr(args, "bus_time", False)))
     except (OSError, can.CanError, IlcrigError) as exc:
         sys.stderr.write(f"ilcrig: error: cannot open the bus ({transport.name}): {exc}\n")
         return EXIT_FAULT
@@ -821,6 +825,10 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
     timing = s.get("bench", {}).get("timing")
     if timing and timing.get("trials"):
         sys.stdout.write(timing_line(timing) + "\n")
+    hub_rates = s.get("bench", {}).get("bus_time_hub")
+    if hub_rates:
+        sys.stdout.write(f"bus-time hub: io at {hub_rates[IO] / 1000:g} kbit/s, fieldbus at {hub_rates[FIELDBUS] / 1000:g} "
+                         f"kbit/s: frames delivered in arbitration order, each after its bit time\n")
     bus_time = s.get("bench", {}).get("bus_time")
     if bus_time and s["iterations"]:
         sys.stdout.write("".join(line + "\n" for line in bus_time_lines(bus_time)))

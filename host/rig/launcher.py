@@ -66,9 +66,12 @@ from pathlib import Path
 from typing import IO, Any
 
 from bus.bench_objects import DEFAULT_BENCH_NODE_ID
+from bus.busload import DEFAULT_BITRATE_BPS
 from bus.cia301.nmt import CONSUMER_TIME_MS, HOST_NODE_ID
 from bus.objects import DRIVE_NODE_IDS
 from bus.safe_state import last_state_in_log
+from bus.transports.config import FIELDBUS
+from bus.transports.config import IO as IO_CHANNEL
 from bus.transports.fault_inject import FRAME_ACTIONS, FaultSpec, FaultSpecError, parse_specs
 from bus.units import timeout_scale
 from host.experiment.console import (
@@ -171,9 +174,11 @@ def host_role_args(args: argparse.Namespace) -> list[str]:
 
 
 def rig_role_args(args: argparse.Namespace) -> list[str]:
-    """The rig options of ``args`` (``--realtime``, ``--io-bitrate``) that the host role takes too
+    """The rig options of ``args`` (``--realtime``, ``--bus-time``, ``--io-bitrate``) that the host role takes too
     (``--fieldbus-bitrate`` is an experiment option and goes with :func:`host_role_args`)."""
     argv = ["--realtime"] if args.realtime else []
+    if getattr(args, "bus_time", False):
+        argv.append("--bus-time")
     if args.io_bitrate is not None:
         argv += ["--io-bitrate", str(args.io_bitrate)]
     return argv
@@ -300,6 +305,8 @@ def preflight(args: argparse.Namespace) -> list[FaultSpec]:
     if args.out:
         check_out_dir(args.out, iterations=cfg.iterations, create=False)
     _check_specs(specs, args.bus, cfg.iterations)
+    if getattr(args, "bus_time", False) and args.bus not in ("hub", "auto"):
+        raise ValueError(f"--bus-time: bus time is kept by the hub; the transport {args.bus} has none: use --bus hub")
     from host.experiment.plan import prepare
 
     prepare(cfg)
@@ -401,7 +408,7 @@ class RigLauncher:
             frame_specs = [sp.text for sp in specs if sp.action in FRAME_ACTIONS]
             inject = json.dumps({"specs": frame_specs, "log": str(log_dir / "injections-hub.jsonl")}) \
                 if frame_specs else None
-            self._start_hub(args.hub, inject, log_dir / "hub.log")
+            self._start_hub(args.hub, inject, log_dir / "hub.log", bus_time=bus_time_rates(args))
             bus_args += ["--hub", str(self.hub_address)]
         if self._signal is not None:
             return self._signal_exit()
@@ -443,7 +450,8 @@ class RigLauncher:
         child = next((c for c in self.children if c.name == name), None)
         return child.pid if child is not None and child.proc.poll() is None else None
 
-    def _start_hub(self, address: str | None, inject: str | None = None, log_path: Path | None = None) -> None:
+    def _start_hub(self, address: str | None, inject: str | None = None, log_path: Path | None = None,
+                   bus_time: dict[str, int] | None = None) -> None:
         from bus.transports.hub_server import HubError, start_hub
 
         # The hub stays in the launcher's process group (start_hub's Popen); with SIGINT/SIGHUP
@@ -452,7 +460,8 @@ class RigLauncher:
         old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, _HUB_BLOCKED_SIGNALS)
         log = open(log_path, "ab") if log_path is not None else None  # noqa: SIM115 - closed below
         try:
-            self.hub = start_hub(address, inject=inject, stderr=log)  # None: hub.sock in a fresh private temp dir
+            # address None: hub.sock in a fresh private temp dir
+            self.hub = start_hub(address, inject=inject, stderr=log, bus_time=bus_time)
         except HubError as err:
             if isinstance(err, ValueError):
                 raise
@@ -761,6 +770,16 @@ def _killpg(pgid: int, signum: int) -> None:
     except PermissionError:  # pragma: no cover - setsid failed: pgid is not ours
         with contextlib.suppress(ProcessLookupError):
             os.kill(pgid, signum)
+
+
+def bus_time_rates(args: argparse.Namespace) -> dict[str, int] | None:
+    """``--bus-time``: the hub's bit rate per channel (``--io-bitrate``, the experiment's fieldbus bit
+    rate), None without the option."""
+    if not getattr(args, "bus_time", False):
+        return None
+    from host.experiment.console import experiment_config
+
+    return {FIELDBUS: int(experiment_config(args).fieldbus_bitrate), IO_CHANNEL: int(args.io_bitrate or DEFAULT_BITRATE_BPS)}
 
 
 def launch_rig(args: argparse.Namespace) -> int:
