@@ -38,6 +38,7 @@ and plant are other processes, reached only over CAN with the ``canopen`` librar
 from __future__ import annotations
 
 import functools
+import gc
 import logging
 import queue
 import sys
@@ -201,6 +202,7 @@ class RigBench:
             trial_s=round(2 * cfg.cycle_s / cfg.ts_s) * cfg.ts_s, heartbeat_ms=NODE_HEARTBEAT_MS,
             n_nodes=len(DRIVE_NODE_IDS) + 2)  # the drives, the bench and the host (HOST_HEARTBEAT_MS, the same)
         self.realtime = realtime
+        self._gc_frozen = False
         #: the hub carries the channels in bus time at these bit rates (``--bus-time``), or None
         self.bus_time_hub = {FIELDBUS: int(fieldbus_bitrate), IO: int(io_bitrate)} if bus_time_hub else None
         self.timings: list[TrialTiming] = []
@@ -593,6 +595,14 @@ class RigBench:
                   cyclic: CyclicSetpoints | None = None) -> CyclicActuals | None:
         self._trial = trial
         self._raise_if_fault()
+        if not self._gc_frozen:
+            # What the host holds at its first trial (numba, scipy, canopen, rerun, pyarrow: about a
+            # million objects) lives as long as the process: frozen out of the cycle collector's
+            # reach, a full collection during a trial costs about a millisecond instead of 50-150 ms
+            # of one of the two cores the lockstep needs (refcounting still frees them).
+            gc.collect()
+            gc.freeze()
+            self._gc_frozen = True
         self._in_trial = True
         actuals = None
         try:
