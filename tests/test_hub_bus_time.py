@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Iterator
+from pathlib import Path
 
 import can
 import pytest
@@ -115,9 +116,9 @@ def test_buses_without_a_rate_are_not_timed_and_echo_comes_when_the_frame_is_sen
 
 
 @pytest.fixture
-def small_queue_hub(tmp_path: pytest.TempPathFactory) -> Iterator[str]:
+def small_queue_hub(tmp_path: Path) -> Iterator[str]:
     """A hub in a thread of this process with a transmit queue of 8 frames per sender."""
-    server = HubServer([f"unix:{tmp_path}/hub.sock"], bus_time={"b": 1_000_000})  # type: ignore[operator]
+    server = HubServer([f"unix:{tmp_path}/hub.sock"], bus_time={"b": 1_000_000})
     server.BUS_TIME_QUEUE = 8
     thread = threading.Thread(target=server.serve_forever, daemon=True)
     thread.start()
