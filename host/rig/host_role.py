@@ -599,8 +599,10 @@ class RigBench:
             # What the host holds at its first trial (numba, scipy, canopen, rerun, pyarrow: about a
             # million objects) lives as long as the process: frozen out of the cycle collector's
             # reach, a full collection during a trial costs about a millisecond instead of 50-150 ms
-            # of one of the two cores the lockstep needs (refcounting still frees them).
-            gc.collect()
+            # of one of the two cores the lockstep needs (refcounting still frees them). No
+            # gc.collect() first: it would hold the GIL for that long itself (seconds in an emulated
+            # VM, near the drives' heartbeat consumer time); the little garbage frozen with the rest
+            # is kept once.
             gc.freeze()
             self._gc_frozen = True
         self._in_trial = True
