@@ -172,7 +172,18 @@ class _BusClock:
     current: tuple[int, _Client, bytes] | None = None
     #: when the bus became free (the end of the last frame), monotonic ns
     free_ns: int = 0
-    queued: int = 0
+
+
+def _checked_bus_time(bus_time: Mapping[str, int] | None) -> dict[str, int]:
+    """``bus_time`` (logical bus → bit rate) as ints.
+
+    :raises ValueError: a bit rate that is not positive
+    """
+    out = {name: int(rate) for name, rate in (bus_time or {}).items()}
+    for name, rate in out.items():
+        if rate <= 0:
+            raise ValueError(f"bus time of {name!r}: the bit rate must be > 0 bit/s, got {rate}")
+    return out
 
 
 def arbitration_key(can_id: int, flags: int) -> tuple[int, int, int, int]:
@@ -249,10 +260,7 @@ class HubServer:
                  bus_time: Mapping[str, int] | None = None) -> None:
         if not listen:
             raise HubAddressError("the hub needs at least one listen address")
-        for name, rate in (bus_time or {}).items():
-            if int(rate) <= 0:
-                raise ValueError(f"bus time of {name!r}: the bit rate must be > 0 bit/s, got {rate}")
-        self._clocks: dict[str, _BusClock] = {name: _BusClock(int(rate)) for name, rate in (bus_time or {}).items()}
+        self._clocks = {name: _BusClock(rate) for name, rate in _checked_bus_time(bus_time).items()}
         #: wall-clock ns minus monotonic ns: bus-time stamps are monotonic times shown as wall-clock ones
         self._epoch_offset_ns = time.time_ns() - time.monotonic_ns()
         self._hook = frame_hook
@@ -439,8 +447,7 @@ class HubServer:
         self._held.pop(client, None)
         clock = self._clocks.get(client.bus)
         if clock is not None:
-            gone = clock.queues.pop(client, None)
-            clock.queued -= len(gone) if gone else 0
+            clock.queues.pop(client, None)
         if members and client in members:
             members.remove(client)
             self._route_cache.pop(client.bus, None)
@@ -607,7 +614,7 @@ class HubServer:
                 return
             off += total
         del buf[:off]
-        if clock is not None and clock.queues.get(sender) and len(clock.queues[sender]) >= self.BUS_TIME_QUEUE:
+        if clock is not None and len(clock.queues.get(sender, ())) >= self.BUS_TIME_QUEUE:
             sender.paused = True  # its socket fills up: its send() blocks like a full transmit queue
             self._update_events(sender)
 
@@ -679,7 +686,6 @@ class HubServer:
             queue = clock.queues[sender] = deque()
         queue.append((arrival_ns, arbitration_key(U32.unpack_from(rec, 4)[0], flags),
                       bit_time_ns(rec[3], flags, clock.bitrate), rec))
-        clock.queued += 1
 
     def _run_bus_time(self, now_ns: int) -> None:
         """Every bus-time bus: deliver the frames whose transmission ended by ``now_ns`` and start
@@ -698,13 +704,12 @@ class HubServer:
                     if sender.paused and len(clock.queues.get(sender, ())) < self.BUS_TIME_QUEUE // 2:
                         sender.paused = False
                         self._update_events(sender)
-                if not clock.queued:
-                    break
                 heads = [(q[0][0], q[0][1], s) for s, q in clock.queues.items() if q]
+                if not heads:
+                    break
                 start_ns = max(clock.free_ns, min(h[0] for h in heads))
                 winner = min((h for h in heads if h[0] <= start_ns), key=lambda h: h[1])[2]
                 _, _, bit_ns, rec = clock.queues[winner].popleft()
-                clock.queued -= 1
                 clock.current = (start_ns + bit_ns, winner, rec)
 
     def _update_events(self, client: _Client) -> None:
@@ -900,10 +905,8 @@ def start_hub(
         cmd += ["--listen", text]
     if inject:
         cmd += ["--inject", inject]
-    for name, rate in (bus_time or {}).items():
-        if int(rate) <= 0:
-            raise ValueError(f"bus time of {name!r}: the bit rate must be > 0 bit/s, got {rate}")
-        cmd += ["--bus-time", f"{name}={int(rate)}"]
+    for name, rate in _checked_bus_time(bus_time).items():
+        cmd += ["--bus-time", f"{name}={rate}"]
     if tmpdir is not None:
         cmd += ["--remove-dir", tmpdir]  # the hub removes it when it exits, even if this process was killed
     proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=stderr)
