@@ -6,6 +6,7 @@ machine's speed: the tests read them from the received frames (they wait for fra
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -78,8 +79,11 @@ def test_frames_waiting_for_a_busy_bus_go_in_arbitration_order_back_to_back() ->
         buses = [HubBus(hub.channel("b")) for _ in range(5)]
         rx, a, b, c, d = buses
         try:
-            first = std(0x700, 8)
-            a.send(first)
+            a.send(std(0x700, 8))
+            # the hub has read it (and put it on the free bus) before the others are sent
+            deadline = time.monotonic() + 10.0
+            while hub.stats()["b"].frames < 1 and time.monotonic() < deadline:
+                pass
             for bus, cid in ((b, 0x300), (c, 0x100), (d, 0x200)):
                 bus.send(std(cid))
             got = recv_n(rx, 4)
