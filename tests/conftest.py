@@ -33,3 +33,16 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo):  # type
         reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
         report.outcome = "failed"
         report.longrepr = f"vcan test skipped where it must run (CI=true, -m vcan): {reason}"
+
+
+@pytest.fixture(params=["c", "python"])
+def hub_data_plane(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Run a hub test once with each data plane of the hub: the C core (skipped where it is not
+    built) and the pure-Python path. Hubs started by the test, in-process or as child processes,
+    take it from the environment (bus.transports.hub_server.HUB_CORE_ENV)."""
+    from bus.transports import hub_server
+
+    if request.param == "c" and hub_server._hubcore is None:
+        pytest.skip("the hub's C core is not built here (no C compiler at install)")
+    monkeypatch.setenv(hub_server.HUB_CORE_ENV, request.param)
+    return str(request.param)

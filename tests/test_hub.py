@@ -35,7 +35,7 @@ from bus.transports.hub_wire import (
     parse_channel,
 )
 
-pytestmark = pytest.mark.multiprocess
+pytestmark = [pytest.mark.multiprocess, pytest.mark.usefixtures("hub_data_plane")]
 CTX = mp.get_context("fork")
 Frame = tuple[int, bool, bool, int, bytes]  # id, extended, remote, dlc, data
 

@@ -34,6 +34,8 @@ from bus.transports.config import hub_transport
 from bus.transports.hub_client import HubBus
 from bus.transports.hub_server import start_hub
 
+pytestmark = pytest.mark.usefixtures("hub_data_plane")
+
 
 def wait_until(condition: Callable[[], bool], timeout_s: float = 5.0) -> bool:
     deadline = time.monotonic() + timeout_s

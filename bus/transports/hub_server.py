@@ -89,6 +89,7 @@ import weakref
 from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from types import ModuleType
 from typing import Any, Self
 
 from bus.busload import BusLoadCounter, bits_lookup
@@ -134,6 +135,12 @@ from bus.transports.hub_wire import (
     recv_exact,
     version_refusal,
 )
+
+_hubcore: ModuleType | None
+try:  # the hub's data plane in C, built at install when a C compiler is there (setup.py)
+    from bus.transports import _hubcore
+except ImportError:  # pragma: no cover - depends on the installation
+    _hubcore = None
 
 logger = logging.getLogger(__name__)
 
@@ -236,6 +243,118 @@ class _Client:
         return False
 
 
+#: environment variable: ``python`` makes every hub of this process and its children use the pure-Python
+#: data plane even where the C one (:mod:`bus.transports._hubcore`) is built (comparisons, debugging)
+HUB_CORE_ENV: str = "ILCRIG_HUB_CORE"
+
+
+def hub_core_available() -> bool:
+    """A hub started now (without frame faults or bus time) would move frames in C."""
+    return _hubcore is not None and os.environ.get(HUB_CORE_ENV, "c").strip().lower() != "python"
+
+
+class _CoreSelector(selectors.BaseSelector):
+    """The selector of a hub whose members the C core serves (:mod:`bus.transports._hubcore`).
+
+    The descriptors the Python side registers (listen sockets, the wake pipe, the watched
+    descriptor, clients before and outside membership) are watched by the core's epoll and come
+    back from :meth:`select` as usual; a member handed over with :meth:`adopt` is read, routed and
+    written by the core, and only comes back when the core dropped it (``on_drop(client, refuse,
+    reason)``, called from :meth:`select`).
+    """
+
+    def __init__(self, module: ModuleType, on_drop: Any, **core_args: Any) -> None:
+        self._core = module.Core(**core_args)
+        self._report_events: int = module.REPORT_EVENTS
+        self._report_refuse: int = module.REPORT_REFUSE
+        self._on_drop = on_drop
+        self._keys: dict[int, selectors.SelectorKey] = {}
+        self._members: dict[int, _Client] = {}
+
+    @staticmethod
+    def _mask(events: int) -> int:
+        return (select.EPOLLIN if events & selectors.EVENT_READ else 0) | (
+            select.EPOLLOUT if events & selectors.EVENT_WRITE else 0)
+
+    def register(self, fileobj: Any, events: int, data: Any = None) -> selectors.SelectorKey:
+        fd = selectors._fileobj_to_fd(fileobj)  # type: ignore[attr-defined]
+        if fd in self._keys or fd in self._members:
+            raise KeyError(f"{fileobj!r} (fd {fd}) is already registered")
+        key = selectors.SelectorKey(fileobj, fd, events, data)
+        self._core.watch(fd, self._mask(events))
+        self._keys[fd] = key
+        return key
+
+    def unregister(self, fileobj: Any) -> selectors.SelectorKey:
+        fd = selectors._fileobj_to_fd(fileobj)  # type: ignore[attr-defined]
+        key = self._keys.pop(fd)
+        with contextlib.suppress(OSError, ValueError):
+            self._core.unwatch(fd)
+        return key
+
+    def modify(self, fileobj: Any, events: int, data: Any = None) -> selectors.SelectorKey:
+        fd = selectors._fileobj_to_fd(fileobj)  # type: ignore[attr-defined]
+        old = self._keys[fd]
+        key = selectors.SelectorKey(old.fileobj, fd, events, data)
+        self._core.watch(fd, self._mask(events))
+        self._keys[fd] = key
+        return key
+
+    def adopt(self, client: _Client, bus: int, stamp_ns: int) -> None:
+        """The core serves ``client`` (a member after its handshake) from now on, starting with the
+        bytes it already sent (read at ``stamp_ns``) and the bytes still to be sent to it."""
+        fd = client.sock.fileno()
+        self._keys.pop(fd, None)
+        self._core.add_member(fd, bus, client.echo, client.classic, client.bulk, bytes(client.inbuf),
+                              bytes(client.outbuf), stamp_ns)
+        client.inbuf.clear()
+        client.outbuf.clear()
+        client.writing = False
+        self._members[fd] = client
+
+    def release(self, client: _Client) -> None:
+        """Take ``client`` back from the core (before its socket closes)."""
+        with contextlib.suppress(OSError):
+            fd = client.sock.fileno()
+            if self._members.get(fd) is client:
+                del self._members[fd]
+                self._core.remove(fd)
+
+    def select(self, timeout: float | None = None) -> list[tuple[selectors.SelectorKey, int]]:
+        ready: list[tuple[selectors.SelectorKey, int]] = []
+        for fd, kind, value in self._core.poll(-1.0 if timeout is None else max(0.0, timeout)):
+            if kind == self._report_events:
+                key = self._keys.get(fd)
+                if key is None:
+                    continue
+                events = 0
+                if value & ~select.EPOLLIN:
+                    events |= selectors.EVENT_WRITE
+                if value & ~select.EPOLLOUT:
+                    events |= selectors.EVENT_READ
+                if key.events & events:
+                    ready.append((key, key.events & events))
+            else:
+                client = self._members.pop(fd, None)
+                if client is not None:
+                    self._on_drop(client, kind == self._report_refuse, value)
+        return ready
+
+    def stats(self, bus: int, reset: bool) -> tuple[int, int, int, int, int, int]:
+        """The core's counters of logical bus ``bus`` (index): frames, bits, bits worst case, FD frames,
+        error frames, dropped members; ``reset`` zeroes the frame and bit counts afterwards."""
+        counts: tuple[int, int, int, int, int, int] = self._core.stats(bus, reset)
+        return counts
+
+    def get_map(self) -> Mapping[Any, selectors.SelectorKey]:
+        return {key.fileobj: key for key in self._keys.values()}
+
+    def close(self) -> None:
+        self._keys.clear()
+        self._members.clear()
+        self._core.close()
+
+
 class HubServer:
     """The hub: binds its listen addresses at construction, serves in :meth:`serve_forever`.
 
@@ -272,6 +391,18 @@ class HubServer:
         # epoll rounds its timeout up to whole milliseconds; bus time waits for frame ends that are
         # tens of µs apart, so it uses select(), which waits to the µs (the hub has a few clients)
         self._sel: selectors.BaseSelector = selectors.SelectSelector() if self._clocks else selectors.DefaultSelector()
+        #: the C data plane, when built and nothing needs the per-frame Python path (faults, bus time)
+        self._core: _CoreSelector | None = None
+        if frame_hook is None and not self._clocks and _hubcore is not None and hub_core_available():
+            self._sel.close()
+            self._core = _CoreSelector(
+                _hubcore, self._core_dropped,
+                bits=[bits_lookup(n, ext)[k] for ext in (False, True) for n in range(9) for k in (0, 1)],
+                recv_chunk=self.RECV_CHUNK, max_outbuf=self.MAX_OUTBUF_BYTES, bulk_hold_s=BULK_HOLD_S,
+                bulk_max_bytes=BULK_MAX_BYTES)
+            self._sel = self._core
+        #: logical bus name -> index in the C core
+        self._bus_index: dict[str, int] = {}
         self._listeners: dict[socket.socket, HubAddress] = {}
         self._unix_paths: list[str] = []
         self._clients: dict[socket.socket, _Client] = {}
@@ -344,10 +475,32 @@ class HubServer:
         out: dict[str, HubChannelStats] = {}
         for name, st in self._stats.items():
             st.clients = len(self._buses.get(name, ()))
-            out[name] = HubChannelStats(**vars(st))
+            out[name] = copy = HubChannelStats(**vars(st))
+            if self._core is not None and name in self._bus_index:
+                counts = self._core.stats(self._bus_index[name], reset)
+                copy.frames += counts[0]
+                copy.bits += counts[1]
+                copy.bits_worst_case += counts[2]
+                copy.fd_frames += counts[3]
+                copy.error_frames += counts[4]
+                copy.dropped_clients += counts[5]
             if reset:
                 st.frames = st.bits = st.bits_worst_case = st.fd_frames = st.error_frames = 0
         return out
+
+    @property
+    def data_plane(self) -> str:
+        """``"c"`` when members' frames move in the C core, ``"python"`` otherwise."""
+        return "c" if self._core is not None else "python"
+
+    def _core_dropped(self, client: _Client, refuse: bool, reason: str) -> None:
+        """The core dropped member ``client`` (it already forgot it): the Python side's part."""
+        if reason == "output buffer overflow":
+            logger.warning("hub: dropping client %s on bus %r: it stopped reading", client.peer, client.bus)
+        if refuse:
+            self._refuse(client, reason)
+        else:
+            self._drop(client, reason)
 
     def wake(self) -> None:
         """Ask :meth:`serve_forever` to return (thread-safe, signal-safe)."""
@@ -439,6 +592,8 @@ class HubServer:
     def _drop(self, client: _Client, reason: str) -> None:
         if self._clients.pop(client.sock, None) is None:
             return
+        if self._core is not None:
+            self._core.release(client)
         with contextlib.suppress(KeyError, ValueError):
             self._sel.unregister(client.sock)
         client.sock.close()
@@ -467,12 +622,12 @@ class HubServer:
             return
         client.inbuf += data
         if not client.role:
-            self._handshake(client)
+            self._handshake(client, stamp_ns)
             if not client.role or client.sock not in self._clients:
                 return
         self._route(client, stamp_ns)
 
-    def _handshake(self, client: _Client) -> None:
+    def _handshake(self, client: _Client, stamp_ns: int) -> None:
         buf = client.inbuf
         if len(buf) < HELLO_FIXED.size:
             return
@@ -516,6 +671,8 @@ class HubServer:
         st.connections += 1
         logger.info("hub: client %s joined bus %r%s", client.peer, name, " (classic CAN)" if client.classic else "")
         self._send_to(client, MAGIC_OK + BITRATES.pack(st.bitrate, st.data_bitrate))
+        if self._core is not None and client.sock in self._clients:
+            self._core.adopt(client, self._bus_index.setdefault(name, len(self._bus_index)), stamp_ns)
 
     def _refuse(self, client: _Client, text: str) -> None:
         logger.warning("hub: refusing client %s: %s", client.peer, text)
