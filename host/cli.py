@@ -32,6 +32,7 @@ from host.experiment.console import (
     experiment_config,
     print_plan,
 )
+from host.rig.realtime import DEFAULT_RT_PRIORITY
 
 __all__ = ["main"]
 
@@ -88,6 +89,10 @@ def _add_rig_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--realtime", action="store_true",
                    help="pace the plant's ticks to the wall clock at the control period (tick n starts at t0 + n·Ts) "
                         "and report deadline misses and tick lateness")
+    p.add_argument("--rt-priority", type=_rt_priority, default=None, metavar="N",
+                   help="with --realtime: the SCHED_FIFO priority of the hub, plant and drive processes, 1..99 "
+                        f"(default {DEFAULT_RT_PRIORITY}; 0 = normal scheduling); without the right to it "
+                        "(CAP_SYS_NICE or RLIMIT_RTPRIO) the run uses normal scheduling and says so")
     # the fieldbus bit rate is an experiment option (--fieldbus-bitrate: also the pdo bus-fit check)
     p.add_argument("--io-bitrate", type=_bitrate, default=None, metavar="BIT_S",
                    help="bit rate of the io channel for the bus-time figures (default 1000000)")
@@ -95,6 +100,17 @@ def _add_rig_args(p: argparse.ArgumentParser) -> None:
                    help="the hub carries both channels in bus time at their bit rates (--io-bitrate, "
                         "--fieldbus-bitrate): frames in arbitration order, each delivered after its bit time, so "
                         "transfers take as long as on a real bus (hub transport only)")
+
+
+def _rt_priority(text: str) -> int:
+    """``--rt-priority``: 0..99 (0 = normal scheduling)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer 0..99, got {text!r}") from None
+    if not 0 <= value <= 99:
+        raise argparse.ArgumentTypeError(f"must be 0..99 (0 = normal scheduling), got {value}")
+    return value
 
 
 def _bitrate(text: str) -> int:
@@ -197,6 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_experiment_args(hp)
     _add_bus_args(hp)
     _add_rig_args(hp)
+    hp.add_argument("--rt-scheduling", default=None, help=argparse.SUPPRESS)  # the launcher's: what --realtime got
     hp.add_argument("--wait", type=float, default=120.0,
                     help="seconds to wait for the nodes to answer (default 120: a first run compiles the numba kernels)")
     hp.add_argument("--pause", type=float, default=0.0,

@@ -32,7 +32,10 @@ until t0 + n·Ts on the node clock (t0 = the trial's start), the wait being part
 loop (SDO is served meanwhile); a tick whose torques arrive after t0 + (n + 1)·Ts is a deadline
 miss and the next tick starts late.  Either way the trial's timing (duration, and when paced the
 misses and the lateness of the ticks, :class:`plant.pacing.TickPacer`) is kept in 0x2440.
-Pacing delays frames only; what the plant computes is the same.
+Pacing delays frames only; what the plant computes is the same.  The select loop wakes
+``spin_s`` before a held tick is due and waits the rest in a loop on the clock (the plant role:
+:attr:`BenchNode.REALTIME_SPIN_S`): a timer wake-up comes about 0.1 ms late on the machines here,
+a tenth of the period, while the drives wait for the plant at that moment and the core is free.
 
 After tick N-1: TRIAL_STOP, status DONE.  The trial is event driven inside the slave's select
 loop, so SDO requests (status polls) are answered during a trial by the same thread, between
@@ -127,7 +130,12 @@ class BenchNode(SlaveNode):
         compiled kernels on their first tick; default :attr:`FIRST_TICK_TIMEOUT_S`).
     :param clock: monotonic time source [s] (protocol timing only).
     :param eds_path: the EDS (default ``bus/bench.eds``).
+    :param spin_s: real time: wake this long before a held tick is due and wait the rest on the
+        clock in a loop, s (0: the select loop's timer alone; see the module docstring).
     """
+
+    #: the plant role's ``spin_s``: the last part of the wait for a paced tick, spent in a loop
+    REALTIME_SPIN_S: float = 250e-6
 
     #: Default longest wait for the four torque frames of one tick, s.
     TICK_TIMEOUT_S: float = io_frames.TICK_TIMEOUT_S
@@ -138,7 +146,10 @@ class BenchNode(SlaveNode):
                  disturbance_fn: DisturbanceFn, node_id: int = DEFAULT_BENCH_NODE_ID,
                  tick_timeout_s: float | None = None, first_tick_timeout_s: float | None = None,
                  clock: Callable[[], float] = time.monotonic,
-                 eds_path: str | Path = BENCH_EDS_PATH) -> None:
+                 eds_path: str | Path = BENCH_EDS_PATH, spin_s: float = 0.0) -> None:
+        if not 0.0 <= spin_s < 0.01:
+            raise ValueError(f"spin_s must be in [0, 0.01) s, got {spin_s!r}")
+        self.spin_s = float(spin_s)
         self.store = ObjectStore(eds_path, node_id)
         self._nmt_state = NmtState.PRE_OPERATIONAL
         super().__init__(self, fieldbus, io, node_id=node_id, clock=clock)
@@ -339,13 +350,17 @@ class BenchNode(SlaveNode):
     def next_deadline(self) -> float | None:
         if not self._running:
             return None
-        return self._send_at if self._send_at is not None else self._deadline
+        return self._send_at - self.spin_s if self._send_at is not None else self._deadline
 
     def on_service(self, now: float) -> None:
         if self._pending_start:
             self._pending_start = False
             self._begin_trial()
         elif self._running and self._send_at is not None:
+            if self.spin_s and self._send_at - self.spin_s <= now < self._send_at:
+                due = self._send_at
+                while now < due:  # the last stretch on the clock (bounded by spin_s)
+                    now = self._clock()
             if now >= self._send_at:  # paced: the held tick is due
                 counts, self._held_counts, self._send_at = self._held_counts, None, None
                 assert counts is not None
@@ -588,7 +603,8 @@ def run_plant_role(transport: TransportConfig, node_id: int = DEFAULT_BENCH_NODE
             scale = units.timeout_scale()
             node = BenchNode(fieldbus, io, plant_factory=plant_factory, disturbance_fn=disturbance_torque,
                              node_id=node_id, tick_timeout_s=io_frames.TICK_TIMEOUT_S * scale,
-                             first_tick_timeout_s=io_frames.FIRST_TICK_TIMEOUT_S * scale)
+                             first_tick_timeout_s=io_frames.FIRST_TICK_TIMEOUT_S * scale,
+                             spin_s=BenchNode.REALTIME_SPIN_S)
             node.run(stop)
             return node.bus_error
         finally:

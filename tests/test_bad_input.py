@@ -191,6 +191,14 @@ def test_cheap_refusals_come_before_planning(tmp_path: Path, argv: list[str]) ->
     assert not (tmp_path / "o").exists()
 
 
+def test_rt_priority_range_and_needs_realtime(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    code, _, err = run_cli(capsys, "run", "--realtime", "--rt-priority", "100", "--out", str(tmp_path / "run"))
+    assert_refused(code, err, "--rt-priority", "0..99")
+    code, _, err = run_cli(capsys, "run", "--rt-priority", "5", "--out", str(tmp_path / "run"))
+    assert_refused(code, err, "--rt-priority 5", "add --realtime")
+    assert not (tmp_path / "run").exists()
+
+
 def test_bus_time_needs_the_hub(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     code, _, err = run_cli(capsys, "run", "--bus-time", "--bus", "udp_multicast", "--out", str(tmp_path / "run"))
     assert_refused(code, err, "--bus-time", "use --bus hub")

@@ -5,7 +5,10 @@ the host's figures and console line say plainly whether the run kept up."""
 from __future__ import annotations
 
 import itertools
+import os
 import struct
+import subprocess
+import sys
 
 import can
 import pytest
@@ -22,7 +25,8 @@ from bus.bench_objects import (
     pack_trial_timing,
     unpack_trial_timing,
 )
-from host.rig.realtime import timing_line, timing_summary
+from host.rig import realtime
+from host.rig.realtime import raise_lockstep_priority, scheduling_text, timing_line, timing_summary
 from plant.node import BenchNode
 from plant.pacing import TickPacer
 
@@ -136,3 +140,101 @@ def test_host_figures_say_whether_the_run_kept_up() -> None:
     lock = timing_summary([TrialTiming(False, 501, 250_500, 0, 0, 0, 0)], 1e-3, realtime=False)
     assert "deadline_misses" not in lock and timing_line(lock).startswith("emulator throughput")
     assert lock["achieved_ticks_per_s"] == pytest.approx(2000.0)
+
+
+class SteppingClock(ManualClock):
+    """A clock that moves ``step_s`` every time it is read (a loop on it ends)."""
+
+    def __init__(self, now: float, step_s: float) -> None:
+        super().__init__(now)
+        self.step_s = step_s
+        self.reads = 0
+
+    def __call__(self) -> float:
+        self.reads += 1
+        self.now += self.step_s
+        return self.now
+
+
+def test_a_paced_tick_is_waited_for_on_the_clock_for_the_last_spin_s() -> None:
+    """With spin_s, the loop wakes spin_s before a held tick is due and the bench waits the rest on
+    the clock: the frames go out at the first clock reading at or after the due time, not before
+    and not at the next wake-up of the select loop."""
+    k = next(_counter)
+    clock = SteppingClock(100.0, 0.0)
+    fb = can.Bus(interface="virtual", channel=f"rt-fb-{k}")
+    io = can.Bus(interface="virtual", channel=f"rt-io-{k}")
+    drives = can.Bus(interface="virtual", channel=f"rt-io-{k}")
+    bench = BenchNode(fb, io, plant_factory=PlantBox(), disturbance_fn=fake_disturbance, clock=clock, spin_s=200e-6)
+    try:
+        bench.start()
+        bench.write_object(BenchObj.CONFIG, ConfigSub.PACING, b"\x01")
+        bench.write_object(BenchObj.INITIAL_STATE, 0, pack_initial_state(Q0, QD0))
+        bench.write_object(BenchObj.TRIAL, BenchTrialSub.N_TICKS, struct.pack("<I", 3))
+        bench.write_object(BenchObj.TRIAL, BenchTrialSub.COMMAND, b"\x01")
+        bench.step(0.0)  # tick 0 at t0 = 100.0
+        while drives.recv(timeout=0) is not None:
+            pass
+        clock.now = 100.0003
+        for j in range(4):
+            drives.send(io_frames.encode_torque(j, 0, 0, io_frames.TorqueStatus.ENABLED))
+        bench.step(0.0)  # tick 1 held until 100.001: the loop is to wake at 100.0008
+        assert bench.next_deadline() == pytest.approx(100.001 - 200e-6)
+        assert drives.recv(timeout=0) is None
+        clock.now, clock.step_s = 100.00085, 10e-6  # woken inside the window: waits on the clock
+        reads = clock.reads
+        bench.step(0.0)
+        msg = drives.recv(timeout=0)
+        assert msg is not None and isinstance(io_frames.decode_io(msg), io_frames.EncoderFrame)
+        assert clock.reads - reads >= 10  # (100.001 − 100.00085) / 10 µs readings, at least
+        t = bench._pacer
+        assert t is not None and 0 <= t._lateness_s[1] < 30e-6  # started within a few clock steps of the due time
+    finally:
+        for bus in (fb, io, drives):
+            bus.shutdown()
+    with pytest.raises(ValueError, match="spin_s"):
+        BenchNode(fb, io, plant_factory=PlantBox(), disturbance_fn=fake_disturbance, spin_s=0.5)
+
+
+@pytest.fixture
+def sleeper() -> object:
+    proc = subprocess.Popen([sys.executable, "-c", "import threading, time; "
+                             "threading.Thread(target=time.sleep, args=(60,)).start(); time.sleep(60)"],
+                            stdin=subprocess.DEVNULL)
+    try:
+        yield proc
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def test_real_time_scheduling_is_fifo_where_permitted_and_said_where_not(
+        sleeper: subprocess.Popen[bytes], monkeypatch: pytest.MonkeyPatch) -> None:
+    got = raise_lockstep_priority({"plant": sleeper.pid}, 7)
+    if got["policy"] == "SCHED_FIFO":  # root, CAP_SYS_NICE or an RLIMIT_RTPRIO
+        assert got == {"policy": "SCHED_FIFO", "priority": 7, "roles": ["plant"]}
+        for tid in os.listdir(f"/proc/{sleeper.pid}/task"):
+            assert os.sched_getscheduler(int(tid)) == os.SCHED_FIFO
+            assert os.sched_getparam(int(tid)).sched_priority == 7
+        assert scheduling_text(got) == "lockstep processes (plant) in SCHED_FIFO 7"
+    else:
+        assert "not permitted" in got["reason"] and "CAP_SYS_NICE" in got["reason"]
+    assert raise_lockstep_priority({"plant": sleeper.pid}, 0) == {"policy": "normal", "reason": "--rt-priority 0"}
+
+    calls: list[tuple[int, int]] = []
+
+    def refuse_the_third(tid: int, policy: int, param: os.sched_param) -> None:
+        calls.append((tid, policy))
+        if len(calls) == 3:
+            raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(realtime.os, "sched_setscheduler", refuse_the_third)
+    monkeypatch.setattr(realtime, "_threads", lambda pid: [pid, pid + 1])
+    got = raise_lockstep_priority({"hub": 100, "plant": 200}, 10)
+    assert got["policy"] == "normal" and got["reason"].startswith("SCHED_FIFO 10 not permitted (Operation not permitted")
+    # all or nothing: the two threads already raised are put back
+    assert calls == [(100, os.SCHED_FIFO), (101, os.SCHED_FIFO), (200, os.SCHED_FIFO),
+                     (100, os.SCHED_OTHER), (101, os.SCHED_OTHER)]
+    line = timing_line(timing_summary([TrialTiming(True, 501, 501_000, 0, 50, 200, 400)], 1e-3, True, got))
+    assert line.endswith("; normal scheduling (SCHED_FIFO 10 not permitted (Operation not permitted; needs "
+                         "CAP_SYS_NICE or RLIMIT_RTPRIO >= 10))")

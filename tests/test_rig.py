@@ -120,6 +120,10 @@ def test_realtime_run_has_the_same_results_and_bus_time_figures(
     timing = s["bench"]["timing"]
     assert timing["mode"] == "realtime" and timing["ticks"] == 2 * 301
     assert {"deadline_misses", "lateness_p50_s", "lateness_p99_s", "lateness_max_s", "kept_up"} <= set(timing)
+    # the launcher scheduled the lockstep processes: SCHED_FIFO where permitted, else it says why not
+    sched = timing["scheduling"]
+    assert sched == {"policy": "SCHED_FIFO", "priority": 10, "roles": ["hub", "plant", "drive1", "drive2", "drive3",
+                                                                       "drive4"]} or "not permitted" in sched["reason"]
     assert timing["achieved_ticks_per_s"] > 0
     io = s["bench"]["bus_time"]["io"]
     assert io["bitrate"] == 500_000 and not io["worst_tick"]["fits"] and io["worst_tick"]["excess_bits"] == 460

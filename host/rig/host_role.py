@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import functools
 import gc
+import json
 import logging
 import queue
 import sys
@@ -194,7 +195,8 @@ class RigBench:
     def __init__(self, cfg: ExperimentConfig, transport: TransportConfig, *,
                  out_dir: Path | None, wait_s: float = 20.0, pause_s: float = 0.0, recover_s: float = 0.0,
                  realtime: bool = False, io_bitrate: int = DEFAULT_BITRATE,
-                 fieldbus_bitrate: int = DEFAULT_BITRATE, bus_time_hub: bool = False) -> None:
+                 fieldbus_bitrate: int = DEFAULT_BITRATE, bus_time_hub: bool = False,
+                 rt_scheduling: dict[str, Any] | None = None) -> None:
         self.cfg = cfg
         self.out_dir = out_dir
         self.bus_time = BusTimeAccounting(
@@ -202,6 +204,8 @@ class RigBench:
             trial_s=round(2 * cfg.cycle_s / cfg.ts_s) * cfg.ts_s, heartbeat_ms=NODE_HEARTBEAT_MS,
             n_nodes=len(DRIVE_NODE_IDS) + 2)  # the drives, the bench and the host (HOST_HEARTBEAT_MS, the same)
         self.realtime = realtime
+        #: how the launcher scheduled the lockstep processes of a real-time run (realtime.raise_lockstep_priority)
+        self.rt_scheduling = rt_scheduling
         self._gc_frozen = False
         #: the hub carries the channels in bus time at these bit rates (``--bus-time``), or None
         self.bus_time_hub = {FIELDBUS: int(fieldbus_bitrate), IO: int(io_bitrate)} if bus_time_hub else None
@@ -722,7 +726,7 @@ class RigBench:
             "elapsed_s": wall,
             "heartbeat": {"host_node_id": HOST_NODE_ID, "host_period_ms": HOST_HEARTBEAT_MS,
                           "node_period_ms": NODE_HEARTBEAT_MS, "consumer_time_ms": CONSUMER_TIME_MS * self.scale},
-            "timing": timing_summary(self.timings, self.cfg.ts_s, self.realtime),
+            "timing": timing_summary(self.timings, self.cfg.ts_s, self.realtime, self.rt_scheduling),
             "emcy": self.emcy,
             "recoveries": self.recoveries,
         } | ({"pdo_frames": dict(self.pdo_frames)} if self.cyclic else {})
@@ -822,6 +826,7 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
         bench = RigBench(cfg, transport, out_dir=out, wait_s=args.wait, pause_s=args.pause,
                          recover_s=getattr(args, "recover", 0.0) or 0.0,
                          realtime=bool(args.realtime),
+                         rt_scheduling=json.loads(args.rt_scheduling) if getattr(args, "rt_scheduling", None) else None,
                          io_bitrate=args.io_bitrate or DEFAULT_BITRATE,
                          fieldbus_bitrate=cfg.fieldbus_bitrate,
                          bus_time_hub=bool(getattr(args, "bus_time", False)))

@@ -84,6 +84,7 @@ from host.experiment.console import (
     experiment_actions,
 )
 from host.experiment.faults import FaultKind, FaultRecord, attach_injection, fault_line, read_injections
+from host.rig.realtime import DEFAULT_RT_PRIORITY, raise_lockstep_priority
 
 __all__ = [
     "EXIT_CHILD_FAILED",
@@ -307,6 +308,8 @@ def preflight(args: argparse.Namespace) -> list[FaultSpec]:
     _check_specs(specs, args.bus, cfg.iterations)
     if getattr(args, "bus_time", False) and args.bus not in ("hub", "auto"):
         raise ValueError(f"--bus-time: bus time is kept by the hub; the transport {args.bus} has none: use --bus hub")
+    if getattr(args, "rt_priority", None) is not None and not args.realtime:
+        raise ValueError(f"--rt-priority {args.rt_priority}: the priority of a real-time run; add --realtime")
     from host.experiment.plan import prepare
 
     prepare(cfg)
@@ -427,6 +430,10 @@ class RigLauncher:
         self._say_out(f"ilcrig run: transport {tc.name}{where}; processes: {', '.join(pids)}; "
                       f"role logs in {log_dir}; starting host")
         host_extra = host_role_args(args) + rig_role_args(args) + ["--out", str(self.out_dir)]
+        if args.realtime:
+            lockstep = ({"hub": self.hub.pid} if self.hub is not None else {}) | {c.name: c.pid for c in self.children}
+            priority = DEFAULT_RT_PRIORITY if args.rt_priority is None else args.rt_priority
+            host_extra += ["--rt-scheduling", json.dumps(raise_lockstep_priority(lockstep, priority))]
         disk = [sp.trial for sp in specs if sp.action == "diskfull"]
         if disk:
             host_extra += ["--inject-disk-full", str(min(disk))]

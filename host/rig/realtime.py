@@ -12,19 +12,73 @@ machine and never on or in the model.
 from __future__ import annotations
 
 import logging
+import os
 import statistics
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from bus.bench_objects import TrialTiming
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["timing_summary", "timing_line"]
+__all__ = ["timing_summary", "timing_line", "raise_lockstep_priority", "scheduling_text", "DEFAULT_RT_PRIORITY"]
+
+#: the SCHED_FIFO priority of the lockstep processes in a real-time run (``--rt-priority``)
+DEFAULT_RT_PRIORITY: int = 10
 
 
-def timing_summary(timings: Sequence[TrialTiming], ts_s: float, realtime: bool) -> dict[str, Any]:
-    """The run's timing figures from the trials' :class:`TrialTiming` (see the module docstring).
+def _threads(pid: int) -> list[int]:
+    """The thread ids of process ``pid`` (just ``pid`` where /proc does not list them)."""
+    try:
+        return sorted(int(t) for t in os.listdir(f"/proc/{pid}/task"))
+    except OSError:
+        return [pid]
+
+
+def raise_lockstep_priority(pids: Mapping[str, int], priority: int) -> dict[str, Any]:
+    """Put every thread of the processes ``pids`` (role name -> pid) in ``SCHED_FIFO`` at ``priority``
+    (1..99; 0: leave them in normal scheduling). Threads they start later inherit it.
+
+    :return: what the run got, for the summary: ``{"policy": "SCHED_FIFO", "priority": p, "roles": [...]}``,
+        or ``{"policy": "normal", "reason": ...}`` (nothing changed: not asked for, or not permitted)
+    """
+    if priority == 0:
+        return {"policy": "normal", "reason": "--rt-priority 0"}
+    if not hasattr(os, "sched_setscheduler"):
+        return {"policy": "normal", "reason": "this system has no SCHED_FIFO"}
+    done: list[int] = []
+    try:
+        for pid in pids.values():
+            for tid in _threads(pid):
+                try:
+                    os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+                except ProcessLookupError:
+                    continue  # a thread that ended meanwhile
+                done.append(tid)
+    except PermissionError as err:
+        for tid in done:  # all or nothing: undo what was set
+            try:
+                os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+            except OSError as undo:
+                logger.warning("cannot put thread %d back to normal scheduling: %s", tid, undo)
+        return {"policy": "normal",
+                "reason": f"SCHED_FIFO {priority} not permitted ({err.strerror}; needs CAP_SYS_NICE or "
+                          f"RLIMIT_RTPRIO >= {priority})"}
+    logger.info("lockstep processes %s in SCHED_FIFO %d (%d threads)", ", ".join(pids), priority, len(done))
+    return {"policy": "SCHED_FIFO", "priority": priority, "roles": list(pids)}
+
+
+def scheduling_text(scheduling: Mapping[str, Any]) -> str:
+    """How the lockstep processes were scheduled, in words (for the console line)."""
+    if scheduling.get("policy") == "SCHED_FIFO":
+        return f"lockstep processes ({', '.join(scheduling['roles'])}) in SCHED_FIFO {scheduling['priority']}"
+    return f"normal scheduling ({scheduling.get('reason', 'not asked for')})"
+
+
+def timing_summary(timings: Sequence[TrialTiming], ts_s: float, realtime: bool,
+                   scheduling: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The run's timing figures from the trials' :class:`TrialTiming` (see the module docstring);
+    ``scheduling``: what :func:`raise_lockstep_priority` gave the run (real time only).
 
     Over several trials: lateness p50 is the median of the trials' medians, p99 the worst trial's
     p99, max the worst tick; the achieved rate is all ticks over the sum of the trials' durations.
@@ -59,6 +113,7 @@ def timing_summary(timings: Sequence[TrialTiming], ts_s: float, realtime: bool) 
             "lateness_p99_s": max((t.lateness_p99_us for t in timings), default=0) * 1e-6,
             "lateness_max_s": late_max_s,
             "kept_up": bool(timings) and misses == 0 and late_max_s < ts_s,
+            "scheduling": dict(scheduling) if scheduling else {"policy": "normal", "reason": "not asked for"},
         }
     return out
 
@@ -72,9 +127,10 @@ def timing_line(timing: dict[str, Any]) -> str:
                 f"({timing['real_time_factor']:.2f}x real time at Ts = {ts_ms:g} ms)")
     late = (f"tick lateness p50 {timing['lateness_p50_s'] * 1e3:.3f} ms, p99 {timing['lateness_p99_s'] * 1e3:.3f} ms, "
             f"max {timing['lateness_max_s'] * 1e3:.3f} ms")
+    sched = f"; {scheduling_text(timing['scheduling'])}" if "scheduling" in timing else ""
     if timing["kept_up"]:
         return (f"real time: kept up, {timing['ticks']} ticks paced at Ts = {ts_ms:g} ms, 0 deadline misses, {late} "
-                f"(no tick later than one period); achieved {rate:,.1f} ticks/s")
+                f"(no tick later than one period); achieved {rate:,.1f} ticks/s{sched}")
     return (f"real time: could NOT keep up at Ts = {ts_ms:g} ms: {timing['deadline_misses']} of {timing['ticks']} ticks "
             f"missed their deadline ({timing['deadline_miss_percent']:.1f} %), {late}; the rig held "
-            f"{rate:,.1f} ticks/s ({timing['real_time_factor']:.2f}x real time)")
+            f"{rate:,.1f} ticks/s ({timing['real_time_factor']:.2f}x real time){sched}")
