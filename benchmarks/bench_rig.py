@@ -38,6 +38,9 @@ HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(HERE))
+sys.path.insert(0, str(REPO))
+
+from bus.transports.hub_server import hub_core_available  # noqa: E402
 
 
 def rig(bus: str, iterations: int, netns: bool = False) -> dict:
@@ -90,7 +93,8 @@ def main() -> None:
     if args.only:
         plan = [p for p in plan if p[0] in args.only]
     print(f"ilcrig rig benchmark: 4 drive + plant + host processes, 1001-tick trials, {args.iterations} trials per "
-          f"run, best of {args.repeat} alternating floor/rig measurements; {os.cpu_count()} CPUs")
+          f"run, best of {args.repeat} alternating floor/rig measurements; {os.cpu_count()} CPUs; hub data plane "
+          f"{'C (bus/transports/_hubcore.c)' if hub_core_available() else 'Python'}")
     print(f"{'transport':<15}{'RTT floor':>11}{'floor ticks/s':>15}{'rig ticks/s':>13}{'rig/floor':>11}"
           f"{'x real time':>13}{'host ticks/s':>14}{'all rig runs':>26}{'load avg':>15}")
     for bus, floor_name, netns in plan:

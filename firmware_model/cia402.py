@@ -63,6 +63,14 @@ _VOLTAGE_STATES = frozenset(
     {_S.READY_TO_SWITCH_ON, _S.SWITCHED_ON, _S.OPERATION_ENABLED, _S.QUICK_STOP_ACTIVE,
      _S.FAULT_REACTION_ACTIVE}
 )
+#: each state's statusword without bit 11 as a plain int (the drives read it every tick: int
+#: arithmetic instead of IntFlag's, which runs in Python)
+_STATUSWORD_OF: dict[int, int] = {
+    int(st): int(STATUSWORD_PATTERN[st][1]) | int(Statusword.REMOTE)
+    | (int(Statusword.VOLTAGE_ENABLED) if st in _VOLTAGE_STATES else 0)
+    for st in _S
+}
+_INTERNAL_LIMIT = int(Statusword.INTERNAL_LIMIT)
 
 
 class Cia402StateMachine:
@@ -157,9 +165,7 @@ class Cia402StateMachine:
         """Statusword: the state's pattern value (CiA 402 table), plus bit 4 (voltage
         enabled) in the powered states, bit 9 (remote) always and bit 11 (internal limit)
         when the torque was clamped.  A healthy enabled drive reads 0x0237."""
-        sw = STATUSWORD_PATTERN[self.state][1] | Statusword.REMOTE
-        if self.state in _VOLTAGE_STATES:
-            sw |= Statusword.VOLTAGE_ENABLED
+        sw = _STATUSWORD_OF[self.state]
         if internal_limit and self.state == _S.OPERATION_ENABLED:
-            sw |= Statusword.INTERNAL_LIMIT
-        return int(sw)
+            sw |= _INTERNAL_LIMIT
+        return sw
