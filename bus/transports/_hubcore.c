@@ -622,7 +622,8 @@ static PyObject *Core_poll(Core *c, PyObject *args) {
         if (report_dead(c, list) < 0) goto fail;
         return list;
     }
-    int timeout_ms = timeout_s < 0 ? -1 : (int)(timeout_s * 1e3 + 0.999999);
+    /* whole milliseconds, rounded up (as Python's EpollSelector); a day at most (no int overflow) */
+    int timeout_ms = timeout_s < 0 ? -1 : timeout_s > 86400.0 ? 86400000 : (int)(timeout_s * 1e3 + 0.999999);
     struct epoll_event events[MAX_EVENTS];
     int n;
     Py_BEGIN_ALLOW_THREADS
