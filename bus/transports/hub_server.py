@@ -45,6 +45,17 @@ Latency and cost
     changes its filters. A client that stops reading is dropped once more than
     :attr:`HubServer.MAX_OUTBUF_BYTES` are queued for it.
 
+Data planes
+    Where the C extension :mod:`bus.transports._hubcore` is built (``setup.py``; it needs a C
+    compiler at install), a hub moves its members' frames in C: once a member's handshake is done,
+    the core reads its records, counts them, routes them by the rules above and writes them out,
+    in one epoll loop that also reports the descriptors this module still serves (listen sockets,
+    handshakes, stats queries, the wake pipe) to :meth:`HubServer.serve_forever`. Profiling the rig
+    showed about two thirds of the Python hub's CPU in the interpreter, moving 24-byte records. A
+    hub with frame faults or bus time, or started with ``ILCRIG_HUB_CORE=python``
+    (:data:`HUB_CORE_ENV`), uses the pure-Python path described here; both behave the same
+    (``tests/test_hub*.py`` run on both), :attr:`HubServer.data_plane` says which one a hub uses.
+
 Bus time (``--bus-time BUS=BIT_S``, :class:`HubServer` ``bus_time``)
     A logical bus given a bit rate this way is delivered as a real CAN bus would carry it: every
     frame waits in its sender's transmit queue (first in, first out, like one controller's queue),
