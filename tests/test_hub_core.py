@@ -9,12 +9,12 @@ from __future__ import annotations
 import shutil
 import socket
 import threading
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import can
 import pytest
+from test_hub_extras import wait_until
 
 from bus.transports import hub_server
 from bus.transports.fault_inject import FrameFaultInjector
@@ -31,15 +31,6 @@ from bus.transports.hub_wire import (
     read_reply,
     recv_exact,
 )
-
-
-def wait_until(condition: Callable[[], bool], timeout_s: float = 5.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.002)
-    return True
 
 
 class _SmallBuffers(HubServer):

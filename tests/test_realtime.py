@@ -60,6 +60,17 @@ def test_unpaced_trial_has_duration_but_no_lateness() -> None:
     assert r.duration_s == pytest.approx(0.02)
 
 
+def _start_paced_trial(bench: BenchNode, n_ticks: int) -> None:
+    """Boot ``bench``, configure pacing and a trial of ``n_ticks`` as the host would, start it and
+    step once (TRIAL_START and tick 0 go out)."""
+    bench.start()
+    bench.write_object(BenchObj.CONFIG, ConfigSub.PACING, b"\x01")
+    bench.write_object(BenchObj.INITIAL_STATE, 0, pack_initial_state(Q0, QD0))
+    bench.write_object(BenchObj.TRIAL, BenchTrialSub.N_TICKS, struct.pack("<I", n_ticks))
+    bench.write_object(BenchObj.TRIAL, BenchTrialSub.COMMAND, b"\x01")
+    bench.step(0.0)
+
+
 def test_paced_bench_holds_each_tick_until_its_time() -> None:
     """The bench stepped by the test on a manual clock (virtual buses deliver on send): tick n's
     encoder frames go out at t0 + n·Ts, not a microsecond before; a tick answered late starts the
@@ -86,12 +97,7 @@ def test_paced_bench_holds_each_tick_until_its_time() -> None:
         bench.step(0.0)
 
     try:
-        bench.start()
-        bench.write_object(BenchObj.CONFIG, ConfigSub.PACING, b"\x01")
-        bench.write_object(BenchObj.INITIAL_STATE, 0, pack_initial_state(Q0, QD0))
-        bench.write_object(BenchObj.TRIAL, BenchTrialSub.N_TICKS, struct.pack("<I", 4))
-        bench.write_object(BenchObj.TRIAL, BenchTrialSub.COMMAND, b"\x01")
-        bench.step(0.0)  # t0 = 100.0: TRIAL_START and tick 0 at once
+        _start_paced_trial(bench, 4)  # t0 = 100.0: TRIAL_START and tick 0 at once
         assert encoder_ticks() == [0] * 4
         answer(0, 100.0003)  # tick 0 done after 0.3 ms: tick 1 is held until 100.001
         assert encoder_ticks() == []
@@ -167,12 +173,7 @@ def test_a_paced_tick_is_waited_for_on_the_clock_for_the_last_spin_s() -> None:
     drives = can.Bus(interface="virtual", channel=f"rt-io-{k}")
     bench = BenchNode(fb, io, plant_factory=PlantBox(), disturbance_fn=fake_disturbance, clock=clock, spin_s=200e-6)
     try:
-        bench.start()
-        bench.write_object(BenchObj.CONFIG, ConfigSub.PACING, b"\x01")
-        bench.write_object(BenchObj.INITIAL_STATE, 0, pack_initial_state(Q0, QD0))
-        bench.write_object(BenchObj.TRIAL, BenchTrialSub.N_TICKS, struct.pack("<I", 3))
-        bench.write_object(BenchObj.TRIAL, BenchTrialSub.COMMAND, b"\x01")
-        bench.step(0.0)  # tick 0 at t0 = 100.0
+        _start_paced_trial(bench, 3)  # tick 0 at t0 = 100.0
         while drives.recv(timeout=0) is not None:
             pass
         clock.now = 100.0003
