@@ -571,12 +571,6 @@ static PyObject *Core_remove(Core *c, PyObject *args) {
     Py_RETURN_NONE;
 }
 
-static PyObject *Core_is_member(Core *c, PyObject *args) {
-    int fd;
-    if (!PyArg_ParseTuple(args, "i", &fd)) return NULL;
-    return PyBool_FromLong(fd >= 0 && fd < c->members_cap && c->members[fd] && !c->members[fd]->dead);
-}
-
 /* reports of the dropped members: (fd, REPORT_DROP / REPORT_REFUSE, reason) */
 static int report_dead(Core *c, PyObject *list) {
     for (int i = 0; i < c->dead_len; i++) {
@@ -696,7 +690,6 @@ static PyMethodDef Core_methods[] = {
      "this member from now on (inbuf: bytes read after its handshake, received at stamp_ns; outbuf: bytes "
      "still to send to it)"},
     {"remove", (PyCFunction)Core_remove, METH_VARARGS, "remove(fd): forget a member (Python closes it)"},
-    {"is_member", (PyCFunction)Core_is_member, METH_VARARGS, "is_member(fd) -> bool"},
     {"poll", (PyCFunction)Core_poll, METH_VARARGS,
      "poll(timeout_s) -> [(fd, kind, value)]: wait (timeout_s < 0: no limit) and serve the members; kind 0: "
      "events of a watched descriptor (value: the epoll mask), 1: a member dropped (value: why), 2: a member "
