@@ -195,6 +195,10 @@ class Drive:
         """The SYNC COB-ID this drive consumes (0x1005)."""
         return self.pdo.sync_cob_id()
 
+    def rpdo_cob_ids(self) -> list[int]:
+        """The 11-bit identifiers of the valid RPDOs (0x1400..: sub 1)."""
+        return list(self.pdo.rpdo_cob_ids())
+
     def pop_tpdos(self) -> list[tuple[int, bytes]]:
         """(COB-ID, payload) of the TPDOs due after the last io tick."""
         return self.pdo.collect_tpdos()

@@ -27,7 +27,7 @@ import argparse
 import logging
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any, Protocol, runtime_checkable
 
 import can
@@ -91,6 +91,10 @@ class CyclicDriveLike(DriveLike, Protocol):
 
     def sync_cob_id(self) -> int:
         """The SYNC COB-ID consumed (0x1005)."""
+        ...
+
+    def rpdo_cob_ids(self) -> Iterable[int]:
+        """The 11-bit identifiers of the valid RPDOs."""
         ...
 
 
@@ -171,6 +175,14 @@ class DriveNode(SlaveNode):
             for cob_id, data in self._cyclic.pop_tpdos():
                 self._send(self.fieldbus, cob_id, data)
                 self.tpdos_out += 1
+
+    def consumed_fieldbus_ids(self) -> set[int]:
+        """SYNC (0x1005) and the valid RPDOs' identifiers (0x1400..: sub 1), as the firmware has
+        them now (the acceptance filters follow every SDO write of these objects)."""
+        drive = self._cyclic
+        if drive is None:
+            return set()
+        return {drive.sync_cob_id(), *drive.rpdo_cob_ids()}
 
     def on_fieldbus(self, msg: can.Message) -> None:
         drive = self._cyclic

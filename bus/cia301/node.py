@@ -13,7 +13,14 @@ This module owns what every node of the rig does on the wire, independent of its
   app's optional ``heartbeat_lost(node_id)`` once.  A bus that fails (the hub gone) ends
   :meth:`SlaveNode.run` after calling the app's optional ``bus_lost(reason)``; :attr:`SlaveNode.bus_error`
   then says why.  Frames carrying this node's own
-  COB-IDs are ignored (udp_multicast echoes a sender's frames back to it).  io frames are
+  COB-IDs are ignored (udp_multicast echoes a sender's frames back to it).  Fieldbus acceptance
+  filters (:meth:`SlaveNode.fieldbus_filters`): the node accepts only what it consumes (NMT, its
+  SDO requests, the heartbeats it watches, and the subclass's :meth:`SlaveNode.consumed_fieldbus_ids`,
+  e.g. SYNC and RPDOs), as a drive's CAN controller filters in hardware; the transport applies
+  them (the hub and SocketCAN before the frame reaches the process), so the other nodes' PDOs
+  cost this process nothing.  They are recomputed after every completed SDO transfer and NMT reset,
+  and set *before* the SDO response goes out: a master that reconfigures a COB-ID and then
+  uses it is never filtered away.  io frames are
   handed to the subclass hook :meth:`SlaveNode.on_io`; :meth:`SlaveNode.on_service` and
   :meth:`SlaveNode.next_deadline` let a subclass run its own timers in the same loop.
 * :class:`ObjectStore` — a dict-backed object dictionary loaded from an EDS with canopen's
@@ -129,6 +136,8 @@ class SlaveNode:
         self._fieldbus_batch = batch_receiver(fieldbus)
         self.frames_in = 0
         self.frames_out = 0
+        #: fieldbus identifiers the acceptance filters pass (None: filters not set yet)
+        self._fieldbus_ids: frozenset[int] | None = None
         #: why :meth:`run` ended early: the bus failed (None while it works)
         self.bus_error: str | None = None
 
@@ -170,6 +179,36 @@ class SlaveNode:
         """A fieldbus frame that is not NMT, this node's SDO request or its own (e.g. SYNC, PDOs;
         default: ignored)."""
 
+    def consumed_fieldbus_ids(self) -> set[int]:
+        """11-bit fieldbus identifiers the subclass consumes in :meth:`on_fieldbus` (e.g. SYNC, the
+        valid RPDOs), for the acceptance filters; asked again after every completed SDO transfer
+        and NMT reset (default: none)."""
+        return set()
+
+    # ------------------------------------------------------------------ acceptance filters
+
+    def fieldbus_ids(self) -> frozenset[int]:
+        """The 11-bit identifiers this node accepts on the fieldbus: NMT, its SDO requests, the
+        heartbeats of the producers it consumes (0x1016) and :meth:`consumed_fieldbus_ids`."""
+        ids = {NMT_COB_ID, self._sdo_rx}
+        ids.update(heartbeat_cob_id(n) for n in self.consumer.producers)
+        ids.update(self.consumed_fieldbus_ids())
+        return frozenset(ids)
+
+    def fieldbus_filters(self) -> can.typechecking.CanFilters:
+        """python-can acceptance filters of :meth:`fieldbus_ids` (standard frames, exact match)."""
+        return [can.typechecking.CanFilter(can_id=cob, can_mask=0x7FF, extended=False)
+                for cob in sorted(self.fieldbus_ids())]
+
+    def _refresh_fieldbus_filters(self) -> None:
+        """Set the fieldbus acceptance filters if what the node consumes changed."""
+        ids = self.fieldbus_ids()
+        if ids == self._fieldbus_ids:
+            return
+        self._fieldbus_ids = ids
+        self.fieldbus.set_filters(self.fieldbus_filters())
+        logger.debug("node %d: fieldbus accepts %s", self.node_id, " ".join(f"0x{c:03X}" for c in sorted(ids)))
+
     # ------------------------------------------------------------------ lifecycle
 
     def start(self) -> None:
@@ -177,6 +216,7 @@ class SlaveNode:
         self._send(self.fieldbus, self._hb_id, encode_heartbeat(NmtState.BOOT_UP))
         self._reload_heartbeat(force=True)
         self._reload_consumers()
+        self._refresh_fieldbus_filters()
         logger.info("node %d: booted, heartbeat %d ms, %s", self.node_id, self._heartbeat_ms,
                     "select()" if self._fds else "polling")
 
@@ -333,12 +373,14 @@ class SlaveNode:
             if int(self.app.nmt_state) == NmtState.STOPPED:
                 return
             response = self.sdo.handle(bytes(msg.data), now_s=self._clock())
-            if response is not None:
-                for data in [response] if isinstance(response, bytes) else response:
-                    self._send(self.fieldbus, self._sdo_tx, data)
             if not self.sdo.busy:
                 self._reload_heartbeat()
                 self._reload_consumers()
+                # before the response: the master may use a new COB-ID as soon as it has it
+                self._refresh_fieldbus_filters()
+            if response is not None:
+                for data in [response] if isinstance(response, bytes) else response:
+                    self._send(self.fieldbus, self._sdo_tx, data)
         else:
             self.on_fieldbus(msg)
 
@@ -355,9 +397,10 @@ class SlaveNode:
         if command in (NmtCommand.RESET_NODE, NmtCommand.RESET_COMMUNICATION):
             self.sdo = SdoServer(self.node_id, self.app)  # drops any transfer
             self.on_nmt_reset(command)
-            self._send(self.fieldbus, self._hb_id, encode_heartbeat(NmtState.BOOT_UP))
             self._reload_heartbeat(force=True)
             self._reload_consumers()
+            self._refresh_fieldbus_filters()
+            self._send(self.fieldbus, self._hb_id, encode_heartbeat(NmtState.BOOT_UP))
 
     # ------------------------------------------------------------------ send
 
