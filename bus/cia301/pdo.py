@@ -122,6 +122,7 @@ class PdoEngine:
         self._sync_tx_due = False
         self.length_errors = 0  #: RPDOs too short for their mapping (not processed)
         self._rx_by_cob: dict[int, _Pdo] | None = None
+        self._tx_valid: list[_Pdo] | None = None  # the valid TPDOs, in order (None: to be computed)
         self._install_hooks()
 
     # ------------------------------------------------------------------ configuration
@@ -174,6 +175,7 @@ class PdoEngine:
         pdo.pending = None
         pdo.last_sent = None
         self._rx_by_cob = None
+        self._tx_valid = None
         logger.debug("%s COB-ID 0x%08X", self._name(pdo), value)
 
     def _write_transmission_type(self, pdo: _Pdo, value: int) -> None:
@@ -236,6 +238,7 @@ class PdoEngine:
         self.sync_count = 0
         self._sync_tx_due = False
         self._rx_by_cob = None
+        self._tx_valid = None
 
     @property
     def active(self) -> bool:
@@ -304,14 +307,15 @@ class PdoEngine:
     def collect_tpdos(self) -> list[tuple[int, bytes]]:
         """(CAN identifier, payload) of every TPDO due now (see the module docstring); call it
         once the cycle's sample exists (after the control tick)."""
-        if not self.active:
+        valid = self._tx_valid
+        if valid is None:  # recomputed after a COB-ID write or a reset (the hot path: every io tick)
+            valid = self._tx_valid = [p for p in self.tpdos if self.valid(p)]
+        if not valid or not self.active:
             self._sync_tx_due = False
             return []
         out: list[tuple[int, bytes]] = []
         sync_due, self._sync_tx_due = self._sync_tx_due, False
-        for pdo in self.tpdos:
-            if not self.valid(pdo):
-                continue
+        for pdo in valid:
             tt = self.transmission_type(pdo)
             if 1 <= tt <= TT_SYNC_MAX:
                 if not (sync_due and self.sync_count % tt == 0):
