@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -131,6 +132,16 @@ def main() -> None:
               f"{best_rig / 1000:>13.2f}{max(hosts):>14,.0f}{runs:>26}{f'{load0:.1f} -> {load1:.1f}':>15}")
         if floors:
             print(f"{'':<15}all floor runs: {' '.join(f'{x:,.0f}' for x in floors)}")
+        if len(floors) == len(rigs) and floors:
+            # each rig run against the floor measured just before it (the same minutes of the machine)
+            pairs = sorted(r / f for r, f in zip(rigs, floors, strict=True))
+            print(f"{'':<15}rig/floor per alternating pair: {' '.join(f'{x:.2f}' for x in pairs)} "
+                  f"(median {statistics.median(pairs):.2f})")
+        if bus == "hub" and best_floor:
+            verdict = {True: "met", False: "NOT met"}
+            print(f"{'':<15}goals (issue 10, default transport): rig >= 2,000 ticks/s: "
+                  f"{verdict[best_rig >= 2000]} ({best_rig:,.0f}); rig >= 0.5 x floor: "
+                  f"{verdict[best_rig >= 0.5 * best_floor]} ({best_rig / best_floor:.2f})")
 
 
 if __name__ == "__main__":
