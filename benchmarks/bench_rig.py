@@ -129,7 +129,7 @@ def main() -> None:
         runs = " ".join(f"{x:,.0f}" for x in rigs)
         print(f"{bus:<15}{(f'{min(rtts):.0f} us' if rtts else 'n/a'):>11}"
               f"{(f'{best_floor:,.0f}' if best_floor else 'n/a'):>15}{best_rig:>13,.0f}{ratio:>11}"
-              f"{best_rig / 1000:>13.2f}{max(hosts):>14,.0f}{runs:>26}{f'{load0:.1f} -> {load1:.1f}':>15}")
+              f"{best_rig / 1000:>13.2f}{max(hosts):>14,.0f}  {runs:>24}{f'{load0:.1f} -> {load1:.1f}':>15}")
         if floors:
             print(f"{'':<15}all floor runs: {' '.join(f'{x:,.0f}' for x in floors)}")
         if len(floors) == len(rigs) and floors:
