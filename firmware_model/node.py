@@ -14,6 +14,9 @@ test-bench node (:mod:`plant.node`); :class:`DriveNode` adds the io side:
 * the io bus gets acceptance filters (:meth:`DriveNode.io_filters`: this joint's encoder
   frame and the control frame), so other joints' frames do not even reach the process; any that
   still arrive (a transport without filters) and the node's own torque echo are ignored.
+* the fieldbus gets acceptance filters too (:meth:`DriveNode.consumed_fieldbus_ids`: SYNC and the
+  valid RPDOs, besides NMT, SDO and heartbeats from :class:`bus.cia301.node.SlaveNode`): the other
+  drives' PDOs and SDO exchanges never reach the process.
 * fieldbus SYNC and RPDO frames go to the firmware's PDO service (``drive.on_sync`` /
   ``drive.on_rpdo``).  In a cyclic synchronous mode an encoder frame that arrives before its
   SYNC is held and run when the SYNC comes (``drive.tick_ready``); after every io tick the
