@@ -36,7 +36,7 @@ from typing import Any, Protocol, runtime_checkable
 import can
 
 from bus import io_frames
-from bus.cia301.node import PRODUCER_HEARTBEAT_INDEX, SlaveApp, SlaveNode, install_sigterm
+from bus.cia301.node import PRODUCER_HEARTBEAT_INDEX, SlaveApp, SlaveNode, exact_id_filters, install_sigterm
 
 logger = logging.getLogger(__name__)
 
@@ -135,8 +135,7 @@ class DriveNode(SlaveNode):
         """Acceptance filters of the io bus: this joint's encoder frame and the control frame
         (a drive's CAN controller filters in hardware; here the transport does, so the frames
         of the other joints never reach this process)."""
-        return [can.typechecking.CanFilter(can_id=cob, can_mask=0x7FF, extended=False)
-                for cob in (self._encoder_id, io_frames.CONTROL_COB_ID)]
+        return exact_id_filters((self._encoder_id, io_frames.CONTROL_COB_ID))
 
     def on_io(self, msg: can.Message) -> None:
         cob = msg.arbitration_id

@@ -18,6 +18,7 @@ from pathlib import Path
 import can
 import canopen
 import pytest
+from hub_util import serving
 from test_hub_extras import wait_until
 
 from bus.cia301.nmt import NmtCommand
@@ -98,15 +99,8 @@ def test_the_filters_change_before_the_sdo_response_goes_out() -> None:
 def hub(hub_data_plane: str, tmp_path: Path) -> Iterator[HubServer]:
     server = HubServer([f"unix:{tmp_path}/hub.sock"])
     assert server.data_plane == hub_data_plane
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    try:
+    with serving(server):
         yield server
-    finally:
-        server.wake()
-        thread.join(10)
-        server.close()
-    assert not thread.is_alive()
 
 
 def test_over_the_hub_other_nodes_frames_never_reach_the_drive_and_a_moved_rpdo_is_heard_at_once(

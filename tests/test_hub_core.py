@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import shutil
 import socket
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 
 import can
 import pytest
+from hub_util import serving
 from test_hub_extras import wait_until
 
 from bus.transports import hub_server
@@ -42,15 +42,8 @@ def served(hub_data_plane: str, tmp_path: Path) -> Iterator[HubServer]:
     """A hub serving in a thread of this process (so a test can read its state)."""
     server = _SmallBuffers([f"unix:{tmp_path}/hub.sock"])
     assert server.data_plane == hub_data_plane
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    try:
+    with serving(server):
         yield server
-    finally:
-        server.wake()
-        thread.join(10)
-        server.close()
-    assert not thread.is_alive()
 
 
 def _channel(server: HubServer, bus: str) -> str:

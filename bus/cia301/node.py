@@ -47,7 +47,7 @@ import signal
 import struct
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -78,6 +78,12 @@ logger = logging.getLogger(__name__)
 
 #: Object index of the producer heartbeat time (U16, ms).
 PRODUCER_HEARTBEAT_INDEX = 0x1017
+
+
+def exact_id_filters(ids: Iterable[int]) -> can.typechecking.CanFilters:
+    """python-can acceptance filters passing exactly the 11-bit identifiers ``ids`` (standard
+    frames only), in ascending order."""
+    return [can.typechecking.CanFilter(can_id=cob, can_mask=0x7FF, extended=False) for cob in sorted(ids)]
 
 
 class SlaveApp(Protocol):
@@ -196,9 +202,8 @@ class SlaveNode:
         return frozenset(ids)
 
     def fieldbus_filters(self) -> can.typechecking.CanFilters:
-        """python-can acceptance filters of :meth:`fieldbus_ids` (standard frames, exact match)."""
-        return [can.typechecking.CanFilter(can_id=cob, can_mask=0x7FF, extended=False)
-                for cob in sorted(self.fieldbus_ids())]
+        """python-can acceptance filters of :meth:`fieldbus_ids`."""
+        return exact_id_filters(self.fieldbus_ids())
 
     def _refresh_fieldbus_filters(self) -> None:
         """Set the fieldbus acceptance filters if what the node consumes changed."""
@@ -206,7 +211,7 @@ class SlaveNode:
         if ids == self._fieldbus_ids:
             return
         self._fieldbus_ids = ids
-        self.fieldbus.set_filters(self.fieldbus_filters())
+        self.fieldbus.set_filters(exact_id_filters(ids))
         logger.debug("node %d: fieldbus accepts %s", self.node_id, " ".join(f"0x{c:03X}" for c in sorted(ids)))
 
     # ------------------------------------------------------------------ lifecycle
@@ -244,7 +249,6 @@ class SlaveNode:
 
         :return: number of frames received.
         """
-        # the hot path of every node (once or twice per io tick): plain comparisons, no helpers
         now = self._clock()
         wait = max_wait_s
         due = self._next_heartbeat_s
@@ -272,11 +276,7 @@ class SlaveNode:
                     io_ready = fds[1] in ready
                     fieldbus_ready = fds[0] in ready
             if io_ready:
-                msgs = self._io_batch()
-                on_io = self.on_io
-                for frame in msgs:
-                    on_io(frame)
-                handled += len(msgs)
+                handled += self._drain(self.io)
             if fieldbus_ready:
                 handled += self._drain(self.fieldbus)
         else:

@@ -1,0 +1,25 @@
+"""Test helper: a hub (:class:`bus.transports.hub_server.HubServer`) serving in a thread of the test
+process, so a test can read its state; stopped and joined on the way out."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+from bus.transports.hub_server import HubServer
+
+
+@contextmanager
+def serving(server: HubServer) -> Iterator[HubServer]:
+    """Serve ``server`` in a daemon thread for the ``with`` block; then wake it, join the thread
+    and close the server. Fails if the thread did not end."""
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield server
+    finally:
+        server.wake()
+        thread.join(10)
+        server.close()
+    assert not thread.is_alive()
