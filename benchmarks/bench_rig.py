@@ -15,7 +15,9 @@ namespace; socketcan when vcan0/vcan1 exist):
 
 On a shared machine other processes take cores at random moments, so floor and rig are measured
 ``--repeat`` times, alternately, and the best of each (the run least disturbed) is compared; the
-load average (1 min) before and after is printed with them.
+load average (1 min) before and after is printed with them, and, where Linux counts it, the CPU
+time the hypervisor took from the machine during each rig run's trials (steal: a virtual machine's
+host running other guests).
 
     python benchmarks/bench_rig.py [--iterations 3] [--repeat 3] [--only hub]
 
@@ -62,7 +64,8 @@ def rig(bus: str, iterations: int, netns: bool = False) -> dict:
         fb = s["bench"]["channels"]["fieldbus"]
         return {"ticks": s["ticks"], "ticks_per_s": s["ticks_per_s"], "total_s": total,
                 "fieldbus_frames": fb["frames"],
-                "lockstep_ticks_per_s": s["bench"].get("timing", {}).get("achieved_ticks_per_s", 0.0)}
+                "lockstep_ticks_per_s": s["bench"].get("timing", {}).get("achieved_ticks_per_s", 0.0),
+                "steal_s": s["bench"].get("timing", {}).get("machine_steal", {}).get("seconds")}
 
 
 def floor(name: str) -> dict:
@@ -104,6 +107,7 @@ def main() -> None:
         rtts: list[float] = []
         rigs: list[float] = []
         hosts: list[float] = []
+        steals: list[float | None] = []
         error = None
         for _ in range(args.repeat):
             f = floor(floor_name) if floor_name else {}
@@ -119,6 +123,7 @@ def main() -> None:
                 break
             rigs.append(r["lockstep_ticks_per_s"])
             hosts.append(r["ticks_per_s"])
+            steals.append(r["steal_s"])
         load1 = os.getloadavg()[0]
         if error is not None:
             print(f"{bus:<15} rig failed: {error}")
@@ -132,6 +137,9 @@ def main() -> None:
               f"{best_rig / 1000:>13.2f}{max(hosts):>14,.0f}  {runs:>24}{f'{load0:.1f} -> {load1:.1f}':>15}")
         if floors:
             print(f"{'':<15}all floor runs: {' '.join(f'{x:,.0f}' for x in floors)}")
+        if any(x is not None for x in steals):
+            print(f"{'':<15}CPU time the hypervisor took during each rig run's trials (steal): "
+                  f"{' '.join('n/a' if x is None else f'{x * 1e3:.0f} ms' for x in steals)}")
         if len(floors) == len(rigs) and floors:
             # each rig run against the floor measured just before it (the same minutes of the machine)
             pairs = sorted(r / f for r, f in zip(rigs, floors, strict=True))

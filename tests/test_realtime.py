@@ -26,7 +26,15 @@ from bus.bench_objects import (
     unpack_trial_timing,
 )
 from host.rig import realtime
-from host.rig.realtime import raise_lockstep_priority, scheduling_text, timing_line, timing_summary
+from host.rig.realtime import (
+    MachineSteal,
+    cpu_steal_s,
+    raise_lockstep_priority,
+    scheduling_text,
+    steal_during,
+    timing_line,
+    timing_summary,
+)
 from plant.node import BenchNode
 from plant.pacing import TickPacer
 
@@ -146,6 +154,45 @@ def test_host_figures_say_whether_the_run_kept_up() -> None:
     lock = timing_summary([TrialTiming(False, 501, 250_500, 0, 0, 0, 0)], 1e-3, realtime=False)
     assert "deadline_misses" not in lock and timing_line(lock).startswith("emulator throughput")
     assert lock["achieved_ticks_per_s"] == pytest.approx(2000.0)
+
+
+def test_steal_time_is_read_from_proc_stat(tmp_path) -> None:
+    hz = os.sysconf("SC_CLK_TCK")
+    stat = tmp_path / "stat"
+    stat.write_text(f"cpu  4705 150 1120 16250 520 0 7 {3 * hz} 0 0\ncpu0 2000 70 500 8000 300 0 5 {hz} 0 0\n")
+    assert cpu_steal_s(stat) == pytest.approx(3.0)  # the all-CPU line, USER_HZ ticks -> s
+    stat.write_text("cpu  4705 150 1120 16250\n")  # a kernel without steal accounting
+    assert cpu_steal_s(stat) is None
+    assert cpu_steal_s(tmp_path / "missing") is None
+    if os.path.exists("/proc/stat"):
+        assert cpu_steal_s() is not None and cpu_steal_s() >= 0.0
+
+
+def test_steal_during_a_trial_and_what_the_run_says_of_it() -> None:
+    clock = iter([100.0, 100.6])
+    steals = iter([12.34, 12.38])
+    calls: list[str] = []
+    got = steal_during(lambda: calls.append("trial"), clock=lambda: next(clock), steal=lambda: next(steals))
+    assert calls == ["trial"] and got is not None
+    assert (got.steal_s, got.window_s, got.cpus) == (pytest.approx(0.04), pytest.approx(0.6), os.cpu_count())
+    assert steal_during(lambda: None, steal=lambda: None) is None  # not counted on this system
+
+    timings = [TrialTiming(True, 501, 501_000, 0, 50, 200, 400), TrialTiming(True, 501, 520_000, 30, 60, 9_000, 14_000)]
+    steal = [MachineSteal(0.0, 0.6, 2), MachineSteal(0.04, 0.6, 2)]
+    s = timing_summary(timings, 1e-3, True, None, steal)
+    assert s["machine_steal"]["seconds"] == pytest.approx(0.04)
+    assert s["machine_steal"]["percent_of_cpu_time"] == pytest.approx(100 * 0.04 / 2.4)
+    assert s["machine_steal"]["per_trial_s"] == [0.0, pytest.approx(0.04)]
+    line = timing_line(s)
+    assert "could NOT keep up" in line
+    assert line.endswith("; the hypervisor took 40 ms of CPU time from this machine during the trials "
+                         "(1.7 % of its 2 CPUs: steal time)")
+    lock = timing_summary(timings[:1], 1e-3, False, None, [MachineSteal(0.01, 0.6, 2)])
+    assert timing_line(lock).endswith("x real time at Ts = 1 ms); the hypervisor took 10 ms of CPU time from this "
+                                      "machine during the trials (0.8 % of its 2 CPUs: steal time)")
+    # nothing taken: no clause; a trial without the figure: no figure for the run
+    assert "hypervisor" not in timing_line(timing_summary(timings[:1], 1e-3, True, None, steal[:1]))
+    assert "machine_steal" not in timing_summary(timings, 1e-3, True, None, [steal[0], None])
 
 
 class SteppingClock(ManualClock):

@@ -92,7 +92,7 @@ from host.nodes.drive_client import DriveClient
 from host.nodes.sdo_access import SdoAccess, SdoTransportError
 from host.rig.bus_time import BusTimeAccounting, bus_time_lines
 from host.rig.monitor import ChannelMonitor
-from host.rig.realtime import timing_line, timing_summary
+from host.rig.realtime import MachineSteal, steal_during, timing_line, timing_summary
 
 logger = logging.getLogger(__name__)
 
@@ -210,6 +210,8 @@ class RigBench:
         #: the hub carries the channels in bus time at these bit rates (``--bus-time``), or None
         self.bus_time_hub = {FIELDBUS: int(fieldbus_bitrate), IO: int(io_bitrate)} if bus_time_hub else None
         self.timings: list[TrialTiming] = []
+        #: per trial, the CPU time the hypervisor took from the machine meanwhile (None: not counted here)
+        self.steal: list[MachineSteal | None] = []
         self.pause_s = pause_s
         self.recover_s = recover_s
         self.recoveries: list[dict[str, Any]] = []
@@ -611,12 +613,17 @@ class RigBench:
             self._gc_frozen = True
         self._in_trial = True
         actuals = None
-        try:
+
+        def trial_body() -> None:
+            nonlocal actuals
             self.bench.start_trial(trial, n_ticks, q0, qd0)
             if cyclic is not None:
                 actuals = self._stream(trial, n_ticks, cyclic)
             # generous: lockstep over a loaded 2-core machine; faults come back much sooner
             self.bench.wait_trial(timeout_s=60.0 + n_ticks * 0.01, poll_s=0.02)
+
+        try:
+            steal = steal_during(trial_body)
         except (BenchClientError, SdoAbort, SdoTransportError) as exc:
             if self._fault is None:
                 time.sleep(EMCY_SETTLE_S)  # let the nodes' EMCY frames arrive: they say who saw it first
@@ -628,6 +635,7 @@ class RigBench:
         self._watch_once()
         self._raise_if_fault()
         self.timings.append(self.bench.trial_timing())
+        self.steal.append(steal)
         return actuals
 
     def describe_fault(self, exc: BaseException, trial: int) -> FaultRecord | None:
@@ -726,7 +734,7 @@ class RigBench:
             "elapsed_s": wall,
             "heartbeat": {"host_node_id": HOST_NODE_ID, "host_period_ms": HOST_HEARTBEAT_MS,
                           "node_period_ms": NODE_HEARTBEAT_MS, "consumer_time_ms": CONSUMER_TIME_MS * self.scale},
-            "timing": timing_summary(self.timings, self.cfg.ts_s, self.realtime, self.rt_scheduling),
+            "timing": timing_summary(self.timings, self.cfg.ts_s, self.realtime, self.rt_scheduling, self.steal),
             "emcy": self.emcy,
             "recoveries": self.recoveries,
         } | ({"pdo_frames": dict(self.pdo_frames)} if self.cyclic else {})

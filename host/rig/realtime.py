@@ -14,17 +14,63 @@ from __future__ import annotations
 import logging
 import os
 import statistics
-from collections.abc import Mapping, Sequence
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from bus.bench_objects import TrialTiming
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["timing_summary", "timing_line", "raise_lockstep_priority", "scheduling_text", "DEFAULT_RT_PRIORITY"]
+__all__ = ["timing_summary", "timing_line", "raise_lockstep_priority", "scheduling_text", "DEFAULT_RT_PRIORITY",
+           "MachineSteal", "cpu_steal_s", "steal_during", "steal_text"]
 
 #: the SCHED_FIFO priority of the lockstep processes in a real-time run (``--rt-priority``)
 DEFAULT_RT_PRIORITY: int = 10
+
+
+#: where Linux counts the CPU time its hypervisor took from the machine (``steal``, all CPUs)
+PROC_STAT = Path("/proc/stat")
+
+
+def cpu_steal_s(stat_path: Path = PROC_STAT) -> float | None:
+    """The CPU time [s] the hypervisor has taken from this (virtual) machine since it booted, all
+    CPUs summed: the 8th figure of ``/proc/stat``'s ``cpu`` line (``steal``, in ``USER_HZ`` ticks).
+    None where there is no such figure (not Linux, or a kernel without steal accounting)."""
+    try:
+        with open(stat_path, "rb") as f:
+            fields = f.readline().split()
+    except OSError:
+        return None
+    if len(fields) < 9 or fields[0] != b"cpu":
+        return None
+    return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+
+
+@dataclass(frozen=True)
+class MachineSteal:
+    """CPU time the hypervisor took from this machine while one trial ran, as the host saw it."""
+
+    #: CPU time taken, s, all CPUs summed (``USER_HZ`` resolution: 10 ms on most kernels)
+    steal_s: float
+    #: wall time of the window, s: from the host's trial start to its completion (a little longer than the trial)
+    window_s: float
+    #: CPUs of the machine
+    cpus: int
+
+
+def steal_during(body: Callable[[], None], clock: Callable[[], float] = time.monotonic,
+                 steal: Callable[[], float | None] = cpu_steal_s) -> MachineSteal | None:
+    """Run ``body()`` and return the CPU time the hypervisor took from the machine meanwhile (None
+    where the system does not count it)."""
+    s0, t0 = steal(), clock()
+    body()
+    s1, t1 = steal(), clock()
+    if s0 is None or s1 is None:
+        return None
+    return MachineSteal(max(0.0, s1 - s0), t1 - t0, os.cpu_count() or 1)
 
 
 def _threads(pid: int) -> list[int]:
@@ -76,9 +122,12 @@ def scheduling_text(scheduling: Mapping[str, Any]) -> str:
 
 
 def timing_summary(timings: Sequence[TrialTiming], ts_s: float, realtime: bool,
-                   scheduling: Mapping[str, Any] | None = None) -> dict[str, Any]:
+                   scheduling: Mapping[str, Any] | None = None,
+                   steal: Sequence[MachineSteal | None] | None = None) -> dict[str, Any]:
     """The run's timing figures from the trials' :class:`TrialTiming` (see the module docstring);
-    ``scheduling``: what :func:`raise_lockstep_priority` gave the run (real time only).
+    ``scheduling``: what :func:`raise_lockstep_priority` gave the run (real time only); ``steal``:
+    per trial, the CPU time the hypervisor took meanwhile (:func:`steal_during`; the summary's
+    ``machine_steal`` when every trial has it).
 
     Over several trials: lateness p50 is the median of the trials' medians, p99 the worst trial's
     p99, max the worst tick; the achieved rate is all ticks over the sum of the trials' durations.
@@ -103,6 +152,18 @@ def timing_summary(timings: Sequence[TrialTiming], ts_s: float, realtime: bool,
             for t in timings
         ],
     }
+    if steal and len(steal) == len(timings) and all(x is not None for x in steal):
+        taken = [x for x in steal if x is not None]
+        steal_s = sum(x.steal_s for x in taken)
+        cpu_s = sum(x.window_s * x.cpus for x in taken)
+        out["machine_steal"] = {
+            "seconds": steal_s,
+            "percent_of_cpu_time": 100.0 * steal_s / cpu_s if cpu_s > 0 else 0.0,
+            "cpus": taken[0].cpus,
+            "per_trial_s": [x.steal_s for x in taken],
+            "basis": "/proc/stat steal: CPU time the hypervisor gave to others while a trial ran (from the host's "
+                     "trial start to its completion), all CPUs summed; no process of the machine could run then",
+        }
     if realtime:
         misses = sum(t.deadline_misses for t in timings)
         late_max_s = max((t.lateness_max_us for t in timings), default=0) * 1e-6
@@ -118,19 +179,29 @@ def timing_summary(timings: Sequence[TrialTiming], ts_s: float, realtime: bool,
     return out
 
 
+def steal_text(timing: Mapping[str, Any]) -> str:
+    """``"; the hypervisor took …"`` when the machine lost CPU time during the trials, else ``""``."""
+    steal = timing.get("machine_steal")
+    if steal is None or steal["seconds"] <= 0:
+        return ""
+    return (f"; the hypervisor took {steal['seconds'] * 1e3:,.0f} ms of CPU time from this machine during the trials "
+            f"({steal['percent_of_cpu_time']:.1f} % of its {steal['cpus']} CPUs: steal time)")
+
+
 def timing_line(timing: dict[str, Any]) -> str:
     """One console line of :func:`timing_summary`'s figures."""
     rate = timing["achieved_ticks_per_s"]
     ts_ms = timing["control_period_s"] * 1e3
+    steal = steal_text(timing)
     if timing["mode"] != "realtime":
         return (f"emulator throughput (lockstep, wall clock): {rate:,.0f} ticks/s inside the trials "
-                f"({timing['real_time_factor']:.2f}x real time at Ts = {ts_ms:g} ms)")
+                f"({timing['real_time_factor']:.2f}x real time at Ts = {ts_ms:g} ms){steal}")
     late = (f"tick lateness p50 {timing['lateness_p50_s'] * 1e3:.3f} ms, p99 {timing['lateness_p99_s'] * 1e3:.3f} ms, "
             f"max {timing['lateness_max_s'] * 1e3:.3f} ms")
     sched = f"; {scheduling_text(timing['scheduling'])}" if "scheduling" in timing else ""
     if timing["kept_up"]:
         return (f"real time: kept up, {timing['ticks']} ticks paced at Ts = {ts_ms:g} ms, 0 deadline misses, {late} "
-                f"(no tick later than one period); achieved {rate:,.1f} ticks/s{sched}")
+                f"(no tick later than one period); achieved {rate:,.1f} ticks/s{sched}{steal}")
     return (f"real time: could NOT keep up at Ts = {ts_ms:g} ms: {timing['deadline_misses']} of {timing['ticks']} ticks "
             f"missed their deadline ({timing['deadline_miss_percent']:.1f} %), {late}; the rig held "
-            f"{rate:,.1f} ticks/s ({timing['real_time_factor']:.2f}x real time){sched}")
+            f"{rate:,.1f} ticks/s ({timing['real_time_factor']:.2f}x real time){sched}{steal}")
