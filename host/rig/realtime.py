@@ -5,8 +5,11 @@ This module owns how the per-trial timing of the test-bench node (0x2440,
 (:func:`timing_summary`) and on the console (:func:`timing_line`): in real-time mode
 (``ilcrig run --realtime``) the deadline misses, the tick lateness p50 / p99 / max and the
 achieved rate, and whether the run kept up; in lockstep mode the emulator throughput (ticks per
-second of wall time inside the trials). Wall-clock figures are diagnostics: they depend on the
-machine and never on or in the model.
+second of wall time inside the trials). With them, in both modes, the CPU time the hypervisor of a
+virtual machine took from it while the trials ran (``steal`` in ``/proc/stat``: :func:`steal_during`),
+so that a run can tell the machine's stalls from the rig's. It also puts the lockstep processes of
+a real-time run in ``SCHED_FIFO`` (:func:`raise_lockstep_priority`). Wall-clock figures are
+diagnostics: they depend on the machine and never on or in the model.
 """
 
 from __future__ import annotations
