@@ -93,6 +93,10 @@ def _add_rig_args(p: argparse.ArgumentParser) -> None:
                    help="with --realtime: the SCHED_FIFO priority of the hub, plant and drive processes, 1..99 "
                         f"(default {DEFAULT_RT_PRIORITY}; 0 = normal scheduling); without the right to it "
                         "(CAP_SYS_NICE or RLIMIT_RTPRIO) the run uses normal scheduling and says so")
+    p.add_argument("--no-idle-poll", action="store_true",
+                   help="with --realtime: let idle CPUs halt (by default a SCHED_IDLE busy loop per CPU keeps them "
+                        "awake for the run, so no wake-up of a tick waits for a halted CPU; it uses only CPU time "
+                        "nothing else wants)")
     # the fieldbus bit rate is an experiment option (--fieldbus-bitrate: also the pdo bus-fit check)
     p.add_argument("--io-bitrate", type=_bitrate, default=None, metavar="BIT_S",
                    help="bit rate of the io channel for the bus-time figures (default 1000000)")

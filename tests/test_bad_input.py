@@ -203,3 +203,8 @@ def test_bus_time_needs_the_hub(capsys: pytest.CaptureFixture[str], tmp_path: Pa
     code, _, err = run_cli(capsys, "run", "--bus-time", "--bus", "udp_multicast", "--out", str(tmp_path / "run"))
     assert_refused(code, err, "--bus-time", "use --bus hub")
     assert not (tmp_path / "run").exists()
+
+
+def test_no_idle_poll_needs_realtime(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    code, _, err = run_cli(capsys, "run", "--no-idle-poll", "--out", str(tmp_path / "run"))
+    assert_refused(code, err, "--no-idle-poll", "add --realtime")

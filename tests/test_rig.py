@@ -105,6 +105,20 @@ def test_rig_over_hub_equals_sim_and_logs_read_back(hub_run: tuple[subprocess.Co
     assert any(m.arbitration_id == 0x701 for m in fb_frames)  # heartbeats of drive 1
 
 
+def _idle_loops_left() -> list[int]:
+    """Live processes running the idle-poll loop (host/rig/idle_poll.py)."""
+    left = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            if stat.read_text().rsplit(")", 1)[1].split()[0] == "Z":
+                continue
+            if b"os.SCHED_IDLE" in (stat.parent / "cmdline").read_bytes():
+                left.append(int(stat.parent.name))
+        except (OSError, IndexError):
+            continue
+    return left
+
+
 def test_realtime_run_has_the_same_results_and_bus_time_figures(
         tmp_path: Path, sim_digest: str, hub_run: tuple[subprocess.CompletedProcess[str], Path, dict]) -> None:
     """A second run of the same experiment, paced to the wall clock and accounted at 500 kbit/s on
@@ -121,7 +135,10 @@ def test_realtime_run_has_the_same_results_and_bus_time_figures(
     assert timing["mode"] == "realtime" and timing["ticks"] == 2 * 301
     assert {"deadline_misses", "lateness_p50_s", "lateness_p99_s", "lateness_max_s", "kept_up"} <= set(timing)
     # the launcher scheduled the lockstep processes: SCHED_FIFO where permitted, else it says why not
-    sched = timing["scheduling"]
+    sched = dict(timing["scheduling"])
+    # ... and kept the CPUs awake with a SCHED_IDLE busy loop per CPU, all gone after the run
+    assert sched.pop("idle_poll") == {"loops": len(os.sched_getaffinity(0))}
+    assert "CPUs kept awake by" in res.stdout and not _idle_loops_left()
     assert sched == {"policy": "SCHED_FIFO", "priority": 10, "roles": ["hub", "plant", "drive1", "drive2", "drive3",
                                                                        "drive4"]} or "not permitted" in sched["reason"]
     assert timing["achieved_ticks_per_s"] > 0

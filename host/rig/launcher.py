@@ -84,6 +84,7 @@ from host.experiment.console import (
     experiment_actions,
 )
 from host.experiment.faults import FaultKind, FaultRecord, attach_injection, fault_line, read_injections
+from host.rig.idle_poll import IdlePollers, idle_poll_available
 from host.rig.realtime import DEFAULT_RT_PRIORITY, raise_lockstep_priority
 
 __all__ = [
@@ -310,6 +311,8 @@ def preflight(args: argparse.Namespace) -> list[FaultSpec]:
         raise ValueError(f"--bus-time: bus time is kept by the hub; the transport {args.bus} has none: use --bus hub")
     if getattr(args, "rt_priority", None) is not None and not args.realtime:
         raise ValueError(f"--rt-priority {args.rt_priority}: the priority of a real-time run; add --realtime")
+    if getattr(args, "no_idle_poll", False) and not args.realtime:
+        raise ValueError("--no-idle-poll: the CPUs are kept awake only in a real-time run; add --realtime")
     from host.experiment.plan import prepare
 
     prepare(cfg)
@@ -361,6 +364,7 @@ class RigLauncher:
     _hub_pid: int | None = None
     _host_stopped: bool = False
     _injector: Any = None
+    _idle_pollers: IdlePollers | None = None
 
     # -- public ----------------------------------------------------------------------------
 
@@ -433,7 +437,8 @@ class RigLauncher:
         if args.realtime:
             lockstep = ({"hub": self.hub.pid} if self.hub is not None else {}) | {c.name: c.pid for c in self.children}
             priority = DEFAULT_RT_PRIORITY if args.rt_priority is None else args.rt_priority
-            host_extra += ["--rt-scheduling", json.dumps(raise_lockstep_priority(lockstep, priority))]
+            scheduling = raise_lockstep_priority(lockstep, priority) | {"idle_poll": self._start_idle_poll(args)}
+            host_extra += ["--rt-scheduling", json.dumps(scheduling)]
         disk = [sp.trial for sp in specs if sp.action == "diskfull"]
         if disk:
             host_extra += ["--inject-disk-full", str(min(disk))]
@@ -450,6 +455,22 @@ class RigLauncher:
         if self._signal is not None:
             return self._interrupted(host)
         return self._conclude(host, code)
+
+    def _start_idle_poll(self, args: argparse.Namespace) -> dict[str, Any]:
+        """Keep the CPUs awake for a real-time run (host/rig/idle_poll.py), unless ``--no-idle-poll``.
+
+        :return: for the summary's scheduling record: ``{"loops": n}``, or ``{"loops": 0, "reason": ...}``
+        """
+        if getattr(args, "no_idle_poll", False):
+            return {"loops": 0, "reason": "--no-idle-poll"}
+        if not idle_poll_available():
+            return {"loops": 0, "reason": "this system has no SCHED_IDLE"}
+        try:
+            self._idle_pollers = IdlePollers()
+        except OSError as err:
+            logger.warning("cannot start the idle-poll loops: %s", err)
+            return {"loops": 0, "reason": f"could not start them ({err.strerror or err})"}
+        return {"loops": len(self._idle_pollers.pids)}
 
     def _pid_of(self, name: str) -> int | None:
         if name == "hub":
@@ -705,6 +726,8 @@ class RigLauncher:
         """SIGTERM every child's process group, wait ``grace_s``, SIGKILL, reap; stop the hub."""
         self._stopping = True
         try:
+            if self._idle_pollers is not None:
+                self._idle_pollers.stop()
             if self._injector is not None:
                 self._injector.stop()  # resumes stalled processes
             self._terminate_children()

@@ -120,8 +120,15 @@ def raise_lockstep_priority(pids: Mapping[str, int], priority: int) -> dict[str,
 def scheduling_text(scheduling: Mapping[str, Any]) -> str:
     """How the lockstep processes were scheduled, in words (for the console line)."""
     if scheduling.get("policy") == "SCHED_FIFO":
-        return f"lockstep processes ({', '.join(scheduling['roles'])}) in SCHED_FIFO {scheduling['priority']}"
-    return f"normal scheduling ({scheduling.get('reason', 'not asked for')})"
+        text = f"lockstep processes ({', '.join(scheduling['roles'])}) in SCHED_FIFO {scheduling['priority']}"
+    else:
+        text = f"normal scheduling ({scheduling.get('reason', 'not asked for')})"
+    idle = scheduling.get("idle_poll")
+    if idle is not None:
+        loops = idle.get("loops", 0)
+        text += (f", CPUs kept awake by {loops} SCHED_IDLE busy loops" if loops
+                 else f", idle CPUs may halt ({idle.get('reason', 'no idle-poll loops')})")
+    return text
 
 
 def timing_summary(timings: Sequence[TrialTiming], ts_s: float, realtime: bool,

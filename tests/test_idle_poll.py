@@ -1,0 +1,94 @@
+"""The idle-poll loops of a real-time run (host/rig/idle_poll.py): one SCHED_IDLE busy loop per CPU,
+gone when stopped and gone when the process that started them dies, even by SIGKILL; what the
+run's scheduling line says of them."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterable
+
+import pytest
+
+from host.rig.idle_poll import IdlePollers, idle_poll_available
+from host.rig.realtime import scheduling_text
+
+pytestmark = pytest.mark.skipif(not idle_poll_available(), reason="no SCHED_IDLE on this system")
+
+
+def _wait_for(what: str, cond: Callable[[], bool], timeout_s: float = 20.0) -> None:
+    """Wait until ``cond()`` holds (an event, checked every few ms), failing after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out waiting for {what}")
+        time.sleep(0.005)
+
+
+def _policy(pid: int) -> int | None:
+    try:
+        return os.sched_getscheduler(pid)
+    except ProcessLookupError:
+        return None
+
+
+def _gone(pids: Iterable[int]) -> bool:
+    """Every pid has ended (a zombie counts: it runs no more)."""
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                if f.read().rsplit(")", 1)[1].split()[0] != "Z":
+                    return False
+        except OSError:
+            continue
+    return True
+
+
+def test_one_sched_idle_loop_per_cpu_until_stopped() -> None:
+    pollers = IdlePollers(2)
+    pids = pollers.pids
+    try:
+        assert len(pids) == 2 and len(set(pids)) == 2
+        _wait_for("both loops in SCHED_IDLE", lambda: all(_policy(p) == os.SCHED_IDLE for p in pids))
+        # their own session: a terminal's Ctrl-C (our process group) does not reach them
+        assert all(os.getsid(p) == p for p in pids)
+    finally:
+        pollers.stop()
+    assert pollers.pids == [] and _gone(pids)
+    pollers.stop()  # again: nothing to do
+
+
+def test_the_loops_die_with_the_process_that_started_them() -> None:
+    code = ("import sys; sys.path.insert(0, sys.argv[1]); from host.rig.idle_poll import IdlePollers; "
+            "p = IdlePollers(2); print(' '.join(map(str, p.pids)), flush=True); import time; time.sleep(600)")
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    parent = subprocess.Popen([sys.executable, "-c", code, repo], stdout=subprocess.PIPE, text=True)
+    pids: list[int] = []
+    try:
+        assert parent.stdout is not None
+        pids = [int(x) for x in parent.stdout.readline().split()]
+        assert len(pids) == 2
+        _wait_for("both loops in SCHED_IDLE", lambda: all(_policy(p) == os.SCHED_IDLE for p in pids))
+        parent.send_signal(signal.SIGKILL)  # no chance to stop them itself
+        parent.wait()
+        _wait_for("the loops to end with their parent", lambda: _gone(pids))
+    finally:
+        parent.kill()
+        parent.wait()
+        for pid in pids:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+
+def test_the_scheduling_line_says_whether_the_cpus_were_kept_awake() -> None:
+    fifo = {"policy": "SCHED_FIFO", "priority": 10, "roles": ["hub", "plant"]}
+    assert scheduling_text(fifo | {"idle_poll": {"loops": 2}}) == (
+        "lockstep processes (hub, plant) in SCHED_FIFO 10, CPUs kept awake by 2 SCHED_IDLE busy loops")
+    assert scheduling_text(fifo | {"idle_poll": {"loops": 0, "reason": "--no-idle-poll"}}) == (
+        "lockstep processes (hub, plant) in SCHED_FIFO 10, idle CPUs may halt (--no-idle-poll)")
+    assert scheduling_text(fifo) == "lockstep processes (hub, plant) in SCHED_FIFO 10"
