@@ -31,12 +31,16 @@ index   sub  name                      type     meaning / unit
 0x2430  4    trials completed          U32      ro, since boot
 0x2430  5    last trial duration       U32      ro, µs wall clock (diagnostics only)
 0x2440  0    last trial timing         DOMAIN   ro, 25 bytes: :class:`TrialTiming` (wall clock)
+0x2441  0    last trial's misses       DOMAIN   ro, 10 + 12·k bytes: :class:`DeadlineMisses` (paced)
 ======  ===  ========================  =======  ==========================================
 
 Pacing (0x2400:5 = 1, ``ilcrig run --realtime``): tick n of a trial starts (its encoder frames go
 out) at t0 + n·Ts on the plant's monotonic clock, t0 being the moment the trial starts; a tick
 whose torques arrive after t0 + (n + 1)·Ts misses its deadline and the next one starts late.
-0x2440 reports the last trial's timing in either mode (lateness only when paced).
+0x2440 reports the last trial's timing in either mode (lateness only when paced); 0x2441 lists
+the first :data:`DEADLINE_MISSES_KEPT` ticks of it that missed their deadline, with t0 on the
+plant's ``CLOCK_MONOTONIC`` so that a tool on the same machine (``benchmarks/rt_attribution.py``)
+can put them beside a kernel trace.
 
 Configuration, trial index, number of ticks and initial state cannot be written while a trial
 runs (abort 0x08000022).
@@ -76,6 +80,7 @@ class BenchObj(IntEnum):
     INITIAL_STATE = 0x2420
     COUNTERS = 0x2430
     TRIAL_TIMING = 0x2440
+    DEADLINE_MISSES = 0x2441
 
 
 class ConfigSub(IntEnum):
@@ -262,3 +267,68 @@ def unpack_trial_timing(data: bytes) -> TrialTiming:
         raise ValueError(f"trial timing must be {TRIAL_TIMING_BYTES} bytes, got {len(data)}")
     paced, *vals = _TIMING.unpack(bytes(data))
     return TrialTiming(bool(paced), *vals)
+
+
+# -- deadline misses ----------------------------------------------------------------------
+
+#: how many missed ticks of a trial 0x2441 lists (the count in 0x2440 goes on beyond)
+DEADLINE_MISSES_KEPT: Final[int] = 64
+_MISSES_HEAD = struct.Struct("<QH")
+_MISS = struct.Struct("<3I")
+
+
+@dataclass(frozen=True)
+class DeadlineMiss:
+    """One tick of a paced trial that completed after the start of the next period.
+
+    :ivar tick: the tick's index n in the trial
+    :ivar started_late_us: how late its encoder frames went out: start(n) − (t0 + n·Ts), µs
+    :ivar overrun_us: how far past its deadline it completed: done(n) − (t0 + (n + 1)·Ts), µs
+    """
+
+    tick: int
+    started_late_us: int
+    overrun_us: int
+
+
+@dataclass(frozen=True)
+class DeadlineMisses:
+    """The last trial's deadline misses as the plant measured them (0x2441), diagnostics only.
+
+    :ivar t0_ns: when tick 0 was due, ns on the plant's ``CLOCK_MONOTONIC`` (the machine's), 0 if
+        the trial was not paced
+    :ivar misses: the first :data:`DEADLINE_MISSES_KEPT` misses, in tick order
+    """
+
+    t0_ns: int
+    misses: tuple[DeadlineMiss, ...] = ()
+
+
+def pack_deadline_misses(m: DeadlineMisses) -> bytes:
+    """:class:`DeadlineMisses` as the bytes of 0x2441: u64 t0 ns, u16 k, then k × (u32 tick, u32
+    started late µs, u32 overrun µs), little-endian; values clamped to their type, at most
+    :data:`DEADLINE_MISSES_KEPT` entries."""
+    kept = m.misses[:DEADLINE_MISSES_KEPT]
+    out = bytearray(_MISSES_HEAD.pack(min(max(int(m.t0_ns), 0), 0xFFFF_FFFF_FFFF_FFFF), len(kept)))
+    for x in kept:
+        out += _MISS.pack(*(min(max(int(v), 0), 0xFFFFFFFF) for v in (x.tick, x.started_late_us, x.overrun_us)))
+    return bytes(out)
+
+
+def unpack_deadline_misses(data: bytes) -> DeadlineMisses:
+    """Inverse of :func:`pack_deadline_misses`.
+
+    :raises ValueError: the length does not match the count, or more than
+        :data:`DEADLINE_MISSES_KEPT` entries
+    """
+    data = bytes(data)
+    if len(data) < _MISSES_HEAD.size:
+        raise ValueError(f"deadline misses need at least {_MISSES_HEAD.size} bytes, got {len(data)}")
+    t0_ns, k = _MISSES_HEAD.unpack_from(data)
+    if k > DEADLINE_MISSES_KEPT:
+        raise ValueError(f"deadline misses list {k} entries, at most {DEADLINE_MISSES_KEPT} allowed")
+    if len(data) != _MISSES_HEAD.size + k * _MISS.size:
+        raise ValueError(f"deadline misses with {k} entries must be {_MISSES_HEAD.size + k * _MISS.size} bytes, "
+                         f"got {len(data)}")
+    misses = tuple(DeadlineMiss(*_MISS.unpack_from(data, _MISSES_HEAD.size + i * _MISS.size)) for i in range(k))
+    return DeadlineMisses(t0_ns, misses)

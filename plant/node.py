@@ -28,7 +28,9 @@ goes out, then per tick n = 0..N-1:
 3. the plant integrates [t_n, t_n + Ts] with the four torques held and disturbance[n].
 
 Real time (0x2400:5 pacing = 1, ``ilcrig run --realtime``): tick n's encoder frames are held
-until t0 + n·Ts on the node clock (t0 = the trial's start), the wait being part of the select
+until t0 + n·Ts on the node clock (t0 = one period after TRIAL_START went out: the drives take the
+start command in a period of its own, as a real drive's first cycle is the SYNC after the one that
+armed it), the wait being part of the select
 loop (SDO is served meanwhile); a tick whose torques arrive after t0 + (n + 1)·Ts is a deadline
 miss and the next tick starts late.  Either way the trial's timing (duration, and when paced the
 misses and the lateness of the ticks, :class:`plant.pacing.TickPacer`) is kept in 0x2440.
@@ -80,10 +82,13 @@ from bus.bench_objects import (
     BenchTrialSub,
     ConfigSub,
     CounterSub,
+    DeadlineMiss,
+    DeadlineMisses,
     DisturbanceKind,
     InitialStateError,
     TrialTiming,
     fault_emcy_data,
+    pack_deadline_misses,
     pack_trial_timing,
     unpack_initial_state,
 )
@@ -183,6 +188,7 @@ class BenchNode(SlaveNode):
         self._send_at: float | None = None  # paced: when the held encoder frames are due
         self._held_counts: np.ndarray | None = None
         self._timing = TrialTiming(False, 0, 0, 0, 0, 0, 0)
+        self._misses = DeadlineMisses(0)
         self._tau = np.zeros(io_frames.N_JOINTS, dtype=np.int64)
         self._dist: np.ndarray = np.zeros((0, io_frames.N_JOINTS))
         # the four encoder frames of a tick go out in one write where the bus can (the hub)
@@ -290,6 +296,7 @@ class BenchNode(SlaveNode):
         r[(c, CounterSub.TRIALS_DONE)] = lambda: self.trials_done & _U32
         r[(c, CounterSub.LAST_TRIAL_US)] = lambda: min(int(self.last_trial_s * 1e6), _U32)
         r[(BenchObj.TRIAL_TIMING, 0)] = lambda: pack_trial_timing(self._timing)
+        r[(BenchObj.DEADLINE_MISSES, 0)] = lambda: pack_deadline_misses(self._misses)
         for sub in ConfigSub:
             w[(BenchObj.CONFIG, sub)] = self._require_idle_hook(f"configuration 0x2400:{int(sub)}")
         w[(t, BenchTrialSub.TRIAL_INDEX)] = self._require_idle_hook("trial index")
@@ -458,10 +465,17 @@ class BenchNode(SlaveNode):
         self._error_register = 0
         self._running = True
         self._send_at = self._held_counts = None
-        self._send_io(io_frames.encode_control(io_frames.ControlCommand.TRIAL_START, self._origin, n_ticks))
-        self._pacer = TickPacer(ts_s, n_ticks, bool(store.get(BenchObj.CONFIG, ConfigSub.PACING)), self._clock())
-        logger.info("node %d: trial %d started (N = %d, Ts = %g s, %d sub-steps, disturbance %s, seed %d)",
+        logger.info("node %d: trial %d starts (N = %d, Ts = %g s, %d sub-steps, disturbance %s, seed %d)",
                     self.node_id, trial, n_ticks, ts_s, substeps, DisturbanceKind(kind).label, seed)
+        paced = bool(store.get(BenchObj.CONFIG, ConfigSub.PACING))
+        self._send_io(io_frames.encode_control(io_frames.ControlCommand.TRIAL_START, self._origin, n_ticks))
+        if paced:
+            # Tick 0 is due one period after the start command, as a real drive's first cycle is the
+            # SYNC after the one that armed it: the drives take TRIAL_START in that period, not in tick 0's.
+            self._pacer = TickPacer(ts_s, n_ticks, True, self._clock() + ts_s)
+            self._send_at, self._held_counts = self._pacer.due_s(0), counts  # sent by on_service
+            return
+        self._pacer = TickPacer(ts_s, n_ticks, False, self._clock())
         self._send_encoders(counts)
 
     def _send_encoders(self, counts: np.ndarray) -> None:
@@ -517,6 +531,11 @@ class BenchNode(SlaveNode):
         self._timing = TrialTiming(r.paced, r.ticks, round(r.duration_s * 1e6), r.deadline_misses,
                                    round(r.lateness_p50_s * 1e6), round(r.lateness_p99_s * 1e6),
                                    round(r.lateness_max_s * 1e6))
+        # t0 on the node clock (CLOCK_MONOTONIC in the role): a tool on the machine can match the
+        # misses with a kernel trace of the same clock (benchmarks/rt_attribution.py)
+        self._misses = DeadlineMisses(
+            round(r.t0_s * 1e9) if r.paced else 0,
+            tuple(DeadlineMiss(m.tick, round(m.started_late_s * 1e6), round(m.overrun_s * 1e6)) for m in r.missed))
         if r.paced:
             logger.info("node %d: paced trial: %d deadline misses, lateness p50 %.0f µs, p99 %.0f µs, max %.0f µs",
                         self.node_id, r.deadline_misses, r.lateness_p50_s * 1e6, r.lateness_p99_s * 1e6,

@@ -3,9 +3,10 @@
 This module owns :class:`TickPacer`, the bookkeeping of one trial's ticks on the wall clock of the
 plant (the lockstep clock master, :mod:`plant.node`): when tick n is due (t0 + n·Ts when paced),
 how late each tick started, which ticks missed their deadline (completed after the start of the
-next period), and the trial's duration. It never reads a clock itself: the caller passes the
-times (s, any monotonic scale), so the statistics are exact and testable with a scripted clock.
-Wall-clock time never enters the model: pacing only delays when a tick's frames go out.
+next period: the first :data:`MISSES_KEPT` of them with their times), and the trial's duration.
+It never reads a clock itself: the caller passes the times (s, any monotonic scale), so the
+statistics are exact and testable with a scripted clock. Wall-clock time never enters the model:
+pacing only delays when a tick's frames go out.
 """
 
 from __future__ import annotations
@@ -17,7 +18,25 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["TickPacer", "PacingResult"]
+__all__ = ["TickPacer", "PacingResult", "MissedTick", "MISSES_KEPT"]
+
+#: how many missed ticks a trial keeps with their times (the count goes on beyond): as many as 0x2441
+#: lists (``bus.bench_objects.DEADLINE_MISSES_KEPT``; plant/ does not import bus/, a test keeps them equal)
+MISSES_KEPT: int = 64
+
+
+@dataclass(frozen=True)
+class MissedTick:
+    """One tick that missed its deadline (times in s on the pacer's clock).
+
+    :ivar tick: the tick's index in the trial
+    :ivar started_late_s: start(n) − (t0 + n·Ts): how late its frames went out
+    :ivar overrun_s: completion − (t0 + (n + 1)·Ts): how far past its deadline it completed
+    """
+
+    tick: int
+    started_late_s: float
+    overrun_s: float
 
 
 @dataclass(frozen=True)
@@ -30,6 +49,8 @@ class PacingResult:
     :ivar deadline_misses: ticks completed after t0 + (n + 1)·Ts (paced only, else 0)
     :ivar lateness_p50_s, lateness_p99_s, lateness_max_s: of start(n) − (t0 + n·Ts) over the
         started ticks (paced only, else 0)
+    :ivar t0_s: when tick 0 was due (paced) or started (on the pacer's clock)
+    :ivar missed: the first :data:`MISSES_KEPT` deadline misses, in tick order
     """
 
     paced: bool
@@ -39,6 +60,8 @@ class PacingResult:
     lateness_p50_s: float
     lateness_p99_s: float
     lateness_max_s: float
+    t0_s: float = 0.0
+    missed: tuple[MissedTick, ...] = ()
 
 
 class TickPacer:
@@ -61,6 +84,7 @@ class TickPacer:
         self._completed = 0
         self._last_done_s = self.t0_s
         self.deadline_misses = 0
+        self._missed: list[MissedTick] = []
 
     def due_s(self, n: int) -> float:
         """When tick ``n`` is due: t0 + n·Ts (when paced; the caller sends at once otherwise)."""
@@ -76,6 +100,9 @@ class TickPacer:
         """Tick ``n`` completed (all answers in, plant stepped) at ``now_s``."""
         if self.paced and now_s > self.due_s(n + 1):
             self.deadline_misses += 1
+            if len(self._missed) < MISSES_KEPT:
+                started_late = float(self._lateness_s[n]) if n < len(self._lateness_s) else 0.0
+                self._missed.append(MissedTick(n, started_late, now_s - self.due_s(n + 1)))
         self._completed = max(self._completed, n + 1)
         self._last_done_s = now_s
 
@@ -91,4 +118,6 @@ class TickPacer:
             lateness_p50_s=p50,
             lateness_p99_s=p99,
             lateness_max_s=float(late.max()) if late.size else 0.0,
+            t0_s=self.t0_s,
+            missed=tuple(self._missed),
         )

@@ -12,17 +12,24 @@ import sys
 
 import can
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from test_bench_node import Q0, QD0, ManualClock, PlantBox, fake_disturbance
 
 from bus import io_frames
 from bus.bench_objects import (
+    DEADLINE_MISSES_KEPT,
     BenchObj,
     BenchStatus,
     BenchTrialSub,
     ConfigSub,
+    DeadlineMiss,
+    DeadlineMisses,
     TrialTiming,
+    pack_deadline_misses,
     pack_initial_state,
     pack_trial_timing,
+    unpack_deadline_misses,
     unpack_trial_timing,
 )
 from host.rig import realtime
@@ -36,7 +43,7 @@ from host.rig.realtime import (
     timing_summary,
 )
 from plant.node import BenchNode
-from plant.pacing import TickPacer
+from plant.pacing import MISSES_KEPT, TickPacer
 
 _counter = itertools.count()
 
@@ -68,21 +75,29 @@ def test_unpaced_trial_has_duration_but_no_lateness() -> None:
     assert r.duration_s == pytest.approx(0.02)
 
 
-def _start_paced_trial(bench: BenchNode, n_ticks: int) -> None:
-    """Boot ``bench``, configure pacing and a trial of ``n_ticks`` as the host would, start it and
-    step once (TRIAL_START and tick 0 go out)."""
+def _start_paced_trial(bench: BenchNode, n_ticks: int, clock: ManualClock) -> float:
+    """Boot ``bench``, configure pacing and a trial of ``n_ticks`` as the host would and start it
+    at ``clock.now``: TRIAL_START goes out at once, tick 0 one period later (Ts = 1 ms), when the
+    clock is moved there and the bench stepped. Returns t0, when tick 0 was due."""
     bench.start()
     bench.write_object(BenchObj.CONFIG, ConfigSub.PACING, b"\x01")
     bench.write_object(BenchObj.INITIAL_STATE, 0, pack_initial_state(Q0, QD0))
     bench.write_object(BenchObj.TRIAL, BenchTrialSub.N_TICKS, struct.pack("<I", n_ticks))
     bench.write_object(BenchObj.TRIAL, BenchTrialSub.COMMAND, b"\x01")
     bench.step(0.0)
+    t0 = clock.now + 0.001
+    assert bench.next_deadline() == pytest.approx(t0 - bench.spin_s)
+    clock.now = t0
+    bench.step(0.0)
+    return t0
 
 
 def test_paced_bench_holds_each_tick_until_its_time() -> None:
-    """The bench stepped by the test on a manual clock (virtual buses deliver on send): tick n's
-    encoder frames go out at t0 + n·Ts, not a microsecond before; a tick answered late starts the
-    next one late and is a deadline miss; 0x2440 reports it."""
+    """The bench stepped by the test on a manual clock (virtual buses deliver on send): TRIAL_START
+    goes out when the trial starts and tick 0 one period later, so that the drives take the start
+    command in a period of its own; tick n's encoder frames go out at t0 + n·Ts, not a microsecond
+    before; a tick answered late starts the next one late and is a deadline miss; 0x2440 reports it
+    and 0x2441 names the tick, with t0 on the node clock."""
     k = next(_counter)
     clock = ManualClock(100.0)
     fb = can.Bus(interface="virtual", channel=f"rt-fb-{k}")
@@ -90,13 +105,15 @@ def test_paced_bench_holds_each_tick_until_its_time() -> None:
     drives = can.Bus(interface="virtual", channel=f"rt-io-{k}")
     bench = BenchNode(fb, io, plant_factory=PlantBox(), disturbance_fn=fake_disturbance, clock=clock)
 
-    def encoder_ticks() -> list[int]:
+    def io_frames_seen() -> list[str]:
         got = []
         while (msg := drives.recv(timeout=0)) is not None:
             frame = io_frames.decode_io(msg)
-            if isinstance(frame, io_frames.EncoderFrame):
-                got.append(frame.tick)
+            got.append(f"enc{frame.tick}" if isinstance(frame, io_frames.EncoderFrame) else type(frame).__name__)
         return got
+
+    def encoder_ticks() -> list[int]:
+        return [int(f[3:]) for f in io_frames_seen() if f.startswith("enc")]
 
     def answer(wire: int, at: float) -> None:
         clock.now = at
@@ -105,28 +122,43 @@ def test_paced_bench_holds_each_tick_until_its_time() -> None:
         bench.step(0.0)
 
     try:
-        _start_paced_trial(bench, 4)  # t0 = 100.0: TRIAL_START and tick 0 at once
-        assert encoder_ticks() == [0] * 4
-        answer(0, 100.0003)  # tick 0 done after 0.3 ms: tick 1 is held until 100.001
-        assert encoder_ticks() == []
+        bench.start()
+        bench.write_object(BenchObj.CONFIG, ConfigSub.PACING, b"\x01")
+        bench.write_object(BenchObj.INITIAL_STATE, 0, pack_initial_state(Q0, QD0))
+        bench.write_object(BenchObj.TRIAL, BenchTrialSub.N_TICKS, struct.pack("<I", 4))
+        bench.write_object(BenchObj.TRIAL, BenchTrialSub.COMMAND, b"\x01")
+        bench.step(0.0)  # at 100.0: the start command only; tick 0 is due at t0 = 100.001
+        assert io_frames_seen() == ["ControlFrame"]
         assert bench.next_deadline() == pytest.approx(100.001)
         clock.now = 100.000999
         bench.step(0.0)
         assert encoder_ticks() == []
         clock.now = 100.001
         bench.step(0.0)
+        assert encoder_ticks() == [0] * 4
+        answer(0, 100.0013)  # tick 0 done after 0.3 ms: tick 1 is held until 100.002
+        assert encoder_ticks() == []
+        assert bench.next_deadline() == pytest.approx(100.002)
+        clock.now = 100.001999
+        bench.step(0.0)
+        assert encoder_ticks() == []
+        clock.now = bench.next_deadline()  # 100.002 in floating point: t0 + Ts
+        bench.step(0.0)
         assert encoder_ticks() == [1] * 4
-        answer(1, 100.0025)  # done after tick 2's start (100.002): a miss, tick 2 starts 0.5 ms late
+        answer(1, 100.0035)  # done after tick 2's start (100.003): a miss, tick 2 starts 0.5 ms late
         assert encoder_ticks() == [2] * 4
-        answer(2, 100.0026)
-        clock.now = 100.003
+        answer(2, 100.0036)
+        assert bench.next_deadline() == pytest.approx(100.004)
+        clock.now = bench.next_deadline()
         bench.step(0.0)
         assert encoder_ticks() == [3] * 4
-        answer(3, 100.0031)
+        answer(3, 100.0041)
         assert bench.status == BenchStatus.DONE
         t = unpack_trial_timing(bench.read_object(BenchObj.TRIAL_TIMING, 0))
         assert (t.paced, t.ticks, t.deadline_misses, t.lateness_max_us) == (True, 4, 1, 500)
         assert t.duration_us == 3100
+        m = unpack_deadline_misses(bench.read_object(BenchObj.DEADLINE_MISSES, 0))
+        assert m == DeadlineMisses(100_001_000_000, (DeadlineMiss(tick=1, started_late_us=0, overrun_us=500),))
     finally:
         for bus in (fb, io, drives):
             bus.shutdown()
@@ -136,6 +168,59 @@ def test_trial_timing_round_trips_through_its_bytes() -> None:
     t = TrialTiming(True, 501, 500_123, 2, 40, 300, 1200)
     assert unpack_trial_timing(pack_trial_timing(t)) == t
     assert t.ticks_per_s == pytest.approx(501 / 0.500123)
+
+
+def test_pacer_keeps_the_first_missed_ticks_with_their_times() -> None:
+    p = TickPacer(ts_s=0.001, n_ticks=MISSES_KEPT + 10, paced=True, t0_s=5.0)
+    for n in range(MISSES_KEPT + 10):  # every tick starts 0.1 ms late and ends 0.2 ms after its deadline
+        p.started(n, p.due_s(n) + 100e-6)
+        p.completed(n, p.due_s(n + 1) + 200e-6)
+    r = p.result()
+    assert MISSES_KEPT == DEADLINE_MISSES_KEPT  # the pacer keeps what 0x2441 can list
+    assert r.deadline_misses == MISSES_KEPT + 10  # the count goes on ...
+    assert len(r.missed) == MISSES_KEPT  # ... the list stops: bounded memory over any trial
+    assert r.t0_s == 5.0
+    assert [m.tick for m in r.missed] == list(range(MISSES_KEPT))
+    assert all(m.started_late_s == pytest.approx(100e-6) and m.overrun_s == pytest.approx(200e-6) for m in r.missed)
+
+
+_MISS = st.builds(DeadlineMiss, st.integers(0, 2**32 - 1), st.integers(0, 2**32 - 1), st.integers(0, 2**32 - 1))
+
+
+@settings(max_examples=200, deadline=None)
+@given(t0_ns=st.integers(0, 2**64 - 1), misses=st.lists(_MISS, max_size=DEADLINE_MISSES_KEPT))
+def test_deadline_misses_round_trip_through_their_bytes(t0_ns: int, misses: list[DeadlineMiss]) -> None:
+    m = DeadlineMisses(t0_ns, tuple(misses))
+    data = pack_deadline_misses(m)
+    assert len(data) == 10 + 12 * len(misses)
+    assert unpack_deadline_misses(data) == m
+
+
+def test_deadline_misses_bytes_are_exact_and_bad_lengths_are_refused() -> None:
+    data = pack_deadline_misses(DeadlineMisses(0x0102030405060708, (DeadlineMiss(7, 300, 2**33),)))
+    assert data == bytes.fromhex("0807060504030201" "0100" "07000000" "2c010000" "ffffffff")  # overrun clamped to u32
+    with pytest.raises(ValueError, match="at least 10 bytes"):
+        unpack_deadline_misses(b"\x00" * 9)
+    with pytest.raises(ValueError, match="1 entries must be 22 bytes, got 21"):
+        unpack_deadline_misses(data[:-1])
+    with pytest.raises(ValueError, match="at most 64"):
+        unpack_deadline_misses(struct.pack("<QH", 0, 65) + b"\x00" * 12 * 65)
+    many = DeadlineMisses(1, tuple(DeadlineMiss(n, 0, 1) for n in range(100)))
+    assert len(unpack_deadline_misses(pack_deadline_misses(many)).misses) == DEADLINE_MISSES_KEPT
+
+
+def test_summary_lists_the_missed_ticks_of_the_trials_that_had_some() -> None:
+    timings = [TrialTiming(True, 501, 501_000, 0, 30, 60, 200), TrialTiming(True, 501, 501_500, 2, 30, 900, 1500)]
+    missed = [None, DeadlineMisses(12_500_000_000, (DeadlineMiss(40, 50, 700), DeadlineMiss(41, 1500, 300)))]
+    out = timing_summary(timings, 0.001, True, missed=missed)
+    assert "missed_ticks" not in out["per_trial"][0]
+    row = out["per_trial"][1]
+    assert row["t0_monotonic_s"] == pytest.approx(12.5)
+    assert row["missed_ticks"] == [
+        {"tick": 40, "started_late_s": pytest.approx(50e-6), "overrun_s": pytest.approx(700e-6)},
+        {"tick": 41, "started_late_s": pytest.approx(1500e-6), "overrun_s": pytest.approx(300e-6)},
+    ]
+    assert "missed_ticks" not in timing_summary(timings, 0.001, False, missed=missed)["per_trial"][1]
 
 
 def test_host_figures_say_whether_the_run_kept_up() -> None:
@@ -220,21 +305,21 @@ def test_a_paced_tick_is_waited_for_on_the_clock_for_the_last_spin_s() -> None:
     drives = can.Bus(interface="virtual", channel=f"rt-io-{k}")
     bench = BenchNode(fb, io, plant_factory=PlantBox(), disturbance_fn=fake_disturbance, clock=clock, spin_s=200e-6)
     try:
-        _start_paced_trial(bench, 3)  # tick 0 at t0 = 100.0
+        assert _start_paced_trial(bench, 3, clock) == pytest.approx(100.001)  # tick 0 at t0 = 100.001
         while drives.recv(timeout=0) is not None:
             pass
-        clock.now = 100.0003
+        clock.now = 100.0013
         for j in range(4):
             drives.send(io_frames.encode_torque(j, 0, 0, io_frames.TorqueStatus.ENABLED))
-        bench.step(0.0)  # tick 1 held until 100.001: the loop is to wake at 100.0008
-        assert bench.next_deadline() == pytest.approx(100.001 - 200e-6)
+        bench.step(0.0)  # tick 1 held until 100.002: the loop is to wake at 100.0018
+        assert bench.next_deadline() == pytest.approx(100.002 - 200e-6)
         assert drives.recv(timeout=0) is None
-        clock.now, clock.step_s = 100.00085, 10e-6  # woken inside the window: waits on the clock
+        clock.now, clock.step_s = 100.00185, 10e-6  # woken inside the window: waits on the clock
         reads = clock.reads
         bench.step(0.0)
         msg = drives.recv(timeout=0)
         assert msg is not None and isinstance(io_frames.decode_io(msg), io_frames.EncoderFrame)
-        assert clock.reads - reads >= 10  # (100.001 − 100.00085) / 10 µs readings, at least
+        assert clock.reads - reads >= 10  # (100.002 − 100.00185) / 10 µs readings, at least
         t = bench._pacer
         assert t is not None and 0 <= t._lateness_s[1] < 30e-6  # started within a few clock steps of the due time
     finally:

@@ -25,11 +25,13 @@ from bus.bench_objects import (
     BenchTrialSub,
     ConfigSub,
     CounterSub,
+    DeadlineMisses,
     DisturbanceKind,
     InitialStateError,
     TrialTiming,
     disturbance_code,
     pack_initial_state,
+    unpack_deadline_misses,
     unpack_trial_timing,
 )
 from bus.cia301.sdo import ObjectAccess
@@ -148,6 +150,11 @@ class BenchClient:
     def trial_timing(self) -> TrialTiming:
         """0x2440: the last trial's wall-clock timing as the plant measured it (diagnostics)."""
         return unpack_trial_timing(self.access.read_object(BenchObj.TRIAL_TIMING, 0))
+
+    def deadline_misses(self) -> DeadlineMisses:
+        """0x2441: the last trial's deadline misses (the first 64) as the plant measured them
+        (diagnostics; empty unless the trial was paced)."""
+        return unpack_deadline_misses(self.access.read_object(BenchObj.DEADLINE_MISSES, 0))
 
     def configuration(self) -> dict[str, Any]:
         """0x2400 as read back: ts_s, substeps, disturbance (name), seed."""

@@ -16,7 +16,8 @@ bit rate (``--io-bitrate``, ``--fieldbus-bitrate``, default 1 Mbit/s), in ``summ
 * **once per run**: the set-up exchange (gains, reference tables, enabling, configuration);
 * **counted apart**, because their amount depends on how fast the emulator runs, not on the
   experiment: the status polls of the running trial (0x2410:4–8), the boot-wait polls (0x1000),
-  heartbeats and boot-ups, and the emulator's timing diagnostics (0x2440); EMCY frames (faults).
+  heartbeats and boot-ups, and the emulator's timing diagnostics (0x2440, and 0x2441 after a trial
+  with deadline misses); EMCY frames (faults).
 
 Everything is counted by what a frame is (COB-ID, SDO object), never by when it was seen, so two
 runs of one configuration report identical figures for the traffic the experiment defines.
@@ -67,8 +68,8 @@ def kind_of(key: SdoKey) -> tuple[str, str]:
     if node == DEFAULT_BENCH_NODE_ID:
         if index == BenchObj.TRIAL and direction == "upload" and sub in _STATUS_SUBS:
             return "speed_dependent", "status polls"
-        if index == BenchObj.TRIAL_TIMING:
-            return "diagnostics", "timing diagnostics (0x2440)"
+        if index in (BenchObj.TRIAL_TIMING, BenchObj.DEADLINE_MISSES):
+            return "diagnostics", "timing diagnostics (0x2440, 0x2441)"
         group = "bench"
     elif node in DRIVE_NODE_IDS:
         group = "drive"

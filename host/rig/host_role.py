@@ -52,7 +52,7 @@ import can
 import canopen
 import numpy as np
 
-from bus.bench_objects import BENCH_EDS_PATH, BenchFault, TrialTiming
+from bus.bench_objects import BENCH_EDS_PATH, BenchFault, DeadlineMisses, TrialTiming
 from bus.bench_objects import DEFAULT_BENCH_NODE_ID as BENCH_NODE_ID
 from bus.bustime import DEFAULT_BITRATE
 from bus.cia301.nmt import (
@@ -212,6 +212,7 @@ class RigBench:
         self.timings: list[TrialTiming] = []
         #: per trial, the CPU time the hypervisor took from the machine meanwhile (None: not counted here)
         self.steal: list[MachineSteal | None] = []
+        self.misses: list[DeadlineMisses | None] = []
         self.pause_s = pause_s
         self.recover_s = recover_s
         self.recoveries: list[dict[str, Any]] = []
@@ -634,7 +635,10 @@ class RigBench:
             self._in_trial = False
         self._watch_once()
         self._raise_if_fault()
-        self.timings.append(self.bench.trial_timing())
+        timing = self.bench.trial_timing()
+        self.timings.append(timing)
+        # which ticks missed, only when some did: a run that keeps up moves the same frames as before
+        self.misses.append(self.bench.deadline_misses() if timing.paced and timing.deadline_misses else None)
         self.steal.append(steal)
         return actuals
 
@@ -734,7 +738,8 @@ class RigBench:
             "elapsed_s": wall,
             "heartbeat": {"host_node_id": HOST_NODE_ID, "host_period_ms": HOST_HEARTBEAT_MS,
                           "node_period_ms": NODE_HEARTBEAT_MS, "consumer_time_ms": CONSUMER_TIME_MS * self.scale},
-            "timing": timing_summary(self.timings, self.cfg.ts_s, self.realtime, self.rt_scheduling, self.steal),
+            "timing": timing_summary(self.timings, self.cfg.ts_s, self.realtime, self.rt_scheduling, self.steal,
+                                     self.misses),
             "emcy": self.emcy,
             "recoveries": self.recoveries,
         } | ({"pdo_frames": dict(self.pdo_frames)} if self.cyclic else {})

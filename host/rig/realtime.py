@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from bus.bench_objects import TrialTiming
+from bus.bench_objects import DeadlineMisses, TrialTiming
 
 logger = logging.getLogger(__name__)
 
@@ -133,11 +133,15 @@ def scheduling_text(scheduling: Mapping[str, Any]) -> str:
 
 def timing_summary(timings: Sequence[TrialTiming], ts_s: float, realtime: bool,
                    scheduling: Mapping[str, Any] | None = None,
-                   steal: Sequence[MachineSteal | None] | None = None) -> dict[str, Any]:
+                   steal: Sequence[MachineSteal | None] | None = None,
+                   missed: Sequence[DeadlineMisses | None] | None = None) -> dict[str, Any]:
     """The run's timing figures from the trials' :class:`TrialTiming` (see the module docstring);
     ``scheduling``: what :func:`raise_lockstep_priority` gave the run (real time only); ``steal``:
     per trial, the CPU time the hypervisor took meanwhile (:func:`steal_during`; the summary's
-    ``machine_steal`` when every trial has it).
+    ``machine_steal`` when every trial has it); ``missed``: per trial, the plant's list of the ticks
+    that missed their deadline (0x2441, read only after a trial with misses; real time only), as
+    ``per_trial[k].missed_ticks`` with ``t0_monotonic_s``, the machine's ``CLOCK_MONOTONIC`` when tick 0
+    was due.
 
     Over several trials: lateness p50 is the median of the trials' medians, p99 the worst trial's
     p99, max the worst tick; the achieved rate is all ticks over the sum of the trials' durations.
@@ -162,6 +166,13 @@ def timing_summary(timings: Sequence[TrialTiming], ts_s: float, realtime: bool,
             for t in timings
         ],
     }
+    if realtime and missed is not None:
+        for row, m in zip(out["per_trial"], missed, strict=False):
+            if m is not None:
+                row["t0_monotonic_s"] = m.t0_ns * 1e-9
+                row["missed_ticks"] = [
+                    {"tick": x.tick, "started_late_s": x.started_late_us * 1e-6, "overrun_s": x.overrun_us * 1e-6}
+                    for x in m.misses]
     if steal and len(steal) == len(timings) and all(x is not None for x in steal):
         taken = [x for x in steal if x is not None]
         steal_s = sum(x.steal_s for x in taken)
