@@ -35,8 +35,9 @@ index   sub  name                      type     meaning / unit
 ======  ===  ========================  =======  ==========================================
 
 Pacing (0x2400:5 = 1, ``ilcrig run --realtime``): tick n of a trial starts (its encoder frames go
-out) at t0 + n·Ts on the plant's monotonic clock, t0 being the moment the trial starts; a tick
-whose torques arrive after t0 + (n + 1)·Ts misses its deadline and the next one starts late.
+out) at t0 + n·Ts on the plant's monotonic clock, t0 being one period after the trial's start
+command (TRIAL_START on io); a tick whose torques arrive after t0 + (n + 1)·Ts misses its
+deadline and the next one starts late.
 0x2440 reports the last trial's timing in either mode (lateness only when paced); 0x2441 lists
 the first :data:`DEADLINE_MISSES_KEPT` ticks of it that missed their deadline, with t0 on the
 plant's ``CLOCK_MONOTONIC`` so that a tool on the same machine (``benchmarks/rt_attribution.py``)
@@ -58,6 +59,8 @@ from typing import Final
 
 import numpy as np
 import numpy.typing as npt
+
+from bus.fixedpoint import sat
 
 logger = logging.getLogger(__name__)
 
@@ -220,6 +223,8 @@ def unpack_initial_state(data: bytes) -> tuple[npt.NDArray[np.float64], npt.NDAr
 
 # -- trial timing -------------------------------------------------------------------------
 
+_U32_MAX: Final[int] = 0xFFFF_FFFF
+_U64_MAX: Final[int] = 0xFFFF_FFFF_FFFF_FFFF
 _TIMING = struct.Struct("<B6I")
 TRIAL_TIMING_BYTES: Final[int] = _TIMING.size  # 25
 
@@ -253,7 +258,7 @@ class TrialTiming:
 
 def pack_trial_timing(t: TrialTiming) -> bytes:
     """:class:`TrialTiming` as the 25 bytes of 0x2440 (values clamped to u32)."""
-    u32 = [min(max(int(v), 0), 0xFFFFFFFF) for v in (t.ticks, t.duration_us, t.deadline_misses, t.lateness_p50_us,
+    u32 = [sat(int(v), 0, _U32_MAX) for v in (t.ticks, t.duration_us, t.deadline_misses, t.lateness_p50_us,
                                                       t.lateness_p99_us, t.lateness_max_us)]
     return _TIMING.pack(int(bool(t.paced)), *u32)
 
@@ -309,9 +314,9 @@ def pack_deadline_misses(m: DeadlineMisses) -> bytes:
     started late µs, u32 overrun µs), little-endian; values clamped to their type, at most
     :data:`DEADLINE_MISSES_KEPT` entries."""
     kept = m.misses[:DEADLINE_MISSES_KEPT]
-    out = bytearray(_MISSES_HEAD.pack(min(max(int(m.t0_ns), 0), 0xFFFF_FFFF_FFFF_FFFF), len(kept)))
+    out = bytearray(_MISSES_HEAD.pack(sat(int(m.t0_ns), 0, _U64_MAX), len(kept)))
     for x in kept:
-        out += _MISS.pack(*(min(max(int(v), 0), 0xFFFFFFFF) for v in (x.tick, x.started_late_us, x.overrun_us)))
+        out += _MISS.pack(*(sat(int(v), 0, _U32_MAX) for v in (x.tick, x.started_late_us, x.overrun_us)))
     return bytes(out)
 
 

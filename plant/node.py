@@ -30,10 +30,10 @@ goes out, then per tick n = 0..N-1:
 Real time (0x2400:5 pacing = 1, ``ilcrig run --realtime``): tick n's encoder frames are held
 until t0 + n·Ts on the node clock (t0 = one period after TRIAL_START went out: the drives take the
 start command in a period of its own, as a real drive's first cycle is the SYNC after the one that
-armed it), the wait being part of the select
-loop (SDO is served meanwhile); a tick whose torques arrive after t0 + (n + 1)·Ts is a deadline
-miss and the next tick starts late.  Either way the trial's timing (duration, and when paced the
-misses and the lateness of the ticks, :class:`plant.pacing.TickPacer`) is kept in 0x2440.
+armed it), the wait being part of the select loop (SDO is served meanwhile); a tick whose
+torques arrive after t0 + (n + 1)·Ts is a deadline miss and the next tick starts late.  Either
+way the trial's timing (duration, and when paced the misses and the lateness of the ticks,
+:class:`plant.pacing.TickPacer`) is kept in 0x2440, and the first missed ticks in 0x2441.
 Pacing delays frames only; what the plant computes is the same.  The select loop wakes
 ``spin_s`` before a held tick is due and waits the rest in a loop on the clock (the plant role:
 :attr:`BenchNode.REALTIME_SPIN_S`): a timer wake-up comes about 0.1 ms late on the machines here,
@@ -473,10 +473,14 @@ class BenchNode(SlaveNode):
             # Tick 0 is due one period after the start command, as a real drive's first cycle is the
             # SYNC after the one that armed it: the drives take TRIAL_START in that period, not in tick 0's.
             self._pacer = TickPacer(ts_s, n_ticks, True, self._clock() + ts_s)
-            self._send_at, self._held_counts = self._pacer.due_s(0), counts  # sent by on_service
+            self._hold(counts, self._pacer.due_s(0))
             return
         self._pacer = TickPacer(ts_s, n_ticks, False, self._clock())
         self._send_encoders(counts)
+
+    def _hold(self, counts: np.ndarray, due_s: float) -> None:
+        """Paced: keep the next tick's encoder counts until ``due_s`` (sent by :meth:`on_service`)."""
+        self._send_at, self._held_counts = due_s, counts
 
     def _send_encoders(self, counts: np.ndarray) -> None:
         wire = self._origin + self._tick
@@ -506,7 +510,7 @@ class BenchNode(SlaveNode):
             now = self._clock()
             pacer.completed(n, now)
             if counts is not None and pacer.paced and now < pacer.due_s(n + 1):
-                self._send_at, self._held_counts = pacer.due_s(n + 1), counts  # sent by on_service
+                self._hold(counts, pacer.due_s(n + 1))
                 return
         if counts is None:
             self._finish()
