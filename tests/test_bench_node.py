@@ -801,3 +801,34 @@ def test_rig_on_virtual_buses_is_bit_identical_to_in_process() -> None:
     pos = rig_traces[0][0].position_counts
     assert abs(int(pos[-1]) - int(pos[0])) > 0.02 / units.RAD_PER_COUNT
     assert not np.array_equal(rig_traces[0][0].torque_fb_units, rig_traces[1][0].torque_fb_units)
+
+
+def test_the_bench_pays_its_first_calls_at_boot_not_at_the_first_trial() -> None:
+    """start() builds the plant and computes a disturbance once (its first call imports
+    scipy.signal, about a second), before the boot-up: a first trial's start then holds the select
+    loop that answers SDO no longer than any other."""
+    k = next(_counter)
+    calls: list[tuple[str, int, int, int, float]] = []
+    built: list[tuple[float, int]] = []
+
+    def disturbance(kind: str, seed: int, trial: int, n_ticks: int, ts_s: float) -> np.ndarray:
+        calls.append((kind, seed, trial, n_ticks, ts_s))
+        return fake_disturbance(kind, seed, trial, n_ticks, ts_s)
+
+    def factory(ts_s: float, substeps: int) -> Any:
+        built.append((ts_s, substeps))
+        return PlantBox()(ts_s, substeps)
+
+    fb = can.Bus(interface="virtual", channel=f"boot-fb-{k}")
+    io = can.Bus(interface="virtual", channel=f"boot-io-{k}")
+    host = can.Bus(interface="virtual", channel=f"boot-fb-{k}")
+    try:
+        bench = BenchNode(fb, io, plant_factory=factory, disturbance_fn=disturbance)
+        bench.start()
+        assert built == [(0.001, 4)]
+        assert calls == [("both", 0, 0, 2, 0.001)]
+        boot = host.recv(timeout=0)
+        assert boot is not None and (boot.arbitration_id, bytes(boot.data)) == (0x700 + BENCH_ID, b"\x00")
+    finally:
+        for bus in (fb, io, host):
+            bus.shutdown()
