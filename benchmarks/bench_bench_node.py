@@ -78,13 +78,43 @@ def rig(ticks: int, trials: int, poll_s: float) -> list[dict[str, float]]:
         addr = hub.address
         try:
             for node_id in (1, 2, 3, 4):
-                procs.append(subprocess.Popen(
-                    [sys.executable, "-m", "firmware_model.node", "--node-id", str(node_id),
-                     "--fieldbus-interface", "ilcrig_hub", "--fieldbus-channel", f"{addr}#fieldbus",
-                     "--io-interface", "ilcrig_hub", "--io-channel", f"{addr}#io"], env=env, cwd=REPO))
-            procs.append(subprocess.Popen(
-                [sys.executable, "-c", "import sys; from host.cli import main; sys.exit(main(sys.argv[1:]))",
-                 "plant", "--bus", "hub", "--hub", addr], env=env, cwd=REPO))
+                procs.append(
+                    subprocess.Popen(
+                        [
+                            sys.executable,
+                            "-m",
+                            "firmware_model.node",
+                            "--node-id",
+                            str(node_id),
+                            "--fieldbus-interface",
+                            "ilcrig_hub",
+                            "--fieldbus-channel",
+                            f"{addr}#fieldbus",
+                            "--io-interface",
+                            "ilcrig_hub",
+                            "--io-channel",
+                            f"{addr}#io",
+                        ],
+                        env=env,
+                        cwd=REPO,
+                    )
+                )
+            procs.append(
+                subprocess.Popen(
+                    [
+                        sys.executable,
+                        "-c",
+                        "import sys; from host.cli import main; sys.exit(main(sys.argv[1:]))",
+                        "plant",
+                        "--bus",
+                        "hub",
+                        "--hub",
+                        addr,
+                    ],
+                    env=env,
+                    cwd=REPO,
+                )
+            )
             network = canopen.Network()
             network.connect(interface="ilcrig_hub", channel=f"{addr}#fieldbus")
             try:
@@ -93,8 +123,9 @@ def rig(ticks: int, trials: int, poll_s: float) -> list[dict[str, float]]:
                     network.subscribe(0x700 + node_id, lambda cob, _data, _t: booted.add(cob - 0x700))
                 wait_until(lambda: len(booted) == 5, 120.0, "the boot-up of 4 drives and the plant")
                 network.nmt.send_command(0x01)
-                nodes = {i: canopen.RemoteNode(i, str(drive_eds if i != BENCH_ID else BENCH_EDS_PATH))
-                         for i in (1, 2, 3, 4, BENCH_ID)}
+                nodes = {
+                    i: canopen.RemoteNode(i, str(drive_eds if i != BENCH_ID else BENCH_EDS_PATH)) for i in (1, 2, 3, 4, BENCH_ID)
+                }
                 for node in nodes.values():
                     network.add_node(node)
                 drives = [DriveClient(SdoAccess(nodes[i]), i) for i in (1, 2, 3, 4)]
@@ -110,8 +141,9 @@ def rig(ticks: int, trials: int, poll_s: float) -> list[dict[str, float]]:
                     if state.ticks_done != ticks:
                         raise RuntimeError(f"trial {trial}: {state.ticks_done} of {ticks} ticks")
                     node_s = bench.counters()["last_trial_us"] / 1e6
-                    out.append({"node_ticks_per_s": ticks / node_s, "host_ticks_per_s": ticks / wall,
-                                "node_s": node_s, "host_s": wall})
+                    out.append(
+                        {"node_ticks_per_s": ticks / node_s, "host_ticks_per_s": ticks / wall, "node_s": node_s, "host_s": wall}
+                    )
             finally:
                 network.disconnect()
         finally:
@@ -128,16 +160,22 @@ def rig(ticks: int, trials: int, poll_s: float) -> list[dict[str, float]]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--ticks", type=int, default=int(os.environ.get("ILCRIG_BENCH_TICKS", "3000")),
-                    help="ticks per trial (default 3000, or $ILCRIG_BENCH_TICKS)")
+    ap.add_argument(
+        "--ticks",
+        type=int,
+        default=int(os.environ.get("ILCRIG_BENCH_TICKS", "3000")),
+        help="ticks per trial (default 3000, or $ILCRIG_BENCH_TICKS)",
+    )
     ap.add_argument("--trials", type=int, default=2)
     ap.add_argument("--poll", type=float, default=0.05, help="host completion poll period, s")
     ap.add_argument("--floor-seconds", type=float, default=2.0, help="bare lockstep duration, s")
     ap.add_argument("--pings", type=int, default=1000)
     args = ap.parse_args()
 
-    print(f"ilcrig bench-node benchmark: hub (unix socket), 4 drive processes + plant process, host here; "
-          f"{args.ticks}-tick trials, {args.trials} trials, {os.cpu_count()} CPUs")
+    print(
+        f"ilcrig bench-node benchmark: hub (unix socket), 4 drive processes + plant process, host here; "
+        f"{args.ticks}-tick trials, {args.trials} trials, {os.cpu_count()} CPUs"
+    )
     f = floor(args.floor_seconds, args.pings)
     rtt = (f.get("ping") or {}).get("median_us")
     bare = (f.get("io") or {}).get("ticks_per_s")
@@ -146,13 +184,14 @@ def main() -> None:
     else:
         print(f"floor (this run): ping-pong RTT median {rtt:.0f} us, lockstep io (bare) {bare:,.0f} ticks/s")
     rates = rig(args.ticks, args.trials, args.poll)
-    print(f"{'trial':<7}{'node ticks/s':>14}{'host ticks/s':>14}{'node/floor':>12}{'host/floor':>12}"
-          f"{'x real time':>13}")
+    print(f"{'trial':<7}{'node ticks/s':>14}{'host ticks/s':>14}{'node/floor':>12}{'host/floor':>12}{'x real time':>13}")
     for k, r in enumerate(rates):
         nf = f"{r['node_ticks_per_s'] / bare:.2f}" if bare else "n/a"
         hf = f"{r['host_ticks_per_s'] / bare:.2f}" if bare else "n/a"
-        print(f"{k:<7}{r['node_ticks_per_s']:>14,.0f}{r['host_ticks_per_s']:>14,.0f}{nf:>12}{hf:>12}"
-              f"{r['node_ticks_per_s'] / 1000:>13.2f}")
+        print(
+            f"{k:<7}{r['node_ticks_per_s']:>14,.0f}{r['host_ticks_per_s']:>14,.0f}{nf:>12}{hf:>12}"
+            f"{r['node_ticks_per_s'] / 1000:>13.2f}"
+        )
     if len(rates) > 1:
         med = statistics.median(r["node_ticks_per_s"] for r in rates)
         print(f"median node ticks/s {med:,.0f}" + (f" = {med / bare:.2f} x the bare lockstep floor" if bare else ""))

@@ -35,8 +35,13 @@ import numpy as np
 
 #: (N, single-journey time s, Ts s)
 SIZES: tuple[tuple[int, float, float], ...] = (
-    (251, 0.25, 0.002), (501, 0.25, 0.001), (1001, 0.5, 0.001), (2001, 1.0, 0.001),
-    (5001, 2.5, 0.001), (10001, 5.0, 0.001), (20001, 10.0, 0.001),
+    (251, 0.25, 0.002),
+    (501, 0.25, 0.001),
+    (1001, 0.5, 0.001),
+    (2001, 1.0, 0.001),
+    (5001, 2.5, 0.001),
+    (10001, 5.0, 0.001),
+    (20001, 10.0, 0.001),
 )
 
 
@@ -84,8 +89,15 @@ def _measure(law_name: str, setup: dict[str, Any]) -> dict[str, float]:
     c0 = time.process_time()
     t0 = time.perf_counter()
     model = ClosedLoopModel(setup["inertia"], g.kp, g.kd, ts)
-    ctx = LawContext(gains=g, ts_s=ts, model=model, reference=setup["ref"], u0_nm=setup["tau"],
-                     mass_model=setup["mass_model"], geometry=Geometry())
+    ctx = LawContext(
+        gains=g,
+        ts_s=ts,
+        model=model,
+        reference=setup["ref"],
+        u0_nm=setup["tau"],
+        mass_model=setup["mass_model"],
+        geometry=Geometry(),
+    )
     law = make_law(law_name, ctx)
     law.check(model, PROBE_TORQUE_FRACTION * setup["tau"], 10)
     t1 = time.perf_counter()
@@ -104,9 +116,14 @@ def _measure(law_name: str, setup: dict[str, Any]) -> dict[str, float]:
         model.g(u)
         floor = min(floor, time.perf_counter() - s)
     peak_kb = _status_kb("VmHWM")
-    return {"prep": t1 - t0, "update": t3 - t2, "cpu": (c1 - c0) + (c3 - c2), "floor": floor,
-            "peak_mb": peak_kb / 1024,
-            "delta_mb": (peak_kb - idle_kb) / 1024}
+    return {
+        "prep": t1 - t0,
+        "update": t3 - t2,
+        "cpu": (c1 - c0) + (c3 - c2),
+        "floor": floor,
+        "peak_mb": peak_kb / 1024,
+        "delta_mb": (peak_kb - idle_kb) / 1024,
+    }
 
 
 def _child(law: str, size: tuple[int, float, float], queue: Any) -> None:
@@ -132,10 +149,14 @@ def main() -> None:
     for law in laws:
         _measure(law, warm)
     ctx = mp.get_context("fork")
-    print(f"ilcrig learning benchmark: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}; "
-          "times in s (and in floors = one forward sweep e = G u at that N), memory = peak RSS of the process")
-    header = f"{'law':10s} {'N':>6s} {'prep s':>8s} {'update s':>9s} {'CPU s':>7s} {'floor ms':>9s} " \
-             f"{'prep/fl':>8s} {'upd/fl':>7s} {'peak MB':>8s} {'+MB':>6s}"
+    print(
+        f"ilcrig learning benchmark: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}; "
+        "times in s (and in floors = one forward sweep e = G u at that N), memory = peak RSS of the process"
+    )
+    header = (
+        f"{'law':10s} {'N':>6s} {'prep s':>8s} {'update s':>9s} {'CPU s':>7s} {'floor ms':>9s} "
+        f"{'prep/fl':>8s} {'upd/fl':>7s} {'peak MB':>8s} {'+MB':>6s}"
+    )
     print(header)
     results: dict[str, list[tuple[int, dict[str, float]]]] = {}
     for law in laws:
@@ -149,12 +170,17 @@ def main() -> None:
                 print(f"{law:10s} {size[0]:6d}  failed: {r['error']}")
                 continue
             results.setdefault(law, []).append((size[0], r))
-            print(f"{law:10s} {size[0]:6d} {r['prep']:8.3f} {r['update']:9.4f} {r['cpu']:7.3f} {1e3 * r['floor']:9.3f} "
-                  f"{r['prep'] / r['floor']:8.0f} {r['update'] / r['floor']:7.1f} {r['peak_mb']:8.0f} "
-                  f"{r['delta_mb']:6.0f}", flush=True)
+            print(
+                f"{law:10s} {size[0]:6d} {r['prep']:8.3f} {r['update']:9.4f} {r['cpu']:7.3f} {1e3 * r['floor']:9.3f} "
+                f"{r['prep'] / r['floor']:8.0f} {r['update'] / r['floor']:7.1f} {r['peak_mb']:8.0f} "
+                f"{r['delta_mb']:6.0f}",
+                flush=True,
+            )
     print("\ngrowth exponent b (time ∝ N^b, least squares over the sizes) and the goals:")
-    print(f"{'law':10s} {'b prep':>7s} {'b update':>9s} {'b prep+upd':>10s}  {'N=501 prep+upd s':>17s}  "
-          f"{'N=20001 prep+upd s':>18s}  {'N=20001 peak MB':>15s}")
+    print(
+        f"{'law':10s} {'b prep':>7s} {'b update':>9s} {'b prep+upd':>10s}  {'N=501 prep+upd s':>17s}  "
+        f"{'N=20001 prep+upd s':>18s}  {'N=20001 peak MB':>15s}"
+    )
     for law, rows in results.items():
         n = np.log([r[0] for r in rows])
 
@@ -166,8 +192,10 @@ def main() -> None:
         at501 = by_n[501]["prep"] + by_n[501]["update"] if 501 in by_n else float("nan")
         at20k = by_n[20001]["prep"] + by_n[20001]["update"] if 20001 in by_n else float("nan")
         peak = by_n[20001]["peak_mb"] if 20001 in by_n else float("nan")
-        print(f"{law:10s} {slope('prep'):7.2f} {slope('update'):9.2f} {slope('prep+update'):10.2f}  "
-              f"{at501:17.3f}  {at20k:18.2f}  {peak:15.0f}")
+        print(
+            f"{law:10s} {slope('prep'):7.2f} {slope('update'):9.2f} {slope('prep+update'):10.2f}  "
+            f"{at501:17.3f}  {at20k:18.2f}  {peak:15.0f}"
+        )
 
 
 if __name__ == "__main__":

@@ -64,15 +64,19 @@ def main() -> None:
     wall0, wall1 = min(w for w, _ in without), min(w for w, _ in with_rec)
     cpu0, cpu1 = min(c for _, c in without), min(c for _, c in with_rec)
     cost = wall1 - wall0
-    print(f"ilcrig recording benchmark: default experiment, {args.iterations} trials of N = {plan.ref.t.shape[0]}, "
-          f"best of {args.repeat}")
+    print(
+        f"ilcrig recording benchmark: default experiment, {args.iterations} trials of N = {plan.ref.t.shape[0]}, "
+        f"best of {args.repeat}"
+    )
     print(f"{'':<30}{'wall s':>10}{'cpu s':>10}")
     print(f"{'prepare':<30}{prepare_s:>10.3f}{'':>10}")
     print(f"{'run_experiment (floor)':<30}{wall0:>10.3f}{cpu0:>10.3f}")
     print(f"{'run_experiment + recorder':<30}{wall1:>10.3f}{cpu1:>10.3f}")
-    print(f"recording: +{cost * 1e3:.1f} ms wall, {size / 1e6:.2f} MB; "
-          f"{cost / wall0:.1%} of run_experiment, {cost / (prepare_s + wall0):.1%} of prepare + run "
-          f"(target < 10 %)")
+    print(
+        f"recording: +{cost * 1e3:.1f} ms wall, {size / 1e6:.2f} MB; "
+        f"{cost / wall0:.1%} of run_experiment, {cost / (prepare_s + wall0):.1%} of prepare + run "
+        f"(target < 10 %)"
+    )
 
 
 if __name__ == "__main__":

@@ -49,8 +49,20 @@ from bus.transports.hub_server import hub_core_available  # noqa: E402
 def rig(bus: str, iterations: int, netns: bool = False) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "run"
-        cmd = [sys.executable, "-m", "host.cli", "run", "--iterations", str(iterations), "--cycle", "0.5",
-               "--bus", bus, "--out", str(out)]
+        cmd = [
+            sys.executable,
+            "-m",
+            "host.cli",
+            "run",
+            "--iterations",
+            str(iterations),
+            "--cycle",
+            "0.5",
+            "--bus",
+            bus,
+            "--out",
+            str(out),
+        ]
         if netns:
             from netns_util import NETNS_SETUP
 
@@ -62,10 +74,14 @@ def rig(bus: str, iterations: int, netns: bool = False) -> dict:
             return {"error": (res.stderr or res.stdout).strip().splitlines()[-1:]}
         s = json.loads((out / "summary.json").read_text())
         fb = s["bench"]["channels"]["fieldbus"]
-        return {"ticks": s["ticks"], "ticks_per_s": s["ticks_per_s"], "total_s": total,
-                "fieldbus_frames": fb["frames"],
-                "lockstep_ticks_per_s": s["bench"].get("timing", {}).get("achieved_ticks_per_s", 0.0),
-                "steal_s": s["bench"].get("timing", {}).get("machine_steal", {}).get("seconds")}
+        return {
+            "ticks": s["ticks"],
+            "ticks_per_s": s["ticks_per_s"],
+            "total_s": total,
+            "fieldbus_frames": fb["frames"],
+            "lockstep_ticks_per_s": s["bench"].get("timing", {}).get("achieved_ticks_per_s", 0.0),
+            "steal_s": s["bench"].get("timing", {}).get("machine_steal", {}).get("seconds"),
+        }
 
 
 def floor(name: str) -> dict:
@@ -96,11 +112,15 @@ def main() -> None:
         plan.append(("socketcan", None, False))
     if args.only:
         plan = [p for p in plan if p[0] in args.only]
-    print(f"ilcrig rig benchmark: 4 drive + plant + host processes, 1001-tick trials, {args.iterations} trials per "
-          f"run, best of {args.repeat} alternating floor/rig measurements; {os.cpu_count()} CPUs; hub data plane "
-          f"{'C (bus/transports/_hubcore.c)' if hub_core_available() else 'Python'}")
-    print(f"{'transport':<15}{'RTT floor':>11}{'floor ticks/s':>15}{'rig ticks/s':>13}{'rig/floor':>11}"
-          f"{'x real time':>13}{'host ticks/s':>14}{'all rig runs':>26}{'load avg':>15}")
+    print(
+        f"ilcrig rig benchmark: 4 drive + plant + host processes, 1001-tick trials, {args.iterations} trials per "
+        f"run, best of {args.repeat} alternating floor/rig measurements; {os.cpu_count()} CPUs; hub data plane "
+        f"{'C (bus/transports/_hubcore.c)' if hub_core_available() else 'Python'}"
+    )
+    print(
+        f"{'transport':<15}{'RTT floor':>11}{'floor ticks/s':>15}{'rig ticks/s':>13}{'rig/floor':>11}"
+        f"{'x real time':>13}{'host ticks/s':>14}{'all rig runs':>26}{'load avg':>15}"
+    )
     for bus, floor_name, netns in plan:
         load0 = os.getloadavg()[0]
         floors: list[float] = []
@@ -132,24 +152,32 @@ def main() -> None:
         best_rig = max(rigs)
         ratio = f"{best_rig / best_floor:.2f}" if best_floor else "n/a"
         runs = " ".join(f"{x:,.0f}" for x in rigs)
-        print(f"{bus:<15}{(f'{min(rtts):.0f} us' if rtts else 'n/a'):>11}"
-              f"{(f'{best_floor:,.0f}' if best_floor else 'n/a'):>15}{best_rig:>13,.0f}{ratio:>11}"
-              f"{best_rig / 1000:>13.2f}{max(hosts):>14,.0f}  {runs:>24}{f'{load0:.1f} -> {load1:.1f}':>15}")
+        print(
+            f"{bus:<15}{(f'{min(rtts):.0f} us' if rtts else 'n/a'):>11}"
+            f"{(f'{best_floor:,.0f}' if best_floor else 'n/a'):>15}{best_rig:>13,.0f}{ratio:>11}"
+            f"{best_rig / 1000:>13.2f}{max(hosts):>14,.0f}  {runs:>24}{f'{load0:.1f} -> {load1:.1f}':>15}"
+        )
         if floors:
             print(f"{'':<15}all floor runs: {' '.join(f'{x:,.0f}' for x in floors)}")
         if any(x is not None for x in steals):
-            print(f"{'':<15}CPU time the hypervisor took during each rig run's trials (steal): "
-                  f"{' '.join('n/a' if x is None else f'{x * 1e3:.0f} ms' for x in steals)}")
+            print(
+                f"{'':<15}CPU time the hypervisor took during each rig run's trials (steal): "
+                f"{' '.join('n/a' if x is None else f'{x * 1e3:.0f} ms' for x in steals)}"
+            )
         if len(floors) == len(rigs) and floors:
             # each rig run against the floor measured just before it (the same minutes of the machine)
             pairs = sorted(r / f for r, f in zip(rigs, floors, strict=True))
-            print(f"{'':<15}rig/floor per alternating pair: {' '.join(f'{x:.2f}' for x in pairs)} "
-                  f"(median {statistics.median(pairs):.2f})")
+            print(
+                f"{'':<15}rig/floor per alternating pair: {' '.join(f'{x:.2f}' for x in pairs)} "
+                f"(median {statistics.median(pairs):.2f})"
+            )
         if bus == "hub" and best_floor:
             verdict = {True: "met", False: "NOT met"}
-            print(f"{'':<15}goals (issue 10, default transport): rig >= 2,000 ticks/s: "
-                  f"{verdict[best_rig >= 2000]} ({best_rig:,.0f}); rig >= 0.5 x floor: "
-                  f"{verdict[best_rig >= 0.5 * best_floor]} ({best_rig / best_floor:.2f})")
+            print(
+                f"{'':<15}goals (issue 10, default transport): rig >= 2,000 ticks/s: "
+                f"{verdict[best_rig >= 2000]} ({best_rig:,.0f}); rig >= 0.5 x floor: "
+                f"{verdict[best_rig >= 0.5 * best_floor]} ({best_rig / best_floor:.2f})"
+            )
 
 
 if __name__ == "__main__":

@@ -64,10 +64,14 @@ def main() -> None:
     print(f"  prepare (plan, IK, feasibility, lifted model, convergence check): {t_prepare:.2f} s")
     print(f"  ticks per experiment: {ticks}")
     print(f"  first run (incl. JIT load): {rates[0]:,.0f} ticks/s")
-    print(f"  steady: median {statistics.median(steady):,.0f} ticks/s "
-          f"(min {min(steady):,.0f}, max {max(steady):,.0f}) over {len(steady)} runs")
-    print(f"  real-time factor at 1 kHz: {statistics.median(steady) / 1000:.1f}x ; target 20,000 ticks/s: "
-          f"{statistics.median(steady) / 20000:.2f}x of target")
+    print(
+        f"  steady: median {statistics.median(steady):,.0f} ticks/s "
+        f"(min {min(steady):,.0f}, max {max(steady):,.0f}) over {len(steady)} runs"
+    )
+    print(
+        f"  real-time factor at 1 kHz: {statistics.median(steady) / 1000:.1f}x ; target 20,000 ticks/s: "
+        f"{statistics.median(steady) / 20000:.2f}x of target"
+    )
     print(f"  experiment wall time incl. learning: median {statistics.median(walls[1:]):.3f} s")
     print(f"  Plant.step (4 RK4 sub-steps): {plant_us:.2f} us ; Drive.io_tick (idle, not enabled): {drive_us:.2f} us")
 

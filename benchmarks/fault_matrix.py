@@ -74,13 +74,15 @@ def main(argv: list[str] | None = None) -> int:
     plan = []
     for i in range(args.runs):
         kind = kinds[i % len(kinds)] if i < len(kinds) else rng.choice(kinds)  # every kind at least once
-        plan.append((kind, rng.randrange(args.iterations), rng.randrange(n_ticks), f"drive{rng.randint(1, 4)}",
-                     rng.randrange(1000)))
+        plan.append(
+            (kind, rng.randrange(args.iterations), rng.randrange(n_ticks), f"drive{rng.randint(1, 4)}", rng.randrange(1000))
+        )
     base = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="ilcrig-faultmatrix-"))
     results = []
     t_start = time.monotonic()
-    print(f"{args.runs} injections, {args.iterations} trials of N = {n_ticks} ticks; heartbeat {HOST_HEARTBEAT_MS} ms",
-          flush=True)
+    print(
+        f"{args.runs} injections, {args.iterations} trials of N = {n_ticks} ticks; heartbeat {HOST_HEARTBEAT_MS} ms", flush=True
+    )
     for i, (kind, trial, tick, drive, seed) in enumerate(plan):
         spec = KINDS[kind].format(drive=drive, trial=trial, tick=tick, seed=seed)
         expected_kept = trial + 1 if kind == "diskfull" else trial
@@ -91,24 +93,46 @@ def main(argv: list[str] | None = None) -> int:
         detected = o.code == 3 and bool(f) and len(o.lines) == 1 and o.lines[0].startswith("ilcrig: fault:")
         kept_ok = o.summary is not None and o.summary.get("trace_sha256") == sim_digest(o.kept)
         lost = max(0, expected_kept - o.kept) + (0 if kept_ok else o.kept)
-        tick_latency = (f.get("tick") - tick) if (kind in FRAME_KINDS and isinstance(f.get("tick"), int)
-                                                 and f.get("trial") == trial) else None
-        safe = bool(o.summary) and all(e.get("torque") == "off" for e in o.summary.get("safe_state", [])
-                                       if str(e.get("node", "")).startswith("drive"))
-        r = {"i": i, "kind": kind, "spec": spec, "code": o.code, "detected": detected, "fault_kind": f.get("kind"),
-             "detected_by": f.get("detected_by"), "latency_ms": f.get("latency_ms"), "tick_latency": tick_latency,
-             "kept": o.kept, "expected_kept": expected_kept, "lost": lost, "left": len(o.left), "safe": safe,
-             "wall_s": round(o.wall_s, 1)}
+        tick_latency = (
+            (f.get("tick") - tick)
+            if (kind in FRAME_KINDS and isinstance(f.get("tick"), int) and f.get("trial") == trial)
+            else None
+        )
+        safe = bool(o.summary) and all(
+            e.get("torque") == "off" for e in o.summary.get("safe_state", []) if str(e.get("node", "")).startswith("drive")
+        )
+        r = {
+            "i": i,
+            "kind": kind,
+            "spec": spec,
+            "code": o.code,
+            "detected": detected,
+            "fault_kind": f.get("kind"),
+            "detected_by": f.get("detected_by"),
+            "latency_ms": f.get("latency_ms"),
+            "tick_latency": tick_latency,
+            "kept": o.kept,
+            "expected_kept": expected_kept,
+            "lost": lost,
+            "left": len(o.left),
+            "safe": safe,
+            "wall_s": round(o.wall_s, 1),
+        }
         results.append(r)
         lat = f"{r['latency_ms']:.0f} ms" if isinstance(r["latency_ms"], int | float) else "-"
-        print(f"{i:3d} {spec:34s} exit {o.code} {'detected' if detected else 'MISSED':8s} {str(r['fault_kind']):14s} "
-              f"by {str(r['detected_by']):8s} {lat:>7s} ticks {tick_latency if tick_latency is not None else '-':>3} "
-              f"kept {o.kept}/{expected_kept} lost {lost} left {len(o.left)} safe {safe} ({o.wall_s:.0f} s)", flush=True)
+        print(
+            f"{i:3d} {spec:34s} exit {o.code} {'detected' if detected else 'MISSED':8s} {str(r['fault_kind']):14s} "
+            f"by {str(r['detected_by']):8s} {lat:>7s} ticks {tick_latency if tick_latency is not None else '-':>3} "
+            f"kept {o.kept}/{expected_kept} lost {lost} left {len(o.left)} safe {safe} ({o.wall_s:.0f} s)",
+            flush=True,
+        )
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=1))
     print(f"\n{len(results)} runs in {(time.monotonic() - t_start) / 60:.1f} min\n")
-    header = ("| kind | injected | detected | completed trials lost | processes left | drives not safe | "
-              "latency p50 ms | latency p99 ms | tick latency p50/max |")
+    header = (
+        "| kind | injected | detected | completed trials lost | processes left | drives not safe | "
+        "latency p50 ms | latency p99 ms | tick latency p50/max |"
+    )
     print(header)
     print("|---|---|---|---|---|---|---|---|---|")
     for kind in [*KINDS, "all"]:
@@ -118,9 +142,11 @@ def main(argv: list[str] | None = None) -> int:
         lats = [float(r["latency_ms"]) for r in rs if isinstance(r["latency_ms"], int | float)]
         ticks = [int(r["tick_latency"]) for r in rs if r["tick_latency"] is not None]
         tl = f"{statistics.median(ticks):.0f}/{max(ticks)}" if ticks else "-"
-        print(f"| {kind} | {len(rs)} | {sum(r['detected'] for r in rs)} | {sum(r['lost'] for r in rs)} | "
-              f"{sum(r['left'] for r in rs)} | {sum(not r['safe'] for r in rs)} | {pct(lats, 50):.0f} | "
-              f"{pct(lats, 99):.0f} | {tl} |")
+        print(
+            f"| {kind} | {len(rs)} | {sum(r['detected'] for r in rs)} | {sum(r['lost'] for r in rs)} | "
+            f"{sum(r['left'] for r in rs)} | {sum(not r['safe'] for r in rs)} | {pct(lats, 50):.0f} | "
+            f"{pct(lats, 99):.0f} | {tl} |"
+        )
     missed = sum(not r["detected"] for r in results)
     lost = sum(r["lost"] for r in results)
     return 0 if missed == 0 and lost == 0 else 1

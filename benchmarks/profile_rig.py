@@ -79,8 +79,22 @@ def main() -> None:
     ap.add_argument("extra", nargs="*", help="more `ilcrig run` options")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        cmd = [sys.executable, "-u", "-m", "host.cli", "run", "--iterations", str(args.iterations), "--cycle",
-               str(args.cycle), "--bus", "hub", "--out", str(Path(tmp) / "run"), *args.extra]
+        cmd = [
+            sys.executable,
+            "-u",
+            "-m",
+            "host.cli",
+            "run",
+            "--iterations",
+            str(args.iterations),
+            "--cycle",
+            str(args.cycle),
+            "--bus",
+            "hub",
+            "--out",
+            str(Path(tmp) / "run"),
+            *args.extra,
+        ]
         proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, text=True, start_new_session=True)
         assert proc.stdout is not None
         roles: dict[str, int] = {}
@@ -121,8 +135,10 @@ def main() -> None:
                 tot = cpu_tot.setdefault(name, [0.0, 0.0, 0.0, 0.0])
                 for i in range(4):
                     tot[i] += b[2][name][i] - a[2][name][i]
-    print(f"load average {os.getloadavg()[0]:.2f}; {ticks:.0f} ticks counted in {wall:.2f} s "
-          f"({ticks / wall if wall else 0:.0f} ticks/s); CPU µs per tick:")
+    print(
+        f"load average {os.getloadavg()[0]:.2f}; {ticks:.0f} ticks counted in {wall:.2f} s "
+        f"({ticks / wall if wall else 0:.0f} ticks/s); CPU µs per tick:"
+    )
     print(f"  {'role':<8}{'total':>8}{'user':>8}{'system':>8}   context switches/tick: voluntary, involuntary")
     sums = [0.0, 0.0, 0.0, 0.0]
     for name in sorted(cpu_tot):

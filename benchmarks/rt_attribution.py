@@ -93,7 +93,7 @@ def main() -> None:
     run_opts: list[str] = []
     if "--" in argv:
         i = argv.index("--")
-        argv, run_opts = argv[:i], argv[i + 1:]
+        argv, run_opts = argv[:i], argv[i + 1 :]
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=None, help="run directory (default: a temporary one)")
     ap.add_argument("--keep-trace", action="store_true", help="keep the kernel trace as kernel-trace.txt in the run directory")
@@ -102,8 +102,16 @@ def main() -> None:
         raise SystemExit("rt_attribution: the kernel trace needs root (tracefs)")
     with tempfile.TemporaryDirectory(prefix="ilcrig-rt-") as tmp:
         out = args.out or Path(tmp) / "run"
-        cmd = [sys.executable, "-c", "import sys; from host.cli import main; sys.exit(main(sys.argv[1:]))",
-               "run", "--realtime", "--out", str(out), *run_opts]
+        cmd = [
+            sys.executable,
+            "-c",
+            "import sys; from host.cli import main; sys.exit(main(sys.argv[1:]))",
+            "run",
+            "--realtime",
+            "--out",
+            str(out),
+            *run_opts,
+        ]
         with kernel_trace() as trace:
             rc = subprocess.run(cmd, check=False).returncode
             trace_text = trace.read_text()
@@ -117,18 +125,24 @@ def main() -> None:
         stretches = parse_sched_trace(trace_text.splitlines())
         verdicts = attribute_misses(stretches, timing["per_trial"], timing["control_period_s"])
     listed = sum(len(r.get("missed_ticks") or []) for r in timing["per_trial"])
-    print(f"rt_attribution: {' '.join(['ilcrig run --realtime', *run_opts])} (exit {rc}): {timing['deadline_misses']} of "
-          f"{timing['ticks']} ticks missed their deadline, {listed} listed by the plant; kernel trace of "
-          f"{len(stretches):,} run stretches" + (f", {lost:,} events LOST (buffer too small)" if lost else ""))
+    print(
+        f"rt_attribution: {' '.join(['ilcrig run --realtime', *run_opts])} (exit {rc}): {timing['deadline_misses']} of "
+        f"{timing['ticks']} ticks missed their deadline, {listed} listed by the plant; kernel trace of "
+        f"{len(stretches):,} run stretches" + (f", {lost:,} events LOST (buffer too small)" if lost else "")
+    )
     if verdicts:
         print(f"{'trial':>5} {'tick':>5} {'started late µs':>15} {'overrun µs':>10} {'steal µs':>8}  verdict")
         for v in verdicts:
-            print(f"{v.trial:>5} {v.tick:>5} {v.started_late_s * 1e6:>15.0f} {v.overrun_s * 1e6:>10.0f} "
-                  f"{v.steal_s * 1e6:>8.0f}  {v.verdict}")
+            print(
+                f"{v.trial:>5} {v.tick:>5} {v.started_late_s * 1e6:>15.0f} {v.overrun_s * 1e6:>10.0f} "
+                f"{v.steal_s * 1e6:>8.0f}  {v.verdict}"
+            )
     s = summarise_verdicts(verdicts)
-    print(f"verdicts: {s['verdicts']['steal']} steal, {s['verdicts']['knock-on']} knock-on, {s['verdicts']['other']} "
-          f"other; chains started by steal {s['chains']['steal']} ({s['misses_by_cause']['steal']} misses), by "
-          f"other {s['chains']['other']} ({s['misses_by_cause']['other']} misses)")
+    print(
+        f"verdicts: {s['verdicts']['steal']} steal, {s['verdicts']['knock-on']} knock-on, {s['verdicts']['other']} "
+        f"other; chains started by steal {s['chains']['steal']} ({s['misses_by_cause']['steal']} misses), by "
+        f"other {s['chains']['other']} ({s['misses_by_cause']['other']} misses)"
+    )
 
 
 if __name__ == "__main__":

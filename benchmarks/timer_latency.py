@@ -69,9 +69,11 @@ def main() -> None:
         return late[min(n - 1, int(p * n))] * 1e3
 
     over = sum(1 for x in late if x > ts)
-    print(f"timer latency, {n} periods of {args.period_ms:g} ms, {policy}, load average {os.getloadavg()[0]:.1f}: "
-          f"wake-up lateness p50 {q(0.5):.3f} ms, p99 {q(0.99):.3f} ms, p99.9 {q(0.999):.3f} ms, max {late[-1] * 1e3:.3f} ms; "
-          f"{over} wake-ups ({100 * over / n:.1f} %) later than one period")
+    print(
+        f"timer latency, {n} periods of {args.period_ms:g} ms, {policy}, load average {os.getloadavg()[0]:.1f}: "
+        f"wake-up lateness p50 {q(0.5):.3f} ms, p99 {q(0.99):.3f} ms, p99.9 {q(0.999):.3f} ms, max {late[-1] * 1e3:.3f} ms; "
+        f"{over} wake-ups ({100 * over / n:.1f} %) later than one period"
+    )
     if args.spin_s > 0:
         sliced = policy.startswith("SCHED_FIFO")
         gaps: list[float] = []
@@ -89,13 +91,19 @@ def main() -> None:
             if sliced and left > 0:
                 time.sleep(SPIN_SLICE_S)
         steal1 = cpu_steal_s()
-        stolen = (f"; the hypervisor took {(steal1 - steal0) * 1e3:.0f} ms of CPU time from the machine meanwhile "
-                  f"(steal, all CPUs)" if steal0 is not None and steal1 is not None else "")
+        stolen = (
+            f"; the hypervisor took {(steal1 - steal0) * 1e3:.0f} ms of CPU time from the machine meanwhile (steal, all CPUs)"
+            if steal0 is not None and steal1 is not None
+            else ""
+        )
         how = f"in {SPIN_SLICE_S:g} s slices, for the real-time throttling" if sliced else "at once"
         long = sum(1 for g in gaps if g > ts)
-        print(f"spinning {args.spin_s:g} s without waiting ({how}): {len(gaps)} gaps > {args.period_ms / 2:g} ms between "
-              f"two clock readings, {long} > {args.period_ms:g} ms, longest {max(gaps, default=0.0) * 1e3:.3f} ms, "
-              f"{sum(gaps) * 1e3:.1f} ms in all (the process did not run){stolen}")
+        print(
+            f"spinning {args.spin_s:g} s without waiting ({how}): {len(gaps)} gaps > {args.period_ms / 2:g} ms between "
+            f"two clock readings, {long} > {args.period_ms:g} ms, longest {max(gaps, default=0.0) * 1e3:.3f} ms, "
+            f"{sum(gaps) * 1e3:.1f} ms in all (the process did not run){stolen}"
+        )
+
 
 if __name__ == "__main__":
     main()

@@ -258,8 +258,10 @@ class TrialTiming:
 
 def pack_trial_timing(t: TrialTiming) -> bytes:
     """:class:`TrialTiming` as the 25 bytes of 0x2440 (values clamped to u32)."""
-    u32 = [sat(int(v), 0, _U32_MAX) for v in (t.ticks, t.duration_us, t.deadline_misses, t.lateness_p50_us,
-                                                      t.lateness_p99_us, t.lateness_max_us)]
+    u32 = [
+        sat(int(v), 0, _U32_MAX)
+        for v in (t.ticks, t.duration_us, t.deadline_misses, t.lateness_p50_us, t.lateness_p99_us, t.lateness_max_us)
+    ]
     return _TIMING.pack(int(bool(t.paced)), *u32)
 
 
@@ -333,7 +335,6 @@ def unpack_deadline_misses(data: bytes) -> DeadlineMisses:
     if k > DEADLINE_MISSES_KEPT:
         raise ValueError(f"deadline misses list {k} entries, at most {DEADLINE_MISSES_KEPT} allowed")
     if len(data) != _MISSES_HEAD.size + k * _MISS.size:
-        raise ValueError(f"deadline misses with {k} entries must be {_MISSES_HEAD.size + k * _MISS.size} bytes, "
-                         f"got {len(data)}")
+        raise ValueError(f"deadline misses with {k} entries must be {_MISSES_HEAD.size + k * _MISS.size} bytes, got {len(data)}")
     misses = tuple(DeadlineMiss(*_MISS.unpack_from(data, _MISSES_HEAD.size + i * _MISS.size)) for i in range(k))
     return DeadlineMisses(t0_ns, misses)

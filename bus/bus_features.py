@@ -38,14 +38,27 @@ from bus.fastmsg import new_message
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["FRAME_DTYPE", "BatchReceiver", "BatchSender", "BufferedReceiver", "FrameArrayReceiver",
-           "batch_receiver", "batch_sender", "frame_bits", "frames_from_messages", "load_of",
-           "messages_from_frames", "pending_check", "recv_waiting"]
+__all__ = [
+    "FRAME_DTYPE",
+    "BatchReceiver",
+    "BatchSender",
+    "BufferedReceiver",
+    "FrameArrayReceiver",
+    "batch_receiver",
+    "batch_sender",
+    "frame_bits",
+    "frames_from_messages",
+    "load_of",
+    "messages_from_frames",
+    "pending_check",
+    "recv_waiting",
+]
 
 #: one frame per row (:class:`FrameArrayReceiver`): receive time (s, as ``Message.timestamp``),
 #: identifier, flag bits (``FRAME_*``), DLC, number of data bytes, the data (zero padded)
-FRAME_DTYPE = np.dtype([("timestamp", "<f8"), ("arbitration_id", "<u4"), ("flags", "u1"), ("dlc", "u1"),
-                        ("length", "u1"), ("data", "u1", (64,))])
+FRAME_DTYPE = np.dtype(
+    [("timestamp", "<f8"), ("arbitration_id", "<u4"), ("flags", "u1"), ("dlc", "u1"), ("length", "u1"), ("data", "u1", (64,))]
+)
 FRAME_EXT = 0x01
 FRAME_RTR = 0x02
 FRAME_ERR = 0x04
@@ -148,13 +161,18 @@ def frames_from_messages(msgs: Sequence[can.Message]) -> np.ndarray:
         row = out[i]
         row["timestamp"] = msg.timestamp
         row["arbitration_id"] = msg.arbitration_id
-        row["flags"] = ((FRAME_EXT if msg.is_extended_id else 0) | (FRAME_RTR if msg.is_remote_frame else 0)
-                        | (FRAME_ERR if msg.is_error_frame else 0) | (FRAME_FD if msg.is_fd else 0)
-                        | (FRAME_BRS if msg.bitrate_switch else 0) | (FRAME_ESI if msg.error_state_indicator else 0)
-                        | (0 if msg.is_rx else FRAME_TX))
+        row["flags"] = (
+            (FRAME_EXT if msg.is_extended_id else 0)
+            | (FRAME_RTR if msg.is_remote_frame else 0)
+            | (FRAME_ERR if msg.is_error_frame else 0)
+            | (FRAME_FD if msg.is_fd else 0)
+            | (FRAME_BRS if msg.bitrate_switch else 0)
+            | (FRAME_ESI if msg.error_state_indicator else 0)
+            | (0 if msg.is_rx else FRAME_TX)
+        )
         row["dlc"] = msg.dlc
         row["length"] = len(data)
-        row["data"][:len(data)] = np.frombuffer(data, dtype=np.uint8)
+        row["data"][: len(data)] = np.frombuffer(data, dtype=np.uint8)
     return out
 
 
@@ -162,10 +180,22 @@ def messages_from_frames(frames: np.ndarray, channel: str | None = None) -> list
     """The rows of ``frames`` (:data:`FRAME_DTYPE`) as :class:`can.Message` objects on ``channel``."""
     out = []
     for ts, can_id, flags, dlc, length, data in frames.tolist():
-        out.append(new_message(can_id, bytearray(data[:length]), timestamp=ts, is_extended_id=bool(flags & FRAME_EXT),
-                               is_remote_frame=bool(flags & FRAME_RTR), is_error_frame=bool(flags & FRAME_ERR),
-                               channel=channel, dlc=dlc, is_fd=bool(flags & FRAME_FD), is_rx=not flags & FRAME_TX,
-                               bitrate_switch=bool(flags & FRAME_BRS), error_state_indicator=bool(flags & FRAME_ESI)))
+        out.append(
+            new_message(
+                can_id,
+                bytearray(data[:length]),
+                timestamp=ts,
+                is_extended_id=bool(flags & FRAME_EXT),
+                is_remote_frame=bool(flags & FRAME_RTR),
+                is_error_frame=bool(flags & FRAME_ERR),
+                channel=channel,
+                dlc=dlc,
+                is_fd=bool(flags & FRAME_FD),
+                is_rx=not flags & FRAME_TX,
+                bitrate_switch=bool(flags & FRAME_BRS),
+                error_state_indicator=bool(flags & FRAME_ESI),
+            )
+        )
     return out
 
 

@@ -77,9 +77,7 @@ def frame_bits_worst_case(n_bytes: int, extended: bool = False) -> int:
     return frame_bits(n_bytes, extended) + stuff_bits_worst_case(n_bytes, extended)
 
 
-def max_frames_per_s(
-    n_bytes: int, extended: bool = False, bitrate: int = 1_000_000, worst_case: bool = True
-) -> int:
+def max_frames_per_s(n_bytes: int, extended: bool = False, bitrate: int = 1_000_000, worst_case: bool = True) -> int:
     """Whole frames per second a saturated bus of ``bitrate`` bit/s can carry."""
     bits = frame_bits_worst_case(n_bytes, extended) if worst_case else frame_bits(n_bytes, extended)
     return bitrate // bits
@@ -101,8 +99,7 @@ def message_bits(msg: can.Message) -> tuple[int, int]:
 
 #: precomputed (nominal, worst) per [extended][n_bytes]; used on the hot path (hub)
 _TABLE: tuple[tuple[tuple[int, int], ...], ...] = tuple(
-    tuple((frame_bits(n, ext), frame_bits_worst_case(n, ext)) for n in range(9))
-    for ext in (False, True)
+    tuple((frame_bits(n, ext), frame_bits_worst_case(n, ext)) for n in range(9)) for ext in (False, True)
 )
 
 
@@ -158,9 +155,7 @@ class BusLoadCounter:
         """Zero all totals."""
         self.frames = self.bits = self.bits_worst_case = self.fd_frames = 0
 
-    def load_percent(
-        self, duration_s: float, bitrate: int = 1_000_000, worst_case: bool = True
-    ) -> float:
+    def load_percent(self, duration_s: float, bitrate: int = 1_000_000, worst_case: bool = True) -> float:
         """Bus load in percent: counted bits / (``bitrate`` bit/s × ``duration_s`` s) × 100.
 
         :raises ValueError: non-positive duration or bit rate

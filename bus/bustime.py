@@ -36,8 +36,7 @@ from bus.io_frames import CONTROL_COB_ID, ENCODER_COB_BASE, N_JOINTS, TORQUE_COB
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["DEFAULT_BITRATE", "IoTickCounter", "SdoKey", "SdoTransferCounter", "TickBudget", "bits_to_s",
-           "frame_bits_of"]
+__all__ = ["DEFAULT_BITRATE", "IoTickCounter", "SdoKey", "SdoTransferCounter", "TickBudget", "bits_to_s", "frame_bits_of"]
 
 #: the default bit rate of both channels, bit/s
 DEFAULT_BITRATE: int = DEFAULT_BITRATE_BPS  # one definition: bus.busload
@@ -117,8 +116,11 @@ class IoTickCounter:
         bits = frame_bits_of(msg, self.worst_case)
         cob = msg.arbitration_id
         data = msg.data
-        if not msg.is_extended_id and len(data) >= 6 and (
-                0 <= cob - ENCODER_COB_BASE < N_JOINTS or 0 <= cob - TORQUE_COB_BASE < N_JOINTS):
+        if (
+            not msg.is_extended_id
+            and len(data) >= 6
+            and (0 <= cob - ENCODER_COB_BASE < N_JOINTS or 0 <= cob - TORQUE_COB_BASE < N_JOINTS)
+        ):
             self.frames += 1
             self._add_tick(data[4] | data[5] << 8, bits)
         elif cob == CONTROL_COB_ID and not msg.is_extended_id:
@@ -138,9 +140,14 @@ class IoTickCounter:
         bits = worst if self.worst_case else nominal
         cob = frames["arbitration_id"].astype(np.int64)
         std = (frames["flags"] & FRAME_EXT) == 0
-        in_tick = std & (frames["length"] >= 6) & (
-            ((cob >= ENCODER_COB_BASE) & (cob < ENCODER_COB_BASE + N_JOINTS))
-            | ((cob >= TORQUE_COB_BASE) & (cob < TORQUE_COB_BASE + N_JOINTS)))
+        in_tick = (
+            std
+            & (frames["length"] >= 6)
+            & (
+                ((cob >= ENCODER_COB_BASE) & (cob < ENCODER_COB_BASE + N_JOINTS))
+                | ((cob >= TORQUE_COB_BASE) & (cob < TORQUE_COB_BASE + N_JOINTS))
+            )
+        )
         control = ~in_tick & std & (cob == CONTROL_COB_ID)
         other = ~(in_tick | control)
         self.control_frames += int(control.sum())

@@ -87,8 +87,12 @@ class ChannelLog(can.Listener):
             writer.last_timestamp = float(ts[0]) or 0.0
         ts = np.maximum(ts, writer.last_timestamp)  # as the writer: never before the first frame
         flags = frames["flags"]
-        if ((flags & (FRAME_EXT | FRAME_RTR | FRAME_ERR | FRAME_FD)).any() or (frames["length"] > 8).any()
-                or (frames["arbitration_id"] > 0x7FF).any() or not 0 <= ts.min() <= ts.max() < 1e12):
+        if (
+            (flags & (FRAME_EXT | FRAME_RTR | FRAME_ERR | FRAME_FD)).any()
+            or (frames["length"] > 8).any()
+            or (frames["arbitration_id"] > 0x7FF).any()
+            or not 0 <= ts.min() <= ts.max() < 1e12
+        ):
             for msg in messages_from_frames(frames, self.channel_name):
                 self.on_message_received(msg)
             return
@@ -104,17 +108,17 @@ class ChannelLog(can.Listener):
         sec_col = sec_i[:, None]
         rows[:, 1:col] = np.where((sec_col >= _SEC_POW) | _SEC_LAST, 48 + sec_col // _SEC_POW % 10, 0)
         rows[:, col] = ord(".")
-        rows[:, col + 1:col + 7] = 48 + usec[:, None] // _USEC_POW % 10
+        rows[:, col + 1 : col + 7] = 48 + usec[:, None] // _USEC_POW % 10
         col += 7
-        rows[:, col:col + len(head)] = np.frombuffer(head, dtype=np.uint8)
+        rows[:, col : col + len(head)] = np.frombuffer(head, dtype=np.uint8)
         col += len(head)
-        rows[:, col:col + 3] = _HEX[frames["arbitration_id"][:, None] >> _ID_SHIFT & 0xF]
+        rows[:, col : col + 3] = _HEX[frames["arbitration_id"][:, None] >> _ID_SHIFT & 0xF]
         rows[:, col + 3] = ord("#")
         col += 4
         data = frames["data"][:, :8]
         shown = _BYTE_INDEX < frames["length"][:, None]
-        rows[:, col:col + 16:2] = np.where(shown, _HEX[data >> 4], 0)
-        rows[:, col + 1:col + 16:2] = np.where(shown, _HEX[data & 0xF], 0)
+        rows[:, col : col + 16 : 2] = np.where(shown, _HEX[data >> 4], 0)
+        rows[:, col + 1 : col + 16 : 2] = np.where(shown, _HEX[data & 0xF], 0)
         col += 16
         rows[:, col] = ord(" ")
         rows[:, col + 1] = np.where(flags & FRAME_TX, ord("T"), ord("R"))
@@ -144,11 +148,20 @@ class ChannelLog(can.Listener):
 
 
 def _with_channel(msg: can.Message, channel: str) -> can.Message:
-    return new_message(msg.arbitration_id, bytearray(msg.data), timestamp=msg.timestamp,
-                       is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame,
-                       is_error_frame=msg.is_error_frame, channel=channel, dlc=msg.dlc, is_fd=msg.is_fd,
-                       is_rx=msg.is_rx, bitrate_switch=msg.bitrate_switch,
-                       error_state_indicator=msg.error_state_indicator)
+    return new_message(
+        msg.arbitration_id,
+        bytearray(msg.data),
+        timestamp=msg.timestamp,
+        is_extended_id=msg.is_extended_id,
+        is_remote_frame=msg.is_remote_frame,
+        is_error_frame=msg.is_error_frame,
+        channel=channel,
+        dlc=msg.dlc,
+        is_fd=msg.is_fd,
+        is_rx=msg.is_rx,
+        bitrate_switch=msg.bitrate_switch,
+        error_state_indicator=msg.error_state_indicator,
+    )
 
 
 def open_log(path: str | os.PathLike[str], channel_name: str, append: bool = False) -> ChannelLog:

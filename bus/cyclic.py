@@ -101,7 +101,7 @@ def encode_cst_rpdo(target_torque_permille: int, torque_offset_permille: int) ->
 
 def decode_tpdo(data: bytes) -> tuple[int, int]:
     """TPDO1 payload → (position actual [counts], torque actual [‰])."""
-    pos, torque = _TPDO.unpack(bytes(data[:_TPDO.size]))
+    pos, torque = _TPDO.unpack(bytes(data[: _TPDO.size]))
     return int(pos), int(torque)
 
 
@@ -123,8 +123,9 @@ def pdo_config_writes(node_id: int, mode: ModeOfOperation = PDO_MODE) -> list[tu
     rmap = CSP_RPDO_MAP if mode == ModeOfOperation.CSP else CST_RPDO_MAP
     out: list[tuple[int, int, int, int]] = []
     for comm, mapping_index, cob, mapping in (
-            (RPDO_COMM_BASE + RPDO_NUMBER - 1, RPDO_MAP_BASE + RPDO_NUMBER - 1, rpdo_cob_id(node_id), rmap),
-            (TPDO_COMM_BASE + TPDO_NUMBER - 1, TPDO_MAP_BASE + TPDO_NUMBER - 1, tpdo_cob_id(node_id), TPDO_MAP)):
+        (RPDO_COMM_BASE + RPDO_NUMBER - 1, RPDO_MAP_BASE + RPDO_NUMBER - 1, rpdo_cob_id(node_id), rmap),
+        (TPDO_COMM_BASE + TPDO_NUMBER - 1, TPDO_MAP_BASE + TPDO_NUMBER - 1, tpdo_cob_id(node_id), TPDO_MAP),
+    ):
         out.append((comm, COMM_COB_ID, cob | PDO_NOT_VALID, 4))
         out.append((comm, COMM_TRANSMISSION_TYPE, TRANSMISSION_TYPE, 1))
         out.append((mapping_index, 0, 0, 1))
@@ -175,18 +176,27 @@ class BusFit:
 
     def message(self) -> str:
         """One line: the figures and the verdict."""
-        verdict = (f"fits with {self.margin_percent:.1f} % margin" if self.fits
-                   else f"does NOT fit ({-self.margin_percent:.1f} % over)")
-        return (f"SYNC + {self.n_drives} RPDO ({self.rpdo_bytes} B) + {self.n_drives} TPDO ({self.tpdo_bytes} B) "
-                f"= {self.bits_nominal}–{self.bits_worst_case} bits per period: at {self.rate_hz:g} Hz and "
-                f"{self.bitrate_bps / 1e6:g} Mbit/s {self.load_percent_nominal:.1f}–{self.load_percent_worst_case:.1f} % "
-                f"of the bus, {verdict}; worst case fits up to {self.max_rate_hz:.0f} Hz at this bit rate, "
-                f"or from {self.min_bitrate_bps / 1e6:.3f} Mbit/s at this rate")
+        verdict = (
+            f"fits with {self.margin_percent:.1f} % margin" if self.fits else f"does NOT fit ({-self.margin_percent:.1f} % over)"
+        )
+        return (
+            f"SYNC + {self.n_drives} RPDO ({self.rpdo_bytes} B) + {self.n_drives} TPDO ({self.tpdo_bytes} B) "
+            f"= {self.bits_nominal}–{self.bits_worst_case} bits per period: at {self.rate_hz:g} Hz and "
+            f"{self.bitrate_bps / 1e6:g} Mbit/s {self.load_percent_nominal:.1f}–{self.load_percent_worst_case:.1f} % "
+            f"of the bus, {verdict}; worst case fits up to {self.max_rate_hz:.0f} Hz at this bit rate, "
+            f"or from {self.min_bitrate_bps / 1e6:.3f} Mbit/s at this rate"
+        )
 
 
-def cyclic_bus_fit(period_s: float, bitrate_bps: int = DEFAULT_BITRATE_BPS, *, n_drives: int = 4,
-                   rpdo_bytes: int = RPDO_BYTES, tpdo_bytes: int = TPDO_BYTES,
-                   sync_bytes: int = SYNC_BYTES) -> BusFit:
+def cyclic_bus_fit(
+    period_s: float,
+    bitrate_bps: int = DEFAULT_BITRATE_BPS,
+    *,
+    n_drives: int = 4,
+    rpdo_bytes: int = RPDO_BYTES,
+    tpdo_bytes: int = TPDO_BYTES,
+    sync_bytes: int = SYNC_BYTES,
+) -> BusFit:
     """Whether one period of the cyclic exchange fits the bus (11-bit identifiers).
 
     :raises ValueError: non-positive period or bit rate
@@ -194,13 +204,22 @@ def cyclic_bus_fit(period_s: float, bitrate_bps: int = DEFAULT_BITRATE_BPS, *, n
     if not period_s > 0 or not bitrate_bps > 0:
         raise ValueError(f"period and bit rate must be > 0, got {period_s} s, {bitrate_bps} bit/s")
     nominal = frame_bits(sync_bytes) + n_drives * (frame_bits(rpdo_bytes) + frame_bits(tpdo_bytes))
-    worst = (frame_bits_worst_case(sync_bytes)
-             + n_drives * (frame_bits_worst_case(rpdo_bytes) + frame_bits_worst_case(tpdo_bytes)))
+    worst = frame_bits_worst_case(sync_bytes) + n_drives * (frame_bits_worst_case(rpdo_bytes) + frame_bits_worst_case(tpdo_bytes))
     budget = bitrate_bps * period_s
     load_worst = 100.0 * worst / budget
     return BusFit(
-        rate_hz=1.0 / period_s, bitrate_bps=int(bitrate_bps), n_drives=n_drives, rpdo_bytes=rpdo_bytes,
-        tpdo_bytes=tpdo_bytes, frames_per_cycle=1 + 2 * n_drives, bits_nominal=nominal, bits_worst_case=worst,
-        load_percent_nominal=100.0 * nominal / budget, load_percent_worst_case=load_worst,
-        fits=worst <= budget + 1e-9, margin_percent=100.0 - load_worst,
-        max_rate_hz=bitrate_bps / worst, min_bitrate_bps=int(math.ceil(worst / period_s - 1e-9)))
+        rate_hz=1.0 / period_s,
+        bitrate_bps=int(bitrate_bps),
+        n_drives=n_drives,
+        rpdo_bytes=rpdo_bytes,
+        tpdo_bytes=tpdo_bytes,
+        frames_per_cycle=1 + 2 * n_drives,
+        bits_nominal=nominal,
+        bits_worst_case=worst,
+        load_percent_nominal=100.0 * nominal / budget,
+        load_percent_worst_case=load_worst,
+        fits=worst <= budget + 1e-9,
+        margin_percent=100.0 - load_worst,
+        max_rate_hz=bitrate_bps / worst,
+        min_bitrate_bps=int(math.ceil(worst / period_s - 1e-9)),
+    )

@@ -34,7 +34,7 @@ _HERE = Path(__file__).resolve().parent
 IO_DBC_PATH: Path = _HERE / "rig_io.dbc"
 FIELDBUS_DBC_PATH: Path = _HERE / "rig_fieldbus.dbc"
 
-_HEADER = '''VERSION ""
+_HEADER = """VERSION ""
 
 
 NS_ :
@@ -45,15 +45,17 @@ BS_:
 
 BU_: {nodes}
 
-'''
+"""
 _PERMILLE_NM = RATED_TORQUE_MNM / 1e6  # N·m per ‰ of the rated torque
 
 
 def _signal(name: str, start: int, bits: int, signed: bool, factor: float, unit: str, receivers: str) -> str:
     lo, hi = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if signed else (0, (1 << bits) - 1)
     f = f"{factor:.10g}"
-    return (f' SG_ {name} : {start}|{bits}@1{"-" if signed else "+"} ({f},0) '
-            f'[{lo * factor:.10g}|{hi * factor:.10g}] "{unit}" {receivers}\n')
+    return (
+        f" SG_ {name} : {start}|{bits}@1{'-' if signed else '+'} ({f},0) "
+        f'[{lo * factor:.10g}|{hi * factor:.10g}] "{unit}" {receivers}\n'
+    )
 
 
 def io_dbc() -> str:
@@ -121,8 +123,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--check", action="store_true", help="exit 1 when a file differs from the generated text")
     args = parser.parse_args(argv)
     if args.check:
-        stale = [p for p, text in ((IO_DBC_PATH, io_dbc()), (FIELDBUS_DBC_PATH, fieldbus_dbc()))
-                 if not p.exists() or p.read_text() != text]
+        stale = [
+            p
+            for p, text in ((IO_DBC_PATH, io_dbc()), (FIELDBUS_DBC_PATH, fieldbus_dbc()))
+            if not p.exists() or p.read_text() != text
+        ]
         for p in stale:
             logger.error("%s is not the generated text: run python -m bus.dbc", p)
         return 1 if stale else 0

@@ -158,10 +158,7 @@ def _to_fixed(value: float, scale: float, lo: int, hi: int, what: str) -> int:
         raise FixedPointRangeError(f"{what} must be finite, got {value!r}")
     raw = round(value * scale)
     if raw < lo or raw > hi:
-        raise FixedPointRangeError(
-            f"{what} = {value!r} is outside the representable range "
-            f"[{lo / scale:.6g}, {hi / scale:.6g}]"
-        )
+        raise FixedPointRangeError(f"{what} = {value!r} is outside the representable range [{lo / scale:.6g}, {hi / scale:.6g}]")
     return int(raw)
 
 

@@ -100,8 +100,9 @@ class TickError(IoFrameError):
             TickErrorKind.STALE: f"stale frame ({-self.diff} ticks old)",
         }[kind]
         src = f" from {source}" if source else ""
-        super().__init__(f"tick mismatch{src}: expected tick {expected} (wire {expected & TICK_MASK}), "
-                         f"got wire {received}: {what}")
+        super().__init__(
+            f"tick mismatch{src}: expected tick {expected} (wire {expected & TICK_MASK}), got wire {received}: {what}"
+        )
 
 
 class TorqueStatus(enum.IntFlag):
@@ -294,8 +295,14 @@ def encoder_fields(msg: can.Message) -> tuple[int, int]:
     :raises IoFrameError: not an encoder frame (ID, flags, length)
     """
     data = msg.data
-    if (len(data) != 6 or msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame or msg.is_fd
-            or not 0 <= msg.arbitration_id - ENCODER_COB_BASE < N_JOINTS):
+    if (
+        len(data) != 6
+        or msg.is_extended_id
+        or msg.is_remote_frame
+        or msg.is_error_frame
+        or msg.is_fd
+        or not 0 <= msg.arbitration_id - ENCODER_COB_BASE < N_JOINTS
+    ):
         decode_encoder(msg)  # raises with the precise reason
     count, tick = _ENCODER.unpack(data)
     return count, tick
@@ -308,8 +315,14 @@ def torque_fields(msg: can.Message) -> tuple[int, int, int]:
     :raises IoFrameError: not a torque frame (ID, flags, length)
     """
     data = msg.data
-    if (len(data) != 7 or msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame or msg.is_fd
-            or not 0 <= msg.arbitration_id - TORQUE_COB_BASE < N_JOINTS):
+    if (
+        len(data) != 7
+        or msg.is_extended_id
+        or msg.is_remote_frame
+        or msg.is_error_frame
+        or msg.is_fd
+        or not 0 <= msg.arbitration_id - TORQUE_COB_BASE < N_JOINTS
+    ):
         decode_torque(msg)  # raises with the precise reason
     torque, tick, status = _TORQUE.unpack(data)
     return torque, tick, status
@@ -388,8 +401,7 @@ class TrialTickFollower:
             return self.frame_tick(data[4] | data[5] << 8)
         return None
 
-    def on_frame_array(self, can_ids: np.ndarray, data: np.ndarray, lengths: np.ndarray,
-                       valid: np.ndarray | None = None) -> None:
+    def on_frame_array(self, can_ids: np.ndarray, data: np.ndarray, lengths: np.ndarray, valid: np.ndarray | None = None) -> None:
         """:meth:`on_frame` for many frames in order (identifiers, data rows, data lengths; rows
         where ``valid`` is False, e.g. error frames, are skipped), looking only at the control
         frames and the last encoder frame before each of them: the state afterwards is the same as
@@ -406,5 +418,5 @@ class TrialTickFollower:
                     last = start + int(seg[-1])
                     self.on_frame(int(ids[last]), bytes(data[last, :8]))
             if stop < len(ids):
-                self.on_frame(CONTROL_COB_ID, bytes(data[stop, :int(lengths[stop])]))
+                self.on_frame(CONTROL_COB_ID, bytes(data[stop, : int(lengths[stop])]))
             start = stop + 1

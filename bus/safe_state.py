@@ -51,7 +51,7 @@ def parse_safe_state(line: str) -> dict[str, str] | None:
     if at < 0:
         return None
     out: dict[str, str] = {}
-    for part in line[at + len(TAG) + 1:].split():
+    for part in line[at + len(TAG) + 1 :].split():
         key, sep, value = part.partition("=")
         if sep:
             out[key] = value

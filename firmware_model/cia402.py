@@ -60,13 +60,13 @@ __all__ = [
 _S = Cia402State
 #: states in which the power stage has voltage (statusword bit 4)
 _VOLTAGE_STATES = frozenset(
-    {_S.READY_TO_SWITCH_ON, _S.SWITCHED_ON, _S.OPERATION_ENABLED, _S.QUICK_STOP_ACTIVE,
-     _S.FAULT_REACTION_ACTIVE}
+    {_S.READY_TO_SWITCH_ON, _S.SWITCHED_ON, _S.OPERATION_ENABLED, _S.QUICK_STOP_ACTIVE, _S.FAULT_REACTION_ACTIVE}
 )
 #: each state's statusword without bit 11 as a plain int (the drives read it every tick: int
 #: arithmetic instead of IntFlag's, which runs in Python)
 _STATUSWORD_OF: dict[int, int] = {
-    int(st): int(STATUSWORD_PATTERN[st][1]) | int(Statusword.REMOTE)
+    int(st): int(STATUSWORD_PATTERN[st][1])
+    | int(Statusword.REMOTE)
     | (int(Statusword.VOLTAGE_ENABLED) if st in _VOLTAGE_STATES else 0)
     for st in _S
 }
@@ -117,8 +117,7 @@ class Cia402StateMachine:
         qs = bool(cw & Controlword.QUICK_STOP)  # 0 = quick stop requested
         eo = bool(cw & Controlword.ENABLE_OPERATION)
         if not ev:  # Disable voltage
-            t = {_S.READY_TO_SWITCH_ON: 7, _S.OPERATION_ENABLED: 9, _S.SWITCHED_ON: 10,
-                 _S.QUICK_STOP_ACTIVE: 12}.get(s)
+            t = {_S.READY_TO_SWITCH_ON: 7, _S.OPERATION_ENABLED: 9, _S.SWITCHED_ON: 10, _S.QUICK_STOP_ACTIVE: 12}.get(s)
             if t is not None:
                 self._go(_S.SWITCH_ON_DISABLED, t)
         elif not qs:  # Quick stop

@@ -224,19 +224,26 @@ class Drive:
         In NMT STOPPED only logged (torque is off and the master stopped the node on purpose);
         otherwise a fault: torque off, CiA 402 Fault, trial stopped, EMCY 0x8130."""
         if self.nmt_state == NmtState.STOPPED:
-            logger.info("node %d: heartbeat of node %d lost while NMT STOPPED (torque off already)",
-                        self.node_id, node_id)
+            logger.info("node %d: heartbeat of node %d lost while NMT STOPPED (torque off already)", self.node_id, node_id)
             return
         self._fault_reason = f"heartbeat-of-node-{node_id}-lost"
-        self._fault(EmcyCode.HEARTBEAT_ERROR, ErrorRegister.GENERIC | ErrorRegister.COMMUNICATION,
-                    FaultCause.HEARTBEAT, struct.pack("<BB3x", FaultCause.HEARTBEAT, node_id & 0xFF))
+        self._fault(
+            EmcyCode.HEARTBEAT_ERROR,
+            ErrorRegister.GENERIC | ErrorRegister.COMMUNICATION,
+            FaultCause.HEARTBEAT,
+            struct.pack("<BB3x", FaultCause.HEARTBEAT, node_id & 0xFF),
+        )
 
     def bus_lost(self, reason: str) -> None:
         """The fieldbus or io bus failed (e.g. the hub is gone): torque off, CiA 402 Fault (no
         EMCY can be sent)."""
         self._fault_reason = "bus-lost"
-        self._fault(EmcyCode.COMMUNICATION, ErrorRegister.GENERIC | ErrorRegister.COMMUNICATION,
-                    FaultCause.BUS_LOST, struct.pack("<B4x", FaultCause.BUS_LOST))
+        self._fault(
+            EmcyCode.COMMUNICATION,
+            ErrorRegister.GENERIC | ErrorRegister.COMMUNICATION,
+            FaultCause.BUS_LOST,
+            struct.pack("<B4x", FaultCause.BUS_LOST),
+        )
         logger.warning("node %d: bus lost (%s): torque off", self.node_id, reason)
 
     def power_off(self, reason: str) -> None:
@@ -244,8 +251,11 @@ class Drive:
         SAFE-STATE record is logged if torque was still on."""
         if self._power:
             self._power = False
-            logger.info(format_safe_state(f"drive{self.node_id}", reason, cia402=self._sm.state.name,
-                                          nmt=NmtState(self.nmt_state).name, tick="-"))
+            logger.info(
+                format_safe_state(
+                    f"drive{self.node_id}", reason, cia402=self._sm.state.name, nmt=NmtState(self.nmt_state).name, tick="-"
+                )
+            )
 
     def nmt_command(self, cs: int) -> NmtState:
         """Apply an NMT command specifier; returns the new NMT state.
@@ -309,10 +319,8 @@ class Drive:
         if self._trial_state != TrialState.RUNNING:
             if self._capture_hold:
                 self._capture_hold = False
-                self._tables[:, self._capacity] = (
-                    min(max(encoder_count, fp.INT32_MIN), fp.INT32_MAX), 0, 0)
-            tau, status = loop.control_tick(
-                encoder_count, self._capacity, -1, self._st, self._tables, self._rec)
+                self._tables[:, self._capacity] = (min(max(encoder_count, fp.INT32_MIN), fp.INT32_MAX), 0, 0)
+            tau, status = loop.control_tick(encoder_count, self._capacity, -1, self._st, self._tables, self._rec)
             if status:
                 return self._following_error_fault(-1)
             return tau
@@ -337,8 +345,9 @@ class Drive:
         if self._mode == ModeOfOperation.CSP:
             target = int(v[(Obj.TARGET_POSITION, 0)])
             prev = self._cyc_prev_target
-            vref = 0 if prev is None else fp.sat32(
-                fp.rshift_round(fp.sat32(target - prev) * int(st[loop.P_RATE]), fp.VEL_STATE_Q))
+            vref = (
+                0 if prev is None else fp.sat32(fp.rshift_round(fp.sat32(target - prev) * int(st[loop.P_RATE]), fp.VEL_STATE_Q))
+            )
             self._cyc_prev_target = target
             cyc[0, 0], cyc[1, 0], cyc[2, 0] = target, vref, fp.sat32(offset)
             tau, status = loop.control_tick(encoder_count, 0, rec_idx, st, cyc, self._rec)
@@ -432,16 +441,21 @@ class Drive:
         if n >= 0:
             self._rec[loop.REC_TAU, n] = 0  # the plant gets no torque on this tick
         return self._fault(
-            EmcyCode.FOLLOWING_ERROR, ErrorRegister.GENERIC | ErrorRegister.DEVICE_PROFILE,
-            FaultCause.FOLLOWING_ERROR, struct.pack("<Bi", FaultCause.FOLLOWING_ERROR, e))
+            EmcyCode.FOLLOWING_ERROR,
+            ErrorRegister.GENERIC | ErrorRegister.DEVICE_PROFILE,
+            FaultCause.FOLLOWING_ERROR,
+            struct.pack("<Bi", FaultCause.FOLLOWING_ERROR, e),
+        )
 
     def _sequence_fault(self, tick: int) -> int:
         expected = self._next_tick if self._trial_state == TrialState.RUNNING else 0
         logger.warning("node %d io tick %d, expected %d", self.node_id, tick, expected)
         return self._fault(
-            EmcyCode.PROTOCOL_ERROR, ErrorRegister.GENERIC | ErrorRegister.COMMUNICATION,
+            EmcyCode.PROTOCOL_ERROR,
+            ErrorRegister.GENERIC | ErrorRegister.COMMUNICATION,
             FaultCause.TICK_SEQUENCE,
-            struct.pack("<BHH", FaultCause.TICK_SEQUENCE, expected & 0xFFFF, int(tick) & 0xFFFF))
+            struct.pack("<BHH", FaultCause.TICK_SEQUENCE, expected & 0xFFFF, int(tick) & 0xFFFF),
+        )
 
     def _update_power(self) -> None:
         power = self.nmt_state == NmtState.OPERATIONAL and self._sm.state == Cia402State.OPERATION_ENABLED
@@ -473,8 +487,15 @@ class Drive:
             reason = f"nmt-{NmtState(self.nmt_state).name.lower()}"
         else:
             reason = f"cia402-{self._sm.state.name.lower()}"
-        logger.info(format_safe_state(f"drive{self.node_id}", reason, cia402=self._sm.state.name,
-                                      nmt=NmtState(self.nmt_state).name, tick=tick if tick >= 0 else "-"))
+        logger.info(
+            format_safe_state(
+                f"drive{self.node_id}",
+                reason,
+                cia402=self._sm.state.name,
+                nmt=NmtState(self.nmt_state).name,
+                tick=tick if tick >= 0 else "-",
+            )
+        )
 
     # ------------------------------------------------------------------ resets
 
@@ -558,17 +579,14 @@ class Drive:
             w[(Obj.GAINS, sub)] = self._gains_hook(sub)
         w[(Obj.TRIAL, TrialSub.COMMAND)] = self._write_trial_command
         w[(Obj.CONTROL_PERIOD, 0)] = self._write_period
-        w[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.VALUE)] = (
-            lambda v: self._write_interp(int(v), None))
-        w[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.INDEX)] = (
-            lambda v: self._write_interp(None, int(v)))
+        w[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.VALUE)] = lambda v: self._write_interp(int(v), None)
+        w[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.INDEX)] = lambda v: self._write_interp(None, int(v))
 
     # ------------------------------------------------------------------ object callbacks
 
     def _require_not_playing(self, what: str) -> None:
         if self._trial_state in (TrialState.ARMED, TrialState.RUNNING):
-            raise SdoAbort(AbortCode.DEVICE_STATE,
-                           f"{what} not allowed while the trial is {TrialState(self._trial_state).name}")
+            raise SdoAbort(AbortCode.DEVICE_STATE, f"{what} not allowed while the trial is {TrialState(self._trial_state).name}")
 
     def _write_controlword(self, value: Value) -> None:
         before = self._sm.state
@@ -682,8 +700,7 @@ class Drive:
                 if self._n_table == 0:
                     raise SdoAbort(AbortCode.DEVICE_STATE, "set the trial length 0x2103:1 first")
             elif self._n_table == 0 or self._loaded != TableLoaded.ALL:
-                raise SdoAbort(AbortCode.DEVICE_STATE,
-                               f"tables not loaded (mask 0x{self._loaded:X}, N={self._n_table})")
+                raise SdoAbort(AbortCode.DEVICE_STATE, f"tables not loaded (mask 0x{self._loaded:X}, N={self._n_table})")
             self._trial_state = TrialState.ARMED
             self._rec_status = RecorderStatus.EMPTY
             self._next_tick = 0

@@ -111,11 +111,16 @@ class DriveNode(SlaveNode):
     :param clock: monotonic time source [s] for heartbeat and SDO timeout.
     """
 
-    def __init__(self, drive: DriveLike, fieldbus: can.BusABC, io: can.BusABC, *,
-                 node_id: int | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
-        super().__init__(drive, fieldbus, io,
-                         node_id=int(drive.node_id if node_id is None else node_id), clock=clock)
+    def __init__(
+        self,
+        drive: DriveLike,
+        fieldbus: can.BusABC,
+        io: can.BusABC,
+        *,
+        node_id: int | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        super().__init__(drive, fieldbus, io, node_id=int(drive.node_id if node_id is None else node_id), clock=clock)
         self.drive = drive
         self.joint = self.node_id - 1
         self._encoder_id = io_frames.encoder_cob_id(self.joint)
@@ -149,8 +154,7 @@ class DriveNode(SlaveNode):
                 self._run_tick(count, wire)
             else:
                 if self._held is not None:
-                    logger.warning("node %d: encoder frame of wire tick %d replaced before its SYNC",
-                                   self.node_id, self._held[1])
+                    logger.warning("node %d: encoder frame of wire tick %d replaced before its SYNC", self.node_id, self._held[1])
                 self._held = (count, wire)
         elif cob == io_frames.CONTROL_COB_ID:
             try:
@@ -214,8 +218,9 @@ class DriveNode(SlaveNode):
         return bits
 
 
-def run_node(node_id: int, fieldbus_config: dict[str, Any], io_config: dict[str, Any],
-             stop: threading.Event | None = None) -> str | None:
+def run_node(
+    node_id: int, fieldbus_config: dict[str, Any], io_config: dict[str, Any], stop: threading.Event | None = None
+) -> str | None:
     """Drive process entry: build the Drive and both buses, serve until stopped, clean up.
 
     :param node_id: CANopen node id 1..4.
@@ -263,11 +268,12 @@ def main(argv: Sequence[str] | None = None) -> None:
         parser.add_argument(f"--{prefix}-channel", required=True)
     parser.add_argument("--log-level", default="WARNING")
     args = parser.parse_args(argv)
-    logging.basicConfig(level=args.log_level.upper(),
-                        format="%(asctime)s node%(process)d %(name)s %(message)s")
-    run_node(args.node_id,
-             {"interface": args.fieldbus_interface, "channel": args.fieldbus_channel},
-             {"interface": args.io_interface, "channel": args.io_channel})
+    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s node%(process)d %(name)s %(message)s")
+    run_node(
+        args.node_id,
+        {"interface": args.fieldbus_interface, "channel": args.fieldbus_channel},
+        {"interface": args.io_interface, "channel": args.io_channel},
+    )
 
 
 if __name__ == "__main__":

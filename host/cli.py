@@ -69,41 +69,73 @@ def cmd_sim(args: argparse.Namespace) -> int:
     with interrupt_on_signals():
         res = run_session(plan, InProcessBench(cfg), out, mode="sim", stream=sys.stdout)
     s = res.summary
-    sys.stdout.write(f"{s['ticks']} ticks in {s['wall_s']:.2f} s ({s['ticks_per_s']:.0f} ticks/s); "
-                     f"trace_sha256 {s['trace_sha256'][:16]}…; summary: {out / 'summary.json'}\n")
+    sys.stdout.write(
+        f"{s['ticks']} ticks in {s['wall_s']:.2f} s ({s['ticks_per_s']:.0f} ticks/s); "
+        f"trace_sha256 {s['trace_sha256'][:16]}…; summary: {out / 'summary.json'}\n"
+    )
     return report_fault(res, out / "summary.json")
 
 
 def _add_bus_args(p: argparse.ArgumentParser, default: str = "auto") -> None:
-    p.add_argument("--bus", default=default, metavar="TRANSPORT",
-                   help="auto | hub | socketcan | udp_multicast | can_config (default %(default)s; auto = "
-                        "socketcan on vcan0/vcan1 when they exist, else the zero-privilege hub)")
-    p.add_argument("--hub", default=None, metavar="ADDRESS",
-                   help="hub address, unix:/path or tcp:127.0.0.1:PORT (default: $ILCRIG_HUB or a per-user socket)")
-    p.add_argument("--allow-remote", action="store_true",
-                   help="the hub may be on another machine (a non-loopback tcp: address); off by default")
+    p.add_argument(
+        "--bus",
+        default=default,
+        metavar="TRANSPORT",
+        help="auto | hub | socketcan | udp_multicast | can_config (default %(default)s; auto = "
+        "socketcan on vcan0/vcan1 when they exist, else the zero-privilege hub)",
+    )
+    p.add_argument(
+        "--hub",
+        default=None,
+        metavar="ADDRESS",
+        help="hub address, unix:/path or tcp:127.0.0.1:PORT (default: $ILCRIG_HUB or a per-user socket)",
+    )
+    p.add_argument(
+        "--allow-remote",
+        action="store_true",
+        help="the hub may be on another machine (a non-loopback tcp: address); off by default",
+    )
 
 
 def _add_rig_args(p: argparse.ArgumentParser) -> None:
     """Options of the rig that do not change the experiment (its results and digest)."""
-    p.add_argument("--realtime", action="store_true",
-                   help="pace the plant's ticks to the wall clock at the control period (tick n starts at t0 + n·Ts) "
-                        "and report deadline misses and tick lateness")
-    p.add_argument("--rt-priority", type=_rt_priority, default=None, metavar="N",
-                   help="with --realtime: the SCHED_FIFO priority of the hub, plant and drive processes, 1..99 "
-                        f"(default {DEFAULT_RT_PRIORITY}; 0 = normal scheduling); without the right to it "
-                        "(CAP_SYS_NICE or RLIMIT_RTPRIO) the run uses normal scheduling and says so")
-    p.add_argument("--no-idle-poll", action="store_true",
-                   help="with --realtime: let idle CPUs halt (by default a SCHED_IDLE busy loop per CPU keeps them "
-                        "awake for the run, so no wake-up of a tick waits for a halted CPU; it uses only CPU time "
-                        "nothing else wants)")
+    p.add_argument(
+        "--realtime",
+        action="store_true",
+        help="pace the plant's ticks to the wall clock at the control period (tick n starts at t0 + n·Ts) "
+        "and report deadline misses and tick lateness",
+    )
+    p.add_argument(
+        "--rt-priority",
+        type=_rt_priority,
+        default=None,
+        metavar="N",
+        help="with --realtime: the SCHED_FIFO priority of the hub, plant and drive processes, 1..99 "
+        f"(default {DEFAULT_RT_PRIORITY}; 0 = normal scheduling); without the right to it "
+        "(CAP_SYS_NICE or RLIMIT_RTPRIO) the run uses normal scheduling and says so",
+    )
+    p.add_argument(
+        "--no-idle-poll",
+        action="store_true",
+        help="with --realtime: let idle CPUs halt (by default a SCHED_IDLE busy loop per CPU keeps them "
+        "awake for the run, so no wake-up of a tick waits for a halted CPU; it uses only CPU time "
+        "nothing else wants)",
+    )
     # the fieldbus bit rate is an experiment option (--fieldbus-bitrate: also the pdo bus-fit check)
-    p.add_argument("--io-bitrate", type=_bitrate, default=None, metavar="BIT_S",
-                   help="bit rate of the io channel for the bus-time figures (default 1000000)")
-    p.add_argument("--bus-time", action="store_true",
-                   help="the hub carries both channels in bus time at their bit rates (--io-bitrate, "
-                        "--fieldbus-bitrate): frames in arbitration order, each delivered after its bit time, so "
-                        "transfers take as long as on a real bus (hub transport only)")
+    p.add_argument(
+        "--io-bitrate",
+        type=_bitrate,
+        default=None,
+        metavar="BIT_S",
+        help="bit rate of the io channel for the bus-time figures (default 1000000)",
+    )
+    p.add_argument(
+        "--bus-time",
+        action="store_true",
+        help="the hub carries both channels in bus time at their bit rates (--io-bitrate, "
+        "--fieldbus-bitrate): frames in arbitration order, each delivered after its bit time, so "
+        "transfers take as long as on a real bus (hub transport only)",
+    )
 
 
 def _rt_priority(text: str) -> int:
@@ -207,10 +239,14 @@ def build_parser() -> argparse.ArgumentParser:
     add_experiment_args(rp)
     _add_bus_args(rp)
     _add_rig_args(rp)
-    rp.add_argument("--inject", action="append", metavar="SPEC",
-                    help="inject a fault (repeatable): kill|stall:ROLE@TRIAL:TICK[,for=S], "
-                         "drop|corrupt|duplicate|delay:io|fieldbus@TRIAL:TICK[,rate=P,seed=K,count=C,id=COBID,ms=D], "
-                         "emcy:NODE@TRIAL:TICK[,code=C], diskfull@TRIAL (README: Fault injection)")
+    rp.add_argument(
+        "--inject",
+        action="append",
+        metavar="SPEC",
+        help="inject a fault (repeatable): kill|stall:ROLE@TRIAL:TICK[,for=S], "
+        "drop|corrupt|duplicate|delay:io|fieldbus@TRIAL:TICK[,rate=P,seed=K,count=C,id=COBID,ms=D], "
+        "emcy:NODE@TRIAL:TICK[,code=C], diskfull@TRIAL (README: Fault injection)",
+    )
     rp.set_defaults(func=cmd_run)
 
     hp = sub.add_parser("host", help="the host role alone (expects 4 drives and the plant on the bus)")
@@ -218,13 +254,22 @@ def build_parser() -> argparse.ArgumentParser:
     _add_bus_args(hp)
     _add_rig_args(hp)
     hp.add_argument("--rt-scheduling", default=None, help=argparse.SUPPRESS)  # the launcher's: what --realtime got
-    hp.add_argument("--wait", type=float, default=120.0,
-                    help="seconds to wait for the nodes to answer (default 120: a first run compiles the numba kernels)")
-    hp.add_argument("--pause", type=float, default=0.0,
-                    help="seconds to pause between trials (e.g. to restart a drive, with --recover)")
-    hp.add_argument("--recover", type=float, default=0.0,
-                    help="> 0: a node lost or rebooted between trials is waited for (up to --wait) and set up again "
-                         "instead of ending the run (default 0: every lost node is a fault)")
+    hp.add_argument(
+        "--wait",
+        type=float,
+        default=120.0,
+        help="seconds to wait for the nodes to answer (default 120: a first run compiles the numba kernels)",
+    )
+    hp.add_argument(
+        "--pause", type=float, default=0.0, help="seconds to pause between trials (e.g. to restart a drive, with --recover)"
+    )
+    hp.add_argument(
+        "--recover",
+        type=float,
+        default=0.0,
+        help="> 0: a node lost or rebooted between trials is waited for (up to --wait) and set up again "
+        "instead of ending the run (default 0: every lost node is a fault)",
+    )
     hp.add_argument("--inject-disk-full", type=int, default=None, metavar="TRIAL", help=argparse.SUPPRESS)
     hp.set_defaults(func=cmd_host)
 
@@ -234,8 +279,9 @@ def build_parser() -> argparse.ArgumentParser:
     dp.set_defaults(func=cmd_drive)
 
     pp = sub.add_parser("plant", help="the plant (robot simulator) as the test-bench node on the bus")
-    pp.add_argument("--node-id", type=int, default=DEFAULT_BENCH_NODE_ID,
-                    help="CANopen node id of the test-bench node (default %(default)s)")
+    pp.add_argument(
+        "--node-id", type=int, default=DEFAULT_BENCH_NODE_ID, help="CANopen node id of the test-bench node (default %(default)s)"
+    )
     _add_bus_args(pp)
     pp.set_defaults(func=cmd_plant)
 
@@ -253,8 +299,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     bp = sub.add_parser("hub", help="the zero-privilege CAN hub (loopback / Unix socket unless --allow-remote)")
     bp.add_argument("--listen", action="append", help="unix:/path or tcp:127.0.0.1:PORT (repeatable)")
-    bp.add_argument("--allow-remote", action="store_true",
-                    help="also accept a non-loopback tcp:ADDRESS:PORT, to serve roles on other machines")
+    bp.add_argument(
+        "--allow-remote",
+        action="store_true",
+        help="also accept a non-loopback tcp:ADDRESS:PORT, to serve roles on other machines",
+    )
     bp.set_defaults(func=cmd_hub)
     return p
 
@@ -262,8 +311,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.debug else logging.WARNING,
-                        format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(level=logging.DEBUG if args.debug else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE

@@ -126,14 +126,14 @@ def pack_params(
         mbar = np.diag([mu + ml, mu + ml, mu + k_spin, ml + k_spin])
         mbar[2, 3] = -k_spin
         mbar[3, 2] = -k_spin
-        p[P_MBAR:P_MBAR + 16] = mbar.ravel()
-        p[P_IB:P_IB + 4] = mass.joint_inertia(geometry.l_a)
-        p[P_KB:P_KB + 4] = mass.arm_gravity_coefficient(geometry.l_a)
+        p[P_MBAR : P_MBAR + 16] = mbar.ravel()
+        p[P_IB : P_IB + 4] = mass.joint_inertia(geometry.l_a)
+        p[P_KB : P_KB + 4] = mass.arm_gravity_coefficient(geometry.l_a)
         p[P_GU] = mu * mass.g
         p[P_GL] = ml * mass.g
     if config is not None:
-        p[P_FC:P_FC + 4] = config.coulomb_nm
-        p[P_FV:P_FV + 4] = config.viscous_nm_s_per_rad
+        p[P_FC : P_FC + 4] = config.coulomb_nm
+        p[P_FV : P_FV + 4] = config.viscous_nm_s_per_rad
         p[P_VSM] = config.friction_smoothing_rad_s
         p[P_FSR] = config.stribeck_ratio
         p[P_VST] = config.stribeck_velocity_rad_s
@@ -248,8 +248,7 @@ def chol4_solve(m: np.ndarray, x: np.ndarray, xo: int) -> bool:
 
 
 @njit(cache=True, error_model="numpy")
-def subplatform_from_task4(x: float, y: float, z: float, th: float, p: np.ndarray, out: np.ndarray,
-                           oo: int) -> None:
+def subplatform_from_task4(x: float, y: float, z: float, th: float, p: np.ndarray, out: np.ndarray, oo: int) -> None:
     """Y = (x, y, z_u, z_l) from X = (x, y, z, θ) (docs/robot-model.md §3.1, TCP e below the ball plane)."""
     zl = z + p[P_E]
     out[oo + 0] = x
@@ -292,8 +291,7 @@ def trig4(q: np.ndarray, qo: int, tr: np.ndarray) -> None:
 
 
 @njit(cache=True, error_model="numpy")
-def build_a_b(tr: np.ndarray, y: np.ndarray, yo: int, p: np.ndarray, a: np.ndarray,
-              vec: np.ndarray) -> None:
+def build_a_b(tr: np.ndarray, y: np.ndarray, yo: int, p: np.ndarray, a: np.ndarray, vec: np.ndarray) -> None:
     """Rows of A (docs/robot-model.md §3.5) into ``a``; b_i into vec[4:8]; constraint residuals
     f_i/2 = (|s_i|² - l_b²)/2 into vec[12:16].  ``tr`` = (cos q, sin q) from :func:`trig4`."""
     la = p[P_LA]
@@ -322,8 +320,7 @@ def build_a_b(tr: np.ndarray, y: np.ndarray, yo: int, p: np.ndarray, a: np.ndarr
 
 
 @njit(cache=True, error_model="numpy")
-def fk_newton(tr: np.ndarray, y: np.ndarray, yo: int, p: np.ndarray, a: np.ndarray,
-              vec: np.ndarray) -> int:
+def fk_newton(tr: np.ndarray, y: np.ndarray, yo: int, p: np.ndarray, a: np.ndarray, vec: np.ndarray) -> int:
     """Newton FK (docs/robot-model.md §3.4) from the guess in ``y[yo:yo+4]`` (updated in place).
 
     On success ``a`` holds the LU factors of A at the converged Y (pivots in vec[0:4]) and
@@ -384,8 +381,18 @@ def jacobian_from_lu(a: np.ndarray, vec: np.ndarray, jout: np.ndarray) -> None:
 
 
 @njit(cache=True, error_model="numpy")
-def w_vector(tr: np.ndarray, qd: np.ndarray, qdo: int, y: np.ndarray, yo: int,
-             yd: np.ndarray, ydo: int, p: np.ndarray, out: np.ndarray, oo: int) -> None:
+def w_vector(
+    tr: np.ndarray,
+    qd: np.ndarray,
+    qdo: int,
+    y: np.ndarray,
+    yo: int,
+    yd: np.ndarray,
+    ydo: int,
+    p: np.ndarray,
+    out: np.ndarray,
+    oo: int,
+) -> None:
     """w_i = ḃ_i q̇_i − ṡ_i·v_s(i) of docs/robot-model.md §3.6 (A Ÿ = B q̈ + w); ``tr`` from :func:`trig4`."""
     la = p[P_LA]
     for i in range(4):
@@ -419,8 +426,7 @@ def w_vector(tr: np.ndarray, qd: np.ndarray, qdo: int, y: np.ndarray, yo: int,
 
 
 @njit(cache=True, error_model="numpy")
-def eval_terms(q: np.ndarray, qo: int, qd: np.ndarray, qdo: int, p: np.ndarray, ws: np.ndarray,
-               predict: bool) -> int:
+def eval_terms(q: np.ndarray, qo: int, qd: np.ndarray, qdo: int, p: np.ndarray, ws: np.ndarray, predict: bool) -> int:
     """FK (warm start ws[R_FK,0:4], optional second-order predictor) and the dynamic terms:
     J → ws[R_J], Yd, J̇q̇, C q̇, G → ws[R_V2], M → ws[R_M].  Returns a status code."""
     fk = ws[R_FK]
@@ -529,8 +535,18 @@ def friction_torque(qd: np.ndarray, qdo: int, p: np.ndarray, out: np.ndarray, oo
 
 
 @njit(cache=True, error_model="numpy")
-def accel(q: np.ndarray, qo: int, qd: np.ndarray, qdo: int, tau: np.ndarray, to: int, p: np.ndarray,
-          ws: np.ndarray, out: np.ndarray, oo: int) -> int:
+def accel(
+    q: np.ndarray,
+    qo: int,
+    qd: np.ndarray,
+    qdo: int,
+    tau: np.ndarray,
+    to: int,
+    p: np.ndarray,
+    ws: np.ndarray,
+    out: np.ndarray,
+    oo: int,
+) -> int:
     """q̈ = M⁻¹(τ − C q̇ − G − τ_f) into out[oo:oo+4]; returns a status code."""
     st = eval_terms(q, qo, qd, qdo, p, ws, True)
     if st != ST_OK:
@@ -549,8 +565,7 @@ def accel(q: np.ndarray, qo: int, qd: np.ndarray, qdo: int, tau: np.ndarray, to:
 
 
 @njit(cache=True, error_model="numpy")
-def plant_step(ws: np.ndarray, p: np.ndarray, torque_units: np.ndarray, dist_nm: np.ndarray,
-               counts: np.ndarray) -> int:
+def plant_step(ws: np.ndarray, p: np.ndarray, torque_units: np.ndarray, dist_nm: np.ndarray, counts: np.ndarray) -> int:
     """One control period: τ = clamp(units·LSB) + d held, RK4 with P_NSUB sub-steps.
 
     State ws[R_STATE] = (q, q̇) is advanced in place; ``counts`` gets the nearest encoder
@@ -624,8 +639,7 @@ def plant_step(ws: np.ndarray, p: np.ndarray, torque_units: np.ndarray, dist_nm:
 
 
 @njit(cache=True, error_model="numpy")
-def plant_reset(ws: np.ndarray, p: np.ndarray, q0: np.ndarray, qd0: np.ndarray, y_guess: np.ndarray,
-                counts: np.ndarray) -> int:
+def plant_reset(ws: np.ndarray, p: np.ndarray, q0: np.ndarray, qd0: np.ndarray, y_guess: np.ndarray, counts: np.ndarray) -> int:
     """Set the state, solve FK from ``y_guess`` (cold start, no predictor) and the counts."""
     for r in range(ws.shape[0]):
         for k in range(16):
@@ -721,8 +735,16 @@ def jdot_qdot_batch(qs: np.ndarray, qds: np.ndarray, ys: np.ndarray, p: np.ndarr
 
 
 @njit(cache=True, error_model="numpy")
-def joint_rates_batch(qs: np.ndarray, ys: np.ndarray, yds: np.ndarray, ydds: np.ndarray, p: np.ndarray,
-                      qds: np.ndarray, qdds: np.ndarray, want_acc: bool) -> int:
+def joint_rates_batch(
+    qs: np.ndarray,
+    ys: np.ndarray,
+    yds: np.ndarray,
+    ydds: np.ndarray,
+    p: np.ndarray,
+    qds: np.ndarray,
+    qdds: np.ndarray,
+    want_acc: bool,
+) -> int:
     """q̇ = B⁻¹ A Ẏ and (optionally) q̈ = B⁻¹(A Ÿ − w); -1 or 4*n + limb at a serial singularity."""
     a = np.empty(16)
     vec = np.empty(16)
@@ -750,8 +772,9 @@ def joint_rates_batch(qs: np.ndarray, ys: np.ndarray, yds: np.ndarray, ydds: np.
 
 
 @njit(cache=True, error_model="numpy")
-def dynamics_batch(qs: np.ndarray, qds: np.ndarray, y0: np.ndarray, p: np.ndarray, ys: np.ndarray,
-                   ms: np.ndarray, cs: np.ndarray, gs: np.ndarray) -> int:
+def dynamics_batch(
+    qs: np.ndarray, qds: np.ndarray, y0: np.ndarray, p: np.ndarray, ys: np.ndarray, ms: np.ndarray, cs: np.ndarray, gs: np.ndarray
+) -> int:
     """Y, M (N,4,4), C q̇ (N,4), G (N,4) along N states (FK warm-started sample to sample).
     Returns -1, or 16*n + status of the first failure."""
     ws = np.zeros((N_ROWS, 16))
@@ -771,8 +794,9 @@ def dynamics_batch(qs: np.ndarray, qds: np.ndarray, y0: np.ndarray, p: np.ndarra
 
 
 @njit(cache=True, error_model="numpy")
-def forward_dynamics_batch(qs: np.ndarray, qds: np.ndarray, taus: np.ndarray, y0: np.ndarray,
-                           p: np.ndarray, qdds: np.ndarray) -> int:
+def forward_dynamics_batch(
+    qs: np.ndarray, qds: np.ndarray, taus: np.ndarray, y0: np.ndarray, p: np.ndarray, qdds: np.ndarray
+) -> int:
     """q̈ (N,4) for given τ (incl. friction if configured).  -1 or 16*n + status."""
     ws = np.zeros((N_ROWS, 16))
     for j in range(4):

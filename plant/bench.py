@@ -46,8 +46,9 @@ def _axis(t: np.ndarray, t0: float, t1: float, length: float) -> tuple[np.ndarra
     return length * s, np.where(inside, length * sd / w, 0.0), np.where(inside, length * sdd / w**2, 0.0)
 
 
-def gate_path(T: float, ts_s: float = 1e-3, fz: float = 0.4, fh: float = 0.15,
-              dtheta: float = math.pi / 2) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def gate_path(
+    T: float, ts_s: float = 1e-3, fz: float = 0.4, fh: float = 0.15, dtheta: float = math.pi / 2
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(t, X, Ẋ, Ẍ) of one single journey of the docs/robot-model.md §6.1–6.2 gate path (pick at x = −0.1525 m)."""
     t = np.arange(0.0, T + 0.5 * ts_s, ts_s)
     X = np.zeros((t.size, 4))
@@ -106,12 +107,16 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     r = bench_step()
     logger.info("first Plant step (compile or cache load): %.2f s", r["first_step_s"])
-    logger.info("Plant.step: best %.2f us, median %.2f us (CPU time, 4 RK4 sub-steps)",
-                r["step_us_best"], r["step_us_median"])
+    logger.info("Plant.step: best %.2f us, median %.2f us (CPU time, 4 RK4 sub-steps)", r["step_us_best"], r["step_us_median"])
     logger.info("joint torque limit %.1f N·m", default_true_plant().joint_torque_limit_nm)
     for T, name, pk, rms in peak_torques():
-        logger.info("T=%.2f s  %-28s peak |τ| = %s N·m  RMS = %s N·m", T, name,
-                    np.array2string(pk, precision=1), np.array2string(rms, precision=1))
+        logger.info(
+            "T=%.2f s  %-28s peak |τ| = %s N·m  RMS = %s N·m",
+            T,
+            name,
+            np.array2string(pk, precision=1),
+            np.array2string(rms, precision=1),
+        )
     return 0
 
 

@@ -61,8 +61,9 @@ class DisturbanceError(ValueError):
     """Bad arguments to :func:`disturbance_torque`."""
 
 
-def repetitive_torque(n_ticks: int, ts_s: float, amplitude_nm: float = REPETITIVE_AMPLITUDE_NM,
-                      period_s: float | None = None) -> np.ndarray:
+def repetitive_torque(
+    n_ticks: int, ts_s: float, amplitude_nm: float = REPETITIVE_AMPLITUDE_NM, period_s: float | None = None
+) -> np.ndarray:
     """λ sin(ω t + φ_j), (n_ticks, 4) N·m, identical in every trial."""
     t = np.arange(n_ticks, dtype=np.float64) * ts_s
     T = period_s if period_s is not None else max(n_ticks - 1, 1) * ts_s
@@ -96,9 +97,16 @@ def nonrepetitive_torque(seed: int, trial: int, n_ticks: int, ts_s: float) -> np
     return out + colored
 
 
-def disturbance_torque(kind: str, seed: int, trial: int, n_ticks: int, ts_s: float,
-                       *, amplitude_nm: float = REPETITIVE_AMPLITUDE_NM,
-                       period_s: float | None = None) -> np.ndarray:
+def disturbance_torque(
+    kind: str,
+    seed: int,
+    trial: int,
+    n_ticks: int,
+    ts_s: float,
+    *,
+    amplitude_nm: float = REPETITIVE_AMPLITUDE_NM,
+    period_s: float | None = None,
+) -> np.ndarray:
     """External joint torque d[n] (n_ticks, 4), N·m, for one trial.
 
     :param kind: "none", "repetitive", "nonrepetitive" or "both"

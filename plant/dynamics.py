@@ -73,9 +73,9 @@ def _raise_status(code: int, qs: np.ndarray) -> None:
     raise DynamicsError(f"{text} at q = {qs[n].tolist()} rad")
 
 
-def dynamic_terms(q: np.ndarray, qd: np.ndarray | None, model: MassModel,
-                  geometry: Geometry | None = None,
-                  Y_guess: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def dynamic_terms(
+    q: np.ndarray, qd: np.ndarray | None, model: MassModel, geometry: Geometry | None = None, Y_guess: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(M (…,4,4) [kg·m²], C q̇ (…,4) [N·m], G (…,4) [N·m], Y (…,4) [m]) in one pass."""
     qs, lead = _batch(q, "q")
     qds = np.zeros_like(qs) if qd is None else _batch(qd, "qd")[0]
@@ -90,8 +90,7 @@ def dynamic_terms(q: np.ndarray, qd: np.ndarray | None, model: MassModel,
     r = K.dynamics_batch(qs, qds, y0, _params(model, geometry), ys, ms, cs, gs)
     if r >= 0:
         _raise_status(r, qs)
-    return (ms.reshape(lead + (4, 4)), cs.reshape(lead + (4,)), gs.reshape(lead + (4,)),
-            ys.reshape(lead + (4,)))
+    return (ms.reshape(lead + (4, 4)), cs.reshape(lead + (4,)), gs.reshape(lead + (4,)), ys.reshape(lead + (4,)))
 
 
 def mass_matrix(q: np.ndarray, model: MassModel, geometry: Geometry | None = None) -> np.ndarray:
@@ -109,16 +108,18 @@ def gravity_vector(q: np.ndarray, model: MassModel, geometry: Geometry | None = 
     return dynamic_terms(q, None, model, geometry)[2]
 
 
-def inverse_dynamics(q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, model: MassModel,
-                     geometry: Geometry | None = None) -> np.ndarray:
+def inverse_dynamics(
+    q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, model: MassModel, geometry: Geometry | None = None
+) -> np.ndarray:
     """τ = M q̈ + C q̇ + G (…, 4) [N·m] (rigid body, no friction); vectorised over (N, 4)."""
     M, C, G, _ = dynamic_terms(q, qd, model, geometry)
     qdd = np.asarray(qdd, dtype=np.float64)
     return np.einsum("...ij,...j->...i", M, qdd) + C + G
 
 
-def forward_dynamics(q: np.ndarray, qd: np.ndarray, tau: np.ndarray, model: MassModel,
-                     geometry: Geometry | None = None) -> np.ndarray:
+def forward_dynamics(
+    q: np.ndarray, qd: np.ndarray, tau: np.ndarray, model: MassModel, geometry: Geometry | None = None
+) -> np.ndarray:
     """q̈ = M⁻¹(τ − C q̇ − G) (…, 4) [rad/s²] for joint torques τ [N·m] (no friction)."""
     return _forward(q, qd, tau, _params(model, geometry))
 
@@ -151,21 +152,22 @@ def friction_torque(qd: np.ndarray, config: TruePlantConfig) -> np.ndarray:
 
 def true_inverse_dynamics(q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, config: TruePlantConfig) -> np.ndarray:
     """τ the true plant needs (its mass model, tool spin, friction; no clamp) (…, 4) [N·m]."""
-    return (inverse_dynamics(q, qd, qdd, config.mass, config.geometry) + friction_torque(qd, config))
+    return inverse_dynamics(q, qd, qdd, config.mass, config.geometry) + friction_torque(qd, config)
 
 
-def potential_energy(q: np.ndarray, model: MassModel, geometry: Geometry | None = None,
-                     Y: np.ndarray | None = None) -> np.ndarray:
+def potential_energy(
+    q: np.ndarray, model: MassModel, geometry: Geometry | None = None, Y: np.ndarray | None = None
+) -> np.ndarray:
     """V(q) (…) [J] = g (m_u z_u + m_l z_l) − Σ (m_a l_c + ρ m_fa l_a) g sin q_i."""
     g = geometry if geometry is not None else Geometry()
     if Y is None:
         from plant.kinematics import forward_kinematics
+
         Y = forward_kinematics(q, geometry=g)
     q = np.asarray(q, dtype=np.float64)
     Y = np.asarray(Y, dtype=np.float64)
     kb = model.arm_gravity_coefficient(g.l_a)
-    return (model.g * (model.m_up_eff * Y[..., 2] + model.m_low_eff * Y[..., 3])
-            - kb * np.sin(q).sum(axis=-1))
+    return model.g * (model.m_up_eff * Y[..., 2] + model.m_low_eff * Y[..., 3]) - kb * np.sin(q).sum(axis=-1)
 
 
 def energy(q: np.ndarray, qd: np.ndarray, model: MassModel, geometry: Geometry | None = None) -> np.ndarray:

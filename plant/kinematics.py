@@ -131,14 +131,12 @@ def inverse_kinematics(X: np.ndarray, geometry: Geometry | None = None) -> np.nd
         x = xs[n]
         where = f" (sample {n})" if xs.shape[0] > 1 else ""
         raise OutOfReachError(
-            f"limb {limb + 1} cannot reach X = ({x[0]:.6g} m, {x[1]:.6g} m, {x[2]:.6g} m, "
-            f"{x[3]:.6g} rad){where}"
+            f"limb {limb + 1} cannot reach X = ({x[0]:.6g} m, {x[1]:.6g} m, {x[2]:.6g} m, {x[3]:.6g} rad){where}"
         )
     return qs.reshape(lead + (4,))
 
 
-def forward_kinematics(q: np.ndarray, Y_guess: np.ndarray | None = None,
-                       geometry: Geometry | None = None) -> np.ndarray:
+def forward_kinematics(q: np.ndarray, Y_guess: np.ndarray | None = None, geometry: Geometry | None = None) -> np.ndarray:
     """Sub-platform coordinates Y (..., 4) = (x, y, z_u, z_l) [m] for joint angles q (..., 4).
 
     Newton on the four rod constraints (docs/robot-model.md §3.4), started from ``Y_guess`` (default
@@ -177,8 +175,9 @@ def jacobian_up_low(q: np.ndarray, Y: np.ndarray, geometry: Geometry | None = No
     return J[..., [0, 1, 2], :], J[..., [0, 1, 3], :]
 
 
-def jdot_qdot(q: np.ndarray, qd: np.ndarray, Y: np.ndarray, Yd: np.ndarray | None = None,
-              geometry: Geometry | None = None) -> np.ndarray:
+def jdot_qdot(
+    q: np.ndarray, qd: np.ndarray, Y: np.ndarray, Yd: np.ndarray | None = None, geometry: Geometry | None = None
+) -> np.ndarray:
     """J̇q̇ (..., 4) [m/s²] = A⁻¹w (docs/robot-model.md §3.6), so that Ÿ = J q̈ + J̇q̇.
 
     ``Yd`` is accepted for interface symmetry; the kernel recomputes Ẏ = J q̇ for consistency.
@@ -193,8 +192,9 @@ def jdot_qdot(q: np.ndarray, qd: np.ndarray, Y: np.ndarray, Yd: np.ndarray | Non
     return out.reshape(lead + (4,))
 
 
-def _joint_rates(q: np.ndarray, Y: np.ndarray, Yd: np.ndarray, Ydd: np.ndarray | None,
-                 geometry: Geometry | None) -> tuple[np.ndarray, np.ndarray | None, tuple[int, ...]]:
+def _joint_rates(
+    q: np.ndarray, Y: np.ndarray, Yd: np.ndarray, Ydd: np.ndarray | None, geometry: Geometry | None
+) -> tuple[np.ndarray, np.ndarray | None, tuple[int, ...]]:
     qs, lead = _as_batch(q, "q")
     ys, _ = _as_batch(Y, "Y")
     yds, _ = _as_batch(Yd, "Yd")
@@ -205,8 +205,7 @@ def _joint_rates(q: np.ndarray, Y: np.ndarray, Yd: np.ndarray, Ydd: np.ndarray |
     r = K.joint_rates_batch(qs, ys, yds, ydds, _params(geometry), qds, qdds, want)
     if r >= 0:
         n, limb = divmod(r, 4)
-        raise SingularConfigurationError(
-            f"serial singularity of limb {limb + 1} (b = 0) at q = {qs[n].tolist()} rad")
+        raise SingularConfigurationError(f"serial singularity of limb {limb + 1} (b = 0) at q = {qs[n].tolist()} rad")
     return qds, (qdds if want else None), lead
 
 
@@ -216,8 +215,9 @@ def joint_velocity(q: np.ndarray, Y: np.ndarray, Yd: np.ndarray, geometry: Geome
     return qds.reshape(lead + (4,))
 
 
-def joint_acceleration(q: np.ndarray, qd: np.ndarray | None, Y: np.ndarray, Yd: np.ndarray, Ydd: np.ndarray,
-                       geometry: Geometry | None = None) -> np.ndarray:
+def joint_acceleration(
+    q: np.ndarray, qd: np.ndarray | None, Y: np.ndarray, Yd: np.ndarray, Ydd: np.ndarray, geometry: Geometry | None = None
+) -> np.ndarray:
     """q̈ = B⁻¹(A Ÿ − w) (..., 4) [rad/s²] (docs/robot-model.md §3.6).
 
     ``qd`` is accepted for interface symmetry; q̇ is recomputed from Ẏ (consistent by
@@ -228,8 +228,9 @@ def joint_acceleration(q: np.ndarray, qd: np.ndarray | None, Y: np.ndarray, Yd: 
     return qdds.reshape(lead + (4,))
 
 
-def joint_states_from_task(X: np.ndarray, Xd: np.ndarray, Xdd: np.ndarray,
-                           geometry: Geometry | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def joint_states_from_task(
+    X: np.ndarray, Xd: np.ndarray, Xdd: np.ndarray, geometry: Geometry | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(q, q̇, q̈), each (..., 4), from a task trajectory (X, Ẋ, Ẍ) (..., 4).
 
     IK at every sample plus the exact velocity / acceleration maps (no numerical
@@ -244,8 +245,7 @@ def joint_states_from_task(X: np.ndarray, Xd: np.ndarray, Xdd: np.ndarray,
     return q, qds.reshape(lead + (4,)), qdds.reshape(lead + (4,))
 
 
-def task_velocity(q: np.ndarray, qd: np.ndarray, Y: np.ndarray | None = None,
-                  geometry: Geometry | None = None) -> np.ndarray:
+def task_velocity(q: np.ndarray, qd: np.ndarray, Y: np.ndarray | None = None, geometry: Geometry | None = None) -> np.ndarray:
     """Task rates Ẋ (..., 4) = (ẋ, ẏ, ż, θ̇) from joint rates (FK if Y is not given)."""
     if Y is None:
         Y = forward_kinematics(q, geometry=geometry)

@@ -147,11 +147,20 @@ class BenchNode(SlaveNode):
     #: Default longest wait for the torque frames of tick 0, s.
     FIRST_TICK_TIMEOUT_S: float = io_frames.FIRST_TICK_TIMEOUT_S
 
-    def __init__(self, fieldbus: can.BusABC, io: can.BusABC, *, plant_factory: PlantFactory,
-                 disturbance_fn: DisturbanceFn, node_id: int = DEFAULT_BENCH_NODE_ID,
-                 tick_timeout_s: float | None = None, first_tick_timeout_s: float | None = None,
-                 clock: Callable[[], float] = time.monotonic,
-                 eds_path: str | Path = BENCH_EDS_PATH, spin_s: float = 0.0) -> None:
+    def __init__(
+        self,
+        fieldbus: can.BusABC,
+        io: can.BusABC,
+        *,
+        plant_factory: PlantFactory,
+        disturbance_fn: DisturbanceFn,
+        node_id: int = DEFAULT_BENCH_NODE_ID,
+        tick_timeout_s: float | None = None,
+        first_tick_timeout_s: float | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        eds_path: str | Path = BENCH_EDS_PATH,
+        spin_s: float = 0.0,
+    ) -> None:
         if not 0.0 <= spin_s < 0.01:
             raise ValueError(f"spin_s must be in [0, 0.01) s, got {spin_s!r}")
         self.spin_s = float(spin_s)
@@ -161,9 +170,9 @@ class BenchNode(SlaveNode):
         self.plant_factory = plant_factory
         self.disturbance_fn = disturbance_fn
         self.tick_timeout_s = float(self.TICK_TIMEOUT_S if tick_timeout_s is None else tick_timeout_s)
-        self.first_tick_timeout_s = float(max(
-            self.FIRST_TICK_TIMEOUT_S if first_tick_timeout_s is None else first_tick_timeout_s,
-            self.tick_timeout_s))
+        self.first_tick_timeout_s = float(
+            max(self.FIRST_TICK_TIMEOUT_S if first_tick_timeout_s is None else first_tick_timeout_s, self.tick_timeout_s)
+        )
         if not self.tick_timeout_s > 0:
             raise ValueError(f"tick_timeout_s must be > 0, got {tick_timeout_s!r}")
         self._plant: PlantLike | None = None
@@ -193,8 +202,7 @@ class BenchNode(SlaveNode):
         self._dist: np.ndarray = np.zeros((0, io_frames.N_JOINTS))
         # the four encoder frames of a tick go out in one write where the bus can (the hub)
         self._send_batch = batch_sender(io)
-        self._trackers = [io_frames.TickTracker(0, f"torque frames of drive {j + 1}")
-                          for j in range(io_frames.N_JOINTS)]
+        self._trackers = [io_frames.TickTracker(0, f"torque frames of drive {j + 1}") for j in range(io_frames.N_JOINTS)]
         # counters (0x2430)
         self.io_sent = 0
         self.io_received = 0
@@ -248,8 +256,12 @@ class BenchNode(SlaveNode):
             logger.info("node %d: heartbeat of node %d lost while NMT STOPPED", self.node_id, node_id)
             return
         if self._running or self._pending_start:
-            self._fail(BenchFault.HOST_LOST, 0, f"heartbeat of node {node_id} (the host) lost at tick {self._tick}",
-                       started=self._running)
+            self._fail(
+                BenchFault.HOST_LOST,
+                0,
+                f"heartbeat of node {node_id} (the host) lost at tick {self._tick}",
+                started=self._running,
+            )
         else:
             code, register = FAULT_EMCY[BenchFault.HOST_LOST]
             logger.warning("node %d: heartbeat of node %d (the host) lost", self.node_id, node_id)
@@ -311,6 +323,7 @@ class BenchNode(SlaveNode):
         def hook(_value: Value) -> None:
             if self._busy():
                 raise SdoAbort(AbortCode.DEVICE_STATE, f"{what} cannot change while a trial runs")
+
         return hook
 
     def _write_initial_state(self, value: Value) -> None:
@@ -381,14 +394,16 @@ class BenchNode(SlaveNode):
                 assert counts is not None
                 self._send_encoders(counts)
         elif self._running and now >= self._deadline:
-            missing = [j for j in range(io_frames.N_JOINTS)
-                       if self._trackers[j].next_tick == self._origin + self._tick]
+            missing = [j for j in range(io_frames.N_JOINTS) if self._trackers[j].next_tick == self._origin + self._tick]
             node = missing[0] + 1 if missing else 0
             self.tick_timeouts += 1
-            self._fail(BenchFault.TICK_TIMEOUT, node,
-                       f"drive {node} did not answer tick {self._tick} within "
-                       f"{self.tick_timeout_s if self._tick else self.first_tick_timeout_s:g} s "
-                       f"(missing drives: {[j + 1 for j in missing]})")
+            self._fail(
+                BenchFault.TICK_TIMEOUT,
+                node,
+                f"drive {node} did not answer tick {self._tick} within "
+                f"{self.tick_timeout_s if self._tick else self.first_tick_timeout_s:g} s "
+                f"(missing drives: {[j + 1 for j in missing]})",
+            )
 
     def on_io(self, msg: can.Message) -> None:
         if msg.is_error_frame:  # a frame damaged on the wire: the receivers' controllers saw a CRC error
@@ -408,8 +423,7 @@ class BenchNode(SlaveNode):
             if io_frames.tick_diff(wire, self._origin) < 0:
                 # an answer to a tick of an earlier (e.g. aborted) trial arriving late: wire ticks
                 # keep counting across trials, so it cannot be mistaken for one of this trial
-                logger.debug("node %d: late torque frame of drive %d from an earlier trial ignored",
-                              self.node_id, j + 1)
+                logger.debug("node %d: late torque frame of drive %d from an earlier trial ignored", self.node_id, j + 1)
                 return
             tick = self._trackers[j].accept(wire)
         except io_frames.TickError as err:
@@ -419,8 +433,7 @@ class BenchNode(SlaveNode):
             self._fail(BenchFault.BAD_FRAME, j + 1, f"tick {self._tick}: bad torque frame: {err}")
             return
         if tick != self._origin + self._tick:
-            self._fail(BenchFault.TICK_SEQUENCE, j + 1,
-                       f"drive {j + 1} sent tick {tick - self._origin} during tick {self._tick}")
+            self._fail(BenchFault.TICK_SEQUENCE, j + 1, f"drive {j + 1} sent tick {tick - self._origin} during tick {self._tick}")
             return
         self._tau[j] = 0 if status & _FAULT_BIT else torque
         self._got += 1
@@ -458,14 +471,14 @@ class BenchNode(SlaveNode):
         try:
             plant = self._get_plant(ts_s, substeps)
             dist = np.ascontiguousarray(
-                self.disturbance_fn(DisturbanceKind(kind).label, seed, trial, n_ticks, ts_s), dtype=np.float64)
+                self.disturbance_fn(DisturbanceKind(kind).label, seed, trial, n_ticks, ts_s), dtype=np.float64
+            )
             if dist.shape != (n_ticks, io_frames.N_JOINTS):
                 raise ValueError(f"disturbance has shape {dist.shape}, expected ({n_ticks}, 4)")
             plant.reset(q0, qd0)
             counts = plant.encoder_counts()
         except Exception as err:  # the plant is a plug-in: any failure is a trial fault
-            self._fail(BenchFault.PLANT, 0, f"trial {trial} could not start: {type(err).__name__}: {err}",
-                       started=False)
+            self._fail(BenchFault.PLANT, 0, f"trial {trial} could not start: {type(err).__name__}: {err}", started=False)
             return
         self._dist = dist
         for tracker in self._trackers:
@@ -473,8 +486,16 @@ class BenchNode(SlaveNode):
         self._error_register = 0
         self._running = True
         self._send_at = self._held_counts = None
-        logger.info("node %d: trial %d starts (N = %d, Ts = %g s, %d sub-steps, disturbance %s, seed %d)",
-                    self.node_id, trial, n_ticks, ts_s, substeps, DisturbanceKind(kind).label, seed)
+        logger.info(
+            "node %d: trial %d starts (N = %d, Ts = %g s, %d sub-steps, disturbance %s, seed %d)",
+            self.node_id,
+            trial,
+            n_ticks,
+            ts_s,
+            substeps,
+            DisturbanceKind(kind).label,
+            seed,
+        )
         paced = bool(store.get(BenchObj.CONFIG, ConfigSub.PACING))
         self._send_io(io_frames.encode_control(io_frames.ControlCommand.TRIAL_START, self._origin, n_ticks))
         if paced:
@@ -532,36 +553,51 @@ class BenchNode(SlaveNode):
         self.trials_done += 1
         self.last_trial_s = self._clock() - self._t_start
         self._record_timing()
-        logger.info("node %d: trial done, %d ticks in %.3f s (%.0f ticks/s)", self.node_id, self._n_ticks,
-                    self.last_trial_s, self._n_ticks / self.last_trial_s if self.last_trial_s > 0 else 0.0)
+        logger.info(
+            "node %d: trial done, %d ticks in %.3f s (%.0f ticks/s)",
+            self.node_id,
+            self._n_ticks,
+            self.last_trial_s,
+            self._n_ticks / self.last_trial_s if self.last_trial_s > 0 else 0.0,
+        )
 
     def _record_timing(self) -> None:
         """Keep the ended trial's timing for 0x2440."""
         if self._pacer is None:
             return
         r = self._pacer.result()
-        self._timing = TrialTiming(r.paced, r.ticks, round(r.duration_s * 1e6), r.deadline_misses,
-                                   round(r.lateness_p50_s * 1e6), round(r.lateness_p99_s * 1e6),
-                                   round(r.lateness_max_s * 1e6))
+        self._timing = TrialTiming(
+            r.paced,
+            r.ticks,
+            round(r.duration_s * 1e6),
+            r.deadline_misses,
+            round(r.lateness_p50_s * 1e6),
+            round(r.lateness_p99_s * 1e6),
+            round(r.lateness_max_s * 1e6),
+        )
         # t0 on the node clock (CLOCK_MONOTONIC in the role): a tool on the machine can match the
         # misses with a kernel trace of the same clock (benchmarks/rt_attribution.py)
         self._misses = DeadlineMisses(
             round(r.t0_s * 1e9) if r.paced else 0,
-            tuple(DeadlineMiss(m.tick, round(m.started_late_s * 1e6), round(m.overrun_s * 1e6)) for m in r.missed))
+            tuple(DeadlineMiss(m.tick, round(m.started_late_s * 1e6), round(m.overrun_s * 1e6)) for m in r.missed),
+        )
         if r.paced:
-            logger.info("node %d: paced trial: %d deadline misses, lateness p50 %.0f µs, p99 %.0f µs, max %.0f µs",
-                        self.node_id, r.deadline_misses, r.lateness_p50_s * 1e6, r.lateness_p99_s * 1e6,
-                        r.lateness_max_s * 1e6)
+            logger.info(
+                "node %d: paced trial: %d deadline misses, lateness p50 %.0f µs, p99 %.0f µs, max %.0f µs",
+                self.node_id,
+                r.deadline_misses,
+                r.lateness_p50_s * 1e6,
+                r.lateness_p99_s * 1e6,
+                r.lateness_max_s * 1e6,
+            )
 
     def _stop_io(self) -> None:
-        self._send_io(io_frames.encode_control(io_frames.ControlCommand.TRIAL_STOP,
-                                               self._origin + self._tick, self._n_ticks))
+        self._send_io(io_frames.encode_control(io_frames.ControlCommand.TRIAL_STOP, self._origin + self._tick, self._n_ticks))
         self._wire_next = self._origin + self._tick + 1
 
     def _abort(self, why: str) -> None:
         if self._running or self._pending_start:
-            self._fail(BenchFault.ABORTED, 0, f"trial {why} at tick {self._tick}",
-                       started=self._running)
+            self._fail(BenchFault.ABORTED, 0, f"trial {why} at tick {self._tick}", started=self._running)
 
     def _fail(self, fault: BenchFault, node: int, message: str, *, started: bool = True) -> None:
         """End the trial with ``fault``: TRIAL_STOP (if started), EMCY, status FAULT."""
@@ -591,13 +627,21 @@ class BenchNode(SlaveNode):
 
     def info(self) -> dict[str, Any]:
         """Counters and the last fault, for logs and summaries."""
-        return {"status": self._status.name, "fault": self._fault.name, "fault_message": self.last_fault_message,
-                "io_sent": self.io_sent, "io_received": self.io_received, "tick_timeouts": self.tick_timeouts,
-                "trials_done": self.trials_done, "last_trial_s": self.last_trial_s}
+        return {
+            "status": self._status.name,
+            "fault": self._fault.name,
+            "fault_message": self.last_fault_message,
+            "io_sent": self.io_sent,
+            "io_received": self.io_received,
+            "tick_timeouts": self.tick_timeouts,
+            "trials_done": self.trials_done,
+            "last_trial_s": self.last_trial_s,
+        }
 
 
-def run_plant_role(transport: TransportConfig, node_id: int = DEFAULT_BENCH_NODE_ID,
-                   stop: threading.Event | None = None) -> str | None:
+def run_plant_role(
+    transport: TransportConfig, node_id: int = DEFAULT_BENCH_NODE_ID, stop: threading.Event | None = None
+) -> str | None:
     """Plant process entry (``ilcrig plant``): the test-bench node on both buses of
     ``transport`` (a :class:`bus.transports.config.TransportConfig`), serving until SIGTERM/SIGINT or
     ``stop`` (a :class:`threading.Event`) is set; the buses are closed on the way out.
@@ -632,10 +676,16 @@ def run_plant_role(transport: TransportConfig, node_id: int = DEFAULT_BENCH_NODE
         io = transport.open("io")
         try:
             scale = units.timeout_scale()
-            node = BenchNode(fieldbus, io, plant_factory=plant_factory, disturbance_fn=disturbance_torque,
-                             node_id=node_id, tick_timeout_s=io_frames.TICK_TIMEOUT_S * scale,
-                             first_tick_timeout_s=io_frames.FIRST_TICK_TIMEOUT_S * scale,
-                             spin_s=BenchNode.REALTIME_SPIN_S)
+            node = BenchNode(
+                fieldbus,
+                io,
+                plant_factory=plant_factory,
+                disturbance_fn=disturbance_torque,
+                node_id=node_id,
+                tick_timeout_s=io_frames.TICK_TIMEOUT_S * scale,
+                first_tick_timeout_s=io_frames.FIRST_TICK_TIMEOUT_S * scale,
+                spin_s=BenchNode.REALTIME_SPIN_S,
+            )
             node.run(stop)
             return node.bus_error
         finally:

@@ -248,5 +248,4 @@ def default_true_plant() -> TruePlantConfig:
 
 def nominal_plant_config(torque_limit_enabled: bool = True) -> TruePlantConfig:
     """A plant built on the nominal model without friction (for tests and model checks)."""
-    return TruePlantConfig(mass=nominal_mass_model(), geometry=Geometry(),
-                           torque_limit_enabled=torque_limit_enabled)
+    return TruePlantConfig(mass=nominal_mass_model(), geometry=Geometry(), torque_limit_enabled=torque_limit_enabled)

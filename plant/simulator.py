@@ -43,8 +43,7 @@ class Plant:
     :param torque_lsb_nm: torque command LSB, N·m
     """
 
-    def __init__(self, config: TruePlantConfig, ts_s: float, substeps: int, rad_per_count: float,
-                 torque_lsb_nm: float) -> None:
+    def __init__(self, config: TruePlantConfig, ts_s: float, substeps: int, rad_per_count: float, torque_lsb_nm: float) -> None:
         if not ts_s > 0.0:
             raise ValueError(f"ts_s must be > 0, got {ts_s!r}")
         if int(substeps) != substeps or substeps < 1:
@@ -56,8 +55,14 @@ class Plant:
         self.substeps = int(substeps)
         self.rad_per_count = float(rad_per_count)
         self.torque_lsb_nm = float(torque_lsb_nm)
-        self._p = K.pack_params(config.geometry, config=config, ts_s=self.ts_s, substeps=self.substeps,
-                                rad_per_count=self.rad_per_count, torque_lsb_nm=self.torque_lsb_nm)
+        self._p = K.pack_params(
+            config.geometry,
+            config=config,
+            ts_s=self.ts_s,
+            substeps=self.substeps,
+            rad_per_count=self.rad_per_count,
+            torque_lsb_nm=self.torque_lsb_nm,
+        )
         self._ws = np.zeros((K.N_ROWS, 16), dtype=np.float64)
         self._counts = np.zeros(4, dtype=np.int64)
         self._zero4 = np.zeros(4, dtype=np.float64)
@@ -68,8 +73,9 @@ class Plant:
         self._ready = False
 
     @classmethod
-    def nominal(cls, ts_s: float, substeps: int, rad_per_count: float, torque_lsb_nm: float,
-                torque_limit_enabled: bool = True) -> Plant:
+    def nominal(
+        cls, ts_s: float, substeps: int, rad_per_count: float, torque_lsb_nm: float, torque_limit_enabled: bool = True
+    ) -> Plant:
         """A plant on the nominal mass model without friction (for tests / model checks)."""
         return cls(nominal_plant_config(torque_limit_enabled), ts_s, substeps, rad_per_count, torque_lsb_nm)
 
@@ -97,8 +103,9 @@ class Plant:
         self._faulted = True
         self._ready = False
         self._fault_text = K.STATUS_TEXT.get(status, f"status {status}")
-        raise PlantError(f"plant fault at t = {self.time_s:.6f} s: {self._fault_text}; "
-                         f"q = {self._ws[K.R_STATE, 0:4].tolist()} rad")
+        raise PlantError(
+            f"plant fault at t = {self.time_s:.6f} s: {self._fault_text}; q = {self._ws[K.R_STATE, 0:4].tolist()} rad"
+        )
 
     @property
     def q(self) -> np.ndarray:

@@ -20,16 +20,16 @@ def dense_g(minv: np.ndarray, kp: np.ndarray, kd: np.ndarray, ts: float) -> np.n
     S = np.zeros((n, ns, j))
     for i in range(n):
         if i > 0:
-            G[i * j:(i + 1) * j, : i * j] = -S[:i, :j, :].transpose(1, 0, 2).reshape(j, i * j)
+            G[i * j : (i + 1) * j, : i * j] = -S[:i, :j, :].transpose(1, 0, 2).reshape(j, i * j)
         mi = minv[i]
         ftau = np.hstack([-np.diag(kp + kd / ts), np.zeros((j, j)), np.diag(kd / ts)])
         A = np.zeros((ns, ns))
         A[:j, :j] = eye
-        A[:j, j:2 * j] = ts * eye
+        A[:j, j : 2 * j] = ts * eye
         A[:j] += 0.5 * ts * ts * mi @ ftau
-        A[j:2 * j, j:2 * j] = eye
-        A[j:2 * j] += ts * mi @ ftau
-        A[2 * j:, :j] = eye
+        A[j : 2 * j, j : 2 * j] = eye
+        A[j : 2 * j] += ts * mi @ ftau
+        A[2 * j :, :j] = eye
         B = np.vstack([0.5 * ts * ts * mi, ts * mi, np.zeros((j, j))])
         if i > 0:
             S[:i] = np.matmul(A, S[:i])
@@ -51,8 +51,7 @@ def dense_k(n: int, kp: np.ndarray, kd: np.ndarray, ts: float) -> np.ndarray:
     return np.kron(np.eye(n), np.diag(kp)) + np.kron(backward_difference(np.eye(n), ts), np.diag(kd))
 
 
-def dense_l(n: int, lp: np.ndarray, ld: np.ndarray, ts: float, m: int, use_p: bool = True,
-            use_d: bool = True) -> np.ndarray:
+def dense_l(n: int, lp: np.ndarray, ld: np.ndarray, ts: float, m: int, use_p: bool = True, use_d: bool = True) -> np.ndarray:
     eye = np.eye(n)
     out = np.zeros((n * len(lp),) * 2)
     if use_p:

@@ -76,15 +76,25 @@ def session_pids(session_id: int) -> list[int]:
     return found
 
 
-def run_rig(out: Path, *args: str, iterations: int = 2, timeout_s: float = 300.0,
-            on_line: Any = None) -> Outcome:
+def run_rig(out: Path, *args: str, iterations: int = 2, timeout_s: float = 300.0, on_line: Any = None) -> Outcome:
     """``python -m host.cli run --iterations N --cycle 0.15 --bus hub --out OUT ARGS`` in its own
     session; ``on_line(line, proc)`` sees every stdout line (e.g. to signal the launcher)."""
-    cmd = [sys.executable, "-m", "host.cli", "run", "--iterations", str(iterations), *EXPERIMENT, "--bus", "hub",
-           "--out", str(out), *args]
+    cmd = [
+        sys.executable,
+        "-m",
+        "host.cli",
+        "run",
+        "--iterations",
+        str(iterations),
+        *EXPERIMENT,
+        "--bus",
+        "hub",
+        "--out",
+        str(out),
+        *args,
+    ]
     t0 = time.monotonic()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
-                            start_new_session=True)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO, start_new_session=True)
     try:
         if on_line is not None:
             out_lines = []

@@ -21,8 +21,16 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("plant", "firmware_model", "bus", "host")
-SUBPACKAGES = ("bus.cia301", "bus.transports", "host.planning", "host.learning", "host.nodes",
-               "host.experiment", "host.analysis", "host.rig")
+SUBPACKAGES = (
+    "bus.cia301",
+    "bus.transports",
+    "host.planning",
+    "host.learning",
+    "host.nodes",
+    "host.experiment",
+    "host.analysis",
+    "host.rig",
+)
 
 #: unit -> the other units it may import.  A unit is a subpackage, or the top-level modules of a
 #: package (``bus``, ``host``), or ``plant.node`` (the plant's CANopen node, which alone of plant/
@@ -40,8 +48,19 @@ ALLOWED: dict[str, set[str]] = {
     "host.experiment": {"bus", "bus.cia301", "plant", "host.planning", "host.learning", "host.nodes"},
     "host.analysis": {"bus", "plant", "host.planning", "host.learning", "host.experiment"},
     "host.rig": {"bus", "bus.cia301", "bus.transports", "host.nodes", "host.experiment", "host.analysis"},
-    "host": {"bus", "bus.cia301", "bus.transports", "plant", "plant.node", "host.planning", "host.learning",
-             "host.nodes", "host.experiment", "host.analysis", "host.rig"},
+    "host": {
+        "bus",
+        "bus.cia301",
+        "bus.transports",
+        "plant",
+        "plant.node",
+        "host.planning",
+        "host.learning",
+        "host.nodes",
+        "host.experiment",
+        "host.analysis",
+        "host.rig",
+    },
 }
 #: modules allowed to import firmware_model beyond their unit's rule
 FIRMWARE_IMPORTERS = {"host.experiment.inprocess", "host.cli"}
@@ -130,7 +149,7 @@ def test_no_import_circles() -> None:
         stack.append(m)
         for n in sorted(graph[m]):
             if state.get(n) == 1:
-                cycle = stack[stack.index(n):] + [n]
+                cycle = stack[stack.index(n) :] + [n]
                 pytest.fail("import circle: " + " -> ".join(cycle))
             if n not in state:
                 visit(n)

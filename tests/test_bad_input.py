@@ -30,56 +30,66 @@ def assert_refused(code: int, err: str, *fragments: str) -> str:
 @pytest.fixture(autouse=True)
 def _no_launch(monkeypatch: pytest.MonkeyPatch) -> None:
     """`ilcrig run` must refuse before it launches anything: launching is an error here."""
+
     def boom(self: object) -> int:
         raise AssertionError("a process was launched")
 
     monkeypatch.setattr(launcher.RigLauncher, "run", boom)
 
 
-@pytest.mark.parametrize(("argv", "fragments"), [
-    (["--iterations", "100000000"], [f"iterations must be between 1 and {MAX_ITERATIONS}"]),
-    (["--lead", "600"], ["--lead 600", "less than N = 501"]),
-    (["--lead", "1000000"], ["--lead 1000000", "(0..500)"]),
-    (["--cycle", "40"], ["--cycle 40", "table capacity of 60000 samples"]),
-    (["--cycle", "nan"], ["cycle_s must be finite"]),
-    (["--cycle", "inf"], ["cycle_s must be finite"]),
-    (["--lp", "nan"], ["gains.lp must be finite"]),
-    (["--alpha", "inf"], ["gains.alpha must be finite"]),
-    (["--lp", "30000"], ["Kp of joint 1 = 60000", "fixed-point range 0..54685"]),
-    (["--lp", "1e12"], ["Kp of joint 1 = 2e+12"]),
-    (["--seed", "5000000000"], ["seed must be 0..4294967295"]),
-])
+@pytest.mark.parametrize(
+    ("argv", "fragments"),
+    [
+        (["--iterations", "100000000"], [f"iterations must be between 1 and {MAX_ITERATIONS}"]),
+        (["--lead", "600"], ["--lead 600", "less than N = 501"]),
+        (["--lead", "1000000"], ["--lead 1000000", "(0..500)"]),
+        (["--cycle", "40"], ["--cycle 40", "table capacity of 60000 samples"]),
+        (["--cycle", "nan"], ["cycle_s must be finite"]),
+        (["--cycle", "inf"], ["cycle_s must be finite"]),
+        (["--lp", "nan"], ["gains.lp must be finite"]),
+        (["--alpha", "inf"], ["gains.alpha must be finite"]),
+        (["--lp", "30000"], ["Kp of joint 1 = 60000", "fixed-point range 0..54685"]),
+        (["--lp", "1e12"], ["Kp of joint 1 = 2e+12"]),
+        (["--seed", "5000000000"], ["seed must be 0..4294967295"]),
+    ],
+)
 @pytest.mark.parametrize("command", ["sim", "run"])
-def test_bad_option(capsys: pytest.CaptureFixture[str], tmp_path: Path, command: str, argv: list[str],
-                    fragments: list[str]) -> None:
+def test_bad_option(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, command: str, argv: list[str], fragments: list[str]
+) -> None:
     code, _, err = run_cli(capsys, command, *argv, "--out", str(tmp_path / "run"))
     assert_refused(code, err, *fragments)
     assert not (tmp_path / "run").exists()  # nothing written
 
 
-def test_a_trial_that_needs_more_memory_than_the_machine_has(capsys: pytest.CaptureFixture[str], tmp_path: Path,
-                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_trial_that_needs_more_memory_than_the_machine_has(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     monkeypatch.setattr(plan_mod, "available_memory_bytes", lambda: 8 * 1024**3)
     code, _, err = run_cli(capsys, "sim", "--cycle", "10", "--out", str(tmp_path / "run"))
     line = assert_refused(code, err, "--cycle 10", "N = 20001", "about 191.0 GiB", "8.0 GiB available")
     assert "use a cycle of at most about" in line
 
 
-@pytest.mark.parametrize(("text", "fragments"), [
-    ("[gains]\nlp = 1e12\n", ["Kp of joint 1 = 2e+12"]),
-    ("[gains]\nlp = 30000\n", ["Kp of joint 1 = 60000"]),
-    ("gains = 5\n", ["exp.toml: gains must be a table", "got 5"]),
-    ('gains = "abc"\n', ["exp.toml: gains must be a table", "got 'abc'"]),
-    ("law = 3\n", ["exp.toml: law must be a string, got 3"]),
-    ("cycle_s = nan\n", ["exp.toml: cycle_s must be finite"]),
-    ("[gains]\nalpha = inf\n", ["exp.toml: gains.alpha must be finite"]),
-    ("iterations = 5000\n", ["exp.toml: iterations must be between 1 and 1000"]),
-    ("path = [1, 2]\n", ["exp.toml: path must be 1-4 or a path file name"]),
-    ("law = \n", ["exp.toml is not valid TOML"]),
-])
+@pytest.mark.parametrize(
+    ("text", "fragments"),
+    [
+        ("[gains]\nlp = 1e12\n", ["Kp of joint 1 = 2e+12"]),
+        ("[gains]\nlp = 30000\n", ["Kp of joint 1 = 60000"]),
+        ("gains = 5\n", ["exp.toml: gains must be a table", "got 5"]),
+        ('gains = "abc"\n', ["exp.toml: gains must be a table", "got 'abc'"]),
+        ("law = 3\n", ["exp.toml: law must be a string, got 3"]),
+        ("cycle_s = nan\n", ["exp.toml: cycle_s must be finite"]),
+        ("[gains]\nalpha = inf\n", ["exp.toml: gains.alpha must be finite"]),
+        ("iterations = 5000\n", ["exp.toml: iterations must be between 1 and 1000"]),
+        ("path = [1, 2]\n", ["exp.toml: path must be 1-4 or a path file name"]),
+        ("law = \n", ["exp.toml is not valid TOML"]),
+    ],
+)
 @pytest.mark.parametrize("command", ["sim", "run"])
-def test_bad_config_file(capsys: pytest.CaptureFixture[str], tmp_path: Path, command: str, text: str,
-                         fragments: list[str]) -> None:
+def test_bad_config_file(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, command: str, text: str, fragments: list[str]
+) -> None:
     cfg = tmp_path / "exp.toml"
     cfg.write_text(text)
     code, _, err = run_cli(capsys, command, "--config", str(cfg), "--out", str(tmp_path / "run"))
@@ -139,9 +149,13 @@ def test_out_in_a_read_only_folder(capsys: pytest.CaptureFixture[str], tmp_path:
 
 
 def test_bad_inject_specs(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
-    for spec, fragment in (("kill:drive9@1:10", "kill needs a role"), ("drop:io@99:0", "trial 99 is beyond"),
-                           ("shake:io@1:1", "unknown action 'shake'"), ("drop:io@1:2,rate=2", "rate must be in (0, 1]"),
-                           ("stall:host@x:1", "@TRIAL:TICK must be two integers")):
+    for spec, fragment in (
+        ("kill:drive9@1:10", "kill needs a role"),
+        ("drop:io@99:0", "trial 99 is beyond"),
+        ("shake:io@1:1", "unknown action 'shake'"),
+        ("drop:io@1:2,rate=2", "rate must be in (0, 1]"),
+        ("stall:host@x:1", "@TRIAL:TICK must be two integers"),
+    ):
         code, _, err = run_cli(capsys, "run", "--iterations", "2", "--inject", spec, "--out", str(tmp_path / "r"))
         assert_refused(code, err, f"--inject {spec}", fragment)
 
@@ -167,12 +181,15 @@ def test_command_line_gains_merge_over_the_file_table(tmp_path: Path) -> None:
     assert (cfg.gains.alpha, cfg.gains.ld_norm, cfg.gains.lp_norm) == (2.0, 0.1, 0.002)
 
 
-@pytest.mark.parametrize("argv", [
-    ["--lead", "600"],
-    ["--lp", "1e12"],
-    ["--cycle", "10"],
-    ["--path", "/nonexistent.toml"],
-])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--lead", "600"],
+        ["--lp", "1e12"],
+        ["--cycle", "10"],
+        ["--path", "/nonexistent.toml"],
+    ],
+)
 def test_cheap_refusals_come_before_planning(tmp_path: Path, argv: list[str]) -> None:
     """These are refused before the trajectory is planned and the learning law is built: in a
     fresh interpreter scipy.signal (about 1 s to import, needed by the laws) was never imported."""
@@ -184,8 +201,9 @@ def test_cheap_refusals_come_before_planning(tmp_path: Path, argv: list[str]) ->
         f"code = main({['sim', *argv, '--out', str(tmp_path / 'o')]!r})\n"
         "print(code, 'scipy.signal' in sys.modules)\n"
     )
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
-                         cwd=Path(__file__).resolve().parent.parent)
+    res = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=Path(__file__).resolve().parent.parent
+    )
     assert res.stdout.split() == ["2", "False"], (res.stdout, res.stderr)
     assert res.stderr.startswith("ilcrig: error: ") and len(res.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "o").exists()

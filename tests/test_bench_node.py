@@ -165,8 +165,7 @@ class ScriptedDrives:
                 if not self._may_answer(n):
                     return
                 for wire, torque in self.policy(frame.joint, n, frame.tick, frame.count):
-                    self.bus.send(io_frames.encode_torque(frame.joint, wire, torque,
-                                                          io_frames.TorqueStatus.ENABLED))
+                    self.bus.send(io_frames.encode_torque(frame.joint, wire, torque, io_frames.TorqueStatus.ENABLED))
 
     def close(self) -> None:
         self._stop.set()
@@ -230,15 +229,20 @@ class NodeThread:
 class BenchRig:
     """BenchNode (fake plant) in a thread + canopen host + scripted drives."""
 
-    def __init__(self, policy: Policy = honest, tick_timeout_s: float = 2.0,
-                 first_tick_timeout_s: float | None = None) -> None:
+    def __init__(self, policy: Policy = honest, tick_timeout_s: float = 2.0, first_tick_timeout_s: float | None = None) -> None:
         k = next(_counter)
         self.fb_channel, self.io_channel = f"bench-fb-{k}", f"bench-io-{k}"
         self.plants = PlantBox()
         fb = can.Bus(interface="virtual", channel=self.fb_channel)
         io = can.Bus(interface="virtual", channel=self.io_channel)
-        self.bench = BenchNode(fb, io, plant_factory=self.plants, disturbance_fn=fake_disturbance,
-                               tick_timeout_s=tick_timeout_s, first_tick_timeout_s=first_tick_timeout_s)
+        self.bench = BenchNode(
+            fb,
+            io,
+            plant_factory=self.plants,
+            disturbance_fn=fake_disturbance,
+            tick_timeout_s=tick_timeout_s,
+            first_tick_timeout_s=first_tick_timeout_s,
+        )
         self.host = Host(self.fb_channel)
         self.drives = ScriptedDrives(self.io_channel, policy)
         self.remote = self.host.node(BENCH_ID, BENCH_EDS_PATH)
@@ -352,8 +356,17 @@ def test_bench_modules_respect_the_dependency_direction() -> None:
         assert not {m.split(".")[0] for m in imported(rel)} & {"plant", "firmware_model", "host"}, rel
     assert not {m.split(".")[0] for m in imported("plant/node.py")} & {"firmware_model", "host"}
     mods = imported("host/nodes/bench_client.py")
-    assert {m.split(".")[0] for m in mods} <= {"__future__", "logging", "struct", "time", "dataclasses",
-                                               "typing", "numpy", "bus", "host"}
+    assert {m.split(".")[0] for m in mods} <= {
+        "__future__",
+        "logging",
+        "struct",
+        "time",
+        "dataclasses",
+        "typing",
+        "numpy",
+        "bus",
+        "host",
+    }
     assert {m for m in mods if m.startswith("host")} == set()
 
 
@@ -381,8 +394,7 @@ def test_objects_over_sdo(rig: BenchRig) -> None:
     assert remote.sdo[0x1008].raw == "ilcrig test bench"
     assert client.configuration() == {"ts_s": 0.001, "substeps": 4, "disturbance": "none", "seed": 0}
     client.configure(0.0005, 8, "both", 4_000_000_000)
-    assert client.configuration() == {"ts_s": 0.0005, "substeps": 8, "disturbance": "both",
-                                      "seed": 4_000_000_000}
+    assert client.configuration() == {"ts_s": 0.0005, "substeps": 8, "disturbance": "both", "seed": 4_000_000_000}
     assert remote.sdo[0x2400][3].raw == 3
     # EDS limits, lengths and access enforced by the node, mapped to SdoAbort by the adapter
     with pytest.raises(SdoAbort) as err:
@@ -482,7 +494,7 @@ def test_trial_protocol_frames_plant_and_counters(rig: BenchRig) -> None:
     assert ctl[0].tick == 0 and ctl[1].tick == n and ctl[2].tick == n + 1 and ctl[3].tick == 2 * n + 1
     enc = rig.drives.encoders
     assert len(enc) == 2 * 4 * n
-    assert [e.tick for e in enc[: 4 * n: 4]] == list(range(n))
+    assert [e.tick for e in enc[: 4 * n : 4]] == list(range(n))
     assert [e.joint for e in enc[:4]] == [0, 1, 2, 3]
     assert enc[0].count == round(Q0[0] * 1000)
     c = client.counters()
@@ -541,7 +553,12 @@ def test_drive_that_stops_answering_is_a_timeout_fault_and_the_node_recovers() -
             rig.client.wait_trial(5.0)
         state = err.value.state
         assert (state.status, state.fault, state.fault_tick, state.fault_node, state.ticks_done) == (
-            BenchStatus.FAULT, BenchFault.TICK_TIMEOUT, 5, 3, 5)
+            BenchStatus.FAULT,
+            BenchFault.TICK_TIMEOUT,
+            5,
+            3,
+            5,
+        )
         assert wait_for(lambda: bool(_emcy_of_bench(rig)))
         assert _emcy_of_bench(rig) == [(0x8100, 0x11, bytes([2, 3, 5, 0, 0]))]
         assert rig.remote.sdo[0x1001].raw == 0x11
@@ -567,8 +584,15 @@ def test_tick_zero_gets_the_longer_first_tick_timeout() -> None:
     fb = can.Bus(interface="virtual", channel=f"bench-fb-{k}")
     io = can.Bus(interface="virtual", channel=f"bench-io-{k}")
     drives = can.Bus(interface="virtual", channel=f"bench-io-{k}")
-    bench = BenchNode(fb, io, plant_factory=PlantBox(), disturbance_fn=fake_disturbance,
-                      tick_timeout_s=0.05, first_tick_timeout_s=0.4, clock=clock)
+    bench = BenchNode(
+        fb,
+        io,
+        plant_factory=PlantBox(),
+        disturbance_fn=fake_disturbance,
+        tick_timeout_s=0.05,
+        first_tick_timeout_s=0.4,
+        clock=clock,
+    )
 
     def start_trial(trial: int) -> None:
         bench.write_object(BenchObj.TRIAL, BenchTrialSub.TRIAL_INDEX, struct.pack("<I", trial))
@@ -699,8 +723,7 @@ def test_run_plant_role_serves_until_stopped() -> None:
     host = Host(transport.fieldbus.channel)
     drives = ScriptedDrives(transport.io.channel, lambda j, n, wire, count: [(wire, 0)])
     stop = threading.Event()
-    thread = threading.Thread(target=run_plant_role, args=(transport,), kwargs={"node_id": 33, "stop": stop},
-                              daemon=True)
+    thread = threading.Thread(target=run_plant_role, args=(transport,), kwargs={"node_id": 33, "stop": stop}, daemon=True)
     try:
         boot: list[int] = []
         host.network.subscribe(0x700 + 33, lambda _c, data, _t: boot.append(data[0]))

@@ -115,9 +115,7 @@ def test_merge_and_reset() -> None:
 
 
 def test_listener_counts_via_notifier() -> None:
-    with can.Bus(interface="virtual", channel="busload-test") as tx, can.Bus(
-        interface="virtual", channel="busload-test"
-    ) as rx:
+    with can.Bus(interface="virtual", channel="busload-test") as tx, can.Bus(interface="virtual", channel="busload-test") as rx:
         listener = BusLoadListener()
         for i in range(10):
             tx.send(can.Message(arbitration_id=0x100 + i, is_extended_id=False, data=bytes(i % 9)))

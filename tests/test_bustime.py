@@ -119,8 +119,7 @@ def test_objects_are_grouped_by_what_the_experiment_defines() -> None:
 
 def test_per_trial_exchange_follows_from_the_transfer_sizes_not_the_number_of_polls() -> None:
     def run(polls: int) -> dict:
-        acc = BusTimeAccounting(io_bitrate=500_000, fieldbus_bitrate=500_000, ts_s=1e-3, trial_s=0.5,
-                                heartbeat_ms=100, n_nodes=5)
+        acc = BusTimeAccounting(io_bitrate=500_000, fieldbus_bitrate=500_000, ts_s=1e-3, trial_s=0.5, heartbeat_ms=100, n_nodes=5)
         for trial in range(3):
             sdo_upload_expedited(acc.fieldbus, 1, int(Obj.TABLE), 1)  # per trial: 270 bits
             for _ in range(polls):
@@ -153,9 +152,12 @@ def test_io_frames_counted_as_arrays_give_the_same_figures() -> None:
         tick = n & 0xFFFF
         msgs += [io_frames.encode_encoder(j, tick, j) for j in range(4)]
         msgs += [io_frames.encode_torque(j, (tick - (j % 2)) & 0xFFFF, 0, 0) for j in range(4)]
-    msgs += [io_frames.encode_torque(1, 65_531, 0, 0),  # a duplicate long after its tick: a bin of its own
-             frame(0x7FF, b"\x01"), frame(0x101, b"\x01\x02"),
-             io_frames.encode_control(io_frames.ControlCommand.TRIAL_STOP, 65_560, 30)]
+    msgs += [
+        io_frames.encode_torque(1, 65_531, 0, 0),  # a duplicate long after its tick: a bin of its own
+        frame(0x7FF, b"\x01"),
+        frame(0x101, b"\x01\x02"),
+        io_frames.encode_control(io_frames.ControlCommand.TRIAL_STOP, 65_560, 30),
+    ]
     one, many = IoTickCounter(), IoTickCounter()
     for m in msgs:
         one.add(m)

@@ -157,9 +157,15 @@ def test_frames_written_as_arrays_give_the_same_lines(tmp_path: Path) -> None:
     t = 1_795_403_351.3251324
     for i in range(500):  # classic frames of every length, received and sent, some out of order
         t += rng.random() * 1e-4
-        msgs.append(can.Message(timestamp=t - (10 if i == 3 else 0), arbitration_id=rng.choice([0, 0x10, 0x101, 0x7FF]),
-                                is_extended_id=False, is_rx=rng.random() < 0.8,
-                                data=bytes(rng.randrange(256) for _ in range(rng.randrange(9)))))
+        msgs.append(
+            can.Message(
+                timestamp=t - (10 if i == 3 else 0),
+                arbitration_id=rng.choice([0, 0x10, 0x101, 0x7FF]),
+                is_extended_id=False,
+                is_rx=rng.random() < 0.8,
+                data=bytes(rng.randrange(256) for _ in range(rng.randrange(9))),
+            )
+        )
     msgs.append(can.Message(timestamp=t + 1, arbitration_id=0x1, is_extended_id=False, data=b"\x01"))
     one, many = tmp_path / "one.log", tmp_path / "many.log"
     with open_log(one, "io") as log:

@@ -102,8 +102,9 @@ def test_internal_limit_bit_only_when_enabled() -> None:
     assert not sm.statusword(internal_limit=True) & Statusword.INTERNAL_LIMIT
 
 
-@pytest.mark.parametrize("start", [S.SWITCH_ON_DISABLED, S.READY_TO_SWITCH_ON, S.SWITCHED_ON,
-                                   S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE])
+@pytest.mark.parametrize(
+    "start", [S.SWITCH_ON_DISABLED, S.READY_TO_SWITCH_ON, S.SWITCHED_ON, S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE]
+)
 def test_fault_and_fault_reset(start: S) -> None:
     sm = _machine_in(start)
     sm.fault()

@@ -53,10 +53,10 @@ def test_unknown_toml_key_and_nan_gain(capsys, tmp_path: Path) -> None:
     cfg.write_text('law = "pd-ilc"\nspeed = 3\n')
     code, _, err = run_cli(capsys, "sim", "--config", str(cfg))
     assert_one_line_error(code, err, "unknown key(s): speed")
-    cfg.write_text('[gains]\nld = nan\n')
+    cfg.write_text("[gains]\nld = nan\n")
     code, _, err = run_cli(capsys, "sim", "--config", str(cfg))
     assert_one_line_error(code, err, "gains.ld must be finite")
-    cfg.write_text('[gains]\nwobble = 1\n')
+    cfg.write_text("[gains]\nwobble = 1\n")
     code, _, err = run_cli(capsys, "sim", "--config", str(cfg))
     assert_one_line_error(code, err, "unknown key(s) in [gains]: wobble")
 

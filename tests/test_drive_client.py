@@ -72,8 +72,7 @@ def test_short_trial_against_toy_plant() -> None:
     assert a == 0.5
     client.configure(300.0, 10.0)  # unfiltered velocity (default) for the trial below
     assert drive.read_object(Obj.MAX_TORQUE, 0) == struct.pack("<H", round(50.0 / 0.0882))
-    assert int.from_bytes(drive.read_object(Obj.FOLLOWING_ERROR_WINDOW, 0), "little") == math.ceil(
-        0.05 / RAD_PER_COUNT)
+    assert int.from_bytes(drive.read_object(Obj.FOLLOWING_ERROR_WINDOW, 0), "little") == math.ceil(0.05 / RAD_PER_COUNT)
 
     client.load_reference(q, qd)
     client.load_feedforward(J * qdd)

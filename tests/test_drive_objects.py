@@ -208,8 +208,7 @@ def test_trial_playback_recorder_and_actuals() -> None:
     assert rd_u(d, Obj.TRIAL, TrialSub.STATE) == TrialState.RUNNING
     assert rd_u(d, Obj.RECORDER, RecorderSub.STATUS) == RecorderStatus.RECORDING
     assert abort_code(d.read_object, Obj.RECORDER_DATA, 0) == AbortCode.DEVICE_STATE
-    assert abort_code(d.write_object, Obj.FEEDFORWARD_TABLE, 0, pack_int32(np.zeros(5, int))) == (
-        AbortCode.DEVICE_STATE)
+    assert abort_code(d.write_object, Obj.FEEDFORWARD_TABLE, 0, pack_int32(np.zeros(5, int))) == (AbortCode.DEVICE_STATE)
     assert abort_code(d.write_object, Obj.CONTROL_PERIOD, 0, u32(500)) == AbortCode.DEVICE_STATE
     taus += [d.io_tick(n, c) for n, c in enumerate(counts[3:], start=3)]
     ref = [0, 10, 20, 30, 40, 40, 40]
@@ -261,8 +260,7 @@ def test_tick_sequence_fault_and_emcy(ticks: list[int], bad: int) -> None:
     assert d.pop_emcy() == []
     assert rd_u(d, Obj.TRIAL, TrialSub.STATE) == TrialState.FAULT
     assert rd_u(d, Obj.TRIAL, TrialSub.FAULT_CAUSE) == FaultCause.TICK_SEQUENCE
-    assert rd_u(d, Obj.RECORDER, RecorderSub.STATUS) == (
-        RecorderStatus.STOPPED if played else RecorderStatus.EMPTY)
+    assert rd_u(d, Obj.RECORDER, RecorderSub.STATUS) == (RecorderStatus.STOPPED if played else RecorderStatus.EMPTY)
     assert rd_u(d, Obj.RECORDER, RecorderSub.SAMPLES) == played
     assert len(d.read_object(Obj.RECORDER_DATA, 0)) == 16 * played
     assert d.io_tick(len(ticks), 0) == 0  # torque stays off

@@ -30,18 +30,21 @@ def test_parse_the_forms() -> None:
     assert (s.action, s.trial) == ("diskfull", 3)
 
 
-@pytest.mark.parametrize(("text", "fragment"), [
-    ("kill:drive5@1:1", "kill needs a role"),
-    ("drop:can0@1:1", "drop needs a channel"),
-    ("explode:io@1:1", "unknown action"),
-    ("drop:io@-1:1", "trial and tick must be >= 0"),
-    ("drop:io@1:1,rate=0", "rate must be in (0, 1]"),
-    ("drop:io@1:1,count=0", "count must be an integer >= 1"),
-    ("drop:io@1:1,for=2", "not known for drop"),
-    ("drop:io@1:1,rate=nan", "must be finite"),
-    ("emcy:drive1@1:1,code=0", "code must be an EMCY error code"),
-    ("diskfull:x@1", "diskfull takes no target"),
-])
+@pytest.mark.parametrize(
+    ("text", "fragment"),
+    [
+        ("kill:drive5@1:1", "kill needs a role"),
+        ("drop:can0@1:1", "drop needs a channel"),
+        ("explode:io@1:1", "unknown action"),
+        ("drop:io@-1:1", "trial and tick must be >= 0"),
+        ("drop:io@1:1,rate=0", "rate must be in (0, 1]"),
+        ("drop:io@1:1,count=0", "count must be an integer >= 1"),
+        ("drop:io@1:1,for=2", "not known for drop"),
+        ("drop:io@1:1,rate=nan", "must be finite"),
+        ("emcy:drive1@1:1,code=0", "code must be an EMCY error code"),
+        ("diskfull:x@1", "diskfull takes no target"),
+    ],
+)
 def test_bad_specs_name_themselves(text: str, fragment: str) -> None:
     with pytest.raises(FaultSpecError) as exc:
         parse_spec(text)

@@ -35,12 +35,10 @@ CASES = [
     ("stall-drive", f"stall:drive3@1:{TICK},for=2", {"node_lost"}, "drive3", {"host"}),
     ("stall-plant", f"stall:plant@1:{TICK},for=2", {"node_lost"}, "plant", {"host"}),
     ("stall-hub", f"stall:hub@1:{TICK},for=2", {"bus_silent"}, "hub", {"host"}),
-    ("stall-host", f"stall:host@1:{TICK},for=2", {"host_lost"}, "host",
-     {"drive1", "drive2", "drive3", "drive4", "plant"}),
+    ("stall-host", f"stall:host@1:{TICK},for=2", {"host_lost"}, "host", {"drive1", "drive2", "drive3", "drive4", "plant"}),
     ("drop-io", f"drop:io@1:{TICK}", {"frame_lost"}, None, {"plant"}),
     ("corrupt-io", f"corrupt:io@1:{TICK}", {"frame_error"}, None, {"host", "plant"}),
-    ("duplicate-io", f"duplicate:io@1:{TICK}", {"frame_sequence"}, None,
-     {"drive1", "drive2", "drive3", "drive4", "plant"}),
+    ("duplicate-io", f"duplicate:io@1:{TICK}", {"frame_sequence"}, None, {"drive1", "drive2", "drive3", "drive4", "plant"}),
     ("delay-io", f"delay:io@1:{TICK}", {"frame_lost"}, None, {"plant"}),
     ("emcy", f"emcy:drive2@1:{TICK},code=0x8611", {"emcy"}, "drive2", {"drive2"}),
 ]
@@ -73,8 +71,9 @@ def check_common(o: Outcome, kept: int) -> dict:
 
 
 @pytest.mark.parametrize(("spec", "kinds", "node", "detectors"), [c[1:] for c in CASES], ids=[c[0] for c in CASES])
-def test_injected_fault_ends_the_run_the_one_way(tmp_path: Path, spec: str, kinds: set[str], node: str | None,
-                                                 detectors: set[str]) -> None:
+def test_injected_fault_ends_the_run_the_one_way(
+    tmp_path: Path, spec: str, kinds: set[str], node: str | None, detectors: set[str]
+) -> None:
     o = run_rig(tmp_path / "run", "--inject", spec)
     try:
         f = check_common(o, kept=1)

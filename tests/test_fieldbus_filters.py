@@ -54,8 +54,7 @@ def test_a_drive_accepts_nmt_its_sdo_sync_its_valid_rpdos_and_watched_heartbeats
         node.start()
         # the EDS defaults: every RPDO invalid, SYNC 0x080, no heartbeat consumed
         assert node.fieldbus_ids() == {0x000, 0x600 + NODE, 0x080}
-        assert fb.filters == [{"can_id": c, "can_mask": 0x7FF, "extended": False}
-                              for c in (0x000, 0x080, 0x600 + NODE)]
+        assert fb.filters == [{"can_id": c, "can_mask": 0x7FF, "extended": False} for c in (0x000, 0x080, 0x600 + NODE)]
         # what the SDO server writes is what the next filters hold
         drive.write_object(0x1400, 1, (0x200 + NODE).to_bytes(4, "little"))
         drive.write_object(0x1401, 1, (0x3A0).to_bytes(4, "little"))
@@ -82,8 +81,10 @@ def test_the_filters_change_before_the_sdo_response_goes_out() -> None:
         node.start()
         events: list[str] = []
         send, set_filters = fb.send, fb.set_filters
-        fb.send = lambda msg, timeout=None: (events.append(f"send 0x{msg.arbitration_id:03X}"),  # type: ignore[method-assign]
-                                             send(msg, timeout))
+        fb.send = lambda msg, timeout=None: (
+            events.append(f"send 0x{msg.arbitration_id:03X}"),  # type: ignore[method-assign]
+            send(msg, timeout),
+        )
         fb.set_filters = lambda filters=None: (events.append("filters"), set_filters(filters))  # type: ignore[method-assign]
         for value in (PDO_NOT_VALID | (0x300 + NODE), 0x3A0):  # expedited download of 0x1401:1
             request = bytes([0x23, 0x01, 0x14, 0x01]) + value.to_bytes(4, "little")
@@ -103,8 +104,7 @@ def hub(hub_data_plane: str, tmp_path: Path) -> Iterator[HubServer]:
         yield server
 
 
-def test_over_the_hub_other_nodes_frames_never_reach_the_drive_and_a_moved_rpdo_is_heard_at_once(
-        hub: HubServer) -> None:
+def test_over_the_hub_other_nodes_frames_never_reach_the_drive_and_a_moved_rpdo_is_heard_at_once(hub: HubServer) -> None:
     address = hub.addresses[0]
     fb = can.Bus(interface="ilcrig_hub", channel=f"{address}#fieldbus")
     io = can.Bus(interface="ilcrig_hub", channel=f"{address}#io")

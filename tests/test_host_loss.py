@@ -130,13 +130,16 @@ def test_drive_bus_loss_removes_torque() -> None:
     assert d.read_object(Obj.TRIAL, TrialSub.FAULT_CAUSE) == bytes([FaultCause.BUS_LOST])
 
 
-@pytest.mark.parametrize(("index", "sub", "data"), [
-    (Obj.GAINS, GainsSub.KP, struct.pack("<i", 1000)),
-    (Obj.GAINS, GainsSub.KD, struct.pack("<i", 1000)),
-    (Obj.GAINS, GainsSub.VEL_FILTER, u16(1000)),
-    (Obj.FOLLOWING_ERROR_WINDOW, 0, u32(0xFFFFFFFF)),
-    (Obj.MAX_TORQUE, 0, u16(100)),
-])
+@pytest.mark.parametrize(
+    ("index", "sub", "data"),
+    [
+        (Obj.GAINS, GainsSub.KP, struct.pack("<i", 1000)),
+        (Obj.GAINS, GainsSub.KD, struct.pack("<i", 1000)),
+        (Obj.GAINS, GainsSub.VEL_FILTER, u16(1000)),
+        (Obj.FOLLOWING_ERROR_WINDOW, 0, u32(0xFFFFFFFF)),
+        (Obj.MAX_TORQUE, 0, u16(100)),
+    ],
+)
 def test_motion_settings_are_refused_while_a_trial_is_armed_or_running(index: int, sub: int, data: bytes) -> None:
     d = armed_drive()
     with pytest.raises(SdoAbort) as exc:
@@ -248,9 +251,17 @@ def _stepped_bench() -> Any:
     """A bench node on a :class:`Stepped` rig with a still plant and long tick deadlines."""
     import numpy as np
 
-    return Stepped(lambda fb, io, clock: BenchNode(
-        fb, io, plant_factory=lambda ts, n: _StillPlant(), disturbance_fn=lambda *a: np.zeros((a[3], 4)),
-        clock=clock, tick_timeout_s=60.0, first_tick_timeout_s=60.0))
+    return Stepped(
+        lambda fb, io, clock: BenchNode(
+            fb,
+            io,
+            plant_factory=lambda ts, n: _StillPlant(),
+            disturbance_fn=lambda *a: np.zeros((a[3], 4)),
+            clock=clock,
+            tick_timeout_s=60.0,
+            first_tick_timeout_s=60.0,
+        )
+    )
 
 
 def test_bench_ends_a_running_trial_when_the_host_is_lost() -> None:

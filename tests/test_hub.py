@@ -174,9 +174,11 @@ def test_five_clients_exchange_exactly() -> None:
 
 def test_logical_buses_are_separate_and_echo_on_request() -> None:
     with start_hub() as hub:
-        with HubBus(hub.channel("io")) as a, HubBus(hub.channel("io"), receive_own_messages=True) as b, HubBus(
-            hub.channel("fieldbus")
-        ) as c:
+        with (
+            HubBus(hub.channel("io")) as a,
+            HubBus(hub.channel("io"), receive_own_messages=True) as b,
+            HubBus(hub.channel("fieldbus")) as c,
+        ):
             b.send(can.Message(arbitration_id=0x181, is_extended_id=False, data=b"\x01"))
             got_a, own_b = a.recv(2.0), b.recv(2.0)
             assert got_a is not None and got_a.is_rx and bytes(got_a.data) == b"\x01"
@@ -191,9 +193,12 @@ def test_logical_buses_are_separate_and_echo_on_request() -> None:
 
 def test_fileno_select_over_two_buses_and_hub_side_filters() -> None:
     with start_hub() as hub:
-        with HubBus(hub.channel("io")) as io_tx, HubBus(hub.channel("fieldbus")) as fb_tx, HubBus(
-            hub.channel("io"), can_filters=[{"can_id": 0x101, "can_mask": 0x7FF, "extended": False}]
-        ) as io_rx, HubBus(hub.channel("fieldbus")) as fb_rx:
+        with (
+            HubBus(hub.channel("io")) as io_tx,
+            HubBus(hub.channel("fieldbus")) as fb_tx,
+            HubBus(hub.channel("io"), can_filters=[{"can_id": 0x101, "can_mask": 0x7FF, "extended": False}]) as io_rx,
+            HubBus(hub.channel("fieldbus")) as fb_rx,
+        ):
             # the hub handles one client's records in order: once io_rx's next frame reached
             # io_tx, the hub has applied io_rx's filter record (sent right after the handshake)
             io_rx.send(can.Message(arbitration_id=0x7FF, is_extended_id=False))
@@ -273,7 +278,10 @@ def test_non_loopback_listen_refused(addr: str) -> None:
 def test_cli_refuses_non_loopback() -> None:
     res = subprocess.run(
         [sys.executable, "-m", "bus.transports.hub_server", "--listen", "tcp:0.0.0.0:0"],
-        capture_output=True, text=True, timeout=30, check=False,
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=False,
     )
     assert res.returncode != 0 and "non-loopback" in res.stderr
 

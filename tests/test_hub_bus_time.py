@@ -24,8 +24,9 @@ pytestmark = pytest.mark.multiprocess
 
 
 def std(can_id: int, n: int = 2, remote: bool = False) -> can.Message:
-    return can.Message(arbitration_id=can_id, is_extended_id=False, data=b"" if remote else bytes(range(n)),
-                       is_remote_frame=remote, dlc=n)
+    return can.Message(
+        arbitration_id=can_id, is_extended_id=False, data=b"" if remote else bytes(range(n)), is_remote_frame=remote, dlc=n
+    )
 
 
 def bit_s(msg: can.Message, bitrate: int) -> float:
@@ -99,8 +100,7 @@ def test_one_nodes_frames_keep_their_order_and_the_bus_counts_them_as_sent() -> 
     """A node's transmit queue is first in, first out: its 0x300 goes before its 0x100 (while
     another node's 0x200, queued later, waits for its turn by arbitration)."""
     rate = 1_000_000
-    with start_hub(bus_time={"b": rate}) as hub, HubBus(hub.channel("b")) as rx, \
-            HubBus(hub.channel("b")) as a:
+    with start_hub(bus_time={"b": rate}) as hub, HubBus(hub.channel("b")) as rx, HubBus(hub.channel("b")) as a:
         a.send_batch([std(0x300, 8), std(0x100, 8), std(0x050, 0, remote=True)])
         got = recv_n(rx, 3)
         assert [(m.arbitration_id, m.is_remote_frame) for m in got] == [(0x300, False), (0x100, False), (0x050, True)]
@@ -110,8 +110,12 @@ def test_one_nodes_frames_keep_their_order_and_the_bus_counts_them_as_sent() -> 
 
 
 def test_buses_without_a_rate_are_not_timed_and_echo_comes_when_the_frame_is_sent() -> None:
-    with start_hub(bus_time={"slow": 500}) as hub, HubBus(hub.channel("fast")) as f_rx, \
-            HubBus(hub.channel("fast")) as f_tx, HubBus(hub.channel("slow"), receive_own_messages=True) as s_tx:
+    with (
+        start_hub(bus_time={"slow": 500}) as hub,
+        HubBus(hub.channel("fast")) as f_rx,
+        HubBus(hub.channel("fast")) as f_tx,
+        HubBus(hub.channel("slow"), receive_own_messages=True) as s_tx,
+    ):
         s_tx.send(std(0x123, 8))  # 270 ms on the slow bus
         f_tx.send(std(0x456))
         assert f_rx.recv(5.0).arbitration_id == 0x456  # type: ignore[union-attr]

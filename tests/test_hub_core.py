@@ -77,8 +77,7 @@ def test_which_plane_a_hub_uses(tmp_path: Path, monkeypatch: pytest.MonkeyPatch)
     if hub_server._hubcore is None:
         pytest.skip("the C core is not built here")
     monkeypatch.delenv(HUB_CORE_ENV, raising=False)
-    cases = [({}, "c"), ({"bus_time": {"io": 1_000_000}}, "python"),
-             ({"frame_hook": FrameFaultInjector([], None)}, "python")]
+    cases = [({}, "c"), ({"bus_time": {"io": 1_000_000}}, "python"), ({"frame_hook": FrameFaultInjector([], None)}, "python")]
     for i, (kwargs, plane) in enumerate(cases):
         with HubServer([f"unix:{tmp_path}/h{i}.sock"], **kwargs) as server:  # type: ignore[arg-type]
             assert server.data_plane == plane, kwargs
@@ -94,14 +93,17 @@ def test_records_split_over_reads_and_sent_with_the_hello_arrive_whole(served: H
         try:
             two = _frame(0x11, b"\x01\x02\x03") + _frame(0x12, bytes(8))
             for i in range(len(two)):  # byte by byte: every read ends inside a record
-                tx.send(two[i:i + 1])
+                tx.send(two[i : i + 1])
                 if i % 7 == 0:
                     assert wait_until(lambda n=1 + (i + 1) // HEADER.size: served.stats()["s"].frames >= n)
             got = [rx.recv(5.0) for _ in range(3)]
         finally:
             tx.close()
-    assert [(m.arbitration_id, bytes(m.data)) for m in got if m is not None] == \
-        [(0x10, b"hello"), (0x11, b"\x01\x02\x03"), (0x12, bytes(8))]
+    assert [(m.arbitration_id, bytes(m.data)) for m in got if m is not None] == [
+        (0x10, b"hello"),
+        (0x11, b"\x01\x02\x03"),
+        (0x12, bytes(8)),
+    ]
     st = served.stats()["s"]
     assert (st.frames, st.bits) == (3, (47 + 40) + (47 + 24) + (47 + 64))
 

@@ -55,8 +55,9 @@ def test_send_batch_arrives_as_single_frames_in_order() -> None:
         assert isinstance(tx, BatchSender) and batch_sender(tx) == tx.send_batch
         tx.send_batch(frames(5))
         got = [rx.recv(2.0) for _ in range(5)]
-        assert [(m.arbitration_id, bytes(m.data)) for m in got if m is not None] == \
-            [(0x100 + i, bytes([i, 0xAA])) for i in range(5)]
+        assert [(m.arbitration_id, bytes(m.data)) for m in got if m is not None] == [
+            (0x100 + i, bytes([i, 0xAA])) for i in range(5)
+        ]
         assert hub.stats()["b"].frames == 5
 
 
@@ -98,8 +99,12 @@ def test_a_bus_without_the_extras_gets_the_plain_fallbacks() -> None:
 
 
 def test_bulk_member_gets_every_frame_with_the_hubs_timestamps() -> None:
-    with start_hub() as hub, HubBus(hub.channel("m")) as tx, \
-            HubBus(hub.channel("m"), bulk_delivery=True) as bulk, HubBus(hub.channel("m")) as live:
+    with (
+        start_hub() as hub,
+        HubBus(hub.channel("m")) as tx,
+        HubBus(hub.channel("m"), bulk_delivery=True) as bulk,
+        HubBus(hub.channel("m")) as live,
+    ):
         assert bulk.bulk_delivery
         sent_at = []
         for msg in frames(40):
@@ -160,8 +165,7 @@ def _mixed_frames() -> list[can.Message]:
 
 def test_recv_frames_gives_the_same_frames_as_recv_without_messages() -> None:
     fd = can.Message(arbitration_id=0x55, is_extended_id=False, is_fd=True, bitrate_switch=True, data=bytes(range(20)))
-    with start_hub() as hub, HubBus(hub.channel("f")) as tx, HubBus(hub.channel("f")) as rx, \
-            HubBus(hub.channel("f")) as ref:
+    with start_hub() as hub, HubBus(hub.channel("f")) as tx, HubBus(hub.channel("f")) as rx, HubBus(hub.channel("f")) as ref:
         assert isinstance(rx, FrameArrayReceiver)
         for sent in (_mixed_frames(), [*_mixed_frames()[:3], fd, *_mixed_frames()[3:6]]):
             tx.send_batch(sent)
@@ -176,8 +180,9 @@ def test_recv_frames_gives_the_same_frames_as_recv_without_messages() -> None:
             for name in FRAME_DTYPE.names or ():
                 assert (got[name] == expected[name]).all(), name
             back = messages_from_frames(got, "x")
-            assert [(m.arbitration_id, bytes(m.data), m.is_fd, m.is_remote_frame, m.dlc) for m in back] == \
-                [(m.arbitration_id, bytes(m.data), m.is_fd, m.is_remote_frame, m.dlc) for m in sent]
+            assert [(m.arbitration_id, bytes(m.data), m.is_fd, m.is_remote_frame, m.dlc) for m in back] == [
+                (m.arbitration_id, bytes(m.data), m.is_fd, m.is_remote_frame, m.dlc) for m in sent
+            ]
         assert len(rx.recv_frames(0)) == 0
 
 
@@ -194,8 +199,11 @@ def test_recv_frames_takes_the_frames_already_read_ahead_first() -> None:
 
 
 def test_load_of_counts_as_the_counter_does_one_by_one() -> None:
-    msgs = [*_mixed_frames(), can.Message(arbitration_id=1, is_fd=True, data=bytes(12)),
-            can.Message(arbitration_id=2, is_error_frame=True)]
+    msgs = [
+        *_mixed_frames(),
+        can.Message(arbitration_id=1, is_fd=True, data=bytes(12)),
+        can.Message(arbitration_id=2, is_error_frame=True),
+    ]
     one_by_one = BusLoadCounter()
     for m in msgs:
         one_by_one.add(m)

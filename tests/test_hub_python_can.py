@@ -85,9 +85,23 @@ def _fetch_upstream_tests() -> Path:
         return pkg
     pkg.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=pkg.parent) as tmp:
-        cmd = [sys.executable, "-m", "pip", "download", "--no-binary", ":all:", "--no-deps",
-               "--disable-pip-version-check", "--timeout", "20", "--retries", "1",
-               "-d", tmp, f"python-can=={PYCAN_VERSION}"]
+        cmd = [
+            sys.executable,
+            "-m",
+            "pip",
+            "download",
+            "--no-binary",
+            ":all:",
+            "--no-deps",
+            "--disable-pip-version-check",
+            "--timeout",
+            "20",
+            "--retries",
+            "1",
+            "-d",
+            tmp,
+            f"python-can=={PYCAN_VERSION}",
+        ]
         res = subprocess.run(cmd, capture_output=True, text=True, timeout=300, check=False)
         sdists = sorted(Path(tmp).glob("python[-_]can-*.tar.gz"))
         if res.returncode != 0 or not sdists:
@@ -302,9 +316,22 @@ def test_can_bridge_joins_two_hub_buses(hub: HubHandle) -> None:
     """``python -m can.bridge`` between two logical buses of the hub, both directions."""
     with HubBus(hub.channel("bra")) as a, HubBus(hub.channel("brb")) as b:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "can.bridge", "--bus1-interface", "ilcrig_hub", "--bus1-channel", hub.channel("bra"),
-             "--bus2-interface", "ilcrig_hub", "--bus2-channel", hub.channel("brb")],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+            [
+                sys.executable,
+                "-m",
+                "can.bridge",
+                "--bus1-interface",
+                "ilcrig_hub",
+                "--bus1-channel",
+                hub.channel("bra"),
+                "--bus2-interface",
+                "ilcrig_hub",
+                "--bus2-channel",
+                hub.channel("brb"),
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
         )
         try:
             assert _wait_until(lambda: _members(hub, "bra") == 2 and _members(hub, "brb") == 2, 30), "bridge did not join"
@@ -330,9 +357,11 @@ def test_can_player_replays_a_log_onto_the_hub(hub: HubHandle, tmp_path: Path) -
     expected = list(can.LogReader(log))  # what the candump format keeps (a remote frame's DLC: not)
     with HubBus(hub.channel("play")) as rx:
         res = subprocess.run(
-            [sys.executable, "-m", "can.player", "-i", "ilcrig_hub", "-c", hub.channel("play"), "--ignore-timestamps",
-             str(log)],
-            capture_output=True, text=True, timeout=60, check=False,
+            [sys.executable, "-m", "can.player", "-i", "ilcrig_hub", "-c", hub.channel("play"), "--ignore-timestamps", str(log)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=False,
         )
         assert res.returncode == 0, res.stderr
         got = [rx.recv(5.0) for _ in expected]

@@ -62,8 +62,10 @@ def test_one_sched_idle_loop_per_cpu_until_stopped() -> None:
 
 
 def test_the_loops_die_with_the_process_that_started_them() -> None:
-    code = ("import sys; sys.path.insert(0, sys.argv[1]); from host.rig.idle_poll import IdlePollers; "
-            "p = IdlePollers(2); print(' '.join(map(str, p.pids)), flush=True); import time; time.sleep(600)")
+    code = (
+        "import sys; sys.path.insert(0, sys.argv[1]); from host.rig.idle_poll import IdlePollers; "
+        "p = IdlePollers(2); print(' '.join(map(str, p.pids)), flush=True); import time; time.sleep(600)"
+    )
     repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     parent = subprocess.Popen([sys.executable, "-c", code, repo], stdout=subprocess.PIPE, text=True)
     pids: list[int] = []
@@ -88,7 +90,9 @@ def test_the_loops_die_with_the_process_that_started_them() -> None:
 def test_the_scheduling_line_says_whether_the_cpus_were_kept_awake() -> None:
     fifo = {"policy": "SCHED_FIFO", "priority": 10, "roles": ["hub", "plant"]}
     assert scheduling_text(fifo | {"idle_poll": {"loops": 2}}) == (
-        "lockstep processes (hub, plant) in SCHED_FIFO 10, CPUs kept awake by 2 SCHED_IDLE busy loops")
+        "lockstep processes (hub, plant) in SCHED_FIFO 10, CPUs kept awake by 2 SCHED_IDLE busy loops"
+    )
     assert scheduling_text(fifo | {"idle_poll": {"loops": 0, "reason": "--no-idle-poll"}}) == (
-        "lockstep processes (hub, plant) in SCHED_FIFO 10, idle CPUs may halt (--no-idle-poll)")
+        "lockstep processes (hub, plant) in SCHED_FIFO 10, idle CPUs may halt (--no-idle-poll)"
+    )
     assert scheduling_text(fifo) == "lockstep processes (hub, plant) in SCHED_FIFO 10"

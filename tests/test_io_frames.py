@@ -41,19 +41,19 @@ def test_encoder_frame_bytes() -> None:
     msg = encode_encoder(2, 0x1_2345, -2)
     assert msg.arbitration_id == 0x103 and not msg.is_extended_id
     assert msg.dlc == 6
-    assert bytes(msg.data) == bytes.fromhex("feffffff" "4523")
+    assert bytes(msg.data) == bytes.fromhex("feffffff4523")
 
 
 def test_torque_frame_bytes() -> None:
     msg = encode_torque(0, 7, 1_500_000, TorqueStatus.ENABLED | TorqueStatus.SATURATED)
     assert msg.arbitration_id == 0x181 and msg.dlc == 7
-    assert bytes(msg.data) == bytes.fromhex("60e31600" "0700" "05")
+    assert bytes(msg.data) == bytes.fromhex("60e31600070005")
 
 
 def test_control_frame_bytes() -> None:
     msg = encode_control(ControlCommand.TRIAL_START, 0, 3001)
     assert msg.arbitration_id == 0x010 and msg.dlc == 7
-    assert bytes(msg.data) == bytes.fromhex("01" "0000" "b90b0000")
+    assert bytes(msg.data) == bytes.fromhex("010000b90b0000")
 
 
 def test_cob_ids() -> None:
@@ -196,10 +196,13 @@ def test_check_tick(expected: int, d: int) -> None:
     assert isinstance(info.value, ValueError)
 
 
-@given(st.integers(0, TICK_MODULUS - 1), st.lists(st.integers(1, 300), min_size=1, max_size=4),
-       st.integers(0, 3), st.integers(0, 2 ** 32 - 1))
-def test_follower_on_arrays_equals_frame_by_frame(origin: int, trial_lengths: list[int], cut: int,
-                                                  seed: int) -> None:
+@given(
+    st.integers(0, TICK_MODULUS - 1),
+    st.lists(st.integers(1, 300), min_size=1, max_size=4),
+    st.integers(0, 3),
+    st.integers(0, 2**32 - 1),
+)
+def test_follower_on_arrays_equals_frame_by_frame(origin: int, trial_lengths: list[int], cut: int, seed: int) -> None:
     """The host's io monitor reads frames as arrays: TrialTickFollower.on_frame_array ends in the
     same state as on_frame per frame, however the stream is cut into rounds (an error frame and a
     trial stopped early included)."""

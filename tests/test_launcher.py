@@ -171,17 +171,64 @@ class Spy(threading.Thread):
 
 
 def test_host_args_round_trip_through_the_host_parser(tmp_path: Path) -> None:
-    args = build_parser().parse_args([
-        "run", "--law", "d-ilc", "--iterations", "3", "--path", "2", "--cycle", "0.30000000000000004",
-        "--profile", "quintic", "--disturbance", "repetitive", "--seed", "7", "--ff0", "zero",
-        "--gains", "paper", "--alpha", "1.1", "--ld", "230", "--lead", "2", "--config", "x.toml",
-        "--out", str(tmp_path), "--bus", "hub"])
+    args = build_parser().parse_args(
+        [
+            "run",
+            "--law",
+            "d-ilc",
+            "--iterations",
+            "3",
+            "--path",
+            "2",
+            "--cycle",
+            "0.30000000000000004",
+            "--profile",
+            "quintic",
+            "--disturbance",
+            "repetitive",
+            "--seed",
+            "7",
+            "--ff0",
+            "zero",
+            "--gains",
+            "paper",
+            "--alpha",
+            "1.1",
+            "--ld",
+            "230",
+            "--lead",
+            "2",
+            "--config",
+            "x.toml",
+            "--out",
+            str(tmp_path),
+            "--bus",
+            "hub",
+        ]
+    )
     argv = host_role_args(args)
     assert "--out" not in argv and "--bus" not in argv and "--hub" not in argv
     assert argv[argv.index("--cycle") + 1] == "0.30000000000000004"
     host = build_parser().parse_args(["host", *argv, "--out", str(tmp_path), "--bus", "hub"])
-    for key in ("law", "iterations", "path", "cycle_s", "profile", "disturbance", "seed", "ff0", "preset",
-                "g_alpha", "g_beta", "g_ld", "g_lp", "g_lead", "config", "out", "bus"):
+    for key in (
+        "law",
+        "iterations",
+        "path",
+        "cycle_s",
+        "profile",
+        "disturbance",
+        "seed",
+        "ff0",
+        "preset",
+        "g_alpha",
+        "g_beta",
+        "g_ld",
+        "g_lp",
+        "g_lead",
+        "config",
+        "out",
+        "bus",
+    ):
         assert getattr(host, key) == getattr(args, key), key
     # options not given stay absent (the host's defaults apply)
     assert host_role_args(build_parser().parse_args(["run"])) == []
@@ -210,8 +257,7 @@ def test_virtual_transport_is_refused(tmp_path: Path) -> None:
 # ---------------------------------------------------------------------------------------
 
 
-def test_success_returns_host_code_and_reaps_everything(tmp_path: Path, piddir: Path,
-                                                          roles: dict[str, list[str]]) -> None:
+def test_success_returns_host_code_and_reaps_everything(tmp_path: Path, piddir: Path, roles: dict[str, list[str]]) -> None:
     roles["host"] = fake("host", "--wait-drives", "4", "--sleep", "0.3", "--exit", "3")
     roles["plant"] = fake("plant")
     out, err = io.StringIO(), io.StringIO()
@@ -220,7 +266,8 @@ def test_success_returns_host_code_and_reaps_everything(tmp_path: Path, piddir: 
     assert code == 3, err.getvalue()
     # a host that ends with a fault but wrote no summary: one line naming its log
     assert err.getvalue().splitlines() == [
-        f"ilcrig: fault: the host ended the run with exit code 3; its log: {tmp_path / 'run' / 'logs' / 'host.log'}"]
+        f"ilcrig: fault: the host ended the run with exit code 3; its log: {tmp_path / 'run' / 'logs' / 'host.log'}"
+    ]
     # four real drives met on both buses of the hub and talk (boot-up, heartbeats); the plant is fake
     fb_clients, io_clients, fb_frames = map(int, (piddir / "hub_stats").read_text().split())
     assert (fb_clients, io_clients) == (4, 4) and fb_frames >= 4
@@ -252,9 +299,12 @@ def test_drive_exiting_early_ends_the_run(tmp_path: Path, piddir: Path, roles: d
     assert code == EXIT_FAULT
     lines = err.getvalue().splitlines()
     assert len(lines) == 1, lines
-    assert re.fullmatch(r"ilcrig: fault: drive2 \(pid \d+\) exited with code 1 \[process_died\]: drive2, trial 0, "
-                        r"tick unknown; detected by launcher; torque removed, 0 completed trials kept; "
-                        r"its log: .*drive2\.log", lines[0]), lines[0]
+    assert re.fullmatch(
+        r"ilcrig: fault: drive2 \(pid \d+\) exited with code 1 \[process_died\]: drive2, trial 0, "
+        r"tick unknown; detected by launcher; torque removed, 0 completed trials kept; "
+        r"its log: .*drive2\.log",
+        lines[0],
+    ), lines[0]
     assert [d.name for d in rl.deaths] == ["drive2"]
     assert_all_gone(rl)
 
@@ -264,8 +314,7 @@ def test_child_killed_during_the_run(tmp_path: Path, piddir: Path, roles: dict[s
     roles["plant"] = fake("plant")
     err = io.StringIO()
     rl = RigLauncher(run_args(tmp_path), stdout=io.StringIO(), stderr=err, host_grace_s=0.5)
-    spy = Spy(rl, "host", piddir, lambda rl, _: os.kill(next(c.pid for c in rl.children if c.name == "drive3"),
-                                                     signal.SIGKILL))
+    spy = Spy(rl, "host", piddir, lambda rl, _: os.kill(next(c.pid for c in rl.children if c.name == "drive3"), signal.SIGKILL))
     spy.start()
     code = run_launcher(rl)
     spy.join(5)
@@ -325,16 +374,23 @@ def test_host_that_cannot_start(tmp_path: Path, piddir: Path, roles: dict[str, l
 def start_cli_run(tmp_path: Path, piddir: Path) -> tuple[subprocess.Popen[bytes], str, dict[str, int]]:
     """`python -m host.cli run` with fake roles; returns (proc, status line, pids incl. host)."""
     env = dict(os.environ)
-    env.update({
-        "ILCRIG_ROLE_CMD_HOST": fake_env("host"),
-        "ILCRIG_ROLE_CMD_PLANT": fake_env("plant"),
-        "ILCRIG_ROLE_CMD_DRIVE": fake_env("drive"),
-        "PYTHONPATH": ROOT + os.pathsep + env.get("PYTHONPATH", ""),
-    })
+    env.update(
+        {
+            "ILCRIG_ROLE_CMD_HOST": fake_env("host"),
+            "ILCRIG_ROLE_CMD_PLANT": fake_env("plant"),
+            "ILCRIG_ROLE_CMD_DRIVE": fake_env("drive"),
+            "PYTHONPATH": ROOT + os.pathsep + env.get("PYTHONPATH", ""),
+        }
+    )
     proc = subprocess.Popen(
-        [sys.executable, "-m", "host.cli", "run", "--iterations", "2", "--out", str(tmp_path / "run"),
-         "--bus", "hub"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, env=env,
-        cwd=ROOT, start_new_session=True)  # its own process group, like a shell's foreground job
+        [sys.executable, "-m", "host.cli", "run", "--iterations", "2", "--out", str(tmp_path / "run"), "--bus", "hub"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        stdin=subprocess.DEVNULL,
+        env=env,
+        cwd=ROOT,
+        start_new_session=True,
+    )  # its own process group, like a shell's foreground job
     assert proc.stdout is not None
     buf, deadline = b"", time.monotonic() + 20
     while b"starting host\n" not in buf:
@@ -362,8 +418,7 @@ def test_sigint_to_the_launcher(tmp_path: Path, piddir: Path) -> None:
         assert os.path.exists(sock)
         # the hub shares the launcher's process group but blocks SIGINT (a terminal's Ctrl-C
         # must not close the bus under the roles)
-        sigblk = next(ln for ln in Path(f"/proc/{pids['hub']}/status").read_text().splitlines()
-                      if ln.startswith("SigBlk:"))
+        sigblk = next(ln for ln in Path(f"/proc/{pids['hub']}/status").read_text().splitlines() if ln.startswith("SigBlk:"))
         assert int(sigblk.split()[1], 16) & (1 << (signal.SIGINT - 1))
         os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does
         _, stderr = proc.communicate(timeout=10)

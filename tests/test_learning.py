@@ -25,10 +25,7 @@ SMALL = 48  # dense comparisons: 4N × 4N matrices
 
 
 def inertia_seq(scale: float = 1.0, n: int = N) -> np.ndarray:
-    base = np.array([[0.12, 0.01, 0.02, 0.01],
-                     [0.01, 0.11, 0.01, 0.015],
-                     [0.02, 0.01, 0.12, 0.01],
-                     [0.01, 0.015, 0.01, 0.11]])
+    base = np.array([[0.12, 0.01, 0.02, 0.01], [0.01, 0.11, 0.01, 0.015], [0.02, 0.01, 0.12, 0.01], [0.01, 0.015, 0.01, 0.11]])
     t = np.linspace(0, 1, n)[:, None, None]
     return scale * base[None] * (1 + 0.2 * np.sin(2 * np.pi * t))
 
@@ -60,6 +57,7 @@ def simulate_linear(minv: np.ndarray, kp, kd, u: np.ndarray, d: np.ndarray) -> n
 
 # ------------------------------------------------------------------ O(N) operators = dense ones
 
+
 def test_model_matches_direct_simulation_and_dense_g() -> None:
     kp, kd = np.array([900.0, 800, 900, 800]), np.array([20.0, 18, 20, 18])
     model = ClosedLoopModel(inertia_seq(n=SMALL), kp, kd, TS)
@@ -71,7 +69,7 @@ def test_model_matches_direct_simulation_and_dense_g() -> None:
     assert rel(model.g_t(y), (G.T @ y.reshape(-1)).reshape(SMALL, 4)) < 1e-9
     assert rel(model.column_norms_sq(), np.sum(G * G, axis=0).reshape(SMALL, 4)) < 1e-9
     assert np.all(G[:4, :] == 0)  # relative degree one: u[n] first shows in e[n+1]
-    blocks = np.array([G[(i + 1) * 4:(i + 2) * 4, i * 4:(i + 1) * 4] for i in range(SMALL - 1)])
+    blocks = np.array([G[(i + 1) * 4 : (i + 2) * 4, i * 4 : (i + 1) * 4] for i in range(SMALL - 1)])
     assert rel(model.first_markov()[:-1], blocks) < 1e-9
     K = dense_k(SMALL, kp, kd, TS)
     assert rel(model.k(y), (K @ y.reshape(-1)).reshape(SMALL, 4)) < 1e-9
@@ -80,8 +78,10 @@ def test_model_matches_direct_simulation_and_dense_g() -> None:
 
 @pytest.mark.parametrize("m", [0, 1, 3])
 def test_signal_transposes(m: int) -> None:
-    for f, ft in ((lambda x: lead(x, m), lambda x: lead_t(x, m)),
-                  (lambda x: backward_difference(x, TS), lambda x: backward_difference_t(x, TS))):
+    for f, ft in (
+        (lambda x: lead(x, m), lambda x: lead_t(x, m)),
+        (lambda x: backward_difference(x, TS), lambda x: backward_difference_t(x, TS)),
+    ):
         assert rel(time_op(ft, SMALL, 4), time_op(f, SMALL, 4).T) < 1e-12
 
 
@@ -168,7 +168,7 @@ def test_iteration_maps_equal_dense_and_check_uses_structure(name: str, lead_m: 
         # eigensolver is inaccurate on such a non-normal matrix, hence the blocks of the dense map)
         nb = Er.shape[0] // 4
         blocks = Er.reshape(nb, 4, nb, 4)
-        assert all(np.all(blocks[i, :, i + 1:, :] == 0) for i in range(nb))
+        assert all(np.all(blocks[i, :, i + 1 :, :] == 0) for i in range(nb))
         rho_dense = max(float(np.max(np.abs(np.linalg.eigvals(blocks[i, :, i, :])))) for i in range(nb))
         assert abs(rep.rho_max - rho_dense) < 1e-9 * rho_dense
     elif imap.symmetric:
@@ -222,6 +222,7 @@ def test_check_long_run_verdict_flags_growth() -> None:
 
 
 # ------------------------------------------------------------------ the laws on a linear plant
+
 
 def run_iterations(name: str, spec: GainSpec, iterations: int = 12, mismatch: float = 1.1):
     """ILC on the linear plant with a 10 % inertia error against the model used by the law."""
@@ -304,6 +305,7 @@ def test_registry_and_errors() -> None:
 
 # ------------------------------------------------------------------ the estimated model
 
+
 def test_identification_recovers_the_true_parameters() -> None:
     from host.planning.paths import resolve_path
     from host.planning.trajectory import joint_reference, plan_task
@@ -312,10 +314,19 @@ def test_identification_recovers_the_true_parameters() -> None:
     ref = joint_reference(plan_task(resolve_path("1"), 0.25, "ruckig", TS))
     true = default_true_plant()
     est = DynamicsEstimate(nominal_mass_model(), Geometry(), TS)
-    theta_true = np.concatenate([
-        [true.mass.m_up_eff, true.mass.m_low_eff, true.mass.joint_inertia(true.geometry.l_a),
-         true.mass.arm_gravity_coefficient(true.geometry.l_a) / true.mass.g, true.mass.I_ee],
-        true.coulomb_nm, true.viscous_nm_s_per_rad])
+    theta_true = np.concatenate(
+        [
+            [
+                true.mass.m_up_eff,
+                true.mass.m_low_eff,
+                true.mass.joint_inertia(true.geometry.l_a),
+                true.mass.arm_gravity_coefficient(true.geometry.l_a) / true.mass.g,
+                true.mass.I_ee,
+            ],
+            true.coulomb_nm,
+            true.viscous_nm_s_per_rad,
+        ]
+    )
     # torques consistent with what add_trial regresses on: ½(τ[n−1] + τ[n]) = Y(q_n, central differences) θ
     q = ref.q
     qd = (q[2:] - q[:-2]) / (2 * TS)
@@ -334,6 +345,7 @@ def test_identification_recovers_the_true_parameters() -> None:
 
 
 # ------------------------------------------------------------------ the default law on the true plant
+
 
 def _sim(**overrides) -> np.ndarray:
     """RMSE (K, 4) deg of an in-process run of the default experiment with ``overrides``."""

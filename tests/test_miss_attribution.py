@@ -10,8 +10,10 @@ from host.rig.miss_attribution import attribute_misses, parse_sched_trace, summa
 
 
 def _switch(cpu: int, t: float, prev: int, nxt: int, prio: int = 89) -> str:
-    return (f"         python3-{prev:<5}   [{cpu:03d}] d..2. {t:.6f}: sched_switch: prev_comm=python3 prev_pid={prev} "
-            f"prev_prio={prio} prev_state=S ==> next_comm=python3 next_pid={nxt} next_prio={prio}")
+    return (
+        f"         python3-{prev:<5}   [{cpu:03d}] d..2. {t:.6f}: sched_switch: prev_comm=python3 prev_pid={prev} "
+        f"prev_prio={prio} prev_state=S ==> next_comm=python3 next_pid={nxt} next_prio={prio}"
+    )
 
 
 def _runtime(cpu: int, t: float, pid: int, ns: int) -> str:
@@ -39,10 +41,13 @@ TRACE = [
 ]
 
 PER_TRIAL = [
-    {"t0_monotonic_s": 10.0, "missed_ticks": [
-        {"tick": 0, "started_late_s": 0.0, "overrun_s": 0.0008},       # done at 10.0018
-        {"tick": 1, "started_late_s": 0.0008, "overrun_s": 0.0002},    # late because tick 0 was
-    ]},
+    {
+        "t0_monotonic_s": 10.0,
+        "missed_ticks": [
+            {"tick": 0, "started_late_s": 0.0, "overrun_s": 0.0008},  # done at 10.0018
+            {"tick": 1, "started_late_s": 0.0008, "overrun_s": 0.0002},  # late because tick 0 was
+        ],
+    },
     {"t0_monotonic_s": 20.0, "missed_ticks": [{"tick": 0, "started_late_s": 0.0, "overrun_s": 0.0002}]},
     {"deadline_misses": 0},  # a trial without misses lists none
 ]

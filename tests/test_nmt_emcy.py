@@ -34,13 +34,16 @@ from bus.cia301.nmt import (
 # --------------------------------------------------------------------------- NMT
 
 
-@pytest.mark.parametrize(("command", "node", "data"), [
-    (NmtCommand.START, 3, b"\x01\x03"),
-    (NmtCommand.STOP, 0, b"\x02\x00"),
-    (NmtCommand.ENTER_PRE_OPERATIONAL, 127, b"\x80\x7f"),
-    (NmtCommand.RESET_NODE, 1, b"\x81\x01"),
-    (NmtCommand.RESET_COMMUNICATION, 0, b"\x82\x00"),
-])
+@pytest.mark.parametrize(
+    ("command", "node", "data"),
+    [
+        (NmtCommand.START, 3, b"\x01\x03"),
+        (NmtCommand.STOP, 0, b"\x02\x00"),
+        (NmtCommand.ENTER_PRE_OPERATIONAL, 127, b"\x80\x7f"),
+        (NmtCommand.RESET_NODE, 1, b"\x81\x01"),
+        (NmtCommand.RESET_COMMUNICATION, 0, b"\x82\x00"),
+    ],
+)
 def test_nmt_command_bytes(command: NmtCommand, node: int, data: bytes) -> None:
     assert encode_nmt(command, node) == data
     assert decode_nmt(data) == (command, node)
@@ -57,12 +60,15 @@ def test_nmt_matches_canopen_library_bytes() -> None:
     assert set(COMMAND_TO_STATE) >= {int(c) for c in NmtCommand}
 
 
-@pytest.mark.parametrize(("data", "match"), [
-    (b"\x01", "2 data bytes"),
-    (b"\x01\x02\x03", "2 data bytes"),
-    (b"\x03\x01", "unknown NMT command"),
-    (b"\x01\x80", "node id"),
-])
+@pytest.mark.parametrize(
+    ("data", "match"),
+    [
+        (b"\x01", "2 data bytes"),
+        (b"\x01\x02\x03", "2 data bytes"),
+        (b"\x03\x01", "unknown NMT command"),
+        (b"\x01\x80", "node id"),
+    ],
+)
 def test_nmt_decode_rejects(data: bytes, match: str) -> None:
     with pytest.raises(NmtFrameError, match=match):
         decode_nmt(data)
@@ -169,8 +175,7 @@ def test_heartbeat_consumer_unwatched_node_is_only_recorded() -> None:
 
 def test_emcy_bytes() -> None:
     register = ErrorRegister.GENERIC | ErrorRegister.DEVICE_PROFILE
-    assert encode_emcy(EmcyCode.FOLLOWING_ERROR, register, b"\x01\x02") == bytes.fromhex(
-        "11 86 21 01 02 00 00 00")
+    assert encode_emcy(EmcyCode.FOLLOWING_ERROR, register, b"\x01\x02") == bytes.fromhex("11 86 21 01 02 00 00 00")
     assert encode_emcy(EmcyCode.ERROR_RESET) == bytes(8)
     msg = decode_emcy(bytes.fromhex("10 23 03 aa bb cc dd ee"))
     assert msg == EmcyMessage(EmcyCode.OVER_CURRENT, 0x03, bytes.fromhex("aa bb cc dd ee"))
@@ -199,12 +204,15 @@ def test_emcy_matches_canopen_library_decoder() -> None:
     assert consumer.active == []
 
 
-@pytest.mark.parametrize(("kwargs", "match"), [
-    ({"code": 0x10000}, "U16"),
-    ({"code": -1}, "U16"),
-    ({"code": 1, "register": 256}, "U8"),
-    ({"code": 1, "manufacturer": bytes(6)}, "at most 5"),
-])
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"code": 0x10000}, "U16"),
+        ({"code": -1}, "U16"),
+        ({"code": 1, "register": 256}, "U8"),
+        ({"code": 1, "manufacturer": bytes(6)}, "at most 5"),
+    ],
+)
 def test_emcy_rejects(kwargs: dict, match: str) -> None:
     with pytest.raises(EmcyFrameError, match=match):
         EmcyMessage(**kwargs)
@@ -214,8 +222,7 @@ def test_emcy_rejects(kwargs: dict, match: str) -> None:
         emcy_cob_id(128)
 
 
-@given(code=st.integers(0, 0xFFFF), register=st.integers(0, 0xFF),
-       manufacturer=st.binary(min_size=0, max_size=5))
+@given(code=st.integers(0, 0xFFFF), register=st.integers(0, 0xFF), manufacturer=st.binary(min_size=0, max_size=5))
 def test_emcy_round_trip(code: int, register: int, manufacturer: bytes) -> None:
     data = encode_emcy(code, register, manufacturer)
     assert len(data) == 8

@@ -248,8 +248,7 @@ def test_own_frames_are_ignored(fake_rig: Rig) -> None:
     answer = rig.plant.recv(timeout=1.0)  # the first io frame of the node is the probe's torque
     assert answer is not None
     torque = io_frames.decode_torque(answer)
-    assert (answer.arbitration_id, torque.tick, torque.torque_units) == (
-        io_frames.torque_cob_id(NODE - 1), 0, -321)
+    assert (answer.arbitration_id, torque.tick, torque.torque_units) == (io_frames.torque_cob_id(NODE - 1), 0, -321)
     assert wait_for(lambda: rig.drive.nmt_log != [])
     assert (rig.drive.ticks, rig.drive.nmt_log) == ([(0, 321)], [0x80])
     assert not node.sdo.busy
@@ -286,8 +285,9 @@ def test_heartbeat_period_is_0x1017_on_the_node_clock() -> None:
         node.start()
         assert sent() == [(0x702, b"\x00")]  # boot-up; 0x1017 = 0: no heartbeat
         assert step_at(1010.0) == []
-        host.send(can.Message(arbitration_id=0x602, data=bytes.fromhex("2B 17 10 00 7D 00 00 00"),
-                              is_extended_id=False))  # 0x1017 := 125 ms
+        host.send(
+            can.Message(arbitration_id=0x602, data=bytes.fromhex("2B 17 10 00 7D 00 00 00"), is_extended_id=False)
+        )  # 0x1017 := 125 ms
         t0 = 1020.0  # the download is handled at t0: first beat due at t0 + 0.125
         assert step_at(t0) == [(0x582, bytes.fromhex("60 17 10 00 00 00 00 00"))]
         assert step_at(t0 + 0.124) == []
@@ -328,9 +328,11 @@ def test_real_drive_enable_sequence() -> None:
         remote.sdo[0x1017].raw = 20
         remote.nmt.send_command(0x01)
         assert wait_for(lambda: 0x05 in rig.heartbeats)
-        for cw, state in ((ControlCommand.SHUTDOWN, Cia402State.READY_TO_SWITCH_ON),
-                          (ControlCommand.SWITCH_ON, Cia402State.SWITCHED_ON),
-                          (ControlCommand.ENABLE_OPERATION, Cia402State.OPERATION_ENABLED)):
+        for cw, state in (
+            (ControlCommand.SHUTDOWN, Cia402State.READY_TO_SWITCH_ON),
+            (ControlCommand.SWITCH_ON, Cia402State.SWITCHED_ON),
+            (ControlCommand.ENABLE_OPERATION, Cia402State.OPERATION_ENABLED),
+        ):
             remote.sdo[0x6040].raw = int(cw)
             assert state_from_statusword(remote.sdo[0x6041].raw) == state
         remote.nmt.wait_for_heartbeat(timeout=1.0)
@@ -407,8 +409,7 @@ def test_select_path_with_fileno_buses() -> None:
     try:
         boot = fb_host.recv(timeout=1.0)
         assert boot is not None and (boot.arbitration_id, bytes(boot.data)) == (0x702, b"\x00")
-        upload = can.Message(arbitration_id=0x602, data=bytes.fromhex("40 18 10 01 00 00 00 00"),
-                             is_extended_id=False)
+        upload = can.Message(arbitration_id=0x602, data=bytes.fromhex("40 18 10 01 00 00 00 00"), is_extended_id=False)
         fb_host.send(upload)
         resp = fb_host.recv(timeout=1.0)  # the clock stands still: no heartbeat before the answer
         assert resp is not None and resp.arbitration_id == 0x582

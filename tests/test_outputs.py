@@ -41,8 +41,11 @@ def test_a_failing_write_keeps_the_previous_summary(tmp_path: Path, monkeypatch:
 
 
 def test_no_nan_reaches_the_summary(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    assert finite({"a": [1.0, float("nan")], "b": {"c": float("inf")}, "d": "x"}) == {"a": [1.0, None], "b": {"c": None},
-                                                                                      "d": "x"}
+    assert finite({"a": [1.0, float("nan")], "b": {"c": float("inf")}, "d": "x"}) == {
+        "a": [1.0, None],
+        "b": {"c": None},
+        "d": "x",
+    }
     write_summary(tmp_path, {"x": np.float64("nan"), "y": [np.inf]})
     assert json.loads((tmp_path / "summary.json").read_text()) == {"x": None, "y": [None]}
     assert "non-finite" in caplog.text
@@ -75,8 +78,7 @@ def sim_with_full_disk(out: Path, from_trial: int):  # type: ignore[no-untyped-d
     cfg = build_config(None, {"iterations": 3, "cycle_s": 0.15})
     import io
 
-    res = run_session(prepare(cfg), InProcessBench(cfg), out, mode="sim", stream=io.StringIO(),
-                      fail_writes_from_trial=from_trial)
+    res = run_session(prepare(cfg), InProcessBench(cfg), out, mode="sim", stream=io.StringIO(), fail_writes_from_trial=from_trial)
     return res, report_fault(res, out / "summary.json")
 
 
@@ -98,8 +100,7 @@ def test_full_disk_is_a_fault_with_the_results_kept(tmp_path: Path, capsys: pyte
 def _can_mount_tmpfs(path: Path, size: str) -> bool:
     if os.geteuid() != 0:
         return False
-    return subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)],
-                          capture_output=True).returncode == 0
+    return subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)], capture_output=True).returncode == 0
 
 
 @pytest.mark.slow
@@ -110,8 +111,13 @@ def test_a_really_full_disk(tmp_path: Path) -> None:
     if not _can_mount_tmpfs(mnt, "1500k"):
         pytest.skip("needs root and tmpfs to make a small filesystem")
     try:
-        res = subprocess.run([sys.executable, "-m", "host.cli", "sim", "--iterations", "10", "--out", str(mnt / "run")],
-                             capture_output=True, text=True, cwd=REPO, timeout=600)
+        res = subprocess.run(
+            [sys.executable, "-m", "host.cli", "sim", "--iterations", "10", "--out", str(mnt / "run")],
+            capture_output=True,
+            text=True,
+            cwd=REPO,
+            timeout=600,
+        )
         assert res.returncode == 3, res.stderr
         lines = res.stderr.strip().splitlines()
         assert len(lines) == 1 and "[disk_full]" in lines[0] and "Traceback" not in res.stderr
@@ -131,8 +137,7 @@ def test_learning_that_diverges_is_a_fault_and_no_nan_is_written(tmp_path: Path)
     from host.experiment.inprocess import InProcessBench
     from host.experiment.plan import prepare
 
-    cfg = build_config(None, {"law": "pd-ilc", "iterations": 3, "cycle_s": 0.15,
-                                "gains": {"alpha": 1.0, "lp": 1e12}})
+    cfg = build_config(None, {"law": "pd-ilc", "iterations": 3, "cycle_s": 0.15, "gains": {"alpha": 1.0, "lp": 1e12}})
     plan = prepare(cfg)
     assert not plan.check.ok
     import io
@@ -148,8 +153,13 @@ def test_learning_that_diverges_is_a_fault_and_no_nan_is_written(tmp_path: Path)
 def _sim_signalled_at_row(out: Path, row: str, sig: int) -> tuple[int, str]:
     """``ilcrig sim --iterations 1000 --cycle 0.15 --out out``, sent ``sig`` when it prints the
     table row of trial ``row``; (exit code, stderr). The process is always reaped."""
-    proc = subprocess.Popen([sys.executable, "-u", "-m", "host.cli", "sim", "--iterations", "1000", "--cycle", "0.15",
-                             "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
+    proc = subprocess.Popen(
+        [sys.executable, "-u", "-m", "host.cli", "sim", "--iterations", "1000", "--cycle", "0.15", "--out", str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=REPO,
+    )
     try:
         assert proc.stdout is not None
         for line in proc.stdout:

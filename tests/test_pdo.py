@@ -133,7 +133,7 @@ def test_csp_tick_waits_for_sync_and_applies_the_rpdo_of_its_cycle() -> None:
     kp_q16 = fp.kp_to_fixed(kp)
     fb = fp.rshift_round(kp_q16 * 600, fp.ACC_Q)
     assert tau == fb + 5 * rated
-    (cob, data), = d.pop_tpdos()
+    ((cob, data),) = d.pop_tpdos()
     assert cob == tpdo_cob_id(NODE)
     assert decode_tpdo(data) == (400, fp.torque_units_to_permille(tau, rated))
     assert d.statusword & 0x1000  # drive follows the command value
@@ -162,7 +162,7 @@ def test_csp_trial_records_like_table_playback() -> None:
     assert int.from_bytes(d.read_object(Obj.RECORDER, 2), "little") == n
     rec = d.read_object(Obj.RECORDER_DATA, 0)
     pos = struct.unpack(f"<{n}i", rec[: 4 * n])
-    tau = struct.unpack(f"<{n}i", rec[8 * n: 12 * n])
+    tau = struct.unpack(f"<{n}i", rec[8 * n : 12 * n])
     assert list(pos) == targets
     assert list(tau) == [RATED_TORQUE_MNM] * n  # zero error, velocity reference = backward difference
 

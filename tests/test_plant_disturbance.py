@@ -44,7 +44,8 @@ def test_nonrepetitive_differs_per_trial_reproducible_and_bounded() -> None:
 def test_both_is_sum_and_bounded() -> None:
     b = disturbance_torque("both", 5, 2, N, TS)
     np.testing.assert_array_equal(
-        b, disturbance_torque("repetitive", 5, 2, N, TS) + disturbance_torque("nonrepetitive", 5, 2, N, TS))
+        b, disturbance_torque("repetitive", 5, 2, N, TS) + disturbance_torque("nonrepetitive", 5, 2, N, TS)
+    )
     assert np.abs(b).max() <= 4.4
 
 

@@ -100,15 +100,15 @@ def test_gravity_is_gradient_of_potential() -> None:
     m = TRUE.mass
     q, _ = _state()
     h = 1e-6
-    fd = np.array([(d.potential_energy(q + h * e, m) - d.potential_energy(q - h * e, m)) / (2 * h)
-                   for e in np.eye(4)])
+    fd = np.array([(d.potential_energy(q + h * e, m) - d.potential_energy(q - h * e, m)) / (2 * h) for e in np.eye(4)])
     np.testing.assert_allclose(d.gravity_vector(q, m), fd, atol=1e-7)
 
 
 def test_inverse_and_forward_dynamics_are_inverse_and_vectorised() -> None:
     rng = np.random.default_rng(1)
-    X = np.column_stack([rng.uniform(-0.15, 0.15, 20), rng.uniform(-0.15, 0.15, 20),
-                         rng.uniform(-0.7, -0.6, 20), rng.uniform(-3, 3, 20)])
+    X = np.column_stack(
+        [rng.uniform(-0.15, 0.15, 20), rng.uniform(-0.15, 0.15, 20), rng.uniform(-0.7, -0.6, 20), rng.uniform(-3, 3, 20)]
+    )
     q = k.inverse_kinematics(X)
     qd = rng.uniform(-10, 10, (20, 4))
     qdd = rng.uniform(-300, 300, (20, 4))
@@ -132,7 +132,7 @@ def test_friction_model_values() -> None:
     # optional Stribeck hump
     st = replace(TRUE, stribeck_ratio=1.3)
     v = np.array([0.02, 0.05, 1.0, -0.02])
-    ref = fc * (1 + 0.3 * np.exp(-(v / 0.05) ** 2)) * np.tanh(v / 0.01) + fv * v
+    ref = fc * (1 + 0.3 * np.exp(-((v / 0.05) ** 2))) * np.tanh(v / 0.01) + fv * v
     np.testing.assert_allclose(d.friction_torque(v, st), ref, rtol=1e-14)
     # smooth through zero velocity, odd in q̇
     small = np.linspace(-0.05, 0.05, 11)[:, None] * np.ones(4)

@@ -198,7 +198,7 @@ def test_deadline_misses_round_trip_through_their_bytes(t0_ns: int, misses: list
 
 def test_deadline_misses_bytes_are_exact_and_bad_lengths_are_refused() -> None:
     data = pack_deadline_misses(DeadlineMisses(0x0102030405060708, (DeadlineMiss(7, 300, 2**33),)))
-    assert data == bytes.fromhex("0807060504030201" "0100" "07000000" "2c010000" "ffffffff")  # overrun clamped to u32
+    assert data == bytes.fromhex("08070605040302010100070000002c010000ffffffff")  # overrun clamped to u32
     with pytest.raises(ValueError, match="at least 10 bytes"):
         unpack_deadline_misses(b"\x00" * 9)
     with pytest.raises(ValueError, match="1 entries must be 22 bytes, got 21"):
@@ -270,11 +270,14 @@ def test_steal_during_a_trial_and_what_the_run_says_of_it() -> None:
     assert s["machine_steal"]["per_trial_s"] == [0.0, pytest.approx(0.04)]
     line = timing_line(s)
     assert "could NOT keep up" in line
-    assert line.endswith("; the hypervisor took 40 ms of CPU time from this machine during the trials "
-                         "(1.7 % of its 2 CPUs: steal time)")
+    assert line.endswith(
+        "; the hypervisor took 40 ms of CPU time from this machine during the trials (1.7 % of its 2 CPUs: steal time)"
+    )
     lock = timing_summary(timings[:1], 1e-3, False, None, [MachineSteal(0.01, 0.6, 2)])
-    assert timing_line(lock).endswith("x real time at Ts = 1 ms); the hypervisor took 10 ms of CPU time from this "
-                                      "machine during the trials (0.8 % of its 2 CPUs: steal time)")
+    assert timing_line(lock).endswith(
+        "x real time at Ts = 1 ms); the hypervisor took 10 ms of CPU time from this "
+        "machine during the trials (0.8 % of its 2 CPUs: steal time)"
+    )
     # nothing taken: no clause; a trial without the figure: no figure for the run
     assert "hypervisor" not in timing_line(timing_summary(timings[:1], 1e-3, True, None, steal[:1]))
     assert "machine_steal" not in timing_summary(timings, 1e-3, True, None, [steal[0], None])
@@ -331,9 +334,10 @@ def test_a_paced_tick_is_waited_for_on_the_clock_for_the_last_spin_s() -> None:
 
 @pytest.fixture
 def sleeper() -> object:
-    proc = subprocess.Popen([sys.executable, "-c", "import threading, time; "
-                             "threading.Thread(target=time.sleep, args=(60,)).start(); time.sleep(60)"],
-                            stdin=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", "import threading, time; threading.Thread(target=time.sleep, args=(60,)).start(); time.sleep(60)"],
+        stdin=subprocess.DEVNULL,
+    )
     try:
         yield proc
     finally:
@@ -342,7 +346,8 @@ def sleeper() -> object:
 
 
 def test_real_time_scheduling_is_fifo_where_permitted_and_said_where_not(
-        sleeper: subprocess.Popen[bytes], monkeypatch: pytest.MonkeyPatch) -> None:
+    sleeper: subprocess.Popen[bytes], monkeypatch: pytest.MonkeyPatch
+) -> None:
     got = raise_lockstep_priority({"plant": sleeper.pid}, 7)
     if got["policy"] == "SCHED_FIFO":  # root, CAP_SYS_NICE or an RLIMIT_RTPRIO
         assert got == {"policy": "SCHED_FIFO", "priority": 7, "roles": ["plant"]}
@@ -366,8 +371,14 @@ def test_real_time_scheduling_is_fifo_where_permitted_and_said_where_not(
     got = raise_lockstep_priority({"hub": 100, "plant": 200}, 10)
     assert got["policy"] == "normal" and got["reason"].startswith("SCHED_FIFO 10 not permitted (Operation not permitted")
     # all or nothing: the two threads already raised are put back
-    assert calls == [(100, os.SCHED_FIFO), (101, os.SCHED_FIFO), (200, os.SCHED_FIFO),
-                     (100, os.SCHED_OTHER), (101, os.SCHED_OTHER)]
+    assert calls == [
+        (100, os.SCHED_FIFO),
+        (101, os.SCHED_FIFO),
+        (200, os.SCHED_FIFO),
+        (100, os.SCHED_OTHER),
+        (101, os.SCHED_OTHER),
+    ]
     line = timing_line(timing_summary([TrialTiming(True, 501, 501_000, 0, 50, 200, 400)], 1e-3, True, got))
-    assert line.endswith("; normal scheduling (SCHED_FIFO 10 not permitted (Operation not permitted; needs "
-                         "CAP_SYS_NICE or RLIMIT_RTPRIO >= 10))")
+    assert line.endswith(
+        "; normal scheduling (SCHED_FIFO 10 not permitted (Operation not permitted; needs CAP_SYS_NICE or RLIMIT_RTPRIO >= 10))"
+    )

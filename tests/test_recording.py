@@ -115,8 +115,11 @@ def test_3d_first_and_last_trial(sim_run) -> None:
     n = summary["config"]["n_ticks"]
     m = len(np.unique(np.r_[np.arange(0, n, 5), n - 1]))
     for which in ("first", "last"):
-        for name, col, width in (("arms", "LineStrips3D:strips", 4), ("sub_platforms", "LineStrips3D:strips", 3),
-                                 ("tool", "Points3D:positions", 1)):
+        for name, col, width in (
+            ("arms", "LineStrips3D:strips", 4),
+            ("sub_platforms", "LineStrips3D:strips", 3),
+            ("tool", "Points3D:positions", 1),
+        ):
             rbs = chunks[(f"/robot/{which}/{name}", False)]
             rows = [r for rb in rbs for r in rb.column(col).to_pylist()]
             # "first" once; "last" after every trial (the newest rows win in the viewer)
@@ -128,8 +131,9 @@ def test_3d_first_and_last_trial(sim_run) -> None:
         assert np.hypot(strip[0][0], strip[0][1]) == pytest.approx(0.2, abs=1e-6) and strip[0][2] == 0.0
         assert np.linalg.norm(np.subtract(strip[2], strip[1])) == pytest.approx(0.6, abs=1e-5)  # outer arm l_b
     ref_path = np.array(static_value(chunks, "/robot/reference_path", "LineStrips3D:strips")[0])  # (N, 3)
-    tool = np.array([r[0] for rb in chunks[("/robot/last/tool", False)]
-                     for r in rb.column("Points3D:positions").to_pylist()][-m:])
+    tool = np.array(
+        [r[0] for rb in chunks[("/robot/last/tool", False)] for r in rb.column("Points3D:positions").to_pylist()][-m:]
+    )
     dist = np.min(np.linalg.norm(tool[:, None, :] - ref_path[None, :, :], axis=2), axis=1)
     assert dist.max() < 0.01  # within 1 cm of the path (errors are a fraction of a degree)
 
@@ -260,6 +264,7 @@ def test_view_missing_recording_is_exit_2(tmp_path: Path, capsys: pytest.Capture
 
 
 def test_import_host_does_not_import_rerun() -> None:
-    code = ("import sys, host, host.analysis.recording, host.cli, host.experiment.loop; "
-            "sys.exit(1 if 'rerun' in sys.modules else 0)")
+    code = (
+        "import sys, host, host.analysis.recording, host.cli, host.experiment.loop; sys.exit(1 if 'rerun' in sys.modules else 0)"
+    )
     assert subprocess.run([sys.executable, "-c", code], timeout=60).returncode == 0

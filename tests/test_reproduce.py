@@ -52,6 +52,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 # ------------------------------------------------------------------------------------- paper data
 
+
 def test_paper_data_spot_values() -> None:
     t2 = paper_data.TABLES["table2"]
     assert t2.rows["PD-ILC"].max_err_deg[0] == 0.71
@@ -74,6 +75,7 @@ def test_paper_data_spot_values() -> None:
 
 # -------------------------------------------------------------------------------- experiment list
 
+
 def test_table2_configs() -> None:
     exps = experiment_list("table2")
     assert {e.law for e in exps} == {"pd-ilc", "d-ilc"}
@@ -84,13 +86,14 @@ def test_table2_configs() -> None:
 
 
 def test_each_table_varies_one_thing() -> None:
-    assert [(e.law, e.disturbance) for e in (r.experiment for r in table_rows("table3"))] == \
-        [("pd-ilc", "none"), ("pd-ilc", "both")]
+    assert [(e.law, e.disturbance) for e in (r.experiment for r in table_rows("table3"))] == [
+        ("pd-ilc", "none"),
+        ("pd-ilc", "both"),
+    ]
     assert [r.experiment.path for r in table_rows("table4")] == ["1", "2", "3", "4"]
     assert [r.experiment.cycle_s for r in table_rows("table5")] == [0.25, 0.15, 0.50]
     assert [r.experiment.profile for r in table_rows("table6")] == ["poly4567", "poly5"]
-    assert all(r.paper_key is not None for t in ("table2", "table3", "table4", "table5", "table6")
-               for r in table_rows(t))
+    assert all(r.paper_key is not None for t in ("table2", "table3", "table4", "table5", "table6") for r in table_rows(t))
     beyond = table_rows("table5", ("q-ilc", "no-ilc"))
     assert {r.law for r in beyond} == {"q-ilc", "no-ilc"} and all(r.paper_key is None for r in beyond)
     figs = {(e.law, e.disturbance) for e in experiment_list("figs")}
@@ -107,8 +110,13 @@ def test_full_list_is_deduplicated_and_covers_beyond() -> None:
     assert "pd-ilc_p1_250ms_poly4567_none" in ids
     assert {e.law for e in exps} == set(LAWS)
     for law in ("pd-ilc-q", "q-ilc", "no-ilc", "no-ilc-id"):  # Tables 2-5 rows beyond the paper
-        for e in (Experiment(law), Experiment(law, disturbance="both"), Experiment(law, path="3"),
-                  Experiment(law, cycle_s=0.15), Experiment(law, cycle_s=0.5)):
+        for e in (
+            Experiment(law),
+            Experiment(law, disturbance="both"),
+            Experiment(law, path="3"),
+            Experiment(law, cycle_s=0.15),
+            Experiment(law, cycle_s=0.5),
+        ):
             assert e.id in ids
     assert experiment_list(",".join(GROUPS)) == exps
 
@@ -151,6 +159,7 @@ def test_is_finished_requires_same_config_and_errors(tmp_path: Path) -> None:
 
 
 # -------------------------------------------------------------------------------------- verdicts
+
 
 def test_verdict_beats_holds_and_fails_with_reason() -> None:
     v = verdict_beats([0.1, 0.01, 0.1, 0.01], [0.05, 0.005, 0.05, 0.005], [0.2, 0.02, 0.2, 0.02], [0.1, 0.01, 0.1, 0.01])
@@ -256,12 +265,33 @@ def test_fmt() -> None:
 
 
 def test_write_run_report(tmp_path: Path) -> None:
-    its = [{"k": k, "rmse_deg": [0.2 / (k + 1)] * 4, "max_abs_deg": [0.5 / (k + 1)] * 4,
-            "mae_deg": [0.1 / (k + 1)] * 4, "peak_torque_nm": [1.0] * 4} for k in range(3)]
-    summary = {"mode": "sim", "config": {"law": "pd-ilc", "path": "1", "cycle_s": 0.25, "profile": "ruckig",
-                                         "disturbance": "none", "iterations": 3, "n_ticks": 501},
-               "iterations": its, "completed": True, "faults": [], "trace_sha256": "ab" * 32,
-               "convergence_check": {"rho_max": 0.95, "ok": True, "norm2": 1.2}}
+    its = [
+        {
+            "k": k,
+            "rmse_deg": [0.2 / (k + 1)] * 4,
+            "max_abs_deg": [0.5 / (k + 1)] * 4,
+            "mae_deg": [0.1 / (k + 1)] * 4,
+            "peak_torque_nm": [1.0] * 4,
+        }
+        for k in range(3)
+    ]
+    summary = {
+        "mode": "sim",
+        "config": {
+            "law": "pd-ilc",
+            "path": "1",
+            "cycle_s": 0.25,
+            "profile": "ruckig",
+            "disturbance": "none",
+            "iterations": 3,
+            "n_ticks": 501,
+        },
+        "iterations": its,
+        "completed": True,
+        "faults": [],
+        "trace_sha256": "ab" * 32,
+        "convergence_check": {"rho_max": 0.95, "ok": True, "norm2": 1.2},
+    }
     path = write_run_report(tmp_path / "run", summary)
     text = path.read_text()
     assert "| 2 | 0.0667 | 0.0667 | 0.0667 | 0.0667 | 0.167 |" in text
@@ -272,9 +302,9 @@ def test_write_run_report(tmp_path: Path) -> None:
 
 # ------------------------------------------------------------------------------------------ sweeps
 
+
 def _cli(*args: str, **kw) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "host.cli", *args], cwd=ROOT, capture_output=True, text=True,
-                          timeout=300, **kw)
+    return subprocess.run([sys.executable, "-m", "host.cli", *args], cwd=ROOT, capture_output=True, text=True, timeout=300, **kw)
 
 
 @pytest.mark.slow
@@ -306,9 +336,27 @@ def test_tiny_sweep_report_and_resume(tmp_path: Path) -> None:
 @pytest.mark.multiprocess
 def test_ctrl_c_stops_cleanly_and_keeps_finished(tmp_path: Path) -> None:
     out = tmp_path / "sweep"
-    proc = subprocess.Popen([sys.executable, "-m", "host.cli", "reproduce", "--out", str(out), "--iterations", "3",
-                             "--only", "table4,table5", "--jobs", "2"], cwd=ROOT, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "host.cli",
+            "reproduce",
+            "--out",
+            str(out),
+            "--iterations",
+            "3",
+            "--only",
+            "table4,table5",
+            "--jobs",
+            "2",
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
     try:
         deadline = time.monotonic() + 120
         while not list((out / "runs").glob("*/errors.npy")) and time.monotonic() < deadline:

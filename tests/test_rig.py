@@ -44,8 +44,7 @@ def sim_digest() -> str:
 
 def run_rig(cmd: list[str], timeout_s: float = 300.0) -> subprocess.CompletedProcess[str]:
     """Run a launcher command in its own session; kill the whole group if it hangs."""
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True, cwd=REPO)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True, cwd=REPO)
     try:
         out, err = proc.communicate(timeout=timeout_s)
     except subprocess.TimeoutExpired:
@@ -77,10 +76,12 @@ def experiment_bus_time(s: dict) -> dict:
     """The bus-time figures of the traffic the experiment defines (bits; seconds depend on the rate)."""
     bt = s["bench"]["bus_time"]
     between = bt["fieldbus"]["between_trials"]
-    return {"io": {k: bt["io"][k] for k in ("ticks", "frames_in_ticks", "control_frames", "control_bits_per_trial")}
-            | {"mean_bits": bt["io"]["mean_tick"]["bits"], "worst_bits": bt["io"]["worst_tick"]["bits"]},
-            "between_trials": {k: between[k] for k in ("bits_per_trial", "trials")}
-            | {kind: e["bits"] for kind, e in between["by_kind_per_trial"].items()}}
+    return {
+        "io": {k: bt["io"][k] for k in ("ticks", "frames_in_ticks", "control_frames", "control_bits_per_trial")}
+        | {"mean_bits": bt["io"]["mean_tick"]["bits"], "worst_bits": bt["io"]["worst_tick"]["bits"]},
+        "between_trials": {k: between[k] for k in ("bits_per_trial", "trials")}
+        | {kind: e["bits"] for kind, e in between["by_kind_per_trial"].items()},
+    }
 
 
 @pytest.fixture(scope="module")
@@ -120,14 +121,16 @@ def _idle_loops_left() -> list[int]:
 
 
 def test_realtime_run_has_the_same_results_and_bus_time_figures(
-        tmp_path: Path, sim_digest: str, hub_run: tuple[subprocess.CompletedProcess[str], Path, dict]) -> None:
+    tmp_path: Path, sim_digest: str, hub_run: tuple[subprocess.CompletedProcess[str], Path, dict]
+) -> None:
     """A second run of the same experiment, paced to the wall clock and accounted at 500 kbit/s on
     the io channel: the same digest, the same bits for every part of the traffic the experiment
     defines (io ticks, table downloads, trial set-up, recorder uploads), whatever the speed; the
     real-time statistics and the io verdict (960 bits do not fit 500 per period) are reported."""
     out = tmp_path / "rt"
-    res = run_rig([sys.executable, "-m", "host.cli", "run", *EXP, "--bus", "hub", "--realtime",
-                   "--io-bitrate", "500000", "--out", str(out)])
+    res = run_rig(
+        [sys.executable, "-m", "host.cli", "run", *EXP, "--bus", "hub", "--realtime", "--io-bitrate", "500000", "--out", str(out)]
+    )
     s = check_run(res, out, sim_digest, "hub")
     first = hub_run[2]
     assert experiment_bus_time(s) == experiment_bus_time(first)
@@ -139,8 +142,10 @@ def test_realtime_run_has_the_same_results_and_bus_time_figures(
     # ... and kept the CPUs awake with a SCHED_IDLE busy loop per CPU, all gone after the run
     assert sched.pop("idle_poll") == {"loops": len(os.sched_getaffinity(0))}
     assert "CPUs kept awake by" in res.stdout and not _idle_loops_left()
-    assert sched == {"policy": "SCHED_FIFO", "priority": 10, "roles": ["hub", "plant", "drive1", "drive2", "drive3",
-                                                                       "drive4"]} or "not permitted" in sched["reason"]
+    assert (
+        sched == {"policy": "SCHED_FIFO", "priority": 10, "roles": ["hub", "plant", "drive1", "drive2", "drive3", "drive4"]}
+        or "not permitted" in sched["reason"]
+    )
     assert timing["achieved_ticks_per_s"] > 0
     io = s["bench"]["bus_time"]["io"]
     assert io["bitrate"] == 500_000 and not io["worst_tick"]["fits"] and io["worst_tick"]["excess_bits"] == 460
@@ -150,14 +155,16 @@ def test_realtime_run_has_the_same_results_and_bus_time_figures(
 
 
 def test_bus_time_hub_gives_the_same_results_and_real_bus_spacing(
-        tmp_path: Path, sim_digest: str, hub_run: tuple[subprocess.CompletedProcess[str], Path, dict]) -> None:
+    tmp_path: Path, sim_digest: str, hub_run: tuple[subprocess.CompletedProcess[str], Path, dict]
+) -> None:
     """``--bus-time`` with io at 500 kbit/s: the hub carries both channels as real buses would, so
     the results and the experiment's bits are the same, and in both candump logs (timestamps: the end
     of each frame on the hub's virtual bus clock) no frame follows the previous one sooner than its
     own bit time at the channel's rate."""
     out = tmp_path / "bt"
-    res = run_rig([sys.executable, "-m", "host.cli", "run", *EXP, "--bus", "hub", "--bus-time",
-                   "--io-bitrate", "500000", "--out", str(out)])
+    res = run_rig(
+        [sys.executable, "-m", "host.cli", "run", *EXP, "--bus", "hub", "--bus-time", "--io-bitrate", "500000", "--out", str(out)]
+    )
     s = check_run(res, out, sim_digest, "hub")
     assert experiment_bus_time(s) == experiment_bus_time(hub_run[2])
     assert s["bench"]["bus_time_hub"] == {"fieldbus": 1_000_000, "io": 500_000}
@@ -183,8 +190,11 @@ def test_rig_over_udp_multicast_in_private_netns_equals_sim(tmp_path: Path, sim_
 
 def test_canopen_library_reads_and_writes_a_drive_process(tmp_path: Path) -> None:
     with start_hub() as hub:
-        drive = subprocess.Popen([sys.executable, "-m", "host.cli", "drive", "--node", "2", "--bus", "hub",
-                                  "--hub", hub.address], start_new_session=True, cwd=REPO)
+        drive = subprocess.Popen(
+            [sys.executable, "-m", "host.cli", "drive", "--node", "2", "--bus", "hub", "--hub", hub.address],
+            start_new_session=True,
+            cwd=REPO,
+        )
         network = canopen.Network(hub_transport(hub.address).open("fieldbus"))
         try:
             network.connect()
@@ -227,9 +237,15 @@ def test_canopen_library_reads_and_writes_a_drive_process(tmp_path: Path) -> Non
 def test_drive_killed_and_restarted_between_trials_is_set_up_again(tmp_path: Path) -> None:
     """Heartbeat loss + boot-up of drive 2 between trials: the host brings it up again,
     configures it and the next trial runs; the traces equal a run without the restart."""
+
     def role(*args: str) -> subprocess.Popen:
-        return subprocess.Popen([sys.executable, "-m", "host.cli", *args, "--bus", "hub", "--hub", hub.address],
-                                start_new_session=True, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        return subprocess.Popen(
+            [sys.executable, "-m", "host.cli", *args, "--bus", "hub", "--hub", hub.address],
+            start_new_session=True,
+            cwd=REPO,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
 
     procs: list[subprocess.Popen] = []
     with start_hub() as hub:
@@ -237,9 +253,33 @@ def test_drive_killed_and_restarted_between_trials_is_set_up_again(tmp_path: Pat
             drives = {n: role("drive", "--node", str(n)) for n in (1, 2, 3, 4)}
             procs += [*drives.values(), role("plant")]
             out = tmp_path / "rig"
-            host = subprocess.Popen([sys.executable, "-u", "-m", "host.cli", "host", "--iterations", "3", "--cycle", "0.15",
-                                     "--pause", "4", "--recover", "60", "--bus", "hub", "--hub", hub.address, "--out", str(out)],
-                                    start_new_session=True, cwd=REPO, stdout=subprocess.PIPE, text=True)
+            host = subprocess.Popen(
+                [
+                    sys.executable,
+                    "-u",
+                    "-m",
+                    "host.cli",
+                    "host",
+                    "--iterations",
+                    "3",
+                    "--cycle",
+                    "0.15",
+                    "--pause",
+                    "4",
+                    "--recover",
+                    "60",
+                    "--bus",
+                    "hub",
+                    "--hub",
+                    hub.address,
+                    "--out",
+                    str(out),
+                ],
+                start_new_session=True,
+                cwd=REPO,
+                stdout=subprocess.PIPE,
+                text=True,
+            )
             procs.append(host)
             lines = []
             for line in host.stdout:  # type: ignore[union-attr]

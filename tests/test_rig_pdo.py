@@ -46,8 +46,7 @@ def sim() -> ExperimentResult:
 def rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[subprocess.CompletedProcess[str], Path]]:
     out = tmp_path_factory.mktemp("rigpdo") / "run"
     cmd = [sys.executable, "-m", "host.cli", "run", *EXP, "--bus", "hub", "--out", str(out)]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
-                            cwd=REPO)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True, cwd=REPO)
     try:
         so, se = proc.communicate(timeout=600)
     except subprocess.TimeoutExpired:
@@ -76,20 +75,20 @@ def _decoded(db: cantools.database.Database, log: Path) -> list[tuple[int, dict[
         for frame in Parser(fh):
             if frame.frame_id not in ids:
                 continue
-            out.append((frame.frame_id, db.decode_message(frame.frame_id, frame.data, scaling=False,
-                                                          decode_choices=False)))
+            out.append((frame.frame_id, db.decode_message(frame.frame_id, frame.data, scaling=False, decode_choices=False)))
     return out
 
 
-def test_cantools_finds_the_recorded_values_in_the_logs(rig: tuple[subprocess.CompletedProcess[str], Path],
-                                                        sim: ExperimentResult) -> None:
+def test_cantools_finds_the_recorded_values_in_the_logs(
+    rig: tuple[subprocess.CompletedProcess[str], Path], sim: ExperimentResult
+) -> None:
     res, out = rig
     assert res.returncode == 0, res.stderr[-3000:]
     traces = sim.traces[0]  # trial 0: what each drive's recorder holds (the rig's digest is the same)
     io = _decoded(cantools.database.load_file(str(IO_DBC_PATH)), out / "io.log")
     starts = [k for k, (fid, sig) in enumerate(io) if fid == io_frames.CONTROL_COB_ID and sig["command"] == 1]
     assert len(starts) == 2
-    trial0 = io[starts[0]:starts[1]]
+    trial0 = io[starts[0] : starts[1]]
     fb = _decoded(cantools.database.load_file(str(FIELDBUS_DBC_PATH)), out / "fieldbus.log")
     assert sum(1 for fid, _ in fb if fid == 0x080) == 2 * N  # one SYNC per tick
     for j, tr in enumerate(traces):
@@ -99,19 +98,22 @@ def test_cantools_finds_the_recorded_values_in_the_logs(rig: tuple[subprocess.Co
         assert tq == tr.torque_units.tolist()
         tpdo = [sig for fid, sig in fb if fid == tpdo_cob_id(j + 1)][:N]
         assert [s["position_actual"] for s in tpdo] == tr.position_counts.tolist()
-        assert [s["torque_actual"] for s in tpdo] == [fp.torque_units_to_permille(int(t), RATED_TORQUE_MNM)
-                                                       for t in tr.torque_units]
+        assert [s["torque_actual"] for s in tpdo] == [
+            fp.torque_units_to_permille(int(t), RATED_TORQUE_MNM) for t in tr.torque_units
+        ]
         rpdo = [sig for fid, sig in fb if fid == rpdo_cob_id(j + 1)][:N]
         ff_permille = np.rint(sim.feedforward[0][:, j] * 1e6 / RATED_TORQUE_MNM).astype(int)
         assert [s["torque_offset"] for s in rpdo] == ff_permille.tolist()
 
 
-def test_stock_cantools_decode_command_reads_io_log(rig: tuple[subprocess.CompletedProcess[str], Path],
-                                                   sim: ExperimentResult) -> None:
+def test_stock_cantools_decode_command_reads_io_log(
+    rig: tuple[subprocess.CompletedProcess[str], Path], sim: ExperimentResult
+) -> None:
     _, out = rig
     with open(out / "io.log") as fh:
-        res = subprocess.run([sys.executable, "-m", "cantools", "decode", str(IO_DBC_PATH)], stdin=fh,
-                             capture_output=True, text=True, timeout=300)
+        res = subprocess.run(
+            [sys.executable, "-m", "cantools", "decode", str(IO_DBC_PATH)], stdin=fh, capture_output=True, text=True, timeout=300
+        )
     assert res.returncode == 0, res.stderr[-2000:]
     first = int(sim.traces[0][0].position_counts[0])
     assert f"IO_ENCODER_J1(\n    position: {first} counts,\n    wire_tick: 0 tick\n)" in res.stdout
@@ -119,8 +121,13 @@ def test_stock_cantools_decode_command_reads_io_log(rig: tuple[subprocess.Comple
 
 def test_a_configuration_that_does_not_fit_is_refused_before_anything_starts(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    res = subprocess.run([sys.executable, "-m", "host.cli", "run", "--ff-transport", "pdo", "--fieldbus-bitrate",
-                          "500000", "--out", str(out)], capture_output=True, text=True, cwd=REPO, timeout=300)
+    res = subprocess.run(
+        [sys.executable, "-m", "host.cli", "run", "--ff-transport", "pdo", "--fieldbus-bitrate", "500000", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=300,
+    )
     assert res.returncode == 2
     assert res.stderr.startswith("ilcrig: error: the cyclic PDO exchange does not fit the fieldbus")
     assert "195.0 %" in res.stderr and "--force-bus-fit" in res.stderr

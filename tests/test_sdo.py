@@ -125,19 +125,21 @@ def test_crc_matches_ccitt_check_value() -> None:
 
 
 def test_expedited_download_1_2_4_bytes(server: SdoServer, store: DictStore) -> None:
-    script(server, [
-        ("2F 00 20 01 AB 00 00 00", "60 00 20 01 00 00 00 00"),
-        ("2B 00 20 02 CD AB 00 00", "60 00 20 02 00 00 00 00"),
-        ("23 00 20 03 01 02 03 04", "60 00 20 03 00 00 00 00"),
-    ])
+    script(
+        server,
+        [
+            ("2F 00 20 01 AB 00 00 00", "60 00 20 01 00 00 00 00"),
+            ("2B 00 20 02 CD AB 00 00", "60 00 20 02 00 00 00 00"),
+            ("23 00 20 03 01 02 03 04", "60 00 20 03 00 00 00 00"),
+        ],
+    )
     assert store.values[(IDX, 1)] == h("AB")
     assert store.values[(IDX, 2)] == h("CD AB")
     assert store.values[(IDX, 3)] == h("01 02 03 04")
     assert not server.busy
 
 
-def test_expedited_download_without_size_passes_four_bytes(
-        server: SdoServer, store: DictStore) -> None:
+def test_expedited_download_without_size_passes_four_bytes(server: SdoServer, store: DictStore) -> None:
     script(server, [("22 00 20 03 AA BB CC DD", "60 00 20 03 00 00 00 00")])
     assert store.values[(IDX, 3)] == h("AA BB CC DD")
     # a 2-byte object refuses 4 bytes
@@ -145,11 +147,14 @@ def test_expedited_download_without_size_passes_four_bytes(
 
 
 def test_expedited_upload_1_2_4_bytes(server: SdoServer) -> None:
-    script(server, [
-        ("40 00 20 01 00 00 00 00", "4F 00 20 01 11 00 00 00"),
-        ("40 00 20 02 00 00 00 00", "4B 00 20 02 22 33 00 00"),
-        ("40 00 20 03 00 00 00 00", "43 00 20 03 44 55 66 77"),
-    ])
+    script(
+        server,
+        [
+            ("40 00 20 01 00 00 00 00", "4F 00 20 01 11 00 00 00"),
+            ("40 00 20 02 00 00 00 00", "4B 00 20 02 22 33 00 00"),
+            ("40 00 20 03 00 00 00 00", "43 00 20 03 44 55 66 77"),
+        ],
+    )
 
 
 def test_short_request_frame_is_zero_padded(server: SdoServer) -> None:
@@ -161,11 +166,14 @@ def test_short_request_frame_is_zero_padded(server: SdoServer) -> None:
 
 def test_segmented_download_20_bytes(server: SdoServer, store: DictStore) -> None:
     payload = bytes(range(0xA0, 0xA0 + 20))
-    script(server, [
-        ("21 00 20 04 14 00 00 00", "60 00 20 04 00 00 00 00"),
-        ("00" + payload[0:7].hex(), "20 00 00 00 00 00 00 00"),
-        ("10" + payload[7:14].hex(), "30 00 00 00 00 00 00 00"),
-    ])
+    script(
+        server,
+        [
+            ("21 00 20 04 14 00 00 00", "60 00 20 04 00 00 00 00"),
+            ("00" + payload[0:7].hex(), "20 00 00 00 00 00 00 00"),
+            ("10" + payload[7:14].hex(), "30 00 00 00 00 00 00 00"),
+        ],
+    )
     assert store.writes == [], "the object must receive the payload only at the end"
     # last segment: toggle 0, n = 1 byte unused, c = 1 -> 0x03
     script(server, [("03" + payload[14:20].hex() + "00", "20 00 00 00 00 00 00 00")])
@@ -174,37 +182,49 @@ def test_segmented_download_20_bytes(server: SdoServer, store: DictStore) -> Non
 
 
 def test_segmented_download_without_size(server: SdoServer, store: DictStore) -> None:
-    script(server, [
-        ("20 00 20 04 00 00 00 00", "60 00 20 04 00 00 00 00"),
-        ("00 01 02 03 04 05 06 07", "20 00 00 00 00 00 00 00"),
-        ("1B 08 09 00 00 00 00 00", "30 00 00 00 00 00 00 00"),  # t=1, n=5, c=1
-    ])
+    script(
+        server,
+        [
+            ("20 00 20 04 00 00 00 00", "60 00 20 04 00 00 00 00"),
+            ("00 01 02 03 04 05 06 07", "20 00 00 00 00 00 00 00"),
+            ("1B 08 09 00 00 00 00 00", "30 00 00 00 00 00 00 00"),  # t=1, n=5, c=1
+        ],
+    )
     assert store.values[(IDX, 4)] == bytes(range(1, 10))
 
 
 def test_segmented_upload_20_bytes(server: SdoServer) -> None:
-    script(server, [
-        ("40 00 20 04 00 00 00 00", "41 00 20 04 14 00 00 00"),
-        ("60 00 00 00 00 00 00 00", "00 00 01 02 03 04 05 06"),
-        ("70 00 00 00 00 00 00 00", "10 07 08 09 0A 0B 0C 0D"),
-        ("60 00 00 00 00 00 00 00", "03 0E 0F 10 11 12 13 00"),
-    ])
+    script(
+        server,
+        [
+            ("40 00 20 04 00 00 00 00", "41 00 20 04 14 00 00 00"),
+            ("60 00 00 00 00 00 00 00", "00 00 01 02 03 04 05 06"),
+            ("70 00 00 00 00 00 00 00", "10 07 08 09 0A 0B 0C 0D"),
+            ("60 00 00 00 00 00 00 00", "03 0E 0F 10 11 12 13 00"),
+        ],
+    )
     assert not server.busy
 
 
 def test_empty_domain_upload_is_segmented_with_size_zero(server: SdoServer) -> None:
-    script(server, [
-        ("40 00 20 07 00 00 00 00", "41 00 20 07 00 00 00 00"),
-        ("60 00 00 00 00 00 00 00", "0F 00 00 00 00 00 00 00"),
-    ])
+    script(
+        server,
+        [
+            ("40 00 20 07 00 00 00 00", "41 00 20 07 00 00 00 00"),
+            ("60 00 00 00 00 00 00 00", "0F 00 00 00 00 00 00 00"),
+        ],
+    )
 
 
 def test_segmented_download_size_mismatch(server: SdoServer, store: DictStore) -> None:
-    script(server, [
-        ("21 00 20 04 08 00 00 00", "60 00 20 04 00 00 00 00"),
-        ("00 01 02 03 04 05 06 07", "20 00 00 00 00 00 00 00"),
-        ("13 08 09 0A 00 00 00 00", "80 00 20 04 10 00 07 06"),  # 3 bytes more than 8 - 7
-    ])
+    script(
+        server,
+        [
+            ("21 00 20 04 08 00 00 00", "60 00 20 04 00 00 00 00"),
+            ("00 01 02 03 04 05 06 07", "20 00 00 00 00 00 00 00"),
+            ("13 08 09 0A 00 00 00 00", "80 00 20 04 10 00 07 06"),  # 3 bytes more than 8 - 7
+        ],
+    )
     assert store.writes == [] and not server.busy
 
 
@@ -212,10 +232,13 @@ def test_segmented_download_size_mismatch(server: SdoServer, store: DictStore) -
 
 
 def test_abort_unknown_object(server: SdoServer) -> None:
-    script(server, [
-        ("40 00 30 00 00 00 00 00", "80 00 30 00 00 00 02 06"),
-        ("2F 00 30 00 01 00 00 00", "80 00 30 00 00 00 02 06"),
-    ])
+    script(
+        server,
+        [
+            ("40 00 30 00 00 00 00 00", "80 00 30 00 00 00 02 06"),
+            ("2F 00 30 00 01 00 00 00", "80 00 30 00 00 00 02 06"),
+        ],
+    )
 
 
 def test_abort_write_read_only(server: SdoServer, store: DictStore) -> None:
@@ -233,28 +256,37 @@ def test_abort_wrong_length(server: SdoServer) -> None:
 
 
 def test_abort_segmented_write_read_only_at_end(server: SdoServer) -> None:
-    script(server, [
-        ("21 00 20 05 02 00 00 00", "60 00 20 05 00 00 00 00"),
-        ("0B 01 02 00 00 00 00 00", "80 00 20 05 02 00 01 06"),
-    ])
+    script(
+        server,
+        [
+            ("21 00 20 05 02 00 00 00", "60 00 20 05 00 00 00 00"),
+            ("0B 01 02 00 00 00 00 00", "80 00 20 05 02 00 01 06"),
+        ],
+    )
     assert not server.busy
 
 
 def test_abort_toggle_bit_download(server: SdoServer, store: DictStore) -> None:
-    script(server, [
-        ("21 00 20 04 14 00 00 00", "60 00 20 04 00 00 00 00"),
-        ("00 01 02 03 04 05 06 07", "20 00 00 00 00 00 00 00"),
-        ("00 08 09 0A 0B 0C 0D 0E", "80 00 20 04 00 00 03 05"),  # toggle should be 1
-        ("10 08 09 0A 0B 0C 0D 0E", "80 00 00 00 01 00 04 05"),  # transfer was dropped
-    ])
+    script(
+        server,
+        [
+            ("21 00 20 04 14 00 00 00", "60 00 20 04 00 00 00 00"),
+            ("00 01 02 03 04 05 06 07", "20 00 00 00 00 00 00 00"),
+            ("00 08 09 0A 0B 0C 0D 0E", "80 00 20 04 00 00 03 05"),  # toggle should be 1
+            ("10 08 09 0A 0B 0C 0D 0E", "80 00 00 00 01 00 04 05"),  # transfer was dropped
+        ],
+    )
     assert store.writes == []
 
 
 def test_abort_toggle_bit_upload(server: SdoServer) -> None:
-    script(server, [
-        ("40 00 20 04 00 00 00 00", "41 00 20 04 14 00 00 00"),
-        ("70 00 00 00 00 00 00 00", "80 00 20 04 00 00 03 05"),
-    ])
+    script(
+        server,
+        [
+            ("40 00 20 04 00 00 00 00", "41 00 20 04 14 00 00 00"),
+            ("70 00 00 00 00 00 00 00", "80 00 20 04 00 00 03 05"),
+        ],
+    )
     assert not server.busy
 
 
@@ -264,37 +296,49 @@ def test_abort_unknown_command_specifier(server: SdoServer, b0: str) -> None:
 
 
 def test_segment_request_without_transfer_is_invalid_command(server: SdoServer) -> None:
-    script(server, [
-        ("00 01 02 03 04 05 06 07", "80 00 00 00 01 00 04 05"),
-        ("60 00 00 00 00 00 00 00", "80 00 00 00 01 00 04 05"),
-        ("A2 01 7F 00 00 00 00 00", "80 00 00 00 01 00 04 05"),  # block ack, no block upload
-        ("C1 00 00 00 00 00 00 00", "80 00 00 00 01 00 04 05"),  # block end, no download
-    ])
+    script(
+        server,
+        [
+            ("00 01 02 03 04 05 06 07", "80 00 00 00 01 00 04 05"),
+            ("60 00 00 00 00 00 00 00", "80 00 00 00 01 00 04 05"),
+            ("A2 01 7F 00 00 00 00 00", "80 00 00 00 01 00 04 05"),  # block ack, no block upload
+            ("C1 00 00 00 00 00 00 00", "80 00 00 00 01 00 04 05"),  # block end, no download
+        ],
+    )
 
 
 def test_wrong_segment_type_during_transfer(server: SdoServer) -> None:
-    script(server, [
-        ("40 00 20 04 00 00 00 00", "41 00 20 04 14 00 00 00"),
-        ("00 01 02 03 04 05 06 07", "80 00 20 04 01 00 04 05"),  # download segment in upload
-    ])
+    script(
+        server,
+        [
+            ("40 00 20 04 00 00 00 00", "41 00 20 04 14 00 00 00"),
+            ("00 01 02 03 04 05 06 07", "80 00 20 04 01 00 04 05"),  # download segment in upload
+        ],
+    )
 
 
 def test_client_abort_drops_transfer(server: SdoServer, store: DictStore) -> None:
-    script(server, [
-        ("21 00 20 04 14 00 00 00", "60 00 20 04 00 00 00 00"),
-        ("00 01 02 03 04 05 06 07", "20 00 00 00 00 00 00 00"),
-        ("80 00 20 04 00 00 04 05", None),
-        ("10 01 02 03 04 05 06 07", "80 00 00 00 01 00 04 05"),
-    ])
+    script(
+        server,
+        [
+            ("21 00 20 04 14 00 00 00", "60 00 20 04 00 00 00 00"),
+            ("00 01 02 03 04 05 06 07", "20 00 00 00 00 00 00 00"),
+            ("80 00 20 04 00 00 04 05", None),
+            ("10 01 02 03 04 05 06 07", "80 00 00 00 01 00 04 05"),
+        ],
+    )
     assert store.writes == [] and not server.busy
 
 
 def test_new_initiate_abandons_transfer(server: SdoServer, store: DictStore) -> None:
-    script(server, [
-        ("21 00 20 04 14 00 00 00", "60 00 20 04 00 00 00 00"),
-        ("00 01 02 03 04 05 06 07", "20 00 00 00 00 00 00 00"),
-        ("40 00 20 01 00 00 00 00", "4F 00 20 01 11 00 00 00"),
-    ])
+    script(
+        server,
+        [
+            ("21 00 20 04 14 00 00 00", "60 00 20 04 00 00 00 00"),
+            ("00 01 02 03 04 05 06 07", "20 00 00 00 00 00 00 00"),
+            ("40 00 20 01 00 00 00 00", "4F 00 20 01 11 00 00 00"),
+        ],
+    )
     assert not server.busy and store.writes == []
 
 
@@ -326,85 +370,100 @@ def test_timeout_without_prior_time(store: DictStore) -> None:
 def test_block_download_with_crc(server: SdoServer, store: DictStore) -> None:
     payload = bytes(range(0xA0, 0xA0 + 20))
     crc = crc16_ccitt(payload)
-    script(server, [
-        ("C6 00 20 04 14 00 00 00", "A4 00 20 04 7F 00 00 00"),
-        ("01" + payload[0:7].hex(), None),
-        ("02" + payload[7:14].hex(), None),
-        ("83" + payload[14:20].hex() + "00", "A2 03 7F 00 00 00 00 00"),
-    ])
+    script(
+        server,
+        [
+            ("C6 00 20 04 14 00 00 00", "A4 00 20 04 7F 00 00 00"),
+            ("01" + payload[0:7].hex(), None),
+            ("02" + payload[7:14].hex(), None),
+            ("83" + payload[14:20].hex() + "00", "A2 03 7F 00 00 00 00 00"),
+        ],
+    )
     assert store.writes == []
     # end: n = 1 unused byte in the last segment -> 0xC1 | 1 << 2 = 0xC5, CRC LE
-    script(server, [(f"C5 {crc & 0xFF:02X} {crc >> 8:02X} 00 00 00 00 00",
-                     "A1 00 00 00 00 00 00 00")])
+    script(server, [(f"C5 {crc & 0xFF:02X} {crc >> 8:02X} 00 00 00 00 00", "A1 00 00 00 00 00 00 00")])
     assert store.writes == [(IDX, 4, payload)]
     assert not server.busy
 
 
 def test_block_download_without_crc(server: SdoServer, store: DictStore) -> None:
-    script(server, [
-        ("C2 00 20 03 04 00 00 00", "A0 00 20 03 7F 00 00 00"),
-        ("81 01 02 03 04 00 00 00", "A2 01 7F 00 00 00 00 00"),
-        ("CD 00 00 00 00 00 00 00", "A1 00 00 00 00 00 00 00"),  # n = 3
-    ])
+    script(
+        server,
+        [
+            ("C2 00 20 03 04 00 00 00", "A0 00 20 03 7F 00 00 00"),
+            ("81 01 02 03 04 00 00 00", "A2 01 7F 00 00 00 00 00"),
+            ("CD 00 00 00 00 00 00 00", "A1 00 00 00 00 00 00 00"),  # n = 3
+        ],
+    )
     assert store.values[(IDX, 3)] == h("01 02 03 04")
 
 
 def test_block_download_crc_error(server: SdoServer, store: DictStore) -> None:
-    script(server, [
-        ("C6 00 20 03 04 00 00 00", "A4 00 20 03 7F 00 00 00"),
-        ("81 01 02 03 04 00 00 00", "A2 01 7F 00 00 00 00 00"),
-        ("CD 12 34 00 00 00 00 00", "80 00 20 03 04 00 04 05"),
-    ])
+    script(
+        server,
+        [
+            ("C6 00 20 03 04 00 00 00", "A4 00 20 03 7F 00 00 00"),
+            ("81 01 02 03 04 00 00 00", "A2 01 7F 00 00 00 00 00"),
+            ("CD 12 34 00 00 00 00 00", "80 00 20 03 04 00 04 05"),
+        ],
+    )
     assert store.writes == []
 
 
 def test_block_download_size_mismatch(server: SdoServer) -> None:
-    script(server, [
-        ("C2 00 20 04 05 00 00 00", "A0 00 20 04 7F 00 00 00"),
-        ("81 01 02 03 04 00 00 00", "A2 01 7F 00 00 00 00 00"),
-        ("CD 00 00 00 00 00 00 00", "80 00 20 04 10 00 07 06"),
-    ])
+    script(
+        server,
+        [
+            ("C2 00 20 04 05 00 00 00", "A0 00 20 04 7F 00 00 00"),
+            ("81 01 02 03 04 00 00 00", "A2 01 7F 00 00 00 00 00"),
+            ("CD 00 00 00 00 00 00 00", "80 00 20 04 10 00 07 06"),
+        ],
+    )
 
 
 def test_block_download_multiple_subblocks_and_lost_segment(store: DictStore) -> None:
     server = SdoServer(NODE, store)
     server.BLOCK_SIZE = 2
     payload = bytes(range(30))  # 5 segments
-    seg = [payload[i:i + 7].ljust(7, b"\x00").hex() for i in range(0, 30, 7)]
-    script(server, [
-        ("C2 00 20 04 1E 00 00 00", "A0 00 20 04 02 00 00 00"),
-        ("01" + seg[0], None),
-        ("02" + seg[1], "A2 02 02 00 00 00 00 00"),
-        # segment 1 of the second sub-block is lost: seqno 2 arrives first
-        ("02" + seg[3], "A2 00 02 00 00 00 00 00"),
-        # the client repeats the whole sub-block
-        ("01" + seg[2], None),
-        ("02" + seg[3], "A2 02 02 00 00 00 00 00"),
-        ("81" + seg[4], "A2 01 02 00 00 00 00 00"),
-        ("D5 00 00 00 00 00 00 00", "A1 00 00 00 00 00 00 00"),  # n = 5 -> 0xC1 | 0x14
-    ])
+    seg = [payload[i : i + 7].ljust(7, b"\x00").hex() for i in range(0, 30, 7)]
+    script(
+        server,
+        [
+            ("C2 00 20 04 1E 00 00 00", "A0 00 20 04 02 00 00 00"),
+            ("01" + seg[0], None),
+            ("02" + seg[1], "A2 02 02 00 00 00 00 00"),
+            # segment 1 of the second sub-block is lost: seqno 2 arrives first
+            ("02" + seg[3], "A2 00 02 00 00 00 00 00"),
+            # the client repeats the whole sub-block
+            ("01" + seg[2], None),
+            ("02" + seg[3], "A2 02 02 00 00 00 00 00"),
+            ("81" + seg[4], "A2 01 02 00 00 00 00 00"),
+            ("D5 00 00 00 00 00 00 00", "A1 00 00 00 00 00 00 00"),  # n = 5 -> 0xC1 | 0x14
+        ],
+    )
     assert store.values[(IDX, 4)] == payload
 
 
 def test_block_download_client_abort_in_subblock(server: SdoServer, store: DictStore) -> None:
-    script(server, [
-        ("C2 00 20 04 14 00 00 00", "A0 00 20 04 7F 00 00 00"),
-        ("01 00 01 02 03 04 05 06", None),
-        ("80 00 20 04 00 00 00 08", None),
-    ])
+    script(
+        server,
+        [
+            ("C2 00 20 04 14 00 00 00", "A0 00 20 04 7F 00 00 00"),
+            ("01 00 01 02 03 04 05 06", None),
+            ("80 00 20 04 00 00 00 08", None),
+        ],
+    )
     assert not server.busy and store.writes == []
 
 
-def test_block_download_segments_look_like_other_commands(
-        server: SdoServer, store: DictStore) -> None:
+def test_block_download_segments_look_like_other_commands(server: SdoServer, store: DictStore) -> None:
     """In the sub-block phase, 0x21, 0x40, 0x60 ... are sequence numbers, not commands."""
     payload = bytes(i & 0xFF for i in range(7 * 0x61))
     frames = [("C0 00 20 04 00 00 00 00", "A0 00 20 04 7F 00 00 00")]
     for k in range(0x61):
         seqno = k + 1
         flag = 0x80 if seqno == 0x61 else 0
-        frames.append((f"{flag | seqno:02X}" + payload[7 * k:7 * k + 7].hex(),
-                       "A2 61 7F 00 00 00 00 00" if flag else None))
+        frames.append((f"{flag | seqno:02X}" + payload[7 * k : 7 * k + 7].hex(), "A2 61 7F 00 00 00 00 00" if flag else None))
     frames.append(("C1 00 00 00 00 00 00 00", "A1 00 00 00 00 00 00 00"))
     script(server, frames)
     assert store.values[(IDX, 4)] == payload
@@ -416,51 +475,69 @@ def test_block_download_segments_look_like_other_commands(
 def test_block_upload_with_crc(server: SdoServer) -> None:
     payload = bytes(range(20))
     crc = crc16_ccitt(payload)
-    script(server, [
-        ("A4 00 20 04 7F 00 00 00", "C6 00 20 04 14 00 00 00"),
-        ("A3 00 00 00 00 00 00 00", [
-            "01 00 01 02 03 04 05 06",
-            "02 07 08 09 0A 0B 0C 0D",
-            "83 0E 0F 10 11 12 13 00",
-        ]),
-        ("A2 03 7F 00 00 00 00 00", f"C5 {crc & 0xFF:02X} {crc >> 8:02X} 00 00 00 00 00"),
-        ("A1 00 00 00 00 00 00 00", None),
-    ])
+    script(
+        server,
+        [
+            ("A4 00 20 04 7F 00 00 00", "C6 00 20 04 14 00 00 00"),
+            (
+                "A3 00 00 00 00 00 00 00",
+                [
+                    "01 00 01 02 03 04 05 06",
+                    "02 07 08 09 0A 0B 0C 0D",
+                    "83 0E 0F 10 11 12 13 00",
+                ],
+            ),
+            ("A2 03 7F 00 00 00 00 00", f"C5 {crc & 0xFF:02X} {crc >> 8:02X} 00 00 00 00 00"),
+            ("A1 00 00 00 00 00 00 00", None),
+        ],
+    )
     assert not server.busy
 
 
 def test_block_upload_without_crc_small_blocks_and_repeat(server: SdoServer) -> None:
-    script(server, [
-        ("A0 00 20 04 02 00 00 00", "C2 00 20 04 14 00 00 00"),
-        ("A3 00 00 00 00 00 00 00", ["01 00 01 02 03 04 05 06", "02 07 08 09 0A 0B 0C 0D"]),
-        # the client only got the first segment: the server repeats from the second
-        ("A2 01 02 00 00 00 00 00", ["01 07 08 09 0A 0B 0C 0D", "82 0E 0F 10 11 12 13 00"]),
-        ("A2 02 02 00 00 00 00 00", "C5 00 00 00 00 00 00 00"),
-        ("A1 00 00 00 00 00 00 00", None),
-    ])
+    script(
+        server,
+        [
+            ("A0 00 20 04 02 00 00 00", "C2 00 20 04 14 00 00 00"),
+            ("A3 00 00 00 00 00 00 00", ["01 00 01 02 03 04 05 06", "02 07 08 09 0A 0B 0C 0D"]),
+            # the client only got the first segment: the server repeats from the second
+            ("A2 01 02 00 00 00 00 00", ["01 07 08 09 0A 0B 0C 0D", "82 0E 0F 10 11 12 13 00"]),
+            ("A2 02 02 00 00 00 00 00", "C5 00 00 00 00 00 00 00"),
+            ("A1 00 00 00 00 00 00 00", None),
+        ],
+    )
 
 
 def test_block_upload_protocol_switch(server: SdoServer) -> None:
     script(server, [("A4 00 20 03 7F 04 00 00", "43 00 20 03 44 55 66 77")])
-    script(server, [
-        ("A4 00 20 04 7F 20 00 00", "41 00 20 04 14 00 00 00"),
-        ("60 00 00 00 00 00 00 00", "00 00 01 02 03 04 05 06"),
-    ])
+    script(
+        server,
+        [
+            ("A4 00 20 04 7F 20 00 00", "41 00 20 04 14 00 00 00"),
+            ("60 00 00 00 00 00 00 00", "00 00 01 02 03 04 05 06"),
+        ],
+    )
 
 
 def test_block_upload_aborts(server: SdoServer) -> None:
-    script(server, [
-        ("A4 00 20 04 00 00 00 00", "80 00 20 04 02 00 04 05"),  # block size 0
-        ("A4 00 20 04 80 00 00 00", "80 00 20 04 02 00 04 05"),  # block size 128
-        ("A4 00 30 00 7F 00 00 00", "80 00 30 00 00 00 02 06"),  # unknown object
-        ("A4 00 20 04 02 00 00 00", "C6 00 20 04 14 00 00 00"),
-        ("A2 00 02 00 00 00 00 00", "80 00 20 04 01 00 04 05"),  # ack before start
-    ])
-    script(server, [
-        ("A4 00 20 04 02 00 00 00", "C6 00 20 04 14 00 00 00"),
-        ("A3 00 00 00 00 00 00 00", ["01 00 01 02 03 04 05 06", "02 07 08 09 0A 0B 0C 0D"]),
-        ("A2 03 02 00 00 00 00 00", "80 00 20 04 03 00 04 05"),  # acks more than sent
-    ])
+    script(
+        server,
+        [
+            ("A4 00 20 04 00 00 00 00", "80 00 20 04 02 00 04 05"),  # block size 0
+            ("A4 00 20 04 80 00 00 00", "80 00 20 04 02 00 04 05"),  # block size 128
+            ("A4 00 30 00 7F 00 00 00", "80 00 30 00 00 00 02 06"),  # unknown object
+            ("A4 00 20 04 02 00 00 00", "C6 00 20 04 14 00 00 00"),
+            ("A2 00 02 00 00 00 00 00", "80 00 20 04 01 00 04 05"),  # ack before start
+        ],
+    )
+    script(
+        server,
+        [
+            ("A4 00 20 04 02 00 00 00", "C6 00 20 04 14 00 00 00"),
+            ("A3 00 00 00 00 00 00 00", ["01 00 01 02 03 04 05 06", "02 07 08 09 0A 0B 0C 0D"]),
+            ("A2 03 02 00 00 00 00 00", "80 00 20 04 03 00 04 05"),  # acks more than sent
+        ],
+    )
 
 
 # --------------------------------------------------------------------------- property tests
@@ -470,7 +547,7 @@ def _segmented_download(server: SdoServer, index: int, sub: int, data: bytes) ->
     resp = server.handle(struct.pack("<BHBL", 0x21, index, sub, len(data)))
     assert resp == struct.pack("<BHB", 0x60, index, sub) + bytes(4)
     toggle = 0
-    chunks = [data[i:i + 7] for i in range(0, len(data), 7)] or [b""]
+    chunks = [data[i : i + 7] for i in range(0, len(data), 7)] or [b""]
     for k, chunk in enumerate(chunks):
         last = k == len(chunks) - 1
         b0 = (toggle << 4) | ((7 - len(chunk)) << 1) | int(last)
@@ -483,7 +560,7 @@ def _segmented_upload(server: SdoServer, index: int, sub: int) -> bytes:
     resp = server.handle(struct.pack("<BHBL", 0x40, index, sub, 0))
     assert isinstance(resp, bytes)
     if resp[0] & 0x02:
-        return resp[4:8 - ((resp[0] >> 2) & 3)]
+        return resp[4 : 8 - ((resp[0] >> 2) & 3)]
     assert resp[0] == 0x41
     size = struct.unpack_from("<L", resp, 4)[0]
     out = bytearray()
@@ -491,7 +568,7 @@ def _segmented_upload(server: SdoServer, index: int, sub: int) -> bytes:
     while True:
         seg = server.handle(bytes([0x60 | (toggle << 4)]) + bytes(7))
         assert isinstance(seg, bytes) and (seg[0] >> 4) & 1 == toggle
-        out += seg[1:8 - ((seg[0] >> 1) & 7)]
+        out += seg[1 : 8 - ((seg[0] >> 1) & 7)]
         toggle ^= 1
         if seg[0] & 1:
             break
@@ -516,7 +593,7 @@ def _block_upload(server: SdoServer, index: int, sub: int, blksize: int) -> byte
         frames = resp
     n = (resp[0] >> 2) & 7
     assert resp[0] & 0xE3 == 0xC1
-    out = bytes(data[:len(data) - n])
+    out = bytes(data[: len(data) - n])
     assert struct.unpack_from("<H", resp, 1)[0] == crc16_ccitt(out)
     assert server.handle(bytes([0xA1]) + bytes(7)) is None
     assert len(out) == size
@@ -527,7 +604,7 @@ def _block_download(server: SdoServer, index: int, sub: int, data: bytes) -> Non
     resp = server.handle(struct.pack("<BHBL", 0xC6, index, sub, len(data)))
     assert isinstance(resp, bytes) and resp[0] == 0xA4
     blksize = resp[4]
-    chunks = [data[i:i + 7] for i in range(0, len(data), 7)] or [b""]
+    chunks = [data[i : i + 7] for i in range(0, len(data), 7)] or [b""]
     seqno = 0
     for k, chunk in enumerate(chunks):
         last = k == len(chunks) - 1
@@ -540,8 +617,7 @@ def _block_download(server: SdoServer, index: int, sub: int, data: bytes) -> Non
             assert resp is None
     n = 7 - len(chunks[-1])
     crc = crc16_ccitt(data)
-    assert server.handle(struct.pack("<BH", 0xC1 | (n << 2), crc) + bytes(5)) == (
-        bytes([0xA1]) + bytes(7))
+    assert server.handle(struct.pack("<BH", 0xC1 | (n << 2), crc) + bytes(5)) == (bytes([0xA1]) + bytes(7))
 
 
 @settings(max_examples=60, deadline=None)
@@ -556,8 +632,7 @@ def test_segmented_round_trip(payload: bytes) -> None:
 
 
 @settings(max_examples=60, deadline=None)
-@given(payload=st.binary(min_size=0, max_size=300),
-       blksize=st.integers(min_value=1, max_value=127))
+@given(payload=st.binary(min_size=0, max_size=300), blksize=st.integers(min_value=1, max_value=127))
 def test_block_round_trip(payload: bytes, blksize: int) -> None:
     store = DictStore()
     server = SdoServer(NODE, store)
@@ -610,8 +685,7 @@ class ServerThread:
             resp = self.server.handle(bytes(msg.data), now_s=time.monotonic())
             frames = [] if resp is None else [resp] if isinstance(resp, bytes) else resp
             for data in frames:
-                self.bus.send(can.Message(arbitration_id=self.server.response_cob_id,
-                                          data=data, is_extended_id=False))
+                self.bus.send(can.Message(arbitration_id=self.server.response_cob_id, data=data, is_extended_id=False))
                 self.responses += 1
 
     def reset_counts(self) -> None:
@@ -625,9 +699,13 @@ class ServerThread:
 
 def _make_od() -> od.ObjectDictionary:
     dictionary = od.ObjectDictionary()
-    for sub, name, dtype in ((1, "u8", od.UNSIGNED8), (2, "i16", od.INTEGER16),
-                             (3, "u32", od.UNSIGNED32), (4, "domain", od.DOMAIN),
-                             (5, "ro", od.UNSIGNED16)):
+    for sub, name, dtype in (
+        (1, "u8", od.UNSIGNED8),
+        (2, "i16", od.INTEGER16),
+        (3, "u32", od.UNSIGNED32),
+        (4, "domain", od.DOMAIN),
+        (5, "ro", od.UNSIGNED16),
+    ):
         # one variable per index keeps canopen's SDO mapping simple
         var = od.ODVariable(name, IDX + sub * 0x10, 0)
         var.data_type = dtype
@@ -711,8 +789,7 @@ def test_conformance_segmented_domain(conformance) -> None:
 def test_conformance_block_transfer(conformance, crc: bool) -> None:
     node, server, store = conformance
     payload = bytes((i * 13 + 1) & 0xFF for i in range(2000))
-    with node.sdo.open(0x2100, 0, "wb", size=len(payload), block_transfer=True,
-                       request_crc_support=crc) as fp:
+    with node.sdo.open(0x2100, 0, "wb", size=len(payload), block_transfer=True, request_crc_support=crc) as fp:
         fp.write(payload)
     assert store.values[(0x2100, 0)] == payload
     block_down = server.requests + server.responses

@@ -328,8 +328,10 @@ def test_feasibility_report(nominal) -> None:
 @pytest.mark.parametrize(
     ("limits", "pattern"),
     [
-        (JointLimits(tau_max_nm=50.0),
-         r"joint 1 peak torque \d+\.\d N·m exceeds the limit 45\.0 N·m \(0\.9 × 50\.0 N·m\) at t = "),
+        (
+            JointLimits(tau_max_nm=50.0),
+            r"joint 1 peak torque \d+\.\d N·m exceeds the limit 45\.0 N·m \(0\.9 × 50\.0 N·m\) at t = ",
+        ),
         (JointLimits(qd_max_rad_s=5.0), r"joint 1 speed \d+\.\d\d rad/s exceeds the limit 5\.00 rad/s at t = "),
         (JointLimits(q_max_rad=math.radians(45.0)), r"joint 1 angle 52\.\d deg is above the range limit 45\.0 deg"),
         (JointLimits(q_min_rad=math.radians(20.0)), r"joint 1 angle 8\.\d deg is below the range limit 20\.0 deg"),

@@ -50,9 +50,11 @@ def _two_netns_reason() -> str | None:
         return reason
     if shutil.which("nsenter") is None:
         return "nsenter(1) not installed"
-    probe = ("ip link set lo up && unshare -n sh -c 'echo $$; exec sleep 5' > /tmp/.ilcrig-ns-$$ & sleep 0.3; "
-             "p=$(head -1 /tmp/.ilcrig-ns-$$); rm -f /tmp/.ilcrig-ns-$$; "
-             "ip link add vt-a type veth peer name vt-b netns $p && nsenter -t $p -n ip link show vt-b >/dev/null")
+    probe = (
+        "ip link set lo up && unshare -n sh -c 'echo $$; exec sleep 5' > /tmp/.ilcrig-ns-$$ & sleep 0.3; "
+        "p=$(head -1 /tmp/.ilcrig-ns-$$); rm -f /tmp/.ilcrig-ns-$$; "
+        "ip link add vt-a type veth peer name vt-b netns $p && nsenter -t $p -n ip link show vt-b >/dev/null"
+    )
     res = subprocess.run(["unshare", "-rn", "sh", "-c", probe], capture_output=True, text=True, timeout=30)
     if res.returncode != 0:
         return f"nested network namespaces with a veth pair unavailable: {res.stderr.strip()[-300:]}"

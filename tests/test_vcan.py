@@ -48,7 +48,7 @@ pytestmark = [
     pytest.mark.skipif(
         not vcan_available(),
         reason=f"SocketCAN {VCAN_FIELDBUS}/{VCAN_IO} do not exist in this network namespace "
-               "(scripts/vcan-tests creates them, natively or in a VM)",
+        "(scripts/vcan-tests creates them, natively or in a VM)",
     ),
 ]
 
@@ -70,8 +70,14 @@ def popen(argv: list[str], log: Path | None = None, **kw) -> subprocess.Popen:
     """Start ``argv`` in its own session (so the whole group can be killed), cwd = repo."""
     out = open(log, "wb") if log is not None else kw.pop("stdout", None)  # noqa: SIM115
     try:
-        return subprocess.Popen(argv, cwd=REPO, start_new_session=True, stdout=out,
-                                stderr=subprocess.STDOUT if log is not None else kw.pop("stderr", None), **kw)
+        return subprocess.Popen(
+            argv,
+            cwd=REPO,
+            start_new_session=True,
+            stdout=out,
+            stderr=subprocess.STDOUT if log is not None else kw.pop("stderr", None),
+            **kw,
+        )
     finally:
         if log is not None:
             out.close()
@@ -167,16 +173,25 @@ def rig_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RigRun]:
     ``python -m can.logger -i socketcan -c vcan1`` records the io channel."""
     base = tmp_path_factory.mktemp("rig")
     out, capture = base / "run", base / "capture.log"
-    logger_proc = popen([sys.executable, "-u", "-m", "can.logger", "-i", "socketcan", "-c", VCAN_IO,
-                         "-f", str(capture)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    logger_proc = popen(
+        [sys.executable, "-u", "-m", "can.logger", "-i", "socketcan", "-c", VCAN_IO, "-f", str(capture)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     rig: subprocess.Popen | None = None
     try:
         reader = LineReader(logger_proc)
         assert reader.wait_for(r"^Can Logger", 120.0), f"can.logger did not start:\n{reader.text()}"
         # the launcher's host waits 20 s for the nodes by default: too short under emulation
         env = {**os.environ, "ILCRIG_ROLE_CMD_HOST": f"{sys.executable} -m host.cli host --wait {BOOT_WAIT_S:g}"}
-        rig = popen([sys.executable, "-m", "host.cli", "run", *EXP, "--bus", "socketcan", "--out", str(out)],
-                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+        rig = popen(
+            [sys.executable, "-m", "host.cli", "run", *EXP, "--bus", "socketcan", "--out", str(out)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+        )
         try:
             so, se = rig.communicate(timeout=RIG_TIMEOUT_S)
         except subprocess.TimeoutExpired:
@@ -238,9 +253,12 @@ def test_can_player_replays_the_capture_frame_by_frame(rig_run: RigRun) -> None:
             rx.socket.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, 64 << 20)
         except PermissionError:
             rx.socket.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 64 << 20)
-        player = popen([sys.executable, "-m", "can.player", "-i", "socketcan", "-c", VCAN_IO,
-                        "--ignore-timestamps", str(rig_run.capture)],
-                       stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        player = popen(
+            [sys.executable, "-m", "can.player", "-i", "socketcan", "-c", VCAN_IO, "--ignore-timestamps", str(rig_run.capture)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
         got: list[tuple[int, bool, bytes]] = []
         deadline = time.monotonic() + RIG_TIMEOUT_S
         quiet_since: float | None = None
@@ -271,8 +289,7 @@ def test_can_player_replays_the_capture_frame_by_frame(rig_run: RigRun) -> None:
 
 
 def test_canopen_library_reads_drive_objects_on_vcan0(tmp_path: Path) -> None:
-    drive = popen([sys.executable, "-m", "host.cli", "drive", "--node", "2", "--bus", "socketcan"],
-                  tmp_path / "drive2.log")
+    drive = popen([sys.executable, "-m", "host.cli", "drive", "--node", "2", "--bus", "socketcan"], tmp_path / "drive2.log")
     network = canopen.Network()
     try:
         network.connect(interface="socketcan", channel=VCAN_FIELDBUS)
@@ -285,8 +302,7 @@ def test_canopen_library_reads_drive_objects_on_vcan0(tmp_path: Path) -> None:
                 break
             except canopen.SdoCommunicationError:
                 if time.monotonic() > deadline or drive.poll() is not None:
-                    raise AssertionError(
-                        f"drive 2 did not answer SDO on vcan0:\n{tail(tmp_path / 'drive2.log')}") from None
+                    raise AssertionError(f"drive 2 did not answer SDO on vcan0:\n{tail(tmp_path / 'drive2.log')}") from None
         assert vendor == node.object_dictionary[0x1018][1].default
         assert node.sdo[0x1000].raw == node.object_dictionary[0x1000].default  # device type
         assert node.sdo[0x6041].raw & 0x004F == 0x0040  # switch on disabled
@@ -321,10 +337,28 @@ def test_drive_killed_and_restarted_between_trials_is_recovered(tmp_path: Path) 
     try:
         roles["plant"] = popen([sys.executable, "-m", "host.cli", "plant", *bus], tmp_path / "plant.log")
         for node in (1, 2, 3, 4):
-            roles[f"drive{node}"] = popen([sys.executable, "-m", "host.cli", "drive", "--node", str(node), *bus],
-                                          tmp_path / f"drive{node}.log")
-        host_argv = [sys.executable, "-u", "-m", "host.cli", "host", *EXP, "--iterations", "3", *bus,
-                     "--out", str(out), "--wait", str(BOOT_WAIT_S), "--pause", "10", "--recover", "60"]
+            roles[f"drive{node}"] = popen(
+                [sys.executable, "-m", "host.cli", "drive", "--node", str(node), *bus], tmp_path / f"drive{node}.log"
+            )
+        host_argv = [
+            sys.executable,
+            "-u",
+            "-m",
+            "host.cli",
+            "host",
+            *EXP,
+            "--iterations",
+            "3",
+            *bus,
+            "--out",
+            str(out),
+            "--wait",
+            str(BOOT_WAIT_S),
+            "--pause",
+            "10",
+            "--recover",
+            "60",
+        ]
         host = popen(host_argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         reader = LineReader(host)
         row0 = reader.wait_for(r"^\s*0\s+-?\d+\.\d+", RIG_TIMEOUT_S)  # the metrics row of trial 0
@@ -333,8 +367,9 @@ def test_drive_killed_and_restarted_between_trials_is_recovered(tmp_path: Path) 
         old = roles.pop("drive2")
         os.killpg(old.pid, signal.SIGKILL)
         assert old.wait(30) == -signal.SIGKILL
-        roles["drive2"] = popen([sys.executable, "-m", "host.cli", "drive", "--node", "2", *bus],
-                                tmp_path / "drive2-restarted.log")
+        roles["drive2"] = popen(
+            [sys.executable, "-m", "host.cli", "drive", "--node", "2", *bus], tmp_path / "drive2-restarted.log"
+        )
         try:
             rc = host.wait(RIG_TIMEOUT_S)
         except subprocess.TimeoutExpired:
@@ -371,8 +406,13 @@ def test_pdo_transport_over_socketcan_equals_sim(tmp_path: Path) -> None:
     and four TPDOs per tick (the host's own monitor on vcan0 counts them)."""
     out = tmp_path / "run"
     env = {**os.environ, "ILCRIG_ROLE_CMD_HOST": f"{sys.executable} -m host.cli host --wait {BOOT_WAIT_S:g}"}
-    rig = popen([sys.executable, "-m", "host.cli", "run", *EXP, "--ff-transport", "pdo", "--bus", "socketcan",
-                 "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    rig = popen(
+        [sys.executable, "-m", "host.cli", "run", *EXP, "--ff-transport", "pdo", "--bus", "socketcan", "--out", str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
     try:
         so, se = rig.communicate(timeout=RIG_TIMEOUT_S)
     except subprocess.TimeoutExpired:

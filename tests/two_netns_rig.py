@@ -39,8 +39,9 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     sh("ip", "link", "set", "lo", "up")
     # namespace B: a process that lives until our stdin pipe to it closes
-    holder = subprocess.Popen(["unshare", "-n", "sh", "-c", "echo $$; exec cat"], stdin=subprocess.PIPE,
-                              stdout=subprocess.PIPE, text=True)
+    holder = subprocess.Popen(
+        ["unshare", "-n", "sh", "-c", "echo $$; exec cat"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
     assert holder.stdout is not None
     pid_b = holder.stdout.readline().strip()
     procs: list[subprocess.Popen[bytes]] = []
@@ -57,16 +58,36 @@ def main() -> int:
         def start(argv: list[str], log: str, prefix: list[str] | None = None) -> subprocess.Popen[bytes]:
             fh = open(out / log, "wb")  # noqa: SIM115 - the child keeps its own descriptor
             try:
-                p = subprocess.Popen([*(prefix or []), sys.executable, *argv], cwd=REPO, stdout=fh,
-                                     stderr=subprocess.STDOUT, env=env, start_new_session=True)
+                p = subprocess.Popen(
+                    [*(prefix or []), sys.executable, *argv],
+                    cwd=REPO,
+                    stdout=fh,
+                    stderr=subprocess.STDOUT,
+                    env=env,
+                    start_new_session=True,
+                )
             finally:
                 fh.close()
             procs.append(p)
             return p
 
-        hub = subprocess.Popen([sys.executable, "-m", "bus.transports.hub_server", "--listen", hub_addr,
-                                "--allow-remote", "--ready", "--log-level", "WARNING"], cwd=REPO,
-                               stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, start_new_session=True)
+        hub = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "bus.transports.hub_server",
+                "--listen",
+                hub_addr,
+                "--allow-remote",
+                "--ready",
+                "--log-level",
+                "WARNING",
+            ],
+            cwd=REPO,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            start_new_session=True,
+        )
         procs.append(hub)  # type: ignore[arg-type]
         assert hub.stdout is not None
         ready = hub.stdout.readline().decode()
@@ -76,8 +97,7 @@ def main() -> int:
         for node in (1, 2, 3, 4):
             start(["-m", "host.cli", "drive", "--node", str(node), *bus], f"drive{node}.log")
         start(["-m", "host.cli", "plant", *bus], "plant.log", in_b)
-        host = start(["-m", "host.cli", "host", *exp, *bus, "--out", str(out / "run"), "--wait", "120"], "host.log",
-                     in_b)
+        host = start(["-m", "host.cli", "host", *exp, *bus, "--out", str(out / "run"), "--wait", "120"], "host.log", in_b)
         try:
             rc = host.wait(timeout=500)
         except subprocess.TimeoutExpired:
@@ -85,10 +105,13 @@ def main() -> int:
         result["host_rc"] = rc
         summary = out / "run" / "summary.json"
         result["digest"] = json.loads(summary.read_text())["trace_sha256"] if summary.exists() else None
-        probe = (f"import socket,json;s=socket.socket();s.settimeout(2);r=s.connect_ex(('127.0.0.1',{PORT}));"
-                 "print(json.dumps([[n for _,n in socket.if_nameindex()], r]))")
-        names, loop_rc = json.loads(subprocess.run([*in_b, sys.executable, "-c", probe], capture_output=True,
-                                                   text=True, check=True).stdout)
+        probe = (
+            f"import socket,json;s=socket.socket();s.settimeout(2);r=s.connect_ex(('127.0.0.1',{PORT}));"
+            "print(json.dumps([[n for _,n in socket.if_nameindex()], r]))"
+        )
+        names, loop_rc = json.loads(
+            subprocess.run([*in_b, sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
+        )
         result["b_interfaces"] = sorted(names)
         result["b_reaches_hub_on_loopback"] = loop_rc == 0
         result["a_interfaces"] = sorted(n for _, n in socket.if_nameindex())

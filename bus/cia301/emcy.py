@@ -136,8 +136,7 @@ class EmcyMessage:
             name = EmcyCode(self.code).name
         except ValueError:
             name = "UNKNOWN"
-        return (f"EMCY 0x{self.code:04X} ({name}) register 0x{self.register:02X} "
-                f"data {self.manufacturer.hex(' ')}")
+        return f"EMCY 0x{self.code:04X} ({name}) register 0x{self.register:02X} data {self.manufacturer.hex(' ')}"
 
 
 def encode_emcy(code: int, register: int = 0, manufacturer: bytes = b"") -> bytes:

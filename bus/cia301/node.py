@@ -116,8 +116,9 @@ class SlaveNode:
     #: Poll timeout [s] per bus when the buses have no file descriptor (e.g. ``virtual``).
     POLL_S: float = 0.0005
 
-    def __init__(self, app: SlaveApp, fieldbus: can.BusABC, io: can.BusABC, *, node_id: int,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self, app: SlaveApp, fieldbus: can.BusABC, io: can.BusABC, *, node_id: int, clock: Callable[[], float] = time.monotonic
+    ) -> None:
         self.app = app
         self.fieldbus = fieldbus
         self.io = io
@@ -222,8 +223,9 @@ class SlaveNode:
         self._reload_heartbeat(force=True)
         self._reload_consumers()
         self._refresh_fieldbus_filters()
-        logger.info("node %d: booted, heartbeat %d ms, %s", self.node_id, self._heartbeat_ms,
-                    "select()" if self._fds else "polling")
+        logger.info(
+            "node %d: booted, heartbeat %d ms, %s", self.node_id, self._heartbeat_ms, "select()" if self._fds else "polling"
+        )
 
     def run(self, stop: threading.Event) -> None:
         """:meth:`start`, then serve until ``stop`` is set or a bus fails (then the app's optional
@@ -239,8 +241,7 @@ class SlaveNode:
             if hook is not None:
                 hook(self.bus_error)
             return
-        logger.info("node %d: stopped (%d frames in, %d out)", self.node_id,
-                    self.frames_in, self.frames_out)
+        logger.info("node %d: stopped (%d frames in, %d out)", self.node_id, self.frames_in, self.frames_out)
 
     def step(self, max_wait_s: float) -> int:
         """Wait up to ``max_wait_s`` [s] (less if a heartbeat or a subclass deadline is due) for
@@ -319,14 +320,18 @@ class SlaveNode:
     def _service(self, now: float) -> None:
         for producer in self.consumer.expired(now):
             level = logging.INFO if int(self.app.nmt_state) == NmtState.STOPPED else logging.WARNING
-            logger.log(level, "node %d: heartbeat of node %d lost (consumer time %.0f ms)", self.node_id, producer,
-                       1000 * self.consumer.producers.get(producer, 0.0))
+            logger.log(
+                level,
+                "node %d: heartbeat of node %d lost (consumer time %.0f ms)",
+                self.node_id,
+                producer,
+                1000 * self.consumer.producers.get(producer, 0.0),
+            )
             self.on_heartbeat_lost(producer)
         state = int(self.app.nmt_state)
         if state != NmtState.STOPPED:
             for code, register, data in self.app.pop_emcy():
-                self._send(self.fieldbus, self._emcy_id,
-                           encode_emcy(int(code), int(register), bytes(data)[:5]))
+                self._send(self.fieldbus, self._emcy_id, encode_emcy(int(code), int(register), bytes(data)[:5]))
         abort = self.sdo.tick(now)
         if abort is not None:
             self._send(self.fieldbus, self._sdo_tx, abort)
@@ -341,8 +346,7 @@ class SlaveNode:
     def _reload_heartbeat(self, force: bool = False) -> None:
         """Re-read 0x1017 [ms]; restart the heartbeat timer if it changed (or ``force``)."""
         try:
-            period_ms = int.from_bytes(self.app.read_object(PRODUCER_HEARTBEAT_INDEX, 0)[:2],
-                                       "little")
+            period_ms = int.from_bytes(self.app.read_object(PRODUCER_HEARTBEAT_INDEX, 0)[:2], "little")
         except SdoAbort:
             period_ms = 0
         if period_ms == self._heartbeat_ms and not force:
@@ -357,15 +361,15 @@ class SlaveNode:
         try:
             count = self.app.read_object(CONSUMER_HEARTBEAT_INDEX, 0)[0]
             for sub in range(1, count + 1):
-                entry = decode_consumer_entry(
-                    int.from_bytes(self.app.read_object(CONSUMER_HEARTBEAT_INDEX, sub)[:4], "little"))
+                entry = decode_consumer_entry(int.from_bytes(self.app.read_object(CONSUMER_HEARTBEAT_INDEX, sub)[:4], "little"))
                 if entry is not None:
                     entries[entry[0]] = entry[1] / 1000.0
         except (SdoAbort, IndexError):
             entries = {}
         if entries != self.consumer.producers:
-            logger.info("node %d: heartbeat consumer %s", self.node_id,
-                        {n: f"{1000 * t:.0f} ms" for n, t in entries.items()} or "off")
+            logger.info(
+                "node %d: heartbeat consumer %s", self.node_id, {n: f"{1000 * t:.0f} ms" for n, t in entries.items()} or "off"
+            )
         self.consumer.configure(entries)
 
     # ------------------------------------------------------------------ fieldbus
@@ -551,8 +555,7 @@ class ObjectStore:
         if isinstance(value, str):
             return value.encode("ascii")
         if not isinstance(value, bytes):
-            raise TypeError(f"0x{var.index:04X}:{var.subindex} (DOMAIN/string) holds {type(value).__name__}, "
-                            "not bytes")
+            raise TypeError(f"0x{var.index:04X}:{var.subindex} (DOMAIN/string) holds {type(value).__name__}, not bytes")
         return bytes(value)
 
     @staticmethod
@@ -567,8 +570,7 @@ class ObjectStore:
                     raise SdoAbort(AbortCode.VALUE_RANGE, "string is not ASCII") from None
             return data
         if len(data) != s.size:
-            raise SdoAbort(AbortCode.LENGTH_MISMATCH,
-                           f"0x{var.index:04X}:{var.subindex} needs {s.size} bytes, got {len(data)}")
+            raise SdoAbort(AbortCode.LENGTH_MISMATCH, f"0x{var.index:04X}:{var.subindex} needs {s.size} bytes, got {len(data)}")
         (value,) = s.unpack(data)
         if var.max is not None and value > var.max:
             raise SdoAbort(AbortCode.VALUE_TOO_HIGH, f"{value} > {var.max}")

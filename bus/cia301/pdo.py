@@ -114,8 +114,10 @@ class PdoEngine:
         self.rpdos: list[_Pdo] = []
         self.tpdos: list[_Pdo] = []
         for k in range(512):
-            for comm_base, map_base, receive, out in ((RPDO_COMM_BASE, RPDO_MAP_BASE, True, self.rpdos),
-                                                      (TPDO_COMM_BASE, TPDO_MAP_BASE, False, self.tpdos)):
+            for comm_base, map_base, receive, out in (
+                (RPDO_COMM_BASE, RPDO_MAP_BASE, True, self.rpdos),
+                (TPDO_COMM_BASE, TPDO_MAP_BASE, False, self.tpdos),
+            ):
                 if (comm_base + k, COMM_COB_ID) in store.vars and (map_base + k, 0) in store.vars:
                     out.append(_Pdo(k + 1, comm_base + k, map_base + k, receive))
         self.sync_count = 0  #: SYNCs received since the last reset (NMT operational)
@@ -130,15 +132,13 @@ class PdoEngine:
     def _install_hooks(self) -> None:
         w = self.store.write_hooks
         for pdo in (*self.rpdos, *self.tpdos):
-            w[(pdo.comm, COMM_COB_ID)] = (lambda v, p=pdo: self._write_cob_id(p, int(v)))  # type: ignore[misc]
+            w[(pdo.comm, COMM_COB_ID)] = lambda v, p=pdo: self._write_cob_id(p, int(v))  # type: ignore[misc]
             if (pdo.comm, COMM_TRANSMISSION_TYPE) in self.store.vars:
-                w[(pdo.comm, COMM_TRANSMISSION_TYPE)] = (
-                    lambda v, p=pdo: self._write_transmission_type(p, int(v)))  # type: ignore[misc]
-            w[(pdo.mapping, 0)] = (lambda v, p=pdo: self._write_map_count(p, int(v)))  # type: ignore[misc]
+                w[(pdo.comm, COMM_TRANSMISSION_TYPE)] = lambda v, p=pdo: self._write_transmission_type(p, int(v))  # type: ignore[misc]
+            w[(pdo.mapping, 0)] = lambda v, p=pdo: self._write_map_count(p, int(v))  # type: ignore[misc]
             for sub in range(1, MAX_MAPPED + 1):
                 if (pdo.mapping, sub) in self.store.vars:
-                    w[(pdo.mapping, sub)] = (
-                        lambda v, p=pdo, s=sub: self._write_map_entry(p, s, int(v)))  # type: ignore[misc]
+                    w[(pdo.mapping, sub)] = lambda v, p=pdo, s=sub: self._write_map_entry(p, s, int(v))  # type: ignore[misc]
 
     def _value(self, index: int, sub: int) -> int:
         return int(self.store.values[(index, sub)])
@@ -170,8 +170,9 @@ class PdoEngine:
             if is_restricted_can_id(can_id):
                 raise SdoAbort(AbortCode.VALUE_RANGE, f"CAN-ID 0x{can_id:03X} is restricted (CiA 301 Table 3)")
             if self.valid(pdo) and can_id != self.cob_id(pdo) & COB_ID_MASK_11:
-                raise SdoAbort(AbortCode.VALUE_RANGE,
-                               f"{self._name(pdo)} is valid: invalidate it (bit 31) before changing its COB-ID")
+                raise SdoAbort(
+                    AbortCode.VALUE_RANGE, f"{self._name(pdo)} is valid: invalidate it (bit 31) before changing its COB-ID"
+                )
         pdo.pending = None
         pdo.last_sent = None
         self._rx_by_cob = None
@@ -180,16 +181,16 @@ class PdoEngine:
 
     def _write_transmission_type(self, pdo: _Pdo, value: int) -> None:
         if not (value <= TT_SYNC_MAX or value in (TT_EVENT_MANUFACTURER, TT_EVENT_PROFILE)):
-            raise SdoAbort(AbortCode.VALUE_RANGE,
-                           f"transmission type {value} not supported (0..240, 254, 255)")
+            raise SdoAbort(AbortCode.VALUE_RANGE, f"transmission type {value} not supported (0..240, 254, 255)")
         pdo.pending = None
 
     def _check_mapping_writable(self, pdo: _Pdo) -> None:
         if int(self._nmt_state()) != NmtState.PRE_OPERATIONAL:
             raise SdoAbort(AbortCode.DEVICE_STATE, "PDO mapping can be changed only in NMT PRE-OPERATIONAL")
         if self.valid(pdo):
-            raise SdoAbort(AbortCode.UNSUPPORTED_ACCESS,
-                           f"{self._name(pdo)} is valid: set bit 31 of its COB-ID before changing the mapping")
+            raise SdoAbort(
+                AbortCode.UNSUPPORTED_ACCESS, f"{self._name(pdo)} is valid: set bit 31 of its COB-ID before changing the mapping"
+            )
 
     def _write_map_count(self, pdo: _Pdo, n: int) -> None:
         self._check_mapping_writable(pdo)
@@ -208,8 +209,9 @@ class PdoEngine:
     def _write_map_entry(self, pdo: _Pdo, sub: int, entry: int) -> None:
         self._check_mapping_writable(pdo)
         if self._value(pdo.mapping, 0) != 0:
-            raise SdoAbort(AbortCode.UNSUPPORTED_ACCESS,
-                           f"{self._name(pdo)} mapping: set sub-index 0 to 0 before writing entries")
+            raise SdoAbort(
+                AbortCode.UNSUPPORTED_ACCESS, f"{self._name(pdo)} mapping: set sub-index 0 to 0 before writing entries"
+            )
         if entry != 0:
             self._check_entry(pdo, entry)
 
@@ -295,7 +297,7 @@ class PdoEngine:
         for index, sub, bits in self.mapping(pdo):
             n = bits // 8
             try:
-                self.store.write_object(index, sub, data[offset:offset + n])
+                self.store.write_object(index, sub, data[offset : offset + n])
             except SdoAbort as err:  # the value is refused like an SDO download would be
                 logger.warning("%s: 0x%04X:%d not written: %s", self._name(pdo), index, sub, err)
             offset += n

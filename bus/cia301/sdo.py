@@ -196,8 +196,7 @@ class SdoServer:
         try:
             response = self._dispatch(frame)
         except _Abort as err:
-            logger.info("node %d: SDO abort 0x%08X on 0x%04X:%02X",
-                        self.node_id, err.code, self._index, self._sub)
+            logger.info("node %d: SDO abort 0x%08X on 0x%04X:%02X", self.node_id, err.code, self._index, self._sub)
             response = abort_frame(self._index, self._sub, err.code)
             self._reset()
         if self._state is not _State.IDLE:
@@ -217,8 +216,7 @@ class SdoServer:
             return None
         if now_s - self._last_activity_s <= self.TIMEOUT_S * _TIMEOUT_SCALE:
             return None
-        logger.warning("node %d: SDO transfer 0x%04X:%02X timed out",
-                       self.node_id, self._index, self._sub)
+        logger.warning("node %d: SDO transfer 0x%04X:%02X timed out", self.node_id, self._index, self._sub)
         frame = abort_frame(self._index, self._sub, AbortCode.TIMEOUT)
         self._reset()
         return frame
@@ -244,8 +242,7 @@ class SdoServer:
 
     def _begin(self, state: _State, index: int, sub: int) -> None:
         if self._state is not _State.IDLE:
-            logger.info("node %d: new SDO request abandons transfer 0x%04X:%02X",
-                        self.node_id, self._index, self._sub)
+            logger.info("node %d: new SDO request abandons transfer 0x%04X:%02X", self.node_id, self._index, self._sub)
         self._reset()
         self._state = state
         self._index = index
@@ -304,8 +301,7 @@ class SdoServer:
 
     def _client_abort(self, frame: bytes) -> None:
         code = struct.unpack_from("<L", frame, 4)[0]
-        logger.info("node %d: client aborted SDO transfer 0x%04X:%02X with 0x%08X",
-                    self.node_id, self._index, self._sub, code)
+        logger.info("node %d: client aborted SDO transfer 0x%04X:%02X with 0x%08X", self.node_id, self._index, self._sub, code)
         self._reset()
         return None
 
@@ -332,7 +328,7 @@ class SdoServer:
         size_indicated = bool(b0 & 0x01)
         if expedited:
             n = 4 - ((b0 >> 2) & 0x03) if size_indicated else 4
-            self._write(frame[4:4 + n])
+            self._write(frame[4 : 4 + n])
             self._reset()
             return _HEADER.pack(SCS_DOWNLOAD_INITIATE << 5, index, sub) + bytes(4)
         if size_indicated:
@@ -349,11 +345,10 @@ class SdoServer:
         if toggle != self._toggle:
             raise _Abort(AbortCode.TOGGLE_BIT)
         n = 7 - ((b0 >> 1) & 0x07)
-        self._buffer += frame[1:1 + n]
+        self._buffer += frame[1 : 1 + n]
         limit = self._size if self._size is not None else self.MAX_DOWNLOAD_BYTES
         if len(self._buffer) > limit:
-            raise _Abort(AbortCode.LENGTH_MISMATCH if self._size is not None
-                         else AbortCode.OUT_OF_MEMORY)
+            raise _Abort(AbortCode.LENGTH_MISMATCH if self._size is not None else AbortCode.OUT_OF_MEMORY)
         response = bytes([(SCS_DOWNLOAD_SEGMENT << 5) | (toggle << 4)]) + bytes(7)
         self._toggle ^= 1
         if b0 & 0x01:  # c: no more segments
@@ -381,14 +376,13 @@ class SdoServer:
         self._payload = value
         self._pos = 0
         self._toggle = 0
-        return _HEADER.pack((SCS_UPLOAD_INITIATE << 5) | 0x01, index, sub) + struct.pack(
-            "<L", len(value))
+        return _HEADER.pack((SCS_UPLOAD_INITIATE << 5) | 0x01, index, sub) + struct.pack("<L", len(value))
 
     def _upload_segment(self, frame: bytes) -> bytes:
         toggle = (frame[0] >> 4) & 0x01
         if toggle != self._toggle:
             raise _Abort(AbortCode.TOGGLE_BIT)
-        chunk = self._payload[self._pos:self._pos + 7]
+        chunk = self._payload[self._pos : self._pos + 7]
         self._pos += len(chunk)
         last = self._pos >= len(self._payload)
         b0 = (SCS_UPLOAD_SEGMENT << 5) | (toggle << 4) | ((7 - len(chunk)) << 1) | int(last)
@@ -434,13 +428,12 @@ class SdoServer:
         if self._last_segment_seen:
             self._state = _State.BLOCK_DOWNLOAD_END
         elif ackseq != seqno:
-            logger.info("node %d: block download sub-block broke after %d segments",
-                        self.node_id, ackseq)
+            logger.info("node %d: block download sub-block broke after %d segments", self.node_id, ackseq)
         return bytes([(SCS_BLOCK_DOWNLOAD << 5) | BLOCK_ACK, ackseq, self._blksize]) + bytes(5)
 
     def _block_download_end(self, frame: bytes) -> bytes:
         n = (frame[0] >> 2) & 0x07
-        data = bytes(self._buffer[:len(self._buffer) - n])
+        data = bytes(self._buffer[: len(self._buffer) - n])
         if self._size is not None and len(data) != self._size:
             raise _Abort(AbortCode.LENGTH_MISMATCH)
         if self._crc:
@@ -479,7 +472,7 @@ class SdoServer:
         frames = []
         for k in range(self._pos, stop):
             seqno = k - self._pos + 1
-            chunk = self._payload[7 * k:7 * k + 7]
+            chunk = self._payload[7 * k : 7 * k + 7]
             flag = 0x80 if k == total - 1 else 0
             frames.append(bytes([flag | seqno]) + chunk.ljust(7, b"\x00"))
         self._sent = stop - self._pos

@@ -278,9 +278,7 @@ def udp_multicast_transport(private_netns: bool = False) -> TransportConfig:
 
     def one(logical: str) -> ChannelConfig:
         group, port = UDP_MULTICAST_GROUPS[logical]
-        return ChannelConfig(
-            "udp_multicast", group, {"port": port, "hop_limit": 1}, context=logical, private_netns=private_netns
-        )
+        return ChannelConfig("udp_multicast", group, {"port": port, "hop_limit": 1}, context=logical, private_netns=private_netns)
 
     return TransportConfig("udp_multicast", one(FIELDBUS), one(IO))
 

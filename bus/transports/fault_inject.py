@@ -56,8 +56,18 @@ from bus.units import timeout_scale
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["FaultSpec", "FaultSpecError", "FrameFaultInjector", "parse_spec", "parse_specs", "write_record",
-           "PROCESS_ACTIONS", "FRAME_ACTIONS", "ROLES", "CHANNELS"]
+__all__ = [
+    "FaultSpec",
+    "FaultSpecError",
+    "FrameFaultInjector",
+    "parse_spec",
+    "parse_specs",
+    "write_record",
+    "PROCESS_ACTIONS",
+    "FRAME_ACTIONS",
+    "ROLES",
+    "CHANNELS",
+]
 
 PROCESS_ACTIONS = ("kill", "stall")
 FRAME_ACTIONS = ("drop", "corrupt", "duplicate", "delay")
@@ -65,8 +75,13 @@ ACTIONS = (*PROCESS_ACTIONS, *FRAME_ACTIONS, "emcy", "diskfull")
 ROLES = ("host", "plant", "hub", "drive1", "drive2", "drive3", "drive4")
 CHANNELS = ("io", "fieldbus")
 EMCY_NODES = ("drive1", "drive2", "drive3", "drive4", "plant")
-_KEYS = {"kill": set(), "stall": {"for"}, "emcy": {"code"}, "diskfull": set(),
-         **{a: {"rate", "seed", "count", "id", "ms"} for a in FRAME_ACTIONS}}
+_KEYS = {
+    "kill": set(),
+    "stall": {"for"},
+    "emcy": {"code"},
+    "diskfull": set(),
+    **{a: {"rate", "seed", "count", "id", "ms"} for a in FRAME_ACTIONS},
+}
 #: SocketCAN's error-frame class of a protocol violation (CAN_ERR_PROT) and the location byte of a
 #: CRC sequence error (CAN_ERR_PROT_LOC_CRC_SEQ): the error frame a damaged frame causes
 _CAN_ERR_PROT = 0x008
@@ -119,12 +134,20 @@ class FaultSpec:
         return int(self.options.get("code", 0x8611))
 
     def as_dict(self) -> dict[str, Any]:
-        return {"spec": self.text, "action": self.action, "target": self.target, "trial": self.trial,
-                "tick": self.tick, "options": dict(self.options)}
+        return {
+            "spec": self.text,
+            "action": self.action,
+            "target": self.target,
+            "trial": self.trial,
+            "tick": self.tick,
+            "options": dict(self.options),
+        }
 
 
-_FORM = ("kill|stall:ROLE@TRIAL:TICK[,for=S], drop|corrupt|duplicate|delay:io|fieldbus@TRIAL:TICK"
-         "[,rate=P,seed=K,count=C,id=COBID,ms=D], emcy:NODE@TRIAL:TICK[,code=C] or diskfull@TRIAL")
+_FORM = (
+    "kill|stall:ROLE@TRIAL:TICK[,for=S], drop|corrupt|duplicate|delay:io|fieldbus@TRIAL:TICK"
+    "[,rate=P,seed=K,count=C,id=COBID,ms=D], emcy:NODE@TRIAL:TICK[,code=C] or diskfull@TRIAL"
+)
 
 
 def _number(spec: str, key: str, text: str) -> float:
@@ -236,8 +259,14 @@ class FrameFaultInjector:
     :param io_bus: / :param fieldbus_bus: the logical bus names of the two channels
     """
 
-    def __init__(self, specs: Sequence[FaultSpec], log_path: str | Path | None = None, *,
-                 io_bus: str = "io", fieldbus_bus: str = "fieldbus") -> None:
+    def __init__(
+        self,
+        specs: Sequence[FaultSpec],
+        log_path: str | Path | None = None,
+        *,
+        io_bus: str = "io",
+        fieldbus_bus: str = "fieldbus",
+    ) -> None:
         self.armed = [_Armed(s) for s in specs if s.action in FRAME_ACTIONS]
         self.log_path = log_path
         self.buses = {io_bus: "io", fieldbus_bus: "fieldbus"}
@@ -256,8 +285,14 @@ class FrameFaultInjector:
             return True
         return f.trial == spec.trial and tick is not None and tick >= spec.tick
 
-    def deliveries(self, bus: str, record: bytes, can_id: int, data: bytes, is_error: bool = False,
-                   ) -> list[tuple[float, bytes]]:
+    def deliveries(
+        self,
+        bus: str,
+        record: bytes,
+        can_id: int,
+        data: bytes,
+        is_error: bool = False,
+    ) -> list[tuple[float, bytes]]:
         """``[(delay_s, record)]`` to deliver for one frame on logical bus ``bus``: ``[]`` drops it,
         two entries duplicate it, a bus error frame replaces a damaged one, a delay holds it."""
         channel = self.buses.get(bus)
@@ -283,9 +318,21 @@ class FrameFaultInjector:
             if u >= spec.rate:
                 continue
             armed.hits += 1
-            self.injected.append(write_record(self.log_path, {
-                "by": "hub", "spec": spec.text, "kind": spec.action, "target": channel, "trial": self.follower.trial,
-                "tick": tick if tick is not None else self.follower.tick, "can_id": can_id, "pid": os.getpid()}))
+            self.injected.append(
+                write_record(
+                    self.log_path,
+                    {
+                        "by": "hub",
+                        "spec": spec.text,
+                        "kind": spec.action,
+                        "target": channel,
+                        "trial": self.follower.trial,
+                        "tick": tick if tick is not None else self.follower.tick,
+                        "can_id": can_id,
+                        "pid": os.getpid(),
+                    },
+                )
+            )
             if spec.action == "drop":
                 return []
             if spec.action == "duplicate":
@@ -303,8 +350,12 @@ def _error_record(record: bytes) -> bytes:
 
     from bus.transports.hub_wire import STAMP, STAMP_OFFSET, encode_record
 
-    err = can.Message(is_error_frame=True, arbitration_id=_CAN_ERR_PROT, is_extended_id=False,
-                      data=bytes([0, 0, 0, _CAN_ERR_PROT_LOC_CRC_SEQ, 0, 0, 0, 0]))
+    err = can.Message(
+        is_error_frame=True,
+        arbitration_id=_CAN_ERR_PROT,
+        is_extended_id=False,
+        data=bytes([0, 0, 0, _CAN_ERR_PROT_LOC_CRC_SEQ, 0, 0, 0, 0]),
+    )
     rec = bytearray(encode_record(err))
     STAMP.pack_into(rec, STAMP_OFFSET, STAMP.unpack_from(record, STAMP_OFFSET)[0])
     return bytes(rec)

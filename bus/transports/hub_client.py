@@ -126,8 +126,17 @@ _new = can.Message.__new__
 _Message = can.Message
 _CLOSED = "Cannot operate on a closed bus"
 #: a classic frame's wire record (hub_wire.HEADER) as a numpy record
-_WIRE_DTYPE = np.dtype([("kind", "u1"), ("flags", "u1"), ("dlc", "u1"), ("length", "u1"), ("can_id", "<u4"),
-                        ("stamp", "<u8"), ("inline", "u1", (8,))])
+_WIRE_DTYPE = np.dtype(
+    [
+        ("kind", "u1"),
+        ("flags", "u1"),
+        ("dlc", "u1"),
+        ("length", "u1"),
+        ("can_id", "<u4"),
+        ("stamp", "<u8"),
+        ("inline", "u1", (8,)),
+    ]
+)
 assert _WIRE_DTYPE.itemsize == HEADER_SIZE and FLAG_ECHO == FRAME_TX
 
 
@@ -211,8 +220,17 @@ class HubBus(can.BusABC):
         except OSError as err:
             raise can.CanInitializationError(f"cannot reach ilcrig hub at {addr}: {err}") from err
         try:
-            sock.sendall(hello(ROLE_MEMBER, name, echo=receive_own_messages, classic=not self.fd,
-                               bitrate=asked[0], data_bitrate=asked[1], bulk=bulk_delivery))
+            sock.sendall(
+                hello(
+                    ROLE_MEMBER,
+                    name,
+                    echo=receive_own_messages,
+                    classic=not self.fd,
+                    bitrate=asked[0],
+                    data_bitrate=asked[1],
+                    bulk=bulk_delivery,
+                )
+            )
             bus_bitrate, bus_data_bitrate = read_member_reply(sock)
             sock.settimeout(None)  # blocking from now on
         except (OSError, HubProtocolError) as err:
@@ -323,15 +341,24 @@ class HubBus(can.BusABC):
                 end += length - 8
                 if end > size:
                     break
-                payload = bytearray(inline + data[off + HEADER_SIZE:end])
+                payload = bytearray(inline + data[off + HEADER_SIZE : end])
             else:
                 payload = bytearray(inline[:length])
             if flags or not FAST:
-                msg = new_message(can_id, payload, timestamp=stamp_ns / 1e9, is_extended_id=bool(flags & FLAG_EXT),
-                                  is_remote_frame=bool(flags & FLAG_RTR), is_error_frame=bool(flags & FLAG_ERR),
-                                  channel=channel, dlc=dlc, is_fd=bool(flags & FLAG_FD),
-                                  is_rx=not flags & FLAG_ECHO, bitrate_switch=bool(flags & FLAG_BRS),
-                                  error_state_indicator=bool(flags & FLAG_ESI))
+                msg = new_message(
+                    can_id,
+                    payload,
+                    timestamp=stamp_ns / 1e9,
+                    is_extended_id=bool(flags & FLAG_EXT),
+                    is_remote_frame=bool(flags & FLAG_RTR),
+                    is_error_frame=bool(flags & FLAG_ERR),
+                    channel=channel,
+                    dlc=dlc,
+                    is_fd=bool(flags & FLAG_FD),
+                    is_rx=not flags & FLAG_ECHO,
+                    bitrate_switch=bool(flags & FLAG_BRS),
+                    error_state_indicator=bool(flags & FLAG_ESI),
+                )
             else:  # the common case: a classic data frame with an 11-bit id
                 msg = new(_Message)
                 msg.timestamp = stamp_ns / 1e9
@@ -412,7 +439,7 @@ class HubBus(can.BusABC):
             self._rxq.clear()
             return frames_from_messages(msgs)
         if len(data) > n * HEADER_SIZE:
-            self._rxbuf = bytearray(data[n * HEADER_SIZE:])
+            self._rxbuf = bytearray(data[n * HEADER_SIZE :])
         out = np.zeros(n, dtype=FRAME_DTYPE)
         out["timestamp"] = wire["stamp"] / 1e9
         out["arbitration_id"] = wire["can_id"]
@@ -465,7 +492,8 @@ class HubBus(can.BusABC):
             for msg in msgs:
                 if msg.is_fd or (not msg.is_remote_frame and len(msg.data) > 8):
                     raise can.CanOperationError(
-                        "Failed to transmit: CAN FD frame on a classic CAN bus (opened with fd=False)", errno.EINVAL)
+                        "Failed to transmit: CAN FD frame on a classic CAN bus (opened with fd=False)", errno.EINVAL
+                    )
         self._sock_send(b"".join([encode_record(msg) for msg in msgs]))
 
     def _sock_send(self, data: bytes) -> None:

@@ -285,7 +285,8 @@ class _CoreSelector(selectors.BaseSelector):
     @staticmethod
     def _mask(events: int) -> int:
         return (select.EPOLLIN if events & selectors.EVENT_READ else 0) | (
-            select.EPOLLOUT if events & selectors.EVENT_WRITE else 0)
+            select.EPOLLOUT if events & selectors.EVENT_WRITE else 0
+        )
 
     def register(self, fileobj: Any, events: int, data: Any = None) -> selectors.SelectorKey:
         fd = selectors._fileobj_to_fd(fileobj)  # type: ignore[attr-defined]
@@ -316,8 +317,9 @@ class _CoreSelector(selectors.BaseSelector):
         bytes it already sent (read at ``stamp_ns``) and the bytes still to be sent to it."""
         fd = client.sock.fileno()
         self._keys.pop(fd, None)
-        self._core.add_member(fd, bus, client.echo, client.classic, client.bulk, bytes(client.inbuf),
-                              bytes(client.outbuf), stamp_ns)
+        self._core.add_member(
+            fd, bus, client.echo, client.classic, client.bulk, bytes(client.inbuf), bytes(client.outbuf), stamp_ns
+        )
         client.inbuf.clear()
         client.outbuf.clear()
         client.writing = False
@@ -386,8 +388,13 @@ class HubServer:
     #: bus time: a sender with this many frames waiting for the bus is not read until they are sent
     BUS_TIME_QUEUE: int = 4096
 
-    def __init__(self, listen: Sequence[str | HubAddress], allow_remote: bool = False, frame_hook: Any = None,
-                 bus_time: Mapping[str, int] | None = None) -> None:
+    def __init__(
+        self,
+        listen: Sequence[str | HubAddress],
+        allow_remote: bool = False,
+        frame_hook: Any = None,
+        bus_time: Mapping[str, int] | None = None,
+    ) -> None:
         if not listen:
             raise HubAddressError("the hub needs at least one listen address")
         self._clocks = {name: _BusClock(rate) for name, rate in _checked_bus_time(bus_time).items()}
@@ -407,10 +414,14 @@ class HubServer:
         if frame_hook is None and not self._clocks and _hubcore is not None and hub_core_available():
             self._sel.close()
             self._core = _CoreSelector(
-                _hubcore, self._core_dropped,
+                _hubcore,
+                self._core_dropped,
                 bits=[bits_lookup(n, ext)[k] for ext in (False, True) for n in range(9) for k in (0, 1)],
-                recv_chunk=self.RECV_CHUNK, max_outbuf=self.MAX_OUTBUF_BYTES, bulk_hold_s=BULK_HOLD_S,
-                bulk_max_bytes=BULK_MAX_BYTES)
+                recv_chunk=self.RECV_CHUNK,
+                max_outbuf=self.MAX_OUTBUF_BYTES,
+                bulk_hold_s=BULK_HOLD_S,
+                bulk_max_bytes=BULK_MAX_BYTES,
+            )
             self._sel = self._core
         #: logical bus name -> index in the C core
         self._bus_index: dict[str, int] = {}
@@ -852,8 +863,9 @@ class HubServer:
         queue = clock.queues.get(sender)
         if queue is None:
             queue = clock.queues[sender] = deque()
-        queue.append((arrival_ns, arbitration_key(U32.unpack_from(rec, 4)[0], flags),
-                      bit_time_ns(rec[3], flags, clock.bitrate), rec))
+        queue.append(
+            (arrival_ns, arbitration_key(U32.unpack_from(rec, 4)[0], flags), bit_time_ns(rec[3], flags, clock.bitrate), rec)
+        )
 
     def _run_bus_time(self, now_ns: int) -> None:
         """Every bus-time bus: deliver the frames whose transmission ended by ``now_ns`` and start
@@ -1042,8 +1054,13 @@ class HubHandle:
 
 
 def start_hub(
-    listen: str | Sequence[str] | None = None, *, timeout_s: float = 10.0, log_level: str = "WARNING",
-    inject: str | None = None, stderr: Any = None, bus_time: Mapping[str, int] | None = None,
+    listen: str | Sequence[str] | None = None,
+    *,
+    timeout_s: float = 10.0,
+    log_level: str = "WARNING",
+    inject: str | None = None,
+    stderr: Any = None,
+    bus_time: Mapping[str, int] | None = None,
 ) -> HubHandle:
     """Start a hub in a child process and wait until it accepts clients.
 
@@ -1127,13 +1144,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--ready", action="store_true", help=f"print '{READY_PREFIX} <addresses>' when listening")
     parser.add_argument("--exit-on-stdin-eof", action="store_true", help="exit when stdin closes")
     parser.add_argument("--log-level", default="INFO")
-    parser.add_argument("--allow-remote", action="store_true",
-                        help="accept non-loopback TCP listen addresses (the hub then serves other machines)")
-    parser.add_argument("--inject", default=None, help="frame faults (JSON: {\"specs\": [...], \"log\": path})")
+    parser.add_argument(
+        "--allow-remote",
+        action="store_true",
+        help="accept non-loopback TCP listen addresses (the hub then serves other machines)",
+    )
+    parser.add_argument("--inject", default=None, help='frame faults (JSON: {"specs": [...], "log": path})')
     parser.add_argument("--remove-dir", default=None, help="a private folder to remove on exit")
-    parser.add_argument("--bus-time", action="append", default=[], metavar="BUS=BIT_S",
-                        help="deliver logical bus BUS in bus time at BIT_S bit/s: arbitration order, each frame "
-                             "after its bit time (repeatable)")
+    parser.add_argument(
+        "--bus-time",
+        action="append",
+        default=[],
+        metavar="BUS=BIT_S",
+        help="deliver logical bus BUS in bus time at BIT_S bit/s: arbitration order, each frame after its bit time (repeatable)",
+    )
     args = parser.parse_args(argv)
     try:
         bus_time = parse_bus_time(args.bus_time)
@@ -1146,8 +1170,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         hook = FrameFaultInjector.from_json(args.inject)
     try:
-        server = HubServer(args.listen or [default_hub_address()], allow_remote=args.allow_remote, frame_hook=hook,
-                           bus_time=bus_time)
+        server = HubServer(
+            args.listen or [default_hub_address()], allow_remote=args.allow_remote, frame_hook=hook, bus_time=bus_time
+        )
         if args.allow_remote:
             logger.warning("hub accepts remote members on %s", ", ".join(map(str, server.addresses)))
     except (HubAddressError, HubAddressInUseError, OSError) as err:

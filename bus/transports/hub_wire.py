@@ -173,8 +173,9 @@ def _require_loopback(host: str, port: int, allow_remote: bool = False) -> str:
     addrs = [str(info[4][0]) for info in infos]
     if allow_remote and addrs:
         if any(ipaddress.ip_address(a.split("%")[0]).is_unspecified for a in addrs):
-            raise NonLoopbackAddressError(f"refusing the non-loopback wildcard hub address {host!r} (all "
-                                          "interfaces): name one interface's address")
+            raise NonLoopbackAddressError(
+                f"refusing the non-loopback wildcard hub address {host!r} (all interfaces): name one interface's address"
+            )
         return addrs[0]
     bad = [a for a in addrs if not ipaddress.ip_address(a.split("%")[0]).is_loopback]
     if bad or not addrs:
@@ -279,20 +280,28 @@ def recv_exact(sock: socket.socket, n: int) -> bytes:
     return buf
 
 
-def hello(role: int, name: str, *, echo: bool = False, classic: bool = False, bitrate: int = 0,
-          data_bitrate: int = 0, bulk: bool = False) -> bytes:
+def hello(
+    role: int,
+    name: str,
+    *,
+    echo: bool = False,
+    classic: bool = False,
+    bitrate: int = 0,
+    data_bitrate: int = 0,
+    bulk: bool = False,
+) -> bytes:
     """The client's handshake message (bitrates in bit/s, 0 = not given)."""
     raw = name.encode()
-    flags = ((HELLO_FLAG_ECHO if echo else 0) | (HELLO_FLAG_CLASSIC if classic else 0)
-             | (HELLO_FLAG_BULK if bulk else 0))
-    return (HELLO_FIXED.pack(MAGIC_HELLO, PROTOCOL_VERSION, role, flags, len(raw)) + raw
-            + BITRATES.pack(bitrate, data_bitrate))
+    flags = (HELLO_FLAG_ECHO if echo else 0) | (HELLO_FLAG_CLASSIC if classic else 0) | (HELLO_FLAG_BULK if bulk else 0)
+    return HELLO_FIXED.pack(MAGIC_HELLO, PROTOCOL_VERSION, role, flags, len(raw)) + raw + BITRATES.pack(bitrate, data_bitrate)
 
 
 def version_refusal(version: int) -> str:
     """The hub's refusal text for a client speaking protocol ``version``."""
-    return (f"protocol version {version} not supported: this hub speaks version {PROTOCOL_VERSION}; "
-            "hub and clients must come from the same ilcrig version")
+    return (
+        f"protocol version {version} not supported: this hub speaks version {PROTOCOL_VERSION}; "
+        "hub and clients must come from the same ilcrig version"
+    )
 
 
 def read_reply(sock: socket.socket) -> None:

@@ -64,7 +64,12 @@ __all__ = ["RunRecorder", "RecordingError", "view_run", "viewer_command", "SERIE
 N_JOINTS = 4
 #: per-joint time-series quantities (entity name, unit)
 SERIES: tuple[tuple[str, str], ...] = (
-    ("reference", "deg"), ("actual", "deg"), ("error", "deg"), ("torque_ff", "N·m"), ("torque_fb", "N·m"))
+    ("reference", "deg"),
+    ("actual", "deg"),
+    ("error", "deg"),
+    ("torque_ff", "N·m"),
+    ("torque_fb", "N·m"),
+)
 EXIT_USAGE = 2
 
 _COLOR_FIRST = (255, 140, 0, 255)
@@ -93,9 +98,17 @@ def _iteration_color(k: int, n_expected: int | None) -> tuple[int, int, int, int
 def _data_field(pa: Any, entity: str, descriptor: Any, dtype: Any) -> Any:
     """Arrow field of one component column of ``entity`` with the Rerun metadata that
     ``send_columns`` would attach (so ``Chunk.from_record_batch`` splits a batch per entity)."""
-    return pa.field(f"{entity}:{descriptor.component}", dtype, metadata={
-        "rerun:entity_path": entity, "rerun:kind": "data", "rerun:component": descriptor.component,
-        "rerun:archetype": descriptor.archetype or "", "rerun:component_type": descriptor.component_type or ""})
+    return pa.field(
+        f"{entity}:{descriptor.component}",
+        dtype,
+        metadata={
+            "rerun:entity_path": entity,
+            "rerun:kind": "data",
+            "rerun:component": descriptor.component,
+            "rerun:archetype": descriptor.archetype or "",
+            "rerun:component_type": descriptor.component_type or "",
+        },
+    )
 
 
 @functools.lru_cache(maxsize=1)
@@ -104,12 +117,14 @@ def _components() -> dict[str, tuple[Any, Any]]:
     from rerun's own converters; the hand-built arrays below are cast to these types."""
     import rerun as rr
 
-    cols = [*rr.Scalars.columns(scalars=[0.0]),
-            *rr.SeriesLines.columns(names=["x"], colors=[0]),
-            *rr.SeriesPoints.columns(names=["x"], colors=[0], marker_sizes=[1.0]),
-            *rr.Points3D.columns(positions=[[0.0, 0.0, 0.0]], radii=[1.0], colors=[0], labels=["x"]),
-            *rr.LineStrips3D.columns(strips=[[[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]], radii=[1.0], colors=[0]),
-            *rr.TextDocument.columns(text=["x"], media_type=["text/markdown"])]
+    cols = [
+        *rr.Scalars.columns(scalars=[0.0]),
+        *rr.SeriesLines.columns(names=["x"], colors=[0]),
+        *rr.SeriesPoints.columns(names=["x"], colors=[0], marker_sizes=[1.0]),
+        *rr.Points3D.columns(positions=[[0.0, 0.0, 0.0]], radii=[1.0], colors=[0], labels=["x"]),
+        *rr.LineStrips3D.columns(strips=[[[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]], radii=[1.0], colors=[0]),
+        *rr.TextDocument.columns(text=["x"], media_type=["text/markdown"]),
+    ]
     return {c.component_descriptor().component: (c.component_descriptor(), c.as_arrow_array().type) for c in cols}
 
 
@@ -158,8 +173,14 @@ class _Batch:
             return
         fields, arrays = list(self.fields), list(self.arrays)
         if index_name is not None:
-            fields.insert(0, pa.field(index_name, index_array.type, metadata={
-                "rerun:index_name": index_name, "rerun:kind": "index", "rerun:is_sorted": "true"}))
+            fields.insert(
+                0,
+                pa.field(
+                    index_name,
+                    index_array.type,
+                    metadata={"rerun:index_name": index_name, "rerun:kind": "index", "rerun:is_sorted": "true"},
+                ),
+            )
             arrays.insert(0, index_array)
         rec.send_record_batch(pa.RecordBatch.from_arrays(arrays, schema=pa.schema(fields)), index=index_name)
         self.fields.clear()
@@ -189,9 +210,16 @@ class RunRecorder:
     #: free space asked for before the first trial is written, bytes (later: the last trial's growth × 1.5)
     FIRST_TRIAL_BYTES: int = 512 * 1024
 
-    def __init__(self, path: str | Path, *, application_id: str = "ilcrig", recording_id: str | None = None,
-                 config_summary: Mapping[str, Any] | None = None, decimate_3d: int = 5,
-                 folder: RunFolder | None = None) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        application_id: str = "ilcrig",
+        recording_id: str | None = None,
+        config_summary: Mapping[str, Any] | None = None,
+        decimate_3d: int = 5,
+        folder: RunFolder | None = None,
+    ) -> None:
         import pyarrow as pa
 
         # Rerun's Rust side logs to stderr by itself (e.g. its file sink on a full disk: an ERROR
@@ -229,8 +257,9 @@ class RunRecorder:
 
     # ---- TrialRecorder ------------------------------------------------------------------------
 
-    def log_trial(self, k: int, ref: JointReference, traces: Sequence[Any], u: np.ndarray,
-                  error_rad: np.ndarray, metrics: TrialMetrics) -> None:
+    def log_trial(
+        self, k: int, ref: JointReference, traces: Sequence[Any], u: np.ndarray, error_rad: np.ndarray, metrics: TrialMetrics
+    ) -> None:
         """Write trial ``k`` to the recording and flush it.
 
         :param traces: one DriveTrace per joint (``q_rad``, ``tau_fb_nm``).
@@ -246,8 +275,10 @@ class RunRecorder:
         u = np.array(u, dtype=np.float64)
         error_rad = np.array(error_rad, dtype=np.float64)
         if len(traces) != N_JOINTS or u.shape != (n, N_JOINTS) or error_rad.shape != (n, N_JOINTS):
-            raise RecordingError(f"trial {k}: expected {N_JOINTS} traces and (N, 4) arrays with N = {n}, got "
-                                 f"{len(traces)} traces, u {u.shape}, error {error_rad.shape}")
+            raise RecordingError(
+                f"trial {k}: expected {N_JOINTS} traces and (N, 4) arrays with N = {n}, got "
+                f"{len(traces)} traces, u {u.shape}, error {error_rad.shape}"
+            )
         q_meas = np.stack([np.asarray(tr.q_rad, dtype=np.float64) for tr in traces], axis=1)
         tau_fb = np.stack([np.asarray(tr.tau_fb_nm, dtype=np.float64) for tr in traces], axis=1)
         if q_meas.shape != (n, N_JOINTS) or tau_fb.shape != (n, N_JOINTS):
@@ -322,11 +353,21 @@ class RunRecorder:
         except OSError as err:
             raise output_error(f"the recording {self.path}", err) from None
         if free < need:
-            raise DiskFullError(f"disk full: {free // 1024} KiB free, trial {k} of the recording {self.path} "
-                                f"needs about {need // 1024} KiB")
+            raise DiskFullError(
+                f"disk full: {free // 1024} KiB free, trial {k} of the recording {self.path} needs about {need // 1024} KiB"
+            )
 
-    def _write_trial(self, ref: JointReference, k: int, q: np.ndarray, e: np.ndarray, u: np.ndarray, fb: np.ndarray,
-                     metrics: TrialMetrics, first: bool) -> None:
+    def _write_trial(
+        self,
+        ref: JointReference,
+        k: int,
+        q: np.ndarray,
+        e: np.ndarray,
+        u: np.ndarray,
+        fb: np.ndarray,
+        metrics: TrialMetrics,
+        first: bool,
+    ) -> None:
         pa, rec = self._pa, self._rec
         n = int(ref.t.shape[0])
         t_ns = pa.array(np.rint(np.asarray(ref.t, dtype=np.float64) * 1e9).astype(np.int64), pa.duration("ns"))
@@ -384,14 +425,16 @@ class RunRecorder:
             static.send(rec)
 
     def _add_run_info(self, st: _Batch) -> None:
-        text = ("# ilcrig run\n\n"
-                f"{self.trials} trials recorded.\n\n"
-                "* joint plots: timeline **trial_time**; one line per iteration (red = first, blue = last), "
-                "reference grey.\n"
-                "* metrics (RMSE, MaxE per joint, deg): select the timeline **iteration**.\n"
-                "* 3D: orange = first trial, blue = last trial, grey = reference TCP path; "
-                "from the measured joint angles by forward kinematics.\n\n"
-                "```json\n" + json.dumps(self.config_summary, indent=2, default=str) + "\n```\n")
+        text = (
+            "# ilcrig run\n\n"
+            f"{self.trials} trials recorded.\n\n"
+            "* joint plots: timeline **trial_time**; one line per iteration (red = first, blue = last), "
+            "reference grey.\n"
+            "* metrics (RMSE, MaxE per joint, deg): select the timeline **iteration**.\n"
+            "* 3D: orange = first trial, blue = last trial, grey = reference TCP path; "
+            "from the measured joint angles by forward kinematics.\n\n"
+            "```json\n" + json.dumps(self.config_summary, indent=2, default=str) + "\n```\n"
+        )
         st.put("/run_info", "TextDocument:text", [[text]])
         st.put("/run_info", "TextDocument:media_type", [["text/markdown"]])
 
@@ -445,8 +488,15 @@ class RunRecorder:
             logger.warning("recording: no reference path in 3D: %s", exc)
             return None
 
-    def _add_robot(self, data: _Batch, static: _Batch, which: str, q: np.ndarray, y_guess: np.ndarray | None,
-                   color: tuple[int, int, int, int]) -> None:
+    def _add_robot(
+        self,
+        data: _Batch,
+        static: _Batch,
+        which: str,
+        q: np.ndarray,
+        y_guess: np.ndarray | None,
+        color: tuple[int, int, int, int],
+    ) -> None:
         """The robot skeleton at every (decimated) sample of one trial under ``/robot/{which}``."""
         from plant.kinematics import KinematicsError, forward_kinematics
 
@@ -510,23 +560,39 @@ def default_blueprint() -> Any:
     import rerun.blueprint as rrb
 
     def grid(kind: str, parts: Sequence[str], unit: str) -> Any:
-        return rrb.Grid(*[rrb.TimeSeriesView(origin=f"/joint{j}", contents=[f"+ /joint{j}/{p}/**" for p in parts],
-                                             name=f"joint {j} {kind} [{unit}]")
-                          for j in range(1, N_JOINTS + 1)], name=kind)
+        return rrb.Grid(
+            *[
+                rrb.TimeSeriesView(
+                    origin=f"/joint{j}", contents=[f"+ /joint{j}/{p}/**" for p in parts], name=f"joint {j} {kind} [{unit}]"
+                )
+                for j in range(1, N_JOINTS + 1)
+            ],
+            name=kind,
+        )
 
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Tabs(grid("error", ["error"], "deg"), grid("torque", ["torque_ff", "torque_fb"], "N·m"),
-                     grid("position", ["reference", "actual"], "deg")),
+            rrb.Tabs(
+                grid("error", ["error"], "deg"),
+                grid("torque", ["torque_ff", "torque_fb"], "N·m"),
+                grid("position", ["reference", "actual"], "deg"),
+            ),
             rrb.Vertical(
-                rrb.Tabs(rrb.Spatial3DView(origin="/robot", name="robot: first (orange) vs last (blue) trial"),
-                         rrb.TextDocumentView(origin="/run_info", name="run info")),
-                rrb.Horizontal(rrb.TimeSeriesView(origin="/metrics/rmse_deg", name="RMSE per iteration [deg]"),
-                               rrb.TimeSeriesView(origin="/metrics/maxe_deg", name="MaxE per iteration [deg]")),
-                row_shares=[3, 2]),
-            column_shares=[3, 2]),
+                rrb.Tabs(
+                    rrb.Spatial3DView(origin="/robot", name="robot: first (orange) vs last (blue) trial"),
+                    rrb.TextDocumentView(origin="/run_info", name="run info"),
+                ),
+                rrb.Horizontal(
+                    rrb.TimeSeriesView(origin="/metrics/rmse_deg", name="RMSE per iteration [deg]"),
+                    rrb.TimeSeriesView(origin="/metrics/maxe_deg", name="MaxE per iteration [deg]"),
+                ),
+                row_shares=[3, 2],
+            ),
+            column_shares=[3, 2],
+        ),
         rrb.TimePanel(timeline="trial_time"),
-        collapse_panels=False)
+        collapse_panels=False,
+    )
 
 
 # ---- ilcrig view ---------------------------------------------------------------------------------
@@ -588,7 +654,7 @@ def view_run(run_dir: str | Path, *, stdout: TextIO | None = None, stderr: TextI
     ver = _rerun_version()
     pin = f"rerun-sdk=={ver}" if ver else "rerun-sdk"
     why = "no display ($DISPLAY / $WAYLAND_DISPLAY unset)" if cmd is not None else "no Rerun viewer installed"
-    out.write(f"ilcrig view: {why}; open the recording on a machine with a display:\n"
-              f"  rerun {rrd}\n"
-              f"  (viewer: pip install {pin})\n")
+    out.write(
+        f"ilcrig view: {why}; open the recording on a machine with a display:\n  rerun {rrd}\n  (viewer: pip install {pin})\n"
+    )
     return 0

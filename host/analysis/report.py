@@ -50,10 +50,28 @@ from host.analysis.sweep_plan import (
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "Verdict", "fmt", "settle_iteration", "settle_iteration_final", "split_repeatable",
-    "verdict_beats", "verdict_settle", "verdict_rise", "verdict_disturbance", "verdict_floor_raised",
-    "verdict_paths", "verdict_cycles", "verdict_long_bounded", "verdict_profiles_similar", "verdict_profiles_order",
-    "write_sweep_report", "SETTLE_FRACTION", "SPLIT_TRIALS", "figure", "save_png", "md_table", "JOINTS",
+    "Verdict",
+    "fmt",
+    "settle_iteration",
+    "settle_iteration_final",
+    "split_repeatable",
+    "verdict_beats",
+    "verdict_settle",
+    "verdict_rise",
+    "verdict_disturbance",
+    "verdict_floor_raised",
+    "verdict_paths",
+    "verdict_cycles",
+    "verdict_long_bounded",
+    "verdict_profiles_similar",
+    "verdict_profiles_order",
+    "write_sweep_report",
+    "SETTLE_FRACTION",
+    "SPLIT_TRIALS",
+    "figure",
+    "save_png",
+    "md_table",
+    "JOINTS",
 ]
 
 SETTLE_FRACTION = 0.1
@@ -77,8 +95,16 @@ RISE_TOLERANCE = 0.01
 JOINTS = (1, 2, 3, 4)
 #: per-joint (or per-trial) values: a numpy array or a plain sequence such as a paper row
 Floats = np.ndarray | Sequence[float]
-LAW_LABEL = {"pd-ilc": "PD-ILC", "pd-ilc-q": "PD-ILC-Q", "d-ilc": "D-ILC", "q-ilc": "Q-ILC", "no-ilc": "NO-ILC",
-             "no-ilc-id": "NO-ILC-ID", "pd-ol": "PD-OL", "p-ol": "P-OL"}
+LAW_LABEL = {
+    "pd-ilc": "PD-ILC",
+    "pd-ilc-q": "PD-ILC-Q",
+    "d-ilc": "D-ILC",
+    "q-ilc": "Q-ILC",
+    "no-ilc": "NO-ILC",
+    "no-ilc-id": "NO-ILC-ID",
+    "pd-ol": "PD-OL",
+    "p-ol": "P-OL",
+}
 
 
 def fmt(v: float | None, digits: int = 3) -> str:
@@ -93,6 +119,7 @@ def _paper(v: float | None) -> str:
 
 
 # ------------------------------------------------------------------------------------- definitions
+
 
 def settle_iteration(rmse: Floats, frac: float = SETTLE_FRACTION) -> int:
     """First k with |r_j − r_final| ≤ frac·|r_0 − r_final| for all j ≥ k (see module doc)."""
@@ -134,6 +161,7 @@ def split_repeatable(errors_rad: np.ndarray, last: int = SPLIT_TRIALS) -> tuple[
 
 # ---------------------------------------------------------------------------------------- verdicts
 
+
 @dataclass(frozen=True)
 class Verdict:
     claim: str
@@ -159,8 +187,9 @@ def _jlist(idx: Sequence[int]) -> str:
     return ", ".join(f"j{i + 1}" for i in idx)
 
 
-def verdict_beats(a_maxe: Floats, a_mae: Floats, b_maxe: Floats, b_mae: Floats, a: str = "PD-ILC", b: str = "D-ILC",
-                  claim: str | None = None) -> Verdict:
+def verdict_beats(
+    a_maxe: Floats, a_mae: Floats, b_maxe: Floats, b_mae: Floats, a: str = "PD-ILC", b: str = "D-ILC", claim: str | None = None
+) -> Verdict:
     """``a`` beats ``b``: smaller MaxE and smaller MAE on every joint."""
     claim = claim or f"{a} gives smaller MaxE and mean error than {b} on every joint"
     am, aa, bm, ba = (np.asarray(x, float) for x in (a_maxe, a_mae, b_maxe, b_mae))
@@ -171,16 +200,21 @@ def verdict_beats(a_maxe: Floats, a_mae: Floats, b_maxe: Floats, b_mae: Floats, 
         return Verdict(claim, True, f"{b}/{a} mean-error ratio: {ratio}")
     parts = []
     if worse_max:
-        parts.append(f"MaxE of {a} not smaller on {_jlist(worse_max)} ("
-                     + ", ".join(f"{fmt(am[j])} vs {fmt(bm[j])}" for j in worse_max) + " deg)")
+        parts.append(
+            f"MaxE of {a} not smaller on {_jlist(worse_max)} ("
+            + ", ".join(f"{fmt(am[j])} vs {fmt(bm[j])}" for j in worse_max)
+            + " deg)"
+        )
     if worse_mae:
-        parts.append(f"mean error of {a} not smaller on {_jlist(worse_mae)} ("
-                     + ", ".join(f"{fmt(aa[j])} vs {fmt(ba[j])}" for j in worse_mae) + " deg)")
+        parts.append(
+            f"mean error of {a} not smaller on {_jlist(worse_mae)} ("
+            + ", ".join(f"{fmt(aa[j])} vs {fmt(ba[j])}" for j in worse_mae)
+            + " deg)"
+        )
     return Verdict(claim, False, "; ".join(parts))
 
 
-def verdict_settle(rmse_hist: np.ndarray, limit: int = SETTLE_LIMIT, law: str = "PD-ILC",
-                   claim: str | None = None) -> Verdict:
+def verdict_settle(rmse_hist: np.ndarray, limit: int = SETTLE_LIMIT, law: str = "PD-ILC", claim: str | None = None) -> Verdict:
     """Every joint settles (module definition) at k ≤ ``limit``."""
     claim = claim or f"{law} errors settle within about {PAPER_SETTLE_ITERATIONS} iterations (k ≤ {limit})"
     h = np.asarray(rmse_hist, float).reshape(len(rmse_hist), -1)
@@ -188,9 +222,11 @@ def verdict_settle(rmse_hist: np.ndarray, limit: int = SETTLE_LIMIT, law: str = 
         return Verdict(claim, None, "needs at least 2 trials")
     ks = [settle_iteration(h[:, j]) for j in range(h.shape[1])]
     strict = [settle_iteration_final(h[:, j]) for j in range(h.shape[1])]
-    txt = (f"settle k (10 % of the reduction) = {', '.join(f'j{j + 1} {k}' for j, k in enumerate(ks))}; "
-           f"within 10 % of the final RMSE: {', '.join(f'j{j + 1} {k}' for j, k in enumerate(strict))} "
-           f"(of {h.shape[0]} trials)")
+    txt = (
+        f"settle k (10 % of the reduction) = {', '.join(f'j{j + 1} {k}' for j, k in enumerate(ks))}; "
+        f"within 10 % of the final RMSE: {', '.join(f'j{j + 1} {k}' for j, k in enumerate(strict))} "
+        f"(of {h.shape[0]} trials)"
+    )
     if h.shape[0] <= limit + 1:
         return Verdict(claim, None, f"too few trials to judge ({h.shape[0]}); {txt}")
     late = [j for j, k in enumerate(ks) if k > limit]
@@ -205,18 +241,25 @@ def verdict_rise(rmse_hist: np.ndarray, law: str = "D-ILC", claim: str | None = 
     h = np.asarray(rmse_hist, float).reshape(len(rmse_hist), -1)
     if h.shape[0] < 2:
         return Verdict(claim, None, "needs at least 2 trials")
-    rises = [(k, j) for k in range(1, h.shape[0]) for j in range(h.shape[1])
-             if h[k, j] > h[k - 1, j] * (1 + RISE_TOLERANCE)]
+    rises = [(k, j) for k in range(1, h.shape[0]) for j in range(h.shape[1]) if h[k, j] > h[k - 1, j] * (1 + RISE_TOLERANCE)]
     if rises:
         k, j = rises[0]
-        return Verdict(claim, True, f"first rise at k = {k} on j{j + 1} ({fmt(h[k - 1, j])} → {fmt(h[k, j])} deg); "
-                                    f"{len(rises)} rise(s) in all")
-    return Verdict(claim, False, f"the RMSE of every joint decreases monotonically over all {h.shape[0]} trials "
-                                 f"here (a D-type law with a one-sample lead on this plant does not overshoot)")
+        return Verdict(
+            claim,
+            True,
+            f"first rise at k = {k} on j{j + 1} ({fmt(h[k - 1, j])} → {fmt(h[k, j])} deg); {len(rises)} rise(s) in all",
+        )
+    return Verdict(
+        claim,
+        False,
+        f"the RMSE of every joint decreases monotonically over all {h.shape[0]} trials "
+        f"here (a D-type law with a one-sample lead on this plant does not overshoot)",
+    )
 
 
-def verdict_floor_raised(floor_none: Floats, floor_dist: Floats,
-                         claim: str = "a disturbance raises the error floor on every joint") -> Verdict:
+def verdict_floor_raised(
+    floor_none: Floats, floor_dist: Floats, claim: str = "a disturbance raises the error floor on every joint"
+) -> Verdict:
     a, b = np.asarray(floor_none, float), np.asarray(floor_dist, float)
     low = [j for j in range(len(a)) if not b[j] > a[j]]
     txt = ", ".join(f"j{j + 1} {fmt(a[j])} → {fmt(b[j])}" for j in range(len(a)))
@@ -225,8 +268,9 @@ def verdict_floor_raised(floor_none: Floats, floor_dist: Floats,
     return Verdict(claim, False, f"not raised on {_jlist(low)}: {txt} deg")
 
 
-def verdict_disturbance(rmse_none: np.ndarray, rmse_dist: np.ndarray, last: int = SPLIT_TRIALS,
-                        law: str = "PD-ILC", claim: str | None = None) -> Verdict:
+def verdict_disturbance(
+    rmse_none: np.ndarray, rmse_dist: np.ndarray, last: int = SPLIT_TRIALS, law: str = "PD-ILC", claim: str | None = None
+) -> Verdict:
     """Floor raised (mean RMSE of the last L trials larger on every joint) and bounded: every
     learnt trial (k ≥ 1) below trial 0, and the last-L mean at most GROWTH_LIMIT× the L before."""
     claim = claim or f"with {law}, a disturbance raises the error floor but the error stays bounded"
@@ -238,10 +282,11 @@ def verdict_disturbance(rmse_none: np.ndarray, rmse_dist: np.ndarray, last: int 
     floor_n, floor_d = hn[-L:].mean(axis=0), hd[-L:].mean(axis=0)
     raised = verdict_floor_raised(floor_n, floor_d)
     above0 = [j for j in range(hd.shape[1]) if np.any(hd[1:, j] >= hd[0, j])]
-    growth = floor_d / hd[-2 * L:-L].mean(axis=0)
+    growth = floor_d / hd[-2 * L : -L].mean(axis=0)
     grows = [j for j in range(hd.shape[1]) if growth[j] > GROWTH_LIMIT]
-    btxt = (f"growth of the last {L} trials over the {L} before: "
-            + ", ".join(f"j{j + 1} {fmt(growth[j], 2)}×" for j in range(len(growth))))
+    btxt = f"growth of the last {L} trials over the {L} before: " + ", ".join(
+        f"j{j + 1} {fmt(growth[j], 2)}×" for j in range(len(growth))
+    )
     problems = []
     if not raised.holds:
         problems.append(raised.detail)
@@ -254,8 +299,12 @@ def verdict_disturbance(rmse_none: np.ndarray, rmse_dist: np.ndarray, last: int 
     return Verdict(claim, True, f"{raised.detail} (mean RMSE of the last {L} trials); bounded, {btxt}")
 
 
-def verdict_long_bounded(rmse_hist: np.ndarray, block: int = LONG_BLOCK, limit: float = LONG_GROWTH_LIMIT,
-                         claim: str = "the error stays bounded over a long run") -> Verdict:
+def verdict_long_bounded(
+    rmse_hist: np.ndarray,
+    block: int = LONG_BLOCK,
+    limit: float = LONG_GROWTH_LIMIT,
+    claim: str = "the error stays bounded over a long run",
+) -> Verdict:
     """Long-run stability: the mean RMSE (over joints) of the last ``block`` trials is at most
     ``limit``× the best ``block``-trial mean of the run."""
     h = np.asarray(rmse_hist, float).reshape(len(rmse_hist), -1).mean(axis=1)
@@ -264,14 +313,20 @@ def verdict_long_bounded(rmse_hist: np.ndarray, block: int = LONG_BLOCK, limit: 
     means = np.convolve(h, np.ones(block) / block, mode="valid")
     best = int(np.argmin(means))
     growth = means[-1] / means[best] if means[best] > 0 else math.inf
-    txt = (f"mean RMSE over joints: best {block} trials k = {best}..{best + block - 1} {fmt(means[best])} deg, "
-           f"last {block} trials {fmt(means[-1])} deg ({fmt(growth, 3)}× the best; limit {fmt(limit, 2)}×) "
-           f"over {h.shape[0]} trials")
+    txt = (
+        f"mean RMSE over joints: best {block} trials k = {best}..{best + block - 1} {fmt(means[best])} deg, "
+        f"last {block} trials {fmt(means[-1])} deg ({fmt(growth, 3)}× the best; limit {fmt(limit, 2)}×) "
+        f"over {h.shape[0]} trials"
+    )
     if growth <= limit:
         return Verdict(claim, True, txt)
     first = int(np.argmax(means[best:] > limit * means[best])) + best
-    return Verdict(claim, False, f"the error grows again after k ≈ {best + block - 1} (exceeds {fmt(limit, 2)}× the best "
-                                 f"from the window k = {first}..{first + block - 1}): {txt}")
+    return Verdict(
+        claim,
+        False,
+        f"the error grows again after k ≈ {best + block - 1} (exceeds {fmt(limit, 2)}× the best "
+        f"from the window k = {first}..{first + block - 1}): {txt}",
+    )
 
 
 def _spread(values: Mapping[str, Floats]) -> tuple[float, str, str]:
@@ -280,8 +335,9 @@ def _spread(values: Mapping[str, Floats]) -> tuple[float, str, str]:
     return (worst[hi] / worst[lo] if worst[lo] > 0 else math.inf), hi, lo
 
 
-def verdict_paths(maxe: Mapping[str, Floats], mae: Mapping[str, Floats],
-                  limit: float = PATH_SPREAD_LIMIT, claim: str | None = None) -> Verdict:
+def verdict_paths(
+    maxe: Mapping[str, Floats], mae: Mapping[str, Floats], limit: float = PATH_SPREAD_LIMIT, claim: str | None = None
+) -> Verdict:
     """Similar floors: the worst-joint MaxE and worst-joint MAE differ across paths by ≤ ``limit``×."""
     claim = claim or "the converged errors are similar across the paths"
     if len(maxe) < 2:
@@ -289,17 +345,20 @@ def verdict_paths(maxe: Mapping[str, Floats], mae: Mapping[str, Floats],
     s_max, hi_m, lo_m = _spread(maxe)
     s_mae, hi_a, lo_a = _spread(mae)
     per_joint = np.array(list(mae.values()), float)
-    pj = ", ".join(f"j{j + 1} {fmt(per_joint[:, j].max() / per_joint[:, j].min(), 2)}×"
-                   if per_joint[:, j].min() > 0 else f"j{j + 1} ∞" for j in range(per_joint.shape[1]))
-    txt = (f"worst-joint MaxE spread {fmt(s_max, 2)}× (path {hi_m} vs {lo_m}), worst-joint mean-error spread "
-           f"{fmt(s_mae, 2)}× (path {hi_a} vs {lo_a}); limit {fmt(limit, 2)}×; per-joint mean-error spread {pj}")
+    pj = ", ".join(
+        f"j{j + 1} {fmt(per_joint[:, j].max() / per_joint[:, j].min(), 2)}×" if per_joint[:, j].min() > 0 else f"j{j + 1} ∞"
+        for j in range(per_joint.shape[1])
+    )
+    txt = (
+        f"worst-joint MaxE spread {fmt(s_max, 2)}× (path {hi_m} vs {lo_m}), worst-joint mean-error spread "
+        f"{fmt(s_mae, 2)}× (path {hi_a} vs {lo_a}); limit {fmt(limit, 2)}×; per-joint mean-error spread {pj}"
+    )
     if s_max <= limit and s_mae <= limit:
         return Verdict(claim, True, txt)
     return Verdict(claim, False, txt)
 
 
-def verdict_cycles(maxe: Mapping[float, Floats], mae: Mapping[float, Floats],
-                   claim: str | None = None) -> Verdict:
+def verdict_cycles(maxe: Mapping[float, Floats], mae: Mapping[float, Floats], claim: str | None = None) -> Verdict:
     """Slower single journeys give smaller MaxE and MAE on every joint (strictly decreasing in cycle time)."""
     claim = claim or "slower cycles give smaller errors on every joint"
     cycles = sorted(maxe)
@@ -314,24 +373,25 @@ def verdict_cycles(maxe: Mapping[float, Floats], mae: Mapping[float, Floats],
             near &= all(seq[i + 1] <= seq[i] * (1 + TIE_FRACTION) for i in viol)
             if viol:
                 bad.append(f"{name} j{j + 1}: " + ", ".join(f"{c:g} s {fmt(v)}" for c, v in zip(cycles, seq)))
-    tie_note = (f" (every violation is within {TIE_FRACTION:.0%}: effectively a tie at the learning floor)"
-                if near else "")
+    tie_note = f" (every violation is within {TIE_FRACTION:.0%}: effectively a tie at the learning floor)" if near else ""
     if not bad:
-        mae_txt = "; ".join(f"j{j + 1} " + " > ".join(fmt(float(mae[c][j])) for c in cycles)
-                            for j in range(len(mae[cycles[0]])))
+        mae_txt = "; ".join(f"j{j + 1} " + " > ".join(fmt(float(mae[c][j])) for c in cycles) for j in range(len(mae[cycles[0]])))
         return Verdict(claim, True, f"mean error {', '.join(f'{c:g}' for c in cycles)} s: {mae_txt} deg")
     return Verdict(claim, False, "not decreasing with the cycle time: " + "; ".join(bad) + " deg" + tie_note)
 
 
-def verdict_profiles_similar(maxe_a: Floats, mae_a: Floats, maxe_b: Floats, mae_b: Floats, limit: float = PROFILE_RATIO_LIMIT,
-                             claim: str | None = None) -> Verdict:
+def verdict_profiles_similar(
+    maxe_a: Floats, mae_a: Floats, maxe_b: Floats, mae_b: Floats, limit: float = PROFILE_RATIO_LIMIT, claim: str | None = None
+) -> Verdict:
     """The controller works as well with both motion laws: worst-joint MaxE and MAE within ``limit``×."""
     claim = claim or "the controller works as well with the 5th-order law as with the 4-5-6-7 law"
     r_max = max(np.max(maxe_a), np.max(maxe_b)) / max(min(np.max(maxe_a), np.max(maxe_b)), 1e-300)
     r_mae = max(np.max(mae_a), np.max(mae_b)) / max(min(np.max(mae_a), np.max(mae_b)), 1e-300)
-    txt = (f"worst-joint MaxE {fmt(np.max(maxe_a))} vs {fmt(np.max(maxe_b))} deg ({fmt(r_max, 2)}×), "
-           f"worst-joint mean error {fmt(np.max(mae_a))} vs {fmt(np.max(mae_b))} deg ({fmt(r_mae, 2)}×); "
-           f"limit {fmt(limit, 2)}×")
+    txt = (
+        f"worst-joint MaxE {fmt(np.max(maxe_a))} vs {fmt(np.max(maxe_b))} deg ({fmt(r_max, 2)}×), "
+        f"worst-joint mean error {fmt(np.max(mae_a))} vs {fmt(np.max(mae_b))} deg ({fmt(r_mae, 2)}×); "
+        f"limit {fmt(limit, 2)}×"
+    )
     return Verdict(claim, bool(r_max <= limit and r_mae <= limit), txt)
 
 
@@ -349,6 +409,7 @@ def verdict_profiles_order(mae_4567: Floats, mae_5: Floats, claim: str | None = 
 
 
 # ------------------------------------------------------------------------------------------ figures
+
 
 def figure(nrows: int, ncols: int, w: float, h: float):  # -> (Figure, axes)
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -378,8 +439,15 @@ def plot_fig8(path: Path, runs: Mapping[str, RunData], title: str) -> Path:
             r = run.metric("rmse_deg")
             k = np.arange(r.shape[0])
             for j in joints:
-                a.plot(k, r[:, j - 1], styles[j], marker="o", ms=3, color=colors.get(law),
-                       label=f"{LAW_LABEL.get(law, law)} joint {j}")
+                a.plot(
+                    k,
+                    r[:, j - 1],
+                    styles[j],
+                    marker="o",
+                    ms=3,
+                    color=colors.get(law),
+                    label=f"{LAW_LABEL.get(law, law)} joint {j}",
+                )
         a.set_yscale("log")
         a.set_xlabel("iteration k (k = 0: before learning)")
         a.set_ylabel("RMSE [deg]")
@@ -399,8 +467,14 @@ def plot_laws(path: Path, runs: Mapping[tuple[str, str], RunData]) -> Path:
         a = ax[j // 2, j % 2]
         for (law, dist), run in sorted(runs.items(), key=lambda kv: (laws.index(kv[0][0]), kv[0][1] != "none")):
             r = run.metric("rmse_deg")
-            a.plot(np.arange(r.shape[0]), r[:, j], "-" if dist == "none" else "--", marker=".",
-                   color=cmap[law], label=f"{LAW_LABEL.get(law, law)}{'' if dist == 'none' else ', disturbed'}")
+            a.plot(
+                np.arange(r.shape[0]),
+                r[:, j],
+                "-" if dist == "none" else "--",
+                marker=".",
+                color=cmap[law],
+                label=f"{LAW_LABEL.get(law, law)}{'' if dist == 'none' else ', disturbed'}",
+            )
         a.set_yscale("log")
         a.set_title(f"joint {j + 1}")
         a.set_xlabel("iteration k")
@@ -413,6 +487,7 @@ def plot_laws(path: Path, runs: Mapping[tuple[str, str], RunData]) -> Path:
 
 
 # ------------------------------------------------------------------------------------ sweep report
+
 
 class _Runs:
     """Finished runs of a sweep folder, looked up by experiment."""
@@ -479,12 +554,18 @@ def _table_section(key: str, runs: _Runs, extra_laws: Sequence[str]) -> list[str
             rows.append([p.case, "paper"] + _metric_cells(p.max_err_deg, True) + _metric_cells(p.mean_err_deg, True))
         run = runs.get(r.experiment)
         note = f" (fault: {run.fault})" if run is not None and run.fault else ""
-        rows.append([r.label + note, "ilcrig"] + _metric_cells(runs.final(r.experiment, "max_abs_deg"))
-                    + _metric_cells(runs.final(r.experiment, "mae_deg")))
+        rows.append(
+            [r.label + note, "ilcrig"]
+            + _metric_cells(runs.final(r.experiment, "max_abs_deg"))
+            + _metric_cells(runs.final(r.experiment, "mae_deg"))
+        )
     extra = [r for r in table_rows(key, extra_laws) if runs.get(r.experiment) is not None]
     for r in extra:
-        rows.append([r.label, "ilcrig, beyond"] + _metric_cells(runs.final(r.experiment, "max_abs_deg"))
-                    + _metric_cells(runs.final(r.experiment, "mae_deg")))
+        rows.append(
+            [r.label, "ilcrig, beyond"]
+            + _metric_cells(runs.final(r.experiment, "max_abs_deg"))
+            + _metric_cells(runs.final(r.experiment, "mae_deg"))
+        )
     return [f"## Table {t.number} — {t.caption}", ""] + md_table(_ERR_HEADER, rows) + [""]
 
 
@@ -502,44 +583,63 @@ def _claims_for_law(runs: _Runs, law: str) -> dict[str, Verdict]:
     if law != BASELINE_LAW:
         claim = C["table2"] if law == PAPER_LAW else f"{L} gives smaller MaxE and mean error than D-ILC on every joint"
         if runs.get(a) and runs.get(b):
-            v["table2"] = verdict_beats(runs.need_final(a, "max_abs_deg"), runs.need_final(a, "mae_deg"),
-                                        runs.need_final(b, "max_abs_deg"), runs.need_final(b, "mae_deg"), L, "D-ILC",
-                                        claim)
+            v["table2"] = verdict_beats(
+                runs.need_final(a, "max_abs_deg"),
+                runs.need_final(a, "mae_deg"),
+                runs.need_final(b, "max_abs_deg"),
+                runs.need_final(b, "mae_deg"),
+                L,
+                "D-ILC",
+                claim,
+            )
         else:
             v["table2"] = _missing(claim, f"{a.id}, {b.id}")
     # Fig. 8
     claim = C["fig8_settle"] if law == PAPER_LAW else f"{L} errors settle within about 4 iterations"
-    v["fig8_settle"] = (verdict_settle(runs.need(a).metric("rmse_deg"), law=L, claim=claim) if runs.get(a)
-                        else _missing(claim, a.id))
+    v["fig8_settle"] = (
+        verdict_settle(runs.need(a).metric("rmse_deg"), law=L, claim=claim) if runs.get(a) else _missing(claim, a.id)
+    )
     # Table 3
     d = _e(law, disturbance=DISTURBED)
     claim = C["table3"] if law == PAPER_LAW else f"with {L}, a disturbance raises the floor but the error stays bounded"
-    v["table3"] = (verdict_disturbance(runs.need(a).metric("rmse_deg"), runs.need(d).metric("rmse_deg"), law=L,
-                                       claim=claim) if runs.get(a) and runs.get(d) else _missing(claim, d.id))
+    v["table3"] = (
+        verdict_disturbance(runs.need(a).metric("rmse_deg"), runs.need(d).metric("rmse_deg"), law=L, claim=claim)
+        if runs.get(a) and runs.get(d)
+        else _missing(claim, d.id)
+    )
     # the same beyond the paper's horizon
     for key, dist in (("long_none", "none"), ("long_dist", DISTURBED)):
         e = _e(law, disturbance=dist, trials=LONG_TRIALS)
         claim = C[key] if law == PAPER_LAW else C[key].replace("PD-ILC", L).split(" (Fig.")[0]
-        v[key] = (verdict_long_bounded(runs.need(e).metric("rmse_deg"), claim=claim) if runs.get(e)
-                  else _missing(claim, e.id))
+        v[key] = verdict_long_bounded(runs.need(e).metric("rmse_deg"), claim=claim) if runs.get(e) else _missing(claim, e.id)
     if v["table3"].holds is False and "unbounded" in v["table3"].detail and v["long_dist"].holds:
         t3 = v["table3"]
-        v["table3"] = Verdict(t3.claim, False, t3.detail + f"; but the {LONG_TRIALS}-trial disturbed run stays bounded, "
-                              "so this 10-trial growth is more likely trial-to-trial scatter than divergence")
+        v["table3"] = Verdict(
+            t3.claim,
+            False,
+            t3.detail + f"; but the {LONG_TRIALS}-trial disturbed run stays bounded, "
+            "so this 10-trial growth is more likely trial-to-trial scatter than divergence",
+        )
     # Table 4
     claim = C["table4"] if law == PAPER_LAW else f"with {L}, the converged errors are similar across the paths"
     ps = {p: _e(law, path=p) for p in ("1", "2", "3", "4")}
     if all(runs.get(e) for e in ps.values()):
-        v["table4"] = verdict_paths({p: runs.need_final(e, "max_abs_deg") for p, e in ps.items()},
-                                    {p: runs.need_final(e, "mae_deg") for p, e in ps.items()}, claim=claim)
+        v["table4"] = verdict_paths(
+            {p: runs.need_final(e, "max_abs_deg") for p, e in ps.items()},
+            {p: runs.need_final(e, "mae_deg") for p, e in ps.items()},
+            claim=claim,
+        )
     else:
         v["table4"] = _missing(claim, "paths 1-4")
     # Table 5
     claim = C["table5"] if law == PAPER_LAW else f"with {L}, slower cycles give smaller errors on every joint"
     cs = {c: _e(law, cycle_s=c) for c in (0.15, 0.25, 0.50)}
     if all(runs.get(e) for e in cs.values()):
-        v["table5"] = verdict_cycles({c: runs.need_final(e, "max_abs_deg") for c, e in cs.items()},
-                                     {c: runs.need_final(e, "mae_deg") for c, e in cs.items()}, claim=claim)
+        v["table5"] = verdict_cycles(
+            {c: runs.need_final(e, "max_abs_deg") for c, e in cs.items()},
+            {c: runs.need_final(e, "mae_deg") for c, e in cs.items()},
+            claim=claim,
+        )
     else:
         v["table5"] = _missing(claim, "0.15/0.25/0.50 s")
     # Table 6
@@ -548,12 +648,15 @@ def _claims_for_law(runs: _Runs, law: str) -> dict[str, Verdict]:
         claim = C[key] if law == PAPER_LAW else f"{L}: " + C[key].split(" (Table")[0]
         if runs.get(a) and runs.get(p5):
             if key == "table6_similar":
-                v[key] = verdict_profiles_similar(runs.need_final(a, "max_abs_deg"), runs.need_final(a, "mae_deg"),
-                                                  runs.need_final(p5, "max_abs_deg"), runs.need_final(p5, "mae_deg"),
-                                                  claim=claim)
+                v[key] = verdict_profiles_similar(
+                    runs.need_final(a, "max_abs_deg"),
+                    runs.need_final(a, "mae_deg"),
+                    runs.need_final(p5, "max_abs_deg"),
+                    runs.need_final(p5, "mae_deg"),
+                    claim=claim,
+                )
             else:
-                v[key] = verdict_profiles_order(runs.need_final(a, "mae_deg"), runs.need_final(p5, "mae_deg"),
-                                                claim=claim)
+                v[key] = verdict_profiles_order(runs.need_final(a, "mae_deg"), runs.need_final(p5, "mae_deg"), claim=claim)
         else:
             v[key] = _missing(claim, p5.id)
     return v
@@ -563,15 +666,23 @@ def _paper_self_check() -> dict[str, Verdict]:
     """The same criteria applied to the paper's own numbers (shows they are calibrated)."""
     T2, T3, T4, T5, T6 = (TABLES[k] for k in ("table2", "table3", "table4", "table5", "table6"))
     return {
-        "table2": verdict_beats(T2.rows["PD-ILC"].max_err_deg, T2.rows["PD-ILC"].mean_err_deg,
-                                T2.rows["D-ILC"].max_err_deg, T2.rows["D-ILC"].mean_err_deg),
+        "table2": verdict_beats(
+            T2.rows["PD-ILC"].max_err_deg,
+            T2.rows["PD-ILC"].mean_err_deg,
+            T2.rows["D-ILC"].max_err_deg,
+            T2.rows["D-ILC"].mean_err_deg,
+        ),
         "table3": verdict_floor_raised(T3.rows["none"].mean_err_deg, T3.rows["both"].mean_err_deg),
-        "table4": verdict_paths({k: r.max_err_deg for k, r in T4.rows.items()},
-                                {k: r.mean_err_deg for k, r in T4.rows.items()}),
-        "table5": verdict_cycles({float(k): r.max_err_deg for k, r in T5.rows.items()},
-                                 {float(k): r.mean_err_deg for k, r in T5.rows.items()}),
-        "table6_similar": verdict_profiles_similar(T6.rows["poly4567"].max_err_deg, T6.rows["poly4567"].mean_err_deg,
-                                                   T6.rows["poly5"].max_err_deg, T6.rows["poly5"].mean_err_deg),
+        "table4": verdict_paths({k: r.max_err_deg for k, r in T4.rows.items()}, {k: r.mean_err_deg for k, r in T4.rows.items()}),
+        "table5": verdict_cycles(
+            {float(k): r.max_err_deg for k, r in T5.rows.items()}, {float(k): r.mean_err_deg for k, r in T5.rows.items()}
+        ),
+        "table6_similar": verdict_profiles_similar(
+            T6.rows["poly4567"].max_err_deg,
+            T6.rows["poly4567"].mean_err_deg,
+            T6.rows["poly5"].max_err_deg,
+            T6.rows["poly5"].mean_err_deg,
+        ),
         "table6_order": verdict_profiles_order(T6.rows["poly4567"].mean_err_deg, T6.rows["poly5"].mean_err_deg),
     }
 
@@ -583,8 +694,9 @@ def _fig_section(runs: _Runs, out: Path, fig: str, dist: str) -> list[str]:
     lines = [f"## Fig. {num} — RMSE vs iteration, {'no disturbance' if dist == 'none' else 'with disturbance'}", ""]
     if not pair:
         return lines + ["not run", ""]
-    plot_fig8(out / fig, pair, f"Fig. {num}: RMSE vs iteration, path 1, 0.25 s"
-              f"{'' if dist == 'none' else ', disturbance ' + dist}")
+    plot_fig8(
+        out / fig, pair, f"Fig. {num}: RMSE vs iteration, path 1, 0.25 s{'' if dist == 'none' else ', disturbance ' + dist}"
+    )
     lines += [f"![Fig. {num}]({fig})", ""]
     rows = []
     for law, run in pair.items():
@@ -610,13 +722,19 @@ def _split_section(runs: _Runs) -> list[str]:
     if not rows:
         return []
     L = min(SPLIT_TRIALS, runs.iterations)
-    return ([f"### Repeatable vs non-repeatable error (path 1, 0.25 s; RMS over the last {L} trials, deg)", "",
-             "Repeatable = the mean error of the last trials (learnable); non-repeatable = the residual around it "
-             "(changes from trial to trial; no learning law can remove it, a law with high gain at high "
-             "frequency amplifies it). Without disturbance the non-repeatable part is only what learning still "
-             "changes between the last trials.", ""]
-            + md_table(["law", "disturbance"] + [f"rep. j{j}" for j in JOINTS] + [f"non-rep. j{j}" for j in JOINTS],
-                        rows) + [""])
+    return (
+        [
+            f"### Repeatable vs non-repeatable error (path 1, 0.25 s; RMS over the last {L} trials, deg)",
+            "",
+            "Repeatable = the mean error of the last trials (learnable); non-repeatable = the residual around it "
+            "(changes from trial to trial; no learning law can remove it, a law with high gain at high "
+            "frequency amplifies it). Without disturbance the non-repeatable part is only what learning still "
+            "changes between the last trials.",
+            "",
+        ]
+        + md_table(["law", "disturbance"] + [f"rep. j{j}" for j in JOINTS] + [f"non-rep. j{j}" for j in JOINTS], rows)
+        + [""]
+    )
 
 
 def plot_long(path: Path, runs: Mapping[tuple[str, str], RunData]) -> Path:
@@ -626,8 +744,14 @@ def plot_long(path: Path, runs: Mapping[tuple[str, str], RunData]) -> Path:
     laws = [law for law in LAW_LABEL if any(k[0] == law for k in runs)]
     for (law, dist), run in sorted(runs.items(), key=lambda kv: (laws.index(kv[0][0]), kv[0][1] != "none")):
         r = run.metric("rmse_deg").mean(axis=1)
-        a.plot(np.arange(r.shape[0]), r, "-" if dist == "none" else "--", marker=".", color=f"C{laws.index(law)}",
-               label=f"{LAW_LABEL.get(law, law)}{'' if dist == 'none' else ', disturbed'}")
+        a.plot(
+            np.arange(r.shape[0]),
+            r,
+            "-" if dist == "none" else "--",
+            marker=".",
+            color=f"C{laws.index(law)}",
+            label=f"{LAW_LABEL.get(law, law)}{'' if dist == 'none' else ', disturbed'}",
+        )
     a.set_yscale("log")
     a.set_xlabel("iteration k")
     a.set_ylabel("RMSE, mean over joints [deg]")
@@ -648,8 +772,9 @@ def _long_verdicts(runs: _Runs, law: str) -> dict[str, Verdict]:
 
 def _long_section(runs: _Runs, out: Path, claims: Mapping[str, Verdict]) -> list[str]:
     lines = [f"## Beyond the paper's horizon — {LONG_TRIALS} trials", ""]
-    candidates = {(law, d): runs.get(_e(law, disturbance=d, trials=LONG_TRIALS)) for law in LAW_LABEL
-                  for d in ("none", DISTURBED)}
+    candidates = {
+        (law, d): runs.get(_e(law, disturbance=d, trials=LONG_TRIALS)) for law in LAW_LABEL for d in ("none", DISTURBED)
+    }
     found = {k: v for k, v in candidates.items() if v is not None and v.summary["iterations"]}
     if not found:
         return lines + ["not run in this sweep folder (`--only beyond`)", ""]
@@ -661,26 +786,52 @@ def _long_section(runs: _Runs, out: Path, claims: Mapping[str, Verdict]) -> list
         chk = run.summary["convergence_check"]
         blk = np.convolve(m, np.ones(LONG_BLOCK) / LONG_BLOCK, mode="valid") if len(m) >= LONG_BLOCK else m
         said = chk.get("long_bounded")
-        check_word = "—" if said is None else ("bounded" if said else
-                                               f"NOT bounded ({chk.get('predicted_long_growth', 0.0):.2g}×)")
-        rows.append([LAW_LABEL.get(law, law), dist, fmt(m[min(9, len(m) - 1)]), fmt(float(np.min(blk))),
-                     fmt(float(blk[-1])), fmt(float(blk[-1] / np.min(blk)), 3), v.word, check_word,
-                     fmt(chk.get("norm2"), 3)])
-    lines += [f"The paper stops after about 10 iterations. Run longer, a law can still diverge. The criterion is "
-              f"that the mean RMSE over joints of the last {LONG_BLOCK} trials stays within {LONG_GROWTH_LIMIT}× "
-              f"of the best {LONG_BLOCK}-trial mean (deg). Before each run the convergence check predicts the same "
-              f"from the linearised model over {LONG_TRIALS} trials (on the nominal plant and on one with twice the "
-              "inertia; *check* column) and gives the 2-norm of the trial-to-trial map: a norm above 1 means the "
-              "error is not guaranteed to fall at every trial.", ""]
-    lines += md_table(["law", "disturbance", "RMSE at k=9", f"best {LONG_BLOCK}", f"last {LONG_BLOCK}", "last/best",
-                        "bounded", "check", "2-norm"], rows)
+        check_word = (
+            "—" if said is None else ("bounded" if said else f"NOT bounded ({chk.get('predicted_long_growth', 0.0):.2g}×)")
+        )
+        rows.append(
+            [
+                LAW_LABEL.get(law, law),
+                dist,
+                fmt(m[min(9, len(m) - 1)]),
+                fmt(float(np.min(blk))),
+                fmt(float(blk[-1])),
+                fmt(float(blk[-1] / np.min(blk)), 3),
+                v.word,
+                check_word,
+                fmt(chk.get("norm2"), 3),
+            ]
+        )
+    lines += [
+        f"The paper stops after about 10 iterations. Run longer, a law can still diverge. The criterion is "
+        f"that the mean RMSE over joints of the last {LONG_BLOCK} trials stays within {LONG_GROWTH_LIMIT}× "
+        f"of the best {LONG_BLOCK}-trial mean (deg). Before each run the convergence check predicts the same "
+        f"from the linearised model over {LONG_TRIALS} trials (on the nominal plant and on one with twice the "
+        "inertia; *check* column) and gives the 2-norm of the trial-to-trial map: a norm above 1 means the "
+        "error is not guaranteed to fall at every trial.",
+        "",
+    ]
+    lines += md_table(
+        [
+            "law",
+            "disturbance",
+            "RMSE at k=9",
+            f"best {LONG_BLOCK}",
+            f"last {LONG_BLOCK}",
+            "last/best",
+            "bounded",
+            "check",
+            "2-norm",
+        ],
+        rows,
+    )
     lines += ["", "![long runs](long_runs.png)", "", claims["long_none"].line(), claims["long_dist"].line(), ""]
     return lines
 
 
 def _floor(run: RunData) -> np.ndarray:
     r = run.metric("rmse_deg")
-    return r[-min(SPLIT_TRIALS, r.shape[0]):].mean(axis=0)
+    return r[-min(SPLIT_TRIALS, r.shape[0]) :].mean(axis=0)
 
 
 def _beyond_section(runs: _Runs, out: Path) -> tuple[list[str], dict[str, Verdict]]:
@@ -703,25 +854,43 @@ def _beyond_section(runs: _Runs, out: Path) -> tuple[list[str], dict[str, Verdic
         ratio_d = (_floor(dist_pd) / dfl) if dist_pd is not None and dfl is not None else None
         if dfl is not None:
             score[law] = float(np.mean(dfl))
-        rows.append([LAW_LABEL.get(law, law)] + [fmt(x) for x in r[-1]] + [str(settle)]
-                    + ([fmt(x) for x in dfl] if dfl is not None else ["not run"] + [""] * 3)
-                    + ([f"{fmt(ratio_n[0], 2)} / {fmt(ratio_n[2], 2)}"] if ratio_n is not None else ["—"])
-                    + ([f"{fmt(ratio_d[0], 2)} / {fmt(ratio_d[2], 2)}"] if ratio_d is not None else ["—"])
-                    + [("ok" if run.summary["convergence_check"]["ok"] else "VIOLATED")
-                       + f" ρ={fmt(run.summary['convergence_check']['rho_max'], 3)}"])
-    lines += ["Path 1, 0.25 s, 4-5-6-7 law. *final* = last trial without disturbance; *floor* = mean RMSE of the "
-              f"last {min(SPLIT_TRIALS, runs.iterations)} trials with disturbance '{DISTURBED}'; *ratio* = the "
-              "paper's law (PD-ILC) over this law, joints 1 / 3 (> 1: this law is better); *settle* = the worst "
-              "joint's settle iteration; the convergence check is the lifted-model spectral radius run before "
-              "each experiment.", ""]
-    lines += md_table(["law"] + [f"final RMSE j{j}" for j in JOINTS] + ["settle k"]
-                       + [f"floor j{j}" for j in JOINTS] + ["ratio final j1/j3", "ratio floor j1/j3", "check"], rows)
+        rows.append(
+            [LAW_LABEL.get(law, law)]
+            + [fmt(x) for x in r[-1]]
+            + [str(settle)]
+            + ([fmt(x) for x in dfl] if dfl is not None else ["not run"] + [""] * 3)
+            + ([f"{fmt(ratio_n[0], 2)} / {fmt(ratio_n[2], 2)}"] if ratio_n is not None else ["—"])
+            + ([f"{fmt(ratio_d[0], 2)} / {fmt(ratio_d[2], 2)}"] if ratio_d is not None else ["—"])
+            + [
+                ("ok" if run.summary["convergence_check"]["ok"] else "VIOLATED")
+                + f" ρ={fmt(run.summary['convergence_check']['rho_max'], 3)}"
+            ]
+        )
+    lines += [
+        "Path 1, 0.25 s, 4-5-6-7 law. *final* = last trial without disturbance; *floor* = mean RMSE of the "
+        f"last {min(SPLIT_TRIALS, runs.iterations)} trials with disturbance '{DISTURBED}'; *ratio* = the "
+        "paper's law (PD-ILC) over this law, joints 1 / 3 (> 1: this law is better); *settle* = the worst "
+        "joint's settle iteration; the convergence check is the lifted-model spectral radius run before "
+        "each experiment.",
+        "",
+    ]
+    lines += md_table(
+        ["law"]
+        + [f"final RMSE j{j}" for j in JOINTS]
+        + ["settle k"]
+        + [f"floor j{j}" for j in JOINTS]
+        + ["ratio final j1/j3", "ratio floor j1/j3", "check"],
+        rows,
+    )
     lines += ["", "![all laws](convergence_laws.png)", ""]
     verdicts: dict[str, Verdict] = {}
     unstable = sorted(law for law in laws if any(v.holds is False for v in _long_verdicts(runs, law).values()))
     if unstable:
-        lines += [f"Not eligible: {', '.join(LAW_LABEL.get(name, name) for name in unstable)} — error grows again within "
-                  f"{LONG_TRIALS} trials (see the section above).", ""]
+        lines += [
+            f"Not eligible: {', '.join(LAW_LABEL.get(name, name) for name in unstable)} — error grows again within "
+            f"{LONG_TRIALS} trials (see the section above).",
+            "",
+        ]
     score = {law: sc for law, sc in score.items() if law not in unstable}
     if score:
         best = min(score, key=score.__getitem__)
@@ -730,28 +899,37 @@ def _beyond_section(runs: _Runs, out: Path) -> tuple[list[str], dict[str, Verdic
         b_settle = max(settle_iteration(br[:, j]) for j in range(4)) if br.shape[0] > 1 else 0
         und = {law: float(np.mean(runs.need(_e(law)).metric("rmse_deg")[-1])) for law in laws if law not in unstable}
         best_und = min(und, key=und.__getitem__)
-        txt = (f"**Pick {LAW_LABEL.get(best, best)}**: the lowest error floor under disturbance among the laws "
-               f"that stay bounded (mean over joints {fmt(score[best])} deg")
+        txt = (
+            f"**Pick {LAW_LABEL.get(best, best)}**: the lowest error floor under disturbance among the laws "
+            f"that stay bounded (mean over joints {fmt(score[best])} deg"
+        )
         if base_pd is not None and dist_pd is not None and best != PAPER_LAW:
             pr = base_pd.metric("rmse_deg")
             pd_settle = max(settle_iteration(pr[:, j]) for j in range(4)) if pr.shape[0] > 1 else 0
             rn = pr[-1] / br[-1]
             rd = _floor(dist_pd) / _floor(runs.need(_e(best, disturbance=DISTURBED)))
-            txt += (f" vs {fmt(float(np.mean(_floor(dist_pd))))} for the paper's PD-ILC). Against the paper's law "
-                    f"its final RMSE without disturbance is {fmt(rn[0], 2)}× (j1) / {fmt(rn[2], 2)}× (j3) smaller, its "
-                    f"floor with disturbance {fmt(rd[0], 2)}× / {fmt(rd[2], 2)}× smaller, and it settles at k = "
-                    f"{b_settle} vs {pd_settle}.")
+            txt += (
+                f" vs {fmt(float(np.mean(_floor(dist_pd))))} for the paper's PD-ILC). Against the paper's law "
+                f"its final RMSE without disturbance is {fmt(rn[0], 2)}× (j1) / {fmt(rn[2], 2)}× (j3) smaller, its "
+                f"floor with disturbance {fmt(rd[0], 2)}× / {fmt(rd[2], 2)}× smaller, and it settles at k = "
+                f"{b_settle} vs {pd_settle}."
+            )
         else:
             txt += ").  The paper's law is already the best of those run." if best == PAPER_LAW else ")."
         if best_und != best:
-            txt += (f" Without disturbance {LAW_LABEL.get(best_und, best_und)} reaches the lowest final error "
-                    f"({fmt(und[best_und])} deg mean over joints vs {fmt(und[best])}), but under the non-repeatable "
-                    f"disturbance its floor is {fmt(score.get(best_und, float('nan')))} deg: it learns the "
-                    "non-repeatable part as if it would repeat.")
+            txt += (
+                f" Without disturbance {LAW_LABEL.get(best_und, best_und)} reaches the lowest final error "
+                f"({fmt(und[best_und])} deg mean over joints vs {fmt(und[best])}), but under the non-repeatable "
+                f"disturbance its floor is {fmt(score.get(best_und, float('nan')))} deg: it learns the "
+                "non-repeatable part as if it would repeat."
+            )
         ties = [law for law in score if law != best and score[law] <= 1.05 * score[best]]
         if ties:
-            txt += (" Within 5 % of it under disturbance: " + ", ".join(
-                f"{LAW_LABEL.get(law, law)} ({fmt(score[law])} deg)" for law in ties) + " — effectively a tie.")
+            txt += (
+                " Within 5 % of it under disturbance: "
+                + ", ".join(f"{LAW_LABEL.get(law, law)} ({fmt(score[law])} deg)" for law in ties)
+                + " — effectively a tie."
+            )
         lines += [txt, ""]
     # the paper's claims for the laws beyond it
     mat_rows = []
@@ -760,14 +938,40 @@ def _beyond_section(runs: _Runs, out: Path) -> tuple[list[str], dict[str, Verdic
             continue
         cl = _claims_for_law(runs, law)
         verdicts.update({f"{law}:{k}": vv for k, vv in cl.items()})
-        mat_rows.append([LAW_LABEL[law]] + [cl[k].word for k in ("table2", "fig8_settle", "table3", "table4",
-                                                                  "table5", "table6_similar", "table6_order",
-                                                                  "long_none", "long_dist")])
+        mat_rows.append(
+            [LAW_LABEL[law]]
+            + [
+                cl[k].word
+                for k in (
+                    "table2",
+                    "fig8_settle",
+                    "table3",
+                    "table4",
+                    "table5",
+                    "table6_similar",
+                    "table6_order",
+                    "long_none",
+                    "long_dist",
+                )
+            ]
+        )
     if mat_rows:
         lines += ["The paper's claims evaluated for the laws beyond it (same criteria):", ""]
-        lines += md_table(["law", "beats D-ILC", "settles ≤ 5", "disturbance bounded", "paths similar",
-                            "slower = smaller", "4567 ≈ 5th", "4567 < 5th", f"stable {LONG_TRIALS}",
-                            f"stable {LONG_TRIALS}, disturbed"], mat_rows) + [""]
+        lines += md_table(
+            [
+                "law",
+                "beats D-ILC",
+                "settles ≤ 5",
+                "disturbance bounded",
+                "paths similar",
+                "slower = smaller",
+                "4567 ≈ 5th",
+                "4567 < 5th",
+                f"stable {LONG_TRIALS}",
+                f"stable {LONG_TRIALS}, disturbed",
+            ],
+            mat_rows,
+        ) + [""]
         for vv in verdicts.values():
             if vv.holds is False:
                 lines.append(vv.line())
@@ -781,10 +985,23 @@ def write_sweep_report(out: str | Path, iterations: int) -> Path:
     runs = _Runs(out, iterations)
     claims = _claims_for_law(runs, PAPER_LAW)
     dilc = runs.get(_e(BASELINE_LAW))
-    claims["fig8_dilc_rise"] = (verdict_rise(dilc.metric("rmse_deg"), claim=paper_data.CLAIMS["fig8_dilc_rise"])
-                                if dilc is not None else _missing(paper_data.CLAIMS["fig8_dilc_rise"], "d-ilc"))
-    order = ("table2", "fig8_settle", "fig8_dilc_rise", "table3", "table4", "table5", "table6_similar", "table6_order",
-             "long_none", "long_dist")
+    claims["fig8_dilc_rise"] = (
+        verdict_rise(dilc.metric("rmse_deg"), claim=paper_data.CLAIMS["fig8_dilc_rise"])
+        if dilc is not None
+        else _missing(paper_data.CLAIMS["fig8_dilc_rise"], "d-ilc")
+    )
+    order = (
+        "table2",
+        "fig8_settle",
+        "fig8_dilc_rise",
+        "table3",
+        "table4",
+        "table5",
+        "table6_similar",
+        "table6_order",
+        "long_none",
+        "long_dist",
+    )
     self_check = _paper_self_check()
     any_run = next(iter(runs.by_id.values()), None)
     g = any_run.summary.get("gains", {}) if any_run else {}
@@ -803,7 +1020,7 @@ def write_sweep_report(out: str | Path, iterations: int) -> Path:
         f"disturbance '{DISTURBED}' = repetitive + non-repetitive torques (plant.disturbance); gain preset "
         f"`{g.get('preset', '?')}` (α = {g.get('alpha', '?')}, β = {g.get('beta', '?')}); the paper's law is "
         "`pd-ilc` (total torque accumulated, host.learning.laws), its baseline `d-ilc`. Errors after learning = the last "
-        "trial; \"mean\" = MAE as in the paper's eq. (36). Experiments found: "
+        'trial; "mean" = MAE as in the paper\'s eq. (36). Experiments found: '
         f"{len(runs.by_id)} of {len(all_experiments())}.",
         "",
         "## Verdicts",
@@ -811,14 +1028,18 @@ def write_sweep_report(out: str | Path, iterations: int) -> Path:
     ]
     for k in order:
         lines.append(claims[k].line())
-    lines += ["", "The same criteria applied to the paper's own numbers (calibration): "
-              + "; ".join(f"{k} {v.word}" for k, v in self_check.items()) + ".", ""]
+    lines += [
+        "",
+        "The same criteria applied to the paper's own numbers (calibration): "
+        + "; ".join(f"{k} {v.word}" for k, v in self_check.items())
+        + ".",
+        "",
+    ]
     sections: dict[str, list[str]] = {}
     for key in ("table2", "table3", "table4", "table5", "table6"):
         sections[key] = _table_section(key, runs, BEYOND_LAWS)
     lines += sections["table2"] + [claims["table2"].line(), ""]
-    lines += _fig_section(runs, out, "fig8.png", "none") + [claims["fig8_settle"].line(),
-                                                             claims["fig8_dilc_rise"].line(), ""]
+    lines += _fig_section(runs, out, "fig8.png", "none") + [claims["fig8_settle"].line(), claims["fig8_dilc_rise"].line(), ""]
     lines += sections["table3"] + [claims["table3"].line(), ""]
     lines += _fig_section(runs, out, "fig10.png", DISTURBED)
     lines += _split_section(runs)
@@ -828,19 +1049,24 @@ def write_sweep_report(out: str | Path, iterations: int) -> Path:
     lines += _long_section(runs, out, claims)
     beyond, _ = _beyond_section(runs, out)
     lines += beyond
-    lines += ["## Definitions", "",
-              "- settle iteration: the first k (k = 0 is the first trial, before learning) from which the RMSE "
-              "stays within 10 % of its total reduction above the final value; 'within about 4 iterations' = "
-              f"k ≤ {SETTLE_LIMIT}. The strict variant (within 10 % of the final RMSE) is given beside it.",
-              "- floor under disturbance: the mean RMSE of the last trials; bounded = every learnt trial below the "
-              f"first one and the last-trials mean at most {GROWTH_LIMIT}× the mean of as many trials before.",
-              f"- paths similar: the worst-joint MaxE and the worst-joint mean error differ by at most "
-              f"{PATH_SPREAD_LIMIT}× across paths (the paper's own spread: 1.4× and 1.7×).",
-              f"- motion laws as good: worst-joint MaxE and mean error within {PROFILE_RATIO_LIMIT}×.",
-              "- repeatable / non-repeatable: see the section under Fig. 10.",
-              f"- stable over {LONG_TRIALS} trials: the mean RMSE over joints of the last {LONG_BLOCK} trials is at most "
-              f"{LONG_GROWTH_LIMIT}× the best {LONG_BLOCK}-trial mean of the run.", "",
-              "## Runs", ""]
+    lines += [
+        "## Definitions",
+        "",
+        "- settle iteration: the first k (k = 0 is the first trial, before learning) from which the RMSE "
+        "stays within 10 % of its total reduction above the final value; 'within about 4 iterations' = "
+        f"k ≤ {SETTLE_LIMIT}. The strict variant (within 10 % of the final RMSE) is given beside it.",
+        "- floor under disturbance: the mean RMSE of the last trials; bounded = every learnt trial below the "
+        f"first one and the last-trials mean at most {GROWTH_LIMIT}× the mean of as many trials before.",
+        f"- paths similar: the worst-joint MaxE and the worst-joint mean error differ by at most "
+        f"{PATH_SPREAD_LIMIT}× across paths (the paper's own spread: 1.4× and 1.7×).",
+        f"- motion laws as good: worst-joint MaxE and mean error within {PROFILE_RATIO_LIMIT}×.",
+        "- repeatable / non-repeatable: see the section under Fig. 10.",
+        f"- stable over {LONG_TRIALS} trials: the mean RMSE over joints of the last {LONG_BLOCK} trials is at most "
+        f"{LONG_GROWTH_LIMIT}× the best {LONG_BLOCK}-trial mean of the run.",
+        "",
+        "## Runs",
+        "",
+    ]
     run_rows = []
     for e in sorted(all_experiments(), key=lambda x: x.id):
         r = runs.get(e)
@@ -851,8 +1077,14 @@ def write_sweep_report(out: str | Path, iterations: int) -> Path:
             run_rows.append([e.id, status, "", ""])
             continue
         chk = r.summary["convergence_check"]
-        run_rows.append([e.id, f"fault: {r.fault}" if r.fault else f"{len(r.summary['iterations'])} trials",
-                         f"{r.summary['wall_s']:.2f}", f"{fmt(chk['rho_max'], 4)} ({'ok' if chk['ok'] else 'violated'})"])
+        run_rows.append(
+            [
+                e.id,
+                f"fault: {r.fault}" if r.fault else f"{len(r.summary['iterations'])} trials",
+                f"{r.summary['wall_s']:.2f}",
+                f"{fmt(chk['rho_max'], 4)} ({'ok' if chk['ok'] else 'violated'})",
+            ]
+        )
     lines += md_table(["experiment", "status", "trial wall s", "spectral radius"], run_rows) + [""]
     path = out / "report.md"
     tmp = out / "report.md.tmp"

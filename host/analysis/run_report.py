@@ -26,38 +26,60 @@ def write_run_report(run_dir: str | Path, summary: Mapping[str, Any]) -> Path:
     cfg = summary.get("config", {})
     its = summary.get("iterations", [])
     chk = summary.get("convergence_check", {})
-    lines = [f"# ilcrig run — {cfg.get('law', '?')}, path {cfg.get('path', '?')}, {cfg.get('cycle_s', '?')} s, "
-             f"{cfg.get('profile', '?')}, disturbance {cfg.get('disturbance', '?')}", "",
-             f"Mode {summary.get('mode', '?')}; {len(its)} of {cfg.get('iterations', '?')} trials"
-             f"{' (completed)' if summary.get('completed') else ''}; N = {cfg.get('n_ticks', '?')} ticks per trial; "
-             f"trace_sha256 `{str(summary.get('trace_sha256', ''))[:16]}…`.", ""]
+    lines = [
+        f"# ilcrig run — {cfg.get('law', '?')}, path {cfg.get('path', '?')}, {cfg.get('cycle_s', '?')} s, "
+        f"{cfg.get('profile', '?')}, disturbance {cfg.get('disturbance', '?')}",
+        "",
+        f"Mode {summary.get('mode', '?')}; {len(its)} of {cfg.get('iterations', '?')} trials"
+        f"{' (completed)' if summary.get('completed') else ''}; N = {cfg.get('n_ticks', '?')} ticks per trial; "
+        f"trace_sha256 `{str(summary.get('trace_sha256', ''))[:16]}…`.",
+        "",
+    ]
     if chk:
         long = chk.get("long_bounded")
-        long_txt = "" if long is None else (
-            f"; over {chk.get('long_horizon')} trials {'bounded' if long else 'NOT bounded'}"
-            + ("" if long else f" (predicted growth {chk.get('predicted_long_growth', 0.0):.2g}×, "
-                               f"{chk.get('long_worst_case', '?')})"))
-        lines += [f"Convergence check: spectral radius {fmt(chk.get('rho_max'), 4)} "
-                  f"({'ok' if chk.get('ok') else 'VIOLATED'}), 2-norm {fmt(chk.get('norm2'), 4)}{long_txt}.", ""]
+        long_txt = (
+            ""
+            if long is None
+            else (
+                f"; over {chk.get('long_horizon')} trials {'bounded' if long else 'NOT bounded'}"
+                + (
+                    ""
+                    if long
+                    else f" (predicted growth {chk.get('predicted_long_growth', 0.0):.2g}×, {chk.get('long_worst_case', '?')})"
+                )
+            )
+        )
+        lines += [
+            f"Convergence check: spectral radius {fmt(chk.get('rho_max'), 4)} "
+            f"({'ok' if chk.get('ok') else 'VIOLATED'}), 2-norm {fmt(chk.get('norm2'), 4)}{long_txt}.",
+            "",
+        ]
     for f in summary.get("faults", []):
         lat = f.get("latency_ms")
-        lines += [f"**Fault** ({f.get('kind', '?')}) at trial {f.get('trial')}, tick "
-                  f"{f.get('tick') if f.get('tick') is not None else '?'}"
-                  f"{', ' + str(f.get('node')) if f.get('node') else ''}: {f.get('message')} — detected by "
-                  f"{f.get('detected_by', '?')}{f' after {lat:.0f} ms' if isinstance(lat, int | float) else ''}.", ""]
+        lines += [
+            f"**Fault** ({f.get('kind', '?')}) at trial {f.get('trial')}, tick "
+            f"{f.get('tick') if f.get('tick') is not None else '?'}"
+            f"{', ' + str(f.get('node')) if f.get('node') else ''}: {f.get('message')} — detected by "
+            f"{f.get('detected_by', '?')}{f' after {lat:.0f} ms' if isinstance(lat, int | float) else ''}.",
+            "",
+        ]
     if summary.get("interrupted"):
         i = summary["interrupted"]
         lines += [f"**Interrupted** by {i.get('signal')} during trial {i.get('trial')}.", ""]
     safe = summary.get("safe_state") or []
     if safe and (summary.get("faults") or summary.get("interrupted")):
         lines += ["Safe state after the run:", ""]
-        lines += md_table(["node", "torque", "evidence"],
-                          [[str(x.get("node")), str(x.get("torque")), str(x.get("evidence"))] for x in safe])
+        lines += md_table(
+            ["node", "torque", "evidence"], [[str(x.get("node")), str(x.get("torque")), str(x.get("evidence"))] for x in safe]
+        )
         lines += [""]
-    rows = [[str(it["k"])] + [fmt(v) for v in it["rmse_deg"]] + [fmt(v) for v in it["max_abs_deg"]]
-            + [fmt(v) for v in it["mae_deg"]] for it in its]
-    lines += md_table(["k"] + [f"RMSE j{j}" for j in JOINTS] + [f"MaxE j{j}" for j in JOINTS]
-                       + [f"MAE j{j}" for j in JOINTS], rows)
+    rows = [
+        [str(it["k"])] + [fmt(v) for v in it["rmse_deg"]] + [fmt(v) for v in it["max_abs_deg"]] + [fmt(v) for v in it["mae_deg"]]
+        for it in its
+    ]
+    lines += md_table(
+        ["k"] + [f"RMSE j{j}" for j in JOINTS] + [f"MaxE j{j}" for j in JOINTS] + [f"MAE j{j}" for j in JOINTS], rows
+    )
     lines += ["", "Errors in deg (e = q_d − q); k = 0 is the first trial.", ""]
     if its:
         r = np.array([it["rmse_deg"] for it in its], dtype=float)

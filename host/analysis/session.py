@@ -29,8 +29,9 @@ logger = logging.getLogger(__name__)
 __all__ = ["run_session", "report_fault"]
 
 
-def run_session(plan: Plan, bench: Bench, out: Path, *, mode: str, stream: TextIO,
-                fail_writes_from_trial: int | None = None) -> ExperimentResult:
+def run_session(
+    plan: Plan, bench: Bench, out: Path, *, mode: str, stream: TextIO, fail_writes_from_trial: int | None = None
+) -> ExperimentResult:
     """Run ``plan`` on ``bench`` with a recording in ``out`` and a console row per trial; write
     ``report.md`` when at least one trial completed.
 
@@ -41,10 +42,8 @@ def run_session(plan: Plan, bench: Bench, out: Path, *, mode: str, stream: TextI
     folder = RunFolder(out, plan.cfg.iterations)
     folder.reserve()
     folder.fail_writes_from_trial = fail_writes_from_trial
-    recorder = RunRecorder(out / "recording.rrd", recording_id=out.name, config_summary=plan.cfg.as_dict(),
-                           folder=folder)
-    res = run_experiment(plan, bench, out, mode=mode, on_trial=lambda m: print_row(stream, m), recorder=recorder,
-                         folder=folder)
+    recorder = RunRecorder(out / "recording.rrd", recording_id=out.name, config_summary=plan.cfg.as_dict(), folder=folder)
+    res = run_experiment(plan, bench, out, mode=mode, on_trial=lambda m: print_row(stream, m), recorder=recorder, folder=folder)
     if res.summary["iterations"] or res.summary["faults"] or res.interrupted:
         try:
             write_run_report(out, res.summary)  # report.md + convergence plot next to the summary
@@ -57,8 +56,13 @@ def report_fault(res: ExperimentResult, summary_path: Path | None = None) -> int
     """The exit code of a finished run; a fault gets its one line on stderr."""
     kept = len(res.summary["iterations"])
     if res.interrupted is not None:
-        return EXIT_TERMINATED if res.interrupted == signal.SIGTERM else EXIT_INTERRUPTED if \
-            res.interrupted == signal.SIGINT else 128 + res.interrupted
+        return (
+            EXIT_TERMINATED
+            if res.interrupted == signal.SIGTERM
+            else EXIT_INTERRUPTED
+            if res.interrupted == signal.SIGINT
+            else 128 + res.interrupted
+        )
     if res.fault_record is not None:
         sys.stderr.write(fault_line(res.fault_record, kept, summary_path=summary_path) + "\n")
         sys.stderr.flush()

@@ -57,13 +57,17 @@ from host.experiment.console import EXIT_INTERRUPTED
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "SWEEP_SCHEMA", "run_sweep", "reproduce_main", "SweepOutcome",
+    "SWEEP_SCHEMA",
+    "run_sweep",
+    "reproduce_main",
+    "SweepOutcome",
 ]
 
 SWEEP_SCHEMA = "ilcrig.sweep/1"
 
 
 # ------------------------------------------------------------------------------------------- worker
+
 
 def _worker_init() -> None:
     """Workers leave SIGINT to the parent (which terminates them) and die quietly on SIGTERM."""
@@ -99,6 +103,7 @@ def _run_one(exp: Experiment, iterations: int, run_dir: str) -> dict[str, Any]:
 
 # -------------------------------------------------------------------------------------------- sweep
 
+
 @dataclass
 class SweepOutcome:
     ran: list[str]
@@ -130,8 +135,9 @@ def _stop_pool(ex: ProcessPoolExecutor, futures: Iterable[Future]) -> None:
             p.join(timeout=5.0)
 
 
-def run_sweep(out: Path, experiments: Sequence[Experiment], iterations: int, jobs: int, fresh: bool,
-              progress: bool = True) -> SweepOutcome:
+def run_sweep(
+    out: Path, experiments: Sequence[Experiment], iterations: int, jobs: int, fresh: bool, progress: bool = True
+) -> SweepOutcome:
     """Run the experiments that are not finished in ``out`` (all of them if ``fresh``)."""
     out = Path(out)
     (out / "runs").mkdir(parents=True, exist_ok=True)
@@ -141,16 +147,20 @@ def run_sweep(out: Path, experiments: Sequence[Experiment], iterations: int, job
             skipped.append(e.id)
         else:
             todo.append(e)
-    logger.info("reproduce: %d experiments, %d already finished, %d to run on %d processes",
-                len(experiments), len(skipped), len(todo), jobs)
+    logger.info(
+        "reproduce: %d experiments, %d already finished, %d to run on %d processes",
+        len(experiments),
+        len(skipped),
+        len(todo),
+        jobs,
+    )
     outcome = SweepOutcome(ran=[], skipped=skipped, errors={}, interrupted=False, wall_s=0.0)
     if not todo:
         return outcome
     from tqdm import tqdm
 
     t0 = time.perf_counter()
-    bar = tqdm(total=len(todo), desc="reproduce", unit="exp", file=sys.stderr, disable=not progress,
-               dynamic_ncols=True)
+    bar = tqdm(total=len(todo), desc="reproduce", unit="exp", file=sys.stderr, disable=not progress, dynamic_ncols=True)
     ctx = multiprocessing.get_context("spawn")
     ex = ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=ctx, initializer=_worker_init)
     futures: dict[Future, Experiment] = {}
@@ -194,19 +204,26 @@ def _in_main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
 
 
-def _write_sweep_json(out: Path, experiments: Sequence[Experiment], iterations: int, jobs: int,
-                      outcome: SweepOutcome) -> None:
+def _write_sweep_json(out: Path, experiments: Sequence[Experiment], iterations: int, jobs: int, outcome: SweepOutcome) -> None:
     path = out / "sweep.json"
     try:
         prev = json.loads(path.read_text())
     except (OSError, ValueError):
         prev = {}
     history = list(prev.get("history", []))
-    history.append({"experiments": len(experiments), "ran": len(outcome.ran), "skipped": len(outcome.skipped),
-                    "errors": outcome.errors, "interrupted": outcome.interrupted, "jobs": jobs,
-                    "iterations": iterations, "wall_s": round(outcome.wall_s, 3)})
-    doc = {"schema": SWEEP_SCHEMA, "iterations": iterations, "experiments": [e.id for e in experiments],
-           "history": history}
+    history.append(
+        {
+            "experiments": len(experiments),
+            "ran": len(outcome.ran),
+            "skipped": len(outcome.skipped),
+            "errors": outcome.errors,
+            "interrupted": outcome.interrupted,
+            "jobs": jobs,
+            "iterations": iterations,
+            "wall_s": round(outcome.wall_s, 3),
+        }
+    )
+    doc = {"schema": SWEEP_SCHEMA, "iterations": iterations, "experiments": [e.id for e in experiments], "history": history}
     tmp = path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(doc, indent=2))
     os.replace(tmp, path)
@@ -231,16 +248,21 @@ def reproduce_main(args: argparse.Namespace) -> int:
     outcome = run_sweep(out, experiments, iterations, jobs, bool(getattr(args, "fresh", False)))
     _write_sweep_json(out, experiments, iterations, jobs, outcome)
     if outcome.interrupted:
-        sys.stderr.write(f"ilcrig: interrupted; {len(outcome.ran)} experiment(s) finished in this call are kept "
-                         f"in {out / 'runs'}; run again to resume\n")
+        sys.stderr.write(
+            f"ilcrig: interrupted; {len(outcome.ran)} experiment(s) finished in this call are kept "
+            f"in {out / 'runs'}; run again to resume\n"
+        )
         return EXIT_INTERRUPTED
 
     report = write_sweep_report(out, iterations)
-    sys.stdout.write(f"ilcrig reproduce: {len(outcome.ran)} run, {len(outcome.skipped)} already finished, "
-                     f"{outcome.wall_s:.1f} s on {jobs} process(es); report: {report}\n")
+    sys.stdout.write(
+        f"ilcrig reproduce: {len(outcome.ran)} run, {len(outcome.skipped)} already finished, "
+        f"{outcome.wall_s:.1f} s on {jobs} process(es); report: {report}\n"
+    )
     if outcome.errors:
-        sys.stderr.write(f"ilcrig: {len(outcome.errors)} experiment(s) could not run: "
-                         f"{', '.join(sorted(outcome.errors))} (see their error.txt)\n")
+        sys.stderr.write(
+            f"ilcrig: {len(outcome.errors)} experiment(s) could not run: "
+            f"{', '.join(sorted(outcome.errors))} (see their error.txt)\n"
+        )
         return 1
     return 0
-

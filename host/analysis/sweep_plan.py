@@ -27,9 +27,24 @@ from host.learning.names import LAWS
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "Experiment", "TableRow", "GROUPS", "PAPER_LAW", "BASELINE_LAW", "BEYOND_LAWS", "PROFILE", "LONG_TRIALS",
-    "DISTURBED", "ReproduceError", "group_experiments", "experiment_list", "table_rows",
-    "all_experiments", "run_dir_of", "is_finished", "load_run", "RunData",
+    "Experiment",
+    "TableRow",
+    "GROUPS",
+    "PAPER_LAW",
+    "BASELINE_LAW",
+    "BEYOND_LAWS",
+    "PROFILE",
+    "LONG_TRIALS",
+    "DISTURBED",
+    "ReproduceError",
+    "group_experiments",
+    "experiment_list",
+    "table_rows",
+    "all_experiments",
+    "run_dir_of",
+    "is_finished",
+    "load_run",
+    "RunData",
 ]
 
 
@@ -78,13 +93,22 @@ class Experiment:
         return base if self.trials is None else f"{base}_k{self.trials}"
 
     def config(self, iterations: int) -> ExperimentConfig:
-        return build_config(None, {"law": self.law, "path": self.path, "cycle_s": self.cycle_s,
-                                   "profile": self.profile, "disturbance": self.disturbance,
-                                   "iterations": self.trials if self.trials is not None else iterations})
+        return build_config(
+            None,
+            {
+                "law": self.law,
+                "path": self.path,
+                "cycle_s": self.cycle_s,
+                "profile": self.profile,
+                "disturbance": self.disturbance,
+                "iterations": self.trials if self.trials is not None else iterations,
+            },
+        )
 
     def describe(self) -> str:
-        return (f"{self.law}, path {self.path}, {self.cycle_s:g} s, {self.profile}, "
-                f"disturbance {self.disturbance}" + ("" if self.trials is None else f", {self.trials} trials"))
+        return f"{self.law}, path {self.path}, {self.cycle_s:g} s, {self.profile}, disturbance {self.disturbance}" + (
+            "" if self.trials is None else f", {self.trials} trials"
+        )
 
 
 @dataclass(frozen=True)
@@ -106,28 +130,29 @@ def table_rows(table: str, laws: Sequence[str] | None = None) -> list[TableRow]:
     """The rows of our version of a paper table for the given laws (default: the paper's)."""
     rows: list[TableRow] = []
     if table == "table2":
-        for law in (laws or (PAPER_LAW, BASELINE_LAW)):
+        for law in laws or (PAPER_LAW, BASELINE_LAW):
             key = {PAPER_LAW: "PD-ILC", BASELINE_LAW: "D-ILC"}.get(law)
             rows.append(TableRow(table, law.upper(), _base(law), key, law))
         return rows
-    for law in (laws or (PAPER_LAW,)):
+    for law in laws or (PAPER_LAW,):
         paper = law == PAPER_LAW
         if table == "table3":
             for dist, label in (("none", "no disturbance"), (DISTURBED, "disturbance")):
-                rows.append(TableRow(table, f"{law.upper()}, {label}", _base(law, disturbance=dist),
-                                     dist if paper else None, law))
+                rows.append(
+                    TableRow(table, f"{law.upper()}, {label}", _base(law, disturbance=dist), dist if paper else None, law)
+                )
         elif table == "table4":
             for p in PATHS:
                 rows.append(TableRow(table, f"{law.upper()}, path {p}", _base(law, path=p), p if paper else None, law))
         elif table == "table5":
             for c in CYCLES_S:
-                rows.append(TableRow(table, f"{law.upper()}, {c:.2f} s", _base(law, cycle_s=c),
-                                     f"{c:.2f}" if paper else None, law))
+                rows.append(
+                    TableRow(table, f"{law.upper()}, {c:.2f} s", _base(law, cycle_s=c), f"{c:.2f}" if paper else None, law)
+                )
         elif table == "table6":
             for prof in PROFILES_T6:
                 label = "4-5-6-7" if prof == "poly4567" else "5th order"
-                rows.append(TableRow(table, f"{law.upper()}, {label}", _base(law, profile=prof),
-                                     prof if paper else None, law))
+                rows.append(TableRow(table, f"{law.upper()}, {label}", _base(law, profile=prof), prof if paper else None, law))
         else:
             raise ReproduceError(f"unknown table {table!r}")
     return rows
@@ -176,6 +201,7 @@ def all_experiments() -> list[Experiment]:
 
 
 # ----------------------------------------------------------------------------------------- run folders
+
 
 def run_dir_of(out: Path, exp: Experiment) -> Path:
     return Path(out) / "runs" / exp.id

@@ -49,8 +49,16 @@ from host.learning.names import DEFAULT_LAW, LAWS, MAX_ITERATIONS
 from host.planning.trajectory import PROFILES
 from plant.disturbance import KINDS as DISTURBANCES
 
-__all__ = ["ConfigError", "ExperimentConfig", "build_config", "validate", "PROFILES", "DISTURBANCES",
-           "MAX_ITERATIONS", "MAX_SEED"]
+__all__ = [
+    "ConfigError",
+    "ExperimentConfig",
+    "build_config",
+    "validate",
+    "PROFILES",
+    "DISTURBANCES",
+    "MAX_ITERATIONS",
+    "MAX_SEED",
+]
 
 #: the largest seed (the test bench's 0x2400:4 is 32 bits)
 MAX_SEED: int = 0xFFFFFFFF
@@ -166,8 +174,7 @@ def build_config(toml_path: str | Path | None = None, overrides: Mapping[str, An
         if unknown:
             raise ConfigError(f"{where}unknown key(s): {', '.join(sorted(unknown))}")
         if "gains" in data and not isinstance(data["gains"], dict):
-            raise ConfigError(f"{where}gains must be a table ([gains] with keys such as alpha, lp), "
-                              f"got {data['gains']!r}")
+            raise ConfigError(f"{where}gains must be a table ([gains] with keys such as alpha, lp), got {data['gains']!r}")
         if "path" in data:
             path = data["path"]
             if isinstance(path, bool) or not isinstance(path, (str, int)):
@@ -270,7 +277,8 @@ def validate(cfg: ExperimentConfig) -> None:
             raise ConfigError(
                 f"the cyclic PDO exchange does not fit the fieldbus: {fit.message()}; a real master would "
                 "lower the control rate, map fewer objects or use several PDOs per drive at a lower rate "
-                "(docs/timing.md §7); --force-bus-fit runs it anyway")
+                "(docs/timing.md §7); --force-bus-fit runs it anyway"
+            )
     g = cfg.gains
     for f in dataclasses.fields(GainSpec):
         v = getattr(g, f.name)

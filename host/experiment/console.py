@@ -22,8 +22,17 @@ if TYPE_CHECKING:
     from host.learning.metrics import TrialMetrics
 
 __all__ = [
-    "EXIT_OK", "EXIT_USAGE", "EXIT_FAULT", "EXIT_CHILD_FAILED", "EXIT_INTERRUPTED", "EXIT_TERMINATED",
-    "add_experiment_args", "experiment_config", "print_plan", "print_header", "print_row",
+    "EXIT_OK",
+    "EXIT_USAGE",
+    "EXIT_FAULT",
+    "EXIT_CHILD_FAILED",
+    "EXIT_INTERRUPTED",
+    "EXIT_TERMINATED",
+    "add_experiment_args",
+    "experiment_config",
+    "print_plan",
+    "print_header",
+    "print_row",
 ]
 
 #: the run completed
@@ -61,22 +70,37 @@ def add_experiment_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, help="seed of every random generator (default 0)")
     p.add_argument("--ff0", help="initial feed-forward: model | zero (default model)")
     p.add_argument("--gains", dest="preset", help=f"gain preset: {', '.join(GAIN_PRESET_NAMES)} (default normalized)")
-    for name, hlp in (("alpha", "α of the paper's law (feedback Kp = (α−1)Lp)"),
-                      ("beta", "β of the paper's law (feedback Kd = (β−1)Ld)"),
-                      ("lp", "learning P gain, N·m/rad (overrides lp_norm)"),
-                      ("ld", "learning D gain, N·m·s/rad (overrides ld_norm)"),
-                      ("lp-norm", "Lp·Ts²/I_joint"), ("ld-norm", "Ld·Ts/I_joint"),
-                      ("q-cutoff-hz", "Q-filter cut-off of q-ilc, Hz"),
-                      ("pdq-cutoff-hz", "Q-filter cut-off of pd-ilc-q, Hz")):
+    for name, hlp in (
+        ("alpha", "α of the paper's law (feedback Kp = (α−1)Lp)"),
+        ("beta", "β of the paper's law (feedback Kd = (β−1)Ld)"),
+        ("lp", "learning P gain, N·m/rad (overrides lp_norm)"),
+        ("ld", "learning D gain, N·m·s/rad (overrides ld_norm)"),
+        ("lp-norm", "Lp·Ts²/I_joint"),
+        ("ld-norm", "Ld·Ts/I_joint"),
+        ("q-cutoff-hz", "Q-filter cut-off of q-ilc, Hz"),
+        ("pdq-cutoff-hz", "Q-filter cut-off of pd-ilc-q, Hz"),
+    ):
         p.add_argument(f"--{name}", type=float, dest=f"g_{name.replace('-', '_')}", help=hlp)
     p.add_argument("--lead", type=int, dest="g_lead", help="learning lead in samples (default 1)")
-    p.add_argument("--ff-transport", dest="ff_transport",
-                   help="feed-forward transport: table (SDO tables before each trial) | pdo (CiA 402 CSP, "
-                        "SYNC + RPDO/TPDO every tick) (default table)")
-    p.add_argument("--fieldbus-bitrate", type=int, dest="fieldbus_bitrate",
-                   help="fieldbus bit rate in bit/s for the bus-fit check (default 1000000)")
-    p.add_argument("--force-bus-fit", action="store_true", default=None, dest="force_bus_fit",
-                   help="run a pdo configuration even if its cyclic frames do not fit the fieldbus")
+    p.add_argument(
+        "--ff-transport",
+        dest="ff_transport",
+        help="feed-forward transport: table (SDO tables before each trial) | pdo (CiA 402 CSP, "
+        "SYNC + RPDO/TPDO every tick) (default table)",
+    )
+    p.add_argument(
+        "--fieldbus-bitrate",
+        type=int,
+        dest="fieldbus_bitrate",
+        help="fieldbus bit rate in bit/s for the bus-fit check (default 1000000)",
+    )
+    p.add_argument(
+        "--force-bus-fit",
+        action="store_true",
+        default=None,
+        dest="force_bus_fit",
+        help="run a pdo configuration even if its cyclic frames do not fit the fieldbus",
+    )
     p.add_argument("--out", default=None, help="run folder (default runs/<mode>-<time>)")
 
 
@@ -94,9 +118,22 @@ def experiment_config(args: argparse.Namespace) -> ExperimentConfig:
     """
     from host.experiment.config import build_config  # heavy (plant, learning): only when needed
 
-    overrides: dict[str, Any] = {k: getattr(args, k) for k in (
-        "law", "iterations", "path", "cycle_s", "profile", "disturbance", "seed", "ff0", "ff_transport",
-        "fieldbus_bitrate", "force_bus_fit")}
+    overrides: dict[str, Any] = {
+        k: getattr(args, k)
+        for k in (
+            "law",
+            "iterations",
+            "path",
+            "cycle_s",
+            "profile",
+            "disturbance",
+            "seed",
+            "ff0",
+            "ff_transport",
+            "fieldbus_bitrate",
+            "force_bus_fit",
+        )
+    }
     gains: dict[str, Any] = {}  # merged over the file's [gains] table by build_config
     if args.preset is not None:
         gains["preset"] = args.preset
@@ -118,10 +155,10 @@ def print_plan(stream: TextIO, role: str, plan: Plan, extra: str = "") -> None:
         f"2-norm {c.norm2:.3f} ({'monotonic' if c.norm2 < 1 else 'not monotonic'}), paper eq.(18) rho "
         f"{c.paper_rho18:.3f}; predicted error ratio after {c.iterations} trials {c.predicted_ratio:.3g}, after "
         f"{c.long_horizon} {c.predicted_ratio_long:.3g}; over {c.long_horizon} trials "
-        f"{'bounded' if c.long_bounded else f'NOT bounded (grows {c.predicted_long_growth:.3g}x from its best)'}\n")
+        f"{'bounded' if c.long_bounded else f'NOT bounded (grows {c.predicted_long_growth:.3g}x from its best)'}\n"
+    )
     if plan.bus_fit is not None:
-        stream.write(f"feed-forward by SYNC + PDOs (CiA 402 cyclic synchronous position); fieldbus: "
-                     f"{plan.bus_fit['message']}\n")
+        stream.write(f"feed-forward by SYNC + PDOs (CiA 402 cyclic synchronous position); fieldbus: {plan.bus_fit['message']}\n")
     stream.flush()
 
 

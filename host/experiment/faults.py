@@ -103,8 +103,10 @@ class FaultRecord:
         """``drive2 (node 2), trial 1, tick 150`` (the parts that are known)."""
         parts = []
         if self.node:
-            parts.append(self.node + (f" (node {self.node_id})" if self.node_id is not None
-                                      and not self.node.endswith(str(self.node_id)) else ""))
+            parts.append(
+                self.node
+                + (f" (node {self.node_id})" if self.node_id is not None and not self.node.endswith(str(self.node_id)) else "")
+            )
         parts.append(f"trial {self.trial if self.trial is not None else '?'}")
         parts.append(f"tick {self.tick}" if self.tick is not None else "tick unknown")
         return ", ".join(parts)
@@ -112,9 +114,11 @@ class FaultRecord:
 
 def fault_line(record: FaultRecord, kept: int, *, summary_path: str | Path | None = None, extra: str = "") -> str:
     """The one terminal line of a faulted run: ``ilcrig: fault: <what>: <node>, trial k, tick n; …``."""
-    latency = (f" after {record.latency_ms:.0f} ms" if record.latency_ms is not None else "")
-    text = (f"ilcrig: fault: {record.message} [{record.kind}]: {record.where()}; detected by {record.detected_by}"
-            f"{latency}; torque removed, {kept} completed trial{'s' if kept != 1 else ''} kept")
+    latency = f" after {record.latency_ms:.0f} ms" if record.latency_ms is not None else ""
+    text = (
+        f"ilcrig: fault: {record.message} [{record.kind}]: {record.where()}; detected by {record.detected_by}"
+        f"{latency}; torque removed, {kept} completed trial{'s' if kept != 1 else ''} kept"
+    )
     if extra:
         text += f"; {extra}"
     if summary_path is not None:

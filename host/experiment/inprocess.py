@@ -61,8 +61,9 @@ class InProcessBench:
                     fw.write_object(index, sub, value.to_bytes(size, "little"))
             fw.nmt_command(NmtCommand.START)
 
-    def run_trial(self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray,
-                  cyclic: CyclicSetpoints | None = None) -> CyclicActuals | None:
+    def run_trial(
+        self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray, cyclic: CyclicSetpoints | None = None
+    ) -> CyclicActuals | None:
         if cyclic is not None:
             return self._run_cyclic_trial(trial, n_ticks, q0, qd0, cyclic)
         dist = self._begin(trial, n_ticks, q0, qd0)
@@ -93,8 +94,9 @@ class InProcessBench:
         """The trial's fault for a plant error at tick ``n`` (the drives' EMCYs are collected)."""
         self._collect_emcy(trial)
         msg = f"plant error at tick {n} of trial {trial}: {exc}"
-        return TrialFault(msg, FaultRecord(kind=FaultKind.PLANT_ERROR, message=msg, node="plant", trial=trial,
-                                           tick=n, detected_by="plant"))
+        return TrialFault(
+            msg, FaultRecord(kind=FaultKind.PLANT_ERROR, message=msg, node="plant", trial=trial, tick=n, detected_by="plant")
+        )
 
     def _end(self, trial: int) -> None:
         """After the last tick: an EMCY of the trial is its fault."""
@@ -109,13 +111,24 @@ class InProcessBench:
         fw = self.firmware[DRIVE_NODE_IDS.index(first["node"])]
         tick = int.from_bytes(fw.read_object(0x2120, 3), "little")
         msg = "; ".join(f"node {e['node']}: EMCY 0x{e['code']:04X}" for e in faults)
-        return TrialFault(msg, FaultRecord(kind=FaultKind.EMCY, message=msg, node=f"drive{first['node']}",
-                                           node_id=first["node"], trial=trial, tick=tick,
-                                           detected_by=f"drive{first['node']}", latency_ms=0.0,
-                                           latency_basis="same process"))
+        return TrialFault(
+            msg,
+            FaultRecord(
+                kind=FaultKind.EMCY,
+                message=msg,
+                node=f"drive{first['node']}",
+                node_id=first["node"],
+                trial=trial,
+                tick=tick,
+                detected_by=f"drive{first['node']}",
+                latency_ms=0.0,
+                latency_basis="same process",
+            ),
+        )
 
-    def _run_cyclic_trial(self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray,
-                          cyclic: CyclicSetpoints) -> CyclicActuals:
+    def _run_cyclic_trial(
+        self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray, cyclic: CyclicSetpoints
+    ) -> CyclicActuals:
         """The rig's per-tick SYNC/PDO handshake without frames: RPDO1 bytes, SYNC, io tick, TPDO1."""
         dist = self._begin(trial, n_ticks, q0, qd0)
         plant, fws = self.plant, self.firmware
@@ -176,7 +189,14 @@ class InProcessBench:
 
     def safe_state(self) -> list[dict[str, Any]]:
         """Per drive after :meth:`close`: torque off (NMT STOPPED), its CiA 402 state."""
-        return [{"node": f"drive{nid}", "node_id": nid, "torque": "on" if fw.torque_enabled else "off",
-                 "nmt": fw.nmt_state.name, "cia402": fw.cia402_state.name,
-                 "evidence": "in-process firmware: NMT STOPPED"}
-                for nid, fw in zip(DRIVE_NODE_IDS, self.firmware)]
+        return [
+            {
+                "node": f"drive{nid}",
+                "node_id": nid,
+                "torque": "on" if fw.torque_enabled else "off",
+                "nmt": fw.nmt_state.name,
+                "cia402": fw.cia402_state.name,
+                "evidence": "in-process firmware: NMT STOPPED",
+            }
+            for nid, fw in zip(DRIVE_NODE_IDS, self.firmware)
+        ]

@@ -52,8 +52,18 @@ from host.planning.trajectory import JointReference
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Bench", "CyclicActuals", "CyclicSetpoints", "TrialRecorder", "TrialFault", "Interrupted",
-           "interrupt_on_signals", "run_experiment", "ExperimentResult", "new_summary"]
+__all__ = [
+    "Bench",
+    "CyclicActuals",
+    "CyclicSetpoints",
+    "TrialRecorder",
+    "TrialFault",
+    "Interrupted",
+    "interrupt_on_signals",
+    "run_experiment",
+    "ExperimentResult",
+    "new_summary",
+]
 
 
 class TrialFault(IlcrigError):
@@ -116,8 +126,9 @@ def interrupt_on_signals(signals: Sequence[int] = (signal.SIGINT, signal.SIGTERM
 class TrialRecorder(Protocol):
     """Receives every completed trial (e.g. :class:`host.analysis.recording.RunRecorder`)."""
 
-    def log_trial(self, k: int, ref: JointReference, traces: Sequence[Any], u: np.ndarray,
-                  error_rad: np.ndarray, metrics: TrialMetrics) -> None:
+    def log_trial(
+        self, k: int, ref: JointReference, traces: Sequence[Any], u: np.ndarray, error_rad: np.ndarray, metrics: TrialMetrics
+    ) -> None:
         """``traces``: the DriveTrace of each drive; ``u`` (N, 4) the feed-forward of trial k, N·m;
         ``error_rad`` (N, 4) = q_d − q."""
 
@@ -159,8 +170,9 @@ class Bench(Protocol):
     def start(self) -> None:
         """Bring the nodes to operational (NMT) so they can be configured and enabled."""
 
-    def run_trial(self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray,
-                  cyclic: CyclicSetpoints | None = None) -> CyclicActuals | None:
+    def run_trial(
+        self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray, cyclic: CyclicSetpoints | None = None
+    ) -> CyclicActuals | None:
         """Reset the plant to (q0, qd0) and run ``n_ticks`` lockstep ticks with the armed drives;
         with ``cyclic`` stream its set-points by SYNC + RPDO each tick and return the TPDO actuals.
         Raises :class:`TrialFault` if the trial did not complete."""
@@ -219,8 +231,9 @@ def new_summary(plan: Plan, mode: str, digest: TraceDigest) -> dict[str, Any]:
 class _Trials:
     """The trial loop's state: the plan, the bench, the feed-forward and what was measured."""
 
-    def __init__(self, plan: Plan, bench: Bench, result: ExperimentResult, keep_traces: bool,
-                 recorder: TrialRecorder | None) -> None:
+    def __init__(
+        self, plan: Plan, bench: Bench, result: ExperimentResult, keep_traces: bool, recorder: TrialRecorder | None
+    ) -> None:
         self.plan, self.bench, self.result = plan, bench, result
         self.keep_traces, self.recorder = keep_traces, recorder
         self.digest = TraceDigest()
@@ -270,15 +283,19 @@ class _Trials:
         actuals = bench.run_trial(k, plan.n_ticks, ref.q[0].copy(), ref.qd[0].copy(), cyclic=cyclic)
         self.wall_s += time.perf_counter() - t0
         traces = [drive.read_trace() for drive in bench.drives]
-        self.digest.add_trial([(tr.position_counts, tr.velocity_counts_s, tr.torque_units, tr.torque_fb_units)
-                               for tr in traces])
+        self.digest.add_trial([(tr.position_counts, tr.velocity_counts_s, tr.torque_units, tr.torque_fb_units) for tr in traces])
         if self.pdo:
             if actuals is None:
                 raise TrialFault(f"trial {k}: the bench returned no TPDO actuals")
             _check_tpdos_against_recorder(k, actuals, traces, [d.rated_torque_mnm() for d in bench.drives])
             q_meas = actuals.position_counts * units.RAD_PER_COUNT
-            tau = np.stack([permille_to_nm_array(actuals.torque_permille[:, j], bench.drives[j].rated_torque_mnm())
-                            for j in range(len(traces))], axis=1)
+            tau = np.stack(
+                [
+                    permille_to_nm_array(actuals.torque_permille[:, j], bench.drives[j].rated_torque_mnm())
+                    for j in range(len(traces))
+                ],
+                axis=1,
+            )
         else:
             q_meas = np.stack([tr.q_rad for tr in traces], axis=1)
             tau = np.stack([tr.tau_nm for tr in traces], axis=1)
@@ -316,10 +333,22 @@ class _Trials:
         except FloatingPointError:
             ok, u = False, self.u
         if not ok:
-            msg = (f"the learning law {self.plan.law.name} diverged: the feed-forward for trial {next_trial} is not "
-                   f"finite or beyond the drive's ±{limit:.0f} N·m table range")
-            raise TrialFault(msg, FaultRecord(kind=FaultKind.LEARNING_DIVERGED, message=msg, trial=next_trial, tick=0,
-                                              detected_by="host", latency_ms=0.0, latency_basis="same process"))
+            msg = (
+                f"the learning law {self.plan.law.name} diverged: the feed-forward for trial {next_trial} is not "
+                f"finite or beyond the drive's ±{limit:.0f} N·m table range"
+            )
+            raise TrialFault(
+                msg,
+                FaultRecord(
+                    kind=FaultKind.LEARNING_DIVERGED,
+                    message=msg,
+                    trial=next_trial,
+                    tick=0,
+                    detected_by="host",
+                    latency_ms=0.0,
+                    latency_basis="same process",
+                ),
+            )
         return u
 
     def log_recording(self, k: int, m: TrialMetrics, e: np.ndarray) -> None:
@@ -364,15 +393,15 @@ def _fault_record(bench: Bench, exc: IlcrigError, trial: int, out_dir: Path | No
     return record
 
 
-def _check_tpdos_against_recorder(k: int, actuals: CyclicActuals, traces: Sequence[Any],
-                                  rated_mnm: Sequence[int]) -> None:
+def _check_tpdos_against_recorder(k: int, actuals: CyclicActuals, traces: Sequence[Any], rated_mnm: Sequence[int]) -> None:
     """The TPDO of tick n must carry the recorder's sample n (position, torque in ‰, rounded as
     the drive's 0x6077 rounds: half up): anything else is a fault of the data path."""
     for j, tr in enumerate(traces):
         r = int(rated_mnm[j])
         expected_permille = np.clip((2 * tr.torque_units.astype(np.int64) + r) // (2 * r), -(1 << 15), (1 << 15) - 1)
-        if (not np.array_equal(actuals.position_counts[:, j], tr.position_counts)
-                or not np.array_equal(actuals.torque_permille[:, j], expected_permille)):
+        if not np.array_equal(actuals.position_counts[:, j], tr.position_counts) or not np.array_equal(
+            actuals.torque_permille[:, j], expected_permille
+        ):
             raise TrialFault(f"trial {k}: drive {j + 1}'s TPDOs differ from its recorder")
 
 
@@ -435,8 +464,11 @@ def run_experiment(
         signum = getattr(exc, "signum", signal.SIGINT)
         result.interrupted = int(signum)
         progress = getattr(bench, "progress", None)
-        summary["interrupted"] = {"signal": signal.Signals(signum).name, "trial": len(summary["iterations"]),
-                                  "tick": progress() if progress is not None else None}
+        summary["interrupted"] = {
+            "signal": signal.Signals(signum).name,
+            "trial": len(summary["iterations"]),
+            "tick": progress() if progress is not None else None,
+        }
         logger.info("interrupted by %s during trial %d", signal.Signals(signum).name, len(summary["iterations"]))
     finally:
         _SHIELD.active, _SHIELD.pending = True, None
@@ -449,8 +481,15 @@ def run_experiment(
     return result
 
 
-def _finish(bench: Bench, summary: dict[str, Any], recorder: TrialRecorder | None, out: Path | None,
-            folder: RunFolder | None, result: ExperimentResult, trials: _Trials) -> None:
+def _finish(
+    bench: Bench,
+    summary: dict[str, Any],
+    recorder: TrialRecorder | None,
+    out: Path | None,
+    folder: RunFolder | None,
+    result: ExperimentResult,
+    trials: _Trials,
+) -> None:
     """The end of every run: bench info, close (safe state), recording, the final summary."""
     try:
         summary["bench"] = jsonable(bench.info())
@@ -468,8 +507,7 @@ def _finish(bench: Bench, summary: dict[str, Any], recorder: TrialRecorder | Non
         _final_write(out, summary, folder, result)
 
 
-def _final_write(out: Path | None, summary: dict[str, Any], folder: RunFolder | None,
-                 result: ExperimentResult) -> None:
+def _final_write(out: Path | None, summary: dict[str, Any], folder: RunFolder | None, result: ExperimentResult) -> None:
     """The last summary write, after giving back the run folder's space reserve (room for it on
     a full disk). A failure here is logged and recorded in the result (the previous summary stays
     valid)."""
@@ -482,8 +520,13 @@ def _final_write(out: Path | None, summary: dict[str, Any], folder: RunFolder | 
     except OutputError as exc:
         logger.error("the final summary could not be written (the last one written stays): %s", exc)
         if result.fault_record is None:
-            record = FaultRecord(kind=exc.kind, message=str(exc), trial=len(summary["iterations"]),
-                                 t_detected_mono=time.monotonic(), t_detected_wall=time.time())
+            record = FaultRecord(
+                kind=exc.kind,
+                message=str(exc),
+                trial=len(summary["iterations"]),
+                t_detected_mono=time.monotonic(),
+                t_detected_wall=time.time(),
+            )
             result.fault_record = record
             result.fault = record.message
             summary["faults"].append(record.as_dict())

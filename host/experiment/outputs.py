@@ -30,8 +30,17 @@ from bus.errors import IlcrigError
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["DiskFullError", "OutputError", "OutFolderError", "RunFolder", "check_out_dir", "is_disk_full",
-           "output_error", "reserve_bytes", "RESERVE_NAME"]
+__all__ = [
+    "DiskFullError",
+    "OutputError",
+    "OutFolderError",
+    "RunFolder",
+    "check_out_dir",
+    "is_disk_full",
+    "output_error",
+    "reserve_bytes",
+    "RESERVE_NAME",
+]
 
 #: the ballast file's name inside the run folder
 RESERVE_NAME = ".ilcrig-reserve"
@@ -122,8 +131,10 @@ def _check_space(where: Path, p: Path, option: str, iterations: int) -> None:
         return
     existing = (p / RESERVE_NAME).stat().st_size if (p / RESERVE_NAME).is_file() else 0
     if free + existing < need:
-        raise OutFolderError(f"{option} {p}: only {free // 1024} KiB free on its filesystem; a run of {iterations} "
-                             f"trials needs at least {need // 1024} KiB for its final results")
+        raise OutFolderError(
+            f"{option} {p}: only {free // 1024} KiB free on its filesystem; a run of {iterations} "
+            f"trials needs at least {need // 1024} KiB for its final results"
+        )
 
 
 class RunFolder:
@@ -161,8 +172,9 @@ class RunFolder:
                 fh.flush()
                 os.fsync(fh.fileno())
         except OSError as err:
-            logger.warning("cannot reserve %d KiB in %s for the final results: %s", self.size // 1024, self.path,
-                           err.strerror or err)
+            logger.warning(
+                "cannot reserve %d KiB in %s for the final results: %s", self.size // 1024, self.path, err.strerror or err
+            )
             with contextlib.suppress(OSError):
                 self.reserve_path.unlink()
             self.reserved = False
@@ -182,17 +194,28 @@ class RunFolder:
         logs = self.path / "logs"
         if not logs.is_dir():
             return
-        record = {"by": "host", "spec": f"diskfull@{self.fail_writes_from_trial}", "kind": "diskfull",
-                  "target": str(self.path), "trial": trial, "tick": None, "t_mono": time.monotonic(),
-                  "t_wall": time.time()}
+        record = {
+            "by": "host",
+            "spec": f"diskfull@{self.fail_writes_from_trial}",
+            "kind": "diskfull",
+            "target": str(self.path),
+            "trial": trial,
+            "tick": None,
+            "t_mono": time.monotonic(),
+            "t_wall": time.time(),
+        }
         with contextlib.suppress(OSError), open(logs / "injections-host.jsonl", "a", encoding="utf-8") as fh:
             fh.write(json.dumps(record) + "\n")
 
     def check_write(self, trial: int | None) -> None:
         """Raise the injected ``ENOSPC`` when writes must fail at ``trial`` (see
         :attr:`fail_writes_from_trial`)."""
-        if (self.fail_writes_from_trial is not None and not self.released and trial is not None
-                and trial >= self.fail_writes_from_trial):
+        if (
+            self.fail_writes_from_trial is not None
+            and not self.released
+            and trial is not None
+            and trial >= self.fail_writes_from_trial
+        ):
             if not self._injected:
                 self._injected = True
                 self._record_injection(trial)

@@ -88,20 +88,23 @@ def preflight(cfg: ExperimentConfig) -> int:
     n = trial_samples(cfg.cycle_s, cfg.ts_s)
     if n > TABLE_CAPACITY:
         max_cycle = (TABLE_CAPACITY - 1) // 2 * cfg.ts_s
-        raise PlanError(f"--cycle {cfg.cycle_s:g}: a trial of N = {n} samples exceeds the drives' table capacity "
-                        f"of {TABLE_CAPACITY} samples (0x2103:2); use a cycle of at most {max_cycle:g} s")
+        raise PlanError(
+            f"--cycle {cfg.cycle_s:g}: a trial of N = {n} samples exceeds the drives' table capacity "
+            f"of {TABLE_CAPACITY} samples (0x2103:2); use a cycle of at most {max_cycle:g} s"
+        )
     need = prepare_memory_bytes(n)
     have = available_memory_bytes()
     if have is not None and need > have:
         # the largest N whose estimate fits, as a cycle time
         n_fit = int(math.sqrt(max(have - PREPARE_BASE_BYTES, 0) / (PREPARE_DENSE_MATRICES * 8)) / 4)
         max_cycle = max((n_fit - 1) // 2, 0) * cfg.ts_s
-        raise PlanError(f"--cycle {cfg.cycle_s:g}: preparing a trial of N = {n} samples needs about {_gib(need)} of "
-                        f"memory (the convergence check's lifted model), this machine has {_gib(have)} available; "
-                        f"use a cycle of at most about {max_cycle:.2f} s")
+        raise PlanError(
+            f"--cycle {cfg.cycle_s:g}: preparing a trial of N = {n} samples needs about {_gib(need)} of "
+            f"memory (the convergence check's lifted model), this machine has {_gib(have)} available; "
+            f"use a cycle of at most about {max_cycle:.2f} s"
+        )
     if cfg.gains.lead >= n:
-        raise PlanError(f"--lead {cfg.gains.lead}: the learning lead must be less than N = {n} samples per trial "
-                        f"(0..{n - 1})")
+        raise PlanError(f"--lead {cfg.gains.lead}: the learning lead must be less than N = {n} samples per trial (0..{n - 1})")
     g = cfg.gains
     if g.lp is not None or g.ld is not None:
         # absolute learning gains fix the feedback gains without the inertia along the path: checked
@@ -120,13 +123,17 @@ def _check_gain_range(gains: Gains) -> None:
 
 def _check_gain_values(kp_nm_per_rad: Any, kd_nms_per_rad: Any) -> None:
     """Per-joint Kp [N·m/rad] and Kd [N·m·s/rad] against the drive's fixed-point range."""
-    for what, values, top, option in (("Kp", kp_nm_per_rad, fp.KP_MAX_NM_PER_RAD, "--alpha/--lp/--lp-norm"),
-                                      ("Kd", kd_nms_per_rad, fp.KD_MAX_NMS_PER_RAD, "--beta/--ld/--ld-norm")):
+    for what, values, top, option in (
+        ("Kp", kp_nm_per_rad, fp.KP_MAX_NM_PER_RAD, "--alpha/--lp/--lp-norm"),
+        ("Kd", kd_nms_per_rad, fp.KD_MAX_NMS_PER_RAD, "--beta/--ld/--ld-norm"),
+    ):
         unit = "N·m/rad" if what == "Kp" else "N·m·s/rad"
         for j, v in enumerate(np.asarray(values, dtype=float)):
             if not math.isfinite(v) or not 0.0 <= v <= top:
-                raise PlanError(f"{option}: the feedback gain {what} of joint {j + 1} = {v:.6g} {unit} is outside the "
-                                f"drive's fixed-point range 0..{top:.6g} {unit} (bus/fixedpoint.py)")
+                raise PlanError(
+                    f"{option}: the feedback gain {what} of joint {j + 1} = {v:.6g} {unit} is outside the "
+                    f"drive's fixed-point range 0..{top:.6g} {unit} (bus/fixedpoint.py)"
+                )
 
 
 def _finite_check(check: ConvergenceReport) -> ConvergenceReport:
@@ -179,25 +186,45 @@ def prepare(cfg: ExperimentConfig) -> Plan:
     closed_loop = ClosedLoopModel(inertia_seq, gains.kp, gains.kd, cfg.ts_s)
     tau_nominal = np.asarray(inverse_dynamics(ref.q, ref.qd, ref.qdd, model), dtype=float)
     u0 = tau_nominal if cfg.ff0 == "model" else np.zeros_like(ref.q)
-    ctx = LawContext(gains=gains, ts_s=cfg.ts_s, model=closed_loop, reference=ref, u0_nm=u0, mass_model=model,
-                     geometry=Geometry())
+    ctx = LawContext(
+        gains=gains, ts_s=cfg.ts_s, model=closed_loop, reference=ref, u0_nm=u0, mass_model=model, geometry=Geometry()
+    )
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         law = make_law(cfg.law, ctx)
         # the prediction starts from the error a PROBE_TORQUE_FRACTION error of the nominal torque causes
         check = _finite_check(law.check(closed_loop, PROBE_TORQUE_FRACTION * tau_nominal, cfg.iterations))
     if not check.ok:
-        logger.warning("convergence check failed for law %s: spectral radius %.3f, predicted error ratio "
-                       "after %d trials %.3g: expect divergence", cfg.law, check.rho_max, check.iterations,
-                       check.predicted_ratio)
+        logger.warning(
+            "convergence check failed for law %s: spectral radius %.3f, predicted error ratio "
+            "after %d trials %.3g: expect divergence",
+            cfg.law,
+            check.rho_max,
+            check.iterations,
+            check.predicted_ratio,
+        )
     bus_fit = None
     if cfg.ff_transport == "pdo":
         fit = cyclic_bus_fit(cfg.ts_s, cfg.fieldbus_bitrate)
         bus_fit = fit.as_dict() | {"message": fit.message(), "forced": bool(cfg.force_bus_fit and not fit.fits)}
     if not check.long_bounded:
-        logger.warning("law %s is predicted to grow again within %d trials (last %d trials %.3g x the best)",
-                       cfg.law, check.long_horizon, BOUNDED_BLOCK, check.predicted_long_growth)
-    return Plan(cfg=cfg, ref=ref, gains=gains, law=law, check=check, u0=u0,
-                feasibility=jsonable(feas), torque_limit_nm=float(true_cfg.joint_torque_limit_nm), bus_fit=bus_fit)
+        logger.warning(
+            "law %s is predicted to grow again within %d trials (last %d trials %.3g x the best)",
+            cfg.law,
+            check.long_horizon,
+            BOUNDED_BLOCK,
+            check.predicted_long_growth,
+        )
+    return Plan(
+        cfg=cfg,
+        ref=ref,
+        gains=gains,
+        law=law,
+        check=check,
+        u0=u0,
+        feasibility=jsonable(feas),
+        torque_limit_nm=float(true_cfg.joint_torque_limit_nm),
+        bus_fit=bus_fit,
+    )
 
 
 def reference_tables(ref: JointReference) -> tuple[np.ndarray, np.ndarray]:

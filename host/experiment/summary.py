@@ -61,8 +61,7 @@ def finite(obj: Any, where: str = "summary") -> Any:
     return obj
 
 
-def write_summary(out_dir: Path, summary: dict[str, Any], *, folder: RunFolder | None = None,
-                  trial: int | None = None) -> None:
+def write_summary(out_dir: Path, summary: dict[str, Any], *, folder: RunFolder | None = None, trial: int | None = None) -> None:
     """Replace ``out_dir/summary.json`` atomically: write a temporary file, fsync, rename.
 
     :param folder: the run folder's reserve / write-failure switch (fault injection)

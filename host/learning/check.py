@@ -57,9 +57,18 @@ from host.learning.model import ClosedLoopModel
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "ConvergenceReport", "IterationMap", "check_iteration_map", "LONG_HORIZON", "SIMULATED_TRIALS",
-    "EXTRAPOLATION_WINDOW", "BOUNDED_BLOCK", "BOUNDED_LIMIT", "NORM_STEPS", "KRYLOV_STEPS",
-    "PROBE_TORQUE_FRACTION", "ROBUST_INERTIA_SCALES",
+    "ConvergenceReport",
+    "IterationMap",
+    "check_iteration_map",
+    "LONG_HORIZON",
+    "SIMULATED_TRIALS",
+    "EXTRAPOLATION_WINDOW",
+    "BOUNDED_BLOCK",
+    "BOUNDED_LIMIT",
+    "NORM_STEPS",
+    "KRYLOV_STEPS",
+    "PROBE_TORQUE_FRACTION",
+    "ROBUST_INERTIA_SCALES",
 ]
 
 Array = npt.NDArray[np.float64]
@@ -180,6 +189,7 @@ class ConvergenceReport:
 
 # --------------------------------------------------------------------------------- the pieces
 
+
 class _Restricted:
     """E on the samples learning can act on: zero the first (error map) or last (input map) sample
     of the argument and of the result."""
@@ -222,7 +232,7 @@ def _krylov_rho(r: _Restricted, symmetric: bool) -> tuple[float, str]:
         col = np.zeros(k + 1)
         for _ in range(2):  # classical Gram-Schmidt, twice
             _orthogonalise(basis, k, w, col)
-        hess[:k + 1, k] = col
+        hess[: k + 1, k] = col
         hn = _norm(w)
         hess[k + 1, k] = hn
         if hn <= 1e-12 * max(scale, 1e-300):  # an invariant subspace: the Ritz values are exact
@@ -313,11 +323,16 @@ def _long_growth(logs: Array, log_sqrt_size: float, long_horizon: int) -> float:
     return float(means[-1] / np.min(means)) if means.size else 1.0
 
 
-def check_iteration_map(imap: IterationMap, model: ClosedLoopModel, ld_nms_per_rad: Array, ts_s: float,
-                        probe_torque_nm: Array | None = None, iterations: int = 10,
-                        long_horizon: int = LONG_HORIZON,
-                        perturbed: list[tuple[float, IterationMap, ClosedLoopModel]] | None = None
-                        ) -> ConvergenceReport:
+def check_iteration_map(
+    imap: IterationMap,
+    model: ClosedLoopModel,
+    ld_nms_per_rad: Array,
+    ts_s: float,
+    probe_torque_nm: Array | None = None,
+    iterations: int = 10,
+    long_horizon: int = LONG_HORIZON,
+    perturbed: list[tuple[float, IterationMap, ClosedLoopModel]] | None = None,
+) -> ConvergenceReport:
     """Check a law's iteration map before a run (module docstring).
 
     :param imap: the law's map (``LearningLaw.iteration_map``)
@@ -343,7 +358,7 @@ def check_iteration_map(imap: IterationMap, model: ClosedLoopModel, ld_nms_per_r
 
     # beyond the simulated trials: the mean rate of the last EXTRAPOLATION_WINDOW ones
     w = min(EXTRAPOLATION_WINDOW, horizon)
-    tail = log_ratio[horizon - w:horizon + 1]
+    tail = log_ratio[horizon - w : horizon + 1]
     log_rate = float((tail[-1] - tail[0]) / w) if w > 0 and np.all(np.isfinite(tail)) else -np.inf
 
     def ratio_at(k: int) -> float:
@@ -355,14 +370,17 @@ def check_iteration_map(imap: IterationMap, model: ClosedLoopModel, ld_nms_per_r
 
     K = max(int(iterations), 1)
     predicted = ratio_at(K)
-    finite = log_ratio[1:min(K, horizon) + 1]
+    finite = log_ratio[1 : min(K, horizon) + 1]
     peak_log = float(np.max(finite)) if finite.size else -np.inf
     if K > horizon and log_rate > 0:
         peak_log = max(peak_log, log_ratio[horizon] + log_rate * (K - horizon))
     peak = math.exp(min(peak_log, 700.0)) if math.isfinite(peak_log) else 0.0
-    prediction = (f"linear model simulated for {horizon} trials" if K <= horizon else
-                  f"linear model simulated for {horizon} trials, extrapolated to {K} at "
-                  f"{math.exp(max(min(log_rate, 700.0), -700.0)):.4g} per trial (mean of the last {w})")
+    prediction = (
+        f"linear model simulated for {horizon} trials"
+        if K <= horizon
+        else f"linear model simulated for {horizon} trials, extrapolated to {K} at "
+        f"{math.exp(max(min(log_rate, 700.0), -700.0)):.4g} per trial (mean of the last {w})"
+    )
 
     # long-run verdict: predicted RMSE floored at one encoder LSB, block means over the horizon, on
     # the model and on the plants with scaled inertia
@@ -380,7 +398,20 @@ def check_iteration_map(imap: IterationMap, model: ClosedLoopModel, ld_nms_per_r
     nrm, norm_method = _norm2(imap, r, rho)
     r18 = _paper_rho18(model, np.asarray(ld_nms_per_rad, dtype=float), ts_s)
     return ConvergenceReport(
-        rho_max=rho, norm2=nrm, paper_rho18=r18, ok=bool(rho < 1.0 and predicted < 1.0), map_kind=imap.kind,
-        predicted_ratio=predicted, predicted_peak=peak, iterations=int(iterations), long_horizon=long_horizon,
-        rho_method=rho_method, predicted_ratio_long=ratio_at(long_horizon), long_bounded=long_bounded,
-        predicted_long_growth=growth, long_worst_case=worst, norm_method=norm_method, prediction=prediction)
+        rho_max=rho,
+        norm2=nrm,
+        paper_rho18=r18,
+        ok=bool(rho < 1.0 and predicted < 1.0),
+        map_kind=imap.kind,
+        predicted_ratio=predicted,
+        predicted_peak=peak,
+        iterations=int(iterations),
+        long_horizon=long_horizon,
+        rho_method=rho_method,
+        predicted_ratio_long=ratio_at(long_horizon),
+        long_bounded=long_bounded,
+        predicted_long_growth=growth,
+        long_worst_case=worst,
+        norm_method=norm_method,
+        prediction=prediction,
+    )

@@ -119,5 +119,4 @@ def resolve_gains(spec: GainSpec, inertia: npt.ArrayLike, ts_s: float) -> Gains:
         raise ValueError(f"lead must be >= 0 samples, got {spec.lead}")
     lp = np.full(4, spec.lp) if spec.lp is not None else spec.lp_norm * inertia_kgm2 / ts_s**2
     ld = np.full(4, spec.ld) if spec.ld is not None else spec.ld_norm * inertia_kgm2 / ts_s
-    return Gains(kp=(spec.alpha - 1.0) * lp, kd=(spec.beta - 1.0) * ld, lp=lp, ld=ld,
-                 inertia=inertia_kgm2, spec=spec)
+    return Gains(kp=(spec.alpha - 1.0) * lp, kd=(spec.beta - 1.0) * ld, lp=lp, ld=ld, inertia=inertia_kgm2, spec=spec)

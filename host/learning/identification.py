@@ -51,28 +51,50 @@ PRIOR_WEIGHT = 1e-4
 SMOOTHING_HZ = 50.0
 #: the estimated parameters, in order (units in the names)
 PARAMETER_NAMES: tuple[str, ...] = (
-    "m_up_kg", "m_low_kg", "i_b_kgm2", "k_g_kgm", "i_ee_kgm2",
-    "fc1_nm", "fc2_nm", "fc3_nm", "fc4_nm", "fv1_nms", "fv2_nms", "fv3_nms", "fv4_nms",
+    "m_up_kg",
+    "m_low_kg",
+    "i_b_kgm2",
+    "k_g_kgm",
+    "i_ee_kgm2",
+    "fc1_nm",
+    "fc2_nm",
+    "fc3_nm",
+    "fc4_nm",
+    "fv1_nms",
+    "fv2_nms",
+    "fv3_nms",
+    "fv4_nms",
 )
 _N_RIGID = 5
 
 
 def _zero_mass(model: MassModel) -> MassModel:
-    return dataclasses.replace(model, m_up=0.0, m_low=0.0, m_a=0.0, I_a=0.0, l_c=0.0, m_fa=0.0, J_m=0.0,
-                               payload=0.0, I_ee=0.0)
+    return dataclasses.replace(model, m_up=0.0, m_low=0.0, m_a=0.0, I_a=0.0, l_c=0.0, m_fa=0.0, J_m=0.0, payload=0.0, I_ee=0.0)
 
 
 def _basis_models(model: MassModel) -> list[MassModel]:
     """Mass models with one base parameter = 1 and all others 0 (same ρ, n, g as ``model``)."""
     z = _zero_mass(model)
-    return [dataclasses.replace(z, m_up=1.0), dataclasses.replace(z, m_low=1.0), dataclasses.replace(z, I_a=1.0),
-            dataclasses.replace(z, m_a=1.0, l_c=1.0), dataclasses.replace(z, I_ee=1.0)]
+    return [
+        dataclasses.replace(z, m_up=1.0),
+        dataclasses.replace(z, m_low=1.0),
+        dataclasses.replace(z, I_a=1.0),
+        dataclasses.replace(z, m_a=1.0, l_c=1.0),
+        dataclasses.replace(z, I_ee=1.0),
+    ]
 
 
 def _rigid_theta(model: MassModel, geometry: Geometry) -> Array:
     """The base parameters of a mass model."""
-    return np.array([model.m_up_eff, model.m_low_eff, model.joint_inertia(geometry.l_a),
-                     model.arm_gravity_coefficient(geometry.l_a) / model.g, model.I_ee])
+    return np.array(
+        [
+            model.m_up_eff,
+            model.m_low_eff,
+            model.joint_inertia(geometry.l_a),
+            model.arm_gravity_coefficient(geometry.l_a) / model.g,
+            model.I_ee,
+        ]
+    )
 
 
 class DynamicsEstimate:
@@ -131,8 +153,12 @@ class DynamicsEstimate:
         self.trials += 1
         self._solve()
         self.residual_rms_nm = float(np.sqrt(np.mean((y @ self.theta - b) ** 2)))
-        logger.info("dynamics estimate after %d trial(s): %s; torque residual %.3g N·m RMS", self.trials,
-                    ", ".join(f"{k} {v:.4g}" for k, v in zip(PARAMETER_NAMES, self.theta)), self.residual_rms_nm)
+        logger.info(
+            "dynamics estimate after %d trial(s): %s; torque residual %.3g N·m RMS",
+            self.trials,
+            ", ".join(f"{k} {v:.4g}" for k, v in zip(PARAMETER_NAMES, self.theta)),
+            self.residual_rms_nm,
+        )
 
     def _solve(self) -> None:
         diag = np.diag(self._ata).copy()

@@ -112,9 +112,14 @@ class LearningLaw(ABC):
         """The law's linear trial-to-trial map when the plant is ``model`` (the law's own operators —
         its filters, its norm-optimal gains — stay the ones it was built with)."""
 
-    def check(self, model: ClosedLoopModel | None = None, probe_torque: Array | None = None,
-              iterations: int = 10, long_horizon: int = LONG_HORIZON,
-              inertia_scales: tuple[float, ...] = ROBUST_INERTIA_SCALES) -> ConvergenceReport:
+    def check(
+        self,
+        model: ClosedLoopModel | None = None,
+        probe_torque: Array | None = None,
+        iterations: int = 10,
+        long_horizon: int = LONG_HORIZON,
+        inertia_scales: tuple[float, ...] = ROBUST_INERTIA_SCALES,
+    ) -> ConvergenceReport:
         """The convergence check of :mod:`host.learning.check` on ``model`` (default: the law's), with
         the long-run verdict also on the plant whose inertia is scaled by each of ``inertia_scales``."""
         mdl = model if model is not None else self.ctx.model
@@ -122,11 +127,13 @@ class LearningLaw(ABC):
         for scale in inertia_scales:
             plant = mdl.corrected(mdl.inertia * scale)
             perturbed.append((scale, self.iteration_map(plant), plant))
-        return check_iteration_map(self.iteration_map(mdl), mdl, self.gains.ld, self.ts_s, probe_torque,
-                                   iterations, long_horizon, perturbed)
+        return check_iteration_map(
+            self.iteration_map(mdl), mdl, self.gains.ld, self.ts_s, probe_torque, iterations, long_horizon, perturbed
+        )
 
 
 # ------------------------------------------------------------------------------ PD-type laws
+
 
 class _PdType(LearningLaw):
     """Laws built on the PD learning term Lp·lead(e) + Ld·lead(ė) with a lead of m samples."""
@@ -178,6 +185,7 @@ class _PdType(LearningLaw):
         def blocks() -> Array:
             # e_{k+1}[n] = e_k[n] + G_{n,n−1}·c·e_k[n] + (earlier samples): I + G_{n,n−1} diag(c), n ≥ 1
             return np.eye(model.j)[None] + model.first_markov()[:-1] * coupling[None, None, :]
+
         return blocks
 
 
@@ -193,11 +201,13 @@ class PdIlc(_PdType):
         def apply_t(y: Array) -> Array:
             gy = model.g_t(y)
             return y + model.k_t(gy) + self.pd_term_t(gy)
+
         return IterationMap(
             "error",
             apply=lambda e: e + model.g(model.k(e) + self.pd_term(e)),
             apply_t=apply_t,
-            diagonal=self._causal_diagonal(model))
+            diagonal=self._causal_diagonal(model),
+        )
 
 
 class PdOl(_PdType):
@@ -213,7 +223,8 @@ class PdOl(_PdType):
             "error",
             apply=lambda e: e + model.g(self.pd_term(e)),
             apply_t=lambda y: y + self.pd_term_t(model.g_t(y)),
-            diagonal=self._causal_diagonal(model))
+            diagonal=self._causal_diagonal(model),
+        )
 
 
 class POl(PdOl):
@@ -252,6 +263,7 @@ class _QFiltered(_PdType):
         def apply_t(y: Array) -> Array:
             w = self.q.transpose(y)
             return w + model.g_t(self._m_t(model, w))
+
         return IterationMap("input", apply=apply, apply_t=apply_t)
 
 
@@ -292,6 +304,7 @@ class PdIlcQ(_QFiltered):
 
 
 # ------------------------------------------------------------------------------ norm-optimal
+
 
 class NoIlc(LearningLaw):
     name = "no-ilc"
@@ -344,9 +357,7 @@ class NoIlcId(NoIlc):
 
 
 #: the registry: law name → class (the names are :data:`host.learning.names.LAWS`)
-LAW_CLASSES: dict[str, type[LearningLaw]] = {
-    cls.name: cls for cls in (PdIlc, PdIlcQ, PdOl, POl, DIlc, QIlc, NoIlc, NoIlcId)
-}
+LAW_CLASSES: dict[str, type[LearningLaw]] = {cls.name: cls for cls in (PdIlc, PdIlcQ, PdOl, POl, DIlc, QIlc, NoIlc, NoIlcId)}
 if set(LAW_CLASSES) != set(LAWS):  # pragma: no cover - a programming error, caught by every test
     raise ImportError(f"law registry {sorted(LAW_CLASSES)} differs from host.learning.names.LAWS {sorted(LAWS)}")
 

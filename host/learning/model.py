@@ -54,8 +54,9 @@ def _simulate(minv: Array, fq: Array, fp: Array, ts: float, u: Array) -> Array:
 
 
 @njit(cache=True)
-def closed_loop_step(minv: Array, fq: Array, fp: Array, ts: float, h2: float, n: int, u_n: Array,
-                     q: Array, v: Array, qp: Array, tau: Array) -> None:
+def closed_loop_step(
+    minv: Array, fq: Array, fp: Array, ts: float, h2: float, n: int, u_n: Array, q: Array, v: Array, qp: Array, tau: Array
+) -> None:
     """One sample of the closed loop in place: τ = u_n + fq·q + fp·q_prev, a = M⁻¹[n] τ, then
     q, v by a second-order step (h2 = Ts²/2); ``qp`` keeps the previous q, ``tau`` is scratch."""
     nj = q.shape[0]

@@ -125,8 +125,7 @@ class NormOptimalStep:
         #: the input weight r, rad²/(N·m)²
         self.r = float(relative_weight) * scale + 1e-300
         self._kfb, self._kff = _riccati(model.minv, model.fq, model.fp, model.ts_s, self.r)
-        logger.debug("norm-optimal gains for N = %d: r = %.3g (w = %g, s = %.3g)", model.n, self.r,
-                     relative_weight, scale)
+        logger.debug("norm-optimal gains for N = %d: r = %.3g (w = %g, s = %.3g)", model.n, self.r, relative_weight, scale)
 
     def __call__(self, e: Array) -> Array:
         """The input change δu (N, J) N·m for the error e (N, J) rad."""

@@ -65,7 +65,7 @@ def lead_t(y: Array, m: int) -> Array:
         x[-1] = y.sum(axis=0)
         return x
     x[m:] = y[: n - m]
-    x[-1] += y[n - m:].sum(axis=0)
+    x[-1] += y[n - m :].sum(axis=0)
     return x
 
 
@@ -120,17 +120,17 @@ class ZeroPhaseFilter:
         if n <= 1:  # filtfilt needs more samples than the padding: nothing to transpose
             return y.copy()
         w = np.zeros((n + 2 * p,) + y.shape[1:])
-        w[p:p + n] = y  # crop^T
+        w[p : p + n] = y  # crop^T
         w = w[::-1]  # the second pass ran on the reversed signal and was reversed back
         w = self._pass_t(w)
         w = w[::-1]
         w = self._pass_t(w)
         # pad^T: ext = [2x0 − x[p..1], x, 2x[-1] − x[-2..-p-1]]
-        x = w[p:p + n].copy()
+        x = w[p : p + n].copy()
         if p > 0:
-            left, right = w[:p], w[p + n:]
+            left, right = w[:p], w[p + n :]
             x[0] += 2.0 * left.sum(axis=0)
-            x[1:p + 1] -= left[::-1]
+            x[1 : p + 1] -= left[::-1]
             x[-1] += 2.0 * right.sum(axis=0)
-            x[n - 1 - p:n - 1] -= right[::-1]
+            x[n - 1 - p : n - 1] -= right[::-1]
         return x

@@ -42,8 +42,7 @@ from bus.objects import u32 as _u32
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["BenchClient", "BenchState", "BenchClientError", "BenchInputError", "BenchTrialFault",
-           "BenchTimeoutError"]
+__all__ = ["BenchClient", "BenchState", "BenchClientError", "BenchInputError", "BenchTrialFault", "BenchTimeoutError"]
 
 _U32_MAX = 0xFFFFFFFF
 
@@ -87,8 +86,11 @@ class BenchState:
         elif self.fault == BenchFault.TICK_SEQUENCE:
             what = f"torque frame of drive {self.fault_node} out of sequence at tick {self.fault_tick}"
         elif self.fault == BenchFault.BAD_FRAME:
-            what = (f"malformed torque frame of drive {self.fault_node} at tick {self.fault_tick}" if self.fault_node
-                    else f"bus error frame (a damaged frame) on io at tick {self.fault_tick}")
+            what = (
+                f"malformed torque frame of drive {self.fault_node} at tick {self.fault_tick}"
+                if self.fault_node
+                else f"bus error frame (a damaged frame) on io at tick {self.fault_tick}"
+            )
         elif self.fault == BenchFault.HOST_LOST:
             what = f"the host's heartbeat was lost at tick {self.fault_tick}"
         elif self.fault == BenchFault.PLANT:
@@ -144,8 +146,14 @@ class BenchClient:
         self.access.write_object(cfg, ConfigSub.DISTURBANCE, _u8(int(kind)))
         self.access.write_object(cfg, ConfigSub.SEED, _u32(int(seed)))
         self.access.write_object(cfg, ConfigSub.PACING, _u8(int(bool(paced))))
-        logger.debug("bench configured: Ts = %d µs, %d sub-steps, disturbance %s, seed %d, %s",
-                     period_us, substeps, kind.label, seed, "paced" if paced else "lockstep")
+        logger.debug(
+            "bench configured: Ts = %d µs, %d sub-steps, disturbance %s, seed %d, %s",
+            period_us,
+            substeps,
+            kind.label,
+            seed,
+            "paced" if paced else "lockstep",
+        )
 
     def trial_timing(self) -> TrialTiming:
         """0x2440: the last trial's wall-clock timing as the plant measured it (diagnostics)."""
@@ -213,8 +221,7 @@ class BenchClient:
         deadline = time.monotonic() + timeout_s
         while True:
             # while the trial runs, one SDO upload (the status) per poll; the whole state once it ended
-            if (self._read_uint(BenchObj.TRIAL, BenchTrialSub.STATUS) == BenchStatus.RUNNING
-                    and time.monotonic() < deadline):
+            if self._read_uint(BenchObj.TRIAL, BenchTrialSub.STATUS) == BenchStatus.RUNNING and time.monotonic() < deadline:
                 time.sleep(poll_s)
                 continue
             state = self.status()
@@ -229,8 +236,9 @@ class BenchClient:
                     self.abort()
                 except IlcrigError:
                     logger.warning("aborting the timed-out trial failed", exc_info=True)
-                raise BenchTimeoutError(f"test bench: trial still running after {timeout_s:g} s "
-                                        f"({state.ticks_done} ticks done); aborted")
+                raise BenchTimeoutError(
+                    f"test bench: trial still running after {timeout_s:g} s ({state.ticks_done} ticks done); aborted"
+                )
             time.sleep(poll_s)
 
     def counters(self) -> dict[str, int]:

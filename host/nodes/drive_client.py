@@ -250,7 +250,8 @@ class DriveClient:
         if state != expect:
             raise DriveStateError(
                 f"node {self.node_id}: after controlword 0x{cw:04X} statusword is 0x{sw:04X} "
-                f"({state.name}), expected {expect.name}")
+                f"({state.name}), expected {expect.name}"
+            )
 
     def enable(self) -> None:
         """Shutdown -> Switch on -> Enable operation, checking the statusword after each.

@@ -149,8 +149,7 @@ def load_path_file(path: str | Path) -> PathSpec:
     unknown = sorted(set(data) - set(PATH_FILE_KEYS))
     if unknown:
         raise PathError(
-            f"path file {file}: unknown key(s) {', '.join(repr(k) for k in unknown)} "
-            f"(allowed: {', '.join(PATH_FILE_KEYS)})"
+            f"path file {file}: unknown key(s) {', '.join(repr(k) for k in unknown)} (allowed: {', '.join(PATH_FILE_KEYS)})"
         )
     missing = [k for k in PATH_FILE_KEYS if k not in data]
     if missing:

@@ -379,8 +379,9 @@ def _ruckig_plan(p0: float, p1: float, v: float, a: float, jerk: float, ts: floa
     raise TrajectoryError(f"ruckig failed for a move {float(p0):g} -> {float(p1):g}: {last}")
 
 
-def _ruckig_window(p0: float, p1: float, v: float, a: float, jerk: float, ts: float, n_window: int,
-                   stretch: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _ruckig_window(
+    p0: float, p1: float, v: float, a: float, jerk: float, ts: float, n_window: int, stretch: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sampled (p, v, a) of a 1-DOF rest-to-rest move lasting exactly ``n_window`` samples.
 
     ``stretch="scale"``: the limits are scaled by k = d_opt/window (v·k, a·k², j·k³) so that the
@@ -430,9 +431,7 @@ def _fits(w: _Windows, d: tuple[float, float, float], ts: float) -> bool:
 
 def _sample_ruckig(traj: Any, n_window: int, ts: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if abs(traj.duration - n_window * ts) > 1e-9:
-        raise TrajectoryError(
-            f"ruckig returned a {traj.duration:.9f} s profile for a {n_window * ts:.9f} s window"
-        )
+        raise TrajectoryError(f"ruckig returned a {traj.duration:.9f} s profile for a {n_window * ts:.9f} s window")
     p = np.empty(n_window + 1)
     v = np.empty(n_window + 1)
     a = np.empty(n_window + 1)
@@ -508,9 +507,7 @@ def _check_box(X: np.ndarray, path: PathSpec, label: str) -> None:
         below = lo[axis] - X[:, axis].min()
         above = X[:, axis].max() - hi[axis]
         if below > _BOX_TOL or above > _BOX_TOL:
-            raise InfeasibleTaskError(
-                f"{label}: {name} leaves the path's bounding box by {max(below, above):.3g}"
-            )
+            raise InfeasibleTaskError(f"{label}: {name} leaves the path's bounding box by {max(below, above):.3g}")
 
 
 # ----------------------------------------------------------------------------- plan_task
@@ -565,8 +562,7 @@ def plan_task(
         if not all(_fits(w, d, ts_s) for d in durations):
             need = _ruckig_needed_cycle(m, fz, fh, durations, ts_s)
             raise InfeasibleTaskError(
-                f"cycle {cycle_s:g} s is too short for {path.name} with profile ruckig: "
-                f"needs ≥ {need:.3f} s"
+                f"cycle {cycle_s:g} s is too short for {path.name} with profile ruckig: needs ≥ {need:.3f} s"
             )
         parts = [_journey_ruckig(j, w, ts_s, lim, ruckig_stretch) for j in legs]
     else:
@@ -584,8 +580,10 @@ def plan_task(
     t = np.arange(n) * ts_s
     task = TaskTrajectory(t, X, Xd, Xdd, path, profile, float(cycle_s), float(ts_s), journeys, fz, fh)
     logger.debug(
-        "planned %s: peak |v| %s, peak |a| %s", task.describe(),
-        np.round(np.abs(Xd).max(axis=0), 3), np.round(np.abs(Xdd).max(axis=0), 1),
+        "planned %s: peak |v| %s, peak |a| %s",
+        task.describe(),
+        np.round(np.abs(Xd).max(axis=0), 3),
+        np.round(np.abs(Xdd).max(axis=0), 1),
     )
     return task
 
@@ -735,14 +733,15 @@ class FeasibilityReport:
     def format(self) -> str:
         """A few lines for the CLI."""
         f = lambda xs, k=1.0, d=1: " ".join(f"{k * x:7.{d}f}" for x in xs)  # noqa: E731
-        return "\n".join([
-            f"peak |tau| N·m  {f(self.peak_tau_nm)}   (limit {self.tau_limit_nm:.1f})",
-            f"rms tau N·m     {f(self.rms_tau_nm)}",
-            f"peak |qd| rad/s {f(self.peak_qd_rad_s, d=2)}   (limit {self.qd_limit_rad_s:.1f})",
-            "q min..max deg  " + " ".join(
-                f"{math.degrees(a):.1f}..{math.degrees(b):.1f}" for a, b in zip(self.q_min_rad, self.q_max_rad)
-            ),
-        ])
+        return "\n".join(
+            [
+                f"peak |tau| N·m  {f(self.peak_tau_nm)}   (limit {self.tau_limit_nm:.1f})",
+                f"rms tau N·m     {f(self.rms_tau_nm)}",
+                f"peak |qd| rad/s {f(self.peak_qd_rad_s, d=2)}   (limit {self.qd_limit_rad_s:.1f})",
+                "q min..max deg  "
+                + " ".join(f"{math.degrees(a):.1f}..{math.degrees(b):.1f}" for a, b in zip(self.q_min_rad, self.q_max_rad)),
+            ]
+        )
 
 
 def check_feasibility(ref: JointReference, model: Any, limits: JointLimits | None = None) -> FeasibilityReport:

@@ -55,10 +55,19 @@ PER_TRIAL_OBJECTS: dict[str, dict[tuple[int, str], str]] = {
         (int(BenchObj.TRIAL), "download"): "trial set-up",
     },
 }
-_STATUS_SUBS = {int(s) for s in (BenchTrialSub.STATUS, BenchTrialSub.TICKS_DONE, BenchTrialSub.FAULT_CODE,
-                                 BenchTrialSub.FAULT_TICK, BenchTrialSub.FAULT_NODE)}
-SPEED_NOTE = ("counted apart: the amount depends on how fast the emulator runs (wall-clock polls and "
-              "heartbeats), not on the experiment")
+_STATUS_SUBS = {
+    int(s)
+    for s in (
+        BenchTrialSub.STATUS,
+        BenchTrialSub.TICKS_DONE,
+        BenchTrialSub.FAULT_CODE,
+        BenchTrialSub.FAULT_TICK,
+        BenchTrialSub.FAULT_NODE,
+    )
+}
+SPEED_NOTE = (
+    "counted apart: the amount depends on how fast the emulator runs (wall-clock polls and heartbeats), not on the experiment"
+)
 
 
 def kind_of(key: SdoKey) -> tuple[str, str]:
@@ -94,8 +103,16 @@ class BusTimeAccounting:
     :param n_nodes: nodes that send heartbeats
     """
 
-    def __init__(self, *, io_bitrate: int = DEFAULT_BITRATE, fieldbus_bitrate: int = DEFAULT_BITRATE,
-                 ts_s: float, trial_s: float, heartbeat_ms: int, n_nodes: int) -> None:
+    def __init__(
+        self,
+        *,
+        io_bitrate: int = DEFAULT_BITRATE,
+        fieldbus_bitrate: int = DEFAULT_BITRATE,
+        ts_s: float,
+        trial_s: float,
+        heartbeat_ms: int,
+        n_nodes: int,
+    ) -> None:
         for name, rate in (("io_bitrate", io_bitrate), ("fieldbus_bitrate", fieldbus_bitrate)):
             if int(rate) != rate or rate <= 0:
                 raise ValueError(f"{name} must be a positive integer in bit/s, got {rate!r}")
@@ -129,9 +146,12 @@ class BusTimeAccounting:
         """The ``bus_time`` entry of ``summary.json`` after ``trials`` completed trials."""
         with self._lock:
             self.io.close()
-            return {"io": self._io_summary(trials), "fieldbus": self._fieldbus_summary(trials),
-                    "basis": "emulated time: classic CAN frames, worst-case bit stuffing (docs/canopen-objects.md §9), "
-                             "at each channel's bit rate; frames counted by COB-ID and SDO object, never by wall time"}
+            return {
+                "io": self._io_summary(trials),
+                "fieldbus": self._fieldbus_summary(trials),
+                "basis": "emulated time: classic CAN frames, worst-case bit stuffing (docs/canopen-objects.md §9), "
+                "at each channel's bit rate; frames counted by COB-ID and SDO object, never by wall time",
+            }
 
     def _io_summary(self, trials: int) -> dict[str, Any]:
         io = self.io
@@ -177,7 +197,9 @@ class BusTimeAccounting:
                 "experiment_bits_per_tick": 0,
                 "note": "the experiment sends nothing on the fieldbus during a trial (SDO only between trials)",
                 "heartbeat_model": {
-                    "period_ms": self.heartbeat_ms, "nodes": self.n_nodes, "bits_per_heartbeat": heartbeat_bits,
+                    "period_ms": self.heartbeat_ms,
+                    "nodes": self.n_nodes,
+                    "bits_per_heartbeat": heartbeat_bits,
                     "mean_tick": budget.fit(beats_per_tick * heartbeat_bits),
                     "worst_tick": budget.fit(self.n_nodes * heartbeat_bits if self.heartbeat_ms else 0),
                 },
@@ -185,19 +207,27 @@ class BusTimeAccounting:
             "between_trials": {
                 "trials": trials,
                 "basis": "one transfer of each object the host moves per trial (bits of the transfers of an object / "
-                         "their number: the same for every trial, as the sizes are)",
+                "their number: the same for every trial, as the sizes are)",
                 "bits_per_trial": per_trial_bits,
                 "seconds_per_trial": per_trial_s,
-                "by_kind_per_trial": {k: {"frames": e["frames"], "bits": e["bits"], "seconds": bits_to_s(e["bits"], rate)}
-                                      for k, e in sorted(per_trial.items())} if trials else {},
+                "by_kind_per_trial": {
+                    k: {"frames": e["frames"], "bits": e["bits"], "seconds": bits_to_s(e["bits"], rate)}
+                    for k, e in sorted(per_trial.items())
+                }
+                if trials
+                else {},
                 "trial_motion_s": self.trial_s,
                 "dwell_needed_s": per_trial_s,
                 "cycle_s": self.trial_s + per_trial_s,
                 "motion_share_percent": 100.0 * self.trial_s / (self.trial_s + per_trial_s)
-                if self.trial_s + per_trial_s > 0 else 0.0,
+                if self.trial_s + per_trial_s > 0
+                else 0.0,
             },
-            "once_per_run": {"bits": setup_bits, "seconds": bits_to_s(setup_bits, rate),
-                             "by_kind": {k: dict(e) for k, e in sorted(setup.items())}},
+            "once_per_run": {
+                "bits": setup_bits,
+                "seconds": bits_to_s(setup_bits, rate),
+                "by_kind": {k: dict(e) for k, e in sorted(setup.items())},
+            },
             "counted_apart": {
                 "note": SPEED_NOTE,
                 "sdo": {k: dict(e) for g in ("speed_dependent", "diagnostics") for k, e in sorted(groups.get(g, {}).items())},
@@ -214,14 +244,20 @@ def bus_time_lines(bt: dict[str, Any]) -> list[str]:
     if worst["fits"]:
         verdict = "fits"
     else:
-        verdict = (f"does NOT fit: {worst['excess_bits']:.0f} bits over ({worst['excess_percent_of_capacity']:.0f} % over "
-                   f"the capacity; a tick needs {worst['time_needed_s'] * 1e3:.3f} ms)")
-    lines = [f"bus time (emulated) io at {io['bitrate'] / 1e3:g} kbit/s: per tick {mean['bits']:.0f} bits mean, "
-             f"{worst['bits']:.0f} worst of {cap:.0f} ({min(worst['utilisation_percent'], 100.0):.1f} %): {verdict}"]
+        verdict = (
+            f"does NOT fit: {worst['excess_bits']:.0f} bits over ({worst['excess_percent_of_capacity']:.0f} % over "
+            f"the capacity; a tick needs {worst['time_needed_s'] * 1e3:.3f} ms)"
+        )
+    lines = [
+        f"bus time (emulated) io at {io['bitrate'] / 1e3:g} kbit/s: per tick {mean['bits']:.0f} bits mean, "
+        f"{worst['bits']:.0f} worst of {cap:.0f} ({min(worst['utilisation_percent'], 100.0):.1f} %): {verdict}"
+    ]
     bt_ = fb["between_trials"]
-    lines.append(f"bus time (emulated) fieldbus at {fb['bitrate'] / 1e3:g} kbit/s: between trials "
-                 f"{bt_['seconds_per_trial']:.3f} s per trial (feed-forward tables, trial set-up, recorder uploads) "
-                 f"-> a dwell of >= {bt_['dwell_needed_s']:.3f} s after each {bt_['trial_motion_s']:.3f} s trial, "
-                 f"cycle {bt_['cycle_s']:.3f} s ({bt_['motion_share_percent']:.0f} % in motion); once per run "
-                 f"{fb['once_per_run']['seconds']:.3f} s; polls and heartbeats counted apart (emulator-speed dependent)")
+    lines.append(
+        f"bus time (emulated) fieldbus at {fb['bitrate'] / 1e3:g} kbit/s: between trials "
+        f"{bt_['seconds_per_trial']:.3f} s per trial (feed-forward tables, trial set-up, recorder uploads) "
+        f"-> a dwell of >= {bt_['dwell_needed_s']:.3f} s after each {bt_['trial_motion_s']:.3f} s trial, "
+        f"cycle {bt_['cycle_s']:.3f} s ({bt_['motion_share_percent']:.0f} % in motion); once per run "
+        f"{fb['once_per_run']['seconds']:.3f} s; polls and heartbeats counted apart (emulator-speed dependent)"
+    )
     return lines

@@ -150,6 +150,8 @@ class HostHeartbeat(threading.Thread):
         self._stop_event.set()
         if self.is_alive() and self is not threading.current_thread():
             self.join(timeout=1.0)
+
+
 #: longest wait for the four TPDOs of one tick (× ILCRIG_TIMEOUT_SCALE), s; the first tick of a
 #: trial waits as long as the plant does for its first torque frames
 TPDO_TIMEOUT_S = 2.0
@@ -192,17 +194,31 @@ class RigBench:
         ``wait_s``) and set up again instead of ending the run (during a trial it always ends it)
     """
 
-    def __init__(self, cfg: ExperimentConfig, transport: TransportConfig, *,
-                 out_dir: Path | None, wait_s: float = 20.0, pause_s: float = 0.0, recover_s: float = 0.0,
-                 realtime: bool = False, io_bitrate: int = DEFAULT_BITRATE,
-                 fieldbus_bitrate: int = DEFAULT_BITRATE, bus_time_hub: bool = False,
-                 rt_scheduling: dict[str, Any] | None = None) -> None:
+    def __init__(
+        self,
+        cfg: ExperimentConfig,
+        transport: TransportConfig,
+        *,
+        out_dir: Path | None,
+        wait_s: float = 20.0,
+        pause_s: float = 0.0,
+        recover_s: float = 0.0,
+        realtime: bool = False,
+        io_bitrate: int = DEFAULT_BITRATE,
+        fieldbus_bitrate: int = DEFAULT_BITRATE,
+        bus_time_hub: bool = False,
+        rt_scheduling: dict[str, Any] | None = None,
+    ) -> None:
         self.cfg = cfg
         self.out_dir = out_dir
         self.bus_time = BusTimeAccounting(
-            io_bitrate=io_bitrate, fieldbus_bitrate=fieldbus_bitrate, ts_s=cfg.ts_s,
-            trial_s=round(2 * cfg.cycle_s / cfg.ts_s) * cfg.ts_s, heartbeat_ms=NODE_HEARTBEAT_MS,
-            n_nodes=len(DRIVE_NODE_IDS) + 2)  # the drives, the bench and the host (HOST_HEARTBEAT_MS, the same)
+            io_bitrate=io_bitrate,
+            fieldbus_bitrate=fieldbus_bitrate,
+            ts_s=cfg.ts_s,
+            trial_s=round(2 * cfg.cycle_s / cfg.ts_s) * cfg.ts_s,
+            heartbeat_ms=NODE_HEARTBEAT_MS,
+            n_nodes=len(DRIVE_NODE_IDS) + 2,
+        )  # the drives, the bench and the host (HOST_HEARTBEAT_MS, the same)
         self.realtime = realtime
         #: how the launcher scheduled the lockstep processes of a real-time run (realtime.raise_lockstep_priority)
         self.rt_scheduling = rt_scheduling
@@ -253,9 +269,16 @@ class RigBench:
                 classify = self.bus_time.add_io if name == IO else self.bus_time.add_fieldbus
                 # rounds with pauses only where the hub holds the frames; a kernel socket would drop them
                 bulk = transport.channel(name).interface == HUB_INTERFACE
-                self.monitors.append(ChannelMonitor(
-                    transport.open(name, passive=True), name, log, classify, bulk=bulk,
-                    classify_frames=self.bus_time.add_io_frames if name == IO else None))
+                self.monitors.append(
+                    ChannelMonitor(
+                        transport.open(name, passive=True),
+                        name,
+                        log,
+                        classify,
+                        bulk=bulk,
+                        classify_frames=self.bus_time.add_io_frames if name == IO else None,
+                    )
+                )
             cast(list[Any], self.network.listeners).append(self._fieldbus_errors)  # notes a failing fieldbus
             self.network.connect()
             self.drive_nodes = [self.network.add_node(n, str(DRIVE_EDS_PATH)) for n in DRIVE_NODE_IDS]
@@ -292,8 +315,15 @@ class RigBench:
         # was stopped reads it late, but the node sent it when it detected the fault
         late = now_wall - stamp if 0.0 <= now_wall - stamp < 3600.0 else 0.0
         with self._lock:
-            self.emcy.append({"node": node_id, "code": err.code, "register": err.register,
-                              "data": bytes(err.data).hex(), "t_s": round(t_rx - self._t_start, 4)})
+            self.emcy.append(
+                {
+                    "node": node_id,
+                    "code": err.code,
+                    "register": err.register,
+                    "data": bytes(err.data).hex(),
+                    "t_s": round(t_rx - self._t_start, 4),
+                }
+            )
             if err.code & 0xFF00:  # not an error reset
                 self._pending_emcy.append((node_id, int(err.code), bytes(err.data), t_rx - late, now_wall - late))
 
@@ -347,19 +377,35 @@ class RigBench:
             errors.append((self._heartbeat.error, now, FIELDBUS))
         for err, t, channel in errors:
             if err is not None:
-                return FaultRecord(FaultKind.BUS_LOST, f"the bus is gone ({channel}: {err})", node=bus_name,
-                                   detected_by="host", t_detected_mono=t or now, latency_ms=0.0,
-                                   latency_basis="bus error")
+                return FaultRecord(
+                    FaultKind.BUS_LOST,
+                    f"the bus is gone ({channel}: {err})",
+                    node=bus_name,
+                    detected_by="host",
+                    t_detected_mono=t or now,
+                    latency_ms=0.0,
+                    latency_basis="bus error",
+                )
         for m in self.monitors:
             if m.log_error is not None:
                 kind = FaultKind.DISK_FULL if m.log_disk_full else FaultKind.OUTPUT_ERROR
                 what = "disk full" if m.log_disk_full else "cannot write"
-                return FaultRecord(kind, f"{what}: the {m.name}.log candump log stopped ({m.log_error})",
-                                   detected_by="host", t_detected_mono=m.log_error_t or now, latency_ms=0.0,
-                                   latency_basis="failed write")
+                return FaultRecord(
+                    kind,
+                    f"{what}: the {m.name}.log candump log stopped ({m.log_error})",
+                    detected_by="host",
+                    t_detected_mono=m.log_error_t or now,
+                    latency_ms=0.0,
+                    latency_basis="failed write",
+                )
             if m.error_frames:
-                return FaultRecord(FaultKind.FRAME_ERROR, f"a damaged frame on {m.name} (bus error frame)",
-                                   node=m.name, detected_by="host", t_detected_mono=m.first_error_frame_t or now)
+                return FaultRecord(
+                    FaultKind.FRAME_ERROR,
+                    f"a damaged frame on {m.name} (bus error frame)",
+                    node=m.name,
+                    detected_by="host",
+                    t_detected_mono=m.first_error_frame_t or now,
+                )
         with self._lock:
             pending, self._pending_emcy = self._pending_emcy, []
         if pending:
@@ -375,21 +421,36 @@ class RigBench:
                 heard = [self.heartbeats.last_heard(n) for n in everyone]
             quiet = 1.2 * NODE_HEARTBEAT_MS / 1000.0 * self.scale  # > a period: every node missed a beat
             if set(report.overdue) >= everyone or all(t is None or now - t > quiet for t in heard):
-                return FaultRecord(FaultKind.BUS_SILENT, f"no heartbeat from any node for {1000 * self.consumer_s:.0f} ms: "
-                                   f"the bus is silent ({bus_name} stalled?)", node=bus_name, detected_by="host",
-                                   t_detected_mono=now)
+                return FaultRecord(
+                    FaultKind.BUS_SILENT,
+                    f"no heartbeat from any node for {1000 * self.consumer_s:.0f} ms: the bus is silent ({bus_name} stalled?)",
+                    node=bus_name,
+                    detected_by="host",
+                    t_detected_mono=now,
+                )
             nid = sorted(report.overdue, key=lambda n: (n == BENCH_NODE_ID, n))[0]
             seen = last.get(nid)
             silent = f"{1000 * (now - seen):.0f} ms" if seen is not None else "ever"
-            return FaultRecord(FaultKind.NODE_LOST, f"heartbeat of {node_name(nid)} lost (silent for {silent}: "
-                               "the process died or stalled)", node=node_name(nid), node_id=nid, detected_by="host",
-                               t_detected_mono=now,
-                               latency_ms=1000 * (now - seen) - NODE_HEARTBEAT_MS * self.scale if seen else None,
-                               latency_basis="its next heartbeat was due" if seen else None)
+            return FaultRecord(
+                FaultKind.NODE_LOST,
+                f"heartbeat of {node_name(nid)} lost (silent for {silent}: the process died or stalled)",
+                node=node_name(nid),
+                node_id=nid,
+                detected_by="host",
+                t_detected_mono=now,
+                latency_ms=1000 * (now - seen) - NODE_HEARTBEAT_MS * self.scale if seen else None,
+                latency_basis="its next heartbeat was due" if seen else None,
+            )
         if report.booted:
             nid = report.booted[0]
-            return FaultRecord(FaultKind.NODE_LOST, f"{node_name(nid)} booted again during the run (it was reset "
-                               "or restarted)", node=node_name(nid), node_id=nid, detected_by="host", t_detected_mono=now)
+            return FaultRecord(
+                FaultKind.NODE_LOST,
+                f"{node_name(nid)} booted again during the run (it was reset or restarted)",
+                node=node_name(nid),
+                node_id=nid,
+                detected_by="host",
+                t_detected_mono=now,
+            )
         return None
 
     def _classify_emcy(self, node_id: int, code: int, data: bytes, t_mono: float, t_wall: float) -> FaultRecord:
@@ -401,37 +462,72 @@ class RigBench:
             except ValueError:
                 fault = BenchFault.NONE
             drive, tick = data[1], int.from_bytes(data[2:4], "little")
-            kinds = {BenchFault.PLANT: FaultKind.PLANT_ERROR, BenchFault.TICK_TIMEOUT: FaultKind.FRAME_LOST,
-                     BenchFault.TICK_SEQUENCE: FaultKind.FRAME_SEQUENCE, BenchFault.BAD_FRAME: FaultKind.FRAME_ERROR,
-                     BenchFault.HOST_LOST: FaultKind.HOST_LOST, BenchFault.ABORTED: FaultKind.TRIAL_FAULT}
+            kinds = {
+                BenchFault.PLANT: FaultKind.PLANT_ERROR,
+                BenchFault.TICK_TIMEOUT: FaultKind.FRAME_LOST,
+                BenchFault.TICK_SEQUENCE: FaultKind.FRAME_SEQUENCE,
+                BenchFault.BAD_FRAME: FaultKind.FRAME_ERROR,
+                BenchFault.HOST_LOST: FaultKind.HOST_LOST,
+                BenchFault.ABORTED: FaultKind.TRIAL_FAULT,
+            }
             texts = {
                 BenchFault.PLANT: f"plant error at tick {tick}",
                 BenchFault.TICK_TIMEOUT: f"io frame lost or late: no torque frame of drive {drive} for tick {tick} "
-                                         "within the deadline",
+                "within the deadline",
                 BenchFault.TICK_SEQUENCE: f"io frame out of sequence (duplicated, stale or skipped) from drive {drive} "
-                                          f"at tick {tick}",
-                BenchFault.BAD_FRAME: (f"malformed torque frame of drive {drive} at tick {tick}" if drive
-                                       else f"damaged io frame (bus error frame) at tick {tick}"),
+                f"at tick {tick}",
+                BenchFault.BAD_FRAME: (
+                    f"malformed torque frame of drive {drive} at tick {tick}"
+                    if drive
+                    else f"damaged io frame (bus error frame) at tick {tick}"
+                ),
                 BenchFault.HOST_LOST: "the host's heartbeat was lost",
                 BenchFault.ABORTED: f"the test bench aborted the trial at tick {tick}",
             }
             node = f"drive{drive}" if drive else ("host" if fault == BenchFault.HOST_LOST else "plant")
-            return FaultRecord(kinds.get(fault, FaultKind.EMCY),
-                               f"{texts.get(fault, f'fault {int(fault)}')} (EMCY 0x{code:04X} of the test bench)",
-                               node=node, node_id=drive or (HOST_NODE_ID if fault == BenchFault.HOST_LOST else BENCH_NODE_ID),
-                               tick=tick, detected_by="plant", t_detected_mono=t_mono, t_detected_wall=t_wall)
+            return FaultRecord(
+                kinds.get(fault, FaultKind.EMCY),
+                f"{texts.get(fault, f'fault {int(fault)}')} (EMCY 0x{code:04X} of the test bench)",
+                node=node,
+                node_id=drive or (HOST_NODE_ID if fault == BenchFault.HOST_LOST else BENCH_NODE_ID),
+                tick=tick,
+                detected_by="plant",
+                t_detected_mono=t_mono,
+                t_detected_wall=t_wall,
+            )
         name = node_name(node_id)
         if code == 0x8130:
-            return FaultRecord(FaultKind.HOST_LOST, f"the host's heartbeat was lost (EMCY 0x8130 of {name})", node="host",
-                               node_id=HOST_NODE_ID, detected_by=name, t_detected_mono=t_mono, t_detected_wall=t_wall)
+            return FaultRecord(
+                FaultKind.HOST_LOST,
+                f"the host's heartbeat was lost (EMCY 0x8130 of {name})",
+                node="host",
+                node_id=HOST_NODE_ID,
+                detected_by=name,
+                t_detected_mono=t_mono,
+                t_detected_wall=t_wall,
+            )
         if code == 0x8200:
             expected, got = int.from_bytes(data[1:3], "little"), int.from_bytes(data[3:5], "little")
-            return FaultRecord(FaultKind.FRAME_SEQUENCE, f"io tick out of sequence at {name}: expected tick {expected}, "
-                               f"got {got} (EMCY 0x8200)", node=name, node_id=node_id, tick=expected, detected_by=name,
-                               t_detected_mono=t_mono, t_detected_wall=t_wall)
+            return FaultRecord(
+                FaultKind.FRAME_SEQUENCE,
+                f"io tick out of sequence at {name}: expected tick {expected}, got {got} (EMCY 0x8200)",
+                node=name,
+                node_id=node_id,
+                tick=expected,
+                detected_by=name,
+                t_detected_mono=t_mono,
+                t_detected_wall=t_wall,
+            )
         what = "following error" if code == 0x8611 else "fault"
-        return FaultRecord(FaultKind.EMCY, f"{what} of {name} (EMCY 0x{code:04X})", node=name, node_id=node_id,
-                           detected_by=name, t_detected_mono=t_mono, t_detected_wall=t_wall)
+        return FaultRecord(
+            FaultKind.EMCY,
+            f"{what} of {name} (EMCY 0x{code:04X})",
+            node=name,
+            node_id=node_id,
+            detected_by=name,
+            t_detected_mono=t_mono,
+            t_detected_wall=t_wall,
+        )
 
     def _declare(self, record: FaultRecord) -> None:
         """The run is over: keep ``record`` (the first fault), torque off everywhere at once
@@ -449,8 +545,14 @@ class RigBench:
             attach_injection(record, read_injections(self.out_dir))
         with self._lock:
             self._fault = record
-        logger.warning("fault: %s (%s) at trial %s, tick %s, detected by %s", record.message, record.kind,
-                       record.trial, record.tick, record.detected_by)
+        logger.warning(
+            "fault: %s (%s) at trial %s, tick %s, detected by %s",
+            record.message,
+            record.kind,
+            record.trial,
+            record.tick,
+            record.detected_by,
+        )
         for acc in self._accesses:
             acc.cancel(f"the run stopped: {record.message}")
         self._tpdos.put((0, b""))  # wakes a SYNC producer waiting for TPDOs
@@ -487,13 +589,11 @@ class RigBench:
                     pass
             self._raise_if_fault()
             if waiting and time.monotonic() > deadline:
-                raise TrialFault(f"node(s) {', '.join(map(str, sorted(waiting)))} did not answer within "
-                                 f"{self.wait_s:g} s {what}")
+                raise TrialFault(f"node(s) {', '.join(map(str, sorted(waiting)))} did not answer within {self.wait_s:g} s {what}")
         consumer_ms = min(round(CONSUMER_TIME_MS * self.scale), 0xFFFF)
         for nid in sorted(node_ids):
             nodes[nid].sdo.download(0x1017, 0, NODE_HEARTBEAT_MS.to_bytes(2, "little"))
-            nodes[nid].sdo.download(CONSUMER_HEARTBEAT_INDEX, 1,
-                                    consumer_entry(HOST_NODE_ID, consumer_ms).to_bytes(4, "little"))
+            nodes[nid].sdo.download(CONSUMER_HEARTBEAT_INDEX, 1, consumer_entry(HOST_NODE_ID, consumer_ms).to_bytes(4, "little"))
             with self._lock:
                 self.heartbeats.watch(nid, self.consumer_s)
         if self.cyclic:
@@ -502,8 +602,7 @@ class RigBench:
         for nid in sorted(node_ids):
             nodes[nid].nmt.send_command(NmtCommand.START)
         if BENCH_NODE_ID in node_ids:
-            self.bench.configure(self.cfg.ts_s, self.cfg.substeps, self.cfg.disturbance, self.cfg.seed,
-                                 paced=self.realtime)
+            self.bench.configure(self.cfg.ts_s, self.cfg.substeps, self.cfg.disturbance, self.cfg.seed, paced=self.realtime)
         t_end = time.monotonic() + 5.0
         while True:
             with self._lock:
@@ -523,8 +622,10 @@ class RigBench:
         node.nmt.send_command(NmtCommand.ENTER_PRE_OPERATIONAL)
         node.rpdo.read()
         node.tpdo.read()
-        for pdo_map, mapping, cob_id in ((node.rpdo[RPDO_NUMBER], CSP_RPDO_MAP, rpdo_cob_id(node.id)),
-                                         (node.tpdo[TPDO_NUMBER], TPDO_MAP, tpdo_cob_id(node.id))):
+        for pdo_map, mapping, cob_id in (
+            (node.rpdo[RPDO_NUMBER], CSP_RPDO_MAP, rpdo_cob_id(node.id)),
+            (node.tpdo[TPDO_NUMBER], TPDO_MAP, tpdo_cob_id(node.id)),
+        ):
             pdo_map.clear()
             for index, sub, bits in mapping:
                 pdo_map.add_variable(index, sub, bits)
@@ -535,10 +636,8 @@ class RigBench:
         self._rpdo_maps[node.id] = node.rpdo[RPDO_NUMBER]
         if node.id not in self._tpdo_subscribed:  # the map object (and its callbacks) lives on
             self._tpdo_subscribed.add(node.id)
-            node.tpdo[TPDO_NUMBER].add_callback(
-                lambda m, nid=node.id: self._tpdos.put((nid, bytes(m.data))))
-        logger.info("node %d: RPDO1 0x%03X and TPDO1 0x%03X configured", node.id, rpdo_cob_id(node.id),
-                    tpdo_cob_id(node.id))
+            node.tpdo[TPDO_NUMBER].add_callback(lambda m, nid=node.id: self._tpdos.put((nid, bytes(m.data))))
+        logger.info("node %d: RPDO1 0x%03X and TPDO1 0x%03X configured", node.id, rpdo_cob_id(node.id), tpdo_cob_id(node.id))
 
     def start(self) -> None:
         """Wait for all five nodes' boot-up, then as :meth:`_bring_up`; from now on the watchdog
@@ -567,8 +666,9 @@ class RigBench:
         try:
             self.network.nmt.send_command(NmtCommand.RESET_COMMUNICATION)
             if not all_booted.wait(self.wait_s):
-                raise TrialFault(f"no boot-up from node(s) {', '.join(map(str, sorted(node_ids - booted)))} "
-                                 f"within {self.wait_s:g} s {what}")
+                raise TrialFault(
+                    f"no boot-up from node(s) {', '.join(map(str, sorted(node_ids - booted)))} within {self.wait_s:g} s {what}"
+                )
         finally:
             for nid in node_ids:
                 self.network.unsubscribe(0x700 + nid, on_boot_up)
@@ -594,12 +694,19 @@ class RigBench:
         logger.warning("node(s) %s lost or rebooted before trial %d: waiting for them", sorted(lost), trial)
         self._bring_up(lost, "after losing them")
         for nid in sorted(lost):
-            self.recoveries.append({"node": nid, "before_trial": trial,
-                                    "heartbeat_lost": nid in report.overdue, "boot_up_seen": nid in report.booted})
+            self.recoveries.append(
+                {
+                    "node": nid,
+                    "before_trial": trial,
+                    "heartbeat_lost": nid in report.overdue,
+                    "boot_up_seen": nid in report.booted,
+                }
+            )
         return [DRIVE_NODE_IDS.index(n) for n in sorted(lost) if n in DRIVE_NODE_IDS]
 
-    def run_trial(self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray,
-                  cyclic: CyclicSetpoints | None = None) -> CyclicActuals | None:
+    def run_trial(
+        self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray, cyclic: CyclicSetpoints | None = None
+    ) -> CyclicActuals | None:
         self._trial = trial
         self._raise_if_fault()
         if not self._gc_frozen:
@@ -649,17 +756,34 @@ class RigBench:
         now = time.monotonic()
         if isinstance(exc, BenchTrialFault):
             st = exc.state
-            kinds = {BenchFault.PLANT: FaultKind.PLANT_ERROR, BenchFault.TICK_TIMEOUT: FaultKind.FRAME_LOST,
-                     BenchFault.TICK_SEQUENCE: FaultKind.FRAME_SEQUENCE, BenchFault.BAD_FRAME: FaultKind.FRAME_ERROR,
-                     BenchFault.HOST_LOST: FaultKind.HOST_LOST}
-            record = FaultRecord(kinds.get(st.fault, FaultKind.TRIAL_FAULT), f"test bench: {st.describe()}",
-                                 node=f"drive{st.fault_node}" if st.fault_node else "plant",
-                                 node_id=st.fault_node or BENCH_NODE_ID, trial=trial, tick=st.fault_tick,
-                                 detected_by="plant", t_detected_mono=now)
+            kinds = {
+                BenchFault.PLANT: FaultKind.PLANT_ERROR,
+                BenchFault.TICK_TIMEOUT: FaultKind.FRAME_LOST,
+                BenchFault.TICK_SEQUENCE: FaultKind.FRAME_SEQUENCE,
+                BenchFault.BAD_FRAME: FaultKind.FRAME_ERROR,
+                BenchFault.HOST_LOST: FaultKind.HOST_LOST,
+            }
+            record = FaultRecord(
+                kinds.get(st.fault, FaultKind.TRIAL_FAULT),
+                f"test bench: {st.describe()}",
+                node=f"drive{st.fault_node}" if st.fault_node else "plant",
+                node_id=st.fault_node or BENCH_NODE_ID,
+                trial=trial,
+                tick=st.fault_tick,
+                detected_by="plant",
+                t_detected_mono=now,
+            )
         elif isinstance(exc, SdoTransportError | SdoAbort):
             nid = getattr(exc, "node_id", None)
-            record = FaultRecord(FaultKind.SDO_ERROR, str(exc), node=node_name(nid) if nid else None, node_id=nid,
-                                 trial=trial, detected_by="host", t_detected_mono=now)
+            record = FaultRecord(
+                FaultKind.SDO_ERROR,
+                str(exc),
+                node=node_name(nid) if nid else None,
+                node_id=nid,
+                trial=trial,
+                detected_by="host",
+                t_detected_mono=now,
+            )
         else:
             return None
         if self.out_dir is not None:
@@ -731,15 +855,18 @@ class RigBench:
             "transport": self.transport.as_dict(),
             "channels": channels,
             "channels_basis": "every frame seen on the channel since the host started; emulator_throughput_bits_per_s: "
-                              "their bits (worst-case stuffing) per second of wall time, a speed of the emulator, "
-                              "not a bus load (see bus_time)",
+            "their bits (worst-case stuffing) per second of wall time, a speed of the emulator, "
+            "not a bus load (see bus_time)",
             "bus_time": self.bus_time.summary(len(self.timings)),
             "bus_time_hub": self.bus_time_hub,
             "elapsed_s": wall,
-            "heartbeat": {"host_node_id": HOST_NODE_ID, "host_period_ms": HOST_HEARTBEAT_MS,
-                          "node_period_ms": NODE_HEARTBEAT_MS, "consumer_time_ms": CONSUMER_TIME_MS * self.scale},
-            "timing": timing_summary(self.timings, self.cfg.ts_s, self.realtime, self.rt_scheduling, self.steal,
-                                     self.misses),
+            "heartbeat": {
+                "host_node_id": HOST_NODE_ID,
+                "host_period_ms": HOST_HEARTBEAT_MS,
+                "node_period_ms": NODE_HEARTBEAT_MS,
+                "consumer_time_ms": CONSUMER_TIME_MS * self.scale,
+            },
+            "timing": timing_summary(self.timings, self.cfg.ts_s, self.realtime, self.rt_scheduling, self.steal, self.misses),
             "emcy": self.emcy,
             "recoveries": self.recoveries,
         } | ({"pdo_frames": dict(self.pdo_frames)} if self.cyclic else {})
@@ -759,8 +886,11 @@ class RigBench:
         bus_ok = self.network.bus is not None and self._fieldbus_errors.error is None
         now = time.monotonic()
         with self._lock:
-            alive = {nid for nid in (*DRIVE_NODE_IDS, BENCH_NODE_ID)
-                     if (t := self.heartbeats.last_heard(nid)) is not None and now - t <= self.consumer_s}
+            alive = {
+                nid
+                for nid in (*DRIVE_NODE_IDS, BENCH_NODE_ID)
+                if (t := self.heartbeats.last_heard(nid)) is not None and now - t <= self.consumer_s
+            }
         how = "NMT STOP"
         if bus_ok and not faulted and self.drives:
             if self._in_trial or self._tick() is not None:
@@ -813,16 +943,35 @@ class RigBench:
         for nid in DRIVE_NODE_IDS:
             name = node_name(nid)
             if nid in seen:
-                out.append({"node": name, "node_id": nid, "torque": "off", "nmt": "STOPPED",
-                            "evidence": f"{how}; its heartbeat reported STOPPED {1000 * (seen[nid] - t_stop):.0f} ms later"})
+                out.append(
+                    {
+                        "node": name,
+                        "node_id": nid,
+                        "torque": "off",
+                        "nmt": "STOPPED",
+                        "evidence": f"{how}; its heartbeat reported STOPPED {1000 * (seen[nid] - t_stop):.0f} ms later",
+                    }
+                )
             elif nid in alive:
-                out.append({"node": name, "node_id": nid, "torque": "unknown", "nmt": None,
-                            "evidence": f"{how} sent; no STOPPED heartbeat within "
-                                        f"{1000 * (deadline - t_stop):.0f} ms"})
+                out.append(
+                    {
+                        "node": name,
+                        "node_id": nid,
+                        "torque": "unknown",
+                        "nmt": None,
+                        "evidence": f"{how} sent; no STOPPED heartbeat within {1000 * (deadline - t_stop):.0f} ms",
+                    }
+                )
             else:
-                out.append({"node": name, "node_id": nid, "torque": "unknown", "nmt": None,
-                            "evidence": "no heartbeat (the node or the bus is lost): its own fault reaction applies "
-                                        "(see its log)"})
+                out.append(
+                    {
+                        "node": name,
+                        "node_id": nid,
+                        "torque": "unknown",
+                        "nmt": None,
+                        "evidence": "no heartbeat (the node or the bus is lost): its own fault reaction applies (see its log)",
+                    }
+                )
         return out
 
 
@@ -836,19 +985,26 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
     check_out_dir(out, iterations=cfg.iterations)
     print_plan(sys.stdout, "host", plan, extra=f", transport {transport.name}")
     try:
-        bench = RigBench(cfg, transport, out_dir=out, wait_s=args.wait, pause_s=args.pause,
-                         recover_s=getattr(args, "recover", 0.0) or 0.0,
-                         realtime=bool(args.realtime),
-                         rt_scheduling=json.loads(args.rt_scheduling) if getattr(args, "rt_scheduling", None) else None,
-                         io_bitrate=args.io_bitrate or DEFAULT_BITRATE,
-                         fieldbus_bitrate=cfg.fieldbus_bitrate,
-                         bus_time_hub=bool(getattr(args, "bus_time", False)))
+        bench = RigBench(
+            cfg,
+            transport,
+            out_dir=out,
+            wait_s=args.wait,
+            pause_s=args.pause,
+            recover_s=getattr(args, "recover", 0.0) or 0.0,
+            realtime=bool(args.realtime),
+            rt_scheduling=json.loads(args.rt_scheduling) if getattr(args, "rt_scheduling", None) else None,
+            io_bitrate=args.io_bitrate or DEFAULT_BITRATE,
+            fieldbus_bitrate=cfg.fieldbus_bitrate,
+            bus_time_hub=bool(getattr(args, "bus_time", False)),
+        )
     except (OSError, can.CanError, IlcrigError) as exc:
         sys.stderr.write(f"ilcrig: error: cannot open the bus ({transport.name}): {exc}\n")
         return EXIT_FAULT
     with interrupt_on_signals():
-        res = run_session(plan, bench, out, mode="rig", stream=sys.stdout,
-                          fail_writes_from_trial=getattr(args, "inject_disk_full", None))
+        res = run_session(
+            plan, bench, out, mode="rig", stream=sys.stdout, fail_writes_from_trial=getattr(args, "inject_disk_full", None)
+        )
     s = res.summary
     ch = s.get("bench", {}).get("channels", {})
     fb = ch.get(FIELDBUS, {})
@@ -857,14 +1013,17 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
         sys.stdout.write(timing_line(timing) + "\n")
     hub_rates = s.get("bench", {}).get("bus_time_hub")
     if hub_rates:
-        sys.stdout.write(f"bus-time hub: io at {hub_rates[IO] / 1000:g} kbit/s, fieldbus at {hub_rates[FIELDBUS] / 1000:g} "
-                         f"kbit/s: frames delivered in arbitration order, each after its bit time\n")
+        sys.stdout.write(
+            f"bus-time hub: io at {hub_rates[IO] / 1000:g} kbit/s, fieldbus at {hub_rates[FIELDBUS] / 1000:g} "
+            f"kbit/s: frames delivered in arbitration order, each after its bit time\n"
+        )
     bus_time = s.get("bench", {}).get("bus_time")
     if bus_time and s["iterations"]:
         sys.stdout.write("".join(line + "\n" for line in bus_time_lines(bus_time)))
     sys.stdout.write(
         f"{s['ticks']} ticks, {s['ticks_per_s']:.0f} ticks/s in trials (host's wall clock); fieldbus {fb.get('frames', 0)} "
         f"frames, io {ch.get(IO, {}).get('frames', 0)} frames; "
-        f"trace_sha256 {s['trace_sha256'][:16]}…; summary: {out / 'summary.json'}\n")
+        f"trace_sha256 {s['trace_sha256'][:16]}…; summary: {out / 'summary.json'}\n"
+    )
     sys.stdout.flush()
     return report_fault(res, out / "summary.json")

@@ -77,9 +77,15 @@ class IdlePollers:
         self.procs: list[subprocess.Popen[bytes]] = []
         try:
             for _ in range(n_cpus):
-                self.procs.append(subprocess.Popen(
-                    [sys.executable, "-S", "-c", _LOOP, str(os.getpid())], stdin=subprocess.DEVNULL,
-                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True))
+                self.procs.append(
+                    subprocess.Popen(
+                        [sys.executable, "-S", "-c", _LOOP, str(os.getpid())],
+                        stdin=subprocess.DEVNULL,
+                        stdout=subprocess.DEVNULL,
+                        stderr=subprocess.DEVNULL,
+                        start_new_session=True,
+                    )
+                )
         except OSError:
             self.stop()
             raise

@@ -43,8 +43,9 @@ class ProcessInjector(threading.Thread):
     :param log_path: the injection records' file
     """
 
-    def __init__(self, specs: Sequence[FaultSpec], transport: TransportConfig,
-                 pid_of: Callable[[str], int | None], log_path: Path | None) -> None:
+    def __init__(
+        self, specs: Sequence[FaultSpec], transport: TransportConfig, pid_of: Callable[[str], int | None], log_path: Path | None
+    ) -> None:
         super().__init__(name="injector", daemon=True)
         self.pending = [s for s in specs if s.action in ("kill", "stall", "emcy")]
         self.transport = transport
@@ -62,8 +63,12 @@ class ProcessInjector(threading.Thread):
     def run(self) -> None:
         try:
             self._io = self.transport.open("io")
-            self._io.set_filters([{"can_id": io_frames.CONTROL_COB_ID, "can_mask": 0x7FF},
-                                  {"can_id": io_frames.ENCODER_COB_BASE, "can_mask": 0x7FF}])
+            self._io.set_filters(
+                [
+                    {"can_id": io_frames.CONTROL_COB_ID, "can_mask": 0x7FF},
+                    {"can_id": io_frames.ENCODER_COB_BASE, "can_mask": 0x7FF},
+                ]
+            )
             if any(s.action == "emcy" for s in self.pending):
                 self._fieldbus = self.transport.open("fieldbus")
             while self.pending and not self._stop_event.is_set():
@@ -88,12 +93,19 @@ class ProcessInjector(threading.Thread):
                         bus.shutdown()
 
     def _inject(self, spec: FaultSpec, tick: int) -> None:
-        record: dict[str, object] = {"by": "launcher", "spec": spec.text, "kind": spec.action, "target": spec.target,
-                                     "trial": self.follower.trial, "tick": tick}
+        record: dict[str, object] = {
+            "by": "launcher",
+            "spec": spec.text,
+            "kind": spec.action,
+            "target": spec.target,
+            "trial": self.follower.trial,
+            "tick": tick,
+        }
         if spec.action == "emcy":
             node_id = DEFAULT_BENCH_NODE_ID if spec.target == "plant" else int(spec.target.removeprefix("drive"))
-            msg = can.Message(arbitration_id=emcy_cob_id(node_id), is_extended_id=False,
-                              data=encode_emcy(spec.emcy_code, 0x01, bytes(5)))
+            msg = can.Message(
+                arbitration_id=emcy_cob_id(node_id), is_extended_id=False, data=encode_emcy(spec.emcy_code, 0x01, bytes(5))
+            )
             self.records.append(write_record(self.log_path, record | {"code": spec.emcy_code}))
             if self._fieldbus is not None:
                 self._fieldbus.send(msg)

@@ -121,8 +121,11 @@ ROLE_ENV_PREFIX: str = "ILCRIG_ROLE_CMD_"
 #: ``[sys.executable, "-m", "host.cli", ROLE]``
 ROLE_COMMAND: dict[str, list[str]] = {}
 
-_SIGNAL_EXIT: dict[int, int] = {signal.SIGINT: EXIT_INTERRUPTED, signal.SIGTERM: EXIT_TERMINATED,
-                                 signal.SIGHUP: 128 + signal.SIGHUP}
+_SIGNAL_EXIT: dict[int, int] = {
+    signal.SIGINT: EXIT_INTERRUPTED,
+    signal.SIGTERM: EXIT_TERMINATED,
+    signal.SIGHUP: 128 + signal.SIGHUP,
+}
 _HANDLED_SIGNALS: tuple[int, ...] = tuple(_SIGNAL_EXIT)
 _PR_SET_PDEATHSIG = 1
 _HUB_BLOCKED_SIGNALS = frozenset({signal.SIGINT, signal.SIGHUP})
@@ -186,8 +189,9 @@ def rig_role_args(args: argparse.Namespace) -> list[str]:
     return argv
 
 
-def child_argv(role: str, bus_args: Sequence[str], *, node: int | None = None, extra: Sequence[str] = (),
-               debug: bool = False) -> list[str]:
+def child_argv(
+    role: str, bus_args: Sequence[str], *, node: int | None = None, extra: Sequence[str] = (), debug: bool = False
+) -> list[str]:
     """Complete argv of one role: command (or test override) + role args + bus args."""
     own = ["--node", str(node)] if node is not None else []
     return role_command(role, node, debug=debug) + own + list(extra) + list(bus_args)
@@ -324,8 +328,9 @@ def _check_specs(specs: list[FaultSpec], bus: str, iterations: int) -> None:
         if spec.action in FRAME_ACTIONS and bus not in ("hub", "auto"):
             raise FaultSpecError(f"--inject {spec.text}: frame faults are done by the hub: use --bus hub")
         if spec.trial >= iterations:
-            raise FaultSpecError(f"--inject {spec.text}: trial {spec.trial} is beyond the run's {iterations} trials "
-                                 f"(0..{iterations - 1})")
+            raise FaultSpecError(
+                f"--inject {spec.text}: trial {spec.trial} is beyond the run's {iterations} trials (0..{iterations - 1})"
+            )
 
 
 @dataclass
@@ -392,8 +397,10 @@ class RigLauncher:
         debug = bool(getattr(args, "debug", False))
         tc = transport_from_name(args.bus, args.hub)  # ValueError subclasses on bad input
         if tc.name == "virtual":
-            raise ValueError("the virtual transport works inside one process only; use hub, socketcan, "
-                             "udp_multicast or can_config with `ilcrig run`")
+            raise ValueError(
+                "the virtual transport works inside one process only; use hub, socketcan, "
+                "udp_multicast or can_config with `ilcrig run`"
+            )
         specs = parse_specs(getattr(args, "inject", None))
         for spec in specs:
             if spec.action in FRAME_ACTIONS and not tc.needs_hub:
@@ -413,8 +420,7 @@ class RigLauncher:
         bus_args = ["--bus", tc.name]
         if tc.needs_hub:
             frame_specs = [sp.text for sp in specs if sp.action in FRAME_ACTIONS]
-            inject = json.dumps({"specs": frame_specs, "log": str(log_dir / "injections-hub.jsonl")}) \
-                if frame_specs else None
+            inject = json.dumps({"specs": frame_specs, "log": str(log_dir / "injections-hub.jsonl")}) if frame_specs else None
             self._start_hub(args.hub, inject, log_dir / "hub.log", bus_time=bus_time_rates(args))
             bus_args += ["--hub", str(self.hub_address)]
         if self._signal is not None:
@@ -424,15 +430,15 @@ class RigLauncher:
         for node in DRIVE_NODE_IDS:
             if self._signal is not None:
                 return self._signal_exit()
-            self._spawn(f"drive{node}", child_argv("drive", bus_args, node=node, debug=debug),
-                        log_dir / f"drive{node}.log")
+            self._spawn(f"drive{node}", child_argv("drive", bus_args, node=node, debug=debug), log_dir / f"drive{node}.log")
         if self._signal is not None:
             return self._signal_exit()
 
         where = f" ({self.hub_address})" if self.hub_address else ""
         pids = ([f"hub {self.hub.pid}"] if self.hub is not None else []) + [f"{c.name} {c.pid}" for c in self.children]
-        self._say_out(f"ilcrig run: transport {tc.name}{where}; processes: {', '.join(pids)}; "
-                      f"role logs in {log_dir}; starting host")
+        self._say_out(
+            f"ilcrig run: transport {tc.name}{where}; processes: {', '.join(pids)}; role logs in {log_dir}; starting host"
+        )
         host_extra = host_role_args(args) + rig_role_args(args) + ["--out", str(self.out_dir)]
         if args.realtime:
             lockstep = ({"hub": self.hub.pid} if self.hub is not None else {}) | {c.name: c.pid for c in self.children}
@@ -442,8 +448,9 @@ class RigLauncher:
         disk = [sp.trial for sp in specs if sp.action == "diskfull"]
         if disk:
             host_extra += ["--inject-disk-full", str(min(disk))]
-        host = self._spawn("host", child_argv("host", bus_args, extra=host_extra, debug=debug), log_dir / "host.log",
-                           stderr_only=True)
+        host = self._spawn(
+            "host", child_argv("host", bus_args, extra=host_extra, debug=debug), log_dir / "host.log", stderr_only=True
+        )
         logger.info("host pid %d: %s", host.pid, " ".join(host.argv))
         if any(sp.action in ("kill", "stall", "emcy") for sp in specs):
             from host.rig.inject import ProcessInjector
@@ -478,8 +485,9 @@ class RigLauncher:
         child = next((c for c in self.children if c.name == name), None)
         return child.pid if child is not None and child.proc.poll() is None else None
 
-    def _start_hub(self, address: str | None, inject: str | None = None, log_path: Path | None = None,
-                   bus_time: dict[str, int] | None = None) -> None:
+    def _start_hub(
+        self, address: str | None, inject: str | None = None, log_path: Path | None = None, bus_time: dict[str, int] | None = None
+    ) -> None:
         from bus.transports.hub_server import HubError, start_hub
 
         # The hub stays in the launcher's process group (start_hub's Popen); with SIGINT/SIGHUP
@@ -558,8 +566,9 @@ class RigLauncher:
                 if self.deaths and deadline is None:
                     deadline = time.monotonic() + float(self.host_grace_s or 0.0)
                 if deadline is not None and time.monotonic() > deadline:
-                    logger.info("the host did not end within %.1f s of %s: stopping it", self.host_grace_s,
-                                   self.deaths[0].describe())
+                    logger.info(
+                        "the host did not end within %.1f s of %s: stopping it", self.host_grace_s, self.deaths[0].describe()
+                    )
                     self._host_stopped = True
                     return self._stop_host(host, signal.SIGTERM)
                 time.sleep(POLL_S)
@@ -587,8 +596,12 @@ class RigLauncher:
             self._stop_host(host, signal.SIGINT if self._signal == signal.SIGINT else signal.SIGTERM)
         summary = self._load_summary()
         if summary is not None and not summary.get("interrupted") and not summary.get("completed"):
-            summary["interrupted"] = {"signal": signal.Signals(self._signal).name, "trial": len(summary["iterations"]),
-                                      "tick": None, "by": "launcher"}
+            summary["interrupted"] = {
+                "signal": signal.Signals(self._signal).name,
+                "trial": len(summary["iterations"]),
+                "tick": None,
+                "by": "launcher",
+            }
             self._save(summary)
         return exit_code
 
@@ -642,15 +655,24 @@ class RigLauncher:
             record = FaultRecord.from_dict(summary["faults"][0])
         elif code == EXIT_FAULT and not self.deaths:  # the host ended with a fault it did not put in a summary
             line = next((ln for ln in reversed(_tail(host.log_path, 40)) if ln.startswith("ilcrig: ")), None)
-            self._say_err(f"{line}; the host's log: {host.log_path}" if line else
-                          f"ilcrig: fault: the host ended the run with exit code {code}; its log: {host.log_path}")
+            self._say_err(
+                f"{line}; the host's log: {host.log_path}"
+                if line
+                else f"ilcrig: fault: the host ended the run with exit code {code}; its log: {host.log_path}"
+            )
             return EXIT_FAULT
         if record is None:
             culprit = first or Death("host", host.pid, _describe_status(code), time.monotonic(), host.log_path, code)
-            record = FaultRecord(FaultKind.PROCESS_DIED, f"{culprit.name} (pid {culprit.pid}) {culprit.status}",
-                                 node=culprit.name,
-                                 node_id=_node_id(culprit.name), trial=kept, detected_by="launcher",
-                                 t_detected_mono=culprit.t_mono, latency_basis="process exit")
+            record = FaultRecord(
+                FaultKind.PROCESS_DIED,
+                f"{culprit.name} (pid {culprit.pid}) {culprit.status}",
+                node=culprit.name,
+                node_id=_node_id(culprit.name),
+                trial=kept,
+                detected_by="launcher",
+                t_detected_mono=culprit.t_mono,
+                latency_basis="process exit",
+            )
             if self.out_dir is not None:
                 attach_injection(record, read_injections(self.out_dir))
             if record.tick is None and record.injected and record.injected.get("trial") == record.trial:
@@ -658,8 +680,12 @@ class RigLauncher:
             if summary is not None:
                 summary["faults"].append(record.as_dict())
         if first is not None:
-            record.extra["process_ended"] = {"name": first.name, "pid": first.pid, "status": first.status,
-                                             "log": str(first.log_path) if first.log_path else None}
+            record.extra["process_ended"] = {
+                "name": first.name,
+                "pid": first.pid,
+                "status": first.status,
+                "log": str(first.log_path) if first.log_path else None,
+            }
         if summary is not None:
             summary["completed"] = False
             summary["faults"][0] = record.as_dict()
@@ -699,20 +725,23 @@ class RigLauncher:
                     continue  # the host saw it on the bus
                 rec, on_after = last_state_in_log(_tail(c.log_path, 400), c.name)
                 if rec is not None and not on_after:
-                    entry.update(torque="off", cia402=rec.get("cia402"), nmt=rec.get("nmt"),
-                                 evidence=f"its log: SAFE-STATE reason={rec.get('reason')}, tick {rec.get('tick')}"
-                                          + (f", {1000 * (float(rec['t_mono']) - since):+.0f} ms after the fault"
-                                             if "t_mono" in rec else ""))
+                    entry.update(
+                        torque="off",
+                        cia402=rec.get("cia402"),
+                        nmt=rec.get("nmt"),
+                        evidence=f"its log: SAFE-STATE reason={rec.get('reason')}, tick {rec.get('tick')}"
+                        + (f", {1000 * (float(rec['t_mono']) - since):+.0f} ms after the fault" if "t_mono" in rec else ""),
+                    )
                 elif c.proc.poll() is not None:
-                    entry.update(torque="off", evidence=f"the process {_describe_status(c.proc.returncode)}: "
-                                                        "no power stage left")
+                    entry.update(torque="off", evidence=f"the process {_describe_status(c.proc.returncode)}: no power stage left")
                 else:
                     missing.append(c)
             if not missing or time.monotonic() > deadline:
                 break
             time.sleep(0.05)
-        return [by_node[c.name] for c in drives if c.name in by_node] + \
-            [e for n, e in by_node.items() if not str(n).startswith("drive")]
+        return [by_node[c.name] for c in drives if c.name in by_node] + [
+            e for n, e in by_node.items() if not str(n).startswith("drive")
+        ]
 
     def _signal_exit(self) -> int:
         assert self._signal is not None

@@ -40,8 +40,10 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["RunStretch", "MissVerdict", "parse_sched_trace", "attribute_misses", "summarise_verdicts"]
 
-_SWITCH = re.compile(r"\[(\d+)\]\s+\S+\s+(\d+\.\d+):\s+sched_switch:\s.*?prev_pid=(\d+)\s.*?"
-                     r"next_pid=(\d+)\s+next_prio=(\d+)")
+_SWITCH = re.compile(
+    r"\[(\d+)\]\s+\S+\s+(\d+\.\d+):\s+sched_switch:\s.*?prev_pid=(\d+)\s.*?"
+    r"next_pid=(\d+)\s+next_prio=(\d+)"
+)
 _RUNTIME = re.compile(r"\[(\d+)\]\s+\S+\s+(\d+\.\d+):\s+sched_stat_runtime:\s.*?pid=(\d+)\s+runtime=(\d+)")
 
 
@@ -130,8 +132,7 @@ class MissVerdict:
     verdict: str
 
 
-def _window_steal(stretches: Sequence[RunStretch], starts: Sequence[float], a: float, b: float,
-                  max_span_s: float) -> float:
+def _window_steal(stretches: Sequence[RunStretch], starts: Sequence[float], a: float, b: float, max_span_s: float) -> float:
     """Largest per-CPU hidden steal of the stretches overlapping [a, b], prorated (any task but the
     idle task, which is accounted no run time)."""
     per_cpu: dict[int, float] = {}
@@ -148,8 +149,7 @@ def _window_steal(stretches: Sequence[RunStretch], starts: Sequence[float], a: f
     return max(per_cpu.values(), default=0.0)
 
 
-def attribute_misses(stretches: Sequence[RunStretch], per_trial: Sequence[Mapping[str, Any]],
-                     ts_s: float) -> list[MissVerdict]:
+def attribute_misses(stretches: Sequence[RunStretch], per_trial: Sequence[Mapping[str, Any]], ts_s: float) -> list[MissVerdict]:
     """The verdict on every listed missed tick of ``per_trial`` (the summary's
     ``bench.timing.per_trial``; trials without ``missed_ticks`` had none) against the trace."""
     starts = [r.start_s for r in stretches]

@@ -77,13 +77,21 @@ class ChannelMonitor:
     #: to the lockstep processes (Linux sets the nice value per thread)
     NICE_INCREMENT: int = 10
 
-    def __init__(self, bus: can.BusABC, name: str, log_path: Path | None,
-                 classify: Callable[[can.Message], None] | None = None, *, bulk: bool = True,
-                 classify_frames: Callable[[np.ndarray], None] | None = None) -> None:
+    def __init__(
+        self,
+        bus: can.BusABC,
+        name: str,
+        log_path: Path | None,
+        classify: Callable[[can.Message], None] | None = None,
+        *,
+        bulk: bool = True,
+        classify_frames: Callable[[np.ndarray], None] | None = None,
+    ) -> None:
         self.bus = bus
         # frames as arrays where the bus offers them (and the classifier takes them)
-        self._recv_frames = (bus.recv_frames if isinstance(bus, FrameArrayReceiver) and (
-            classify is None or classify_frames is not None) else None)
+        self._recv_frames = (
+            bus.recv_frames if isinstance(bus, FrameArrayReceiver) and (classify is None or classify_frames is not None) else None
+        )
         self._classify_frames = classify_frames
         self.bulk = bool(bulk)
         self.name = name

@@ -27,8 +27,17 @@ from bus.bench_objects import DeadlineMisses, TrialTiming
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["timing_summary", "timing_line", "raise_lockstep_priority", "scheduling_text", "DEFAULT_RT_PRIORITY",
-           "MachineSteal", "cpu_steal_s", "steal_during", "steal_text"]
+__all__ = [
+    "timing_summary",
+    "timing_line",
+    "raise_lockstep_priority",
+    "scheduling_text",
+    "DEFAULT_RT_PRIORITY",
+    "MachineSteal",
+    "cpu_steal_s",
+    "steal_during",
+    "steal_text",
+]
 
 #: the SCHED_FIFO priority of the lockstep processes in a real-time run (``--rt-priority``)
 DEFAULT_RT_PRIORITY: int = 10
@@ -64,8 +73,9 @@ class MachineSteal:
     cpus: int
 
 
-def steal_during(body: Callable[[], None], clock: Callable[[], float] = time.monotonic,
-                 steal: Callable[[], float | None] = cpu_steal_s) -> MachineSteal | None:
+def steal_during(
+    body: Callable[[], None], clock: Callable[[], float] = time.monotonic, steal: Callable[[], float | None] = cpu_steal_s
+) -> MachineSteal | None:
     """Run ``body()`` and return the CPU time the hypervisor took from the machine meanwhile (None
     where the system does not count it)."""
     s0, t0 = steal(), clock()
@@ -110,9 +120,10 @@ def raise_lockstep_priority(pids: Mapping[str, int], priority: int) -> dict[str,
                 os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
             except OSError as undo:
                 logger.warning("cannot put thread %d back to normal scheduling: %s", tid, undo)
-        return {"policy": "normal",
-                "reason": f"SCHED_FIFO {priority} not permitted ({err.strerror}; needs CAP_SYS_NICE or "
-                          f"RLIMIT_RTPRIO >= {priority})"}
+        return {
+            "policy": "normal",
+            "reason": f"SCHED_FIFO {priority} not permitted ({err.strerror}; needs CAP_SYS_NICE or RLIMIT_RTPRIO >= {priority})",
+        }
     logger.info("lockstep processes %s in SCHED_FIFO %d (%d threads)", ", ".join(pids), priority, len(done))
     return {"policy": "SCHED_FIFO", "priority": priority, "roles": list(pids)}
 
@@ -126,15 +137,22 @@ def scheduling_text(scheduling: Mapping[str, Any]) -> str:
     idle = scheduling.get("idle_poll")
     if idle is not None:
         loops = idle.get("loops", 0)
-        text += (f", CPUs kept awake by {loops} SCHED_IDLE busy loops" if loops
-                 else f", idle CPUs may halt ({idle.get('reason', 'no idle-poll loops')})")
+        text += (
+            f", CPUs kept awake by {loops} SCHED_IDLE busy loops"
+            if loops
+            else f", idle CPUs may halt ({idle.get('reason', 'no idle-poll loops')})"
+        )
     return text
 
 
-def timing_summary(timings: Sequence[TrialTiming], ts_s: float, realtime: bool,
-                   scheduling: Mapping[str, Any] | None = None,
-                   steal: Sequence[MachineSteal | None] | None = None,
-                   missed: Sequence[DeadlineMisses | None] | None = None) -> dict[str, Any]:
+def timing_summary(
+    timings: Sequence[TrialTiming],
+    ts_s: float,
+    realtime: bool,
+    scheduling: Mapping[str, Any] | None = None,
+    steal: Sequence[MachineSteal | None] | None = None,
+    missed: Sequence[DeadlineMisses | None] | None = None,
+) -> dict[str, Any]:
     """The run's timing figures from the trials' :class:`TrialTiming` (see the module docstring);
     ``scheduling``: what :func:`raise_lockstep_priority` gave the run (real time only); ``steal``:
     per trial, the CPU time the hypervisor took meanwhile (:func:`steal_during`; the summary's
@@ -152,7 +170,7 @@ def timing_summary(timings: Sequence[TrialTiming], ts_s: float, realtime: bool,
     out: dict[str, Any] = {
         "mode": "realtime" if realtime else "lockstep",
         "basis": "wall clock of the plant (the clock master), from the start of a trial to its last tick; "
-                 "diagnostics: depends on the machine, never on the model",
+        "diagnostics: depends on the machine, never on the model",
         "control_period_s": ts_s,
         "trials": len(timings),
         "ticks": ticks,
@@ -160,9 +178,15 @@ def timing_summary(timings: Sequence[TrialTiming], ts_s: float, realtime: bool,
         "achieved_ticks_per_s": rate,
         "real_time_factor": rate * ts_s,
         "per_trial": [
-            {"ticks": t.ticks, "duration_s": t.duration_us * 1e-6, "ticks_per_s": t.ticks_per_s,
-             "deadline_misses": t.deadline_misses, "lateness_p50_s": t.lateness_p50_us * 1e-6,
-             "lateness_p99_s": t.lateness_p99_us * 1e-6, "lateness_max_s": t.lateness_max_us * 1e-6}
+            {
+                "ticks": t.ticks,
+                "duration_s": t.duration_us * 1e-6,
+                "ticks_per_s": t.ticks_per_s,
+                "deadline_misses": t.deadline_misses,
+                "lateness_p50_s": t.lateness_p50_us * 1e-6,
+                "lateness_p99_s": t.lateness_p99_us * 1e-6,
+                "lateness_max_s": t.lateness_max_us * 1e-6,
+            }
             for t in timings
         ],
     }
@@ -172,7 +196,8 @@ def timing_summary(timings: Sequence[TrialTiming], ts_s: float, realtime: bool,
                 row["t0_monotonic_s"] = m.t0_ns * 1e-9
                 row["missed_ticks"] = [
                     {"tick": x.tick, "started_late_s": x.started_late_us * 1e-6, "overrun_s": x.overrun_us * 1e-6}
-                    for x in m.misses]
+                    for x in m.misses
+                ]
     if steal and len(steal) == len(timings) and all(x is not None for x in steal):
         taken = [x for x in steal if x is not None]
         steal_s = sum(x.steal_s for x in taken)
@@ -183,7 +208,7 @@ def timing_summary(timings: Sequence[TrialTiming], ts_s: float, realtime: bool,
             "cpus": taken[0].cpus,
             "per_trial_s": [x.steal_s for x in taken],
             "basis": "/proc/stat steal: CPU time the hypervisor gave to others while a trial ran (from the host's "
-                     "trial start to its completion), all CPUs summed; no process of the machine could run then",
+            "trial start to its completion), all CPUs summed; no process of the machine could run then",
         }
     if realtime:
         misses = sum(t.deadline_misses for t in timings)
@@ -205,8 +230,10 @@ def steal_text(timing: Mapping[str, Any]) -> str:
     steal = timing.get("machine_steal")
     if steal is None or steal["seconds"] <= 0:
         return ""
-    return (f"; the hypervisor took {steal['seconds'] * 1e3:,.0f} ms of CPU time from this machine during the trials "
-            f"({steal['percent_of_cpu_time']:.1f} % of its {steal['cpus']} CPUs: steal time)")
+    return (
+        f"; the hypervisor took {steal['seconds'] * 1e3:,.0f} ms of CPU time from this machine during the trials "
+        f"({steal['percent_of_cpu_time']:.1f} % of its {steal['cpus']} CPUs: steal time)"
+    )
 
 
 def timing_line(timing: dict[str, Any]) -> str:
@@ -215,14 +242,22 @@ def timing_line(timing: dict[str, Any]) -> str:
     ts_ms = timing["control_period_s"] * 1e3
     steal = steal_text(timing)
     if timing["mode"] != "realtime":
-        return (f"emulator throughput (lockstep, wall clock): {rate:,.0f} ticks/s inside the trials "
-                f"({timing['real_time_factor']:.2f}x real time at Ts = {ts_ms:g} ms){steal}")
-    late = (f"tick lateness p50 {timing['lateness_p50_s'] * 1e3:.3f} ms, p99 {timing['lateness_p99_s'] * 1e3:.3f} ms, "
-            f"max {timing['lateness_max_s'] * 1e3:.3f} ms")
+        return (
+            f"emulator throughput (lockstep, wall clock): {rate:,.0f} ticks/s inside the trials "
+            f"({timing['real_time_factor']:.2f}x real time at Ts = {ts_ms:g} ms){steal}"
+        )
+    late = (
+        f"tick lateness p50 {timing['lateness_p50_s'] * 1e3:.3f} ms, p99 {timing['lateness_p99_s'] * 1e3:.3f} ms, "
+        f"max {timing['lateness_max_s'] * 1e3:.3f} ms"
+    )
     sched = f"; {scheduling_text(timing['scheduling'])}" if "scheduling" in timing else ""
     if timing["kept_up"]:
-        return (f"real time: kept up, {timing['ticks']} ticks paced at Ts = {ts_ms:g} ms, 0 deadline misses, {late} "
-                f"(no tick later than one period); achieved {rate:,.1f} ticks/s{sched}{steal}")
-    return (f"real time: could NOT keep up at Ts = {ts_ms:g} ms: {timing['deadline_misses']} of {timing['ticks']} ticks "
-            f"missed their deadline ({timing['deadline_miss_percent']:.1f} %), {late}; the rig held "
-            f"{rate:,.1f} ticks/s ({timing['real_time_factor']:.2f}x real time){sched}{steal}")
+        return (
+            f"real time: kept up, {timing['ticks']} ticks paced at Ts = {ts_ms:g} ms, 0 deadline misses, {late} "
+            f"(no tick later than one period); achieved {rate:,.1f} ticks/s{sched}{steal}"
+        )
+    return (
+        f"real time: could NOT keep up at Ts = {ts_ms:g} ms: {timing['deadline_misses']} of {timing['ticks']} ticks "
+        f"missed their deadline ({timing['deadline_miss_percent']:.1f} %), {late}; the rig held "
+        f"{rate:,.1f} ticks/s ({timing['real_time_factor']:.2f}x real time){sched}{steal}"
+    )
