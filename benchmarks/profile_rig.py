@@ -10,7 +10,7 @@ load average.
 
     python benchmarks/profile_rig.py [--iterations 3] [--cycle 0.5] [--every 0.25]
 
-A wall-clock measurement: run it beside ``benchmarks/bench_rig.py`` and read the figures as
+A wall-clock measurement: run it beside ``benchmarks/rig_speed.py`` and read the figures as
 shares of the total, not as absolute numbers on a shared machine.
 """
 

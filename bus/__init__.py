@@ -2,7 +2,7 @@
 
 Owns the units on the wire (:mod:`bus.units`), the firmware's fixed-point formats
 (:mod:`bus.fixedpoint`), the object indices of the drive (:mod:`bus.objects`, ``drive.eds``) and of
-the test-bench node (:mod:`bus.bench_objects`, ``bench.eds``), the io-channel frames
+the plant node (:mod:`bus.plant_objects`, ``plant.eds``), the io-channel frames
 (:mod:`bus.io_frames`), bus-load accounting (:mod:`bus.busload`), candump logs (:mod:`bus.canlog`)
 and the shared errors (:mod:`bus.errors`).  Subpackages: :mod:`bus.cia301` (the hand-written
 CANopen stack) and :mod:`bus.transports` (how channels are carried).

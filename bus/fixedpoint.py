@@ -1,7 +1,7 @@
 """Fixed-point formats of the drive firmware and the integer helpers it uses.
 
 This module is the ONE place where every integer format inside the drive is
-defined.  The firmware (:mod:`firmware_model.loop`) computes with these formats
+defined.  The firmware (:mod:`firmware_model.control_law`) computes with these formats
 only; the host converts its float gains to them with the ``*_to_fixed``
 functions below before writing them to the drive (objects in :mod:`bus.objects`).
 
@@ -52,7 +52,7 @@ int64 accumulator.  With gains limited to [0, 2^31 - 1] and errors saturated to 
 product is below 2^62 and their sum below 2^63 - 2^32, so the accumulator cannot wrap.
 
 The helpers are plain Python functions on ints that are also valid numba nopython code;
-:mod:`firmware_model.loop` compiles them with ``numba.njit`` so the definition exists once.
+:mod:`firmware_model.control_law` compiles them with ``numba.njit`` so the definition exists once.
 """
 
 from __future__ import annotations

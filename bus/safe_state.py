@@ -1,6 +1,6 @@
 """The safe-state record: one log line a node writes when its torque goes off, and its parser.
 
-This module owns the format both sides agree on: a drive (or the test-bench node) logs a
+This module owns the format both sides agree on: a drive (or the plant node) logs a
 ``SAFE-STATE`` line whenever it removes torque (a fault reaction, a lost host or bus, NMT stop,
 CiA 402 disable, the process stopping); the launcher of ``ilcrig run`` reads those lines back
 from the roles' logs as evidence of the safe state when the host cannot report it (the host or the

@@ -5,9 +5,9 @@ Owns the drive's application layer.  The object dictionary is loaded from
 type, access, default, limits); values are kept here and reached as bytes through
 :meth:`Drive.read_object` / :meth:`Drive.write_object`, which raise
 :class:`bus.errors.SdoAbort` with CiA 301 abort codes.  Object callbacks link the
-dictionary to the live fixed-point loop (:mod:`firmware_model.loop`) and to the
+dictionary to the live fixed-point loop (:mod:`firmware_model.control_law`) and to the
 CiA 402 state machine (:mod:`firmware_model.cia402`).  The CANopen protocol layer
-(SDO server, NMT frames, heartbeat, EMCY frames) is :mod:`firmware_model.node`, which
+(SDO server, NMT frames, heartbeat, EMCY frames) is :mod:`firmware_model.drive_node`, which
 calls this class; formats and units: :mod:`bus.fixedpoint`, indices: :mod:`bus.objects`.
 
 Tick semantics (:meth:`Drive.io_tick`):
@@ -64,8 +64,8 @@ import numpy as np
 from bus import fixedpoint as fp
 from bus.cia301.emcy import EmcyCode, ErrorRegister
 from bus.cia301.nmt import NmtCommand, NmtState
-from bus.cia301.node import ObjectStore
 from bus.cia301.pdo import PdoEngine
+from bus.cia301.slave import ObjectStore
 from bus.errors import AbortCode, IlcrigError, SdoAbort
 from bus.objects import (
     DRIVE_EDS_PATH,
@@ -84,7 +84,7 @@ from bus.objects import (
     TrialSub,
 )
 from bus.safe_state import TORQUE_ON_TAG, format_safe_state
-from firmware_model import loop
+from firmware_model import control_law
 from firmware_model.cia402 import Cia402StateMachine
 
 logger = logging.getLogger(__name__)
@@ -127,22 +127,22 @@ class Drive:
             raise ValueError(f"node id must be 1..127, got {node_id}")
         self.node_id = int(node_id)
         # object values, access/size/limit checks and hooks: the CANopen slave object store
-        # that the test-bench node uses too (bus/cia301/node.py)
+        # that the plant node uses too (bus/cia301/slave.py)
         self.store = ObjectStore(eds_path, self.node_id)
         self.od = self.store.od
         self._vars = self.store.vars
         self._capacity = self._eds_default(Obj.TABLE, TableSub.CAPACITY)
         self._rated_mnm = self._eds_default(Obj.RATED_TORQUE, 0)
-        self._st = loop.new_state()
-        self._tables = loop.new_tables(self._capacity)
-        self._rec = loop.new_recorder(self._capacity)
+        self._st = control_law.new_state()
+        self._tables = control_law.new_tables(self._capacity)
+        self._rec = control_law.new_recorder(self._capacity)
         self._sm = Cia402StateMachine()
         self._emcy: list[tuple[int, int, bytes]] = []
         self._values = self.store.values
         self._read_hooks = self.store.read_hooks
         self._write_hooks = self.store.write_hooks
         self.pdo = PdoEngine(self.store, lambda: int(self.nmt_state))
-        self._cyc = loop.new_tables(0)  # column 0: the cyclic set-points of the tick
+        self._cyc = control_law.new_tables(0)  # column 0: the cyclic set-points of the tick
         self._cyc_prev_target: int | None = None
         self._sync_credit = 0
         self._install_hooks()
@@ -160,7 +160,7 @@ class Drive:
 
     @property
     def statusword(self) -> int:
-        sw = self._sm.statusword(bool(self._st[loop.S_LIMITED]) and self._power)
+        sw = self._sm.statusword(bool(self._st[control_law.S_LIMITED]) and self._power)
         if self._power and self._mode != ModeOfOperation.TABLE_PLAYBACK:
             sw |= 0x1000  # CSx: drive follows the command value
         return sw
@@ -309,7 +309,7 @@ class Drive:
     def io_tick(self, tick: int, encoder_count: int) -> int:
         """One control tick: encoder count (int32 counts) in, torque command (µN·m) out."""
         if not self._power:
-            self._st[loop.S_POS] = min(max(encoder_count, fp.INT32_MIN), fp.INT32_MAX)
+            self._st[control_law.S_POS] = min(max(encoder_count, fp.INT32_MIN), fp.INT32_MAX)
             self._sync_credit = 0
             return 0
         if self._mode != ModeOfOperation.TABLE_PLAYBACK:
@@ -320,12 +320,12 @@ class Drive:
             if self._capture_hold:
                 self._capture_hold = False
                 self._tables[:, self._capacity] = (min(max(encoder_count, fp.INT32_MIN), fp.INT32_MAX), 0, 0)
-            tau, status = loop.control_tick(encoder_count, self._capacity, -1, self._st, self._tables, self._rec)
+            tau, status = control_law.control_tick(encoder_count, self._capacity, -1, self._st, self._tables, self._rec)
             if status:
                 return self._following_error_fault(-1)
             return tau
         n = tick
-        tau, status = loop.control_tick(encoder_count, n, n, self._st, self._tables, self._rec)
+        tau, status = control_law.control_tick(encoder_count, n, n, self._st, self._tables, self._rec)
         self._next_tick = n + 1
         if status:
             return self._following_error_fault(n)
@@ -346,23 +346,25 @@ class Drive:
             target = int(v[(Obj.TARGET_POSITION, 0)])
             prev = self._cyc_prev_target
             vref = (
-                0 if prev is None else fp.sat32(fp.rshift_round(fp.sat32(target - prev) * int(st[loop.P_RATE]), fp.VEL_STATE_Q))
+                0
+                if prev is None
+                else fp.sat32(fp.rshift_round(fp.sat32(target - prev) * int(st[control_law.P_RATE]), fp.VEL_STATE_Q))
             )
             self._cyc_prev_target = target
             cyc[0, 0], cyc[1, 0], cyc[2, 0] = target, vref, fp.sat32(offset)
-            tau, status = loop.control_tick(encoder_count, 0, rec_idx, st, cyc, self._rec)
+            tau, status = control_law.control_tick(encoder_count, 0, rec_idx, st, cyc, self._rec)
         else:  # CST: no feedback, no following-error check
             target_torque = int(v[(Obj.TARGET_TORQUE, 0)]) * self._rated_mnm
-            saved = int(st[loop.P_KP]), int(st[loop.P_KD]), int(st[loop.P_FE_WINDOW])
-            st[loop.P_KP] = st[loop.P_KD] = 0
-            st[loop.P_FE_WINDOW] = -1
+            saved = int(st[control_law.P_KP]), int(st[control_law.P_KD]), int(st[control_law.P_FE_WINDOW])
+            st[control_law.P_KP] = st[control_law.P_KD] = 0
+            st[control_law.P_FE_WINDOW] = -1
             cyc[0, 0] = fp.sat32(encoder_count)
             cyc[1, 0] = 0
             cyc[2, 0] = fp.sat32(target_torque + offset)
             try:
-                tau, status = loop.control_tick(encoder_count, 0, rec_idx, st, cyc, self._rec)
+                tau, status = control_law.control_tick(encoder_count, 0, rec_idx, st, cyc, self._rec)
             finally:
-                st[loop.P_KP], st[loop.P_KD], st[loop.P_FE_WINDOW] = saved
+                st[control_law.P_KP], st[control_law.P_KD], st[control_law.P_FE_WINDOW] = saved
         if playing:
             self._next_tick = tick + 1
         if status:
@@ -387,10 +389,10 @@ class Drive:
 
     def _start_trial(self) -> None:
         st = self._st
-        st[loop.S_HAVE_PREV] = 0
+        st[control_law.S_HAVE_PREV] = 0
         # table playback: the reference velocity of sample 0; CSP/CST: 0 (no previous target)
         v0 = int(self._tables[1, 0]) if self._mode == ModeOfOperation.TABLE_PLAYBACK else 0
-        st[loop.S_VF] = v0 << fp.VEL_STATE_Q
+        st[control_law.S_VF] = v0 << fp.VEL_STATE_Q
         self._trial_state = TrialState.RUNNING
         self._rec_status = RecorderStatus.RECORDING
         self._next_tick = 0
@@ -437,9 +439,9 @@ class Drive:
         return 0
 
     def _following_error_fault(self, n: int) -> int:
-        e = int(self._st[loop.S_ERR])
+        e = int(self._st[control_law.S_ERR])
         if n >= 0:
-            self._rec[loop.REC_TAU, n] = 0  # the plant gets no torque on this tick
+            self._rec[control_law.REC_TAU, n] = 0  # the plant gets no torque on this tick
         return self._fault(
             EmcyCode.FOLLOWING_ERROR,
             ErrorRegister.GENERIC | ErrorRegister.DEVICE_PROFILE,
@@ -463,9 +465,9 @@ class Drive:
         self._power = power
         st = self._st
         if power and not was:
-            st[loop.S_HAVE_PREV] = 0
-            st[loop.S_VF] = 0
-            st[loop.S_VEST] = 0
+            st[control_law.S_HAVE_PREV] = 0
+            st[control_law.S_VF] = 0
+            st[control_law.S_VEST] = 0
             self._capture_hold = self._trial_state != TrialState.DONE
             logger.info("%s node=drive%d", TORQUE_ON_TAG, self.node_id)
         elif was and not power:
@@ -474,10 +476,10 @@ class Drive:
                 logger.warning("node %d torque enable lost during a trial", self.node_id)
                 self._stop_trial(TrialState.FAULT)
             self._log_safe_state(tick)
-            st[loop.S_TAU] = 0
-            st[loop.S_TAU_FB] = 0
-            st[loop.S_VEST] = 0
-            st[loop.S_LIMITED] = 0
+            st[control_law.S_TAU] = 0
+            st[control_law.S_TAU_FB] = 0
+            st[control_law.S_VEST] = 0
+            st[control_law.S_LIMITED] = 0
 
     def _log_safe_state(self, tick: int) -> None:
         """One SAFE-STATE record: torque is off now, and why."""
@@ -518,7 +520,7 @@ class Drive:
         self._cyc_prev_target = None
         self._sync_credit = 0
         self._emcy.clear()
-        st = loop.new_state()
+        st = control_law.new_state()
         self._st[:] = st
         v = self._values
         self._set_gains(GainsSub.KP, int(v[(Obj.GAINS, GainsSub.KP)]))
@@ -553,9 +555,9 @@ class Drive:
         r[(Obj.ERROR_CODE, 0)] = lambda: self._error_code
         r[(Obj.STATUSWORD, 0)] = lambda: self.statusword
         r[(Obj.MODES_OF_OPERATION_DISPLAY, 0)] = lambda: self._values[(Obj.MODES_OF_OPERATION, 0)]
-        r[(Obj.POSITION_ACTUAL, 0)] = lambda: int(st[loop.S_POS])
-        r[(Obj.VELOCITY_ACTUAL, 0)] = lambda: int(st[loop.S_VEST])
-        r[(Obj.TORQUE_ACTUAL, 0)] = lambda: fp.torque_units_to_permille(int(st[loop.S_TAU]), self._rated_mnm)
+        r[(Obj.POSITION_ACTUAL, 0)] = lambda: int(st[control_law.S_POS])
+        r[(Obj.VELOCITY_ACTUAL, 0)] = lambda: int(st[control_law.S_VEST])
+        r[(Obj.TORQUE_ACTUAL, 0)] = lambda: fp.torque_units_to_permille(int(st[control_law.S_TAU]), self._rated_mnm)
         r[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.VALUE)] = lambda: self._period_repr()[0]
         r[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.INDEX)] = lambda: self._period_repr()[1]
         for index in _TABLE_ROWS:
@@ -620,21 +622,21 @@ class Drive:
         self._set_gains(sub, value)
 
     def _set_fe_window(self, value: int) -> None:
-        self._st[loop.P_FE_WINDOW] = -1 if value == 0xFFFFFFFF else value
+        self._st[control_law.P_FE_WINDOW] = -1 if value == 0xFFFFFFFF else value
 
     def _set_max_torque(self, permille: int) -> None:
-        self._st[loop.P_TLIM] = fp.torque_limit_units(permille, self._rated_mnm)
+        self._st[control_law.P_TLIM] = fp.torque_limit_units(permille, self._rated_mnm)
 
     def _gains_hook(self, sub: GainsSub) -> Callable[[Value], None]:
         """The write hook of 0x2110:``sub`` (refused while a trial is armed or running)."""
         return lambda v: self._write_gains(sub, int(v))
 
     def _set_gains(self, sub: GainsSub, value: int) -> None:
-        slot = {GainsSub.KP: loop.P_KP, GainsSub.KD: loop.P_KD, GainsSub.VEL_FILTER: loop.P_ALPHA}[sub]
+        slot = {GainsSub.KP: control_law.P_KP, GainsSub.KD: control_law.P_KD, GainsSub.VEL_FILTER: control_law.P_ALPHA}[sub]
         self._st[slot] = value
 
     def _set_period(self, period_us: int) -> None:
-        self._st[loop.P_RATE] = fp.rate_q12_from_period_us(period_us)
+        self._st[control_law.P_RATE] = fp.rate_q12_from_period_us(period_us)
 
     def _write_period(self, value: Value) -> None:
         self._require_not_playing("changing the control period")

@@ -23,7 +23,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
-from bus.bench_objects import DEFAULT_BENCH_NODE_ID
+from bus.plant_objects import DEFAULT_PLANT_NODE_ID
 from host.experiment.console import (
     EXIT_FAULT,
     EXIT_INTERRUPTED,
@@ -62,7 +62,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
     plan = prepare(cfg)
     from host.analysis.session import report_fault, run_session
     from host.experiment.inprocess import InProcessBench
-    from host.experiment.loop import interrupt_on_signals
+    from host.experiment.trials import interrupt_on_signals
 
     check_out_dir(out, iterations=cfg.iterations)
     print_plan(sys.stdout, "sim", plan)
@@ -168,7 +168,7 @@ def transport_of(args: argparse.Namespace) -> TransportConfig:
 
 def cmd_drive(args: argparse.Namespace) -> int:
     from bus.transports.config import resolve_bus_config
-    from firmware_model.node import run_node
+    from firmware_model.drive_node import run_node
 
     tc = transport_of(args)
     if not 1 <= args.node <= 127:
@@ -179,7 +179,7 @@ def cmd_drive(args: argparse.Namespace) -> int:
 
 
 def cmd_plant(args: argparse.Namespace) -> int:
-    from plant.node import run_plant_role
+    from plant.plant_node import run_plant_role
 
     _role_logging()
     lost = run_plant_role(transport_of(args), node_id=args.node_id)
@@ -278,9 +278,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_bus_args(dp)
     dp.set_defaults(func=cmd_drive)
 
-    pp = sub.add_parser("plant", help="the plant (robot simulator) as the test-bench node on the bus")
+    pp = sub.add_parser("plant", help="the plant (robot simulator) as the plant node on the bus")
     pp.add_argument(
-        "--node-id", type=int, default=DEFAULT_BENCH_NODE_ID, help="CANopen node id of the test-bench node (default %(default)s)"
+        "--node-id", type=int, default=DEFAULT_PLANT_NODE_ID, help="CANopen node id of the plant node (default %(default)s)"
     )
     _add_bus_args(pp)
     pp.set_defaults(func=cmd_plant)

@@ -4,9 +4,9 @@ Owns the robot's kinematics (:mod:`plant.kinematics`: IK/FK, Jacobians), dynamic
 (:mod:`plant.dynamics`: M, C q̇, G, inverse / forward dynamics), parameters (:mod:`plant.params`),
 the true-plant effects and the RK4 integrator (:mod:`plant.simulator`), the per-trial disturbances
 (:mod:`plant.disturbance`), the numba kernels (:mod:`plant._kernels`), a micro-benchmark
-(``python -m plant.bench``) and, in :mod:`plant.node`, the plant's CANopen test-bench node and the
+(``python -m plant.selfcheck``) and, in :mod:`plant.plant_node`, the plant's CANopen plant node and the
 ``ilcrig plant`` process entry.
 
-May import: numpy, scipy, numba and the standard library only — except :mod:`plant.node`, which
+May import: numpy, scipy, numba and the standard library only — except :mod:`plant.plant_node`, which
 also imports ``bus`` (it speaks CAN).  Never ``host`` or ``firmware_model``.
 """

@@ -1,7 +1,7 @@
 """Timing of the clock master's ticks: real-time pacing and what it achieved.
 
 This module owns :class:`TickPacer`, the bookkeeping of one trial's ticks on the wall clock of the
-plant (the lockstep clock master, :mod:`plant.node`): when tick n is due (t0 + n·Ts when paced),
+plant (the lockstep clock master, :mod:`plant.plant_node`): when tick n is due (t0 + n·Ts when paced),
 how late each tick started, which ticks missed their deadline (completed after the start of the
 next period: the first :data:`MISSES_KEPT` of them with their times), and the trial's duration.
 It never reads a clock itself: the caller passes the times (s, any monotonic scale), so the
@@ -21,7 +21,7 @@ logger = logging.getLogger(__name__)
 __all__ = ["TickPacer", "PacingResult", "MissedTick", "MISSES_KEPT"]
 
 #: how many missed ticks a trial keeps with their times (the count goes on beyond): as many as 0x2441
-#: lists (``bus.bench_objects.DEADLINE_MISSES_KEPT``; plant/ does not import bus/, a test keeps them equal)
+#: lists (``bus.plant_objects.DEADLINE_MISSES_KEPT``; plant/ does not import bus/, a test keeps them equal)
 MISSES_KEPT: int = 64
 
 

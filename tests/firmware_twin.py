@@ -1,7 +1,7 @@
 """Float64 twin of the drive's control law (tests only).
 
 Owns the reference implementation the fixed-point kernel
-(:func:`firmware_model.loop.control_tick`) is checked against: the same law, in the
+(:func:`firmware_model.control_law.control_tick`) is checked against: the same law, in the
 same units (counts, counts/s, µN·m), with real-valued gains and no rounding or
 saturation (tests keep inputs inside the int32 ranges).  See the law in
 :mod:`bus.fixedpoint`.

@@ -33,11 +33,11 @@ SUBPACKAGES = (
 )
 
 #: unit -> the other units it may import.  A unit is a subpackage, or the top-level modules of a
-#: package (``bus``, ``host``), or ``plant.node`` (the plant's CANopen node, which alone of plant/
+#: package (``bus``, ``host``), or ``plant.plant_node`` (the plant's CANopen node, which alone of plant/
 #: speaks CAN).
 ALLOWED: dict[str, set[str]] = {
     "plant": set(),
-    "plant.node": {"plant", "bus", "bus.cia301", "bus.transports"},
+    "plant.plant_node": {"plant", "bus", "bus.cia301", "bus.transports"},
     "bus": set(),
     "bus.cia301": {"bus"},
     "bus.transports": {"bus"},
@@ -53,7 +53,7 @@ ALLOWED: dict[str, set[str]] = {
         "bus.cia301",
         "bus.transports",
         "plant",
-        "plant.node",
+        "plant.plant_node",
         "host.planning",
         "host.learning",
         "host.nodes",
@@ -68,7 +68,7 @@ FIRMWARE_IMPORTERS = {"host.experiment.inprocess", "host.cli"}
 
 def unit_of(module: str) -> str:
     """The unit (see ``ALLOWED``) a dotted module name belongs to."""
-    if module == "plant.node":
+    if module == "plant.plant_node":
         return module
     for sub in SUBPACKAGES:
         if module == sub or module.startswith(sub + "."):
@@ -172,7 +172,7 @@ def test_every_package_says_what_it_owns_and_may_import() -> None:
 
 
 def test_cli_names_match_the_code() -> None:
-    from bus.bench_objects import DisturbanceKind
+    from bus.plant_objects import DisturbanceKind
     from host.experiment import console
     from host.learning import gains, laws, names
     from plant.disturbance import KINDS

@@ -1,4 +1,4 @@
-"""Fieldbus acceptance filters of the slave nodes (bus/cia301/node.py, firmware_model/node.py).
+"""Fieldbus acceptance filters of the slave nodes (bus/cia301/slave.py, firmware_model/drive_node.py).
 
 A node accepts on the fieldbus only what it consumes — NMT, its SDO requests, the heartbeats it
 watches (0x1016), and for a drive SYNC (0x1005) and its valid RPDOs — as a drive's CAN controller
@@ -25,7 +25,7 @@ from bus.cia301.nmt import NmtCommand
 from bus.objects import DRIVE_EDS_PATH
 from bus.transports.hub_server import HubServer
 from firmware_model.drive import Drive
-from firmware_model.node import DriveNode
+from firmware_model.drive_node import DriveNode
 
 NODE = 2
 HOST = 0x7F

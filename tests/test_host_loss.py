@@ -1,5 +1,5 @@
 """Host loss is a fault on the bus (issue 9): the nodes consume the host's heartbeat (0x1016,
-CiA 301) and react — the drive with torque off, CiA 402 Fault and EMCY 0x8130, the test bench by
+CiA 301) and react — the drive with torque off, CiA 402 Fault and EMCY 0x8130, the plant node by
 ending a running trial (HOST_LOST, EMCY 0x8130).  Settings that shape the motion (gains, the
 following-error window, the max torque) are refused while a trial is armed or running, and the max
 torque is bounded by the motor's rating in the EDS.
@@ -16,7 +16,6 @@ from typing import Any
 import can
 import pytest
 
-from bus.bench_objects import BenchFault, BenchStatus
 from bus.cia301.nmt import (
     CONSUMER_TIME_MS,
     HOST_NODE_ID,
@@ -28,10 +27,11 @@ from bus.cia301.nmt import (
 )
 from bus.errors import AbortCode, SdoAbort
 from bus.objects import Cia402State, FaultCause, GainsSub, Obj, TableSub, TrialState, TrialSub
+from bus.plant_objects import PlantFault, PlantStatus
 from bus.safe_state import parse_safe_state
 from firmware_model.drive import Drive
-from firmware_model.node import DriveNode
-from plant.node import BenchNode
+from firmware_model.drive_node import DriveNode
+from plant.plant_node import PlantNode
 
 _counter = itertools.count()
 
@@ -233,7 +233,7 @@ def test_drive_node_consumes_the_host_heartbeat_within_the_consumer_time() -> No
 
 
 class _StillPlant:
-    """A plant that never moves (the bench node's trial logic is what is tested)."""
+    """A plant that never moves (the plant node's trial logic is what is tested)."""
 
     def reset(self, q0: Any, qd0: Any) -> None:
         pass
@@ -248,11 +248,11 @@ class _StillPlant:
 
 
 def _stepped_bench() -> Any:
-    """A bench node on a :class:`Stepped` rig with a still plant and long tick deadlines."""
+    """A plant node on a :class:`Stepped` rig with a still plant and long tick deadlines."""
     import numpy as np
 
     return Stepped(
-        lambda fb, io, clock: BenchNode(
+        lambda fb, io, clock: PlantNode(
             fb,
             io,
             plant_factory=lambda ts, n: _StillPlant(),
@@ -264,7 +264,7 @@ def _stepped_bench() -> Any:
     )
 
 
-def test_bench_ends_a_running_trial_when_the_host_is_lost() -> None:
+def test_plant_node_ends_a_running_trial_when_the_host_is_lost() -> None:
     rig = _stepped_bench()
     bench = rig.node
     try:
@@ -277,9 +277,9 @@ def test_bench_ends_a_running_trial_when_the_host_is_lost() -> None:
         bench.store.write_object(0x2410, 2, u32(10))
         bench.store.write_object(0x2410, 3, bytes([1]))  # start
         rig.step_at(t0 + 0.02)
-        assert bench.status == BenchStatus.RUNNING
+        assert bench.status == PlantStatus.RUNNING
         frames = rig.step_at(t0 + 0.27)
-        assert bench.status == BenchStatus.FAULT and bench.fault == BenchFault.HOST_LOST
+        assert bench.status == PlantStatus.FAULT and bench.fault == PlantFault.HOST_LOST
         assert any(cob == 0x0A0 and data[:2] == b"\x30\x81" for cob, data in frames)
         msg = rig.plant.recv(timeout=0)
         stops = []
@@ -291,7 +291,7 @@ def test_bench_ends_a_running_trial_when_the_host_is_lost() -> None:
         rig.close()
 
 
-def test_bench_faults_on_a_bus_error_frame_during_a_trial() -> None:
+def test_plant_node_faults_on_a_bus_error_frame_during_a_trial() -> None:
     rig = _stepped_bench()
     bench = rig.node
     try:
@@ -300,10 +300,10 @@ def test_bench_faults_on_a_bus_error_frame_during_a_trial() -> None:
         bench.store.write_object(0x2410, 2, u32(10))
         bench.store.write_object(0x2410, 3, bytes([1]))
         rig.step_at(1000.01)
-        assert bench.status == BenchStatus.RUNNING
+        assert bench.status == PlantStatus.RUNNING
         rig.plant.send(can.Message(is_error_frame=True, arbitration_id=0x008, data=bytes(8)))
         rig.step_at(1000.02)
-        assert bench.status == BenchStatus.FAULT and bench.fault == BenchFault.BAD_FRAME
+        assert bench.status == PlantStatus.FAULT and bench.fault == PlantFault.BAD_FRAME
         assert int(bench.nmt_state) == NmtState.OPERATIONAL
     finally:
         rig.close()

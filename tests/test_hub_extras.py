@@ -133,7 +133,7 @@ def test_drive_io_bus_gets_only_its_encoder_and_the_control_frames() -> None:
     """A DriveNode sets acceptance filters on its io bus: the hub forwards it this joint's encoder
     frame and the control frame only."""
     from firmware_model.drive import Drive
-    from firmware_model.node import DriveNode
+    from firmware_model.drive_node import DriveNode
 
     with start_hub() as hub:
         t = hub_transport(hub.address)

@@ -33,7 +33,7 @@ from bus.cyclic import (
 from bus.errors import AbortCode, SdoAbort
 from bus.objects import DRIVE_EDS_PATH, RATED_TORQUE_MNM, GainsSub, ModeOfOperation, Obj, TableSub, i32, u8, u16, u32
 from firmware_model.drive import Drive
-from firmware_model.node import DriveNode
+from firmware_model.drive_node import DriveNode
 
 NODE = 2
 

@@ -14,17 +14,17 @@ import can
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_bench_node import Q0, QD0, ManualClock, PlantBox, fake_disturbance
+from test_plant_node import Q0, QD0, ManualClock, PlantBox, fake_disturbance
 
 from bus import io_frames
-from bus.bench_objects import (
+from bus.plant_objects import (
     DEADLINE_MISSES_KEPT,
-    BenchObj,
-    BenchStatus,
-    BenchTrialSub,
     ConfigSub,
     DeadlineMiss,
     DeadlineMisses,
+    PlantObj,
+    PlantStatus,
+    PlantTrialSub,
     TrialTiming,
     pack_deadline_misses,
     pack_initial_state,
@@ -42,8 +42,8 @@ from host.rig.realtime import (
     timing_line,
     timing_summary,
 )
-from plant.node import BenchNode
 from plant.pacing import MISSES_KEPT, TickPacer
+from plant.plant_node import PlantNode
 
 _counter = itertools.count()
 
@@ -75,15 +75,15 @@ def test_unpaced_trial_has_duration_but_no_lateness() -> None:
     assert r.duration_s == pytest.approx(0.02)
 
 
-def _start_paced_trial(bench: BenchNode, n_ticks: int, clock: ManualClock) -> float:
+def _start_paced_trial(bench: PlantNode, n_ticks: int, clock: ManualClock) -> float:
     """Boot ``bench``, configure pacing and a trial of ``n_ticks`` as the host would and start it
     at ``clock.now``: TRIAL_START goes out at once, tick 0 one period later (Ts = 1 ms), when the
     clock is moved there and the bench stepped. Returns t0, when tick 0 was due."""
     bench.start()
-    bench.write_object(BenchObj.CONFIG, ConfigSub.PACING, b"\x01")
-    bench.write_object(BenchObj.INITIAL_STATE, 0, pack_initial_state(Q0, QD0))
-    bench.write_object(BenchObj.TRIAL, BenchTrialSub.N_TICKS, struct.pack("<I", n_ticks))
-    bench.write_object(BenchObj.TRIAL, BenchTrialSub.COMMAND, b"\x01")
+    bench.write_object(PlantObj.CONFIG, ConfigSub.PACING, b"\x01")
+    bench.write_object(PlantObj.INITIAL_STATE, 0, pack_initial_state(Q0, QD0))
+    bench.write_object(PlantObj.TRIAL, PlantTrialSub.N_TICKS, struct.pack("<I", n_ticks))
+    bench.write_object(PlantObj.TRIAL, PlantTrialSub.COMMAND, b"\x01")
     bench.step(0.0)
     t0 = clock.now + 0.001
     assert bench.next_deadline() == pytest.approx(t0 - bench.spin_s)
@@ -103,7 +103,7 @@ def test_paced_bench_holds_each_tick_until_its_time() -> None:
     fb = can.Bus(interface="virtual", channel=f"rt-fb-{k}")
     io = can.Bus(interface="virtual", channel=f"rt-io-{k}")
     drives = can.Bus(interface="virtual", channel=f"rt-io-{k}")
-    bench = BenchNode(fb, io, plant_factory=PlantBox(), disturbance_fn=fake_disturbance, clock=clock)
+    bench = PlantNode(fb, io, plant_factory=PlantBox(), disturbance_fn=fake_disturbance, clock=clock)
 
     def io_frames_seen() -> list[str]:
         got = []
@@ -123,10 +123,10 @@ def test_paced_bench_holds_each_tick_until_its_time() -> None:
 
     try:
         bench.start()
-        bench.write_object(BenchObj.CONFIG, ConfigSub.PACING, b"\x01")
-        bench.write_object(BenchObj.INITIAL_STATE, 0, pack_initial_state(Q0, QD0))
-        bench.write_object(BenchObj.TRIAL, BenchTrialSub.N_TICKS, struct.pack("<I", 4))
-        bench.write_object(BenchObj.TRIAL, BenchTrialSub.COMMAND, b"\x01")
+        bench.write_object(PlantObj.CONFIG, ConfigSub.PACING, b"\x01")
+        bench.write_object(PlantObj.INITIAL_STATE, 0, pack_initial_state(Q0, QD0))
+        bench.write_object(PlantObj.TRIAL, PlantTrialSub.N_TICKS, struct.pack("<I", 4))
+        bench.write_object(PlantObj.TRIAL, PlantTrialSub.COMMAND, b"\x01")
         bench.step(0.0)  # at 100.0: the start command only; tick 0 is due at t0 = 100.001
         assert io_frames_seen() == ["ControlFrame"]
         assert bench.next_deadline() == pytest.approx(100.001)
@@ -153,11 +153,11 @@ def test_paced_bench_holds_each_tick_until_its_time() -> None:
         bench.step(0.0)
         assert encoder_ticks() == [3] * 4
         answer(3, 100.0041)
-        assert bench.status == BenchStatus.DONE
-        t = unpack_trial_timing(bench.read_object(BenchObj.TRIAL_TIMING, 0))
+        assert bench.status == PlantStatus.DONE
+        t = unpack_trial_timing(bench.read_object(PlantObj.TRIAL_TIMING, 0))
         assert (t.paced, t.ticks, t.deadline_misses, t.lateness_max_us) == (True, 4, 1, 500)
         assert t.duration_us == 3100
-        m = unpack_deadline_misses(bench.read_object(BenchObj.DEADLINE_MISSES, 0))
+        m = unpack_deadline_misses(bench.read_object(PlantObj.DEADLINE_MISSES, 0))
         assert m == DeadlineMisses(100_001_000_000, (DeadlineMiss(tick=1, started_late_us=0, overrun_us=500),))
     finally:
         for bus in (fb, io, drives):
@@ -306,7 +306,7 @@ def test_a_paced_tick_is_waited_for_on_the_clock_for_the_last_spin_s() -> None:
     fb = can.Bus(interface="virtual", channel=f"rt-fb-{k}")
     io = can.Bus(interface="virtual", channel=f"rt-io-{k}")
     drives = can.Bus(interface="virtual", channel=f"rt-io-{k}")
-    bench = BenchNode(fb, io, plant_factory=PlantBox(), disturbance_fn=fake_disturbance, clock=clock, spin_s=200e-6)
+    bench = PlantNode(fb, io, plant_factory=PlantBox(), disturbance_fn=fake_disturbance, clock=clock, spin_s=200e-6)
     try:
         assert _start_paced_trial(bench, 3, clock) == pytest.approx(100.001)  # tick 0 at t0 = 100.001
         while drives.recv(timeout=0) is not None:
@@ -329,7 +329,7 @@ def test_a_paced_tick_is_waited_for_on_the_clock_for_the_last_spin_s() -> None:
         for bus in (fb, io, drives):
             bus.shutdown()
     with pytest.raises(ValueError, match="spin_s"):
-        BenchNode(fb, io, plant_factory=PlantBox(), disturbance_fn=fake_disturbance, spin_s=0.5)
+        PlantNode(fb, io, plant_factory=PlantBox(), disturbance_fn=fake_disturbance, spin_s=0.5)
 
 
 @pytest.fixture

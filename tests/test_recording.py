@@ -1,7 +1,7 @@
 """recording.rrd of a run (host.analysis.recording): layout, values that reproduce the summary's metrics,
 the 3D view, the recorder's calls into Rerun (none per sample or per trial), and `ilcrig view`
 without a display / without a recording.  What recording costs in time is a benchmark:
-benchmarks/bench_recording.py."""
+benchmarks/recording_cost.py."""
 
 from __future__ import annotations
 
@@ -265,6 +265,7 @@ def test_view_missing_recording_is_exit_2(tmp_path: Path, capsys: pytest.Capture
 
 def test_import_host_does_not_import_rerun() -> None:
     code = (
-        "import sys, host, host.analysis.recording, host.cli, host.experiment.loop; sys.exit(1 if 'rerun' in sys.modules else 0)"
+        "import sys, host, host.analysis.recording, host.cli, host.experiment.trials; "
+        "sys.exit(1 if 'rerun' in sys.modules else 0)"
     )
     assert subprocess.run([sys.executable, "-c", code], timeout=60).returncode == 0

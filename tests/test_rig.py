@@ -24,8 +24,8 @@ from bus.transports.config import hub_transport
 from bus.transports.hub_server import start_hub
 from host.experiment.config import build_config
 from host.experiment.inprocess import InProcessBench
-from host.experiment.loop import run_experiment
 from host.experiment.plan import prepare
+from host.experiment.trials import run_experiment
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 

@@ -22,8 +22,8 @@ from bus.transports.hub_server import HubServer
 from bus.transports.hub_wire import NonLoopbackAddressError, parse_address
 from host.experiment.config import build_config
 from host.experiment.inprocess import InProcessBench
-from host.experiment.loop import run_experiment
 from host.experiment.plan import prepare
+from host.experiment.trials import run_experiment
 
 HERE = Path(__file__).resolve().parent
 EXP = ["--iterations", "2", "--cycle", "0.15", "--disturbance", "both", "--seed", "3"]

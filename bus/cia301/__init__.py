@@ -2,7 +2,7 @@
 
 Owns SDO server and codecs (:mod:`bus.cia301.sdo`: expedited, segmented, block, abort codes),
 NMT and heartbeat (:mod:`bus.cia301.nmt`), EMCY (:mod:`bus.cia301.emcy`), and the node runtime
-with its object store (:mod:`bus.cia301.node`).  It is the independent implementation that the
+with its object store (:mod:`bus.cia301.slave`).  It is the independent implementation that the
 ``canopen`` library on the host checks.
 
 May import: the top-level modules of ``bus`` (errors, units, objects), python-can, canopen's EDS

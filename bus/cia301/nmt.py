@@ -11,7 +11,7 @@ The heartbeat timing of the rig is defined here, once (both sides must agree):
 
 * :data:`HOST_NODE_ID` — the host (NMT master) is node **127** on the fieldbus; it produces its
   heartbeat on COB-ID ``0x77F`` every :data:`HOST_HEARTBEAT_MS`;
-* the nodes (drives 1–4, test bench 32) produce theirs every :data:`NODE_HEARTBEAT_MS`
+* the nodes (drives 1–4, plant node 32) produce theirs every :data:`NODE_HEARTBEAT_MS`
   (the host writes it to 0x1017);
 * every consumer — the nodes consuming the host (0x1016, written by the host) and the host
   consuming the nodes — declares a producer lost after :data:`CONSUMER_TIME_MS`

@@ -2,7 +2,7 @@
 
 This module owns the layout of ``recording.rrd`` and the only ``import rerun`` of the project
 (lazy: importing this module does not import rerun).  :class:`RunRecorder` implements the
-:class:`host.experiment.loop.TrialRecorder` protocol with a *non-global* ``rr.RecordingStream`` saved
+:class:`host.experiment.trials.TrialRecorder` protocol with a *non-global* ``rr.RecordingStream`` saved
 to a file (no viewer, no network).
 
 Layout (entity paths; timelines ``trial_time`` = t_n = n·Ts as a duration, ``iteration`` = k):
@@ -189,7 +189,7 @@ class _Batch:
 
 class RunRecorder:
     """Writes ``recording.rrd`` of one run, trial by trial; implements
-    :class:`host.experiment.loop.TrialRecorder`.
+    :class:`host.experiment.trials.TrialRecorder`.
 
     :meth:`log_trial` writes the trial (a few Arrow record batches: Rerun's cost is per entity and
     per call, not per value) and flushes the file; :meth:`close` finishes it.  The stream and its

@@ -1,6 +1,6 @@
 """One experiment with all its outputs, as ``ilcrig sim`` and ``ilcrig host`` run it.
 
-This module owns what both commands do around :func:`host.experiment.loop.run_experiment`: the run
+This module owns what both commands do around :func:`host.experiment.trials.run_experiment`: the run
 folder's space reserve (:class:`host.experiment.outputs.RunFolder`), the Rerun recording
 (:mod:`host.analysis.recording`, written trial by trial), one console row per trial,
 ``report.md`` with its convergence plot after the last completed trial — also after a fault or an
@@ -20,9 +20,9 @@ from host.analysis.recording import RunRecorder
 from host.analysis.run_report import write_run_report
 from host.experiment.console import EXIT_FAULT, EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATED, print_header, print_row
 from host.experiment.faults import fault_line
-from host.experiment.loop import Bench, ExperimentResult, run_experiment
 from host.experiment.outputs import RunFolder
 from host.experiment.plan import Plan
+from host.experiment.trials import Bench, ExperimentResult, run_experiment
 
 logger = logging.getLogger(__name__)
 

@@ -5,7 +5,7 @@ This module owns the sweep runner; the experiment list and the run folders are
 :mod:`host.analysis.sweep_plan`. A sweep folder::
 
     <out>/sweep.json                       what was run, wall times, interruptions
-    <out>/runs/<experiment-id>/summary.json   the run's summary (host.experiment.loop schema)
+    <out>/runs/<experiment-id>/summary.json   the run's summary (host.experiment.trials schema)
     <out>/runs/<experiment-id>/errors.npy     (K, N, 4) float32 joint errors q_d − q, rad, per trial
     <out>/runs/<experiment-id>/error.txt      only if the experiment could not start (e.g. infeasible)
     <out>/report.md, fig8.png, fig10.png, convergence_laws.png, long_runs.png   (host.analysis.report)
@@ -78,8 +78,8 @@ def _worker_init() -> None:
 def _run_one(exp: Experiment, iterations: int, run_dir: str) -> dict[str, Any]:
     """Run one experiment into ``run_dir`` (in a worker process). Never raises."""
     from host.experiment.inprocess import InProcessBench
-    from host.experiment.loop import run_experiment
     from host.experiment.plan import prepare
+    from host.experiment.trials import run_experiment
 
     d = Path(run_dir)
     d.mkdir(parents=True, exist_ok=True)

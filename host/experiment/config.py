@@ -60,7 +60,7 @@ __all__ = [
     "MAX_SEED",
 ]
 
-#: the largest seed (the test bench's 0x2400:4 is 32 bits)
+#: the largest seed (the plant node's 0x2400:4 is 32 bits)
 MAX_SEED: int = 0xFFFFFFFF
 _BUILTIN_PATH_NAMES = {"1", "2", "3", "4"}
 

@@ -29,7 +29,7 @@ from bus.objects import DRIVE_NODE_IDS
 from firmware_model.drive import Drive
 from host.experiment.config import ExperimentConfig
 from host.experiment.faults import FaultKind, FaultRecord
-from host.experiment.loop import CyclicActuals, CyclicSetpoints, TrialFault
+from host.experiment.trials import CyclicActuals, CyclicSetpoints, TrialFault
 from host.nodes.drive_client import DriveClient
 from plant.disturbance import disturbance_torque
 from plant.params import default_true_plant

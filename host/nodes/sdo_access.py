@@ -1,7 +1,7 @@
 """Byte-level object access to a node over the fieldbus, through the canopen library's SDO
 client: the rig's implementation of the object-access protocol :class:`bus.cia301.sdo.ObjectAccess`
 (``read_object(index, sub) -> bytes``, ``write_object(index, sub, data)``) that
-:mod:`host.nodes.drive_client` and :mod:`host.nodes.bench_client` use.
+:mod:`host.nodes.drive_client` and :mod:`host.nodes.plant_client` use.
 
 This module owns the mapping of canopen's SDO errors to the project's: an SDO abort from the
 node becomes :class:`bus.errors.SdoAbort` (same code, exactly what the in-process access

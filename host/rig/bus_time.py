@@ -1,7 +1,7 @@
 """The rig's bus time in emulated time: what the experiment's traffic would take on real buses.
 
 This module owns the host's reading of the two channels' traffic (classified by
-:mod:`bus.bustime`, fed by the channel monitors of :mod:`host.rig.monitor`) against each channel's
+:mod:`bus.traffic`, fed by the channel monitors of :mod:`host.rig.monitor`) against each channel's
 bit rate (``--io-bitrate``, ``--fieldbus-bitrate``, default 1 Mbit/s), in ``summary.json``
 (:meth:`BusTimeAccounting.summary`, key ``bus_time``) and on the console (:func:`bus_time_lines`):
 
@@ -32,10 +32,10 @@ from typing import Any
 import can
 import numpy as np
 
-from bus.bench_objects import DEFAULT_BENCH_NODE_ID, BenchObj, BenchTrialSub
 from bus.busload import frame_bits_worst_case
-from bus.bustime import DEFAULT_BITRATE, IoTickCounter, SdoKey, SdoTransferCounter, TickBudget, bits_to_s
 from bus.objects import DRIVE_NODE_IDS, Obj
+from bus.plant_objects import DEFAULT_PLANT_NODE_ID, PlantObj, PlantTrialSub
+from bus.traffic import DEFAULT_BITRATE, IoTickCounter, SdoKey, SdoTransferCounter, TickBudget, bits_to_s
 
 logger = logging.getLogger(__name__)
 
@@ -51,18 +51,18 @@ PER_TRIAL_OBJECTS: dict[str, dict[tuple[int, str], str]] = {
         (int(Obj.RECORDER_DATA), "upload"): "recorder uploads",
     },
     "bench": {
-        (int(BenchObj.INITIAL_STATE), "download"): "trial set-up",
-        (int(BenchObj.TRIAL), "download"): "trial set-up",
+        (int(PlantObj.INITIAL_STATE), "download"): "trial set-up",
+        (int(PlantObj.TRIAL), "download"): "trial set-up",
     },
 }
 _STATUS_SUBS = {
     int(s)
     for s in (
-        BenchTrialSub.STATUS,
-        BenchTrialSub.TICKS_DONE,
-        BenchTrialSub.FAULT_CODE,
-        BenchTrialSub.FAULT_TICK,
-        BenchTrialSub.FAULT_NODE,
+        PlantTrialSub.STATUS,
+        PlantTrialSub.TICKS_DONE,
+        PlantTrialSub.FAULT_CODE,
+        PlantTrialSub.FAULT_TICK,
+        PlantTrialSub.FAULT_NODE,
     )
 }
 SPEED_NOTE = (
@@ -74,10 +74,10 @@ def kind_of(key: SdoKey) -> tuple[str, str]:
     """(group, kind) of an SDO transfer: group ``per_trial``, ``setup``, ``speed_dependent`` or
     ``diagnostics``."""
     node, index, sub, direction = key
-    if node == DEFAULT_BENCH_NODE_ID:
-        if index == BenchObj.TRIAL and direction == "upload" and sub in _STATUS_SUBS:
+    if node == DEFAULT_PLANT_NODE_ID:
+        if index == PlantObj.TRIAL and direction == "upload" and sub in _STATUS_SUBS:
             return "speed_dependent", "status polls"
-        if index in (BenchObj.TRIAL_TIMING, BenchObj.DEADLINE_MISSES):
+        if index in (PlantObj.TRIAL_TIMING, PlantObj.DEADLINE_MISSES):
             return "diagnostics", "timing diagnostics (0x2440, 0x2441)"
         group = "bench"
     elif node in DRIVE_NODE_IDS:

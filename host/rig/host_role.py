@@ -1,7 +1,7 @@
-"""The host on the real (emulated) fieldbus: a :class:`host.experiment.loop.Bench` whose four drives
+"""The host on the real (emulated) fieldbus: a :class:`host.experiment.trials.Bench` whose four drives
 and plant are other processes, reached only over CAN with the ``canopen`` library.
 
-* every node is a ``canopen.RemoteNode`` built from its EDS (bus/drive.eds, bus/bench.eds); the
+* every node is a ``canopen.RemoteNode`` built from its EDS (bus/drive.eds, bus/plant.eds); the
   host reads and writes objects by SDO (block transfer for tables and recorder data), so the
   hand-written drives are checked against an independent CANopen implementation;
 * heartbeats both ways (timing: :mod:`bus.cia301.nmt`): the host is node 127 and produces its
@@ -12,7 +12,7 @@ and plant are other processes, reached only over CAN with the ``canopen`` librar
 * a watchdog thread (every :data:`WATCH_PERIOD_S`) turns whatever it sees into one
   :class:`host.experiment.faults.FaultRecord` — a node's heartbeat lost (a dead or stalled
   process), no node heard at all (the hub stalled), the bus gone (the hub dead), an EMCY (a drive
-  fault, a lost, late, duplicated or damaged io frame reported by the test bench or a drive, the
+  fault, a lost, late, duplicated or damaged io frame reported by the plant node or a drive, the
   host's own loss reported by the nodes), a bus error frame, a full disk under the candump logs.
   At once it broadcasts NMT STOP (torque off on every drive still alive) and cancels the SDO
   requests of the main thread (:meth:`host.nodes.sdo_access.SdoAccess.cancel`), which then ends
@@ -52,9 +52,6 @@ import can
 import canopen
 import numpy as np
 
-from bus.bench_objects import BENCH_EDS_PATH, BenchFault, DeadlineMisses, TrialTiming
-from bus.bench_objects import DEFAULT_BENCH_NODE_ID as BENCH_NODE_ID
-from bus.bustime import DEFAULT_BITRATE
 from bus.cia301.nmt import (
     CONSUMER_HEARTBEAT_INDEX,
     CONSUMER_TIME_MS,
@@ -79,16 +76,19 @@ from bus.cyclic import (
 )
 from bus.errors import IlcrigError, SdoAbort
 from bus.objects import DRIVE_EDS_PATH, DRIVE_NODE_IDS
+from bus.plant_objects import DEFAULT_PLANT_NODE_ID as PLANT_NODE_ID
+from bus.plant_objects import PLANT_EDS_PATH, DeadlineMisses, PlantFault, TrialTiming
+from bus.traffic import DEFAULT_BITRATE
 from bus.transports.config import FIELDBUS, HUB_INTERFACE, IO, TransportConfig
 from bus.units import timeout_scale
 from host.analysis.session import report_fault, run_session
 from host.experiment.config import ExperimentConfig
 from host.experiment.console import EXIT_FAULT, print_plan
 from host.experiment.faults import FaultKind, FaultRecord, attach_injection, read_injections
-from host.experiment.loop import CyclicActuals, CyclicSetpoints, TrialFault, interrupt_on_signals
 from host.experiment.plan import prepare
-from host.nodes.bench_client import BenchClient, BenchClientError, BenchTrialFault
+from host.experiment.trials import CyclicActuals, CyclicSetpoints, TrialFault, interrupt_on_signals
 from host.nodes.drive_client import DriveClient
+from host.nodes.plant_client import PlantClient, PlantClientError, PlantTrialFault
 from host.nodes.sdo_access import SdoAccess, SdoTransportError
 from host.rig.bus_time import BusTimeAccounting, bus_time_lines
 from host.rig.monitor import ChannelMonitor
@@ -105,10 +105,10 @@ EMCY_SETTLE_S = 0.05
 
 
 def node_name(node_id: int) -> str:
-    """``drive1`` … ``drive4``, ``plant`` (the test bench), ``host`` (127), else ``node N``."""
+    """``drive1`` … ``drive4``, ``plant`` (the plant node), ``host`` (127), else ``node N``."""
     if node_id in DRIVE_NODE_IDS:
         return f"drive{node_id}"
-    if node_id == BENCH_NODE_ID:
+    if node_id == PLANT_NODE_ID:
         return "plant"
     if node_id == HOST_NODE_ID:
         return "host"
@@ -282,16 +282,16 @@ class RigBench:
             cast(list[Any], self.network.listeners).append(self._fieldbus_errors)  # notes a failing fieldbus
             self.network.connect()
             self.drive_nodes = [self.network.add_node(n, str(DRIVE_EDS_PATH)) for n in DRIVE_NODE_IDS]
-            self.bench_node = self.network.add_node(BENCH_NODE_ID, str(BENCH_EDS_PATH))
+            self.bench_node = self.network.add_node(PLANT_NODE_ID, str(PLANT_EDS_PATH))
             for node in (*self.drive_nodes, self.bench_node):
                 # generous: 7 processes share 2 cores; a starved node answers late, not never
                 node.sdo.RESPONSE_TIMEOUT = 5.0 * self.scale
             self._accesses = [SdoAccess(node) for node in self.drive_nodes]
             self.drives = [DriveClient(acc, nid) for acc, nid in zip(self._accesses, DRIVE_NODE_IDS)]
-            self._bench_access = SdoAccess(self.bench_node)
-            self._accesses.append(self._bench_access)
-            self.bench = BenchClient(self._bench_access)
-            for nid, node in zip((*DRIVE_NODE_IDS, BENCH_NODE_ID), (*self.drive_nodes, self.bench_node)):
+            self._plant_access = SdoAccess(self.bench_node)
+            self._accesses.append(self._plant_access)
+            self.plant_node = PlantClient(self._plant_access)
+            for nid, node in zip((*DRIVE_NODE_IDS, PLANT_NODE_ID), (*self.drive_nodes, self.bench_node)):
                 # canopen's own consumers: RemoteNode.nmt hears the heartbeats, .emcy the EMCYs
                 node.nmt.add_heartbeat_callback(functools.partial(self._on_heartbeat, nid))
                 node.emcy.add_callback(functools.partial(self._on_emcy, nid))
@@ -416,7 +416,7 @@ class RigBench:
             report = self.heartbeats.check(now)
             last = {n: self.heartbeats.last_heard(n) for n in report.overdue}
         if report.overdue:
-            everyone = set(DRIVE_NODE_IDS) | {BENCH_NODE_ID}
+            everyone = set(DRIVE_NODE_IDS) | {PLANT_NODE_ID}
             with self._lock:
                 heard = [self.heartbeats.last_heard(n) for n in everyone]
             quiet = 1.2 * NODE_HEARTBEAT_MS / 1000.0 * self.scale  # > a period: every node missed a beat
@@ -428,7 +428,7 @@ class RigBench:
                     detected_by="host",
                     t_detected_mono=now,
                 )
-            nid = sorted(report.overdue, key=lambda n: (n == BENCH_NODE_ID, n))[0]
+            nid = sorted(report.overdue, key=lambda n: (n == PLANT_NODE_ID, n))[0]
             seen = last.get(nid)
             silent = f"{1000 * (now - seen):.0f} ms" if seen is not None else "ever"
             return FaultRecord(
@@ -456,40 +456,40 @@ class RigBench:
     def _classify_emcy(self, node_id: int, code: int, data: bytes, t_mono: float, t_wall: float) -> FaultRecord:
         """The fault an EMCY frame reports (codes: docs/canopen-objects.md §3)."""
         data = data + bytes(8)
-        if node_id == BENCH_NODE_ID:
+        if node_id == PLANT_NODE_ID:
             try:
-                fault = BenchFault(data[0])
+                fault = PlantFault(data[0])
             except ValueError:
-                fault = BenchFault.NONE
+                fault = PlantFault.NONE
             drive, tick = data[1], int.from_bytes(data[2:4], "little")
             kinds = {
-                BenchFault.PLANT: FaultKind.PLANT_ERROR,
-                BenchFault.TICK_TIMEOUT: FaultKind.FRAME_LOST,
-                BenchFault.TICK_SEQUENCE: FaultKind.FRAME_SEQUENCE,
-                BenchFault.BAD_FRAME: FaultKind.FRAME_ERROR,
-                BenchFault.HOST_LOST: FaultKind.HOST_LOST,
-                BenchFault.ABORTED: FaultKind.TRIAL_FAULT,
+                PlantFault.PLANT: FaultKind.PLANT_ERROR,
+                PlantFault.TICK_TIMEOUT: FaultKind.FRAME_LOST,
+                PlantFault.TICK_SEQUENCE: FaultKind.FRAME_SEQUENCE,
+                PlantFault.BAD_FRAME: FaultKind.FRAME_ERROR,
+                PlantFault.HOST_LOST: FaultKind.HOST_LOST,
+                PlantFault.ABORTED: FaultKind.TRIAL_FAULT,
             }
             texts = {
-                BenchFault.PLANT: f"plant error at tick {tick}",
-                BenchFault.TICK_TIMEOUT: f"io frame lost or late: no torque frame of drive {drive} for tick {tick} "
+                PlantFault.PLANT: f"plant error at tick {tick}",
+                PlantFault.TICK_TIMEOUT: f"io frame lost or late: no torque frame of drive {drive} for tick {tick} "
                 "within the deadline",
-                BenchFault.TICK_SEQUENCE: f"io frame out of sequence (duplicated, stale or skipped) from drive {drive} "
+                PlantFault.TICK_SEQUENCE: f"io frame out of sequence (duplicated, stale or skipped) from drive {drive} "
                 f"at tick {tick}",
-                BenchFault.BAD_FRAME: (
+                PlantFault.BAD_FRAME: (
                     f"malformed torque frame of drive {drive} at tick {tick}"
                     if drive
                     else f"damaged io frame (bus error frame) at tick {tick}"
                 ),
-                BenchFault.HOST_LOST: "the host's heartbeat was lost",
-                BenchFault.ABORTED: f"the test bench aborted the trial at tick {tick}",
+                PlantFault.HOST_LOST: "the host's heartbeat was lost",
+                PlantFault.ABORTED: f"the plant node aborted the trial at tick {tick}",
             }
-            node = f"drive{drive}" if drive else ("host" if fault == BenchFault.HOST_LOST else "plant")
+            node = f"drive{drive}" if drive else ("host" if fault == PlantFault.HOST_LOST else "plant")
             return FaultRecord(
                 kinds.get(fault, FaultKind.EMCY),
-                f"{texts.get(fault, f'fault {int(fault)}')} (EMCY 0x{code:04X} of the test bench)",
+                f"{texts.get(fault, f'fault {int(fault)}')} (EMCY 0x{code:04X} of the plant node)",
                 node=node,
-                node_id=drive or (HOST_NODE_ID if fault == BenchFault.HOST_LOST else BENCH_NODE_ID),
+                node_id=drive or (HOST_NODE_ID if fault == PlantFault.HOST_LOST else PLANT_NODE_ID),
                 tick=tick,
                 detected_by="plant",
                 t_detected_mono=t_mono,
@@ -572,7 +572,7 @@ class RigBench:
     # -- Bench protocol ----------------------------------------------------------------
     @property
     def _nodes(self) -> dict[int, Any]:
-        return dict(zip((*DRIVE_NODE_IDS, BENCH_NODE_ID), (*self.drive_nodes, self.bench_node)))
+        return dict(zip((*DRIVE_NODE_IDS, PLANT_NODE_ID), (*self.drive_nodes, self.bench_node)))
 
     def _bring_up(self, node_ids: set[int], what: str) -> None:
         """Wait until ``node_ids`` answer SDO, give them a heartbeat and a consumer of the host's,
@@ -601,8 +601,8 @@ class RigBench:
                 self._configure_pdos(nodes[nid])
         for nid in sorted(node_ids):
             nodes[nid].nmt.send_command(NmtCommand.START)
-        if BENCH_NODE_ID in node_ids:
-            self.bench.configure(self.cfg.ts_s, self.cfg.substeps, self.cfg.disturbance, self.cfg.seed, paced=self.realtime)
+        if PLANT_NODE_ID in node_ids:
+            self.plant_node.configure(self.cfg.ts_s, self.cfg.substeps, self.cfg.disturbance, self.cfg.seed, paced=self.realtime)
         t_end = time.monotonic() + 5.0
         while True:
             with self._lock:
@@ -642,7 +642,7 @@ class RigBench:
     def start(self) -> None:
         """Wait for all five nodes' boot-up, then as :meth:`_bring_up`; from now on the watchdog
         ends the run on any fault."""
-        node_ids, what = set(DRIVE_NODE_IDS) | {BENCH_NODE_ID}, "(are the drive and plant processes running on this bus?)"
+        node_ids, what = set(DRIVE_NODE_IDS) | {PLANT_NODE_ID}, "(are the drive and plant processes running on this bus?)"
         self._await_boot_ups(node_ids, what)
         self._bring_up(node_ids, what)
         self._watching = True
@@ -724,15 +724,15 @@ class RigBench:
 
         def trial_body() -> None:
             nonlocal actuals
-            self.bench.start_trial(trial, n_ticks, q0, qd0)
+            self.plant_node.start_trial(trial, n_ticks, q0, qd0)
             if cyclic is not None:
                 actuals = self._stream(trial, n_ticks, cyclic)
             # generous: lockstep over a loaded 2-core machine; faults come back much sooner
-            self.bench.wait_trial(timeout_s=60.0 + n_ticks * 0.01, poll_s=0.02)
+            self.plant_node.wait_trial(timeout_s=60.0 + n_ticks * 0.01, poll_s=0.02)
 
         try:
             steal = steal_during(trial_body)
-        except (BenchClientError, SdoAbort, SdoTransportError) as exc:
+        except (PlantClientError, SdoAbort, SdoTransportError) as exc:
             if self._fault is None:
                 time.sleep(EMCY_SETTLE_S)  # let the nodes' EMCY frames arrive: they say who saw it first
                 self._watch_once()
@@ -742,10 +742,10 @@ class RigBench:
             self._in_trial = False
         self._watch_once()
         self._raise_if_fault()
-        timing = self.bench.trial_timing()
+        timing = self.plant_node.trial_timing()
         self.timings.append(timing)
         # which ticks missed, only when some did: a run that keeps up moves the same frames as before
-        self.misses.append(self.bench.deadline_misses() if timing.paced and timing.deadline_misses else None)
+        self.misses.append(self.plant_node.deadline_misses() if timing.paced and timing.deadline_misses else None)
         self.steal.append(steal)
         return actuals
 
@@ -754,20 +754,20 @@ class RigBench:
         if self._fault is not None:
             return self._fault
         now = time.monotonic()
-        if isinstance(exc, BenchTrialFault):
+        if isinstance(exc, PlantTrialFault):
             st = exc.state
             kinds = {
-                BenchFault.PLANT: FaultKind.PLANT_ERROR,
-                BenchFault.TICK_TIMEOUT: FaultKind.FRAME_LOST,
-                BenchFault.TICK_SEQUENCE: FaultKind.FRAME_SEQUENCE,
-                BenchFault.BAD_FRAME: FaultKind.FRAME_ERROR,
-                BenchFault.HOST_LOST: FaultKind.HOST_LOST,
+                PlantFault.PLANT: FaultKind.PLANT_ERROR,
+                PlantFault.TICK_TIMEOUT: FaultKind.FRAME_LOST,
+                PlantFault.TICK_SEQUENCE: FaultKind.FRAME_SEQUENCE,
+                PlantFault.BAD_FRAME: FaultKind.FRAME_ERROR,
+                PlantFault.HOST_LOST: FaultKind.HOST_LOST,
             }
             record = FaultRecord(
                 kinds.get(st.fault, FaultKind.TRIAL_FAULT),
-                f"test bench: {st.describe()}",
+                f"plant node: {st.describe()}",
                 node=f"drive{st.fault_node}" if st.fault_node else "plant",
-                node_id=st.fault_node or BENCH_NODE_ID,
+                node_id=st.fault_node or PLANT_NODE_ID,
                 trial=trial,
                 tick=st.fault_tick,
                 detected_by="plant",
@@ -825,7 +825,7 @@ class RigBench:
                     nid, data = self._tpdos.get(timeout=max(0.0, deadline - time.monotonic()))
                 except queue.Empty:
                     missing = [DRIVE_NODE_IDS[j] for j in range(n_drives) if not seen[j]]
-                    self.bench.wait_trial(timeout_s=1.0 * scale)  # a bench fault explains it better
+                    self.plant_node.wait_trial(timeout_s=1.0 * scale)  # a bench fault explains it better
                     raise TrialFault(f"trial {trial}: no TPDO from drive(s) {missing} for tick {n}") from None
                 if nid == 0:  # the watchdog declared a fault
                     self._raise_if_fault()
@@ -888,14 +888,14 @@ class RigBench:
         with self._lock:
             alive = {
                 nid
-                for nid in (*DRIVE_NODE_IDS, BENCH_NODE_ID)
+                for nid in (*DRIVE_NODE_IDS, PLANT_NODE_ID)
                 if (t := self.heartbeats.last_heard(nid)) is not None and now - t <= self.consumer_s
             }
         how = "NMT STOP"
         if bus_ok and not faulted and self.drives:
             if self._in_trial or self._tick() is not None:
                 try:
-                    self.bench.abort()
+                    self.plant_node.abort()
                 except Exception:  # noqa: BLE001 - closing must never hide the original error
                     logger.debug("bench abort failed", exc_info=True)
             for nid, d in zip(DRIVE_NODE_IDS, self.drives):

@@ -24,8 +24,8 @@ from pathlib import Path
 import can
 
 from bus import io_frames
-from bus.bench_objects import DEFAULT_BENCH_NODE_ID
 from bus.cia301.emcy import emcy_cob_id, encode_emcy
+from bus.plant_objects import DEFAULT_PLANT_NODE_ID
 from bus.transports.config import TransportConfig
 from bus.transports.fault_inject import FaultSpec, write_record
 
@@ -102,7 +102,7 @@ class ProcessInjector(threading.Thread):
             "tick": tick,
         }
         if spec.action == "emcy":
-            node_id = DEFAULT_BENCH_NODE_ID if spec.target == "plant" else int(spec.target.removeprefix("drive"))
+            node_id = DEFAULT_PLANT_NODE_ID if spec.target == "plant" else int(spec.target.removeprefix("drive"))
             msg = can.Message(
                 arbitration_id=emcy_cob_id(node_id), is_extended_id=False, data=encode_emcy(spec.emcy_code, 0x01, bytes(5))
             )

@@ -65,10 +65,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
-from bus.bench_objects import DEFAULT_BENCH_NODE_ID
 from bus.busload import DEFAULT_BITRATE_BPS
 from bus.cia301.nmt import CONSUMER_TIME_MS, HOST_NODE_ID
 from bus.objects import DRIVE_NODE_IDS
+from bus.plant_objects import DEFAULT_PLANT_NODE_ID
 from bus.safe_state import last_state_in_log
 from bus.transports.config import FIELDBUS
 from bus.transports.config import IO as IO_CHANNEL
@@ -290,7 +290,7 @@ class Death:
 def _node_id(name: str) -> int | None:
     if name.startswith("drive") and name[5:].isdigit():
         return int(name[5:])
-    return {"plant": DEFAULT_BENCH_NODE_ID, "host": HOST_NODE_ID}.get(name)
+    return {"plant": DEFAULT_PLANT_NODE_ID, "host": HOST_NODE_ID}.get(name)
 
 
 def preflight(args: argparse.Namespace) -> list[FaultSpec]:

@@ -3,7 +3,7 @@
 This module owns :class:`ChannelMonitor`: one more plain member of a channel's bus (any
 python-can ``BusABC``) read by its own thread, which counts frames and bits
 (:class:`bus.busload.BusLoadCounter`), hands every frame to an optional classifier (the bus-time
-accounting of :mod:`bus.bustime`) and writes the channel's candump log (:mod:`bus.canlog`).
+accounting of :mod:`bus.traffic`) and writes the channel's candump log (:mod:`bus.canlog`).
 
 Reading in bulk
     The monitor sees every frame of the channel — on the io channel 8 per control period — but

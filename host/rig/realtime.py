@@ -1,7 +1,7 @@
 """Wall-clock timing of the rig's trials as the plant measured them: real-time statistics.
 
-This module owns how the per-trial timing of the test-bench node (0x2440,
-:class:`bus.bench_objects.TrialTiming`) becomes the run's figures in ``summary.json``
+This module owns how the per-trial timing of the plant node (0x2440,
+:class:`bus.plant_objects.TrialTiming`) becomes the run's figures in ``summary.json``
 (:func:`timing_summary`) and on the console (:func:`timing_line`): in real-time mode
 (``ilcrig run --realtime``) the deadline misses, the tick lateness p50 / p99 / max and the
 achieved rate, and whether the run kept up; in lockstep mode the emulator throughput (ticks per
@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from bus.bench_objects import DeadlineMisses, TrialTiming
+from bus.plant_objects import DeadlineMisses, TrialTiming
 
 logger = logging.getLogger(__name__)
 

@@ -3,7 +3,7 @@
 Per transport (the zero-privilege hub over a Unix socket; udp_multicast inside a private network
 namespace; socketcan when vcan0/vcan1 exist):
 
-* floor: the bare 5-process io lockstep on the same transport (benchmarks/bench_transport.py: one
+* floor: the bare 5-process io lockstep on the same transport (benchmarks/transport_speed.py: one
   "plant" process, four "drive" processes, 4 encoder + 4 torque frames per tick, nothing else),
   ticks/s, and the 2-process ping-pong round trip, measured in this run;
 * rig: ``ilcrig run`` (4 drive + plant + host processes, plus the hub) on a 1001-tick trial
@@ -19,7 +19,7 @@ load average (1 min) before and after is printed with them, and, where Linux cou
 time the hypervisor took from the machine during each rig run's trials (steal: a virtual machine's
 host running other guests).
 
-    python benchmarks/bench_rig.py [--iterations 3] [--repeat 3] [--only hub]
+    python benchmarks/rig_speed.py [--iterations 3] [--repeat 3] [--only hub]
 
 Targets (issue 10): >= 2,000 ticks/s (2x real time at 1 kHz) on the default transport on 2 cores,
 and rig >= 0.5 x floor.
@@ -85,7 +85,7 @@ def rig(bus: str, iterations: int, netns: bool = False) -> dict:
 
 
 def floor(name: str) -> dict:
-    import bench_transport as bt
+    import transport_speed as bt
 
     ns = argparse.Namespace(seconds=1.0, pings=1000, only=[name], modes=["io"])
     try:

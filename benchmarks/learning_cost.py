@@ -19,7 +19,7 @@ prints
 Each measurement runs in a forked child after a warm-up (numba kernels loaded).  Goals on 2 cores:
 prep + update ≤ 1 s at N = 501, ≤ 10 s and ≤ 500 MB at N = 20,001, exponent ≤ 1.3.
 
-    python benchmarks/bench_learning.py [--laws pd-ilc,no-ilc] [--sizes 501,20001]
+    python benchmarks/learning_cost.py [--laws pd-ilc,no-ilc] [--sizes 501,20001]
 """
 
 from __future__ import annotations

@@ -1,9 +1,9 @@
-"""Object-dictionary indices and value encodings of the test-bench node (the plant on the bus).
+"""Object-dictionary indices and value encodings of the plant node (the plant on the bus).
 
-Owns the names of every object the test-bench node exposes (described in full, with data
-types, access and limits, by ``bus/bench.eds``), the trial command/status/fault enumerations,
+Owns the names of every object the plant node exposes (described in full, with data
+types, access and limits, by ``bus/plant.eds``), the trial command/status/fault enumerations,
 the disturbance-kind codes, the bench's EMCY codes and the byte layout of the initial state.
-Both :mod:`plant.node` (server) and :mod:`host.nodes.bench_client` (client) use these.
+Both :mod:`plant.plant_node` (server) and :mod:`host.nodes.plant_client` (client) use these.
 
 ======  ===  ========================  =======  ==========================================
 index   sub  name                      type     meaning / unit
@@ -18,10 +18,10 @@ index   sub  name                      type     meaning / unit
 0x2400  5    pacing                    U8       0 lockstep as fast as possible, 1 real time
 0x2410  1    trial index               U32      k (selects the non-repetitive draw)
 0x2410  2    number of ticks           U32      N ≥ 1
-0x2410  3    command                   U8       wo: :class:`BenchCommand` 1 start, 2 abort
-0x2410  4    status                    U8       ro: :class:`BenchStatus`
+0x2410  3    command                   U8       wo: :class:`PlantCommand` 1 start, 2 abort
+0x2410  4    status                    U8       ro: :class:`PlantStatus`
 0x2410  5    ticks done                U32      ro: plant steps completed in this trial
-0x2410  6    fault code                U8       ro: :class:`BenchFault` (0..6)
+0x2410  6    fault code                U8       ro: :class:`PlantFault` (0..6)
 0x2410  7    fault tick                U32      ro: tick n at which the fault happened
 0x2410  8    fault node                U8       ro: drive node id involved (0 = none)
 0x2420  0    initial state             DOMAIN   64 bytes: q0[4] rad, qd0[4] rad/s, float64 LE
@@ -64,19 +64,19 @@ from bus.fixedpoint import sat
 
 logger = logging.getLogger(__name__)
 
-#: The EDS of the test-bench node.
-BENCH_EDS_PATH: Final[Path] = Path(__file__).resolve().parent / "bench.eds"
-#: Default CANopen node id of the test-bench node.
-DEFAULT_BENCH_NODE_ID: Final[int] = 32
+#: The EDS of the plant node.
+PLANT_EDS_PATH: Final[Path] = Path(__file__).resolve().parent / "plant.eds"
+#: Default CANopen node id of the plant node.
+DEFAULT_PLANT_NODE_ID: Final[int] = 32
 
 HEARTBEAT_INDEX: Final[int] = 0x1017
 IDENTITY_INDEX: Final[int] = 0x1018
 ERROR_REGISTER_INDEX: Final[int] = 0x1001
-BENCH_PRODUCT_CODE: Final[int] = 0x0000BE4C
+PLANT_PRODUCT_CODE: Final[int] = 0x0000BE4C
 
 
-class BenchObj(IntEnum):
-    """Manufacturer object indices of the test-bench node."""
+class PlantObj(IntEnum):
+    """Manufacturer object indices of the plant node."""
 
     CONFIG = 0x2400
     TRIAL = 0x2410
@@ -94,7 +94,7 @@ class ConfigSub(IntEnum):
     PACING = 5
 
 
-class BenchTrialSub(IntEnum):
+class PlantTrialSub(IntEnum):
     TRIAL_INDEX = 1
     N_TICKS = 2
     COMMAND = 3
@@ -113,19 +113,19 @@ class CounterSub(IntEnum):
     LAST_TRIAL_US = 5
 
 
-class BenchCommand(IntEnum):
+class PlantCommand(IntEnum):
     START = 1
     ABORT = 2
 
 
-class BenchStatus(IntEnum):
+class PlantStatus(IntEnum):
     IDLE = 0
     RUNNING = 1
     DONE = 2
     FAULT = 3
 
 
-class BenchFault(IntEnum):
+class PlantFault(IntEnum):
     """Why the last trial stopped early (0x2410:6)."""
 
     NONE = 0
@@ -166,20 +166,20 @@ def disturbance_code(name: str) -> DisturbanceKind:
 
 
 #: EMCY error code per fault (error register bit: generic 0x01 / communication 0x11).
-FAULT_EMCY: Final[dict[BenchFault, tuple[int, int]]] = {
-    BenchFault.PLANT: (0xFF00, 0x81),  # device specific, manufacturer bit
-    BenchFault.TICK_TIMEOUT: (0x8100, 0x11),  # communication
-    BenchFault.TICK_SEQUENCE: (0x8200, 0x11),  # protocol error
-    BenchFault.ABORTED: (0xFF01, 0x81),
-    BenchFault.BAD_FRAME: (0x8200, 0x11),
-    BenchFault.HOST_LOST: (0x8130, 0x11),  # heartbeat consumer (life guard) event
+FAULT_EMCY: Final[dict[PlantFault, tuple[int, int]]] = {
+    PlantFault.PLANT: (0xFF00, 0x81),  # device specific, manufacturer bit
+    PlantFault.TICK_TIMEOUT: (0x8100, 0x11),  # communication
+    PlantFault.TICK_SEQUENCE: (0x8200, 0x11),  # protocol error
+    PlantFault.ABORTED: (0xFF01, 0x81),
+    PlantFault.BAD_FRAME: (0x8200, 0x11),
+    PlantFault.HOST_LOST: (0x8130, 0x11),  # heartbeat consumer (life guard) event
 }
 
 _EMCY_DATA = struct.Struct("<BBH")
 
 
-def fault_emcy_data(fault: BenchFault, node: int, tick: int) -> bytes:
-    """5 manufacturer bytes of a bench EMCY: u8 fault code, u8 node id, u16 tick (low bits), 0."""
+def fault_emcy_data(fault: PlantFault, node: int, tick: int) -> bytes:
+    """5 manufacturer bytes of a plant node EMCY: u8 fault code, u8 node id, u16 tick (low bits), 0."""
     return _EMCY_DATA.pack(int(fault), node & 0xFF, tick & 0xFFFF) + b"\x00"
 
 

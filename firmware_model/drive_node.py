@@ -3,8 +3,8 @@ in one thread (the drive process's main thread).
 
 Owns the glue between the firmware and the io wire, nothing else (no protocol logic, no control
 law).  The generic CANopen-slave part (select loop, NMT, boot-up, heartbeat from 0x1017, SDO
-server, EMCY frames, ignoring own COB-IDs) is :class:`bus.cia301.node.SlaveNode`, shared with the
-test-bench node (:mod:`plant.node`); :class:`DriveNode` adds the io side:
+server, EMCY frames, ignoring own COB-IDs) is :class:`bus.cia301.slave.SlaveNode`, shared with the
+plant node (:mod:`plant.plant_node`); :class:`DriveNode` adds the io side:
 
 * the plant's encoder frame for this node's joint → ``drive.io_tick(tick, count)`` →
   torque frame with the same wire tick; the trial control frame TRIAL_START sets the tick
@@ -15,7 +15,7 @@ test-bench node (:mod:`plant.node`); :class:`DriveNode` adds the io side:
   frame and the control frame), so other joints' frames do not even reach the process; any that
   still arrive (a transport without filters) and the node's own torque echo are ignored.
 * the fieldbus gets acceptance filters too (:meth:`DriveNode.consumed_fieldbus_ids`: SYNC and the
-  valid RPDOs, besides NMT, SDO and heartbeats from :class:`bus.cia301.node.SlaveNode`): the other
+  valid RPDOs, besides NMT, SDO and heartbeats from :class:`bus.cia301.slave.SlaveNode`): the other
   drives' PDOs and SDO exchanges never reach the process.
 * fieldbus SYNC and RPDO frames go to the firmware's PDO service (``drive.on_sync`` /
   ``drive.on_rpdo``).  In a cyclic synchronous mode an encoder frame that arrives before its
@@ -36,7 +36,7 @@ from typing import Any, Protocol, runtime_checkable
 import can
 
 from bus import io_frames
-from bus.cia301.node import PRODUCER_HEARTBEAT_INDEX, SlaveApp, SlaveNode, exact_id_filters, install_sigterm
+from bus.cia301.slave import PRODUCER_HEARTBEAT_INDEX, SlaveApp, SlaveNode, exact_id_filters, install_sigterm
 
 logger = logging.getLogger(__name__)
 
@@ -229,8 +229,8 @@ def run_node(
     :param stop: stop event; by default a new one set by SIGTERM/SIGINT.
     :returns: None, or why the node stopped early (a bus failed; the drive faulted first).
     """
+    from firmware_model.control_law import warm_up
     from firmware_model.drive import Drive  # the firmware is only needed in the process
-    from firmware_model.loop import warm_up
 
     warm_up()  # before boot-up: the host's boot wait covers the JIT, the first trial does not
     if stop is None:
@@ -260,7 +260,7 @@ def _quiet_shutdown(bus: can.BusABC) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    """``python -m firmware_model.node --node-id 1 --fieldbus-interface … --io-channel …``."""
+    """``python -m firmware_model.drive_node --node-id 1 --fieldbus-interface … --io-channel …``."""
     parser = argparse.ArgumentParser(description="ilcrig drive node process")
     parser.add_argument("--node-id", type=int, required=True)
     for prefix in ("fieldbus", "io"):

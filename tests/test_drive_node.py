@@ -1,4 +1,4 @@
-"""Tests of firmware_model/node.py: the drive node runtime on python-can virtual buses, checked
+"""Tests of firmware_model/drive_node.py: the drive node runtime on python-can virtual buses, checked
 from the host side with the canopen library (RemoteNode, SDO client, NMT, heartbeat).
 
 Synchronisation is by events only: a test waits for the frame or state it expects (with a
@@ -24,7 +24,7 @@ from bus import io_frames
 from bus.cia301.emcy import EmcyCode
 from bus.cia301.nmt import NmtCommand, NmtState, next_state
 from bus.errors import AbortCode, SdoAbort
-from firmware_model.node import DriveNode
+from firmware_model.drive_node import DriveNode
 
 EDS = Path(__file__).resolve().parents[1] / "bus" / "drive.eds"
 NODE = 2
@@ -314,7 +314,7 @@ def test_real_drive_enable_sequence() -> None:
     heartbeat."""
     drive_mod = pytest.importorskip("firmware_model.drive")
     from bus.objects import Cia402State, ControlCommand, state_from_statusword
-    from firmware_model.loop import warm_up
+    from firmware_model.control_law import warm_up
 
     warm_up()  # compile the control kernel first (as run_node does), not inside the first io tick
     rig = Rig(drive_mod.Drive(NODE))
@@ -435,7 +435,7 @@ def test_select_path_with_fileno_buses() -> None:
 def test_run_node_process_entry_with_stop_event() -> None:
     """run_node builds the real Drive and both buses, serves, and cleans up on stop."""
     pytest.importorskip("firmware_model.drive")
-    from firmware_model.node import run_node
+    from firmware_model.drive_node import run_node
 
     k = next(_counter)
     fb_cfg = {"interface": "virtual", "channel": f"run-fb-{k}"}

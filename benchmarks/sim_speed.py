@@ -4,7 +4,7 @@ Prints ticks/s of the whole experiment loop (plant + four fixed-point drives + h
 between trials), the real-time factor at 1 kHz, and the cost of the pieces of one tick.
 Target (issue 2): >= 20,000 ticks/s on 2 cores.
 
-    python benchmarks/bench_sim.py [--repeat 3]
+    python benchmarks/sim_speed.py [--repeat 3]
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ def main() -> None:
 
     from host.experiment.config import build_config
     from host.experiment.inprocess import InProcessBench
-    from host.experiment.loop import run_experiment
     from host.experiment.plan import prepare
+    from host.experiment.trials import run_experiment
 
     cfg = build_config(None, {})
     t0 = time.perf_counter()

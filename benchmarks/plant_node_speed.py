@@ -1,9 +1,9 @@
-"""Benchmark: the lockstep tick rate of the test-bench node over the hub with real processes, next
+"""Benchmark: the lockstep tick rate of the plant node over the hub with real processes, next
 to a bare lockstep floor on the same transport.
 
-Moved here from tests/test_bench_node.py (speed is measured and printed here, never asserted in
+Moved here from tests/test_plant_node.py (speed is measured and printed here, never asserted in
 the test suite).  Set-up: one hub (Unix socket), four drive processes
-(``python -m firmware_model.node``), the plant process (``ilcrig plant --bus hub``), the host in
+(``python -m firmware_model.drive_node``), the plant process (``ilcrig plant --bus hub``), the host in
 this process (canopen over the hub).  The drives are enabled but not armed (their PD holds the
 start pose); per trial of ``--ticks`` ticks:
 
@@ -11,12 +11,12 @@ start pose); per trial of ``--ticks`` ticks:
 * host ticks/s: ticks / wall time from the start request to the observed completion (SDO start,
   the lockstep ticks, completion polled every ``--poll`` s, so it includes up to one poll);
 
-floor, measured in this run on the same transport (benchmarks/bench_transport.py): lockstep[io]
+floor, measured in this run on the same transport (benchmarks/transport_speed.py): lockstep[io]
 (one plant process, four drive processes exchanging the real io frames, no firmware and no
 plant model) and the 2-process ping-pong round trip.  ``node/floor`` is the share of the bare
 transport's tick rate the rig keeps; ``x real time`` is node ticks/s at 1 kHz.
 
-    python benchmarks/bench_bench_node.py [--ticks 3000] [--trials 2] [--floor-seconds 2]
+    python benchmarks/plant_node_speed.py [--ticks 3000] [--trials 2] [--floor-seconds 2]
 """
 
 from __future__ import annotations
@@ -38,14 +38,14 @@ sys.path.insert(0, str(REPO / "tests"))
 
 from short_move import TS_S, configure_drives, short_reference  # noqa: E402
 
-BENCH_ID = 32
+PLANT_ID = 32
 
 
 def floor(seconds: float, pings: int) -> dict[str, Any]:
-    """bench_transport on the hub over a Unix socket: ping-pong RTT and lockstep[io]."""
+    """transport_speed on the hub over a Unix socket: ping-pong RTT and lockstep[io]."""
     ns = argparse.Namespace(seconds=seconds, pings=pings, modes=["io"])
     try:
-        import bench_transport as bt
+        import transport_speed as bt
 
         return bt.run_transport("hub-unix", ns)
     except Exception as exc:  # report, do not hide
@@ -64,10 +64,10 @@ def rig(ticks: int, trials: int, poll_s: float) -> list[dict[str, float]]:
     """Hub + 4 drive processes + the plant process; returns per-trial rates."""
     import canopen
 
-    from bus.bench_objects import BENCH_EDS_PATH
+    from bus.plant_objects import PLANT_EDS_PATH
     from bus.transports.hub_server import start_hub
-    from host.nodes.bench_client import BenchClient
     from host.nodes.drive_client import DriveClient
+    from host.nodes.plant_client import PlantClient
     from host.nodes.sdo_access import SdoAccess
 
     drive_eds = REPO / "bus" / "drive.eds"
@@ -83,7 +83,7 @@ def rig(ticks: int, trials: int, poll_s: float) -> list[dict[str, float]]:
                         [
                             sys.executable,
                             "-m",
-                            "firmware_model.node",
+                            "firmware_model.drive_node",
                             "--node-id",
                             str(node_id),
                             "--fieldbus-interface",
@@ -119,17 +119,17 @@ def rig(ticks: int, trials: int, poll_s: float) -> list[dict[str, float]]:
             network.connect(interface="ilcrig_hub", channel=f"{addr}#fieldbus")
             try:
                 booted: set[int] = set()
-                for node_id in (1, 2, 3, 4, BENCH_ID):
+                for node_id in (1, 2, 3, 4, PLANT_ID):
                     network.subscribe(0x700 + node_id, lambda cob, _data, _t: booted.add(cob - 0x700))
                 wait_until(lambda: len(booted) == 5, 120.0, "the boot-up of 4 drives and the plant")
                 network.nmt.send_command(0x01)
                 nodes = {
-                    i: canopen.RemoteNode(i, str(drive_eds if i != BENCH_ID else BENCH_EDS_PATH)) for i in (1, 2, 3, 4, BENCH_ID)
+                    i: canopen.RemoteNode(i, str(drive_eds if i != PLANT_ID else PLANT_EDS_PATH)) for i in (1, 2, 3, 4, PLANT_ID)
                 }
                 for node in nodes.values():
                     network.add_node(node)
                 drives = [DriveClient(SdoAccess(nodes[i]), i) for i in (1, 2, 3, 4)]
-                bench = BenchClient(SdoAccess(nodes[BENCH_ID]))
+                bench = PlantClient(SdoAccess(nodes[PLANT_ID]))
                 q, qd, _, _ = short_reference(60)
                 configure_drives(drives, q, qd)  # enabled, not armed: PD holds the start pose
                 bench.configure(TS_S, 4, "none", 0)
@@ -163,8 +163,8 @@ def main() -> None:
     ap.add_argument(
         "--ticks",
         type=int,
-        default=int(os.environ.get("ILCRIG_BENCH_TICKS", "3000")),
-        help="ticks per trial (default 3000, or $ILCRIG_BENCH_TICKS)",
+        default=int(os.environ.get("ILCRIG_PLANT_NODE_TICKS", "3000")),
+        help="ticks per trial (default 3000, or $ILCRIG_PLANT_NODE_TICKS)",
     )
     ap.add_argument("--trials", type=int, default=2)
     ap.add_argument("--poll", type=float, default=0.05, help="host completion poll period, s")

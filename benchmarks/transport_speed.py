@@ -12,7 +12,7 @@ network namespace, python-can ``virtual`` between threads as a reference):
 
 Usage::
 
-    python benchmarks/bench_transport.py [--seconds 3] [--pings 2000]
+    python benchmarks/transport_speed.py [--seconds 3] [--pings 2000]
         [--only hub-unix hub-tcp udp_multicast virtual] [--modes broadcast io]
 
 udp_multicast re-runs this script under ``unshare -rn`` (loopback up, multicast route);

@@ -9,7 +9,7 @@ this run) and one with a fresh :class:`host.analysis.recording.RunRecorder` (its
 of the wall times, printed against run_experiment alone and against prepare + run_experiment
 (what ``ilcrig sim`` spends), with process CPU times.  Target: < 10 % of prepare + run.
 
-    python benchmarks/bench_recording.py [--iterations 10] [--repeat 3]
+    python benchmarks/recording_cost.py [--iterations 10] [--repeat 3]
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ def timed_experiment(cfg: Any, plan: Any, folder: Path | None) -> tuple[float, f
     """(wall s, process CPU s) of one run_experiment, including the recorder's creation."""
     from host.analysis.recording import RunRecorder
     from host.experiment.inprocess import InProcessBench
-    from host.experiment.loop import run_experiment
+    from host.experiment.trials import run_experiment
 
     w0, c0 = time.perf_counter(), time.process_time()
     rec = RunRecorder(folder / "recording.rrd", config_summary=cfg.as_dict()) if folder is not None else None

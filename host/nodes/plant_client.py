@@ -1,8 +1,8 @@
-"""Host side of the test-bench node (the plant on the fieldbus): configuration, trial start,
+"""Host side of the plant node (the plant on the fieldbus): configuration, trial start,
 status, waiting for the end of a trial.
 
-Owns the host's view of the bench's object dictionary (:mod:`bus.bench_objects`,
-``bus/bench.eds``).  Like :class:`host.nodes.drive_client.DriveClient` it only calls
+Owns the host's view of the bench's object dictionary (:mod:`bus.plant_objects`,
+``bus/plant.eds``).  Like :class:`host.nodes.drive_client.DriveClient` it only calls
 ``access.read_object(index, sub) -> bytes`` and ``access.write_object(index, sub, data)``; in the rig the
 access is :class:`host.nodes.sdo_access.SdoAccess` over a canopen ``RemoteNode``.  Imports only
 :mod:`bus` (plus the object-access protocol :class:`bus.cia301.sdo.ObjectAccess`).
@@ -17,93 +17,93 @@ from typing import Any
 
 import numpy.typing as npt
 
-from bus.bench_objects import (
-    BenchCommand,
-    BenchFault,
-    BenchObj,
-    BenchStatus,
-    BenchTrialSub,
+from bus.cia301.sdo import ObjectAccess
+from bus.errors import IlcrigError
+from bus.objects import u8 as _u8  # SDO payload encoders
+from bus.objects import u16 as _u16
+from bus.objects import u32 as _u32
+from bus.plant_objects import (
     ConfigSub,
     CounterSub,
     DeadlineMisses,
     DisturbanceKind,
     InitialStateError,
+    PlantCommand,
+    PlantFault,
+    PlantObj,
+    PlantStatus,
+    PlantTrialSub,
     TrialTiming,
     disturbance_code,
     pack_initial_state,
     unpack_deadline_misses,
     unpack_trial_timing,
 )
-from bus.cia301.sdo import ObjectAccess
-from bus.errors import IlcrigError
-from bus.objects import u8 as _u8  # SDO payload encoders
-from bus.objects import u16 as _u16
-from bus.objects import u32 as _u32
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["BenchClient", "BenchState", "BenchClientError", "BenchInputError", "BenchTrialFault", "BenchTimeoutError"]
+__all__ = ["PlantClient", "PlantState", "PlantClientError", "PlantInputError", "PlantTrialFault", "PlantTimeoutError"]
 
 _U32_MAX = 0xFFFFFFFF
 
 
-class BenchClientError(IlcrigError):
-    """The test bench did not do what the host asked."""
+class PlantClientError(IlcrigError):
+    """The plant node did not do what the host asked."""
 
 
-class BenchInputError(BenchClientError, ValueError):
+class PlantInputError(PlantClientError, ValueError):
     """A host-side value the bench cannot represent (period not in whole µs, seed range...)."""
 
 
-class BenchTrialFault(BenchClientError):
+class PlantTrialFault(PlantClientError):
     """The trial ended in fault (see :attr:`state`)."""
 
-    def __init__(self, message: str, state: BenchState) -> None:
+    def __init__(self, message: str, state: PlantState) -> None:
         super().__init__(message)
         self.state = state
 
 
-class BenchTimeoutError(BenchClientError, TimeoutError):
+class PlantTimeoutError(PlantClientError, TimeoutError):
     """The trial did not end within the host's timeout (it was aborted)."""
 
 
 @dataclass(frozen=True)
-class BenchState:
+class PlantState:
     """0x2410 as read back."""
 
-    status: BenchStatus
+    status: PlantStatus
     ticks_done: int
-    fault: BenchFault
+    fault: PlantFault
     fault_tick: int
     fault_node: int
 
     def describe(self) -> str:
         """One line for messages and logs."""
-        if self.status != BenchStatus.FAULT:
+        if self.status != PlantStatus.FAULT:
             return f"{self.status.name.lower()}, {self.ticks_done} ticks done"
-        if self.fault == BenchFault.TICK_TIMEOUT:
+        if self.fault == PlantFault.TICK_TIMEOUT:
             what = f"drive {self.fault_node} did not answer tick {self.fault_tick}"
-        elif self.fault == BenchFault.TICK_SEQUENCE:
+        elif self.fault == PlantFault.TICK_SEQUENCE:
             what = f"torque frame of drive {self.fault_node} out of sequence at tick {self.fault_tick}"
-        elif self.fault == BenchFault.BAD_FRAME:
+        elif self.fault == PlantFault.BAD_FRAME:
             what = (
                 f"malformed torque frame of drive {self.fault_node} at tick {self.fault_tick}"
                 if self.fault_node
                 else f"bus error frame (a damaged frame) on io at tick {self.fault_tick}"
             )
-        elif self.fault == BenchFault.HOST_LOST:
+        elif self.fault == PlantFault.HOST_LOST:
             what = f"the host's heartbeat was lost at tick {self.fault_tick}"
-        elif self.fault == BenchFault.PLANT:
+        elif self.fault == PlantFault.PLANT:
             what = f"plant error at tick {self.fault_tick}"
-        elif self.fault == BenchFault.ABORTED:
+        elif self.fault == PlantFault.ABORTED:
             what = f"aborted at tick {self.fault_tick}"
         else:
             what = f"fault code {int(self.fault)} at tick {self.fault_tick}"
         return f"fault: {what} ({self.ticks_done} ticks done)"
 
 
-class BenchClient:
-    """Host-side client of the test-bench node.
+class PlantClient:
+    """Host-side client of the plant node.
 
     :param access: object access (``read``/``write`` bytes).
     """
@@ -127,20 +127,20 @@ class BenchClient:
         :param substeps: RK4 sub-steps per period, 1..1000.
         :param disturbance: name (``none``/``repetitive``/``nonrepetitive``/``both``) or code 0..3.
         :param seed: 0..2³²−1.
-        :raises BenchInputError: a value the bench cannot represent exactly.
+        :raises PlantInputError: a value the bench cannot represent exactly.
         """
         period_us = round(float(ts_s) * 1e6)
         if not 1 <= period_us <= 1_000_000 or period_us / 1_000_000 != float(ts_s):
-            raise BenchInputError(f"control period must be a whole number of µs in 1 µs..1 s, got {ts_s!r} s")
+            raise PlantInputError(f"control period must be a whole number of µs in 1 µs..1 s, got {ts_s!r} s")
         if int(substeps) != substeps or not 1 <= int(substeps) <= 1000:
-            raise BenchInputError(f"substeps must be an integer 1..1000, got {substeps!r}")
+            raise PlantInputError(f"substeps must be an integer 1..1000, got {substeps!r}")
         try:
             kind = disturbance_code(disturbance) if isinstance(disturbance, str) else DisturbanceKind(disturbance)
         except ValueError as err:
-            raise BenchInputError(str(err)) from None
+            raise PlantInputError(str(err)) from None
         if int(seed) != seed or not 0 <= int(seed) <= _U32_MAX:
-            raise BenchInputError(f"seed must be an integer 0..{_U32_MAX}, got {seed!r}")
-        cfg = BenchObj.CONFIG
+            raise PlantInputError(f"seed must be an integer 0..{_U32_MAX}, got {seed!r}")
+        cfg = PlantObj.CONFIG
         self.access.write_object(cfg, ConfigSub.CONTROL_PERIOD_US, _u32(period_us))
         self.access.write_object(cfg, ConfigSub.SUBSTEPS, _u16(int(substeps)))
         self.access.write_object(cfg, ConfigSub.DISTURBANCE, _u8(int(kind)))
@@ -157,16 +157,16 @@ class BenchClient:
 
     def trial_timing(self) -> TrialTiming:
         """0x2440: the last trial's wall-clock timing as the plant measured it (diagnostics)."""
-        return unpack_trial_timing(self.access.read_object(BenchObj.TRIAL_TIMING, 0))
+        return unpack_trial_timing(self.access.read_object(PlantObj.TRIAL_TIMING, 0))
 
     def deadline_misses(self) -> DeadlineMisses:
         """0x2441: the last trial's deadline misses (the first 64) as the plant measured them
         (diagnostics; empty unless the trial was paced)."""
-        return unpack_deadline_misses(self.access.read_object(BenchObj.DEADLINE_MISSES, 0))
+        return unpack_deadline_misses(self.access.read_object(PlantObj.DEADLINE_MISSES, 0))
 
     def configuration(self) -> dict[str, Any]:
         """0x2400 as read back: ts_s, substeps, disturbance (name), seed."""
-        cfg = BenchObj.CONFIG
+        cfg = PlantObj.CONFIG
         return {
             "ts_s": self._read_uint(cfg, ConfigSub.CONTROL_PERIOD_US) / 1_000_000,
             "substeps": self._read_uint(cfg, ConfigSub.SUBSTEPS),
@@ -179,71 +179,71 @@ class BenchClient:
     def start_trial(self, trial: int, n_ticks: int, q0: npt.ArrayLike, qd0: npt.ArrayLike) -> None:
         """Write the initial state (exact float64 bits), trial index, N, then command START.
 
-        :raises BenchInputError: bad q0/qd0 or out-of-range trial / n_ticks.
+        :raises PlantInputError: bad q0/qd0 or out-of-range trial / n_ticks.
         :raises bus.errors.SdoAbort: the bench refused (e.g. 0x08000022, a trial is running).
         """
         if int(trial) != trial or not 0 <= int(trial) <= _U32_MAX:
-            raise BenchInputError(f"trial index must be an integer 0..{_U32_MAX}, got {trial!r}")
+            raise PlantInputError(f"trial index must be an integer 0..{_U32_MAX}, got {trial!r}")
         if int(n_ticks) != n_ticks or not 1 <= int(n_ticks) <= _U32_MAX:
-            raise BenchInputError(f"n_ticks must be an integer 1..{_U32_MAX}, got {n_ticks!r}")
+            raise PlantInputError(f"n_ticks must be an integer 1..{_U32_MAX}, got {n_ticks!r}")
         try:
             state = pack_initial_state(q0, qd0)
         except InitialStateError as err:
-            raise BenchInputError(str(err)) from None
-        t = BenchObj.TRIAL
-        self.access.write_object(BenchObj.INITIAL_STATE, 0, state)
-        self.access.write_object(t, BenchTrialSub.TRIAL_INDEX, _u32(int(trial)))
-        self.access.write_object(t, BenchTrialSub.N_TICKS, _u32(int(n_ticks)))
-        self.access.write_object(t, BenchTrialSub.COMMAND, _u8(BenchCommand.START))
+            raise PlantInputError(str(err)) from None
+        t = PlantObj.TRIAL
+        self.access.write_object(PlantObj.INITIAL_STATE, 0, state)
+        self.access.write_object(t, PlantTrialSub.TRIAL_INDEX, _u32(int(trial)))
+        self.access.write_object(t, PlantTrialSub.N_TICKS, _u32(int(n_ticks)))
+        self.access.write_object(t, PlantTrialSub.COMMAND, _u8(PlantCommand.START))
 
     def abort(self) -> None:
         """Command ABORT (no effect when no trial runs)."""
-        self.access.write_object(BenchObj.TRIAL, BenchTrialSub.COMMAND, _u8(BenchCommand.ABORT))
+        self.access.write_object(PlantObj.TRIAL, PlantTrialSub.COMMAND, _u8(PlantCommand.ABORT))
 
-    def status(self) -> BenchState:
-        t = BenchObj.TRIAL
-        return BenchState(
-            status=BenchStatus(self._read_uint(t, BenchTrialSub.STATUS)),
-            ticks_done=self._read_uint(t, BenchTrialSub.TICKS_DONE),
-            fault=BenchFault(self._read_uint(t, BenchTrialSub.FAULT_CODE)),
-            fault_tick=self._read_uint(t, BenchTrialSub.FAULT_TICK),
-            fault_node=self._read_uint(t, BenchTrialSub.FAULT_NODE),
+    def status(self) -> PlantState:
+        t = PlantObj.TRIAL
+        return PlantState(
+            status=PlantStatus(self._read_uint(t, PlantTrialSub.STATUS)),
+            ticks_done=self._read_uint(t, PlantTrialSub.TICKS_DONE),
+            fault=PlantFault(self._read_uint(t, PlantTrialSub.FAULT_CODE)),
+            fault_tick=self._read_uint(t, PlantTrialSub.FAULT_TICK),
+            fault_node=self._read_uint(t, PlantTrialSub.FAULT_NODE),
         )
 
-    def wait_trial(self, timeout_s: float, poll_s: float = 0.02) -> BenchState:
+    def wait_trial(self, timeout_s: float, poll_s: float = 0.02) -> PlantState:
         """Poll the status (0x2410:4, one SDO upload) every ``poll_s`` s until the trial is no
         longer running, then read the whole state.
 
         :return: the final state (status DONE).
-        :raises BenchTrialFault: the trial ended in fault (or the bench is idle: never started).
-        :raises BenchTimeoutError: still running after ``timeout_s`` s (the trial is aborted).
+        :raises PlantTrialFault: the trial ended in fault (or the bench is idle: never started).
+        :raises PlantTimeoutError: still running after ``timeout_s`` s (the trial is aborted).
         """
         deadline = time.monotonic() + timeout_s
         while True:
             # while the trial runs, one SDO upload (the status) per poll; the whole state once it ended
-            if self._read_uint(BenchObj.TRIAL, BenchTrialSub.STATUS) == BenchStatus.RUNNING and time.monotonic() < deadline:
+            if self._read_uint(PlantObj.TRIAL, PlantTrialSub.STATUS) == PlantStatus.RUNNING and time.monotonic() < deadline:
                 time.sleep(poll_s)
                 continue
             state = self.status()
-            if state.status == BenchStatus.DONE:
+            if state.status == PlantStatus.DONE:
                 return state
-            if state.status == BenchStatus.FAULT:
-                raise BenchTrialFault(f"test bench: {state.describe()}", state)
-            if state.status == BenchStatus.IDLE:
-                raise BenchTrialFault("test bench is idle: the trial was never started (node reset?)", state)
+            if state.status == PlantStatus.FAULT:
+                raise PlantTrialFault(f"plant node: {state.describe()}", state)
+            if state.status == PlantStatus.IDLE:
+                raise PlantTrialFault("plant node is idle: the trial was never started (node reset?)", state)
             if time.monotonic() >= deadline:
                 try:
                     self.abort()
                 except IlcrigError:
                     logger.warning("aborting the timed-out trial failed", exc_info=True)
-                raise BenchTimeoutError(
-                    f"test bench: trial still running after {timeout_s:g} s ({state.ticks_done} ticks done); aborted"
+                raise PlantTimeoutError(
+                    f"plant node: trial still running after {timeout_s:g} s ({state.ticks_done} ticks done); aborted"
                 )
             time.sleep(poll_s)
 
     def counters(self) -> dict[str, int]:
         """0x2430: io frames sent/received, tick timeouts, trials completed, last trial µs."""
-        c = BenchObj.COUNTERS
+        c = PlantObj.COUNTERS
         return {
             "io_sent": self._read_uint(c, CounterSub.IO_SENT),
             "io_received": self._read_uint(c, CounterSub.IO_RECEIVED),

@@ -1,4 +1,4 @@
-"""bus.bustime and host.rig.bus_time: known frames give known bits and times; SDO frames are
+"""bus.traffic and host.rig.bus_time: known frames give known bits and times; SDO frames are
 attributed to their transfer by the protocol's multiplexer; what does not fit a control period is
 reported as not fitting, by how much; the per-trial exchange follows from the transfers' sizes."""
 
@@ -8,10 +8,10 @@ import can
 import pytest
 
 from bus import io_frames
-from bus.bench_objects import DEFAULT_BENCH_NODE_ID, BenchObj
 from bus.bus_features import frames_from_messages
-from bus.bustime import IoTickCounter, SdoTransferCounter, TickBudget, bits_to_s, frame_bits_of
 from bus.objects import Obj
+from bus.plant_objects import DEFAULT_PLANT_NODE_ID, PlantObj
+from bus.traffic import IoTickCounter, SdoTransferCounter, TickBudget, bits_to_s, frame_bits_of
 from host.rig.bus_time import BusTimeAccounting, bus_time_lines, kind_of
 
 
@@ -107,12 +107,12 @@ def test_sdo_frames_belong_to_the_transfer_their_initiate_opened() -> None:
 
 
 def test_objects_are_grouped_by_what_the_experiment_defines() -> None:
-    bench = DEFAULT_BENCH_NODE_ID
+    bench = DEFAULT_PLANT_NODE_ID
     assert kind_of((1, int(Obj.FEEDFORWARD_TABLE), 0, "download")) == ("per_trial", "feed-forward table downloads")
     assert kind_of((2, int(Obj.RECORDER_DATA), 0, "upload")) == ("per_trial", "recorder uploads")
-    assert kind_of((bench, int(BenchObj.INITIAL_STATE), 0, "download")) == ("per_trial", "trial set-up")
-    assert kind_of((bench, int(BenchObj.TRIAL), 4, "upload"))[0] == "speed_dependent"
-    assert kind_of((bench, int(BenchObj.TRIAL_TIMING), 0, "upload"))[0] == "diagnostics"
+    assert kind_of((bench, int(PlantObj.INITIAL_STATE), 0, "download")) == ("per_trial", "trial set-up")
+    assert kind_of((bench, int(PlantObj.TRIAL), 4, "upload"))[0] == "speed_dependent"
+    assert kind_of((bench, int(PlantObj.TRIAL_TIMING), 0, "upload"))[0] == "diagnostics"
     assert kind_of((3, int(Obj.REF_POSITION_TABLE), 0, "download")) == ("setup", "set-up")
     assert kind_of((3, 0x1000, 0, "upload"))[0] == "speed_dependent"
 
@@ -123,7 +123,7 @@ def test_per_trial_exchange_follows_from_the_transfer_sizes_not_the_number_of_po
         for trial in range(3):
             sdo_upload_expedited(acc.fieldbus, 1, int(Obj.TABLE), 1)  # per trial: 270 bits
             for _ in range(polls):
-                sdo_upload_expedited(acc.fieldbus, 32, int(BenchObj.TRIAL), 4)
+                sdo_upload_expedited(acc.fieldbus, 32, int(PlantObj.TRIAL), 4)
             ticks(acc.io, 5 * trial, 5)
         sdo_upload_expedited(acc.fieldbus, 1, int(Obj.TABLE), 1)  # one more read, e.g. at set-up
         return acc.summary(trials=3)

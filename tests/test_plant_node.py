@@ -1,13 +1,13 @@
-"""Tests of plant/node.py (the plant as the test-bench CANopen node), bus/bench.eds,
-host/nodes/bench_client.py and host/nodes/sdo_access.py: objects over SDO with the canopen
+"""Tests of plant/plant_node.py (the plant as the test-bench CANopen node), bus/plant.eds,
+host/nodes/plant_client.py and host/nodes/sdo_access.py: objects over SDO with the canopen
 library, the trial protocol against scripted drives (faults: timeout, duplicate/stale/early
 frames, plant error, abort), and the rig on python-can ``virtual`` buses — four DriveNode
-threads, the BenchNode thread, the host through canopen RemoteNodes — bit-identical to the
+threads, the PlantNode thread, the host through canopen RemoteNodes — bit-identical to the
 in-process bench.
 
 Synchronisation is by events only (frames, states, the scripted drives' hold), never by sleeping;
 timeouts are checked on a manual node clock, never against the wall clock.  The tick rate over
-the hub with real processes is a benchmark: benchmarks/bench_bench_node.py.
+the hub with real processes is a benchmark: benchmarks/plant_node_speed.py.
 """
 
 from __future__ import annotations
@@ -32,32 +32,32 @@ from hypothesis import strategies as st
 from short_move import TS_S, configure_drives, short_reference
 
 from bus import io_frames, units
-from bus.bench_objects import (
-    BENCH_EDS_PATH,
-    BenchFault,
-    BenchObj,
-    BenchStatus,
-    BenchTrialSub,
+from bus.cia301.emcy import decode_emcy
+from bus.errors import AbortCode, SdoAbort
+from bus.plant_objects import (
+    PLANT_EDS_PATH,
     ConfigSub,
     CounterSub,
     InitialStateError,
+    PlantFault,
+    PlantObj,
+    PlantStatus,
+    PlantTrialSub,
     pack_initial_state,
     unpack_initial_state,
 )
-from bus.cia301.emcy import decode_emcy
-from bus.errors import AbortCode, SdoAbort
-from host.nodes.bench_client import (
-    BenchClient,
-    BenchInputError,
-    BenchTimeoutError,
-    BenchTrialFault,
+from host.nodes.plant_client import (
+    PlantClient,
+    PlantInputError,
+    PlantTimeoutError,
+    PlantTrialFault,
 )
 from host.nodes.sdo_access import SdoAccess, SdoTransportError
-from plant.node import BenchNode
+from plant.plant_node import PlantNode
 
 ROOT = Path(__file__).resolve().parents[1]
 DRIVE_EDS = ROOT / "bus" / "drive.eds"
-BENCH_ID = 32
+PLANT_ID = 32
 
 _counter = itertools.count()
 
@@ -195,7 +195,7 @@ class Host:
         self.network.connect(interface="virtual", channel=fb_channel)
         self.emcy: list[tuple[int, bytes]] = []
         self.heartbeats: list[tuple[int, int]] = []
-        for node in (1, 2, 3, 4, BENCH_ID):
+        for node in (1, 2, 3, 4, PLANT_ID):
             self.network.subscribe(0x080 + node, lambda cob, data, _t: self.emcy.append((cob, bytes(data))))
             self.network.subscribe(0x700 + node, lambda cob, data, _t: self.heartbeats.append((cob, data[0])))
 
@@ -226,8 +226,8 @@ class NodeThread:
             bus.shutdown()
 
 
-class BenchRig:
-    """BenchNode (fake plant) in a thread + canopen host + scripted drives."""
+class PlantRig:
+    """PlantNode (fake plant) in a thread + canopen host + scripted drives."""
 
     def __init__(self, policy: Policy = honest, tick_timeout_s: float = 2.0, first_tick_timeout_s: float | None = None) -> None:
         k = next(_counter)
@@ -235,7 +235,7 @@ class BenchRig:
         self.plants = PlantBox()
         fb = can.Bus(interface="virtual", channel=self.fb_channel)
         io = can.Bus(interface="virtual", channel=self.io_channel)
-        self.bench = BenchNode(
+        self.bench = PlantNode(
             fb,
             io,
             plant_factory=self.plants,
@@ -245,9 +245,9 @@ class BenchRig:
         )
         self.host = Host(self.fb_channel)
         self.drives = ScriptedDrives(self.io_channel, policy)
-        self.remote = self.host.node(BENCH_ID, BENCH_EDS_PATH)
+        self.remote = self.host.node(PLANT_ID, PLANT_EDS_PATH)
         self.access = SdoAccess(self.remote)
-        self.client = BenchClient(self.access)
+        self.client = PlantClient(self.access)
         self.node = NodeThread(self.bench, [fb, io])
 
     def close(self) -> None:
@@ -275,8 +275,8 @@ def _no_leaked_virtual_channels() -> Iterator[None]:
 
 
 @pytest.fixture
-def rig() -> Iterator[BenchRig]:
-    r = BenchRig()
+def rig() -> Iterator[PlantRig]:
+    r = PlantRig()
     try:
         yield r
     finally:
@@ -293,31 +293,31 @@ QD0 = np.array([0.0, 0.1, 0.2, 0.30000000000000004])
 
 
 def test_eds_loads_with_import_od_and_matches_the_constants() -> None:
-    od = import_od(str(BENCH_EDS_PATH), BENCH_ID)
-    assert od[0x1018][4].default == BENCH_ID  # $NODEID serial
-    assert od[0x1014].default == 0x80 + BENCH_ID
+    od = import_od(str(PLANT_EDS_PATH), PLANT_ID)
+    assert od[0x1018][4].default == PLANT_ID  # $NODEID serial
+    assert od[0x1014].default == 0x80 + PLANT_ID
     assert od[0x1017].data_type == dt.UNSIGNED16
     expected = {
-        (BenchObj.CONFIG, ConfigSub.CONTROL_PERIOD_US): (dt.UNSIGNED32, "rw", 1000),
-        (BenchObj.CONFIG, ConfigSub.SUBSTEPS): (dt.UNSIGNED16, "rw", 4),
-        (BenchObj.CONFIG, ConfigSub.DISTURBANCE): (dt.UNSIGNED8, "rw", 0),
-        (BenchObj.CONFIG, ConfigSub.SEED): (dt.UNSIGNED32, "rw", 0),
-        (BenchObj.TRIAL, BenchTrialSub.TRIAL_INDEX): (dt.UNSIGNED32, "rw", 0),
-        (BenchObj.TRIAL, BenchTrialSub.N_TICKS): (dt.UNSIGNED32, "rw", 1),
-        (BenchObj.TRIAL, BenchTrialSub.COMMAND): (dt.UNSIGNED8, "wo", 0),
-        (BenchObj.TRIAL, BenchTrialSub.STATUS): (dt.UNSIGNED8, "ro", 0),
-        (BenchObj.TRIAL, BenchTrialSub.TICKS_DONE): (dt.UNSIGNED32, "ro", 0),
-        (BenchObj.TRIAL, BenchTrialSub.FAULT_CODE): (dt.UNSIGNED8, "ro", 0),
-        (BenchObj.TRIAL, BenchTrialSub.FAULT_TICK): (dt.UNSIGNED32, "ro", 0),
-        (BenchObj.TRIAL, BenchTrialSub.FAULT_NODE): (dt.UNSIGNED8, "ro", 0),
+        (PlantObj.CONFIG, ConfigSub.CONTROL_PERIOD_US): (dt.UNSIGNED32, "rw", 1000),
+        (PlantObj.CONFIG, ConfigSub.SUBSTEPS): (dt.UNSIGNED16, "rw", 4),
+        (PlantObj.CONFIG, ConfigSub.DISTURBANCE): (dt.UNSIGNED8, "rw", 0),
+        (PlantObj.CONFIG, ConfigSub.SEED): (dt.UNSIGNED32, "rw", 0),
+        (PlantObj.TRIAL, PlantTrialSub.TRIAL_INDEX): (dt.UNSIGNED32, "rw", 0),
+        (PlantObj.TRIAL, PlantTrialSub.N_TICKS): (dt.UNSIGNED32, "rw", 1),
+        (PlantObj.TRIAL, PlantTrialSub.COMMAND): (dt.UNSIGNED8, "wo", 0),
+        (PlantObj.TRIAL, PlantTrialSub.STATUS): (dt.UNSIGNED8, "ro", 0),
+        (PlantObj.TRIAL, PlantTrialSub.TICKS_DONE): (dt.UNSIGNED32, "ro", 0),
+        (PlantObj.TRIAL, PlantTrialSub.FAULT_CODE): (dt.UNSIGNED8, "ro", 0),
+        (PlantObj.TRIAL, PlantTrialSub.FAULT_TICK): (dt.UNSIGNED32, "ro", 0),
+        (PlantObj.TRIAL, PlantTrialSub.FAULT_NODE): (dt.UNSIGNED8, "ro", 0),
     }
-    expected |= {(BenchObj.COUNTERS, s): (dt.UNSIGNED32, "ro", 0) for s in CounterSub}
+    expected |= {(PlantObj.COUNTERS, s): (dt.UNSIGNED32, "ro", 0) for s in CounterSub}
     for (index, sub), (dtype, access, default) in expected.items():
         rec = od[int(index)]
         assert isinstance(rec, ODRecord)
         var = rec[int(sub)]
         assert (var.data_type, var.access_type, var.default) == (dtype, access, default), (hex(index), sub)
-    state = od[int(BenchObj.INITIAL_STATE)]
+    state = od[int(PlantObj.INITIAL_STATE)]
     assert isinstance(state, ODVariable) and state.data_type == dt.DOMAIN
 
 
@@ -336,8 +336,8 @@ def test_initial_state_packing_is_exact() -> None:
         unpack_initial_state(b"\x00" * 63)
 
 
-def test_bench_modules_respect_the_dependency_direction() -> None:
-    """bus never imports plant/firmware/host; the bench node (plant/node.py) never imports
+def test_plant_node_modules_respect_the_dependency_direction() -> None:
+    """bus never imports plant/firmware/host; the plant node (plant/plant_node.py) never imports
     firmware/host; the bench client imports only bus (its ObjectAccess protocol is
     bus.cia301.sdo's)."""
     import ast
@@ -352,10 +352,10 @@ def test_bench_modules_respect_the_dependency_direction() -> None:
                 mods.add(node.module)
         return mods
 
-    for rel in ("bus/cia301/node.py", "bus/bench_objects.py"):
+    for rel in ("bus/cia301/slave.py", "bus/plant_objects.py"):
         assert not {m.split(".")[0] for m in imported(rel)} & {"plant", "firmware_model", "host"}, rel
-    assert not {m.split(".")[0] for m in imported("plant/node.py")} & {"firmware_model", "host"}
-    mods = imported("host/nodes/bench_client.py")
+    assert not {m.split(".")[0] for m in imported("plant/plant_node.py")} & {"firmware_model", "host"}
+    mods = imported("host/nodes/plant_client.py")
     assert {m.split(".")[0] for m in mods} <= {
         "__future__",
         "logging",
@@ -386,68 +386,68 @@ def test_initial_state_round_trip_property(vals: list[float]) -> None:
 # ---------------------------------------------------------------------------------------
 
 
-def test_objects_over_sdo(rig: BenchRig) -> None:
+def test_objects_over_sdo(rig: PlantRig) -> None:
     remote, client, access = rig.remote, rig.client, rig.access
-    assert wait_for(lambda: (0x700 + BENCH_ID, 0x00) in rig.host.heartbeats)  # boot-up
+    assert wait_for(lambda: (0x700 + PLANT_ID, 0x00) in rig.host.heartbeats)  # boot-up
     assert remote.sdo[0x1018][2].raw == 0xBE4C
-    assert remote.sdo[0x1018][4].raw == BENCH_ID
-    assert remote.sdo[0x1008].raw == "ilcrig test bench"
+    assert remote.sdo[0x1018][4].raw == PLANT_ID
+    assert remote.sdo[0x1008].raw == "ilcrig plant node"
     assert client.configuration() == {"ts_s": 0.001, "substeps": 4, "disturbance": "none", "seed": 0}
     client.configure(0.0005, 8, "both", 4_000_000_000)
     assert client.configuration() == {"ts_s": 0.0005, "substeps": 8, "disturbance": "both", "seed": 4_000_000_000}
     assert remote.sdo[0x2400][3].raw == 3
     # EDS limits, lengths and access enforced by the node, mapped to SdoAbort by the adapter
     with pytest.raises(SdoAbort) as err:
-        access.write_object(BenchObj.CONFIG, ConfigSub.DISTURBANCE, b"\x04")
+        access.write_object(PlantObj.CONFIG, ConfigSub.DISTURBANCE, b"\x04")
     assert err.value.code == AbortCode.VALUE_TOO_HIGH
     with pytest.raises(SdoAbort) as err:
-        access.write_object(BenchObj.CONFIG, ConfigSub.SUBSTEPS, b"\x00\x00")
+        access.write_object(PlantObj.CONFIG, ConfigSub.SUBSTEPS, b"\x00\x00")
     assert err.value.code == AbortCode.VALUE_TOO_LOW
     with pytest.raises(SdoAbort) as err:
-        access.write_object(BenchObj.CONFIG, ConfigSub.CONTROL_PERIOD_US, b"\x01\x00")
+        access.write_object(PlantObj.CONFIG, ConfigSub.CONTROL_PERIOD_US, b"\x01\x00")
     assert err.value.code == AbortCode.LENGTH_MISMATCH
     with pytest.raises(SdoAbort) as err:
-        access.write_object(BenchObj.TRIAL, BenchTrialSub.STATUS, b"\x01")
+        access.write_object(PlantObj.TRIAL, PlantTrialSub.STATUS, b"\x01")
     assert err.value.code == AbortCode.READ_ONLY
     with pytest.raises(SdoAbort) as err:
-        access.read_object(BenchObj.TRIAL, BenchTrialSub.COMMAND)
+        access.read_object(PlantObj.TRIAL, PlantTrialSub.COMMAND)
     assert err.value.code == AbortCode.WRITE_ONLY
     with pytest.raises(SdoAbort) as err:
         access.read_object(0x2499, 0)
     assert err.value.code == AbortCode.NO_OBJECT
     # start before any initial state: refused
     with pytest.raises(SdoAbort) as err:
-        access.write_object(BenchObj.TRIAL, BenchTrialSub.COMMAND, b"\x01")
+        access.write_object(PlantObj.TRIAL, PlantTrialSub.COMMAND, b"\x01")
     assert err.value.code == AbortCode.DEVICE_STATE
     # initial state: exact bits through a segmented transfer; bad length / NaN refused
     q0 = np.array([0.1 + 0.2, -0.0, 5e-324, 1.0])
     state = pack_initial_state(q0, QD0)
-    access.write_object(BenchObj.INITIAL_STATE, 0, state)
-    assert access.read_object(BenchObj.INITIAL_STATE, 0) == state
+    access.write_object(PlantObj.INITIAL_STATE, 0, state)
+    assert access.read_object(PlantObj.INITIAL_STATE, 0) == state
     with pytest.raises(SdoAbort) as err:
-        access.write_object(BenchObj.INITIAL_STATE, 0, state[:-1])
+        access.write_object(PlantObj.INITIAL_STATE, 0, state[:-1])
     assert err.value.code == AbortCode.LENGTH_MISMATCH
     with pytest.raises(SdoAbort) as err:
-        access.write_object(BenchObj.INITIAL_STATE, 0, struct.pack("<8d", *([math.inf] + [0.0] * 7)))
+        access.write_object(PlantObj.INITIAL_STATE, 0, struct.pack("<8d", *([math.inf] + [0.0] * 7)))
     assert err.value.code == AbortCode.VALUE_RANGE
-    assert access.read_object(BenchObj.INITIAL_STATE, 0) == state
+    assert access.read_object(PlantObj.INITIAL_STATE, 0) == state
     # host-side validation, before anything is sent
-    with pytest.raises(BenchInputError, match="whole number of µs"):
+    with pytest.raises(PlantInputError, match="whole number of µs"):
         client.configure(0.0010000001, 4, "none", 0)
-    with pytest.raises(BenchInputError, match="unknown disturbance"):
+    with pytest.raises(PlantInputError, match="unknown disturbance"):
         client.configure(0.001, 4, "gusty", 0)
-    with pytest.raises(BenchInputError, match="seed"):
+    with pytest.raises(PlantInputError, match="seed"):
         client.configure(0.001, 4, "none", -1)
-    with pytest.raises(BenchInputError, match="4 values"):
+    with pytest.raises(PlantInputError, match="4 values"):
         client.start_trial(0, 10, [0.0] * 3, [0.0] * 4)
     # heartbeat from 0x1017 and NMT
     remote.sdo[0x1017].raw = 20
     rig.host.network.nmt.send_command(0x01)
-    assert wait_for(lambda: [s for c, s in rig.host.heartbeats if c == 0x700 + BENCH_ID].count(0x05) >= 2)
+    assert wait_for(lambda: [s for c, s in rig.host.heartbeats if c == 0x700 + PLANT_ID].count(0x05) >= 2)
 
 
-def test_sdo_access_maps_a_silent_node_to_a_transport_error(rig: BenchRig) -> None:
-    ghost = rig.host.node(99, BENCH_EDS_PATH)
+def test_sdo_access_maps_a_silent_node_to_a_transport_error(rig: PlantRig) -> None:
+    ghost = rig.host.node(99, PLANT_EDS_PATH)
     ghost.sdo.RESPONSE_TIMEOUT = 0.05
     with pytest.raises(SdoTransportError, match="node 99: read 0x1018:1 failed"):
         SdoAccess(ghost).read_object(0x1018, 1)
@@ -455,11 +455,11 @@ def test_sdo_access_maps_a_silent_node_to_a_transport_error(rig: BenchRig) -> No
         SdoAccess(ghost).write_object(0x1017, 0, b"\x00\x00")
 
 
-def test_nmt_reset_node_restores_defaults(rig: BenchRig) -> None:
+def test_nmt_reset_node_restores_defaults(rig: PlantRig) -> None:
     rig.client.configure(0.002, 2, "repetitive", 9)
     rig.host.heartbeats.clear()
     rig.remote.nmt.send_command(0x81)
-    assert wait_for(lambda: (0x700 + BENCH_ID, 0x00) in rig.host.heartbeats)
+    assert wait_for(lambda: (0x700 + PLANT_ID, 0x00) in rig.host.heartbeats)
     assert rig.client.configuration() == {"ts_s": 0.001, "substeps": 4, "disturbance": "none", "seed": 0}
 
 
@@ -468,14 +468,14 @@ def test_nmt_reset_node_restores_defaults(rig: BenchRig) -> None:
 # ---------------------------------------------------------------------------------------
 
 
-def test_trial_protocol_frames_plant_and_counters(rig: BenchRig) -> None:
+def test_trial_protocol_frames_plant_and_counters(rig: PlantRig) -> None:
     client = rig.client
     client.configure(0.002, 3, "nonrepetitive", 5)
     n = 12
     for trial in (4, 5):
         client.start_trial(trial, n, Q0, QD0)
         state = client.wait_trial(5.0)
-        assert (state.status, state.ticks_done, state.fault) == (BenchStatus.DONE, n, BenchFault.NONE)
+        assert (state.status, state.ticks_done, state.fault) == (PlantStatus.DONE, n, PlantFault.NONE)
         plant = rig.plants.built[-1]
         assert (plant.ts_s, plant.substeps) == (0.002, 3)
         assert plant.resets[-1] == (Q0.tolist(), QD0.tolist())
@@ -506,21 +506,21 @@ def test_trial_protocol_frames_plant_and_counters(rig: BenchRig) -> None:
 def test_status_is_served_during_a_trial() -> None:
     """The drives are held (no tick timeout can fire: 60 s), so the trial stands exactly where the
     test wants it while the status is polled."""
-    rig = BenchRig(tick_timeout_s=60.0)
+    rig = PlantRig(tick_timeout_s=60.0)
     try:
         rig.drives.hold_at(0)
         rig.client.start_trial(0, 100, Q0, QD0)
         seen = [rig.client.status() for _ in range(3)]
-        assert [(s.status, s.ticks_done) for s in seen] == [(BenchStatus.RUNNING, 0)] * 3
+        assert [(s.status, s.ticks_done) for s in seen] == [(PlantStatus.RUNNING, 0)] * 3
         rig.drives.hold_at(40)
         assert wait_for(lambda: rig.client.status().ticks_done == 40)
         seen = [rig.client.status() for _ in range(3)]
-        assert [(s.status, s.ticks_done) for s in seen] == [(BenchStatus.RUNNING, 40)] * 3
+        assert [(s.status, s.ticks_done) for s in seen] == [(PlantStatus.RUNNING, 40)] * 3
         with pytest.raises(SdoAbort) as err:  # no reconfiguration while running
-            rig.access.write_object(BenchObj.CONFIG, ConfigSub.SEED, b"\x01\x00\x00\x00")
+            rig.access.write_object(PlantObj.CONFIG, ConfigSub.SEED, b"\x01\x00\x00\x00")
         assert err.value.code == AbortCode.DEVICE_STATE
         with pytest.raises(SdoAbort) as err:
-            rig.access.write_object(BenchObj.TRIAL, BenchTrialSub.COMMAND, b"\x01")
+            rig.access.write_object(PlantObj.TRIAL, PlantTrialSub.COMMAND, b"\x01")
         assert err.value.code == AbortCode.DEVICE_STATE
         assert rig.client.status() == seen[-1]  # refused writes changed nothing
         rig.drives.hold_at(None)
@@ -529,10 +529,10 @@ def test_status_is_served_during_a_trial() -> None:
         rig.close()
 
 
-def _emcy_of_bench(rig: BenchRig) -> list[tuple[int, int, bytes]]:
+def _emcy_of_plant(rig: PlantRig) -> list[tuple[int, int, bytes]]:
     out = []
     for cob, data in rig.host.emcy:
-        if cob == 0x80 + BENCH_ID:
+        if cob == 0x80 + PLANT_ID:
             m = decode_emcy(data)
             out.append((m.code, m.register, m.manufacturer))
     return out
@@ -546,21 +546,21 @@ def test_drive_that_stops_answering_is_a_timeout_fault_and_the_node_recovers() -
             return []
         return honest(joint, n, wire, count)
 
-    rig = BenchRig(policy, tick_timeout_s=0.2)
+    rig = PlantRig(policy, tick_timeout_s=0.2)
     try:
         rig.client.start_trial(0, 20, Q0, QD0)
-        with pytest.raises(BenchTrialFault, match="drive 3 did not answer tick 5") as err:
+        with pytest.raises(PlantTrialFault, match="drive 3 did not answer tick 5") as err:
             rig.client.wait_trial(5.0)
         state = err.value.state
         assert (state.status, state.fault, state.fault_tick, state.fault_node, state.ticks_done) == (
-            BenchStatus.FAULT,
-            BenchFault.TICK_TIMEOUT,
+            PlantStatus.FAULT,
+            PlantFault.TICK_TIMEOUT,
             5,
             3,
             5,
         )
-        assert wait_for(lambda: bool(_emcy_of_bench(rig)))
-        assert _emcy_of_bench(rig) == [(0x8100, 0x11, bytes([2, 3, 5, 0, 0]))]
+        assert wait_for(lambda: bool(_emcy_of_plant(rig)))
+        assert _emcy_of_plant(rig) == [(0x8100, 0x11, bytes([2, 3, 5, 0, 0]))]
         assert rig.remote.sdo[0x1001].raw == 0x11
         assert "drive 3 did not answer tick 5" in rig.bench.last_fault_message
         assert rig.client.counters()["tick_timeouts"] == 1
@@ -569,7 +569,7 @@ def test_drive_that_stops_answering_is_a_timeout_fault_and_the_node_recovers() -
         # the node keeps running: the next trial completes (and clears the error register)
         silent_from["tick"] = 10**9
         rig.client.start_trial(1, 8, Q0, QD0)
-        assert rig.client.wait_trial(5.0).status == BenchStatus.DONE
+        assert rig.client.wait_trial(5.0).status == PlantStatus.DONE
         assert rig.remote.sdo[0x1001].raw == 0
     finally:
         rig.close()
@@ -584,7 +584,7 @@ def test_tick_zero_gets_the_longer_first_tick_timeout() -> None:
     fb = can.Bus(interface="virtual", channel=f"bench-fb-{k}")
     io = can.Bus(interface="virtual", channel=f"bench-io-{k}")
     drives = can.Bus(interface="virtual", channel=f"bench-io-{k}")
-    bench = BenchNode(
+    bench = PlantNode(
         fb,
         io,
         plant_factory=PlantBox(),
@@ -595,8 +595,8 @@ def test_tick_zero_gets_the_longer_first_tick_timeout() -> None:
     )
 
     def start_trial(trial: int) -> None:
-        bench.write_object(BenchObj.TRIAL, BenchTrialSub.TRIAL_INDEX, struct.pack("<I", trial))
-        bench.write_object(BenchObj.TRIAL, BenchTrialSub.COMMAND, b"\x01")
+        bench.write_object(PlantObj.TRIAL, PlantTrialSub.TRIAL_INDEX, struct.pack("<I", trial))
+        bench.write_object(PlantObj.TRIAL, PlantTrialSub.COMMAND, b"\x01")
         bench.step(0.0)  # the trial begins: TRIAL_START and the encoder frames of tick 0
 
     def answer(joints: set[int]) -> None:
@@ -612,32 +612,32 @@ def test_tick_zero_gets_the_longer_first_tick_timeout() -> None:
                 drives.send(io_frames.encode_torque(e.joint, e.tick, 0, io_frames.TorqueStatus.ENABLED))
         bench.step(0.0)
 
-    def status_at(t: float) -> BenchStatus:
+    def status_at(t: float) -> PlantStatus:
         clock.now = t
         bench.step(0.0)
         return bench.status
 
     try:
         bench.start()
-        bench.write_object(BenchObj.INITIAL_STATE, 0, pack_initial_state(Q0, QD0))
-        bench.write_object(BenchObj.TRIAL, BenchTrialSub.N_TICKS, struct.pack("<I", 5))
+        bench.write_object(PlantObj.INITIAL_STATE, 0, pack_initial_state(Q0, QD0))
+        bench.write_object(PlantObj.TRIAL, PlantTrialSub.N_TICKS, struct.pack("<I", 5))
         # trial 0: drive 1 never answers tick 0 (encoders sent at 1000.0)
         start_trial(0)
         answer({1, 2, 3})
-        assert [status_at(1000.0 + dt) for dt in (0.05, 0.2, 0.399)] == [BenchStatus.RUNNING] * 3
+        assert [status_at(1000.0 + dt) for dt in (0.05, 0.2, 0.399)] == [PlantStatus.RUNNING] * 3
         assert (bench.ticks_done, bench.tick_timeouts) == (0, 0)
-        assert status_at(1000.0 + 0.4) == BenchStatus.FAULT
-        assert (bench.fault, bench.tick_timeouts) == (BenchFault.TICK_TIMEOUT, 1)
+        assert status_at(1000.0 + 0.4) == PlantStatus.FAULT
+        assert (bench.fault, bench.tick_timeouts) == (PlantFault.TICK_TIMEOUT, 1)
         assert bench.last_fault_message.startswith("drive 1 did not answer tick 0 within 0.4 s")
         # trial 1: tick 0 complete, drive 1 silent at tick 1 (encoders sent at 2000.0)
         clock.now = 2000.0
         start_trial(1)
         answer({0, 1, 2, 3})
         answer({1, 2, 3})
-        assert status_at(2000.0 + 0.049) == BenchStatus.RUNNING
+        assert status_at(2000.0 + 0.049) == PlantStatus.RUNNING
         assert bench.ticks_done == 1
-        assert status_at(2000.0 + 0.05) == BenchStatus.FAULT
-        assert (bench.fault, bench.tick_timeouts) == (BenchFault.TICK_TIMEOUT, 2)
+        assert status_at(2000.0 + 0.05) == PlantStatus.FAULT
+        assert (bench.fault, bench.tick_timeouts) == (PlantFault.TICK_TIMEOUT, 2)
         assert bench.last_fault_message.startswith("drive 1 did not answer tick 1 within 0.05 s")
     finally:
         for bus in (fb, io, drives):
@@ -658,52 +658,52 @@ def test_bad_torque_sequence_is_a_fault(kind: str) -> None:
             return [(wire + 1, 0)]  # the frame of tick 6 missing, tick 7 instead
         return frames
 
-    rig = BenchRig(policy)
+    rig = PlantRig(policy)
     try:
         rig.client.start_trial(0, 20, Q0, QD0)
-        with pytest.raises(BenchTrialFault, match="drive 2 out of sequence at tick 6") as err:
+        with pytest.raises(PlantTrialFault, match="drive 2 out of sequence at tick 6") as err:
             rig.client.wait_trial(5.0)
-        assert (err.value.state.fault, err.value.state.fault_node) == (BenchFault.TICK_SEQUENCE, 2)
+        assert (err.value.state.fault, err.value.state.fault_node) == (PlantFault.TICK_SEQUENCE, 2)
         words = {"duplicate": "duplicate", "stale": "stale", "early": "during tick 6", "missing": "missing"}
         assert words[kind] in rig.bench.last_fault_message
-        assert wait_for(lambda: bool(_emcy_of_bench(rig)))
-        assert _emcy_of_bench(rig)[0][:2] == (0x8200, 0x11)
+        assert wait_for(lambda: bool(_emcy_of_plant(rig)))
+        assert _emcy_of_plant(rig)[0][:2] == (0x8200, 0x11)
         # the plant never integrated tick 6 with a wrong or missing torque
         assert len(rig.plants.built[-1].steps) <= 6 + (kind == "duplicate")
     finally:
         rig.close()
 
 
-def test_plant_error_is_a_fault(rig: BenchRig) -> None:
+def test_plant_error_is_a_fault(rig: PlantRig) -> None:
     assert wait_for(lambda: bool(rig.plants.built))  # built at node start, kept for Ts = 1 ms
     rig.plants.built[-1].fail_at = 3
     rig.client.start_trial(0, 10, Q0, QD0)
-    with pytest.raises(BenchTrialFault, match="plant error at tick 3") as err:
+    with pytest.raises(PlantTrialFault, match="plant error at tick 3") as err:
         rig.client.wait_trial(5.0)
-    assert err.value.state.fault == BenchFault.PLANT
+    assert err.value.state.fault == PlantFault.PLANT
     assert "simulated FK failure" in rig.bench.last_fault_message
-    assert wait_for(lambda: bool(_emcy_of_bench(rig)))
-    assert _emcy_of_bench(rig)[0] == (0xFF00, 0x81, bytes([1, 0, 3, 0, 0]))
+    assert wait_for(lambda: bool(_emcy_of_plant(rig)))
+    assert _emcy_of_plant(rig)[0] == (0xFF00, 0x81, bytes([1, 0, 3, 0, 0]))
 
 
 def test_abort_command_and_nmt_stop_end_a_trial() -> None:
     """The drives are held at tick 0 and no tick timeout can fire (60 s): each trial runs until
     the abort, the client's own timeout or the NMT stop ends it."""
-    rig = BenchRig(tick_timeout_s=60.0)
+    rig = PlantRig(tick_timeout_s=60.0)
     try:
         rig.drives.hold_at(0)
         rig.client.start_trial(0, 1000, Q0, QD0)
         rig.client.abort()
-        with pytest.raises(BenchTrialFault, match="aborted"):
+        with pytest.raises(PlantTrialFault, match="aborted"):
             rig.client.wait_trial(5.0)
-        with pytest.raises(BenchTimeoutError, match="still running after 0.05 s"):
+        with pytest.raises(PlantTimeoutError, match="still running after 0.05 s"):
             rig.client.start_trial(1, 1000, Q0, QD0)
             rig.client.wait_trial(0.05)
-        assert rig.client.status().fault == BenchFault.ABORTED  # the client aborted it
+        assert rig.client.status().fault == PlantFault.ABORTED  # the client aborted it
         rig.client.start_trial(2, 1000, Q0, QD0)
         rig.remote.nmt.send_command(0x02)  # stop
-        assert wait_for(lambda: rig.bench.status == BenchStatus.FAULT)
-        assert rig.bench.fault == BenchFault.ABORTED
+        assert wait_for(lambda: rig.bench.status == PlantStatus.FAULT)
+        assert rig.bench.fault == PlantFault.ABORTED
         assert rig.bench.ticks_done == 0 and rig.bench.trials_done == 0
         rig.drives.hold_at(None)  # the drives read on: late answers (ignored), the control frames
         assert wait_for(lambda: [c.command for c in rig.drives.controls] == [1, 2] * 3)
@@ -713,11 +713,11 @@ def test_abort_command_and_nmt_stop_end_a_trial() -> None:
 
 
 def test_run_plant_role_serves_until_stopped() -> None:
-    """plant.node.run_plant_role on a virtual transport: boots, runs a trial with the real
+    """plant.plant_node.run_plant_role on a virtual transport: boots, runs a trial with the real
     plant (scripted zero-torque drives), stops on the event and closes its buses."""
     from bus.transports.config import virtual_transport
     from plant.kinematics import inverse_kinematics
-    from plant.node import run_plant_role
+    from plant.plant_node import run_plant_role
 
     transport = virtual_transport(f"plant-role-{next(_counter)}")
     host = Host(transport.fieldbus.channel)
@@ -729,7 +729,7 @@ def test_run_plant_role_serves_until_stopped() -> None:
         host.network.subscribe(0x700 + 33, lambda _c, data, _t: boot.append(data[0]))
         thread.start()
         assert wait_for(lambda: 0 in boot, 30.0)
-        client = BenchClient(SdoAccess(host.node(33, BENCH_EDS_PATH)))
+        client = PlantClient(SdoAccess(host.node(33, PLANT_EDS_PATH)))
         client.start_trial(0, 20, inverse_kinematics(np.array([0.0, 0.0, -0.65, 0.0])), np.zeros(4))
         assert client.wait_trial(5.0).ticks_done == 20
         assert drives.encoders[-4].count != drives.encoders[0].count  # joint 1 sagged: a real plant
@@ -767,7 +767,7 @@ def _in_process_traces(n: int, trials: int, disturbance: str, seed: int) -> list
 
 def test_rig_on_virtual_buses_is_bit_identical_to_in_process() -> None:
     from firmware_model.drive import Drive
-    from firmware_model.node import DriveNode
+    from firmware_model.drive_node import DriveNode
     from host.experiment.config import ExperimentConfig
     from host.experiment.inprocess import make_plant
     from host.nodes.drive_client import DriveClient
@@ -789,10 +789,10 @@ def test_rig_on_virtual_buses_is_bit_identical_to_in_process() -> None:
         def factory(ts_s: float, substeps: int) -> Any:
             return make_plant(ExperimentConfig(ts_s=ts_s, substeps=substeps))
 
-        bench_node = BenchNode(fb, io, plant_factory=factory, disturbance_fn=disturbance_torque)
+        bench_node = PlantNode(fb, io, plant_factory=factory, disturbance_fn=disturbance_torque)
         threads.append(NodeThread(bench_node, [fb, io]))
         drives = [DriveClient(SdoAccess(host.node(i, DRIVE_EDS)), i) for i in (1, 2, 3, 4)]
-        bench = BenchClient(SdoAccess(host.node(BENCH_ID, BENCH_EDS_PATH)))
+        bench = PlantClient(SdoAccess(host.node(PLANT_ID, PLANT_EDS_PATH)))
         assert wait_for(lambda: len({c for c, s in host.heartbeats if s == 0}) == 5, 5.0)  # 5 boot-ups
         host.network.nmt.send_command(0x01)  # all nodes operational
         q, qd, ff, _ = short_reference(n)
@@ -846,12 +846,12 @@ def test_the_bench_pays_its_first_calls_at_boot_not_at_the_first_trial() -> None
     io = can.Bus(interface="virtual", channel=f"boot-io-{k}")
     host = can.Bus(interface="virtual", channel=f"boot-fb-{k}")
     try:
-        bench = BenchNode(fb, io, plant_factory=factory, disturbance_fn=disturbance)
+        bench = PlantNode(fb, io, plant_factory=factory, disturbance_fn=disturbance)
         bench.start()
         assert built == [(0.001, 4)]
         assert calls == [("both", 0, 0, 2, 0.001)]
         boot = host.recv(timeout=0)
-        assert boot is not None and (boot.arbitration_id, bytes(boot.data)) == (0x700 + BENCH_ID, b"\x00")
+        assert boot is not None and (boot.arbitration_id, bytes(boot.data)) == (0x700 + PLANT_ID, b"\x00")
     finally:
         for bus in (fb, io, host):
             bus.shutdown()

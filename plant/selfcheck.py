@@ -1,4 +1,4 @@
-"""Plant micro-benchmark and drivetrain feasibility check: ``python -m plant.bench``.
+"""Plant micro-benchmark and drivetrain feasibility check: ``python -m plant.selfcheck``.
 
 This module owns two quick measurements the lead asked for, printed (logging at INFO):
 
@@ -102,7 +102,7 @@ def peak_torques() -> list[tuple[float, str, np.ndarray, np.ndarray]]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``python -m plant.bench``."""
+    """Entry point of ``python -m plant.selfcheck``."""
     argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     r = bench_step()

@@ -1,10 +1,10 @@
-"""The test-bench node: the plant as a CANopen slave on the fieldbus and the lockstep clock
+"""The plant node: the plant as a CANopen slave on the fieldbus and the lockstep clock
 master of the io channel.
 
-This module owns :class:`BenchNode`: the trial protocol of the plant side of the rig
+This module owns :class:`PlantNode`: the trial protocol of the plant side of the rig
 (architecture.md "Time and one trial") on top of the generic slave runtime
-:class:`bus.cia301.node.SlaveNode` (NMT, heartbeat, SDO server, EMCY).  Objects: ``bus/bench.eds``,
-names and encodings: :mod:`bus.bench_objects`.  :func:`run_plant_role` is the ``ilcrig plant``
+:class:`bus.cia301.slave.SlaveNode` (NMT, heartbeat, SDO server, EMCY).  Objects: ``bus/plant.eds``,
+names and encodings: :mod:`bus.plant_objects`.  :func:`run_plant_role` is the ``ilcrig plant``
 process entry; it builds the true plant and the disturbance model of ``plant/`` and passes them
 to the node as two factories (tests pass their own):
 
@@ -12,9 +12,9 @@ to the node as two factories (tests pass their own):
   ``encoder_counts() -> int (4,)`` [counts] and ``step(torque_units int64 (4,) [µN·m],
   disturbance_nm float64 (4,) [N·m])`` that raises on failure.  The plant is built once and
   kept while the control period and the sub-steps stay the same (and built once at
-  :meth:`BenchNode.start`, before the boot-up frame, so compilation never delays a trial);
+  :meth:`PlantNode.start`, before the boot-up frame, so compilation never delays a trial);
 * ``disturbance_fn(kind, seed, trial, n_ticks, ts_s) -> (n_ticks, 4)`` [N·m], ``kind`` one of
-  :class:`bus.bench_objects.DisturbanceKind` (``plant.disturbance.disturbance_torque``).
+  :class:`bus.plant_objects.DisturbanceKind` (``plant.disturbance.disturbance_torque``).
 
 A trial (host writes 0x2410:3 = 1, start): the plant is reset to the initial state 0x2420,
 the disturbance of (kind, seed, trial index, N, Ts) is computed, the TRIAL_START control frame
@@ -36,7 +36,7 @@ way the trial's timing (duration, and when paced the misses and the lateness of 
 :class:`plant.pacing.TickPacer`) is kept in 0x2440, and the first missed ticks in 0x2441.
 Pacing delays frames only; what the plant computes is the same.  The select loop wakes
 ``spin_s`` before a held tick is due and waits the rest in a loop on the clock (the plant role:
-:attr:`BenchNode.REALTIME_SPIN_S`): a timer wake-up comes about 0.1 ms late on the machines here,
+:attr:`PlantNode.REALTIME_SPIN_S`): a timer wake-up comes about 0.1 ms late on the machines here,
 a tenth of the period, while the drives wait for the plant at that moment and the core is free.
 
 After tick N-1: TRIAL_STOP, status DONE.  The trial is event driven inside the slave's select
@@ -47,8 +47,8 @@ A bus error frame on io during a trial (a frame damaged on the wire, e.g. ``--in
 BAD_FRAME fault.  The host's heartbeat is consumed (0x1016): losing it during a trial is a
 HOST_LOST fault (EMCY 0x8130); a failing bus ends the node's loop (:meth:`bus_lost`).
 A fault (plant error, tick error, timeout, host abort, host lost, NMT stop/reset) ends the trial:
-TRIAL_STOP, one EMCY frame (:data:`bus.bench_objects.FAULT_EMCY`, manufacturer bytes
-:func:`bus.bench_objects.fault_emcy_data`), status FAULT with code, tick and node in 0x2410;
+TRIAL_STOP, one EMCY frame (:data:`bus.plant_objects.FAULT_EMCY`, manufacturer bytes
+:func:`bus.plant_objects.fault_emcy_data`), status FAULT with code, tick and node in 0x2410;
 the node keeps serving and the next start begins afresh.
 
 The wire tick runs on across trials (each trial's ticks continue the previous ones), so a late
@@ -70,32 +70,32 @@ import numpy as np
 import numpy.typing as npt
 
 from bus import io_frames, units
-from bus.bench_objects import (
-    BENCH_EDS_PATH,
-    DEFAULT_BENCH_NODE_ID,
+from bus.bus_features import batch_sender
+from bus.cia301.nmt import NmtCommand, NmtState, next_state
+from bus.cia301.slave import ObjectStore, SlaveNode, Value, install_sigterm
+from bus.errors import AbortCode, SdoAbort
+from bus.plant_objects import (
+    DEFAULT_PLANT_NODE_ID,
     ERROR_REGISTER_INDEX,
     FAULT_EMCY,
-    BenchCommand,
-    BenchFault,
-    BenchObj,
-    BenchStatus,
-    BenchTrialSub,
+    PLANT_EDS_PATH,
     ConfigSub,
     CounterSub,
     DeadlineMiss,
     DeadlineMisses,
     DisturbanceKind,
     InitialStateError,
+    PlantCommand,
+    PlantFault,
+    PlantObj,
+    PlantStatus,
+    PlantTrialSub,
     TrialTiming,
     fault_emcy_data,
     pack_deadline_misses,
     pack_trial_timing,
     unpack_initial_state,
 )
-from bus.bus_features import batch_sender
-from bus.cia301.nmt import NmtCommand, NmtState, next_state
-from bus.cia301.node import ObjectStore, SlaveNode, Value, install_sigterm
-from bus.errors import AbortCode, SdoAbort
 from bus.timer_slack import fine_timer_slack
 from bus.transports.config import TransportConfig
 from plant.pacing import TickPacer
@@ -109,7 +109,7 @@ _FAULT_BIT = int(io_frames.TorqueStatus.FAULT)
 
 
 class PlantLike(Protocol):
-    """The plant as the bench node uses it (``plant.simulator.Plant``)."""
+    """The plant as the plant node uses it (``plant.simulator.Plant``)."""
 
     def reset(self, q0: np.ndarray, qd0: np.ndarray) -> None: ...
 
@@ -122,7 +122,7 @@ PlantFactory = Callable[[float, int], PlantLike]
 DisturbanceFn = Callable[[str, int, int, int, float], npt.ArrayLike]
 
 
-class BenchNode(SlaveNode):
+class PlantNode(SlaveNode):
     """The plant as CANopen node ``node_id`` and io clock master.
 
     :param fieldbus: python-can bus of the fieldbus.
@@ -134,7 +134,7 @@ class BenchNode(SlaveNode):
     :param first_tick_timeout_s: the same for tick 0 of a trial, s (drives may load their
         compiled kernels on their first tick; default :attr:`FIRST_TICK_TIMEOUT_S`).
     :param clock: monotonic time source [s] (protocol timing only).
-    :param eds_path: the EDS (default ``bus/bench.eds``).
+    :param eds_path: the EDS (default ``bus/plant.eds``).
     :param spin_s: real time: wake this long before a held tick is due and wait the rest on the
         clock in a loop, s (0: the select loop's timer alone; see the module docstring).
     """
@@ -154,11 +154,11 @@ class BenchNode(SlaveNode):
         *,
         plant_factory: PlantFactory,
         disturbance_fn: DisturbanceFn,
-        node_id: int = DEFAULT_BENCH_NODE_ID,
+        node_id: int = DEFAULT_PLANT_NODE_ID,
         tick_timeout_s: float | None = None,
         first_tick_timeout_s: float | None = None,
         clock: Callable[[], float] = time.monotonic,
-        eds_path: str | Path = BENCH_EDS_PATH,
+        eds_path: str | Path = PLANT_EDS_PATH,
         spin_s: float = 0.0,
     ) -> None:
         if not 0.0 <= spin_s < 0.01:
@@ -178,8 +178,8 @@ class BenchNode(SlaveNode):
         self._plant: PlantLike | None = None
         self._plant_key: tuple[float, int] | None = None
         # trial state
-        self._status = BenchStatus.IDLE
-        self._fault = BenchFault.NONE
+        self._status = PlantStatus.IDLE
+        self._fault = PlantFault.NONE
         self._fault_tick = 0
         self._fault_node = 0
         self._error_register = 0
@@ -228,8 +228,8 @@ class BenchNode(SlaveNode):
             self._abort(f"NMT {cmd.name}")
         if cmd == NmtCommand.RESET_NODE:
             self.store.reset(0x2000, 0x5FFF)
-            self._status = BenchStatus.IDLE
-            self._fault = BenchFault.NONE
+            self._status = PlantStatus.IDLE
+            self._fault = PlantFault.NONE
             self._fault_tick = self._fault_node = 0
             self._error_register = 0
             self.io_sent = self.io_received = self.tick_timeouts = self.trials_done = 0
@@ -257,64 +257,64 @@ class BenchNode(SlaveNode):
             return
         if self._running or self._pending_start:
             self._fail(
-                BenchFault.HOST_LOST,
+                PlantFault.HOST_LOST,
                 0,
                 f"heartbeat of node {node_id} (the host) lost at tick {self._tick}",
                 started=self._running,
             )
         else:
-            code, register = FAULT_EMCY[BenchFault.HOST_LOST]
+            code, register = FAULT_EMCY[PlantFault.HOST_LOST]
             logger.warning("node %d: heartbeat of node %d (the host) lost", self.node_id, node_id)
-            self.send_emcy(code, register, fault_emcy_data(BenchFault.HOST_LOST, 0, self._tick))
+            self.send_emcy(code, register, fault_emcy_data(PlantFault.HOST_LOST, 0, self._tick))
 
     def bus_lost(self, reason: str) -> None:
         """A bus failed (the hub gone): the trial, if any, ends here (nothing can be sent)."""
         if self._running or self._pending_start:
             self._running = self._pending_start = False
-            self._status = BenchStatus.FAULT
-            self._fault = BenchFault.ABORTED
+            self._status = PlantStatus.FAULT
+            self._fault = PlantFault.ABORTED
             self._fault_tick = self._tick
             logger.warning("node %d: trial aborted at tick %d: bus lost (%s)", self.node_id, self._tick, reason)
 
     # ------------------------------------------------------------------ public state
 
     @property
-    def status(self) -> BenchStatus:
+    def status(self) -> PlantStatus:
         return self._status
 
     @property
-    def fault(self) -> BenchFault:
+    def fault(self) -> PlantFault:
         return self._fault
 
     @property
     def ticks_done(self) -> int:
-        return self._tick if self._status != BenchStatus.IDLE else 0
+        return self._tick if self._status != PlantStatus.IDLE else 0
 
     # ------------------------------------------------------------------ objects
 
     def _install_hooks(self) -> None:
         r, w = self.store.read_hooks, self.store.write_hooks
-        t = BenchObj.TRIAL
+        t = PlantObj.TRIAL
         r[(ERROR_REGISTER_INDEX, 0)] = lambda: self._error_register
-        r[(t, BenchTrialSub.STATUS)] = lambda: int(self._status)
-        r[(t, BenchTrialSub.TICKS_DONE)] = lambda: self.ticks_done & _U32
-        r[(t, BenchTrialSub.FAULT_CODE)] = lambda: int(self._fault)
-        r[(t, BenchTrialSub.FAULT_TICK)] = lambda: self._fault_tick & _U32
-        r[(t, BenchTrialSub.FAULT_NODE)] = lambda: self._fault_node
-        c = BenchObj.COUNTERS
+        r[(t, PlantTrialSub.STATUS)] = lambda: int(self._status)
+        r[(t, PlantTrialSub.TICKS_DONE)] = lambda: self.ticks_done & _U32
+        r[(t, PlantTrialSub.FAULT_CODE)] = lambda: int(self._fault)
+        r[(t, PlantTrialSub.FAULT_TICK)] = lambda: self._fault_tick & _U32
+        r[(t, PlantTrialSub.FAULT_NODE)] = lambda: self._fault_node
+        c = PlantObj.COUNTERS
         r[(c, CounterSub.IO_SENT)] = lambda: self.io_sent & _U32
         r[(c, CounterSub.IO_RECEIVED)] = lambda: self.io_received & _U32
         r[(c, CounterSub.TICK_TIMEOUTS)] = lambda: self.tick_timeouts & _U32
         r[(c, CounterSub.TRIALS_DONE)] = lambda: self.trials_done & _U32
         r[(c, CounterSub.LAST_TRIAL_US)] = lambda: min(int(self.last_trial_s * 1e6), _U32)
-        r[(BenchObj.TRIAL_TIMING, 0)] = lambda: pack_trial_timing(self._timing)
-        r[(BenchObj.DEADLINE_MISSES, 0)] = lambda: pack_deadline_misses(self._misses)
+        r[(PlantObj.TRIAL_TIMING, 0)] = lambda: pack_trial_timing(self._timing)
+        r[(PlantObj.DEADLINE_MISSES, 0)] = lambda: pack_deadline_misses(self._misses)
         for sub in ConfigSub:
-            w[(BenchObj.CONFIG, sub)] = self._require_idle_hook(f"configuration 0x2400:{int(sub)}")
-        w[(t, BenchTrialSub.TRIAL_INDEX)] = self._require_idle_hook("trial index")
-        w[(t, BenchTrialSub.N_TICKS)] = self._require_idle_hook("number of ticks")
-        w[(t, BenchTrialSub.COMMAND)] = self._on_command
-        w[(BenchObj.INITIAL_STATE, 0)] = self._write_initial_state
+            w[(PlantObj.CONFIG, sub)] = self._require_idle_hook(f"configuration 0x2400:{int(sub)}")
+        w[(t, PlantTrialSub.TRIAL_INDEX)] = self._require_idle_hook("trial index")
+        w[(t, PlantTrialSub.N_TICKS)] = self._require_idle_hook("number of ticks")
+        w[(t, PlantTrialSub.COMMAND)] = self._on_command
+        w[(PlantObj.INITIAL_STATE, 0)] = self._write_initial_state
 
     def _busy(self) -> bool:
         return self._running or self._pending_start
@@ -340,22 +340,22 @@ class BenchNode(SlaveNode):
 
     def _on_command(self, value: Value) -> None:
         cmd = int(value)
-        if cmd == BenchCommand.START:
+        if cmd == PlantCommand.START:
             if self._busy():
                 raise SdoAbort(AbortCode.DEVICE_STATE, "a trial is already running")
-            if len(self.store.get_bytes(BenchObj.INITIAL_STATE)) == 0:
+            if len(self.store.get_bytes(PlantObj.INITIAL_STATE)) == 0:
                 raise SdoAbort(AbortCode.DEVICE_STATE, "initial state 0x2420 not set")
             # the trial begins after the SDO response is out (on_service), so the host gets
             # its answer at once; the status says RUNNING from now on
             self._pending_start = True
-            self._status = BenchStatus.RUNNING
-            self._fault = BenchFault.NONE
+            self._status = PlantStatus.RUNNING
+            self._fault = PlantFault.NONE
             self._fault_tick = self._fault_node = 0
             self._tick = 0
-        elif cmd == BenchCommand.ABORT:
+        elif cmd == PlantCommand.ABORT:
             self._abort("aborted by the host")
         else:  # the EDS limits make this unreachable over SDO
-            raise SdoAbort(AbortCode.VALUE_RANGE, f"unknown bench command {cmd}")
+            raise SdoAbort(AbortCode.VALUE_RANGE, f"unknown plant node command {cmd}")
 
     # ------------------------------------------------------------------ loop hooks
 
@@ -398,7 +398,7 @@ class BenchNode(SlaveNode):
             node = missing[0] + 1 if missing else 0
             self.tick_timeouts += 1
             self._fail(
-                BenchFault.TICK_TIMEOUT,
+                PlantFault.TICK_TIMEOUT,
                 node,
                 f"drive {node} did not answer tick {self._tick} within "
                 f"{self.tick_timeout_s if self._tick else self.first_tick_timeout_s:g} s "
@@ -408,7 +408,7 @@ class BenchNode(SlaveNode):
     def on_io(self, msg: can.Message) -> None:
         if msg.is_error_frame:  # a frame damaged on the wire: the receivers' controllers saw a CRC error
             if self._running:
-                self._fail(BenchFault.BAD_FRAME, 0, f"tick {self._tick}: bus error frame on io (a damaged frame)")
+                self._fail(PlantFault.BAD_FRAME, 0, f"tick {self._tick}: bus error frame on io (a damaged frame)")
             return
         cob = msg.arbitration_id
         if not _TORQUE_LO <= cob < _TORQUE_HI:
@@ -427,13 +427,13 @@ class BenchNode(SlaveNode):
                 return
             tick = self._trackers[j].accept(wire)
         except io_frames.TickError as err:
-            self._fail(BenchFault.TICK_SEQUENCE, j + 1, f"tick {self._tick}: {err}")
+            self._fail(PlantFault.TICK_SEQUENCE, j + 1, f"tick {self._tick}: {err}")
             return
         except io_frames.IoFrameError as err:
-            self._fail(BenchFault.BAD_FRAME, j + 1, f"tick {self._tick}: bad torque frame: {err}")
+            self._fail(PlantFault.BAD_FRAME, j + 1, f"tick {self._tick}: bad torque frame: {err}")
             return
         if tick != self._origin + self._tick:
-            self._fail(BenchFault.TICK_SEQUENCE, j + 1, f"drive {j + 1} sent tick {tick - self._origin} during tick {self._tick}")
+            self._fail(PlantFault.TICK_SEQUENCE, j + 1, f"drive {j + 1} sent tick {tick - self._origin} during tick {self._tick}")
             return
         self._tau[j] = 0 if status & _FAULT_BIT else torque
         self._got += 1
@@ -443,8 +443,8 @@ class BenchNode(SlaveNode):
     # ------------------------------------------------------------------ trial
 
     def _config_ts_substeps(self) -> tuple[float, int]:
-        period_us = int(self.store.get(BenchObj.CONFIG, ConfigSub.CONTROL_PERIOD_US))
-        substeps = int(self.store.get(BenchObj.CONFIG, ConfigSub.SUBSTEPS))
+        period_us = int(self.store.get(PlantObj.CONFIG, ConfigSub.CONTROL_PERIOD_US))
+        substeps = int(self.store.get(PlantObj.CONFIG, ConfigSub.SUBSTEPS))
         return period_us / 1_000_000, substeps
 
     def _get_plant(self, ts_s: float, substeps: int) -> PlantLike:
@@ -459,11 +459,11 @@ class BenchNode(SlaveNode):
     def _begin_trial(self) -> None:
         store = self.store
         ts_s, substeps = self._config_ts_substeps()
-        kind = int(store.get(BenchObj.CONFIG, ConfigSub.DISTURBANCE))
-        seed = int(store.get(BenchObj.CONFIG, ConfigSub.SEED))
-        trial = int(store.get(BenchObj.TRIAL, BenchTrialSub.TRIAL_INDEX))
-        n_ticks = int(store.get(BenchObj.TRIAL, BenchTrialSub.N_TICKS))
-        q0, qd0 = unpack_initial_state(store.get_bytes(BenchObj.INITIAL_STATE))
+        kind = int(store.get(PlantObj.CONFIG, ConfigSub.DISTURBANCE))
+        seed = int(store.get(PlantObj.CONFIG, ConfigSub.SEED))
+        trial = int(store.get(PlantObj.TRIAL, PlantTrialSub.TRIAL_INDEX))
+        n_ticks = int(store.get(PlantObj.TRIAL, PlantTrialSub.N_TICKS))
+        q0, qd0 = unpack_initial_state(store.get_bytes(PlantObj.INITIAL_STATE))
         self._n_ticks = n_ticks
         self._tick = 0
         self._origin = self._wire_next
@@ -478,7 +478,7 @@ class BenchNode(SlaveNode):
             plant.reset(q0, qd0)
             counts = plant.encoder_counts()
         except Exception as err:  # the plant is a plug-in: any failure is a trial fault
-            self._fail(BenchFault.PLANT, 0, f"trial {trial} could not start: {type(err).__name__}: {err}", started=False)
+            self._fail(PlantFault.PLANT, 0, f"trial {trial} could not start: {type(err).__name__}: {err}", started=False)
             return
         self._dist = dist
         for tracker in self._trackers:
@@ -496,7 +496,7 @@ class BenchNode(SlaveNode):
             DisturbanceKind(kind).label,
             seed,
         )
-        paced = bool(store.get(BenchObj.CONFIG, ConfigSub.PACING))
+        paced = bool(store.get(PlantObj.CONFIG, ConfigSub.PACING))
         self._send_io(io_frames.encode_control(io_frames.ControlCommand.TRIAL_START, self._origin, n_ticks))
         if paced:
             # Tick 0 is due one period after the start command, as a real drive's first cycle is the
@@ -531,7 +531,7 @@ class BenchNode(SlaveNode):
             plant.step(self._tau, self._dist[n])
             counts = plant.encoder_counts() if n + 1 < self._n_ticks else None
         except Exception as err:  # the plant is a plug-in: any failure is a trial fault
-            self._fail(BenchFault.PLANT, 0, f"plant error at tick {n}: {type(err).__name__}: {err}")
+            self._fail(PlantFault.PLANT, 0, f"plant error at tick {n}: {type(err).__name__}: {err}")
             return
         self._tick = n + 1
         pacer = self._pacer
@@ -549,7 +549,7 @@ class BenchNode(SlaveNode):
     def _finish(self) -> None:
         self._running = False
         self._stop_io()
-        self._status = BenchStatus.DONE
+        self._status = PlantStatus.DONE
         self.trials_done += 1
         self.last_trial_s = self._clock() - self._t_start
         self._record_timing()
@@ -597,9 +597,9 @@ class BenchNode(SlaveNode):
 
     def _abort(self, why: str) -> None:
         if self._running or self._pending_start:
-            self._fail(BenchFault.ABORTED, 0, f"trial {why} at tick {self._tick}", started=self._running)
+            self._fail(PlantFault.ABORTED, 0, f"trial {why} at tick {self._tick}", started=self._running)
 
-    def _fail(self, fault: BenchFault, node: int, message: str, *, started: bool = True) -> None:
+    def _fail(self, fault: PlantFault, node: int, message: str, *, started: bool = True) -> None:
         """End the trial with ``fault``: TRIAL_STOP (if started), EMCY, status FAULT."""
         self._running = False
         self._pending_start = False
@@ -607,7 +607,7 @@ class BenchNode(SlaveNode):
         if started:
             self._stop_io()
             self._record_timing()
-        self._status = BenchStatus.FAULT
+        self._status = PlantStatus.FAULT
         self._fault = fault
         self._fault_tick = self._tick
         self._fault_node = node
@@ -640,9 +640,9 @@ class BenchNode(SlaveNode):
 
 
 def run_plant_role(
-    transport: TransportConfig, node_id: int = DEFAULT_BENCH_NODE_ID, stop: threading.Event | None = None
+    transport: TransportConfig, node_id: int = DEFAULT_PLANT_NODE_ID, stop: threading.Event | None = None
 ) -> str | None:
-    """Plant process entry (``ilcrig plant``): the test-bench node on both buses of
+    """Plant process entry (``ilcrig plant``): the plant node on both buses of
     ``transport`` (a :class:`bus.transports.config.TransportConfig`), serving until SIGTERM/SIGINT or
     ``stop`` (a :class:`threading.Event`) is set; the buses are closed on the way out.
     Returns None, or why the node stopped early (a bus failed).
@@ -676,7 +676,7 @@ def run_plant_role(
         io = transport.open("io")
         try:
             scale = units.timeout_scale()
-            node = BenchNode(
+            node = PlantNode(
                 fieldbus,
                 io,
                 plant_factory=plant_factory,
@@ -684,7 +684,7 @@ def run_plant_role(
                 node_id=node_id,
                 tick_timeout_s=io_frames.TICK_TIMEOUT_S * scale,
                 first_tick_timeout_s=io_frames.FIRST_TICK_TIMEOUT_S * scale,
-                spin_s=BenchNode.REALTIME_SPIN_S,
+                spin_s=PlantNode.REALTIME_SPIN_S,
             )
             node.run(stop)
             return node.bus_error
