@@ -1,0 +1,367 @@
+#!/usr/bin/env python3
+"""The figures that README.md and docs/*.md state, generated from the commands that produce them.
+
+Two kinds of statement are kept true here:
+
+* **digest lines**: a line of a fenced code block of the form
+  ``ilcrig sim [options]   # … trace_sha256 0123abcd…`` states the digest that command prints;
+  :func:`check_digest_lines` runs each such command and compares the stated prefix (a line that
+  starts with ``ilcrig run`` is run as ``ilcrig sim`` with the same experiment options: the two
+  give the same digest by construction, which the rig tests check on every transport);
+* **figure blocks**: the text between ``<!-- figures: NAME -->`` and ``<!-- /figures -->`` is the
+  output of the generator ``NAME`` of :data:`GENERATORS`, which runs the command it names and
+  renders its result as markdown.
+
+``python scripts/docfigures.py`` checks every file and prints what differs (exit 1 if anything
+does); ``python scripts/docfigures.py --write`` regenerates the blocks in place (digest lines are
+never rewritten: a changed digest is a decision to state in a closing note, then edit by hand).
+``tests/test_docs_truth.py`` runs the check.
+
+Each command runs as a subprocess of the current interpreter (``python -m host.cli …``) in a
+temporary folder; results are cached per command within one run of this script.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import shlex
+import subprocess
+import sys
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+#: the files whose statements are checked
+DOC_FILES = ("README.md", "docs/*.md")
+
+BLOCK_RE = re.compile(r"(<!-- figures: (?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- /figures -->)", re.S)
+DIGEST_RE = re.compile(r"^(?P<cmd>ilcrig (?:sim|run)\b[^#\n]*?)\s*#[^\n]*?trace_sha256 (?P<hex>[0-9a-f]{8,64})…?", re.M)
+#: options of ``ilcrig run`` that do not change the experiment (left out when run as ``sim``)
+RUN_ONLY_OPTIONS = {"--realtime": 0, "--bus-time": 0, "--bus": 1, "--hub": 1, "--rt-priority": 1, "--no-idle-poll": 0}
+
+DEG_PER_COUNT = 360.0 / (10 * 2**20)  # = bus.units.DEG_PER_COUNT (this script imports nothing of the project)
+
+
+def doc_files() -> list[Path]:
+    out: list[Path] = []
+    for pattern in DOC_FILES:
+        out.extend(sorted(ROOT.glob(pattern)))
+    return out
+
+
+# ----------------------------------------------------------------------------- running commands
+
+
+class Runner:
+    """Runs ``ilcrig`` commands once each and returns their summaries."""
+
+    def __init__(self) -> None:
+        self._tmp = tempfile.TemporaryDirectory(prefix="ilcrig-docfigures-")
+        self._cache: dict[tuple[str, ...], dict[str, Any]] = {}
+        self._n = 0
+
+    def close(self) -> None:
+        self._tmp.cleanup()
+
+    def summary(self, command: str, *args: str) -> dict[str, Any]:
+        """``summary.json`` of ``ilcrig COMMAND ARGS --out TMP`` (which must exit 0)."""
+        key = (command, *args)
+        if key not in self._cache:
+            self._n += 1
+            out = Path(self._tmp.name) / f"run{self._n}"
+            argv = [sys.executable, "-m", "host.cli", command, *args, "--out", str(out)]
+            proc = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=900)
+            if proc.returncode != 0:
+                raise RuntimeError(f"{' '.join(argv[2:])} exited {proc.returncode}: {proc.stderr.strip()[-500:]}")
+            self._cache[key] = json.loads((out / "summary.json").read_text())
+        return self._cache[key]
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def _rmse_deg(summary: dict[str, Any], k: int) -> list[float]:
+    return [float(x) for x in summary["iterations"][k]["rmse_deg"]]
+
+
+def _counts(deg: float) -> float:
+    return deg / DEG_PER_COUNT
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.3g}" if abs(x) >= 1e-3 else f"{x:.2e}"
+
+
+def settling_trial(rmse: list[list[float]], factor: float = 2.0) -> int | None:
+    """The first trial from which every joint stays within ``factor`` × its final RMSE."""
+    final = rmse[-1]
+    for k in range(len(rmse)):
+        if all(all(r[j] <= factor * final[j] for j in range(len(final))) for r in rmse[k:]):
+            return k
+    return None
+
+
+# ----------------------------------------------------------------------------- generators
+
+
+def gen_settling(run: Runner) -> str:
+    """RMSE per trial of the default experiment, deg and encoder counts."""
+    s = run.summary("sim")
+    rmse = [_rmse_deg(s, k) for k in range(len(s["iterations"]))]
+    rows = ["| k | j1 | j2 | j3 | j4 |", "|---|---|---|---|---|"]
+    for k, r in enumerate(rmse):
+        rows.append(f"| {k} | " + " | ".join(f"{_fmt(x)} ({_counts(x):.2f})" for x in r) + " |")
+    k_s = settling_trial(rmse)
+    final_counts = [_counts(x) for x in rmse[-1]]
+    text = (
+        f"`ilcrig sim` (defaults: `no-ilc-id`, path 1, 0.25 s, `ruckig`, no disturbance, {len(rmse)} trials), "
+        f"RMSE in degrees (in encoder counts of {DEG_PER_COUNT:.3g}°):\n\n" + "\n".join(rows) + "\n\n"
+        f"Settled (every joint within 2× of its final RMSE from then on) at k = {k_s}; the final RMSE is "
+        f"{min(final_counts):.2f}–{max(final_counts):.2f} encoder counts.\n"
+    )
+    return text
+
+
+def gen_transports(run: Runner) -> str:
+    """Final RMSE and digest with feed-forward tables against cyclic PDOs."""
+    rows = ["| `--ff-transport` | final RMSE per joint, deg (encoder counts) | `trace_sha256` |", "|---|---|---|"]
+    for transport in ("table", "pdo"):
+        s = run.summary("sim", "--ff-transport", transport)
+        r = _rmse_deg(s, len(s["iterations"]) - 1)
+        cells = ", ".join(f"{_fmt(x)} ({_counts(x):.1f})" for x in r)
+        rows.append(f"| `{transport}` | {cells} | `{s['trace_sha256'][:16]}…` |")
+    return "`ilcrig sim --ff-transport table|pdo` (default experiment, 10 trials):\n\n" + "\n".join(rows) + "\n"
+
+
+LAW_ORDER = ("pd-ilc", "pd-ilc-q", "pd-ol", "p-ol", "d-ilc", "q-ilc", "no-ilc", "no-ilc-id")
+
+
+def gen_laws(run: Runner) -> str:
+    """Per built-in law on the default experiment: the check's verdict and the measured result."""
+    rows = [
+        "| law | check: spectral radius, 200 trials | RMSE trial 0 → 9, deg (max over joints) | settled at k | `trace_sha256` |",
+        "|---|---|---|---|---|",
+    ]
+    for law in LAW_ORDER:
+        s = run.summary("sim", "--law", law)
+        c = s["convergence_check"]
+        rmse = [_rmse_deg(s, k) for k in range(len(s["iterations"]))]
+        k_s = settling_trial(rmse)
+        bounded = "bounded" if c["long_bounded"] else "**grows again**"
+        rows.append(
+            f"| `{law}` | {c['rho_max']:.4f}, {bounded} | {_fmt(max(rmse[0]))} → {_fmt(max(rmse[-1]))} | "
+            f"{k_s if k_s is not None else '—'} | `{s['trace_sha256'][:16]}…` |"
+        )
+    return "`ilcrig sim --law LAW` (path 1, 0.25 s, `ruckig`, 10 trials):\n\n" + "\n".join(rows) + "\n"
+
+
+def gen_bus_fit(run: Runner) -> str:
+    """The cyclic exchange of ``--ff-transport pdo`` against the fieldbus (``bus.cyclic``)."""
+    code = (
+        "import json\nfrom bus.cyclic import cyclic_bus_fit\nrows = []\n"
+        "for label, r, t in [('rig default: RPDO 0x607A+0x60B2 (6 B), TPDO 0x6064+0x6077 (6 B)', 6, 6),"
+        " ('TPDO + statusword 0x6041 (8 B)', 6, 8), ('full 8-byte RPDO and TPDO', 8, 8)]:\n"
+        "    for b in (1_000_000, 500_000):\n"
+        "        rows.append([label, cyclic_bus_fit(0.001, b, rpdo_bytes=r, tpdo_bytes=t).as_dict()])\n"
+        "print(json.dumps(rows))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True, timeout=120)
+    rows = [
+        "| mapping | Mbit/s | bits per period | load at 1 kHz | fits (margin) | highest rate that fits "
+        "| bit rate needed at 1 kHz |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for label, f in json.loads(out.stdout):
+        fits = f"yes (+{f['margin_percent']:.1f} %)" if f["fits"] else f"no ({f['margin_percent']:.1f} %)"
+        rows.append(
+            f"| {label} | {f['bitrate_bps'] / 1e6:g} | {f['bits_nominal']}–{f['bits_worst_case']} | "
+            f"{f['load_percent_nominal']:.1f}–{f['load_percent_worst_case']:.1f} % | {fits} | "
+            f"{f['max_rate_hz']:.0f} Hz | {f['min_bitrate_bps'] / 1e6:.3f} Mbit/s |"
+        )
+    first = json.loads(out.stdout)[0][1]
+    half = json.loads(out.stdout)[1][1]
+    stuffless = 100.0 - first["load_percent_nominal"]
+    return (
+        "\n".join(rows) + "\n\n"
+        f"So the rig's mapping fits {first['bitrate_bps'] / 1e6:g} Mbit/s at 1 kHz with {first['margin_percent']:.1f} % "
+        f"worst-case margin ({stuffless:.0f} % without stuffing), and {half['bitrate_bps'] / 1e6:g} Mbit/s only up to "
+        f"{half['max_rate_hz']:.0f} Hz.\n"
+    )
+
+
+def gen_bus_time(run: Runner) -> str:
+    """What the default experiment's traffic would take on real buses (``ilcrig run``'s ``bench.bus_time``)."""
+    bt = run.summary("run")["bench"]["bus_time"]
+    io, fb = bt["io"], bt["fieldbus"]
+    between = fb["between_trials"]
+    kinds = between["by_kind_per_trial"]
+    rates = (1_000_000, 500_000)
+    motion_s = between["trial_motion_s"]
+    period_s = io["control_period_s"]
+
+    def secs(bits: float, rate: int) -> str:
+        return f"{bits / rate:.3f} s"
+
+    def io_cell(rate: int) -> str:
+        bits = io["worst_tick"]["bits"]
+        cap = rate * period_s
+        if bits <= cap:
+            return f"{bits:.0f} bits of {cap:.0f}: {100 * bits / cap:.0f} %, fits"
+        return f"{bits:.0f} bits of {cap:.0f}: does **not** fit, a tick needs {1e3 * bits / rate:.2f} ms"
+
+    def between_cell(rate: int) -> str:
+        t = between["bits_per_trial"] / rate
+        share = 100 * motion_s / (motion_s + t)
+        return f"{between['bits_per_trial']:.0f} bits, {t:.3f} s: cycle {motion_s + t:.3f} s ({share:.0f} % in motion)"
+
+    hb = fb["during_trials"]["heartbeat_model"]
+    rows = [
+        "| | " + " | ".join(f"{r / 1e3:.0f} kbit/s" for r in rates) + " |",
+        "|---|---|---|",
+        "| io, per tick during trials (4 encoder + 4 torque frames) | " + " | ".join(io_cell(r) for r in rates) + " |",
+        "| io, per trial: TRIAL_START + TRIAL_STOP | "
+        + " | ".join(f"{io['control_bits_per_trial']:.0f} bits, {1e3 * io['control_bits_per_trial'] / r:.2f} ms" for r in rates)
+        + " |",
+        "| fieldbus during trials, what the experiment sends | "
+        + " | ".join(f"{fb['during_trials']['experiment_bits_per_tick']} bits" for _ in rates)
+        + " |",
+        f"| fieldbus during trials, heartbeats ({hb['nodes']} nodes every {hb['period_ms']} ms; model), worst tick | "
+        + " | ".join(f"{hb['worst_tick']['bits']} bits, {100 * hb['worst_tick']['bits'] / (r * period_s):.0f} %" for r in rates)
+        + " |",
+    ]
+    for kind, v in kinds.items():
+        rows.append(
+            f"| between trials, per trial: {kind} | "
+            + " | ".join(f"{v['bits']:.0f} bits, {secs(v['bits'], r)}" for r in rates)
+            + " |"
+        )
+    rows.append("| **between trials, per trial** | " + " | ".join(between_cell(r) for r in rates) + " |")
+    once = fb["once_per_run"]["bits"]
+    rows.append(
+        "| once per run: configuration, gains, reference tables, enabling | "
+        + " | ".join(f"{once:.0f} bits, {secs(once, r)}" for r in rates)
+        + " |"
+    )
+    return (
+        f"`ilcrig run` (default experiment: N = {io['ticks'] // between['trials']}, Ts = {period_s * 1e3:g} ms, 4 drives), "
+        "its `bench.bus_time` at both bit rates:\n\n" + "\n".join(rows) + "\n"
+    )
+
+
+@dataclass(frozen=True)
+class Generator:
+    fn: Callable[[Runner], str]
+    #: seconds it takes on a quiet 2-core machine (the test runs them all)
+    cost_s: float
+
+
+GENERATORS: dict[str, Generator] = {
+    "settling": Generator(gen_settling, 10),
+    "transports": Generator(gen_transports, 20),
+    "laws": Generator(gen_laws, 90),
+    "bus-fit": Generator(gen_bus_fit, 2),
+    "bus-time": Generator(gen_bus_time, 30),
+}
+
+
+# ----------------------------------------------------------------------------- checking
+
+
+@dataclass
+class Finding:
+    file: str
+    what: str
+
+    def __str__(self) -> str:
+        return f"{self.file}: {self.what}"
+
+
+def sim_args_of(cmd: str) -> list[str]:
+    """The ``ilcrig sim`` arguments of a stated ``ilcrig sim|run …`` command line."""
+    words = shlex.split(cmd)[2:]
+    args: list[str] = []
+    i = 0
+    while i < len(words):
+        w = words[i]
+        name = w.split("=", 1)[0]
+        if name in RUN_ONLY_OPTIONS:
+            i += 1 + (RUN_ONLY_OPTIONS[name] if "=" not in w else 0)
+            continue
+        if name == "--out":
+            i += 1 if "=" in w else 2
+            continue
+        args.append(w)
+        i += 1
+    return args
+
+
+def check_digest_lines(run: Runner, files: list[Path]) -> list[Finding]:
+    found: list[Finding] = []
+    for path in files:
+        for m in DIGEST_RE.finditer(path.read_text()):
+            digest = run.summary("sim", *sim_args_of(m["cmd"]))["trace_sha256"]
+            if not digest.startswith(m["hex"]):
+                found.append(
+                    Finding(str(path.relative_to(ROOT)), f"`{m['cmd'].strip()}` states {m['hex']}…, prints {digest[:16]}…")
+                )
+    return found
+
+
+def regenerate(run: Runner, text: str, rel: str, findings: list[Finding]) -> str:
+    def repl(m: re.Match[str]) -> str:
+        gen = GENERATORS.get(m["name"])
+        if gen is None:
+            findings.append(Finding(rel, f"unknown figures block {m['name']!r}"))
+            return m.group(0)
+        body = gen.fn(run)
+        if body != m["body"]:
+            findings.append(Finding(rel, f"figures block {m['name']!r} differs from what its command gives now"))
+        return m.group(1) + body + m.group(4)
+
+    return BLOCK_RE.sub(repl, text)
+
+
+def check(write: bool = False, only: set[str] | None = None) -> list[Finding]:
+    """Every digest line and figure block of the documentation against its command."""
+    run = Runner()
+    findings: list[Finding] = []
+    try:
+        files = doc_files()
+        if only is None or "digests" in only:
+            findings += check_digest_lines(run, files)
+        for path in files:
+            rel = str(path.relative_to(ROOT))
+            text = path.read_text()
+            if only is not None:
+                names = {m["name"] for m in BLOCK_RE.finditer(text)}
+                if not names & only:
+                    continue
+            new = regenerate(run, text, rel, findings)
+            if write and new != text:
+                path.write_text(new)
+    finally:
+        run.close()
+    return findings
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--write", action="store_true", help="rewrite the figure blocks in place")
+    ap.add_argument("--only", default=None, help="comma-separated generator names (and/or 'digests')")
+    a = ap.parse_args(argv)
+    only = set(a.only.split(",")) if a.only else None
+    findings = check(write=a.write, only=only)
+    for f in findings:
+        print(f)
+    if a.write:
+        return 0
+    return 1 if findings else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

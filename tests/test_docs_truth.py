@@ -1,0 +1,92 @@
+"""What the README and docs/ state is what the code does.
+
+* Every digest line (``ilcrig sim …  # trace_sha256 0123abcd…``) and every generated figure block
+  (``<!-- figures: NAME -->``) of README.md and docs/*.md is checked against the command that
+  produces it (``scripts/docfigures.py``, which runs the commands).
+* Every relative link of those files points to a file of the repository.
+* The quickstart's test command is the one ``.ci/run`` runs.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _docfigures() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("docfigures", ROOT / "scripts" / "docfigures.py")
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["docfigures"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+docfigures = _docfigures()
+
+
+def test_every_figure_block_names_a_generator_and_digest_lines_exist() -> None:
+    names: set[str] = set()
+    digest_lines = 0
+    for path in docfigures.doc_files():
+        text = path.read_text()
+        names |= {m["name"] for m in docfigures.BLOCK_RE.finditer(text)}
+        digest_lines += len(docfigures.DIGEST_RE.findall(text))
+    assert names <= set(docfigures.GENERATORS), names - set(docfigures.GENERATORS)
+    # the three digests the README promises (defaults, pdo, the paper's law) are among them
+    assert digest_lines >= 3
+    readme = (ROOT / "README.md").read_text()
+    for cmd in ("ilcrig sim ", "ilcrig sim --ff-transport pdo", "ilcrig sim --law pd-ilc"):
+        assert any(m["cmd"].strip() == cmd.strip() for m in docfigures.DIGEST_RE.finditer(readme)), cmd
+
+
+def test_sim_args_of_drops_run_only_options() -> None:
+    assert docfigures.sim_args_of("ilcrig run --ff-transport pdo --bus hub --realtime --out x") == ["--ff-transport", "pdo"]
+    assert docfigures.sim_args_of("ilcrig sim --law=pd-ilc --rt-priority 0") == ["--law=pd-ilc"]
+
+
+def test_settling_trial_is_the_first_from_which_every_joint_stays_within_twice_its_final() -> None:
+    rmse = [[10.0, 10.0], [1.0, 3.0], [2.0, 1.9], [1.5, 1.0], [1.0, 1.0]]
+    assert docfigures.settling_trial(rmse) == 2
+    assert docfigures.settling_trial([[5.0], [1.0], [3.0], [1.0]]) == 3
+
+
+@pytest.mark.slow
+@pytest.mark.multiprocess
+def test_digests_and_figures_the_docs_state_are_what_the_commands_give() -> None:
+    findings = docfigures.check()
+    assert not findings, "\n".join(map(str, findings)) + "\n(run `python scripts/docfigures.py --write` for figure blocks)"
+
+
+LINK_RE = re.compile(r"\]\((?!https?://|mailto:|#)(?P<target>[^)#\s]+)(?:#[^)]*)?\)")
+
+
+def test_relative_links_of_readme_and_docs_point_to_files() -> None:
+    broken = []
+    for path in docfigures.doc_files():
+        for m in LINK_RE.finditer(path.read_text()):
+            if not (path.parent / m["target"]).exists():
+                broken.append(f"{path.relative_to(ROOT)} -> {m['target']}")
+    assert not broken, broken
+
+
+def test_quickstart_test_command_is_what_ci_runs() -> None:
+    readme = (ROOT / "README.md").read_text()
+    ci = (ROOT / ".ci" / "run").read_text()
+    cmd = "python3 -m venv .venv && .venv/bin/pip install -q -e '.[test]' && .venv/bin/python -m pytest"
+    assert cmd in readme and cmd in ci
+
+
+def test_readme_is_short_and_tells_no_history() -> None:
+    readme = (ROOT / "README.md").read_bytes()
+    assert len(readme) < 20_000
+    for path in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
+        text = path.read_text()
+        assert not re.search(r"\b[Ii]ssue \d+\b", text), f"{path.name} tells the history of past work"
