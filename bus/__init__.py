@@ -2,9 +2,13 @@
 
 Owns the units on the wire (:mod:`bus.units`), the firmware's fixed-point formats
 (:mod:`bus.fixedpoint`), the object indices of the drive (:mod:`bus.objects`, ``drive.eds``) and of
-the plant node (:mod:`bus.plant_objects`, ``plant.eds``), the io-channel frames
-(:mod:`bus.io_frames`), bus-load accounting (:mod:`bus.busload`), candump logs (:mod:`bus.canlog`)
-and the shared errors (:mod:`bus.errors`).  Subpackages: :mod:`bus.cia301` (the hand-written
+the plant node (:mod:`bus.plant_objects`, ``plant.eds``), the CiA 301 PDO object indices
+(:mod:`bus.pdo_objects`), the rig's cyclic PDO layout and bus fit (:mod:`bus.cyclic`), the DBC files
+(:mod:`bus.dbc`), the io-channel frames (:mod:`bus.io_frames`), bus-load accounting
+(:mod:`bus.busload`), frame classification and bit counting (:mod:`bus.traffic`), the optional
+extras of a python-can bus (:mod:`bus.bus_features`), cheap messages on the hot path
+(:mod:`bus.fastmsg`), fine timer slack (:mod:`bus.timer_slack`), candump logs (:mod:`bus.canlog`),
+the SAFE-STATE log record (:mod:`bus.safe_state`) and the shared errors (:mod:`bus.errors`).  Subpackages: :mod:`bus.cia301` (the hand-written
 CANopen stack) and :mod:`bus.transports` (how channels are carried).
 
 May import: python-can, canopen (EDS import only), numpy, and its own modules.  Never

@@ -13,6 +13,7 @@ the ones inside functions):
 from __future__ import annotations
 
 import ast
+import re
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -181,3 +182,40 @@ def test_cli_names_match_the_code() -> None:
     assert set(names.LAWS) == set(laws.LAW_CLASSES) and names.DEFAULT_LAW in names.LAWS
     assert tuple(k.label for k in DisturbanceKind) == KINDS
     assert console._DISTURBANCE_HELP == ", ".join(KINDS)
+
+
+def _layout_section() -> str:
+    """§2 (Layout) of docs/architecture.md."""
+    doc = (ROOT / "docs" / "architecture.md").read_text()
+    start = doc.index("## 2. Layout")
+    end = doc.index("\n## ", start + 1)
+    return doc[start:end]
+
+
+def _package_dirs() -> list[Path]:
+    return sorted({p.parent for pkg in PACKAGES for p in (ROOT / pkg).rglob("__init__.py")})
+
+
+def test_architecture_doc_names_every_module_of_the_tree() -> None:
+    layout = _layout_section()
+    missing = []
+    for d in _package_dirs():
+        for path in sorted(d.glob("*.py")):
+            if path.name != "__init__.py" and path.name not in layout:
+                missing.append(str(path.relative_to(ROOT)))
+        for sub in sorted(p for p in d.iterdir() if (p / "__init__.py").exists()):
+            if f"{sub.name}/" not in layout:
+                missing.append(str(sub.relative_to(ROOT)) + "/")
+    assert not missing, f"docs/architecture.md §2 does not name: {missing}"
+
+
+def test_each_package_docstring_names_every_module_and_subpackage() -> None:
+    missing: dict[str, list[str]] = {}
+    for d in _package_dirs():
+        doc = ast.get_docstring(ast.parse((d / "__init__.py").read_text())) or ""
+        names = [p.stem for p in sorted(d.glob("*.py")) if p.name != "__init__.py"]
+        names += [p.name for p in sorted(d.iterdir()) if (p / "__init__.py").exists()]
+        absent = [n for n in names if not re.search(rf"(?<![\w]){re.escape(n)}(?![\w])", doc)]
+        if absent:
+            missing[str(d.relative_to(ROOT))] = absent
+    assert not missing, f"__init__ docstrings that do not name every module: {missing}"
