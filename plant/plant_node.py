@@ -72,7 +72,8 @@ import numpy.typing as npt
 from bus import io_frames, units
 from bus.bus_features import batch_sender
 from bus.cia301.nmt import NmtCommand, NmtState, next_state
-from bus.cia301.slave import ObjectStore, SlaveNode, Value, install_sigterm
+from bus.cia301.object_store import ObjectStore, Value
+from bus.cia301.slave import SlaveNode, install_sigterm
 from bus.errors import AbortCode, SdoAbort
 from bus.plant_objects import (
     DEFAULT_PLANT_NODE_ID,

@@ -57,7 +57,7 @@ from dataclasses import dataclass
 from canopen.objectdictionary import ODVariable
 
 from bus.cia301.nmt import NmtState
-from bus.cia301.slave import ObjectStore
+from bus.cia301.object_store import ObjectStore
 from bus.errors import AbortCode, SdoAbort
 from bus.pdo_objects import (  # noqa: F401 - re-exported
     COB_ID_MASK_11,
@@ -104,7 +104,7 @@ class _Pdo:
 class PdoEngine:
     """The PDOs and the SYNC consumer of one node (see the module docstring).
 
-    :param store: the node's :class:`bus.cia301.slave.ObjectStore` (values, hooks, metadata).
+    :param store: the node's :class:`bus.cia301.object_store.ObjectStore` (values, hooks, metadata).
     :param nmt_state: returns the node's NMT state (:class:`bus.cia301.nmt.NmtState` value).
     """
 
