@@ -6,7 +6,7 @@ CiA 301 §7.5.2.35–7.5.2.38 defines them, their validation when written by SDO
 unpacking of PDO payloads by the mapping, and the SYNC consumer (COB-ID object 0x1005).
 It knows nothing about CAN frames or the application: :class:`PdoEngine` is given received
 PDO payloads and SYNC events and hands back the TPDO payloads due; the node runtime
-(``firmware_model.drive_node``) moves the frames, the application (``firmware_model.drive``)
+(``firmware_model.drive_node``) moves the frames, the application (``firmware_model.cyclic_pdo``)
 decides when a cycle's TPDOs are due.
 
 Objects (described by the node's EDS; k = 0..3 → PDO 1..4)
