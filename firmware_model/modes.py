@@ -31,6 +31,7 @@ table playback does.
 from __future__ import annotations
 
 import logging
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import ClassVar, Protocol
 
@@ -82,7 +83,7 @@ class MotionContext:
     faults: FaultSink
 
 
-class OperationMode:
+class OperationMode(ABC):
     """One mode of operation (see the module docstring), working on ``ctx``."""
 
     #: the 0x6060 value
@@ -101,7 +102,7 @@ class OperationMode:
         self.rated_mnm = ctx.rated_mnm
         self.faults = ctx.faults
 
-    def reset(self) -> None:
+    def reset(self) -> None:  # noqa: B027 - a mode without state between ticks has nothing to forget
         """Forget what earlier ticks left (NMT reset node, this mode selected again)."""
 
     def initial_velocity(self) -> int:
@@ -127,9 +128,9 @@ class OperationMode:
             self.start_trial()
         return True
 
+    @abstractmethod
     def tick(self, tick: int, encoder_count: int) -> int:
         """One io tick with torque on: torque command [µN·m]."""
-        raise NotImplementedError
 
     def _sequence_fault(self, tick: int) -> int:
         trial = self.trial
@@ -172,7 +173,7 @@ class TablePlaybackMode(OperationMode):
         return tau
 
 
-class CyclicSynchronousMode(OperationMode):
+class CyclicSynchronousMode(OperationMode, ABC):
     """A cyclic synchronous mode: the set-points of the tick come from objects written by RPDO
     (or SDO) and go through a one-column table into the control law."""
 
@@ -187,9 +188,9 @@ class CyclicSynchronousMode(OperationMode):
         """0x60B2 torque offset [µN·m]."""
         return int(self.values[_TORQUE_OFFSET]) * self.rated_mnm  # ‰ of mN·m = µN·m
 
+    @abstractmethod
     def _control(self, encoder_count: int, rec_index: int) -> tuple[int, int]:
         """The control law on this tick's set-points: (torque [µN·m], kernel status)."""
-        raise NotImplementedError
 
     def tick(self, tick: int, encoder_count: int) -> int:
         if not self.in_sequence(tick):
