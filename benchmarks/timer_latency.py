@@ -1,7 +1,7 @@
 """The machine's own real-time floor: how late a lone periodic loop wakes, for ``ilcrig run --realtime``.
 
 One process does nothing but wait for t0 + n·Ts, n = 0..N−1, the way the plant waits for a paced
-tick (``plant/plant_node.py``: sleep until ``spin_s`` before the due time, then wait the rest on the
+tick (``plant/plant_node_trial.py``: sleep until ``spin_s`` before the due time, then wait the rest on the
 clock), in ``SCHED_FIFO`` at ``--rt-priority`` like the rig's lockstep processes when that is
 permitted. It prints the lateness of the wake-ups (p50, p99, p99.9, max) and how many came later
 than one period. Then it spins on the clock for ``--spin-s`` seconds and counts the gaps between

@@ -4,8 +4,10 @@ Owns the arithmetic of one control tick: velocity estimate by difference plus a
 first-order IIR filter, PD feedback with Q16 gains in a 64-bit accumulator, the
 feed-forward table value, the torque clamp, the following-error check and the
 recorder write.  Every format is defined in :mod:`bus.fixedpoint` (the integer
-helpers used here are compiled from there, so they exist once).  The Python glue
-(state machine, tick sequence, trial playback) lives in :mod:`firmware_model.drive`.
+helpers used here are compiled from there, so they exist once).  The Python glue lives
+beside it: the operation modes that call the kernel (:mod:`firmware_model.modes`), the tick
+sequence, tables and recorder (:mod:`firmware_model.playback`), the parameter objects
+(:mod:`firmware_model.od_hooks`) and the power stage (:mod:`firmware_model.power_stage`).
 
 Arrays the kernel works on (allocate them with :func:`new_state`, :func:`new_tables`,
 :func:`new_recorder`):

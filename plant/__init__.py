@@ -2,12 +2,16 @@
 
 Owns the robot's kinematics (:mod:`plant.kinematics`: IK/FK, Jacobians), dynamics
 (:mod:`plant.dynamics`: M, C q̇, G, inverse / forward dynamics), parameters (:mod:`plant.params`),
-the true-plant effects and the RK4 integrator (:mod:`plant.simulator`), the real-time tick schedule
-(:mod:`plant.pacing`), the per-trial disturbances
-(:mod:`plant.disturbance`), the numba kernels (:mod:`plant._kernels`), a kernel timing and drive-train load check
-(:mod:`plant.selfcheck`, ``python -m plant.selfcheck``) and, in :mod:`plant.plant_node`, the plant's CANopen plant node and the
-``ilcrig plant`` process entry.
+the true-plant effects and the RK4 integrator (:mod:`plant.simulator`), the per-trial disturbances
+(:mod:`plant.disturbance`), the real-time tick schedule (:mod:`plant.pacing`), the numba kernels
+(:mod:`plant._kernels`), a kernel timing and drive-train load check (``python -m plant.selfcheck``, :mod:`plant.selfcheck`)
+and the plant's CANopen node: :mod:`plant.plant_node` (``PlantNode`` and the ``ilcrig plant``
+process entry) with its parts :mod:`plant.plant_node_trial` (trial protocol, lockstep tick master,
+pacing), :mod:`plant.plant_node_model` (the plant and disturbance of a trial),
+:mod:`plant.plant_node_status` (trial status, faults and EMCY, timing) and
+:mod:`plant.plant_node_hooks` (object hooks).
 
-May import: numpy, scipy, numba and the standard library only — except :mod:`plant.plant_node`, which
-also imports ``bus`` (it speaks CAN).  Never ``host`` or ``firmware_model``.
+May import: numpy, scipy, numba and the standard library only — except the plant node,
+:mod:`plant.plant_node` and its parts ``plant/plant_node_*.py``, which also import ``bus`` (they
+speak CAN).  Never ``host`` or ``firmware_model``.
 """

@@ -35,7 +35,7 @@ SUBPACKAGES = (
 
 #: unit -> the other units it may import.  A unit is a subpackage, or the top-level modules of a
 #: package (``bus``, ``host``), or ``plant.plant_node`` (the plant's CANopen node, which alone of plant/
-#: speaks CAN).
+#: speaks CAN: plant/plant_node.py and its parts plant/plant_node_*.py).
 ALLOWED: dict[str, set[str]] = {
     "plant": set(),
     "plant.plant_node": {"plant", "bus", "bus.cia301", "bus.transports"},
@@ -69,8 +69,8 @@ FIRMWARE_IMPORTERS = {"host.experiment.inprocess", "host.cli"}
 
 def unit_of(module: str) -> str:
     """The unit (see ``ALLOWED``) a dotted module name belongs to."""
-    if module == "plant.plant_node":
-        return module
+    if module == "plant.plant_node" or module.startswith("plant.plant_node_"):
+        return "plant.plant_node"
     for sub in SUBPACKAGES:
         if module == sub or module.startswith(sub + "."):
             return sub

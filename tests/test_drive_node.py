@@ -24,7 +24,10 @@ from bus import io_frames
 from bus.cia301.emcy import EmcyCode
 from bus.cia301.nmt import NmtCommand, NmtState, next_state
 from bus.errors import AbortCode, SdoAbort
-from firmware_model.drive_node import DriveNode
+from bus.objects import Cia402State, ControlCommand, state_from_statusword
+from firmware_model.control_law import warm_up
+from firmware_model.drive import Drive
+from firmware_model.drive_node import DriveNode, run_node
 
 EDS = Path(__file__).resolve().parents[1] / "bus" / "drive.eds"
 NODE = 2
@@ -312,12 +315,8 @@ def test_heartbeat_period_is_0x1017_on_the_node_clock() -> None:
 def test_real_drive_enable_sequence() -> None:
     """The real firmware: 0x1018/0x6041 over SDO, the CiA 402 enable sequence, NMT start,
     heartbeat."""
-    drive_mod = pytest.importorskip("firmware_model.drive")
-    from bus.objects import Cia402State, ControlCommand, state_from_statusword
-    from firmware_model.control_law import warm_up
-
     warm_up()  # compile the control kernel first (as run_node does), not inside the first io tick
-    rig = Rig(drive_mod.Drive(NODE))
+    rig = Rig(Drive(NODE))
     try:
         remote = rig.remote
         assert wait_for(lambda: rig.heartbeats[:1] == [0x00])
@@ -434,9 +433,6 @@ def test_select_path_with_fileno_buses() -> None:
 
 def test_run_node_process_entry_with_stop_event() -> None:
     """run_node builds the real Drive and both buses, serves, and cleans up on stop."""
-    pytest.importorskip("firmware_model.drive")
-    from firmware_model.drive_node import run_node
-
     k = next(_counter)
     fb_cfg = {"interface": "virtual", "channel": f"run-fb-{k}"}
     io_cfg = {"interface": "virtual", "channel": f"run-io-{k}"}

@@ -28,6 +28,7 @@ from bus.objects import (
     unpack_int32,
     unpack_recorder,
 )
+from bus.safe_state import parse_safe_state
 from firmware_model.cia402 import Cia402State
 from firmware_model.drive import DEFAULT_EDS_PATH, Drive, NmtCommandError
 
@@ -90,7 +91,7 @@ def test_remote_node_can_use_the_eds_to_decode_drive_bytes() -> None:
     node = canopen.RemoteNode(NODE, str(DEFAULT_EDS_PATH))
     network.add_node(node)
     d = Drive(NODE)
-    for (index, sub), var in d._vars.items():
+    for (index, sub), var in d.store.vars.items():
         if var.access_type == "wo":
             continue
         sdo_var = node.sdo[index] if sub == 0 and not hasattr(node.sdo[index], "__getitem__") else node.sdo[index][sub]
@@ -286,6 +287,26 @@ def test_following_error_fault() -> None:
     assert rd_u(d, Obj.RECORDER, RecorderSub.SAMPLES) == 3
     planes = unpack_recorder(d.read_object(Obj.RECORDER_DATA, 0), 3)
     assert planes[2, 2] == 0 and planes[3, 2] > 0  # torque removed on the faulting tick
+
+
+def test_safe_state_records_name_the_fault_tick_only_for_the_fault(caplog: pytest.LogCaptureFixture) -> None:
+    """One SAFE-STATE record per loss of torque: the fault's record carries the ticks the trial
+    played (0x2120:3, the faulting tick included); a later disable (after a fault reset) has no
+    trial tick."""
+    d = loaded_drive(n=5, kp=100.0, ff=0)
+    d.write_object(Obj.FOLLOWING_ERROR_WINDOW, 0, u32(1000))
+    enable(d)
+    caplog.set_level("INFO", logger="firmware_model")
+    run_trial(d, [0, 5, -1000])  # following error at tick 2
+    assert rd_u(d, Obj.TRIAL, TrialSub.TICKS) == 3
+    d.write_object(Obj.CONTROLWORD, 0, u16(0x80))  # fault reset
+    enable(d)
+    d.write_object(Obj.CONTROLWORD, 0, u16(0x06))  # shutdown: torque off
+    records = [r for r in map(parse_safe_state, caplog.messages) if r]
+    assert [(r["reason"], r["cia402"], r["tick"]) for r in records] == [
+        ("fault-following_error", "FAULT", "3"),
+        ("cia402-ready_to_switch_on", "READY_TO_SWITCH_ON", "-"),
+    ]
 
 
 def test_following_error_window_off() -> None:

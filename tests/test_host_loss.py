@@ -102,7 +102,7 @@ def test_drive_heartbeat_loss_is_a_fault_with_emcy_0x8130(caplog: pytest.LogCapt
     d = armed_drive()
     d.io_tick(0, 0)
     d.io_tick(1, 0)
-    caplog.set_level("INFO", logger="firmware_model.drive")
+    caplog.set_level("INFO", logger="firmware_model")
     d.heartbeat_lost(HOST_NODE_ID)
     assert not d.torque_enabled
     assert d.cia402_state == Cia402State.FAULT

@@ -119,6 +119,19 @@ def test_modes_of_operation() -> None:
     assert d.read_object(Obj.SUPPORTED_DRIVE_MODES, 0) == u32(0x00010280)
 
 
+def test_mode_change_is_refused_while_a_trial_is_armed_and_sets_the_mode_bits() -> None:
+    d = configured_drive(ModeOfOperation.CSP)
+    assert d.statusword & 0x1000  # CSx, torque on: the drive follows the command value
+    d.write_object(Obj.TABLE, TableSub.LENGTH, u32(2))
+    d.write_object(Obj.TRIAL, 1, u8(1))
+    table = struct.pack("<b", ModeOfOperation.TABLE_PLAYBACK)
+    assert abort(d.write_object, Obj.MODES_OF_OPERATION, 0, table) == AbortCode.DEVICE_STATE
+    assert d.read_object(Obj.MODES_OF_OPERATION_DISPLAY, 0) == struct.pack("<b", ModeOfOperation.CSP)
+    d.write_object(Obj.TRIAL, 1, u8(0))  # disarm
+    d.write_object(Obj.MODES_OF_OPERATION, 0, table)
+    assert not d.statusword & 0x1000 and d.tick_ready  # table playback: no bit 12, no SYNC pacing
+
+
 def test_csp_tick_waits_for_sync_and_applies_the_rpdo_of_its_cycle() -> None:
     kp = 1000.0
     d = configured_drive(ModeOfOperation.CSP, kp=kp)
@@ -144,7 +157,7 @@ def test_csp_tick_waits_for_sync_and_applies_the_rpdo_of_its_cycle() -> None:
     assert d.read_object(Obj.TORQUE_OFFSET, 0) == struct.pack("<h", -7)
     # a short RPDO is not processed
     d.on_rpdo(rpdo_cob_id(NODE), b"\x01\x02")
-    assert d.pdo.length_errors == 1
+    assert d.pdo.engine.length_errors == 1
 
 
 def test_csp_trial_records_like_table_playback() -> None:

@@ -337,9 +337,9 @@ def test_initial_state_packing_is_exact() -> None:
 
 
 def test_plant_node_modules_respect_the_dependency_direction() -> None:
-    """bus never imports plant/firmware/host; the plant node (plant/plant_node.py) never imports
-    firmware/host; the bench client imports only bus (its ObjectAccess protocol is
-    bus.cia301.sdo's)."""
+    """bus never imports plant/firmware/host; the plant node (plant/plant_node.py and its parts
+    plant/plant_node_*.py) never imports firmware/host; the plant client imports only bus (its
+    ObjectAccess protocol is bus.cia301.sdo's)."""
     import ast
 
     def imported(rel: str) -> set[str]:
@@ -352,9 +352,12 @@ def test_plant_node_modules_respect_the_dependency_direction() -> None:
                 mods.add(node.module)
         return mods
 
-    for rel in ("bus/cia301/slave.py", "bus/plant_objects.py"):
+    for rel in ("bus/cia301/slave.py", "bus/cia301/object_store.py", "bus/plant_objects.py"):
         assert not {m.split(".")[0] for m in imported(rel)} & {"plant", "firmware_model", "host"}, rel
-    assert not {m.split(".")[0] for m in imported("plant/plant_node.py")} & {"firmware_model", "host"}
+    node_parts = sorted((ROOT / "plant").glob("plant_node*.py"))
+    assert ROOT / "plant" / "plant_node.py" in node_parts
+    for path in node_parts:
+        assert not {m.split(".")[0] for m in imported(str(path.relative_to(ROOT)))} & {"firmware_model", "host"}, path
     mods = imported("host/nodes/plant_client.py")
     assert {m.split(".")[0] for m in mods} <= {
         "__future__",

@@ -323,7 +323,7 @@ def test_a_paced_tick_is_waited_for_on_the_clock_for_the_last_spin_s() -> None:
         msg = drives.recv(timeout=0)
         assert msg is not None and isinstance(io_frames.decode_io(msg), io_frames.EncoderFrame)
         assert clock.reads - reads >= 10  # (100.002 − 100.00185) / 10 µs readings, at least
-        t = bench._pacer
+        t = bench.lockstep.pacer
         assert t is not None and 0 <= t._lateness_s[1] < 30e-6  # started within a few clock steps of the due time
     finally:
         for bus in (fb, io, drives):

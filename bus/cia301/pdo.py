@@ -6,7 +6,7 @@ CiA 301 §7.5.2.35–7.5.2.38 defines them, their validation when written by SDO
 unpacking of PDO payloads by the mapping, and the SYNC consumer (COB-ID object 0x1005).
 It knows nothing about CAN frames or the application: :class:`PdoEngine` is given received
 PDO payloads and SYNC events and hands back the TPDO payloads due; the node runtime
-(``firmware_model.drive_node``) moves the frames, the application (``firmware_model.drive``)
+(``firmware_model.drive_node``) moves the frames, the application (``firmware_model.cyclic_pdo``)
 decides when a cycle's TPDOs are due.
 
 Objects (described by the node's EDS; k = 0..3 → PDO 1..4)
@@ -57,7 +57,7 @@ from dataclasses import dataclass
 from canopen.objectdictionary import ODVariable
 
 from bus.cia301.nmt import NmtState
-from bus.cia301.slave import ObjectStore
+from bus.cia301.object_store import ObjectStore
 from bus.errors import AbortCode, SdoAbort
 from bus.pdo_objects import (  # noqa: F401 - re-exported
     COB_ID_MASK_11,
@@ -104,7 +104,7 @@ class _Pdo:
 class PdoEngine:
     """The PDOs and the SYNC consumer of one node (see the module docstring).
 
-    :param store: the node's :class:`bus.cia301.slave.ObjectStore` (values, hooks, metadata).
+    :param store: the node's :class:`bus.cia301.object_store.ObjectStore` (values, hooks, metadata).
     :param nmt_state: returns the node's NMT state (:class:`bus.cia301.nmt.NmtState` value).
     """
 

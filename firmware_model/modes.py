@@ -1,0 +1,299 @@
+"""Operation modes of one drive (CiA 402 0x6060): what an io tick computes while torque is on.
+
+Owns the motion layer between the power stage and the control law: one
+:class:`OperationMode` subclass per mode of operation, registered by its 0x6060 value in
+:data:`MODE_CLASSES`, and :class:`Motion`, which holds the mode selected now.  Each mode turns
+(tick, encoder count [counts]) into a torque [µN·m] with
+:func:`firmware_model.control_law.control_tick`; the trial bookkeeping (tick 0 starts an armed
+trial, then ticks must come in order, N ticks end it) is the same for every mode
+(:meth:`OperationMode.in_sequence`).  A tick out of sequence and a following error are faults of
+the power stage (:class:`FaultSink`).
+
+* table playback (-1, manufacturer specific): the PD loop follows the reference tables with
+  the feed-forward table; with no trial playing it holds the hold slot (the encoder count of the
+  first tick after torque came on, velocity 0, no feed-forward; after a trial, the last entry).
+  At tick 0 the velocity estimator starts at the reference velocity of sample 0 (the alignment
+  assumption).
+* CSP (8, cyclic synchronous position): the PD loop closes on 0x607A target position; the
+  velocity reference is the backward difference of successive targets,
+  ``(p[n] − p[n−1])·rate`` in the loop's Q12 arithmetic, rounded and saturated to int32 (0 on
+  the first tick of a trial and after a mode change); the feed-forward is 0x60B2 torque offset
+  [‰ of 0x6076].
+* CST (10, cyclic synchronous torque): torque = 0x6071 + 0x60B2 [‰ of 0x6076], no feedback and
+  no following-error check, clamped to 0x6072.
+
+The cyclic modes (:attr:`OperationMode.cyclic`) are paced by SYNC while NMT OPERATIONAL
+(:mod:`firmware_model.cyclic_pdo`) and set statusword bit 12 ("drive follows the command
+value") while torque is on.  A trial in a cyclic mode records N samples from tick 0 exactly as
+table playback does.
+"""
+
+from __future__ import annotations
+
+import logging
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import ClassVar, Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from bus import fixedpoint as fp
+from bus.cia301.object_store import Key, Value
+from bus.errors import AbortCode, SdoAbort
+from bus.objects import ModeOfOperation, Obj, TrialState
+from firmware_model import control_law
+from firmware_model.playback import TrialPlayback
+
+logger = logging.getLogger(__name__)
+
+_RUNNING = TrialState.RUNNING
+_CONTROL_TICK = control_law.control_tick
+_S_VF, _S_HAVE_PREV, _S_ERR = control_law.S_VF, control_law.S_HAVE_PREV, control_law.S_ERR
+_P_KP, _P_KD, _P_FE, _P_RATE = control_law.P_KP, control_law.P_KD, control_law.P_FE_WINDOW, control_law.P_RATE
+_TARGET_POSITION = (Obj.TARGET_POSITION, 0)
+_TARGET_TORQUE = (Obj.TARGET_TORQUE, 0)
+_TORQUE_OFFSET = (Obj.TORQUE_OFFSET, 0)
+
+
+class FaultSink(Protocol):
+    """Where a mode reports its faults (:class:`firmware_model.power_stage.PowerStage`); each
+    returns the torque of the tick, 0 [µN·m]."""
+
+    def following_error(self, error_counts: int) -> int: ...
+
+    def sequence_error(self, expected: int, tick: int) -> int: ...
+
+
+@dataclass(frozen=True)
+class MotionContext:
+    """What the modes of one drive work on.
+
+    :ivar st: the control loop's state array (:func:`firmware_model.control_law.new_state`).
+    :ivar trial: the drive's trial playback (tables, recorder, tick sequence).
+    :ivar values: the object values of the drive's object store (set-points).
+    :ivar rated_mnm: rated torque 0x6076 [mN·m] (‰ set-points → µN·m).
+    :ivar faults: where faults go.
+    """
+
+    st: npt.NDArray[np.int64]
+    trial: TrialPlayback
+    values: dict[Key, Value]
+    rated_mnm: int
+    faults: FaultSink
+
+
+class OperationMode(ABC):
+    """One mode of operation (see the module docstring), working on ``ctx``."""
+
+    #: the 0x6060 value
+    CODE: ClassVar[int]
+    #: io ticks are paced by SYNC while NMT OPERATIONAL
+    CYCLIC: ClassVar[bool] = False
+    #: the trial plays the tables 0x2200..0x2202 (they must be loaded to arm)
+    NEEDS_TABLES: ClassVar[bool] = False
+    #: statusword bits 12/13 while torque is on
+    STATUS_BITS: ClassVar[int] = 0
+
+    def __init__(self, ctx: MotionContext) -> None:
+        self.st = ctx.st
+        self.trial = ctx.trial
+        self.values = ctx.values
+        self.rated_mnm = ctx.rated_mnm
+        self.faults = ctx.faults
+
+    def reset(self) -> None:  # noqa: B027 - a mode without state between ticks has nothing to forget
+        """Forget what earlier ticks left (NMT reset node, this mode selected again)."""
+
+    def initial_velocity(self) -> int:
+        """Velocity estimator state at tick 0 of a trial [counts/s] (0: no previous target)."""
+        return 0
+
+    def start_trial(self) -> None:
+        """Tick 0 of an armed trial: the velocity estimator starts afresh, the trial runs."""
+        st = self.st
+        st[_S_HAVE_PREV] = 0
+        st[_S_VF] = self.initial_velocity() << fp.VEL_STATE_Q
+        self.trial.start()
+
+    def in_sequence(self, tick: int) -> bool:
+        """Trial bookkeeping before io tick ``tick``: running, it must be the next tick; armed, it
+        must be tick 0, which starts the trial; otherwise any tick holds.  False: out of sequence."""
+        state = self.trial.state
+        if state == _RUNNING:
+            return tick == self.trial.next_tick
+        if state == TrialState.ARMED:
+            if tick != 0:
+                return False
+            self.start_trial()
+        return True
+
+    @abstractmethod
+    def tick(self, tick: int, encoder_count: int) -> int:
+        """One io tick with torque on: torque command [µN·m]."""
+
+    def _sequence_fault(self, tick: int) -> int:
+        trial = self.trial
+        return self.faults.sequence_error(trial.next_tick if trial.state == _RUNNING else 0, tick)
+
+    def _following_error_fault(self, rec_index: int) -> int:
+        """A following error on the tick recorded at ``rec_index`` (-1: none): the plant gets no
+        torque on this tick, and the recorder says so."""
+        error = int(self.st[_S_ERR])
+        if rec_index >= 0:
+            self.trial.rec[control_law.REC_TAU, rec_index] = 0
+        return self.faults.following_error(error)
+
+
+class TablePlaybackMode(OperationMode):
+    """-1: follow the reference and feed-forward tables (see the module docstring)."""
+
+    CODE = ModeOfOperation.TABLE_PLAYBACK
+    NEEDS_TABLES = True
+
+    def initial_velocity(self) -> int:
+        return int(self.trial.tables[control_law.ROW_REF_VEL, 0])
+
+    def tick(self, tick: int, encoder_count: int) -> int:
+        if not self.in_sequence(tick):
+            return self._sequence_fault(tick)
+        trial = self.trial
+        if trial.state != _RUNNING:
+            trial.hold_here(encoder_count)
+            tau, status = _CONTROL_TICK(encoder_count, trial.capacity, -1, self.st, trial.tables, trial.rec)
+            if status:
+                return self._following_error_fault(-1)
+            return tau
+        tau, status = _CONTROL_TICK(encoder_count, tick, tick, self.st, trial.tables, trial.rec)
+        trial.next_tick = tick + 1
+        if status:
+            return self._following_error_fault(tick)
+        if trial.next_tick == trial.n_table:
+            trial.finish()
+        return tau
+
+
+class CyclicSynchronousMode(OperationMode, ABC):
+    """A cyclic synchronous mode: the set-points of the tick come from objects written by RPDO
+    (or SDO) and go through a one-column table into the control law."""
+
+    CYCLIC = True
+    STATUS_BITS = 0x1000  # CSx: the drive follows the command value
+
+    def __init__(self, ctx: MotionContext) -> None:
+        super().__init__(ctx)
+        self._setpoint = control_law.new_tables(0)  # column 0: the set-points of the tick
+
+    def _offset_units(self) -> int:
+        """0x60B2 torque offset [µN·m]."""
+        return int(self.values[_TORQUE_OFFSET]) * self.rated_mnm  # ‰ of mN·m = µN·m
+
+    @abstractmethod
+    def _control(self, encoder_count: int, rec_index: int) -> tuple[int, int]:
+        """The control law on this tick's set-points: (torque [µN·m], kernel status)."""
+
+    def tick(self, tick: int, encoder_count: int) -> int:
+        if not self.in_sequence(tick):
+            return self._sequence_fault(tick)
+        trial = self.trial
+        playing = trial.state == _RUNNING
+        rec_index = tick if playing else -1
+        tau, status = self._control(encoder_count, rec_index)
+        if playing:
+            trial.next_tick = tick + 1
+        if status:
+            return self._following_error_fault(rec_index)
+        if playing and trial.next_tick == trial.n_table:
+            trial.finish()
+        return tau
+
+
+class CspMode(CyclicSynchronousMode):
+    """8: cyclic synchronous position (see the module docstring)."""
+
+    CODE = ModeOfOperation.CSP
+
+    def __init__(self, ctx: MotionContext) -> None:
+        super().__init__(ctx)
+        self._prev_target: int | None = None  # 0x607A of the previous tick [counts]
+
+    def reset(self) -> None:
+        self._prev_target = None
+
+    def start_trial(self) -> None:
+        self._prev_target = None  # no previous target in a new trial
+        super().start_trial()
+
+    def _control(self, encoder_count: int, rec_index: int) -> tuple[int, int]:
+        st, sp = self.st, self._setpoint
+        target = int(self.values[_TARGET_POSITION])
+        prev = self._prev_target
+        vref = 0 if prev is None else fp.sat32(fp.rshift_round(fp.sat32(target - prev) * int(st[_P_RATE]), fp.VEL_STATE_Q))
+        self._prev_target = target
+        sp[0, 0], sp[1, 0], sp[2, 0] = target, vref, fp.sat32(self._offset_units())
+        return _CONTROL_TICK(encoder_count, 0, rec_index, st, sp, self.trial.rec)
+
+
+class CstMode(CyclicSynchronousMode):
+    """10: cyclic synchronous torque (see the module docstring)."""
+
+    CODE = ModeOfOperation.CST
+
+    def _control(self, encoder_count: int, rec_index: int) -> tuple[int, int]:
+        st, sp = self.st, self._setpoint
+        target_torque = int(self.values[_TARGET_TORQUE]) * self.rated_mnm
+        saved = int(st[_P_KP]), int(st[_P_KD]), int(st[_P_FE])
+        st[_P_KP] = st[_P_KD] = 0  # no feedback
+        st[_P_FE] = -1  # no following-error check
+        sp[0, 0] = fp.sat32(encoder_count)
+        sp[1, 0] = 0
+        sp[2, 0] = fp.sat32(target_torque + self._offset_units())
+        try:
+            return _CONTROL_TICK(encoder_count, 0, rec_index, st, sp, self.trial.rec)
+        finally:
+            st[_P_KP], st[_P_KD], st[_P_FE] = saved
+
+
+#: the supported modes of operation, by 0x6060 value
+MODE_CLASSES: dict[int, type[OperationMode]] = {cls.CODE: cls for cls in (TablePlaybackMode, CspMode, CstMode)}
+
+
+class Motion:
+    """The modes of one drive and the one selected by 0x6060.
+
+    :param node_id: CANopen node id (log messages).
+    :param ctx: what the modes work on.
+
+    :ivar mode: the mode selected now.
+    """
+
+    def __init__(self, node_id: int, ctx: MotionContext) -> None:
+        self.node_id = node_id
+        self._values = ctx.values
+        self._trial = ctx.trial
+        self.modes: dict[int, OperationMode] = {code: cls(ctx) for code, cls in MODE_CLASSES.items()}
+        self.mode: OperationMode = self.modes[ModeOfOperation.TABLE_PLAYBACK]
+        self.reset()
+
+    def reset(self) -> None:
+        """NMT reset node: every mode starts afresh; the selected one is 0x6060's value."""
+        for mode in self.modes.values():
+            mode.reset()
+        self.mode = self.modes[int(self._values[(Obj.MODES_OF_OPERATION, 0)])]
+
+    def select(self, code: int) -> None:
+        """0x6060 written: select mode ``code``.
+
+        :raises SdoAbort: 0x06090030 mode not supported, 0x08000022 a trial is armed or running.
+        """
+        mode = self.modes.get(code)
+        if mode is None:
+            supported = ", ".join(str(c) for c in sorted(self.modes))
+            raise SdoAbort(AbortCode.VALUE_RANGE, f"mode of operation {code!r} not supported ({supported})")
+        if mode is self.mode:
+            return
+        self._trial.require_not_playing("changing the mode of operation")
+        mode.reset()
+        self._trial.capture_hold = True  # the hold is where the drive is now
+        self.mode = mode
+        logger.debug("node %d mode of operation %s", self.node_id, code)

@@ -1,0 +1,195 @@
+"""The drive's object-dictionary hooks: what reading or writing an object does in the firmware.
+
+Owns the link between the object store (:class:`bus.cia301.object_store.ObjectStore`, values
+loaded from ``bus/drive.eds``) and the parts of the drive: read hooks give the live value
+(statusword, actual position/velocity/torque, error register, trial and recorder state), write
+hooks act on a write and may refuse it with :class:`bus.errors.SdoAbort`:
+
+* 0x6040 controlword → the power stage (:mod:`firmware_model.power_stage`); 0x6060 mode of
+  operation → the motion layer (:mod:`firmware_model.modes`);
+* 0x2103, 0x2120:1, 0x2200..0x2202, 0x2210 → trial playback (:mod:`firmware_model.playback`);
+* the loop parameters, written into the control law's ``st`` array in its fixed-point formats
+  (:mod:`bus.fixedpoint`): gains 0x2110 (Kp Q16 µN·m/count, Kd Q16 µN·m/(count/s), velocity
+  filter Q15), control period 0x2300 [µs] (tick rate Hz Q12) and its CiA 402 form 0x60C2
+  (value · 10^index s), max torque 0x6072 [‰ of 0x6076] (limit in µN·m), following-error window
+  0x6065 [counts] (0xFFFFFFFF: check off).  They cannot change while a trial is armed or running
+  (abort 0x08000022).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+
+import numpy as np
+import numpy.typing as npt
+
+from bus import fixedpoint as fp
+from bus.cia301.object_store import ObjectStore, Value
+from bus.errors import AbortCode, SdoAbort
+from bus.objects import GainsSub, InterpolationPeriodSub, Obj, RecorderSub, TableSub, TrialSub
+from firmware_model import control_law
+from firmware_model.modes import Motion
+from firmware_model.playback import TABLE_ROWS, TrialPlayback
+from firmware_model.power_stage import PowerStage
+
+_GAIN_SLOTS = {GainsSub.KP: control_law.P_KP, GainsSub.KD: control_law.P_KD, GainsSub.VEL_FILTER: control_law.P_ALPHA}
+_FE_WINDOW_OFF = 0xFFFFFFFF
+
+
+def eds_default(store: ObjectStore, index: int, sub: int) -> int:
+    """The EDS DefaultValue of a numeric object.
+
+    :raises ValueError: the EDS gives none.
+    """
+    default = store.vars[(index, sub)].default
+    if default is None:
+        raise ValueError(f"the EDS gives no DefaultValue for 0x{index:04X}:{sub}")
+    return int(default)
+
+
+def period_repr(period_us: int) -> tuple[int, int]:
+    """0x60C2 (value, index) of a control period [µs]: period = value · 10^index s, value 0..255,
+    the finest index that holds it exactly, else the nearest value of a coarser index."""
+    v = period_us
+    idx = -6
+    while v % 10 == 0 and idx < -1:
+        v //= 10
+        idx += 1
+    while v > 255:  # not exactly representable: nearest with a coarser index
+        v = (v + 5) // 10
+        idx += 1
+    return v, idx
+
+
+class ObjectHooks:
+    """The read and write hooks of one drive's objects (see the module docstring).
+
+    :param store: the drive's object store (the hooks are installed into it).
+    :param st: the control loop's state array (parameters and actual values).
+    :param trial: trial playback.
+    :param power: the power stage.
+    :param motion: the operation modes.
+    :param rated_mnm: rated torque 0x6076 [mN·m].
+    """
+
+    def __init__(
+        self,
+        store: ObjectStore,
+        st: npt.NDArray[np.int64],
+        trial: TrialPlayback,
+        power: PowerStage,
+        motion: Motion,
+        rated_mnm: int,
+    ) -> None:
+        self.store = store
+        self._values = store.values
+        self._st = st
+        self._trial = trial
+        self._power = power
+        self._motion = motion
+        self._rated_mnm = rated_mnm
+        self._install()
+
+    def statusword(self) -> int:
+        """0x6041 now."""
+        return self._power.statusword(self._motion.mode.STATUS_BITS)
+
+    def apply_parameters(self) -> None:
+        """Write the loop parameters of the current object values into ``st`` (after a reset)."""
+        v = self._values
+        for sub in GainsSub:
+            self._set_gain(sub, int(v[(Obj.GAINS, sub)]))
+        self._set_period(int(v[(Obj.CONTROL_PERIOD, 0)]))
+        self._set_max_torque(int(v[(Obj.MAX_TORQUE, 0)]))
+        self._set_fe_window(int(v[(Obj.FOLLOWING_ERROR_WINDOW, 0)]))
+
+    # ------------------------------------------------------------------ installation
+
+    def _install(self) -> None:
+        r = self.store.read_hooks
+        w = self.store.write_hooks
+        st, trial, power, values = self._st, self._trial, self._power, self._values
+        r[(Obj.ERROR_REGISTER, 0)] = lambda: power.error_register
+        r[(Obj.ERROR_CODE, 0)] = lambda: power.error_code
+        r[(Obj.STATUSWORD, 0)] = self.statusword
+        r[(Obj.MODES_OF_OPERATION_DISPLAY, 0)] = lambda: values[(Obj.MODES_OF_OPERATION, 0)]
+        r[(Obj.POSITION_ACTUAL, 0)] = lambda: int(st[control_law.S_POS])
+        r[(Obj.VELOCITY_ACTUAL, 0)] = lambda: int(st[control_law.S_VEST])
+        r[(Obj.TORQUE_ACTUAL, 0)] = lambda: fp.torque_units_to_permille(int(st[control_law.S_TAU]), self._rated_mnm)
+        r[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.VALUE)] = lambda: self._period_repr()[0]
+        r[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.INDEX)] = lambda: self._period_repr()[1]
+        for index in TABLE_ROWS:
+            r[(index, 0)] = functools.partial(trial.read_table, index)
+            w[(index, 0)] = functools.partial(self._write_table, index)
+        r[(Obj.TABLE, TableSub.LENGTH)] = lambda: trial.n_table
+        r[(Obj.TABLE, TableSub.LOADED)] = lambda: trial.loaded
+        r[(Obj.TRIAL, TrialSub.STATE)] = lambda: int(trial.state)
+        r[(Obj.TRIAL, TrialSub.TICKS)] = lambda: trial.ticks_done
+        r[(Obj.TRIAL, TrialSub.FAULT_CAUSE)] = lambda: int(trial.fault_cause)
+        r[(Obj.RECORDER, RecorderSub.STATUS)] = lambda: int(trial.rec_status)
+        r[(Obj.RECORDER, RecorderSub.SAMPLES)] = lambda: trial.recorded
+        r[(Obj.RECORDER_DATA, 0)] = trial.read_recorder
+
+        w[(Obj.CONTROLWORD, 0)] = lambda v: power.controlword(int(v))
+        w[(Obj.MODES_OF_OPERATION, 0)] = lambda v: self._motion.select(int(v))
+        w[(Obj.FOLLOWING_ERROR_WINDOW, 0)] = self._parameter_hook("the following-error window", self._set_fe_window)
+        w[(Obj.MAX_TORQUE, 0)] = self._parameter_hook("the max torque", self._set_max_torque)
+        w[(Obj.TABLE, TableSub.LENGTH)] = lambda v: trial.write_length(int(v))
+        for sub in GainsSub:
+            w[(Obj.GAINS, sub)] = self._parameter_hook("the gains", functools.partial(self._set_gain, sub))
+        w[(Obj.TRIAL, TrialSub.COMMAND)] = self._write_trial_command
+        w[(Obj.CONTROL_PERIOD, 0)] = self._parameter_hook("the control period", self._set_period)
+        w[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.VALUE)] = lambda v: self._write_interp(int(v), None)
+        w[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.INDEX)] = lambda v: self._write_interp(None, int(v))
+
+    def _parameter_hook(self, what: str, setter: Callable[[int], None]) -> Callable[[Value], None]:
+        """The write hook of a loop parameter: refused while a trial is armed or running."""
+
+        def hook(value: Value) -> None:
+            self._trial.require_not_playing(f"changing {what}")
+            setter(int(value))
+
+        return hook
+
+    # ------------------------------------------------------------------ loop parameters
+
+    def _set_gain(self, sub: GainsSub, value: int) -> None:
+        self._st[_GAIN_SLOTS[sub]] = value
+
+    def _set_fe_window(self, value: int) -> None:
+        self._st[control_law.P_FE_WINDOW] = -1 if value == _FE_WINDOW_OFF else value
+
+    def _set_max_torque(self, permille: int) -> None:
+        self._st[control_law.P_TLIM] = fp.torque_limit_units(permille, self._rated_mnm)
+
+    def _set_period(self, period_us: int) -> None:
+        self._st[control_law.P_RATE] = fp.rate_q12_from_period_us(period_us)
+
+    def _period_repr(self) -> tuple[int, int]:
+        return period_repr(int(self._values[(Obj.CONTROL_PERIOD, 0)]))
+
+    def _write_interp(self, value: int | None, index: int | None) -> None:
+        """0x60C2 sub 1 or 2 written: the control period 0x2300 becomes value · 10^index s."""
+        cur_v, cur_i = self._period_repr()
+        v = cur_v if value is None else value
+        i = cur_i if index is None else index
+        scaled = v * 10 ** (i + 6)  # µs; the EDS limits the index to -6..-1
+        period = self.store.vars[(Obj.CONTROL_PERIOD, 0)]
+        if period.min is None or period.max is None:
+            raise ValueError("the EDS gives no LowLimit/HighLimit for 0x2300")
+        if not period.min <= int(scaled) <= period.max:
+            raise SdoAbort(AbortCode.VALUE_RANGE, f"period {scaled} µs outside [{period.min}, {period.max}]")
+        self._trial.require_not_playing("changing the control period")
+        self._set_period(int(scaled))
+        self._values[(Obj.CONTROL_PERIOD, 0)] = int(scaled)
+
+    # ------------------------------------------------------------------ trial objects
+
+    def _write_table(self, index: int, data: Value) -> None:
+        if not isinstance(data, bytes):  # the EDS makes the tables DOMAINs: decoded as bytes
+            raise TypeError(f"table 0x{index:04X} must be bytes, got {type(data).__name__}")
+        self._trial.write_table(index, data)
+
+    def _write_trial_command(self, value: Value) -> None:
+        self._trial.command(int(value), needs_tables=self._motion.mode.NEEDS_TABLES, in_fault=self._power.in_fault)

@@ -1,0 +1,91 @@
+"""The plant node's object hooks: what reading or writing one of its objects does.
+
+Owns the link between the node's object store (``bus/plant.eds``; names and encodings:
+:mod:`bus.plant_objects`) and its trial machinery: read hooks give the live trial status and
+fault record (0x2410:4..8, 0x1001), the counters (0x2430, U32, wrapping; the last trial's
+duration in µs, saturated) and the last trial's timing and deadline misses (0x2440, 0x2441);
+write hooks refuse configuration (0x2400), trial index and length (0x2410:1, 2) and the initial
+state (0x2420, validated: 64 bytes of finite float64) while a trial runs (abort 0x08000022), and
+carry out the trial command (0x2410:3: start, abort).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from bus.cia301.object_store import ObjectStore, Value
+from bus.errors import AbortCode, SdoAbort
+from bus.plant_objects import (
+    ERROR_REGISTER_INDEX,
+    ConfigSub,
+    CounterSub,
+    InitialStateError,
+    PlantCommand,
+    PlantObj,
+    PlantTrialSub,
+    pack_deadline_misses,
+    pack_trial_timing,
+    unpack_initial_state,
+)
+from plant.plant_node_status import TrialStatus
+from plant.plant_node_trial import LockstepMaster
+
+_U32 = 0xFFFFFFFF
+
+
+def install_hooks(store: ObjectStore, lockstep: LockstepMaster, status: TrialStatus) -> None:
+    """Install the plant node's read and write hooks into ``store`` (see the module docstring)."""
+    r, w = store.read_hooks, store.write_hooks
+    t = PlantObj.TRIAL
+    r[(ERROR_REGISTER_INDEX, 0)] = lambda: status.error_register
+    r[(t, PlantTrialSub.STATUS)] = lambda: int(status.status)
+    r[(t, PlantTrialSub.TICKS_DONE)] = lambda: lockstep.ticks_done & _U32
+    r[(t, PlantTrialSub.FAULT_CODE)] = lambda: int(status.fault_code)
+    r[(t, PlantTrialSub.FAULT_TICK)] = lambda: status.fault_tick & _U32
+    r[(t, PlantTrialSub.FAULT_NODE)] = lambda: status.fault_node
+    c = PlantObj.COUNTERS
+    r[(c, CounterSub.IO_SENT)] = lambda: lockstep.io_sent & _U32
+    r[(c, CounterSub.IO_RECEIVED)] = lambda: lockstep.io_received & _U32
+    r[(c, CounterSub.TICK_TIMEOUTS)] = lambda: lockstep.tick_timeouts & _U32
+    r[(c, CounterSub.TRIALS_DONE)] = lambda: lockstep.trials_done & _U32
+    r[(c, CounterSub.LAST_TRIAL_US)] = lambda: min(int(status.last_trial_s * 1e6), _U32)
+    r[(PlantObj.TRIAL_TIMING, 0)] = lambda: pack_trial_timing(status.timing)
+    r[(PlantObj.DEADLINE_MISSES, 0)] = lambda: pack_deadline_misses(status.misses)
+
+    def require_idle(what: str) -> Callable[[Value], None]:
+        def hook(_value: Value) -> None:
+            if lockstep.busy:
+                raise SdoAbort(AbortCode.DEVICE_STATE, f"{what} cannot change while a trial runs")
+
+        return hook
+
+    def write_initial_state(value: Value) -> None:
+        if lockstep.busy:
+            raise SdoAbort(AbortCode.DEVICE_STATE, "initial state cannot change while a trial runs")
+        if not isinstance(value, bytes):  # the EDS makes 0x2420 a DOMAIN: decoded as bytes
+            raise TypeError(f"initial state 0x2420 must be bytes, got {type(value).__name__}")
+        try:
+            unpack_initial_state(bytes(value))
+        except InitialStateError as err:
+            code = AbortCode.LENGTH_MISMATCH if "bytes" in str(err) else AbortCode.VALUE_RANGE
+            raise SdoAbort(code, str(err)) from None
+
+    def write_command(value: Value) -> None:
+        cmd = int(value)
+        if cmd == PlantCommand.START:
+            if lockstep.busy:
+                raise SdoAbort(AbortCode.DEVICE_STATE, "a trial is already running")
+            if len(store.get_bytes(PlantObj.INITIAL_STATE)) == 0:
+                raise SdoAbort(AbortCode.DEVICE_STATE, "initial state 0x2420 not set")
+            lockstep.request_start()
+        elif cmd == PlantCommand.ABORT:
+            lockstep.abort("aborted by the host")
+        else:  # the EDS limits make this unreachable over SDO
+            raise SdoAbort(AbortCode.VALUE_RANGE, f"unknown plant node command {cmd}")
+
+    for sub in ConfigSub:
+        w[(PlantObj.CONFIG, sub)] = require_idle(f"configuration 0x2400:{int(sub)}")
+    w[(t, PlantTrialSub.TRIAL_INDEX)] = require_idle("trial index")
+    w[(t, PlantTrialSub.N_TICKS)] = require_idle("number of ticks")
+    w[(t, PlantTrialSub.COMMAND)] = write_command
+    w[(PlantObj.INITIAL_STATE, 0)] = write_initial_state
