@@ -17,24 +17,17 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from host.analysis import paper_data
-from host.analysis.report import (
-    Verdict,
-    fmt,
-    settle_iteration,
-    settle_iteration_final,
-    split_repeatable,
-    verdict_beats,
-    verdict_cycles,
-    verdict_disturbance,
-    verdict_floor_raised,
-    verdict_long_bounded,
-    verdict_paths,
-    verdict_profiles_order,
-    verdict_profiles_similar,
-    verdict_rise,
-    verdict_settle,
-)
+from host.analysis.claims import paper_self_check
+from host.analysis.convergence_verdicts import verdict_disturbance, verdict_long_bounded, verdict_rise, verdict_settle
+from host.analysis.markdown import fmt
 from host.analysis.run_report import write_run_report
+from host.analysis.settling import (
+    settle_iteration,
+    settle_iterations,
+    settled_floor,
+    settled_windows,
+    split_repeatable,
+)
 from host.analysis.sweep_plan import (
     GROUPS,
     Experiment,
@@ -44,6 +37,15 @@ from host.analysis.sweep_plan import (
     is_finished,
     run_dir_of,
     table_rows,
+)
+from host.analysis.verdicts import (
+    Verdict,
+    verdict_beats,
+    verdict_cycles,
+    verdict_floor_raised,
+    verdict_paths,
+    verdict_profiles_order,
+    verdict_profiles_similar,
 )
 from host.learning.names import LAWS
 
@@ -171,43 +173,98 @@ def test_verdict_beats_holds_and_fails_with_reason() -> None:
     assert "**does not hold**" in v.line() and "reason:" in v.line()
 
 
-def test_settle_definitions() -> None:
+#: RMSE per trial of `pd-ilc` on path 1, 0.25 s, 4-5-6-7 law, no disturbance (deg; `ilcrig sim`)
+PD_ILC_RMSE = np.array(
+    [
+        [0.210185, 0.0817, 0.138093, 0.089311],
+        [0.114469, 0.043937, 0.067899, 0.047659],
+        [0.062837, 0.023765, 0.034802, 0.025583],
+        [0.034351, 0.013057, 0.020243, 0.013788],
+        [0.017048, 0.006891, 0.013074, 0.007273],
+        [0.007412, 0.003618, 0.008239, 0.003833],
+        [0.004336, 0.002537, 0.005085, 0.002658],
+        [0.003102, 0.00225, 0.003805, 0.002325],
+        [0.001975, 0.001593, 0.002222, 0.001579],
+        [0.001634, 0.001517, 0.001862, 0.001543],
+    ]
+)
+
+
+def test_settle_iteration_within_2x_of_final() -> None:
     r = [1.0, 0.5, 0.25, 0.12, 0.06, 0.03, 0.02, 0.015, 0.012, 0.01]
-    # band 0.1 * 0.99 = 0.099: r[4] = 0.06 is within, r[3] = 0.12 is not
-    assert settle_iteration(r) == 4
-    # within 10 % of 0.01: only the last value
-    assert settle_iteration_final(r) == 9
+    # band [0.005, 0.02] around the final 0.01: r[6] = 0.02 is inside, r[5] = 0.03 is not
+    assert settle_iteration(r) == 6
     assert settle_iteration([0.2, 0.2]) == 0
-    hist = np.array([r, r, r, r]).T
-    assert verdict_settle(hist).holds is True
-    slow = np.array([[0.9**k] * 4 for k in range(10)])
-    v = verdict_settle(slow)
-    assert v.holds is False and "still changing after k = 5" in v.detail
-    assert verdict_settle(hist[:3]).holds is None  # too few trials
+    assert settle_iteration([0.3]) == 0
+    # entering the band from below counts as outside: 0.01 < 0.3 / 2
+    assert settle_iteration([1.0, 0.1, 0.01, 0.3, 0.3]) == 3
+    assert settle_iteration([1.0, 0.0, 0.0]) == 1  # a final 0 is reached only by 0
+    # every joint: j1 settles at 7, j2 at 6, j3 at 8 (0.003805 > 2 × 0.001862), j4 at 6
+    assert settle_iterations(PD_ILC_RMSE) == [7, 6, 8, 6]
+    assert settle_iteration(PD_ILC_RMSE) == 8
+    with pytest.raises(ValueError):
+        settle_iteration([])
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.lists(st.floats(0.0, 10.0, allow_nan=False), min_size=1, max_size=30))
+@given(st.lists(st.floats(1e-6, 10.0, allow_nan=False), min_size=1, max_size=30))
 def test_settle_iteration_property(r: list[float]) -> None:
     k = settle_iteration(r)
     assert 0 <= k <= len(r) - 1
-    band = 0.1 * abs(r[0] - r[-1])
-    assert all(abs(x - r[-1]) <= band for x in r[k:])
+    f = r[-1]
+    assert all(f / 2 <= x <= 2 * f for x in r[k:])
     if k > 0:
-        assert abs(r[k - 1] - r[-1]) > band
+        assert not f / 2 <= r[k - 1] <= 2 * f
+
+
+def test_settled_floor_and_windows() -> None:
+    r = [1.0, 0.5, 0.25, 0.12, 0.06, 0.03, 0.02, 0.015, 0.012, 0.01]
+    fl = settled_floor(r)
+    assert (fl.settle, fl.trials) == (6, 4)
+    assert fl.floor_deg == pytest.approx([0.01425])
+    fl = settled_floor(r, settle=8)  # a disturbed run takes the settle iteration of its run without
+    assert (fl.settle, fl.trials) == (8, 2) and fl.floor_deg == pytest.approx([0.011])
+    assert settled_floor(r, settle=20).settle == 9  # clamped to the last trial
+    long = np.concatenate([np.full(10, 1.0), np.full(10, 0.1), np.full(30, 0.2)])
+    w = settled_windows(long, 10, settle=5)
+    assert (w.settle, w.best_start) == (5, 10)
+    assert w.best_mean_deg == pytest.approx(0.1) and w.last_mean_deg == pytest.approx(0.2)
+    w = settled_windows(long, 10, settle=45)  # fewer than 10 trials after settling
+    assert w.best_start is None and np.isnan(w.best_mean_deg)
+
+
+def test_verdict_settle_states_criterion_and_values() -> None:
+    v = verdict_settle(PD_ILC_RMSE)
+    assert v.holds is False
+    assert "settles at k = 8 (j1 7, j2 6, j3 8, j4 6; of 10 trials)" in v.detail
+    assert "j1 0.00741 (4.5× the final 0.00163)" in v.detail and "not settled at k = 5" in v.detail
+    assert "within 2× of its final (last-trial) RMSE" in v.criterion and "k ≤ 5" in v.criterion
+    assert v.line().endswith(f"*Criterion:* {v.criterion}.")
+    fast = np.tile([[1.0], [0.1], [0.011], [0.0105], [0.0102], [0.0101], [0.01], [0.01]], (1, 4))
+    v = verdict_settle(fast)
+    assert v.holds is True and v.detail == "settles at k = 2 (j1 2, j2 2, j3 2, j4 2; of 8 trials)"
+    assert verdict_settle(fast[:6]).holds is None  # too few trials to judge k ≤ 5
 
 
 def test_verdict_rise() -> None:
-    assert verdict_rise(np.array([[0.3, 0.1], [0.2, 0.12], [0.1, 0.05]])).holds is True
+    v = verdict_rise(np.array([[0.3, 0.1], [0.2, 0.12], [0.1, 0.05]]))
+    assert v.holds is True and v.detail.startswith("first rise at k = 1 on j2 (0.1 → 0.12 deg)")
     v = verdict_rise(np.array([[0.3, 0.1], [0.2, 0.08], [0.1, 0.05]]))
-    assert v.holds is False and "monotonically" in v.detail
+    assert v.holds is False and "monotonically" in v.detail and "1%" in v.criterion
 
 
-def test_verdict_disturbance_raised_bounded_and_growing() -> None:
-    none = np.array([[0.2 * 0.5**k] * 4 for k in range(10)])
-    dist = none + 0.01
+def test_verdict_disturbance_floors_after_settling() -> None:
+    none = np.tile(np.array([[0.2, 0.1, 0.05, 0.02, 0.01, 0.005, 0.004, 0.004, 0.002, 0.002]]).T, (1, 4))
+    # scatter of 3× between trials: the disturbed run settles only at its last trial on its own
+    dist = np.tile(np.array([[0.25, 0.12, 0.06, 0.03, 0.02, 0.015, 0.01, 0.03, 0.01, 0.03]]).T, (1, 4))
+    assert settle_iteration(none) == 6 and settle_iteration(dist) == 9
     v = verdict_disturbance(none, dist)
-    assert v.holds is True and "bounded" in v.detail
+    assert v.holds is True
+    # both floors over k = 6..9 (the run without disturbance settles at 6): 0.003 and 0.02
+    assert "floor without → with disturbance: j1 0.003 → 0.02, j2 0.003 → 0.02" in v.detail
+    assert "settle iteration 6: floors over k = 6..9" in v.detail
+    assert "growth of the last 4 trials over the 4 before: j1 0.64×" in v.detail
+    assert v.criterion.startswith("floor = the mean RMSE per joint over the trials from the settle iteration on")
     lower = dist.copy()
     lower[:, 2] = none[:, 2] * 0.9  # j3 learns even better with the disturbance
     v = verdict_disturbance(none, lower)
@@ -215,7 +272,7 @@ def test_verdict_disturbance_raised_bounded_and_growing() -> None:
     growing = dist.copy()
     growing[6:, 1] = [0.05, 0.08, 0.12, 0.15]  # grows again after learning
     v = verdict_disturbance(none, growing)
-    assert v.holds is False and "grows on j2" in v.detail
+    assert v.holds is False and "the error grows on j2" in v.detail
     assert verdict_floor_raised([0.1, 0.1], [0.2, 0.05]).holds is False
 
 
@@ -239,9 +296,7 @@ def test_verdict_paths_cycles_profiles() -> None:
 
 
 def test_paper_numbers_satisfy_the_criteria() -> None:
-    from host.analysis.report import _paper_self_check
-
-    assert all(v.holds for v in _paper_self_check().values())
+    assert all(v.holds for v in paper_self_check().values())
 
 
 def test_split_repeatable() -> None:
@@ -300,6 +355,62 @@ def test_write_run_report(tmp_path: Path) -> None:
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def _fake_run(out: Path, e: Experiment, iterations: int, rmse: np.ndarray, fault: str | None = None) -> None:
+    """A finished run of ``e`` in sweep folder ``out`` with the given RMSE history (deg), or one
+    ended by ``fault``."""
+    d = run_dir_of(out, e)
+    d.mkdir(parents=True)
+    cfg = e.config(iterations)
+    its = [{"k": k, "rmse_deg": list(r), "max_abs_deg": list(3 * r), "mae_deg": list(0.8 * r)} for k, r in enumerate(rmse)]
+    summary = {
+        "completed": fault is None,
+        "faults": [] if fault is None else [{"trial": len(rmse), "message": fault}],
+        "config": cfg.as_dict() | {"n_ticks": 5, "trial_s": 0.005},
+        "iterations": its,
+        "wall_s": 1.0,
+        "convergence_check": {"rho_max": 0.9, "ok": True, "norm2": 1.0, "long_bounded": True},
+    }
+    (d / "summary.json").write_text(json.dumps(summary))
+    np.save(d / "errors.npy", np.zeros((len(rmse), 5, 4), np.float32))
+
+
+def test_sweep_report_judges_with_settled_floors_and_windows(tmp_path: Path) -> None:
+    """The report on a sweep folder: the disturbed run's floor starts at the settle iteration of the
+    run without disturbance; a long run's best window starts at the settle iteration over the first
+    ``iterations`` trials; every verdict line states its criterion."""
+    from host.analysis.report import write_sweep_report
+
+    none = np.tile(np.array([[0.2, 0.1, 0.05, 0.02, 0.01, 0.005, 0.004, 0.004, 0.002, 0.002]]).T, (1, 4))
+    dist = np.tile(np.array([[0.25, 0.12, 0.06, 0.03, 0.02, 0.015, 0.01, 0.03, 0.01, 0.03]]).T, (1, 4))
+    _fake_run(tmp_path, Experiment("pd-ilc"), 10, none)
+    _fake_run(tmp_path, Experiment("pd-ilc", disturbance="both"), 10, dist)
+    # long runs: the first 10 trials as above, then flat; the disturbed one dips at k = 10..29
+    long_none = np.concatenate([none, np.full((190, 4), 0.002)])
+    long_dist = np.concatenate([dist, np.full((20, 4), 0.005), np.full((170, 4), 0.02)])
+    _fake_run(tmp_path, Experiment("pd-ilc", trials=200), 10, long_none)
+    _fake_run(tmp_path, Experiment("pd-ilc", disturbance="both", trials=200), 10, long_dist)
+    _fake_run(tmp_path, Experiment("d-ilc"), 10, np.zeros((0, 4)), fault="EMCY 0x8611 on node 2")  # no trial
+    text = write_sweep_report(tmp_path, 10).read_text()
+    verdict_lines = [line for line in text.splitlines() if line.startswith("- **")]
+    lines = {key: next(line for line in verdict_lines if claim in line) for key, claim in paper_data.CLAIMS.items()}
+    settle = lines["fig8_settle"]
+    assert settle.startswith("- **does not hold**") and "settles at k = 6 (j1 6, j2 6, j3 6, j4 6; of 10 trials)" in settle
+    assert "*Criterion:* settle iteration = the first trial k (k = 0: before learning)" in settle
+    t3 = lines["table3"]
+    assert t3.startswith("- **holds**") and "j1 0.003 → 0.02" in t3 and "floors over k = 6..9" in t3
+    assert "*Criterion:* floor = the mean RMSE per joint over the trials from the settle iteration on" in t3
+    ln = lines["long_none"]
+    assert ln.startswith("- **holds**") and "settle iteration k = 6;" in ln
+    ld = lines["long_dist"]
+    # the dip k = 10..29 lies after settling (k = 6): last 20 (0.02) is 4× the best (0.005)
+    assert ld.startswith("- **does not hold**") and "best 20 trials after settling k = 10..29 0.005 deg" in ld
+    assert "| PD-ILC | both | 0.03 | 6 | 0.005 (k = 10..29) | 0.02 | 4 | does not hold | bounded | 1 |" in text
+    missing_line = lines["table2"]  # D-ILC ended before its first trial: nothing to judge
+    assert missing_line.startswith("- **not evaluated**") and "*Criterion:*" in missing_line
+    assert "| d-ilc_p1_250ms_poly4567_none | fault: EMCY 0x8611 on node 2 |" in text
+    assert (tmp_path / "fig8.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
 # ------------------------------------------------------------------------------------------ sweeps
 
 
@@ -319,6 +430,10 @@ def test_tiny_sweep_report_and_resume(tmp_path: Path) -> None:
     assert "| PD-ILC | ilcrig |" in report and "| D-ILC | ilcrig |" in report
     assert "PD-ILC gives smaller MaxE and mean error than D-ILC on every joint (Table 2)" in report
     assert any(w in report for w in ("- **holds** —", "- **does not hold** —"))
+    t2 = next(line for line in report.splitlines() if line.startswith("- **") and paper_data.CLAIMS["table2"] in line)
+    assert t2.endswith("*Criterion:* PD-ILC's MaxE and mean error after learning are both smaller than D-ILC's on every joint.")
+    settle = next(line for line in report.splitlines() if paper_data.CLAIMS["fig8_settle"] in line)
+    assert settle.startswith("- **not evaluated**") and "too few trials to judge (2)" in settle
     assert (out / "fig8.png").is_file()
     for law in ("pd-ilc", "d-ilc"):
         s = json.loads((out / "runs" / f"{law}_p1_250ms_poly4567_none" / "summary.json").read_text())
@@ -335,43 +450,35 @@ def test_tiny_sweep_report_and_resume(tmp_path: Path) -> None:
 @pytest.mark.slow
 @pytest.mark.multiprocess
 def test_ctrl_c_stops_cleanly_and_keeps_finished(tmp_path: Path) -> None:
+    """Ctrl-C while one experiment is finished and another one is held (tests/sweep_hold.py): the
+    sweep cannot end before the interrupt, whatever the machine's speed."""
     out = tmp_path / "sweep"
+    done, held = Experiment("pd-ilc"), Experiment("d-ilc")
     proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "host.cli",
-            "reproduce",
-            "--out",
-            str(out),
-            "--iterations",
-            "3",
-            "--only",
-            "table4,table5",
-            "--jobs",
-            "2",
-        ],
+        [sys.executable, "tests/sweep_hold.py", "reproduce", "--out", str(out), "--iterations", "2", "--only", "table2"]
+        + ["--jobs", "2"],
         cwd=ROOT,
+        env=os.environ | {"ILCRIG_TEST_HOLD": held.id},
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
     )
     try:
-        deadline = time.monotonic() + 120
-        while not list((out / "runs").glob("*/errors.npy")) and time.monotonic() < deadline:
+        deadline = time.monotonic() + 300  # a guard against a hang, not a timing assumption
+        while not (is_finished(run_dir_of(out, done), done.config(2)) and (run_dir_of(out, held) / "held").is_file()):
             assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "the sweep neither finished one experiment nor held the other"
             time.sleep(0.1)
-        finished = {f.parent.name for f in (out / "runs").glob("*/errors.npy")}
-        assert finished
+        held_pid = int((run_dir_of(out, held) / "held").read_text())
         proc.send_signal(signal.SIGINT)  # the parent only: it must stop its workers itself
-        _, err = proc.communicate(timeout=60)
+        _, err = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
     assert proc.returncode == 130, err
-    assert "interrupted" in err
-    deadline = time.monotonic() + 10
+    assert "ilcrig: interrupted;" in err and "run again to resume" in err
+    deadline = time.monotonic() + 30
     while time.monotonic() < deadline:  # no process of the sweep is left in its session/group
         try:
             os.killpg(proc.pid, 0)
@@ -380,9 +487,13 @@ def test_ctrl_c_stops_cleanly_and_keeps_finished(tmp_path: Path) -> None:
         time.sleep(0.1)
     else:
         pytest.fail("worker processes survived the interrupt")
-    for name in finished:
-        e = next(x for x in all_experiments() if x.id == name)
-        assert is_finished(out / "runs" / name, e.config(3))
+    with pytest.raises(ProcessLookupError):
+        os.kill(held_pid, 0)
+    assert is_finished(run_dir_of(out, done), done.config(2))  # the finished experiment is kept
+    assert not (run_dir_of(out, held) / "summary.json").exists()  # the held one never ran
+    sweep = json.loads((out / "sweep.json").read_text())
+    assert [h["interrupted"] for h in sweep["history"]] == [True]
+    assert not (out / "report.md").exists()
 
 
 def test_near_misses_are_flagged_as_ties() -> None:
@@ -394,11 +505,28 @@ def test_near_misses_are_flagged_as_ties() -> None:
 
 
 def test_verdict_long_bounded() -> None:
-    settled = np.array([[0.2 * 0.5**k + 0.001] * 4 for k in range(200)])
-    v = verdict_long_bounded(settled)
-    assert v.holds is True and "over 200 trials" in v.detail and "best 20 trials" in v.detail
+    settled = np.array([[0.2 * 0.9**k + 0.001] * 4 for k in range(200)])
+    # over the paper's horizon (10 trials) the final is 0.2·0.9^9 + 0.001 = 0.0785: k = 3 is within 2×
+    assert settle_iteration(settled[:10]) == 3
+    v = verdict_long_bounded(settled, settle=3)
+    assert v.holds is True
+    # the RMSE falls monotonically: the best window after settling is the last one
+    assert "best 20 trials after settling k = 180..199 0.001 deg, last 20 trials 0.001 deg (1× the best)" in v.detail
+    assert v.detail.startswith("settle iteration k = 3;") and v.detail.endswith("over 200 trials")
+    assert "best 20-trial mean after settling" in v.criterion
     diverging = settled.copy()
     diverging[100:] *= np.geomspace(1, 100, 100)[:, None]
-    v = verdict_long_bounded(diverging)
-    assert v.holds is False and "grows again" in v.detail
-    assert verdict_long_bounded(settled[:30]).holds is None  # fewer than two blocks of 20
+    v = verdict_long_bounded(diverging, settle=3)
+    assert v.holds is False and v.detail.startswith("the error grows again: the 20-trial mean exceeds 2× the best")
+    w = settled_windows(diverging, 20, settle=3)
+    assert 80 <= w.best_start <= 100 and w.best_mean_deg == pytest.approx(0.00102, rel=0.02)
+    assert w.last_mean_deg / w.best_mean_deg > 50
+    # a window before settling does not count as the best: the early dip at k = 0..19 is skipped
+    dip = np.full((200, 4), 0.03)
+    dip[:20] = 0.01
+    v = verdict_long_bounded(dip, settle=0)
+    assert v.holds is False and "best 20 trials after settling k = 0..19 0.01 deg" in v.detail
+    v = verdict_long_bounded(dip, settle=20)
+    assert v.holds is True and "best 20 trials after settling k = 20..39 0.03 deg" in v.detail
+    assert verdict_long_bounded(settled[:30], settle=3).holds is None  # fewer than two blocks of 20
+    assert verdict_long_bounded(settled, settle=190).holds is None  # fewer than 20 trials after settling

@@ -14,7 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from host.analysis.report import JOINTS, figure, fmt, md_table, save_png
+from host.analysis.figures import figure, save_png
+from host.analysis.markdown import JOINTS, fmt, md_table
 
 __all__ = ["write_run_report"]
 

@@ -25,13 +25,13 @@ computed:
   extrapolated geometrically with the mean rate of the last :data:`EXTRAPOLATION_WINDOW` simulated
   trials.  So the cost is at most SIMULATED_TRIALS products, whatever K is.
 * ``long_bounded`` / ``predicted_long_growth`` — the long-run verdict over :data:`LONG_HORIZON`
-  trials with the same criterion as the runs (``host.analysis.report``): the mean predicted RMSE of
-  the last :data:`BOUNDED_BLOCK` trials at most :data:`BOUNDED_LIMIT` × the best block mean, with
-  every predicted RMSE floored at one encoder LSB (what a run can resolve; a mode growing from far
-  below it stays invisible over the horizon).  The verdict is the worst over the model and the
-  plants with the inertia scaled by :data:`ROBUST_INERTIA_SCALES` (the law's own operators fixed):
-  a law that only converges on exactly the nominal inertia is not called bounded
-  (``long_worst_case`` names the plant).
+  trials: the mean predicted RMSE of the last :data:`BOUNDED_BLOCK` trials at most
+  :data:`BOUNDED_LIMIT` × the best block mean (the growth part of the runs' criterion,
+  ``host.analysis.convergence_verdicts``), with every predicted RMSE floored at one encoder LSB
+  (what a run can resolve; a mode growing from far below it stays invisible over the horizon).
+  The verdict is the worst over the model and the plants with the inertia scaled by
+  :data:`ROBUST_INERTIA_SCALES` (the law's own operators fixed): a law that only converges on
+  exactly the nominal inertia is not called bounded (``long_worst_case`` names the plant).
 * ``paper_rho18`` — the paper's condition (18), max over t of ρ([I + L_d C B]⁻¹ [I − L_d C B]) with
   C·B = Ts·M⁻¹(q_d(t)).
 
