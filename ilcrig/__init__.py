@@ -12,7 +12,7 @@ Owns the facade over the internals (which stay where they are: ``host/``, ``plan
 * :mod:`ilcrig.results` — :class:`TrialResult` and :class:`Results` (arrays with units in their
   names, metrics as arrays and as a table, the recording and figures on request), :func:`load`
   (a run folder of ``ilcrig sim`` or ``ilcrig run``);
-* :mod:`ilcrig.rig` — running on the rig: the multi-process ``ilcrig run`` launcher in a child
+* :mod:`ilcrig.rig` — :class:`RigRun`, running on the rig: the multi-process ``ilcrig run`` launcher in a child
   process, its trials read from the run folder as they complete;
 * :mod:`ilcrig.laws` — ilcrig's laws written against the public protocol and registered as plug-ins
   (``cno-ilc``: :mod:`ilcrig.laws.constrained`, ``adjoint-ilc``: :mod:`ilcrig.laws.adjoint`).
@@ -38,6 +38,7 @@ from host.learning.registry import ENTRY_POINT_GROUP
 from ilcrig.errors import InputError, RigError
 from ilcrig.experiment import Experiment, Session, available_laws, register_law
 from ilcrig.results import Results, TrialResult, load
+from ilcrig.rig import RigRun
 
 __all__ = [
     "AUXILIARY",
@@ -52,6 +53,7 @@ __all__ = [
     "LearningLaw",
     "Results",
     "RigError",
+    "RigRun",
     "Session",
     "TrialData",
     "TrialResult",

@@ -13,17 +13,15 @@ loop :class:`host.experiment.trials.TrialRunner`), so their digests are the CLI'
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, TextIO
 
-from host.experiment.config import ExperimentConfig, build_config
+from host.experiment.config import ExperimentConfig, build_config, gains_table
 from host.experiment.plan import Plan, plan_with_gains, prepare
 from host.experiment.trials import TrialOutcome, TrialRunner
 from host.learning.check import ConvergenceReport
-from host.learning.gains import GAIN_PRESETS, GainSpec
 from host.learning.registry import law_class, law_names
 from host.learning.registry import register_law as _register
 from ilcrig.errors import InputError, input_error
@@ -31,7 +29,7 @@ from ilcrig.results import Results, TrialResult
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Experiment", "Session", "available_laws", "register_law", "gains_table"]
+__all__ = ["Experiment", "Session", "available_laws", "register_law"]
 
 
 def available_laws() -> dict[str, str]:
@@ -67,17 +65,6 @@ def _law_name(law: Any) -> str:
     if module != "__main__" and "<locals>" not in qual:
         return f"{module}:{qual}"
     return register_law(law)
-
-
-def gains_table(spec: GainSpec) -> dict[str, Any]:
-    """A :class:`GainSpec` as a ``[gains]`` table: its preset and the values that differ from it."""
-    base_name = spec.name.split("+")[0]
-    base = GAIN_PRESETS.get(base_name, GAIN_PRESETS["normalized"])
-    table: dict[str, Any] = {"preset": base_name if base_name in GAIN_PRESETS else "normalized"}
-    for f in dataclasses.fields(GainSpec):
-        if f.name != "name" and getattr(spec, f.name) != getattr(base, f.name):
-            table[f.name] = getattr(spec, f.name)
-    return table
 
 
 class Experiment:
@@ -180,7 +167,7 @@ class Experiment:
         if mode == "rig":
             from ilcrig.rig import RigRun
 
-            with RigRun(self, out, stream=stream, **rig) as run:
+            with RigRun(self.config, out, stream=stream, **rig) as run:
                 for _ in run:
                     pass
             return run.results
@@ -198,7 +185,7 @@ class Experiment:
         if mode == "rig":
             from ilcrig.rig import RigRun
 
-            with RigRun(self, out, **rig) as run:
+            with RigRun(self.config, out, **rig) as run:
                 yield from run
             return
         raise InputError(f"mode must be 'sim' or 'rig', got {mode!r}")

@@ -33,10 +33,10 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from host.experiment.arrays import load_reference, load_trial
+from host.experiment.config import ExperimentConfig, gains_table
 from host.learning.protocol import LEARNING
 from host.learning.registry import registered_here
 from ilcrig.errors import InputError, RigError, input_error
-from ilcrig.experiment import Experiment, gains_table
 from ilcrig.results import Results, TrialResult, load
 
 logger = logging.getLogger(__name__)
@@ -61,11 +61,11 @@ def _toml_value(v: Any) -> str:
     return json.dumps(str(v), ensure_ascii=False)
 
 
-def config_toml(exp: Experiment) -> str:
-    """The experiment's configuration as the TOML file of the command line (exact values: floats as
-    ``repr``; a path file as an absolute path)."""
-    cfg = exp.config.as_dict()
-    gains = gains_table(exp.config.gains)
+def config_toml(config: ExperimentConfig) -> str:
+    """The configuration as the TOML file of the command line (exact values: floats as ``repr``; a
+    path file as an absolute path)."""
+    cfg = config.as_dict()
+    gains = gains_table(config.gains)
     law_options = cfg.pop("law_options", {})
     cfg.pop("gains")
     path = str(cfg["path"])
@@ -81,7 +81,7 @@ def config_toml(exp: Experiment) -> str:
 class RigRun:
     """One experiment on the rig (module docstring); an iterator of its trials and a context manager.
 
-    :param experiment: the experiment
+    :param config: the experiment's configuration (validated: :attr:`ilcrig.Experiment.config`)
     :param out: the run folder (default ``runs/api-rig-<time>``)
     :param stream: where the launcher's console lines go besides ``<out>/console.txt``
     :param bus: the transport (``auto``, ``hub``, ``socketcan``, ``udp_multicast``, ``can_config``)
@@ -94,7 +94,7 @@ class RigRun:
 
     def __init__(
         self,
-        experiment: Experiment,
+        config: ExperimentConfig,
         out: str | Path | None = None,
         *,
         stream: TextIO | None = None,
@@ -106,22 +106,26 @@ class RigRun:
         timeout_s: float | None = None,
     ) -> None:
         from host.experiment.outputs import check_out_dir
+        from host.experiment.plan import prepare
 
-        self.experiment = experiment
-        law = experiment.config.law
+        self.config = config
+        law = config.law
         if registered_here(law):
             raise InputError(
                 f"law {law!r} is registered in this process only; on the rig the host process must import it: "
                 "install it as a plug-in (entry point group ilcrig.laws) or give module:Class"
             )
-        experiment.plan  # noqa: B018 - the launcher's preflight, here: bad input before anything starts
+        try:
+            prepare(config)  # the launcher's preflight, here: bad input before anything starts
+        except (ValueError, FileNotFoundError) as exc:
+            raise input_error(exc) from None
         self.out = Path(out) if out is not None else Path("runs") / time.strftime("api-rig-%Y%m%d-%H%M%S")
         try:
-            check_out_dir(self.out, iterations=experiment.config.iterations)
+            check_out_dir(self.out, iterations=config.iterations)
         except ValueError as exc:
             raise input_error(exc) from None
         toml_path = self.out / "experiment.toml"
-        toml_path.write_text(config_toml(experiment), encoding="utf-8")
+        toml_path.write_text(config_toml(config), encoding="utf-8")
         argv = [sys.executable, "-m", "host.cli", "run", "--config", str(toml_path), "--out", str(self.out), "--bus", bus]
         if hub is not None:
             argv += ["--hub", hub]

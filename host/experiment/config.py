@@ -61,6 +61,7 @@ __all__ = [
     "ConfigError",
     "ExperimentConfig",
     "build_config",
+    "gains_table",
     "validate",
     "PROFILES",
     "DISTURBANCES",
@@ -248,6 +249,20 @@ def build_config(toml_path: str | Path | None = None, overrides: Mapping[str, An
             text = where + text  # the value came from the file: name it
         raise ConfigError(text) from None
     return cfg
+
+
+def gains_table(spec: GainSpec) -> dict[str, Any]:
+    """A :class:`GainSpec` as a ``[gains]`` table: its preset and the values that differ from it
+    (``build_config`` makes the same spec of it, name included)."""
+    base_name = spec.name.split("+")[0]
+    if base_name not in GAIN_PRESETS:
+        base_name = "normalized"
+    base = GAIN_PRESETS[base_name]
+    table: dict[str, Any] = {"preset": base_name}
+    for f in dataclasses.fields(GainSpec):
+        if f.name != "name" and getattr(spec, f.name) != getattr(base, f.name):
+            table[f.name] = getattr(spec, f.name)
+    return table
 
 
 def _key_of(message: str) -> str:
