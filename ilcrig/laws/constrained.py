@@ -200,7 +200,7 @@ class ConstrainedStep:
             lo[self._rate_base :] = -self.rate - dtau
             hi[self._rate_base :] = self.rate - dtau
         self.solver.update(q=q, l=lo, u=hi)
-        res = self.solver.solve()
+        res = self.solver.solve(raise_error=False)
         self.last_status = str(res.info.status)
         self.last_iterations = int(res.info.iter)
         if res.x is None or self.last_status not in ("solved", "solved inaccurate"):
