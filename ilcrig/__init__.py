@@ -18,8 +18,9 @@ Owns the facade over the internals (which stay where they are: ``host/``, ``plan
   (``cno-ilc``: :mod:`ilcrig.laws.constrained`, ``adjoint-ilc``: :mod:`ilcrig.laws.adjoint`).
 
 The learning-law protocol (:class:`LearningLaw`, :class:`TrialData`, :class:`LawContext`,
-:class:`IterationMap`, :class:`ClosedLoopModel`, :mod:`ilcrig.signals`) is re-exported here from
-:mod:`host.learning`.  docs/api.md explains it with runnable examples.
+:class:`IterationMap`, :class:`ClosedLoopModel`) is re-exported here from :mod:`host.learning`;
+:mod:`ilcrig.signals` re-exports the time operators (lead, difference, Q filter, transposes).
+docs/api.md explains it with runnable examples.
 
 May import: ``host`` (every subpackage), ``plant``, ``bus``, and ``firmware_model`` through
 :mod:`host.experiment.inprocess`.  Nothing in ``firmware_model``, ``bus``, ``host`` or ``plant``
@@ -28,13 +29,13 @@ imports ``ilcrig``, except ``host.cli`` (the command line is built on this API).
 
 from __future__ import annotations
 
-from host.learning import signals
 from host.learning.check import ConvergenceReport, IterationMap
 from host.learning.laws import LawContext
 from host.learning.model import ClosedLoopModel
 from host.learning.protocol import AUXILIARY, LEARNING, TrialData
 from host.learning.protocol import LawProtocol as LearningLaw
 from host.learning.registry import ENTRY_POINT_GROUP
+from ilcrig import signals
 from ilcrig.errors import InputError, RigError
 from ilcrig.experiment import Experiment, Session, available_laws, register_law
 from ilcrig.results import Results, TrialResult, load

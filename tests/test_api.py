@@ -22,7 +22,9 @@ LIMIT_NM = 264.6
 
 
 def test_in_process_run_matches_the_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    code, out, _ = run_cli(capsys, "sim", "--law", "pd-ilc", "--iterations", "2", "--cycle", "0.15", "--out", str(tmp_path / "cli"))
+    code, out, _ = run_cli(
+        capsys, "sim", "--law", "pd-ilc", "--iterations", "2", "--cycle", "0.15", "--out", str(tmp_path / "cli")
+    )
     assert code == 0
     cli = json.loads((tmp_path / "cli" / "summary.json").read_text())
     res = ilcrig.Experiment(law="pd-ilc", **SHORT).run()
