@@ -14,6 +14,7 @@ loop :class:`host.experiment.trials.TrialRunner`), so their digests are the CLI'
 from __future__ import annotations
 
 import logging
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, TextIO
@@ -58,11 +59,15 @@ def register_law(cls: type[Any], name: str | None = None) -> str:
 
 
 def _law_name(law: Any) -> str:
-    """A law given as a class: ``module:Class`` when importable by that name, else registered here."""
+    """A law given as a class: ``module:Class`` when importable by that name (then the rig's host
+    process can import it too), else registered in this process."""
     if not isinstance(law, type):
-        return law
+        return str(law)
     module, qual = law.__module__, law.__qualname__
-    if module != "__main__" and "<locals>" not in qual:
+    found: Any = sys.modules.get(module)
+    for part in qual.split("."):
+        found = getattr(found, part, None)
+    if module != "__main__" and found is law:
         return f"{module}:{qual}"
     return register_law(law)
 
