@@ -27,3 +27,15 @@ def test_docs_api_examples_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, 
     out = capsys.readouterr().out
     assert "iterations must be between 1 and 1000, got 0" in out
     assert "['learning', 'auxiliary', 'auxiliary', 'learning']" in out
+
+
+def test_table2_example_uses_the_api_alone(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    import runpy
+
+    script = DOC.parent.parent / "examples" / "table2.py"
+    imports = {line.split()[1] for line in script.read_text().splitlines() if line.startswith(("import ", "from "))}
+    assert imports <= {"__future__", "argparse", "numpy", "ilcrig"}  # nothing of the internals
+    monkeypatch.setattr("sys.argv", [str(script), "--iterations", "2"])
+    runpy.run_path(str(script), run_name="__main__")
+    out = capsys.readouterr().out
+    assert "PD-ILC    ilcrig" in out and "D-ILC     ilcrig" in out and "PD-ILC below D-ILC on every joint:" in out

@@ -46,6 +46,7 @@ from host.analysis.sweep_plan import (
     load_run,
     table_rows,
 )
+from host.analysis.torque_limit import torque_limit_section
 
 logger = logging.getLogger(__name__)
 
@@ -104,6 +105,8 @@ LAW_LABEL = {
     "no-ilc-id": "NO-ILC-ID",
     "pd-ol": "PD-OL",
     "p-ol": "P-OL",
+    "cno-ilc": "CNO-ILC",
+    "adjoint-ilc": "ADJOINT-ILC",
 }
 
 
@@ -862,7 +865,9 @@ def _beyond_section(runs: _Runs, out: Path) -> tuple[list[str], dict[str, Verdic
             + ([f"{fmt(ratio_n[0], 2)} / {fmt(ratio_n[2], 2)}"] if ratio_n is not None else ["—"])
             + ([f"{fmt(ratio_d[0], 2)} / {fmt(ratio_d[2], 2)}"] if ratio_d is not None else ["—"])
             + [
-                ("ok" if run.summary["convergence_check"]["ok"] else "VIOLATED")
+                "not checked"
+                if run.summary["convergence_check"].get("checked") is False
+                else ("ok" if run.summary["convergence_check"]["ok"] else "VIOLATED")
                 + f" ρ={fmt(run.summary['convergence_check']['rho_max'], 3)}"
             ]
         )
@@ -1049,6 +1054,7 @@ def write_sweep_report(out: str | Path, iterations: int) -> Path:
     lines += _long_section(runs, out, claims)
     beyond, _ = _beyond_section(runs, out)
     lines += beyond
+    lines += torque_limit_section(runs.get)
     lines += [
         "## Definitions",
         "",
@@ -1082,7 +1088,9 @@ def write_sweep_report(out: str | Path, iterations: int) -> Path:
                 e.id,
                 f"fault: {r.fault}" if r.fault else f"{len(r.summary['iterations'])} trials",
                 f"{r.summary['wall_s']:.2f}",
-                f"{fmt(chk['rho_max'], 4)} ({'ok' if chk['ok'] else 'violated'})",
+                "not checked"
+                if chk.get("checked") is False
+                else f"{fmt(chk['rho_max'], 4)} ({'ok' if chk['ok'] else 'violated'})",
             ]
         )
     lines += md_table(["experiment", "status", "trial wall s", "spectral radius"], run_rows) + [""]
