@@ -2,7 +2,8 @@
 
 Subcommands:
 
-* ``sim``   — a whole experiment in one process (no bus);
+* ``sim``   — a whole experiment in one process (no bus), run through the public API :mod:`ilcrig`;
+* ``laws``  — the learning laws this installation knows (built-in and plug-ins);
 * ``run``   — the distributed rig: launches the bus hub (if the transport needs one), the plant,
   four drives and the host as separate processes, and cleans every one of them up;
 * ``drive``, ``plant``, ``host``, ``hub`` — one role each, to run the parts in separate terminals
@@ -30,7 +31,6 @@ from host.experiment.console import (
     EXIT_USAGE,
     add_experiment_args,
     experiment_config,
-    print_plan,
 )
 from host.rig.realtime import DEFAULT_RT_PRIORITY
 
@@ -51,23 +51,25 @@ class _Parser(argparse.ArgumentParser):
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
+    """``ilcrig sim``: the experiment in this process, through the public API (:mod:`ilcrig`)."""
     from host.experiment.outputs import check_out_dir
 
     out = Path(args.out) if args.out else Path("runs") / time.strftime("sim-%Y%m%d-%H%M%S")
     check_out_dir(out, create=False)  # fast: before the configuration and the preparation
     cfg = experiment_config(args)
     check_out_dir(out, iterations=cfg.iterations, create=False)
-    from host.experiment.plan import prepare
-
-    plan = prepare(cfg)
-    from host.analysis.session import report_fault, run_session
-    from host.experiment.inprocess import InProcessBench
+    import ilcrig
+    from host.analysis.session import report_fault
     from host.experiment.trials import interrupt_on_signals
 
-    check_out_dir(out, iterations=cfg.iterations)
-    print_plan(sys.stdout, "sim", plan)
+    exp = ilcrig.Experiment.from_config(cfg)
+    exp.plan  # noqa: B018 - prepared (and refused with one line) before the run folder is made
+    session = exp.start(out, stream=sys.stdout)
     with interrupt_on_signals():
-        res = run_session(plan, InProcessBench(cfg), out, mode="sim", stream=sys.stdout)
+        for _ in session:
+            pass
+    session.close()
+    res = session.raw
     s = res.summary
     sys.stdout.write(
         f"{s['ticks']} ticks in {s['wall_s']:.2f} s ({s['ticks_per_s']:.0f} ticks/s); "
@@ -215,6 +217,18 @@ def cmd_run(args: argparse.Namespace) -> int:
     return launch_rig(args)  # validates everything (preflight) before anything starts
 
 
+def cmd_laws(args: argparse.Namespace) -> int:
+    """``ilcrig laws``: every law name this installation knows, with its one-line description."""
+    import ilcrig
+
+    laws = ilcrig.available_laws()
+    width = max(len(n) for n in laws)
+    for name, text in laws.items():
+        sys.stdout.write(f"{name:<{width}}  {text}\n")
+    sys.stdout.write(f"(plug-ins: entry-point group {ilcrig.ENTRY_POINT_GROUP}; any law also as --law module:Class)\n")
+    return 0
+
+
 def cmd_view(args: argparse.Namespace) -> int:
     from host.analysis.recording import view_run
 
@@ -284,6 +298,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_bus_args(pp)
     pp.set_defaults(func=cmd_plant)
+
+    lp = sub.add_parser("laws", help="list the learning laws: built-in, plug-ins (entry points ilcrig.laws)")
+    lp.set_defaults(func=cmd_laws)
 
     vp = sub.add_parser("view", help="open a run's recording.rrd in the Rerun viewer (or print how to)")
     vp.add_argument("run_dir", help="a run folder (with recording.rrd)")

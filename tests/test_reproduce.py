@@ -30,11 +30,13 @@ from host.analysis.settling import (
 )
 from host.analysis.sweep_plan import (
     GROUPS,
+    PLUGIN_LAWS,
     Experiment,
     ReproduceError,
     all_experiments,
     experiment_list,
     is_finished,
+    limit_experiments,
     run_dir_of,
     table_rows,
 )
@@ -105,13 +107,14 @@ def test_each_table_varies_one_thing() -> None:
 def test_full_list_is_deduplicated_and_covers_beyond() -> None:
     exps = all_experiments()
     ids = [e.id for e in exps]
-    assert len(ids) == len(set(ids)) == 62
+    assert len(ids) == len(set(ids)) == 85
     long = [e for e in exps if e.trials is not None]
-    assert len(long) == 2 * len(LAWS) == 16 and all(e.trials == 200 and e.id.endswith("_k200") for e in long)
+    assert len(long) == 2 * (len(LAWS) + len(PLUGIN_LAWS)) == 20 and all(e.trials == 200 and e.id.endswith("_k200") for e in long)
     assert long[0].config(10).iterations == 200
     assert "pd-ilc_p1_250ms_poly4567_none" in ids
-    assert {e.law for e in exps} == set(LAWS)
-    for law in ("pd-ilc-q", "q-ilc", "no-ilc", "no-ilc-id"):  # Tables 2-5 rows beyond the paper
+    assert {e.law for e in exps} == set(LAWS) | set(PLUGIN_LAWS)
+    assert {(e.law, e.cycle_s) for e in limit_experiments()} <= {(e.law, e.cycle_s) for e in exps}
+    for law in ("pd-ilc-q", "q-ilc", "no-ilc", "no-ilc-id", *PLUGIN_LAWS):  # Tables 2-5 rows beyond the paper
         for e in (
             Experiment(law),
             Experiment(law, disturbance="both"),

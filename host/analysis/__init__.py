@@ -8,8 +8,8 @@ histories (:mod:`host.analysis.settling`: settle iteration, floor, growth), the 
 (:mod:`host.analysis.verdicts` on the errors after learning, :mod:`host.analysis.convergence_verdicts`
 on RMSE histories), the claims judged on a sweep folder (:mod:`host.analysis.claims`), the figures
 (:mod:`host.analysis.figures`), markdown formatting (:mod:`host.analysis.markdown`) and the report
-(:mod:`host.analysis.report`, with its sections :mod:`host.analysis.report_sections` and
-:mod:`host.analysis.report_beyond`).
+(:mod:`host.analysis.report`, with its sections :mod:`host.analysis.report_sections`,
+:mod:`host.analysis.report_beyond` and the torque-limit section :mod:`host.analysis.torque_limit`).
 
 May import: ``bus``, ``plant``, :mod:`host.planning`, :mod:`host.learning`,
 :mod:`host.experiment`.  Never the rig.

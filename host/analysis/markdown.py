@@ -30,6 +30,8 @@ LAW_LABEL = {
     "no-ilc-id": "NO-ILC-ID",
     "pd-ol": "PD-OL",
     "p-ol": "P-OL",
+    "cno-ilc": "CNO-ILC",
+    "adjoint-ilc": "ADJOINT-ILC",
 }
 
 

@@ -31,6 +31,7 @@ from host.analysis.markdown import fmt, md_table
 from host.analysis.report_beyond import beyond_section, long_section
 from host.analysis.report_sections import fig_section, split_section, table_section
 from host.analysis.sweep_plan import BASELINE_LAW, BEYOND_LAWS, DISTURBED, LONG_TRIALS, PAPER_LAW, PROFILE, all_experiments
+from host.analysis.torque_limit import torque_limit_section
 from host.analysis.verdicts import PATH_SPREAD_LIMIT, PROFILE_RATIO_LIMIT, Verdict, missing
 
 logger = logging.getLogger(__name__)
@@ -110,7 +111,9 @@ def _run_rows(runs: SweepRuns, out: Path) -> list[list[str]]:
                 e.id,
                 f"fault: {r.fault}" if r.fault else f"{len(r.summary['iterations'])} trials",
                 f"{r.summary['wall_s']:.2f}",
-                f"{fmt(chk['rho_max'], 4)} ({'ok' if chk['ok'] else 'violated'})",
+                "not checked"
+                if chk.get("checked") is False
+                else f"{fmt(chk['rho_max'], 4)} ({'ok' if chk['ok'] else 'violated'})",
             ]
         )
     return rows
@@ -152,6 +155,7 @@ def write_sweep_report(out: str | Path, iterations: int) -> Path:
     lines += tables["table6"] + [claims["table6_similar"].line(), claims["table6_order"].line(), ""]
     lines += long_section(runs, out, claims)
     lines += beyond_section(runs, out)[0]
+    lines += torque_limit_section(runs.get)
     lines += _definitions() + ["## Runs", ""]
     lines += md_table(["experiment", "status", "trial wall s", "spectral radius"], _run_rows(runs, out)) + [""]
     path = out / "report.md"

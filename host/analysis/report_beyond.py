@@ -110,7 +110,11 @@ def _law_rows(runs: SweepRuns, laws: list[str]) -> tuple[list[list[str]], dict[s
             + ([fmt(x) for x in dfl] if dfl is not None else ["not run"] + [""] * 3)
             + ([f"{fmt(ratio_n[0], 2)} / {fmt(ratio_n[2], 2)}"] if ratio_n is not None else ["—"])
             + ([f"{fmt(ratio_d[0], 2)} / {fmt(ratio_d[2], 2)}"] if ratio_d is not None else ["—"])
-            + [("ok" if chk["ok"] else "VIOLATED") + f" ρ={fmt(chk['rho_max'], 3)}"]
+            + [
+                "not checked"
+                if chk.get("checked") is False
+                else ("ok" if chk["ok"] else "VIOLATED") + f" ρ={fmt(chk['rho_max'], 3)}"
+            ]
         )
     return rows, score
 

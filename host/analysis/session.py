@@ -3,7 +3,8 @@
 This module owns what both commands do around :func:`host.experiment.trials.run_experiment`: the run
 folder's space reserve (:class:`host.experiment.outputs.RunFolder`), the Rerun recording
 (:mod:`host.analysis.recording`, written trial by trial), one console row per trial,
-``report.md`` with its convergence plot after the last completed trial — also after a fault or an
+every trial's signals as numpy files (:mod:`host.experiment.arrays`), ``report.md`` with its
+convergence plot after the last completed trial — also after a fault or an
 interrupt (:mod:`host.analysis.run_report`) — and the closing line with its exit code: one line
 ``ilcrig: fault: …`` and 3 after a fault, 130 / 143 after SIGINT / SIGTERM.
 """
@@ -18,6 +19,7 @@ from typing import TextIO
 
 from host.analysis.recording import RunRecorder
 from host.analysis.run_report import write_run_report
+from host.experiment.arrays import Recorders, TrialArrays
 from host.experiment.console import EXIT_FAULT, EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATED, print_header, print_row
 from host.experiment.faults import fault_line
 from host.experiment.outputs import RunFolder
@@ -42,8 +44,13 @@ def run_session(
     folder = RunFolder(out, plan.cfg.iterations)
     folder.reserve()
     folder.fail_writes_from_trial = fail_writes_from_trial
-    recorder = RunRecorder(out / "recording.rrd", recording_id=out.name, config_summary=plan.cfg.as_dict(), folder=folder)
-    res = run_experiment(plan, bench, out, mode=mode, on_trial=lambda m: print_row(stream, m), recorder=recorder, folder=folder)
+    recorder = Recorders(
+        RunRecorder(out / "recording.rrd", recording_id=out.name, config_summary=plan.cfg.as_dict(), folder=folder),
+        TrialArrays(out, folder),
+    )
+    res = run_experiment(
+        plan, bench, out, mode=mode, on_trial=lambda m, role: print_row(stream, m, role), recorder=recorder, folder=folder
+    )
     if res.summary["iterations"] or res.summary["faults"] or res.interrupted:
         try:
             write_run_report(out, res.summary)  # report.md + convergence plot next to the summary

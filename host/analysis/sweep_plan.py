@@ -6,8 +6,10 @@ Motion law: the paper's Tables 2–5 use its 4-5-6-7 polynomial law (Table 6 com
 5th-order law), so every paper-table experiment here uses ``profile = "poly4567"`` — Table 6 then
 compares 4567 and 5 on the same footing.
 
-Beyond the paper: the same tables for ``q-ilc`` and ``no-ilc``, every law on path 1 with and
-without disturbance, and every law for a fixed ``LONG_TRIALS`` = 200 trials (long-run stability).
+Beyond the paper: the same tables for ``pd-ilc-q``, ``q-ilc``, ``no-ilc``, ``no-ilc-id`` and the
+plug-in laws ``cno-ilc`` (constrained norm-optimal) and ``adjoint-ilc`` (model-free gradient), every
+law on path 1 with and without disturbance, every law for a fixed ``LONG_TRIALS`` = 200 trials
+(long-run stability), and the torque-limit comparison at ``LIMIT_CYCLE_S`` (:data:`LIMIT_LAWS`).
 """
 
 from __future__ import annotations
@@ -33,6 +35,10 @@ __all__ = [
     "PAPER_LAW",
     "BASELINE_LAW",
     "BEYOND_LAWS",
+    "PLUGIN_LAWS",
+    "LIMIT_LAWS",
+    "LIMIT_CYCLE_S",
+    "limit_experiments",
     "PROFILE",
     "LONG_TRIALS",
     "DISTURBED",
@@ -51,7 +57,14 @@ __all__ = [
 #: the paper's law, its baseline, and the laws shown beyond the paper's tables
 PAPER_LAW = "pd-ilc"
 BASELINE_LAW = "d-ilc"
-BEYOND_LAWS: tuple[str, ...] = ("pd-ilc-q", "q-ilc", "no-ilc", "no-ilc-id")
+#: ilcrig's laws registered as plug-ins (entry points ilcrig.laws), written against the public protocol
+PLUGIN_LAWS: tuple[str, ...] = ("cno-ilc", "adjoint-ilc")
+BEYOND_LAWS: tuple[str, ...] = ("pd-ilc-q", "q-ilc", "no-ilc", "no-ilc-id") + PLUGIN_LAWS
+#: the torque-limit comparison: at this cycle (4-5-6-7 law) the emulated robot needs more than the
+#: drives' 264.6 N·m while the nominal model passes the feasibility check (0.15 s, the paper's Table 5
+#: row, peaks at about 200 N·m); the laws compared there
+LIMIT_CYCLE_S = 0.125
+LIMIT_LAWS: tuple[str, ...] = ("pd-ilc", "no-ilc-id", "cno-ilc")
 #: motion law of every paper-table experiment (the paper's 4-5-6-7 polynomial law)
 PROFILE = "poly4567"
 #: base condition of the paper: path 1, 0.25 s single journey
@@ -165,12 +178,19 @@ def group_experiments(group: str) -> list[Experiment]:
     if group == "figs":  # Figs. 8 and 10: PD-ILC and D-ILC without and with disturbance
         return [_base(law, disturbance=d) for law in (PAPER_LAW, BASELINE_LAW) for d in ("none", DISTURBED)]
     if group == "beyond":
-        exps = [_base(law, disturbance=d) for law in LAWS for d in ("none", DISTURBED)]
-        exps += [_base(law, disturbance=d, trials=LONG_TRIALS) for law in LAWS for d in ("none", DISTURBED)]
+        laws = LAWS + PLUGIN_LAWS
+        exps = [_base(law, disturbance=d) for law in laws for d in ("none", DISTURBED)]
+        exps += [_base(law, disturbance=d, trials=LONG_TRIALS) for law in laws for d in ("none", DISTURBED)]
+        exps += limit_experiments()
         for t in ("table3", "table4", "table5", "table6"):
             exps += [r.experiment for r in table_rows(t, BEYOND_LAWS)]
         return exps
     raise ReproduceError(f"unknown --only group {group!r}; choose from {', '.join(GROUPS)}")
+
+
+def limit_experiments() -> list[Experiment]:
+    """The torque-limit comparison: :data:`LIMIT_LAWS` at :data:`LIMIT_CYCLE_S` and at 0.15 s."""
+    return [_base(law, cycle_s=c) for c in (LIMIT_CYCLE_S, 0.15) for law in LIMIT_LAWS]
 
 
 def _parse_only(only: str | Iterable[str] | None) -> list[str]:
@@ -192,7 +212,7 @@ def experiment_list(only: str | Iterable[str] | None = None) -> list[Experiment]
     for g in _parse_only(only):
         for e in group_experiments(g):
             seen.setdefault(e.id, e)
-    cost = {"q-ilc": 1.5, "pd-ilc-q": 1.5, "no-ilc": 1.2, "no-ilc-id": 1.2}
+    cost = {"q-ilc": 1.5, "pd-ilc-q": 1.5, "no-ilc": 1.2, "no-ilc-id": 1.2, "cno-ilc": 3.0}
     return sorted(seen.values(), key=lambda e: (-e.cycle_s * cost.get(e.law, 1.0) * (e.trials or 10) / 10, e.id))
 
 

@@ -2,7 +2,8 @@
 
 Owns the configuration (:mod:`host.experiment.config`), the plan decided before anything moves
 (:mod:`host.experiment.plan`), the trial loop and the bench protocol
-(:mod:`host.experiment.trials`), ``summary.json`` (:mod:`host.experiment.summary`), fault records and the fault line
+(:mod:`host.experiment.trials`), ``summary.json`` (:mod:`host.experiment.summary`), every trial's
+signals as numpy files in the run folder (:mod:`host.experiment.arrays`), fault records and the fault line
 (:mod:`host.experiment.faults`), the run folder with its space reserve (:mod:`host.experiment.outputs`), the console
 lines, experiment options and exit codes (:mod:`host.experiment.console`) and the in-process
 composition root of ``ilcrig sim`` (:mod:`host.experiment.inprocess`).

@@ -30,6 +30,13 @@ TOML layout::
     [gains]                 # host.learning.gains.GainSpec fields; preset = "normalized" | "paper"
     preset = "normalized"
     alpha = 3.0
+
+    [law_options]           # the law's own options (names and meaning: the law's documentation)
+    torque_limit_nm = 200.0
+
+``law`` is a built-in law, a plug-in's name (entry-point group ``ilcrig.laws``) or
+``module:Class`` (:mod:`host.learning.registry`).  ``[law_options]`` values are numbers, strings
+or booleans; the law checks them when it is built (:func:`host.experiment.plan.prepare`).
 """
 
 from __future__ import annotations
@@ -45,7 +52,8 @@ from typing import Any
 from bus.busload import DEFAULT_BITRATE_BPS
 from bus.cyclic import FF_TRANSPORTS, cyclic_bus_fit
 from host.learning.gains import GAIN_PRESETS, GainSpec
-from host.learning.names import DEFAULT_LAW, LAWS, MAX_ITERATIONS
+from host.learning.names import DEFAULT_LAW, MAX_ITERATIONS
+from host.learning.registry import check_law_name
 from host.planning.trajectory import PROFILES
 from plant.disturbance import KINDS as DISTURBANCES
 
@@ -53,6 +61,7 @@ __all__ = [
     "ConfigError",
     "ExperimentConfig",
     "build_config",
+    "gains_table",
     "validate",
     "PROFILES",
     "DISTURBANCES",
@@ -86,10 +95,16 @@ class ExperimentConfig:
     fieldbus_bitrate: int = DEFAULT_BITRATE_BPS
     force_bus_fit: bool = False
     gains: GainSpec = field(default_factory=GainSpec)
+    law_options: dict[str, Any] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
+        """The configuration as plain values (``law_options`` only when there are any)."""
         d = dataclasses.asdict(self)
         d["gains"] = dataclasses.asdict(self.gains)
+        if not self.law_options:
+            d.pop("law_options")
+        else:
+            d["law_options"] = dict(self.law_options)
         return d
 
 
@@ -175,6 +190,10 @@ def build_config(toml_path: str | Path | None = None, overrides: Mapping[str, An
             raise ConfigError(f"{where}unknown key(s): {', '.join(sorted(unknown))}")
         if "gains" in data and not isinstance(data["gains"], dict):
             raise ConfigError(f"{where}gains must be a table ([gains] with keys such as alpha, lp), got {data['gains']!r}")
+        if "law_options" in data and not isinstance(data["law_options"], dict):
+            raise ConfigError(
+                f"{where}law_options must be a table ([law_options] with the law's options), got {data['law_options']!r}"
+            )
         if "path" in data:
             path = data["path"]
             if isinstance(path, bool) or not isinstance(path, (str, int)):
@@ -198,6 +217,8 @@ def build_config(toml_path: str | Path | None = None, overrides: Mapping[str, An
             continue
         if k == "gains" and isinstance(v, Mapping) and isinstance(file_gains, dict):
             data["gains"] = {**file_gains, **v}
+        elif k == "law_options" and isinstance(v, Mapping) and isinstance(data.get("law_options", {}), dict):
+            data["law_options"] = {**data.get("law_options", {}), **v}
         else:
             data[k] = v
     unknown = set(data) - _TOP_KEYS
@@ -214,6 +235,11 @@ def build_config(toml_path: str | Path | None = None, overrides: Mapping[str, An
         if isinstance(data["path"], bool) or not isinstance(data["path"], (str, int, Path)):
             raise ConfigError(f"path must be 1-4 or a path file name, got {data['path']!r}")
         data["path"] = str(data["path"])
+    if "law_options" in data:
+        opts = data["law_options"]
+        if not isinstance(opts, Mapping):
+            raise ConfigError(f"law_options must be a table of the law's options, got {opts!r}")
+        data["law_options"] = dict(opts)
     try:
         cfg = ExperimentConfig(**data, gains=spec)
         validate(cfg)
@@ -223,6 +249,20 @@ def build_config(toml_path: str | Path | None = None, overrides: Mapping[str, An
             text = where + text  # the value came from the file: name it
         raise ConfigError(text) from None
     return cfg
+
+
+def gains_table(spec: GainSpec) -> dict[str, Any]:
+    """A :class:`GainSpec` as a ``[gains]`` table: its preset and the values that differ from it
+    (``build_config`` makes the same spec of it, name included)."""
+    base_name = spec.name.split("+")[0]
+    if base_name not in GAIN_PRESETS:
+        base_name = "normalized"
+    base = GAIN_PRESETS[base_name]
+    table: dict[str, Any] = {"preset": base_name}
+    for f in dataclasses.fields(GainSpec):
+        if f.name != "name" and getattr(spec, f.name) != getattr(base, f.name):
+            table[f.name] = getattr(spec, f.name)
+    return table
 
 
 def _key_of(message: str) -> str:
@@ -238,8 +278,17 @@ def validate(cfg: ExperimentConfig) -> None:
     """Raise :class:`ConfigError` on any value that cannot run."""
     for name in ("law", "path", "profile", "disturbance", "ff0"):
         _check_str(name, getattr(cfg, name))
-    if cfg.law not in LAWS:
-        raise ConfigError(f"unknown law {cfg.law!r}; choose one of {', '.join(LAWS)}")
+    try:
+        check_law_name(cfg.law)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    if not isinstance(cfg.law_options, Mapping):
+        raise ConfigError(f"law_options must be a table of the law's options, got {cfg.law_options!r}")
+    for key, value in cfg.law_options.items():
+        if not isinstance(key, str) or not key:
+            raise ConfigError(f"law_options: option names must be non-empty strings, got {key!r}")
+        if not isinstance(value, (str, bool)):
+            _check_number(f"law_options.{key}", value)
     _check_number("iterations", cfg.iterations, integer=True)
     if not 1 <= cfg.iterations <= MAX_ITERATIONS:
         raise ConfigError(f"iterations must be between 1 and {MAX_ITERATIONS}, got {cfg.iterations}")

@@ -30,6 +30,8 @@ __all__ = [
     "EXIT_TERMINATED",
     "add_experiment_args",
     "experiment_config",
+    "parse_law_options",
+    "check_line",
     "print_plan",
     "print_header",
     "print_row",
@@ -61,7 +63,17 @@ NOT_EXPERIMENT: frozenset[str] = frozenset({"help", "out", "bus", "hub"})
 def add_experiment_args(p: argparse.ArgumentParser) -> None:
     """The experiment options (``--law``, ``--iterations``, …, ``--out``) on ``p``."""
     p.add_argument("--config", metavar="TOML", help="experiment file (keys as the options; unknown keys are errors)")
-    p.add_argument("--law", help=f"learning law: {', '.join(LAWS)} (default {DEFAULT_LAW})")
+    p.add_argument(
+        "--law",
+        help=f"learning law: {', '.join(LAWS)} (default {DEFAULT_LAW}), an installed plug-in's name "
+        "(`ilcrig laws` lists them) or module:Class",
+    )
+    p.add_argument(
+        "--law-options",
+        dest="law_options",
+        metavar="KEY=VALUE[,KEY=VALUE…]",
+        help="the law's own options ([law_options] of the TOML file), e.g. torque_limit_nm=200",
+    )
     p.add_argument("--iterations", type=int, help=f"number of trials, 1..{MAX_ITERATIONS} (default 10)")
     p.add_argument("--path", help="1-4 or a path TOML file (default 1)")
     p.add_argument("--cycle", type=float, dest="cycle_s", help="single-journey time in s (default 0.25)")
@@ -134,6 +146,8 @@ def experiment_config(args: argparse.Namespace) -> ExperimentConfig:
             "force_bus_fit",
         )
     }
+    if getattr(args, "law_options", None) is not None:
+        overrides["law_options"] = parse_law_options(args.law_options)
     gains: dict[str, Any] = {}  # merged over the file's [gains] table by build_config
     if args.preset is not None:
         gains["preset"] = args.preset
@@ -145,17 +159,52 @@ def experiment_config(args: argparse.Namespace) -> ExperimentConfig:
     return build_config(args.config, overrides)
 
 
-def print_plan(stream: TextIO, role: str, plan: Plan, extra: str = "") -> None:
-    """The run's first lines: the experiment and the convergence check."""
-    cfg, c = plan.cfg, plan.check
-    stream.write(
-        f"ilcrig {role}: law {cfg.law}, path {cfg.path}, cycle {cfg.cycle_s} s, profile {cfg.profile}, "
-        f"disturbance {cfg.disturbance}, {cfg.iterations} iterations, N = {plan.n_ticks} ticks/trial{extra}\n"
+def parse_law_options(text: str) -> dict[str, Any]:
+    """``--law-options KEY=VALUE,KEY=VALUE``: values as in TOML (numbers, true/false, strings with or
+    without quotes).
+
+    :raises ValueError: one line naming the option.
+    """
+    import tomllib
+
+    out: dict[str, Any] = {}
+    for item in (part.strip() for part in text.split(",")):
+        if not item:
+            continue
+        key, eq, raw = item.partition("=")
+        key, raw = key.strip(), raw.strip()
+        if not eq or not key or not raw:
+            raise ValueError(f"--law-options {text!r}: expected KEY=VALUE[,KEY=VALUE…], got {item!r}")
+        try:
+            out[key] = tomllib.loads(f"v = {raw}")["v"]
+        except tomllib.TOMLDecodeError:
+            out[key] = raw
+    return out
+
+
+def check_line(plan: Plan) -> str:
+    """The plan's convergence-check line (without the newline)."""
+    c = plan.check
+    if not c.checked:
+        return f"convergence check: not checked (law {plan.cfg.law} gives no linear iteration map)"
+    return (
         f"convergence check: spectral radius {c.rho_max:.4f} ({'ok' if c.ok else 'VIOLATED: expect divergence'}), "
         f"2-norm {c.norm2:.3f} ({'monotonic' if c.norm2 < 1 else 'not monotonic'}), paper eq.(18) rho "
         f"{c.paper_rho18:.3f}; predicted error ratio after {c.iterations} trials {c.predicted_ratio:.3g}, after "
         f"{c.long_horizon} {c.predicted_ratio_long:.3g}; over {c.long_horizon} trials "
-        f"{'bounded' if c.long_bounded else f'NOT bounded (grows {c.predicted_long_growth:.3g}x from its best)'}\n"
+        f"{'bounded' if c.long_bounded else f'NOT bounded (grows {c.predicted_long_growth:.3g}x from its best)'}"
+    )
+
+
+def print_plan(stream: TextIO, role: str, plan: Plan, extra: str = "") -> None:
+    """The run's first lines: the experiment and the convergence check."""
+    cfg = plan.cfg
+    aux = plan.law.auxiliary_trials
+    aux_txt = f" ({aux} auxiliary rollouts per learning step, counted as trials)" if aux else ""
+    stream.write(
+        f"ilcrig {role}: law {cfg.law}, path {cfg.path}, cycle {cfg.cycle_s} s, profile {cfg.profile}, "
+        f"disturbance {cfg.disturbance}, {cfg.iterations} iterations{aux_txt}, N = {plan.n_ticks} ticks/trial{extra}\n"
+        f"{check_line(plan)}\n"
     )
     if plan.bus_fit is not None:
         stream.write(f"feed-forward by SYNC + PDOs (CiA 402 cyclic synchronous position); fieldbus: {plan.bus_fit['message']}\n")
@@ -168,8 +217,8 @@ def print_header(stream: TextIO) -> None:
     stream.write(f"{'iter':>4}  {cols}   [deg]\n")
 
 
-def print_row(stream: TextIO, m: TrialMetrics) -> None:
-    """One trial's RMSE and MaxE per joint, degrees."""
+def print_row(stream: TextIO, m: TrialMetrics, role: str = "learning") -> None:
+    """One trial's RMSE and MaxE per joint, degrees (an auxiliary rollout marked ``aux``)."""
     vals = "  ".join(f"{v:7.5f}" for v in m.rmse_deg) + "  " + "  ".join(f"{v:7.5f}" for v in m.max_abs_deg)
-    stream.write(f"{m.k:>4}  {vals}\n")
+    stream.write(f"{m.k:>4}  {vals}{'   aux' if role == 'auxiliary' else ''}\n")
     stream.flush()

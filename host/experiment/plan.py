@@ -31,9 +31,10 @@ from bus.objects import TABLE_CAPACITY
 from host.experiment.config import ExperimentConfig
 from host.experiment.summary import jsonable
 from host.learning.check import BOUNDED_BLOCK, PROBE_TORQUE_FRACTION, ConvergenceReport
-from host.learning.gains import Gains, resolve_gains
-from host.learning.laws import LawContext, LearningLaw, make_law
+from host.learning.gains import Gains, GainSpec, resolve_gains
+from host.learning.laws import LawContext, LearningLaw
 from host.learning.model import ClosedLoopModel
+from host.learning.plugin import build_law
 from host.planning.paths import resolve_path
 from host.planning.trajectory import JointReference, check_feasibility, joint_reference, plan_task, trial_samples
 from plant.dynamics import inverse_dynamics, mass_matrix
@@ -41,7 +42,7 @@ from plant.params import Geometry, default_true_plant, nominal_mass_model
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Plan", "PlanError", "prepare", "preflight", "prepare_memory_bytes", "reference_tables"]
+__all__ = ["Plan", "PlanError", "prepare", "preflight", "prepare_memory_bytes", "reference_tables", "plan_with_gains"]
 
 #: the preparation holds about this many dense (4N × 4N) float64 matrices at its peak (the lifted
 #: model G, the iteration map and their temporaries; measured: 0.35 GB more at N = 1001 than at
@@ -187,13 +188,22 @@ def prepare(cfg: ExperimentConfig) -> Plan:
     tau_nominal = np.asarray(inverse_dynamics(ref.q, ref.qd, ref.qdd, model), dtype=float)
     u0 = tau_nominal if cfg.ff0 == "model" else np.zeros_like(ref.q)
     ctx = LawContext(
-        gains=gains, ts_s=cfg.ts_s, model=closed_loop, reference=ref, u0_nm=u0, mass_model=model, geometry=Geometry()
+        gains=gains,
+        ts_s=cfg.ts_s,
+        model=closed_loop,
+        reference=ref,
+        u0_nm=u0,
+        mass_model=model,
+        geometry=Geometry(),
+        torque_limit_nm=float(true_cfg.joint_torque_limit_nm),
+        options=dict(cfg.law_options),
     )
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        law = make_law(cfg.law, ctx)
+        law = build_law(cfg.law, ctx)
         # the prediction starts from the error a PROBE_TORQUE_FRACTION error of the nominal torque causes
-        check = _finite_check(law.check(closed_loop, PROBE_TORQUE_FRACTION * tau_nominal, cfg.iterations))
-    if not check.ok:
+        check = law.check(closed_loop, PROBE_TORQUE_FRACTION * tau_nominal, cfg.iterations)
+        check = _finite_check(check) if check.checked else check
+    if check.checked and not check.ok:
         logger.warning(
             "convergence check failed for law %s: spectral radius %.3f, predicted error ratio "
             "after %d trials %.3g: expect divergence",
@@ -206,7 +216,7 @@ def prepare(cfg: ExperimentConfig) -> Plan:
     if cfg.ff_transport == "pdo":
         fit = cyclic_bus_fit(cfg.ts_s, cfg.fieldbus_bitrate)
         bus_fit = fit.as_dict() | {"message": fit.message(), "forced": bool(cfg.force_bus_fit and not fit.fits)}
-    if not check.long_bounded:
+    if check.checked and not check.long_bounded:
         logger.warning(
             "law %s is predicted to grow again within %d trials (last %d trials %.3g x the best)",
             cfg.law,
@@ -237,3 +247,24 @@ def reference_tables(ref: JointReference) -> tuple[np.ndarray, np.ndarray]:
     vel = np.zeros_like(counts)
     vel[1:] = np.rint((counts[1:] - counts[:-1]) / ref.t[1]).astype(np.int64) if len(ref.t) > 1 else 0
     return counts, vel
+
+
+def plan_with_gains(plan: Plan, spec: GainSpec) -> Plan:
+    """The same experiment with the gains ``spec`` (between trials: the API's stepping): the gains
+    resolved on the plan's inertia, checked against the drive's range, the closed-loop model and the
+    law built again for them, and their convergence check.
+
+    :raises PlanError: a feedback gain outside the drive's fixed-point range (one line).
+    """
+    cfg = dataclasses.replace(plan.cfg, gains=spec)
+    with np.errstate(over="ignore", invalid="ignore"):
+        gains = resolve_gains(spec, plan.gains.inertia, cfg.ts_s)
+    _check_gain_range(gains)
+    ctx = dataclasses.replace(plan.law.ctx, gains=gains, model=plan.law.ctx.model.with_gains(gains.kp, gains.kd))
+    ref = plan.ref
+    tau_nominal = np.asarray(inverse_dynamics(ref.q, ref.qd, ref.qdd, nominal_mass_model()), dtype=float)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        law = build_law(cfg.law, ctx)
+        check = law.check(ctx.model, PROBE_TORQUE_FRACTION * tau_nominal, cfg.iterations)
+        check = _finite_check(check) if check.checked else check
+    return dataclasses.replace(plan, cfg=cfg, gains=gains, law=law, check=check)

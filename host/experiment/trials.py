@@ -12,6 +12,11 @@ counts, and torque offset, ‰ of the rated torque) that it streams by SYNC + RP
 the TPDO actuals (position counts, torque ‰), from which the learning takes q and τ.  The recorder
 is uploaded in both modes (the trace digest, the recording) and must agree with the TPDOs.
 
+Trials: :class:`TrialRunner` runs one trial per step — a learning trial, or one of the auxiliary
+rollouts a law asks for after a learning trial (:mod:`host.learning.protocol`: counted as trials
+everywhere, marked ``"role": "auxiliary"`` in the summary) — and runs the law after a learning
+trial (or after the last auxiliary trial of its step); :func:`run_experiment` steps it to the end.
+
 The run folder gets ``summary.json`` (:mod:`host.experiment.summary`), written before the first
 trial and rewritten atomically after every trial so a fault or Ctrl-C never corrupts the results
 of earlier trials.
@@ -28,6 +33,7 @@ back the run folder's space reserve when the disk was full).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import signal
 import threading
@@ -46,7 +52,9 @@ from host.experiment.faults import FaultKind, FaultRecord, attach_injection, rea
 from host.experiment.outputs import OutputError, RunFolder
 from host.experiment.plan import Plan, reference_tables
 from host.experiment.summary import SCHEMA, jsonable, write_summary
+from host.learning.gains import Gains
 from host.learning.metrics import TraceDigest, TrialMetrics, trial_metrics
+from host.learning.protocol import AUXILIARY, LEARNING, TrialData
 from host.nodes.drive_client import DriveClient
 from host.planning.trajectory import JointReference
 
@@ -62,6 +70,8 @@ __all__ = [
     "interrupt_on_signals",
     "run_experiment",
     "ExperimentResult",
+    "TrialOutcome",
+    "TrialRunner",
     "new_summary",
 ]
 
@@ -205,6 +215,7 @@ class ExperimentResult:
     fault: str | None = None
     fault_record: FaultRecord | None = None
     interrupted: int | None = None  # the signal number
+    roles: list[str] = field(default_factory=list)  # per trial: "learning" or "auxiliary"
 
 
 def new_summary(plan: Plan, mode: str, digest: TraceDigest) -> dict[str, Any]:
@@ -228,6 +239,30 @@ def new_summary(plan: Plan, mode: str, digest: TraceDigest) -> dict[str, Any]:
     } | ({"bus_fit": plan.bus_fit} if plan.bus_fit is not None else {})
 
 
+@dataclass(frozen=True)
+class TrialOutcome:
+    """One completed trial as the loop measured it (what :meth:`TrialRunner.step` returns).
+
+    :ivar k: the trial's index (every rollout counts)
+    :ivar role: ``learning`` or ``auxiliary`` (:mod:`host.learning.protocol`)
+    :ivar metrics: its metrics
+    :ivar feedforward_nm: (N, J) the feed-forward played, N·m
+    :ivar error_rad: (N, J) e = q_d − q, rad
+    :ivar torque_nm: (N, J) the total torque the learning uses (recorder, or TPDO in the pdo transport), N·m
+    :ivar traces: the DriveTrace of each drive (the recorders' integer traces)
+    :ivar gains: the gains the trial ran with
+    """
+
+    k: int
+    role: str
+    metrics: TrialMetrics
+    feedforward_nm: np.ndarray
+    error_rad: np.ndarray
+    torque_nm: np.ndarray
+    traces: list[Any]
+    gains: Gains
+
+
 class _Trials:
     """The trial loop's state: the plan, the bench, the feed-forward and what was measured."""
 
@@ -240,12 +275,16 @@ class _Trials:
         ref_counts, ref_vel = reference_tables(plan.ref)
         self.q_ref_rad = ref_counts * units.RAD_PER_COUNT
         self.qd_ref_rad_s = ref_vel * units.RAD_PER_COUNT
-        self.u = plan.u0.copy()  # (N, 4) feed-forward of the next trial, N·m
+        self.u = plan.u0.copy()  # (N, 4) feed-forward of the next learning trial, N·m
         self.wall_s = 0.0
         self.last_traces: list[Any] = []
+        self.last_u = self.u
         self.pending: tuple[int, TrialMetrics, np.ndarray] | None = None  # in the summary, not yet recorded
         self.pdo = plan.cfg.ff_transport == "pdo"
         self.ref_counts = ref_counts.astype(np.int32)
+        #: the learning trial whose auxiliary trials are running, and those done so far
+        self.step_trial: TrialData | None = None
+        self.step_aux: list[TrialData] = []
 
     def setup_drive(self, j: int) -> None:
         """Gains, limits, reference tables, then enable (CiA 402 Operation enabled)."""
@@ -263,9 +302,10 @@ class _Trials:
             drive.load_reference(self.q_ref_rad[:, j], self.qd_ref_rad_s[:, j])
         drive.enable()
 
-    def run_trial(self, k: int) -> tuple[TrialMetrics, np.ndarray, np.ndarray]:
-        """Trial ``k``: set up rebooted drives, download u, run, upload the traces, measure.
-        Returns the metrics, the error q_d − q (N, 4) rad and the total torque (N, 4) N·m."""
+    def run_trial(self, k: int, u: np.ndarray) -> tuple[TrialMetrics, np.ndarray, np.ndarray]:
+        """Trial ``k`` with the feed-forward ``u`` (N, 4) N·m: set up rebooted drives, download u,
+        run, upload the traces, measure.  Returns the metrics, the error q_d − q (N, 4) rad and the
+        total torque (N, 4) N·m."""
         plan, bench, ref = self.plan, self.bench, self.plan.ref
         for j in bench.recover(k):
             # a drive that rebooted since the last trial (heartbeat loss + boot-up) is set up
@@ -275,10 +315,10 @@ class _Trials:
         cyclic = None
         for j, drive in enumerate(bench.drives):
             if not self.pdo:
-                drive.load_feedforward(self.u[:, j])
+                drive.load_feedforward(u[:, j])
             drive.arm_trial()
         if self.pdo:
-            cyclic = CyclicSetpoints(self.ref_counts, nm_to_permille_array(self.u))
+            cyclic = CyclicSetpoints(self.ref_counts, nm_to_permille_array(u))
         t0 = time.perf_counter()
         actuals = bench.run_trial(k, plan.n_ticks, ref.q[0].copy(), ref.qd[0].copy(), cyclic=cyclic)
         self.wall_s += time.perf_counter() - t0
@@ -304,10 +344,11 @@ class _Trials:
         res = self.result
         res.metrics.append(m)
         res.errors.append(e)
-        res.feedforward.append(self.u.copy())
+        res.feedforward.append(u.copy())
         if self.keep_traces:
             res.traces.append(traces)
         self.last_traces = traces
+        self.last_u = u
         return m, e, tau
 
     def record_pending(self) -> None:
@@ -322,13 +363,13 @@ class _Trials:
         except IlcrigError as exc:
             logger.info("trial %d not recorded: %s", k, exc)
 
-    def learn(self, e: np.ndarray, tau: np.ndarray, next_trial: int) -> np.ndarray:
-        """The feed-forward of ``next_trial`` from the learning law; one that is not finite or
-        beyond the drive's int32 µN·m table is a fault (the law diverged), never a table."""
+    def checked_table(self, make: Callable[[], np.ndarray], next_trial: int) -> np.ndarray:
+        """A feed-forward table from the learning law (``make``); one that is not finite or beyond
+        the drive's int32 µN·m table is a fault (the law diverged), never a table."""
         limit = units.INT32_MAX * units.TORQUE_LSB_NM
         try:
             with np.errstate(over="ignore", invalid="ignore"):
-                u = self.plan.law.update(self.u, e, tau)
+                u = make()
             ok = bool(np.all(np.isfinite(u))) and float(np.max(np.abs(u), initial=0.0)) <= limit
         except FloatingPointError:
             ok, u = False, self.u
@@ -355,17 +396,193 @@ class _Trials:
         """Trial ``k`` into the recording (after it is in the summary: a failing recording
         write never loses a completed trial)."""
         if self.recorder is not None:
-            self.recorder.log_trial(k, self.plan.ref, self.last_traces, self.u, e, m)
+            self.recorder.log_trial(k, self.plan.ref, self.last_traces, self.last_u, e, m)
         self.pending = None
 
-    def record(self, m: TrialMetrics) -> None:
-        """Add trial ``m`` to the summary."""
+    def record(self, m: TrialMetrics, role: str = LEARNING) -> None:
+        """Add trial ``m`` to the summary (an auxiliary trial with ``"role": "auxiliary"``)."""
         s = self.result.summary
-        s["iterations"].append(m.as_dict())
+        s["iterations"].append(m.as_dict() | ({"role": role} if role != LEARNING else {}))
         s["ticks"] = len(s["iterations"]) * self.plan.n_ticks
         s["wall_s"] = self.wall_s
         s["ticks_per_s"] = s["ticks"] / self.wall_s if self.wall_s > 0 else 0.0
         s["trace_sha256"] = self.digest.hexdigest()
+
+    def trial_data(self, k: int, role: str, u: np.ndarray, e: np.ndarray, tau: np.ndarray) -> TrialData:
+        """The trial as the law receives it (the recorded feedback torque from the traces)."""
+        fb = np.stack([tr.tau_fb_nm for tr in self.last_traces], axis=1)
+        return TrialData(k, u.copy(), e, tau, fb, self.plan.cfg.ts_s, role)
+
+
+class TrialRunner:
+    """The trial loop, one trial per :meth:`step` (``run_experiment`` and the API's stepping).
+
+    :meth:`start` writes the summary before the first trial, starts the bench and configures the
+    drives; every :meth:`step` runs the next trial — a learning trial, or an auxiliary rollout the
+    law asked for (:mod:`host.learning.protocol`) — records it (summary, recording), and after a
+    learning trial (or the last auxiliary trial of its step) runs the law for the next learning
+    trial's feed-forward; :meth:`finish` closes the bench and writes the final summary.  A fault or
+    an interrupt during :meth:`start` or :meth:`step` ends the run through the one fault path (module
+    docstring) and :meth:`step` returns None from then on, as it does after the last planned trial.
+    Between steps :meth:`set_gains` changes the gains (in-process stepping of the API).
+
+    Parameters as :func:`run_experiment`.
+    """
+
+    def __init__(
+        self,
+        plan: Plan,
+        bench: Bench,
+        out_dir: str | Path | None,
+        *,
+        mode: str,
+        on_trial: Callable[[TrialMetrics, str], None] | None = None,
+        keep_traces: bool = False,
+        recorder: TrialRecorder | None = None,
+        folder: RunFolder | None = None,
+    ) -> None:
+        self.out = Path(out_dir) if out_dir is not None else None
+        self.bench, self.on_trial, self.recorder, self.folder = bench, on_trial, recorder, folder
+        self.result = ExperimentResult(summary={})
+        self.trials = _Trials(plan, bench, self.result, keep_traces, recorder)
+        self.result.summary.update(new_summary(plan, mode, self.trials.digest))
+        self.k = 0
+        self.started = False
+        self.finished = False
+
+    @property
+    def plan(self) -> Plan:
+        return self.trials.plan
+
+    @property
+    def done(self) -> bool:
+        """No trial left to run (all planned trials ran, or the run ended by a fault or interrupt)."""
+        return self.finished or self.k >= self.plan.cfg.iterations
+
+    def start(self) -> None:
+        """Summary before the first trial, bench started, drives configured (idempotent)."""
+        if self.started:
+            return
+        self.started = True
+        self._guarded(self._start)
+
+    def _start(self) -> None:
+        if self.out is not None:
+            write_summary(self.out, self.result.summary, folder=self.folder, trial=0)
+        self.bench.start()
+        for j in range(len(self.bench.drives)):
+            self.trials.setup_drive(j)
+
+    def step(self) -> TrialOutcome | None:
+        """Run the next trial; None when the run is over (then it is finished: bench closed)."""
+        if not self.started:
+            self.start()
+        if self.done:
+            self.finish()
+            return None
+        outcome = self._guarded(self._step)
+        if outcome is None or self.k >= self.plan.cfg.iterations:
+            if outcome is not None:
+                self.result.summary["completed"] = True
+            self.finish()
+        return outcome
+
+    def _step(self) -> TrialOutcome:
+        t, plan, law = self.trials, self.plan, self.plan.law
+        k, n_planned = self.k, plan.cfg.iterations
+        aux_step = t.step_trial
+        if aux_step is not None:
+            role = AUXILIARY
+            u = t.checked_table(lambda: law.auxiliary_input(aux_step, tuple(t.step_aux)), k)
+        else:
+            role, u = LEARNING, t.u
+        m, e, tau = t.run_trial(k, u)
+        t.record(m, role)
+        t.pending = (k, m, e)
+        self.k = k + 1
+        self.result.roles.append(role)
+        if self.on_trial is not None:
+            self.on_trial(m, role)
+        t.log_recording(k, m, e)
+        if self.out is not None:
+            write_summary(self.out, self.result.summary, folder=self.folder, trial=k)
+        data = t.trial_data(k, role, u, e, tau)
+        outcome = TrialOutcome(k, role, m, u, e, tau, list(t.last_traces), plan.gains)
+        if k + 1 >= n_planned:
+            return outcome
+        if role == AUXILIARY:
+            assert aux_step is not None
+            t.step_aux.append(data)
+            if len(t.step_aux) == law.auxiliary_trials:
+                full = dataclasses.replace(aux_step, auxiliary=tuple(t.step_aux))
+                t.step_trial, t.step_aux = None, []
+                t.u = t.checked_table(lambda: law.learn(full), k + 1)
+        elif law.auxiliary_trials and n_planned - (k + 1) >= law.auxiliary_trials + 1:
+            t.step_trial, t.step_aux = data, []
+        else:
+            t.u = t.checked_table(lambda: law.learn(data), k + 1)
+        return outcome
+
+    def set_gains(self, plan: Plan) -> None:
+        """Continue with ``plan`` (the same experiment with other gains and the law built again for
+        them, :func:`host.experiment.plan.plan_with_gains`): the drives get its feedback gains
+        before the next trial; the next learning trial keeps the current feed-forward.
+
+        :raises RuntimeError: during an auxiliary step (the law's rollouts belong together).
+        """
+        if self.trials.step_trial is not None:
+            raise RuntimeError("the gains cannot change between a learning trial and its auxiliary trials")
+        self.trials.plan = plan
+        self.result.summary.setdefault("gain_changes", []).append({"before_trial": self.k, "gains": plan.gains.as_dict()})
+        if self.started and not self.finished:
+            for j, drive in enumerate(self.bench.drives):
+                drive.configure(
+                    kp_nm_per_rad=float(plan.gains.kp[j]),
+                    kd_nms_per_rad=float(plan.gains.kd[j]),
+                    torque_limit_nm=plan.torque_limit_nm,
+                )
+
+    def _guarded(self, fn: Callable[[], Any]) -> Any:
+        """``fn()``; a fault or an interrupt ends the run through the fault path (None)."""
+        result, summary, bench = self.result, self.result.summary, self.bench
+        try:
+            return fn()
+        except IlcrigError as exc:
+            # a fault, a drive that stopped answering between trials (SDO timeout/abort while
+            # downloading a table or uploading the recorder), a failing write: torque is removed by
+            # closing the bench, the trials so far are kept
+            done = len(summary["iterations"])
+            record = _fault_record(bench, exc, done, self.out)
+            result.fault_record = record
+            result.fault = record.message
+            summary["faults"].append(record.as_dict())
+            logger.info("trial %d faulted: %s", done, exc)  # the run's closing line says it
+        except KeyboardInterrupt as exc:  # Ctrl-C, or Interrupted from the SIGTERM/SIGINT handler
+            signum = getattr(exc, "signum", signal.SIGINT)
+            result.interrupted = int(signum)
+            progress = getattr(bench, "progress", None)
+            summary["interrupted"] = {
+                "signal": signal.Signals(signum).name,
+                "trial": len(summary["iterations"]),
+                "tick": progress() if progress is not None else None,
+            }
+            logger.info("interrupted by %s during trial %d", signal.Signals(signum).name, len(summary["iterations"]))
+        self.finish()
+        return None
+
+    def finish(self) -> ExperimentResult:
+        """Close the bench (safe state), finish the recording, write the final summary (idempotent)."""
+        if self.finished:
+            return self.result
+        self.finished = True
+        _SHIELD.active, _SHIELD.pending = True, None
+        try:
+            _finish(self.bench, self.result.summary, self.recorder, self.out, self.folder, self.result, self.trials)
+        finally:
+            _SHIELD.active = False
+            if _SHIELD.pending is not None and self.result.interrupted is None and not self.result.summary.get("completed"):
+                self.result.interrupted = _SHIELD.pending
+        return self.result
 
 
 def _fault_record(bench: Bench, exc: IlcrigError, trial: int, out_dir: Path | None = None) -> FaultRecord:
@@ -411,7 +628,7 @@ def run_experiment(
     out_dir: str | Path | None,
     *,
     mode: str,
-    on_trial: Callable[[TrialMetrics], None] | None = None,
+    on_trial: Callable[[TrialMetrics, str], None] | None = None,
     keep_traces: bool = False,
     recorder: TrialRecorder | None = None,
     folder: RunFolder | None = None,
@@ -425,60 +642,14 @@ def run_experiment(
     interrupt in ``summary["interrupted"]`` / ``result.interrupted``.
 
     :param folder: the run folder's space reserve (given back on a full disk before the final write)
+    :param on_trial: called after each trial with its metrics and its role (``learning`` / ``auxiliary``)
     """
-    out = Path(out_dir) if out_dir is not None else None
-    result = ExperimentResult(summary={})
-    trials = _Trials(plan, bench, result, keep_traces, recorder)
-    summary = result.summary
-    summary.update(new_summary(plan, mode, trials.digest))
-    k = 0
-    try:
-        if out is not None:
-            write_summary(out, summary, folder=folder, trial=0)
-        bench.start()
-        for j in range(len(bench.drives)):
-            trials.setup_drive(j)
-        for k in range(plan.cfg.iterations):
-            m, e, tau = trials.run_trial(k)
-            trials.record(m)
-            trials.pending = (k, m, e)
-            if on_trial is not None:
-                on_trial(m)
-            trials.log_recording(k, m, e)
-            if out is not None:
-                write_summary(out, summary, folder=folder, trial=k)
-            if k + 1 < plan.cfg.iterations:
-                trials.u = trials.learn(e, tau, k + 1)
-        summary["completed"] = True
-    except IlcrigError as exc:
-        # a fault, a drive that stopped answering between trials (SDO timeout/abort while
-        # downloading a table or uploading the recorder), a failing write: torque is removed by
-        # closing the bench, the trials so far are kept
-        done = len(summary["iterations"])
-        record = _fault_record(bench, exc, done, out)
-        result.fault_record = record
-        result.fault = record.message
-        summary["faults"].append(record.as_dict())
-        logger.info("trial %d faulted: %s", done, exc)  # the run's closing line says it
-    except KeyboardInterrupt as exc:  # Ctrl-C, or Interrupted from the SIGTERM/SIGINT handler
-        signum = getattr(exc, "signum", signal.SIGINT)
-        result.interrupted = int(signum)
-        progress = getattr(bench, "progress", None)
-        summary["interrupted"] = {
-            "signal": signal.Signals(signum).name,
-            "trial": len(summary["iterations"]),
-            "tick": progress() if progress is not None else None,
-        }
-        logger.info("interrupted by %s during trial %d", signal.Signals(signum).name, len(summary["iterations"]))
-    finally:
-        _SHIELD.active, _SHIELD.pending = True, None
-        try:
-            _finish(bench, summary, recorder, out, folder, result, trials)
-        finally:
-            _SHIELD.active = False
-            if _SHIELD.pending is not None and result.interrupted is None and not summary.get("completed"):
-                result.interrupted = _SHIELD.pending
-    return result
+    runner = TrialRunner(
+        plan, bench, out_dir, mode=mode, on_trial=on_trial, keep_traces=keep_traces, recorder=recorder, folder=folder
+    )
+    while runner.step() is not None:
+        pass
+    return runner.finish()
 
 
 def _finish(

@@ -60,6 +60,7 @@ __all__ = [
     "ConvergenceReport",
     "IterationMap",
     "check_iteration_map",
+    "not_checked",
     "LONG_HORIZON",
     "SIMULATED_TRIALS",
     "EXTRAPOLATION_WINDOW",
@@ -164,9 +165,22 @@ class ConvergenceReport:
     long_worst_case: str = "nominal"
     norm_method: str = "power iteration (lower bound)"
     prediction: str = ""
+    #: False: the law gives no linear iteration map, nothing was checked (:func:`not_checked`)
+    checked: bool = True
 
     def as_dict(self) -> dict[str, Any]:
+        if not self.checked:
+            return {
+                "checked": False,
+                "ok": None,
+                "rho_max": None,
+                "norm2": None,
+                "paper_condition_18_rho": self.paper_rho18,
+                "map": self.map_kind,
+                "prediction": self.prediction,
+            }
         return {
+            "checked": True,
             "rho_max": self.rho_max,
             "ok": self.ok,
             "norm2": self.norm2,
@@ -321,6 +335,24 @@ def _long_growth(logs: Array, log_sqrt_size: float, long_horizon: int) -> float:
     blk = min(BOUNDED_BLOCK, max(long_horizon // 2, 1))
     means = np.convolve(floored, np.ones(blk) / blk, mode="valid")
     return float(means[-1] / np.min(means)) if means.size else 1.0
+
+
+def not_checked(model: ClosedLoopModel, ld_nms_per_rad: Array, ts_s: float, law: str, iterations: int = 10) -> ConvergenceReport:
+    """The report of a law that gives no linear iteration map: nothing is predicted (``checked``
+    False; ``ok`` is False and means nothing then, the summary writes it as null); the paper's
+    condition (18), which needs only the model and Ld, is still given."""
+    return ConvergenceReport(
+        rho_max=math.nan,
+        norm2=math.nan,
+        paper_rho18=_paper_rho18(model, np.asarray(ld_nms_per_rad, dtype=float), ts_s),
+        ok=False,
+        map_kind="none",
+        iterations=int(iterations),
+        rho_method="not checked",
+        norm_method="not checked",
+        prediction=f"not checked: law {law} gives no linear iteration map",
+        checked=False,
+    )
 
 
 def check_iteration_map(

@@ -22,9 +22,9 @@ from __future__ import annotations
 
 import logging
 from abc import ABC, abstractmethod
-from collections.abc import Callable
-from dataclasses import dataclass
-from typing import ClassVar
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
 
 import numpy as np
 import numpy.typing as npt
@@ -41,6 +41,7 @@ from host.learning.identification import DynamicsEstimate
 from host.learning.model import ClosedLoopModel
 from host.learning.names import LAWS
 from host.learning.norm_optimal import NormOptimalStep
+from host.learning.protocol import TrialData
 from host.learning.signals import ZeroPhaseFilter, backward_difference, backward_difference_t, lead, lead_t
 from host.planning.trajectory import JointReference
 from plant.params import Geometry, MassModel
@@ -63,6 +64,8 @@ class LawContext:
     :param u0_nm: (N, J) the initial feed-forward, N·m (None: the first u_k a law sees)
     :param mass_model: the host's nominal mass model (prior of the estimated model)
     :param geometry: the robot geometry
+    :param torque_limit_nm: the drives' joint torque limit (they clamp the total torque there), N·m
+    :param options: the law's own options (the experiment's ``[law_options]`` table), name → value
     """
 
     gains: Gains
@@ -72,15 +75,19 @@ class LawContext:
     u0_nm: Array | None = None
     mass_model: MassModel | None = None
     geometry: Geometry | None = None
+    torque_limit_nm: float | None = None
+    options: Mapping[str, Any] = field(default_factory=dict)
 
 
 class LearningLaw(ABC):
     """One learning law (see the module docstring for the list)."""
 
     #: the law's name (a key of :data:`host.learning.names.LAWS`)
-    name: ClassVar[str]
+    name: str
     #: one line: what it is
-    description: ClassVar[str]
+    description: str
+    #: extra rollouts the law needs after each learning trial (protocol: host.learning.protocol)
+    auxiliary_trials: int = 0
 
     def __init__(self, ctx: LawContext) -> None:
         self.ctx = ctx
@@ -102,6 +109,17 @@ class LearningLaw(ABC):
         if not np.all(np.isfinite(out)):
             raise FloatingPointError(f"law {self.name} produced a non-finite feed-forward")
         return out
+
+    def learn(self, trial: TrialData) -> Array:
+        """Next feed-forward table (N, J), N·m, from a completed learning trial (the trial loop's
+        call; the built-in laws use its feed-forward, error and total torque, :meth:`update`)."""
+        return self.update(trial.feedforward_nm, trial.error_rad, trial.torque_nm)
+
+    def auxiliary_input(self, trial: TrialData, done: Sequence[TrialData]) -> Array:
+        """The feed-forward (N, J) N·m of the next auxiliary rollout after the learning trial
+        ``trial`` (``done``: the auxiliary trials of this step so far); only for a law whose
+        :attr:`auxiliary_trials` is > 0."""
+        raise NotImplementedError(f"law {self.name} runs no auxiliary trials")
 
     @abstractmethod
     def _update(self, u_k: Array, e_k: Array, tau_k: Array) -> Array:

@@ -197,6 +197,10 @@ class ClosedLoopModel:
         """(N, J): ‖G e_(n,j)‖², the squared 2-norm of every column of G (rad²/(N·m)²), O(N)."""
         return _column_norms_sq(self.minv, self.fq, self.fp, self.ts_s)
 
+    def with_gains(self, kp_nm_per_rad: Array, kd_nms_per_rad: Array) -> ClosedLoopModel:
+        """The same inertia sequence with other drive gains Kp (N·m/rad), Kd (N·m·s/rad), (J,) each."""
+        return ClosedLoopModel(self.inertia, kp_nm_per_rad, kd_nms_per_rad, self.ts_s)
+
     def corrected(self, inertia_kgm2: Array) -> ClosedLoopModel:
         """The same drive gains around another inertia sequence (N, J, J), kg·m²."""
         return ClosedLoopModel(inertia_kgm2, self.kp, self.kd, self.ts_s)

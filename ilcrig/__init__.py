@@ -1,0 +1,65 @@
+"""ilcrig: the public Python API — experiments in-process or on the rig, trial by trial, results as
+numpy arrays, and learning laws from outside the package.
+
+Owns the facade over the internals (which stay where they are: ``host/``, ``plant/``,
+``firmware_model/``, ``bus/``), one module per concern:
+
+* :mod:`ilcrig.errors` — :class:`InputError` (bad input, the command line's one-line message),
+  :class:`RigError`;
+* :mod:`ilcrig.experiment` — :class:`Experiment` (from keyword arguments or a TOML file: the keys of
+  the command line), :class:`Session` (in-process, one trial per step, gains changeable between
+  trials), :func:`available_laws`, :func:`register_law`;
+* :mod:`ilcrig.results` — :class:`TrialResult` and :class:`Results` (arrays with units in their
+  names, metrics as arrays and as a table, the recording and figures on request), :func:`load`
+  (a run folder of ``ilcrig sim`` or ``ilcrig run``);
+* :mod:`ilcrig.rig` — :class:`RigRun`, running on the rig: the multi-process ``ilcrig run`` launcher in a child
+  process, its trials read from the run folder as they complete;
+* :mod:`ilcrig.laws` — ilcrig's laws written against the public protocol and registered as plug-ins
+  (``cno-ilc``: :mod:`ilcrig.laws.constrained`, ``adjoint-ilc``: :mod:`ilcrig.laws.adjoint`).
+
+The learning-law protocol (:class:`LearningLaw`, :class:`TrialData`, :class:`LawContext`,
+:class:`IterationMap`, :class:`ClosedLoopModel`) is re-exported here from :mod:`host.learning`;
+:mod:`ilcrig.signals` re-exports the time operators (lead, difference, Q filter, transposes).
+docs/api.md explains it with runnable examples.
+
+May import: ``host`` (every subpackage), ``plant``, ``bus``, and ``firmware_model`` through
+:mod:`host.experiment.inprocess`.  Nothing in ``firmware_model``, ``bus``, ``host`` or ``plant``
+imports ``ilcrig``, except ``host.cli`` (the command line is built on this API).
+"""
+
+from __future__ import annotations
+
+from host.learning.check import ConvergenceReport, IterationMap
+from host.learning.laws import LawContext
+from host.learning.model import ClosedLoopModel
+from host.learning.protocol import AUXILIARY, LEARNING, TrialData
+from host.learning.protocol import LawProtocol as LearningLaw
+from host.learning.registry import ENTRY_POINT_GROUP
+from ilcrig import signals
+from ilcrig.errors import InputError, RigError
+from ilcrig.experiment import Experiment, Session, available_laws, register_law
+from ilcrig.results import Results, TrialResult, load
+from ilcrig.rig import RigRun
+
+__all__ = [
+    "AUXILIARY",
+    "ClosedLoopModel",
+    "ConvergenceReport",
+    "ENTRY_POINT_GROUP",
+    "Experiment",
+    "InputError",
+    "IterationMap",
+    "LEARNING",
+    "LawContext",
+    "LearningLaw",
+    "Results",
+    "RigError",
+    "RigRun",
+    "Session",
+    "TrialData",
+    "TrialResult",
+    "available_laws",
+    "load",
+    "register_law",
+    "signals",
+]

@@ -1,0 +1,344 @@
+"""Experiments from Python: build one from keyword arguments or a TOML file, run it in-process or on
+the rig, or step it trial by trial.
+
+This module owns :class:`Experiment`, :class:`Session` (the in-process trial-by-trial run),
+:func:`available_laws` and :func:`register_law`.  The configuration keys are the TOML keys of the
+command line (``law``, ``iterations``, ``path``, ``cycle_s``, ``profile``, ``disturbance``, ``seed``,
+``ts_s``, ``substeps``, ``ff0``, ``following_error_deg``, ``ff_transport``, ``fieldbus_bitrate``,
+``force_bus_fit``, ``gains`` = a dict of ``[gains]`` keys, ``law_options`` = a dict), with the same
+validation and the same one-line messages (:class:`ilcrig.InputError`).  In-process runs use the
+same composition as ``ilcrig sim`` (:class:`host.experiment.inprocess.InProcessBench` and the trial
+loop :class:`host.experiment.trials.TrialRunner`), so their digests are the CLI's.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any, TextIO
+
+from host.experiment.config import ExperimentConfig, build_config, gains_table
+from host.experiment.plan import Plan, plan_with_gains, prepare
+from host.experiment.trials import TrialOutcome, TrialRunner
+from host.learning.check import ConvergenceReport
+from host.learning.registry import law_class, law_names
+from host.learning.registry import register_law as _register
+from ilcrig.errors import InputError, input_error
+from ilcrig.results import Results, TrialResult
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["Experiment", "Session", "available_laws", "register_law"]
+
+
+def available_laws() -> dict[str, str]:
+    """Every law this process can run by name → its one-line description (built-in, plug-ins of the
+    entry-point group ``ilcrig.laws``, and classes registered here)."""
+    out = {}
+    for name in law_names():
+        try:
+            cls = law_class(name)
+            out[name] = str(getattr(cls, "description", "") or (cls.__doc__ or "").strip().splitlines()[0])
+        except (ValueError, IndexError) as exc:
+            out[name] = f"(cannot be loaded: {exc})"
+    return out
+
+
+def register_law(cls: type[Any], name: str | None = None) -> str:
+    """Make the law class ``cls`` usable by ``name`` in this process (in-process runs only; on the
+    rig a law must be importable by the host process: a plug-in, or ``module:Class``).
+
+    :raises InputError: the name of a built-in law, or not a law class.
+    """
+    try:
+        return _register(cls, name)
+    except ValueError as exc:
+        raise input_error(exc) from None
+
+
+def _law_name(law: Any) -> str:
+    """A law given as a class: ``module:Class`` when importable by that name (then the rig's host
+    process can import it too), else registered in this process."""
+    if not isinstance(law, type):
+        return str(law)
+    module, qual = law.__module__, law.__qualname__
+    found: Any = sys.modules.get(module)
+    for part in qual.split("."):
+        found = getattr(found, part, None)
+    if module != "__main__" and found is law:
+        return f"{module}:{qual}"
+    return register_law(law)
+
+
+class Experiment:
+    """One experiment (module docstring).
+
+    ``Experiment(law="pd-ilc", iterations=5)`` or ``Experiment("exp.toml", cycle_s=0.15)``: keyword
+    arguments override the file's keys (``gains`` and ``law_options`` merge key by key), as command
+    line options do.  ``law`` may also be a law class (``module:Class`` when importable by that name,
+    else registered in this process).
+
+    :raises InputError: a bad key or value (the command line's one-line message).
+    """
+
+    def __init__(self, config: str | Path | None = None, /, **keys: Any) -> None:
+        if "law" in keys and keys["law"] is not None:
+            keys["law"] = _law_name(keys["law"])
+        try:
+            self.config: ExperimentConfig = build_config(config, keys)
+        except (ValueError, FileNotFoundError) as exc:
+            raise input_error(exc) from None
+        self._plan: Plan | None = None
+
+    @classmethod
+    def from_toml(cls, path: str | Path, **keys: Any) -> Experiment:
+        """The experiment of a TOML file (keys as the command line's), ``keys`` overriding it."""
+        return cls(path, **keys)
+
+    @classmethod
+    def from_config(cls, config: ExperimentConfig) -> Experiment:
+        """An experiment of an already validated configuration."""
+        exp = cls.__new__(cls)
+        exp.config, exp._plan = config, None
+        return exp
+
+    def __repr__(self) -> str:
+        c = self.config
+        return f"Experiment(law={c.law!r}, iterations={c.iterations}, path={c.path!r}, cycle_s={c.cycle_s})"
+
+    def replace(self, **keys: Any) -> Experiment:
+        """A copy with ``keys`` changed (validated like the constructor's)."""
+        base = {k: v for k, v in self.config.as_dict().items() if k != "gains"}
+        base["gains"] = gains_table(self.config.gains) | dict(keys.pop("gains", None) or {})
+        return Experiment(**(base | keys))
+
+    @property
+    def plan(self) -> Plan:
+        """Everything decided before anything moves (trajectory, gains, law, convergence check),
+        computed once.
+
+        :raises InputError: an infeasible experiment (the command line's one-line message)."""
+        if self._plan is None:
+            try:
+                self._plan = prepare(self.config)
+            except (ValueError, FileNotFoundError) as exc:
+                raise input_error(exc) from None
+        return self._plan
+
+    @property
+    def check(self) -> ConvergenceReport:
+        """The convergence check before the run (``checked`` False for a law without a map)."""
+        return self.plan.check
+
+    @property
+    def n_ticks(self) -> int:
+        """N, the samples per trial."""
+        return self.plan.n_ticks
+
+    # -- running ---------------------------------------------------------------------------------
+
+    def start(self, out: str | Path | None = None, *, stream: TextIO | None = None) -> Session:
+        """An in-process run, one trial per :meth:`Session.step` (``out``: a run folder with the
+        outputs of ``ilcrig sim``; ``stream``: the console lines)."""
+        return Session(self, out, stream=stream)
+
+    def run(
+        self,
+        mode: str = "sim",
+        out: str | Path | None = None,
+        *,
+        stream: TextIO | None = None,
+        **rig: Any,
+    ) -> Results:
+        """Run every trial and return the results.
+
+        :param mode: ``sim`` (in this process) or ``rig`` (the multi-process ``ilcrig run`` launcher,
+            :mod:`ilcrig.rig`; ``rig`` options: ``bus``, ``hub``, ``realtime``, ``bus_time``,
+            ``io_bitrate``, ``timeout_s``)
+        :param out: the run folder (sim: optional, nothing is written without it; rig: default
+            ``runs/api-rig-<time>``)
+        :param stream: the console lines (plan, one row per trial); none by default
+        :raises InputError: bad input (before anything moves)
+        """
+        if mode == "sim":
+            if rig:
+                raise InputError(f"{', '.join(sorted(rig))}: options of the rig; mode 'sim' takes none")
+            with self.start(out, stream=stream) as session:
+                for _ in session:
+                    pass
+            return session.results
+        if mode == "rig":
+            from ilcrig.rig import RigRun
+
+            with RigRun(self.config, out, stream=stream, **rig) as run:
+                for _ in run:
+                    pass
+            return run.results
+        raise InputError(f"mode must be 'sim' or 'rig', got {mode!r}")
+
+    def trials(self, mode: str = "sim", out: str | Path | None = None, **rig: Any) -> Iterator[TrialResult]:
+        """Each trial's result as it completes (``mode`` and options as :meth:`run`).  Leaving the
+        loop early ends the run (the rig: interrupted, its completed trials kept)."""
+        if mode == "sim":
+            if rig:
+                raise InputError(f"{', '.join(sorted(rig))}: options of the rig; mode 'sim' takes none")
+            with self.start(out) as session:
+                yield from session
+            return
+        if mode == "rig":
+            from ilcrig.rig import RigRun
+
+            with RigRun(self.config, out, **rig) as run:
+                yield from run
+            return
+        raise InputError(f"mode must be 'sim' or 'rig', got {mode!r}")
+
+
+class Session:
+    """An in-process run of an :class:`Experiment`, one trial per :meth:`step` (also an iterator and
+    a context manager: leaving it ends the run with the bench's safe state and the final summary).
+
+    Between trials :meth:`set_gains` changes the gains: the drives get the new feedback gains, the law
+    is built again for them and continues from the current feed-forward.
+    """
+
+    def __init__(self, experiment: Experiment, out: str | Path | None = None, *, stream: TextIO | None = None) -> None:
+        from host.experiment.inprocess import InProcessBench
+
+        self.experiment = experiment
+        plan = experiment.plan
+        self.out = Path(out) if out is not None else None
+        self.stream = stream
+        self._folder: Any = None
+        recorder: Any = None
+        if self.out is not None:
+            from host.analysis.recording import RunRecorder
+            from host.experiment.arrays import Recorders, TrialArrays
+            from host.experiment.outputs import RunFolder, check_out_dir
+
+            try:
+                check_out_dir(self.out, iterations=plan.cfg.iterations)
+            except ValueError as exc:
+                raise input_error(exc) from None
+            self._folder = RunFolder(self.out, plan.cfg.iterations)
+            self._folder.reserve()
+            recorder = Recorders(
+                RunRecorder(
+                    self.out / "recording.rrd", recording_id=self.out.name, config_summary=plan.cfg.as_dict(), folder=self._folder
+                ),
+                TrialArrays(self.out, self._folder),
+            )
+        if stream is not None:
+            from host.experiment.console import print_header, print_plan
+
+            print_plan(stream, "sim", plan)
+            print_header(stream)
+        self.runner = TrialRunner(
+            plan,
+            InProcessBench(plan.cfg),
+            self.out,
+            mode="sim",
+            on_trial=self._row if stream is not None else None,
+            recorder=recorder,
+            folder=self._folder,
+        )
+        self.trials: list[TrialResult] = []
+        self._reference = {"t_s": plan.ref.t, "q_rad": plan.ref.q}
+        self._reported = False
+
+    def _row(self, m: Any, role: str) -> None:
+        from host.experiment.console import print_row
+
+        assert self.stream is not None
+        print_row(self.stream, m, role)
+
+    def __enter__(self) -> Session:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __iter__(self) -> Iterator[TrialResult]:
+        while (t := self.step()) is not None:
+            yield t
+
+    @property
+    def plan(self) -> Plan:
+        """The plan in force (its gains change with :meth:`set_gains`)."""
+        return self.runner.plan
+
+    @property
+    def done(self) -> bool:
+        return self.runner.done
+
+    def step(self) -> TrialResult | None:
+        """Run the next trial (a learning trial, or an auxiliary rollout its law asked for); None
+        when the run is over (every trial ran, or a fault or an interrupt ended it: see
+        :attr:`results`)."""
+        outcome = self.runner.step()
+        if outcome is None:
+            self.close()
+            return None
+        result = self._result(outcome)
+        self.trials.append(result)
+        if self.runner.finished:
+            self.close()
+        return result
+
+    def _result(self, o: TrialOutcome) -> TrialResult:
+        channels = {
+            "position_counts": [tr.position_counts for tr in o.traces],
+            "torque_units": [tr.torque_units for tr in o.traces],
+            "torque_fb_units": [tr.torque_fb_units for tr in o.traces],
+        }
+        arrays: dict[str, Any] = {k: _stack_columns(v) for k, v in channels.items()}
+        arrays["feedforward_nm"] = o.feedforward_nm
+        return TrialResult.from_recorder(o.k, o.role, self._reference, arrays, o.metrics.as_dict(), o.gains.as_dict())
+
+    def set_gains(self, **changes: Any) -> None:
+        """Change the gains before the next trial: ``[gains]`` keys (``alpha``, ``beta``, ``lp``,
+        ``ld``, ``lp_norm``, ``ld_norm``, ``lead``, ``q_cutoff_hz``, …, ``preset``).
+
+        :raises InputError: a bad key or value (the configuration's message), a feedback gain outside
+            the drive's range, or a change between a learning trial and its auxiliary trials.
+        """
+        cfg = self.plan.cfg
+        base = {k: v for k, v in cfg.as_dict().items() if k != "gains"}
+        try:
+            new = build_config(None, base | {"gains": gains_table(cfg.gains) | changes})
+            self.runner.set_gains(plan_with_gains(self.plan, new.gains))
+        except (ValueError, RuntimeError) as exc:
+            raise input_error(exc) from None
+
+    @property
+    def results(self) -> Results:
+        """The results so far (all of them after the run)."""
+        return Results(self.runner.result.summary, self.trials, self.out)
+
+    def close(self) -> Results:
+        """End the run (bench closed, final summary; with a run folder also ``report.md``)."""
+        res = self.runner.finish()
+        if self.out is not None and not self._reported:
+            self._reported = True
+            from host.analysis.run_report import write_run_report
+
+            s = res.summary
+            if s["iterations"] or s["faults"] or res.interrupted:
+                try:
+                    write_run_report(self.out, s)
+                except OSError as err:
+                    logger.error("report.md could not be written: %s", err)
+        return self.results
+
+    @property
+    def raw(self) -> Any:
+        """The trial loop's own result (:class:`host.experiment.trials.ExperimentResult`)."""
+        return self.runner.result
+
+
+def _stack_columns(columns: list[Any]) -> Any:
+    import numpy as np
+
+    return np.stack([np.asarray(c) for c in columns], axis=1)
