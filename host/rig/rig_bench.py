@@ -104,7 +104,6 @@ class RigBench:
         self._safe_state: list[dict[str, Any]] = []
         self._closed = False
         self.nodes: RigNodes | None = None
-        self.watchdog: Watchdog | None = None
         self._heartbeat: HostHeartbeat | None = None
         self.bus_time = BusTimeAccounting(
             io_bitrate=io_bitrate,
@@ -114,17 +113,17 @@ class RigBench:
             heartbeat_ms=NODE_HEARTBEAT_MS,
             n_nodes=len(DRIVE_NODE_IDS) + 2,
         )  # the drives, the plant node and the host (HOST_HEARTBEAT_MS, the same)
-        self.channels = RigChannels(transport, out_dir, self.bus_time)
+        self.channels = RigChannels(transport, out_dir, self.bus_time)  # closes itself if it fails
+        watchdog = self.watchdog = Watchdog(
+            network,
+            self.channels,
+            bus_name="hub" if transport.needs_hub else transport.name,
+            out_dir=out_dir,
+            scale=self.scale,
+            tolerate_lost_between_trials=recover_s > 0,
+            t_start=self._t_start,
+        )
         try:
-            watchdog = self.watchdog = Watchdog(
-                network,
-                self.channels,
-                bus_name="hub" if transport.needs_hub else transport.name,
-                out_dir=out_dir,
-                scale=self.scale,
-                tolerate_lost_between_trials=recover_s > 0,
-                t_start=self._t_start,
-            )
             if network.notifier is None:
                 cast(list[Any], network.listeners).append(watchdog.fieldbus_errors)
                 network.connect()
@@ -166,14 +165,14 @@ class RigBench:
         """Every node booted and brought up (:meth:`host.rig.bring_up.BringUp.start_all`); from now
         on the watchdog ends the run on any fault."""
         self.bring_up.start_all()
-        cast(Watchdog, self.watchdog).arm()
+        self.watchdog.arm()
 
     def recover(self, trial: int) -> list[int]:
         """Before ``trial``: with ``recover_s`` > 0, nodes whose heartbeat was lost or that booted
         again are waited for and brought up again; returns the indices of the drives that the host
         must configure again (gains, reference, enable). Without it (the default) a lost node has
         ended the run already (the watchdog)."""
-        watchdog = cast(Watchdog, self.watchdog)
+        watchdog = self.watchdog
         watchdog.trial = trial
         if trial > 0 and self.pause_s > 0:
             time.sleep(self.pause_s)
@@ -191,17 +190,16 @@ class RigBench:
 
     def describe_fault(self, exc: BaseException, trial: int) -> FaultRecord | None:
         """What the host knows about ``exc``: the watchdog's record, else the bench's state."""
-        return self.watchdog.describe(exc, trial) if self.watchdog is not None else None
+        return self.watchdog.describe(exc, trial)
 
     def progress(self) -> int | None:
         """The last tick of the current trial as the io channel shows it (None before its first)."""
-        return self.channels.trial_tick(self.watchdog.trial) if self.watchdog is not None else None
+        return self.channels.trial_tick(self.watchdog.trial)
 
     def info(self) -> dict[str, Any]:
         """Transport, per-channel frame counts, bus time, heartbeat timing, trial timing, EMCYs,
         recoveries (and with PDOs the SYNC/RPDO/TPDO frame counts)."""
         wall = time.monotonic() - self._t_start
-        watchdog = cast(Watchdog, self.watchdog)
         return {
             "transport": self.transport.as_dict(),
             "channels": self.channels.info(wall),
@@ -218,7 +216,7 @@ class RigBench:
                 "consumer_time_ms": CONSUMER_TIME_MS * self.scale,
             },
             "timing": self.trials.timing(self.cfg.ts_s, self.realtime, self.rt_scheduling),
-            "emcy": watchdog.events.emcy,
+            "emcy": self.watchdog.events.emcy,
             "recoveries": self.bring_up.recoveries,
         } | ({"pdo_frames": dict(self.streamer.frames)} if self.streamer is not None else {})
 
@@ -234,12 +232,10 @@ class RigBench:
             return
         self._closed = True
         watchdog = self.watchdog
-        if watchdog is not None:
-            watchdog.disarm()
-            trial_running = watchdog.in_trial or self.channels.running_tick() is not None
-            self._safe_state = bring_to_safe_state(self.network, self.nodes, watchdog, trial_running=trial_running)
+        watchdog.disarm()
+        trial_running = watchdog.in_trial or self.channels.running_tick() is not None
+        self._safe_state = bring_to_safe_state(self.network, self.nodes, watchdog, trial_running=trial_running)
         if self._heartbeat is not None:
             self._heartbeat.stop()
-        if watchdog is not None:
-            watchdog.stop()
+        watchdog.stop()
         self.channels.close()
