@@ -2,8 +2,9 @@
 carry, their COB-IDs and byte layout, the CiA 301 configuration writes, and whether one control
 period of these frames fits the fieldbus.
 
-This module owns the one definition both sides use — the host (:mod:`host.rig.host_role` with the
-canopen library's PDO API, :mod:`host.experiment.inprocess` with the same bytes in one process),
+This module owns the one definition both sides use — the host (:mod:`host.rig.bring_up` and
+:mod:`host.rig.pdo_stream` with the canopen library's PDO API, :mod:`host.experiment.inprocess` with
+the same bytes in one process),
 the DBC files (:mod:`bus.dbc`) and the tests:
 
 * per control period: one SYNC (COB-ID 0x080, no data), per drive one RPDO (RPDO1,

@@ -1,4 +1,5 @@
-"""Tests of host/rig/launcher.py: `ilcrig run` starts every role and leaves no process behind.
+"""Tests of the launcher of `ilcrig run` (host/rig/launcher.py, role_commands.py, processes.py,
+supervisor.py, run_outcome.py): it starts every role and leaves no process behind.
 
 Fake roles (tests/fake_role.py) stand in for the host and the plant (and for a failing drive);
 the other drives are real `ilcrig drive` processes on a private hub. "No process left" is checked
@@ -25,9 +26,10 @@ from pathlib import Path
 import pytest
 
 from host.cli import build_parser
-from host.experiment.console import EXIT_FAULT
-from host.rig import launcher
-from host.rig.launcher import EXIT_CHILD_FAILED, RigLauncher, host_role_args, role_command
+from host.experiment.console import EXIT_CHILD_FAILED, EXIT_FAULT
+from host.rig import role_commands
+from host.rig.launcher import RigLauncher
+from host.rig.role_commands import child_argv, host_role_args, role_command
 
 pytestmark = pytest.mark.multiprocess
 
@@ -105,7 +107,7 @@ def piddir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]:
     d = tmp_path / "pids"
     d.mkdir()
     monkeypatch.setenv("FAKE_ROLE_DIR", str(d))
-    for key in [k for k in os.environ if k.startswith(launcher.ROLE_ENV_PREFIX)]:
+    for key in [k for k in os.environ if k.startswith(role_commands.ROLE_ENV_PREFIX)]:
         monkeypatch.delenv(key)
     yield d
     kill_leftovers(list(fake_pids(d).values()))
@@ -115,7 +117,7 @@ def piddir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]:
 def roles(monkeypatch: pytest.MonkeyPatch) -> dict[str, list[str]]:
     """The launcher's ROLE_COMMAND hook, emptied after the test."""
     table: dict[str, list[str]] = {}
-    monkeypatch.setattr(launcher, "ROLE_COMMAND", table)
+    monkeypatch.setattr(role_commands, "ROLE_COMMAND", table)
     return table
 
 
@@ -235,16 +237,17 @@ def test_host_args_round_trip_through_the_host_parser(tmp_path: Path) -> None:
 
 
 def test_role_command_hooks(monkeypatch: pytest.MonkeyPatch, roles: dict[str, list[str]]) -> None:
-    for key in [k for k in os.environ if k.startswith(launcher.ROLE_ENV_PREFIX)]:
+    for key in [k for k in os.environ if k.startswith(role_commands.ROLE_ENV_PREFIX)]:
         monkeypatch.delenv(key)
-    assert role_command("drive", 3) == [sys.executable, "-m", "host.cli", "drive"]
-    assert role_command("host", debug=True) == [sys.executable, "-m", "host.cli", "--debug", "host"]
+    # safe-path mode: the folder `ilcrig run` was started in is not on a role's import path
+    assert role_command("drive", 3) == [sys.executable, "-P", "-m", "host.cli", "drive"]
+    assert role_command("host", debug=True) == [sys.executable, "-P", "-m", "host.cli", "--debug", "host"]
     roles["drive"] = ["x", "drive"]
     assert role_command("drive", 3) == ["x", "drive"]
     monkeypatch.setenv("ILCRIG_ROLE_CMD_DRIVE3", "/bin/echo 'a b'")
     assert role_command("drive", 3) == ["/bin/echo", "a b"]
     assert role_command("drive", 2) == ["x", "drive"]
-    assert launcher.child_argv("drive", ["--bus", "hub"], node=2) == ["x", "drive", "--node", "2", "--bus", "hub"]
+    assert child_argv("drive", ["--bus", "hub"], node=2) == ["x", "drive", "--node", "2", "--bus", "hub"]
 
 
 def test_virtual_transport_is_refused(tmp_path: Path) -> None:

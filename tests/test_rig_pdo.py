@@ -60,7 +60,9 @@ def test_pdo_rig_digest_equals_sim(rig: tuple[subprocess.CompletedProcess[str], 
     res, out = rig
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     s = json.loads((out / "summary.json").read_text())
-    assert s["completed"] and s["config"]["ff_transport"] == "pdo"
+    assert s["completed"] and s["config"]["ff_transport"] == "pdo" and s["faults"] == []
+    assert s["ticks"] == 2 * N and [it["k"] for it in s["iterations"]] == [0, 1]
+    assert s["bench"]["timing"]["ticks"] == 2 * N
     assert s["trace_sha256"] == sim.summary["trace_sha256"]
     assert s["bus_fit"]["fits"] and s["bus_fit"]["bits_worst_case"] == 975
     assert s["bench"]["pdo_frames"] == {"sync": 2 * N, "rpdo": 2 * 4 * N, "tpdo": 2 * 4 * N}

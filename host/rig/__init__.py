@@ -1,8 +1,37 @@
 """host.rig: the distributed rig, ``ilcrig run`` and ``ilcrig host``.
 
-Owns the host role on the bus (:mod:`host.rig.host_role`: the rig bench over the ``canopen``
-library, channel monitors and logs) and the launcher that starts the hub, the plant, the four
-drives and the host as processes and cleans them up (:mod:`host.rig.launcher`).
+Owns the host role on the bus (``ilcrig host``):
+
+* :mod:`host.rig.host_role` — the role's entry: builds the canopen network and hands it to the bench;
+* :mod:`host.rig.rig_bench` — :class:`~host.rig.rig_bench.RigBench`, the trial loop's bench over CAN,
+  composed of the modules below;
+* :mod:`host.rig.bring_up` — the nodes from their EDS files, boot-up, heartbeat set-up, NMT start,
+  PDO configuration, recovery of a node lost between trials;
+* :mod:`host.rig.host_heartbeat` — the host's heartbeat producer (node 127);
+* :mod:`host.rig.node_events` — the nodes' heartbeats and EMCY frames as heard;
+* :mod:`host.rig.watchdog` — fault detection and declaration (NMT STOP, cancelled SDO requests),
+  before, between, during and after trials;
+* :mod:`host.rig.fault_classify` — what a fault is: pure functions from an observation to a fault record;
+* :mod:`host.rig.trial_runner` — one trial on the plant node, its timing;
+* :mod:`host.rig.pdo_stream` — the SYNC producer of the SYNC/RPDO/TPDO lockstep (``--ff-transport pdo``);
+* :mod:`host.rig.shutdown` — every live drive torque-free at the end, with the evidence from the bus;
+* :mod:`host.rig.channels`, :mod:`host.rig.monitor` — the passive channel monitors (frame and bit
+  counts, candump logs, the io channel's trial and tick);
+* :mod:`host.rig.bus_time` — bus-time figures; :mod:`host.rig.realtime` — trial timing, real-time
+  figures, SCHED_FIFO, steal time; :mod:`host.rig.miss_attribution` — missed ticks beside a
+  kernel scheduler trace.
+
+and the launcher (``ilcrig run``), which starts the hub, the plant, the four drives and the host as
+processes and always cleans them up:
+
+* :mod:`host.rig.launcher` — :func:`~host.rig.launcher.launch_rig`: preflight, start, watch, clean up;
+* :mod:`host.rig.role_commands` — the roles' command lines (``python -P -m host.cli ROLE``, test hooks);
+* :mod:`host.rig.processes` — starting (roles, the hub), describing and terminating processes;
+* :mod:`host.rig.supervisor` — the watch loop until the host ends;
+* :mod:`host.rig.run_outcome` — the run's end: exit code, fault record, drives' evidence, the fault line;
+* :mod:`host.rig.interrupts` — SIGINT / SIGTERM / SIGHUP to the launcher;
+* :mod:`host.rig.inject` — kill / stall / EMCY injection; :mod:`host.rig.idle_poll` — the
+  SCHED_IDLE loops that keep the CPUs awake in a real-time run.
 
 May import: ``bus`` (incl. ``bus.cia301`` and ``bus.transports``), :mod:`host.nodes`,
 :mod:`host.experiment`, :mod:`host.analysis`.  Never ``firmware_model`` or ``plant``: the rig

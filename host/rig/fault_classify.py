@@ -1,0 +1,304 @@
+"""What a fault seen by the host is: pure functions from an observation to one
+:class:`host.experiment.faults.FaultRecord`.
+
+This module owns the host's fault vocabulary on the bus, without threads, locks or frames:
+
+* :func:`node_name` — ``drive1`` … ``drive4``, ``plant``, ``host`` for a node id;
+* :func:`bus_fault` — a failing bus (the fieldbus, a monitor's bus, the host's heartbeat send);
+* :func:`channel_fault` — a channel's candump log stopped (full disk, failing write) or a bus error
+  frame on it;
+* :func:`emcy_fault` — the fault an EMCY frame reports (codes: docs/canopen-objects.md §3);
+* :func:`heartbeat_fault` — overdue or rebooted nodes: one node lost, or the whole bus silent;
+* :func:`plant_trial_fault` / :func:`sdo_fault` — the record of an exception the trial loop caught
+  (the plant node's fault state, an SDO request refused, unanswered or cancelled).
+
+Times are ``time.monotonic()`` seconds (``t_mono``) or ``time.time()`` seconds (``t_wall``);
+latencies are in ms. :class:`host.rig.watchdog.Watchdog` gathers the observations and calls these
+in a fixed order.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+from bus.cia301.nmt import HOST_NODE_ID, HeartbeatReport
+from bus.errors import SdoAbort
+from bus.objects import DRIVE_NODE_IDS
+from bus.plant_objects import DEFAULT_PLANT_NODE_ID as PLANT_NODE_ID
+from bus.plant_objects import PlantFault
+from host.experiment.faults import FaultKind, FaultRecord
+from host.nodes.plant_client import PlantTrialFault
+from host.nodes.sdo_access import SdoTransportError
+
+__all__ = [
+    "BusError",
+    "ChannelTrouble",
+    "EmcyFrame",
+    "bus_fault",
+    "channel_fault",
+    "emcy_fault",
+    "heartbeat_fault",
+    "node_name",
+    "plant_trial_fault",
+    "sdo_fault",
+]
+
+#: EMCY error codes the drives send (docs/canopen-objects.md §3)
+EMCY_HOST_LOST = 0x8130
+EMCY_TICK_SEQUENCE = 0x8200
+EMCY_FOLLOWING_ERROR = 0x8611
+
+#: the plant node's fault codes as fault kinds
+PLANT_FAULT_KINDS: Mapping[PlantFault, FaultKind] = {
+    PlantFault.PLANT: FaultKind.PLANT_ERROR,
+    PlantFault.TICK_TIMEOUT: FaultKind.FRAME_LOST,
+    PlantFault.TICK_SEQUENCE: FaultKind.FRAME_SEQUENCE,
+    PlantFault.BAD_FRAME: FaultKind.FRAME_ERROR,
+    PlantFault.HOST_LOST: FaultKind.HOST_LOST,
+    PlantFault.ABORTED: FaultKind.TRIAL_FAULT,
+}
+
+
+def node_name(node_id: int) -> str:
+    """``drive1`` … ``drive4``, ``plant`` (the plant node), ``host`` (127), else ``node N``."""
+    if node_id in DRIVE_NODE_IDS:
+        return f"drive{node_id}"
+    if node_id == PLANT_NODE_ID:
+        return "plant"
+    if node_id == HOST_NODE_ID:
+        return "host"
+    return f"node {node_id}"
+
+
+@dataclass(frozen=True)
+class BusError:
+    """A bus that failed: its channel, the error text and when it was seen (``t_mono``, s)."""
+
+    channel: str
+    error: str
+    t_mono: float | None
+
+
+@dataclass(frozen=True)
+class ChannelTrouble:
+    """What a channel monitor noted: its log stopped (``log_error``, on a full disk
+    ``disk_full``) and the bus error frames it saw (``error_frames``, the first at
+    ``first_error_frame_t``)."""
+
+    channel: str
+    log_error: str | None = None
+    log_error_t: float | None = None
+    disk_full: bool = False
+    error_frames: int = 0
+    first_error_frame_t: float | None = None
+
+
+@dataclass(frozen=True)
+class EmcyFrame:
+    """An EMCY frame with an error code (not an error reset): its node, code, data and when the
+    node sent it (``t_mono`` / ``t_wall``, s)."""
+
+    node_id: int
+    code: int
+    data: bytes
+    t_mono: float
+    t_wall: float
+
+
+def bus_fault(errors: Sequence[BusError], bus_name: str, now: float) -> FaultRecord | None:
+    """The first failing bus of ``errors`` as a ``bus_lost`` fault (``bus_name``: ``hub`` or the
+    transport's name), None if there is none."""
+    if not errors:
+        return None
+    err = errors[0]
+    return FaultRecord(
+        FaultKind.BUS_LOST,
+        f"the bus is gone ({err.channel}: {err.error})",
+        node=bus_name,
+        detected_by="host",
+        t_detected_mono=err.t_mono or now,
+        latency_ms=0.0,
+        latency_basis="bus error",
+    )
+
+
+def channel_fault(channels: Sequence[ChannelTrouble], now: float) -> FaultRecord | None:
+    """The first channel in trouble: a stopped log (``disk_full`` / ``output_error``) before its
+    error frames (``frame_error``); None if all are well."""
+    for ch in channels:
+        if ch.log_error is not None:
+            kind = FaultKind.DISK_FULL if ch.disk_full else FaultKind.OUTPUT_ERROR
+            what = "disk full" if ch.disk_full else "cannot write"
+            return FaultRecord(
+                kind,
+                f"{what}: the {ch.channel}.log candump log stopped ({ch.log_error})",
+                detected_by="host",
+                t_detected_mono=ch.log_error_t or now,
+                latency_ms=0.0,
+                latency_basis="failed write",
+            )
+        if ch.error_frames:
+            return FaultRecord(
+                FaultKind.FRAME_ERROR,
+                f"a damaged frame on {ch.channel} (bus error frame)",
+                node=ch.channel,
+                detected_by="host",
+                t_detected_mono=ch.first_error_frame_t or now,
+            )
+    return None
+
+
+def _plant_emcy_fault(frame: EmcyFrame, data: bytes) -> FaultRecord:
+    """The plant node's EMCY: data[0] its fault code, data[1] the drive, data[2:4] the tick."""
+    try:
+        fault = PlantFault(data[0])
+    except ValueError:
+        fault = PlantFault.NONE
+    drive, tick = data[1], int.from_bytes(data[2:4], "little")
+    texts = {
+        PlantFault.PLANT: f"plant error at tick {tick}",
+        PlantFault.TICK_TIMEOUT: f"io frame lost or late: no torque frame of drive {drive} for tick {tick} within the deadline",
+        PlantFault.TICK_SEQUENCE: f"io frame out of sequence (duplicated, stale or skipped) from drive {drive} at tick {tick}",
+        PlantFault.BAD_FRAME: (
+            f"malformed torque frame of drive {drive} at tick {tick}"
+            if drive
+            else f"damaged io frame (bus error frame) at tick {tick}"
+        ),
+        PlantFault.HOST_LOST: "the host's heartbeat was lost",
+        PlantFault.ABORTED: f"the plant node aborted the trial at tick {tick}",
+    }
+    node = f"drive{drive}" if drive else ("host" if fault == PlantFault.HOST_LOST else "plant")
+    return FaultRecord(
+        PLANT_FAULT_KINDS.get(fault, FaultKind.EMCY),
+        f"{texts.get(fault, f'fault {int(fault)}')} (EMCY 0x{frame.code:04X} of the plant node)",
+        node=node,
+        node_id=drive or (HOST_NODE_ID if fault == PlantFault.HOST_LOST else PLANT_NODE_ID),
+        tick=tick,
+        detected_by="plant",
+        t_detected_mono=frame.t_mono,
+        t_detected_wall=frame.t_wall,
+    )
+
+
+def emcy_fault(frame: EmcyFrame) -> FaultRecord:
+    """The fault an EMCY frame reports (codes: docs/canopen-objects.md §3)."""
+    data = frame.data + bytes(8)
+    if frame.node_id == PLANT_NODE_ID:
+        return _plant_emcy_fault(frame, data)
+    name = node_name(frame.node_id)
+    if frame.code == EMCY_HOST_LOST:
+        return FaultRecord(
+            FaultKind.HOST_LOST,
+            f"the host's heartbeat was lost (EMCY 0x8130 of {name})",
+            node="host",
+            node_id=HOST_NODE_ID,
+            detected_by=name,
+            t_detected_mono=frame.t_mono,
+            t_detected_wall=frame.t_wall,
+        )
+    if frame.code == EMCY_TICK_SEQUENCE:
+        expected, got = int.from_bytes(data[1:3], "little"), int.from_bytes(data[3:5], "little")
+        return FaultRecord(
+            FaultKind.FRAME_SEQUENCE,
+            f"io tick out of sequence at {name}: expected tick {expected}, got {got} (EMCY 0x8200)",
+            node=name,
+            node_id=frame.node_id,
+            tick=expected,
+            detected_by=name,
+            t_detected_mono=frame.t_mono,
+            t_detected_wall=frame.t_wall,
+        )
+    what = "following error" if frame.code == EMCY_FOLLOWING_ERROR else "fault"
+    return FaultRecord(
+        FaultKind.EMCY,
+        f"{what} of {name} (EMCY 0x{frame.code:04X})",
+        node=name,
+        node_id=frame.node_id,
+        detected_by=name,
+        t_detected_mono=frame.t_mono,
+        t_detected_wall=frame.t_wall,
+    )
+
+
+def heartbeat_fault(
+    report: HeartbeatReport,
+    last_heard: Mapping[int, float | None],
+    now: float,
+    *,
+    consumer_s: float,
+    period_s: float,
+    bus_name: str,
+) -> FaultRecord | None:
+    """The fault a heartbeat check shows, None if every node beats and none booted again.
+
+    :param last_heard: when each of the five nodes was last heard (``t_mono``, s; None: never)
+    :param consumer_s: the host's consumer time, s
+    :param period_s: the nodes' heartbeat period, s
+    :param bus_name: what to blame when no node is heard at all (``hub`` or the transport)
+    """
+    if report.overdue:
+        everyone = set(DRIVE_NODE_IDS) | {PLANT_NODE_ID}
+        quiet = 1.2 * period_s  # > a period: every node missed a beat
+        heard = [last_heard.get(n) for n in everyone]
+        if set(report.overdue) >= everyone or all(t is None or now - t > quiet for t in heard):
+            return FaultRecord(
+                FaultKind.BUS_SILENT,
+                f"no heartbeat from any node for {1000 * consumer_s:.0f} ms: the bus is silent ({bus_name} stalled?)",
+                node=bus_name,
+                detected_by="host",
+                t_detected_mono=now,
+            )
+        nid = sorted(report.overdue, key=lambda n: (n == PLANT_NODE_ID, n))[0]
+        seen = last_heard.get(nid)
+        silent = f"{1000 * (now - seen):.0f} ms" if seen is not None else "ever"
+        return FaultRecord(
+            FaultKind.NODE_LOST,
+            f"heartbeat of {node_name(nid)} lost (silent for {silent}: the process died or stalled)",
+            node=node_name(nid),
+            node_id=nid,
+            detected_by="host",
+            t_detected_mono=now,
+            latency_ms=1000 * (now - seen - period_s) if seen else None,
+            latency_basis="its next heartbeat was due" if seen else None,
+        )
+    if report.booted:
+        nid = report.booted[0]
+        return FaultRecord(
+            FaultKind.NODE_LOST,
+            f"{node_name(nid)} booted again during the run (it was reset or restarted)",
+            node=node_name(nid),
+            node_id=nid,
+            detected_by="host",
+            t_detected_mono=now,
+        )
+    return None
+
+
+def plant_trial_fault(exc: PlantTrialFault, trial: int, now: float) -> FaultRecord:
+    """The plant node's fault state read back after a trial ended in fault."""
+    st = exc.state
+    return FaultRecord(
+        PLANT_FAULT_KINDS.get(st.fault, FaultKind.TRIAL_FAULT),
+        f"plant node: {st.describe()}",
+        node=f"drive{st.fault_node}" if st.fault_node else "plant",
+        node_id=st.fault_node or PLANT_NODE_ID,
+        trial=trial,
+        tick=st.fault_tick,
+        detected_by="plant",
+        t_detected_mono=now,
+    )
+
+
+def sdo_fault(exc: SdoTransportError | SdoAbort, trial: int, now: float) -> FaultRecord:
+    """An SDO request refused (abort), unanswered or cancelled, as an ``sdo_error``."""
+    nid = getattr(exc, "node_id", None)
+    return FaultRecord(
+        FaultKind.SDO_ERROR,
+        str(exc),
+        node=node_name(nid) if nid else None,
+        node_id=nid,
+        trial=trial,
+        detected_by="host",
+        t_detected_mono=now,
+    )

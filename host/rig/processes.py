@@ -1,0 +1,269 @@
+"""The role processes of ``ilcrig run`` as OS processes: started, described, stopped.
+
+This module owns
+
+* :func:`spawn` — start one role in its own session (so its whole process group can be
+  signalled) with ``PR_SET_PDEATHSIG`` = SIGKILL (it dies with the launcher), stdin closed and its
+  output in its log file (:class:`Child`);
+* :class:`Death` — a process that ended while the host ran, with how and when it was noticed;
+* :func:`start_hub_process` — the bus hub (:func:`bus.transports.hub_server.start_hub`) with
+  SIGINT/SIGHUP blocked (a terminal's Ctrl-C reaches the launcher only) and ``PYTHONSAFEPATH``
+  set (its ``python -m`` does not import from the working folder);
+* :func:`terminate` — SIGTERM every child's process group, wait a grace period, SIGKILL, reap;
+* small helpers: an exit status in words (:func:`describe_status`), the last lines of a log
+  (:func:`tail`), a role's node id (:func:`node_id_of`), the launcher's CPU time (:func:`cpu_s`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import logging
+import os
+import resource
+import shlex
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from bus.cia301.nmt import HOST_NODE_ID
+from bus.plant_objects import DEFAULT_PLANT_NODE_ID
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "Child",
+    "Death",
+    "LaunchError",
+    "cpu_s",
+    "describe_status",
+    "killpg",
+    "node_id_of",
+    "spawn",
+    "start_hub_process",
+    "tail",
+    "terminate",
+]
+
+_PR_SET_PDEATHSIG = 1
+#: signals blocked while the hub starts: a terminal's Ctrl-C must reach the launcher only
+_HUB_BLOCKED_SIGNALS = frozenset({signal.SIGINT, signal.SIGHUP})
+
+
+class LaunchError(RuntimeError):
+    """A role process or the hub could not be started."""
+
+
+@dataclass
+class Child:
+    """One started role process.
+
+    :ivar name: ``host``, ``plant``, ``drive1`` … ``drive4``
+    :ivar log_path: where its output goes (the host: its stderr only; None: the launcher's terminal)
+    """
+
+    name: str
+    proc: subprocess.Popen[bytes]
+    argv: list[str]
+    log_path: Path | None = None
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+
+@dataclass
+class Death:
+    """A process of the run that ended while the host ran (or the host itself).
+
+    :ivar t_mono: when the launcher noticed it, ``time.monotonic()``
+    """
+
+    name: str
+    pid: int
+    status: str
+    t_mono: float
+    log_path: Path | None
+    returncode: int
+
+    def describe(self) -> str:
+        where = f"; its log: {self.log_path}" if self.log_path else ""
+        return f"{self.name} (pid {self.pid}) {self.status}{where}"
+
+
+def node_id_of(name: str) -> int | None:
+    """The node id of a role (``drive2`` → 2, ``plant``, ``host``), None for others (``hub``)."""
+    if name.startswith("drive") and name[5:].isdigit():
+        return int(name[5:])
+    return {"plant": DEFAULT_PLANT_NODE_ID, "host": HOST_NODE_ID}.get(name)
+
+
+def describe_status(code: int) -> str:
+    """``exited with code N`` or ``was killed by SIGNAME`` for a Popen return code."""
+    if code < 0:
+        try:
+            return f"was killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"was killed by signal {-code}"
+    return f"exited with code {code}"
+
+
+def tail(path: Path | None, n: int) -> list[str]:
+    """The last ``n`` non-blank lines of the file (its last 8 KiB), [] if unreadable."""
+    if path is None:
+        return []
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(0, os.SEEK_END)
+            fh.seek(max(0, fh.tell() - 8192))
+            lines = fh.read().decode(errors="replace").splitlines()
+    except OSError:
+        return []
+    return [ln for ln in lines if ln.strip()][-n:]
+
+
+def cpu_s() -> float:
+    """CPU time (user + system) this process used so far, s."""
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    return ru.ru_utime + ru.ru_stime
+
+
+def killpg(pgid: int, signum: int) -> None:
+    """Signal a child's process group (its own session); the child alone if that fails."""
+    try:
+        os.killpg(pgid, signum)
+    except ProcessLookupError:
+        pass
+    except PermissionError:  # pragma: no cover - setsid failed: pgid is not ours
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pgid, signum)
+
+
+def _make_preexec() -> Callable[[], None] | None:
+    """``preexec_fn`` setting PR_SET_PDEATHSIG = SIGKILL (None where prctl is unavailable).
+
+    The libc function is looked up here, in the parent, so the child only calls it. If the
+    parent already died between fork and prctl, the child kills itself.
+    """
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):  # pragma: no cover - glibc/musl always have prctl
+        logger.warning("prctl unavailable: children will not die with a SIGKILLed launcher")
+        return None
+    prctl.restype = ctypes.c_int
+    prctl.argtypes = [ctypes.c_int, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong]
+    parent = os.getpid()
+    sigkill = int(signal.SIGKILL)
+
+    def preexec() -> None:
+        prctl(_PR_SET_PDEATHSIG, sigkill, 0, 0, 0)
+        if os.getppid() != parent:  # the launcher died before prctl took effect
+            os.kill(os.getpid(), sigkill)
+
+    return preexec
+
+
+def spawn(name: str, argv: list[str], log_path: Path | None, *, stderr_only: bool = False) -> Child:
+    """Start one role (see the module docstring).
+
+    :param log_path: its stdout and stderr go here (None: the launcher's)
+    :param stderr_only: only its stderr goes to the log, its stdout to the launcher's (the host)
+    :raises LaunchError: it could not be started
+    """
+    log = open(log_path, "ab") if log_path is not None else None  # noqa: SIM115 - closed below
+    try:
+        proc = subprocess.Popen(
+            argv,
+            stdin=subprocess.DEVNULL,
+            stdout=None if stderr_only else log,
+            stderr=log if stderr_only else (subprocess.STDOUT if log is not None else None),
+            start_new_session=True,
+            preexec_fn=_make_preexec(),
+            close_fds=True,
+        )
+    except OSError as err:
+        raise LaunchError(f"cannot start {name} ({shlex.join(argv[:4])} …): {err}") from err
+    finally:
+        if log is not None:
+            log.close()  # the child has its own descriptor
+    logger.debug("started %s pid %d: %s", name, proc.pid, shlex.join(argv))
+    return Child(name, proc, argv, log_path)
+
+
+@contextlib.contextmanager
+def _safe_path_environment() -> Iterator[None]:
+    """``PYTHONSAFEPATH=1`` in this process's environment for the block: a ``python -m`` child
+    started meanwhile does not import from the working folder."""
+    old = os.environ.get("PYTHONSAFEPATH")
+    os.environ["PYTHONSAFEPATH"] = "1"
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop("PYTHONSAFEPATH", None)
+        else:
+            os.environ["PYTHONSAFEPATH"] = old
+
+
+def start_hub_process(
+    address: str | None, inject: str | None = None, log_path: Path | None = None, bus_time: dict[str, int] | None = None
+) -> Any:
+    """Start the bus hub (see the module docstring); returns its handle.
+
+    :param address: where it listens (None: ``hub.sock`` in a fresh private temp dir)
+    :param inject: its frame faults (JSON, ``--inject`` of the hub)
+    :param log_path: its stderr goes here
+    :param bus_time: logical bus → bit rate, bit/s (``--bus-time``)
+    :raises LaunchError: it did not start
+    :raises ValueError: a bad address
+    """
+    from bus.transports.hub_server import HubError, start_hub
+
+    # The hub stays in the launcher's process group (start_hub's Popen); with SIGINT/SIGHUP
+    # blocked across fork+exec (the signal mask is inherited), a terminal Ctrl-C reaches only
+    # the launcher, and the hub lives until the roles are stopped (then stdin EOF stops it).
+    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, _HUB_BLOCKED_SIGNALS)
+    log = open(log_path, "ab") if log_path is not None else None  # noqa: SIM115 - closed below
+    try:
+        with _safe_path_environment():
+            hub = start_hub(address, inject=inject, stderr=log, bus_time=bus_time)
+    except HubError as err:
+        if isinstance(err, ValueError):
+            raise
+        raise LaunchError(f"cannot start the bus hub{f' on {address}' if address else ''}: {err}") from err
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)  # a pending Ctrl-C is handled now
+        if log is not None:
+            log.close()  # the hub has its own descriptor
+    logger.info("hub pid %d on %s", hub.pid, hub.address)
+    return hub
+
+
+def terminate(children: Sequence[Child], grace_s: float, hurry: Callable[[], bool]) -> None:
+    """SIGTERM every child's process group (SIGCONT too: a stopped process must run to see it),
+    wait up to ``grace_s`` seconds (less once ``hurry()`` is true), SIGKILL the groups, reap."""
+    if not children:
+        return
+    for c in children:
+        if c.proc.returncode is None:
+            killpg(c.pid, signal.SIGTERM)
+            killpg(c.pid, signal.SIGCONT)
+    deadline = time.monotonic() + grace_s
+    while time.monotonic() < deadline and not hurry():
+        if all(c.proc.poll() is not None for c in children):
+            break
+        time.sleep(0.02)
+    for c in children:
+        if c.proc.poll() is None:
+            logger.info("%s (pid %d) ignored SIGTERM for %.1f s: SIGKILL", c.name, c.pid, grace_s)
+        killpg(c.pid, signal.SIGKILL)  # also any process a role left behind in its group
+    for c in children:
+        c.proc.wait()
+        logger.debug("%s (pid %d) reaped: %s", c.name, c.pid, describe_status(c.proc.returncode))

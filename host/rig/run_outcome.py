@@ -1,0 +1,208 @@
+"""How an ``ilcrig run`` ends once the host has: its exit code, the summary's fault record and
+evidence, and the one terminal line.
+
+This module owns :class:`RunOutcome`, the launcher's exit paths:
+
+* the host completed the run: exit 0 (a process that ended afterwards gets a note);
+* the host refused the experiment: its ``ilcrig: error:`` line, exit 2;
+* a fault: the record in ``summary.json`` — the host's own, or, when the host itself died or
+  was stopped, a ``process_died`` record naming the process that ended — completed with what only
+  the launcher knows (which process ended, the drives' ``SAFE-STATE`` records from their logs,
+  :mod:`bus.safe_state`, after letting stalled processes resume and live drives react);
+  ``report.md`` rewritten; the one line ``ilcrig: fault: <what>: <node>, trial k, tick n; …; its
+  log: …``; exit 3;
+* an interrupt: the summary marked ``interrupted`` by the launcher if the host did not mark it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from bus.cia301.nmt import CONSUMER_TIME_MS
+from bus.safe_state import last_state_in_log
+from bus.units import timeout_scale
+from host.experiment.console import EXIT_FAULT, EXIT_OK, EXIT_USAGE
+from host.experiment.faults import FaultKind, FaultRecord, attach_injection, fault_line, read_injections
+from host.rig.processes import Child, Death, describe_status, node_id_of, tail
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["RunOutcome"]
+
+
+class RunOutcome:
+    """The end of one run (see the module docstring).
+
+    :param out_dir: the run folder
+    :param children: the role processes
+    :param say_err: writes one line to the launcher's stderr
+    :param resume_all: resumes every process an injection stalled (before the drives' evidence is read)
+    """
+
+    def __init__(
+        self,
+        out_dir: Path,
+        children: Sequence[Child],
+        say_err: Callable[[str], None],
+        resume_all: Callable[[], None] | None = None,
+    ) -> None:
+        self.out_dir = out_dir
+        self.children = children
+        self.say_err = say_err
+        self.resume_all = resume_all
+
+    # -- the summary ----------------------------------------------------------------------
+    def load_summary(self) -> dict[str, Any] | None:
+        """The run's ``summary.json`` as the host left it (None: none, or unreadable)."""
+        try:
+            data = json.loads((self.out_dir / "summary.json").read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return None
+        return data if isinstance(data, dict) and isinstance(data.get("iterations"), list) else None
+
+    def save(self, summary: dict[str, Any], report: bool = False) -> None:
+        """Rewrite ``summary.json`` (and with ``report`` ``report.md``); failures are logged."""
+        from host.experiment.summary import OutputError, write_summary
+
+        try:
+            write_summary(self.out_dir, summary)
+        except OutputError as err:
+            logger.error("cannot update the summary: %s", err)
+            return
+        if report:
+            try:
+                from host.analysis.run_report import write_run_report
+
+                write_run_report(self.out_dir, summary)
+            except Exception:  # noqa: BLE001 - the report must not hide the fault line
+                logger.info("report.md not written", exc_info=True)
+
+    def mark_interrupted(self, signal_name: str) -> None:
+        """A run interrupted by ``signal_name`` whose host did not say so in the summary: say so."""
+        summary = self.load_summary()
+        if summary is not None and not summary.get("interrupted") and not summary.get("completed"):
+            summary["interrupted"] = {"signal": signal_name, "trial": len(summary["iterations"]), "tick": None, "by": "launcher"}
+            self.save(summary)
+
+    # -- the exit paths -------------------------------------------------------------------
+    def conclude(self, host: Child, code: int, deaths: Sequence[Death], host_stopped: bool) -> int:
+        """The run's exit code after the host ended with ``code``; ``deaths``: the processes that
+        ended while it ran; ``host_stopped``: the launcher stopped it."""
+        host_death = None
+        if code != 0 and not host_stopped and code not in (EXIT_USAGE, EXIT_FAULT):
+            host_death = Death("host", host.pid, describe_status(code), time.monotonic(), host.log_path, code)
+        if code == EXIT_OK:
+            if deaths:  # the run completed; something ended afterwards
+                self.say_err(f"ilcrig: note: {deaths[0].describe()} after the last trial")
+            return EXIT_OK
+        if code == EXIT_USAGE:
+            line = next((ln for ln in reversed(tail(host.log_path, 40)) if ln.startswith("ilcrig: error:")), None)
+            self.say_err(line or f"ilcrig: error: the host refused the experiment; its log: {host.log_path}")
+            return EXIT_USAGE
+        summary = self.load_summary()
+        kept = len(summary["iterations"]) if summary is not None else 0
+        first = deaths[0] if deaths else host_death
+        if (summary is None or not summary.get("faults")) and code == EXIT_FAULT and not deaths:
+            # the host ended with a fault it did not put in a summary
+            line = next((ln for ln in reversed(tail(host.log_path, 40)) if ln.startswith("ilcrig: ")), None)
+            self.say_err(
+                f"{line}; the host's log: {host.log_path}"
+                if line
+                else f"ilcrig: fault: the host ended the run with exit code {code}; its log: {host.log_path}"
+            )
+            return EXIT_FAULT
+        record = self._record(summary, kept, host, code, first)
+        if summary is not None:
+            summary["completed"] = False
+            summary["faults"][0] = record.as_dict()
+            since = first.t_mono if first is not None else (record.t_detected_mono or time.monotonic())
+            if record.injected and record.injected.get("t_mono") is not None:
+                since = float(record.injected["t_mono"])
+            summary["safe_state"] = self.drive_evidence(summary.get("safe_state") or [], since)
+            self.save(summary, report=True)
+        summary_path = self.out_dir / "summary.json" if summary is not None else None
+        self.say_err(fault_line(record, kept, summary_path=summary_path, extra=self._where(record, first, host)))
+        return EXIT_FAULT
+
+    def _record(self, summary: dict[str, Any] | None, kept: int, host: Child, code: int, first: Death | None) -> FaultRecord:
+        """The run's fault: the host's first record, else a ``process_died`` one (added to the
+        summary); with the process that ended first attached."""
+        if summary is not None and summary.get("faults"):
+            record = FaultRecord.from_dict(summary["faults"][0])
+        else:
+            culprit = first or Death("host", host.pid, describe_status(code), time.monotonic(), host.log_path, code)
+            record = FaultRecord(
+                FaultKind.PROCESS_DIED,
+                f"{culprit.name} (pid {culprit.pid}) {culprit.status}",
+                node=culprit.name,
+                node_id=node_id_of(culprit.name),
+                trial=kept,
+                detected_by="launcher",
+                t_detected_mono=culprit.t_mono,
+                latency_basis="process exit",
+            )
+            attach_injection(record, read_injections(self.out_dir))
+            if record.tick is None and record.injected and record.injected.get("trial") == record.trial:
+                record.tick = record.injected.get("tick")
+            if summary is not None:
+                summary["faults"].append(record.as_dict())
+        if first is not None:
+            record.extra["process_ended"] = {
+                "name": first.name,
+                "pid": first.pid,
+                "status": first.status,
+                "log": str(first.log_path) if first.log_path else None,
+            }
+        return record
+
+    def _where(self, record: FaultRecord, first: Death | None, host: Child) -> str:
+        """The fault line's pointer: the log of the process concerned, or the one that ended."""
+        concerned = next((c for c in self.children if c.name == record.node), None)
+        if first is not None and record.kind == FaultKind.PROCESS_DIED and record.node == first.name:
+            return f"its log: {first.log_path}"
+        if first is not None:
+            return first.describe()
+        if concerned is not None and concerned.log_path is not None:
+            return f"its log: {concerned.log_path}"
+        if record.node == "hub":
+            return f"its log: {self.out_dir / 'logs' / 'hub.log'}"
+        return f"the host's log: {host.log_path}"
+
+    def drive_evidence(self, entries: list[dict[str, Any]], since: float) -> list[dict[str, Any]]:
+        """Complete the drives' safe-state entries from their logs (SAFE-STATE records): stalled
+        processes resume first, live drives get a consumer time to react to a lost host."""
+        if self.resume_all is not None:
+            self.resume_all()
+        by_node = {e.get("node"): dict(e) for e in entries}
+        drives = [c for c in self.children if c.name.startswith("drive")]
+        deadline = time.monotonic() + CONSUMER_TIME_MS / 1000.0 * timeout_scale() + 0.5
+        while True:
+            missing = []
+            for c in drives:
+                entry = by_node.setdefault(c.name, {"node": c.name, "node_id": node_id_of(c.name), "torque": "unknown"})
+                if entry.get("torque") == "off" and "its log" not in str(entry.get("evidence", "")):
+                    continue  # the host saw it on the bus
+                rec, on_after = last_state_in_log(tail(c.log_path, 400), c.name)
+                if rec is not None and not on_after:
+                    entry.update(
+                        torque="off",
+                        cia402=rec.get("cia402"),
+                        nmt=rec.get("nmt"),
+                        evidence=f"its log: SAFE-STATE reason={rec.get('reason')}, tick {rec.get('tick')}"
+                        + (f", {1000 * (float(rec['t_mono']) - since):+.0f} ms after the fault" if "t_mono" in rec else ""),
+                    )
+                elif c.proc.poll() is not None:
+                    entry.update(torque="off", evidence=f"the process {describe_status(c.proc.returncode)}: no power stage left")
+                else:
+                    missing.append(c)
+            if not missing or time.monotonic() > deadline:
+                break
+            time.sleep(0.05)
+        return [by_node[c.name] for c in drives if c.name in by_node] + [
+            e for n, e in by_node.items() if not str(n).startswith("drive")
+        ]

@@ -1,0 +1,113 @@
+"""Supervising a running ``ilcrig run``: the host and every other process until the host ends.
+
+This module owns :class:`Supervisor`, the launcher's watch loop: every :data:`POLL_S` it looks at
+the host, the other roles and the hub.  A process that ends meanwhile is noted as a
+:class:`host.rig.processes.Death` and gives the host a grace period to notice it on the bus and
+record it (the host's watchdog takes about three heartbeat periods); a host that does not end by
+then is stopped (:meth:`Supervisor.stop_host`: signal, wait, SIGKILL its group).  A signal to the
+launcher (:class:`host.rig.interrupts.Interrupts`) ends the watch at once.  The CPU and wall time
+the watch took are kept (a few µs of CPU per wake-up).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import signal
+import time
+from pathlib import Path
+from typing import Any
+
+from host.rig.interrupts import Interrupts
+from host.rig.processes import Child, Death, cpu_s, describe_status, killpg
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["POLL_S", "Supervisor"]
+
+#: watch-loop period, s
+POLL_S: float = 0.05
+
+
+class Supervisor:
+    """Watches the processes of one run (see the module docstring).
+
+    :param children: the role processes (the list the launcher keeps; the host among them)
+    :param hub: the hub's handle (``alive``, ``pid``, ``process``), None without a hub
+    :param hub_log: the hub's log file
+    :param host_grace_s: how long the host gets to end after another process ended, or after a signal, s
+    :param interrupts: the launcher's signal state
+    :ivar deaths: the processes that ended while the host ran, in the order noticed
+    :ivar host_stopped: the supervisor stopped the host after its grace period
+    :ivar watch_cpu_s: CPU time (user+sys) the launcher used while watching, s
+    :ivar watch_wall_s: wall time of the watch loop, s
+    """
+
+    def __init__(
+        self, children: list[Child], hub: Any, hub_log: Path | None, host_grace_s: float, interrupts: Interrupts
+    ) -> None:
+        self.children = children
+        self.hub = hub
+        self.hub_log = hub_log
+        self.host_grace_s = host_grace_s
+        self.interrupts = interrupts
+        self.deaths: list[Death] = []
+        self.host_stopped = False
+        self.watch_cpu_s = 0.0
+        self.watch_wall_s = 0.0
+
+    def watch(self, host: Child) -> int:
+        """Until the host ends (its exit code) or a signal comes (then -1). A process that ends
+        meanwhile gives the host :attr:`host_grace_s` to record it; then the host is stopped."""
+        cpu0, wall0 = cpu_s(), time.monotonic()
+        deadline: float | None = None
+        try:
+            while True:
+                if self.interrupts.signum is not None:  # first: the roles may fail because of the same Ctrl-C
+                    return -1
+                code = host.proc.poll()
+                if code is not None:
+                    self.note_deaths(host)
+                    return code
+                self.note_deaths(host)
+                if self.deaths and deadline is None:
+                    deadline = time.monotonic() + self.host_grace_s
+                if deadline is not None and time.monotonic() > deadline:
+                    logger.info(
+                        "the host did not end within %.1f s of %s: stopping it", self.host_grace_s, self.deaths[0].describe()
+                    )
+                    self.host_stopped = True
+                    return self.stop_host(host, signal.SIGTERM)
+                time.sleep(POLL_S)
+        finally:
+            self.watch_cpu_s, self.watch_wall_s = cpu_s() - cpu0, time.monotonic() - wall0
+            logger.info("launcher used %.3f s CPU in %.1f s of watching", self.watch_cpu_s, self.watch_wall_s)
+
+    def note_deaths(self, host: Child) -> None:
+        """Note every process (not the host) that ended since the last look, the hub included."""
+        noted = {d.name for d in self.deaths}
+        now = time.monotonic()
+        for c in self.children:
+            if c is host or c.name in noted:
+                continue
+            code = c.proc.poll()
+            if code is not None:
+                self.deaths.append(Death(c.name, c.pid, describe_status(code), now, c.log_path, code))
+                logger.info("%s (pid %d) %s while the host was running", c.name, c.pid, describe_status(code))
+        if self.hub is not None and "hub" not in noted and not self.hub.alive:
+            code = self.hub.process.returncode
+            self.deaths.append(Death("hub", self.hub.pid, describe_status(code), now, self.hub_log, code))
+            logger.info("the hub (pid %d) %s while the host was running", self.hub.pid, describe_status(code))
+
+    def stop_host(self, host: Child, signum: int) -> int:
+        """Signal the host alone and wait up to :attr:`host_grace_s` (a second signal: at once) for
+        it to end; SIGKILL its group after that. Returns its exit code."""
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(host.pid, signum)
+        deadline = time.monotonic() + self.host_grace_s
+        while host.proc.poll() is None and time.monotonic() < deadline and not self.interrupts.hurry:
+            time.sleep(0.02)
+        if host.proc.poll() is None:
+            killpg(host.pid, signal.SIGKILL)
+        return host.proc.wait()

@@ -1,0 +1,114 @@
+"""One trial of the rig, from the host: start it on the plant node, stream it (``--ff-transport
+pdo``), wait for its end, and keep its timing.
+
+This module owns :class:`TrialRunner`: per trial it sends TRIAL_START to the plant node (which
+then leads the lockstep on the io channel), streams the SYNC/RPDO set-points through a
+:class:`host.rig.pdo_stream.SyncProducer` when the trial has cyclic set-points, and waits for the
+plant node to report the trial done.  A fault during the trial ends as one
+:class:`host.experiment.trials.TrialFault` carrying the watchdog's record (or the record of the
+exception, :meth:`host.rig.watchdog.Watchdog.describe`).  After each trial it keeps the plant
+node's :class:`bus.plant_objects.TrialTiming`, the ticks that missed their deadline (only when
+some did) and the CPU time the hypervisor took meanwhile (:func:`host.rig.realtime.steal_during`).
+"""
+
+from __future__ import annotations
+
+import gc
+import logging
+from typing import Any
+
+import numpy as np
+
+from bus.errors import SdoAbort
+from bus.plant_objects import DeadlineMisses, TrialTiming
+from host.experiment.trials import CyclicActuals, CyclicSetpoints, TrialFault
+from host.nodes.plant_client import PlantClient, PlantClientError
+from host.nodes.sdo_access import SdoTransportError
+from host.rig.pdo_stream import SyncProducer
+from host.rig.realtime import MachineSteal, steal_during, timing_summary
+from host.rig.watchdog import Watchdog
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["TrialRunner"]
+
+
+class TrialRunner:
+    """Runs the trials on the plant node (see the module docstring).
+
+    :param plant: the plant node's client
+    :param watchdog: marks the trial as running, and declares the faults
+    :param streamer: the SYNC producer of cyclic trials (None: the drives play their tables)
+    :ivar timings: per completed trial, the plant node's timing
+    :ivar misses: per completed trial, its missed ticks (None: none missed, or not paced)
+    :ivar steal: per completed trial, the CPU time the hypervisor took meanwhile (None: not counted)
+    """
+
+    def __init__(self, plant: PlantClient, watchdog: Watchdog, streamer: SyncProducer | None = None) -> None:
+        self.plant = plant
+        self.watchdog = watchdog
+        self.streamer = streamer
+        self.timings: list[TrialTiming] = []
+        self.misses: list[DeadlineMisses | None] = []
+        self.steal: list[MachineSteal | None] = []
+        self._gc_frozen = False
+
+    def run(
+        self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray, cyclic: CyclicSetpoints | None = None
+    ) -> CyclicActuals | None:
+        """Reset the plant to (q0, qd0) and run ``n_ticks`` lockstep ticks; with ``cyclic`` stream its
+        set-points and return the TPDO actuals.
+
+        :raises TrialFault: the trial did not complete (the fault's record attached)
+        """
+        watchdog = self.watchdog
+        watchdog.trial = trial
+        watchdog.raise_if_fault()
+        self._freeze_gc()
+        actuals = None
+
+        def trial_body() -> None:
+            nonlocal actuals
+            self.plant.start_trial(trial, n_ticks, q0, qd0)
+            if cyclic is not None:
+                if self.streamer is None:
+                    raise TrialFault(f"trial {trial}: cyclic set-points, but the drives' PDOs are not configured")
+                actuals = self.streamer.stream(trial, n_ticks, cyclic)
+            # generous: lockstep over a loaded 2-core machine; faults come back much sooner
+            self.plant.wait_trial(timeout_s=60.0 + n_ticks * 0.01, poll_s=0.02)
+
+        with watchdog.during_trial(trial):
+            try:
+                steal = steal_during(trial_body)
+            except (PlantClientError, SdoAbort, SdoTransportError) as exc:
+                watchdog.settle_and_check()
+                record = watchdog.describe(exc, trial)
+                raise TrialFault(record.message if record else f"trial {trial}: {exc}", record) from exc
+        watchdog.check()
+        watchdog.raise_if_fault()
+        timing = self.plant.trial_timing()
+        self.timings.append(timing)
+        # which ticks missed, only when some did: a run that keeps up moves the same frames as before
+        self.misses.append(self.plant.deadline_misses() if timing.paced and timing.deadline_misses else None)
+        self.steal.append(steal)
+        return actuals
+
+    def explain_missing_tpdo(self, scale: float) -> None:
+        """Before a missing TPDO is reported: give the plant node a moment to end the trial with
+        its own fault (which then explains it)."""
+        self.plant.wait_trial(timeout_s=1.0 * scale)
+
+    def timing(self, ts_s: float, realtime: bool, scheduling: dict[str, Any] | None) -> dict[str, Any]:
+        """The summary's timing of the trials so far (:func:`host.rig.realtime.timing_summary`)."""
+        return timing_summary(self.timings, ts_s, realtime, scheduling, self.steal, self.misses)
+
+    def _freeze_gc(self) -> None:
+        """What the host holds at its first trial (numba, scipy, canopen, rerun, pyarrow: about a
+        million objects) lives as long as the process: frozen out of the cycle collector's reach,
+        a full collection during a trial costs about a millisecond instead of 50-150 ms of one of
+        the two cores the lockstep needs (refcounting still frees them). No gc.collect() first: it
+        would hold the GIL for that long itself (seconds in an emulated VM, near the drives'
+        heartbeat consumer time); the little garbage frozen with the rest is kept once."""
+        if not self._gc_frozen:
+            gc.freeze()
+            self._gc_frozen = True

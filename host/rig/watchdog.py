@@ -1,0 +1,285 @@
+"""The host's watchdog: everything it hears about the nodes and the bus turned into one fault.
+
+This module owns :class:`Watchdog`, the one place where a fault of the rig is detected and
+declared, whether a trial runs or not:
+
+* it hears the nodes through :class:`host.rig.node_events.NodeEvents` (their heartbeats and EMCY
+  frames, canopen's ``RemoteNode.nmt`` / ``RemoteNode.emcy`` callbacks) and the canopen
+  notifier's errors (:class:`FieldbusErrors`);
+* a thread (every :data:`WATCH_PERIOD_S`), or :meth:`Watchdog.check` in the caller's thread,
+  looks at what it has heard, the channels (:class:`host.rig.channels.RigChannels`) and the host's
+  heartbeat producer and classifies the first fault visible (:mod:`host.rig.fault_classify`), in
+  order: a bus gone, a channel's log stopped or a bus error frame, an EMCY, a node's heartbeat
+  lost or its boot-up, no node heard at all;
+* once :meth:`Watchdog.arm` was called, that fault is declared: NMT STOP broadcast at once
+  (torque off on every drive still alive), the record kept (the trial and the io channel's tick
+  filled in, the injection that caused it attached), and the fault hooks run (the bench cancels
+  its SDO requests and wakes a SYNC producer waiting for TPDOs); the main thread then ends the
+  run through the experiment's one fault path (:meth:`Watchdog.raise_if_fault`).
+
+Between trials a lost node may be tolerated (``tolerate_lost_between_trials``, ``--recover``): then
+heartbeats are not judged outside a trial and the bench brings the node up again.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import can
+import canopen
+
+from bus.cia301.nmt import CONSUMER_TIME_MS, NODE_HEARTBEAT_MS, NmtCommand
+from bus.errors import SdoAbort
+from bus.transports.config import FIELDBUS
+from host.experiment.faults import FaultRecord, attach_injection, read_injections
+from host.experiment.trials import TrialFault
+from host.nodes.plant_client import PlantTrialFault
+from host.nodes.sdo_access import SdoTransportError
+from host.rig.channels import RigChannels
+from host.rig.fault_classify import (
+    BusError,
+    bus_fault,
+    channel_fault,
+    emcy_fault,
+    heartbeat_fault,
+    plant_trial_fault,
+    sdo_fault,
+)
+from host.rig.host_heartbeat import HostHeartbeat
+from host.rig.node_events import NodeEvents
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["EMCY_SETTLE_S", "WATCH_PERIOD_S", "FieldbusErrors", "Watchdog", "nmt_stop_all"]
+
+#: the watchdog's period, s
+WATCH_PERIOD_S = 0.02
+#: after a fault the bench saw itself, how long the host lets the nodes' EMCY frames arrive
+#: before it decides what happened, s
+EMCY_SETTLE_S = 0.05
+
+
+def nmt_stop_all(network: canopen.Network) -> bool:
+    """NMT STOP to all nodes (broadcast): torque off on every drive that hears it. False when it
+    could not be sent (the bus is gone)."""
+    try:
+        network.nmt.send_command(NmtCommand.STOP)
+        return True
+    except (can.CanError, OSError, AttributeError) as exc:
+        logger.info("NMT stop not sent: %s", exc)
+        return False
+
+
+class FieldbusErrors(can.Listener):
+    """A listener on the canopen network's notifier that notes a failing fieldbus."""
+
+    def __init__(self) -> None:
+        self.error: str | None = None
+        self.error_t: float | None = None
+
+    def on_message_received(self, msg: can.Message) -> None:
+        pass
+
+    def on_error(self, exc: Exception) -> None:
+        if self.error is None:
+            self.error = f"{type(exc).__name__}: {exc}"
+            self.error_t = time.monotonic()
+            logger.warning("fieldbus failed: %s", self.error)
+        time.sleep(0.1)
+
+
+class Watchdog:
+    """Fault detection and declaration for the rig (see the module docstring).
+
+    :param network: the canopen network of the fieldbus (NMT STOP goes out on it)
+    :param channels: the channel monitors (bus errors, logs, error frames, the io tick)
+    :param bus_name: what a silent or lost bus is called in a fault: ``hub`` or the transport's name
+    :param out_dir: the run folder, whose injection records a fault is matched with (None: none)
+    :param scale: the timeout scale (``ILCRIG_TIMEOUT_SCALE``) of the consumer time
+    :param tolerate_lost_between_trials: judge heartbeats only during a trial (``--recover``)
+    :param t_start: the host's start (``time.monotonic()``, s), origin of the EMCY log's ``t_s``
+    """
+
+    def __init__(
+        self,
+        network: canopen.Network,
+        channels: RigChannels,
+        *,
+        bus_name: str,
+        out_dir: Path | None,
+        scale: float,
+        tolerate_lost_between_trials: bool = False,
+        t_start: float | None = None,
+    ) -> None:
+        self.network = network
+        self.channels = channels
+        self.bus_name = bus_name
+        self.out_dir = out_dir
+        #: the host's consumer time of the nodes' heartbeats, s
+        self.consumer_s = CONSUMER_TIME_MS / 1000.0 * scale
+        #: the nodes' heartbeat period as the host allows for it, s
+        self.period_s = NODE_HEARTBEAT_MS / 1000.0 * scale
+        self.tolerate_lost_between_trials = tolerate_lost_between_trials
+        #: the nodes' heartbeats and EMCY frames
+        self.events = NodeEvents(self.consumer_s, time.monotonic() if t_start is None else t_start)
+        self.fieldbus_errors = FieldbusErrors()
+        #: the host's heartbeat producer, whose failure is a lost bus (set by the bench)
+        self.producer: HostHeartbeat | None = None
+        #: the trial in progress or next (0-based), and whether it runs now
+        self.trial = 0
+        self.in_trial = False
+        self._lock = threading.Lock()
+        self._fault: FaultRecord | None = None
+        self._declaring = False
+        self._armed = False
+        self._hooks: list[Callable[[FaultRecord], None]] = []
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # -- the thread ---------------------------------------------------------------------------
+    def start(self) -> None:
+        """Start the watchdog thread (it declares faults only once :meth:`arm` was called)."""
+        self._thread = threading.Thread(target=self._loop, name="host watchdog", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Declare no more faults and end the thread."""
+        self._armed = False
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=1.0)
+
+    def arm(self) -> None:
+        """From now on any fault seen is declared (ends the run)."""
+        self._armed = True
+
+    def disarm(self) -> None:
+        """Declare no more faults (the thread keeps running until :meth:`stop`)."""
+        self._armed = False
+
+    def on_fault(self, hook: Callable[[FaultRecord], None]) -> None:
+        """Run ``hook(record)`` when a fault is declared (after NMT STOP; in the declaring thread)."""
+        self._hooks.append(hook)
+
+    def _loop(self) -> None:
+        last = time.monotonic()
+        while not self._stop.wait(WATCH_PERIOD_S):
+            now = time.monotonic()
+            if now - last > self.consumer_s:
+                # this process did not run (it was stopped): let the notifier read what queued up
+                self.events.grace(now)
+                last = now
+                continue
+            last = now
+            self._round(now)
+
+    # -- detection and declaration --------------------------------------------------------------
+    @property
+    def fault(self) -> FaultRecord | None:
+        """The declared fault (the first), None while all is well."""
+        return self._fault
+
+    @property
+    def fieldbus_ok(self) -> bool:
+        """The fieldbus is open and the canopen notifier has seen no error on it."""
+        return self.network.bus is not None and self.fieldbus_errors.error is None
+
+    def check(self) -> None:
+        """One watchdog round in the caller's thread."""
+        self._round(time.monotonic())
+
+    def settle_and_check(self) -> None:
+        """After a fault the bench saw itself: let the nodes' EMCY frames arrive (they say who saw
+        it first), then one round."""
+        if self._fault is None:
+            time.sleep(EMCY_SETTLE_S)
+            self.check()
+
+    def raise_if_fault(self) -> None:
+        """:raises TrialFault: a fault was declared."""
+        if self._fault is not None:
+            raise TrialFault(self._fault.message, self._fault)
+
+    @contextlib.contextmanager
+    def during_trial(self, trial: int) -> Iterator[None]:
+        """Mark ``trial`` as running while the block runs."""
+        self.trial = trial
+        self.in_trial = True
+        try:
+            yield
+        finally:
+            self.in_trial = False
+
+    def _round(self, now: float) -> None:
+        record = self.detect(now)
+        if record is not None:
+            self.declare(record)
+
+    def detect(self, now: float) -> FaultRecord | None:
+        """The first fault visible now (None: all is well, or not armed, or declared already)."""
+        if not self._armed or self._fault is not None:
+            return None
+        errors: list[BusError] = []
+        if self.fieldbus_errors.error is not None:
+            errors.append(BusError(FIELDBUS, self.fieldbus_errors.error, self.fieldbus_errors.error_t))
+        errors += self.channels.bus_errors()
+        if self.producer is not None and self.producer.error is not None:
+            errors.append(BusError(FIELDBUS, self.producer.error, self.producer.error_t))
+        record = bus_fault(errors, self.bus_name, now) or channel_fault(self.channels.troubles(), now)
+        if record is not None:
+            return record
+        pending = self.events.take_emcy()
+        if pending:
+            return emcy_fault(min(pending, key=lambda f: f.t_mono))
+        if not self.in_trial and self.tolerate_lost_between_trials:
+            return None  # between trials a lost node is waited for (recover)
+        report, last = self.events.report(now), self.events.last_heard()
+        return heartbeat_fault(report, last, now, consumer_s=self.consumer_s, period_s=self.period_s, bus_name=self.bus_name)
+
+    def declare(self, record: FaultRecord) -> None:
+        """The run is over: keep ``record`` (the first fault), torque off everywhere at once (NMT
+        STOP broadcast), run the fault hooks."""
+        with self._lock:
+            if self._fault is not None or self._declaring:
+                return
+            self._declaring = True
+        nmt_stop_all(self.network)  # first: torque off
+        if record.trial is None:
+            record.trial = self.trial
+        if record.tick is None:
+            record.tick = self.channels.trial_tick(self.trial)
+        if self.out_dir is not None:
+            attach_injection(record, read_injections(self.out_dir))
+        with self._lock:
+            self._fault = record
+        logger.warning(
+            "fault: %s (%s) at trial %s, tick %s, detected by %s",
+            record.message,
+            record.kind,
+            record.trial,
+            record.tick,
+            record.detected_by,
+        )
+        for hook in self._hooks:
+            hook(record)
+
+    def describe(self, exc: BaseException, trial: int) -> FaultRecord | None:
+        """What the host knows about ``exc``: the declared fault, else the record of the exception
+        (the plant node's fault state, an SDO error), else None."""
+        if self._fault is not None:
+            return self._fault
+        now = time.monotonic()
+        if isinstance(exc, PlantTrialFault):
+            record = plant_trial_fault(exc, trial, now)
+        elif isinstance(exc, SdoTransportError | SdoAbort):
+            record = sdo_fault(exc, trial, now)
+        else:
+            return None
+        if self.out_dir is not None:
+            attach_injection(record, read_injections(self.out_dir))
+        return record

@@ -1,0 +1,214 @@
+"""The host's fault detection without role processes: the pure rules of host/rig/fault_classify.py,
+and host/rig/watchdog.py on python-can virtual buses — heartbeats and EMCY frames in, one fault
+record, NMT STOP on the bus and the fault hooks out, with no trial running."""
+
+from __future__ import annotations
+
+import itertools
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import can
+import canopen
+import pytest
+
+from bus.cia301.emcy import emcy_cob_id, encode_emcy
+from bus.cia301.nmt import HeartbeatReport, NmtCommand, NmtState, heartbeat_cob_id
+from bus.objects import DRIVE_EDS_PATH
+from bus.plant_objects import PLANT_EDS_PATH, PlantFault
+from bus.transports.config import FIELDBUS, virtual_transport
+from host.experiment.faults import FaultKind, FaultRecord
+from host.experiment.trials import TrialFault
+from host.rig.bus_time import BusTimeAccounting
+from host.rig.channels import RigChannels
+from host.rig.fault_classify import (
+    BusError,
+    ChannelTrouble,
+    EmcyFrame,
+    bus_fault,
+    channel_fault,
+    emcy_fault,
+    heartbeat_fault,
+    node_name,
+)
+from host.rig.watchdog import Watchdog
+
+NODES = (1, 2, 3, 4, 32)
+_prefix = itertools.count()
+
+
+# ---------------------------------------------------------------------------------------
+# the rules
+# ---------------------------------------------------------------------------------------
+
+
+def test_node_names() -> None:
+    assert [node_name(n) for n in (1, 4, 32, 127, 9)] == ["drive1", "drive4", "plant", "host", "node 9"]
+
+
+def test_emcy_frames_as_faults() -> None:
+    # the plant node: a torque frame of drive 3 missing at tick 0x0102
+    rec = emcy_fault(EmcyFrame(32, 0xFF00, bytes([PlantFault.TICK_TIMEOUT, 3, 0x02, 0x01]), 10.0, 1e9))
+    assert (rec.kind, rec.node, rec.node_id, rec.tick, rec.detected_by) == (FaultKind.FRAME_LOST, "drive3", 3, 258, "plant")
+    assert rec.message.startswith("io frame lost or late: no torque frame of drive 3 for tick 258")
+    assert (rec.t_detected_mono, rec.t_detected_wall) == (10.0, 1e9)
+    # the plant node lost the host's heartbeat
+    rec = emcy_fault(EmcyFrame(32, 0xFF00, bytes([PlantFault.HOST_LOST, 0, 0, 0]), 1.0, 2.0))
+    assert (rec.kind, rec.node, rec.node_id) == (FaultKind.HOST_LOST, "host", 127)
+    # a drive: the host lost, an io tick out of sequence, a following error
+    rec = emcy_fault(EmcyFrame(2, 0x8130, b"", 1.0, 2.0))
+    assert (rec.kind, rec.node, rec.detected_by) == (FaultKind.HOST_LOST, "host", "drive2")
+    rec = emcy_fault(EmcyFrame(4, 0x8200, bytes([0, 7, 0, 9, 0]), 1.0, 2.0))
+    assert (rec.kind, rec.node, rec.tick) == (FaultKind.FRAME_SEQUENCE, "drive4", 7)
+    assert rec.message == "io tick out of sequence at drive4: expected tick 7, got 9 (EMCY 0x8200)"
+    rec = emcy_fault(EmcyFrame(1, 0x8611, b"", 1.0, 2.0))
+    assert (rec.kind, rec.message) == (FaultKind.EMCY, "following error of drive1 (EMCY 0x8611)")
+
+
+def test_heartbeat_rules() -> None:
+    heard = {n: 9.9 for n in NODES}
+    kw = {"consumer_s": 0.5, "period_s": 0.2, "bus_name": "hub"}
+    assert heartbeat_fault(HeartbeatReport(), heard, 10.0, **kw) is None
+    # one drive silent while the others beat: that node is lost, 600 ms silent, 400 ms after its beat was due
+    rec = heartbeat_fault(HeartbeatReport(overdue=[3]), heard | {3: 9.4}, 10.0, **kw)
+    assert rec is not None and (rec.kind, rec.node, rec.node_id) == (FaultKind.NODE_LOST, "drive3", 3)
+    assert "silent for 600 ms" in rec.message and rec.latency_ms == pytest.approx(400.0)
+    # the plant and a drive overdue: the drive is named
+    rec = heartbeat_fault(HeartbeatReport(overdue=[2, 32]), heard, 10.0, **kw)
+    assert rec is not None and rec.node == "drive2"
+    # nobody heard for more than a period: the bus is silent
+    rec = heartbeat_fault(HeartbeatReport(overdue=[1]), {n: 9.7 for n in NODES}, 10.0, **kw)
+    assert rec is not None and (rec.kind, rec.node) == (FaultKind.BUS_SILENT, "hub")
+    # a boot-up during the run
+    rec = heartbeat_fault(HeartbeatReport(booted=[4]), heard, 10.0, **kw)
+    assert rec is not None and rec.kind == FaultKind.NODE_LOST and "booted again" in rec.message
+
+
+def test_bus_and_channel_rules() -> None:
+    assert bus_fault([], "hub", 1.0) is None
+    rec = bus_fault([BusError("io", "OSError: gone", 0.5), BusError("fieldbus", "x", 0.7)], "hub", 1.0)
+    assert rec is not None and (rec.kind, rec.node, rec.t_detected_mono) == (FaultKind.BUS_LOST, "hub", 0.5)
+    assert rec.message == "the bus is gone (io: OSError: gone)"
+    assert channel_fault([], 1.0) is None
+    # the first channel's error frames come before the second channel's full disk
+    rec = channel_fault(
+        [ChannelTrouble("fieldbus", error_frames=2, first_error_frame_t=0.2), ChannelTrouble("io", "No space", 0.1, True)], 1.0
+    )
+    assert rec is not None and (rec.kind, rec.node) == (FaultKind.FRAME_ERROR, "fieldbus")
+    rec = channel_fault([ChannelTrouble("io", "No space left on device", 0.1, True, error_frames=1)], 1.0)
+    assert rec is not None and rec.kind == FaultKind.DISK_FULL
+    assert rec.message == "disk full: the io.log candump log stopped (No space left on device)"
+
+
+# ---------------------------------------------------------------------------------------
+# the watchdog on virtual buses
+# ---------------------------------------------------------------------------------------
+
+
+@dataclass
+class Rig:
+    watchdog: Watchdog
+    peer: can.BusABC  # the nodes' side of the fieldbus
+    declared: list[FaultRecord]
+
+
+@pytest.fixture
+def rig() -> Iterator[Rig]:
+    """A watchdog on a virtual fieldbus, its thread not started: the tests run its rounds with the
+    times they choose (consumer time 50 ms, heartbeat period 20 ms: ``scale`` 0.1)."""
+    tc = virtual_transport(prefix=f"watchdog-test-{next(_prefix)}")
+    bus_time = BusTimeAccounting(ts_s=0.001, trial_s=0.3, heartbeat_ms=200, n_nodes=6)
+    channels = RigChannels(tc, None, bus_time)
+    network = canopen.Network(tc.open(FIELDBUS))
+    peer = tc.open(FIELDBUS)
+    watchdog = Watchdog(network, channels, bus_name="virtual", out_dir=None, scale=0.1)
+    network.listeners.append(watchdog.fieldbus_errors)
+    network.connect()
+    for nid in NODES:
+        node = network.add_node(nid, str(DRIVE_EDS_PATH if nid != 32 else PLANT_EDS_PATH))
+        watchdog.events.listen_to(nid, node)
+        watchdog.events.watch(nid)
+    declared: list[FaultRecord] = []
+    watchdog.on_fault(declared.append)
+    try:
+        yield Rig(watchdog, peer, declared)
+    finally:
+        watchdog.stop()
+        channels.close()
+        network.disconnect()
+        peer.shutdown()
+
+
+def beat(rig: Rig, nodes: tuple[int, ...]) -> dict[int, float]:
+    """Heartbeats (OPERATIONAL) of ``nodes`` from the peer; returns when the host heard them all."""
+    before = rig.watchdog.events.last_heard()
+    for nid in nodes:
+        rig.peer.send(can.Message(arbitration_id=heartbeat_cob_id(nid), data=[NmtState.OPERATIONAL], is_extended_id=False))
+    while True:
+        heard = rig.watchdog.events.last_heard()
+        if all(heard[n] is not None and heard[n] != before[n] for n in nodes):
+            return {n: t for n, t in heard.items() if t is not None}
+        time.sleep(0.005)
+
+
+def nmt_stop_seen(peer: can.BusABC, timeout_s: float = 30.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while (left := deadline - time.monotonic()) > 0:
+        msg = peer.recv(left)
+        if msg is not None and msg.arbitration_id == 0 and bytes(msg.data) == bytes([NmtCommand.STOP, 0]):
+            return True
+    return False
+
+
+def test_a_node_lost_outside_a_trial_is_declared_once_with_nmt_stop(rig: Rig) -> None:
+    t3 = beat(rig, NODES)[3]
+    others = (1, 2, 4, 32)
+    while min(beat(rig, others)[n] for n in others) <= t3 + 0.05:  # drive 3 falls silent
+        pass
+    heard = rig.watchdog.events.last_heard()
+    now = min(heard[n] for n in others) + 0.011  # drive 3 silent > 50 ms, the others heard < 24 ms ago
+    assert rig.watchdog.detect(now) is None  # not armed yet
+    rig.watchdog.arm()  # no trial runs: heartbeats are judged all the same
+    assert not rig.watchdog.in_trial
+    rec = rig.watchdog.detect(now)
+    assert rec is not None
+    assert (rec.kind, rec.node, rec.node_id, rec.detected_by) == (FaultKind.NODE_LOST, "drive3", 3, "host")
+    rig.watchdog.declare(rec)
+    assert nmt_stop_seen(rig.peer)  # torque off everywhere
+    assert rig.declared == [rec] and rig.watchdog.fault is rec
+    assert (rec.trial, rec.tick) == (0, None)  # the next trial; no tick on the io channel
+    with pytest.raises(TrialFault) as exc:
+        rig.watchdog.raise_if_fault()
+    assert exc.value.record is rec
+    rig.watchdog.declare(FaultRecord(FaultKind.EMCY, "a second fault"))  # the first fault stays the fault
+    assert rig.declared == [rec] and rig.watchdog.detect(now) is None
+
+
+def test_an_emcy_is_declared_and_logged(rig: Rig) -> None:
+    beat(rig, NODES)
+    rig.watchdog.arm()
+    rig.peer.send(can.Message(arbitration_id=emcy_cob_id(2), data=encode_emcy(0x8611, 0x01), is_extended_id=False))
+    while not rig.watchdog.events.emcy:
+        time.sleep(0.005)
+    rig.watchdog.check()
+    assert len(rig.declared) == 1
+    rec = rig.declared[0]
+    assert (rec.kind, rec.node, rec.detected_by) == (FaultKind.EMCY, "drive2", "drive2")
+    assert rec.message == "following error of drive2 (EMCY 0x8611)"
+    assert [(e["node"], e["code"], e["register"]) for e in rig.watchdog.events.emcy] == [(2, 0x8611, 0x01)]
+    assert nmt_stop_seen(rig.peer)
+
+
+def test_lost_nodes_tolerated_between_trials_but_not_during_one(rig: Rig) -> None:
+    beat(rig, NODES)
+    rig.watchdog.tolerate_lost_between_trials = True  # --recover
+    rig.watchdog.arm()
+    later = time.monotonic() + 10.0  # every node silent by then
+    assert rig.watchdog.detect(later) is None
+    with rig.watchdog.during_trial(1):
+        assert rig.watchdog.in_trial and rig.watchdog.trial == 1
+        rec = rig.watchdog.detect(later)
+    assert not rig.watchdog.in_trial
+    assert rec is not None and (rec.kind, rec.node) == (FaultKind.BUS_SILENT, "virtual")
+    assert rec.message == "no heartbeat from any node for 50 ms: the bus is silent (virtual stalled?)"
