@@ -121,18 +121,18 @@ def main(argv: list[str] | None = None) -> int:
             x, y = np.array(pts, dtype=float).T
             b, a = np.polyfit(x, y, 1)
             print(f"{law:<10} {k0} trials: peak RSS ≈ {a:.0f} MB + {b * MB / 1e3:.2f} kB × N")
-        for k in iters:
-            if k == k0:
-                continue
-            per = [
-                (rss - r0) * MB / ((k - k0) * n)
-                for (lw, n, kk, rss, *_) in rows
-                if lw == law and kk == k
-                for (lw0, n0, kk0, r0, *_) in rows
-                if lw0 == law and n0 == n and kk0 == k0
-            ]
-            if per:
-                print(f"{law:<10} {k} trials: {np.mean(per):.0f} bytes more per trial and sample")
+        # the growth with the trials: Δpeak = c + d·N·ΔK over all N (the runs with the fewest trials as base)
+        deltas = [
+            (n * (k - k0), rss - r0)
+            for (lw, n, k, rss, *_) in rows
+            if lw == law and k != k0
+            for (lw0, n0, kk0, r0, *_) in rows
+            if lw0 == law and n0 == n and kk0 == k0
+        ]
+        if len(deltas) >= 2:
+            x, y = np.array(deltas, dtype=float).T
+            d, _ = np.polyfit(x, y, 1)
+            print(f"{law:<10} {d * MB:.0f} bytes more per trial and sample (fitted over N)")
     return 0
 
 

@@ -73,17 +73,17 @@ RUN_BASE_BYTES: int = 370 * 1000**2
 #: the convergence check's vectors (a Krylov basis of 41 vectors of 4N when the map is not causal)
 #: and one trial's traces
 SAMPLE_BYTES: dict[str, int] = {
-    "pd-ilc": 2050,
-    "pd-ol": 2050,
-    "p-ol": 2050,
-    "d-ilc": 2050,
-    "pd-ilc-q": 2200,
-    "q-ilc": 2200,
+    "pd-ilc": 2250,
+    "pd-ol": 2250,
+    "p-ol": 2250,
+    "d-ilc": 2250,
+    "pd-ilc-q": 2250,
+    "q-ilc": 2250,
     "no-ilc": 3050,
     "no-ilc-id": 3100,
 }
 #: the part per sample and trial, bytes: every trial's error and feed-forward ((N, 4) float64 each)
-#: stay for the summary, the report and the recording (measured 75 B)
+#: stay for the summary, the report and the recording (measured 75 B: 100 against 2 trials at N = 20,001)
 TRIAL_SAMPLE_BYTES: int = 80
 #: ``ilcrig run``: the rig's other processes (launcher, hub, plant, four drives) together, their
 #: fixed part (summed resident memory, shared library pages counted in each process), bytes
