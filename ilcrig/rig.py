@@ -116,7 +116,7 @@ class RigRun:
                 "install it as a plug-in (entry point group ilcrig.laws) or give module:Class"
             )
         try:
-            prepare(config)  # the launcher's preflight, here: bad input before anything starts
+            prepare(config, rig=True)  # the launcher's preflight, here: bad input before anything starts
         except (ValueError, FileNotFoundError) as exc:
             raise input_error(exc) from None
         self.out = Path(out) if out is not None else Path("runs") / time.strftime("api-rig-%Y%m%d-%H%M%S")

@@ -98,7 +98,7 @@ def preflight(args: argparse.Namespace) -> list[FaultSpec]:
         raise ValueError("--no-idle-poll: the CPUs are kept awake only in a real-time run; add --realtime")
     from host.experiment.plan import prepare
 
-    prepare(cfg)
+    prepare(cfg, rig=True)
     return specs
 
 
