@@ -39,10 +39,10 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo):  # type
 def hub_data_plane(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
     """Run a hub test once with each data plane of the hub: the C core (skipped where it is not
     built) and the pure-Python path. Hubs started by the test, in-process or as child processes,
-    take it from the environment (bus.transports.hub_server.HUB_CORE_ENV)."""
-    from bus.transports import hub_server
+    take it from the environment (bus.transports.hub.core.HUB_CORE_ENV)."""
+    from bus.transports.hub.core import HUB_CORE_ENV, core_built
 
-    if request.param == "c" and hub_server._hubcore is None:
+    if request.param == "c" and not core_built():
         pytest.skip("the hub's C core is not built here (no C compiler at install)")
-    monkeypatch.setenv(hub_server.HUB_CORE_ENV, request.param)
+    monkeypatch.setenv(HUB_CORE_ENV, request.param)
     return str(request.param)

@@ -51,8 +51,8 @@ from typing import Any, ClassVar
 import can
 import pytest
 
-from bus.transports.hub_client import HubBus
-from bus.transports.hub_server import HubHandle, start_hub
+from bus.transports.hub.client import HubBus
+from bus.transports.hub.process import HubHandle, start_hub
 
 pytestmark = pytest.mark.multiprocess
 

@@ -25,8 +25,8 @@ from bus.transports.config import (
     udp_multicast_transport,
     virtual_transport,
 )
-from bus.transports.hub_server import start_hub
-from bus.transports.hub_wire import NonLoopbackAddressError
+from bus.transports.hub.process import start_hub
+from bus.transports.hub.wire import NonLoopbackAddressError
 
 CAN_ENV = [
     "CAN_INTERFACE", "CAN_CHANNEL", "CAN_BITRATE", "CAN_CONFIG",

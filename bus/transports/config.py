@@ -16,7 +16,7 @@ and ``io``, so e.g. ``CAN_INTERFACE_io=socketcan CAN_CHANNEL_io=vcan1`` configur
 channel; the two channels must not resolve to the same bus.
 
 Transports
-    * ``hub`` (default, zero privilege): one :mod:`bus.transports.hub_server` server, both channels as
+    * ``hub`` (default, zero privilege): one :mod:`bus.transports.hub` server, both channels as
       logical buses on it (``<address>#fieldbus``, ``<address>#io``).
     * ``socketcan``: ``vcan0`` (fieldbus) and ``vcan1`` (io); :func:`auto_transport` picks it
       when both interfaces exist in the current network namespace.
@@ -43,7 +43,7 @@ from typing import Any
 import can
 
 from bus.errors import IlcrigError
-from bus.transports.hub_wire import default_hub_address, parse_address
+from bus.transports.hub.addresses import default_hub_address, parse_address
 
 logger = logging.getLogger(__name__)
 
@@ -214,7 +214,7 @@ class TransportConfig:
 
         :param passive: for a member that only listens and nobody waits for (a monitor, a
             logger): on the hub it joins for bulk delivery (frames held up to
-            :data:`bus.transports.hub_wire.BULK_HOLD_S`, fewer writes); other transports ignore it
+            :data:`bus.transports.hub.wire.BULK_HOLD_S`, fewer writes); other transports ignore it
         """
         cfg = self.channel(logical)
         if passive and cfg.interface == HUB_INTERFACE:
@@ -248,9 +248,9 @@ def hub_transport(address: str | None = None, allow_remote: bool = False) -> Tra
     """Both channels as logical buses ``fieldbus`` / ``io`` of the hub at ``address``.
 
     :param address: ``unix:/path`` or ``tcp:127.0.0.1:PORT``; default
-        :func:`bus.transports.hub_wire.default_hub_address`
+        :func:`bus.transports.hub.addresses.default_hub_address`
     :param allow_remote: a hub on another machine (non-loopback TCP address): explicit opt-in
-    :raises bus.transports.hub_wire.HubAddressError: malformed or (without ``allow_remote``)
+    :raises bus.transports.hub.wire.HubAddressError: malformed or (without ``allow_remote``)
         non-loopback address
     """
     addr = address or default_hub_address()

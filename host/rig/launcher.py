@@ -488,7 +488,8 @@ class RigLauncher:
     def _start_hub(
         self, address: str | None, inject: str | None = None, log_path: Path | None = None, bus_time: dict[str, int] | None = None
     ) -> None:
-        from bus.transports.hub_server import HubError, start_hub
+        from bus.transports.hub.process import start_hub
+        from bus.transports.hub.wire import HubError
 
         # The hub stays in the launcher's process group (start_hub's Popen); with SIGINT/SIGHUP
         # blocked across fork+exec (the signal mask is inherited), a terminal Ctrl-C reaches only
