@@ -1,21 +1,34 @@
 """pytest hooks shared by the test suite.
 
-This file owns one rule (issue 5): under ``CI=true`` a *skipped* ``vcan`` test is a failure when
+This file owns two rules. Under ``CI=true`` a *skipped* ``vcan`` test is a failure when
 the vcan suite was asked for (``-m vcan``, as ``scripts/vcan-tests`` runs it, or
 ``ILCRIG_REQUIRE_VCAN=1``): in CI the suite must really run on SocketCAN, not quietly skip.
 The ordinary ``pytest`` run (no ``-m vcan``) keeps skipping vcan tests on kernels without vcan.
+And the processes the tests start take SIGINT (Ctrl-C) as Python's KeyboardInterrupt however the
+test runner was started (:func:`pytest_configure`). It also holds the ``hub_data_plane`` fixture.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import signal
 
 import pytest
 
 logger = logging.getLogger(__name__)
 
 _TRUE = ("1", "true", "yes")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """A runner started with SIGINT ignored (pytest in the background of a non-interactive shell)
+    would pass that on to every process the tests start, since an ignored signal stays ignored
+    across exec, and a tool the tests stop with Ctrl-C (``can.bridge``, ``can.logger``) would never
+    stop. Python's own handler instead: a handled signal is back to its default across exec, where
+    Python installs its KeyboardInterrupt again."""
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def _vcan_required(config: pytest.Config) -> bool:
