@@ -344,11 +344,13 @@ class Router:
             return None
         return min(c.held_since_s for c in self._held) + BULK_HOLD_S
 
-    def release_held(self, now_s: float) -> None:
-        """Send what bulk members held for :data:`BULK_HOLD_S` or longer (``now_s``: monotonic s)."""
-        if self._held:
-            for peer in [c for c in self._held if now_s - c.held_since_s >= BULK_HOLD_S]:
-                self._release(peer)
+    def release_held(self) -> None:
+        """Send what bulk members held for :data:`BULK_HOLD_S` or longer."""
+        if not self._held:
+            return
+        now_s = time.monotonic()
+        for peer in [c for c in self._held if now_s - c.held_since_s >= BULK_HOLD_S]:
+            self._release(peer)
 
     def _release(self, peer: Client) -> None:
         data = b"".join(peer.held)

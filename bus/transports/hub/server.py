@@ -184,7 +184,7 @@ class HubServer:
                 if bus_time is not None:
                     bus_time.run(time.monotonic_ns(), router.fan_out, self._update_events)
                 router.send_round()
-                router.release_held(time.monotonic())
+                router.release_held()
         finally:
             if watch_fd is not None:
                 with contextlib.suppress(KeyError, ValueError):
@@ -193,14 +193,15 @@ class HubServer:
     def _timeout_s(self) -> float | None:
         """How long the loop may wait for events, s: until the next held, delayed or bus-time frame
         is due (None: no frame is)."""
-        dues = [self._router.held_due_s(), self._router.delayed_due_s()]
+        held, delayed = self._router.held_due_s(), self._router.delayed_due_s()
+        end_ns = self.bus_time.next_end_ns() if self.bus_time is not None else None
+        if held is None and delayed is None and end_ns is None:
+            return None
         now = time.monotonic()
-        if self.bus_time is not None:
-            end_ns = self.bus_time.next_end_ns()
-            if end_ns is not None:
-                dues.append(now + (end_ns - time.monotonic_ns()) / 1e9)
-        due = min((d for d in dues if d is not None), default=None)
-        return None if due is None else max(0.0, due - now)
+        dues = [d for d in (held, delayed) if d is not None]
+        if end_ns is not None:
+            dues.append(now + (end_ns - time.monotonic_ns()) / 1e9)
+        return max(0.0, min(dues) - now)
 
     def close(self) -> None:
         """Close every socket and remove the Unix socket files."""
