@@ -65,7 +65,7 @@ def rig(ticks: int, trials: int, poll_s: float) -> list[dict[str, float]]:
     import canopen
 
     from bus.plant_objects import PLANT_EDS_PATH
-    from bus.transports.hub_server import start_hub
+    from bus.transports.hub.process import start_hub
     from host.nodes.drive_client import DriveClient
     from host.nodes.plant_client import PlantClient
     from host.nodes.sdo_access import SdoAccess

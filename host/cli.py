@@ -199,7 +199,7 @@ def _role_logging() -> None:
 
 
 def cmd_hub(args: argparse.Namespace) -> int:
-    from bus.transports.hub_server import main as hub_main
+    from bus.transports.hub.cli import main as hub_main
 
     argv = [x for a in (args.listen or []) for x in ("--listen", a)]
     return int(hub_main(argv + (["--allow-remote"] if args.allow_remote else [])) or 0)

@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 from fault_harness import Outcome, kill_session, recorded_trials, run_rig, sim_digest
 
-from bus.transports.hub_wire import BULK_HOLD_S
+from bus.transports.hub.wire import BULK_HOLD_S
 
 pytestmark = [pytest.mark.faultmatrix, pytest.mark.multiprocess, pytest.mark.slow]
 
