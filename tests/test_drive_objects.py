@@ -122,7 +122,7 @@ def test_abort_codes() -> None:
     assert abort_code(d.write_object, 0x2110, GainsSub.KP, i32(-1)) == AbortCode.VALUE_TOO_LOW == 0x06090032
     assert abort_code(d.write_object, 0x2110, GainsSub.VEL_FILTER, u16(40000)) == AbortCode.VALUE_TOO_HIGH
     assert abort_code(d.write_object, 0x2110, GainsSub.VEL_FILTER, u16(0)) == AbortCode.VALUE_TOO_LOW
-    assert abort_code(d.write_object, 0x6060, 0, b"\x09") == AbortCode.VALUE_RANGE == 0x06090030  # CSV: not supported
+    assert abort_code(d.write_object, 0x6060, 0, b"\x07") == AbortCode.VALUE_RANGE == 0x06090030  # interpolated: not supported
     assert abort_code(d.write_object, 0x2300, 0, u32(50)) == AbortCode.VALUE_TOO_LOW
     # tables need a length first, then exactly 4·N bytes
     assert abort_code(d.write_object, 0x2100, 0, i32(1)) == AbortCode.DEVICE_STATE
