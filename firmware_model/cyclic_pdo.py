@@ -178,7 +178,7 @@ class CyclicPdo:
             logger.warning("RPDO%d missed its deadline", number)
             if self._on_error is not None:
                 self._on_error("rpdo", number)
-        if self._sync_deadline_s is not None and now >= self._sync_deadline_s:
+        if self._sync_deadline_s is not None and now >= self._sync_deadline_s - 1e-9:  # µs sums carry float rounding
             self._sync_deadline_s = None
             logger.warning("no SYNC within %.1f communication cycle periods", SYNC_TIMEOUT_PERIODS)
             if self._on_error is not None:

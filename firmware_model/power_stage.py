@@ -222,6 +222,8 @@ class PowerStage:
             logger.info("node %d fault reset", self.node_id)
         if after == _S.QUICK_STOP_ACTIVE and before != _S.QUICK_STOP_ACTIVE:
             self._begin_quick_stop(qs_option)
+        if before == _S.QUICK_STOP_ACTIVE and after == _S.OPERATION_ENABLED and self.motion is not None:
+            self.motion.on_torque_on()  # transition 16: the mode starts afresh where the drive is
         if after != _S.QUICK_STOP_ACTIVE:
             self._stopped = False
         self.update()

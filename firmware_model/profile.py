@@ -13,8 +13,9 @@ One step towards a target ``T`` (:meth:`ProfileGenerator.step_to`), with ``d = T
 the velocity ``u = v·sign(d)`` along it:
 
 * moving away from the target (``u < 0``): brake, ``u' = min(u + dec, 0)``;
-* otherwise ``u' = min(u + acc, v_max, isqrt(2·dec·|d|))`` -- accelerate, cruise, or the largest
-  velocity from which the deceleration still stops at the target -- but never below
+* otherwise ``u' = min(u + acc, v_max, (isqrt(8·dec·|d| + dec²) − dec) // 2)`` -- accelerate,
+  cruise, or the largest velocity from which braking by ``dec`` per cycle (moving ``u'``, then
+  ``u' − dec``, ...) stops within ``|d|`` (``u'²/(2·dec) + u'/2 <= |d|``) -- but never below
   ``u − dec`` (the deceleration limit; a target that came too close by a change of set-point is
   overshot and approached again);
 * if ``|d| <= u'`` the target is reached this cycle: ``p = T·2^16``, ``v = 0`` (the profile always
@@ -23,7 +24,7 @@ the velocity ``u = v·sign(d)`` along it:
 A stop (:meth:`ProfileGenerator.step_stop`) lowers ``|v|`` by ``dec`` per cycle to 0, moving ``p``
 by the new velocity.  Everything is integer arithmetic with an explicit rounding (``isqrt``
 floors, :func:`bus.fixedpoint.profile_position_counts` rounds half up) and saturation (the
-position stays within the int32 counts); ``2·dec·|d|`` is formed exactly (up to 2^91: a C port
+position stays within the int32 counts); ``8·dec·|d|`` is formed exactly (up to 2^93: a C port
 needs a 128-bit product there).
 """
 
@@ -87,7 +88,7 @@ class ProfileGenerator:
         if u < 0:
             u_new = min(u + dec, 0)
         else:
-            u_new = min(u + acc, v_max, isqrt(2 * dec * dist))
+            u_new = min(u + acc, v_max, (isqrt(8 * dec * dist + dec * dec) - dec) // 2)
             u_new = max(u_new, u - dec)
             if dist <= u_new:
                 self.p = int(target_counts) << fp.PROFILE_Q

@@ -113,6 +113,8 @@ _INT_STRUCTS = {1: "B", 2: "H", 4: "I", 8: "Q"}
 #: inhibit time unit [s]
 INHIBIT_UNIT_S = 100e-6
 _EVENT = (TT_EVENT_MANUFACTURER, TT_EVENT_PROFILE)
+#: a timer is due this close to its time [s]: time sums of whole µs carry float rounding
+_EPS_S = 1e-9
 
 Frame = tuple[int, bytes]
 
@@ -376,7 +378,7 @@ class PdoEngine:
             return []
         out = []
         for pdo in self.rpdos:
-            if pdo.deadline_s is not None and now >= pdo.deadline_s:
+            if pdo.deadline_s is not None and now >= pdo.deadline_s - _EPS_S:
                 pdo.deadline_s = None
                 out.append(pdo.number)
         return out
@@ -468,11 +470,11 @@ class PdoEngine:
                 continue
             data = self.pack(pdo)
             changed = data != pdo.last_sent
-            timer = pdo.event_due_s is not None and now >= pdo.event_due_s
+            timer = pdo.event_due_s is not None and now >= pdo.event_due_s - _EPS_S
             if not (changed or timer):
                 continue
             inhibit_s = self._sub(pdo, COMM_INHIBIT_TIME) * INHIBIT_UNIT_S
-            if pdo.last_tx_s is not None and now < pdo.last_tx_s + inhibit_s:
+            if pdo.last_tx_s is not None and now < pdo.last_tx_s + inhibit_s - _EPS_S:
                 pdo.held = True  # sent when the inhibit time ends
                 continue
             out.append(self._sent(pdo, data, now))
