@@ -63,6 +63,7 @@ def enabled_drive(node_id: int = 2) -> Drive:
 
 def armed_drive(n: int = 5) -> Drive:
     d = enabled_drive()
+    d.write_object(Obj.MODES_OF_OPERATION, 0, b"\xff")  # table playback (-1)
     d.write_object(Obj.TABLE, TableSub.LENGTH, u32(n))
     for index in (Obj.REF_POSITION_TABLE, Obj.REF_VELOCITY_TABLE, Obj.FEEDFORWARD_TABLE):
         d.write_object(index, 0, bytes(4 * n))
