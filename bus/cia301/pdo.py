@@ -42,10 +42,13 @@ enters it: every counter and timer starts afresh)
 * a received synchronous RPDO (type 0..240) is buffered and written to its objects at the
   next SYNC; an event-driven RPDO (254/255) is written at once.  A payload shorter than the
   mapping is not processed (CiA 301: EMCY 0x8210, reported through ``report``).  The writes go
-  through the object store with its usual checks and hooks, so an RPDO has exactly the effect
-  of the same SDO downloads.  An RPDO with an event timer must come again within it: from its
-  first reception on, :meth:`PdoEngine.expired_rpdos` reports it once when it does not
-  (CiA 301: EMCY 0x8250), and the next reception arms it again.
+  through the object store with its usual checks and hooks, so an RPDO has the effect of the
+  same SDO downloads, in this order: first the objects without a write hook (set-points such as
+  0x607A), then those with one (commands such as the controlword), each group in mapping order;
+  a controlword therefore acts on the set-points of its own RPDO, whatever the mapping order.
+  An RPDO with an event timer must come again within it: from its first reception on,
+  :meth:`PdoEngine.expired_rpdos` reports it once when it does not (CiA 301: EMCY 0x8250), and the
+  next reception arms it again.
 * SYNC (:meth:`PdoEngine.on_sync`, with its counter byte when the producer sends one): the
   synchronous TPDOs due at it are returned; the application samples them
   (:meth:`PdoEngine.sample`) when the values of its control cycle exist.  Type n (1–240) is due
@@ -421,14 +424,22 @@ class PdoEngine:
         return True
 
     def _apply(self, pdo: _Pdo, data: bytes) -> None:
+        """Write an RPDO's payload: first the objects without a write hook (set-points), then those
+        with one (commands such as a controlword), each group in mapping order -- so a command
+        sees the set-points that came in the same RPDO."""
         offset = 0
+        plain: list[tuple[int, int, bytes]] = []
+        hooked: list[tuple[int, int, bytes]] = []
+        hooks = self.store.write_hooks
         for index, sub, bits in self.mapping(pdo):
             n = bits // 8
+            (hooked if (index, sub) in hooks else plain).append((index, sub, data[offset : offset + n]))
+            offset += n
+        for index, sub, value in (*plain, *hooked):
             try:
-                self.store.write_object(index, sub, data[offset : offset + n])
+                self.store.write_object(index, sub, value)
             except SdoAbort as err:  # the value is refused like an SDO download would be
                 logger.warning("%s: 0x%04X:%d not written: %s", self._name(pdo), index, sub, err)
-            offset += n
 
     # ------------------------------------------------------------------ transmit
 
