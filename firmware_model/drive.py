@@ -146,7 +146,7 @@ class Drive:
 
     def lockstep_time_s(self) -> float:
         """The lockstep time [s]: the control periods of the io ticks run so far."""
-        return self.time_us * 1e-6
+        return self.time_us / 1_000_000  # correctly rounded: k ms here equals k / 1000.0 elsewhere
 
     @property
     def cia402_state(self) -> Cia402State:

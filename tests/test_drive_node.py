@@ -512,3 +512,42 @@ def test_emcy_cob_id_valid_bit_and_inhibit_time_and_rtr_on_the_node_clock() -> N
     finally:
         for bus in (fb_node, host, io_node):
             bus.shutdown()
+
+
+def test_lockstep_time_is_the_node_clock() -> None:
+    """``DriveNode(lockstep=True)``: the node's clock is the drive's lockstep time, the control
+    periods of its io ticks -- a 5 ms heartbeat goes out exactly with the 5th io tick after 0x1017
+    was written, and not while no io tick comes."""
+    k = next(_counter)
+    fb_node = can.Bus(interface="virtual", channel=f"ls-fb-{k}")
+    host = can.Bus(interface="virtual", channel=f"ls-fb-{k}")
+    io_node = can.Bus(interface="virtual", channel=f"ls-io-{k}")
+    plant = can.Bus(interface="virtual", channel=f"ls-io-{k}")
+    drive = Drive(NODE)
+    node = DriveNode(drive, fb_node, io_node, lockstep=True)
+
+    def heartbeats() -> int:
+        n = 0
+        while (msg := host.recv(timeout=0)) is not None:
+            n += msg.arbitration_id == 0x700 + NODE
+        return n
+
+    try:
+        node.start()
+        assert heartbeats() == 1  # boot-up
+        request = bytes.fromhex("2B 17 10 00 05 00 00 00")  # 0x1017 := 5 ms
+        host.send(can.Message(arbitration_id=0x600 + NODE, data=request, is_extended_id=False))
+        node.step(0.0)
+        for _ in range(3):
+            node.step(0.0)
+        assert heartbeats() == 0 and drive.lockstep_time_s() == 0.0  # no io tick: time stands still
+        beats = []
+        for tick in range(10):
+            plant.send(io_frames.encode_encoder(NODE - 1, tick, 0))
+            node.step(0.0)
+            assert plant.recv(timeout=1.0) is not None  # the torque frame
+            beats.append(heartbeats())
+        assert beats == [0, 0, 0, 0, 1, 0, 0, 0, 0, 1]  # at 5 ms and 10 ms of lockstep time
+    finally:
+        for bus in (fb_node, host, io_node, plant):
+            bus.shutdown()
