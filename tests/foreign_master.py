@@ -102,6 +102,12 @@ class MasterRig:
     def wait_emcy(self) -> bytes:
         return self.emcy.get(timeout=WAIT_S)
 
+    def forget_emcy(self) -> None:
+        """Drop the EMCY frames received so far (e.g. of a watchdog a stalled sender tripped
+        early), so :meth:`wait_emcy` gets the next one."""
+        while not self.emcy.empty():
+            self.emcy.get_nowait()
+
     def sync_cycle(self, tpdo_cob: int, plant: bool = True) -> bytes:
         """One control cycle in lockstep: SYNC, the TPDO it makes due (sampled at the SYNC: the
         latest completed cycle), then the plant's io tick."""

@@ -153,6 +153,7 @@ def test_heartbeat_of_the_master_lost() -> None:
         task = rig.network.send_periodic(0x77F, b"\x05", 0.02)
         enabled_over_sdo(rig)
         task.stop()
+        rig.forget_emcy()
         assert rig.wait_emcy() == bytes.fromhex("30 81 11 03 7F 00 00 00")  # 0x8130, cause 3, node 127
         torque_free(rig, 0x8130)
 
@@ -172,6 +173,7 @@ def test_rpdos_stopping() -> None:
         rpdo.start(0.02)  # the master keeps sending it
         assert wait_until(lambda: node.sdo["Statusword"].raw & 0x6F == 0x27)
         rpdo.stop()
+        rig.forget_emcy()
         assert rig.wait_emcy() == bytes.fromhex("50 82 11 05 01 00 00 00")  # 0x8250, cause 5, RPDO1
         torque_free(rig, 0x8250)
 
@@ -185,6 +187,7 @@ def test_sync_stopping() -> None:
         rig.network.sync.transmit()
         rig.sdo_probe()
         rig.network.sync.stop()
+        rig.forget_emcy()
         assert rig.wait_emcy() == bytes.fromhex("00 81 11 06 00 00 00 00")  # 0x8100, cause 6
         torque_free(rig, 0x8100)
 
