@@ -450,3 +450,104 @@ def test_run_node_process_entry_with_stop_event() -> None:
             stop.set()
             thread.join(timeout=2.0)
         assert not thread.is_alive()
+
+
+def test_emcy_cob_id_valid_bit_and_inhibit_time_and_rtr_on_the_node_clock() -> None:
+    """0x1014 and 0x1015 as the node runtime applies them, stepped on a manual clock: the EMCY goes
+    out on the COB-ID of 0x1014 (none while its bit 31 is set), at most one per inhibit time (the
+    next waits, then goes out exactly when the time ends); a remote frame on a TPDO whose bit 30
+    is 0 is answered with the TPDO."""
+    k = next(_counter)
+    fb_node = can.Bus(interface="virtual", channel=f"emcy-fb-{k}")
+    host = can.Bus(interface="virtual", channel=f"emcy-fb-{k}")
+    io_node = can.Bus(interface="virtual", channel=f"emcy-io-{k}")
+    clock = ManualClock(50.0)
+    drive = Drive(NODE)
+    for index, sub, value in ((0x1A00, 0, 0), (0x1A00, 1, 0x60410010), (0x1A00, 0, 1), (0x1800, 1, 0x180 + NODE)):
+        drive.write_object(index, sub, value.to_bytes(4 if sub else 1, "little"))
+    node = DriveNode(drive, fb_node, io_node, clock=clock)
+
+    def sent() -> list[tuple[int, bytes]]:
+        out = []
+        while (msg := host.recv(timeout=0)) is not None:
+            out.append((msg.arbitration_id, bytes(msg.data)))
+        return out
+
+    def step_at(t: float) -> list[tuple[int, bytes]]:
+        clock.now = t
+        node.step(0.0)
+        return sent()
+
+    def sdo_write(index: int, sub: int, data: bytes, t: float) -> None:
+        cs = {1: 0x2F, 2: 0x2B, 4: 0x23}[len(data)]
+        request = bytes([cs, index & 0xFF, index >> 8, sub]) + data.ljust(4, b"\0")
+        host.send(can.Message(arbitration_id=0x600 + NODE, data=request, is_extended_id=False))
+        assert step_at(t) == [(0x580 + NODE, bytes([0x60, index & 0xFF, index >> 8, sub, 0, 0, 0, 0]))]
+
+    emcy = (0x80 + NODE, bytes.fromhex("10 81 11 00 00 00 00 00"))
+    try:
+        node.start()
+        sent()
+        drive.power.warning(0x8110, bytes(5))
+        drive.power.warning(0x8110, bytes(5))
+        assert step_at(50.0) == [emcy, emcy]  # no inhibit time: both at once
+        sdo_write(0x1015, 0, struct.pack("<H", 100), 51.0)  # 10 ms
+        drive.power.warning(0x8110, bytes(5))
+        drive.power.warning(0x8110, bytes(5))
+        assert step_at(52.0) == [emcy]
+        assert step_at(52.0099) == []
+        assert step_at(52.010) == [emcy]
+        sdo_write(0x1014, 0, struct.pack("<I", 0x8000_0000 | (0x80 + NODE)), 53.0)
+        drive.power.warning(0x8110, bytes(5))
+        assert step_at(54.0) == []  # not valid: not sent
+        sdo_write(0x1014, 0, struct.pack("<I", 0x8000_00F0), 55.0)
+        sdo_write(0x1014, 0, struct.pack("<I", 0x0F0), 56.0)
+        drive.power.warning(0x8110, bytes(5))
+        assert step_at(57.0) == [(0x0F0, emcy[1])]
+        host.send(can.Message(arbitration_id=0, data=bytes([0x01, NODE]), is_extended_id=False))
+        step_at(58.0)
+        sent()  # the event TPDO of the start
+        host.send(can.Message(arbitration_id=0x180 + NODE, is_remote_frame=True, dlc=2, is_extended_id=False))
+        assert step_at(59.0) == [(0x180 + NODE, struct.pack("<H", 0x0240))]
+    finally:
+        for bus in (fb_node, host, io_node):
+            bus.shutdown()
+
+
+def test_lockstep_time_is_the_node_clock() -> None:
+    """``DriveNode(lockstep=True)``: the node's clock is the drive's lockstep time, the control
+    periods of its io ticks -- a 5 ms heartbeat goes out exactly with the 5th io tick after 0x1017
+    was written, and not while no io tick comes."""
+    k = next(_counter)
+    fb_node = can.Bus(interface="virtual", channel=f"ls-fb-{k}")
+    host = can.Bus(interface="virtual", channel=f"ls-fb-{k}")
+    io_node = can.Bus(interface="virtual", channel=f"ls-io-{k}")
+    plant = can.Bus(interface="virtual", channel=f"ls-io-{k}")
+    drive = Drive(NODE)
+    node = DriveNode(drive, fb_node, io_node, lockstep=True)
+
+    def heartbeats() -> int:
+        n = 0
+        while (msg := host.recv(timeout=0)) is not None:
+            n += msg.arbitration_id == 0x700 + NODE
+        return n
+
+    try:
+        node.start()
+        assert heartbeats() == 1  # boot-up
+        request = bytes.fromhex("2B 17 10 00 05 00 00 00")  # 0x1017 := 5 ms
+        host.send(can.Message(arbitration_id=0x600 + NODE, data=request, is_extended_id=False))
+        node.step(0.0)
+        for _ in range(3):
+            node.step(0.0)
+        assert heartbeats() == 0 and drive.lockstep_time_s() == 0.0  # no io tick: time stands still
+        beats = []
+        for tick in range(10):
+            plant.send(io_frames.encode_encoder(NODE - 1, tick, 0))
+            node.step(0.0)
+            assert plant.recv(timeout=1.0) is not None  # the torque frame
+            beats.append(heartbeats())
+        assert beats == [0, 0, 0, 0, 1, 0, 0, 0, 0, 1]  # at 5 ms and 10 ms of lockstep time
+    finally:
+        for bus in (fb_node, host, io_node, plant):
+            bus.shutdown()
