@@ -1,8 +1,7 @@
 """Benchmark: the lockstep tick rate of the plant node over the hub with real processes, next
 to a bare lockstep floor on the same transport.
 
-Moved here from tests/test_plant_node.py (speed is measured and printed here, never asserted in
-the test suite).  Set-up: one hub (Unix socket), four drive processes
+Speed is measured and printed here, never asserted in the test suite.  Set-up: one hub (Unix socket), four drive processes
 (``python -m firmware_model.drive_node``), the plant process (``ilcrig plant --bus hub``), the host in
 this process (canopen over the hub).  The drives are enabled but not armed (their PD holds the
 start pose); per trial of ``--ticks`` ticks:

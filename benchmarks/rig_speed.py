@@ -21,7 +21,7 @@ host running other guests).
 
     python benchmarks/rig_speed.py [--iterations 3] [--repeat 3] [--only hub]
 
-Targets (issue 10): >= 2,000 ticks/s (2x real time at 1 kHz) on the default transport on 2 cores,
+Targets: >= 2,000 ticks/s (2x real time at 1 kHz) on the default transport on 2 cores,
 and rig >= 0.5 x floor.
 """
 
@@ -174,7 +174,7 @@ def main() -> None:
         if bus == "hub" and best_floor:
             verdict = {True: "met", False: "NOT met"}
             print(
-                f"{'':<15}goals (issue 10, default transport): rig >= 2,000 ticks/s: "
+                f"{'':<15}goals (default transport): rig >= 2,000 ticks/s: "
                 f"{verdict[best_rig >= 2000]} ({best_rig:,.0f}); rig >= 0.5 x floor: "
                 f"{verdict[best_rig >= 0.5 * best_floor]} ({best_rig / best_floor:.2f})"
             )

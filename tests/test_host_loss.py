@@ -1,4 +1,4 @@
-"""Host loss is a fault on the bus (issue 9): the nodes consume the host's heartbeat (0x1016,
+"""Host loss is a fault on the bus: the nodes consume the host's heartbeat (0x1016,
 CiA 301) and react — the drive with torque off, CiA 402 Fault and EMCY 0x8130, the plant node by
 ending a running trial (HOST_LOST, EMCY 0x8130).  Settings that shape the motion (gains, the
 following-error window, the max torque) are refused while a trial is armed or running, and the max

@@ -407,7 +407,7 @@ def test_hub_refuses_bad_hello_and_keeps_serving() -> None:
             assert m is not None and bytes(m.data) == b"ok"
 
 
-# -- issue 13: a first-class python-can interface ------------------------------------------------
+# -- a first-class python-can interface ------------------------------------------------
 
 
 def _stamping_run(hub: HubHandle, bus_name: str) -> tuple[list[float], list[float], list[float], float]:
