@@ -18,7 +18,7 @@ from foreign_master import WAIT_S, MasterRig
 from hub_util import serving
 
 from bus import fixedpoint as fp
-from bus.transports.hub_server import HubServer
+from bus.transports.hub.server import HubServer
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 

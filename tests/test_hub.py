@@ -1,4 +1,4 @@
-"""bus.transports.hub_*: exact forwarding between processes, no echo, entry point, loopback-only,
+"""bus.transports.hub: exact forwarding between processes, no echo, entry point, loopback-only,
 disconnects, stats, filters, and that the hub child process is always reaped."""
 
 from __future__ import annotations
