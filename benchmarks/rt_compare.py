@@ -8,8 +8,9 @@ or ``RLIMIT_RTPRIO`` gets) — in an order rotated from round to round, so that 
 meets the machine's moods alike. Per run it prints the 1-minute load average before it, the
 ticks late (deadline misses) and their share, the lateness p50 / p99 / max, the CPU time the
 hypervisor took during the trials (steal, ``bench.timing.machine_steal``) and the ratio of the
-run's lateness p99 to the floor's p99 of the same scheduling class in the same round; at the end,
-per variant, the median and the worst.
+run's lateness p99 to the floor's p99 of the same scheduling class in the same round (the floor
+taken as at least 10 µs: a spinning wait's p99 is about 0); at the end, per variant, the median
+and the worst.
 
 Attribution: ``--without MECH`` adds a variant in normal scheduling with the mechanism ``MECH``
 left out (``ILCRIG_RT_WITHOUT``, docs/timing.md §1: ``slice``, ``host``, ``gc``, ``sleep-wait``,
@@ -44,6 +45,8 @@ from bus.lockstep_process import WITHOUT_ENV  # noqa: E402
 #: the periodic loop of the floor: periods per measurement, and the spinning test's length, s
 FLOOR_PERIODS = 3000
 FLOOR_SPIN_S = 1.0
+#: the floor's p99 is taken as at least this in the ratio (a spinning wait's is ~0), s
+FLOOR_RESOLUTION_S = 10e-6
 
 
 @dataclass(frozen=True)
@@ -143,7 +146,7 @@ def line(row: dict[str, Any], floors: dict[bool, dict[str, Any]], variant: Varia
     if "error" in row:
         return f"{row['variant']:<24} load {row['load_average_1min']:4.1f}  {row['error']}"
     fl = floors.get(row["scheduling"].get("policy") == "SCHED_FIFO", {})
-    ratio = row["p99_s"] / fl["lateness_p99_s"] if fl.get("lateness_p99_s") else float("nan")
+    ratio = row["p99_s"] / max(fl["lateness_p99_s"], FLOOR_RESOLUTION_S) if "lateness_p99_s" in fl else float("nan")
     steal = "    -" if row["steal_s"] is None else f"{row['steal_s'] * 1e3:5.0f}"
     return (
         f"{row['variant']:<24} load {row['load_average_1min']:4.1f}  late {row['late']:5d}/{row['ticks']} "

@@ -125,10 +125,11 @@ def _held(stretches: list[tuple[int, float, float]], a: float, b: float) -> tupl
 
 
 def summarise_waits(trace: WaitTrace, roles: Mapping[int, str], threshold_s: float = 200e-6) -> dict[str, Any]:
-    """Per role (``roles``: thread group id -> role; only their tasks' wake-ups count): wake-ups, the
-    wait p50 / p99 / max [s] and how many waited longer than ``threshold_s``; per holder (a role,
-    ``idle``, or another process's command name), the CPU time it held while a role's task waited
-    longer than ``threshold_s``; the roles' long run stretches; who preempted a role's task."""
+    """Per role (``roles``: thread group id -> role; only their tasks' wake-ups count, not the
+    ``idle-poll`` loops'): wake-ups, the wait p50 / p99 / max [s] and how many waited longer than
+    ``threshold_s``; per holder (a role, ``idle``, or another process's command name), the CPU time
+    it held while a lockstep task (not the host's) waited longer than ``threshold_s``; the lockstep
+    roles' and the host's long run stretches; who preempted a lockstep task."""
 
     def role_of(tid: int) -> str | None:
         return roles.get(trace.tgid.get(tid, tid))
@@ -142,10 +143,10 @@ def summarise_waits(trace: WaitTrace, roles: Mapping[int, str], threshold_s: flo
     held: dict[str, float] = {}
     for w in trace.waits:
         role = role_of(w.tid)
-        if role is None:
+        if role is None or role == "idle-poll":
             continue
         per_role.setdefault(role, []).append(w.wait_s)
-        if w.wait_s > threshold_s:
+        if w.wait_s > threshold_s and role != "host":
             for tid, s in w.held_by:
                 held[holder(tid)] = held.get(holder(tid), 0.0) + s
     waits = {}
