@@ -77,7 +77,7 @@ LOCKSTEP_SLICE_NS: int = 100_000
 #: the nice value asked for the lockstep processes where RLIMIT_NICE permits it
 LOCKSTEP_NICE: int = -10
 
-#: sched_setattr / sched_getattr system call numbers (Linux, per architecture)
+#: sched_setattr system call numbers (Linux, per architecture; sched_getattr is the next one)
 _SYS_SCHED_SETATTR = {"x86_64": 314, "aarch64": 274, "arm64": 274, "riscv64": 274, "ppc64le": 355, "s390x": 345}
 #: struct sched_attr (linux/sched/types.h), version 1: size, policy, flags, nice, priority, runtime,
 #: deadline, period, util_min, util_max
@@ -111,13 +111,28 @@ def _sched_setattr(tid: int, policy: int, nice: int, runtime_ns: int) -> None:
         raise OSError(err, os.strerror(err))
 
 
+def _sched_getattr_runtime(tid: int) -> int:
+    """``sched_getattr(tid).sched_runtime``: a fair task's slice, ns (0 before Linux 6.12)."""
+    number = _SYS_SCHED_SETATTR.get(platform.machine())
+    if number is None or not sys.platform.startswith("linux"):
+        raise OSError(errno.ENOSYS, "no sched_getattr on this system")
+    libc = ctypes.CDLL(None, use_errno=True)
+    attr = ctypes.create_string_buffer(_SCHED_ATTR.size)
+    if libc.syscall(ctypes.c_long(number + 1), ctypes.c_int(tid), attr, ctypes.c_uint(_SCHED_ATTR.size), ctypes.c_uint(0)) != 0:
+        err = ctypes.get_errno()
+        raise OSError(err, os.strerror(err))
+    return int(_SCHED_ATTR.unpack(attr.raw)[5])
+
+
 def set_fair_slice(tid: int, slice_ns: int, nice: int | None = None) -> None:
     """Thread ``tid`` in ``SCHED_OTHER`` with a scheduler slice of ``slice_ns`` (0: the kernel's
-    default) and nice ``nice`` (None: unchanged). Raises OSError (EINVAL on kernels older than
-    6.12, which take no slice for a fair task)."""
+    default) and nice ``nice`` (None: unchanged). Raises OSError, also where the kernel accepts the
+    call but keeps no slice for a fair task (before Linux 6.12: it reads back 0)."""
     if nice is None:
         nice = os.getpriority(os.PRIO_PROCESS, tid)
     _sched_setattr(tid, _SCHED_OTHER, nice, slice_ns)
+    if slice_ns and _sched_getattr_runtime(tid) != slice_ns:
+        raise OSError(errno.EOPNOTSUPP, "the kernel keeps no scheduler slice for a fair task")
 
 
 def lowest_nice_permitted() -> int:
