@@ -8,8 +8,8 @@ playback) and the helpers below. Everything here is what any process may do to i
 processes; nothing needs a capability, and a capability the caller happens to have (root) is not
 used: a run as root with ``--rt-priority 0`` is scheduled as an ordinary user's would be.
 
-A paced tick is a chain of wake-ups (plant → hub → four drives → hub → plant) that needs about a
-quarter of a CPU at 1 kHz; what makes a tick late in normal scheduling is not a lack of CPU time
+A paced tick is a chain of wake-ups (plant → hub → four drives → hub → plant) that needs about half
+of one CPU at 1 kHz (a quarter of this 2-core machine); what makes a tick late in normal scheduling is not a lack of CPU time
 but a woken lockstep process waiting for the CPU its wake-up went to. The mechanisms, each named
 in the run's scheduling record (``bench.timing.scheduling``):
 
@@ -182,7 +182,7 @@ def apply_fair_scheduling(pids: Mapping[str, int], without: frozenset[str] = fro
     nice: int | None = None
     if "nice" in without:
         out["nice"] = f"left out ({WITHOUT_ENV})"
-    elif floor > LOCKSTEP_NICE and floor >= 0:
+    elif floor >= 0:
         out["nice"] = f"0 (RLIMIT_NICE {resource.getrlimit(resource.RLIMIT_NICE)[0]} permits no lower value)"
     else:
         nice = max(floor, LOCKSTEP_NICE)
