@@ -13,13 +13,15 @@ import sys
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["fine_timer_slack"]
+__all__ = ["FINE_TIMER_SLACK_NS", "fine_timer_slack"]
 
 #: prctl option: the process's timer slack, ns (Linux)
 _PR_SET_TIMERSLACK = 29
+#: the timer slack of a process that waits for a moment in time, ns
+FINE_TIMER_SLACK_NS: int = 1000
 
 
-def fine_timer_slack(slack_ns: int = 1000) -> None:
+def fine_timer_slack(slack_ns: int = FINE_TIMER_SLACK_NS) -> None:
     """Make the kernel wake this process's timed waits within ``slack_ns`` (default slack: 50 µs);
     nothing happens where prctl is unavailable."""
     if not sys.platform.startswith("linux"):

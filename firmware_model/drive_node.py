@@ -45,6 +45,7 @@ import can
 
 from bus import io_frames
 from bus.cia301.slave import PRODUCER_HEARTBEAT_INDEX, SlaveApp, SlaveNode, exact_id_filters, install_sigterm
+from bus.lockstep_process import freeze_heap
 
 logger = logging.getLogger(__name__)
 
@@ -311,6 +312,7 @@ def run_node(
         io = can.Bus(**io_config)
         try:
             node = DriveNode(drive, fieldbus, io, node_id=node_id, lockstep=lockstep)
+            freeze_heap(f"drive {node_id}")
             node.run(stop)
         finally:
             _quiet_shutdown(io)

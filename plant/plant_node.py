@@ -43,6 +43,7 @@ from bus.bus_features import batch_sender
 from bus.cia301.nmt import NmtCommand, NmtState, next_state
 from bus.cia301.object_store import ObjectStore
 from bus.cia301.slave import SlaveNode, install_sigterm
+from bus.lockstep_process import freeze_heap, spin_in_this_class
 from bus.plant_objects import DEFAULT_PLANT_NODE_ID, PLANT_EDS_PATH, DisturbanceKind, PlantFault, PlantStatus
 from bus.timer_slack import fine_timer_slack
 from bus.transports.config import TransportConfig
@@ -71,6 +72,7 @@ class PlantNode(SlaveNode):
     :param eds_path: the EDS (default ``bus/plant.eds``).
     :param spin_s: real time: wake this long before a held tick is due and wait the rest on the
         clock in a loop, s (0: the select loop's timer alone; :mod:`plant.plant_node_trial`).
+    :param spin_when: whether a paced trial spins ``spin_s`` (asked at its start; None: always).
 
     :ivar store: the object store.
     :ivar model: the plant and the disturbance.
@@ -101,6 +103,7 @@ class PlantNode(SlaveNode):
         clock: Callable[[], float] = time.monotonic,
         eds_path: str | Path = PLANT_EDS_PATH,
         spin_s: float = 0.0,
+        spin_when: Callable[[], bool] | None = None,
     ) -> None:
         if not 0.0 <= spin_s < 0.01:
             raise ValueError(f"spin_s must be in [0, 0.01) s, got {spin_s!r}")
@@ -127,6 +130,7 @@ class PlantNode(SlaveNode):
             tick_timeout_s=tick_s,
             first_tick_timeout_s=first_s,
             spin_s=float(spin_s),
+            spin_when=spin_when,
         )
         install_hooks(self.store, self.lockstep, self.trial_status)
 
@@ -306,7 +310,9 @@ def run_plant_role(
                 tick_timeout_s=io_frames.TICK_TIMEOUT_S * scale,
                 first_tick_timeout_s=io_frames.FIRST_TICK_TIMEOUT_S * scale,
                 spin_s=PlantNode.REALTIME_SPIN_S,
+                spin_when=spin_in_this_class,
             )
+            freeze_heap("plant role")
             node.run(stop)
             return node.bus_error
         finally:

@@ -29,7 +29,8 @@ Real time (0x2400:5 pacing = 1): tick n's encoder frames are held until t0 + n·
 clock (t0 = one period after TRIAL_START went out: the drives take the start command in a period
 of its own, as a real drive's first cycle is the SYNC after the one that armed it); the node's
 select loop wakes ``spin_s`` before a held tick is due and :meth:`LockstepMaster.service` waits
-the rest in a loop on the clock.  A tick whose torques arrive after t0 + (n + 1)·Ts is a deadline
+the rest in a loop on the clock (in the trials ``spin_when`` allows: the plant role's, only in a
+real-time scheduling class), or sleeps until the due time.  A tick whose torques arrive after t0 + (n + 1)·Ts is a deadline
 miss and the next tick starts late.  Pacing delays frames only; what the plant computes is the
 same.  Wall-clock time is used for the tick timeout and the trial timing only, never in the model.
 """
@@ -70,6 +71,10 @@ class LockstepMaster:
     :param tick_timeout_s: longest wait for the torque frames of one tick, s; ``first_tick_timeout_s``
         the same for tick 0.
     :param spin_s: real time: the last part of the wait for a held tick, spent in a loop on the clock, s.
+    :param spin_when: asked at the start of each paced trial: whether to spin ``spin_s`` in it (None:
+        always). The plant role spins only in a real-time scheduling class: in normal scheduling the
+        spinning would count against the process's fair share, and a process that used more
+        than its share waits for the CPU when it wakes (docs/timing.md §1).
     """
 
     def __init__(
@@ -86,6 +91,7 @@ class LockstepMaster:
         tick_timeout_s: float,
         first_tick_timeout_s: float,
         spin_s: float,
+        spin_when: Callable[[], bool] | None = None,
     ) -> None:
         self.node_id = node_id
         self.store = store
@@ -98,6 +104,8 @@ class LockstepMaster:
         self.tick_timeout_s = tick_timeout_s
         self.first_tick_timeout_s = first_tick_timeout_s
         self.spin_s = spin_s
+        self._spin_when = spin_when
+        self._spin_s = spin_s  # of the trial in progress
         self.pending_start = False
         self.running = False
         self.n_ticks = 0
@@ -152,7 +160,7 @@ class LockstepMaster:
         """Clock time [s] by which :meth:`service` must run (None: no trial)."""
         if not self.running:
             return None
-        return self._send_at - self.spin_s if self._send_at is not None else self._deadline
+        return self._send_at - self._spin_s if self._send_at is not None else self._deadline
 
     def service(self, now: float) -> None:
         """Begin a requested trial, send a held tick that is due, or detect a tick timeout."""
@@ -160,7 +168,7 @@ class LockstepMaster:
             self.pending_start = False
             self._begin()
         elif self.running and self._send_at is not None:
-            if self.spin_s and self._send_at - self.spin_s <= now < self._send_at:
+            if self._spin_s and self._send_at - self._spin_s <= now < self._send_at:
                 due = self._send_at
                 while now < due:  # the last stretch on the clock (bounded by spin_s)
                     now = self._clock()
@@ -254,6 +262,7 @@ class LockstepMaster:
             seed,
         )
         paced = bool(store.get(PlantObj.CONFIG, ConfigSub.PACING))
+        self._spin_s = self.spin_s if paced and (self._spin_when is None or self._spin_when()) else 0.0
         self._send_io(io_frames.encode_control(io_frames.ControlCommand.TRIAL_START, self._origin, n_ticks))
         if paced:
             # Tick 0 is due one period after the start command, as a real drive's first cycle is the

@@ -13,7 +13,8 @@ from collections.abc import Callable, Iterable
 
 import pytest
 
-from host.rig.idle_poll import IdlePollers, idle_poll_available
+from host.rig.fair_scheduling import autogroups_enabled
+from host.rig.idle_poll import AUTOGROUP_NICE, IdlePollers, idle_poll_available
 from host.rig.realtime import scheduling_text
 
 pytestmark = pytest.mark.skipif(not idle_poll_available(), reason="no SCHED_IDLE on this system")
@@ -59,6 +60,33 @@ def test_one_sched_idle_loop_per_cpu_until_stopped() -> None:
         pollers.stop()
     assert pollers.pids == [] and _gone(pids)
     pollers.stop()  # again: nothing to do
+
+
+def _autogroup_nice(pid: int) -> int | None:
+    try:
+        with open(f"/proc/{pid}/autogroup") as f:
+            return int(f.read().split()[-1])  # "/autogroup-123 nice 19"
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+@pytest.mark.skipif(not autogroups_enabled(), reason="no scheduler autogroups on this system")
+def test_each_loop_lowers_its_sessions_autogroup_to_nice_19() -> None:
+    """Each loop is a session, and so an autogroup: at nice 0 the group would claim a full share
+    against each of the lockstep processes' groups, whatever SCHED_IDLE says inside it."""
+    pollers = IdlePollers(2)
+    pids = pollers.pids
+    try:
+        _wait_for("both autogroups at nice 19", lambda: all(_autogroup_nice(p) == AUTOGROUP_NICE for p in pids))
+    finally:
+        pollers.stop()
+    left_alone = IdlePollers(1, autogroup_nice=None)
+    try:
+        pid = left_alone.pids[0]
+        _wait_for("the loop in SCHED_IDLE", lambda: _policy(pid) == os.SCHED_IDLE)
+        assert _autogroup_nice(pid) == 0
+    finally:
+        left_alone.stop()
 
 
 def test_the_loops_die_with_the_process_that_started_them() -> None:

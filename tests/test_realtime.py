@@ -367,7 +367,7 @@ def test_real_time_scheduling_is_fifo_where_permitted_and_said_where_not(
             raise PermissionError(1, "Operation not permitted")
 
     monkeypatch.setattr(realtime.os, "sched_setscheduler", refuse_the_third)
-    monkeypatch.setattr(realtime, "_threads", lambda pid: [pid, pid + 1])
+    monkeypatch.setattr(realtime, "threads", lambda pid: [pid, pid + 1])
     got = raise_lockstep_priority({"hub": 100, "plant": 200}, 10)
     assert got["policy"] == "normal" and got["reason"].startswith("SCHED_FIFO 10 not permitted (Operation not permitted")
     # all or nothing: the two threads already raised are put back

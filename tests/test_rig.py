@@ -27,6 +27,7 @@ from host.experiment.config import build_config
 from host.experiment.inprocess import InProcessBench
 from host.experiment.plan import prepare
 from host.experiment.trials import run_experiment
+from host.rig.realtime import scheduling_mechanisms
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 
@@ -187,13 +188,19 @@ def test_realtime_run_has_the_same_results_and_bus_time_figures(
     assert {"deadline_misses", "lateness_p50_s", "lateness_p99_s", "lateness_max_s", "kept_up"} <= set(timing)
     # the launcher scheduled the lockstep processes: SCHED_FIFO where permitted, else it says why not
     sched = dict(timing["scheduling"])
-    # ... and kept the CPUs awake with a SCHED_IDLE busy loop per CPU, all gone after the run
-    assert sched.pop("idle_poll") == {"loops": len(os.sched_getaffinity(0))}
-    assert "CPUs kept awake by" in res.stdout and not _idle_loops_left()
-    assert (
-        sched == {"policy": "SCHED_FIFO", "priority": 10, "roles": ["hub", "plant", "drive1", "drive2", "drive3", "drive4"]}
-        or "not permitted" in sched["reason"]
-    )
+    fifo = sched["policy"] == "SCHED_FIFO"
+    assert sched.pop("mechanisms") == scheduling_mechanisms(timing["scheduling"])
+    assert sched.pop("in_roles") == {"heap_frozen": True, "timer_slack_ns": 1000, "plant_spins": fifo}
+    roles = ["hub", "plant", "drive1", "drive2", "drive3", "drive4"]
+    if fifo:  # ... and kept the CPUs awake with a SCHED_IDLE busy loop per CPU, all gone after the run
+        assert sched.pop("idle_poll") == {"loops": len(os.sched_getaffinity(0))}
+        assert "CPUs kept awake by" in res.stdout
+        assert sched == {"policy": "SCHED_FIFO", "priority": 10, "roles": roles}
+    else:  # normal scheduling made prompt, without busy loops, and the line says why
+        assert sched.pop("idle_poll") == {"loops": 0, "reason": "not beside normal scheduling"}
+        assert "not permitted" in sched["reason"] and sched["roles"] == roles and sched["host"] == {"policy": "SCHED_BATCH"}
+        assert "normal scheduling (SCHED_FIFO 10 not permitted" in res.stdout
+    assert not _idle_loops_left()
     io = s["bench"]["bus_time"]["io"]
     assert io["bitrate"] == 500_000 and not io["worst_tick"]["fits"] and io["worst_tick"]["excess_bits"] == 460
     assert "real time:" in res.stdout and "does NOT fit" in res.stdout

@@ -18,8 +18,10 @@ Owns the host role on the bus (``ilcrig host``):
 * :mod:`host.rig.channels`, :mod:`host.rig.monitor` — the passive channel monitors (frame and bit
   counts, candump logs, the io channel's trial and tick);
 * :mod:`host.rig.bus_time` — bus-time figures; :mod:`host.rig.realtime` — trial timing, real-time
-  figures, SCHED_FIFO, steal time; :mod:`host.rig.miss_attribution` — missed ticks beside a
-  kernel scheduler trace.
+  figures, SCHED_FIFO, steal time; :mod:`host.rig.fair_scheduling` — real time without privileges
+  (scheduler slice, nice within RLIMIT_NICE, the host in SCHED_BATCH);
+  :mod:`host.rig.miss_attribution` — missed ticks beside a kernel scheduler trace;
+  :mod:`host.rig.wake_waits` — where the lockstep processes waited for a CPU, from a scheduler trace.
 
 and the launcher (``ilcrig run``), which starts the hub, the plant, the four drives and the host as
 processes and always cleans them up:

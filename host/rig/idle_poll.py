@@ -20,6 +20,19 @@ Cost
     shows as used). The loops take CPU time only that nobody else wants: a process in normal
     scheduling gets ~99.7 % of a CPU beside one (``SCHED_IDLE`` weight 3 against 1,024).
 
+Only beside SCHED_FIFO
+    The launcher starts them only when the lockstep processes are in ``SCHED_FIFO``, which
+    preempts anything in normal scheduling at once. Beside lockstep processes in normal
+    scheduling they make the ticks far later, not earlier (docs/timing.md §1): the fair
+    scheduler weighs a woken task against the loop's scheduling group, not against the loop.
+
+Autogroups
+    With ``CONFIG_SCHED_AUTOGROUP`` every session is a scheduling group, weighed against the
+    other groups by the group's nice value, whatever the policy of the tasks inside: a loop in
+    a session of its own at the group's default nice 0 claims as large a share of a CPU as the
+    host's group does. Each loop therefore sets its group's nice to :data:`AUTOGROUP_NICE`
+    (``/proc/self/autogroup``; raising it needs no privilege).
+
 Lifetime
     The loops are processes in their own session (a terminal's Ctrl-C does not reach them),
     killed by :meth:`IdlePollers.stop`; each also asks the kernel to kill it when the process
@@ -41,12 +54,14 @@ import sys
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["IdlePollers", "idle_poll_available"]
+__all__ = ["AUTOGROUP_NICE", "IdlePollers", "idle_poll_available"]
 
-#: the busy loop, run with ``python -S -c`` (nothing imported but os and ctypes): SCHED_IDLE,
-#: killed with its parent (PR_SET_PDEATHSIG = 1), and a check of the parent every ~10 ms
+#: the busy loop, run with ``python -S -c`` (nothing imported but os, sys, time and ctypes): SCHED_IDLE,
+#: its session's autogroup at nice ``argv[2]`` (empty: left alone; retried while the kernel's
+#: 100 ms rate limit refuses it), killed with its parent (PR_SET_PDEATHSIG = 1), and a check of
+#: the parent every ~10 ms
 _LOOP = """
-import os, sys
+import os, sys, time
 parent = int(sys.argv[1])
 os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
 try:
@@ -54,10 +69,26 @@ try:
     ctypes.CDLL(None, use_errno=True).prctl(1, 9, 0, 0, 0)
 except (OSError, AttributeError):
     pass
+if sys.argv[2]:
+    for _ in range(20):
+        try:
+            fd = os.open("/proc/self/autogroup", os.O_WRONLY)
+            try:
+                os.write(fd, sys.argv[2].encode())
+            finally:
+                os.close(fd)
+            break
+        except BlockingIOError:
+            time.sleep(0.11)
+        except OSError:
+            break
 while os.getppid() == parent:
     for _ in range(20000):
         pass
 """
+
+#: the nice value of each loop's autogroup (module docstring, "Autogroups")
+AUTOGROUP_NICE: int = 19
 
 
 def idle_poll_available() -> bool:
@@ -69,17 +100,19 @@ class IdlePollers:
     """One ``SCHED_IDLE`` busy loop per CPU (see the module docstring), started at once.
 
     :param n_cpus: how many loops (default: the CPUs this process may run on)
+    :param autogroup_nice: the nice value of each loop's autogroup (None: the kernel's 0)
     """
 
-    def __init__(self, n_cpus: int | None = None) -> None:
+    def __init__(self, n_cpus: int | None = None, autogroup_nice: int | None = AUTOGROUP_NICE) -> None:
         if n_cpus is None:
             n_cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
         self.procs: list[subprocess.Popen[bytes]] = []
+        nice = "" if autogroup_nice is None else str(autogroup_nice)
         try:
             for _ in range(n_cpus):
                 self.procs.append(
                     subprocess.Popen(
-                        [sys.executable, "-S", "-c", _LOOP, str(os.getpid())],
+                        [sys.executable, "-S", "-c", _LOOP, str(os.getpid()), nice],
                         stdin=subprocess.DEVNULL,
                         stdout=subprocess.DEVNULL,
                         stderr=subprocess.DEVNULL,

@@ -50,14 +50,17 @@ import time
 from pathlib import Path
 from typing import IO, Any
 
+from bus.lockstep_process import mechanisms_left_out
 from bus.objects import DRIVE_NODE_IDS
+from bus.timer_slack import FINE_TIMER_SLACK_NS
 from bus.transports.fault_inject import FRAME_ACTIONS, FaultSpec, FaultSpecError, parse_specs
 from bus.units import timeout_scale
 from host.experiment.console import EXIT_CHILD_FAILED
-from host.rig.idle_poll import IdlePollers, idle_poll_available
+from host.rig.fair_scheduling import host_policy
+from host.rig.idle_poll import AUTOGROUP_NICE, IdlePollers, idle_poll_available
 from host.rig.interrupts import Interrupts
 from host.rig.processes import Child, Death, LaunchError, spawn, start_hub_process, terminate
-from host.rig.realtime import DEFAULT_RT_PRIORITY, raise_lockstep_priority
+from host.rig.realtime import DEFAULT_RT_PRIORITY, schedule_lockstep, scheduling_mechanisms
 from host.rig.role_commands import bus_time_rates, child_argv, host_role_args, rig_role_args
 from host.rig.run_outcome import RunOutcome
 from host.rig.supervisor import Supervisor
@@ -225,16 +228,20 @@ class RigLauncher:
             f"ilcrig run: transport {tc.name}{where}; processes: {', '.join(pids)}; role logs in {log_dir}; starting host"
         )
         host_extra = host_role_args(args) + rig_role_args(args) + ["--out", str(out_dir)]
+        host_batch = False
         if args.realtime:
-            lockstep = ({"hub": self.hub.pid} if self.hub is not None else {}) | {c.name: c.pid for c in self.children}
-            priority = DEFAULT_RT_PRIORITY if args.rt_priority is None else args.rt_priority
-            scheduling = raise_lockstep_priority(lockstep, priority) | {"idle_poll": self._start_idle_poll(args)}
+            scheduling = self._schedule_realtime(args)
+            host_batch = scheduling.get("host", {}).get("policy") == "SCHED_BATCH"
             host_extra += ["--rt-scheduling", json.dumps(scheduling)]
         disk = [sp.trial for sp in specs if sp.action == "diskfull"]
         if disk:
             host_extra += ["--inject-disk-full", str(min(disk))]
         host = self._spawn(
-            "host", child_argv("host", bus_args, extra=host_extra, debug=debug), log_dir / "host.log", stderr_only=True
+            "host",
+            child_argv("host", bus_args, extra=host_extra, debug=debug),
+            log_dir / "host.log",
+            stderr_only=True,
+            batch=host_batch,
         )
         logger.info("host pid %d: %s", host.pid, " ".join(host.argv))
         if any(sp.action in ("kill", "stall", "emcy") for sp in specs):
@@ -248,22 +255,54 @@ class RigLauncher:
             return self._interrupted(host, supervisor, outcome)
         return outcome.conclude(host, code, supervisor.deaths, supervisor.host_stopped)
 
-    def _spawn(self, name: str, argv: list[str], log_path: Path | None, *, stderr_only: bool = False) -> Child:
-        child = spawn(name, argv, log_path, stderr_only=stderr_only)
+    def _spawn(
+        self, name: str, argv: list[str], log_path: Path | None, *, stderr_only: bool = False, batch: bool = False
+    ) -> Child:
+        child = spawn(name, argv, log_path, stderr_only=stderr_only, batch=batch)
         self.children.append(child)
         return child
 
-    def _start_idle_poll(self, args: argparse.Namespace) -> dict[str, Any]:
-        """Keep the CPUs awake for a real-time run (host/rig/idle_poll.py), unless ``--no-idle-poll``.
+    def _schedule_realtime(self, args: argparse.Namespace) -> dict[str, Any]:
+        """A real-time run's scheduling, before the host starts: the lockstep processes (hub,
+        plant, drives) in SCHED_FIFO or, where that is not permitted, in normal scheduling with
+        what an unprivileged process may use (:func:`host.rig.realtime.schedule_lockstep`), the
+        host's policy (:func:`host.rig.fair_scheduling.host_policy`), the idle-poll loops.
+
+        :return: the scheduling record (``bench.timing.scheduling`` of the summary)
+        """
+        without = mechanisms_left_out()
+        lockstep = ({"hub": self.hub.pid} if self.hub is not None else {}) | {c.name: c.pid for c in self.children}
+        priority = DEFAULT_RT_PRIORITY if args.rt_priority is None else args.rt_priority
+        scheduling = schedule_lockstep(lockstep, priority, without)
+        fifo = scheduling["policy"] == "SCHED_FIFO"
+        if not fifo:
+            from host.experiment.console import experiment_config
+
+            scheduling["host"] = host_policy(experiment_config(args).ff_transport == "pdo", without)
+        scheduling["idle_poll"] = self._start_idle_poll(args, fifo, without)
+        scheduling["in_roles"] = {
+            "heap_frozen": "gc" not in without,
+            "timer_slack_ns": FINE_TIMER_SLACK_NS,
+            "plant_spins": fifo or "sleep-wait" in without,
+        }
+        scheduling["mechanisms"] = scheduling_mechanisms(scheduling)
+        return scheduling
+
+    def _start_idle_poll(self, args: argparse.Namespace, fifo: bool, without: frozenset[str]) -> dict[str, Any]:
+        """Keep the CPUs awake for a real-time run (host/rig/idle_poll.py), unless ``--no-idle-poll``
+        or the lockstep processes are in normal scheduling (the loops would compete with them:
+        :mod:`host.rig.idle_poll`, "Only beside SCHED_FIFO").
 
         :return: for the summary's scheduling record: ``{"loops": n}``, or ``{"loops": 0, "reason": ...}``
         """
         if getattr(args, "no_idle_poll", False):
             return {"loops": 0, "reason": "--no-idle-poll"}
+        if not fifo and "idle-poll-fifo-only" not in without:
+            return {"loops": 0, "reason": "not beside normal scheduling"}
         if not idle_poll_available():
             return {"loops": 0, "reason": "this system has no SCHED_IDLE"}
         try:
-            self._idle_pollers = IdlePollers()
+            self._idle_pollers = IdlePollers(autogroup_nice=None if "idle-nice" in without else AUTOGROUP_NICE)
         except OSError as err:
             logger.warning("cannot start the idle-poll loops: %s", err)
             return {"loops": 0, "reason": f"could not start them ({err.strerror or err})"}

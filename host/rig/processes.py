@@ -143,8 +143,9 @@ def killpg(pgid: int, signum: int) -> None:
             os.kill(pgid, signum)
 
 
-def _make_preexec() -> Callable[[], None] | None:
-    """``preexec_fn`` setting PR_SET_PDEATHSIG = SIGKILL (None where prctl is unavailable).
+def _make_preexec(*, batch: bool = False) -> Callable[[], None] | None:
+    """``preexec_fn`` setting PR_SET_PDEATHSIG = SIGKILL (None where prctl is unavailable) and,
+    with ``batch``, the scheduling policy ``SCHED_BATCH`` (any process may take it).
 
     The libc function is looked up here, in the parent, so the child only calls it. If the
     parent already died between fork and prctl, the child kills itself.
@@ -161,7 +162,11 @@ def _make_preexec() -> Callable[[], None] | None:
     parent = os.getpid()
     sigkill = int(signal.SIGKILL)
 
+    batch_policy = getattr(os, "SCHED_BATCH", None) if batch else None
+
     def preexec() -> None:
+        if batch_policy is not None:
+            os.sched_setscheduler(0, batch_policy, os.sched_param(0))
         prctl(_PR_SET_PDEATHSIG, sigkill, 0, 0, 0)
         if os.getppid() != parent:  # the launcher died before prctl took effect
             os.kill(os.getpid(), sigkill)
@@ -169,11 +174,13 @@ def _make_preexec() -> Callable[[], None] | None:
     return preexec
 
 
-def spawn(name: str, argv: list[str], log_path: Path | None, *, stderr_only: bool = False) -> Child:
+def spawn(name: str, argv: list[str], log_path: Path | None, *, stderr_only: bool = False, batch: bool = False) -> Child:
     """Start one role (see the module docstring).
 
     :param log_path: its stdout and stderr go here (None: the launcher's)
     :param stderr_only: only its stderr goes to the log, its stdout to the launcher's (the host)
+    :param batch: start it in ``SCHED_BATCH`` (its threads inherit it; a real-time run's host,
+        :mod:`host.rig.fair_scheduling`)
     :raises LaunchError: it could not be started
     """
     log = open(log_path, "ab") if log_path is not None else None  # noqa: SIM115 - closed below
@@ -184,7 +191,7 @@ def spawn(name: str, argv: list[str], log_path: Path | None, *, stderr_only: boo
             stdout=None if stderr_only else log,
             stderr=log if stderr_only else (subprocess.STDOUT if log is not None else None),
             start_new_session=True,
-            preexec_fn=_make_preexec(),
+            preexec_fn=_make_preexec(batch=batch),
             close_fds=True,
         )
     except OSError as err:

@@ -7,9 +7,12 @@ This module owns how the per-trial timing of the plant node (0x2440,
 achieved rate, and whether the run kept up; in lockstep mode the emulator throughput (ticks per
 second of wall time inside the trials). With them, in both modes, the CPU time the hypervisor of a
 virtual machine took from it while the trials ran (``steal`` in ``/proc/stat``: :func:`steal_during`),
-so that a run can tell the machine's stalls from the rig's. It also puts the lockstep processes of
-a real-time run in ``SCHED_FIFO`` (:func:`raise_lockstep_priority`). Wall-clock figures are
-diagnostics: they depend on the machine and never on or in the model.
+so that a run can tell the machine's stalls from the rig's. It also schedules the lockstep
+processes of a real-time run (:func:`schedule_lockstep`): in ``SCHED_FIFO`` where permitted
+(:func:`raise_lockstep_priority`), otherwise in normal scheduling with what an unprivileged process
+may use (:mod:`host.rig.fair_scheduling`), and says which mechanisms were in force
+(:func:`scheduling_mechanisms`, :func:`scheduling_text`). Wall-clock figures are diagnostics: they
+depend on the machine and never on or in the model.
 """
 
 from __future__ import annotations
@@ -23,7 +26,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from bus.lockstep_process import mechanisms_left_out
 from bus.plant_objects import DeadlineMisses, TrialTiming
+from host.rig.fair_scheduling import apply_fair_scheduling, threads
 
 logger = logging.getLogger(__name__)
 
@@ -31,6 +36,8 @@ __all__ = [
     "timing_summary",
     "timing_line",
     "raise_lockstep_priority",
+    "schedule_lockstep",
+    "scheduling_mechanisms",
     "scheduling_text",
     "DEFAULT_RT_PRIORITY",
     "MachineSteal",
@@ -86,14 +93,6 @@ def steal_during(
     return MachineSteal(max(0.0, s1 - s0), t1 - t0, os.cpu_count() or 1)
 
 
-def _threads(pid: int) -> list[int]:
-    """The thread ids of process ``pid`` (just ``pid`` where /proc does not list them)."""
-    try:
-        return sorted(int(t) for t in os.listdir(f"/proc/{pid}/task"))
-    except OSError:
-        return [pid]
-
-
 def raise_lockstep_priority(pids: Mapping[str, int], priority: int) -> dict[str, Any]:
     """Put every thread of the processes ``pids`` (role name -> pid) in ``SCHED_FIFO`` at ``priority``
     (1..99; 0: leave them in normal scheduling). Threads they start later inherit it.
@@ -108,7 +107,7 @@ def raise_lockstep_priority(pids: Mapping[str, int], priority: int) -> dict[str,
     done: list[int] = []
     try:
         for pid in pids.values():
-            for tid in _threads(pid):
+            for tid in threads(pid):
                 try:
                     os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
                 except ProcessLookupError:
@@ -128,12 +127,62 @@ def raise_lockstep_priority(pids: Mapping[str, int], priority: int) -> dict[str,
     return {"policy": "SCHED_FIFO", "priority": priority, "roles": list(pids)}
 
 
+def schedule_lockstep(pids: Mapping[str, int], priority: int, without: frozenset[str] | None = None) -> dict[str, Any]:
+    """The lockstep processes ``pids`` (role name -> pid) of a real-time run in ``SCHED_FIFO`` at
+    ``priority`` where permitted (:func:`raise_lockstep_priority`), else in normal scheduling made
+    as prompt as an unprivileged process may (:func:`host.rig.fair_scheduling.apply_fair_scheduling`).
+
+    :param without: mechanisms to leave out (default: ``ILCRIG_RT_WITHOUT``)
+    :return: the scheduling record: :func:`raise_lockstep_priority`'s, with ``"roles"`` and, in
+        normal scheduling, ``"fair"`` (what the lockstep processes got instead)
+    """
+    got = raise_lockstep_priority(pids, priority)
+    if got["policy"] != "SCHED_FIFO":
+        left_out = mechanisms_left_out() if without is None else without
+        got |= {"roles": list(pids), "fair": apply_fair_scheduling(pids, left_out)}
+    return got
+
+
+def scheduling_mechanisms(scheduling: Mapping[str, Any]) -> list[str]:
+    """The mechanisms in force in a scheduling record, in words (the record's ``mechanisms``)."""
+    out: list[str] = []
+    if scheduling.get("policy") == "SCHED_FIFO":
+        out.append(f"SCHED_FIFO {scheduling['priority']}")
+    fair = scheduling.get("fair") or {}
+    if "slice_us" in fair:
+        out.append(f"scheduler slice {fair['slice_us']:g} µs")
+    if isinstance(fair.get("nice"), int) and fair["nice"] < 0:
+        out.append(f"nice {fair['nice']}")
+    if (scheduling.get("host") or {}).get("policy") == "SCHED_BATCH":
+        out.append("host in SCHED_BATCH")
+    idle = scheduling.get("idle_poll") or {}
+    if idle.get("loops"):
+        out.append(f"{idle['loops']} SCHED_IDLE busy loops")
+    roles = scheduling.get("in_roles") or {}
+    if roles.get("heap_frozen"):
+        out.append("heap frozen (gc)")
+    if roles.get("timer_slack_ns"):
+        out.append(f"timer slack {roles['timer_slack_ns'] / 1000:g} µs")
+    if roles.get("plant_spins") is False:
+        out.append("plant sleeps until each tick is due")
+    return out
+
+
 def scheduling_text(scheduling: Mapping[str, Any]) -> str:
     """How the lockstep processes were scheduled, in words (for the console line)."""
     if scheduling.get("policy") == "SCHED_FIFO":
         text = f"lockstep processes ({', '.join(scheduling['roles'])}) in SCHED_FIFO {scheduling['priority']}"
     else:
         text = f"normal scheduling ({scheduling.get('reason', 'not asked for')})"
+        fair = scheduling.get("fair")
+        if fair is not None:
+            got = [f"a {fair['slice_us']:g} µs scheduler slice" if "slice_us" in fair else f"no short slice: {fair.get('slice')}"]
+            got.append(f"nice {fair.get('nice')}")
+            text += f": lockstep processes ({', '.join(scheduling.get('roles', []))}) with {', '.join(got)}"
+    host = scheduling.get("host")
+    if host is not None:
+        batch = host.get("policy") == "SCHED_BATCH"
+        text += ", host in SCHED_BATCH" if batch else f", host in normal scheduling ({host.get('reason')})"
     idle = scheduling.get("idle_poll")
     if idle is not None:
         loops = idle.get("loops", 0)
@@ -142,6 +191,14 @@ def scheduling_text(scheduling: Mapping[str, Any]) -> str:
             if loops
             else f", idle CPUs may halt ({idle.get('reason', 'no idle-poll loops')})"
         )
+    roles = scheduling.get("in_roles")
+    if roles is not None:
+        done = ["heap frozen" if roles.get("heap_frozen") else "heap not frozen"]
+        if roles.get("timer_slack_ns"):
+            done.append(f"timer slack {roles['timer_slack_ns'] / 1000:g} µs")
+        if "plant_spins" in roles:
+            done.append("plant spins the end of each wait" if roles["plant_spins"] else "plant sleeps until each tick is due")
+        text += f", {', '.join(done)}"
     return text
 
 

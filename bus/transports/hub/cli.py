@@ -17,6 +17,7 @@ import signal
 import sys
 from collections.abc import Sequence
 
+from bus.lockstep_process import freeze_heap
 from bus.transports.hub.addresses import default_hub_address
 from bus.transports.hub.bus_time import parse_bus_time
 from bus.transports.hub.process import READY_PREFIX
@@ -75,6 +76,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.ready:
             print(READY_PREFIX, *map(str, server.addresses), flush=True)
+        freeze_heap("hub")  # a lockstep process: no full collection of the start-up heap mid-run
         server.serve_forever(watch_fd=sys.stdin.fileno() if args.exit_on_stdin_eof else None)
     finally:
         server.close()
