@@ -1,6 +1,6 @@
-"""Every ``python`` code block of docs/api.md runs as it is, top to bottom in one namespace, in a
-fresh working directory (blocks fenced as ``py`` are shown, not run: they start the rig, which
-tests/test_api.py runs)."""
+"""Every code block of docs/api.md runs as it is, top to bottom in one namespace, in a fresh
+working directory: the ``python`` blocks in a quick test, and with them the ``py`` blocks (they
+start the multi-process rig) in a slow one."""
 
 from __future__ import annotations
 
@@ -27,6 +27,23 @@ def test_docs_api_examples_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, 
     out = capsys.readouterr().out
     assert "iterations must be between 1 and 1000, got 0" in out
     assert "['learning', 'auxiliary', 'auxiliary', 'learning']" in out
+
+
+def all_blocks(text: str) -> list[str]:
+    """The bodies of the blocks fenced ```python … ``` or ```py … ```, in the document's order."""
+    return re.findall(r"^```(?:python|py)\n(.*?)^```", text, flags=re.S | re.M)
+
+
+@pytest.mark.slow
+@pytest.mark.multiprocess
+def test_docs_api_examples_run_with_the_rig(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    blocks = all_blocks(DOC.read_text(encoding="utf-8"))
+    assert len(blocks) > len(python_blocks(DOC.read_text(encoding="utf-8")))
+    monkeypatch.chdir(tmp_path)
+    namespace: dict[str, object] = {"__name__": "__docs__"}
+    for i, code in enumerate(blocks):
+        exec(compile(code, f"docs/api.md block {i + 1}", "exec"), namespace)  # noqa: S102 - the documentation's own code
+    assert (tmp_path / "rig-a" / "summary.json").is_file()
 
 
 def test_table2_example_uses_the_api_alone(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
