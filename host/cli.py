@@ -374,6 +374,13 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="KEY=V1,V2,…",
         help="values of one option (repeatable: the product of all), e.g. gains.alpha=2,3,4 or law=pd-ilc,pd-ilc-q",
     )
+    wp.add_argument(
+        "--samples",
+        type=int,
+        default=None,
+        metavar="N",
+        help="Monte Carlo samples per grid point (the spec's [monte_carlo] samples)",
+    )
     wp.add_argument("--out", default=None, help="sweep folder (default runs/sweep-<time>); reused to resume")
     wp.add_argument("--save-errors", action="store_true", help="keep each point's error signals (errors.npy)")
     wp.add_argument("--fresh", action="store_true", help="run every point again, finished or not")

@@ -35,6 +35,11 @@ def spec_of_args(args: argparse.Namespace) -> SweepSpec:
     """The sweep spec of ``--spec`` with ``--set``, ``--vary`` and ``--config`` merged in."""
     spec = SweepSpec.from_toml(args.spec) if getattr(args, "spec", None) else SweepSpec()
     spec.add_cli(getattr(args, "set", None) or [], getattr(args, "vary", None) or [], getattr(args, "config", None))
+    samples = getattr(args, "samples", None)
+    if samples is not None:
+        if samples < 1 or not spec.draws:
+            raise InputError(f"--samples {samples}: needs >= 1 and a spec with [monte_carlo.draw]")
+        spec.samples = samples
     return spec
 
 
