@@ -14,8 +14,9 @@ ended by a fault (a diverging law, a drive fault) gives J = inf.  With Monte Car
 runs one experiment per plant and its value is the mean (or the worst, ``aggregate = "max"``) of
 their J; after each plant the running value is reported to Optuna's median pruner, which stops a
 trial that is worse than the median of the earlier ones at the same number of plants.  With
-``require_check`` the convergence check must hold (spectral radius < 1): gains that fail it are not
-run and get J = inf.
+``require_check`` the convergence check must hold: gains that fail it are not
+run and get J = inf (the check's ``ok``: spectral radius < 1 and a predicted error ratio < 1 after
+the experiment's trials, :mod:`host.learning.check`).
 
 **The starting point** (the base options' values of the tuned keys: the hand-picked gains) is the
 study's first trial, so the best value is never worse than the hand-picked one.  The study runs
@@ -355,12 +356,20 @@ class Tuner:
             return None
         from ilcrig.experiment import Experiment
 
+        host_log = logging.getLogger("host")  # the plan's warnings about these gains: the reason says it
+        level = host_log.level
+        host_log.setLevel(logging.ERROR)
         try:
             check = Experiment(**run.points[0].options).check
         except InputError as exc:
             return str(exc)
+        finally:
+            host_log.setLevel(level)
         if check.checked and not check.ok:
-            return f"convergence check fails: spectral radius {check.rho_max:.4f}"
+            return (
+                f"convergence check fails (spectral radius {check.rho_max:.4f}, predicted error ratio after "
+                f"{check.iterations} trials {check.predicted_ratio:.3g})"
+            )
         return None
 
     # -- running -------------------------------------------------------------------------------
