@@ -139,6 +139,17 @@ def test_plant_scales_change_the_emulated_robot_only() -> None:
     assert heavy.check.rho_max == plain.check.rho_max  # the plan (nominal model) is the same
 
 
+@pytest.mark.slow
+@pytest.mark.multiprocess
+def test_plant_factors_on_the_rig_give_the_digest_of_sim(tmp_path: Path) -> None:
+    """The factors reach the plant node (0x2400:6..9) as exact float64: the rig's digest is sim's."""
+    exp = ilcrig.Experiment(law="pd-ilc", iterations=1, cycle_s=0.15, plant={"inertia_scale": 1.15, "friction_scale": 0.7})
+    sim = exp.run()
+    rig = exp.run(mode="rig", out=tmp_path / "rig", bus="hub", timeout_s=600)
+    assert rig.completed and rig.config["plant"]["inertia_scale"] == 1.15
+    assert rig.digest == sim.digest != ilcrig.Experiment(law="pd-ilc", iterations=1, cycle_s=0.15).run().digest
+
+
 # ------------------------------------------------------------------------------------- processes
 
 
