@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import multiprocessing
 import os
+import re
 import shutil
 import signal
 import statistics
@@ -126,8 +127,9 @@ def _tree(rev: str, dest: Path) -> Path:
     return dest
 
 
-def _reproduce(tree: Path, out: Path, args: list[str]) -> float:
-    """``ilcrig reproduce`` of ``tree`` (its packages first on the path); wall s."""
+def _reproduce(tree: Path, out: Path, args: list[str]) -> tuple[float, float]:
+    """``ilcrig reproduce`` of ``tree`` (its packages first on the path): (wall s of the command,
+    wall s of the experiments as the command reports it)."""
     t0 = time.perf_counter()
     p = subprocess.run(
         [sys.executable, "-m", "host.cli", "reproduce", "--out", str(out), *args],
@@ -139,7 +141,8 @@ def _reproduce(tree: Path, out: Path, args: list[str]) -> float:
     wall = time.perf_counter() - t0
     if p.returncode != 0:
         raise SystemExit(f"reproduce in {tree} failed ({p.returncode}): {p.stderr[-2000:]}")
-    return wall
+    m = re.search(r"already finished, ([0-9.]+) s on", p.stdout)
+    return wall, float(m.group(1)) if m else float("nan")
 
 
 def _report_lines(path: Path) -> list[str]:
@@ -164,16 +167,25 @@ def reproduce(rev: str, repeat: int, iterations: int, only: str | None, jobs: in
         for i, tree in enumerate(trees.values()):  # numba's cache of each tree, imports
             _reproduce(tree, base / f"warm-{i}", ["--jobs", str(jobs), "--iterations", "1", "--only", "table2"])
         walls: dict[str, list[float]] = {name: [] for name in trees}
+        sweeps: dict[str, list[float]] = {name: [] for name in trees}
         outs: dict[str, Path] = {}
         print(f"ilcrig reproduce {' '.join(common)}: new engine and the one of {rev}, alternately, {repeat} runs each")
         for r in range(repeat):
             for i, (name, tree) in enumerate(trees.items()):
                 outs[name] = base / f"run-{r}-{i}"
                 before = load()
-                walls[name].append(_reproduce(tree, outs[name], common))
-                print(f"  run {r}, {name}: {walls[name][-1]:.1f} s (before: {before}; after: {load()})")
+                wall, sweep = _reproduce(tree, outs[name], common)
+                walls[name].append(wall)
+                sweeps[name].append(sweep)
+                print(
+                    f"  run {r}, {name}: {wall:.1f} s, of which {sweep:.1f} s running the experiments "
+                    f"(before: {before}; after: {load()})"
+                )
         for name, w in walls.items():
-            print(f"{name}: median {statistics.median(w):.1f} s over {len(w)} runs ({', '.join(f'{x:.1f}' for x in w)})")
+            print(
+                f"{name}: median {statistics.median(w):.1f} s over {len(w)} runs ({', '.join(f'{x:.1f}' for x in w)}); "
+                f"running the experiments: median {statistics.median(sweeps[name]):.1f} s"
+            )
         new, old_name = list(trees)
         a, b = _report_lines(outs[new] / "report.md"), _report_lines(outs[old_name] / "report.md")
         diff = [(i, x, y) for i, (x, y) in enumerate(zip(a, b)) if x != y]

@@ -46,6 +46,8 @@ __all__ = ["Engine", "SweepOutcome", "run_points", "LOOPBACK", "dashboard_availa
 LOOPBACK = "127.0.0.1"
 #: seconds to wait for a scheduler given by address
 CONNECT_TIMEOUT_S = 30.0
+#: the Dask task group of the points (the first element of their keys)
+TASK_GROUP = "ilcrig-point"
 
 
 def dashboard_available() -> bool:
@@ -131,8 +133,10 @@ class Engine:
             return f"the cluster at {self.scheduler} ({self.n_workers} workers)"
         return f"a local cluster of {self.workers} worker process(es) on {LOOPBACK}"
 
-    def submit(self, fn: Callable[..., Any], *args: Any, key: str, priority: int = 0) -> Any:
-        """Submit one task (``pure=False``: a point is run when asked)."""
+    def submit(self, fn: Callable[..., Any], *args: Any, key: tuple[str, ...], priority: int = 0) -> Any:
+        """Submit one task (``pure=False``: a point is run when asked).  Keys are tuples
+        (:data:`TASK_GROUP`, point id, …): every point is in one task group, so the scheduler
+        queues them and hands them out in priority order as workers free up."""
         return self.client.submit(fn, *args, key=key, pure=False, priority=priority, retries=1)
 
     def close(self) -> None:
@@ -226,7 +230,7 @@ def run_points(
             try:
                 for i, p in enumerate(todo):  # the first points first (reproduce: the slowest)
                     fut = engine.submit(
-                        POINT_FUNCTION, p.id, p.options, save_errors, key=f"ilcrig-point-{p.id}", priority=len(todo) - i
+                        POINT_FUNCTION, p.id, p.options, save_errors, key=(TASK_GROUP, p.id), priority=len(todo) - i
                     )
                     futures[fut] = p
                 for fut in as_completed(list(futures), loop=engine.client.loop):

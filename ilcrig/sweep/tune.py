@@ -60,7 +60,7 @@ from host.analysis.figures import figure, save_png
 from host.analysis.markdown import fmt, md_table
 from host.analysis.settling import settle_iteration
 from ilcrig.errors import InputError
-from ilcrig.sweep.engine import Engine, interrupt_on_sigterm, point_doc
+from ilcrig.sweep.engine import TASK_GROUP, Engine, interrupt_on_sigterm, point_doc
 from ilcrig.sweep.point import commit, is_finished, load_point, run_dir
 from ilcrig.sweep.spec import Point, SweepSpec, check_key, parse_value, set_key
 from ilcrig.sweep.table import metrics_of, write_table
@@ -437,7 +437,7 @@ class Tuner:
                         return
                     continue
                 fut = engine.submit(
-                    engine_point_function(), p.id, p.options, False, key=f"ilcrig-point-{p.id}-t{run.trial.number}"
+                    engine_point_function(), p.id, p.options, False, key=(TASK_GROUP, p.id, f"trial-{run.trial.number}")
                 )
                 run.futures.append(fut)
                 by_future[fut] = (run, p)
