@@ -2,14 +2,17 @@
 Dask's overhead per point against a plain process pool, and ``ilcrig reproduce`` against the
 process-pool engine it replaced.
 
-Scaling (default): ``--points`` tiny points (``pd-ilc-q``, 2 trials of a 0.15 s cycle, each gain
-α a point) on ``--workers`` (a list: the scaling can be measured on any machine) worker processes,
-once on a Dask ``LocalCluster`` (:func:`ilcrig.sweep.engine.run_points`) and once on a plain
-``ProcessPoolExecutor`` running the same point function and writing the same folders, alternately,
-``--repeat`` times each.  Both are warmed up first (one point per worker: imports, numba's cache);
-the cluster's start is timed on its own.  The overhead per point is (t_dask − t_pool) / points.
+Scaling (default): ``--points`` points (``pd-ilc-q`` on the paper's condition: path 1, 4-5-6-7
+law, ``--trials`` 10 trials of a ``--cycle`` 0.25 s cycle; each gain α a point) on ``--workers``
+(a list: the scaling can be measured on any machine) worker processes, once on a Dask
+``LocalCluster`` (:func:`ilcrig.sweep.engine.run_points`) and once on a plain
+``ProcessPoolExecutor`` running the same point function and writing the same folders,
+alternately, ``--repeat`` times each.  Both are warmed up first (every worker: imports, numba's
+cache); the cluster's start is timed on its own.  The overhead per point is (t_dask − t_pool) /
+points, in wall time and in CPU time (this process and its workers: user + system; on a machine
+shared with other work the CPU time is the steadier figure).
 
-    python benchmarks/sweep_speed.py [--workers 1,2] [--points 40] [--repeat 3]
+    python benchmarks/sweep_speed.py [--workers 1,2] [--points 16] [--repeat 3] [--trials 10] [--cycle 0.25]
 
 Reproduce (``--reproduce REV``): ``ilcrig reproduce --jobs 2`` of this tree and of the tree at git
 revision ``REV`` (its engine; extracted with ``git archive``), alternately, ``--repeat`` times each,
@@ -46,14 +49,31 @@ def load() -> str:
     return f"load {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores"
 
 
+def cpu_s() -> float:
+    """CPU seconds (user + system) of this process and its live descendants (the workers): what a
+    run costs, less sensitive than wall time to the other work of a shared machine."""
+    import psutil
+
+    me = psutil.Process()
+    total = 0.0
+    for p in [me, *me.children(recursive=True)]:
+        try:
+            t = p.cpu_times()
+        except psutil.NoSuchProcess:
+            continue
+        total += t.user + t.system
+    return total
+
+
+#: the experiment of a point: ``--trials`` and ``--cycle`` set its size
+POINT: dict[str, Any] = {"law": "pd-ilc-q", "path": "1", "profile": "poly4567", "iterations": 10, "cycle_s": 0.25}
+
+
 def _points(n: int, tag: float) -> list[Any]:
-    """``n`` distinct tiny points (``tag`` keeps the runs of a benchmark apart)."""
+    """``n`` distinct points, each gain α another (``tag`` keeps the runs of a benchmark apart)."""
     from ilcrig.sweep.spec import Point
 
-    return [
-        Point.of({"law": "pd-ilc-q", "iterations": 2, "cycle_s": 0.15, "gains": {"alpha": 2.0 + tag + i / (10 * n)}}, index=i)
-        for i in range(n)
-    ]
+    return [Point.of(POINT | {"gains": {"alpha": 2.0 + tag + i / (10 * n)}}, index=i) for i in range(n)]
 
 
 def _init() -> None:
@@ -86,7 +106,10 @@ def scaling(workers: list[int], n_points: int, repeat: int) -> None:
     from ilcrig.sweep.engine import Engine
     from ilcrig.sweep.point import run_point
 
-    print(f"sweep engine scaling: {n_points} points (pd-ilc-q, 2 trials of a 0.15 s cycle) per run, {repeat} runs per engine")
+    print(
+        f"sweep engine scaling: {n_points} points ({POINT['law']}, {POINT['iterations']} trials of a {POINT['cycle_s']} s "
+        f"cycle, path {POINT['path']}, {POINT['profile']}) per run, {repeat} runs per engine"
+    )
     with tempfile.TemporaryDirectory(prefix="sweep-speed-") as tmp:
         base = Path(tmp)
         for w in workers:
@@ -101,19 +124,32 @@ def scaling(workers: list[int], n_points: int, repeat: int) -> None:
                 warm = _points(1, 0.5)[0]
                 engine.client.run(run_point, warm.id, warm.options, False)
                 pool_run(pool, base / f"warm-p{w}", _points(4 * w, 0.6))
-                t_dask, t_pool = [], []
+                t_dask, t_pool, c_dask, c_pool = [], [], [], []
                 for r in range(repeat):
+                    c0 = cpu_s()
                     t_dask.append(dask_run(engine, base / f"d{w}-{r}", _points(n_points, 1.0 + r)))
-                    print(f"  {w} worker(s), run {r}: dask {n_points / t_dask[-1]:.2f} points/s ({load()})")
+                    c_dask.append(cpu_s() - c0)
+                    print(
+                        f"  {w} worker(s), run {r}: dask {n_points / t_dask[-1]:.2f} points/s, "
+                        f"{1000 * c_dask[-1] / n_points:.0f} ms CPU per point ({load()})"
+                    )
+                    c0 = cpu_s()
                     t_pool.append(pool_run(pool, base / f"p{w}-{r}", _points(n_points, 1.0 + r + 0.5)))
-                    print(f"  {w} worker(s), run {r}: pool {n_points / t_pool[-1]:.2f} points/s ({load()})")
+                    c_pool.append(cpu_s() - c0)
+                    print(
+                        f"  {w} worker(s), run {r}: pool {n_points / t_pool[-1]:.2f} points/s, "
+                        f"{1000 * c_pool[-1] / n_points:.0f} ms CPU per point ({load()})"
+                    )
             finally:
                 engine.close()
                 pool.shutdown(wait=True)
             d, p = statistics.median(t_dask), statistics.median(t_pool)
+            cd, cp = statistics.median(c_dask), statistics.median(c_pool)
             print(
                 f"{w} worker(s): dask {n_points / d:.2f} points/s, process pool {n_points / p:.2f} points/s (medians); "
-                f"Dask's overhead {1000 * (d - p) / n_points:+.1f} ms per point ({100 * (d - p) / p:+.1f} %); "
+                f"Dask's overhead {1000 * (d - p) / n_points:+.1f} ms per point ({100 * (d - p) / p:+.1f} %) in wall time, "
+                f"{1000 * (cd - cp) / n_points:+.1f} ms ({100 * (cd - cp) / cp:+.1f} %) in CPU time "
+                f"(all processes: {1000 * cd / n_points:.0f} against {1000 * cp / n_points:.0f} ms per point); "
                 f"cluster start {t_start:.2f} s"
             )
 
@@ -201,7 +237,9 @@ def reproduce(rev: str, repeat: int, iterations: int, only: str | None, jobs: in
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workers", default="1,2", help="worker counts to measure, comma-separated (default 1,2)")
-    ap.add_argument("--points", type=int, default=40, help="points per run (default 40)")
+    ap.add_argument("--points", type=int, default=16, help="points per run (default 16)")
+    ap.add_argument("--trials", type=int, default=10, help="trials per point (default 10, the paper's)")
+    ap.add_argument("--cycle", type=float, default=0.25, help="cycle time of a point, s (default 0.25, the paper's)")
     ap.add_argument("--repeat", type=int, default=3, help="runs per engine (default 3; --reproduce: 2)")
     ap.add_argument("--reproduce", metavar="REV", help="compare ilcrig reproduce with the engine of git revision REV")
     ap.add_argument("--iterations", type=int, default=10, help="--reproduce: trials per experiment (default 10)")
@@ -211,6 +249,7 @@ def main() -> None:
     if args.reproduce:
         reproduce(args.reproduce, args.repeat if args.repeat != 3 else 2, args.iterations, args.only, args.jobs)
     else:
+        POINT.update(iterations=args.trials, cycle_s=args.cycle)
         scaling([int(w) for w in args.workers.split(",")], args.points, args.repeat)
 
 

@@ -281,9 +281,9 @@ def _add_engine_args(p: argparse.ArgumentParser, workers_flag: str = "--workers"
     )
 
 
-def _add_spec_args(p: argparse.ArgumentParser) -> None:
+def _add_spec_args(p: argparse.ArgumentParser, sections: str = "[base], [vary], [monte_carlo]") -> None:
     """The points' options: a spec file, an experiment file, ``--set`` and ``--vary``."""
-    p.add_argument("--spec", metavar="TOML", help="sweep spec: [base], [vary], [monte_carlo] (docs/sweeps.md)")
+    p.add_argument("--spec", metavar="TOML", help=f"spec file: {sections} (docs/sweeps.md)")
     p.add_argument("--config", metavar="TOML", help="experiment file under the spec's [base] (keys as `ilcrig sim --config`)")
     p.add_argument(
         "--set",
@@ -388,7 +388,7 @@ def build_parser() -> argparse.ArgumentParser:
     wp.set_defaults(func=cmd_sweep)
 
     tp = sub.add_parser("tune", help="tune gains with Optuna on the sweep engine (docs/sweeps.md)")
-    _add_spec_args(tp)
+    _add_spec_args(tp, "[base], [tune], [objective], [monte_carlo]")
     tp.add_argument(
         "--param",
         action="append",
@@ -411,7 +411,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--require-check",
         action="store_true",
         default=None,
-        help="gains whose convergence check fails (spectral radius >= 1) are infeasible, not run",
+        help="gains whose convergence check fails (spectral radius or predicted error ratio >= 1) are infeasible, not run",
     )
     tp.add_argument("--sampler-seed", type=int, default=0, help="seed of Optuna's sampler (default 0)")
     tp.add_argument(

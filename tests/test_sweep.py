@@ -496,3 +496,37 @@ def _children(pid: int) -> list[object]:
     import psutil
 
     return psutil.Process(pid).children(recursive=True)
+
+
+@pytest.mark.slow
+@pytest.mark.multiprocess
+def test_tune_over_monte_carlo_plants(tmp_path: Path) -> None:
+    """A trial's value is the mean of J over its plants (the spec's draws), each plant a point."""
+    import optuna
+
+    from ilcrig.sweep.tune import Objective
+
+    spec = tmp_path / "t.toml"
+    spec.write_text(
+        '[base]\nlaw = "pd-ilc-q"\niterations = 2\ncycle_s = 0.15\n'
+        '[tune]\n"gains.alpha" = { low = 2.0, high = 4.0 }\n'
+        "[objective]\nplants = 2\n"
+        '[monte_carlo]\nseed = 3\n[monte_carlo.draw]\n"plant.mass_scale" = { uniform = [0.9, 1.1] }\n'
+    )
+    out = tmp_path / "tune"
+    p = _cli("tune", "--spec", str(spec), "--out", str(out), "--budget", "2", "--workers", "2", "--no-progress")
+    assert p.returncode == 0, p.stderr
+    study = optuna.load_study(study_name="ilcrig-tune", storage=f"sqlite:///{out / 'study.db'}")
+    first = min(study.trials, key=lambda t: t.number)
+    assert first.params == {"gains.alpha": 3.0} and len(first.user_attrs["points"]) == 2
+    draws = SweepSpec.from_toml(spec)
+    js = [
+        Objective().of_summary(
+            ilcrig.Experiment(law="pd-ilc-q", iterations=2, cycle_s=0.15, plant={"mass_scale": draws.draw(s)["plant.mass_scale"]})
+            .run()
+            .summary
+        )
+        for s in (0, 1)
+    ]
+    assert first.value == pytest.approx(float(np.mean(js)), rel=1e-12)
+    assert len(list((out / "runs").iterdir())) == 4  # two trials × two plants

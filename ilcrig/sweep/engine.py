@@ -48,6 +48,18 @@ LOOPBACK = "127.0.0.1"
 CONNECT_TIMEOUT_S = 30.0
 #: the Dask task group of the points (the first element of their keys)
 TASK_GROUP = "ilcrig-point"
+#: Dask settings of the local cluster: a point is seconds of Python, so what Dask does in the
+#: background on every process costs more than it gives — no statistical profiler (it samples the
+#: running point's stack every 10 ms), no work stealing (the points are queued on the scheduler
+#: and handed out as workers free up), and the monitors (event-loop tick, system, memory) polled
+#: every second or two instead of every 20–500 ms
+WORKER_CONFIG: dict[str, Any] = {
+    "distributed.worker.profile.enabled": False,
+    "distributed.scheduler.work-stealing": False,
+    "distributed.admin.tick.interval": "1s",
+    "distributed.admin.system-monitor.interval": "2s",
+    "distributed.worker.memory.monitor-interval": "1s",
+}
 
 
 def dashboard_available() -> bool:
@@ -102,16 +114,19 @@ class Engine:
                 raise InputError(f"--scheduler {self.scheduler}: cannot connect ({exc})") from None
             self.dashboard = self._link()
             return
+        import dask
+
         serve = dashboard_available() and self.dashboard_option is not False
         address = self.dashboard_option if isinstance(self.dashboard_option, str) else f"{LOOPBACK}:0"
-        self.cluster = LocalCluster(
-            n_workers=self.workers,
-            threads_per_worker=1,
-            processes=True,
-            host=LOOPBACK,
-            dashboard_address=address if serve else None,
-            silence_logs=logging.ERROR,
-        )
+        with dask.config.set(WORKER_CONFIG):
+            self.cluster = LocalCluster(
+                n_workers=self.workers,
+                threads_per_worker=1,
+                processes=True,
+                host=LOOPBACK,
+                dashboard_address=address if serve else None,
+                silence_logs=logging.ERROR,
+            )
         self.client = Client(self.cluster, set_as_default=False)
         self.dashboard = self._link() if serve else None
 
