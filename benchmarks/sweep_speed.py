@@ -163,9 +163,18 @@ def _tree(rev: str, dest: Path) -> Path:
     return dest
 
 
-def _reproduce(tree: Path, out: Path, args: list[str]) -> tuple[float, float]:
+def _children_cpu_s() -> float:
+    """CPU seconds (user + system) of every descendant process waited for so far."""
+    import resource
+
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def _reproduce(tree: Path, out: Path, args: list[str]) -> tuple[float, float, float]:
     """``ilcrig reproduce`` of ``tree`` (its packages first on the path): (wall s of the command,
-    wall s of the experiments as the command reports it)."""
+    wall s of the experiments as the command reports it, CPU s of the command and its workers)."""
+    c0 = _children_cpu_s()
     t0 = time.perf_counter()
     p = subprocess.run(
         [sys.executable, "-m", "host.cli", "reproduce", "--out", str(out), *args],
@@ -178,7 +187,7 @@ def _reproduce(tree: Path, out: Path, args: list[str]) -> tuple[float, float]:
     if p.returncode != 0:
         raise SystemExit(f"reproduce in {tree} failed ({p.returncode}): {p.stderr[-2000:]}")
     m = re.search(r"already finished, ([0-9.]+) s on", p.stdout)
-    return wall, float(m.group(1)) if m else float("nan")
+    return wall, float(m.group(1)) if m else float("nan"), _children_cpu_s() - c0
 
 
 def _report_lines(path: Path) -> list[str]:
@@ -204,23 +213,26 @@ def reproduce(rev: str, repeat: int, iterations: int, only: str | None, jobs: in
             _reproduce(tree, base / f"warm-{i}", ["--jobs", str(jobs), "--iterations", "1", "--only", "table2"])
         walls: dict[str, list[float]] = {name: [] for name in trees}
         sweeps: dict[str, list[float]] = {name: [] for name in trees}
+        cpus: dict[str, list[float]] = {name: [] for name in trees}
         outs: dict[str, Path] = {}
         print(f"ilcrig reproduce {' '.join(common)}: new engine and the one of {rev}, alternately, {repeat} runs each")
         for r in range(repeat):
             for i, (name, tree) in enumerate(trees.items()):
                 outs[name] = base / f"run-{r}-{i}"
                 before = load()
-                wall, sweep = _reproduce(tree, outs[name], common)
+                wall, sweep, cpu = _reproduce(tree, outs[name], common)
                 walls[name].append(wall)
                 sweeps[name].append(sweep)
+                cpus[name].append(cpu)
                 print(
-                    f"  run {r}, {name}: {wall:.1f} s, of which {sweep:.1f} s running the experiments "
-                    f"(before: {before}; after: {load()})"
+                    f"  run {r}, {name}: {wall:.1f} s, of which {sweep:.1f} s running the experiments; "
+                    f"{cpu:.1f} CPU s (before: {before}; after: {load()})"
                 )
         for name, w in walls.items():
             print(
                 f"{name}: median {statistics.median(w):.1f} s over {len(w)} runs ({', '.join(f'{x:.1f}' for x in w)}); "
-                f"running the experiments: median {statistics.median(sweeps[name]):.1f} s"
+                f"running the experiments: median {statistics.median(sweeps[name]):.1f} s; "
+                f"CPU: median {statistics.median(cpus[name]):.1f} s ({', '.join(f'{x:.1f}' for x in cpus[name])})"
             )
         new, old_name = list(trees)
         a, b = _report_lines(outs[new] / "report.md"), _report_lines(outs[old_name] / "report.md")
@@ -240,17 +252,17 @@ def main() -> None:
     ap.add_argument("--points", type=int, default=16, help="points per run (default 16)")
     ap.add_argument("--trials", type=int, default=10, help="trials per point (default 10, the paper's)")
     ap.add_argument("--cycle", type=float, default=0.25, help="cycle time of a point, s (default 0.25, the paper's)")
-    ap.add_argument("--repeat", type=int, default=3, help="runs per engine (default 3; --reproduce: 2)")
+    ap.add_argument("--repeat", type=int, default=None, help="runs per engine (default 3; --reproduce: 2)")
     ap.add_argument("--reproduce", metavar="REV", help="compare ilcrig reproduce with the engine of git revision REV")
     ap.add_argument("--iterations", type=int, default=10, help="--reproduce: trials per experiment (default 10)")
     ap.add_argument("--only", default=None, help="--reproduce: a subset of the experiments (default all)")
     ap.add_argument("--jobs", type=int, default=2, help="--reproduce: worker processes (default 2)")
     args = ap.parse_args()
     if args.reproduce:
-        reproduce(args.reproduce, args.repeat if args.repeat != 3 else 2, args.iterations, args.only, args.jobs)
+        reproduce(args.reproduce, args.repeat or 2, args.iterations, args.only, args.jobs)
     else:
         POINT.update(iterations=args.trials, cycle_s=args.cycle)
-        scaling([int(w) for w in args.workers.split(",")], args.points, args.repeat)
+        scaling([int(w) for w in args.workers.split(",")], args.points, args.repeat or 3)
 
 
 if __name__ == "__main__":
