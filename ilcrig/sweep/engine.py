@@ -54,7 +54,7 @@ TASK_GROUP = "ilcrig-point"
 #: and handed out as workers free up), the monitors (event-loop tick, system, memory) polled every
 #: second or two instead of every 20–500 ms, and the workers' environment without Dask's
 #: ``MALLOC_TRIM_THRESHOLD_`` (returning freed memory to the system at once costs a point's numpy
-#: temporaries about 10 % of its time) but with one BLAS thread per worker (one worker per core)
+#: temporaries several per cent of its time) but with one BLAS thread per worker (one worker per core)
 WORKER_CONFIG: dict[str, Any] = {
     "distributed.worker.profile.enabled": False,
     "distributed.scheduler.work-stealing": False,

@@ -337,8 +337,6 @@ class SweepSpec:
         for k, v in draw.items():
             check_key(k, f"{where} [monte_carlo.draw]")
             spec.draws.append(Draw.parse(k, v, f"{where} [monte_carlo.draw]"))
-        if spec.draws and spec.samples < 1:
-            raise InputError(f"{where} [monte_carlo] draws need samples >= 1")
         spec.extra = {k: v for k, v in data.items() if k in ("tune", "objective")}
         spec._check_overlap(where)
         return spec
@@ -401,6 +399,8 @@ class SweepSpec:
 
         :raises InputError: a point that is not a valid experiment, or too many points.
         """
+        if self.draws and self.samples < 1:
+            raise InputError("[monte_carlo] draws need samples >= 1 (or --samples N)")
         if self.n_points > MAX_POINTS:
             raise InputError(f"the sweep has {self.n_points} points; at most {MAX_POINTS}")
         base = self.base_options()
