@@ -16,6 +16,8 @@ index   sub  name                      type     meaning / unit
 0x2400  3    disturbance kind          U8       :class:`DisturbanceKind` 0..3
 0x2400  4    seed                      U32      seed of the non-repetitive disturbance
 0x2400  5    pacing                    U8       0 lockstep as fast as possible, 1 real time
+0x2400  6-9  plant uncertainty         REAL64   factors on the emulated robot: inertias, masses,
+                                                    friction, payload (1.0 = as built; PLANT_SCALE_SUBS)
 0x2410  1    trial index               U32      k (selects the non-repetitive draw)
 0x2410  2    number of ticks           U32      N ≥ 1
 0x2410  3    command                   U8       wo: :class:`PlantCommand` 1 start, 2 abort
@@ -92,6 +94,34 @@ class ConfigSub(IntEnum):
     DISTURBANCE = 3
     SEED = 4
     PACING = 5
+    INERTIA_SCALE = 6
+    MASS_SCALE = 7
+    FRICTION_SCALE = 8
+    PAYLOAD_SCALE = 9
+
+
+#: 0x2400:6..9, the plant-uncertainty factors (plant.params.PlantScales: inertia, mass, friction,
+#: payload), REAL64; inertia and mass > 0, friction and payload >= 0, all finite
+PLANT_SCALE_SUBS: Final[tuple[ConfigSub, ConfigSub, ConfigSub, ConfigSub]] = (
+    ConfigSub.INERTIA_SCALE,
+    ConfigSub.MASS_SCALE,
+    ConfigSub.FRICTION_SCALE,
+    ConfigSub.PAYLOAD_SCALE,
+)
+#: the factors of the robot as built
+PLANT_SCALES_AS_BUILT: Final[tuple[float, float, float, float]] = (1.0, 1.0, 1.0, 1.0)
+
+
+def plant_scale_error(sub: int, value: float) -> str | None:
+    """Why ``value`` cannot be the factor of 0x2400:``sub`` (one line), or None."""
+    name = ConfigSub(sub).name.lower()
+    if not math.isfinite(value):
+        return f"{name} must be finite, got {value!r}"
+    if sub in (ConfigSub.INERTIA_SCALE, ConfigSub.MASS_SCALE) and not value > 0:
+        return f"{name} must be > 0, got {value!r}"
+    if value < 0:
+        return f"{name} must be >= 0, got {value!r}"
+    return None
 
 
 class PlantTrialSub(IntEnum):

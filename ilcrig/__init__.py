@@ -15,7 +15,10 @@ Owns the facade over the internals (which stay where they are: ``host/``, ``plan
 * :mod:`ilcrig.rig` — :class:`RigRun`, running on the rig: the multi-process ``ilcrig run`` launcher in a child
   process, its trials read from the run folder as they complete;
 * :mod:`ilcrig.laws` — ilcrig's laws written against the public protocol and registered as plug-ins
-  (``cno-ilc``: :mod:`ilcrig.laws.constrained`, ``adjoint-ilc``: :mod:`ilcrig.laws.adjoint`).
+  (``cno-ilc``: :mod:`ilcrig.laws.constrained`, ``adjoint-ilc``: :mod:`ilcrig.laws.adjoint`);
+* :mod:`ilcrig.sweep` — sweeps, Monte Carlo studies and gain tuning of experiments on Dask
+  distributed (``ilcrig sweep``, ``ilcrig tune``, ``ilcrig reproduce``; imported on its own:
+  ``import ilcrig.sweep``, docs/sweeps.md).
 
 The learning-law protocol (:class:`LearningLaw`, :class:`TrialData`, :class:`LawContext`,
 :class:`IterationMap`, :class:`ClosedLoopModel`) is re-exported here from :mod:`host.learning`;

@@ -67,6 +67,7 @@ def config_toml(config: ExperimentConfig) -> str:
     cfg = config.as_dict()
     gains = gains_table(config.gains)
     law_options = cfg.pop("law_options", {})
+    plant = cfg.pop("plant", {})
     cfg.pop("gains")
     path = str(cfg["path"])
     if path not in ("1", "2", "3", "4"):
@@ -75,6 +76,8 @@ def config_toml(config: ExperimentConfig) -> str:
     lines += ["", "[gains]"] + [f"{k} = {_toml_value(v)}" for k, v in gains.items()]
     if law_options:
         lines += ["", "[law_options]"] + [f"{k} = {_toml_value(v)}" for k, v in law_options.items()]
+    if plant:
+        lines += ["", "[plant]"] + [f"{k} = {_toml_value(v)}" for k, v in plant.items()]
     return "\n".join(lines) + "\n"
 
 

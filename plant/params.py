@@ -246,6 +246,72 @@ def default_true_plant() -> TruePlantConfig:
     )
 
 
+@dataclass(frozen=True)
+class PlantScales:
+    """Plant uncertainty: dimensionless factors on the emulated robot's parameters (1.0 = the robot
+    of :func:`default_true_plant`), for Monte Carlo robustness studies.  The host's nominal model
+    does not change: the factors make the emulated robot differ more (or less) from it.
+
+    * ``inertia_scale`` — the rotational inertias: inner arm ``I_a``, rotor + reducer ``J_m``, tool
+      spin ``I_ee``;
+    * ``mass_scale`` — the link and platform masses: ``m_up``, ``m_low``, ``m_a``, ``m_fa`` (gravity
+      and the translational inertia of the platforms change with them);
+    * ``friction_scale`` — Coulomb and viscous friction of every joint;
+    * ``payload_scale`` — the payload on the lower sub-platform (0 = none).
+    """
+
+    inertia_scale: float = 1.0
+    mass_scale: float = 1.0
+    friction_scale: float = 1.0
+    payload_scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("inertia_scale", "mass_scale", "friction_scale", "payload_scale"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ValueError(f"plant.{name} must be a finite number, got {v!r}")
+        for name in ("inertia_scale", "mass_scale"):
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f"plant.{name} must be > 0, got {getattr(self, name)!r}")
+        for name in ("friction_scale", "payload_scale"):
+            if getattr(self, name) < 0.0:
+                raise ValueError(f"plant.{name} must be >= 0, got {getattr(self, name)!r}")
+
+    @property
+    def identity(self) -> bool:
+        """True when every factor is 1 (the robot as built)."""
+        return self == PlantScales()
+
+    def as_tuple(self) -> tuple[float, float, float, float]:
+        """(inertia, mass, friction, payload) factors."""
+        return (float(self.inertia_scale), float(self.mass_scale), float(self.friction_scale), float(self.payload_scale))
+
+
+def scaled_true_plant(base: TruePlantConfig, scales: PlantScales) -> TruePlantConfig:
+    """``base`` with the factors of ``scales`` applied (``base`` itself when they are all 1)."""
+    if scales.identity:
+        return base
+    ki, km, kf, kp = scales.as_tuple()
+    m = base.mass
+    mass = replace(
+        m,
+        I_a=ki * m.I_a,
+        J_m=ki * m.J_m,
+        I_ee=ki * m.I_ee,
+        m_up=km * m.m_up,
+        m_low=km * m.m_low,
+        m_a=km * m.m_a,
+        m_fa=km * m.m_fa,
+        payload=kp * m.payload,
+    )
+    return replace(
+        base,
+        mass=mass,
+        coulomb_nm=_scaled4(kf, base.coulomb_nm),
+        viscous_nm_s_per_rad=_scaled4(kf, base.viscous_nm_s_per_rad),
+    )
+
+
 def nominal_plant_config(torque_limit_enabled: bool = True) -> TruePlantConfig:
     """A plant built on the nominal model without friction (for tests and model checks)."""
     return TruePlantConfig(mass=nominal_mass_model(), geometry=Geometry(), torque_limit_enabled=torque_limit_enabled)

@@ -272,12 +272,13 @@ def run_plant_role(
     ``stop`` (a :class:`threading.Event`) is set; the buses are closed on the way out.
     Returns None, or why the node stopped early (a bus failed).
 
-    The plant is the true plant (``plant.params.default_true_plant``, encoder and
-    torque LSBs of :mod:`bus.units`), rebuilt only when the host changes Ts or the sub-steps;
+    The plant is the true plant (``plant.params.default_true_plant`` with the plant-uncertainty
+    factors 0x2400:6..9, encoder and torque LSBs of :mod:`bus.units`), rebuilt only when the host
+    changes Ts, the sub-steps or the factors;
     the disturbance is :func:`plant.disturbance.disturbance_torque`.
     """
     from plant.disturbance import disturbance_torque
-    from plant.params import default_true_plant
+    from plant.params import PlantScales, default_true_plant, scaled_true_plant
     from plant.simulator import Plant, warm_up
 
     if stop is None:
@@ -293,8 +294,9 @@ def run_plant_role(
     disturbance_torque("both", 0, 0, 2, 1e-3)
     logger.info("plant role: disturbance model ready in %.2f s", time.perf_counter() - t0)
 
-    def plant_factory(ts_s: float, substeps: int) -> Plant:
-        return Plant(true_plant, ts_s, substeps, units.RAD_PER_COUNT, units.TORQUE_LSB_NM)
+    def plant_factory(ts_s: float, substeps: int, scales: tuple[float, ...] | None = None) -> Plant:
+        config = true_plant if scales is None else scaled_true_plant(true_plant, PlantScales(*scales))
+        return Plant(config, ts_s, substeps, units.RAD_PER_COUNT, units.TORQUE_LSB_NM)
 
     fieldbus = transport.open("fieldbus")
     try:

@@ -4,7 +4,8 @@ Owns the link between the node's object store (``bus/plant.eds``; names and enco
 :mod:`bus.plant_objects`) and its trial machinery: read hooks give the live trial status and
 fault record (0x2410:4..8, 0x1001), the counters (0x2430, U32, wrapping; the last trial's
 duration in µs, saturated) and the last trial's timing and deadline misses (0x2440, 0x2441);
-write hooks refuse configuration (0x2400), trial index and length (0x2410:1, 2) and the initial
+write hooks refuse configuration (0x2400; the plant-uncertainty factors 0x2400:6..9 validated,
+abort 0x06090030 out of range), trial index and length (0x2410:1, 2) and the initial
 state (0x2420, validated: 64 bytes of finite float64) while a trial runs (abort 0x08000022), and
 carry out the trial command (0x2410:3: start, abort).
 """
@@ -17,6 +18,7 @@ from bus.cia301.object_store import ObjectStore, Value
 from bus.errors import AbortCode, SdoAbort
 from bus.plant_objects import (
     ERROR_REGISTER_INDEX,
+    PLANT_SCALE_SUBS,
     ConfigSub,
     CounterSub,
     InitialStateError,
@@ -25,6 +27,7 @@ from bus.plant_objects import (
     PlantTrialSub,
     pack_deadline_misses,
     pack_trial_timing,
+    plant_scale_error,
     unpack_initial_state,
 )
 from plant.plant_node_status import TrialStatus
@@ -85,6 +88,20 @@ def install_hooks(store: ObjectStore, lockstep: LockstepMaster, status: TrialSta
 
     for sub in ConfigSub:
         w[(PlantObj.CONFIG, sub)] = require_idle(f"configuration 0x2400:{int(sub)}")
+
+    def scale_hook(sub: int) -> Callable[[Value], None]:
+        idle = require_idle(f"configuration 0x2400:{sub}")
+
+        def hook(value: Value) -> None:
+            idle(value)
+            why = plant_scale_error(sub, float(value))
+            if why is not None:
+                raise SdoAbort(AbortCode.VALUE_RANGE, why)
+
+        return hook
+
+    for sub in PLANT_SCALE_SUBS:
+        w[(PlantObj.CONFIG, sub)] = scale_hook(int(sub))
     w[(t, PlantTrialSub.TRIAL_INDEX)] = require_idle("trial index")
     w[(t, PlantTrialSub.N_TICKS)] = require_idle("number of ticks")
     w[(t, PlantTrialSub.COMMAND)] = write_command

@@ -8,7 +8,10 @@ it once per tick with :meth:`TrialModel.step`; anything either raises is a fault
 
 * ``plant_factory(ts_s, substeps) -> plant`` — an object with ``reset(q0_rad, qd0_rad_s)``,
   ``encoder_counts() -> int (4,)`` [counts] and ``step(torque_units int64 (4,) [µN·m],
-  disturbance_nm float64 (4,) [N·m])`` that raises on failure (``plant.simulator.Plant``);
+  disturbance_nm float64 (4,) [N·m])`` that raises on failure (``plant.simulator.Plant``); with
+  plant-uncertainty factors other than 1 (0x2400:6..9) it is called as
+  ``plant_factory(ts_s, substeps, scales)``, ``scales`` = (inertia, mass, friction, payload) — a
+  factory without that argument serves the robot as built only (a trial with factors then faults);
 * ``disturbance_fn(kind, seed, trial, n_ticks, ts_s) -> (n_ticks, 4)`` [N·m], ``kind`` a
   disturbance label (``plant.disturbance.disturbance_torque``).
 
@@ -27,6 +30,8 @@ import numpy.typing as npt
 logger = logging.getLogger(__name__)
 
 N_JOINTS = 4
+#: the plant-uncertainty factors of the robot as built (inertia, mass, friction, payload)
+AS_BUILT: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0)
 
 
 class PlantLike(Protocol):
@@ -58,15 +63,19 @@ class TrialModel:
         self.plant_factory = plant_factory
         self.disturbance_fn = disturbance_fn
         self._plant: PlantLike | None = None
-        self._plant_key: tuple[float, int] | None = None
+        self._plant_key: tuple[float, int, tuple[float, ...]] | None = None
         self._dist: np.ndarray = np.zeros((0, N_JOINTS))
 
-    def plant(self, ts_s: float, substeps: int) -> PlantLike:
-        """The plant for (``ts_s`` [s], ``substeps``), built on first use and when they change."""
-        key = (ts_s, substeps)
+    def plant(self, ts_s: float, substeps: int, scales: tuple[float, ...] = AS_BUILT) -> PlantLike:
+        """The plant for (``ts_s`` [s], ``substeps``, the plant-uncertainty ``scales``), built on
+        first use and when they change."""
+        key = (ts_s, substeps, tuple(scales))
         if self._plant is None or self._plant_key != key:
             self._plant = None
-            self._plant = self.plant_factory(ts_s, substeps)
+            if tuple(scales) == AS_BUILT:
+                self._plant = self.plant_factory(ts_s, substeps)
+            else:
+                self._plant = self.plant_factory(ts_s, substeps, tuple(scales))  # type: ignore[call-arg]
             self._plant_key = key
             logger.info("node %d: plant built (Ts = %g s, %d sub-steps)", self.node_id, ts_s, substeps)
         return self._plant
@@ -85,15 +94,24 @@ class TrialModel:
             logger.exception("node %d: computing a disturbance failed", self.node_id)
 
     def begin(
-        self, ts_s: float, substeps: int, kind: str, seed: int, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray
+        self,
+        ts_s: float,
+        substeps: int,
+        kind: str,
+        seed: int,
+        trial: int,
+        n_ticks: int,
+        q0: np.ndarray,
+        qd0: np.ndarray,
+        scales: tuple[float, ...] = AS_BUILT,
     ) -> np.ndarray:
-        """A new trial: compute its disturbance and reset the plant to (``q0`` [rad], ``qd0``
-        [rad/s]); returns the encoder counts of tick 0 [counts].
+        """A new trial: compute its disturbance and reset the plant (with the plant-uncertainty
+        ``scales``) to (``q0`` [rad], ``qd0`` [rad/s]); returns the encoder counts of tick 0 [counts].
 
         :raises Exception: whatever the plant or the disturbance raises; ValueError for a
             disturbance of the wrong shape.
         """
-        plant = self.plant(ts_s, substeps)
+        plant = self.plant(ts_s, substeps, scales)
         dist = np.ascontiguousarray(self.disturbance_fn(kind, seed, trial, n_ticks, ts_s), dtype=np.float64)
         if dist.shape != (n_ticks, N_JOINTS):
             raise ValueError(f"disturbance has shape {dist.shape}, expected ({n_ticks}, {N_JOINTS})")

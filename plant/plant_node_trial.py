@@ -45,7 +45,16 @@ import numpy as np
 
 from bus import io_frames
 from bus.cia301.object_store import ObjectStore
-from bus.plant_objects import ConfigSub, DisturbanceKind, PlantFault, PlantObj, PlantStatus, PlantTrialSub, unpack_initial_state
+from bus.plant_objects import (
+    PLANT_SCALE_SUBS,
+    ConfigSub,
+    DisturbanceKind,
+    PlantFault,
+    PlantObj,
+    PlantStatus,
+    PlantTrialSub,
+    unpack_initial_state,
+)
 from plant.pacing import TickPacer
 from plant.plant_node_model import TrialModel
 from plant.plant_node_status import Emcy, TrialStatus
@@ -242,7 +251,8 @@ class LockstepMaster:
         self._t_start = self._clock()
         try:
             label = DisturbanceKind(kind).label
-            counts = self.model.begin(ts_s, substeps, label, seed, trial, n_ticks, q0, qd0)
+            scales = tuple(float(store.get(PlantObj.CONFIG, sub)) for sub in PLANT_SCALE_SUBS)
+            counts = self.model.begin(ts_s, substeps, label, seed, trial, n_ticks, q0, qd0, scales)
         except Exception as err:  # the plant is a plug-in: any failure is a trial fault
             self.fail(PlantFault.PLANT, 0, f"trial {trial} could not start: {type(err).__name__}: {err}", started=False)
             return

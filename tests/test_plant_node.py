@@ -361,6 +361,7 @@ def test_plant_node_modules_respect_the_dependency_direction() -> None:
     mods = imported("host/nodes/plant_client.py")
     assert {m.split(".")[0] for m in mods} <= {
         "__future__",
+        "collections",
         "logging",
         "struct",
         "time",
@@ -395,10 +396,26 @@ def test_objects_over_sdo(rig: PlantRig) -> None:
     assert remote.sdo[0x1018][2].raw == 0xBE4C
     assert remote.sdo[0x1018][4].raw == PLANT_ID
     assert remote.sdo[0x1008].raw == "ilcrig plant node"
-    assert client.configuration() == {"ts_s": 0.001, "substeps": 4, "disturbance": "none", "seed": 0}
-    client.configure(0.0005, 8, "both", 4_000_000_000)
-    assert client.configuration() == {"ts_s": 0.0005, "substeps": 8, "disturbance": "both", "seed": 4_000_000_000}
-    assert remote.sdo[0x2400][3].raw == 3
+    built = (1.0, 1.0, 1.0, 1.0)
+    assert client.configuration() == {"ts_s": 0.001, "substeps": 4, "disturbance": "none", "seed": 0, "plant_scales": built}
+    client.configure(0.0005, 8, "both", 4_000_000_000, plant_scales=(1.1, 0.9, 0.0, 2.5))
+    assert client.configuration() == {
+        "ts_s": 0.0005,
+        "substeps": 8,
+        "disturbance": "both",
+        "seed": 4_000_000_000,
+        "plant_scales": (1.1, 0.9, 0.0, 2.5),
+    }
+    assert remote.sdo[0x2400][3].raw == 3 and remote.sdo[0x2400][6].raw == 1.1
+    # the plant-uncertainty factors: finite, inertia and mass > 0
+    with pytest.raises(SdoAbort) as err:
+        access.write_object(PlantObj.CONFIG, ConfigSub.MASS_SCALE, struct.pack("<d", 0.0))
+    assert err.value.code == AbortCode.VALUE_RANGE
+    with pytest.raises(SdoAbort) as err:
+        access.write_object(PlantObj.CONFIG, ConfigSub.FRICTION_SCALE, struct.pack("<d", float("nan")))
+    assert err.value.code == AbortCode.VALUE_RANGE
+    with pytest.raises(PlantInputError, match="payload_scale must be >= 0"):
+        client.configure(0.0005, 8, "both", 0, plant_scales=(1.0, 1.0, 1.0, -1.0))
     # EDS limits, lengths and access enforced by the node, mapped to SdoAbort by the adapter
     with pytest.raises(SdoAbort) as err:
         access.write_object(PlantObj.CONFIG, ConfigSub.DISTURBANCE, b"\x04")
@@ -463,7 +480,13 @@ def test_nmt_reset_node_restores_defaults(rig: PlantRig) -> None:
     rig.host.heartbeats.clear()
     rig.remote.nmt.send_command(0x81)
     assert wait_for(lambda: (0x700 + PLANT_ID, 0x00) in rig.host.heartbeats)
-    assert rig.client.configuration() == {"ts_s": 0.001, "substeps": 4, "disturbance": "none", "seed": 0}
+    assert rig.client.configuration() == {
+        "ts_s": 0.001,
+        "substeps": 4,
+        "disturbance": "none",
+        "seed": 0,
+        "plant_scales": (1.0, 1.0, 1.0, 1.0),
+    }
 
 
 # ---------------------------------------------------------------------------------------

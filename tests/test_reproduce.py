@@ -454,7 +454,8 @@ def test_tiny_sweep_report_and_resume(tmp_path: Path) -> None:
 @pytest.mark.multiprocess
 def test_ctrl_c_stops_cleanly_and_keeps_finished(tmp_path: Path) -> None:
     """Ctrl-C while one experiment is finished and another one is held (tests/sweep_hold.py): the
-    sweep cannot end before the interrupt, whatever the machine's speed."""
+    sweep cannot end before the interrupt, whatever the machine's speed; the local cluster's
+    workers end with it; running again resumes."""
     out = tmp_path / "sweep"
     done, held = Experiment("pd-ilc"), Experiment("d-ilc")
     proc = subprocess.Popen(
@@ -497,6 +498,12 @@ def test_ctrl_c_stops_cleanly_and_keeps_finished(tmp_path: Path) -> None:
     sweep = json.loads((out / "sweep.json").read_text())
     assert [h["interrupted"] for h in sweep["history"]] == [True]
     assert not (out / "report.md").exists()
+    # resume: only the held experiment runs
+    p = _cli("reproduce", "--out", str(out), "--iterations", "2", "--only", "table2", "--jobs", "2", "--no-progress")
+    assert p.returncode == 0, p.stderr
+    assert "1 run, 1 already finished" in p.stdout
+    assert is_finished(run_dir_of(out, held), held.config(2)) and (out / "report.md").is_file()
+    assert [h["ran"] for h in json.loads((out / "sweep.json").read_text())["history"]] == [1, 1]
 
 
 def test_near_misses_are_flagged_as_ties() -> None:

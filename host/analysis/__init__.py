@@ -2,8 +2,8 @@
 
 Owns the Rerun recording (:mod:`host.analysis.recording`), a run's outputs around the trial loop
 (:mod:`host.analysis.session`), the run report (:mod:`host.analysis.run_report`), the paper's
-data (:mod:`host.analysis.paper_data`), and the ``ilcrig reproduce`` sweep: its plan
-(:mod:`host.analysis.sweep_plan`), runner (:mod:`host.analysis.sweep`), the definitions on RMSE
+data (:mod:`host.analysis.paper_data`), and the ``ilcrig reproduce`` sweep (run by the sweep
+engine, :mod:`ilcrig.sweep`): its plan (:mod:`host.analysis.sweep_plan`), the definitions on RMSE
 histories (:mod:`host.analysis.settling`: settle iteration, floor, growth), the verdict rules
 (:mod:`host.analysis.verdicts` on the errors after learning, :mod:`host.analysis.convergence_verdicts`
 on RMSE histories), the claims judged on a sweep folder (:mod:`host.analysis.claims`), the figures

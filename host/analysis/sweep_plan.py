@@ -238,16 +238,16 @@ def _read_summary(run_dir: Path) -> dict[str, Any] | None:
         return None
 
 
-def is_finished(run_dir: Path, cfg: ExperimentConfig) -> bool:
+def is_finished(run_dir: Path, cfg: ExperimentConfig, need_errors: bool = True) -> bool:
     """True if ``run_dir`` holds a finished run (completed, or ended by a recorded fault) of
-    exactly ``cfg`` together with its errors file."""
+    exactly ``cfg`` together with its errors file (unless not ``need_errors``)."""
     s = _read_summary(Path(run_dir))
     if s is None or not (s.get("completed") or s.get("faults")):
         return False
     stored = {k: v for k, v in s.get("config", {}).items() if k not in ("n_ticks", "trial_s")}
     if stored != _config_json(cfg):
         return False
-    return (Path(run_dir) / "errors.npy").is_file()
+    return not need_errors or (Path(run_dir) / "errors.npy").is_file()
 
 
 @dataclass

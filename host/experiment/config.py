@@ -34,9 +34,18 @@ TOML layout::
     [law_options]           # the law's own options (names and meaning: the law's documentation)
     torque_limit_nm = 200.0
 
+    [plant]                 # plant uncertainty: factors on the emulated robot (plant.params.PlantScales)
+    inertia_scale = 1.0     # rotational inertias
+    mass_scale = 1.0        # link and platform masses
+    friction_scale = 1.0    # Coulomb and viscous friction
+    payload_scale = 1.0     # the payload
+
 ``law`` is a built-in law, a plug-in's name (entry-point group ``ilcrig.laws``) or
 ``module:Class`` (:mod:`host.learning.registry`).  ``[law_options]`` values are numbers, strings
 or booleans; the law checks them when it is built (:func:`host.experiment.plan.prepare`).
+``[plant]`` changes the emulated robot only (the nominal model, the plan and the gains stay); with
+every factor 1 it is left out of :meth:`ExperimentConfig.as_dict`, so summaries of the robot as
+built are unchanged.
 """
 
 from __future__ import annotations
@@ -56,6 +65,7 @@ from host.learning.names import DEFAULT_LAW, MAX_ITERATIONS
 from host.learning.registry import check_law_name
 from host.planning.trajectory import PROFILES
 from plant.disturbance import KINDS as DISTURBANCES
+from plant.params import PlantScales
 
 __all__ = [
     "ConfigError",
@@ -67,6 +77,7 @@ __all__ = [
     "DISTURBANCES",
     "MAX_ITERATIONS",
     "MAX_SEED",
+    "PLANT_KEYS",
 ]
 
 #: the largest seed (the plant node's 0x2400:4 is 32 bits)
@@ -96,20 +107,28 @@ class ExperimentConfig:
     force_bus_fit: bool = False
     gains: GainSpec = field(default_factory=GainSpec)
     law_options: dict[str, Any] = field(default_factory=dict)
+    plant: PlantScales = field(default_factory=PlantScales)
 
     def as_dict(self) -> dict[str, Any]:
-        """The configuration as plain values (``law_options`` only when there are any)."""
+        """The configuration as plain values (``law_options`` only when there are any, ``plant``
+        only when a factor differs from 1)."""
         d = dataclasses.asdict(self)
         d["gains"] = dataclasses.asdict(self.gains)
         if not self.law_options:
             d.pop("law_options")
         else:
             d["law_options"] = dict(self.law_options)
+        if self.plant.identity:
+            d.pop("plant")
+        else:
+            d["plant"] = dataclasses.asdict(self.plant)
         return d
 
 
 _TOP_KEYS = {f.name for f in dataclasses.fields(ExperimentConfig)}
 _GAIN_KEYS = {f.name for f in dataclasses.fields(GainSpec)} - {"name"} | {"preset"}
+#: the keys of the ``[plant]`` table
+PLANT_KEYS: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(PlantScales))
 
 
 def _check_number(name: str, v: Any, *, integer: bool = False) -> None:
@@ -147,6 +166,26 @@ def _gain_spec(table: Mapping[str, Any], where: str = "") -> GainSpec:
     if changes:
         changes["name"] = f"{preset}+custom"
     return dataclasses.replace(base, **changes)
+
+
+def _plant_scales(table: Any, where: str = "") -> PlantScales:
+    """The ``[plant]`` table (or a :class:`PlantScales`) as a :class:`PlantScales`."""
+    if isinstance(table, PlantScales):
+        return table
+    if not isinstance(table, Mapping):
+        raise ConfigError(f"{where}plant must be a table ([plant] with keys such as mass_scale), got {table!r}")
+    unknown = set(table) - set(PLANT_KEYS)
+    if unknown:
+        raise ConfigError(f"{where}unknown key(s) in [plant]: {', '.join(sorted(unknown))}; choose from {', '.join(PLANT_KEYS)}")
+    for k, v in table.items():
+        try:
+            _check_number(f"plant.{k}", v)
+        except ConfigError as err:
+            raise ConfigError(f"{where}{err}") from None
+    try:
+        return PlantScales(**{k: float(v) for k, v in table.items()})
+    except ValueError as err:
+        raise ConfigError(f"{where}{err}") from None
 
 
 def _read_toml(p: Path) -> dict[str, Any]:
@@ -194,6 +233,8 @@ def build_config(toml_path: str | Path | None = None, overrides: Mapping[str, An
             raise ConfigError(
                 f"{where}law_options must be a table ([law_options] with the law's options), got {data['law_options']!r}"
             )
+        if "plant" in data and not isinstance(data["plant"], dict):
+            raise ConfigError(f"{where}plant must be a table ([plant] with keys such as mass_scale), got {data['plant']!r}")
         if "path" in data:
             path = data["path"]
             if isinstance(path, bool) or not isinstance(path, (str, int)):
@@ -219,6 +260,8 @@ def build_config(toml_path: str | Path | None = None, overrides: Mapping[str, An
             data["gains"] = {**file_gains, **v}
         elif k == "law_options" and isinstance(v, Mapping) and isinstance(data.get("law_options", {}), dict):
             data["law_options"] = {**data.get("law_options", {}), **v}
+        elif k == "plant" and isinstance(v, Mapping) and isinstance(data.get("plant", {}), dict):
+            data["plant"] = {**data.get("plant", {}), **v}
         else:
             data[k] = v
     unknown = set(data) - _TOP_KEYS
@@ -240,6 +283,8 @@ def build_config(toml_path: str | Path | None = None, overrides: Mapping[str, An
         if not isinstance(opts, Mapping):
             raise ConfigError(f"law_options must be a table of the law's options, got {opts!r}")
         data["law_options"] = dict(opts)
+    if "plant" in data:
+        data["plant"] = _plant_scales(data["plant"], where if "plant" in from_file else "")
     try:
         cfg = ExperimentConfig(**data, gains=spec)
         validate(cfg)

@@ -113,6 +113,19 @@ def add_experiment_args(p: argparse.ArgumentParser) -> None:
         dest="force_bus_fit",
         help="run a pdo configuration even if its cyclic frames do not fit the fieldbus",
     )
+    for name, what in (
+        ("inertia", "rotational inertias"),
+        ("mass", "link and platform masses"),
+        ("friction", "Coulomb and viscous friction"),
+        ("payload", "payload"),
+    ):
+        p.add_argument(
+            f"--{name}-scale",
+            type=float,
+            dest=f"p_{name}_scale",
+            metavar="FACTOR",
+            help=f"plant uncertainty: the emulated robot's {what} times FACTOR ([plant] {name}_scale, default 1)",
+        )
     p.add_argument("--out", default=None, help="run folder (default runs/<mode>-<time>)")
 
 
@@ -156,6 +169,9 @@ def experiment_config(args: argparse.Namespace) -> ExperimentConfig:
             gains[k[2:]] = v
     if gains:
         overrides["gains"] = gains
+    plant = {k[2:]: v for k, v in vars(args).items() if k.startswith("p_") and k.endswith("_scale") and v is not None}
+    if plant:
+        overrides["plant"] = plant  # merged over the file's [plant] table
     return build_config(args.config, overrides)
 
 

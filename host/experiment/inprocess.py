@@ -32,15 +32,17 @@ from host.experiment.faults import FaultKind, FaultRecord
 from host.experiment.trials import CyclicActuals, CyclicSetpoints, TrialFault
 from host.nodes.drive_client import DriveClient
 from plant.disturbance import disturbance_torque
-from plant.params import default_true_plant
+from plant.params import default_true_plant, scaled_true_plant
 from plant.simulator import Plant, PlantError
 
 logger = logging.getLogger(__name__)
 
 
 def make_plant(cfg: ExperimentConfig) -> Plant:
-    """The true plant of an experiment (same construction in every mode)."""
-    return Plant(default_true_plant(), cfg.ts_s, cfg.substeps, units.RAD_PER_COUNT, units.TORQUE_LSB_NM)
+    """The true plant of an experiment (same construction in every mode): the emulated robot with the
+    experiment's plant-uncertainty factors (``cfg.plant``)."""
+    true_plant = scaled_true_plant(default_true_plant(), cfg.plant)
+    return Plant(true_plant, cfg.ts_s, cfg.substeps, units.RAD_PER_COUNT, units.TORQUE_LSB_NM)
 
 
 class InProcessBench:

@@ -11,7 +11,9 @@ access is :class:`host.nodes.sdo_access.SdoAccess` over a canopen ``RemoteNode``
 from __future__ import annotations
 
 import logging
+import struct
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -23,6 +25,8 @@ from bus.objects import u8 as _u8  # SDO payload encoders
 from bus.objects import u16 as _u16
 from bus.objects import u32 as _u32
 from bus.plant_objects import (
+    PLANT_SCALE_SUBS,
+    PLANT_SCALES_AS_BUILT,
     ConfigSub,
     CounterSub,
     DeadlineMisses,
@@ -36,6 +40,7 @@ from bus.plant_objects import (
     TrialTiming,
     disturbance_code,
     pack_initial_state,
+    plant_scale_error,
     unpack_deadline_misses,
     unpack_trial_timing,
 )
@@ -45,6 +50,7 @@ logger = logging.getLogger(__name__)
 __all__ = ["PlantClient", "PlantState", "PlantClientError", "PlantInputError", "PlantTrialFault", "PlantTimeoutError"]
 
 _U32_MAX = 0xFFFFFFFF
+_F64 = struct.Struct("<d")
 
 
 class PlantClientError(IlcrigError):
@@ -116,8 +122,18 @@ class PlantClient:
 
     # ------------------------------------------------------------------ configuration
 
-    def configure(self, ts_s: float, substeps: int, disturbance: str | int, seed: int, *, paced: bool = False) -> None:
-        """Write the control period, RK4 sub-steps, disturbance kind, seed and pacing (0x2400).
+    def configure(
+        self,
+        ts_s: float,
+        substeps: int,
+        disturbance: str | int,
+        seed: int,
+        *,
+        paced: bool = False,
+        plant_scales: Sequence[float] = PLANT_SCALES_AS_BUILT,
+    ) -> None:
+        """Write the control period, RK4 sub-steps, disturbance kind, seed, pacing and the
+        plant-uncertainty factors (0x2400).
 
         :param paced: real time: tick n starts at t0 + n·Ts on the plant's clock (else lockstep as
             fast as possible).
@@ -127,6 +143,8 @@ class PlantClient:
         :param substeps: RK4 sub-steps per period, 1..1000.
         :param disturbance: name (``none``/``repetitive``/``nonrepetitive``/``both``) or code 0..3.
         :param seed: 0..2³²−1.
+        :param plant_scales: (inertia, mass, friction, payload) factors on the emulated robot
+            (``plant.params.PlantScales``; exact float64 bits, REAL64).
         :raises PlantInputError: a value the bench cannot represent exactly.
         """
         period_us = round(float(ts_s) * 1e6)
@@ -140,12 +158,21 @@ class PlantClient:
             raise PlantInputError(str(err)) from None
         if int(seed) != seed or not 0 <= int(seed) <= _U32_MAX:
             raise PlantInputError(f"seed must be an integer 0..{_U32_MAX}, got {seed!r}")
+        scales = tuple(float(v) for v in plant_scales)
+        if len(scales) != len(PLANT_SCALE_SUBS):
+            raise PlantInputError(f"plant_scales needs {len(PLANT_SCALE_SUBS)} factors, got {len(scales)}")
+        for sub, value in zip(PLANT_SCALE_SUBS, scales):
+            why = plant_scale_error(sub, value)
+            if why is not None:
+                raise PlantInputError(why)
         cfg = PlantObj.CONFIG
         self.access.write_object(cfg, ConfigSub.CONTROL_PERIOD_US, _u32(period_us))
         self.access.write_object(cfg, ConfigSub.SUBSTEPS, _u16(int(substeps)))
         self.access.write_object(cfg, ConfigSub.DISTURBANCE, _u8(int(kind)))
         self.access.write_object(cfg, ConfigSub.SEED, _u32(int(seed)))
         self.access.write_object(cfg, ConfigSub.PACING, _u8(int(bool(paced))))
+        for sub, value in zip(PLANT_SCALE_SUBS, scales):
+            self.access.write_object(cfg, sub, _F64.pack(value))
         logger.debug(
             "bench configured: Ts = %d µs, %d sub-steps, disturbance %s, seed %d, %s",
             period_us,
@@ -165,13 +192,14 @@ class PlantClient:
         return unpack_deadline_misses(self.access.read_object(PlantObj.DEADLINE_MISSES, 0))
 
     def configuration(self) -> dict[str, Any]:
-        """0x2400 as read back: ts_s, substeps, disturbance (name), seed."""
+        """0x2400 as read back: ts_s, substeps, disturbance (name), seed, plant_scales."""
         cfg = PlantObj.CONFIG
         return {
             "ts_s": self._read_uint(cfg, ConfigSub.CONTROL_PERIOD_US) / 1_000_000,
             "substeps": self._read_uint(cfg, ConfigSub.SUBSTEPS),
             "disturbance": DisturbanceKind(self._read_uint(cfg, ConfigSub.DISTURBANCE)).label,
             "seed": self._read_uint(cfg, ConfigSub.SEED),
+            "plant_scales": tuple(_F64.unpack(self.access.read_object(cfg, sub))[0] for sub in PLANT_SCALE_SUBS),
         }
 
     # ------------------------------------------------------------------ trial

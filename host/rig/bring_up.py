@@ -218,7 +218,9 @@ class BringUp:
             remote[nid].nmt.send_command(NmtCommand.START)
         if PLANT_NODE_ID in node_ids:
             cfg = self.cfg
-            self.nodes.plant.configure(cfg.ts_s, cfg.substeps, cfg.disturbance, cfg.seed, paced=self.realtime)
+            self.nodes.plant.configure(
+                cfg.ts_s, cfg.substeps, cfg.disturbance, cfg.seed, paced=self.realtime, plant_scales=cfg.plant.as_tuple()
+            )
         t_end = time.monotonic() + OPERATIONAL_WAIT_S
         while True:
             states = self.watchdog.events.states(node_ids)

@@ -1,0 +1,287 @@
+"""The sweep engine: points run on Dask distributed, from a laptop to a cluster.
+
+This module owns :class:`Engine` (the Dask client: a ``LocalCluster`` started here, or an existing
+scheduler) and :func:`run_points` (a resumable run of a list of points with a progress bar).
+
+* **Local** (default): ``LocalCluster`` with one worker process per core (``workers``), one thread
+  each, everything listening on 127.0.0.1 only; the dashboard (when its optional dependency bokeh is
+  installed) on 127.0.0.1 too, its address logged and kept in :attr:`Engine.dashboard`.
+* **A cluster**: ``scheduler="tcp://HOST:PORT"`` connects to a running ``dask scheduler`` with
+  ``dask worker`` processes (docs/sweeps.md: on a private network; the workers need ilcrig
+  installed, not the sweep folder: results come back to this process).
+
+A point is a task (:func:`ilcrig.sweep.point.run_point`); its result is written here, atomically,
+as soon as it arrives (:func:`ilcrig.sweep.point.commit`).  A worker that dies takes no result with
+it: the scheduler runs its points elsewhere (``distributed.scheduler.allowed-failures``), and a
+point that kills every worker it lands on ends as that point's error.  Resume: a point whose
+folder holds its finished run is not submitted (unless ``fresh``).  Ctrl-C or SIGTERM: what has
+not finished is cancelled, the local cluster is closed (its worker processes end), every finished
+point is kept, and :attr:`SweepOutcome.interrupted` is set.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ilcrig.errors import InputError
+from ilcrig.sweep.point import commit, is_finished, run_dir, run_point
+from ilcrig.sweep.spec import Point
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["Engine", "SweepOutcome", "run_points", "LOOPBACK", "dashboard_available", "interrupt_on_sigterm"]
+
+#: the only address the processes this module starts listen on
+LOOPBACK = "127.0.0.1"
+#: seconds to wait for a scheduler given by address
+CONNECT_TIMEOUT_S = 30.0
+#: the Dask task group of the points (the first element of their keys)
+TASK_GROUP = "ilcrig-point"
+#: Dask settings of the local cluster: a point is seconds of Python, so what Dask does in the
+#: background on every process costs more than it gives — no statistical profiler (it samples the
+#: running point's stack every 10 ms), no work stealing (the points are queued on the scheduler
+#: and handed out as workers free up), the monitors (event-loop tick, system, memory) polled every
+#: second or two instead of every 20–500 ms, and the workers' environment without Dask's
+#: ``MALLOC_TRIM_THRESHOLD_`` (returning freed memory to the system at once costs a point's numpy
+#: temporaries several per cent of its time) but with one BLAS thread per worker (one worker per core)
+WORKER_CONFIG: dict[str, Any] = {
+    "distributed.worker.profile.enabled": False,
+    "distributed.scheduler.work-stealing": False,
+    "distributed.admin.tick.interval": "1s",
+    "distributed.admin.system-monitor.interval": "2s",
+    "distributed.worker.memory.monitor-interval": "1s",
+    "distributed.nanny.pre-spawn-environ": {"OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1},
+}
+
+
+def dashboard_available() -> bool:
+    """True when Dask's dashboard can be served (its optional dependency bokeh is installed)."""
+    return importlib.util.find_spec("bokeh") is not None
+
+
+class Engine:
+    """A Dask client for sweeps (module docstring); a context manager.
+
+    :param workers: worker processes of the local cluster (default: the number of cores)
+    :param scheduler: ``tcp://HOST:PORT`` of a running scheduler instead of a local cluster
+    :param dashboard: serve the local cluster's dashboard on 127.0.0.1 (when bokeh is installed);
+        ``"127.0.0.1:PORT"`` picks its port
+    """
+
+    def __init__(self, workers: int | None = None, scheduler: str | None = None, dashboard: bool | str = True) -> None:
+        if workers is not None and workers < 1:
+            raise InputError(f"--workers must be >= 1, got {workers}")
+        if scheduler is not None and workers is not None:
+            raise InputError("--workers starts a local cluster; with --scheduler the cluster's own workers run the points")
+        if scheduler is not None and not scheduler.startswith(("tcp://", "tls://", "inproc://", "ucx://")):
+            raise InputError(f"--scheduler must be an address such as tcp://HOST:PORT, got {scheduler!r}")
+        if isinstance(dashboard, str) and not dashboard.startswith(("127.", "localhost")):
+            raise InputError(f"--dashboard {dashboard!r}: the dashboard listens on loopback only (127.0.0.1:PORT)")
+        self.workers = workers if workers is not None else (os.cpu_count() or 1)
+        self.scheduler = scheduler
+        self.dashboard_option = dashboard
+        self.dashboard: str | None = None
+        self.cluster: Any = None
+        self.client: Any = None
+        self._log_level: int | None = None
+
+    def __enter__(self) -> Engine:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def start(self) -> None:
+        """Start the local cluster, or connect to the scheduler."""
+        from distributed import Client, LocalCluster
+
+        quiet = logging.getLogger("distributed")  # the scheduler's INFO lines are not the user's business
+        self._log_level = quiet.level
+        quiet.setLevel(max(logging.ERROR, logging.getLogger().getEffectiveLevel()))
+        if self.scheduler is not None:
+            try:
+                self.client = Client(self.scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
+            except (OSError, TimeoutError) as exc:
+                raise InputError(f"--scheduler {self.scheduler}: cannot connect ({exc})") from None
+            self.dashboard = self._link()
+            return
+        import dask
+
+        serve = dashboard_available() and self.dashboard_option is not False
+        address = self.dashboard_option if isinstance(self.dashboard_option, str) else f"{LOOPBACK}:0"
+        with dask.config.set(WORKER_CONFIG):
+            self.cluster = LocalCluster(
+                n_workers=self.workers,
+                threads_per_worker=1,
+                processes=True,
+                host=LOOPBACK,
+                dashboard_address=address if serve else None,
+                silence_logs=logging.ERROR,
+            )
+        self.client = Client(self.cluster, set_as_default=False)
+        self.dashboard = self._link() if serve else None
+
+    def _link(self) -> str | None:
+        try:
+            link = self.client.dashboard_link
+        except Exception:  # noqa: BLE001 - a scheduler without a dashboard
+            return None
+        return str(link) if link else None
+
+    @property
+    def n_workers(self) -> int:
+        """Workers connected now."""
+        return len(self.client.scheduler_info(n_workers=-1)["workers"]) if self.client is not None else 0
+
+    def describe(self) -> str:
+        """One line: where the points run."""
+        if self.scheduler is not None:
+            return f"the cluster at {self.scheduler} ({self.n_workers} workers)"
+        return f"a local cluster of {self.workers} worker process(es) on {LOOPBACK}"
+
+    def submit(self, fn: Callable[..., Any], *args: Any, key: tuple[str, ...], priority: int = 0) -> Any:
+        """Submit one task (``pure=False``: a point is run when asked).  Keys are tuples
+        (:data:`TASK_GROUP`, point id, …): every point is in one task group, so the scheduler
+        queues them and hands them out in priority order as workers free up."""
+        return self.client.submit(fn, *args, key=key, pure=False, priority=priority, retries=1)
+
+    def close(self) -> None:
+        """Close the client and the local cluster (its worker processes end); never raises."""
+        for what in (self.client, self.cluster):
+            if what is None:
+                continue
+            try:
+                what.close()
+            except Exception:  # noqa: BLE001 - closing must not hide the outcome
+                logger.debug("closing %s failed", what, exc_info=True)
+        self.client = self.cluster = None
+        if self._log_level is not None:
+            logging.getLogger("distributed").setLevel(self._log_level)
+            self._log_level = None
+
+
+@dataclass
+class SweepOutcome:
+    """What :func:`run_points` did: point ids run, skipped (finished before), failed (id → why)."""
+
+    ran: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    errors: dict[str, str] = field(default_factory=dict)
+    interrupted: bool = False
+    wall_s: float = 0.0
+
+
+def _raise_interrupt(signum: int, frame: Any) -> None:  # SIGTERM → the path of Ctrl-C
+    raise KeyboardInterrupt
+
+
+@contextmanager
+def interrupt_on_sigterm() -> Iterator[None]:
+    """While inside (main thread only): SIGTERM raises KeyboardInterrupt, as Ctrl-C does."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGTERM, _raise_interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+#: the function a worker runs for a point (a test may put a wrapper in its place)
+POINT_FUNCTION: Callable[[str, dict[str, Any], bool], dict[str, Any]] = run_point
+
+
+def point_doc(p: Point) -> dict[str, Any]:
+    """What ``point.json`` says about ``p`` (besides the result)."""
+    return {"index": p.index, "labels": p.labels, "options": p.options, "config": p.config.as_dict()}
+
+
+def run_points(
+    engine: Engine,
+    out: Path,
+    points: Sequence[Point],
+    *,
+    save_errors: bool = False,
+    fresh: bool = False,
+    progress: bool = True,
+    desc: str = "sweep",
+    on_result: Callable[[Point, dict[str, Any]], None] | None = None,
+) -> SweepOutcome:
+    """Run the points of ``points`` not finished in sweep folder ``out`` (all of them if ``fresh``),
+    in their order (the first ones first), writing each result as it arrives.
+
+    Ctrl-C / SIGTERM while it runs: cancels what has not finished and returns with
+    ``interrupted`` (the caller closes the engine, which ends a local cluster's workers)."""
+    from distributed import as_completed
+    from tqdm import tqdm
+
+    out = Path(out)
+    (out / "runs").mkdir(parents=True, exist_ok=True)
+    outcome = SweepOutcome()
+    todo: list[Point] = []
+    for p in points:
+        if not fresh and is_finished(run_dir(out, p.id), p.config, save_errors):
+            outcome.skipped.append(p.id)
+        else:
+            todo.append(p)
+    logger.info("%s: %d points, %d finished before, %d to run", desc, len(points), len(outcome.skipped), len(todo))
+    if not todo:
+        return outcome
+    t0 = time.perf_counter()
+    bar = tqdm(total=len(todo), desc=desc, unit="pt", file=sys.stderr, disable=not progress, dynamic_ncols=True)
+    futures: dict[Any, Point] = {}
+    try:
+        with interrupt_on_sigterm():
+            try:
+                for i, p in enumerate(todo):  # the first points first (reproduce: the slowest)
+                    fut = engine.submit(
+                        POINT_FUNCTION, p.id, p.options, save_errors, key=(TASK_GROUP, p.id), priority=len(todo) - i
+                    )
+                    futures[fut] = p
+                for fut in as_completed(list(futures), loop=engine.client.loop):
+                    p = futures.pop(fut)
+                    try:
+                        result = fut.result()
+                    except Exception as exc:  # noqa: BLE001 - KilledWorker (the point ended every worker), cancelled
+                        result = {"id": p.id, "error": f"{type(exc).__name__}: {exc}", "summary": None, "wall_s": 0.0}
+                    fut.release()
+                    commit(out, p.id, point_doc(p), result)
+                    outcome.ran.append(p.id)
+                    if result.get("error"):
+                        outcome.errors[p.id] = str(result["error"])
+                        bar.write(f"ilcrig {desc}: {p.id} could not run: {result['error']}", file=sys.stderr)
+                    if on_result is not None:
+                        on_result(p, result)
+                    bar.set_postfix_str(p.id, refresh=False)
+                    bar.update(1)
+            except KeyboardInterrupt:
+                outcome.interrupted = True
+                _cancel(engine, list(futures))
+    finally:
+        bar.close()
+        outcome.wall_s = time.perf_counter() - t0
+    return outcome
+
+
+def _cancel(engine: Engine, futures: list[Any]) -> None:
+    """Cancel what has not finished (a task running on a worker of another's cluster runs on; its
+    result is dropped)."""
+    if not futures or engine.client is None:
+        return
+    try:
+        engine.client.cancel(futures, force=True)
+    except Exception:  # noqa: BLE001 - the cluster may be going away
+        logger.debug("cancelling failed", exc_info=True)
