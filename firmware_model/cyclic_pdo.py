@@ -4,9 +4,9 @@ Owns the drive's use of the CiA 301 PDO service (:class:`bus.cia301.pdo.PdoEngin
 communication and mapping objects 0x1400/0x1600/0x1800/0x1A00, the SYNC COB-ID 0x1005) and the
 SYNC credit (docs/canopen-objects.md §10, docs/timing.md §7):
 
-* a SYNC (:meth:`CyclicPdo.on_sync`, only in NMT OPERATIONAL) writes the buffered synchronous
-  RPDOs to their objects (0x607A target position, 0x6071 target torque, 0x60B2 torque offset)
-  and grants one io tick (one credit per SYNC, not accumulated);
+* a SYNC (:meth:`CyclicPdo.on_sync`) writes the buffered synchronous RPDOs to their objects
+  (0x607A target position, 0x6071 target torque, 0x60B2 torque offset; only in NMT OPERATIONAL)
+  and grants one io tick (one credit per SYNC, not accumulated; in PRE-OPERATIONAL too);
 * in a cyclic mode in NMT OPERATIONAL, an io tick may run only with that credit
   (:meth:`CyclicPdo.tick_ready`; the node runtime holds the encoder frame until the SYNC came)
   and uses it up (:meth:`CyclicPdo.consume_sync`);
@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from bus.cia301.nmt import NmtState
 from bus.cia301.object_store import ObjectStore
 from bus.cia301.pdo import PdoEngine
 
@@ -31,6 +32,7 @@ class CyclicPdo:
 
     def __init__(self, store: ObjectStore, nmt_state: Callable[[], int]) -> None:
         self.engine = PdoEngine(store, nmt_state)
+        self._nmt_state = nmt_state
         #: io ticks the last SYNC allows (0 or 1)
         self.sync_credit = 0
 
@@ -54,9 +56,12 @@ class CyclicPdo:
         self.sync_credit = 0
 
     def on_sync(self) -> None:
-        """A SYNC frame: synchronous RPDOs take effect, the next io tick may run."""
+        """A SYNC frame: synchronous RPDOs take effect (NMT OPERATIONAL), the next io tick may run
+        (also in PRE-OPERATIONAL, where CiA 301 consumes SYNC too: a drive started between a SYNC
+        and its io tick runs that tick at once)."""
         if self.engine.active:
             self.engine.on_sync()
+        if self._nmt_state() in (NmtState.OPERATIONAL, NmtState.PRE_OPERATIONAL):
             self.sync_credit = 1
 
     def on_rpdo(self, can_id: int, data: bytes) -> bool:

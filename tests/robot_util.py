@@ -1,0 +1,251 @@
+"""Test helpers of the robot: the plant node in robot mode and four real drive nodes as threads on
+python-can ``virtual`` buses (:class:`VirtualRobot`), and a lockstep master on the fieldbus
+(:class:`LockstepMaster`: SDO through the canopen library, RPDOs and SYNC as raw frames, every
+period waits for the four TPDOs, so the periods are deterministic).
+
+Everything waits for events (frames counted under a condition), never for time.
+"""
+
+from __future__ import annotations
+
+import itertools
+import struct
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import can
+import canopen
+import numpy as np
+
+from bus import units
+from bus.objects import DRIVE_EDS_PATH
+from bus.plant_objects import PLANT_EDS_PATH, RobotMode
+from firmware_model.drive import Drive
+from firmware_model.drive_node import DriveNode
+from plant.disturbance import disturbance_torque
+from plant.params import default_true_plant
+from plant.plant_node import PlantNode
+from plant.simulator import Plant
+
+_counter = itertools.count()
+PLANT_ID = 32
+DRIVES = (1, 2, 3, 4)
+
+#: RPDO1 of the lockstep master: controlword (U16), target position (I32)
+RPDO_LAYOUT = struct.Struct("<Hi")
+#: TPDO1: statusword (U16), position actual (I32)
+TPDO_LAYOUT = struct.Struct("<Hi")
+
+
+def new_channels() -> tuple[str, str]:
+    """Fresh names of a virtual fieldbus and io channel."""
+    k = next(_counter)
+    return f"robot-fb-{k}", f"robot-io-{k}"
+
+
+class _Thread:
+    def __init__(self, node: Any, buses: list[can.BusABC]) -> None:
+        self.node = node
+        self.buses = buses
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=node.run, args=(self.stop,), daemon=True)
+        self.thread.start()
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(timeout=5.0)
+        assert not self.thread.is_alive()
+        for bus in self.buses:
+            bus.shutdown()
+
+
+def plant_factory(ts_s: float, substeps: int) -> Plant:
+    return Plant(default_true_plant(), ts_s, substeps, units.RAD_PER_COUNT, units.TORQUE_LSB_NM)
+
+
+class VirtualRobot:
+    """The robot's nodes as threads: the plant node (robot mode ``mode``) and drives 1..4.
+
+    :param trace_path: the plant's period trace (None: none).
+    :param tick_timeout_s: the plant's longest wait for a period's torques, s.
+    """
+
+    def __init__(
+        self,
+        mode: RobotMode = RobotMode.SYNC,
+        trace_path: str | None = None,
+        tick_timeout_s: float = 5.0,
+        channels: tuple[str, str] | None = None,
+    ) -> None:
+        self.fb_channel, self.io_channel = channels if channels is not None else new_channels()
+        self.threads: list[_Thread] = []
+        try:
+            fb = can.Bus(interface="virtual", channel=self.fb_channel)
+            io = can.Bus(interface="virtual", channel=self.io_channel)
+            self.plant = PlantNode(
+                fb,
+                io,
+                plant_factory=plant_factory,
+                disturbance_fn=disturbance_torque,
+                robot_mode=mode,
+                trace_path=trace_path,
+                tick_timeout_s=tick_timeout_s,
+            )
+            self.threads.append(_Thread(self.plant, [fb, io]))
+            self.drives: list[Drive] = []
+            for node_id in DRIVES:
+                drive = Drive(node_id)
+                fb_d = can.Bus(interface="virtual", channel=self.fb_channel)
+                io_d = can.Bus(interface="virtual", channel=self.io_channel)
+                self.drives.append(drive)
+                self.threads.append(_Thread(DriveNode(drive, fb_d, io_d), [fb_d, io_d]))
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        for t in self.threads:
+            t.close()
+        self.threads = []
+
+
+class LockstepMaster:
+    """A CANopen master on the robot's fieldbus that steps it one period at a time.
+
+    SDO through canopen ``RemoteNode``s; per period :meth:`cycle` sends each drive's RPDO1
+    (controlword, target position [counts]) and one SYNC, then waits for the four TPDO1s
+    (statusword, position actual), which it returns.
+
+    :param virtual_channel: the virtual fieldbus channel (or pass ``bus_kwargs`` of python-can's
+        ``Bus`` for another interface).
+    """
+
+    def __init__(self, virtual_channel: str | None = None, **bus_kwargs: Any) -> None:
+        self.network = canopen.Network()
+        self.network.NOTIFIER_CYCLE = 0.02
+        if virtual_channel is not None:
+            bus_kwargs = {"interface": "virtual", "channel": virtual_channel}
+        self.network.connect(**bus_kwargs)
+        self.drives = {n: self.network.add_node(n, str(DRIVE_EDS_PATH)) for n in DRIVES}
+        self.plant = self.network.add_node(PLANT_ID, str(PLANT_EDS_PATH))
+        self.emcy: list[tuple[int, bytes]] = []
+        self.booted: set[int] = set()
+        self._tpdo: dict[int, tuple[int, int]] = {}
+        self._tpdo_count = 0
+        self._cond = threading.Condition()
+        for node in (*DRIVES, PLANT_ID):
+            self.network.subscribe(0x080 + node, self._on_emcy)
+        for node in DRIVES:
+            self.network.subscribe(0x180 + node, self._on_tpdo)
+        for node in (*DRIVES, PLANT_ID):
+            self.network.subscribe(0x700 + node, self._on_heartbeat)
+
+    def _on_heartbeat(self, cob: int, data: bytearray, _t: float) -> None:
+        if data[:1] == b"\x00":
+            with self._cond:
+                self.booted.add(cob - 0x700)
+                self._cond.notify_all()
+
+    def wait_booted(self, timeout_s: float = 60.0) -> None:
+        """Until every node has sent its boot-up frame."""
+        with self._cond:
+            if not self._cond.wait_for(lambda: self.booted >= {*DRIVES, PLANT_ID}, timeout_s):
+                raise TimeoutError(f"booted: {sorted(self.booted)}")
+
+    def _on_emcy(self, cob: int, data: bytearray, _t: float) -> None:
+        with self._cond:
+            self.emcy.append((cob, bytes(data)))
+            self._cond.notify_all()
+
+    def _on_tpdo(self, cob: int, data: bytearray, _t: float) -> None:
+        with self._cond:
+            self._tpdo[cob - 0x180] = TPDO_LAYOUT.unpack(bytes(data[: TPDO_LAYOUT.size]))
+            self._tpdo_count += 1
+            self._cond.notify_all()
+
+    def configure(self, mode: int = 8) -> None:
+        """In PRE-OPERATIONAL: RPDO1 = controlword + target position, TPDO1 = statusword + position
+        actual (both synchronous, every SYNC), mode of operation ``mode`` (8 = CSP)."""
+        for node in self.drives.values():
+            sdo = node.sdo
+            sdo.download(0x1400, 1, struct.pack("<I", 0x80000200 + node.id))
+            sdo.download(0x1600, 0, b"\x00")
+            sdo.download(0x1600, 1, struct.pack("<I", 0x60400010))
+            sdo.download(0x1600, 2, struct.pack("<I", 0x607A0020))
+            sdo.download(0x1600, 0, b"\x02")
+            sdo.download(0x1400, 2, b"\x01")
+            sdo.download(0x1400, 1, struct.pack("<I", 0x200 + node.id))
+            sdo.download(0x1800, 1, struct.pack("<I", 0xC0000180 + node.id))
+            sdo.download(0x1A00, 0, b"\x00")
+            sdo.download(0x1A00, 1, struct.pack("<I", 0x60410010))
+            sdo.download(0x1A00, 2, struct.pack("<I", 0x60640020))
+            sdo.download(0x1A00, 0, b"\x02")
+            sdo.download(0x1800, 2, b"\x01")
+            sdo.download(0x1800, 1, struct.pack("<I", 0x40000180 + node.id))
+            sdo.download(0x6060, 0, struct.pack("<b", mode))
+
+    def start(self) -> None:
+        """NMT start of every node (broadcast)."""
+        self.network.nmt.state = "OPERATIONAL"
+
+    def cycle(self, targets: dict[int, tuple[int, int]], timeout_s: float = 10.0) -> dict[int, tuple[int, int]]:
+        """One period: RPDO1 (controlword, target) per drive, SYNC, the four TPDO1s back.
+
+        :returns: per drive (statusword, position actual [counts]).
+        :raises TimeoutError: the TPDOs did not all come.
+        """
+        with self._cond:
+            count0 = self._tpdo_count
+        for node_id, (cw, target) in targets.items():
+            self.network.send_message(0x200 + node_id, RPDO_LAYOUT.pack(cw, target))
+        self.network.send_message(0x080, b"")
+        with self._cond:
+            if not self._cond.wait_for(lambda: self._tpdo_count >= count0 + len(DRIVES), timeout_s):
+                raise TimeoutError(f"TPDOs of the period: {self._tpdo_count - count0} of {len(DRIVES)} came")
+            return dict(self._tpdo)
+
+    def wait_emcy(self, predicate: Callable[[int, bytes], bool], timeout_s: float = 10.0) -> tuple[int, bytes]:
+        """The first EMCY (COB-ID, data) matching ``predicate``."""
+        with self._cond:
+            found: list[tuple[int, bytes]] = []
+
+            def match() -> bool:
+                found[:] = [e for e in self.emcy if predicate(*e)]
+                return bool(found)
+
+            if not self._cond.wait_for(match, timeout_s):
+                raise TimeoutError(f"no matching EMCY; got {self.emcy}")
+            return found[0]
+
+    def enable(self, positions: dict[int, int]) -> dict[int, tuple[int, int]]:
+        """CiA 402 to Operation enabled with the target at ``positions``; returns the last TPDOs."""
+        tp: dict[int, tuple[int, int]] = {}
+        for cw in (0x06, 0x07, 0x0F):
+            tp = self.cycle({n: (cw, positions[n]) for n in DRIVES})
+        tp = self.cycle({n: (0x0F, positions[n]) for n in DRIVES})
+        return tp
+
+    def close(self) -> None:
+        self.network.disconnect()
+
+
+def wait_for(predicate: Callable[[], Any], timeout_s: float = 10.0) -> bool:
+    """Poll ``predicate`` until true or ``timeout_s`` passed (the caller asserts the result)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.002)
+    return bool(predicate())
+
+
+def counts_of(q_rad: np.ndarray) -> dict[int, int]:
+    """Joint angles [rad] as encoder counts per drive node."""
+    return {n: round(float(q_rad[n - 1]) / units.RAD_PER_COUNT) for n in DRIVES}
+
+
+def iter_cycles(master: LockstepMaster, targets: Iterator[dict[int, tuple[int, int]]]) -> list[dict[int, tuple[int, int]]]:
+    """Run one :meth:`LockstepMaster.cycle` per item; the TPDOs of each."""
+    return [master.cycle(t) for t in targets]
