@@ -6,7 +6,9 @@ SYNC credit (docs/canopen-objects.md §10, docs/timing.md §7):
 
 * a SYNC (:meth:`CyclicPdo.on_sync`) writes the buffered synchronous RPDOs to their objects
   (0x607A target position, 0x6071 target torque, 0x60B2 torque offset; only in NMT OPERATIONAL)
-  and grants one io tick (one credit per SYNC, not accumulated; in PRE-OPERATIONAL too);
+  and grants one io tick (one credit per SYNC, in PRE-OPERATIONAL too; at most
+  :data:`bus.cyclic.SYNC_CREDITS_MAX` kept: a SYNC the drive sees before the io tick of the one
+  before it — the plant steps the robot one period per SYNC and may have both queued — is not lost);
 * in a cyclic mode in NMT OPERATIONAL, an io tick may run only with that credit
   (:meth:`CyclicPdo.tick_ready`; the node runtime holds the encoder frame until the SYNC came)
   and uses it up (:meth:`CyclicPdo.consume_sync`);
@@ -21,6 +23,7 @@ from collections.abc import Callable
 from bus.cia301.nmt import NmtState
 from bus.cia301.object_store import ObjectStore
 from bus.cia301.pdo import PdoEngine
+from bus.cyclic import SYNC_CREDITS_MAX
 
 
 class CyclicPdo:
@@ -33,7 +36,7 @@ class CyclicPdo:
     def __init__(self, store: ObjectStore, nmt_state: Callable[[], int]) -> None:
         self.engine = PdoEngine(store, nmt_state)
         self._nmt_state = nmt_state
-        #: io ticks the last SYNC allows (0 or 1)
+        #: io ticks the SYNCs received allow (0 .. :data:`bus.cyclic.SYNC_CREDITS_MAX`)
         self.sync_credit = 0
 
     def reset(self) -> None:
@@ -52,8 +55,9 @@ class CyclicPdo:
         return self.sync_credit > 0 or not (cyclic_mode and self.engine.active)
 
     def consume_sync(self) -> None:
-        """An io tick ran (or was refused): the next one needs a new SYNC."""
-        self.sync_credit = 0
+        """An io tick ran (or was refused): it used one credit."""
+        if self.sync_credit:
+            self.sync_credit -= 1
 
     def on_sync(self) -> None:
         """A SYNC frame: synchronous RPDOs take effect (NMT OPERATIONAL), the next io tick may run
@@ -61,8 +65,8 @@ class CyclicPdo:
         and its io tick runs that tick at once)."""
         if self.engine.active:
             self.engine.on_sync()
-        if self._nmt_state() in (NmtState.OPERATIONAL, NmtState.PRE_OPERATIONAL):
-            self.sync_credit = 1
+        if self._nmt_state() in (NmtState.OPERATIONAL, NmtState.PRE_OPERATIONAL) and self.sync_credit < SYNC_CREDITS_MAX:
+            self.sync_credit += 1
 
     def on_rpdo(self, can_id: int, data: bytes) -> bool:
         """A fieldbus frame that may be an RPDO; True when it was one (handled)."""

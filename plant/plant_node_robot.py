@@ -18,11 +18,15 @@ a python-canopen script:
 A SYNC that comes while a period is still being computed waits (one at most: the next period
 starts as soon as this one is done); one more is an overrun, counted and dropped — a master that
 sends its next SYNC only after its TPDOs came back never overruns, and the same master script gives
-the same trace.  Real time (mode 2): periods are also paced to the wall clock — period n (counted
-from the first SYNC, t0 its arrival) does not start before t0 + n·Ts (its encoder frames are held,
-as in a paced trial, :class:`plant.pacing.TickPacer`); a SYNC later than t0 + n·Ts + Ts/2 is late,
-one that comes a whole period or more after its time counts the periods in between as missing (the
-robot waits for its drives: it does not move without a SYNC) and starts the schedule afresh.
+the same trace.  The drives keep as many SYNC credits (:data:`bus.cyclic.SYNC_CREDITS_MAX`, one in
+progress + one waiting), and handle a SYNC before the io frame it caused
+(:class:`bus.cia301.slave.SlaveNode`), so no drive ever waits for a SYNC the robot has used.
+
+Real time (mode 2): periods are also paced to the wall clock — period n (counted from the first
+SYNC, t0 its arrival) does not start before t0 + n·Ts (its encoder frames are held, as in a paced
+trial, :class:`plant.pacing.TickPacer`); a SYNC later than t0 + n·Ts + Ts/2 is late, one that comes
+a whole period or more after its time counts the periods in between as missing (the robot waits for
+its drives: it does not move without a SYNC) and starts the schedule afresh.
 
 Faults (one EMCY each, from the plant node; :data:`bus.plant_objects.ROBOT_FAULT_EMCY`): a
 mechanical limit (the robot stops at it), a drive that does not answer within ``tick_timeout_s``
@@ -37,6 +41,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import deque
 from collections.abc import Callable
 from typing import Any
 
@@ -46,6 +51,7 @@ import numpy as np
 from bus import io_frames
 from bus.cia301.emcy import EmcyCode
 from bus.cia301.object_store import ObjectStore
+from bus.cyclic import SYNC_CREDITS_MAX
 from bus.plant_objects import (
     ROBOT_FAULT_EMCY,
     ConfigSub,
@@ -81,6 +87,8 @@ _LIMIT_FAULTS = {"end_stop": RobotFault.END_STOP, "screw_stop": RobotFault.SCREW
 FAULTS_KEPT: int = 100
 
 _IDLE, _HELD, _SENT = 0, 1, 2
+#: SYNCs kept waiting while a period is computed: one in progress + these = the drives' credits
+_WAITING_MAX = SYNC_CREDITS_MAX - 1
 
 
 class _Pacing:
@@ -213,7 +221,7 @@ class RobotLoop:
         self._got = 0
         self._deadline = 0.0
         self._send_at = 0.0
-        self._pending: float | None = None  # arrival time of the SYNC waiting for the next period
+        self._pending: deque[float] = deque()  # arrival times of the SYNCs waiting for their periods
         self._late = False
         self.pacing: _Pacing | None = None
         self.periods = 0
@@ -255,7 +263,8 @@ class RobotLoop:
         time; later it goes on from where it stands), or goes off after the period in progress."""
         self.store.values[(PlantObj.ROBOT, RobotSub.MODE)] = int(mode)
         if mode == RobotMode.OFF:
-            self._state, self._pending = _IDLE, None
+            self._state = _IDLE
+            self._pending.clear()
             return
         self._robot()
         if mode == RobotMode.REALTIME and self.pacing is None:
@@ -282,7 +291,11 @@ class RobotLoop:
             if self.trace is not None:
                 self.trace.close()
             if self.trace_path is not None:
-                self.trace = TraceWriter(self.trace_path, ts_s, substeps)
+                try:
+                    self.trace = TraceWriter(self.trace_path, ts_s, substeps)
+                except OSError as err:  # the robot goes on without its trace
+                    self.trace = None
+                    logger.error("node %d: cannot write the robot trace %s: %s", self.node_id, self.trace_path, err)
         return mech
 
     # ------------------------------------------------------------------ loop hooks
@@ -294,15 +307,16 @@ class RobotLoop:
             return
         if self._state == _IDLE:
             self._start(now, now)
-        elif self._pending is None:
-            self._pending = now
+        elif len(self._pending) < _WAITING_MAX:
+            self._pending.append(now)
         else:
             self.overruns += 1
             logger.debug("node %d: SYNC overrun in period %d", self.node_id, self.periods)
 
     def interrupt(self) -> None:
         """A trial begins: the period in progress is dropped (its frames are stale for the trial)."""
-        self._state, self._pending = _IDLE, None
+        self._state = _IDLE
+        self._pending.clear()
 
     def next_deadline(self) -> float | None:
         if self._state == _HELD:
@@ -410,9 +424,8 @@ class RobotLoop:
         self._next(now)
 
     def _next(self, now: float) -> None:
-        if self._pending is not None:
-            arrival, self._pending = self._pending, None
-            self._start(arrival, now)
+        if self._pending:
+            self._start(self._pending.popleft(), now)
 
     def _drop_period(self) -> None:
         self._state = _IDLE

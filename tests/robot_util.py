@@ -106,9 +106,12 @@ class VirtualRobot:
             raise
 
     def close(self) -> None:
+        """Stop the nodes and close the plant's trace (idempotent)."""
         for t in self.threads:
             t.close()
         self.threads = []
+        if hasattr(self, "plant"):
+            self.plant.robot.close()
 
 
 class LockstepMaster:
