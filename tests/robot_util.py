@@ -9,10 +9,16 @@ Everything waits for events (frames counted under a condition), never for time.
 from __future__ import annotations
 
 import itertools
+import os
+import re
+import signal
 import struct
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import can
@@ -252,3 +258,87 @@ def counts_of(q_rad: np.ndarray) -> dict[int, int]:
 def iter_cycles(master: LockstepMaster, targets: Iterator[dict[int, tuple[int, int]]]) -> list[dict[int, tuple[int, int]]]:
     """Run one :meth:`LockstepMaster.cycle` per item; the TPDOs of each."""
     return [master.cycle(t) for t in targets]
+
+
+class RobotProcess:
+    """``ilcrig robot`` as a child process: its output lines as they come, the announcement parsed.
+
+    :param out: the run folder.
+    :param args: more options (``--realtime``, ``--view``, ``--bus``…).
+    :param env: environment changes.
+    """
+
+    def __init__(self, out: Path, *args: str, env: dict[str, str] | None = None) -> None:
+        import queue
+
+        self.out = out
+        self.lines: queue.Queue[tuple[str, str]] = queue.Queue()
+        self.stdout: list[str] = []
+        self.stderr: list[str] = []
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "host.cli", "robot", "--out", str(out), *args],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**os.environ, **(env or {})},
+        )
+        for name, stream in (("out", self.proc.stdout), ("err", self.proc.stderr)):
+            threading.Thread(target=self._read, args=(name, stream), daemon=True).start()
+
+    def _read(self, name: str, stream: Any) -> None:
+        for line in stream:
+            (self.stdout if name == "out" else self.stderr).append(line.rstrip("\n"))
+            self.lines.put((name, line.rstrip("\n")))
+
+    def wait_line(self, pattern: str, timeout_s: float = 180.0) -> re.Match[str]:
+        """The first output line matching ``pattern`` (seen before or arriving now)."""
+        import queue
+
+        rx = re.compile(pattern)
+        for line in self.stdout + self.stderr:
+            m = rx.search(line)
+            if m:
+                return m
+        deadline = time.monotonic() + timeout_s
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0 or self.proc.poll() is not None and self.lines.empty():
+                raise TimeoutError(f"no line matching {pattern!r}; out {self.stdout}, err {self.stderr}")
+            try:
+                _, line = self.lines.get(timeout=min(left, 1.0))
+            except queue.Empty:
+                continue
+            m = rx.search(line)
+            if m:
+                return m
+
+    def ready(self) -> dict[str, Any]:
+        """Wait for the announcement; the fieldbus's python-can interface and channel, the pids."""
+        self.wait_line(r"Ctrl-C to stop")
+        text = "\n".join(self.stdout)
+        m = re.search(r"connect: python-can interface=(\S+) channel=(\S+)", text)
+        assert m, text
+        pids = {name: int(pid) for name, pid in re.findall(r"(hub|plant|drive\d) (\d+)", text)}
+        return {"interface": m.group(1), "channel": m.group(2), "pids": pids}
+
+    def stop(self, signum: int = signal.SIGTERM, timeout_s: float = 60.0) -> int:
+        """Signal it and wait for its exit code."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signum)
+        return self.proc.wait(timeout=timeout_s)
+
+    def kill(self) -> None:
+        """Make sure it is gone (the test's cleanup)."""
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(timeout=30)
+
+
+def pid_alive(pid: int) -> bool:
+    """True while a process with ``pid`` exists and is not a zombie."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(")")[-1].split()[0] != "Z"
+    except OSError:
+        return False

@@ -373,4 +373,8 @@ def launch_robot(args: argparse.Namespace) -> int:
         out = Path(args.out)
         if out.exists() and not out.is_dir():
             raise ValueError(f"--out {out}: not a folder")
+    if not getattr(args, "debug", False):
+        # a monitor whose bus ends with a process of the robot is part of that fault, which the
+        # launcher reports in its one line
+        logging.getLogger("host.rig.monitor").setLevel(logging.ERROR)
     return RobotLauncher(args).run()

@@ -1,0 +1,119 @@
+"""``ilcrig robot`` with masters nobody here wrote: the example script (examples/robot_master.py,
+python canopen's ``BaseNode402``) powers the robot, moves it along a pick-and-place in CSP and
+stops it with quick stop; the positions it reached are checked from its TPDOs and from the plant.
+The session's outputs (summary, trace, candump logs), a killed process (exit 3, one line, nothing
+left running) and Ctrl-C / SIGTERM (130 / 143).
+
+Every wait is for an event (an output line, a frame, a process's exit); every process is cleaned up.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from robot_util import DRIVES, RobotProcess, pid_alive
+
+from bus.canlog import read_log
+from plant.kinematics import inverse_kinematics
+from plant.trace import read_trace
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLE = ROOT / "examples" / "robot_master.py"
+COUNTS_PER_RAD = 10 * 2**20 / (2 * np.pi)
+
+pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
+
+
+@pytest.fixture
+def robot(tmp_path: Path) -> Iterator[RobotProcess]:
+    r = RobotProcess(tmp_path / "robot", env={"DISPLAY": "", "WAYLAND_DISPLAY": ""})
+    try:
+        yield r
+    finally:
+        r.kill()
+
+
+def run_example(where: dict, tmp_path: Path) -> dict:
+    """The example script as a user runs it, against the robot; its JSON."""
+    done = subprocess.run(
+        [sys.executable, str(EXAMPLE), "--interface", where["interface"], "--channel", where["channel"]],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=tmp_path,
+    )
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout)
+
+
+def test_python_canopen_master_runs_a_pick_and_place_and_quick_stops(robot: RobotProcess, tmp_path: Path) -> None:
+    where = robot.ready()
+    res = run_example(where, tmp_path)
+    # every waypoint reached: the drives' TPDOs at the end of each dwell, within 0.005 rad (gravity
+    # sag of the PD position loop, 2000 N·m/rad) of the planned joint targets
+    for wp in res["waypoints"]:
+        err = np.abs(np.array(wp["actual_counts"]) - np.array(wp["target_counts"])) / COUNTS_PER_RAD
+        assert err.max() < 0.005, wp
+    assert [wp["waypoint"] for wp in res["waypoints"]][-1] == "home"
+    # the plant agrees: its joints are what the drives reported in the last period, its TCP is home
+    home = res["waypoints"][-1]
+    assert np.abs(np.array(res["robot"]["q_counts"]) - np.array(home["actual_counts"])).max() <= 200
+    np.testing.assert_allclose(res["robot"]["tcp"][:3], (0.0, 0.0, -0.65), atol=1e-3)
+    q_home = inverse_kinematics(np.array([0.0, 0.0, -0.65, 0.0]))
+    assert home["target_counts"] == np.rint(q_home * COUNTS_PER_RAD).astype(int).tolist()
+    assert res["after_quick_stop"] == ["QUICK STOP ACTIVE"] * 4
+
+    assert robot.stop(signal.SIGTERM) == 143
+    out = robot.out
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["schema"] == "ilcrig.robot/1" and summary["end"]["reason"] == "interrupted"
+    session = summary["robot"]
+    assert session["periods"] >= res["periods"] and session["syncs"] >= session["periods"]
+    assert session["faults"] == [] and session["state"] == "ready" and session["brakes"] == 0xF  # quick stop: braked
+    assert summary["bus"]["syncs_on_bus"] == session["syncs"]
+    trace = read_trace(out / "trace.bin")
+    assert len(trace.records) == session["periods"] and trace.ts_s == 1e-3
+    # the streamed periods are in the trace: the robot passed over the pick and the place points
+    z = np.array([inverse_kinematics(np.array([x, y, -0.68, th])) for x, y, th in ((-0.1, 0, 0), (0.1, 0.05, np.pi / 2))])
+    for q in z:
+        assert np.abs(trace.q_rad - q).max(axis=1).min() < 0.005
+    assert any(msg.arbitration_id == 0x080 for msg in read_log(out / "fieldbus.log"))
+    encoder_frames = sum(1 for msg in read_log(out / "io.log") if msg.arbitration_id == 0x101)
+    assert session["periods"] <= encoder_frames <= session["periods"] + 1  # + the period SIGTERM cut
+    for name in ("plant", "drive1", "drive2", "drive3", "drive4"):
+        assert "Traceback" not in (out / "logs" / f"{name}.log").read_text()
+
+
+@pytest.mark.parametrize("victim", ["drive2", "plant", "hub"])
+def test_a_killed_process_ends_the_robot_with_one_line(tmp_path: Path, victim: str) -> None:
+    r = RobotProcess(tmp_path / "robot")
+    try:
+        where = r.ready()
+        pids = where["pids"]
+        os.kill(pids[victim], signal.SIGKILL)
+        assert r.proc.wait(timeout=120) == 3
+        assert len(r.stderr) == 1, r.stderr
+        assert r.stderr[0].startswith(f"ilcrig: fault: {victim} (pid {pids[victim]}) was killed by SIGKILL")
+        assert not [name for name, pid in pids.items() if pid_alive(pid)]
+        summary = json.loads((tmp_path / "robot" / "summary.json").read_text())
+        assert summary["exit_code"] == 3 and summary["end"]["process"] == victim
+    finally:
+        r.kill()
+
+
+def test_ctrl_c_stops_every_process_with_130(robot: RobotProcess) -> None:
+    pids = robot.ready()["pids"]
+    assert robot.stop(signal.SIGINT) == 130
+    assert not [name for name, pid in pids.items() if pid_alive(pid)]
+    summary = json.loads((robot.out / "summary.json").read_text())
+    assert summary["end"] == {"reason": "interrupted", "signal": "SIGINT"}
+    assert summary["robot"]["periods"] == 0 and summary["robot"]["brakes"] == 0xF
+    assert set(DRIVES) <= {int(n[-1]) for n in pids if n.startswith("drive")}
