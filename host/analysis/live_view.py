@@ -15,8 +15,8 @@ This module owns
   the timelines ``robot_time`` (period × Ts) and ``period``, and the 3D robot ``/robot/now/...``
   (inner and outer arms, sub-platforms, tool; forward kinematics of the joint angles, the layout of
   :mod:`host.analysis.recording`) every :attr:`RobotLiveView.DECIMATE_3D`-th period.  Samples are
-  buffered and sent as columns every :attr:`RobotLiveView.FLUSH_S`, so the view costs the lockstep
-  processes nothing (it runs in the launcher, on frames it reads anyway).
+  buffered and sent as columns by a thread of its own every :attr:`RobotLiveView.FLUSH_S`, so the
+  view costs the lockstep processes nothing (it runs in the launcher, on frames it reads anyway).
 
 The trials of ``ilcrig sim`` / ``ilcrig run`` go live through :class:`host.analysis.recording.RunRecorder`
 (its ``live`` parameter: the same recording, to the file and to the live sink at once).
@@ -29,8 +29,6 @@ import os
 import socket
 import subprocess
 import threading
-import time
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -105,7 +103,6 @@ class RobotLiveView:
 
     :param live: where it goes.
     :param ts_s: the control period, s (the ``robot_time`` timeline).
-    :param clock: monotonic time source [s] (flushing).
     """
 
     #: 3D frames every this many periods
@@ -115,7 +112,7 @@ class RobotLiveView:
     #: the buffered samples go out at least this often, s
     FLUSH_S: float = 0.1
 
-    def __init__(self, live: LiveView, ts_s: float, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(self, live: LiveView, ts_s: float) -> None:
         os.environ.setdefault("RUST_LOG", "off")
         import pyarrow as pa
         import rerun as rr
@@ -123,15 +120,27 @@ class RobotLiveView:
         self._rr, self._pa = rr, pa
         self.live = live
         self.ts_s = float(ts_s)
-        self._clock = clock
         self._lock = threading.Lock()
+        self._send_lock = threading.Lock()
         self._rec = rr.RecordingStream("ilcrig-robot", recording_id=f"robot-{os.getpid()}")
         self._rec.set_sinks(live.sink(), default_blueprint=robot_blueprint())
-        self._rows: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
-        self._last_flush = clock()
+        self._rows: list[tuple[int, np.ndarray, np.ndarray]] = []
+        self._targets: list[tuple[int, np.ndarray]] = []
         self._y_guess: np.ndarray | None = None
         self.samples = 0
         self._static_scene()
+        self._stop = threading.Event()
+        self._flusher = threading.Thread(target=self._flush_loop, name="live view", daemon=True)
+        self._flusher.start()
+
+    def _flush_loop(self) -> None:
+        """Send what is buffered every :attr:`FLUSH_S` (the samples come in the monitor's rounds)."""
+        while not self._stop.wait(self.FLUSH_S):
+            try:
+                self.flush()
+            except Exception:  # noqa: BLE001 - the view must never stop the robot
+                logger.exception("the live view failed; it stops")
+                return
 
     def _static_scene(self) -> None:
         from plant.params import Geometry
@@ -161,45 +170,59 @@ class RobotLiveView:
                 st.put(f"/joint{j}/{key}", "SeriesLines:colors", [[_rgba_u32(colors[key])]])
         st.send(self._rec)
 
-    def add(self, period: int, q_rad: np.ndarray, torque_nm: np.ndarray, target_rad: np.ndarray) -> None:
+    def add(self, period: int, q_rad: np.ndarray, torque_nm: np.ndarray) -> None:
         """One period (the watch's thread); sent with the others at the next flush."""
         if period % self.DECIMATE_SERIES:
             return
         with self._lock:
-            self._rows.append((period, q_rad, torque_nm, target_rad))
+            self._rows.append((period, q_rad, torque_nm))
             self.samples += 1
-            due = self._clock() - self._last_flush >= self.FLUSH_S
-        if due:
-            self.flush()
+
+    def add_targets(self, period: int, target_rad: np.ndarray) -> None:
+        """The target positions [rad] of ``period`` (NaN: none), as the master sent them."""
+        if period % self.DECIMATE_SERIES:
+            return
+        with self._lock:
+            self._targets.append((period, target_rad))
 
     def on_period(self, sample: Any) -> None:
         """:class:`host.rig.robot_watch.PeriodSample` in (the watch's listener)."""
-        self.add(sample.period, sample.q_rad, sample.torque_nm, sample.target_rad)
+        self.add(sample.period, sample.q_rad, sample.torque_nm)
 
     def flush(self) -> None:
-        """Send the buffered periods."""
-        with self._lock:
-            rows, self._rows = self._rows, []
-            self._last_flush = self._clock()
-        if not rows:
-            return
+        """Send the buffered periods (the flushing thread; :meth:`close`)."""
+        with self._send_lock:
+            with self._lock:
+                rows, self._rows = self._rows, []
+                targets, self._targets = self._targets, []
+            if targets:
+                self._send_targets(targets)
+            if rows:
+                self._send(rows)
+
+    def _index(self, period: np.ndarray) -> list[Any]:
+        rr = self._rr
+        return [rr.TimeColumn("period", sequence=period), rr.TimeColumn("robot_time", duration=period * self.ts_s)]
+
+    def _send_targets(self, targets: list[tuple[int, np.ndarray]]) -> None:
+        period = np.array([t[0] for t in targets], dtype=np.int64)
+        target = np.stack([t[1] for t in targets])
+        for j in range(N_JOINTS):
+            ok = np.isfinite(target[:, j])
+            if ok.any():
+                scalars = self._rr.Scalars.columns(scalars=np.degrees(target[ok, j]))
+                self._rec.send_columns(f"/joint{j + 1}/reference", self._index(period[ok]), scalars)
+
+    def _send(self, rows: list[tuple[int, np.ndarray, np.ndarray]]) -> None:
         rr = self._rr
         period = np.array([r[0] for r in rows], dtype=np.int64)
         q = np.stack([r[1] for r in rows])
         tau = np.stack([r[2] for r in rows])
-        target = np.stack([r[3] for r in rows])
         t_ns = np.rint(period * self.ts_s * 1e9).astype(np.int64)
-        idx = [rr.TimeColumn("period", sequence=period), rr.TimeColumn("robot_time", duration=t_ns * 1e-9)]
+        idx = self._index(period)
         for j in range(N_JOINTS):
             self._rec.send_columns(f"/joint{j + 1}/actual", idx, rr.Scalars.columns(scalars=np.degrees(q[:, j])))
             self._rec.send_columns(f"/joint{j + 1}/torque", idx, rr.Scalars.columns(scalars=tau[:, j]))
-            ok = np.isfinite(target[:, j])
-            if ok.any():
-                sub = [
-                    rr.TimeColumn("period", sequence=period[ok]),
-                    rr.TimeColumn("robot_time", duration=t_ns[ok] * 1e-9),
-                ]
-                self._rec.send_columns(f"/joint{j + 1}/reference", sub, rr.Scalars.columns(scalars=np.degrees(target[ok, j])))
         sel = np.flatnonzero(period % self.DECIMATE_3D == 0)
         if len(sel):
             self._robot(q[sel], period[sel], t_ns[sel])
@@ -230,6 +253,8 @@ class RobotLiveView:
 
     def close(self) -> None:
         """Send what is buffered and end the stream (the server stops with it)."""
+        self._stop.set()
+        self._flusher.join(timeout=5.0)
         try:
             self.flush()
             self._rec.flush()

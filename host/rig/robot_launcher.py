@@ -184,7 +184,7 @@ class RobotLauncher:
         live = LiveView()
         self.live = RobotLiveView(live, DEFAULT_TS_S)
         self.watch.on_period = self.live.on_period
-        self.watch.enable_targets()
+        self.watch.follow_targets(self.live.add_targets)
         self._say_out(live.open_viewer())
 
     def _start_idle_poll(self) -> dict[str, Any]:

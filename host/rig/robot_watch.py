@@ -70,13 +70,11 @@ class PeriodSample:
     :ivar period: the period's index as the watch counted them (0 = the first it saw)
     :ivar q_rad: (4,) joint angles the plant sent, rad
     :ivar torque_nm: (4,) the drives' torques for it, N·m
-    :ivar target_rad: (4,) the last target position each drive got by RPDO, rad (NaN: none seen)
     """
 
     period: int
     q_rad: np.ndarray
     torque_nm: np.ndarray
-    target_rad: np.ndarray
 
 
 class _RpdoMaps:
@@ -138,7 +136,10 @@ class _RpdoMaps:
 class RobotBusWatch:
     """The launcher's view of the robot's channels (see the module docstring).
 
-    :param on_period: called with every :class:`PeriodSample` (in the monitor's thread), or None.
+    :param on_period: called with every :class:`PeriodSample` (in the io monitor's thread), or None.
+    :ivar on_targets: called at every SYNC with its index (0 = the first the watch saw: the period it
+        starts, when no SYNC overran) and the target positions the drives got by RPDO so far, rad
+        (NaN: none yet), in the fieldbus monitor's thread; set by :meth:`follow_targets`
     """
 
     def __init__(self, on_period: Callable[[PeriodSample], None] | None = None) -> None:
@@ -149,17 +150,18 @@ class RobotBusWatch:
         self.periods = 0
         self.on_period = on_period
         self._booted_event = threading.Event()
-        self._rpdo = _RpdoMaps() if on_period is not None else None
+        self._rpdo: _RpdoMaps | None = None
+        self.on_targets: Callable[[int, np.ndarray], None] | None = None
         self._target = np.full(_N, np.nan)
         self._q_counts = np.zeros(_N, dtype=np.int64)
         self._torque = np.zeros(_N, dtype=np.int64)
         self._have_q = 0
         self._have_tau = 0
 
-    def enable_targets(self) -> None:
-        """Follow the master's RPDO mappings and target positions (for :attr:`on_period`)."""
-        if self._rpdo is None:
-            self._rpdo = _RpdoMaps()
+    def follow_targets(self, on_targets: Callable[[int, np.ndarray], None]) -> None:
+        """Follow the master's RPDO mappings and target positions (:attr:`on_targets`)."""
+        self._rpdo = _RpdoMaps()
+        self.on_targets = on_targets
 
     # ------------------------------------------------------------------ waiting
 
@@ -180,11 +182,14 @@ class RobotBusWatch:
         ids = frames["arbitration_id"]
         flags = frames["flags"]
         ok = (flags & (FRAME_ERR | FRAME_EXT | FRAME_RTR)) == 0
-        syncs = int(np.count_nonzero(ok & (ids == SYNC_COB_ID_DEFAULT)))
-        if syncs:
-            with self.lock:
-                self.syncs += syncs
-        rest = np.flatnonzero(ok & (ids != SYNC_COB_ID_DEFAULT))
+        if self._rpdo is None:  # SYNCs counted at once; the rest one by one
+            syncs = int(np.count_nonzero(ok & (ids == SYNC_COB_ID_DEFAULT)))
+            if syncs:
+                with self.lock:
+                    self.syncs += syncs
+            rest = np.flatnonzero(ok & (ids != SYNC_COB_ID_DEFAULT))
+        else:  # in order: a target belongs to the SYNC after it
+            rest = np.flatnonzero(ok)
         for i in rest.tolist():
             row = frames[i]
             self._fieldbus(int(row["arbitration_id"]), bytes(row["data"][: int(row["length"])]), float(row["timestamp"]))
@@ -192,7 +197,10 @@ class RobotBusWatch:
     def _fieldbus(self, cob: int, data: bytes, t_s: float) -> None:
         if cob == SYNC_COB_ID_DEFAULT:
             with self.lock:
+                index = self.syncs
                 self.syncs += 1
+            if self.on_targets is not None and not np.isnan(self._target).all():
+                self.on_targets(index, self._target.copy())
             return
         node = cob & 0x7F
         func = cob & 0x780
@@ -261,12 +269,7 @@ class RobotBusWatch:
             period = self.periods
             self.periods += 1
         if self.on_period is not None:
-            sample = PeriodSample(
-                period,
-                self._q_counts * units.RAD_PER_COUNT,
-                self._torque * units.TORQUE_LSB_NM,
-                self._target.copy(),
-            )
+            sample = PeriodSample(period, self._q_counts * units.RAD_PER_COUNT, self._torque * units.TORQUE_LSB_NM)
             try:
                 self.on_period(sample)
             except Exception:  # noqa: BLE001 - the view must never stop the watch
