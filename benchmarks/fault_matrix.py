@@ -12,6 +12,11 @@ frame faults, the tick latency (the tick the fault was reported at minus the inj
 Prints one row per run as it goes, then the table: injected, detected, completed trials lost,
 latency p50 / p99 per kind.  Goal: every fault detected, no completed trial lost, latency within
 3 heartbeat periods (600 ms) for lost or stalled processes, within 2 ticks for frame faults.
+
+The ``robot-kill-*`` kinds do the same to ``ilcrig robot`` (no host; a python-canopen master holds
+the enabled robot in CSP): a drive, the plant or the hub killed after a random number of periods;
+detected = exit code 3 with the one line naming the process, nothing left running; latency = from
+the kill to the launcher's exit.
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
 from fault_harness import EXPERIMENT, kill_session, run_rig, sim_digest  # noqa: E402
+from robot_util import robot_fault_run  # noqa: E402
 
 from bus.cia301.nmt import HOST_HEARTBEAT_MS  # noqa: E402
 
@@ -47,6 +53,9 @@ KINDS = {
     "delay-io": "delay:io@{trial}:{tick},seed={seed}",
     "emcy": "emcy:{drive}@{trial}:{tick}",
     "diskfull": "diskfull@{trial}",
+    "robot-kill-drive": "{drive}",
+    "robot-kill-plant": "plant",
+    "robot-kill-hub": "hub",
 }
 FRAME_KINDS = {"drop-io", "corrupt-io", "duplicate-io", "delay-io"}  # the lockstep faults: latency also in ticks
 
@@ -56,6 +65,36 @@ def pct(values: list[float], q: float) -> float:
         return float("nan")
     v = sorted(values)
     return v[min(len(v) - 1, max(0, round(q / 100 * (len(v) - 1))))]
+
+
+def robot_run(i: int, kind: str, victim: str, out: Path, periods_before: int) -> dict:
+    """One ``robot-kill-*`` run (module docstring); its row."""
+    t0 = time.monotonic()
+    o = robot_fault_run(out, victim, periods_before=periods_before)
+    detected = o["code"] == 3 and len(o["stderr"]) == 1 and o["stderr"][0].startswith(f"ilcrig: fault: {victim} (pid ")
+    r = {
+        "i": i,
+        "kind": kind,
+        "spec": f"kill:{victim} after {periods_before} periods",
+        "code": o["code"],
+        "detected": detected,
+        "fault_kind": "process_died",
+        "detected_by": "launcher",
+        "latency_ms": o["latency_ms"],
+        "tick_latency": None,
+        "kept": 0,
+        "expected_kept": 0,
+        "lost": 0,
+        "left": len(o["left"]),
+        "safe": True,
+        "wall_s": round(time.monotonic() - t0, 1),
+    }
+    print(
+        f"{i:3d} {r['spec']:34s} exit {o['code']} {'detected' if detected else 'MISSED':8s} by launcher "
+        f"{o['latency_ms']:7.0f} ms left {len(o['left'])} ({r['wall_s']:.0f} s)",
+        flush=True,
+    )
+    return r
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -85,6 +124,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     for i, (kind, trial, tick, drive, seed) in enumerate(plan):
         spec = KINDS[kind].format(drive=drive, trial=trial, tick=tick, seed=seed)
+        if kind.startswith("robot-"):
+            results.append(robot_run(i, kind, spec, base / f"run{i:03d}", periods_before=tick + 1))
+            continue
         expected_kept = trial + 1 if kind == "diskfull" else trial
         out = base / f"run{i:03d}"
         o = run_rig(out, "--inject", spec, iterations=args.iterations, timeout_s=600)

@@ -111,8 +111,8 @@ class Mechanics:
             plant.set_state(q_before)
             return LimitHit("mechanism", 0, f"the mechanism cannot follow: {err}")
         q = plant.q
-        low, high = q < self._lo, q > self._hi
-        if low.any() or high.any():
+        if min(q.tolist()) < self._lo or max(q.tolist()) > self._hi:
+            low, high = q < self._lo, q > self._hi
             j = int(np.flatnonzero(low | high)[0])
             stop = self._lo if low[j] else self._hi
             message = (

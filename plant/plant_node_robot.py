@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import logging
 import math
+import struct
 from collections import deque
 from collections.abc import Callable
 from typing import Any
@@ -52,6 +53,7 @@ from bus import io_frames
 from bus.cia301.emcy import EmcyCode
 from bus.cia301.object_store import ObjectStore
 from bus.cyclic import SYNC_CREDITS_MAX
+from bus.fastmsg import new_message
 from bus.plant_objects import (
     ROBOT_FAULT_EMCY,
     ConfigSub,
@@ -85,6 +87,13 @@ _FAULT_BIT = int(io_frames.TorqueStatus.FAULT)
 _LIMIT_FAULTS = {"end_stop": RobotFault.END_STOP, "screw_stop": RobotFault.SCREW_STOP, "mechanism": RobotFault.MECHANISM}
 #: faults kept with their details for the session summary
 FAULTS_KEPT: int = 100
+
+_ENC_LO = io_frames.ENCODER_COB_BASE
+#: the encoder frame's payload (bus/io_frames.py): i32 counts, u16 wire tick
+_ENC = struct.Struct("<iH")
+_ALL_HELD = (1 << _N) - 1
+#: the brakes of a period (bit j: joint j + 1 held) as the plant's ``locked`` mask
+_HELD_MASKS = [np.array([bool(bits >> j & 1) for j in range(_N)]) for bits in range(1 << _N)]
 
 _IDLE, _HELD, _SENT = 0, 1, 2
 #: SYNCs kept waiting while a period is computed: one in progress + these = the drives' credits
@@ -214,8 +223,7 @@ class RobotLoop:
         self.mechanics: Mechanics | None = None
         self._trackers = [io_frames.TickTracker(0, f"torque frames of drive {j + 1}") for j in range(_N)]
         self._tau = np.zeros(_N, dtype=np.int64)
-        self._enabled = np.zeros(_N, dtype=bool)
-        self._held_all = np.ones(_N, dtype=bool)
+        self._enabled_bits = 0  # bit j: drive j+1's torque frame of the period said ENABLED
         self._state = _IDLE
         self._wire = 0
         self._got = 0
@@ -372,9 +380,12 @@ class RobotLoop:
             self._fail(RobotFault.BAD_FRAME, j + 1, f"period {self.periods}: bad torque frame: {err}")
             self._drop_period()
             return
-        on = bool(status & _ENABLED) and not status & _FAULT_BIT
-        self._enabled[j] = on
-        self._tau[j] = torque if on else 0
+        if status & _ENABLED and not status & _FAULT_BIT:
+            self._enabled_bits |= 1 << j
+            self._tau[j] = torque
+        else:
+            self._enabled_bits &= ~(1 << j)
+            self._tau[j] = 0
         self._got += 1
         if self._got == _N:
             self._advance()
@@ -393,9 +404,11 @@ class RobotLoop:
 
     def _send_encoders(self, now: float) -> None:
         mech = self._robot()
-        counts = mech.plant.encoder_counts()
         self._wire = wire = self.lockstep.claim_wire_tick()
-        self._send_batch([io_frames.encode_encoder(j, wire, int(counts[j])) for j in range(_N)])
+        w16 = wire & io_frames.TICK_MASK
+        self._send_batch(
+            [new_message(_ENC_LO + j, bytearray(_ENC.pack(c, w16))) for j, c in enumerate(mech.plant.encoder_counts().tolist())]
+        )
         for tracker in self._trackers:
             tracker.reset(wire)
         self._got = 0
@@ -408,9 +421,8 @@ class RobotLoop:
         """All four torques are in: the robot integrates the period, the next one may start."""
         mech = self._robot()
         faulted = self.fault != RobotFault.NONE
-        held = self._held_all if faulted else ~self._enabled
-        hit = mech.step(self._tau, held)
-        self._held_bits = int(sum(1 << j for j in range(_N) if held[j]))
+        self._held_bits = _ALL_HELD if faulted else _ALL_HELD & ~self._enabled_bits
+        hit = mech.step(self._tau, _HELD_MASKS[self._held_bits])
         if hit is not None:
             self._limit(hit)
         if self.trace is not None:

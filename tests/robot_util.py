@@ -9,6 +9,8 @@ Everything waits for events (frames counted under a condition), never for time.
 from __future__ import annotations
 
 import itertools
+import json
+import logging
 import os
 import re
 import signal
@@ -237,7 +239,11 @@ class LockstepMaster:
         return tp
 
     def close(self) -> None:
-        self.network.disconnect()
+        """Disconnect (the robot, and its hub, may be gone already)."""
+        try:
+            self.network.disconnect()
+        except (can.CanError, OSError) as err:
+            logging.getLogger(__name__).debug("master: %s", err)
 
 
 def wait_for(predicate: Callable[[], Any], timeout_s: float = 10.0) -> bool:
@@ -283,8 +289,19 @@ class RobotProcess:
             text=True,
             env={**os.environ, **(env or {})},
         )
-        for name, stream in (("out", self.proc.stdout), ("err", self.proc.stderr)):
-            threading.Thread(target=self._read, args=(name, stream), daemon=True).start()
+        self._readers = [
+            threading.Thread(target=self._read, args=(name, stream), daemon=True)
+            for name, stream in (("out", self.proc.stdout), ("err", self.proc.stderr))
+        ]
+        for t in self._readers:
+            t.start()
+
+    def wait(self, timeout_s: float = 120.0) -> int:
+        """Its exit code, once it ended and its output is read to the end."""
+        code = self.proc.wait(timeout=timeout_s)
+        for t in self._readers:
+            t.join(timeout=10)
+        return code
 
     def _read(self, name: str, stream: Any) -> None:
         for line in stream:
@@ -326,7 +343,7 @@ class RobotProcess:
         """Signal it and wait for its exit code."""
         if self.proc.poll() is None:
             self.proc.send_signal(signum)
-        return self.proc.wait(timeout=timeout_s)
+        return self.wait(timeout_s)
 
     def kill(self) -> None:
         """Make sure it is gone (the test's cleanup)."""
@@ -342,3 +359,57 @@ def pid_alive(pid: int) -> bool:
             return f.read().split(")")[-1].split()[0] != "Z"
     except OSError:
         return False
+
+
+def robot_fault_run(out: Path, victim: str, *, periods_before: int = 100) -> dict[str, Any]:
+    """``ilcrig robot`` with a lockstep master holding the enabled robot in CSP; after
+    ``periods_before`` periods ``victim`` (``drive1`` … ``drive4``, ``plant``, ``hub``) is killed
+    (SIGKILL).  Returns the exit code, the stderr lines, the time from the kill to the launcher's
+    exit [ms], the processes left alive and the session summary."""
+    robot = RobotProcess(out)
+    stop = threading.Event()
+    cycled = threading.Semaphore(0)
+    errors: list[BaseException] = []
+    try:
+        where = robot.ready()
+        master = LockstepMaster(interface=where["interface"], channel=where["channel"])
+
+        def hold() -> None:
+            try:
+                master.configure()
+                master.start()
+                home = {n: int.from_bytes(master.plant.sdo.upload(0x2451, n), "little", signed=True) for n in DRIVES}
+                master.enable(home)
+                while not stop.is_set():
+                    master.cycle({n: (0x0F, home[n]) for n in DRIVES}, timeout_s=2.0)
+                    cycled.release()
+            except BaseException as exc:  # noqa: BLE001 - the robot is being killed under it
+                errors.append(exc)
+                cycled.release()
+
+        thread = threading.Thread(target=hold, daemon=True)
+        thread.start()
+        for _ in range(periods_before):
+            if not cycled.acquire(timeout=120) or errors:
+                raise RuntimeError(f"the master did not get going: {errors}")
+        pids = where["pids"]
+        t_kill = time.monotonic()
+        os.kill(pids[victim], signal.SIGKILL)
+        code = robot.proc.wait(timeout=120)
+        latency_ms = (time.monotonic() - t_kill) * 1e3
+        robot.wait()
+        stop.set()
+        thread.join(timeout=30)
+        master.close()
+        summary = json.loads((out / "summary.json").read_text()) if (out / "summary.json").exists() else None
+        return {
+            "code": code,
+            "stderr": list(robot.stderr),
+            "latency_ms": latency_ms,
+            "left": [name for name, pid in pids.items() if pid_alive(pid)],
+            "pids": pids,
+            "summary": summary,
+        }
+    finally:
+        stop.set()
+        robot.kill()
