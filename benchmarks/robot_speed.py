@@ -125,7 +125,7 @@ def realtime(seconds: float) -> dict[str, Any]:
             send = batch_sender(bus)
             frames = period_frames(home)
             try:
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(40))
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(5))  # below the robot's (10)
                 fifo = True
             except (OSError, AttributeError):
                 fifo = False

@@ -116,15 +116,17 @@ def plan_pick_and_place(start: Sequence[float]) -> tuple[np.ndarray, list[tuple[
 class Master:
     """The four drives as python canopen ``BaseNode402`` nodes and the robot's plant node."""
 
-    def __init__(self, interface: str, channel: str, eds: str) -> None:
+    def __init__(self, interface: str, channel: str, eds: str, timeout_s: float = 5.0) -> None:
         self.network = canopen.Network()
         self.network.connect(interface=interface, channel=channel)
+        self.timeout_s = timeout_s
         self.drives: list[BaseNode402] = []
         for node_id in DRIVES:
             node = BaseNode402(node_id, eds)
             # a loaded machine answers slower than canopen's defaults assume
-            node.TIMEOUT_SWITCH_STATE_FINAL = node.TIMEOUT_SWITCH_STATE_SINGLE = 5.0
-            node.TIMEOUT_SWITCH_OP_MODE = node.TIMEOUT_CHECK_TPDO = 5.0
+            node.TIMEOUT_SWITCH_STATE_FINAL = node.TIMEOUT_SWITCH_STATE_SINGLE = timeout_s
+            node.TIMEOUT_SWITCH_OP_MODE = node.TIMEOUT_CHECK_TPDO = timeout_s
+            node.sdo.RESPONSE_TIMEOUT = max(node.sdo.RESPONSE_TIMEOUT, timeout_s / 5)
             self.network.add_node(node)
             self.drives.append(node)
         self.plant = self.network.add_node(PLANT, canopen.ObjectDictionary())
@@ -167,7 +169,7 @@ class Master:
         self.network.nmt.state = "OPERATIONAL"
         self.network.sync.start(period_s)
         for node in self.drives:
-            node.tpdo[1].wait_for_reception(timeout=5.0)
+            node.tpdo[1].wait_for_reception(timeout=self.timeout_s)
             node.rpdo[1]["Target position"].raw = node.tpdo[1]["Position actual value"].raw
             node.rpdo[1].start(period_s)
         for node in self.drives:
@@ -190,7 +192,7 @@ class Master:
                 seen = self._tpdo_seen
             self.network.sync.transmit()
             with self._cond:
-                if not self._cond.wait_for(lambda s=seen: self._tpdo_seen >= s + len(self.drives), timeout=10.0):
+                if not self._cond.wait_for(lambda s=seen: self._tpdo_seen >= s + len(self.drives), timeout=2 * self.timeout_s):
                     raise RuntimeError(f"period {k}: the TPDOs did not come")
             actual[k] = [node.tpdo[1]["Position actual value"].raw for node in self.drives]
         return actual
@@ -224,9 +226,9 @@ class Master:
         self.network.disconnect()
 
 
-def run(interface: str, channel: str, eds: str, period_s: float = 0.002) -> dict[str, Any]:
+def run(interface: str, channel: str, eds: str, period_s: float = 0.002, timeout_s: float = 5.0) -> dict[str, Any]:
     """The whole session (module docstring); the results as a dict."""
-    master = Master(interface, channel, eds)
+    master = Master(interface, channel, eds, timeout_s)
     try:
         master.configure_pdos()
         master.power_on(period_s)
@@ -250,8 +252,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--channel", required=True, help="the fieldbus channel `ilcrig robot` printed (e.g. vcan0)")
     ap.add_argument("--eds", default=default_eds(), help="the drives' EDS (default: the one ilcrig ships)")
     ap.add_argument("--sync-period", type=float, default=0.002, help="SYNC period while powering and stopping, s")
+    ap.add_argument("--timeout", type=float, default=5.0, help="longest wait for the drives' answers, s")
     args = ap.parse_args(argv)
-    print(json.dumps(run(args.interface, args.channel, args.eds, args.sync_period), indent=1))
+    print(json.dumps(run(args.interface, args.channel, args.eds, args.sync_period, args.timeout), indent=1))
 
 
 if __name__ == "__main__":

@@ -330,9 +330,9 @@ class RobotProcess:
             if m:
                 return m
 
-    def ready(self) -> dict[str, Any]:
+    def ready(self, timeout_s: float = 180.0) -> dict[str, Any]:
         """Wait for the announcement; the fieldbus's python-can interface and channel, the pids."""
-        self.wait_line(r"Ctrl-C to stop")
+        self.wait_line(r"Ctrl-C to stop", timeout_s)
         text = "\n".join(self.stdout)
         m = re.search(r"connect: python-can interface=(\S+) channel=(\S+)", text)
         assert m, text
@@ -413,3 +413,40 @@ def robot_fault_run(out: Path, victim: str, *, periods_before: int = 100) -> dic
     finally:
         stop.set()
         robot.kill()
+
+
+#: encoder counts per radian at the joint (bus/units.py)
+COUNTS_PER_RAD = 10 * 2**20 / (2 * np.pi)
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "robot_master.py"
+
+
+def run_example(interface: str, channel: str, cwd: Path, timeout_s: float = 600.0, wait_s: float = 5.0) -> dict[str, Any]:
+    """examples/robot_master.py as a user runs it, against a running robot (``wait_s``: its
+    ``--timeout``); its JSON."""
+    done = subprocess.run(
+        [sys.executable, str(EXAMPLE), "--interface", interface, "--channel", channel, "--timeout", repr(wait_s)],
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        cwd=cwd,
+    )
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout)
+
+
+def check_pick_and_place(res: dict[str, Any]) -> None:
+    """What the example's session must show: every waypoint reached by the drives' TPDOs within
+    0.005 rad (the gravity sag of the PD position loop), the plant's joints equal to the drives'
+    last report and its TCP home, every drive in Quick stop active."""
+    from plant.kinematics import inverse_kinematics
+
+    for wp in res["waypoints"]:
+        err = np.abs(np.array(wp["actual_counts"]) - np.array(wp["target_counts"])) / COUNTS_PER_RAD
+        assert err.max() < 0.005, wp
+    home = res["waypoints"][-1]
+    assert home["waypoint"] == "home"
+    assert np.abs(np.array(res["robot"]["q_counts"]) - np.array(home["actual_counts"])).max() <= 200
+    np.testing.assert_allclose(res["robot"]["tcp"][:3], (0.0, 0.0, -0.65), atol=1e-3)
+    q_home = inverse_kinematics(np.array([0.0, 0.0, -0.65, 0.0]))
+    assert home["target_counts"] == np.rint(q_home * COUNTS_PER_RAD).astype(int).tolist()
+    assert res["after_quick_stop"] == ["QUICK STOP ACTIVE"] * 4

@@ -18,15 +18,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from robot_util import DRIVES, RobotProcess, pid_alive
+from robot_util import DRIVES, RobotProcess, check_pick_and_place, pid_alive, run_example
 
 from bus.canlog import read_log
+from bus.objects import DRIVE_EDS_PATH
 from plant.kinematics import inverse_kinematics
 from plant.trace import read_trace
 
 ROOT = Path(__file__).resolve().parents[1]
-EXAMPLE = ROOT / "examples" / "robot_master.py"
-COUNTS_PER_RAD = 10 * 2**20 / (2 * np.pi)
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 
@@ -40,35 +39,10 @@ def robot(tmp_path: Path) -> Iterator[RobotProcess]:
         r.kill()
 
 
-def run_example(where: dict, tmp_path: Path) -> dict:
-    """The example script as a user runs it, against the robot; its JSON."""
-    done = subprocess.run(
-        [sys.executable, str(EXAMPLE), "--interface", where["interface"], "--channel", where["channel"]],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        cwd=tmp_path,
-    )
-    assert done.returncode == 0, done.stderr
-    return json.loads(done.stdout)
-
-
 def test_python_canopen_master_runs_a_pick_and_place_and_quick_stops(robot: RobotProcess, tmp_path: Path) -> None:
     where = robot.ready()
-    res = run_example(where, tmp_path)
-    # every waypoint reached: the drives' TPDOs at the end of each dwell, within 0.005 rad (gravity
-    # sag of the PD position loop, 2000 N·m/rad) of the planned joint targets
-    for wp in res["waypoints"]:
-        err = np.abs(np.array(wp["actual_counts"]) - np.array(wp["target_counts"])) / COUNTS_PER_RAD
-        assert err.max() < 0.005, wp
-    assert [wp["waypoint"] for wp in res["waypoints"]][-1] == "home"
-    # the plant agrees: its joints are what the drives reported in the last period, its TCP is home
-    home = res["waypoints"][-1]
-    assert np.abs(np.array(res["robot"]["q_counts"]) - np.array(home["actual_counts"])).max() <= 200
-    np.testing.assert_allclose(res["robot"]["tcp"][:3], (0.0, 0.0, -0.65), atol=1e-3)
-    q_home = inverse_kinematics(np.array([0.0, 0.0, -0.65, 0.0]))
-    assert home["target_counts"] == np.rint(q_home * COUNTS_PER_RAD).astype(int).tolist()
-    assert res["after_quick_stop"] == ["QUICK STOP ACTIVE"] * 4
+    res = run_example(where["interface"], where["channel"], tmp_path)
+    check_pick_and_place(res)
 
     assert robot.stop(signal.SIGTERM) == 143
     out = robot.out
@@ -89,6 +63,33 @@ def test_python_canopen_master_runs_a_pick_and_place_and_quick_stops(robot: Robo
     assert session["periods"] <= encoder_frames <= session["periods"] + 1  # + the period SIGTERM cut
     for name in ("plant", "drive1", "drive2", "drive3", "drive4"):
         assert "Traceback" not in (out / "logs" / f"{name}.log").read_text()
+
+
+def readme_master() -> str:
+    """The python block of the README's section "Drive the robot from your own master"."""
+    text = (ROOT / "README.md").read_text()
+    section = text[text.index("## Drive the robot from your own master") :]
+    return section[section.index("```python\n") + len("```python\n") : section.index("\n```\n")]
+
+
+def test_the_readme_master_lowers_the_tool(robot: RobotProcess, tmp_path: Path) -> None:
+    where = robot.ready()
+    script = tmp_path / "master.py"
+    script.write_text(readme_master())
+    done = subprocess.run(
+        [sys.executable, str(script), where["channel"], str(DRIVE_EDS_PATH)], capture_output=True, text=True, timeout=600
+    )
+    assert done.returncode == 0, done.stderr
+    import canopen
+
+    net = canopen.Network()
+    net.connect(interface=where["interface"], channel=where["channel"])
+    try:
+        plant = net.add_node(32, canopen.ObjectDictionary())
+        tcp = [int.from_bytes(plant.sdo.upload(0x2452, j), "little", signed=True) * 1e-6 for j in (1, 2, 3, 4)]
+    finally:
+        net.disconnect()
+    np.testing.assert_allclose(tcp[:3], (0.0, 0.0, -0.67), atol=1.5e-3)
 
 
 def test_ctrl_c_stops_every_process_with_130(robot: RobotProcess) -> None:
