@@ -24,9 +24,11 @@ progress + one waiting), and handle a SYNC before the io frame it caused
 
 Real time (mode 2): periods are also paced to the wall clock — period n (counted from the first
 SYNC, t0 its arrival) does not start before t0 + n·Ts (its encoder frames are held, as in a paced
-trial, :class:`plant.pacing.TickPacer`); a SYNC later than t0 + n·Ts + Ts/2 is late, one that comes
-a whole period or more after its time counts the periods in between as missing (the robot waits for
-its drives: it does not move without a SYNC) and starts the schedule afresh.
+trial, :class:`plant.pacing.TickPacer`); a SYNC that arrives up to Ts/4 before its time moves t0 to
+it (the schedule locks onto the master's phase as seen with the least transport delay, as a drive
+locks onto SYNC); a SYNC later than t0 + n·Ts + Ts/2 is late, one that comes a whole period or more
+after its time counts the periods in between as missing (the robot waits for its drives: it does not
+move without a SYNC) and starts the schedule afresh.
 
 Faults (one EMCY each, from the plant node; :data:`bus.plant_objects.ROBOT_FAULT_EMCY`): a
 mechanical limit (the robot stops at it), a drive that does not answer within ``tick_timeout_s``
@@ -105,6 +107,10 @@ class _Pacing:
     :class:`plant.pacing.TickPacer` blocks of :attr:`BLOCK` periods (statistics summed over them)."""
 
     BLOCK = 1 << 16
+    #: a SYNC up to this fraction of a period before its time moves the schedule to it (the
+    #: schedule follows the master's phase as its SYNCs arrive with the least delay); one earlier is
+    #: held until its time
+    PHASE_S = 0.25
 
     def __init__(self, ts_s: float) -> None:
         self.ts_s = ts_s
@@ -129,6 +135,9 @@ class _Pacing:
             self.n = 0
         due = self.pacer.due_s(self.n)
         behind = arrival_s - due
+        if -self.PHASE_S * ts <= behind < 0.0:  # the master's phase, seen with less delay: follow it
+            self.pacer.t0_s += behind
+            return arrival_s, False
         if behind >= ts:  # whole periods without a SYNC: the schedule starts afresh at this one
             self.missing += int(behind // ts)
             self._close_block()
