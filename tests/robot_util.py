@@ -198,8 +198,12 @@ class LockstepMaster:
             sdo.download(0x6060, 0, struct.pack("<b", mode))
 
     def start(self) -> None:
-        """NMT start of every node (broadcast)."""
+        """NMT start of every node (broadcast), confirmed by an SDO answer of every drive (handled
+        after the NMT command: python-can's virtual bus may hold a node's frames back for a while
+        behind one its filters drop, never reorder them)."""
         self.network.nmt.state = "OPERATIONAL"
+        for node in self.drives.values():
+            node.sdo.upload(0x6041, 0)
 
     def cycle(self, targets: dict[int, tuple[int, int]], timeout_s: float = 10.0) -> dict[int, tuple[int, int]]:
         """One period: RPDO1 (controlword, target) per drive, SYNC, the four TPDO1s back.

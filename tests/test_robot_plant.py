@@ -244,3 +244,30 @@ def test_trace_file_round_trip_and_a_partial_record(tmp_path: Path) -> None:
         f.write(b"\x01\x02\x03")  # a killed writer's half record
     assert len(read_trace(path).records) == 300
     assert trace_digest(read_trace(path).records) == trace_digest(t.records)
+
+
+def test_a_trial_of_the_ilc_host_takes_precedence_and_the_robot_goes_on_from_its_end(robot: Robot) -> None:
+    from host.nodes.plant_client import PlantClient
+    from host.nodes.sdo_access import SdoAccess
+
+    m = robot.master
+    m.configure()
+    m.start()
+    home = counts_of(HOME_Q)
+    for _ in range(5):
+        m.cycle({n: (0x00, home[n]) for n in DRIVES})
+    robot.settle(5)
+    # drives in PRE-OPERATIONAL answer the trial's ticks without SYNC, as the ILC host's table mode
+    m.network.nmt.state = "PRE-OPERATIONAL"
+    client = PlantClient(SdoAccess(m.plant))
+    q0 = HOME_Q + np.array([0.0, 0.02, 0.0, 0.0])
+    client.start_trial(0, 80, q0, np.zeros(4))
+    m.network.send_message(0x080, b"")  # a SYNC during the trial: counted, not stepped
+    state = client.wait_trial(timeout_s=30.0)
+    assert state.status.name == "DONE" and state.ticks_done == 80
+    assert robot.plant.robot.periods == 5 and robot.plant.robot.syncs == 6
+    q_end = robot.plant.robot.mechanics.plant.q  # the trial moved the robot (no brakes in a trial)
+    assert q_end[1] != HOME_Q[1] + 0.02
+    m.start()
+    tp = m.cycle({n: (0x00, home[n]) for n in DRIVES})  # the robot goes on where the trial left it
+    assert [tp[n][1] for n in DRIVES] == np.rint(q_end / units.RAD_PER_COUNT).astype(int).tolist()
