@@ -16,7 +16,7 @@ latency p50 / p99 per kind.  Goal: every fault detected, no completed trial lost
 The ``robot-kill-*`` kinds do the same to ``ilcrig robot`` (no host; a python-canopen master holds
 the enabled robot in CSP): a drive, the plant or the hub killed after a random number of periods;
 detected = exit code 3 with the one line naming the process, nothing left running; latency = from
-the kill to the launcher's exit.
+the kill to that line (the orderly stop of the other processes follows).
 """
 
 from __future__ import annotations
@@ -91,7 +91,7 @@ def robot_run(i: int, kind: str, victim: str, out: Path, periods_before: int) ->
     }
     print(
         f"{i:3d} {r['spec']:34s} exit {o['code']} {'detected' if detected else 'MISSED':8s} by launcher "
-        f"{o['latency_ms']:7.0f} ms left {len(o['left'])} ({r['wall_s']:.0f} s)",
+        f"{o['latency_ms']:7.0f} ms (exit after {o['exit_ms']:.0f} ms) left {len(o['left'])} ({r['wall_s']:.0f} s)",
         flush=True,
     )
     return r

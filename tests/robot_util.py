@@ -368,8 +368,9 @@ def pid_alive(pid: int) -> bool:
 def robot_fault_run(out: Path, victim: str, *, periods_before: int = 100) -> dict[str, Any]:
     """``ilcrig robot`` with a lockstep master holding the enabled robot in CSP; after
     ``periods_before`` periods ``victim`` (``drive1`` … ``drive4``, ``plant``, ``hub``) is killed
-    (SIGKILL).  Returns the exit code, the stderr lines, the time from the kill to the launcher's
-    exit [ms], the processes left alive and the session summary."""
+    (SIGKILL).  Returns the exit code, the stderr lines, the time from the kill to the fault line
+    (``latency_ms``) and to the launcher's exit (``exit_ms``, every process stopped), the processes
+    left alive and the session summary."""
     robot = RobotProcess(out)
     stop = threading.Event()
     cycled = threading.Semaphore(0)
@@ -399,8 +400,10 @@ def robot_fault_run(out: Path, victim: str, *, periods_before: int = 100) -> dic
         pids = where["pids"]
         t_kill = time.monotonic()
         os.kill(pids[victim], signal.SIGKILL)
-        code = robot.proc.wait(timeout=120)
+        robot.wait_line(r"^ilcrig: fault:", timeout_s=120)
         latency_ms = (time.monotonic() - t_kill) * 1e3
+        code = robot.proc.wait(timeout=120)
+        exit_ms = (time.monotonic() - t_kill) * 1e3
         robot.wait()
         stop.set()
         thread.join(timeout=30)
@@ -410,6 +413,7 @@ def robot_fault_run(out: Path, victim: str, *, periods_before: int = 100) -> dic
             "code": code,
             "stderr": list(robot.stderr),
             "latency_ms": latency_ms,
+            "exit_ms": exit_ms,
             "left": [name for name, pid in pids.items() if pid_alive(pid)],
             "pids": pids,
             "summary": summary,
