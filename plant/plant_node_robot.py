@@ -104,13 +104,18 @@ _WAITING_MAX = SYNC_CREDITS_MAX - 1
 
 class _Pacing:
     """Real time: the schedule t0 + n·Ts of the robot's periods and what it achieved, on
-    :class:`plant.pacing.TickPacer` blocks of :attr:`BLOCK` periods (statistics summed over them)."""
+    :class:`plant.pacing.TickPacer` blocks of :attr:`BLOCK` periods (deadline misses summed over
+    them); the lateness of every period's start in a histogram of :attr:`BIN_S` bins (its
+    percentiles over the whole session)."""
 
     BLOCK = 1 << 16
     #: a SYNC up to this fraction of a period before its time moves the schedule to it (the
     #: schedule follows the master's phase as its SYNCs arrive with the least delay); one earlier is
     #: held until its time
     PHASE_S = 0.25
+    #: lateness histogram: bin width, s, and bins (the last one holds everything beyond)
+    BIN_S = 10e-6
+    BINS = 2001
 
     def __init__(self, ts_s: float) -> None:
         self.ts_s = ts_s
@@ -120,7 +125,7 @@ class _Pacing:
         self.missing = 0
         self.deadline_misses = 0
         self.lateness_max_s = 0.0
-        self.lateness_p99_max_s = 0.0
+        self.lateness = np.zeros(self.BINS, dtype=np.int64)
         self.periods = 0
 
     def schedule(self, arrival_s: float) -> tuple[float, bool]:
@@ -152,6 +157,12 @@ class _Pacing:
     def started(self, now_s: float) -> None:
         if self.pacer is not None:
             self.pacer.started(self.n, now_s)
+            late = now_s - self.pacer.due_s(self.n)
+            if late > 0.0:
+                self.lateness_max_s = max(self.lateness_max_s, late)
+                self.lateness[min(int(late / self.BIN_S), self.BINS - 1)] += 1
+            else:
+                self.lateness[0] += 1
 
     def completed(self, now_s: float) -> None:
         if self.pacer is not None:
@@ -167,22 +178,27 @@ class _Pacing:
     def _close_block(self) -> None:
         if self.pacer is None:
             return
-        r = self.pacer.result()
-        self.deadline_misses += r.deadline_misses
-        self.lateness_max_s = max(self.lateness_max_s, r.lateness_max_s)
-        self.lateness_p99_max_s = max(self.lateness_p99_max_s, r.lateness_p99_s)
+        self.deadline_misses += self.pacer.result().deadline_misses
         self.pacer = None
+
+    def percentile_s(self, q: float) -> float:
+        """The ``q``-th percentile of the periods' lateness, s (upper edge of its bin)."""
+        total = int(self.lateness.sum())
+        if not total:
+            return 0.0
+        k = int(np.searchsorted(np.cumsum(self.lateness), q / 100.0 * total))
+        return min(k + 1, self.BINS) * self.BIN_S if k else 0.0
 
     def info(self) -> dict[str, Any]:
         """The real-time figures so far (lateness of a period's start after its time, µs)."""
         pacer = self.pacer
-        r = pacer.result() if pacer is not None else None
         return {
             "late_syncs": self.late,
             "missing_syncs": self.missing,
-            "deadline_misses": self.deadline_misses + (r.deadline_misses if r is not None else 0),
-            "lateness_max_us": 1e6 * max(self.lateness_max_s, r.lateness_max_s if r is not None else 0.0),
-            "lateness_p99_us": 1e6 * max(self.lateness_p99_max_s, r.lateness_p99_s if r is not None else 0.0),
+            "deadline_misses": self.deadline_misses + (pacer.result().deadline_misses if pacer is not None else 0),
+            "lateness_p50_us": 1e6 * self.percentile_s(50),
+            "lateness_p99_us": 1e6 * self.percentile_s(99),
+            "lateness_max_us": 1e6 * self.lateness_max_s,
         }
 
 
