@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_util import run_cli
 from robot_util import DRIVES, RobotProcess, check_pick_and_place, pid_alive, run_example
 
 from bus.canlog import read_log
@@ -100,3 +101,21 @@ def test_ctrl_c_stops_every_process_with_130(robot: RobotProcess) -> None:
     assert summary["end"] == {"reason": "interrupted", "signal": "SIGINT"}
     assert summary["robot"]["periods"] == 0 and summary["robot"]["brakes"] == 0xF
     assert set(DRIVES) <= {int(n[-1]) for n in pids if n.startswith("drive")}
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--bus", "virtual"], "--bus virtual: the virtual transport works inside one process only"),
+        (["--rt-priority", "5"], "--rt-priority 5: the priority of a real-time robot; add --realtime"),
+        (["--no-idle-poll"], "--no-idle-poll: the CPUs are kept awake only in real time; add --realtime"),
+        (["--bus", "nosuch"], "nosuch"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2_before_anything_starts(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, argv: list[str], message: str
+) -> None:
+    code, out, err = run_cli(capsys, "robot", "--out", str(tmp_path / "robot"), *argv)
+    assert code == 2 and out == ""
+    assert err.count("\n") == 1 and err.startswith("ilcrig: error: ") and message in err
+    assert not (tmp_path / "robot").exists()

@@ -128,8 +128,6 @@ class RobotLauncher:
         args = self.args
         debug = bool(getattr(args, "debug", False))
         tc = transport_from_name(args.bus, args.hub, bool(getattr(args, "allow_remote", False)))
-        if tc.name == "virtual":
-            raise ValueError("the virtual transport works inside one process only; use hub or socketcan with `ilcrig robot`")
         self.out_dir = out = Path(args.out) if args.out else Path("runs") / time.strftime("robot-%Y%m%d-%H%M%S")
         log_dir = out / "logs"
         try:
@@ -373,6 +371,16 @@ def launch_robot(args: argparse.Namespace) -> int:
         out = Path(args.out)
         if out.exists() and not out.is_dir():
             raise ValueError(f"--out {out}: not a folder")
+    from bus.transports.config import transport_from_name, vcan_available
+
+    tc = transport_from_name(args.bus, args.hub, bool(getattr(args, "allow_remote", False)))
+    if tc.name == "virtual":
+        raise ValueError("--bus virtual: the virtual transport works inside one process only; use hub or socketcan")
+    if tc.name == "socketcan" and not vcan_available((tc.fieldbus.channel or "", tc.io.channel or "")):
+        raise ValueError(
+            f"--bus socketcan: {tc.fieldbus.channel} / {tc.io.channel} do not exist here "
+            "(scripts/vcan-setup; or the default transport, the hub)"
+        )
     if not getattr(args, "debug", False):
         # a monitor whose bus ends with a process of the robot is part of that fault, which the
         # launcher reports in its one line
