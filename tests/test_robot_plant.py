@@ -126,7 +126,9 @@ def test_csp_moves_the_robot_and_the_tpdos_carry_the_plants_positions(robot: Rob
     assert robot.plant.robot.brakes == 0  # torque on, brakes open
     x = np.linspace(HOME_POSE, (0.05, -0.03, -0.70, 0.3), 300)
     q_ref = inverse_kinematics(np.concatenate([x, np.repeat(x[-1:], 100, axis=0)]))
+    robot.settle(4)  # the four periods of enable(): their TPDOs come before the plant integrates
     n0 = robot.plant.robot.periods
+    assert n0 == 4
     tpdos = ramp(m, home, q_ref)
     robot.settle(n0 + len(tpdos))
     robot.stop()
