@@ -1,4 +1,4 @@
-"""Build of the optional C extension ``bus.transports._hubcore`` (the hub's data plane).
+"""Build of the optional C extension ``bus.transports.hub._hubcore`` (the hub's data plane).
 
 Everything else is configured in pyproject.toml. The extension is optional: without a C compiler
 the install still succeeds and the hub uses its pure-Python path (the same behaviour, slower).
@@ -9,8 +9,8 @@ from setuptools import Extension, setup
 setup(
     ext_modules=[
         Extension(
-            "bus.transports._hubcore",
-            sources=["bus/transports/_hubcore.c"],
+            "bus.transports.hub._hubcore",
+            sources=["bus/transports/hub/_hubcore.c"],
             extra_compile_args=[
                 "-O2",
                 "-std=c11",

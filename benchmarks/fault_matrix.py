@@ -1,4 +1,4 @@
-"""Fault matrix benchmark (issue 9): seeded random injections into real ``ilcrig run`` rigs.
+"""Fault matrix benchmark: seeded random injections into real ``ilcrig run`` rigs.
 
 ``python benchmarks/fault_matrix.py [--runs 100] [--seed 9] [--iterations 3] [--cycle 0.15] [--out DIR]``
 

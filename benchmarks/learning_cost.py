@@ -1,4 +1,4 @@
-"""Benchmark: cost of the learning laws against the trial length N (issue 11).
+"""Benchmark: cost of the learning laws against the trial length N.
 
 For N = 251, 501, 1001, 2001, 5001, 10001, 20001 ticks per trial (path 1, ``ruckig``, single
 journeys of 0.25 … 10 s at Ts = 1 ms; N = 251 is the 0.25 s cycle at Ts = 2 ms) and every law,

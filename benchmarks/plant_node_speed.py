@@ -1,8 +1,7 @@
 """Benchmark: the lockstep tick rate of the plant node over the hub with real processes, next
 to a bare lockstep floor on the same transport.
 
-Moved here from tests/test_plant_node.py (speed is measured and printed here, never asserted in
-the test suite).  Set-up: one hub (Unix socket), four drive processes
+Speed is measured and printed here, never asserted in the test suite.  Set-up: one hub (Unix socket), four drive processes
 (``python -m firmware_model.drive_node``), the plant process (``ilcrig plant --bus hub``), the host in
 this process (canopen over the hub).  The drives are enabled but not armed (their PD holds the
 start pose); per trial of ``--ticks`` ticks:
@@ -65,7 +64,7 @@ def rig(ticks: int, trials: int, poll_s: float) -> list[dict[str, float]]:
     import canopen
 
     from bus.plant_objects import PLANT_EDS_PATH
-    from bus.transports.hub_server import start_hub
+    from bus.transports.hub.process import start_hub
     from host.nodes.drive_client import DriveClient
     from host.nodes.plant_client import PlantClient
     from host.nodes.sdo_access import SdoAccess

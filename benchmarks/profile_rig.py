@@ -2,7 +2,7 @@
 
 Starts ``ilcrig run`` on the hub transport, reads the process ids from the launcher's status line,
 and samples every ``--every`` seconds the CPU time (user + system, ``/proc/<pid>/stat``) of each
-role and the io frame count of the hub (:func:`bus.transports.hub_server.query_hub_stats`; one
+role and the io frame count of the hub (:func:`bus.transports.hub.stats.query_hub_stats`; one
 lockstep tick = 8 io frames). Only the sampling intervals in which ticks ran at no less than half
 the best rate seen are counted (so the start-up, the SDO exchange between trials and the
 shutdown are left out), and the figures are CPU µs per tick for each role, their sum, and the
@@ -29,7 +29,8 @@ HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 sys.path.insert(0, str(REPO))
 
-from bus.transports.hub_server import HubError, query_hub_stats  # noqa: E402
+from bus.transports.hub.stats import query_hub_stats  # noqa: E402
+from bus.transports.hub.wire import HubError  # noqa: E402
 
 _TICKS = os.sysconf("SC_CLK_TCK")
 

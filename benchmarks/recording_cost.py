@@ -1,7 +1,7 @@
 """Benchmark: what writing recording.rrd costs, next to the same experiment without a recorder.
 
-Moved here from tests/test_recording.py (the test suite checks what the recorder does — no call
-into Rerun per sample or per trial — and this script measures what it costs).  The experiment is
+The test suite checks what the recorder does (no call into Rerun per sample or per trial); this
+script measures what it costs.  The experiment is
 the default one as ``ilcrig sim`` runs it (``--iterations`` trials, cycle 0.25 s, N = 501); per
 repeat, one ``run_experiment`` on the in-process bench without a recorder (the floor, measured in
 this run) and one with a fresh :class:`host.analysis.recording.RunRecorder` (its creation, the

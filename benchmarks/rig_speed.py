@@ -21,7 +21,7 @@ host running other guests).
 
     python benchmarks/rig_speed.py [--iterations 3] [--repeat 3] [--only hub]
 
-Targets (issue 10): >= 2,000 ticks/s (2x real time at 1 kHz) on the default transport on 2 cores,
+Targets: >= 2,000 ticks/s (2x real time at 1 kHz) on the default transport on 2 cores,
 and rig >= 0.5 x floor.
 """
 
@@ -43,7 +43,7 @@ sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(REPO))
 
-from bus.transports.hub_server import hub_core_available  # noqa: E402
+from bus.transports.hub.core import hub_core_available  # noqa: E402
 
 
 def rig(bus: str, iterations: int, netns: bool = False) -> dict:
@@ -115,7 +115,7 @@ def main() -> None:
     print(
         f"ilcrig rig benchmark: 4 drive + plant + host processes, 1001-tick trials, {args.iterations} trials per "
         f"run, best of {args.repeat} alternating floor/rig measurements; {os.cpu_count()} CPUs; hub data plane "
-        f"{'C (bus/transports/_hubcore.c)' if hub_core_available() else 'Python'}"
+        f"{'C (bus/transports/hub/_hubcore.c)' if hub_core_available() else 'Python'}"
     )
     print(
         f"{'transport':<15}{'RTT floor':>11}{'floor ticks/s':>15}{'rig ticks/s':>13}{'rig/floor':>11}"
@@ -174,7 +174,7 @@ def main() -> None:
         if bus == "hub" and best_floor:
             verdict = {True: "met", False: "NOT met"}
             print(
-                f"{'':<15}goals (issue 10, default transport): rig >= 2,000 ticks/s: "
+                f"{'':<15}goals (default transport): rig >= 2,000 ticks/s: "
                 f"{verdict[best_rig >= 2000]} ({best_rig:,.0f}); rig >= 0.5 x floor: "
                 f"{verdict[best_rig >= 0.5 * best_floor]} ({best_rig / best_floor:.2f})"
             )

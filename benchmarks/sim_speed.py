@@ -2,7 +2,7 @@
 
 Prints ticks/s of the whole experiment loop (plant + four fixed-point drives + host learning
 between trials), the real-time factor at 1 kHz, and the cost of the pieces of one tick.
-Target (issue 2): >= 20,000 ticks/s on 2 cores.
+Target: >= 20,000 ticks/s on 2 cores.
 
     python benchmarks/sim_speed.py [--repeat 3]
 """

@@ -51,7 +51,7 @@ from bus.io_frames import (
     torque_cob_id,
 )
 from bus.transports.config import ChannelConfig, open_bus, udp_multicast_transport
-from bus.transports.hub_server import start_hub
+from bus.transports.hub.process import start_hub
 
 CTX = mp.get_context("fork")
 PING_ID, PONG_ID = 0x100, 0x101

@@ -8,8 +8,9 @@ the plant node (:mod:`bus.plant_objects`, ``plant.eds``), the CiA 301 PDO object
 (:mod:`bus.busload`), frame classification and bit counting (:mod:`bus.traffic`), the optional
 extras of a python-can bus (:mod:`bus.bus_features`), cheap messages on the hot path
 (:mod:`bus.fastmsg`), fine timer slack (:mod:`bus.timer_slack`), candump logs (:mod:`bus.canlog`),
-the SAFE-STATE log record (:mod:`bus.safe_state`) and the shared errors (:mod:`bus.errors`).  Subpackages: :mod:`bus.cia301` (the hand-written
-CANopen stack) and :mod:`bus.transports` (how channels are carried).
+the SAFE-STATE log record (:mod:`bus.safe_state`) and the shared errors (:mod:`bus.errors`).
+Subpackages: :mod:`bus.cia301` (the hand-written CANopen stack) and :mod:`bus.transports` (how
+channels are carried).
 
 May import: python-can, canopen (EDS import only), numpy, and its own modules.  Never
 ``firmware_model``, ``host`` or ``plant``.

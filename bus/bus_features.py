@@ -6,7 +6,7 @@ bus declares it — an ``isinstance`` check against the :class:`typing.Protocol`
 when the caller is built — and fall back to plain ``BusABC`` calls otherwise:
 
 * :class:`BatchSender` — ``send_batch(msgs)``: several frames in one write (the ilcrig hub
-  client, :class:`bus.transports.hub_client.HubBus`, sends them as one socket write; the
+  client, :class:`bus.transports.hub.client.HubBus`, sends them as one socket write; the
   frames reach the bus in order, exactly as with one :meth:`can.BusABC.send` each).
   :func:`batch_sender` returns ``send_batch`` or a loop over ``send``.
 * :class:`BufferedReceiver` — ``frames_pending()``: the bus reads several frames per system

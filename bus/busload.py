@@ -180,7 +180,7 @@ class BusLoadListener(can.Listener):
 
     Attach it to a :class:`can.Notifier`, or call it from a receive loop. A process only
     receives other nodes' frames (unless ``receive_own_messages``); the hub's counters
-    (:func:`bus.transports.hub_server.query_hub_stats`) see every frame of a channel.
+    (:func:`bus.transports.hub.stats.query_hub_stats`) see every frame of a channel.
     """
 
     def __init__(self, counter: BusLoadCounter | None = None) -> None:

@@ -32,6 +32,9 @@ torque limit                int64         µN·m = 0x6072 [‰] · 0x6076 [mN·m
 torque actual 0x6077        int16         per-thousand of 0x6076                round(τ_µNm / rated_mNm)
 following error window      uint32        counts (0xFFFFFFFF = off)             ``* RAD_PER_COUNT`` rad
 control period              uint32        µs (object 0x2300)                    1000 µs = 1 kHz
+profile position demand     int64         counts, Q16 (``PROFILE_Q``)           LSB 1/65536 count; int32 counts · 2^16
+profile velocity            int64         counts/tick, Q16                      0x6081 [counts/s] · Ts · 2^16, nearest
+profile accel./decel.       int64         counts/tick², Q16 (>= 1)              0x6083/4/5 [counts/s²] · Ts² · 2^16, nearest
 ==========================  ============  ====================================  ======================================
 
 Control law of one tick (the float twin in tests/firmware_twin.py is the same in float64)::
@@ -87,6 +90,12 @@ VEL_FILTER_ONE: int = 1 << VEL_FILTER_Q
 VEL_STATE_Q: int = 12
 #: Q of the tick rate (Hz) used to turn counts/tick into counts/s
 RATE_Q: int = 12
+#: Q of the profile generator (position in counts, velocity in counts/tick, acceleration in
+#: counts/tick²): profile position, homing hold, CSV integration and the quick-stop ramp
+PROFILE_Q: int = 16
+#: the position demand range of the profile generator, Q16: the int32 counts
+PROFILE_POS_MIN: int = INT32_MIN << PROFILE_Q
+PROFILE_POS_MAX: int = INT32_MAX << PROFILE_Q
 
 #: µN·m per count for a gain of 1 N·m/rad (≈ 0.599)
 UNM_PER_COUNT_PER_NM_PER_RAD: float = RAD_PER_COUNT / TORQUE_LSB_NM
@@ -210,6 +219,29 @@ def rate_q12_from_period_us(period_us: int) -> int:
         raise FixedPointRangeError(f"control period must be > 0 µs, got {period_us}")
     num = 1_000_000 << RATE_Q
     return (2 * num + period_us) // (2 * period_us)  # nearest, exact for divisors of 1 s
+
+
+def per_tick_q16(value: int, period_us: int, power: int) -> int:
+    """A rate in counts/s^power (``power`` 1: velocity, 2: acceleration) as counts/tick^power in
+    Q16 for a control period of ``period_us`` µs: ``value · period_us^power · 2^16 / 10^(6·power)``,
+    nearest (half up).  Exact integer arithmetic; a U32 rate at a period up to 100 ms stays below
+    2^63 (velocity < 2^45, acceleration < 2^42)."""
+    num = int(value) * int(period_us) ** power << PROFILE_Q
+    den = 10 ** (6 * power)
+    return (2 * num + den) // (2 * den)
+
+
+def velocity_from_tick_q16(v_q16: int, period_us: int) -> int:
+    """A profile velocity in counts/tick Q16 as counts/s (int32, nearest half up, saturated): the
+    velocity reference the control law gets."""
+    num = int(v_q16) * 1_000_000
+    den = int(period_us) << PROFILE_Q
+    return sat32((2 * num + den) // (2 * den))
+
+
+def profile_position_counts(p_q16: int) -> int:
+    """A profile position demand (counts Q16) as int32 counts, nearest (half up), saturated."""
+    return sat32(rshift_round(int(p_q16), PROFILE_Q))
 
 
 def torque_limit_units(max_torque_permille: int, rated_torque_mnm: int) -> int:

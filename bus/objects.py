@@ -56,22 +56,30 @@ class Obj(IntEnum):
     # CiA 301
     DEVICE_TYPE = 0x1000
     ERROR_REGISTER = 0x1001
+    ERROR_HISTORY = 0x1003  # sub 0: number of errors (write 0: clear), subs 1..8: newest first
     DEVICE_NAME = 0x1008
     SOFTWARE_VERSION = 0x100A
     COB_ID_SYNC = 0x1005
-    COMM_CYCLE_PERIOD = 0x1006
+    COMM_CYCLE_PERIOD = 0x1006  # U32 µs: the SYNC period expected (0 = no SYNC watchdog)
+    STORE_PARAMETERS = 0x1010  # write "save" to sub 1..3
+    RESTORE_DEFAULTS = 0x1011  # write "load" to sub 1..3
     COB_ID_EMCY = 0x1014
     INHIBIT_TIME_EMCY = 0x1015
     CONSUMER_HEARTBEAT = 0x1016
     PRODUCER_HEARTBEAT = 0x1017
     IDENTITY = 0x1018
+    SYNC_COUNTER_OVERFLOW = 0x1019  # U8: 0 = SYNC without counter, 2..240
     SDO_SERVER = 0x1200
+    ERROR_BEHAVIOUR = 0x1029  # sub 1: NMT reaction to a communication error
     # CiA 402
+    ABORT_CONNECTION_OPTION = 0x6007  # I16 (AbortConnectionOption)
     ERROR_CODE = 0x603F
     CONTROLWORD = 0x6040
     STATUSWORD = 0x6041
+    QUICK_STOP_OPTION = 0x605A  # I16 (QuickStopOption)
     MODES_OF_OPERATION = 0x6060
     MODES_OF_OPERATION_DISPLAY = 0x6061
+    POSITION_DEMAND = 0x6062  # I32 counts: the position set-point of the last control cycle
     POSITION_ACTUAL = 0x6064
     FOLLOWING_ERROR_WINDOW = 0x6065
     VELOCITY_ACTUAL = 0x606C
@@ -79,9 +87,16 @@ class Obj(IntEnum):
     MAX_TORQUE = 0x6072
     RATED_TORQUE = 0x6076
     TORQUE_ACTUAL = 0x6077
-    TARGET_POSITION = 0x607A  # I32, counts (CSP)
-    TORQUE_OFFSET = 0x60B2  # I16, per thousand of 0x6076 (CSP/CST feed-forward)
+    TARGET_POSITION = 0x607A  # I32, counts (CSP, profile position)
+    HOME_OFFSET = 0x607C  # I32 counts: the position actual after homing
+    PROFILE_VELOCITY = 0x6081  # U32 counts/s
+    PROFILE_ACCELERATION = 0x6083  # U32 counts/s²
+    PROFILE_DECELERATION = 0x6084  # U32 counts/s²
+    QUICK_STOP_DECELERATION = 0x6085  # U32 counts/s²
+    HOMING_METHOD = 0x6098  # I8: 35 or 37 (on the current position)
+    TORQUE_OFFSET = 0x60B2  # I16, per thousand of 0x6076 (CSP/CSV/CST feed-forward)
     INTERPOLATION_PERIOD = 0x60C2
+    TARGET_VELOCITY = 0x60FF  # I32 counts/s (CSV)
     SUPPORTED_DRIVE_MODES = 0x6502
     # manufacturer
     REF_POSITION_TABLE = 0x2100
@@ -165,15 +180,69 @@ class FaultCause(IntEnum):
     TICK_SEQUENCE = 2
     HEARTBEAT = 3  #: the host's heartbeat was lost (consumer 0x1016): EMCY 0x8130
     BUS_LOST = 4  #: the bus itself failed (no EMCY possible)
+    RPDO_TIMEOUT = 5  #: an RPDO missed its deadline (0x1400+k:5): EMCY 0x8250
+    SYNC_LOST = 6  #: no SYNC within 1.5 communication cycle periods (0x1006): EMCY 0x8100
+    NMT_ABORT = 7  #: NMT left OPERATIONAL (stop, pre-operational, reset communication) with the power stage on
 
 
 class ModeOfOperation(IntEnum):
-    """0x6060 values; the drive implements table playback (-1), CSP (8) and CST (10), not CSV."""
+    """0x6060 values the drive implements (0x6502 says exactly these)."""
 
     TABLE_PLAYBACK = -1  # manufacturer-specific: internal PD + feed-forward table playback
+    PROFILE_POSITION = 1
+    HOMING = 6
     CSP = 8
     CSV = 9
     CST = 10
+
+
+#: 0x6502 bit of each supported mode (CiA 402: bit 0 pp, 5 hm, 7 csp, 8 csv, 9 cst; bit 16 the
+#: manufacturer mode -1)
+SUPPORTED_MODE_BITS: Final[dict[ModeOfOperation, int]] = {
+    ModeOfOperation.TABLE_PLAYBACK: 1 << 16,
+    ModeOfOperation.PROFILE_POSITION: 1 << 0,
+    ModeOfOperation.HOMING: 1 << 5,
+    ModeOfOperation.CSP: 1 << 7,
+    ModeOfOperation.CSV: 1 << 8,
+    ModeOfOperation.CST: 1 << 9,
+}
+#: 0x6502: the supported drive modes (0x000103A1)
+SUPPORTED_DRIVE_MODES_VALUE: Final[int] = sum(SUPPORTED_MODE_BITS.values())
+
+
+class QuickStopOption(IntEnum):
+    """0x605A values the drive implements (CiA 402; 3, 4, 7, 8 -- current / voltage limit -- are
+    refused: the emulated power stage has no current or voltage limit to brake on)."""
+
+    DISABLE_DRIVE = 0  # torque off at once, Switch on disabled
+    SLOW_DOWN_RAMP = 1  # ramp 0x6084, then Switch on disabled
+    QUICK_STOP_RAMP = 2  # ramp 0x6085, then Switch on disabled
+    SLOW_DOWN_RAMP_STAY = 5  # ramp 0x6084, then stay in Quick stop active (holding)
+    QUICK_STOP_RAMP_STAY = 6  # ramp 0x6085, then stay in Quick stop active (holding)
+
+
+class AbortConnectionOption(IntEnum):
+    """0x6007 values: the power stage's reaction to an abort connection (CiA 402)."""
+
+    NO_ACTION = 0
+    FAULT = 1
+    DISABLE_VOLTAGE = 2
+    QUICK_STOP = 3
+
+
+class ErrorBehaviour(IntEnum):
+    """0x1029 sub 1 values: the NMT reaction to a communication error (CiA 301)."""
+
+    PRE_OPERATIONAL = 0  # only if NMT OPERATIONAL
+    NO_CHANGE = 1
+    STOPPED = 2
+
+
+class HomingMethod(IntEnum):
+    """0x6098 values the drive implements: homing on the current position (no motion)."""
+
+    CURRENT_POSITION_OLD = 35  # CiA 402 before 2016
+    CURRENT_POSITION = 37
 
 
 # ------------------------------------------------------------------ CiA 402 words
@@ -186,6 +255,9 @@ class Controlword(IntFlag):
     ENABLE_VOLTAGE = 0x0002
     QUICK_STOP = 0x0004  # active LOW
     ENABLE_OPERATION = 0x0008
+    NEW_SETPOINT = 0x0010  # profile position: rising edge; homing: start
+    CHANGE_IMMEDIATELY = 0x0020  # profile position
+    RELATIVE = 0x0040  # profile position: 0x607A relative to the last target
     FAULT_RESET = 0x0080  # rising edge
     HALT = 0x0100
 
@@ -216,7 +288,10 @@ class Statusword(IntFlag):
     REMOTE = 0x0200
     TARGET_REACHED = 0x0400
     INTERNAL_LIMIT = 0x0800
-    FOLLOWS_COMMAND = 0x1000
+    FOLLOWS_COMMAND = 0x1000  # cyclic synchronous modes
+    SETPOINT_ACKNOWLEDGE = 0x1000  # profile position
+    HOMING_ATTAINED = 0x1000  # homing
+    FOLLOWING_ERROR = 0x2000  # profile position (the drive faults instead: always 0)
 
 
 class Cia402State(IntEnum):
@@ -267,6 +342,17 @@ DRIVE_EDS_PATH: Final[Path] = Path(__file__).resolve().parent / "drive.eds"
 
 #: CiA 301 device type: 0x0192 = 402 profile, 0x0002 = servo drive
 DEVICE_TYPE_VALUE: Final[int] = 0x00020192
+#: 0x1018:1 vendor-ID.  CiA assigns every CANopen vendor-ID (can-cia.org, "CANopen vendor-ID");
+#: this project has none, so the drive carries a value from the range CiA does not assign
+#: (0xAFFF0000..0xFFFEFFFF is reserved): it can never name a real manufacturer.  Replace it with
+#: the project's own ID once CiA assigns one (docs/canopen-objects.md §5.1).
+VENDOR_ID: Final[int] = 0xAFFF0402
+#: 0x1018:2 product code and :3 revision (major.minor in the high/low 16 bits)
+PRODUCT_CODE: Final[int] = 0x00000402
+REVISION_NUMBER: Final[int] = 0x00020000
+#: 0x1010/0x1011 signatures: "save" and "load" as little-endian U32 (CiA 301 §7.5.2.14/15)
+STORE_SIGNATURE: Final[int] = 0x65766173
+RESTORE_SIGNATURE: Final[int] = 0x64616F6C
 #: 0x6076 default: joint-side rated torque in mN·m (88.2 N·m)
 RATED_TORQUE_MNM: Final[int] = 88_200
 #: 0x6072 default and EDS HighLimit: max torque in per-thousand of rated (3000 -> 264.6 N·m,

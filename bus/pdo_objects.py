@@ -18,6 +18,15 @@ TPDO_COMM_BASE = 0x1800
 TPDO_MAP_BASE = 0x1A00
 #: COB-ID SYNC object (U32; bits 0–10 the identifier, bit 30 = 1 this node produces SYNC)
 COB_ID_SYNC_INDEX = 0x1005
+#: bit 30 of 0x1005: the node generates SYNC
+SYNC_PRODUCER = 1 << 30
+#: communication cycle period (U32 µs; 0 = none): a SYNC consumer expects a SYNC this often
+COMM_CYCLE_PERIOD_INDEX = 0x1006
+#: synchronous counter overflow value (U8; 0 = SYNC without counter, 2..240 = SYNC with a counter
+#: byte counting 1..value)
+SYNC_COUNTER_OVERFLOW_INDEX = 0x1019
+SYNC_COUNTER_MIN = 2
+SYNC_COUNTER_MAX = 240
 #: default SYNC COB-ID of the predefined connection set
 SYNC_COB_ID_DEFAULT = 0x080
 
@@ -30,6 +39,9 @@ COB_ID_MASK_11 = 0x7FF
 #: communication parameter sub-indices
 COMM_COB_ID = 1
 COMM_TRANSMISSION_TYPE = 2
+COMM_INHIBIT_TIME = 3  #: TPDO: U16, 100 µs
+COMM_EVENT_TIMER = 5  #: TPDO: U16 ms, period of an event-driven TPDO; RPDO: U16 ms, deadline
+COMM_SYNC_START = 6  #: TPDO: U8, the SYNC counter value of the first transmission
 #: transmission types
 TT_SYNC_ACYCLIC = 0
 TT_SYNC_MAX = 240

@@ -2,12 +2,16 @@
 
 Owns, one module each: the fixed-point control law (:mod:`firmware_model.control_law`, numba
 kernel), the CiA 402 state machine (:mod:`firmware_model.cia402`), the power stage -- torque
-on/off, faults, EMCY, SAFE-STATE records (:mod:`firmware_model.power_stage`) --, the operation
-modes, table playback, CSP and CST (:mod:`firmware_model.modes`), trial playback with its tables
-and data recorder (:mod:`firmware_model.playback`), the cyclic PDO exchange and SYNC pacing
+on/off, quick stop, faults, communication errors, EMCY, SAFE-STATE records
+(:mod:`firmware_model.power_stage`) --, the motion profile generator in fixed point
+(:mod:`firmware_model.profile`), the operation modes that play trials -- table playback, CSP, CSV,
+CST (:mod:`firmware_model.modes`) --, profile position and homing
+(:mod:`firmware_model.positioning`), the mode selected, the quick-stop ramp and the homing offset
+(:mod:`firmware_model.motion`), trial playback with its tables and data recorder
+(:mod:`firmware_model.playback`), the cyclic PDO exchange, its timers and SYNC pacing
 (:mod:`firmware_model.cyclic_pdo`), the object-dictionary hooks (:mod:`firmware_model.od_hooks`),
-the drive as their composition with its NMT state (:mod:`firmware_model.drive`, class ``Drive``)
-and the drive process on the bus (:mod:`firmware_model.drive_node`, ``ilcrig drive``).
+the drive as their composition with its NMT state and its clock (:mod:`firmware_model.drive`, class
+``Drive``) and the drive process on the bus (:mod:`firmware_model.drive_node`, ``ilcrig drive``).
 
 May import: ``bus`` and ``bus.cia301`` (the contract it shares with the host).  Never ``host`` or
 ``plant``: the drive knows the robot only through its encoder and its torque command.

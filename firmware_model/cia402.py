@@ -21,15 +21,17 @@ Transitions implemented (CiA 402 numbering, docs/canopen-objects.md §5):
  9    Operation enabled -> SO disabled    Disable voltage
 10    Switched on -> SO disabled          Disable voltage or Quick stop
 11    Operation enabled -> Quick stop     Quick stop (bit 2 = 0, bit 1 = 1)
-12    Quick stop active -> SO disabled    Disable voltage
+12    Quick stop active -> SO disabled    Disable voltage, or the quick stop completed
+                                         (:meth:`quick_stop_complete`, 0x605A = 0, 1, 2)
 13    any -> Fault reaction active        :meth:`fault`
 14    Fault reaction active -> Fault      automatic (:meth:`fault` completes it at once)
 15    Fault -> SO disabled                rising edge of bit 7 (fault reset)
+16    Quick stop active -> Op. enabled    Enable operation (0x0F), only when the quick stop
+                                         option allows it (0x605A = 5, 6: ``qs_to_enabled``)
 ====  =================================  ========================================
 
-While bit 7 is set no other command is decoded.  Transition 16 (Quick stop active ->
-Operation enabled) is not supported (quick-stop option code 2 behaviour: the drive stays
-in Quick stop active, torque off, until Disable voltage).
+While bit 7 is set no other command is decoded.  What happens in Quick stop active (the
+stop ramp, the torque) is the power stage's (:mod:`firmware_model.power_stage`).
 """
 
 from __future__ import annotations
@@ -79,11 +81,13 @@ class Cia402StateMachine:
     :ivar state: current :class:`Cia402State`.
     :ivar last_transition: number of the last transition taken (None if the last
         controlword caused none).
+    :ivar reset_edge: the last controlword had a rising edge of bit 7 (fault reset).
     """
 
     def __init__(self) -> None:
         self.state: Cia402State = _S.NOT_READY_TO_SWITCH_ON
         self.last_transition: int | None = 0
+        self.reset_edge = False
         self._last_cw: int = 0
         self.reset()
 
@@ -99,10 +103,12 @@ class Cia402StateMachine:
         self.state = new
         self.last_transition = transition
 
-    def controlword(self, cw: int) -> Cia402State:
-        """Apply a controlword write; returns the new state."""
+    def controlword(self, cw: int, qs_to_enabled: bool = False) -> Cia402State:
+        """Apply a controlword write; returns the new state.  ``qs_to_enabled``: transition 16
+        (Quick stop active -> Operation enabled by Enable operation) is allowed."""
         cw = int(cw) & 0xFFFF
         rising_reset = bool(cw & Controlword.FAULT_RESET) and not (self._last_cw & Controlword.FAULT_RESET)
+        self.reset_edge = rising_reset
         self._last_cw = cw
         self.last_transition = None
         s = self.state
@@ -141,6 +147,34 @@ class Cia402StateMachine:
                 self._go(_S.OPERATION_ENABLED, 4)
             elif s == _S.READY_TO_SWITCH_ON:
                 self._go(_S.OPERATION_ENABLED, 4)  # 3 + 4 in one step
+            elif s == _S.QUICK_STOP_ACTIVE and qs_to_enabled:
+                self._go(_S.OPERATION_ENABLED, 16)
+        return self.state
+
+    def quick_stop(self) -> Cia402State:
+        """Quick stop by the drive itself (an abort connection with 0x6007 = 3): transition 11
+        from Operation enabled, 7 / 10 from Ready to switch on / Switched on."""
+        s = self.state
+        if s == _S.OPERATION_ENABLED:
+            self._go(_S.QUICK_STOP_ACTIVE, 11)
+        elif s == _S.READY_TO_SWITCH_ON:
+            self._go(_S.SWITCH_ON_DISABLED, 7)
+        elif s == _S.SWITCHED_ON:
+            self._go(_S.SWITCH_ON_DISABLED, 10)
+        return self.state
+
+    def disable_voltage(self) -> Cia402State:
+        """Disable voltage by the drive itself (an abort connection with 0x6007 = 2): transitions
+        7, 9, 10, 12."""
+        t = {_S.READY_TO_SWITCH_ON: 7, _S.OPERATION_ENABLED: 9, _S.SWITCHED_ON: 10, _S.QUICK_STOP_ACTIVE: 12}.get(self.state)
+        if t is not None:
+            self._go(_S.SWITCH_ON_DISABLED, t)
+        return self.state
+
+    def quick_stop_complete(self) -> Cia402State:
+        """Transition 12 at the end of a quick stop whose option ends in Switch on disabled."""
+        if self.state == _S.QUICK_STOP_ACTIVE:
+            self._go(_S.SWITCH_ON_DISABLED, 12)
         return self.state
 
     def fault(self) -> Cia402State:

@@ -1,29 +1,59 @@
-"""The cyclic PDO exchange of one drive: SYNC, RPDOs, TPDOs, and the SYNC pacing of io ticks.
+"""The cyclic PDO exchange of one drive: SYNC, RPDOs, TPDOs, their timers, and the SYNC pacing of
+io ticks.
 
 Owns the drive's use of the CiA 301 PDO service (:class:`bus.cia301.pdo.PdoEngine`: the PDO
-communication and mapping objects 0x1400/0x1600/0x1800/0x1A00, the SYNC COB-ID 0x1005) and the
-SYNC credit (docs/canopen-objects.md §10, docs/timing.md §7):
+communication and mapping objects 0x1400/0x1600/0x1800/0x1A00, the SYNC COB-ID 0x1005), the SYNC
+consumer's objects 0x1006 (communication cycle period) and 0x1019 (synchronous counter overflow),
+and the SYNC credit (docs/canopen-objects.md §10, docs/timing.md §7).  The PDOs work only in NMT
+OPERATIONAL and start afresh when the drive enters it.
 
-* a SYNC (:meth:`CyclicPdo.on_sync`) writes the buffered synchronous RPDOs to their objects
-  (0x607A target position, 0x6071 target torque, 0x60B2 torque offset; only in NMT OPERATIONAL)
-  and grants one io tick (one credit per SYNC, in PRE-OPERATIONAL too; at most
-  :data:`bus.cyclic.SYNC_CREDITS_MAX` kept: a SYNC the drive sees before the io tick of the one
-  before it — the plant steps the robot one period per SYNC and may have both queued — is not lost);
-* in a cyclic mode in NMT OPERATIONAL, an io tick may run only with that credit
-  (:meth:`CyclicPdo.tick_ready`; the node runtime holds the encoder frame until the SYNC came)
-  and uses it up (:meth:`CyclicPdo.consume_sync`);
-* after the tick the cycle's TPDOs are due (:meth:`CyclicPdo.pop_tpdos`), so they carry the
-  sample of that tick.
+* a SYNC (:meth:`CyclicPdo.on_sync`, with its counter byte if it has one) grants one io tick --
+  in PRE-OPERATIONAL too, where CiA 301 consumes SYNC as well, so a drive started between a SYNC
+  and its io tick runs that tick at once; the credits are the SYNCs whose io tick has not run yet,
+  at most :data:`bus.cyclic.SYNC_CREDITS_MAX` (a SYNC-stepped plant, ``ilcrig robot``, may have
+  the next SYNC queued behind the period in progress: no drive waits for a SYNC the plant used).
+  In OPERATIONAL it also writes the buffered synchronous RPDOs to their objects (e.g. 0x607A,
+  0x6071, 0x60B2).  A SYNC whose length does not fit 0x1019 (no counter byte when 0x1019 > 0, or
+  one when 0x1019 = 0) is reported as EMCY 0x8240 once per change and is a SYNC all the same.
+* in a cyclic mode in NMT OPERATIONAL, an io tick may run only with a credit
+  (:meth:`CyclicPdo.tick_ready`; the node runtime holds the encoder frame until the SYNC came);
+  every io tick uses one (:meth:`CyclicPdo.consume_sync`).
+* the synchronous TPDOs due at a SYNC (types 0–240, counted per TPDO, SYNC start value 0x1800:6)
+  are sampled with the values of the latest completed control cycle and go out at once --
+  except where SYNC n and io tick n are one control cycle (``lockstep_cycle``: a lockstep trial,
+  i.e. a trial armed or running in a cyclic mode, timing.md §7; or a drive of a SYNC-stepped
+  plant, docs/robot.md): there the TPDOs carry tick n's sample, going out right after it
+  (:meth:`CyclicPdo.after_tick`).  A TPDO still waiting for its tick when the next SYNC comes is
+  sampled then, before that SYNC's.
+* event-driven TPDOs (254/255) with inhibit time and event timer, and answers to RTR, as
+  :mod:`bus.cia301.pdo` describes, checked after every io tick and whenever the node runtime
+  serves (:meth:`CyclicPdo.service`).
+* watchdogs: an RPDO with an event timer (0x1400+k:5 > 0) that does not come again within it (on
+  the drive's clock), and -- with 0x1006 > 0 -- no SYNC within 1.5 × 0x1006 after the last one (on
+  :attr:`CyclicPdo.watch_clock`, the drive's clock unless the node gives another) are
+  communication errors (``on_error``: the power stage's reaction, EMCY 0x8250 / 0x8100), reported
+  once per loss; monitoring starts with the first RPDO / SYNC in OPERATIONAL.
 """
 
 from __future__ import annotations
 
+import logging
+import struct
 from collections.abc import Callable
 
+from bus.cia301.emcy import EmcyCode
 from bus.cia301.nmt import NmtState
 from bus.cia301.object_store import ObjectStore
-from bus.cia301.pdo import PdoEngine
+from bus.cia301.pdo import Frame, PdoEngine, _Pdo
 from bus.cyclic import SYNC_CREDITS_MAX
+from bus.pdo_objects import COMM_CYCLE_PERIOD_INDEX, SYNC_COUNTER_OVERFLOW_INDEX
+
+logger = logging.getLogger(__name__)
+
+#: SYNC watchdog: a SYNC is lost when none came within this many communication cycle periods
+SYNC_TIMEOUT_PERIODS = 1.5
+#: the NMT states in which a SYNC counts for the next io tick (CiA 301: not in STOPPED)
+_SYNC_STATES = (int(NmtState.OPERATIONAL), int(NmtState.PRE_OPERATIONAL))
 
 
 class CyclicPdo:
@@ -31,18 +61,49 @@ class CyclicPdo:
 
     :param store: the drive's object store.
     :param nmt_state: returns the drive's NMT state.
+    :param clock: the drive's time [s].
+    :param lockstep_cycle: True while SYNC n and io tick n are one control cycle (a lockstep
+        trial, a SYNC-stepped plant).
+    :param on_error: a communication error: ("rpdo", PDO number) or ("sync", 0).
+    :param on_warning: an EMCY without a reaction: (error code, 5 manufacturer bytes).
     """
 
-    def __init__(self, store: ObjectStore, nmt_state: Callable[[], int]) -> None:
-        self.engine = PdoEngine(store, nmt_state)
+    def __init__(
+        self,
+        store: ObjectStore,
+        nmt_state: Callable[[], int],
+        clock: Callable[[], float],
+        lockstep_cycle: Callable[[], bool] = lambda: False,
+        on_error: Callable[[str, int], None] | None = None,
+        on_warning: Callable[[int, bytes], None] | None = None,
+    ) -> None:
+        self._store = store
         self._nmt_state = nmt_state
+        self.clock = clock
+        #: the SYNC watchdog's clock [s] (None: :attr:`clock`)
+        self.watch_clock: Callable[[], float] | None = None
+        self.engine = PdoEngine(store, nmt_state, lambda: self.clock(), report=self._length_error)
+        self._lockstep_cycle = lockstep_cycle
+        self._on_error = on_error
+        self._on_warning = on_warning
         #: io ticks the SYNCs received allow (0 .. :data:`bus.cyclic.SYNC_CREDITS_MAX`)
         self.sync_credit = 0
+        self._deferred: list[_Pdo] | None = None  # TPDOs of the last SYNC waiting for its io tick
+        self._out: list[Frame] = []
+        self._sync_deadline_s: float | None = None
+        self._sync_length_bad = False
 
-    def reset(self) -> None:
-        """NMT reset communication: no buffered RPDO, no credit."""
+    def reset(self, keep_credit: bool = False) -> None:
+        """NMT reset communication (no credit), or the drive entered OPERATIONAL
+        (``keep_credit``: a SYNC seen in PRE-OPERATIONAL whose io tick has not run yet still
+        counts): no buffered RPDO, no TPDO waiting, every counter and timer afresh."""
         self.engine.reset()
-        self.sync_credit = 0
+        if not keep_credit:
+            self.sync_credit = 0
+        self._deferred = None
+        self._out.clear()
+        self._sync_deadline_s = None
+        self._sync_length_bad = False
 
     @property
     def active(self) -> bool:
@@ -55,22 +116,112 @@ class CyclicPdo:
         return self.sync_credit > 0 or not (cyclic_mode and self.engine.active)
 
     def consume_sync(self) -> None:
-        """An io tick ran (or was refused): it used one credit."""
+        """An io tick ran: it used one credit."""
         if self.sync_credit:
             self.sync_credit -= 1
 
-    def on_sync(self) -> None:
-        """A SYNC frame: synchronous RPDOs take effect (NMT OPERATIONAL), the next io tick may run
-        (also in PRE-OPERATIONAL, where CiA 301 consumes SYNC too: a drive started between a SYNC
-        and its io tick runs that tick at once)."""
-        if self.engine.active:
-            self.engine.on_sync()
-        if self._nmt_state() in (NmtState.OPERATIONAL, NmtState.PRE_OPERATIONAL) and self.sync_credit < SYNC_CREDITS_MAX:
+    # ------------------------------------------------------------------ SYNC
+
+    def on_sync(self, counter: int | None = None) -> None:
+        """A SYNC frame (``counter``: its counter byte, None without): synchronous RPDOs take
+        effect, the next io tick may run, the synchronous TPDOs due are sampled (or wait for the
+        tick of a lockstep cycle); in PRE-OPERATIONAL only the credit."""
+        engine = self.engine
+        if self.sync_credit < SYNC_CREDITS_MAX and self._nmt_state() in _SYNC_STATES:
             self.sync_credit += 1
+        if not engine.active:
+            return
+        self._check_sync_length(counter)
+        period_us = self._u(COMM_CYCLE_PERIOD_INDEX)
+        self._sync_deadline_s = self._watch_now() + SYNC_TIMEOUT_PERIODS * period_us * 1e-6 if period_us else None
+        if self._deferred is not None:  # the last SYNC's tick never came
+            self._out.extend(engine.sample(self._deferred))
+            self._deferred = None
+        if not self._u(SYNC_COUNTER_OVERFLOW_INDEX):
+            counter = None  # a counter the drive was not told to expect is not used
+        due = engine.on_sync(counter)
+        if due:
+            if self._lockstep_cycle():
+                self._deferred = due
+            else:
+                self._out.extend(engine.sample(due))
+
+    def _watch_now(self) -> float:
+        return (self.clock if self.watch_clock is None else self.watch_clock)()
+
+    def _u(self, index: int) -> int:
+        key = (index, 0)
+        return int(self._store.values[key]) if key in self._store.vars else 0
+
+    def _check_sync_length(self, counter: int | None) -> None:
+        expects = self._u(SYNC_COUNTER_OVERFLOW_INDEX) > 0
+        bad = expects != (counter is not None)
+        if bad and not self._sync_length_bad and self._on_warning is not None:
+            self._on_warning(EmcyCode.SYNC_LENGTH, struct.pack("<BB3x", 0, 0 if counter is None else 1))
+        self._sync_length_bad = bad
+
+    # ------------------------------------------------------------------ RPDO, RTR
 
     def on_rpdo(self, can_id: int, data: bytes) -> bool:
         """A fieldbus frame that may be an RPDO; True when it was one (handled)."""
         return self.engine.on_rpdo(can_id, data)
+
+    def _length_error(self, code: int, number: int) -> None:
+        if self._on_warning is not None:
+            self._on_warning(code, struct.pack("<BB3x", 0, number))
+
+    def on_rtr(self, can_id: int) -> bool:
+        """A remote frame: True when it asked for one of the TPDOs (queued)."""
+        frame = self.engine.on_rtr(can_id)
+        if frame is None:
+            return False
+        self._out.append(frame)
+        return True
+
+    # ------------------------------------------------------------------ after a tick, timers
+
+    def after_tick(self) -> None:
+        """The io tick's sample exists: the TPDOs of a lockstep SYNC, then the event-driven ones."""
+        if self._deferred is not None:
+            self._out.extend(self.engine.sample(self._deferred))
+            self._deferred = None
+        if self.engine.active:
+            self._out.extend(self.engine.poll(self.clock()))
+
+    def service(self, now: float) -> None:
+        """Timers at ``now`` [s] of :attr:`clock`: RPDO deadlines, the SYNC watchdog (at
+        :attr:`watch_clock`'s time, if set), event-driven TPDOs."""
+        engine = self.engine
+        if not engine.active:
+            return
+        for number in engine.expired_rpdos(now):
+            logger.warning("RPDO%d missed its deadline", number)
+            if self._on_error is not None:
+                self._on_error("rpdo", number)
+        watch_now = now if self.watch_clock is None else self.watch_clock()
+        if self._sync_deadline_s is not None and watch_now >= self._sync_deadline_s - 1e-9:  # µs sums carry float rounding
+            self._sync_deadline_s = None
+            logger.warning("no SYNC within %.1f communication cycle periods", SYNC_TIMEOUT_PERIODS)
+            if self._on_error is not None:
+                self._on_error("sync", 0)
+        if engine.active:
+            self._out.extend(engine.poll(now))
+
+    def next_deadline(self) -> float | None:
+        """The earliest time [s] of :attr:`clock` at which :meth:`service` has work (None: none;
+        the SYNC watchdog counts here only without a :attr:`watch_clock` of its own)."""
+        if not self.engine.active:
+            return None
+        sync = self._sync_deadline_s if self.watch_clock is None else None
+        times = [t for t in (self.engine.next_deadline(), sync) if t is not None]
+        return min(times) if times else None
+
+    def watch_deadline(self) -> float | None:
+        """When the SYNC watchdog fires [s of :attr:`watch_clock`, else :attr:`clock`] (None: not
+        armed)."""
+        return self._sync_deadline_s if self.engine.active else None
+
+    # ------------------------------------------------------------------ objects for the node
 
     def sync_cob_id(self) -> int:
         """The SYNC COB-ID consumed (0x1005)."""
@@ -80,6 +231,11 @@ class CyclicPdo:
         """The 11-bit identifiers of the valid RPDOs (0x1400..: sub 1)."""
         return list(self.engine.rpdo_cob_ids())
 
+    def rtr_cob_ids(self) -> list[int]:
+        """The 11-bit identifiers of the valid TPDOs that answer a remote frame."""
+        return sorted(self.engine.tpdo_rtr_ids())
+
     def pop_tpdos(self) -> list[tuple[int, bytes]]:
-        """(COB-ID, payload) of the TPDOs due after the last io tick."""
-        return self.engine.collect_tpdos()
+        """(COB-ID, payload) of the TPDOs due, in order; the queue is emptied."""
+        out, self._out = self._out, []
+        return out

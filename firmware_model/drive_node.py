@@ -17,11 +17,23 @@ plant node (:mod:`plant.plant_node`); :class:`DriveNode` adds the io side:
 * the fieldbus gets acceptance filters too (:meth:`DriveNode.consumed_fieldbus_ids`: SYNC and the
   valid RPDOs, besides NMT, SDO and heartbeats from :class:`bus.cia301.slave.SlaveNode`): the other
   drives' PDOs and SDO exchanges never reach the process.
-* fieldbus SYNC and RPDO frames go to the firmware's PDO service (``drive.on_sync`` /
-  ``drive.on_rpdo``).  In a cyclic synchronous mode an encoder frame that arrives before its
-  SYNC is held and run when the SYNC comes (``drive.tick_ready``); after every io tick the
-  torque frame goes out on io first, then the TPDOs due (``drive.pop_tpdos``) on the fieldbus
-  (docs/timing.md §7, the SYNC/PDO lockstep handshake).
+* fieldbus SYNC (with its counter byte, if any), RPDO and remote (RTR) frames go to the
+  firmware's PDO service (``drive.on_sync`` / ``drive.on_rpdo`` / ``drive.on_rtr``), and the
+  TPDOs they make due go out at once.  In a cyclic synchronous mode an encoder frame that arrives
+  before its SYNC is held and run when the SYNC comes (``drive.tick_ready``); after every io tick
+  the torque frame goes out on io first, then the TPDOs due (``drive.pop_tpdos``) on the fieldbus
+  (docs/timing.md §7, the SYNC/PDO lockstep handshake).  Whenever the node serves, the drive's
+  timers run (``drive.service``: event-driven TPDOs, RPDO deadlines, the SYNC watchdog) and their
+  TPDOs go out; the wait is bounded by ``drive.next_deadline``.
+* time: by default the node runtime and the drive share one clock -- the monotonic clock, or the
+  ``clock`` given (e.g. a test's manual clock).  With ``lockstep=True`` the drive is one of a
+  SYNC-stepped plant (``ilcrig robot``, :meth:`firmware_model.drive.Drive.step_on_sync`): the
+  timers of the control cycle (TPDO inhibit time and event timer, RPDO deadlines) count its
+  lockstep time -- the control periods of its io ticks, deterministic, standing still while no
+  SYNC comes -- and a synchronous TPDO carries the control cycle of its SYNC; what watches or
+  serves the master between cycles (heartbeat producer and consumer, SDO timeout, EMCY inhibit
+  time, the SYNC watchdog) stays on ``clock``, so a master that pauses its SYNCs still gets
+  heartbeats and a master that stops them is noticed.
 """
 
 from __future__ import annotations
@@ -80,12 +92,42 @@ class CyclicDriveLike(DriveLike, Protocol):
         """False while an io tick must wait for its SYNC."""
         ...
 
-    def on_sync(self) -> None:
-        """A SYNC frame arrived."""
+    clock: Callable[[], float]
+
+    def lockstep_time_s(self) -> float:
+        """The drive's lockstep time [s] (the control periods of its io ticks)."""
+        ...
+
+    def step_on_sync(self, watch_clock: Callable[[], float]) -> None:
+        """Make it a drive of a SYNC-stepped plant (the SYNC watchdog on ``watch_clock``)."""
+        ...
+
+    def watch_deadline(self) -> float | None:
+        """When the SYNC watchdog fires, on the clock given to :meth:`step_on_sync` [s]."""
+        ...
+
+    def on_sync(self, counter: int | None = None) -> None:
+        """A SYNC frame arrived (``counter``: its counter byte, if any)."""
         ...
 
     def on_rpdo(self, can_id: int, data: bytes) -> bool:
         """A fieldbus frame that may be an RPDO; True if it was one."""
+        ...
+
+    def on_rtr(self, can_id: int) -> bool:
+        """A remote frame; True if it asked for one of the drive's TPDOs."""
+        ...
+
+    def rtr_cob_ids(self) -> Iterable[int]:
+        """The identifiers of the TPDOs that answer a remote frame."""
+        ...
+
+    def service(self, now_s: float | None = None) -> None:
+        """The drive's timers at ``now_s`` [s]."""
+        ...
+
+    def next_deadline(self) -> float | None:
+        """When :meth:`service` has work next [s]."""
         ...
 
     def pop_tpdos(self) -> list[tuple[int, bytes]]:
@@ -108,7 +150,9 @@ class DriveNode(SlaveNode):
     :param fieldbus: python-can bus of the CANopen fieldbus.
     :param io: python-can bus of the io channel (plant ↔ drives).
     :param node_id: CANopen node id (default ``drive.node_id``); joint index = node id − 1.
-    :param clock: monotonic time source [s] for heartbeat and SDO timeout.
+    :param clock: time source [s] of the node and the drive (monotonic by default).
+    :param lockstep: a drive of a SYNC-stepped plant: the control cycle's timers on the drive's
+        lockstep time, the rest on ``clock`` (see the module docstring).
     """
 
     def __init__(
@@ -119,7 +163,16 @@ class DriveNode(SlaveNode):
         *,
         node_id: int | None = None,
         clock: Callable[[], float] = time.monotonic,
+        lockstep: bool = False,
     ) -> None:
+        cyclic = drive if isinstance(drive, CyclicDriveLike) else None
+        if cyclic is not None:
+            if lockstep:
+                cyclic.step_on_sync(clock)
+            else:
+                cyclic.clock = clock
+        elif lockstep:
+            raise ValueError("lockstep time needs a drive with a lockstep clock (firmware_model.drive.Drive)")
         super().__init__(drive, fieldbus, io, node_id=int(drive.node_id if node_id is None else node_id), clock=clock)
         self.drive = drive
         self.joint = self.node_id - 1
@@ -129,7 +182,8 @@ class DriveNode(SlaveNode):
         self._tick_origin = 0  # wire tick of the trial's tick 0 (from TRIAL_START)
         self._held: tuple[int, int] | None = None  # (count, wire tick) of an encoder frame waiting for its SYNC
         # the SYNC/PDO service is a declared optional capability (CyclicDriveLike)
-        self._cyclic: CyclicDriveLike | None = drive if isinstance(drive, CyclicDriveLike) else None
+        self._cyclic: CyclicDriveLike | None = cyclic
+        self.lockstep = lockstep
         self.syncs_in = 0
         self.tpdos_out = 0
         io.set_filters(self.io_filters())
@@ -177,32 +231,57 @@ class DriveNode(SlaveNode):
         torque = int(self.drive.io_tick(tick, count))
         self.io.send(io_frames.encode_torque(self.joint, wire, torque, self._torque_status()))
         self.frames_out += 1
+        self._send_tpdos()
+
+    def _send_tpdos(self) -> None:
+        """The TPDOs the drive has due, on the fieldbus."""
         if self._cyclic is not None:
             for cob_id, data in self._cyclic.pop_tpdos():
                 self._send(self.fieldbus, cob_id, data)
                 self.tpdos_out += 1
 
     def consumed_fieldbus_ids(self) -> set[int]:
-        """SYNC (0x1005) and the valid RPDOs' identifiers (0x1400..: sub 1), as the firmware has
-        them now (the acceptance filters follow every SDO write of these objects)."""
+        """SYNC (0x1005), the valid RPDOs' identifiers (0x1400..: sub 1) and those of the TPDOs that
+        answer a remote frame, as the firmware has them now (the acceptance filters follow every
+        SDO write of these objects)."""
         drive = self._cyclic
         if drive is None:
             return set()
-        return {drive.sync_cob_id(), *drive.rpdo_cob_ids()}
+        return {drive.sync_cob_id(), *drive.rpdo_cob_ids(), *drive.rtr_cob_ids()}
 
     def on_fieldbus(self, msg: can.Message) -> None:
         drive = self._cyclic
         if drive is None:
             return
         cob = msg.arbitration_id
-        if cob == drive.sync_cob_id():
+        if msg.is_remote_frame:
+            if drive.on_rtr(cob):
+                self._send_tpdos()
+        elif cob == drive.sync_cob_id():
             self.syncs_in += 1
-            drive.on_sync()
+            drive.on_sync(int(msg.data[0]) if msg.dlc >= 1 else None)
+            self._send_tpdos()
             if self._held is not None and drive.tick_ready:
                 (count, wire), self._held = self._held, None
                 self._run_tick(count, wire)
         else:
             drive.on_rpdo(cob, bytes(msg.data))
+
+    def on_service(self, now: float) -> None:
+        """The drive's timers (event-driven TPDOs, RPDO deadlines, the SYNC watchdog); their TPDOs
+        go out (their EMCYs right after, with the node's)."""
+        drive = self._cyclic
+        if drive is not None:
+            drive.service(None if self.lockstep else now)  # lockstep: the control cycle's timers at the drive's time
+            self._send_tpdos()
+
+    def next_deadline(self) -> float | None:
+        """The drive's next timer on the node's clock (lockstep: the SYNC watchdog alone; the
+        control cycle's timers fall due with io ticks, which are frames)."""
+        drive = self._cyclic
+        if drive is None:
+            return None
+        return drive.watch_deadline() if self.lockstep else drive.next_deadline()
 
     def _torque_status(self) -> int:
         """Torque-frame status bits from ``drive.torque_enabled`` and the CiA 402 statusword
@@ -219,7 +298,13 @@ class DriveNode(SlaveNode):
 
 
 def run_node(
-    node_id: int, fieldbus_config: dict[str, Any], io_config: dict[str, Any], stop: threading.Event | None = None
+    node_id: int,
+    fieldbus_config: dict[str, Any],
+    io_config: dict[str, Any],
+    stop: threading.Event | None = None,
+    *,
+    param_dir: str | None = None,
+    lockstep: bool = False,
 ) -> str | None:
     """Drive process entry: build the Drive and both buses, serve until stopped, clean up.
 
@@ -227,6 +312,8 @@ def run_node(
     :param fieldbus_config: keyword arguments of ``can.Bus`` for the fieldbus.
     :param io_config: keyword arguments of ``can.Bus`` for the io channel.
     :param stop: stop event; by default a new one set by SIGTERM/SIGINT.
+    :param param_dir: folder of the parameters 0x1010 saves (``node<id>.json``); None: in memory.
+    :param lockstep: a drive of a SYNC-stepped plant (:class:`DriveNode`, ``ilcrig robot``).
     :returns: None, or why the node stopped early (a bus failed; the drive faulted first).
     """
     from firmware_model.control_law import warm_up
@@ -236,12 +323,12 @@ def run_node(
     if stop is None:
         stop = threading.Event()
         install_sigterm(stop)
-    drive = Drive(node_id)
+    drive = Drive(node_id, param_dir=param_dir)
     fieldbus = can.Bus(**fieldbus_config)
     try:
         io = can.Bus(**io_config)
         try:
-            node = DriveNode(drive, fieldbus, io, node_id=node_id)
+            node = DriveNode(drive, fieldbus, io, node_id=node_id, lockstep=lockstep)
             node.run(stop)
         finally:
             _quiet_shutdown(io)
@@ -267,12 +354,20 @@ def main(argv: Sequence[str] | None = None) -> None:
         parser.add_argument(f"--{prefix}-interface", required=True)
         parser.add_argument(f"--{prefix}-channel", required=True)
     parser.add_argument("--log-level", default="WARNING")
+    parser.add_argument("--param-dir", default=None, help="folder of the parameters 0x1010 saves (default: in memory)")
+    parser.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="a drive of a SYNC-stepped plant (ilcrig robot): the control cycle's timers on lockstep time",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s node%(process)d %(name)s %(message)s")
     run_node(
         args.node_id,
         {"interface": args.fieldbus_interface, "channel": args.fieldbus_channel},
         {"interface": args.io_interface, "channel": args.io_channel},
+        param_dir=args.param_dir,
+        lockstep=args.lockstep,
     )
 
 

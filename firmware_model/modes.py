@@ -1,13 +1,13 @@
 """Operation modes of one drive (CiA 402 0x6060): what an io tick computes while torque is on.
 
-Owns the motion layer between the power stage and the control law: one
-:class:`OperationMode` subclass per mode of operation, registered by its 0x6060 value in
-:data:`MODE_CLASSES`, and :class:`Motion`, which holds the mode selected now.  Each mode turns
-(tick, encoder count [counts]) into a torque [µN·m] with
-:func:`firmware_model.control_law.control_tick`; the trial bookkeeping (tick 0 starts an armed
-trial, then ticks must come in order, N ticks end it) is the same for every mode
-(:meth:`OperationMode.in_sequence`).  A tick out of sequence and a following error are faults of
-the power stage (:class:`FaultSink`).
+Owns the base class of the modes (:class:`OperationMode`) and the modes that play trials: table
+playback and the cyclic synchronous modes.  Profile position and homing are
+:mod:`firmware_model.positioning`; the mode selected now, the quick-stop ramp and the homing
+offset are :mod:`firmware_model.motion`.  Each mode turns (tick, encoder count [counts]) into a
+torque [µN·m] with :func:`firmware_model.control_law.control_tick`; the trial bookkeeping (tick 0
+starts an armed trial, then ticks must come in order, N ticks end it) is the same for every mode
+that plays trials (:meth:`OperationMode.in_sequence`).  A tick out of sequence and a following
+error are faults of the power stage (:class:`FaultSink`).
 
 * table playback (-1, manufacturer specific): the PD loop follows the reference tables with
   the feed-forward table; with no trial playing it holds the hold slot (the encoder count of the
@@ -19,12 +19,16 @@ the power stage (:class:`FaultSink`).
   ``(p[n] − p[n−1])·rate`` in the loop's Q12 arithmetic, rounded and saturated to int32 (0 on
   the first tick of a trial and after a mode change); the feed-forward is 0x60B2 torque offset
   [‰ of 0x6076].
+* CSV (9, cyclic synchronous velocity): the position demand integrates 0x60FF target velocity
+  [counts/s] in the profile generator's Q16 (:mod:`firmware_model.profile`; it starts at the
+  actual position when torque comes on, the mode is selected or a trial starts); the PD loop
+  closes on it with the velocity reference 0x60FF and the feed-forward 0x60B2.
 * CST (10, cyclic synchronous torque): torque = 0x6071 + 0x60B2 [‰ of 0x6076], no feedback and
   no following-error check, clamped to 0x6072.
 
-The cyclic modes (:attr:`OperationMode.cyclic`) are paced by SYNC while NMT OPERATIONAL
+The cyclic modes (:attr:`OperationMode.CYCLIC`) are paced by SYNC while NMT OPERATIONAL
 (:mod:`firmware_model.cyclic_pdo`) and set statusword bit 12 ("drive follows the command
-value") while torque is on.  A trial in a cyclic mode records N samples from tick 0 exactly as
+value") in Operation enabled.  A trial in a cyclic mode records N samples from tick 0 exactly as
 table playback does.
 """
 
@@ -40,20 +44,23 @@ import numpy.typing as npt
 
 from bus import fixedpoint as fp
 from bus.cia301.object_store import Key, Value
-from bus.errors import AbortCode, SdoAbort
 from bus.objects import ModeOfOperation, Obj, TrialState
 from firmware_model import control_law
 from firmware_model.playback import TrialPlayback
+from firmware_model.profile import ProfileGenerator
 
 logger = logging.getLogger(__name__)
 
 _RUNNING = TrialState.RUNNING
 _CONTROL_TICK = control_law.control_tick
 _S_VF, _S_HAVE_PREV, _S_ERR = control_law.S_VF, control_law.S_HAVE_PREV, control_law.S_ERR
+_S_POS, _S_VEST = control_law.S_POS, control_law.S_VEST
 _P_KP, _P_KD, _P_FE, _P_RATE = control_law.P_KP, control_law.P_KD, control_law.P_FE_WINDOW, control_law.P_RATE
 _TARGET_POSITION = (Obj.TARGET_POSITION, 0)
 _TARGET_TORQUE = (Obj.TARGET_TORQUE, 0)
 _TORQUE_OFFSET = (Obj.TORQUE_OFFSET, 0)
+_TARGET_VELOCITY = (Obj.TARGET_VELOCITY, 0)
+_PERIOD = (Obj.CONTROL_PERIOD, 0)
 
 
 class FaultSink(Protocol):
@@ -74,6 +81,7 @@ class MotionContext:
     :ivar values: the object values of the drive's object store (set-points).
     :ivar rated_mnm: rated torque 0x6076 [mN·m] (‰ set-points → µN·m).
     :ivar faults: where faults go.
+    :ivar gen: the profile generator the profile-based modes and the quick-stop ramp share.
     """
 
     st: npt.NDArray[np.int64]
@@ -81,6 +89,7 @@ class MotionContext:
     values: dict[Key, Value]
     rated_mnm: int
     faults: FaultSink
+    gen: ProfileGenerator
 
 
 class OperationMode(ABC):
@@ -92,7 +101,9 @@ class OperationMode(ABC):
     CYCLIC: ClassVar[bool] = False
     #: the trial plays the tables 0x2200..0x2202 (they must be loaded to arm)
     NEEDS_TABLES: ClassVar[bool] = False
-    #: statusword bits 12/13 while torque is on
+    #: a trial (0x2120) can be armed in this mode
+    PLAYS_TRIALS: ClassVar[bool] = True
+    #: statusword bits 10/12/13 in Operation enabled (:meth:`status_bits`)
     STATUS_BITS: ClassVar[int] = 0
 
     def __init__(self, ctx: MotionContext) -> None:
@@ -101,9 +112,33 @@ class OperationMode(ABC):
         self.values = ctx.values
         self.rated_mnm = ctx.rated_mnm
         self.faults = ctx.faults
+        self.gen = ctx.gen
 
     def reset(self) -> None:  # noqa: B027 - a mode without state between ticks has nothing to forget
         """Forget what earlier ticks left (NMT reset node, this mode selected again)."""
+
+    def on_enable(self) -> None:  # noqa: B027 - most modes start from the encoder by themselves
+        """Torque came on, or this mode was selected with torque on: start from the actual
+        position."""
+
+    def on_controlword(self, cw: int, enabled: bool) -> None:  # noqa: B027 - only some modes use bits 4..9
+        """0x6040 written (``enabled``: the drive is in Operation enabled): the mode's bits."""
+
+    def on_rehome(self, delta_counts: int) -> None:  # noqa: B027 - a mode without positions to move
+        """The position was redefined by ``delta_counts`` (homing): move what the mode holds."""
+
+    def status_bits(self) -> int:
+        """Statusword bits 10/12/13 in Operation enabled."""
+        return self.STATUS_BITS
+
+    def demand(self) -> tuple[int, int]:
+        """The motion now as (position [counts], velocity [counts/s]): where a quick stop ramp
+        starts (by default the actual position and velocity estimate)."""
+        return int(self.st[_S_POS]), int(self.st[_S_VEST])
+
+    def period_us(self) -> int:
+        """The control period 0x2300 [µs]."""
+        return int(self.values[_PERIOD])
 
     def initial_velocity(self) -> int:
         """Velocity estimator state at tick 0 of a trial [counts/s] (0: no previous target)."""
@@ -224,6 +259,15 @@ class CspMode(CyclicSynchronousMode):
         self._prev_target = None  # no previous target in a new trial
         super().start_trial()
 
+    def on_rehome(self, delta_counts: int) -> None:
+        self._prev_target = None  # the next target is in the new coordinates
+
+    def demand(self) -> tuple[int, int]:
+        sp = self._setpoint
+        if self._prev_target is None:
+            return super().demand()
+        return int(sp[0, 0]), int(sp[1, 0])
+
     def _control(self, encoder_count: int, rec_index: int) -> tuple[int, int]:
         st, sp = self.st, self._setpoint
         target = int(self.values[_TARGET_POSITION])
@@ -231,6 +275,29 @@ class CspMode(CyclicSynchronousMode):
         vref = 0 if prev is None else fp.sat32(fp.rshift_round(fp.sat32(target - prev) * int(st[_P_RATE]), fp.VEL_STATE_Q))
         self._prev_target = target
         sp[0, 0], sp[1, 0], sp[2, 0] = target, vref, fp.sat32(self._offset_units())
+        return _CONTROL_TICK(encoder_count, 0, rec_index, st, sp, self.trial.rec)
+
+
+class CsvMode(CyclicSynchronousMode):
+    """9: cyclic synchronous velocity (see the module docstring)."""
+
+    CODE = ModeOfOperation.CSV
+
+    def on_enable(self) -> None:
+        self.gen.reset(int(self.st[_S_POS]))
+
+    def start_trial(self) -> None:
+        self.gen.reset(int(self.st[_S_POS]))  # the demand starts where the drive is
+        super().start_trial()
+
+    def demand(self) -> tuple[int, int]:
+        return self.gen.position_counts, int(self.values[_TARGET_VELOCITY])
+
+    def _control(self, encoder_count: int, rec_index: int) -> tuple[int, int]:
+        st, sp, gen = self.st, self._setpoint, self.gen
+        v_target = int(self.values[_TARGET_VELOCITY])
+        gen.step_velocity(fp.per_tick_q16(v_target, self.period_us(), 1))
+        sp[0, 0], sp[1, 0], sp[2, 0] = gen.position_counts, v_target, fp.sat32(self._offset_units())
         return _CONTROL_TICK(encoder_count, 0, rec_index, st, sp, self.trial.rec)
 
 
@@ -252,48 +319,3 @@ class CstMode(CyclicSynchronousMode):
             return _CONTROL_TICK(encoder_count, 0, rec_index, st, sp, self.trial.rec)
         finally:
             st[_P_KP], st[_P_KD], st[_P_FE] = saved
-
-
-#: the supported modes of operation, by 0x6060 value
-MODE_CLASSES: dict[int, type[OperationMode]] = {cls.CODE: cls for cls in (TablePlaybackMode, CspMode, CstMode)}
-
-
-class Motion:
-    """The modes of one drive and the one selected by 0x6060.
-
-    :param node_id: CANopen node id (log messages).
-    :param ctx: what the modes work on.
-
-    :ivar mode: the mode selected now.
-    """
-
-    def __init__(self, node_id: int, ctx: MotionContext) -> None:
-        self.node_id = node_id
-        self._values = ctx.values
-        self._trial = ctx.trial
-        self.modes: dict[int, OperationMode] = {code: cls(ctx) for code, cls in MODE_CLASSES.items()}
-        self.mode: OperationMode = self.modes[ModeOfOperation.TABLE_PLAYBACK]
-        self.reset()
-
-    def reset(self) -> None:
-        """NMT reset node: every mode starts afresh; the selected one is 0x6060's value."""
-        for mode in self.modes.values():
-            mode.reset()
-        self.mode = self.modes[int(self._values[(Obj.MODES_OF_OPERATION, 0)])]
-
-    def select(self, code: int) -> None:
-        """0x6060 written: select mode ``code``.
-
-        :raises SdoAbort: 0x06090030 mode not supported, 0x08000022 a trial is armed or running.
-        """
-        mode = self.modes.get(code)
-        if mode is None:
-            supported = ", ".join(str(c) for c in sorted(self.modes))
-            raise SdoAbort(AbortCode.VALUE_RANGE, f"mode of operation {code!r} not supported ({supported})")
-        if mode is self.mode:
-            return
-        self._trial.require_not_playing("changing the mode of operation")
-        mode.reset()
-        self._trial.capture_hold = True  # the hold is where the drive is now
-        self.mode = mode
-        logger.debug("node %d mode of operation %s", self.node_id, code)

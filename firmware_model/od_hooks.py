@@ -5,8 +5,17 @@ loaded from ``bus/drive.eds``) and the parts of the drive: read hooks give the l
 (statusword, actual position/velocity/torque, error register, trial and recorder state), write
 hooks act on a write and may refuse it with :class:`bus.errors.SdoAbort`:
 
-* 0x6040 controlword → the power stage (:mod:`firmware_model.power_stage`); 0x6060 mode of
-  operation → the motion layer (:mod:`firmware_model.modes`);
+* 0x6040 controlword → the power stage (:mod:`firmware_model.power_stage`), then the selected
+  mode's bits (:mod:`firmware_model.motion`); 0x6060 mode of operation → the motion layer;
+  0x6062 position demand from it;
+* 0x1003 error history (sub 0: number of errors, writing 0 clears, any other value 0x06090030;
+  subs 1..8 the errors, newest first) → the power stage's history;
+* 0x1005 COB-ID SYNC: bit 30 (generate SYNC) and 29-bit identifiers are refused (0x06090030): the
+  drive consumes SYNC, it does not produce it; 0x1014 COB-ID EMCY: the rules of
+  :func:`bus.cia301.emcy.check_emcy_cob_id` (0x06090030); 0x1019 synchronous counter overflow:
+  only while 0x1006 is 0 (else 0x08000022, CiA 301), 1 is refused (0x06090030);
+* 0x605A quick stop option: 3, 4 (current / voltage limit) are refused (0x06090030); 0x6098
+  homing method: only 35 and 37 (0x06090030);
 * 0x2103, 0x2120:1, 0x2200..0x2202, 0x2210 → trial playback (:mod:`firmware_model.playback`);
 * the loop parameters, written into the control law's ``st`` array in its fixed-point formats
   (:mod:`bus.fixedpoint`): gains 0x2110 (Kp Q16 µN·m/count, Kd Q16 µN·m/(count/s), velocity
@@ -25,16 +34,30 @@ import numpy as np
 import numpy.typing as npt
 
 from bus import fixedpoint as fp
+from bus.cia301.emcy import check_emcy_cob_id
 from bus.cia301.object_store import ObjectStore, Value
 from bus.errors import AbortCode, SdoAbort
-from bus.objects import GainsSub, InterpolationPeriodSub, Obj, RecorderSub, TableSub, TrialSub
+from bus.objects import (
+    GainsSub,
+    HomingMethod,
+    InterpolationPeriodSub,
+    Obj,
+    QuickStopOption,
+    RecorderSub,
+    TableSub,
+    TrialCommand,
+    TrialSub,
+)
+from bus.pdo_objects import PDO_EXTENDED, SYNC_PRODUCER
 from firmware_model import control_law
-from firmware_model.modes import Motion
+from firmware_model.motion import Motion
 from firmware_model.playback import TABLE_ROWS, TrialPlayback
 from firmware_model.power_stage import PowerStage
 
 _GAIN_SLOTS = {GainsSub.KP: control_law.P_KP, GainsSub.KD: control_law.P_KD, GainsSub.VEL_FILTER: control_law.P_ALPHA}
 _FE_WINDOW_OFF = 0xFFFFFFFF
+_QUICK_STOP_OPTIONS = frozenset(int(o) for o in QuickStopOption)
+_HOMING_METHODS = frozenset(int(m) for m in HomingMethod)
 
 
 def eds_default(store: ObjectStore, index: int, sub: int) -> int:
@@ -93,7 +116,7 @@ class ObjectHooks:
 
     def statusword(self) -> int:
         """0x6041 now."""
-        return self._power.statusword(self._motion.mode.STATUS_BITS)
+        return self._power.statusword(self._motion.mode.status_bits())
 
     def apply_parameters(self) -> None:
         """Write the loop parameters of the current object values into ``st`` (after a reset)."""
@@ -112,8 +135,13 @@ class ObjectHooks:
         st, trial, power, values = self._st, self._trial, self._power, self._values
         r[(Obj.ERROR_REGISTER, 0)] = lambda: power.error_register
         r[(Obj.ERROR_CODE, 0)] = lambda: power.error_code
+        r[(Obj.ERROR_HISTORY, 0)] = lambda: len(power.history)
+        for sub in range(1, power.history.size + 1):
+            if (Obj.ERROR_HISTORY, sub) in self.store.vars:
+                r[(Obj.ERROR_HISTORY, sub)] = functools.partial(power.history.entry, sub)
         r[(Obj.STATUSWORD, 0)] = self.statusword
         r[(Obj.MODES_OF_OPERATION_DISPLAY, 0)] = lambda: values[(Obj.MODES_OF_OPERATION, 0)]
+        r[(Obj.POSITION_DEMAND, 0)] = self._motion.demand_position
         r[(Obj.POSITION_ACTUAL, 0)] = lambda: int(st[control_law.S_POS])
         r[(Obj.VELOCITY_ACTUAL, 0)] = lambda: int(st[control_law.S_VEST])
         r[(Obj.TORQUE_ACTUAL, 0)] = lambda: fp.torque_units_to_permille(int(st[control_law.S_TAU]), self._rated_mnm)
@@ -131,7 +159,13 @@ class ObjectHooks:
         r[(Obj.RECORDER, RecorderSub.SAMPLES)] = lambda: trial.recorded
         r[(Obj.RECORDER_DATA, 0)] = trial.read_recorder
 
-        w[(Obj.CONTROLWORD, 0)] = lambda v: power.controlword(int(v))
+        w[(Obj.ERROR_HISTORY, 0)] = self._write_error_history
+        w[(Obj.COB_ID_SYNC, 0)] = self._write_sync_cob_id
+        w[(Obj.COB_ID_EMCY, 0)] = self._write_emcy_cob_id
+        w[(Obj.SYNC_COUNTER_OVERFLOW, 0)] = self._write_sync_counter_overflow
+        w[(Obj.QUICK_STOP_OPTION, 0)] = self._write_quick_stop_option
+        w[(Obj.HOMING_METHOD, 0)] = self._write_homing_method
+        w[(Obj.CONTROLWORD, 0)] = self._write_controlword
         w[(Obj.MODES_OF_OPERATION, 0)] = lambda v: self._motion.select(int(v))
         w[(Obj.FOLLOWING_ERROR_WINDOW, 0)] = self._parameter_hook("the following-error window", self._set_fe_window)
         w[(Obj.MAX_TORQUE, 0)] = self._parameter_hook("the max torque", self._set_max_torque)
@@ -142,6 +176,49 @@ class ObjectHooks:
         w[(Obj.CONTROL_PERIOD, 0)] = self._parameter_hook("the control period", self._set_period)
         w[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.VALUE)] = lambda v: self._write_interp(int(v), None)
         w[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.INDEX)] = lambda v: self._write_interp(None, int(v))
+
+    # ------------------------------------------------------------------ communication and profile objects
+
+    def _write_controlword(self, value: Value) -> None:
+        cw = int(value)
+        self._power.controlword(cw)
+        self._motion.on_controlword(cw)
+
+    def _write_error_history(self, value: Value) -> None:
+        if int(value) != 0:
+            raise SdoAbort(AbortCode.VALUE_RANGE, "0x1003:0 accepts only 0 (clear the error history)")
+        self._power.clear_history()
+
+    @staticmethod
+    def _write_sync_cob_id(value: Value) -> None:
+        v = int(value)
+        if v & SYNC_PRODUCER:
+            raise SdoAbort(AbortCode.VALUE_RANGE, "the drive consumes SYNC; it cannot produce it (0x1005 bit 30)")
+        if v & PDO_EXTENDED or v & 0xDFFFF800:
+            raise SdoAbort(AbortCode.VALUE_RANGE, f"COB-ID SYNC 0x{v:08X}: only an 11-bit identifier is supported")
+
+    def _write_emcy_cob_id(self, value: Value) -> None:
+        try:
+            check_emcy_cob_id(int(self._values[(Obj.COB_ID_EMCY, 0)]), int(value))
+        except ValueError as err:
+            raise SdoAbort(AbortCode.VALUE_RANGE, str(err)) from None
+
+    def _write_sync_counter_overflow(self, value: Value) -> None:
+        if int(self._values[(Obj.COMM_CYCLE_PERIOD, 0)]) != 0:
+            raise SdoAbort(AbortCode.DEVICE_STATE, "0x1019 can change only while 0x1006 is 0")
+        if int(value) == 1:
+            raise SdoAbort(AbortCode.VALUE_RANGE, "synchronous counter overflow value 1 is reserved (0 or 2..240)")
+
+    @staticmethod
+    def _write_quick_stop_option(value: Value) -> None:
+        if int(value) not in _QUICK_STOP_OPTIONS:
+            supported = ", ".join(str(int(o)) for o in QuickStopOption)
+            raise SdoAbort(AbortCode.VALUE_RANGE, f"quick stop option {int(value)} not supported ({supported})")
+
+    @staticmethod
+    def _write_homing_method(value: Value) -> None:
+        if int(value) not in _HOMING_METHODS:
+            raise SdoAbort(AbortCode.VALUE_RANGE, f"homing method {int(value)} not supported (35, 37: on the current position)")
 
     def _parameter_hook(self, what: str, setter: Callable[[int], None]) -> Callable[[Value], None]:
         """The write hook of a loop parameter: refused while a trial is armed or running."""
@@ -192,4 +269,7 @@ class ObjectHooks:
         self._trial.write_table(index, data)
 
     def _write_trial_command(self, value: Value) -> None:
-        self._trial.command(int(value), needs_tables=self._motion.mode.NEEDS_TABLES, in_fault=self._power.in_fault)
+        mode = self._motion.mode
+        if int(value) == TrialCommand.ARM and not mode.PLAYS_TRIALS:
+            raise SdoAbort(AbortCode.DEVICE_STATE, f"mode of operation {mode.CODE} plays no trials (-1, 8, 9, 10 do)")
+        self._trial.command(int(value), needs_tables=mode.NEEDS_TABLES, in_fault=self._power.in_fault)

@@ -1,39 +1,71 @@
-"""The power stage of one drive: CiA 402 device control, torque on/off, faults and EMCY, and the
-SAFE-STATE record.
+"""The power stage of one drive: CiA 402 device control, torque on/off, quick stop, faults,
+communication errors and their reactions, EMCY, and the SAFE-STATE record.
 
 Owns the CiA 402 state machine (:class:`firmware_model.cia402.Cia402StateMachine`, driven by the
-controlword 0x6040), the torque enable, the error register 0x1001 and error code 0x603F, and the
-queue of EMCY messages the node runtime sends (:meth:`PowerStage.pop_emcy`).
+controlword 0x6040), the torque enable, the error register 0x1001, the error code 0x603F, the
+error history 0x1003 and the queue of EMCY messages the node runtime sends
+(:meth:`PowerStage.pop_emcy`; none is queued in NMT STOPPED, CiA 301).
 
-* torque is on exactly while NMT is OPERATIONAL **and** CiA 402 is Operation enabled
-  (:meth:`PowerStage.update`, called after every NMT command and controlword).  When it comes
-  on, the velocity estimator starts afresh; when it goes off, a running trial ends in FAULT
-  (cause NONE) and the loop's torque state is cleared.
-* a fault (:meth:`PowerStage.fault`: following error 0x8611, tick sequence 0x8200, heartbeat
-  of the host lost 0x8130, bus lost 0x8100) enters CiA 402 Fault, ends an armed or running trial
-  in FAULT with the cause in 0x2120:4, sets 0x1001/0x603F, removes torque and queues an EMCY.
-  The fault reset (controlword bit 7 rising edge) clears 0x1001/0x603F and queues EMCY 0x0000.
-* loss of the host's heartbeat in NMT STOPPED is only logged (torque is off and the master
-  stopped the node on purpose).
-* every time torque goes off, one ``SAFE-STATE`` record (:mod:`bus.safe_state`) is logged with
-  the reason (the fault, the NMT state or the CiA 402 state) and the trial tick, and one when a
-  fault comes while torque was off already.
-* the statusword 0x6041 is the state's pattern, bit 11 (internal limit) when the torque was
-  clamped, and the operation mode's bits 12/13 while torque is on.
+* **Torque** is on exactly in CiA 402 Operation enabled and Quick stop active (during the stop
+  ramp, and holding after it with 0x605A = 5, 6): the statusword always says what the power stage
+  does.  NMT does not switch torque; leaving NMT OPERATIONAL is an abort connection (below), so
+  after NMT START the drive stays torque-free until the controlword sequence enables it.  When
+  torque comes on, the velocity estimator and the operation mode start afresh; when it goes off,
+  a running trial ends in FAULT and the loop's torque state is cleared.
+* **Quick stop** (controlword bit 2 = 0 in Operation enabled, or 0x6007 = 3): Quick stop active;
+  0x605A says how (0: torque off at once → Switch on disabled; 1 / 5: the profile deceleration
+  0x6084, 2 / 6: the quick stop deceleration 0x6085, from the demand velocity down to 0 on the
+  control cycles); at standstill 1 and 2 end in Switch on disabled (transition 12), 5 and 6 stay
+  in Quick stop active holding the position (statusword bit 10) and accept Enable operation
+  (transition 16).
+* **Faults** (:meth:`PowerStage.fault`: following error 0x8611, tick sequence 0x8200, bus lost
+  0x8100) enter CiA 402 Fault at once (the fault reaction takes no time), end an armed or
+  running trial in FAULT with the cause in 0x2120:4, set 0x1001/0x603F, record 0x1003, remove
+  torque and queue an EMCY.
+* **Communication errors** (:meth:`PowerStage.communication_error`: the host's heartbeat lost
+  0x8130, an RPDO deadline 0x8250, SYNC lost 0x8100): EMCY, 0x1001 (generic + communication),
+  0x1003, an armed or running trial ends in FAULT, then the abort connection reaction of 0x6007
+  and the NMT reaction of 0x1029:1 (0 pre-operational, 1 none, 2 stopped).  In NMT STOPPED a lost
+  heartbeat is only logged (the master stopped the node on purpose).
+* **Abort connection** (:meth:`PowerStage.abort_connection`: a communication error, or NMT
+  STOP / ENTER PRE-OPERATIONAL from OPERATIONAL / RESET COMMUNICATION), only while torque is on,
+  by 0x6007: 0 nothing, 1 Fault (0x603F = the error's code), 2 Disable voltage (Switch on
+  disabled), 3 Quick stop (by 0x605A).  An NMT command that aborts the connection (0x6007 ≠ 0)
+  is recorded like an error: EMCY 0x8100 (none in STOPPED) with the cause 7 and the new NMT
+  state, 0x1001, 0x1003.
+* **Fault reset** (a rising edge of controlword bit 7): leaves Fault (transition 15), clears
+  0x1001 and 0x603F (0x1003 keeps its entries) and queues EMCY 0x0000; outside Fault it clears
+  a communication error's 0x1001 the same way.
+* Every time torque goes off one ``SAFE-STATE`` record (:mod:`bus.safe_state`) is logged with
+  the reason and the trial tick, and one when a fault comes while torque was off already.
+* The statusword 0x6041 is the state's pattern, bit 11 (internal limit) when the torque was
+  clamped, the operation mode's bits 10/12/13 in Operation enabled, and bit 10 in Quick stop
+  active once at standstill.
 """
 
 from __future__ import annotations
 
 import logging
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
 
-from bus.cia301.emcy import EmcyCode, ErrorRegister
+from bus.cia301.emcy import EmcyCode, ErrorHistory, ErrorRegister
 from bus.cia301.nmt import NmtState
-from bus.objects import Cia402State, FaultCause, TrialState
+from bus.cia301.object_store import Key, Value
+from bus.objects import (
+    AbortConnectionOption,
+    Cia402State,
+    ErrorBehaviour,
+    FaultCause,
+    Obj,
+    QuickStopOption,
+    Statusword,
+    TrialState,
+)
 from bus.safe_state import TORQUE_ON_TAG, format_safe_state
 from firmware_model import control_law
 from firmware_model.cia402 import Cia402StateMachine
@@ -42,7 +74,33 @@ from firmware_model.playback import TrialPlayback
 logger = logging.getLogger(__name__)
 
 Emcy = tuple[int, int, bytes]
-_FAULT_STATES = (Cia402State.FAULT, Cia402State.FAULT_REACTION_ACTIVE)
+_S = Cia402State
+_FAULT_STATES = (_S.FAULT, _S.FAULT_REACTION_ACTIVE)
+_TORQUE_STATES = (_S.OPERATION_ENABLED, _S.QUICK_STOP_ACTIVE)
+_STAY_OPTIONS = (QuickStopOption.SLOW_DOWN_RAMP_STAY, QuickStopOption.QUICK_STOP_RAMP_STAY)
+_COMM = ErrorRegister.GENERIC | ErrorRegister.COMMUNICATION
+_TARGET_REACHED = int(Statusword.TARGET_REACHED)
+_ABORT_CONNECTION = (Obj.ABORT_CONNECTION_OPTION, 0)
+_QUICK_STOP_OPTION = (Obj.QUICK_STOP_OPTION, 0)
+_ERROR_BEHAVIOUR = (Obj.ERROR_BEHAVIOUR, 1)
+#: 0x605A option -> the object of its deceleration (0: no ramp, torque off at once)
+_STOP_RAMP: dict[int, int] = {
+    QuickStopOption.SLOW_DOWN_RAMP: Obj.PROFILE_DECELERATION,
+    QuickStopOption.SLOW_DOWN_RAMP_STAY: Obj.PROFILE_DECELERATION,
+    QuickStopOption.QUICK_STOP_RAMP: Obj.QUICK_STOP_DECELERATION,
+    QuickStopOption.QUICK_STOP_RAMP_STAY: Obj.QUICK_STOP_DECELERATION,
+}
+
+
+class MotionHooks(Protocol):
+    """What the power stage needs from the operation modes (:class:`firmware_model.modes.Motion`)."""
+
+    def on_torque_on(self) -> None:
+        """Torque came on: the selected mode starts from the actual position."""
+
+    def begin_quick_stop(self, deceleration_index: int) -> bool:
+        """Start the stop ramp with the deceleration of object ``deceleration_index``; True when
+        already at standstill."""
 
 
 class PowerStage:
@@ -52,31 +110,53 @@ class PowerStage:
     :param st: the control loop's state array (:func:`firmware_model.control_law.new_state`).
     :param trial: the drive's trial playback (ended by a fault or a loss of torque).
     :param nmt_state: returns the drive's NMT state.
+    :param values: the object values (0x6007, 0x605A, 0x1029 are read when they apply).
+
+    :ivar motion: the operation modes (set by the drive once they exist).
+    :ivar nmt_reaction: applies the NMT state 0x1029 asks for after a communication error.
     """
 
-    def __init__(self, node_id: int, st: npt.NDArray[np.int64], trial: TrialPlayback, nmt_state: Callable[[], NmtState]) -> None:
+    def __init__(
+        self,
+        node_id: int,
+        st: npt.NDArray[np.int64],
+        trial: TrialPlayback,
+        nmt_state: Callable[[], NmtState],
+        values: Mapping[Key, Value] | None = None,
+    ) -> None:
         self.node_id = node_id
         self._st = st
         self._trial = trial
         self._nmt_state = nmt_state
+        self._values: Mapping[Key, Value] = values if values is not None else {}
         self.sm = Cia402StateMachine()
+        self.motion: MotionHooks | None = None
+        self.nmt_reaction: Callable[[NmtState], None] | None = None
         #: True while torque is applied
         self.on = False
         self.error_register = 0
         self.error_code = 0
+        self.history = ErrorHistory()
         self._emcy: list[Emcy] = []
-        self._fault_reason = ""
+        self._reason = ""  # why torque goes off now (empty: from the state)
         self._fault_tick = -1
+        self._stopped = False  # Quick stop active and at standstill (holding)
 
-    def reset(self) -> None:
-        """NMT reset node: Switch on disabled, no error, no EMCY pending (the torque enable
-        follows at the next :meth:`update`)."""
+    def reset(self, reason: str = "") -> None:
+        """NMT reset node: Switch on disabled, no error, empty history, no EMCY pending (the
+        torque enable follows at the next :meth:`update`; ``reason``: its SAFE-STATE reason)."""
         self.sm.reset()
         self.error_register = 0
         self.error_code = 0
+        self.history.clear()
         self._emcy.clear()
-        self._fault_reason = ""
+        self._reason = reason
         self._fault_tick = -1
+        self._stopped = False
+
+    def _option(self, key: Key, default: int) -> int:
+        value = self._values.get(key)
+        return default if value is None else int(value)
 
     # ------------------------------------------------------------------ state
 
@@ -89,11 +169,20 @@ class PowerStage:
         """True in CiA 402 Fault (or Fault reaction active)."""
         return self.sm.state in _FAULT_STATES
 
+    @property
+    def quick_stopping(self) -> bool:
+        """True in Quick stop active (ramping or holding)."""
+        return self.sm.state == _S.QUICK_STOP_ACTIVE
+
     def statusword(self, mode_bits: int) -> int:
-        """0x6041; ``mode_bits``: the operation mode's bits 12/13, set while torque is on."""
-        on = self.on
-        sw = self.sm.statusword(bool(self._st[control_law.S_LIMITED]) and on)
-        return sw | mode_bits if on else sw
+        """0x6041; ``mode_bits``: the operation mode's bits 10/12/13, set in Operation enabled."""
+        state = self.sm.state
+        sw = self.sm.statusword(bool(self._st[control_law.S_LIMITED]) and self.on)
+        if state == _S.OPERATION_ENABLED:
+            return sw | mode_bits
+        if state == _S.QUICK_STOP_ACTIVE and self._stopped:
+            return sw | _TARGET_REACHED
+        return sw
 
     def pop_emcy(self) -> list[Emcy]:
         """Pending EMCY messages ``(error code, error register, 5 manufacturer bytes)``, oldest
@@ -101,22 +190,71 @@ class PowerStage:
         out, self._emcy = self._emcy, []
         return out
 
+    def clear_history(self) -> None:
+        """0x1003:0 := 0."""
+        self.history.clear()
+
+    def _record(self, code: int, register: int, mfr: bytes) -> None:
+        """An error: 0x1003, and its EMCY unless the node is STOPPED."""
+        self.history.push(code)
+        if self._nmt_state() != NmtState.STOPPED:
+            self._emcy.append((int(code), int(register), mfr))
+
+    def warning(self, code: int, mfr: bytes) -> None:
+        """An error without a reaction (an RPDO too short, a SYNC of the wrong length): EMCY,
+        0x1001 communication bit, 0x1003."""
+        self.error_register |= int(_COMM)
+        self._record(code, self.error_register, mfr)
+        logger.warning("node %d: EMCY 0x%04X", self.node_id, code)
+
     # ------------------------------------------------------------------ commands
 
     def controlword(self, value: int) -> None:
-        """0x6040 written: CiA 402 transition; a fault reset clears the error and queues EMCY 0x0000."""
+        """0x6040 written: CiA 402 transition, quick stop, fault reset."""
         before = self.sm.state
-        self.sm.controlword(value)
-        if before == Cia402State.FAULT and self.sm.state != Cia402State.FAULT:
+        qs_option = self._option(_QUICK_STOP_OPTION, QuickStopOption.QUICK_STOP_RAMP)
+        self.sm.controlword(value, qs_to_enabled=qs_option in _STAY_OPTIONS)
+        after = self.sm.state
+        if self.sm.reset_edge and (before == _S.FAULT or (after not in _FAULT_STATES and self.error_register)):
             self.error_register = 0
             self.error_code = 0
             self._emcy.append((EmcyCode.ERROR_RESET, 0, bytes(5)))
             logger.info("node %d fault reset", self.node_id)
+        if after == _S.QUICK_STOP_ACTIVE and before != _S.QUICK_STOP_ACTIVE:
+            self._begin_quick_stop(qs_option)
+        if before == _S.QUICK_STOP_ACTIVE and after == _S.OPERATION_ENABLED and self.motion is not None:
+            self.motion.on_torque_on()  # transition 16: the mode starts afresh where the drive is
+        if after != _S.QUICK_STOP_ACTIVE:
+            self._stopped = False
+        self.update()
+
+    def _begin_quick_stop(self, option: int) -> None:
+        """Quick stop active entered: the stop of 0x605A."""
+        self._stopped = False
+        decel = _STOP_RAMP.get(option)
+        logger.info("node %d: quick stop (0x605A = %d)", self.node_id, option)
+        if decel is None:  # 0: torque off at once
+            self.sm.quick_stop_complete()
+            return
+        motion = self.motion
+        if motion is None or motion.begin_quick_stop(decel):
+            self.quick_stop_done()
+
+    def quick_stop_done(self) -> None:
+        """The stop ramp reached standstill: Switch on disabled (0x605A = 1, 2) or holding in
+        Quick stop active (5, 6)."""
+        if self.sm.state != _S.QUICK_STOP_ACTIVE:
+            return
+        if self._option(_QUICK_STOP_OPTION, QuickStopOption.QUICK_STOP_RAMP) in _STAY_OPTIONS:
+            self._stopped = True
+            logger.info("node %d: quick stop at standstill, holding", self.node_id)
+            return
+        self.sm.quick_stop_complete()
         self.update()
 
     def update(self) -> None:
-        """Apply the torque enable of the current NMT and CiA 402 states."""
-        power = self._nmt_state() == NmtState.OPERATIONAL and self.sm.state == Cia402State.OPERATION_ENABLED
+        """Apply the torque enable of the current CiA 402 state."""
+        power = self.sm.state in _TORQUE_STATES
         was = self.on
         self.on = power
         st = self._st
@@ -125,7 +263,10 @@ class PowerStage:
             st[control_law.S_HAVE_PREV] = 0
             st[control_law.S_VF] = 0
             st[control_law.S_VEST] = 0
+            st[control_law.S_ERR] = 0
             trial.on_torque_on()
+            if self.motion is not None:
+                self.motion.on_torque_on()
             logger.info("%s node=drive%d", TORQUE_ON_TAG, self.node_id)
         elif was and not power:
             running = trial.state == TrialState.RUNNING
@@ -138,6 +279,7 @@ class PowerStage:
             st[control_law.S_TAU_FB] = 0
             st[control_law.S_VEST] = 0
             st[control_law.S_LIMITED] = 0
+        self._reason = ""
 
     def power_off(self, reason: str) -> None:
         """The drive process stops: the power stage goes off; a SAFE-STATE record is logged if
@@ -158,18 +300,19 @@ class PowerStage:
         tick, 0 [µN·m]."""
         trial = self._trial
         self._fault_tick = trial.next_tick if trial.state == TrialState.RUNNING else -1
-        self._fault_reason = reason
         trial.on_fault(cause)
         self.sm.fault()
         self.error_register = int(register)
         self.error_code = int(code)
-        self._emcy.append((int(code), int(register), mfr))
+        self._record(code, register, mfr)
         logger.warning("node %d fault %s (EMCY 0x%04X)", self.node_id, cause.name, code)
         was_on = self.on
+        self._reason = reason
         self.update()
         if not was_on:  # torque was off already: record the fault reaction all the same
+            self._reason = reason
             self._log_safe_state(self._fault_tick)
-        self._fault_reason = ""
+            self._reason = ""
         self._fault_tick = -1
         return 0
 
@@ -192,20 +335,6 @@ class PowerStage:
             struct.pack("<BHH", FaultCause.TICK_SEQUENCE, expected & 0xFFFF, int(tick) & 0xFFFF),
         )
 
-    def heartbeat_lost(self, node_id: int) -> None:
-        """The heartbeat of ``node_id`` (the host) was lost: a fault with EMCY 0x8130, except in
-        NMT STOPPED (only logged)."""
-        if self._nmt_state() == NmtState.STOPPED:
-            logger.info("node %d: heartbeat of node %d lost while NMT STOPPED (torque off already)", self.node_id, node_id)
-            return
-        self.fault(
-            EmcyCode.HEARTBEAT_ERROR,
-            ErrorRegister.GENERIC | ErrorRegister.COMMUNICATION,
-            FaultCause.HEARTBEAT,
-            struct.pack("<BB3x", FaultCause.HEARTBEAT, node_id & 0xFF),
-            reason=f"heartbeat-of-node-{node_id}-lost",
-        )
-
     def bus_lost(self, reason: str) -> None:
         """The fieldbus or io bus failed: a fault (its EMCY cannot be sent)."""
         self.fault(
@@ -217,13 +346,90 @@ class PowerStage:
         )
         logger.warning("node %d: bus lost (%s): torque off", self.node_id, reason)
 
+    # ------------------------------------------------------------------ communication errors
+
+    def communication_error(self, code: EmcyCode, cause: FaultCause, mfr: bytes, reason: str) -> None:
+        """A communication error (see the module docstring): EMCY, 0x1001, 0x1003, the trial,
+        then 0x6007 and 0x1029."""
+        self.error_register |= int(_COMM)
+        self._record(code, self.error_register, mfr)
+        logger.warning("node %d: communication error %s (EMCY 0x%04X)", self.node_id, cause.name, code)
+        if self._trial.playing:
+            self._fault_tick = self._trial.next_tick if self._trial.state == TrialState.RUNNING else -1
+        self._trial.on_fault(cause)
+        self.abort_connection(code, reason)
+        self._fault_tick = -1
+        behaviour = self._option(_ERROR_BEHAVIOUR, ErrorBehaviour.PRE_OPERATIONAL)
+        react = self.nmt_reaction
+        if react is None:
+            return
+        nmt = self._nmt_state()
+        if behaviour == ErrorBehaviour.PRE_OPERATIONAL and nmt == NmtState.OPERATIONAL:
+            react(NmtState.PRE_OPERATIONAL)
+        elif behaviour == ErrorBehaviour.STOPPED and nmt != NmtState.STOPPED:
+            react(NmtState.STOPPED)
+
+    def heartbeat_lost(self, node_id: int) -> None:
+        """The heartbeat of ``node_id`` (the host) was lost: a communication error with EMCY
+        0x8130, except in NMT STOPPED (only logged)."""
+        if self._nmt_state() == NmtState.STOPPED:
+            logger.info("node %d: heartbeat of node %d lost while NMT STOPPED (nothing to do)", self.node_id, node_id)
+            return
+        self.communication_error(
+            EmcyCode.HEARTBEAT_ERROR,
+            FaultCause.HEARTBEAT,
+            struct.pack("<BB3x", FaultCause.HEARTBEAT, node_id & 0xFF),
+            reason=f"heartbeat-of-node-{node_id}-lost",
+        )
+
+    def abort_connection(self, code: int, reason: str) -> None:
+        """The reaction of 0x6007 while torque is on (see the module docstring); ``code``: the
+        error code of a Fault, ``reason``: the SAFE-STATE reason."""
+        if not self.on:
+            return
+        option = self._option(_ABORT_CONNECTION, AbortConnectionOption.FAULT)
+        logger.info("node %d: abort connection (%s): 0x6007 = %d", self.node_id, reason, option)
+        if option == AbortConnectionOption.FAULT:
+            self._fault_tick = self._trial.next_tick if self._trial.state == TrialState.RUNNING else self._fault_tick
+            self.sm.fault()
+            self.error_register |= int(_COMM)
+            self.error_code = int(code)
+            self._reason = reason
+            self.update()
+        elif option == AbortConnectionOption.DISABLE_VOLTAGE:
+            self.sm.disable_voltage()
+            self._reason = reason
+            self.update()
+        elif option == AbortConnectionOption.QUICK_STOP:
+            if self.sm.state == _S.OPERATION_ENABLED:
+                self.sm.quick_stop()
+                self._reason = reason
+                self._begin_quick_stop(self._option(_QUICK_STOP_OPTION, QuickStopOption.QUICK_STOP_RAMP))
+                self.update()
+
+    def nmt_left_operational(self, command: int, reason: str) -> None:
+        """NMT STOP, ENTER PRE-OPERATIONAL from OPERATIONAL, or RESET COMMUNICATION (``command``:
+        its specifier, ``reason``: the SAFE-STATE reason) while torque is on and 0x6007 is not 0:
+        EMCY 0x8100 (none in STOPPED) with the cause and the command, 0x1001, 0x1003, an armed or
+        running trial ends in FAULT, then the abort connection reaction."""
+        if not self.on or self._option(_ABORT_CONNECTION, AbortConnectionOption.FAULT) == AbortConnectionOption.NO_ACTION:
+            return
+        self.error_register |= int(_COMM)
+        self._record(EmcyCode.COMMUNICATION, self.error_register, struct.pack("<BB3x", FaultCause.NMT_ABORT, int(command)))
+        if self._trial.state == TrialState.RUNNING:
+            self._fault_tick = self._trial.next_tick
+        if self._trial.playing:
+            self._trial.on_fault(FaultCause.NMT_ABORT)
+        self.abort_connection(EmcyCode.COMMUNICATION, reason)
+        self._fault_tick = -1
+
     def _log_safe_state(self, tick: int) -> None:
         """One SAFE-STATE record: torque is off now, and why."""
         nmt = NmtState(self._nmt_state())
-        if self.in_fault:
-            reason = self._fault_reason or f"fault-{FaultCause(self._trial.fault_cause).name.lower()}"
-        elif nmt != NmtState.OPERATIONAL:
-            reason = f"nmt-{nmt.name.lower()}"
+        if self._reason:
+            reason = self._reason
+        elif self.in_fault:
+            reason = f"fault-{FaultCause(self._trial.fault_cause).name.lower()}"
         else:
             reason = f"cia402-{self.sm.state.name.lower()}"
         logger.info(

@@ -188,7 +188,9 @@ def cmd_drive(args: argparse.Namespace) -> int:
     if not 1 <= args.node <= 127:
         raise ValueError(f"node id must be 1..127, got {args.node}")
     _role_logging()
-    lost = run_node(args.node, resolve_bus_config(tc.fieldbus), resolve_bus_config(tc.io))
+    lost = run_node(
+        args.node, resolve_bus_config(tc.fieldbus), resolve_bus_config(tc.io), param_dir=args.param_dir, lockstep=args.lockstep
+    )
     return EXIT_FAULT if lost else 0
 
 
@@ -215,7 +217,7 @@ def _role_logging() -> None:
 
 
 def cmd_hub(args: argparse.Namespace) -> int:
-    from bus.transports.hub_server import main as hub_main
+    from bus.transports.hub.cli import main as hub_main
 
     argv = [x for a in (args.listen or []) for x in ("--listen", a)]
     return int(hub_main(argv + (["--allow-remote"] if args.allow_remote else [])) or 0)
@@ -305,6 +307,12 @@ def build_parser() -> argparse.ArgumentParser:
         f"(default {DEFAULT_RT_PRIORITY}; 0 = normal)",
     )
     op.add_argument("--no-idle-poll", action="store_true", help="with --realtime: let idle CPUs halt")
+    op.add_argument(
+        "--param-dir",
+        default=None,
+        metavar="DIR",
+        help="folder where the drives keep the parameters a master saves with 0x1010 (default: in memory, one session)",
+    )
     _add_view_arg(op)
     op.set_defaults(func=cmd_robot)
 
@@ -334,6 +342,18 @@ def build_parser() -> argparse.ArgumentParser:
 
     dp = sub.add_parser("drive", help="one servo-drive node (firmware) on the bus")
     dp.add_argument("--node", type=int, required=True, help="CANopen node id (1-4 for the robot's joints)")
+    dp.add_argument(
+        "--param-dir",
+        default=None,
+        metavar="DIR",
+        help="folder of the parameters 0x1010 saves (node<id>.json; default: in memory)",
+    )
+    dp.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="a drive of a SYNC-stepped plant (ilcrig robot): a SYNC's TPDOs carry its control cycle, "
+        "the PDO timers count control periods (docs/robot.md)",
+    )
     _add_bus_args(dp)
     dp.set_defaults(func=cmd_drive)
 

@@ -116,7 +116,7 @@ class RigRun:
                 "install it as a plug-in (entry point group ilcrig.laws) or give module:Class"
             )
         try:
-            prepare(config)  # the launcher's preflight, here: bad input before anything starts
+            prepare(config, rig=True)  # the launcher's preflight, here: bad input before anything starts
         except (ValueError, FileNotFoundError) as exc:
             raise input_error(exc) from None
         self.out = Path(out) if out is not None else Path("runs") / time.strftime("api-rig-%Y%m%d-%H%M%S")
@@ -126,7 +126,7 @@ class RigRun:
             raise input_error(exc) from None
         toml_path = self.out / "experiment.toml"
         toml_path.write_text(config_toml(config), encoding="utf-8")
-        argv = [sys.executable, "-m", "host.cli", "run", "--config", str(toml_path), "--out", str(self.out), "--bus", bus]
+        argv = [sys.executable, "-P", "-m", "host.cli", "run", "--config", str(toml_path), "--out", str(self.out), "--bus", bus]
         if hub is not None:
             argv += ["--hub", hub]
         if realtime:
@@ -136,7 +136,10 @@ class RigRun:
         if io_bitrate is not None:
             argv += ["--io-bitrate", str(int(io_bitrate))]
         env = dict(os.environ)
-        paths = [p for p in sys.path if p and Path(p).is_dir()]
+        # the folder that holds the project's packages first: a plant.py, bus.py or host.py in the
+        # user's folders (on this process's sys.path) must not shadow them in the rig's processes
+        home = str(Path(__file__).resolve().parent.parent)
+        paths = [home] + [p for p in sys.path if p and p != home and Path(p).is_dir()]
         env["PYTHONPATH"] = os.pathsep.join(paths + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
         self.stream = stream
         self.timeout_s = timeout_s

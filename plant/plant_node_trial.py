@@ -203,9 +203,11 @@ class LockstepMaster:
         j = cob - _TORQUE_LO
         try:
             torque, wire, status = io_frames.torque_fields(msg)
-            if io_frames.tick_diff(wire, self._origin) < 0:
+            if io_frames.tick_diff(wire, self._origin + self.tick) < -self.tick:
                 # an answer to a tick of an earlier (e.g. aborted) trial arriving late: wire ticks
-                # keep counting across trials, so it cannot be mistaken for one of this trial
+                # keep counting across trials, so it is further back than this trial's tick 0 (the
+                # distance is taken from the current tick: a trial may be longer than the wire
+                # counter's half range of 2**15 ticks)
                 logger.debug("node %d: late torque frame of drive %d from an earlier trial ignored", self.node_id, j + 1)
                 return
             tick = self._trackers[j].accept(wire)

@@ -17,8 +17,9 @@ does); ``python scripts/docfigures.py --write`` regenerates the blocks in place 
 never rewritten: a changed digest is a decision to state in a closing note, then edit by hand).
 ``tests/test_docs_truth.py`` runs the check.
 
-Each command runs as a subprocess of the current interpreter (``python -m host.cli …``) in a
-temporary folder; results are cached per command within one run of this script.
+``ilcrig sim`` commands run through :func:`host.cli.main` in one worker process, ``ilcrig run`` as its
+own process tree, each with its ``--out`` in a temporary folder; results are cached per command
+within one run of this script.
 """
 
 from __future__ import annotations
@@ -57,16 +58,58 @@ def doc_files() -> list[Path]:
 # ----------------------------------------------------------------------------- running commands
 
 
+#: the worker that runs ``ilcrig sim`` commands one after another in one interpreter (the imports
+#: and numba's compilation are paid once): one JSON argv per line in, one exit code per line out
+_WORKER = r"""
+import contextlib, io, json, sys
+from host.cli import main
+for line in sys.stdin:
+    argv = json.loads(line)
+    err = io.StringIO()
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
+        try:
+            rc = main(argv)
+        except SystemExit as exc:
+            rc = exc.code if isinstance(exc.code, int) else 1
+    print(json.dumps([rc, err.getvalue()[-500:]]), flush=True)
+"""
+
+
 class Runner:
-    """Runs ``ilcrig`` commands once each and returns their summaries."""
+    """Runs ``ilcrig`` commands once each and returns their summaries.
+
+    ``ilcrig sim`` commands go through :func:`host.cli.main` in one long-lived worker process (the
+    same code path as the console script); other commands (``ilcrig run``) run as their own
+    process tree, as a user would start them.
+    """
 
     def __init__(self) -> None:
         self._tmp = tempfile.TemporaryDirectory(prefix="ilcrig-docfigures-")
         self._cache: dict[tuple[str, ...], dict[str, Any]] = {}
+        self._folders: dict[tuple[str, ...], Path] = {}
         self._n = 0
+        self._worker: subprocess.Popen[str] | None = None
 
     def close(self) -> None:
+        if self._worker is not None:
+            assert self._worker.stdin is not None
+            self._worker.stdin.close()
+            self._worker.wait(timeout=60)
         self._tmp.cleanup()
+
+    def _run_in_worker(self, argv: list[str]) -> tuple[int, str]:
+        if self._worker is None:
+            self._worker = subprocess.Popen(
+                [sys.executable, "-P", "-c", _WORKER], cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+            )
+        assert self._worker.stdin is not None and self._worker.stdout is not None
+        self._worker.stdin.write(json.dumps(argv) + "\n")
+        self._worker.stdin.flush()
+        line = self._worker.stdout.readline()
+        if not line:
+            raise RuntimeError(f"the docfigures worker ended while running {argv}")
+        rc, err = json.loads(line)
+        return int(rc), str(err)
 
     def summary(self, command: str, *args: str) -> dict[str, Any]:
         """``summary.json`` of ``ilcrig COMMAND ARGS --out TMP`` (which must exit 0)."""
@@ -74,12 +117,30 @@ class Runner:
         if key not in self._cache:
             self._n += 1
             out = Path(self._tmp.name) / f"run{self._n}"
-            argv = [sys.executable, "-m", "host.cli", command, *args, "--out", str(out)]
-            proc = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=900)
-            if proc.returncode != 0:
-                raise RuntimeError(f"{' '.join(argv[2:])} exited {proc.returncode}: {proc.stderr.strip()[-500:]}")
+            argv = [command, *args, "--out", str(out)]
+            if command == "sim":
+                rc, err = self._run_in_worker(argv)
+            else:
+                proc = subprocess.run(
+                    [sys.executable, "-P", "-m", "host.cli", *argv], cwd=ROOT, capture_output=True, text=True, timeout=900
+                )
+                rc, err = proc.returncode, proc.stderr[-500:]
+            if rc != 0:
+                raise RuntimeError(f"ilcrig {' '.join(argv)} exited {rc}: {err.strip()}")
             self._cache[key] = json.loads((out / "summary.json").read_text())
+            self._folders[key] = out
         return self._cache[key]
+
+    def folder(self, command: str, *args: str) -> Path:
+        """The run folder of ``ilcrig COMMAND ARGS`` (run first if it has not been)."""
+        self.summary(command, *args)
+        return self._folders[(command, *args)]
+
+    def config_file(self, name: str, text: str) -> str:
+        """A TOML config file with ``text`` in the temporary folder; its path."""
+        path = Path(self._tmp.name) / name
+        path.write_text(text)
+        return str(path)
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -138,7 +199,7 @@ def gen_transports(run: Runner) -> str:
     return "`ilcrig sim --ff-transport table|pdo` (default experiment, 10 trials):\n\n" + "\n".join(rows) + "\n"
 
 
-LAW_ORDER = ("pd-ilc", "pd-ilc-q", "pd-ol", "p-ol", "d-ilc", "q-ilc", "no-ilc", "no-ilc-id")
+LAW_ORDER = ("pd-ilc", "pd-ilc-q", "pd-ol", "p-ol", "d-ilc", "q-ilc", "no-ilc", "no-ilc-id", "cno-ilc", "adjoint-ilc")
 
 
 def gen_laws(run: Runner) -> str:
@@ -152,9 +213,12 @@ def gen_laws(run: Runner) -> str:
         c = s["convergence_check"]
         rmse = [_rmse_deg(s, k) for k in range(len(s["iterations"]))]
         k_s = settling_trial(rmse)
-        bounded = "bounded" if c["long_bounded"] else "**grows again**"
+        if c.get("checked") is False:
+            verdict = "not checked (no linear map)"
+        else:
+            verdict = f"{c['rho_max']:.4f}, " + ("bounded" if c["long_bounded"] else "**grows again**")
         rows.append(
-            f"| `{law}` | {c['rho_max']:.4f}, {bounded} | {_fmt(max(rmse[0]))} → {_fmt(max(rmse[-1]))} | "
+            f"| `{law}` | {verdict} | {_fmt(max(rmse[0]))} → {_fmt(max(rmse[-1]))} | "
             f"{k_s if k_s is not None else '—'} | `{s['trace_sha256'][:16]}…` |"
         )
     return "`ilcrig sim --law LAW` (path 1, 0.25 s, `ruckig`, 10 trials):\n\n" + "\n".join(rows) + "\n"
@@ -253,6 +317,42 @@ def gen_bus_time(run: Runner) -> str:
     )
 
 
+def gen_torque_limit(run: Runner) -> str:
+    """Where the joint torque limit binds (0.125 s cycles): unconstrained laws against ``cno-ilc``."""
+    import numpy as np
+
+    args = ("--cycle", "0.125", "--profile", "poly4567")
+    rows = [
+        "| law | peak \\|u\\| of the last trial's feed-forward, N·m | peak applied torque, N·m "
+        "| final RMSE, deg (max over joints) |",
+        "|---|---|---|---|",
+    ]
+    for law in ("no-ilc-id", "pd-ilc", "cno-ilc"):
+        s = run.summary("sim", *args, "--law", law)
+        last = len(s["iterations"]) - 1
+        with np.load(run.folder("sim", *args, "--law", law) / "trials" / f"trial-{last:05d}.npz") as z:
+            u_peak = float(np.max(np.abs(z["feedforward_nm"])))
+        applied = max(float(x) for x in s["iterations"][last]["peak_torque_nm"])
+        rows.append(f"| `{law}` | {u_peak:.1f} | {applied:.1f} | {_fmt(max(_rmse_deg(s, last)))} |")
+    return "`ilcrig sim --cycle 0.125 --profile poly4567 --law LAW` (10 trials):\n\n" + "\n".join(rows) + "\n"
+
+
+def gen_no_weight(run: Runner) -> str:
+    """The norm-optimal weight against the cycle time (``no-ilc``, 4-5-6-7 law, path 1)."""
+    rows = ["| weight w, cycle | mean RMSE k = 3 | k = 5 | k = 9 | worst MaxE at k = 9 |", "|---|---|---|---|---|"]
+    small = run.config_file("no_weight_1e-9.toml", "[gains]\nno_weight = 1e-9\n")
+    for label, extra in (("1e-9", ("--config", small)), ("1e-5 (default)", ())):
+        for cycle in ("0.5", "0.25"):
+            s = run.summary("sim", "--law", "no-ilc", "--profile", "poly4567", "--cycle", cycle, *extra)
+            mean = [sum(_rmse_deg(s, k)) / 4 for k in (3, 5, 9)]
+            maxe = max(float(x) for x in s["iterations"][9]["max_abs_deg"])
+            rows.append(f"| {label}, {cycle} s | " + " | ".join(_fmt(x) for x in mean) + f" | {_fmt(maxe)} |")
+    return (
+        "`ilcrig sim --law no-ilc --profile poly4567 --cycle C` (path 1, 10 trials; w = 1e-9 through a config file "
+        "with `[gains] no_weight = 1e-9`), RMSE and MaxE in degrees:\n\n" + "\n".join(rows) + "\n"
+    )
+
+
 @dataclass(frozen=True)
 class Generator:
     fn: Callable[[Runner], str]
@@ -266,6 +366,8 @@ GENERATORS: dict[str, Generator] = {
     "laws": Generator(gen_laws, 90),
     "bus-fit": Generator(gen_bus_fit, 2),
     "bus-time": Generator(gen_bus_time, 30),
+    "torque-limit": Generator(gen_torque_limit, 20),
+    "no-weight": Generator(gen_no_weight, 15),
 }
 
 

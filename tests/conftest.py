@@ -1,21 +1,34 @@
 """pytest hooks shared by the test suite.
 
-This file owns one rule (issue 5): under ``CI=true`` a *skipped* ``vcan`` test is a failure when
+This file owns two rules. Under ``CI=true`` a *skipped* ``vcan`` test is a failure when
 the vcan suite was asked for (``-m vcan``, as ``scripts/vcan-tests`` runs it, or
 ``ILCRIG_REQUIRE_VCAN=1``): in CI the suite must really run on SocketCAN, not quietly skip.
 The ordinary ``pytest`` run (no ``-m vcan``) keeps skipping vcan tests on kernels without vcan.
+And the processes the tests start take SIGINT (Ctrl-C) as Python's KeyboardInterrupt however the
+test runner was started (:func:`pytest_configure`). It also holds the ``hub_data_plane`` fixture.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import signal
 
 import pytest
 
 logger = logging.getLogger(__name__)
 
 _TRUE = ("1", "true", "yes")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """A runner started with SIGINT ignored (pytest in the background of a non-interactive shell)
+    would pass that on to every process the tests start, since an ignored signal stays ignored
+    across exec, and a tool the tests stop with Ctrl-C (``can.bridge``, ``can.logger``) would never
+    stop. Python's own handler instead: a handled signal is back to its default across exec, where
+    Python installs its KeyboardInterrupt again."""
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def _vcan_required(config: pytest.Config) -> bool:
@@ -39,10 +52,10 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo):  # type
 def hub_data_plane(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
     """Run a hub test once with each data plane of the hub: the C core (skipped where it is not
     built) and the pure-Python path. Hubs started by the test, in-process or as child processes,
-    take it from the environment (bus.transports.hub_server.HUB_CORE_ENV)."""
-    from bus.transports import hub_server
+    take it from the environment (bus.transports.hub.core.HUB_CORE_ENV)."""
+    from bus.transports.hub.core import HUB_CORE_ENV, core_built
 
-    if request.param == "c" and hub_server._hubcore is None:
+    if request.param == "c" and not core_built():
         pytest.skip("the hub's C core is not built here (no C compiler at install)")
-    monkeypatch.setenv(hub_server.HUB_CORE_ENV, request.param)
+    monkeypatch.setenv(HUB_CORE_ENV, request.param)
     return str(request.param)

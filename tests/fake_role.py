@@ -25,7 +25,7 @@ import time
 
 
 def wait_drives(hub: str, n: int, piddir: str | None) -> None:
-    from bus.transports.hub_server import query_hub_stats
+    from bus.transports.hub.stats import query_hub_stats
 
     deadline = time.monotonic() + 30
     while True:

@@ -1,4 +1,4 @@
-"""Test helper: a hub (:class:`bus.transports.hub_server.HubServer`) serving in a thread of the test
+"""Test helper: a hub (:class:`bus.transports.hub.server.HubServer`) serving in a thread of the test
 process, so a test can read its state; stopped and joined on the way out."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-from bus.transports.hub_server import HubServer
+from bus.transports.hub.server import HubServer
 
 
 @contextmanager

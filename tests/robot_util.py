@@ -74,7 +74,8 @@ def plant_factory(ts_s: float, substeps: int) -> Plant:
 
 
 class VirtualRobot:
-    """The robot's nodes as threads: the plant node (robot mode ``mode``) and drives 1..4.
+    """The robot's nodes as threads: the plant node (robot mode ``mode``) and drives 1..4 (drives of
+    a SYNC-stepped plant, as ``ilcrig robot`` starts them: ``DriveNode(lockstep=True)``).
 
     :param trace_path: the plant's period trace (None: none).
     :param tick_timeout_s: the plant's longest wait for a period's torques, s.
@@ -108,7 +109,7 @@ class VirtualRobot:
                 fb_d = can.Bus(interface="virtual", channel=self.fb_channel)
                 io_d = can.Bus(interface="virtual", channel=self.io_channel)
                 self.drives.append(drive)
-                self.threads.append(_Thread(DriveNode(drive, fb_d, io_d), [fb_d, io_d]))
+                self.threads.append(_Thread(DriveNode(drive, fb_d, io_d, lockstep=True), [fb_d, io_d]))
         except BaseException:
             self.close()
             raise

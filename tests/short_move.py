@@ -37,5 +37,6 @@ def configure_drives(drives: list[Any], q: np.ndarray, qd: np.ndarray) -> None:
     counts = np.rint(q / units.RAD_PER_COUNT).astype(np.int64)
     for j, d in enumerate(drives):
         d.configure(kp_nm_per_rad=2400.0, kd_nms_per_rad=48.0, torque_limit_nm=200.0, following_error_rad=math.radians(10.0))
+        d.set_mode(-1)  # table playback (the drive boots in profile position)
         d.load_reference(counts[:, j] * units.RAD_PER_COUNT, qd[:, j])
         d.enable()

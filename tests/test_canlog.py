@@ -111,8 +111,8 @@ def test_python_can_logger_records_a_hub_channel(tmp_path: Path) -> None:
     import subprocess
     import sys
 
-    from bus.transports.hub_client import HubBus
-    from bus.transports.hub_server import start_hub
+    from bus.transports.hub.client import HubBus
+    from bus.transports.hub.process import start_hub
 
     path = tmp_path / "io.log"
     with start_hub() as hub:
@@ -145,7 +145,7 @@ def test_python_can_logger_records_a_hub_channel(tmp_path: Path) -> None:
                     proc.wait()
             proc.stdout.close()
     back = list(read_log(path))
-    # can.logger writes msg.channel as it is: the full hub channel string (bus.transports.hub_client)
+    # can.logger writes msg.channel as it is: the full hub channel string (bus.transports.hub.client)
     assert [(m.arbitration_id, bytes(m.data), m.channel) for m in back] == [
         (m.arbitration_id, bytes(m.data), channel) for m in sent
     ]

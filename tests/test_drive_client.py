@@ -49,7 +49,9 @@ def reference(n: int, amp: float = 0.2) -> tuple[np.ndarray, np.ndarray, np.ndar
 def make(node: int = 2) -> tuple[Drive, DriveClient]:
     drive = Drive(node)
     drive.nmt_command(0x01)
-    return drive, DriveClient(drive, node)
+    client = DriveClient(drive, node)
+    client.set_mode(-1)  # table playback (the drive boots in profile position)
+    return drive, client
 
 
 def run(drive: Drive, plant: DoubleIntegrator, n_ticks: int) -> list[int]:

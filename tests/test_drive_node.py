@@ -450,3 +450,148 @@ def test_run_node_process_entry_with_stop_event() -> None:
             stop.set()
             thread.join(timeout=2.0)
         assert not thread.is_alive()
+
+
+def test_emcy_cob_id_valid_bit_and_inhibit_time_and_rtr_on_the_node_clock() -> None:
+    """0x1014 and 0x1015 as the node runtime applies them, stepped on a manual clock: the EMCY goes
+    out on the COB-ID of 0x1014 (none while its bit 31 is set), at most one per inhibit time (the
+    next waits, then goes out exactly when the time ends); a remote frame on a TPDO whose bit 30
+    is 0 is answered with the TPDO."""
+    k = next(_counter)
+    fb_node = can.Bus(interface="virtual", channel=f"emcy-fb-{k}")
+    host = can.Bus(interface="virtual", channel=f"emcy-fb-{k}")
+    io_node = can.Bus(interface="virtual", channel=f"emcy-io-{k}")
+    clock = ManualClock(50.0)
+    drive = Drive(NODE)
+    for index, sub, value in ((0x1A00, 0, 0), (0x1A00, 1, 0x60410010), (0x1A00, 0, 1), (0x1800, 1, 0x180 + NODE)):
+        drive.write_object(index, sub, value.to_bytes(4 if sub else 1, "little"))
+    node = DriveNode(drive, fb_node, io_node, clock=clock)
+
+    def sent() -> list[tuple[int, bytes]]:
+        out = []
+        while (msg := host.recv(timeout=0)) is not None:
+            out.append((msg.arbitration_id, bytes(msg.data)))
+        return out
+
+    def step_at(t: float) -> list[tuple[int, bytes]]:
+        clock.now = t
+        node.step(0.0)
+        return sent()
+
+    def sdo_write(index: int, sub: int, data: bytes, t: float) -> None:
+        cs = {1: 0x2F, 2: 0x2B, 4: 0x23}[len(data)]
+        request = bytes([cs, index & 0xFF, index >> 8, sub]) + data.ljust(4, b"\0")
+        host.send(can.Message(arbitration_id=0x600 + NODE, data=request, is_extended_id=False))
+        assert step_at(t) == [(0x580 + NODE, bytes([0x60, index & 0xFF, index >> 8, sub, 0, 0, 0, 0]))]
+
+    emcy = (0x80 + NODE, bytes.fromhex("10 81 11 00 00 00 00 00"))
+    try:
+        node.start()
+        sent()
+        drive.power.warning(0x8110, bytes(5))
+        drive.power.warning(0x8110, bytes(5))
+        assert step_at(50.0) == [emcy, emcy]  # no inhibit time: both at once
+        sdo_write(0x1015, 0, struct.pack("<H", 100), 51.0)  # 10 ms
+        drive.power.warning(0x8110, bytes(5))
+        drive.power.warning(0x8110, bytes(5))
+        assert step_at(52.0) == [emcy]
+        assert step_at(52.0099) == []
+        assert step_at(52.010) == [emcy]
+        sdo_write(0x1014, 0, struct.pack("<I", 0x8000_0000 | (0x80 + NODE)), 53.0)
+        drive.power.warning(0x8110, bytes(5))
+        assert step_at(54.0) == []  # not valid: not sent
+        sdo_write(0x1014, 0, struct.pack("<I", 0x8000_00F0), 55.0)
+        sdo_write(0x1014, 0, struct.pack("<I", 0x0F0), 56.0)
+        drive.power.warning(0x8110, bytes(5))
+        assert step_at(57.0) == [(0x0F0, emcy[1])]
+        host.send(can.Message(arbitration_id=0, data=bytes([0x01, NODE]), is_extended_id=False))
+        step_at(58.0)
+        sent()  # the event TPDO of the start
+        host.send(can.Message(arbitration_id=0x180 + NODE, is_remote_frame=True, dlc=2, is_extended_id=False))
+        assert step_at(59.0) == [(0x180 + NODE, struct.pack("<H", 0x0240))]
+    finally:
+        for bus in (fb_node, host, io_node):
+            bus.shutdown()
+
+
+def test_lockstep_drive_of_a_sync_stepped_plant() -> None:
+    """``DriveNode(lockstep=True)`` (``ilcrig drive --lockstep``): the heartbeat and the SYNC watchdog
+    run on the node's clock (here a manual one), so they go on while no SYNC comes; the event timer
+    of a TPDO counts the control periods of the io ticks; a synchronous TPDO carries the io tick
+    of its SYNC, after the torque frame."""
+    k = next(_counter)
+    fb_node = can.Bus(interface="virtual", channel=f"ls-fb-{k}")
+    host = can.Bus(interface="virtual", channel=f"ls-fb-{k}")
+    io_node = can.Bus(interface="virtual", channel=f"ls-io-{k}")
+    plant = can.Bus(interface="virtual", channel=f"ls-io-{k}")
+    now = [100.0]
+    drive = Drive(NODE)
+    node = DriveNode(drive, fb_node, io_node, clock=lambda: now[0], lockstep=True)
+
+    def frames() -> list[tuple[int, bytes]]:
+        out = []
+        while (msg := host.recv(timeout=0)) is not None:
+            out.append((msg.arbitration_id, bytes(msg.data)))
+        return out
+
+    def sdo(index: int, sub: int, fmt: str, value: int) -> None:
+        data = struct.pack("<" + fmt, value).ljust(4, b"\0")
+        size = {1: 0x2F, 2: 0x2B, 4: 0x23}[struct.calcsize(fmt)]
+        host.send(
+            can.Message(
+                arbitration_id=0x600 + NODE, data=bytes([size]) + struct.pack("<HB", index, sub) + data, is_extended_id=False
+            )
+        )
+        node.step(0.0)
+
+    def sync_and_tick(count: int) -> None:
+        host.send(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False))
+        node.step(0.0)
+        plant.send(io_frames.encode_encoder(NODE - 1, drive.time_us // 1000, count))
+        node.step(0.0)
+        assert plant.recv(timeout=1.0) is not None  # the torque frame
+
+    try:
+        node.start()
+        sdo(0x1017, 0, "H", 5)  # heartbeat 5 ms
+        sdo(0x1800, 1, "I", 0x8000_0180 + NODE)  # TPDO1: position actual, synchronous
+        sdo(0x1A00, 0, "B", 0)
+        sdo(0x1A00, 1, "I", 0x60640020)
+        sdo(0x1A00, 0, "B", 1)
+        sdo(0x1800, 2, "B", 1)
+        sdo(0x1800, 1, "I", 0x180 + NODE)
+        sdo(0x1801, 1, "I", 0x8000_0280 + NODE)  # TPDO2: statusword, on change, event timer 5 ms
+        sdo(0x1A01, 0, "B", 0)
+        sdo(0x1A01, 1, "I", 0x60410010)
+        sdo(0x1A01, 0, "B", 1)
+        sdo(0x1801, 2, "B", 255)
+        sdo(0x1801, 5, "H", 5)
+        sdo(0x1801, 1, "I", 0x280 + NODE)
+        sdo(0x1006, 0, "I", 10_000)  # SYNC every 10 ms: lost after 15 ms
+        host.send(can.Message(arbitration_id=0, data=bytes([0x01, NODE]), is_extended_id=False))
+        node.step(0.0)
+        frames()
+        now[0] += 0.005
+        node.step(0.0)
+        assert [cob for cob, _ in frames()] == [0x700 + NODE]  # heartbeat on the node's clock, no event TPDO
+        seen = []
+        for count in range(1000, 1005):
+            sync_and_tick(count)
+            seen.append(frames())
+        # each SYNC's TPDO1 carries the count of its own tick; TPDO2's event timer at the 5th period
+        assert [[(cob, data) for cob, data in f if cob != 0x280 + NODE] for f in seen] == [
+            [(0x180 + NODE, struct.pack("<i", c))] for c in range(1000, 1005)
+        ]
+        assert [sum(cob == 0x280 + NODE for cob, _ in f) for f in seen] == [0, 0, 0, 0, 1]
+        assert drive.lockstep_time_s() == 0.005
+        now[0] += 0.0149
+        node.step(0.0)
+        assert all(cob == 0x700 + NODE for cob, _ in frames())  # heartbeats only: the SYNC is not late yet
+        now[0] += 0.0002
+        node.step(0.0)
+        emcy = [data for cob, data in frames() if cob == 0x80 + NODE]
+        assert emcy and emcy[0][:2] == struct.pack("<H", 0x8100)  # SYNC lost, on the node's clock
+        assert drive.lockstep_time_s() == 0.005  # no io tick: the lockstep time stood still
+    finally:
+        for bus in (fb_node, host, io_node, plant):
+            bus.shutdown()

@@ -50,7 +50,10 @@ def abort_code(fn, *args) -> int:
 
 
 def loaded_drive(n: int = 5, kp: float = 1000.0, kd: float = 0.0, ff: int = 7) -> Drive:
+    """A drive in table playback (-1, set explicitly: the default mode is profile position) with
+    its three tables loaded."""
     d = Drive(NODE)
+    d.write_object(Obj.MODES_OF_OPERATION, 0, struct.pack("<b", -1))
     d.write_object(Obj.TABLE, TableSub.LENGTH, u32(n))
     d.write_object(Obj.REF_POSITION_TABLE, 0, pack_int32(np.arange(n) * 10))
     d.write_object(Obj.REF_VELOCITY_TABLE, 0, pack_int32(np.zeros(n, dtype=int)))
@@ -122,7 +125,7 @@ def test_abort_codes() -> None:
     assert abort_code(d.write_object, 0x2110, GainsSub.KP, i32(-1)) == AbortCode.VALUE_TOO_LOW == 0x06090032
     assert abort_code(d.write_object, 0x2110, GainsSub.VEL_FILTER, u16(40000)) == AbortCode.VALUE_TOO_HIGH
     assert abort_code(d.write_object, 0x2110, GainsSub.VEL_FILTER, u16(0)) == AbortCode.VALUE_TOO_LOW
-    assert abort_code(d.write_object, 0x6060, 0, b"\x09") == AbortCode.VALUE_RANGE == 0x06090030  # CSV: not supported
+    assert abort_code(d.write_object, 0x6060, 0, b"\x07") == AbortCode.VALUE_RANGE == 0x06090030  # interpolated: not supported
     assert abort_code(d.write_object, 0x2300, 0, u32(50)) == AbortCode.VALUE_TOO_LOW
     # tables need a length first, then exactly 4·N bytes
     assert abort_code(d.write_object, 0x2100, 0, i32(1)) == AbortCode.DEVICE_STATE
@@ -139,7 +142,7 @@ def test_read_write_round_trip_and_defaults() -> None:
     assert rd_u(d, 0x1014) == 0x80 + NODE
     assert rd_u(d, 0x1018, 4) == NODE
     assert d.read_object(0x1008, 0) == b"ilcrig drive"
-    assert rd_i(d, 0x6060) == -1 and rd_i(d, 0x6061) == -1
+    assert rd_i(d, 0x6060) == 1 and rd_i(d, 0x6061) == 1  # profile position: a mode every CiA 402 master knows
     assert rd_u(d, 0x6076) == 88_200 and rd_u(d, 0x6072) == 3000
     assert rd_u(d, 0x2300) == 1000
     assert rd_u(d, 0x60C2, 1) == 1 and rd_i(d, 0x60C2, 2) == -3
@@ -176,9 +179,9 @@ def test_nmt_states_and_resets() -> None:
         d.nmt_command(0x42)
 
 
-def test_torque_only_when_operational_and_enabled() -> None:
+def test_torque_only_when_enabled_and_nmt_start_brings_none_back() -> None:
     d = loaded_drive()
-    assert d.io_tick(0, -100) == 0  # pre-operational, switch on disabled
+    assert d.io_tick(0, -100) == 0  # switch on disabled
     d.nmt_command(0x01)
     assert d.io_tick(1, -100) == 0  # not enabled
     assert rd_i(d, 0x6064) == -100  # position actual follows the encoder anyway
@@ -189,8 +192,10 @@ def test_torque_only_when_operational_and_enabled() -> None:
     assert d.io_tick(2, -100) == 0
     kp_q = fp.kp_to_fixed(1000)
     assert d.io_tick(3, -110) == fp.rshift_round(kp_q * 10, 16)
-    d.nmt_command(0x80)
-    assert d.io_tick(4, -110) == 0
+    d.nmt_command(0x80)  # leaving OPERATIONAL: abort connection, 0x6007 = 1 → Fault
+    assert d.io_tick(4, -110) == 0 and rd_u(d, 0x6041) == 0x0208
+    d.nmt_command(0x01)  # NMT START: no controlword, no torque
+    assert d.io_tick(5, -110) == 0 and rd_u(d, 0x6041) == 0x0208
 
 
 def run_trial(d: Drive, counts: list[int]) -> list[int]:

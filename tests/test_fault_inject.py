@@ -13,7 +13,8 @@ import pytest
 
 from bus import io_frames
 from bus.transports.fault_inject import FaultSpecError, FrameFaultInjector, parse_spec
-from bus.transports.hub_wire import FLAG_ERR, encode_record
+from bus.transports.hub.records import encode_record
+from bus.transports.hub.wire import FLAG_ERR
 
 
 def test_parse_the_forms() -> None:

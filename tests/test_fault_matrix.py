@@ -1,4 +1,4 @@
-"""The fault matrix (issue 9): every fault kind injected into a real multi-process ``ilcrig run``
+"""The fault matrix: every fault kind injected into a real multi-process ``ilcrig run``
 (hub, plant, four drives, host) with ``--inject``, during trial 1 of 2 (short trials), ends the same
 way — exit code 3, one terminal line ``ilcrig: fault: …``, ``summary.json`` with the completed
 trial (its digest equal to ``ilcrig sim --iterations 1``), ``completed: false`` and a ``faults``
@@ -23,7 +23,7 @@ import pytest
 from fault_harness import Outcome, kill_session, recorded_trials, run_rig, sim_digest
 from robot_util import robot_fault_run
 
-from bus.transports.hub_wire import BULK_HOLD_S
+from bus.transports.hub.wire import BULK_HOLD_S
 
 pytestmark = [pytest.mark.faultmatrix, pytest.mark.multiprocess, pytest.mark.slow]
 

@@ -23,7 +23,7 @@ from test_hub_extras import wait_until
 
 from bus.cia301.nmt import NmtCommand
 from bus.objects import DRIVE_EDS_PATH
-from bus.transports.hub_server import HubServer
+from bus.transports.hub.server import HubServer
 from firmware_model.drive import Drive
 from firmware_model.drive_node import DriveNode
 

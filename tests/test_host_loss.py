@@ -1,4 +1,4 @@
-"""Host loss is a fault on the bus (issue 9): the nodes consume the host's heartbeat (0x1016,
+"""Host loss is a fault on the bus: the nodes consume the host's heartbeat (0x1016,
 CiA 301) and react — the drive with torque off, CiA 402 Fault and EMCY 0x8130, the plant node by
 ending a running trial (HOST_LOST, EMCY 0x8130).  Settings that shape the motion (gains, the
 following-error window, the max torque) are refused while a trial is armed or running, and the max
@@ -63,6 +63,7 @@ def enabled_drive(node_id: int = 2) -> Drive:
 
 def armed_drive(n: int = 5) -> Drive:
     d = enabled_drive()
+    d.write_object(Obj.MODES_OF_OPERATION, 0, b"\xff")  # table playback (-1)
     d.write_object(Obj.TABLE, TableSub.LENGTH, u32(n))
     for index in (Obj.REF_POSITION_TABLE, Obj.REF_VELOCITY_TABLE, Obj.FEEDFORWARD_TABLE):
         d.write_object(index, 0, bytes(4 * n))
@@ -117,10 +118,12 @@ def test_drive_heartbeat_loss_is_a_fault_with_emcy_0x8130(caplog: pytest.LogCapt
 
 def test_drive_heartbeat_loss_in_nmt_stopped_is_only_logged() -> None:
     d = enabled_drive()
-    d.nmt_command(NmtCommand.STOP)
-    d.heartbeat_lost(HOST_NODE_ID)
-    assert d.cia402_state == Cia402State.OPERATION_ENABLED  # the master stopped it on purpose
-    assert d.pop_emcy() == []
+    d.nmt_command(NmtCommand.STOP)  # an abort connection: 0x6007 = 1 (default) faults the drive
+    assert d.cia402_state == Cia402State.FAULT and not d.torque_enabled
+    errors = d.read_object(0x1003, 0)
+    d.heartbeat_lost(HOST_NODE_ID)  # the master stopped it on purpose: nothing more happens
+    assert d.read_object(0x1003, 0) == errors
+    assert d.pop_emcy() == []  # no EMCY in NMT STOPPED
 
 
 def test_drive_bus_loss_removes_torque() -> None:

@@ -1,4 +1,4 @@
-"""bus.transports.hub_*: exact forwarding between processes, no echo, entry point, loopback-only,
+"""bus.transports.hub: exact forwarding between processes, no echo, entry point, loopback-only,
 disconnects, stats, filters, and that the hub child process is always reaped."""
 
 from __future__ import annotations
@@ -22,17 +22,18 @@ import can
 import pytest
 
 from bus.busload import frame_bits, frame_bits_worst_case
-from bus.transports.hub_client import HubBus
-from bus.transports.hub_server import HubHandle, HubServer, query_hub_stats, start_hub
-from bus.transports.hub_wire import (
+from bus.transports.hub.addresses import parse_address, parse_channel
+from bus.transports.hub.client import HubBus
+from bus.transports.hub.process import HubHandle, start_hub
+from bus.transports.hub.records import encode_record
+from bus.transports.hub.server import HubServer
+from bus.transports.hub.stats import query_hub_stats
+from bus.transports.hub.wire import (
     PROTOCOL_VERSION,
     HubAddressError,
     HubAddressInUseError,
     HubStartError,
     NonLoopbackAddressError,
-    encode_record,
-    parse_address,
-    parse_channel,
 )
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.usefixtures("hub_data_plane")]
@@ -277,7 +278,7 @@ def test_non_loopback_listen_refused(addr: str) -> None:
 
 def test_cli_refuses_non_loopback() -> None:
     res = subprocess.run(
-        [sys.executable, "-m", "bus.transports.hub_server", "--listen", "tcp:0.0.0.0:0"],
+        [sys.executable, "-m", "bus.transports.hub.cli", "--listen", "tcp:0.0.0.0:0"],
         capture_output=True,
         text=True,
         timeout=30,
@@ -350,7 +351,7 @@ def test_hub_exits_when_parent_dies(tmp_path: Path) -> None:
         textwrap.dedent(
             """
             import signal
-            from bus.transports.hub_server import start_hub
+            from bus.transports.hub.process import start_hub
             h = start_hub()
             print(h.pid, flush=True)
             signal.pause()  # until the test's SIGKILL
@@ -406,7 +407,7 @@ def test_hub_refuses_bad_hello_and_keeps_serving() -> None:
             assert m is not None and bytes(m.data) == b"ok"
 
 
-# -- issue 13: a first-class python-can interface ------------------------------------------------
+# -- a first-class python-can interface ------------------------------------------------
 
 
 def _stamping_run(hub: HubHandle, bus_name: str) -> tuple[list[float], list[float], list[float], float]:

@@ -16,9 +16,11 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from bus.busload import bits_lookup
-from bus.transports.hub_client import HubBus
-from bus.transports.hub_server import HubServer, arbitration_key, bit_time_ns, parse_bus_time, start_hub
-from bus.transports.hub_wire import FLAG_EXT, FLAG_FD, FLAG_RTR
+from bus.transports.hub.bus_time import arbitration_key, bit_time_ns, parse_bus_time
+from bus.transports.hub.client import HubBus
+from bus.transports.hub.process import start_hub
+from bus.transports.hub.server import HubServer
+from bus.transports.hub.wire import FLAG_EXT, FLAG_FD, FLAG_RTR
 
 pytestmark = pytest.mark.multiprocess
 
@@ -127,7 +129,8 @@ def test_buses_without_a_rate_are_not_timed_and_echo_comes_when_the_frame_is_sen
 def small_queue_hub(tmp_path: Path) -> Iterator[str]:
     """A hub in a thread of this process with a transmit queue of 8 frames per sender."""
     server = HubServer([f"unix:{tmp_path}/hub.sock"], bus_time={"b": 1_000_000})
-    server.BUS_TIME_QUEUE = 8
+    assert server.bus_time is not None
+    server.bus_time.queue_frames = 8
     thread = threading.Thread(target=server.serve_forever, daemon=True)
     thread.start()
     try:

@@ -1,4 +1,4 @@
-"""The hub's two data planes (bus/transports/_hubcore.c and the pure-Python path of hub_server.py):
+"""The hub's two data planes (bus/transports/hub/_hubcore.c and the pure-Python path, bus/transports/hub/routing.py):
 which one a hub uses, and the byte-level behaviour both must share — records split over reads,
 records sent in the handshake's read, filter records, an unknown record kind refused, a member that
 stops reading dropped and counted, a member leaving in the middle. Every test runs on both planes
@@ -16,17 +16,17 @@ import pytest
 from hub_util import serving
 from test_hub_extras import wait_until
 
-from bus.transports import hub_server
 from bus.transports.fault_inject import FrameFaultInjector
-from bus.transports.hub_client import HubBus
-from bus.transports.hub_server import HUB_CORE_ENV, HubServer
-from bus.transports.hub_wire import (
+from bus.transports.hub.client import HubBus
+from bus.transports.hub.core import HUB_CORE_ENV, core_built
+from bus.transports.hub.records import encode_record
+from bus.transports.hub.server import HubServer
+from bus.transports.hub.wire import (
     BITRATES,
     FILTER_ENTRY,
     HEADER,
     KIND_FILTERS,
     ROLE_MEMBER,
-    encode_record,
     hello,
     read_reply,
     recv_exact,
@@ -70,11 +70,11 @@ def test_the_c_core_is_built_where_a_compiler_is() -> None:
     silently lost."""
     if shutil.which("cc") is None and shutil.which("gcc") is None:
         pytest.skip("no C compiler here: the hub uses its Python path")
-    assert hub_server._hubcore is not None
+    assert core_built()
 
 
 def test_which_plane_a_hub_uses(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    if hub_server._hubcore is None:
+    if not core_built():
         pytest.skip("the C core is not built here")
     monkeypatch.delenv(HUB_CORE_ENV, raising=False)
     cases = [({}, "c"), ({"bus_time": {"io": 1_000_000}}, "python"), ({"frame_hook": FrameFaultInjector([], None)}, "python")]

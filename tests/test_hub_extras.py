@@ -31,8 +31,8 @@ from bus.bus_features import (
 )
 from bus.busload import BusLoadCounter
 from bus.transports.config import hub_transport
-from bus.transports.hub_client import HubBus
-from bus.transports.hub_server import start_hub
+from bus.transports.hub.client import HubBus
+from bus.transports.hub.process import start_hub
 
 pytestmark = pytest.mark.usefixtures("hub_data_plane")
 

@@ -1,13 +1,13 @@
 """python-can's own interface tests and tools, run against the ``ilcrig_hub`` interface.
 
-python-can's tests are not copied into this repository. At collection time the source
-distribution of the *installed* python-can version is fetched with pip (``pip download
---no-binary :all: --no-deps python-can==<version>``) into
-``~/.cache/ilcrig/python-can-tests/<version>/`` (or ``$ILCRIG_PYCAN_TESTS_CACHE/<version>/``),
-its ``test/`` folder is extracted there once, and imported as the package
-``pycan_upstream_tests`` (not ``test``, which is the standard library's). When it cannot be
-fetched (offline, no cache) those tests are skipped with pip's reason; the tool tests at
-the end of this file (can.bridge, can.player) do not need it.
+python-can's tests are not copied into this repository, and this file never fetches them: the
+explicit step ``scripts/fetch-python-can-tests`` (``.ci/run`` runs it) downloads the source
+distribution of the *installed* python-can version with pip and extracts its ``test/`` folder to
+``~/.cache/ilcrig/python-can-tests/<version>/pycan_upstream_tests`` (or
+``$ILCRIG_PYCAN_TESTS_CACHE/<version>/…``). This file imports it from there as the package
+``pycan_upstream_tests`` (not ``test``, which is the standard library's); when it is not there, those
+tests are skipped, saying so. The tool tests at the end of this file (can.bridge, can.player) do not
+need it.
 
 What runs, and how it is pointed at the hub (one hub per module, a fresh logical bus per test):
 
@@ -27,20 +27,16 @@ hub are skipped with the reason written next to them below; python-can's own ski
 
 from __future__ import annotations
 
-import contextlib
 import importlib
 import importlib.metadata
 import importlib.util
 import itertools
 import logging
 import os
-import shlex
-import shutil
+import select
 import signal
 import subprocess
 import sys
-import tarfile
-import tempfile
 import time
 import types
 import unittest
@@ -51,8 +47,8 @@ from typing import Any, ClassVar
 import can
 import pytest
 
-from bus.transports.hub_client import HubBus
-from bus.transports.hub_server import HubHandle, start_hub
+from bus.transports.hub.client import HubBus
+from bus.transports.hub.process import HubHandle, start_hub
 
 pytestmark = pytest.mark.multiprocess
 
@@ -75,51 +71,26 @@ def _cache_dir() -> Path:
     return Path(root) / PYCAN_VERSION
 
 
-def _fetch_upstream_tests() -> Path:
-    """The extracted ``test/`` folder of python-can's sdist (downloaded once per version).
+def _upstream_tests() -> Path:
+    """The ``test/`` folder of python-can's sdist, as ``scripts/fetch-python-can-tests`` left it.
 
-    :raises RuntimeError: pip could not download it (its output in the message)
+    :raises FileNotFoundError: it is not there (the step did not run, or could not download it)
     """
     pkg = _cache_dir() / UPSTREAM_PACKAGE
-    if (pkg / "__init__.py").is_file() and (pkg / "back2back_test.py").is_file():
-        return pkg
-    pkg.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=pkg.parent) as tmp:
-        cmd = [
-            sys.executable,
-            "-m",
-            "pip",
-            "download",
-            "--no-binary",
-            ":all:",
-            "--no-deps",
-            "--disable-pip-version-check",
-            "--timeout",
-            "20",
-            "--retries",
-            "1",
-            "-d",
-            tmp,
-            f"python-can=={PYCAN_VERSION}",
-        ]
-        res = subprocess.run(cmd, capture_output=True, text=True, timeout=300, check=False)
-        sdists = sorted(Path(tmp).glob("python[-_]can-*.tar.gz"))
-        if res.returncode != 0 or not sdists:
-            tail = " | ".join((res.stderr or res.stdout).strip().splitlines()[-3:])
-            raise RuntimeError(f"cannot download the python-can {PYCAN_VERSION} sdist ({shlex.join(cmd)}): {tail}")
-        staged = Path(tmp) / UPSTREAM_PACKAGE
-        with tarfile.open(sdists[0]) as tar:
-            members = [m for m in tar.getmembers() if m.name.split("/")[1:2] == ["test"] and (m.isfile() or m.isdir())]
-            tar.extractall(Path(tmp) / "x", members=members, filter="data")
-        shutil.move(str(next((Path(tmp) / "x").iterdir()) / "test"), staged)
-        with contextlib.suppress(OSError):  # another run may have finished first: keep its copy
-            staged.rename(pkg)
+    if not ((pkg / "__init__.py").is_file() and (pkg / "back2back_test.py").is_file()):
+        raise FileNotFoundError(
+            f"python-can {PYCAN_VERSION}'s test suites are not in {pkg}: "
+            "run scripts/fetch-python-can-tests (it needs the network once)"
+        )
     return pkg
 
 
 def _import_upstream() -> dict[str, types.ModuleType]:
-    """python-can's test modules, imported as ``pycan_upstream_tests.<name>``."""
-    pkg = _fetch_upstream_tests()
+    """python-can's test modules, imported as ``pycan_upstream_tests.<name>``.
+
+    :raises FileNotFoundError: they were not fetched
+    """
+    pkg = _upstream_tests()
     if UPSTREAM_PACKAGE not in sys.modules:
         spec = importlib.util.spec_from_file_location(
             UPSTREAM_PACKAGE, pkg / "__init__.py", submodule_search_locations=[str(pkg)]
@@ -140,9 +111,9 @@ def _import_upstream() -> dict[str, types.ModuleType]:
 try:
     UP: dict[str, types.ModuleType] | None = _import_upstream()
     UPSTREAM_SKIP = ""
-except Exception as err:  # offline and not cached: skip those tests, saying why
+except FileNotFoundError as err:  # not fetched: skip those tests, saying why
     UP = None
-    UPSTREAM_SKIP = f"python-can's test suite not available: {err}"
+    UPSTREAM_SKIP = str(err)
 
 
 # ---------------------------------------------------------------------------------------
@@ -265,7 +236,7 @@ else:
 
     @pytest.mark.skip(reason=UPSTREAM_SKIP)
     def test_python_can_interface_suites() -> None:
-        """Placeholder: python-can's suites could not be fetched (reason in the skip)."""
+        """python-can's suites are not fetched here (the reason in the skip)."""
 
 
 # ---------------------------------------------------------------------------------------
@@ -273,26 +244,55 @@ else:
 # ---------------------------------------------------------------------------------------
 
 
-def _wait_until(condition: Callable[[], bool], timeout_s: float) -> bool:
-    """Poll ``condition`` (a state only the hub knows: who joined) until true."""
+#: longest the bridge may take to start, or to stop after Ctrl-C, s (a bound on a hang only)
+TOOL_WAIT_S = 120.0
+#: ``python -m can.bridge ARGS``, which prints one more line once it is in the loop that a Ctrl-C
+#: ends (python-can's own "Started" line comes just before that loop: a Ctrl-C between the two ends
+#: it with a KeyboardInterrupt traceback). Unbuffered; SIGINT reaches it as KeyboardInterrupt however
+#: pytest was started (tests/conftest.py).
+_BRIDGE = """
+import sys, time, types
+import can.bridge as bridge
+
+def sleep(seconds):
+    bridge.time = time
+    print("bridge looping", flush=True)
+    time.sleep(seconds)
+
+bridge.time = types.SimpleNamespace(sleep=sleep)
+bridge.main()
+"""
+
+
+def _start_bridge(*args: str) -> subprocess.Popen[str]:
+    cmd = [sys.executable, "-c", _BRIDGE, *args]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+
+
+def _wait_for_line(proc: subprocess.Popen[str], line: str, timeout_s: float) -> bool:
+    """Whether ``proc`` printed ``line`` on stdout before it exited (or ``timeout_s`` s passed)."""
+    assert proc.stdout is not None
+    fd = proc.stdout.fileno()  # read unbuffered: select() does not see what a buffer holds
     deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
+    seen = b""
+    while line.encode() not in seen.splitlines():
+        left = deadline - time.monotonic()
+        if left <= 0 or not select.select([fd], [], [], left)[0]:
             return False
-        time.sleep(0.01)
+        chunk = os.read(fd, 4096)
+        if not chunk:
+            return False
+        seen += chunk
     return True
 
 
-def _members(hub: HubHandle, bus: str) -> int:
-    st = hub.stats().get(bus)
-    return st.clients if st is not None else 0
-
-
 def _stop(proc: subprocess.Popen[str]) -> tuple[int, str]:
+    """Ctrl-C (SIGINT), then wait for the exit; (exit code, stderr)."""
     if proc.poll() is None:
         proc.send_signal(signal.SIGINT)
     try:
-        _, err = proc.communicate(timeout=15)
+        _, err = proc.communicate(timeout=TOOL_WAIT_S)
     except subprocess.TimeoutExpired:
         proc.kill()
         _, err = proc.communicate()
@@ -313,28 +313,22 @@ def _same(a: can.Message, b: can.Message) -> bool:
 
 
 def test_can_bridge_joins_two_hub_buses(hub: HubHandle) -> None:
-    """``python -m can.bridge`` between two logical buses of the hub, both directions."""
+    """``python -m can.bridge`` between two logical buses of the hub, both directions; it stops on
+    Ctrl-C with exit code 0."""
     with HubBus(hub.channel("bra")) as a, HubBus(hub.channel("brb")) as b:
-        proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "can.bridge",
-                "--bus1-interface",
-                "ilcrig_hub",
-                "--bus1-channel",
-                hub.channel("bra"),
-                "--bus2-interface",
-                "ilcrig_hub",
-                "--bus2-channel",
-                hub.channel("brb"),
-            ],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-            text=True,
+        proc = _start_bridge(
+            "--bus1-interface",
+            "ilcrig_hub",
+            "--bus1-channel",
+            hub.channel("bra"),
+            "--bus2-interface",
+            "ilcrig_hub",
+            "--bus2-channel",
+            hub.channel("brb"),
         )
         try:
-            assert _wait_until(lambda: _members(hub, "bra") == 2 and _members(hub, "brb") == 2, 30), "bridge did not join"
+            # both buses open, both directions forwarded, waiting for Ctrl-C
+            assert _wait_for_line(proc, "bridge looping", TOOL_WAIT_S), "the bridge did not start"
             for m in FRAMES:
                 a.send(m)
                 got = b.recv(5.0)

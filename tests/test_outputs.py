@@ -1,4 +1,4 @@
-"""Nothing lost (issue 9): ``summary.json`` is replaced atomically and a failing write leaves the
+"""Nothing lost: ``summary.json`` is replaced atomically and a failing write leaves the
 previous one (and no temporary file); a full disk is a fault like the others — one line, exit code
 3, the earlier results kept, the final summary and report written into the space reserve; a NaN
 never reaches the summary; an interrupt is marked; a run killed after trial k keeps a recording

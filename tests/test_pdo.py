@@ -112,11 +112,13 @@ def test_remapping_rules_and_abort_codes() -> None:
 
 def test_modes_of_operation() -> None:
     d = Drive(NODE)
-    for mode in (ModeOfOperation.CSP, ModeOfOperation.CST, ModeOfOperation.TABLE_PLAYBACK):
+    for mode in ModeOfOperation:
         d.write_object(Obj.MODES_OF_OPERATION, 0, struct.pack("<b", mode))
         assert d.read_object(Obj.MODES_OF_OPERATION_DISPLAY, 0) == struct.pack("<b", mode)
-    assert abort(d.write_object, Obj.MODES_OF_OPERATION, 0, struct.pack("<b", 9)) == AbortCode.VALUE_RANGE
-    assert d.read_object(Obj.SUPPORTED_DRIVE_MODES, 0) == u32(0x00010280)
+    for other in (0, 2, 3, 4, 7, -2):
+        assert abort(d.write_object, Obj.MODES_OF_OPERATION, 0, struct.pack("<b", other)) == AbortCode.VALUE_RANGE
+    # 0x6502 lists exactly these: pp bit 0, hm bit 5, csp bit 7, csv bit 8, cst bit 9, -1 bit 16
+    assert d.read_object(Obj.SUPPORTED_DRIVE_MODES, 0) == u32(0x000103A1)
 
 
 def test_mode_change_is_refused_while_a_trial_is_armed_and_sets_the_mode_bits() -> None:
@@ -146,18 +148,23 @@ def test_csp_tick_waits_for_sync_and_applies_the_rpdo_of_its_cycle() -> None:
     kp_q16 = fp.kp_to_fixed(kp)
     fb = fp.rshift_round(kp_q16 * 600, fp.ACC_Q)
     assert tau == fb + 5 * rated
+    # outside a trial the TPDO of a SYNC carries the latest completed cycle: sampled at the SYNC,
+    # before this tick (no cycle yet: position 0, torque 0); the next SYNC's carries this tick
     ((cob, data),) = d.pop_tpdos()
     assert cob == tpdo_cob_id(NODE)
-    assert decode_tpdo(data) == (400, fp.torque_units_to_permille(tau, rated))
+    assert decode_tpdo(data) == (0, 0)
     assert d.statusword & 0x1000  # drive follows the command value
     # a synchronous RPDO received now takes effect only at the next SYNC
     d.on_rpdo(rpdo_cob_id(NODE), encode_csp_rpdo(1000, -7))
     assert d.read_object(Obj.TORQUE_OFFSET, 0) == struct.pack("<h", 5)
     d.on_sync()
     assert d.read_object(Obj.TORQUE_OFFSET, 0) == struct.pack("<h", -7)
-    # a short RPDO is not processed
+    ((_, data),) = d.pop_tpdos()
+    assert decode_tpdo(data) == (400, fp.torque_units_to_permille(tau, rated))
+    # a short RPDO is not processed: EMCY 0x8210 with the RPDO number
     d.on_rpdo(rpdo_cob_id(NODE), b"\x01\x02")
     assert d.pdo.engine.length_errors == 1
+    assert d.pop_emcy() == [(0x8210, 0x11, bytes([0, 1, 0, 0, 0]))]
 
 
 def test_csp_trial_records_like_table_playback() -> None:
@@ -256,7 +263,8 @@ def test_canopen_library_configures_pdos_enables_cst_and_moves_the_drive_with_sy
             got.append((frame.torque_units, tpdo["Position actual value"].raw, tpdo["Torque actual value"].raw))
             assert frame.status & io_frames.TorqueStatus.ENABLED
         r = RATED_TORQUE_MNM
-        assert got == [(100 * r, 1000, 100), (200 * r, 1001, 200), (-20 * r, 1002, -20)]
+        # each SYNC's TPDO carries the latest completed control cycle (the previous tick's)
+        assert got == [(100 * r, 0, 0), (200 * r, 1000, 100), (-20 * r, 1001, 200)]
     finally:
         stop.set()
         thread.join(5)

@@ -21,7 +21,7 @@ from bus.busload import bits_lookup
 from bus.io_frames import ENCODER_COB_BASE, TORQUE_COB_BASE
 from bus.objects import Obj
 from bus.transports.config import hub_transport
-from bus.transports.hub_server import start_hub
+from bus.transports.hub.process import start_hub
 from bus.units import timeout_scale
 from host.experiment.config import build_config
 from host.experiment.inprocess import InProcessBench

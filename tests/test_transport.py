@@ -1,14 +1,18 @@
-"""bus.transports.config: config precedence, transport choice, multicast policy; udp_multicast in a netns."""
+"""bus.transports.config: config precedence, transport choice, multicast policy; udp_multicast in a netns, its losses
+reported as bus errors (bus.transports.udp_multicast)."""
 
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 import textwrap
 from pathlib import Path
 
 import can
 import pytest
-from netns_util import netns_unavailable_reason, run_in_netns
+from netns_util import NETNS_SETUP, netns_unavailable_reason, run_in_netns
 
 import bus.transports.config as tr
 from bus.transports.config import (
@@ -25,8 +29,8 @@ from bus.transports.config import (
     udp_multicast_transport,
     virtual_transport,
 )
-from bus.transports.hub_server import start_hub
-from bus.transports.hub_wire import NonLoopbackAddressError
+from bus.transports.hub.process import start_hub
+from bus.transports.hub.wire import NonLoopbackAddressError
 
 CAN_ENV = [
     "CAN_INTERFACE", "CAN_CHANNEL", "CAN_BITRATE", "CAN_CONFIG",
@@ -125,6 +129,18 @@ def test_hub_transport_refuses_non_loopback() -> None:
     with pytest.raises(NonLoopbackAddressError):
         hub_transport("tcp:8.8.8.8:5000")
     assert hub_transport("tcp:localhost:5000").fieldbus.channel == "tcp:localhost:5000#fieldbus"
+
+
+def test_udp_multicast_resolves_to_the_checked_bus(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Whoever opens it (open_bus, or a role calling can.Bus with the resolved config), python-can's
+    udp_multicast is the bus that reports its losses."""
+    assert resolve_bus_config(udp_multicast_transport().io)["interface"] == tr.UDP_MULTICAST_INTERFACE
+    monkeypatch.setenv("CAN_INTERFACE", "udp_multicast")
+    monkeypatch.setenv("CAN_CHANNEL", "239.74.163.12")
+    assert resolve_bus_config(ChannelConfig())["interface"] == tr.UDP_MULTICAST_INTERFACE
+    from bus.transports.udp_multicast import CheckedUdpMulticastBus
+
+    assert can.interface._get_class_for_interface(tr.UDP_MULTICAST_INTERFACE) is CheckedUdpMulticastBus
 
 
 def test_udp_multicast_refused_outside_private_netns(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -250,3 +266,86 @@ def test_default_hub_address_from_env(monkeypatch: pytest.MonkeyPatch) -> None:
     assert hub_transport().io.channel == "tcp:127.0.0.1:4000#io"
     monkeypatch.delenv("ILCRIG_HUB")
     assert hub_transport().hub_address.startswith("unix:")  # type: ignore[union-attr]
+
+
+LOSS_SCRIPT = textwrap.dedent(
+    """
+    import json
+    import can
+    from bus.transports.config import ChannelConfig, open_bus, udp_multicast_transport
+    from bus.transports.udp_multicast import CAN_ERR_CRTL, CAN_ERR_CRTL_RX_OVERFLOW, UDP_RCVBUF_BYTES
+
+    def udp_errors():
+        rows = [l.split() for l in open("/proc/net/snmp") if l.startswith("Udp:")]
+        return int(rows[1][rows[0].index("RcvbufErrors")])
+
+    rmem_max = int(open("/proc/sys/net/core/rmem_max").read())
+    with udp_multicast_transport().open("io") as default:
+        default_rcvbuf = default.rcvbuf_bytes
+    cfg = ChannelConfig("udp_multicast", "239.74.163.13", {"port": 43130, "hop_limit": 1}, private_netns=True)
+    small = ChannelConfig(cfg.interface, cfg.channel, {**cfg.kwargs, "receive_buffer_bytes": 8192}, private_netns=True)
+    with open_bus(small) as rx, open_bus(cfg) as tx:
+        def send(first, end):
+            for i in range(first, end):
+                tx.send(can.Message(arbitration_id=0x181, is_extended_id=False, data=i.to_bytes(2, "big")))
+        send(0, 100)  # far more than 8 KiB of receive buffer holds
+        got = [int.from_bytes(rx.recv(2.0).data, "big") for _ in range(3)]
+        send(100, 103)  # queued after the loss: they carry the socket's drop count
+        errors = []
+        while (m := rx.recv(0.5)) is not None:
+            if m.is_error_frame:
+                errors.append([m.arbitration_id, m.dlc, m.data[1], len(got)])
+                got.append(-1)
+            else:
+                got.append(int.from_bytes(m.data, "big"))
+        print(json.dumps({"rmem_max": rmem_max, "default_rcvbuf": default_rcvbuf, "wanted": UDP_RCVBUF_BYTES,
+                          "got": got, "errors": errors, "frames_lost": rx.frames_lost, "kernel": udp_errors(),
+                          "expected_error": [CAN_ERR_CRTL, 8, CAN_ERR_CRTL_RX_OVERFLOW]}))
+    """
+)
+
+
+@pytest.mark.netns
+@pytest.mark.multiprocess
+def test_udp_multicast_reports_every_lost_datagram_as_a_bus_error(tmp_path: Path) -> None:
+    """A receiver whose socket overflows gets one bus error frame (a controller receive overflow)
+    exactly where the frames are missing, and counts every datagram the kernel dropped; by default
+    the receive buffer is as large as the kernel grants, up to UDP_RCVBUF_BYTES."""
+    reason = netns_unavailable_reason()
+    if reason:
+        pytest.skip(reason)
+    script = tmp_path / "udp_loss.py"
+    script.write_text(LOSS_SCRIPT)
+    res = run_in_netns(script, timeout_s=60)
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert out["default_rcvbuf"] >= min(out["wanted"], 2 * out["rmem_max"])
+    got, lost = out["got"], out["frames_lost"]
+    assert lost > 0 and lost == out["kernel"]  # every drop of the namespace, on this socket, counted
+    assert len(out["errors"]) == 1
+    code, dlc, detail, where = out["errors"][0]
+    assert [code, dlc, detail] == out["expected_error"]
+    assert got[:where] == list(range(where)) and got[where] == -1  # in order up to the loss, then the error
+    assert got[where + 1 :] == list(range(where + lost, 103))  # then what followed the lost datagrams
+
+
+@pytest.mark.netns
+@pytest.mark.multiprocess
+@pytest.mark.slow
+def test_a_lost_datagram_is_a_fault_of_the_run(tmp_path: Path) -> None:
+    """``ilcrig run --bus udp_multicast`` with fieldbus receive buffers far too small for an SDO
+    block: the losses are reported as bus errors and the run stops with a fault (exit code 3)
+    instead of going on with frames missing."""
+    reason = netns_unavailable_reason()
+    if reason:
+        pytest.skip(reason)
+    out = tmp_path / "rig"
+    env = {**os.environ, "ILCRIG_PRIVATE_NETNS": "1", "CAN_CONFIG_fieldbus": json.dumps({"receive_buffer_bytes": 4096})}
+    cmd = [sys.executable, "-m", "host.cli", "run", "--iterations", "1", "--bus", "udp_multicast", "--out", str(out)]
+    wrapped = ["unshare", "-rn", "sh", "-c", f'{NETNS_SETUP} && exec "$0" "$@"', *cmd]
+    res = subprocess.run(wrapped, capture_output=True, text=True, env=env, timeout=300, start_new_session=True, check=False)
+    assert res.returncode == 3, res.stdout[-2000:] + res.stderr[-2000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["completed"] is False and summary["faults"]  # which fault comes first is a race
+    logs = "".join(p.read_text() for p in (out / "logs").glob("*.log"))
+    assert "datagram(s) lost" in logs and "reported as a bus error frame" in logs

@@ -18,8 +18,9 @@ import pytest
 from netns_util import netns_unavailable_reason
 
 from bus.transports.config import hub_transport
-from bus.transports.hub_server import HubServer
-from bus.transports.hub_wire import NonLoopbackAddressError, parse_address
+from bus.transports.hub.addresses import parse_address
+from bus.transports.hub.server import HubServer
+from bus.transports.hub.wire import NonLoopbackAddressError
 from host.experiment.config import build_config
 from host.experiment.inprocess import InProcessBench
 from host.experiment.plan import prepare

@@ -75,7 +75,7 @@ def main() -> int:
             [
                 sys.executable,
                 "-m",
-                "bus.transports.hub_server",
+                "bus.transports.hub.cli",
                 "--listen",
                 hub_addr,
                 "--allow-remote",

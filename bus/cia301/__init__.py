@@ -1,9 +1,10 @@
 """bus.cia301: the hand-written CANopen (CiA 301) stack of the nodes.
 
 Owns SDO server and codecs (:mod:`bus.cia301.sdo`: expedited, segmented, block, abort codes),
-NMT and heartbeat (:mod:`bus.cia301.nmt`), EMCY (:mod:`bus.cia301.emcy`), the PDO service and
-SYNC consumer (:mod:`bus.cia301.pdo`), the EDS-backed object store (:mod:`bus.cia301.object_store`)
-and the node runtime (:mod:`bus.cia301.slave`).  It is the independent implementation that the
+NMT and heartbeat (:mod:`bus.cia301.nmt`), EMCY and the error history (:mod:`bus.cia301.emcy`), the
+PDO service and SYNC consumer (:mod:`bus.cia301.pdo`), the EDS-backed object store
+(:mod:`bus.cia301.object_store`), store/restore of parameters (:mod:`bus.cia301.storage`) and the node
+runtime (:mod:`bus.cia301.slave`).  It is the independent implementation that the
 ``canopen`` library on the host checks.
 
 May import: the top-level modules of ``bus`` (errors, units, objects), python-can, canopen's EDS

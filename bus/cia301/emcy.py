@@ -1,8 +1,15 @@
-"""CiA 301 emergency (EMCY) frames: codec, COB-ID and the common error codes.
+"""CiA 301 emergency (EMCY) frames: codec, COB-ID and the common error codes, and the
+pre-defined error field (object 0x1003).
 
 EMCY frame on COB-ID ``0x080 + node_id`` (object 0x1014 default), 8 data bytes:
 error code U16 little-endian, error register U8 (object 0x1001), 5 manufacturer-specific
 bytes.  Error code 0x0000 means "error reset / no error".
+
+Object 0x1014 (COB-ID EMCY, U32): bit 31 = 1 the EMCY is not valid (not sent), bit 29 = 1 a
+29-bit identifier (not supported), bits 0–10 the identifier; the identifier can change only while
+bit 31 is set (:func:`check_emcy_cob_id`).  Object 0x1003 (:class:`ErrorHistory`): sub 0 the number
+of errors recorded, subs 1.. the errors, newest first, each ``additional info << 16 | error code``;
+writing 0 to sub 0 clears it, any other value is refused.
 """
 
 from __future__ import annotations
@@ -50,6 +57,8 @@ class EmcyCode(IntEnum):
     PROTOCOL_ERROR = 0x8200
     PDO_LENGTH = 0x8210
     PDO_LENGTH_EXCEEDED = 0x8220
+    SYNC_LENGTH = 0x8240  # unexpected SYNC data length (0x1019)
+    RPDO_TIMEOUT = 0x8250  # an RPDO missed its deadline (0x1400+k:5)
     CONTROL = 0x8600  # CiA 402 positioning controller
     FOLLOWING_ERROR = 0x8611
     REFERENCE_LIMIT = 0x8612
@@ -80,6 +89,49 @@ def emcy_cob_id(node_id: int) -> int:
     if not 1 <= node_id <= 127:
         raise EmcyFrameError(f"node id must be 1..127, got {node_id}")
     return EMCY_BASE + node_id
+
+
+#: 0x1014 bits: not valid, 29-bit identifier
+EMCY_NOT_VALID = 1 << 31
+EMCY_EXTENDED = 1 << 29
+
+
+def check_emcy_cob_id(old: int, new: int) -> None:
+    """Refuse a 0x1014 write (CiA 301 §7.5.2.13).
+
+    :raises ValueError: a 29-bit identifier, bits other than 31, 29 and 0–10, or a new identifier
+        while the EMCY is valid (set bit 31 first).
+    """
+    if new & EMCY_EXTENDED or new & 0x5FFFF800:
+        raise ValueError(f"COB-ID EMCY 0x{new:08X}: only an 11-bit identifier and bit 31 are supported")
+    if not old & EMCY_NOT_VALID and not new & EMCY_NOT_VALID and (new & 0x7FF) != (old & 0x7FF):
+        raise ValueError("the EMCY is valid: set bit 31 of 0x1014 before changing its identifier")
+
+
+class ErrorHistory:
+    """The pre-defined error field, object 0x1003 (see the module docstring).
+
+    :param size: entries kept (subs 1..size); the oldest falls out.
+    """
+
+    def __init__(self, size: int = 8) -> None:
+        self.size = int(size)
+        self._entries: list[int] = []
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def push(self, code: int, info: int = 0) -> None:
+        """Record error ``code`` (U16) with ``info`` (U16, manufacturer) as the newest entry."""
+        self._entries.insert(0, ((int(info) & 0xFFFF) << 16) | (int(code) & 0xFFFF))
+        del self._entries[self.size :]
+
+    def entry(self, sub: int) -> int:
+        """Sub ``sub`` (1 = newest); 0 where nothing is recorded."""
+        return self._entries[sub - 1] if 1 <= sub <= len(self._entries) else 0
+
+    def clear(self) -> None:
+        self._entries.clear()
 
 
 def emcy_node_id(cob_id: int) -> int | None:

@@ -5,9 +5,9 @@ This module owns the slave side of the PDO service: the communication parameters
 CiA 301 §7.5.2.35–7.5.2.38 defines them, their validation when written by SDO, packing and
 unpacking of PDO payloads by the mapping, and the SYNC consumer (COB-ID object 0x1005).
 It knows nothing about CAN frames or the application: :class:`PdoEngine` is given received
-PDO payloads and SYNC events and hands back the TPDO payloads due; the node runtime
-(``firmware_model.drive_node``) moves the frames, the application (``firmware_model.cyclic_pdo``)
-decides when a cycle's TPDOs are due.
+PDO payloads, SYNC events and remote requests and hands back the TPDO payloads due; the node
+runtime (``firmware_model.drive_node``) moves the frames, the application
+(``firmware_model.cyclic_pdo``) decides when a SYNC's TPDOs are sampled.
 
 Objects (described by the node's EDS; k = 0..3 → PDO 1..4)
 
@@ -15,8 +15,9 @@ Objects (described by the node's EDS; k = 0..3 → PDO 1..4)
   (TPDO; ignored for RPDO), bit 29 = 1 extended frame (not supported: refused), bits 0–10
   the CAN identifier; sub 2 transmission type (U8): 0 synchronous acyclic, 1–240 synchronous
   (a TPDO every n-th SYNC), 254/255 event driven; 241–253 (reserved, RTR-only) are refused.
-  TPDO sub 3 inhibit time (100 µs), sub 5 event timer (ms) and sub 6 SYNC start value are
-  stored but not applied.
+  TPDO sub 3 inhibit time (U16, 100 µs) and sub 6 SYNC start value (U8) can change only while
+  the PDO is not valid (else 0x06090030); TPDO sub 5 event timer (U16 ms); RPDO sub 5 event
+  timer (U16 ms): the RPDO's deadline (CiA 301 §7.5.2.35: deadline monitoring).
 * mapping parameter, sub 0 number of mapped objects (0..8), subs 1..8 entries
   ``index << 16 | sub << 8 | bit length``; whole objects only (the bit length must equal the
   object's size), at most 64 bits in total.
@@ -35,27 +36,49 @@ Rules (CiA 301 re-mapping procedure; abort codes as CANopenNode answers them)
   or a bit length other than the object's size → 0x06040041; sub 0 larger than 8 or the
   entries 1..sub 0 longer than 64 bits → 0x06040042.
 
-Run time (only in NMT OPERATIONAL, as CiA 301 requires)
+Run time (only in NMT OPERATIONAL, as CiA 301 requires; :meth:`PdoEngine.start` when the node
+enters it: every counter and timer starts afresh)
 
 * a received synchronous RPDO (type 0..240) is buffered and written to its objects at the
   next SYNC; an event-driven RPDO (254/255) is written at once.  A payload shorter than the
-  mapping is not processed (CiA 301: EMCY 0x8210; counted in :attr:`PdoEngine.length_errors`).
-* the writes go through the object store with its usual checks and hooks, so an RPDO has
-  exactly the effect of the same SDO downloads;
-* :meth:`PdoEngine.collect_tpdos` is called by the application when a cycle's sample exists:
-  synchronous TPDOs of type n are due once per n SYNCs, type 0 when the mapped data changed
-  since the last transmission; event-driven TPDOs (254/255) whenever the data changed.
+  mapping is not processed (CiA 301: EMCY 0x8210, reported through ``report``).  The writes go
+  through the object store with its usual checks and hooks, so an RPDO has the effect of the
+  same SDO downloads, in this order: first the objects without a write hook (set-points such as
+  0x607A), then those with one (commands such as the controlword), each group in mapping order;
+  a controlword therefore acts on the set-points of its own RPDO, whatever the mapping order.
+  An RPDO with an event timer must come again within it: from its first reception on,
+  :meth:`PdoEngine.expired_rpdos` reports it once when it does not (CiA 301: EMCY 0x8250), and the
+  next reception arms it again.
+* SYNC (:meth:`PdoEngine.on_sync`, with its counter byte when the producer sends one): the
+  synchronous TPDOs due at it are returned; the application samples them
+  (:meth:`PdoEngine.sample`) when the values of its control cycle exist.  Type n (1–240) is due
+  every n-th SYNC counted from the start (the first at the n-th SYNC); with a SYNC start value
+  s > 0 (sub 6) and SYNCs carrying a counter (0x1019 > 0) the first transmission is at the SYNC
+  whose counter is s, then every n-th.  Type 0 is due at every SYNC, and sent only when its data
+  changed since its last transmission.
+* event-driven TPDOs (254/255, :meth:`PdoEngine.poll`): sent when their data changed since the
+  last transmission (the first poll after the start sends them) and when their event timer
+  (sub 5 > 0) expires, in both cases not before the inhibit time (sub 3) since their last
+  transmission has passed -- a change within it is sent when it ends, with the data of that
+  moment.  Every transmission restarts the event timer.
+* RTR (:meth:`PdoEngine.on_rtr`): a remote frame with the identifier of a valid TPDO whose bit 30
+  is 0 is answered with the TPDO's data of that moment (any transmission type).
+
+Time: ``clock`` [s] (the node's clock: the monotonic clock, or the lockstep time of the
+application); no wall clock is read here.
 """
 
 from __future__ import annotations
 
 import logging
 import struct
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
 from canopen.objectdictionary import ODVariable
 
+from bus.cia301.emcy import EmcyCode
 from bus.cia301.nmt import NmtState
 from bus.cia301.object_store import ObjectStore
 from bus.errors import AbortCode, SdoAbort
@@ -63,6 +86,9 @@ from bus.pdo_objects import (  # noqa: F401 - re-exported
     COB_ID_MASK_11,
     COB_ID_SYNC_INDEX,
     COMM_COB_ID,
+    COMM_EVENT_TIMER,
+    COMM_INHIBIT_TIME,
+    COMM_SYNC_START,
     COMM_TRANSMISSION_TYPE,
     MAX_MAPPED,
     MAX_PDO_BITS,
@@ -87,18 +113,42 @@ from bus.pdo_objects import (  # noqa: F401 - re-exported
 logger = logging.getLogger(__name__)
 
 _INT_STRUCTS = {1: "B", 2: "H", 4: "I", 8: "Q"}
+#: inhibit time unit [s]
+INHIBIT_UNIT_S = 100e-6
+_EVENT = (TT_EVENT_MANUFACTURER, TT_EVENT_PROFILE)
+#: a timer is due this close to its time [s]: time sums of whole µs carry float rounding
+_EPS_S = 1e-9
+
+Frame = tuple[int, bytes]
 
 
 @dataclass
 class _Pdo:
-    """One PDO of the node (receive or transmit)."""
+    """One PDO of the node (receive or transmit) and its run-time state."""
 
     number: int  # 1-based
     comm: int  # communication parameter index
     mapping: int  # mapping parameter index
     receive: bool
     pending: bytes | None = None  # RPDO: synchronous payload waiting for the next SYNC
+    deadline_s: float | None = None  # RPDO: when the next one must have come (event timer)
     last_sent: bytes | None = None  # TPDO: payload of the last transmission
+    last_tx_s: float | None = None  # TPDO: time of the last transmission
+    countdown: int = 0  # TPDO 1..240: SYNCs until it is due (0: load the transmission type)
+    waiting_start: bool = False  # TPDO: waits for the SYNC whose counter is its start value
+    event_due_s: float | None = None  # TPDO 254/255: when the event timer expires
+    held: bool = False  # TPDO 254/255: a change waits for the end of the inhibit time
+
+    def forget(self) -> None:
+        """Drop the run-time state (a new start, a new configuration)."""
+        self.pending = None
+        self.deadline_s = None
+        self.last_sent = None
+        self.last_tx_s = None
+        self.countdown = 0
+        self.waiting_start = False
+        self.event_due_s = None
+        self.held = False
 
 
 class PdoEngine:
@@ -106,11 +156,21 @@ class PdoEngine:
 
     :param store: the node's :class:`bus.cia301.object_store.ObjectStore` (values, hooks, metadata).
     :param nmt_state: returns the node's NMT state (:class:`bus.cia301.nmt.NmtState` value).
+    :param clock: the node's time [s] (inhibit times, event timers, RPDO deadlines).
+    :param report: called with (EMCY error code, PDO number) for an RPDO too short for its mapping.
     """
 
-    def __init__(self, store: ObjectStore, nmt_state: Callable[[], int]) -> None:
+    def __init__(
+        self,
+        store: ObjectStore,
+        nmt_state: Callable[[], int],
+        clock: Callable[[], float] = time.monotonic,
+        report: Callable[[int, int], None] | None = None,
+    ) -> None:
         self.store = store
         self._nmt_state = nmt_state
+        self.clock = clock
+        self._report = report
         self.rpdos: list[_Pdo] = []
         self.tpdos: list[_Pdo] = []
         for k in range(512):
@@ -120,8 +180,7 @@ class PdoEngine:
             ):
                 if (comm_base + k, COMM_COB_ID) in store.vars and (map_base + k, 0) in store.vars:
                     out.append(_Pdo(k + 1, comm_base + k, map_base + k, receive))
-        self.sync_count = 0  #: SYNCs received since the last reset (NMT operational)
-        self._sync_tx_due = False
+        self.sync_count = 0  #: SYNCs received since the start (NMT operational)
         self.length_errors = 0  #: RPDOs too short for their mapping (not processed)
         self._rx_by_cob: dict[int, _Pdo] | None = None
         self._tx_valid: list[_Pdo] | None = None  # the valid TPDOs, in order (None: to be computed)
@@ -135,6 +194,12 @@ class PdoEngine:
             w[(pdo.comm, COMM_COB_ID)] = lambda v, p=pdo: self._write_cob_id(p, int(v))  # type: ignore[misc]
             if (pdo.comm, COMM_TRANSMISSION_TYPE) in self.store.vars:
                 w[(pdo.comm, COMM_TRANSMISSION_TYPE)] = lambda v, p=pdo: self._write_transmission_type(p, int(v))  # type: ignore[misc]
+            if (pdo.comm, COMM_EVENT_TIMER) in self.store.vars:
+                w[(pdo.comm, COMM_EVENT_TIMER)] = lambda v, p=pdo: self._write_event_timer(p)  # type: ignore[misc]
+            if not pdo.receive:
+                for sub, what in ((COMM_INHIBIT_TIME, "inhibit time"), (COMM_SYNC_START, "SYNC start value")):
+                    if (pdo.comm, sub) in self.store.vars:
+                        w[(pdo.comm, sub)] = lambda v, p=pdo, t=what: self._write_while_invalid(p, t)  # type: ignore[misc]
             w[(pdo.mapping, 0)] = lambda v, p=pdo: self._write_map_count(p, int(v))  # type: ignore[misc]
             for sub in range(1, MAX_MAPPED + 1):
                 if (pdo.mapping, sub) in self.store.vars:
@@ -142,6 +207,10 @@ class PdoEngine:
 
     def _value(self, index: int, sub: int) -> int:
         return int(self.store.values[(index, sub)])
+
+    def _sub(self, pdo: _Pdo, sub: int, default: int = 0) -> int:
+        key = (pdo.comm, sub)
+        return int(self.store.values[key]) if key in self.store.vars else default
 
     def cob_id(self, pdo: _Pdo) -> int:
         """The raw COB-ID value (U32) of ``pdo``."""
@@ -151,8 +220,7 @@ class PdoEngine:
         return not self.cob_id(pdo) & PDO_NOT_VALID
 
     def transmission_type(self, pdo: _Pdo) -> int:
-        key = (pdo.comm, COMM_TRANSMISSION_TYPE)
-        return self._value(*key) if key in self.store.vars else TT_EVENT_PROFILE
+        return self._sub(pdo, COMM_TRANSMISSION_TYPE, TT_EVENT_PROFILE)
 
     def mapping(self, pdo: _Pdo) -> list[tuple[int, int, int]]:
         """The active mapping (index, sub, bits) of ``pdo`` (entries 1..sub 0)."""
@@ -173,16 +241,25 @@ class PdoEngine:
                 raise SdoAbort(
                     AbortCode.VALUE_RANGE, f"{self._name(pdo)} is valid: invalidate it (bit 31) before changing its COB-ID"
                 )
-        pdo.pending = None
-        pdo.last_sent = None
+        pdo.forget()
         self._rx_by_cob = None
         self._tx_valid = None
         logger.debug("%s COB-ID 0x%08X", self._name(pdo), value)
 
     def _write_transmission_type(self, pdo: _Pdo, value: int) -> None:
-        if not (value <= TT_SYNC_MAX or value in (TT_EVENT_MANUFACTURER, TT_EVENT_PROFILE)):
+        if not (value <= TT_SYNC_MAX or value in _EVENT):
             raise SdoAbort(AbortCode.VALUE_RANGE, f"transmission type {value} not supported (0..240, 254, 255)")
-        pdo.pending = None
+        pdo.forget()
+
+    def _write_event_timer(self, pdo: _Pdo) -> None:
+        pdo.deadline_s = None  # RPDO: armed again by the next reception
+        pdo.event_due_s = None  # TPDO: restarted by the next transmission
+
+    def _write_while_invalid(self, pdo: _Pdo, what: str) -> None:
+        if self.valid(pdo):
+            raise SdoAbort(
+                AbortCode.VALUE_RANGE, f"{self._name(pdo)} is valid: set bit 31 of its COB-ID before changing its {what}"
+            )
 
     def _check_mapping_writable(self, pdo: _Pdo) -> None:
         if int(self._nmt_state()) != NmtState.PRE_OPERATIONAL:
@@ -203,8 +280,7 @@ class PdoEngine:
             bits += entry & 0xFF
         if bits > MAX_PDO_BITS:
             raise SdoAbort(AbortCode.PDO_LENGTH, f"mapping of {bits} bits exceeds {MAX_PDO_BITS}")
-        pdo.pending = None
-        pdo.last_sent = None
+        pdo.forget()
 
     def _write_map_entry(self, pdo: _Pdo, sub: int, entry: int) -> None:
         self._check_mapping_writable(pdo)
@@ -233,14 +309,16 @@ class PdoEngine:
     # ------------------------------------------------------------------ run time
 
     def reset(self) -> None:
-        """Forget buffered data and counters (NMT reset communication / node)."""
+        """Forget buffered data, counters and timers (NMT reset communication / node)."""
         for pdo in (*self.rpdos, *self.tpdos):
-            pdo.pending = None
-            pdo.last_sent = None
+            pdo.forget()
         self.sync_count = 0
-        self._sync_tx_due = False
         self._rx_by_cob = None
         self._tx_valid = None
+
+    def start(self) -> None:
+        """The node entered NMT OPERATIONAL: every counter and timer starts afresh."""
+        self.reset()
 
     @property
     def active(self) -> bool:
@@ -263,6 +341,18 @@ class PdoEngine:
         """CAN identifiers of the valid TPDOs (the node's own transmit IDs)."""
         return {self.cob_id(p) & COB_ID_MASK_11 for p in self.tpdos if self.valid(p)}
 
+    def tpdo_rtr_ids(self) -> set[int]:
+        """CAN identifiers of the valid TPDOs that answer a remote frame (bit 30 = 0)."""
+        return {self.cob_id(p) & COB_ID_MASK_11 for p in self._valid_tpdos() if not self.cob_id(p) & PDO_NO_RTR}
+
+    def _valid_tpdos(self) -> list[_Pdo]:
+        valid = self._tx_valid
+        if valid is None:  # recomputed after a COB-ID write or a reset (the hot path: every io tick)
+            valid = self._tx_valid = [p for p in self.tpdos if self.valid(p)]
+        return valid
+
+    # ------------------------------------------------------------------ receive
+
     def on_rpdo(self, can_id: int, data: bytes) -> bool:
         """A frame with identifier ``can_id``: True when it is one of the valid RPDOs (handled)."""
         pdo = self.rpdo_cob_ids().get(can_id)
@@ -274,64 +364,156 @@ class PdoEngine:
         if len(data) < need:
             self.length_errors += 1
             logger.warning("%s: %d bytes, mapping needs %d: not processed", self._name(pdo), len(data), need)
+            if self._report is not None:
+                self._report(EmcyCode.PDO_LENGTH, pdo.number)
             return True
+        timeout_ms = self._sub(pdo, COMM_EVENT_TIMER)
+        pdo.deadline_s = self.clock() + timeout_ms / 1000.0 if timeout_ms else None
         if self.transmission_type(pdo) <= TT_SYNC_MAX:
             pdo.pending = bytes(data[:need])
         else:
             self._apply(pdo, bytes(data[:need]))
         return True
 
-    def on_sync(self) -> None:
-        """A SYNC: write the buffered synchronous RPDOs (in PDO order); TPDOs become due."""
+    def expired_rpdos(self, now: float) -> list[int]:
+        """Numbers of the RPDOs whose deadline passed at ``now`` [s] (each once per loss)."""
         if not self.active:
-            return
+            return []
+        out = []
+        for pdo in self.rpdos:
+            if pdo.deadline_s is not None and now >= pdo.deadline_s - _EPS_S:
+                pdo.deadline_s = None
+                out.append(pdo.number)
+        return out
+
+    def on_sync(self, counter: int | None = None) -> list[_Pdo]:
+        """A SYNC (``counter``: its counter byte, None without): write the buffered synchronous
+        RPDOs (in PDO order); returns the synchronous TPDOs due at it (to :meth:`sample`)."""
+        if not self.active:
+            return []
         self.sync_count += 1
-        self._sync_tx_due = True
         for pdo in self.rpdos:
             if pdo.pending is not None:
                 data, pdo.pending = pdo.pending, None
                 self._apply(pdo, data)
+        due = []
+        for pdo in self._valid_tpdos():
+            tt = self.transmission_type(pdo)
+            if tt == TT_SYNC_ACYCLIC:
+                due.append(pdo)
+            elif tt <= TT_SYNC_MAX and self._sync_due(pdo, tt, counter):
+                due.append(pdo)
+        return due
+
+    def _sync_due(self, pdo: _Pdo, tt: int, counter: int | None) -> bool:
+        """Count one SYNC for TPDO ``pdo`` of type ``tt`` (1..240): True when it is due."""
+        if pdo.countdown == 0 and not pdo.waiting_start:  # first SYNC since the start
+            start = self._sub(pdo, COMM_SYNC_START)
+            pdo.waiting_start = start > 0 and counter is not None
+            pdo.countdown = tt
+        if pdo.waiting_start:
+            if counter != self._sub(pdo, COMM_SYNC_START):
+                return False
+            pdo.waiting_start = False
+            pdo.countdown = tt
+            return True
+        pdo.countdown -= 1
+        if pdo.countdown > 0:
+            return False
+        pdo.countdown = tt
+        return True
 
     def _apply(self, pdo: _Pdo, data: bytes) -> None:
+        """Write an RPDO's payload: first the objects without a write hook (set-points), then those
+        with one (commands such as a controlword), each group in mapping order -- so a command
+        sees the set-points that came in the same RPDO."""
         offset = 0
+        plain: list[tuple[int, int, bytes]] = []
+        hooked: list[tuple[int, int, bytes]] = []
+        hooks = self.store.write_hooks
         for index, sub, bits in self.mapping(pdo):
             n = bits // 8
+            (hooked if (index, sub) in hooks else plain).append((index, sub, data[offset : offset + n]))
+            offset += n
+        for index, sub, value in (*plain, *hooked):
             try:
-                self.store.write_object(index, sub, data[offset : offset + n])
+                self.store.write_object(index, sub, value)
             except SdoAbort as err:  # the value is refused like an SDO download would be
                 logger.warning("%s: 0x%04X:%d not written: %s", self._name(pdo), index, sub, err)
-            offset += n
+
+    # ------------------------------------------------------------------ transmit
 
     def pack(self, pdo: _Pdo) -> bytes:
         """The current payload of ``pdo`` (its mapped objects, read now)."""
         return b"".join(self.store.read_object(index, sub) for index, sub, _ in self.mapping(pdo))
 
-    def collect_tpdos(self) -> list[tuple[int, bytes]]:
-        """(CAN identifier, payload) of every TPDO due now (see the module docstring); call it
-        once the cycle's sample exists (after the control tick)."""
-        valid = self._tx_valid
-        if valid is None:  # recomputed after a COB-ID write or a reset (the hot path: every io tick)
-            valid = self._tx_valid = [p for p in self.tpdos if self.valid(p)]
-        if not valid or not self.active:
-            self._sync_tx_due = False
+    def _sent(self, pdo: _Pdo, data: bytes, now: float) -> Frame:
+        pdo.last_sent = data
+        pdo.last_tx_s = now
+        pdo.held = False
+        event_ms = self._sub(pdo, COMM_EVENT_TIMER)
+        pdo.event_due_s = now + event_ms / 1000.0 if event_ms and self.transmission_type(pdo) in _EVENT else None
+        return self.cob_id(pdo) & COB_ID_MASK_11, data
+
+    def sample(self, pdos: list[_Pdo]) -> list[Frame]:
+        """(CAN identifier, payload) of the synchronous TPDOs ``pdos`` (from :meth:`on_sync`), their
+        data read now; a type-0 TPDO only if its data changed since its last transmission."""
+        if not pdos or not self.active:
             return []
-        out: list[tuple[int, bytes]] = []
-        sync_due, self._sync_tx_due = self._sync_tx_due, False
-        for pdo in valid:
-            tt = self.transmission_type(pdo)
-            if 1 <= tt <= TT_SYNC_MAX:
-                if not (sync_due and self.sync_count % tt == 0):
-                    continue
-                data = self.pack(pdo)
-            else:
-                if tt == TT_SYNC_ACYCLIC and not sync_due:
-                    continue
-                data = self.pack(pdo)
-                if data == pdo.last_sent:
-                    continue
-            pdo.last_sent = data
-            out.append((self.cob_id(pdo) & COB_ID_MASK_11, data))
+        now = self.clock()
+        out = []
+        for pdo in pdos:
+            if not self.valid(pdo):
+                continue
+            data = self.pack(pdo)
+            if self.transmission_type(pdo) == TT_SYNC_ACYCLIC and data == pdo.last_sent:
+                continue
+            out.append(self._sent(pdo, data, now))
         return out
+
+    def poll(self, now: float) -> list[Frame]:
+        """The event-driven TPDOs due at ``now`` [s] (see the module docstring)."""
+        if not self.active:
+            return []
+        out = []
+        for pdo in self._valid_tpdos():
+            if self.transmission_type(pdo) not in _EVENT:
+                continue
+            data = self.pack(pdo)
+            changed = data != pdo.last_sent
+            timer = pdo.event_due_s is not None and now >= pdo.event_due_s - _EPS_S
+            if not (changed or timer):
+                continue
+            inhibit_s = self._sub(pdo, COMM_INHIBIT_TIME) * INHIBIT_UNIT_S
+            if pdo.last_tx_s is not None and now < pdo.last_tx_s + inhibit_s - _EPS_S:
+                pdo.held = True  # sent when the inhibit time ends
+                continue
+            out.append(self._sent(pdo, data, now))
+        return out
+
+    def on_rtr(self, can_id: int) -> Frame | None:
+        """A remote frame with identifier ``can_id``: the TPDO it asks for, sampled now (None when
+        no valid TPDO with RTR allowed has this identifier, or not OPERATIONAL)."""
+        if not self.active:
+            return None
+        for pdo in self._valid_tpdos():
+            cob = self.cob_id(pdo)
+            if cob & COB_ID_MASK_11 == can_id and not cob & PDO_NO_RTR:
+                return self._sent(pdo, self.pack(pdo), self.clock())
+        return None
+
+    def next_deadline(self) -> float | None:
+        """The earliest time [s] at which :meth:`poll` or :meth:`expired_rpdos` has work (None:
+        none)."""
+        if not self.active:
+            return None
+        times = [p.deadline_s for p in self.rpdos if p.deadline_s is not None]
+        for pdo in self._valid_tpdos():
+            if pdo.event_due_s is not None:
+                times.append(pdo.event_due_s)
+            if pdo.held and pdo.last_tx_s is not None:
+                times.append(pdo.last_tx_s + self._sub(pdo, COMM_INHIBIT_TIME) * INHIBIT_UNIT_S)
+        return min(times) if times else None
 
 
 def _size_bytes(var: ODVariable) -> int:

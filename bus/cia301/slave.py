@@ -7,8 +7,11 @@ This module owns what every node of the rig does on the wire, independent of its
   ``app.nmt_command(cs)``; SDO requests (0x600 + id) → :class:`bus.cia301.sdo.SdoServer` on the app's
   object access, responses on 0x580 + id; boot-up on start and after an NMT reset; producer
   heartbeat (0x700 + id) every 0x1017 ms (re-read after every completed SDO transfer); EMCY
-  frames (0x080 + id) for every entry of ``app.pop_emcy()``.  SDO and EMCY are silent in the
-  NMT state STOPPED (CiA 301); NMT and heartbeat always work.  Heartbeat consumer (object 0x1016,
+  frames for every entry of ``app.pop_emcy()`` (the app queues none in NMT STOPPED) on the COB-ID
+  of 0x1014 (default 0x080 + id; bit 31 set: the EMCY is not valid and nothing is sent), at most
+  one per 0x1015 inhibit time (100 µs units; EMCYs within it wait in order), both re-read after
+  every completed SDO transfer.  SDO is silent in the NMT state STOPPED (CiA 301); NMT and
+  heartbeat always work.  Heartbeat consumer (object 0x1016,
   re-read like 0x1017): a configured producer (the host) silent for its consumer time calls the
   app's optional ``heartbeat_lost(node_id)`` once.  A bus that fails (the hub gone) ends
   :meth:`SlaveNode.run` after calling the app's optional ``bus_lost(reason)``; :attr:`SlaveNode.bus_error`
@@ -20,7 +23,8 @@ This module owns what every node of the rig does on the wire, independent of its
   them (the hub and SocketCAN before the frame reaches the process), so the other nodes' PDOs
   cost this process nothing.  They are recomputed after every completed SDO transfer and NMT reset,
   and set *before* the SDO response goes out: a master that reconfigures a COB-ID and then
-  uses it is never filtered away.  io frames are
+  uses it is never filtered away.  Remote frames (RTR) go to :meth:`SlaveNode.on_fieldbus` like
+  any frame the node consumes.  io frames are
   handed to the subclass hook :meth:`SlaveNode.on_io`; :meth:`SlaveNode.on_service` and
   :meth:`SlaveNode.next_deadline` let a subclass run its own timers in the same loop.
 * :func:`install_sigterm` — SIGTERM/SIGINT set a stop event (process entry points).
@@ -49,7 +53,7 @@ from typing import Any, Protocol
 import can
 
 from bus.bus_features import batch_receiver, pending_check
-from bus.cia301.emcy import emcy_cob_id, encode_emcy
+from bus.cia301.emcy import EMCY_NOT_VALID, emcy_cob_id, encode_emcy
 from bus.cia301.nmt import (
     CONSUMER_HEARTBEAT_INDEX,
     NMT_COB_ID,
@@ -71,6 +75,10 @@ logger = logging.getLogger(__name__)
 
 #: Object index of the producer heartbeat time (U16, ms).
 PRODUCER_HEARTBEAT_INDEX = 0x1017
+#: Object indices of the EMCY COB-ID (U32) and the EMCY inhibit time (U16, 100 µs).
+COB_ID_EMCY_INDEX = 0x1014
+INHIBIT_TIME_EMCY_INDEX = 0x1015
+_INHIBIT_UNIT_S = 100e-6
 
 
 def exact_id_filters(ids: Iterable[int]) -> can.typechecking.CanFilters:
@@ -121,8 +129,11 @@ class SlaveNode:
         self._sdo_rx = sdo_request_cob_id(self.node_id)
         self._sdo_tx = sdo_response_cob_id(self.node_id)
         self._hb_id = heartbeat_cob_id(self.node_id)
-        self._emcy_id = emcy_cob_id(self.node_id)
-        self._own_fieldbus_ids = {self._sdo_tx, self._hb_id, self._emcy_id}
+        self._emcy_id: int | None = emcy_cob_id(self.node_id)  # None: the EMCY is not valid (0x1014 bit 31)
+        self._emcy_inhibit_s = 0.0
+        self._emcy_queue: list[bytes] = []  # EMCY frames waiting for the inhibit time
+        self._next_emcy_s: float | None = None  # earliest time the next EMCY may go out
+        self._own_fieldbus_ids = {self._sdo_tx, self._hb_id, emcy_cob_id(self.node_id)}
         self._heartbeat_ms = 0
         self._next_heartbeat_s: float | None = None
         self.consumer = NodeHeartbeatConsumer()
@@ -215,6 +226,7 @@ class SlaveNode:
         self._send(self.fieldbus, self._hb_id, encode_heartbeat(NmtState.BOOT_UP))
         self._reload_heartbeat(force=True)
         self._reload_consumers()
+        self._reload_emcy()
         self._refresh_fieldbus_filters()
         logger.info(
             "node %d: booted, heartbeat %d ms, %s", self.node_id, self._heartbeat_ms, "select()" if self._fds else "polling"
@@ -254,6 +266,9 @@ class SlaveNode:
         if due is not None and due - now < wait:
             wait = due - now
         due = self.consumer.next_deadline()
+        if due is not None and due - now < wait:
+            wait = due - now
+        due = self._next_emcy_s if self._emcy_queue else None
         if due is not None and due - now < wait:
             wait = due - now
         if wait < 0.0:
@@ -298,6 +313,7 @@ class SlaveNode:
         now = self._clock()
         self._service(now)
         self.on_service(now)
+        self._flush_emcy(now)
         return handled
 
     def _drain(self, bus: can.BusABC) -> int:
@@ -324,10 +340,8 @@ class SlaveNode:
                 1000 * self.consumer.producers.get(producer, 0.0),
             )
             self.on_heartbeat_lost(producer)
+        self._flush_emcy(now)
         state = int(self.app.nmt_state)
-        if state != NmtState.STOPPED:
-            for code, register, data in self.app.pop_emcy():
-                self._send(self.fieldbus, self._emcy_id, encode_emcy(int(code), int(register), bytes(data)[:5]))
         abort = self.sdo.tick(now)
         if abort is not None:
             self._send(self.fieldbus, self._sdo_tx, abort)
@@ -350,6 +364,41 @@ class SlaveNode:
         self._heartbeat_ms = period_ms
         self._next_heartbeat_s = self._clock() + period_ms / 1000.0 if period_ms else None
 
+    def _reload_emcy(self) -> None:
+        """Re-read 0x1014 (COB-ID EMCY) and 0x1015 (inhibit time); an app without them keeps the
+        predefined 0x080 + id and no inhibit time."""
+        try:
+            cob = int.from_bytes(self.app.read_object(COB_ID_EMCY_INDEX, 0)[:4], "little")
+            self._emcy_id = None if cob & EMCY_NOT_VALID else cob & 0x7FF
+        except SdoAbort:
+            self._emcy_id = emcy_cob_id(self.node_id)
+        try:
+            self._emcy_inhibit_s = (
+                int.from_bytes(self.app.read_object(INHIBIT_TIME_EMCY_INDEX, 0)[:2], "little") * _INHIBIT_UNIT_S
+            )
+        except SdoAbort:
+            self._emcy_inhibit_s = 0.0
+        self._own_fieldbus_ids = {self._sdo_tx, self._hb_id, emcy_cob_id(self.node_id)}
+        if self._emcy_id is not None:
+            self._own_fieldbus_ids.add(self._emcy_id)
+
+    def _flush_emcy(self, now: float) -> None:
+        """Queue the app's new EMCYs, then send what the inhibit time allows (one per inhibit
+        time, in order; without an inhibit time all at once)."""
+        for code, register, data in self.app.pop_emcy():
+            if self._emcy_id is None:
+                logger.info("node %d: EMCY 0x%04X not sent: 0x1014 says the EMCY is not valid", self.node_id, int(code))
+                continue
+            self._emcy_queue.append(encode_emcy(int(code), int(register), bytes(data)[:5]))
+        if int(self.app.nmt_state) == NmtState.STOPPED:
+            return  # no EMCY in STOPPED (CiA 301): what waits goes out once the node leaves it
+        while self._emcy_queue and (self._next_emcy_s is None or now >= self._next_emcy_s - 1e-9):
+            if self._emcy_id is None:
+                self._emcy_queue.clear()
+                break
+            self._send(self.fieldbus, self._emcy_id, self._emcy_queue.pop(0))
+            self._next_emcy_s = now + self._emcy_inhibit_s if self._emcy_inhibit_s > 0 else None
+
     def _reload_consumers(self) -> None:
         """Re-read the consumer heartbeat entries 0x1016:1..n (an app without 0x1016 consumes
         nothing)."""
@@ -371,7 +420,10 @@ class SlaveNode:
     # ------------------------------------------------------------------ fieldbus
 
     def _on_fieldbus(self, msg: can.Message) -> None:
-        if msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame:
+        if msg.is_extended_id or msg.is_error_frame:
+            return
+        if msg.is_remote_frame:
+            self.on_fieldbus(msg)  # e.g. a request for a TPDO
             return
         cob = msg.arbitration_id
         if cob in self._own_fieldbus_ids:
@@ -388,6 +440,7 @@ class SlaveNode:
             if not self.sdo.busy:
                 self._reload_heartbeat()
                 self._reload_consumers()
+                self._reload_emcy()
                 # before the response: the master may use a new COB-ID as soon as it has it
                 self._refresh_fieldbus_filters()
             if response is not None:
@@ -411,14 +464,15 @@ class SlaveNode:
             self.on_nmt_reset(command)
             self._reload_heartbeat(force=True)
             self._reload_consumers()
+            self._reload_emcy()
             self._refresh_fieldbus_filters()
             self._send(self.fieldbus, self._hb_id, encode_heartbeat(NmtState.BOOT_UP))
 
     # ------------------------------------------------------------------ send
 
     def send_emcy(self, code: int, register: int, data: bytes = b"") -> None:
-        """Send one EMCY frame now (unless the node is STOPPED)."""
-        if int(self.app.nmt_state) != NmtState.STOPPED:
+        """Send one EMCY frame now (unless the node is STOPPED or 0x1014 says the EMCY is not valid)."""
+        if int(self.app.nmt_state) != NmtState.STOPPED and self._emcy_id is not None:
             self._send(self.fieldbus, self._emcy_id, encode_emcy(int(code), int(register), data[:5]))
 
     def _send(self, bus: can.BusABC, cob_id: int, data: bytes) -> None:

@@ -16,7 +16,7 @@ and ``io``, so e.g. ``CAN_INTERFACE_io=socketcan CAN_CHANNEL_io=vcan1`` configur
 channel; the two channels must not resolve to the same bus.
 
 Transports
-    * ``hub`` (default, zero privilege): one :mod:`bus.transports.hub_server` server, both channels as
+    * ``hub`` (default, zero privilege): one :mod:`bus.transports.hub` server, both channels as
       logical buses on it (``<address>#fieldbus``, ``<address>#io``).
     * ``socketcan``: ``vcan0`` (fieldbus) and ``vcan1`` (io); :func:`auto_transport` picks it
       when both interfaces exist in the current network namespace.
@@ -27,6 +27,9 @@ Transports
       a private namespace with ``ChannelConfig(private_netns=True)`` or the environment
       variable ``ILCRIG_PRIVATE_NETNS=1``. On loopback a udp_multicast client receives its
       own frames (python-can does not filter them); receivers must ignore their own IDs.
+      Its python-can interface is :data:`UDP_MULTICAST_INTERFACE`
+      (:class:`bus.transports.udp_multicast.CheckedUdpMulticastBus`, python-can's bus with a large
+      receive buffer and every datagram the kernel drops reported as a bus error frame).
     * ``virtual``: python-can's in-process bus, threads of one process only (tests).
 """
 
@@ -43,7 +46,8 @@ from typing import Any
 import can
 
 from bus.errors import IlcrigError
-from bus.transports.hub_wire import default_hub_address, parse_address
+from bus.transports.hub.addresses import default_hub_address, parse_address
+from bus.transports.udp_multicast import enlarge_receive_buffer
 
 logger = logging.getLogger(__name__)
 
@@ -63,6 +67,9 @@ UDP_MULTICAST_GROUPS: Mapping[str, tuple[str, int]] = {
 PRIVATE_NETNS_ENV: str = "ILCRIG_PRIVATE_NETNS"
 
 HUB_INTERFACE: str = "ilcrig_hub"
+#: python-can interface name of :class:`bus.transports.udp_multicast.CheckedUdpMulticastBus` (entry
+#: point); python-can's own name ``udp_multicast`` resolves to it (:func:`resolve_bus_config`)
+UDP_MULTICAST_INTERFACE: str = "ilcrig_udp_multicast"
 
 
 class TransportConfigError(IlcrigError, ValueError):
@@ -129,7 +136,9 @@ def _multicast_allowed(cfg: ChannelConfig) -> bool:
 
 
 def resolve_bus_config(cfg: ChannelConfig) -> dict[str, Any]:
-    """The complete python-can bus config for ``cfg`` (precedence: see module docstring).
+    """The complete python-can bus config for ``cfg`` (precedence: see module docstring), the
+    keyword arguments of ``can.Bus``. The interface ``udp_multicast`` becomes
+    :data:`UDP_MULTICAST_INTERFACE`, whoever opens the bus.
 
     :raises TransportConfigError: no interface found anywhere, or an unknown interface
     """
@@ -142,7 +151,15 @@ def resolve_bus_config(cfg: ChannelConfig) -> dict[str, Any]:
         resolved = dict(can.util.load_config(config=given, context=cfg.context))
     except can.CanInterfaceNotImplementedError as err:
         raise TransportConfigError(f"cannot resolve a CAN interface for {cfg}: {err}") from err
+    if resolved["interface"] == "udp_multicast":  # python-can's bus, its losses reported as bus errors
+        resolved["interface"] = UDP_MULTICAST_INTERFACE
     return resolved
+
+
+#: receive buffer wanted for a SocketCAN socket, bytes: a burst (an SDO block of 127 frames, a
+#: tick's frames while a reader is descheduled) must not overflow the kernel's default buffer,
+#: which silently drops frames
+SOCKETCAN_RCVBUF_BYTES: int = 8 << 20
 
 
 def open_bus(cfg: ChannelConfig) -> can.BusABC:
@@ -153,7 +170,7 @@ def open_bus(cfg: ChannelConfig) -> can.BusABC:
     :raises can.CanInitializationError: the interface could not be opened
     """
     config = resolve_bus_config(cfg)
-    if config["interface"] == "udp_multicast" and not _multicast_allowed(cfg):
+    if config["interface"] == UDP_MULTICAST_INTERFACE and not _multicast_allowed(cfg):
         raise MulticastNotAllowedError(
             "udp_multicast is only allowed inside a private network namespace "
             f"(this one has interfaces {sorted(net_interfaces())}); run under `unshare -rn` "
@@ -161,31 +178,10 @@ def open_bus(cfg: ChannelConfig) -> can.BusABC:
         )
     logger.debug("opening bus %s", config)
     bus = can.Bus(ignore_config=True, **config)
-    if config["interface"] == "socketcan":
-        _enlarge_receive_buffer(bus)
-    return bus
-
-
-#: receive buffer asked for a SocketCAN socket, bytes: a burst (an SDO block of 127 frames, a
-#: tick's frames while a reader is descheduled) must not overflow the kernel's default buffer,
-#: which silently drops frames
-SOCKETCAN_RCVBUF_BYTES: int = 8 << 20
-
-
-def _enlarge_receive_buffer(bus: can.BusABC) -> None:
-    """Raise a SocketCAN bus's socket receive buffer to :data:`SOCKETCAN_RCVBUF_BYTES` (root may
-    exceed net.core.rmem_max with SO_RCVBUFFORCE; otherwise the kernel caps SO_RCVBUF)."""
     sock = getattr(bus, "socket", None)  # python-can's SocketcanBus keeps its socket here
-    if sock is None:
-        return
-    for option in (getattr(socket, "SO_RCVBUFFORCE", None), socket.SO_RCVBUF):
-        if option is None:
-            continue
-        try:
-            sock.setsockopt(socket.SOL_SOCKET, option, SOCKETCAN_RCVBUF_BYTES)
-            return
-        except OSError as err:
-            logger.debug("receive buffer option %s refused: %s", option, err)
+    if config["interface"] == "socketcan" and sock is not None:
+        enlarge_receive_buffer(sock, SOCKETCAN_RCVBUF_BYTES)
+    return bus
 
 
 @dataclass(frozen=True)
@@ -214,7 +210,7 @@ class TransportConfig:
 
         :param passive: for a member that only listens and nobody waits for (a monitor, a
             logger): on the hub it joins for bulk delivery (frames held up to
-            :data:`bus.transports.hub_wire.BULK_HOLD_S`, fewer writes); other transports ignore it
+            :data:`bus.transports.hub.wire.BULK_HOLD_S`, fewer writes); other transports ignore it
         """
         cfg = self.channel(logical)
         if passive and cfg.interface == HUB_INTERFACE:
@@ -229,7 +225,7 @@ class TransportConfig:
         """:raises TransportConfigError: both channels resolve to the same bus"""
         a, b = resolve_bus_config(self.fieldbus), resolve_bus_config(self.io)
         same = a["interface"] == b["interface"] and a.get("channel") == b.get("channel")
-        if same and not (a["interface"] == "udp_multicast" and a.get("port") != b.get("port")):
+        if same and not (a["interface"] == UDP_MULTICAST_INTERFACE and a.get("port") != b.get("port")):
             raise TransportConfigError(
                 f"fieldbus and io resolve to the same bus ({a['interface']} {a.get('channel')!r}); "
                 "configure them separately (contexts 'fieldbus' and 'io')"
@@ -248,9 +244,9 @@ def hub_transport(address: str | None = None, allow_remote: bool = False) -> Tra
     """Both channels as logical buses ``fieldbus`` / ``io`` of the hub at ``address``.
 
     :param address: ``unix:/path`` or ``tcp:127.0.0.1:PORT``; default
-        :func:`bus.transports.hub_wire.default_hub_address`
+        :func:`bus.transports.hub.addresses.default_hub_address`
     :param allow_remote: a hub on another machine (non-loopback TCP address): explicit opt-in
-    :raises bus.transports.hub_wire.HubAddressError: malformed or (without ``allow_remote``)
+    :raises bus.transports.hub.wire.HubAddressError: malformed or (without ``allow_remote``)
         non-loopback address
     """
     addr = address or default_hub_address()
@@ -278,7 +274,9 @@ def udp_multicast_transport(private_netns: bool = False) -> TransportConfig:
 
     def one(logical: str) -> ChannelConfig:
         group, port = UDP_MULTICAST_GROUPS[logical]
-        return ChannelConfig("udp_multicast", group, {"port": port, "hop_limit": 1}, context=logical, private_netns=private_netns)
+        return ChannelConfig(
+            UDP_MULTICAST_INTERFACE, group, {"port": port, "hop_limit": 1}, context=logical, private_netns=private_netns
+        )
 
     return TransportConfig("udp_multicast", one(FIELDBUS), one(IO))
 

@@ -3,7 +3,7 @@
 This module owns the grammar of an injection (:func:`parse_spec`), the record every injector
 writes when it injects (one JSON line in ``RUN_DIR/logs/injections-<who>.jsonl``:
 :func:`write_record`), and :class:`FrameFaultInjector`, the hook the hub calls for every frame it
-forwards (:class:`bus.transports.hub_server.HubServer`'s ``frame_hook``).  Killing, stalling and
+forwards (:class:`bus.transports.hub.server.HubServer`'s ``frame_hook``).  Killing, stalling and
 spoofed EMCY frames are done by the launcher (:mod:`host.rig.inject`), which owns the processes.
 
 Grammar::
@@ -348,7 +348,8 @@ def _error_record(record: bytes) -> bytes:
     (the original's stamp kept)."""
     import can
 
-    from bus.transports.hub_wire import STAMP, STAMP_OFFSET, encode_record
+    from bus.transports.hub.records import encode_record
+    from bus.transports.hub.wire import STAMP, STAMP_OFFSET
 
     err = can.Message(
         is_error_frame=True,

@@ -112,10 +112,20 @@ def _data_field(pa: Any, entity: str, descriptor: Any, dtype: Any) -> Any:
     )
 
 
+def rerun_environment() -> None:
+    """Set what rerun's native library reads from the environment when it loads (a value the user
+    set is kept): its allocator (mimalloc) reserves address space in arenas of
+    ``MIMALLOC_ARENA_RESERVE``, 1 GiB by default and twice over in a process that records, i.e.
+    2 GiB of virtual memory for a few MB of use; arenas of 64 MiB keep a long run inside a 2 GB
+    address-space limit (``ulimit -v``) with room to spare.  Called before every ``import rerun``."""
+    os.environ.setdefault("MIMALLOC_ARENA_RESERVE", "64MiB")
+
+
 @functools.lru_cache(maxsize=1)
 def _components() -> dict[str, tuple[Any, Any]]:
     """Component name (``Archetype:field``) → (descriptor, Arrow type), taken once per process
     from rerun's own converters; the hand-built arrays below are cast to these types."""
+    rerun_environment()
     import rerun as rr
 
     cols = [
@@ -229,6 +239,7 @@ class RunRecorder:
         # line); the recorder reports its failures itself (``error``, a fault), so no stray line may
         # reach the terminal.  A RUST_LOG set by the user is kept.
         os.environ.setdefault("RUST_LOG", "off")
+        rerun_environment()
         import rerun as rr
         import rerun.blueprint  # noqa: F401
 
@@ -563,6 +574,7 @@ def skeleton_points(q: np.ndarray, Y: np.ndarray, geometry: Any | None = None) -
 
 def default_blueprint() -> Any:
     """The viewer layout: per-joint error / torque / position plots (tabs), the 3D robot, metrics."""
+    rerun_environment()
     import rerun.blueprint as rrb
 
     def grid(kind: str, parts: Sequence[str], unit: str) -> Any:

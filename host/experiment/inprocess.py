@@ -25,7 +25,7 @@ import numpy as np
 from bus import units
 from bus.cia301.nmt import NmtCommand
 from bus.cyclic import decode_tpdo, encode_csp_rpdo, pdo_config_writes, rpdo_cob_id, tpdo_cob_id
-from bus.objects import DRIVE_NODE_IDS
+from bus.objects import DRIVE_NODE_IDS, ControlCommand, Obj
 from firmware_model.drive import Drive
 from host.experiment.config import ExperimentConfig
 from host.experiment.faults import FaultKind, FaultRecord
@@ -181,7 +181,13 @@ class InProcessBench:
         return self._tick
 
     def close(self) -> None:
+        """As the rig's host does: CiA 402 disable voltage (torque off, Switch on disabled; a drive
+        in Fault stays there), then NMT STOP — the drives end without an abort-connection fault."""
         for fw in self.firmware:
+            try:
+                fw.write_object(Obj.CONTROLWORD, 0, int(ControlCommand.DISABLE_VOLTAGE).to_bytes(2, "little"))
+            except Exception:  # closing must never hide the original error
+                logger.debug("disable voltage failed", exc_info=True)
             try:
                 fw.nmt_command(NmtCommand.STOP)  # removes torque
             except Exception:  # closing must never hide the original error
@@ -196,7 +202,7 @@ class InProcessBench:
                 "torque": "on" if fw.torque_enabled else "off",
                 "nmt": fw.nmt_state.name,
                 "cia402": fw.cia402_state.name,
-                "evidence": "in-process firmware: NMT STOPPED",
+                "evidence": "in-process firmware: CiA 402 disable voltage, NMT STOPPED",
             }
             for nid, fw in zip(DRIVE_NODE_IDS, self.firmware)
         ]

@@ -5,12 +5,16 @@ check feasibility, resolve the gains, build the closed-loop model along the refe
 learning law and its convergence check, and compute the initial feed-forward.  Anything
 infeasible raises a ``ValueError`` subclass (:class:`PlanError` for the checks made here) with a
 one-line message naming the option, before a process starts or a drive is configured.  The cheap
-checks come first, so a bad input is refused in well under a second: the trial length against the
-drives' table capacity and the memory the preparation needs (:func:`prepare_memory_bytes`, an
-estimate easy to change), the learning lead against N, then path, trajectory and feasibility, then
-the feedback gains against the drive's fixed-point range (:mod:`bus.fixedpoint`), and only then
-the closed-loop model and the convergence check (whose non-finite results, e.g. of absurd learning
-gains, count as "diverges").
+checks come first (:func:`preflight`), so a bad input is refused in well under a second: the trial
+length against the drives' table capacity, the memory of the run against the memory available,
+the learning lead against N; then path, trajectory and feasibility, then the feedback gains against
+the drive's fixed-point range (:mod:`bus.fixedpoint`), and only then the closed-loop model and the
+convergence check (whose non-finite results, e.g. of absurd learning gains, count as "diverges").
+
+The memory check: :func:`run_memory_bytes` is a model of the peak resident memory of a run fitted
+to measurements (``benchmarks/run_memory.py``; linear in the trial length N, per law, plus a part
+per trial and sample, times a margin); :func:`available_memory_bytes` is MemAvailable, or less under
+a cgroup memory limit, or ``$ILCRIG_AVAILABLE_MEMORY`` (:data:`MEMORY_ENV`) when set.
 """
 
 from __future__ import annotations
@@ -34,7 +38,9 @@ from host.learning.check import BOUNDED_BLOCK, PROBE_TORQUE_FRACTION, Convergenc
 from host.learning.gains import Gains, GainSpec, resolve_gains
 from host.learning.laws import LawContext, LearningLaw
 from host.learning.model import ClosedLoopModel
+from host.learning.names import LAWS
 from host.learning.plugin import build_law
+from host.learning.registry import law_class
 from host.planning.paths import resolve_path
 from host.planning.trajectory import JointReference, check_feasibility, joint_reference, plan_task, trial_samples
 from plant.dynamics import inverse_dynamics, mass_matrix
@@ -42,47 +48,201 @@ from plant.params import Geometry, default_true_plant, nominal_mass_model
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Plan", "PlanError", "prepare", "preflight", "prepare_memory_bytes", "reference_tables", "plan_with_gains"]
+__all__ = [
+    "MEMORY_ENV",
+    "PLUGIN_SAMPLE_BYTES",
+    "Plan",
+    "PlanError",
+    "available_memory_bytes",
+    "prepare",
+    "preflight",
+    "plan_with_gains",
+    "reference_tables",
+    "run_memory_bytes",
+]
 
-#: the preparation holds about this many dense (4N × 4N) float64 matrices at its peak (the lifted
-#: model G, the iteration map and their temporaries; measured: 0.35 GB more at N = 1001 than at
-#: N = 501).  Issue 11 makes the preparation O(N); then change :func:`prepare_memory_bytes`.
-PREPARE_DENSE_MATRICES: float = 4.0
-#: fixed part of the preparation's memory, bytes
-PREPARE_BASE_BYTES: int = 300 * 1024**2
+#: environment variable: the memory the preflight may count on, bytes (suffix K, M, G or T for
+#: KiB … TiB), instead of what the machine reports (:func:`available_memory_bytes`)
+MEMORY_ENV: str = "ILCRIG_AVAILABLE_MEMORY"
+
+# The memory model below is fitted to the peak resident memory of whole runs, measured by
+# ``benchmarks/run_memory.py`` (N = 1001 … 59999, 2 … 100 trials, every law of different cost);
+# each coefficient is rounded up, and the sum is multiplied by MEMORY_MARGIN.
+
+#: the fixed part of the peak memory of ``ilcrig sim`` (one process: the interpreter with numpy,
+#: scipy, numba and its compiled kernels, rerun and matplotlib; the drives' tables of fixed capacity), bytes
+RUN_BASE_BYTES: int = 370 * 1000**2
+#: the part per sample of a trial, by law, bytes: the reference, the closed-loop model along it, the
+#: law's operators (norm-optimal: the Riccati gains; no-ilc-id: the identification's regressor),
+#: the convergence check's vectors (a Krylov basis of 41 vectors of 4N when the map is not causal)
+#: and one trial's traces
+SAMPLE_BYTES: dict[str, int] = {
+    "pd-ilc": 2250,
+    "pd-ol": 2250,
+    "p-ol": 2250,
+    "d-ilc": 2250,
+    "pd-ilc-q": 2250,
+    "q-ilc": 2250,
+    "no-ilc": 3050,
+    "no-ilc-id": 3100,
+}
+#: the part per sample and trial, bytes: every trial's error and feed-forward ((N, 4) float64 each)
+#: stay for the summary, the report and the recording (measured 75 B: 100 against 2 trials at N = 20,001)
+TRIAL_SAMPLE_BYTES: int = 80
+#: ``ilcrig run``: the rig's other processes (launcher, hub, plant, four drives) together, their
+#: fixed part (summed resident memory, shared library pages counted in each process), bytes
+RIG_EXTRA_BYTES: int = 1150 * 1000**2
+#: ``ilcrig run``: the rig's other processes, their part per sample of a trial, bytes
+RIG_SAMPLE_BYTES: int = 1000
+#: the estimate is the fitted model × this factor
+MEMORY_MARGIN: float = 1.25
+#: the part per sample for a law from outside the package (a plug-in may say its own with a class
+#: attribute ``memory_bytes_per_sample``): the largest of the built-in laws
+PLUGIN_SAMPLE_BYTES: int = max(SAMPLE_BYTES.values())
+if set(SAMPLE_BYTES) != set(LAWS):  # pragma: no cover - a programming error, caught by every test
+    raise ImportError(f"SAMPLE_BYTES {sorted(SAMPLE_BYTES)} differs from host.learning.names.LAWS {sorted(LAWS)}")
 
 
 class PlanError(ValueError):
     """The experiment cannot be prepared (one line naming the option and the allowed range)."""
 
 
-def prepare_memory_bytes(n_ticks: int, joints: int = 4) -> int:
-    """Estimated peak memory of :func:`prepare` for trials of ``n_ticks`` samples, bytes."""
-    return int(PREPARE_BASE_BYTES + PREPARE_DENSE_MATRICES * 8 * (joints * n_ticks) ** 2)
+def _law_sample_bytes(law: str) -> int:
+    """The per-sample memory of ``law``: measured for the built-in laws, the class attribute
+    ``memory_bytes_per_sample`` of a law from outside if it has one, else :data:`PLUGIN_SAMPLE_BYTES`."""
+    if law in SAMPLE_BYTES:
+        return SAMPLE_BYTES[law]
+    try:
+        declared = getattr(law_class(law), "memory_bytes_per_sample", None)
+    except ValueError:  # an unknown name is refused where the law is built, with its own message
+        declared = None
+    return int(declared) if isinstance(declared, int | float) and declared > 0 else PLUGIN_SAMPLE_BYTES
 
 
-def available_memory_bytes() -> int | None:
-    """MemAvailable of /proc/meminfo (else physical memory), bytes; None if unknown."""
+def run_memory_bytes(n_ticks: int, iterations: int, law: str, *, rig: bool = False) -> int:
+    """Estimated peak memory of a run of ``iterations`` trials of ``n_ticks`` samples with the law
+    ``law``, margin included, bytes: of ``ilcrig sim`` (its one process), or with ``rig`` of all
+    processes of ``ilcrig run``."""
+    fitted = RUN_BASE_BYTES + n_ticks * (_law_sample_bytes(law) + iterations * TRIAL_SAMPLE_BYTES)
+    if rig:
+        fitted += RIG_EXTRA_BYTES + n_ticks * RIG_SAMPLE_BYTES
+    return int(MEMORY_MARGIN * fitted)
+
+
+def _max_samples(have_bytes: int, iterations: int, law: str, rig: bool) -> int:
+    """The largest N whose :func:`run_memory_bytes` fits in ``have_bytes`` (0 if none)."""
+    fixed = RUN_BASE_BYTES + (RIG_EXTRA_BYTES if rig else 0)
+    per_sample = _law_sample_bytes(law) + iterations * TRIAL_SAMPLE_BYTES + (RIG_SAMPLE_BYTES if rig else 0)
+    return max(int((have_bytes / MEMORY_MARGIN - fixed) // per_sample), 0)
+
+
+_SUFFIX = {"": 1, "K": 1024, "M": 1024**2, "G": 1024**3, "T": 1024**4}
+
+
+def _memory_from_env(text: str) -> int:
+    """``$ILCRIG_AVAILABLE_MEMORY``: bytes, or with a suffix K, M, G, T (KiB … TiB; "2G", "512MiB")."""
+    t = text.strip().upper().removesuffix("B").removesuffix("I")
+    unit = t[-1:] if t[-1:] in ("K", "M", "G", "T") else ""
+    try:
+        value = float(t[: len(t) - len(unit)])
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value) or value < 0:
+        raise PlanError(f"{MEMORY_ENV}={text!r}: must be a size in bytes, optionally with K, M, G or T (e.g. 2G)")
+    return int(value * _SUFFIX[unit])
+
+
+def _cgroup_room_bytes() -> int | None:
+    """The room left under this process's cgroup memory limit (v2 memory.max, v1
+    memory.limit_in_bytes), bytes; None without a limit."""
+    try:
+        with open("/proc/self/cgroup", encoding="ascii") as fh:
+            lines = fh.read().splitlines()
+    except OSError:
+        return None
+    for line in lines:
+        _, controllers, path = line.split(":", 2)
+        if controllers == "":
+            files = (f"/sys/fs/cgroup{path}/memory.max", f"/sys/fs/cgroup{path}/memory.current")
+        elif "memory" in controllers.split(","):
+            files = (f"/sys/fs/cgroup/memory{path}/memory.limit_in_bytes", f"/sys/fs/cgroup/memory{path}/memory.usage_in_bytes")
+        else:
+            continue
+        try:
+            with open(files[0], encoding="ascii") as fh:
+                limit = fh.read().strip()
+            with open(files[1], encoding="ascii") as fh:
+                usage = int(fh.read().strip())
+        except (OSError, ValueError):
+            continue
+        if limit.isdigit() and int(limit) < 2**60:  # v1 writes "no limit" as a number near 2**63
+            return max(int(limit) - usage, 0)
+    return None
+
+
+def _available_memory() -> tuple[int | None, str]:
+    """(bytes a run may count on or None, where the number comes from)."""
+    env = os.environ.get(MEMORY_ENV)
+    if env:
+        return _memory_from_env(env), MEMORY_ENV
+    have: int | None = None
+    source = "MemAvailable"
     try:
         with open("/proc/meminfo", encoding="ascii") as fh:
             for line in fh:
                 if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
+                    have = int(line.split()[1]) * 1024
     except (OSError, ValueError, IndexError):
         pass
-    try:
-        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
-    except (ValueError, OSError, AttributeError):
-        return None
+    if have is None:
+        try:
+            have, source = int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")), "physical memory"
+        except (ValueError, OSError, AttributeError):
+            pass
+    room = _cgroup_room_bytes()
+    if room is not None and (have is None or room < have):
+        have, source = room, "cgroup memory limit"
+    return have, source
 
 
-def _gib(n: float) -> str:
-    return f"{n / 1024**3:.1f} GiB"
+def available_memory_bytes() -> int | None:
+    """The memory a run may count on, bytes: ``$ILCRIG_AVAILABLE_MEMORY`` if set, else the smaller
+    of MemAvailable (/proc/meminfo; else the physical memory) and the room under the cgroup's
+    memory limit; None if unknown.
+
+    :raises PlanError: ``$ILCRIG_AVAILABLE_MEMORY`` is not a size.
+    """
+    return _available_memory()[0]
 
 
-def preflight(cfg: ExperimentConfig) -> int:
+def _size(n_bytes: float) -> str:
+    """Bytes as MiB below 1 GiB, else GiB."""
+    return f"{n_bytes / 1024**2:.0f} MiB" if n_bytes < 1024**3 else f"{n_bytes / 1024**3:.1f} GiB"
+
+
+def _check_memory(cfg: ExperimentConfig, n: int, rig: bool) -> None:
+    """Refuse a run whose estimated peak memory (:func:`run_memory_bytes`) exceeds what is available."""
+    need = run_memory_bytes(n, cfg.iterations, cfg.law, rig=rig)
+    have, source = _available_memory()
+    if have is None or need <= have:
+        return
+    what = "the rig's processes need" if rig else "the run needs"
+    journey = (min(_max_samples(have, cfg.iterations, cfg.law, rig), TABLE_CAPACITY) - 1) // 2
+    if journey > 0:
+        advice = f"use a cycle of at most about {journey * cfg.ts_s:.2f} s or fewer trials"
+    else:
+        fixed = MEMORY_MARGIN * (RUN_BASE_BYTES + (RIG_EXTRA_BYTES if rig else 0))
+        advice = f"not even the fixed part of about {_size(fixed)} fits"
+    raise PlanError(
+        f"--cycle {cfg.cycle_s:g}, --iterations {cfg.iterations}: {cfg.iterations} trials of N = {n} samples with law "
+        f"{cfg.law}: {what} about {_size(need)} of memory, this machine has {_size(have)} available ({source}); {advice}"
+    )
+
+
+def preflight(cfg: ExperimentConfig, *, rig: bool = False) -> int:
     """The cheap checks that need no planning: the trial length N against the drives' table
-    capacity and the machine's memory, the learning lead against N. Returns N.
+    capacity, the run's memory against the machine's (with ``rig``: of all processes of
+    ``ilcrig run``), the learning lead against N. Returns N.
 
     :raises PlanError: one line naming the option.
     """
@@ -93,17 +253,7 @@ def preflight(cfg: ExperimentConfig) -> int:
             f"--cycle {cfg.cycle_s:g}: a trial of N = {n} samples exceeds the drives' table capacity "
             f"of {TABLE_CAPACITY} samples (0x2103:2); use a cycle of at most {max_cycle:g} s"
         )
-    need = prepare_memory_bytes(n)
-    have = available_memory_bytes()
-    if have is not None and need > have:
-        # the largest N whose estimate fits, as a cycle time
-        n_fit = int(math.sqrt(max(have - PREPARE_BASE_BYTES, 0) / (PREPARE_DENSE_MATRICES * 8)) / 4)
-        max_cycle = max((n_fit - 1) // 2, 0) * cfg.ts_s
-        raise PlanError(
-            f"--cycle {cfg.cycle_s:g}: preparing a trial of N = {n} samples needs about {_gib(need)} of "
-            f"memory (the convergence check's lifted model), this machine has {_gib(have)} available; "
-            f"use a cycle of at most about {max_cycle:.2f} s"
-        )
+    _check_memory(cfg, n, rig)
     if cfg.gains.lead >= n:
         raise PlanError(f"--lead {cfg.gains.lead}: the learning lead must be less than N = {n} samples per trial (0..{n - 1})")
     g = cfg.gains
@@ -169,10 +319,11 @@ class Plan:
         return int(self.ref.q.shape[0])
 
 
-def prepare(cfg: ExperimentConfig) -> Plan:
+def prepare(cfg: ExperimentConfig, *, rig: bool = False) -> Plan:
     """Plan the task, map it to joints, check feasibility and convergence (raise ValueError
-    subclasses with one-line messages on anything infeasible)."""
-    preflight(cfg)
+    subclasses with one-line messages on anything infeasible); ``rig``: the memory check counts all
+    processes of ``ilcrig run`` (:func:`preflight`)."""
+    preflight(cfg, rig=rig)
     path = resolve_path(cfg.path)
     task = plan_task(path, cfg.cycle_s, cfg.profile, cfg.ts_s)
     ref = joint_reference(task)

@@ -48,6 +48,7 @@ import numpy as np
 from bus import units
 from bus.cyclic import PDO_MODE, nm_to_permille_array, permille_to_nm_array
 from bus.errors import IlcrigError, SdoAbort
+from bus.objects import ModeOfOperation
 from host.experiment.faults import FaultKind, FaultRecord, attach_injection, read_injections
 from host.experiment.outputs import OutputError, RunFolder
 from host.experiment.plan import Plan, reference_tables
@@ -298,7 +299,8 @@ class _Trials:
         if self.pdo:  # the reference is streamed as 0x607A; the drive needs only the trial length
             drive.set_trial_length(plan.n_ticks)
             drive.set_mode(PDO_MODE)
-        else:
+        else:  # the manufacturer's table playback (the drive boots in another mode)
+            drive.set_mode(ModeOfOperation.TABLE_PLAYBACK)
             drive.load_reference(self.q_ref_rad[:, j], self.qd_ref_rad_s[:, j])
         drive.enable()
 

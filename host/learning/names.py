@@ -17,5 +17,6 @@ GAIN_PRESET_NAMES: tuple[str, ...] = ("normalized", "paper")
 #: the largest number of trials of one experiment.  A run keeps every trial's error and
 #: feed-forward ((N, 4) float64 each) for its summary, report and recording, so memory grows as
 #: trials × ticks: 1000 trials of the default 501-tick trial take 32 MB, of a 20 s (20,001-tick)
-#: trial 1.3 GB.  The convergence check's cost does not depend on it.
+#: trial 1.3 GB (the preflight's memory model counts it: ``host.experiment.plan.TRIAL_SAMPLE_BYTES``).
+#: The convergence check's cost does not depend on it.
 MAX_ITERATIONS: int = 1000

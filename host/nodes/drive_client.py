@@ -196,7 +196,7 @@ class DriveClient:
         self._set_length(int(n))
 
     def set_mode(self, mode: int) -> None:
-        """0x6060 modes of operation (-1 table playback, 8 CSP, 10 CST), checked with 0x6061.
+        """0x6060 modes of operation (-1 table playback, 1 profile position, 6 homing, 8 CSP, 9 CSV, 10 CST), checked with 0x6061.
 
         :raises DriveStateError: the display does not show the new mode.
         """

@@ -3,14 +3,14 @@
 This module owns :func:`launch_rig` and :class:`RigLauncher`, which puts the run's processes
 together:
 
-* the bus hub (only when the transport is ``hub``), started with :func:`bus.transports.hub_server.start_hub` on a
+* the bus hub (only when the transport is ``hub``), started with :func:`bus.transports.hub.process.start_hub` on a
   fresh private Unix socket (a temp directory per run, so concurrent runs never collide) unless
   ``--hub ADDR`` names the address it must listen on;
 * the plant (``ilcrig plant``), four drives (``ilcrig drive --node 1..4``) and the host
   (``ilcrig host <the same experiment options> --out DIR``), each started as
   ``[sys.executable, "-P", "-m", "host.cli", ROLE, ...]`` with the same ``--bus``/``--hub``
   (:mod:`host.rig.role_commands`; ``-P``: the working folder cannot shadow the project's modules,
-  and the hub is started with ``PYTHONSAFEPATH`` for the same reason) as processes of their own
+  the hub is started the same way) as processes of their own
   (:mod:`host.rig.processes`);
 * with ``--realtime``, SCHED_FIFO for the lockstep processes (:mod:`host.rig.realtime`) and the
   idle-poll loops (:mod:`host.rig.idle_poll`); with ``--inject`` the launcher's injections
@@ -98,7 +98,7 @@ def preflight(args: argparse.Namespace) -> list[FaultSpec]:
         raise ValueError("--no-idle-poll: the CPUs are kept awake only in a real-time run; add --realtime")
     from host.experiment.plan import prepare
 
-    prepare(cfg)
+    prepare(cfg, rig=True)
     return specs
 
 

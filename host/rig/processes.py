@@ -6,9 +6,8 @@ This module owns
   signalled) with ``PR_SET_PDEATHSIG`` = SIGKILL (it dies with the launcher), stdin closed and its
   output in its log file (:class:`Child`);
 * :class:`Death` — a process that ended while the host ran, with how and when it was noticed;
-* :func:`start_hub_process` — the bus hub (:func:`bus.transports.hub_server.start_hub`) with
-  SIGINT/SIGHUP blocked (a terminal's Ctrl-C reaches the launcher only) and ``PYTHONSAFEPATH``
-  set (its ``python -m`` does not import from the working folder);
+* :func:`start_hub_process` — the bus hub (:func:`bus.transports.hub.process.start_hub`) with
+  SIGINT/SIGHUP blocked (a terminal's Ctrl-C reaches the launcher only);
 * :func:`terminate` — SIGTERM every child's process group, wait a grace period, SIGKILL, reap;
 * small helpers: an exit status in words (:func:`describe_status`), the last lines of a log
   (:func:`tail`), a role's node id (:func:`node_id_of`), the launcher's CPU time (:func:`cpu_s`).
@@ -26,7 +25,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -197,21 +196,6 @@ def spawn(name: str, argv: list[str], log_path: Path | None, *, stderr_only: boo
     return Child(name, proc, argv, log_path)
 
 
-@contextlib.contextmanager
-def _safe_path_environment() -> Iterator[None]:
-    """``PYTHONSAFEPATH=1`` in this process's environment for the block: a ``python -m`` child
-    started meanwhile does not import from the working folder."""
-    old = os.environ.get("PYTHONSAFEPATH")
-    os.environ["PYTHONSAFEPATH"] = "1"
-    try:
-        yield
-    finally:
-        if old is None:
-            os.environ.pop("PYTHONSAFEPATH", None)
-        else:
-            os.environ["PYTHONSAFEPATH"] = old
-
-
 def start_hub_process(
     address: str | None, inject: str | None = None, log_path: Path | None = None, bus_time: dict[str, int] | None = None
 ) -> Any:
@@ -224,7 +208,8 @@ def start_hub_process(
     :raises LaunchError: it did not start
     :raises ValueError: a bad address
     """
-    from bus.transports.hub_server import HubError, start_hub
+    from bus.transports.hub.process import start_hub
+    from bus.transports.hub.wire import HubError
 
     # The hub stays in the launcher's process group (start_hub's Popen); with SIGINT/SIGHUP
     # blocked across fork+exec (the signal mask is inherited), a terminal Ctrl-C reaches only
@@ -232,8 +217,7 @@ def start_hub_process(
     old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, _HUB_BLOCKED_SIGNALS)
     log = open(log_path, "ab") if log_path is not None else None  # noqa: SIM115 - closed below
     try:
-        with _safe_path_environment():
-            hub = start_hub(address, inject=inject, stderr=log, bus_time=bus_time)
+        hub = start_hub(address, inject=inject, stderr=log, bus_time=bus_time)
     except HubError as err:
         if isinstance(err, ValueError):
             raise

@@ -11,7 +11,8 @@ SIGTERM (exit 130 / 143) or a fault of one of its own processes (exit 3, one lin
   with :func:`host.rig.processes.start_hub_process`;
 * the plant (``ilcrig plant --robot sync|realtime``: one control period per SYNC,
   :mod:`plant.plant_node_robot`; its period trace ``trace.bin`` and its session summary
-  ``plant.json``) and the drives ``ilcrig drive --node 1..4``, started and stopped with
+  ``plant.json``) and the drives ``ilcrig drive --node 1..4 --lockstep`` (drives of a SYNC-stepped
+  plant; ``--param-dir`` passed on), started and stopped with
   :mod:`host.rig.processes` (own sessions, dying with the launcher, reaped on every path);
   with ``--realtime`` also SCHED_FIFO and the idle-poll loops, as ``ilcrig run --realtime``;
 * two passive channel monitors (:class:`host.rig.monitor.ChannelMonitor`) write the candump logs
@@ -68,7 +69,7 @@ class RobotLauncher:
     """Starts, announces, watches and stops the robot (see the module docstring).
 
     :param args: the parsed ``ilcrig robot`` Namespace (``bus``, ``hub``, ``out``, ``realtime``,
-        ``rt_priority``, ``no_idle_poll``, ``view``, ``debug``)
+        ``rt_priority``, ``no_idle_poll``, ``param_dir``, ``view``, ``debug``)
     :param stdout: stream of the announcement and the closing line (default ``sys.stdout``)
     :param stderr: stream of the fault / error line (default ``sys.stderr``)
     :param grace_s: SIGTERM → SIGKILL grace period, s
@@ -149,8 +150,12 @@ class RobotLauncher:
         mode = "realtime" if args.realtime else "sync"
         plant_extra = ["--robot", mode, "--trace", str(out / "trace.bin"), "--summary", str(out / "plant.json")]
         self._spawn("plant", child_argv("plant", bus_args, extra=plant_extra, debug=debug), log_dir / "plant.log")
+        # drives of a SYNC-stepped plant: a SYNC's TPDOs carry its control cycle (docs/robot.md, Time)
+        param_dir = getattr(args, "param_dir", None)
+        drive_extra = ["--lockstep"] + (["--param-dir", str(Path(param_dir).resolve())] if param_dir else [])
         for node in DRIVE_NODE_IDS:
-            self._spawn(f"drive{node}", child_argv("drive", bus_args, node=node, debug=debug), log_dir / f"drive{node}.log")
+            argv = child_argv("drive", bus_args, node=node, extra=drive_extra, debug=debug)
+            self._spawn(f"drive{node}", argv, log_dir / f"drive{node}.log")
         code = self._wait_booted()
         if code is not None:
             return code
@@ -367,10 +372,9 @@ def launch_robot(args: argparse.Namespace) -> int:
         raise ValueError(f"--rt-priority {args.rt_priority}: the priority of a real-time robot; add --realtime")
     if getattr(args, "no_idle_poll", False) and not args.realtime:
         raise ValueError("--no-idle-poll: the CPUs are kept awake only in real time; add --realtime")
-    if args.out:
-        out = Path(args.out)
-        if out.exists() and not out.is_dir():
-            raise ValueError(f"--out {out}: not a folder")
+    for option, value in (("--out", args.out), ("--param-dir", getattr(args, "param_dir", None))):
+        if value and Path(value).exists() and not Path(value).is_dir():
+            raise ValueError(f"{option} {value}: not a folder")
     from bus.transports.config import transport_from_name, vcan_available
 
     tc = transport_from_name(args.bus, args.hub, bool(getattr(args, "allow_remote", False)))

@@ -1,4 +1,4 @@
-"""Type stub of the C extension bus/transports/_hubcore.c (the hub's data plane)."""
+"""Type stub of the C extension bus/transports/hub/_hubcore.c (the hub's data plane)."""
 
 from collections.abc import Sequence
 

@@ -1,19 +1,19 @@
 /*
- * _hubcore: the hub's data plane in C (bus.transports._hubcore).
+ * _hubcore: the hub's data plane in C (bus.transports.hub._hubcore).
  *
  * What this module owns: reading the frame records of the hub's members, counting them, routing
  * them to the other members of their logical bus and writing them out, in one epoll loop, with
- * the same rules as the pure-Python path of bus/transports/hub_server.py (that module's docstring
+ * the same rules as the pure-Python path of bus/transports/hub/routing.py (that module's docstring
  * is the specification: forwarding, echo, classic-CAN members, acceptance filters, one send per
  * destination per round, bulk members held up to BULK_HOLD_S / BULK_MAX_BYTES, a member that
- * stops reading dropped past MAX_OUTBUF_BYTES). The wire format is hub_wire.py's.
+ * stops reading dropped past MAX_OUTBUF_BYTES). The wire format is bus/transports/hub/wire.py's.
  *
  * Why C: profiling the rig (benchmarks/profile_rig.py, perf) showed the hub process spending
  * about two thirds of its CPU in the Python interpreter moving 24-byte records; this loop moves
  * them without it. Everything that is not the per-frame path stays in Python: accepting,
  * handshakes, stats queries, frame faults and bus time (a hub with either uses the Python path).
  *
- * The Python side (HubServer) registers its own descriptors (listen sockets, wake pipe, clients
+ * The Python side (HubServer, bus/transports/hub/server.py and core.py) registers its own descriptors (listen sockets, wake pipe, clients
  * before their handshake) with watch(); poll() returns their events, and handles every member's
  * events itself. A member the core drops (disconnected, read/write error, output overflow, an
  * unknown record kind) is taken out of the core and reported by poll(); Python closes it.
@@ -701,7 +701,7 @@ static PyMethodDef Core_methods[] = {
 };
 
 static PyTypeObject CoreType = {
-    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "bus.transports._hubcore.Core",
+    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "bus.transports.hub._hubcore.Core",
     .tp_basicsize = sizeof(Core),
     .tp_flags = Py_TPFLAGS_DEFAULT,
     .tp_doc = "The hub's data plane: members' frames read, counted, routed and written in C.",
@@ -712,7 +712,7 @@ static PyTypeObject CoreType = {
 };
 
 static struct PyModuleDef hubcore_module = {
-    PyModuleDef_HEAD_INIT, "_hubcore", "The hub's data plane in C (see bus/transports/_hubcore.c).", -1, NULL,
+    PyModuleDef_HEAD_INIT, "_hubcore", "The hub's data plane in C (see bus/transports/hub/_hubcore.c).", -1, NULL,
 };
 
 PyMODINIT_FUNC PyInit__hubcore(void) {

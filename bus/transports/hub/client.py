@@ -1,10 +1,10 @@
 r"""Hub client: :class:`HubBus`, the python-can interface ``ilcrig_hub``.
 
 This module owns the client side of the zero-privilege CAN hub: one :class:`HubBus` is one
-member of one logical bus on a hub (:mod:`bus.transports.hub_server`), speaking the wire
-format of :mod:`bus.transports.hub_wire`. It is registered as the python-can interface
-``ilcrig_hub`` (entry point in ``pyproject.toml``), so ``can.Bus(interface="ilcrig_hub",
-channel=...)`` and python-can's tools (``can.logger``, ``can.player``, ``can.bridge``,
+member of one logical bus on a hub (:mod:`bus.transports.hub.server`), speaking the wire
+protocol of :mod:`bus.transports.hub.wire` (records: :mod:`bus.transports.hub.records`). It is
+registered as the python-can interface ``ilcrig_hub`` (entry point in ``pyproject.toml``), so
+``can.Bus(interface="ilcrig_hub", channel=...)`` and python-can's tools (``can.logger``, ``can.player``, ``can.bridge``,
 ``can.viewer``) reach it, and it behaves as python-can's own interfaces do (python-can's
 back-to-back, notifier, listener, filtering and cyclic-send tests run against it:
 ``tests/test_hub_python_can.py``).
@@ -48,7 +48,7 @@ CAN FD, classic CAN and bitrates
     refused (like a node at the wrong bitrate), a member giving none adopts the bus's.
     They are exposed as :attr:`HubBus.bitrate` / :attr:`HubBus.data_bitrate` (None =
     unknown), in :attr:`channel_info` and in the hub stats
-    (:class:`~bus.transports.hub_server.HubChannelStats`).
+    (:class:`~bus.transports.hub.stats.HubChannelStats`).
 
 Acceptance filters
     ``can_filters`` / :meth:`can.BusABC.set_filters` are pushed to the hub, which then only
@@ -95,49 +95,21 @@ import can
 import numpy as np
 from can import CanProtocol
 
-from bus.bus_features import FRAME_DTYPE, FRAME_TX, frames_from_messages, recv_waiting
-from bus.fastmsg import FAST, new_message
-from bus.transports.hub_wire import (
-    FLAG_BRS,
-    FLAG_ECHO,
-    FLAG_ERR,
-    FLAG_ESI,
-    FLAG_EXT,
-    FLAG_FD,
-    FLAG_RTR,
-    HEADER,
-    HEADER_SIZE,
-    KIND_FRAME,
+from bus.bus_features import FRAME_DTYPE, frames_from_messages, recv_waiting
+from bus.transports.hub.addresses import connect, parse_channel
+from bus.transports.hub.records import classic_frames, decode_records, encode_filters, encode_record
+from bus.transports.hub.wire import (
     PROTOCOL_VERSION,
     ROLE_MEMBER,
     HubAddressError,
     HubProtocolError,
-    connect,
-    encode_filters,
-    encode_record,
     hello,
-    parse_channel,
     read_member_reply,
 )
 
 logger = logging.getLogger(__name__)
 
-_new = can.Message.__new__
-_Message = can.Message
 _CLOSED = "Cannot operate on a closed bus"
-#: a classic frame's wire record (hub_wire.HEADER) as a numpy record
-_WIRE_DTYPE = np.dtype(
-    [
-        ("kind", "u1"),
-        ("flags", "u1"),
-        ("dlc", "u1"),
-        ("length", "u1"),
-        ("can_id", "<u4"),
-        ("stamp", "<u8"),
-        ("inline", "u1", (8,)),
-    ]
-)
-assert _WIRE_DTYPE.itemsize == HEADER_SIZE and FLAG_ECHO == FRAME_TX
 
 
 def _bitrate_arg(name: str, value: object) -> int:
@@ -155,7 +127,7 @@ def _bitrate_arg(name: str, value: object) -> int:
 class HubBus(can.BusABC):
     """python-can interface ``ilcrig_hub``: one logical bus on an ilcrig hub.
 
-    :param channel: ``<address>#<bus name>`` (see :mod:`bus.transports.hub_wire`)
+    :param channel: ``<address>#<bus name>`` (see :mod:`bus.transports.hub.addresses`)
     :param can_filters: acceptance filters, applied in the hub and again in software
     :param receive_own_messages: the hub echoes this client's frames back (``is_rx=False``)
     :param fd: True (default): CAN FD controller; False: classic CAN controller (see the
@@ -167,7 +139,7 @@ class HubBus(can.BusABC):
     :param connect_timeout_s: connect + handshake timeout, s
     :param allow_remote: connect to a hub on a non-loopback TCP address (explicit opt-in)
     :param bulk_delivery: a passive member (a logger, a monitor): the hub may hold this
-        client's frames up to :data:`~bus.transports.hub_wire.BULK_HOLD_S` and deliver them in
+        client's frames up to :data:`~bus.transports.hub.wire.BULK_HOLD_S` and deliver them in
         fewer, larger writes (timestamps stay the hub's receive times)
     :raises can.CanInitializationError: no hub at the address, or the hub refused (e.g.
         another bitrate on that bus, another protocol version)
@@ -326,52 +298,8 @@ class HubBus(can.BusABC):
 
         :raises HubProtocolError: a record of another kind than a frame
         """
-        size = len(data)
-        off = 0
-        append = self._rxq.append
-        unpack = HEADER.unpack_from
-        new = _new
-        channel = self.channel
-        while size - off >= HEADER_SIZE:
-            kind, flags, dlc, length, can_id, stamp_ns, inline = unpack(data, off)
-            if kind != KIND_FRAME:
-                raise HubProtocolError(f"unexpected record kind {kind} from hub")
-            end = off + HEADER_SIZE
-            if length > 8:
-                end += length - 8
-                if end > size:
-                    break
-                payload = bytearray(inline + data[off + HEADER_SIZE : end])
-            else:
-                payload = bytearray(inline[:length])
-            if flags or not FAST:
-                msg = new_message(
-                    can_id,
-                    payload,
-                    timestamp=stamp_ns / 1e9,
-                    is_extended_id=bool(flags & FLAG_EXT),
-                    is_remote_frame=bool(flags & FLAG_RTR),
-                    is_error_frame=bool(flags & FLAG_ERR),
-                    channel=channel,
-                    dlc=dlc,
-                    is_fd=bool(flags & FLAG_FD),
-                    is_rx=not flags & FLAG_ECHO,
-                    bitrate_switch=bool(flags & FLAG_BRS),
-                    error_state_indicator=bool(flags & FLAG_ESI),
-                )
-            else:  # the common case: a classic data frame with an 11-bit id
-                msg = new(_Message)
-                msg.timestamp = stamp_ns / 1e9
-                msg.arbitration_id = can_id
-                msg.is_extended_id = msg.is_remote_frame = msg.is_error_frame = msg.is_fd = False
-                msg.bitrate_switch = msg.error_state_indicator = False
-                msg.is_rx = True
-                msg.channel = channel
-                msg.data = payload
-                msg.dlc = dlc
-            append(msg)
-            off = end
-        self._rxbuf = bytearray(data[off:]) if off < size else bytearray()
+        used = decode_records(data, self.channel, self._rxq.append)
+        self._rxbuf = bytearray(data[used:]) if used < len(data) else bytearray()
 
     def recv_batch(self) -> list[can.Message]:
         """Every frame waiting now, in order (:class:`bus.bus_features.BatchReceiver`): the local
@@ -431,23 +359,16 @@ class HubBus(can.BusABC):
 
     def _frames_of(self, data: bytes) -> np.ndarray:
         """The whole records of ``data`` as frames (a partial one waits in the buffer)."""
-        n = len(data) // HEADER_SIZE
-        wire = np.frombuffer(data, dtype=_WIRE_DTYPE, count=n)
-        if not ((wire["kind"] == KIND_FRAME) & (wire["length"] <= 8)).all():
-            self._parse(data)  # CAN FD records (or garbage): one at a time
+        found = classic_frames(data)
+        if found is None:  # CAN FD records (or garbage): one at a time
+            self._parse(data)
             msgs = list(self._rxq)
             self._rxq.clear()
             return frames_from_messages(msgs)
-        if len(data) > n * HEADER_SIZE:
-            self._rxbuf = bytearray(data[n * HEADER_SIZE :])
-        out = np.zeros(n, dtype=FRAME_DTYPE)
-        out["timestamp"] = wire["stamp"] / 1e9
-        out["arbitration_id"] = wire["can_id"]
-        out["flags"] = wire["flags"]  # the wire's flag bits are FRAME_* (echo = FRAME_TX)
-        out["dlc"] = wire["dlc"]
-        out["length"] = wire["length"]
-        out["data"][:, :8] = wire["inline"]
-        return out
+        frames, used = found
+        if used < len(data):
+            self._rxbuf = bytearray(data[used:])
+        return frames
 
     def frames_pending(self) -> bool:
         """True when frames wait in the local queue (:class:`bus.bus_features.BufferedReceiver`):
