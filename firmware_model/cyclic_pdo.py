@@ -12,12 +12,15 @@ OPERATIONAL and start afresh when the drive enters it.
   and its io tick runs that tick at once; the credits are the SYNCs whose io tick has not run yet,
   at most :data:`bus.cyclic.SYNC_CREDITS_MAX` (a SYNC-stepped plant, ``ilcrig robot``, may have
   the next SYNC queued behind the period in progress: no drive waits for a SYNC the plant used).
+  A drive of a SYNC-stepped plant (:attr:`CyclicPdo.sync_stepped`) counts every SYNC, in every
+  NMT state and over NMT resets: the plant's periods go on whatever the drive's state.
   In OPERATIONAL it also writes the buffered synchronous RPDOs to their objects (e.g. 0x607A,
   0x6071, 0x60B2).  A SYNC whose length does not fit 0x1019 (no counter byte when 0x1019 > 0, or
   one when 0x1019 = 0) is reported as EMCY 0x8240 once per change and is a SYNC all the same.
-* in a cyclic mode in NMT OPERATIONAL, an io tick may run only with a credit
-  (:meth:`CyclicPdo.tick_ready`; the node runtime holds the encoder frame until the SYNC came);
-  every io tick uses one (:meth:`CyclicPdo.consume_sync`).
+* in a cyclic mode in NMT OPERATIONAL -- and in a drive of a SYNC-stepped plant outside a trial,
+  in every mode and state -- an io tick may run only with a credit (:meth:`CyclicPdo.tick_ready`;
+  the node runtime holds the encoder frame until the SYNC came, whatever order the transport
+  delivered them in); every io tick uses one (:meth:`CyclicPdo.consume_sync`).
 * the synchronous TPDOs due at a SYNC (types 0–240, counted per TPDO, SYNC start value 0x1800:6)
   are sampled with the values of the latest completed control cycle and go out at once --
   except where SYNC n and io tick n are one control cycle (``lockstep_cycle``: a lockstep trial,
@@ -82,6 +85,8 @@ class CyclicPdo:
         self.clock = clock
         #: the SYNC watchdog's clock [s] (None: :attr:`clock`)
         self.watch_clock: Callable[[], float] | None = None
+        #: a drive of a SYNC-stepped plant: every SYNC is a credit, in every NMT state and over resets
+        self.sync_stepped = False
         self.engine = PdoEngine(store, nmt_state, lambda: self.clock(), report=self._length_error)
         self._lockstep_cycle = lockstep_cycle
         self._on_error = on_error
@@ -98,7 +103,7 @@ class CyclicPdo:
         (``keep_credit``: a SYNC seen in PRE-OPERATIONAL whose io tick has not run yet still
         counts): no buffered RPDO, no TPDO waiting, every counter and timer afresh."""
         self.engine.reset()
-        if not keep_credit:
+        if not (keep_credit or self.sync_stepped):
             self.sync_credit = 0
         self._deferred = None
         self._out.clear()
@@ -110,10 +115,11 @@ class CyclicPdo:
         """True in NMT OPERATIONAL (PDOs are processed only there)."""
         return self.engine.active
 
-    def tick_ready(self, cyclic_mode: bool) -> bool:
-        """False while an io tick must wait for its SYNC: in a cyclic mode (``cyclic_mode``), NMT
-        OPERATIONAL and no credit."""
-        return self.sync_credit > 0 or not (cyclic_mode and self.engine.active)
+    def tick_ready(self, cyclic_mode: bool, stepped: bool = False) -> bool:
+        """False while an io tick must wait for its SYNC: no credit, and either a cyclic mode
+        (``cyclic_mode``) in NMT OPERATIONAL or a drive of a SYNC-stepped plant outside a trial
+        (``stepped``: every io tick follows its SYNC, in every mode and state)."""
+        return self.sync_credit > 0 or not (stepped or cyclic_mode and self.engine.active)
 
     def consume_sync(self) -> None:
         """An io tick ran: it used one credit."""
@@ -127,7 +133,7 @@ class CyclicPdo:
         effect, the next io tick may run, the synchronous TPDOs due are sampled (or wait for the
         tick of a lockstep cycle); in PRE-OPERATIONAL only the credit."""
         engine = self.engine
-        if self.sync_credit < SYNC_CREDITS_MAX and self._nmt_state() in _SYNC_STATES:
+        if self.sync_credit < SYNC_CREDITS_MAX and (self.sync_stepped or self._nmt_state() in _SYNC_STATES):
             self.sync_credit += 1
         if not engine.active:
             return

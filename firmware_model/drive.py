@@ -154,11 +154,12 @@ class Drive:
 
     def step_on_sync(self, watch_clock: Callable[[], float]) -> None:
         """Make this a drive of a SYNC-stepped plant (``ilcrig robot``: every io tick follows a
-        SYNC, docs/robot.md): a synchronous TPDO carries the control cycle of its SYNC (in every
-        mode), the timers of the control cycle (TPDO inhibit time and event timer, RPDO
-        deadlines) count the lockstep time, and the SYNC watchdog -- which must see time pass
-        while no SYNC comes -- runs on ``watch_clock`` [s] (the monotonic clock)."""
-        self.sync_stepped = True
+        SYNC, docs/robot.md): outside a trial an io tick waits for its SYNC in every mode and
+        NMT state (every SYNC is a credit, kept over NMT resets), a synchronous TPDO carries the
+        control cycle of its SYNC, the timers of the control cycle (TPDO inhibit time and event
+        timer, RPDO deadlines) count the lockstep time, and the SYNC watchdog -- which must see
+        time pass while no SYNC comes -- runs on ``watch_clock`` [s] (the monotonic clock)."""
+        self.sync_stepped = self.pdo.sync_stepped = True
         self.clock = self.lockstep_time_s
         self.pdo.watch_clock = watch_clock
 
@@ -317,7 +318,7 @@ class Drive:
     @property
     def tick_ready(self) -> bool:
         """False while an io tick must wait for its SYNC (:mod:`firmware_model.cyclic_pdo`)."""
-        return self.pdo.tick_ready(self.motion.mode.CYCLIC)
+        return self.pdo.tick_ready(self.motion.mode.CYCLIC, self.sync_stepped and not self.trial.playing)
 
     def on_sync(self, counter: int | None = None) -> None:
         """A SYNC frame (``counter``: its counter byte, if any): synchronous RPDOs take effect,
@@ -358,7 +359,6 @@ class Drive:
         self.power.reset("nmt-reset_node")
         self.trial.reset()
         self.motion.reset()
-        self.pdo.consume_sync()
         self._st[:] = control_law.new_state()
         self.objects.apply_parameters()
 

@@ -429,11 +429,24 @@ COUNTS_PER_RAD = 10 * 2**20 / (2 * np.pi)
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "robot_master.py"
 
 
-def run_example(interface: str, channel: str, cwd: Path, timeout_s: float = 600.0, wait_s: float = 5.0) -> dict[str, Any]:
+def run_example(
+    interface: str, channel: str, cwd: Path, timeout_s: float = 600.0, wait_s: float = 5.0, homing_method: int = 37
+) -> dict[str, Any]:
     """examples/robot_master.py as a user runs it, against a running robot (``wait_s``: its
     ``--timeout``); its JSON."""
     done = subprocess.run(
-        [sys.executable, str(EXAMPLE), "--interface", interface, "--channel", channel, "--timeout", repr(wait_s)],
+        [
+            sys.executable,
+            str(EXAMPLE),
+            "--interface",
+            interface,
+            "--channel",
+            channel,
+            "--timeout",
+            repr(wait_s),
+            "--homing-method",
+            str(homing_method),
+        ],
         capture_output=True,
         text=True,
         timeout=timeout_s,
@@ -443,19 +456,62 @@ def run_example(interface: str, channel: str, cwd: Path, timeout_s: float = 600.
     return json.loads(done.stdout)
 
 
+def run_example_in_process(tmp: Path, homing_method: int = 37) -> tuple[dict[str, Any], str]:
+    """examples/robot_master.py's session against a :class:`VirtualRobot` in this process: its
+    result and the digest of the robot's period trace."""
+    import importlib.util
+
+    from plant.trace import read_trace, trace_digest
+
+    spec = importlib.util.spec_from_file_location("robot_master_example", EXAMPLE)
+    assert spec is not None and spec.loader is not None
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    tmp.mkdir(parents=True, exist_ok=True)
+    trace = tmp / "trace.bin"
+    channels = new_channels()
+    waiter = LockstepMaster(channels[0])  # on the bus before the nodes boot
+    try:
+        robot = VirtualRobot(RobotMode.SYNC, trace_path=str(trace), channels=channels)
+        try:
+            waiter.wait_booted()
+            res = example.run("virtual", channels[0], str(DRIVE_EDS_PATH), homing_method=homing_method)
+        finally:
+            robot.close()
+    finally:
+        waiter.close()
+    return res, trace_digest(read_trace(trace).records)
+
+
 def check_pick_and_place(res: dict[str, Any]) -> None:
-    """What the example's session must show: every waypoint reached by the drives' TPDOs within
-    0.005 rad (the gravity sag of the PD position loop), the plant's joints equal to the drives'
-    last report and its TCP home, every drive in Quick stop active."""
+    """What the example's session must show: homing made every drive's position its home offset,
+    the robot's own joint counts (it stood at its home pose); the profile-position move and every
+    waypoint reached by the drives' TPDOs within 0.005 rad (the gravity sag of the PD position
+    loop); the plant's joints equal to the drives' last report and its TCP home; every drive in
+    Quick stop active, then Switch on disabled with every brake closed and the robot where it
+    stopped; every SYNC the master sent was one period of the robot."""
     from plant.kinematics import inverse_kinematics
 
+    q_home = np.rint(inverse_kinematics(np.array([0.0, 0.0, -0.65, 0.0])) * COUNTS_PER_RAD).astype(int).tolist()
+    homing = res["homing"]
+    assert homing["homed"] == [True] * 4
+    assert homing["offsets_counts"] == q_home == homing["position_counts"]
+    assert np.abs(np.array(homing["robot_counts"]) - np.array(q_home)).max() <= 1
+    assert res["start_counts"] == homing["robot_counts"]  # the drives saw the robot before homing
+    pp = res["profile_position"]
+    assert pp["periods"] > 100
+    assert (np.abs(np.array(pp["actual_counts"]) - np.array(pp["goal_counts"])) / COUNTS_PER_RAD).max() < 0.005, pp
     for wp in res["waypoints"]:
         err = np.abs(np.array(wp["actual_counts"]) - np.array(wp["target_counts"])) / COUNTS_PER_RAD
         assert err.max() < 0.005, wp
     home = res["waypoints"][-1]
-    assert home["waypoint"] == "home"
+    assert home["waypoint"] == "home" and home["target_counts"] == q_home
     assert np.abs(np.array(res["robot"]["q_counts"]) - np.array(home["actual_counts"])).max() <= 200
     np.testing.assert_allclose(res["robot"]["tcp"][:3], (0.0, 0.0, -0.65), atol=1e-3)
-    q_home = inverse_kinematics(np.array([0.0, 0.0, -0.65, 0.0]))
-    assert home["target_counts"] == np.rint(q_home * COUNTS_PER_RAD).astype(int).tolist()
+    assert res["robot"]["brakes"] == 0  # torque on: brakes open
     assert res["after_quick_stop"] == ["QUICK STOP ACTIVE"] * 4
+    assert res["after_disable"] == ["SWITCH ON DISABLED"] * 4
+    stopped = res["robot_after_quick_stop"]
+    assert stopped["brakes"] == 0xF
+    assert np.abs(np.array(stopped["q_counts"]) - np.array(res["robot"]["q_counts"])).max() <= 200
+    assert stopped["periods"] == res["periods_total"]  # one robot period per SYNC of the master

@@ -1,6 +1,8 @@
 """``ilcrig robot`` with masters nobody here wrote: the example script (examples/robot_master.py,
-python canopen's ``BaseNode402``) powers the robot, moves it along a pick-and-place in CSP and
-stops it with quick stop; the positions it reached are checked from its TPDOs and from the plant.
+python canopen's ``BaseNode402``) powers the robot, homes it, moves it point to point in profile
+position and along a pick-and-place in CSP, and stops it with quick stop; the positions it reached
+are checked from its TPDOs and from the plant, and the same script run again in process on virtual
+buses gives the same period trace.
 The session's outputs (summary, trace, candump logs) and Ctrl-C / SIGTERM (130 / 143); a killed
 process of the robot: tests/test_fault_matrix.py.
 
@@ -19,12 +21,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from cli_util import run_cli
-from robot_util import DRIVES, RobotProcess, check_pick_and_place, pid_alive, run_example
+from robot_util import DRIVES, RobotProcess, check_pick_and_place, pid_alive, run_example, run_example_in_process
 
 from bus.canlog import read_log
 from bus.objects import DRIVE_EDS_PATH
 from plant.kinematics import inverse_kinematics
-from plant.trace import read_trace
+from plant.trace import read_trace, trace_digest
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -40,7 +42,9 @@ def robot(tmp_path: Path) -> Iterator[RobotProcess]:
         r.kill()
 
 
-def test_python_canopen_master_runs_a_pick_and_place_and_quick_stops(robot: RobotProcess, tmp_path: Path) -> None:
+def test_python_canopen_master_homes_moves_and_quick_stops_the_robot_deterministically(
+    robot: RobotProcess, tmp_path: Path
+) -> None:
     where = robot.ready()
     res = run_example(where["interface"], where["channel"], tmp_path)
     check_pick_and_place(res)
@@ -50,8 +54,8 @@ def test_python_canopen_master_runs_a_pick_and_place_and_quick_stops(robot: Robo
     summary = json.loads((out / "summary.json").read_text())
     assert summary["schema"] == "ilcrig.robot/1" and summary["end"]["reason"] == "interrupted"
     session = summary["robot"]
-    assert session["periods"] >= res["periods"] and session["syncs"] >= session["periods"]
-    assert session["faults"] == [] and session["state"] == "ready" and session["brakes"] == 0xF  # quick stop: braked
+    assert session["periods"] == res["periods_total"] == session["syncs"]  # one period per SYNC, none lost
+    assert session["faults"] == [] and session["state"] == "ready" and session["brakes"] == 0xF  # disabled: braked
     assert summary["bus"]["syncs_on_bus"] == session["syncs"]
     trace = read_trace(out / "trace.bin")
     assert len(trace.records) == session["periods"] and trace.ts_s == 1e-3
@@ -61,9 +65,14 @@ def test_python_canopen_master_runs_a_pick_and_place_and_quick_stops(robot: Robo
         assert np.abs(trace.q_rad - q).max(axis=1).min() < 0.005
     assert any(msg.arbitration_id == 0x080 for msg in read_log(out / "fieldbus.log"))
     encoder_frames = sum(1 for msg in read_log(out / "io.log") if msg.arbitration_id == 0x101)
-    assert session["periods"] <= encoder_frames <= session["periods"] + 1  # + the period SIGTERM cut
+    assert encoder_frames == session["periods"]
     for name in ("plant", "drive1", "drive2", "drive3", "drive4"):
         assert "Traceback" not in (out / "logs" / f"{name}.log").read_text()
+    # the same master script, in this process on virtual buses (homing method 35 instead of 37):
+    # the same robot, period for period
+    again, digest = run_example_in_process(tmp_path / "again", homing_method=35)
+    assert again == res
+    assert digest == trace_digest(trace.records)
 
 
 def readme_master() -> str:
