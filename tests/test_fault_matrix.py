@@ -6,7 +6,9 @@ entry naming the kind, node, trial and tick and who detected it, every drive tor
 bus or in its log), ``report.md``, and no process or temp folder left.  An interrupt keeps 143 and
 an ``interrupted`` marker.  ``ilcrig robot`` (no host; a python-canopen master holding the enabled
 robot in CSP) ends the same way when one of its processes dies: exit code 3, one line
-``ilcrig: fault: <process> …``, ``summary.json`` saying which, and no process left.
+``ilcrig: fault: <process> …``, ``summary.json`` saying which, and no process left.  The faults a
+foreign master causes on the robot (its heartbeat, NMT STOP, its RPDOs or SYNCs stopping, an end
+stop): tests/test_robot_faults.py, and the ``robot-master-*`` kinds of ``benchmarks/fault_matrix.py``.
 
 Runs one rig at a time (they are timing-sensitive on 2 cores); each waits for the launcher to end.
 Marker ``faultmatrix`` (the normal ``pytest`` command runs it; ``-m "not faultmatrix"`` skips it).
