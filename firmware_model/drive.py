@@ -119,6 +119,9 @@ class Drive:
         self.clock: Callable[[], float] = clock if clock is not None else self.lockstep_time_s
         #: a drive of a SYNC-stepped plant (:meth:`step_on_sync`)
         self.sync_stepped = False
+        #: the plant runs a trial (its io control frames TRIAL_START … TRIAL_STOP): the plant paces
+        #: those ticks, not SYNC
+        self.plant_trial = False
         self.store = ObjectStore(eds_path, self.node_id)
         self.storage = ParameterStorage(self.node_id, param_dir, exclude=NOT_PARAMETERS)
         self.storage.restore(self.store, 0x1000, 0xFFFF)
@@ -154,7 +157,8 @@ class Drive:
 
     def step_on_sync(self, watch_clock: Callable[[], float]) -> None:
         """Make this a drive of a SYNC-stepped plant (``ilcrig robot``: every io tick follows a
-        SYNC, docs/robot.md): outside a trial an io tick waits for its SYNC in every mode and
+        SYNC, docs/robot.md): outside a trial (the drive's, or the plant's:
+        :attr:`plant_trial`) an io tick waits for its SYNC in every mode and
         NMT state (every SYNC is a credit, kept over NMT resets), a synchronous TPDO carries the
         control cycle of its SYNC, the timers of the control cycle (TPDO inhibit time and event
         timer, RPDO deadlines) count the lockstep time, and the SYNC watchdog -- which must see
@@ -318,7 +322,8 @@ class Drive:
     @property
     def tick_ready(self) -> bool:
         """False while an io tick must wait for its SYNC (:mod:`firmware_model.cyclic_pdo`)."""
-        return self.pdo.tick_ready(self.motion.mode.CYCLIC, self.sync_stepped and not self.trial.playing)
+        stepped = self.sync_stepped and not (self.plant_trial or self.trial.playing)
+        return self.pdo.tick_ready(self.motion.mode.CYCLIC, stepped)
 
     def on_sync(self, counter: int | None = None) -> None:
         """A SYNC frame (``counter``: its counter byte, if any): synchronous RPDOs take effect,

@@ -8,7 +8,8 @@ plant node (:mod:`plant.plant_node`); :class:`DriveNode` adds the io side:
 
 * the plant's encoder frame for this node's joint → ``drive.io_tick(tick, count)`` →
   torque frame with the same wire tick; the trial control frame TRIAL_START sets the tick
-  origin.  The drive gets the tick number *within the trial*
+  origin, and TRIAL_START … TRIAL_STOP tell the drive that the plant paces those ticks
+  (``drive.plant_trial``).  The drive gets the tick number *within the trial*
   (architecture.md: n = 0..N-1): the 16-bit wire tick is taken relative to the TRIAL_START
   frame's tick and unwrapped, so trials longer than 65536 ticks work.
 * the io bus gets acceptance filters (:meth:`DriveNode.io_filters`: this joint's encoder
@@ -101,6 +102,8 @@ class CyclicDriveLike(DriveLike, Protocol):
     def step_on_sync(self, watch_clock: Callable[[], float]) -> None:
         """Make it a drive of a SYNC-stepped plant (the SYNC watchdog on ``watch_clock``)."""
         ...
+
+    plant_trial: bool  #: the plant runs a trial (io control frames): its ticks are not SYNC's
 
     def watch_deadline(self) -> float | None:
         """When the SYNC watchdog fires, on the clock given to :meth:`step_on_sync` [s]."""
@@ -219,6 +222,8 @@ class DriveNode(SlaveNode):
             if control.command == io_frames.ControlCommand.TRIAL_START:
                 self._tick_origin = control.tick
                 self._next_full_tick = 0
+            if self._cyclic is not None:
+                self._cyclic.plant_trial = control.command == io_frames.ControlCommand.TRIAL_START
             self._held = None
         # anything else (our own torque echo, other joints' frames) is not for us
 
