@@ -119,6 +119,7 @@ def test_ctrl_c_stops_every_process_with_130(robot: RobotProcess) -> None:
         (["--rt-priority", "5"], "--rt-priority 5: the priority of a real-time robot; add --realtime"),
         (["--no-idle-poll"], "--no-idle-poll: the CPUs are kept awake only in real time; add --realtime"),
         (["--bus", "nosuch"], "nosuch"),
+        (["--param-dir", __file__], f"--param-dir {__file__}: not a folder"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2_before_anything_starts(
