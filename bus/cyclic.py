@@ -55,6 +55,10 @@ SYNC_COB_ID: Final[int] = SYNC_COB_ID_DEFAULT
 SYNC_BYTES: Final[int] = 0
 #: the drive mode of the pdo transport
 PDO_MODE: Final[ModeOfOperation] = ModeOfOperation.CSP
+#: SYNCs a drive keeps as credits for io ticks not yet run (firmware_model.cyclic_pdo), and SYNCs the
+#: robot keeps for its periods (one in progress, one waiting; plant.plant_node_robot): with the same
+#: bound on both sides no drive waits for a SYNC the plant has already used
+SYNC_CREDITS_MAX: Final[int] = 2
 #: PDO number (1-based) used for the cyclic set-points and actuals
 RPDO_NUMBER: Final[int] = 1
 TPDO_NUMBER: Final[int] = 1

@@ -34,6 +34,21 @@ index   sub  name                      type     meaning / unit
 0x2430  5    last trial duration       U32      ro, µs wall clock (diagnostics only)
 0x2440  0    last trial timing         DOMAIN   ro, 25 bytes: :class:`TrialTiming` (wall clock)
 0x2441  0    last trial's misses       DOMAIN   ro, 10 + 12·k bytes: :class:`DeadlineMisses` (paced)
+0x2450  1    robot mode                U8       :class:`RobotMode`: 0 off, 1 SYNC-stepped, 2 real time
+0x2450  2    robot command             U8       wo: :class:`RobotCommand` 1 fault reset
+0x2450  3    robot state               U8       ro: :class:`RobotState`
+0x2450  4    periods stepped           U32      ro, since the robot mode came on (wraps)
+0x2450  5    SYNCs seen                U32      ro, SYNC frames (COB-ID 0x080) received
+0x2450  6    late SYNCs                U32      ro, real time: SYNCs after their period's window
+0x2450  7    missing SYNCs             U32      ro, real time: whole periods without a SYNC
+0x2450  8    SYNC overruns             U32      ro, SYNCs that came with one still waiting (dropped)
+0x2450  9    robot fault code          U8       ro: :class:`RobotFault`
+0x2450  10   robot fault joint         U8       ro: joint 1..4 (or drive node) involved, 0 none
+0x2450  11   robot fault period        U32      ro: period at which the fault happened
+0x2450  12   brakes closed             U8       ro: bit j-1 = joint j held by its brake
+0x2451  1-4  joint position            I32      ro: q_j of the robot, counts (the encoder's units)
+0x2452  1-4  TCP pose                  I32      ro: x, y, z [µm], θ [µrad] (forward kinematics)
+0x2453  1-4  mechanical limits         I32      ro: joint end stops low/high [counts], screw gap min/max [µm]
 ======  ===  ========================  =======  ==========================================
 
 Pacing (0x2400:5 = 1, ``ilcrig run --realtime``): tick n of a trial starts (its encoder frames go
@@ -47,6 +62,12 @@ can put them beside a kernel trace.
 
 Configuration, trial index, number of ticks and initial state cannot be written while a trial
 runs (abort 0x08000022).
+
+The robot (0x2450..0x2453, ``ilcrig robot``, docs/robot.md): with the robot mode on, the plant
+node steps one control period per SYNC frame it sees between trials (:mod:`plant.plant_node_robot`);
+a robot fault (an end stop, the screw's travel, a drive that does not answer) sends one EMCY from
+the plant node (:data:`ROBOT_FAULT_EMCY`; manufacturer bytes :func:`robot_fault_emcy_data`) and
+holds every joint by its brake until the fault reset (0x2450:2 = 1, EMCY 0x0000).
 """
 
 from __future__ import annotations
@@ -86,6 +107,10 @@ class PlantObj(IntEnum):
     COUNTERS = 0x2430
     TRIAL_TIMING = 0x2440
     DEADLINE_MISSES = 0x2441
+    ROBOT = 0x2450
+    JOINT_POSITION = 0x2451
+    TCP_POSE = 0x2452
+    MECHANICAL_LIMITS = 0x2453
 
 
 class ConfigSub(IntEnum):
@@ -141,6 +166,75 @@ class CounterSub(IntEnum):
     TICK_TIMEOUTS = 3
     TRIALS_DONE = 4
     LAST_TRIAL_US = 5
+
+
+class RobotSub(IntEnum):
+    """Sub-indices of 0x2450 (the robot)."""
+
+    MODE = 1
+    COMMAND = 2
+    STATE = 3
+    PERIODS = 4
+    SYNCS = 5
+    LATE_SYNCS = 6
+    MISSING_SYNCS = 7
+    SYNC_OVERRUNS = 8
+    FAULT_CODE = 9
+    FAULT_JOINT = 10
+    FAULT_PERIOD = 11
+    BRAKES = 12
+
+
+class LimitSub(IntEnum):
+    """Sub-indices of 0x2453 (the mechanical limits)."""
+
+    JOINT_LOW_COUNTS = 1
+    JOINT_HIGH_COUNTS = 2
+    GAP_MIN_UM = 3
+    GAP_MAX_UM = 4
+
+
+class RobotMode(IntEnum):
+    """0x2450:1: how the robot's periods are stepped between trials."""
+
+    OFF = 0  #: trials only (``ilcrig run``)
+    SYNC = 1  #: one control period per SYNC, as fast as the SYNCs come (deterministic)
+    REALTIME = 2  #: one control period per SYNC, none before its time t0 + n·Ts on the wall clock
+
+
+class RobotCommand(IntEnum):
+    FAULT_RESET = 1
+
+
+class RobotState(IntEnum):
+    OFF = 0  #: robot mode off
+    READY = 1  #: stepping a period per SYNC
+    FAULT = 2  #: a robot fault: every joint held by its brake until the fault reset
+
+
+class RobotFault(IntEnum):
+    """Why the robot stopped (0x2450:9)."""
+
+    NONE = 0
+    END_STOP = 1  #: a joint reached its mechanical end stop
+    SCREW_STOP = 2  #: the screw between the sub-platforms reached the end of its travel
+    MECHANISM = 3  #: the mechanism cannot follow (forward kinematics fails: a rod at full stretch, a singularity)
+    PERIOD_TIMEOUT = 4  #: a drive did not answer a period's encoder frame in time
+    TICK_SEQUENCE = 5  #: a torque frame was missing, duplicated, stale or early
+    BAD_FRAME = 6  #: a malformed torque frame, or a bus error frame on io
+
+
+#: EMCY error code and error register per robot fault (0xFF1x: manufacturer specific, mechanical)
+ROBOT_FAULT_EMCY: Final[dict[RobotFault, tuple[int, int]]] = {
+    RobotFault.END_STOP: (0xFF10, 0x81),
+    RobotFault.SCREW_STOP: (0xFF11, 0x81),
+    RobotFault.MECHANISM: (0xFF12, 0x81),
+    RobotFault.PERIOD_TIMEOUT: (0x8100, 0x11),
+    RobotFault.TICK_SEQUENCE: (0x8200, 0x11),
+    RobotFault.BAD_FRAME: (0x8200, 0x11),
+}
+#: bit 7 of a plant node EMCY's first manufacturer byte: the code is a :class:`RobotFault`
+ROBOT_EMCY_FLAG: Final[int] = 0x80
 
 
 class PlantCommand(IntEnum):
@@ -211,6 +305,12 @@ _EMCY_DATA = struct.Struct("<BBH")
 def fault_emcy_data(fault: PlantFault, node: int, tick: int) -> bytes:
     """5 manufacturer bytes of a plant node EMCY: u8 fault code, u8 node id, u16 tick (low bits), 0."""
     return _EMCY_DATA.pack(int(fault), node & 0xFF, tick & 0xFFFF) + b"\x00"
+
+
+def robot_fault_emcy_data(fault: RobotFault, joint: int, period: int) -> bytes:
+    """5 manufacturer bytes of a robot fault's EMCY: u8 0x80 | fault code, u8 joint (or drive node),
+    u16 period (low bits), 0."""
+    return _EMCY_DATA.pack(ROBOT_EMCY_FLAG | int(fault), joint & 0xFF, period & 0xFFFF) + b"\x00"
 
 
 # -- initial state ------------------------------------------------------------------------

@@ -4,28 +4,36 @@ io ticks.
 Owns the drive's use of the CiA 301 PDO service (:class:`bus.cia301.pdo.PdoEngine`: the PDO
 communication and mapping objects 0x1400/0x1600/0x1800/0x1A00, the SYNC COB-ID 0x1005), the SYNC
 consumer's objects 0x1006 (communication cycle period) and 0x1019 (synchronous counter overflow),
-and the SYNC credit (docs/canopen-objects.md §10, docs/timing.md §7).  Everything here works only
-in NMT OPERATIONAL, and starts afresh when the drive enters it.
+and the SYNC credit (docs/canopen-objects.md §10, docs/timing.md §7).  The PDOs work only in NMT
+OPERATIONAL and start afresh when the drive enters it.
 
-* a SYNC (:meth:`CyclicPdo.on_sync`, with its counter byte if it has one) writes the buffered
-  synchronous RPDOs to their objects (e.g. 0x607A, 0x6071, 0x60B2) and grants one io tick (one
-  credit per SYNC, not accumulated).  A SYNC whose length does not fit 0x1019 (no counter byte
-  when 0x1019 > 0, or one when 0x1019 = 0) is reported as EMCY 0x8240 once per change and is a
-  SYNC all the same.
-* in a cyclic mode in NMT OPERATIONAL, an io tick may run only with that credit
-  (:meth:`CyclicPdo.tick_ready`; the node runtime holds the encoder frame until the SYNC came)
-  and uses it up (:meth:`CyclicPdo.consume_sync`).
+* a SYNC (:meth:`CyclicPdo.on_sync`, with its counter byte if it has one) grants one io tick --
+  in PRE-OPERATIONAL too, where CiA 301 consumes SYNC as well, so a drive started between a SYNC
+  and its io tick runs that tick at once; the credits are the SYNCs whose io tick has not run yet,
+  at most :data:`bus.cyclic.SYNC_CREDITS_MAX` (a SYNC-stepped plant, ``ilcrig robot``, may have
+  the next SYNC queued behind the period in progress: no drive waits for a SYNC the plant used).
+  A drive of a SYNC-stepped plant (:attr:`CyclicPdo.sync_stepped`) counts every SYNC, in every
+  NMT state and over NMT resets: the plant's periods go on whatever the drive's state.
+  In OPERATIONAL it also writes the buffered synchronous RPDOs to their objects (e.g. 0x607A,
+  0x6071, 0x60B2).  A SYNC whose length does not fit 0x1019 (no counter byte when 0x1019 > 0, or
+  one when 0x1019 = 0) is reported as EMCY 0x8240 once per change and is a SYNC all the same.
+* in a cyclic mode in NMT OPERATIONAL -- and in a drive of a SYNC-stepped plant outside a trial,
+  in every mode and state -- an io tick may run only with a credit (:meth:`CyclicPdo.tick_ready`;
+  the node runtime holds the encoder frame until the SYNC came, whatever order the transport
+  delivered them in); every io tick uses one (:meth:`CyclicPdo.consume_sync`).
 * the synchronous TPDOs due at a SYNC (types 0–240, counted per TPDO, SYNC start value 0x1800:6)
   are sampled with the values of the latest completed control cycle and go out at once --
-  except in a lockstep trial (a trial armed or running in a cyclic mode, ``lockstep_cycle``):
-  there SYNC n and io tick n are one control cycle (timing.md §7) and its TPDOs carry tick n's
-  sample, going out right after it (:meth:`CyclicPdo.after_tick`).  A TPDO still waiting for its
-  tick when the next SYNC comes is sampled then, before that SYNC's.
+  except where SYNC n and io tick n are one control cycle (``lockstep_cycle``: a lockstep trial,
+  i.e. a trial armed or running in a cyclic mode, timing.md §7; or a drive of a SYNC-stepped
+  plant, docs/robot.md): there the TPDOs carry tick n's sample, going out right after it
+  (:meth:`CyclicPdo.after_tick`).  A TPDO still waiting for its tick when the next SYNC comes is
+  sampled then, before that SYNC's.
 * event-driven TPDOs (254/255) with inhibit time and event timer, and answers to RTR, as
   :mod:`bus.cia301.pdo` describes, checked after every io tick and whenever the node runtime
   serves (:meth:`CyclicPdo.service`).
-* watchdogs on the drive's clock: an RPDO with an event timer (0x1400+k:5 > 0) that does not come
-  again within it, and -- with 0x1006 > 0 -- no SYNC within 1.5 × 0x1006 after the last one, are
+* watchdogs: an RPDO with an event timer (0x1400+k:5 > 0) that does not come again within it (on
+  the drive's clock), and -- with 0x1006 > 0 -- no SYNC within 1.5 × 0x1006 after the last one (on
+  :attr:`CyclicPdo.watch_clock`, the drive's clock unless the node gives another) are
   communication errors (``on_error``: the power stage's reaction, EMCY 0x8250 / 0x8100), reported
   once per loss; monitoring starts with the first RPDO / SYNC in OPERATIONAL.
 """
@@ -37,14 +45,18 @@ import struct
 from collections.abc import Callable
 
 from bus.cia301.emcy import EmcyCode
+from bus.cia301.nmt import NmtState
 from bus.cia301.object_store import ObjectStore
 from bus.cia301.pdo import Frame, PdoEngine, _Pdo
+from bus.cyclic import SYNC_CREDITS_MAX
 from bus.pdo_objects import COMM_CYCLE_PERIOD_INDEX, SYNC_COUNTER_OVERFLOW_INDEX
 
 logger = logging.getLogger(__name__)
 
 #: SYNC watchdog: a SYNC is lost when none came within this many communication cycle periods
 SYNC_TIMEOUT_PERIODS = 1.5
+#: the NMT states in which a SYNC counts for the next io tick (CiA 301: not in STOPPED)
+_SYNC_STATES = (int(NmtState.OPERATIONAL), int(NmtState.PRE_OPERATIONAL))
 
 
 class CyclicPdo:
@@ -54,7 +66,7 @@ class CyclicPdo:
     :param nmt_state: returns the drive's NMT state.
     :param clock: the drive's time [s].
     :param lockstep_cycle: True while SYNC n and io tick n are one control cycle (a lockstep
-        trial).
+        trial, a SYNC-stepped plant).
     :param on_error: a communication error: ("rpdo", PDO number) or ("sync", 0).
     :param on_warning: an EMCY without a reaction: (error code, 5 manufacturer bytes).
     """
@@ -69,23 +81,30 @@ class CyclicPdo:
         on_warning: Callable[[int, bytes], None] | None = None,
     ) -> None:
         self._store = store
+        self._nmt_state = nmt_state
         self.clock = clock
+        #: the SYNC watchdog's clock [s] (None: :attr:`clock`)
+        self.watch_clock: Callable[[], float] | None = None
+        #: a drive of a SYNC-stepped plant: every SYNC is a credit, in every NMT state and over resets
+        self.sync_stepped = False
         self.engine = PdoEngine(store, nmt_state, lambda: self.clock(), report=self._length_error)
         self._lockstep_cycle = lockstep_cycle
         self._on_error = on_error
         self._on_warning = on_warning
-        #: io ticks the last SYNC allows (0 or 1)
+        #: io ticks the SYNCs received allow (0 .. :data:`bus.cyclic.SYNC_CREDITS_MAX`)
         self.sync_credit = 0
         self._deferred: list[_Pdo] | None = None  # TPDOs of the last SYNC waiting for its io tick
         self._out: list[Frame] = []
         self._sync_deadline_s: float | None = None
         self._sync_length_bad = False
 
-    def reset(self) -> None:
-        """NMT reset communication, or the drive entered OPERATIONAL: no buffered RPDO, no
-        credit, no TPDO waiting, every counter and timer afresh."""
+    def reset(self, keep_credit: bool = False) -> None:
+        """NMT reset communication (no credit), or the drive entered OPERATIONAL
+        (``keep_credit``: a SYNC seen in PRE-OPERATIONAL whose io tick has not run yet still
+        counts): no buffered RPDO, no TPDO waiting, every counter and timer afresh."""
         self.engine.reset()
-        self.sync_credit = 0
+        if not (keep_credit or self.sync_stepped):
+            self.sync_credit = 0
         self._deferred = None
         self._out.clear()
         self._sync_deadline_s = None
@@ -96,39 +115,45 @@ class CyclicPdo:
         """True in NMT OPERATIONAL (PDOs are processed only there)."""
         return self.engine.active
 
-    def tick_ready(self, cyclic_mode: bool) -> bool:
-        """False while an io tick must wait for its SYNC: in a cyclic mode (``cyclic_mode``), NMT
-        OPERATIONAL and no credit."""
-        return self.sync_credit > 0 or not (cyclic_mode and self.engine.active)
+    def tick_ready(self, cyclic_mode: bool, stepped: bool = False) -> bool:
+        """False while an io tick must wait for its SYNC: no credit, and either a cyclic mode
+        (``cyclic_mode``) in NMT OPERATIONAL or a drive of a SYNC-stepped plant outside a trial
+        (``stepped``: every io tick follows its SYNC, in every mode and state)."""
+        return self.sync_credit > 0 or not (stepped or cyclic_mode and self.engine.active)
 
     def consume_sync(self) -> None:
-        """An io tick ran (or was refused): the next one needs a new SYNC."""
-        self.sync_credit = 0
+        """An io tick ran: it used one credit."""
+        if self.sync_credit:
+            self.sync_credit -= 1
 
     # ------------------------------------------------------------------ SYNC
 
     def on_sync(self, counter: int | None = None) -> None:
         """A SYNC frame (``counter``: its counter byte, None without): synchronous RPDOs take
         effect, the next io tick may run, the synchronous TPDOs due are sampled (or wait for the
-        tick of a lockstep trial)."""
+        tick of a lockstep cycle); in PRE-OPERATIONAL only the credit."""
         engine = self.engine
+        if self.sync_credit < SYNC_CREDITS_MAX and (self.sync_stepped or self._nmt_state() in _SYNC_STATES):
+            self.sync_credit += 1
         if not engine.active:
             return
         self._check_sync_length(counter)
         period_us = self._u(COMM_CYCLE_PERIOD_INDEX)
-        self._sync_deadline_s = self.clock() + SYNC_TIMEOUT_PERIODS * period_us * 1e-6 if period_us else None
+        self._sync_deadline_s = self._watch_now() + SYNC_TIMEOUT_PERIODS * period_us * 1e-6 if period_us else None
         if self._deferred is not None:  # the last SYNC's tick never came
             self._out.extend(engine.sample(self._deferred))
             self._deferred = None
         if not self._u(SYNC_COUNTER_OVERFLOW_INDEX):
             counter = None  # a counter the drive was not told to expect is not used
         due = engine.on_sync(counter)
-        self.sync_credit = 1
         if due:
             if self._lockstep_cycle():
                 self._deferred = due
             else:
                 self._out.extend(engine.sample(due))
+
+    def _watch_now(self) -> float:
+        return (self.clock if self.watch_clock is None else self.watch_clock)()
 
     def _u(self, index: int) -> int:
         key = (index, 0)
@@ -170,7 +195,8 @@ class CyclicPdo:
             self._out.extend(self.engine.poll(self.clock()))
 
     def service(self, now: float) -> None:
-        """Timers at ``now`` [s]: RPDO deadlines, the SYNC watchdog, event-driven TPDOs."""
+        """Timers at ``now`` [s] of :attr:`clock`: RPDO deadlines, the SYNC watchdog (at
+        :attr:`watch_clock`'s time, if set), event-driven TPDOs."""
         engine = self.engine
         if not engine.active:
             return
@@ -178,7 +204,8 @@ class CyclicPdo:
             logger.warning("RPDO%d missed its deadline", number)
             if self._on_error is not None:
                 self._on_error("rpdo", number)
-        if self._sync_deadline_s is not None and now >= self._sync_deadline_s - 1e-9:  # µs sums carry float rounding
+        watch_now = now if self.watch_clock is None else self.watch_clock()
+        if self._sync_deadline_s is not None and watch_now >= self._sync_deadline_s - 1e-9:  # µs sums carry float rounding
             self._sync_deadline_s = None
             logger.warning("no SYNC within %.1f communication cycle periods", SYNC_TIMEOUT_PERIODS)
             if self._on_error is not None:
@@ -187,11 +214,18 @@ class CyclicPdo:
             self._out.extend(engine.poll(now))
 
     def next_deadline(self) -> float | None:
-        """The earliest time [s] :meth:`service` has work (None: none)."""
+        """The earliest time [s] of :attr:`clock` at which :meth:`service` has work (None: none;
+        the SYNC watchdog counts here only without a :attr:`watch_clock` of its own)."""
         if not self.engine.active:
             return None
-        times = [t for t in (self.engine.next_deadline(), self._sync_deadline_s) if t is not None]
+        sync = self._sync_deadline_s if self.watch_clock is None else None
+        times = [t for t in (self.engine.next_deadline(), sync) if t is not None]
         return min(times) if times else None
+
+    def watch_deadline(self) -> float | None:
+        """When the SYNC watchdog fires [s of :attr:`watch_clock`, else :attr:`clock`] (None: not
+        armed)."""
+        return self._sync_deadline_s if self.engine.active else None
 
     # ------------------------------------------------------------------ objects for the node
 

@@ -28,7 +28,9 @@ Time: the drive's timers (TPDO inhibit time and event timer, RPDO deadlines, the
 read :attr:`Drive.clock` [s].  By default it is the drive's *lockstep time*
 (:meth:`Drive.lockstep_time_s`: the control periods of the io ticks run so far, 0x2300 each, an
 integer count of µs -- deterministic, the same in every run); the node runtime may give the
-monotonic clock instead (:class:`firmware_model.drive_node.DriveNode`).  The per-period work is
+monotonic clock instead (:class:`firmware_model.drive_node.DriveNode`), or make it a drive of a
+SYNC-stepped plant (:meth:`Drive.step_on_sync`, ``ilcrig robot``): lockstep time for the timers of
+the control cycle, the monotonic clock for the SYNC watchdog.  The per-period work is
 :meth:`Drive.io_tick` followed by :meth:`Drive.service`.
 
 The CANopen protocol layer (SDO server, NMT frames, heartbeat, EMCY frames, PDO frames) is
@@ -115,6 +117,11 @@ class Drive:
         self.nmt_state: NmtState = NmtState.INITIALISING
         self.time_us = 0
         self.clock: Callable[[], float] = clock if clock is not None else self.lockstep_time_s
+        #: a drive of a SYNC-stepped plant (:meth:`step_on_sync`)
+        self.sync_stepped = False
+        #: the plant runs a trial (its io control frames TRIAL_START … TRIAL_STOP): the plant paces
+        #: those ticks, not SYNC
+        self.plant_trial = False
         self.store = ObjectStore(eds_path, self.node_id)
         self.storage = ParameterStorage(self.node_id, param_dir, exclude=NOT_PARAMETERS)
         self.storage.restore(self.store, 0x1000, 0xFFFF)
@@ -131,7 +138,7 @@ class Drive:
             self.store,
             lambda: int(self.nmt_state),
             lambda: self.clock(),
-            lockstep_cycle=lambda: self.motion.mode.CYCLIC and self.trial.playing,
+            lockstep_cycle=lambda: self.sync_stepped or (self.motion.mode.CYCLIC and self.trial.playing),
             on_error=self._pdo_error,
             on_warning=self.power.warning,
         )
@@ -147,6 +154,23 @@ class Drive:
     def lockstep_time_s(self) -> float:
         """The lockstep time [s]: the control periods of the io ticks run so far."""
         return self.time_us / 1_000_000  # correctly rounded: k ms here equals k / 1000.0 elsewhere
+
+    def step_on_sync(self, watch_clock: Callable[[], float]) -> None:
+        """Make this a drive of a SYNC-stepped plant (``ilcrig robot``: every io tick follows a
+        SYNC, docs/robot.md): outside a trial (the drive's, or the plant's:
+        :attr:`plant_trial`) an io tick waits for its SYNC in every mode and
+        NMT state (every SYNC is a credit, kept over NMT resets), a synchronous TPDO carries the
+        control cycle of its SYNC, the timers of the control cycle (TPDO inhibit time and event
+        timer, RPDO deadlines) count the lockstep time, and the SYNC watchdog -- which must see
+        time pass while no SYNC comes -- runs on ``watch_clock`` [s] (the monotonic clock)."""
+        self.sync_stepped = self.pdo.sync_stepped = True
+        self.clock = self.lockstep_time_s
+        self.pdo.watch_clock = watch_clock
+
+    def watch_deadline(self) -> float | None:
+        """When the SYNC watchdog fires, on the clock given to :meth:`step_on_sync` [s] (None:
+        not armed)."""
+        return self.pdo.watch_deadline()
 
     @property
     def cia402_state(self) -> Cia402State:
@@ -200,7 +224,7 @@ class Drive:
         old = self.nmt_state
         if cmd == NmtCommand.START:
             if old != NmtState.OPERATIONAL:
-                self.pdo.reset()  # counters and timers start afresh in OPERATIONAL
+                self.pdo.reset(keep_credit=True)  # counters and timers start afresh in OPERATIONAL
             self.nmt_state = NmtState.OPERATIONAL
         elif cmd == NmtCommand.STOP:
             self.nmt_state = NmtState.STOPPED
@@ -270,13 +294,11 @@ class Drive:
         self.time_us += int(self.store.values[_PERIOD])
         motion = self.motion
         pdo = self.pdo
+        pdo.consume_sync()
         if not self.power.on:
             self._st[_S_POS] = fp.sat32(motion.position(encoder_count))
-            pdo.consume_sync()
             pdo.after_tick()
             return 0
-        if motion.mode.CYCLIC:
-            pdo.consume_sync()
         tau = motion.tick(tick, motion.position(encoder_count))
         pdo.after_tick()
         return tau
@@ -300,7 +322,8 @@ class Drive:
     @property
     def tick_ready(self) -> bool:
         """False while an io tick must wait for its SYNC (:mod:`firmware_model.cyclic_pdo`)."""
-        return self.pdo.tick_ready(self.motion.mode.CYCLIC)
+        stepped = self.sync_stepped and not (self.plant_trial or self.trial.playing)
+        return self.pdo.tick_ready(self.motion.mode.CYCLIC, stepped)
 
     def on_sync(self, counter: int | None = None) -> None:
         """A SYNC frame (``counter``: its counter byte, if any): synchronous RPDOs take effect,
@@ -341,7 +364,6 @@ class Drive:
         self.power.reset("nmt-reset_node")
         self.trial.reset()
         self.motion.reset()
-        self.pdo.consume_sync()
         self._st[:] = control_law.new_state()
         self.objects.apply_parameters()
 

@@ -8,7 +8,8 @@ plant node (:mod:`plant.plant_node`); :class:`DriveNode` adds the io side:
 
 * the plant's encoder frame for this node's joint → ``drive.io_tick(tick, count)`` →
   torque frame with the same wire tick; the trial control frame TRIAL_START sets the tick
-  origin.  The drive gets the tick number *within the trial*
+  origin, and TRIAL_START … TRIAL_STOP tell the drive that the plant paces those ticks
+  (``drive.plant_trial``).  The drive gets the tick number *within the trial*
   (architecture.md: n = 0..N-1): the 16-bit wire tick is taken relative to the TRIAL_START
   frame's tick and unwrapped, so trials longer than 65536 ticks work.
 * the io bus gets acceptance filters (:meth:`DriveNode.io_filters`: this joint's encoder
@@ -25,11 +26,15 @@ plant node (:mod:`plant.plant_node`); :class:`DriveNode` adds the io side:
   (docs/timing.md §7, the SYNC/PDO lockstep handshake).  Whenever the node serves, the drive's
   timers run (``drive.service``: event-driven TPDOs, RPDO deadlines, the SYNC watchdog) and their
   TPDOs go out; the wait is bounded by ``drive.next_deadline``.
-* time: the node runtime and the drive share one clock -- the monotonic clock (default, or the
-  ``clock`` given, e.g. a test's manual clock), or with ``lockstep=True`` the drive's lockstep
-  time (the control periods of its io ticks: :meth:`firmware_model.drive.Drive.lockstep_time_s`),
-  so heartbeat, SDO timeout, EMCY inhibit and the PDO timers advance only with the control
-  cycles the plant drives (deterministic; with no io ticks that time stands still).
+* time: by default the node runtime and the drive share one clock -- the monotonic clock, or the
+  ``clock`` given (e.g. a test's manual clock).  With ``lockstep=True`` the drive is one of a
+  SYNC-stepped plant (``ilcrig robot``, :meth:`firmware_model.drive.Drive.step_on_sync`): the
+  timers of the control cycle (TPDO inhibit time and event timer, RPDO deadlines) count its
+  lockstep time -- the control periods of its io ticks, deterministic, standing still while no
+  SYNC comes -- and a synchronous TPDO carries the control cycle of its SYNC; what watches or
+  serves the master between cycles (heartbeat producer and consumer, SDO timeout, EMCY inhibit
+  time, the SYNC watchdog) stays on ``clock``, so a master that pauses its SYNCs still gets
+  heartbeats and a master that stops them is noticed.
 """
 
 from __future__ import annotations
@@ -95,6 +100,16 @@ class CyclicDriveLike(DriveLike, Protocol):
         """The drive's lockstep time [s] (the control periods of its io ticks)."""
         ...
 
+    def step_on_sync(self, watch_clock: Callable[[], float]) -> None:
+        """Make it a drive of a SYNC-stepped plant (the SYNC watchdog on ``watch_clock``)."""
+        ...
+
+    plant_trial: bool  #: the plant runs a trial (io control frames): its ticks are not SYNC's
+
+    def watch_deadline(self) -> float | None:
+        """When the SYNC watchdog fires, on the clock given to :meth:`step_on_sync` [s]."""
+        ...
+
     def on_sync(self, counter: int | None = None) -> None:
         """A SYNC frame arrived (``counter``: its counter byte, if any)."""
         ...
@@ -140,7 +155,8 @@ class DriveNode(SlaveNode):
     :param io: python-can bus of the io channel (plant ↔ drives).
     :param node_id: CANopen node id (default ``drive.node_id``); joint index = node id − 1.
     :param clock: time source [s] of the node and the drive (monotonic by default).
-    :param lockstep: use the drive's lockstep time instead of ``clock`` (see the module docstring).
+    :param lockstep: a drive of a SYNC-stepped plant: the control cycle's timers on the drive's
+        lockstep time, the rest on ``clock`` (see the module docstring).
     """
 
     def __init__(
@@ -156,7 +172,7 @@ class DriveNode(SlaveNode):
         cyclic = drive if isinstance(drive, CyclicDriveLike) else None
         if cyclic is not None:
             if lockstep:
-                clock = cyclic.lockstep_time_s
+                cyclic.step_on_sync(clock)
             else:
                 cyclic.clock = clock
         elif lockstep:
@@ -171,6 +187,7 @@ class DriveNode(SlaveNode):
         self._held: tuple[int, int] | None = None  # (count, wire tick) of an encoder frame waiting for its SYNC
         # the SYNC/PDO service is a declared optional capability (CyclicDriveLike)
         self._cyclic: CyclicDriveLike | None = cyclic
+        self.lockstep = lockstep
         self.syncs_in = 0
         self.tpdos_out = 0
         io.set_filters(self.io_filters())
@@ -206,6 +223,8 @@ class DriveNode(SlaveNode):
             if control.command == io_frames.ControlCommand.TRIAL_START:
                 self._tick_origin = control.tick
                 self._next_full_tick = 0
+            if self._cyclic is not None:
+                self._cyclic.plant_trial = control.command == io_frames.ControlCommand.TRIAL_START
             self._held = None
         # anything else (our own torque echo, other joints' frames) is not for us
 
@@ -259,12 +278,16 @@ class DriveNode(SlaveNode):
         go out (their EMCYs right after, with the node's)."""
         drive = self._cyclic
         if drive is not None:
-            drive.service(now)
+            drive.service(None if self.lockstep else now)  # lockstep: the control cycle's timers at the drive's time
             self._send_tpdos()
 
     def next_deadline(self) -> float | None:
+        """The drive's next timer on the node's clock (lockstep: the SYNC watchdog alone; the
+        control cycle's timers fall due with io ticks, which are frames)."""
         drive = self._cyclic
-        return None if drive is None else drive.next_deadline()
+        if drive is None:
+            return None
+        return drive.watch_deadline() if self.lockstep else drive.next_deadline()
 
     def _torque_status(self) -> int:
         """Torque-frame status bits from ``drive.torque_enabled`` and the CiA 402 statusword
@@ -296,7 +319,7 @@ def run_node(
     :param io_config: keyword arguments of ``can.Bus`` for the io channel.
     :param stop: stop event; by default a new one set by SIGTERM/SIGINT.
     :param param_dir: folder of the parameters 0x1010 saves (``node<id>.json``); None: in memory.
-    :param lockstep: the node's time is the drive's lockstep time (:class:`DriveNode`).
+    :param lockstep: a drive of a SYNC-stepped plant (:class:`DriveNode`, ``ilcrig robot``).
     :returns: None, or why the node stopped early (a bus failed; the drive faulted first).
     """
     from firmware_model.control_law import warm_up
@@ -339,7 +362,11 @@ def main(argv: Sequence[str] | None = None) -> None:
         parser.add_argument(f"--{prefix}-channel", required=True)
     parser.add_argument("--log-level", default="WARNING")
     parser.add_argument("--param-dir", default=None, help="folder of the parameters 0x1010 saves (default: in memory)")
-    parser.add_argument("--lockstep", action="store_true", help="the node's time is the drive's lockstep time")
+    parser.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="a drive of a SYNC-stepped plant (ilcrig robot): the control cycle's timers on lockstep time",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s node%(process)d %(name)s %(message)s")
     run_node(

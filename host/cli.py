@@ -9,6 +9,8 @@ Subcommands:
   sweep (:mod:`ilcrig.sweep`);
 * ``run``   — the distributed rig: launches the bus hub (if the transport needs one), the plant,
   four drives and the host as separate processes, and cleans every one of them up;
+* ``robot`` — the drives and the plant as a robot on the bus, without the ILC host, for any CANopen
+  master (:mod:`host.rig.robot_launcher`, docs/robot.md);
 * ``drive``, ``plant``, ``host``, ``hub`` — one role each, to run the parts in separate terminals
   (or machines, over a transport that spans them).
   Errors in the input are reported as
@@ -67,7 +69,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
     exp = ilcrig.Experiment.from_config(cfg)
     exp.plan  # noqa: B018 - prepared (and refused with one line) before the run folder is made
-    session = exp.start(out, stream=sys.stdout)
+    session = exp.start(out, stream=sys.stdout, view=bool(args.view))
     with interrupt_on_signals():
         for _ in session:
             pass
@@ -134,12 +136,22 @@ def _add_rig_args(p: argparse.ArgumentParser) -> None:
         metavar="BIT_S",
         help="bit rate of the io channel for the bus-time figures (default 1000000)",
     )
+    _add_view_arg(p)
     p.add_argument(
         "--bus-time",
         action="store_true",
         help="the hub carries both channels in bus time at their bit rates (--io-bitrate, "
         "--fieldbus-bitrate): frames in arbitration order, each delivered after its bit time, so "
         "transfers take as long as on a real bus (hub transport only)",
+    )
+
+
+def _add_view_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--view",
+        action="store_true",
+        help="stream to a Rerun viewer as it happens: the viewer opens when there is a display, otherwise the "
+        "stream is served on 127.0.0.1 and the command that connects a viewer is printed",
     )
 
 
@@ -179,15 +191,21 @@ def cmd_drive(args: argparse.Namespace) -> int:
     if not 1 <= args.node <= 127:
         raise ValueError(f"node id must be 1..127, got {args.node}")
     _role_logging()
-    lost = run_node(args.node, resolve_bus_config(tc.fieldbus), resolve_bus_config(tc.io))
+    lost = run_node(
+        args.node, resolve_bus_config(tc.fieldbus), resolve_bus_config(tc.io), param_dir=args.param_dir, lockstep=args.lockstep
+    )
     return EXIT_FAULT if lost else 0
 
 
 def cmd_plant(args: argparse.Namespace) -> int:
+    from bus.plant_objects import RobotMode
     from plant.plant_node import run_plant_role
 
     _role_logging()
-    lost = run_plant_role(transport_of(args), node_id=args.node_id)
+    mode = {None: RobotMode.OFF, "sync": RobotMode.SYNC, "realtime": RobotMode.REALTIME}[args.robot]
+    lost = run_plant_role(
+        transport_of(args), node_id=args.node_id, robot_mode=mode, trace_path=args.trace, summary_path=args.summary
+    )
     return EXIT_FAULT if lost else 0
 
 
@@ -218,6 +236,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     from host.rig.launcher import launch_rig
 
     return launch_rig(args)  # validates everything (preflight) before anything starts
+
+
+def cmd_robot(args: argparse.Namespace) -> int:
+    from host.rig.robot_launcher import launch_robot
+
+    return launch_robot(args)
 
 
 def cmd_laws(args: argparse.Namespace) -> int:
@@ -299,6 +323,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sp = sub.add_parser("sim", help="run an experiment in one process (no bus)")
     add_experiment_args(sp)
+    _add_view_arg(sp)
     sp.set_defaults(func=cmd_sim)
 
     rp = sub.add_parser("run", help="run an experiment on the distributed rig (6 processes over CAN)")
@@ -314,6 +339,34 @@ def build_parser() -> argparse.ArgumentParser:
         "emcy:NODE@TRIAL:TICK[,code=C], diskfull@TRIAL (README: Fault injection)",
     )
     rp.set_defaults(func=cmd_run)
+
+    op = sub.add_parser(
+        "robot", help="the four drives and the plant as a robot on the bus, for any CANopen master (docs/robot.md)"
+    )
+    _add_bus_args(op)
+    op.add_argument("--out", default=None, metavar="DIR", help="run folder (default runs/robot-<time>)")
+    op.add_argument(
+        "--realtime",
+        action="store_true",
+        help="pace the robot's periods to the wall clock (period n not before t0 + n·Ts) and count late and missing SYNCs",
+    )
+    op.add_argument(
+        "--rt-priority",
+        type=_rt_priority,
+        default=None,
+        metavar="N",
+        help=f"with --realtime: SCHED_FIFO priority of the hub, plant and drives, 1..99 "
+        f"(default {DEFAULT_RT_PRIORITY}; 0 = normal)",
+    )
+    op.add_argument("--no-idle-poll", action="store_true", help="with --realtime: let idle CPUs halt")
+    op.add_argument(
+        "--param-dir",
+        default=None,
+        metavar="DIR",
+        help="folder where the drives keep the parameters a master saves with 0x1010 (default: in memory, one session)",
+    )
+    _add_view_arg(op)
+    op.set_defaults(func=cmd_robot)
 
     hp = sub.add_parser("host", help="the host role alone (expects 4 drives and the plant on the bus)")
     add_experiment_args(hp)
@@ -341,6 +394,18 @@ def build_parser() -> argparse.ArgumentParser:
 
     dp = sub.add_parser("drive", help="one servo-drive node (firmware) on the bus")
     dp.add_argument("--node", type=int, required=True, help="CANopen node id (1-4 for the robot's joints)")
+    dp.add_argument(
+        "--param-dir",
+        default=None,
+        metavar="DIR",
+        help="folder of the parameters 0x1010 saves (node<id>.json; default: in memory)",
+    )
+    dp.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="a drive of a SYNC-stepped plant (ilcrig robot): a SYNC's TPDOs carry its control cycle, "
+        "the PDO timers count control periods (docs/robot.md)",
+    )
     _add_bus_args(dp)
     dp.set_defaults(func=cmd_drive)
 
@@ -348,6 +413,14 @@ def build_parser() -> argparse.ArgumentParser:
     pp.add_argument(
         "--node-id", type=int, default=DEFAULT_PLANT_NODE_ID, help="CANopen node id of the plant node (default %(default)s)"
     )
+    pp.add_argument(
+        "--robot",
+        choices=("sync", "realtime"),
+        default=None,
+        help="start as the robot (docs/robot.md): one control period per SYNC (sync), also paced to the wall clock (realtime)",
+    )
+    pp.add_argument("--trace", default=None, metavar="FILE", help="with --robot: write the period trace here")
+    pp.add_argument("--summary", default=None, metavar="FILE", help="write the node's counters as JSON here on exit")
     _add_bus_args(pp)
     pp.set_defaults(func=cmd_plant)
 

@@ -139,10 +139,11 @@ class Experiment:
 
     # -- running ---------------------------------------------------------------------------------
 
-    def start(self, out: str | Path | None = None, *, stream: TextIO | None = None) -> Session:
+    def start(self, out: str | Path | None = None, *, stream: TextIO | None = None, view: bool = False) -> Session:
         """An in-process run, one trial per :meth:`Session.step` (``out``: a run folder with the
-        outputs of ``ilcrig sim``; ``stream``: the console lines)."""
-        return Session(self, out, stream=stream)
+        outputs of ``ilcrig sim``; ``stream``: the console lines; ``view``: stream the recording
+        live to a Rerun viewer, ``--view``, see :attr:`Session.live_url`)."""
+        return Session(self, out, stream=stream, view=view)
 
     def run(
         self,
@@ -204,7 +205,9 @@ class Session:
     is built again for them and continues from the current feed-forward.
     """
 
-    def __init__(self, experiment: Experiment, out: str | Path | None = None, *, stream: TextIO | None = None) -> None:
+    def __init__(
+        self, experiment: Experiment, out: str | Path | None = None, *, stream: TextIO | None = None, view: bool = False
+    ) -> None:
         from host.experiment.inprocess import InProcessBench
 
         self.experiment = experiment
@@ -213,6 +216,16 @@ class Session:
         self.stream = stream
         self._folder: Any = None
         recorder: Any = None
+        live: Any = None
+        #: the live stream's address (``rerun+http://127.0.0.1:PORT/proxy``) with ``view``, else None
+        self.live_url: str | None = None
+        if view:
+            if self.out is None:
+                raise InputError("view: the live view streams the run's recording; give a run folder (out)")
+            from host.analysis.live_view import LiveView
+
+            live = LiveView()
+            self.live_url = live.url
         if self.out is not None:
             from host.analysis.recording import RunRecorder
             from host.experiment.arrays import Recorders, TrialArrays
@@ -226,10 +239,19 @@ class Session:
             self._folder.reserve()
             recorder = Recorders(
                 RunRecorder(
-                    self.out / "recording.rrd", recording_id=self.out.name, config_summary=plan.cfg.as_dict(), folder=self._folder
+                    self.out / "recording.rrd",
+                    recording_id=self.out.name,
+                    config_summary=plan.cfg.as_dict(),
+                    folder=self._folder,
+                    live=live,
                 ),
                 TrialArrays(self.out, self._folder),
             )
+            if live is not None:
+                line = live.open_viewer()
+                if stream is not None:
+                    stream.write(line + "\n")
+                    stream.flush()
         if stream is not None:
             from host.experiment.console import print_header, print_plan
 

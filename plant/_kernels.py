@@ -659,6 +659,120 @@ def plant_reset(ws: np.ndarray, p: np.ndarray, q0: np.ndarray, qd0: np.ndarray, 
     return ST_OK
 
 
+@njit(cache=True, error_model="numpy")
+def accel_locked(
+    q: np.ndarray,
+    qo: int,
+    qd: np.ndarray,
+    qdo: int,
+    tau: np.ndarray,
+    to: int,
+    p: np.ndarray,
+    ws: np.ndarray,
+    out: np.ndarray,
+    oo: int,
+    locked: np.ndarray,
+) -> int:
+    """:func:`accel` with the joints ``locked[i] != 0`` held (a closed holding brake): q̈_i = 0, and
+    the free joints' accelerations solve M_ff q̈_f = (τ − C q̇ − G − τ_f)_f (the locked rows and
+    columns of M replaced by the identity, their right-hand side by 0).  Returns a status code."""
+    st = eval_terms(q, qo, qd, qdo, p, ws, True)
+    if st != ST_OK:
+        return st
+    v2 = ws[R_V2]
+    v3 = ws[R_V3]
+    mm = ws[R_M]
+    friction_torque(qd, qdo, p, v3, 8)
+    for i in range(4):
+        out[oo + i] = tau[to + i] - v2[8 + i] - v2[12 + i] - v3[8 + i]
+    for i in range(4):
+        if locked[i] != 0:
+            out[oo + i] = 0.0
+            for j in range(4):
+                mm[4 * i + j] = 0.0
+                mm[4 * j + i] = 0.0
+            mm[4 * i + i] = 1.0
+    if not chol4_solve(mm, out, oo):
+        return ST_M_NOT_PD
+    for i in range(4):
+        if not math.isfinite(out[oo + i]):
+            return ST_NONFINITE
+    return ST_OK
+
+
+@njit(cache=True, error_model="numpy")
+def plant_step_locked(
+    ws: np.ndarray, p: np.ndarray, torque_units: np.ndarray, dist_nm: np.ndarray, counts: np.ndarray, locked: np.ndarray
+) -> int:
+    """One control period like :func:`plant_step` with the joints ``locked[i] != 0`` held by their
+    brakes: their velocity is set to 0 at the start of the period and they do not move during it
+    (:func:`accel_locked`); the other joints move under the torques held.  Returns a status code."""
+    x = ws[R_STATE]
+    stg = ws[R_STG]
+    k1 = ws[R_K1]
+    k2 = ws[R_K2]
+    aux = ws[R_AUX]
+    v3 = ws[R_V3]
+    lsb = p[P_TLSB]
+    tlim = p[P_TLIM]
+    for i in range(4):
+        if locked[i] != 0:
+            x[4 + i] = 0.0
+        t = float(torque_units[i]) * lsb
+        sat = 0.0
+        if tlim > 0.0:
+            if t > tlim:
+                t = tlim
+                sat = 1.0
+            elif t < -tlim:
+                t = -tlim
+                sat = 1.0
+        aux[i] = sat
+        v3[12 + i] = t
+        stg[12 + i] = t + dist_nm[i]
+    nsub = int(p[P_NSUB])
+    dt = p[P_TS] / nsub
+    h2 = 0.5 * dt
+    for _ in range(nsub):
+        st = accel_locked(x, 0, x, 4, stg, 12, p, ws, k1, 4, locked)
+        if st != ST_OK:
+            return st
+        for i in range(4):
+            k1[i] = x[4 + i]
+            stg[i] = x[i] + h2 * x[4 + i]
+            stg[4 + i] = x[4 + i] + h2 * k1[4 + i]
+        st = accel_locked(stg, 0, stg, 4, stg, 12, p, ws, k1, 12, locked)
+        if st != ST_OK:
+            return st
+        for i in range(4):
+            k1[8 + i] = stg[4 + i]
+            stg[i] = x[i] + h2 * k1[8 + i]
+            stg[4 + i] = x[4 + i] + h2 * k1[12 + i]
+        st = accel_locked(stg, 0, stg, 4, stg, 12, p, ws, k2, 4, locked)
+        if st != ST_OK:
+            return st
+        for i in range(4):
+            k2[i] = stg[4 + i]
+            stg[i] = x[i] + dt * k2[i]
+            stg[4 + i] = x[4 + i] + dt * k2[4 + i]
+        st = accel_locked(stg, 0, stg, 4, stg, 12, p, ws, k2, 12, locked)
+        if st != ST_OK:
+            return st
+        for i in range(4):
+            k2[8 + i] = stg[4 + i]
+        c = dt / 6.0
+        for i in range(4):
+            x[i] += c * (k1[i] + 2.0 * k1[8 + i] + 2.0 * k2[i] + k2[8 + i])
+            x[4 + i] += c * (k1[4 + i] + 2.0 * k1[12 + i] + 2.0 * k2[4 + i] + k2[12 + i])
+        for i in range(8):
+            if not math.isfinite(x[i]):
+                return ST_NONFINITE
+    rpc = p[P_RPC]
+    for i in range(4):
+        counts[i] = np.int64(np.rint(x[i] / rpc))
+    return ST_OK
+
+
 # ---- batch kernels for the public (vectorised) API ----------------------------------------
 
 

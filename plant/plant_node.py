@@ -29,6 +29,7 @@ the next start begins afresh.
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 import time
@@ -44,17 +45,29 @@ from bus.cia301.nmt import NmtCommand, NmtState, next_state
 from bus.cia301.object_store import ObjectStore
 from bus.cia301.slave import SlaveNode, install_sigterm
 from bus.lockstep_process import freeze_heap, spin_in_this_class
-from bus.plant_objects import DEFAULT_PLANT_NODE_ID, PLANT_EDS_PATH, DisturbanceKind, PlantFault, PlantStatus
+from bus.plant_objects import (
+    DEFAULT_PLANT_NODE_ID,
+    PLANT_EDS_PATH,
+    DisturbanceKind,
+    PlantFault,
+    PlantStatus,
+    RobotMode,
+)
 from bus.timer_slack import fine_timer_slack
 from bus.transports.config import TransportConfig
+from plant.mechanics import MechanicalLimits
 from plant.plant_node_hooks import install_hooks
 from plant.plant_node_model import DisturbanceFn, PlantFactory, TrialModel
+from plant.plant_node_robot import SYNC_COB_ID, RobotLoop
 from plant.plant_node_status import Emcy, TrialStatus, fault_emcy
 from plant.plant_node_trial import LockstepMaster
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["PlantNode", "run_plant_role"]
+
+_TORQUE_LO = io_frames.TORQUE_COB_BASE
+_TORQUE_HI = io_frames.TORQUE_COB_BASE + io_frames.N_JOINTS
 
 
 class PlantNode(SlaveNode):
@@ -73,11 +86,15 @@ class PlantNode(SlaveNode):
     :param spin_s: real time: wake this long before a held tick is due and wait the rest on the
         clock in a loop, s (0: the select loop's timer alone; :mod:`plant.plant_node_trial`).
     :param spin_when: whether a paced trial spins ``spin_s`` (asked at its start; None: always).
+    :param robot_mode: the robot mode the node starts in (0x2450:1; :mod:`plant.plant_node_robot`).
+    :param limits: the robot's mechanical limits (default :class:`plant.mechanics.MechanicalLimits`).
+    :param trace_path: where the robot writes its period trace (None: no trace).
 
     :ivar store: the object store.
     :ivar model: the plant and the disturbance.
     :ivar lockstep: the trial protocol.
     :ivar trial_status: the outcome of the trials.
+    :ivar robot: the robot between trials (SYNC-stepped periods).
     """
 
     #: the plant role's ``spin_s``: the last part of the wait for a paced tick, spent in a loop (a
@@ -104,6 +121,9 @@ class PlantNode(SlaveNode):
         eds_path: str | Path = PLANT_EDS_PATH,
         spin_s: float = 0.0,
         spin_when: Callable[[], bool] | None = None,
+        robot_mode: RobotMode = RobotMode.OFF,
+        limits: MechanicalLimits | None = None,
+        trace_path: str | None = None,
     ) -> None:
         if not 0.0 <= spin_s < 0.01:
             raise ValueError(f"spin_s must be in [0, 0.01) s, got {spin_s!r}")
@@ -132,7 +152,21 @@ class PlantNode(SlaveNode):
             spin_s=float(spin_s),
             spin_when=spin_when,
         )
-        install_hooks(self.store, self.lockstep, self.trial_status)
+        self.robot = RobotLoop(
+            self.node_id,
+            self.store,
+            self.lockstep,
+            self.model,
+            send_batch=self._send_io_batch,
+            send_emcy=self._send_fault_emcy,
+            clock=clock,
+            tick_timeout_s=tick_s,
+            spin_s=float(spin_s),
+            limits=limits,
+            trace_path=trace_path,
+        )
+        self._robot_mode = RobotMode(robot_mode)
+        install_hooks(self.store, self.lockstep, self.trial_status, self.robot)
 
     # ------------------------------------------------------------------ slave app interface
 
@@ -150,9 +184,13 @@ class PlantNode(SlaveNode):
         if cmd in (NmtCommand.STOP, NmtCommand.RESET_NODE, NmtCommand.RESET_COMMUNICATION):
             self.lockstep.abort(f"NMT {cmd.name}")
         if cmd == NmtCommand.RESET_NODE:
+            mode = self.robot.mode
             self.store.reset(0x2000, 0x5FFF)
             self.trial_status.reset()
             self.lockstep.reset_counters()
+            if mode != RobotMode.OFF:  # the robot stays on where it stands; a reset clears its fault
+                self.robot.set_mode(mode)
+                self.robot.fault_reset()
         if cmd in (NmtCommand.RESET_NODE, NmtCommand.RESET_COMMUNICATION):
             self.store.reset(0x1000, 0x1FFF)
         self._nmt_state = next_state(self._nmt_state, cmd)
@@ -228,6 +266,7 @@ class PlantNode(SlaveNode):
             "tick_timeouts": lockstep.tick_timeouts,
             "trials_done": lockstep.trials_done,
             "last_trial_s": status.last_trial_s,
+            **({"robot": self.robot.info()} if self.robot.on else {}),
         }
 
     # ------------------------------------------------------------------ loop hooks
@@ -238,16 +277,38 @@ class PlantNode(SlaveNode):
         scipy.signal, about a second) is paid here, not while the first trial's start holds the
         select loop that answers the host's SDO requests."""
         self.model.warm_up(*self.lockstep.config_ts_substeps(), DisturbanceKind.BOTH.label)
+        if self._robot_mode != RobotMode.OFF:
+            self.robot.set_mode(self._robot_mode)
         super().start()
 
     def next_deadline(self) -> float | None:
-        return self.lockstep.next_deadline()
+        trial = self.lockstep.next_deadline()
+        robot = self.robot.next_deadline()
+        if trial is None or robot is None:
+            return robot if trial is None else trial
+        return min(trial, robot)
 
     def on_service(self, now: float) -> None:
+        if self.lockstep.pending_start:
+            self.robot.interrupt()
         self.lockstep.service(now)
+        self.robot.service(now)
 
     def on_io(self, msg: can.Message) -> None:
-        self.lockstep.on_io(msg)
+        if self.robot.expecting_io and not self.lockstep.busy:
+            if _TORQUE_LO <= msg.arbitration_id < _TORQUE_HI:
+                self.lockstep.io_received += 1
+            self.robot.on_io(msg)
+        else:
+            self.lockstep.on_io(msg)
+
+    def consumed_fieldbus_ids(self) -> set[int]:
+        """SYNC while the robot mode is on (:mod:`plant.plant_node_robot`)."""
+        return {SYNC_COB_ID} if self.robot.on else set()
+
+    def on_fieldbus(self, msg: can.Message) -> None:
+        if msg.arbitration_id == SYNC_COB_ID and len(msg.data) <= 1:
+            self.robot.on_sync(self._clock())
 
     # ------------------------------------------------------------------ sending
 
@@ -265,7 +326,13 @@ class PlantNode(SlaveNode):
 
 
 def run_plant_role(
-    transport: TransportConfig, node_id: int = DEFAULT_PLANT_NODE_ID, stop: threading.Event | None = None
+    transport: TransportConfig,
+    node_id: int = DEFAULT_PLANT_NODE_ID,
+    stop: threading.Event | None = None,
+    *,
+    robot_mode: RobotMode = RobotMode.OFF,
+    trace_path: str | None = None,
+    summary_path: str | None = None,
 ) -> str | None:
     """Plant process entry (``ilcrig plant``): the plant node on both buses of
     ``transport`` (a :class:`bus.transports.config.TransportConfig`), serving until SIGTERM/SIGINT or
@@ -274,8 +341,10 @@ def run_plant_role(
 
     The plant is the true plant (``plant.params.default_true_plant`` with the plant-uncertainty
     factors 0x2400:6..9, encoder and torque LSBs of :mod:`bus.units`), rebuilt only when the host
-    changes Ts, the sub-steps or the factors;
-    the disturbance is :func:`plant.disturbance.disturbance_torque`.
+    changes Ts, the sub-steps or the factors; the disturbance is
+    :func:`plant.disturbance.disturbance_torque`.  ``robot_mode``: the robot mode the node starts in
+    (``ilcrig robot``), ``trace_path`` its period trace; on the way out the node's counters and the
+    robot's session go to ``summary_path`` (JSON), if given.
     """
     from plant.disturbance import disturbance_torque
     from plant.params import PlantScales, default_true_plant, scaled_true_plant
@@ -313,14 +382,32 @@ def run_plant_role(
                 first_tick_timeout_s=io_frames.FIRST_TICK_TIMEOUT_S * scale,
                 spin_s=PlantNode.REALTIME_SPIN_S,
                 spin_when=spin_in_this_class,
+                robot_mode=robot_mode,
+                trace_path=trace_path,
             )
             freeze_heap("plant role")
-            node.run(stop)
+            try:
+                node.run(stop)
+            finally:
+                node.robot.close()
+                if summary_path is not None:
+                    _write_summary(Path(summary_path), node)
             return node.bus_error
         finally:
             _quiet_shutdown(io)
     finally:
         _quiet_shutdown(fieldbus)
+
+
+def _write_summary(path: Path, node: PlantNode) -> None:
+    """The node's counters and the robot's session as JSON (written atomically; a failure is logged)."""
+    info = {"node": node.node_id, "bus_error": node.bus_error, **node.info()}
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.write_text(json.dumps(info, indent=2) + "\n")
+        tmp.replace(path)
+    except OSError as err:
+        logger.error("cannot write the plant summary %s: %s", path, err)
 
 
 def _quiet_shutdown(bus: can.BusABC) -> None:

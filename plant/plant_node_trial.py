@@ -156,6 +156,13 @@ class LockstepMaster:
         substeps = int(self.store.get(PlantObj.CONFIG, ConfigSub.SUBSTEPS))
         return period_us / 1_000_000, substeps
 
+    def claim_wire_tick(self) -> int:
+        """The wire tick of one io exchange outside a trial (a period of the robot,
+        :mod:`plant.plant_node_robot`); the next trial starts after it."""
+        wire = self._wire_next
+        self._wire_next = wire + 1
+        return wire
+
     # ------------------------------------------------------------------ loop hooks
 
     def request_start(self) -> None:

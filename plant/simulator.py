@@ -7,8 +7,12 @@ true-plant dynamics (mass model of the config, tool spin, friction).  FK inside 
 is warm-started from the previous evaluation (first-order predictor Y + J Δq, then Newton).
 The encoder reading is the nearest integer count of q / rad_per_count.
 
+Holding brakes: :meth:`Plant.step` takes the joints held this period (``locked``): their velocity
+is set to 0 and they do not move; the free joints move with them fixed (``_kernels.plant_step_locked``).
+:meth:`Plant.set_state` puts the robot at a state without restarting its time (an end stop).
+
 Failures (FK does not converge, a singularity, a non-finite state) raise :class:`PlantError`
-and leave the plant ``faulted`` until the next :meth:`Plant.reset`.
+and leave the plant ``faulted`` until the next :meth:`Plant.reset` (or :meth:`Plant.set_state`).
 """
 
 from __future__ import annotations
@@ -95,6 +99,25 @@ class Plant:
         self._fault_text = ""
         self._ready = True
 
+    def set_state(self, q: np.ndarray, qd: np.ndarray | None = None) -> None:
+        """Put the robot at q [rad] with q̇ [rad/s] (default at rest) without restarting its time: FK
+        warm-started from the last sub-platform pose (the same assembly branch), e.g. a joint held
+        at an end stop.
+
+        :raises PlantError: FK fails at q (the plant is then faulted).
+        """
+        qa = np.ascontiguousarray(q, dtype=np.float64).reshape(4)
+        qda = self._zero4 if qd is None else np.ascontiguousarray(qd, dtype=np.float64).reshape(4)
+        if not (np.all(np.isfinite(qa)) and np.all(np.isfinite(qda))):
+            raise ValueError("q and qd must be finite")
+        guess = self._ws[K.R_FK, 0:4].copy() if self._ready else self._y_guess
+        st = K.plant_reset(self._ws, self._p, qa, qda, guess, self._counts)
+        if st != K.ST_OK:
+            self._fail(st)
+        self._faulted = False
+        self._fault_text = ""
+        self._ready = True
+
     def reset_to_pose(self, X0: np.ndarray) -> None:
         """Reset at rest at task pose X0 = (x, y, z, θ) [m, rad] (IK first)."""
         self.reset(inverse_kinematics(np.asarray(X0, dtype=np.float64), self.config.geometry), None)
@@ -166,11 +189,14 @@ class Plant:
 
     # ---- integration ---------------------------------------------------------------------
 
-    def step(self, torque_units: np.ndarray, disturbance_nm: np.ndarray | None = None) -> None:
+    def step(self, torque_units: np.ndarray, disturbance_nm: np.ndarray | None = None, locked: np.ndarray | None = None) -> None:
         """Integrate one control period with the torque held.
 
         :param torque_units: int array (4,), commanded joint torque in torque LSBs
         :param disturbance_nm: float array (4,), external joint torque, N·m (None = 0)
+        :param locked: bool array (4,): joints held by their brakes this period (velocity 0, no
+            motion; the others move with these joints fixed); None: none.  With every joint held
+            the state stays as it is.
         :raises PlantError: on a plant fault (then ``faulted`` is True)
         """
         if not self._ready:
@@ -187,7 +213,15 @@ class Plant:
             d = np.ascontiguousarray(d, dtype=np.float64)
             if d.shape != _SHAPE4:
                 raise ValueError(f"disturbance_nm must have shape (4,), got {d.shape}")
-        st = K.plant_step(self._ws, self._p, tu, d, self._counts)
+        if locked is None or not locked.any():
+            st = K.plant_step(self._ws, self._p, tu, d, self._counts)
+        elif locked.all():
+            self._ws[K.R_STATE, 4:8] = 0.0
+            self._ws[K.R_V3, 12:16] = 0.0
+            self._ws[K.R_AUX, 0:4] = 0.0
+            st = K.ST_OK
+        else:
+            st = K.plant_step_locked(self._ws, self._p, tu, d, self._counts, np.ascontiguousarray(locked, dtype=np.int64))
         if st != K.ST_OK:
             self._fail(st)
         self._n_steps += 1

@@ -384,6 +384,12 @@ def test_vendor_id_is_the_documented_one() -> None:
     assert VENDOR_ID != 0 and 0xAFFF_0000 <= VENDOR_ID <= 0xFFFE_FFFF  # never a CiA-assigned vendor
 
 
+#: 0x2110:1 as bus/drive.eds ships it (2000 N·m/rad, the robot's tuning), Q16 µN·m per count
+KP_DEFAULT = 78_539_816
+#: 0x2110:2 as bus/drive.eds ships it (40 N·m·s/rad), Q16 µN·m per count/s
+KD_DEFAULT = 1_570_796
+
+
 def test_store_and_restore_parameters_in_a_file(tmp_path: Path) -> None:
     d = Drive(NODE, param_dir=tmp_path)
     wr(d, Obj.GAINS, GainsSub.KP, "i32", 4321)
@@ -405,7 +411,7 @@ def test_store_and_restore_parameters_in_a_file(tmp_path: Path) -> None:
     again.nmt_command(NmtCommand.RESET_COMMUNICATION)
     assert rd(again, Obj.PRODUCER_HEARTBEAT, 0, "u16") == 0 and rd(again, Obj.GAINS, GainsSub.KP, "i32") == 4321
     wr(again, Obj.RESTORE_DEFAULTS, 1, "u32", RESTORE_SIGNATURE)
-    assert rd(Drive(NODE, param_dir=tmp_path), Obj.GAINS, GainsSub.KP, "i32") == 0
+    assert rd(Drive(NODE, param_dir=tmp_path), Obj.GAINS, GainsSub.KP, "i32") == KP_DEFAULT  # the EDS default again
 
 
 def test_store_parameters_in_memory_survive_a_reset_node_only() -> None:
@@ -415,7 +421,7 @@ def test_store_parameters_in_memory_survive_a_reset_node_only() -> None:
     wr(d, Obj.GAINS, GainsSub.KD, "i32", 5)
     d.nmt_command(NmtCommand.RESET_NODE)
     assert rd(d, Obj.GAINS, GainsSub.KD, "i32") == 99
-    assert rd(Drive(NODE), Obj.GAINS, GainsSub.KD, "i32") == 0  # memory: not in another drive
+    assert rd(Drive(NODE), Obj.GAINS, GainsSub.KD, "i32") == KD_DEFAULT  # memory: not in another drive
 
 
 def test_echo_plant_is_exact() -> None:

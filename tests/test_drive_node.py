@@ -514,40 +514,84 @@ def test_emcy_cob_id_valid_bit_and_inhibit_time_and_rtr_on_the_node_clock() -> N
             bus.shutdown()
 
 
-def test_lockstep_time_is_the_node_clock() -> None:
-    """``DriveNode(lockstep=True)``: the node's clock is the drive's lockstep time, the control
-    periods of its io ticks -- a 5 ms heartbeat goes out exactly with the 5th io tick after 0x1017
-    was written, and not while no io tick comes."""
+def test_lockstep_drive_of_a_sync_stepped_plant() -> None:
+    """``DriveNode(lockstep=True)`` (``ilcrig drive --lockstep``): the heartbeat and the SYNC watchdog
+    run on the node's clock (here a manual one), so they go on while no SYNC comes; the event timer
+    of a TPDO counts the control periods of the io ticks; a synchronous TPDO carries the io tick
+    of its SYNC, after the torque frame."""
     k = next(_counter)
     fb_node = can.Bus(interface="virtual", channel=f"ls-fb-{k}")
     host = can.Bus(interface="virtual", channel=f"ls-fb-{k}")
     io_node = can.Bus(interface="virtual", channel=f"ls-io-{k}")
     plant = can.Bus(interface="virtual", channel=f"ls-io-{k}")
+    now = [100.0]
     drive = Drive(NODE)
-    node = DriveNode(drive, fb_node, io_node, lockstep=True)
+    node = DriveNode(drive, fb_node, io_node, clock=lambda: now[0], lockstep=True)
 
-    def heartbeats() -> int:
-        n = 0
+    def frames() -> list[tuple[int, bytes]]:
+        out = []
         while (msg := host.recv(timeout=0)) is not None:
-            n += msg.arbitration_id == 0x700 + NODE
-        return n
+            out.append((msg.arbitration_id, bytes(msg.data)))
+        return out
+
+    def sdo(index: int, sub: int, fmt: str, value: int) -> None:
+        data = struct.pack("<" + fmt, value).ljust(4, b"\0")
+        size = {1: 0x2F, 2: 0x2B, 4: 0x23}[struct.calcsize(fmt)]
+        host.send(
+            can.Message(
+                arbitration_id=0x600 + NODE, data=bytes([size]) + struct.pack("<HB", index, sub) + data, is_extended_id=False
+            )
+        )
+        node.step(0.0)
+
+    def sync_and_tick(count: int) -> None:
+        host.send(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False))
+        node.step(0.0)
+        plant.send(io_frames.encode_encoder(NODE - 1, drive.time_us // 1000, count))
+        node.step(0.0)
+        assert plant.recv(timeout=1.0) is not None  # the torque frame
 
     try:
         node.start()
-        assert heartbeats() == 1  # boot-up
-        request = bytes.fromhex("2B 17 10 00 05 00 00 00")  # 0x1017 := 5 ms
-        host.send(can.Message(arbitration_id=0x600 + NODE, data=request, is_extended_id=False))
+        sdo(0x1017, 0, "H", 5)  # heartbeat 5 ms
+        sdo(0x1800, 1, "I", 0x8000_0180 + NODE)  # TPDO1: position actual, synchronous
+        sdo(0x1A00, 0, "B", 0)
+        sdo(0x1A00, 1, "I", 0x60640020)
+        sdo(0x1A00, 0, "B", 1)
+        sdo(0x1800, 2, "B", 1)
+        sdo(0x1800, 1, "I", 0x180 + NODE)
+        sdo(0x1801, 1, "I", 0x8000_0280 + NODE)  # TPDO2: statusword, on change, event timer 5 ms
+        sdo(0x1A01, 0, "B", 0)
+        sdo(0x1A01, 1, "I", 0x60410010)
+        sdo(0x1A01, 0, "B", 1)
+        sdo(0x1801, 2, "B", 255)
+        sdo(0x1801, 5, "H", 5)
+        sdo(0x1801, 1, "I", 0x280 + NODE)
+        sdo(0x1006, 0, "I", 10_000)  # SYNC every 10 ms: lost after 15 ms
+        host.send(can.Message(arbitration_id=0, data=bytes([0x01, NODE]), is_extended_id=False))
         node.step(0.0)
-        for _ in range(3):
-            node.step(0.0)
-        assert heartbeats() == 0 and drive.lockstep_time_s() == 0.0  # no io tick: time stands still
-        beats = []
-        for tick in range(10):
-            plant.send(io_frames.encode_encoder(NODE - 1, tick, 0))
-            node.step(0.0)
-            assert plant.recv(timeout=1.0) is not None  # the torque frame
-            beats.append(heartbeats())
-        assert beats == [0, 0, 0, 0, 1, 0, 0, 0, 0, 1]  # at 5 ms and 10 ms of lockstep time
+        frames()
+        now[0] += 0.005
+        node.step(0.0)
+        assert [cob for cob, _ in frames()] == [0x700 + NODE]  # heartbeat on the node's clock, no event TPDO
+        seen = []
+        for count in range(1000, 1005):
+            sync_and_tick(count)
+            seen.append(frames())
+        # each SYNC's TPDO1 carries the count of its own tick; TPDO2's event timer at the 5th period
+        assert [[(cob, data) for cob, data in f if cob != 0x280 + NODE] for f in seen] == [
+            [(0x180 + NODE, struct.pack("<i", c))] for c in range(1000, 1005)
+        ]
+        assert [sum(cob == 0x280 + NODE for cob, _ in f) for f in seen] == [0, 0, 0, 0, 1]
+        assert drive.lockstep_time_s() == 0.005
+        now[0] += 0.0149
+        node.step(0.0)
+        assert all(cob == 0x700 + NODE for cob, _ in frames())  # heartbeats only: the SYNC is not late yet
+        now[0] += 0.0002
+        node.step(0.0)
+        emcy = [data for cob, data in frames() if cob == 0x80 + NODE]
+        assert emcy and emcy[0][:2] == struct.pack("<H", 0x8100)  # SYNC lost, on the node's clock
+        assert drive.lockstep_time_s() == 0.005  # no io tick: the lockstep time stood still
     finally:
         for bus in (fb_node, host, io_node, plant):
             bus.shutdown()

@@ -173,7 +173,8 @@ def test_nmt_states_and_resets() -> None:
     assert rd_u(d, 0x1017) == 0 and rd_i(d, 0x2110, 1) == 777
     d.write_object(0x1017, 0, u16(250))
     assert d.nmt_command(0x81) == 0x7F  # reset node: everything
-    assert rd_u(d, 0x1017) == 0 and rd_i(d, 0x2110, 1) == 0
+    kp_default = d.store.lookup(0x2110, GainsSub.KP).default  # the EDS default: the robot's tuning
+    assert rd_u(d, 0x1017) == 0 and rd_i(d, 0x2110, 1) == kp_default == fp.kp_to_fixed(2000.0)
     with pytest.raises(NmtCommandError, match="0x42"):
         d.nmt_command(0x42)
 

@@ -4,7 +4,11 @@ way — exit code 3, one terminal line ``ilcrig: fault: …``, ``summary.json`` 
 trial (its digest equal to ``ilcrig sim --iterations 1``), ``completed: false`` and a ``faults``
 entry naming the kind, node, trial and tick and who detected it, every drive torque-free (on the
 bus or in its log), ``report.md``, and no process or temp folder left.  An interrupt keeps 143 and
-an ``interrupted`` marker.
+an ``interrupted`` marker.  ``ilcrig robot`` (no host; a python-canopen master holding the enabled
+robot in CSP) ends the same way when one of its processes dies: exit code 3, one line
+``ilcrig: fault: <process> …``, ``summary.json`` saying which, and no process left.  The faults a
+foreign master causes on the robot (its heartbeat, NMT STOP, its RPDOs or SYNCs stopping, an end
+stop): tests/test_robot_faults.py, and the ``robot-master-*`` kinds of ``benchmarks/fault_matrix.py``.
 
 Runs one rig at a time (they are timing-sensitive on 2 cores); each waits for the launcher to end.
 Marker ``faultmatrix`` (the normal ``pytest`` command runs it; ``-m "not faultmatrix"`` skips it).
@@ -19,6 +23,7 @@ from pathlib import Path
 
 import pytest
 from fault_harness import Outcome, kill_session, recorded_trials, run_rig, sim_digest
+from robot_util import robot_fault_run
 
 from bus.transports.hub.wire import BULK_HOLD_S
 
@@ -130,3 +135,16 @@ def test_sigterm_keeps_143_and_marks_the_summary(tmp_path: Path) -> None:
         assert all(e["torque"] == "off" for e in s["safe_state"])
     finally:
         kill_session(o)
+
+
+# the master's receiving thread (python canopen's notifier) ends with an error when the hub dies
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")
+@pytest.mark.parametrize("victim", ["drive2", "plant", "hub"])
+def test_a_killed_process_of_the_robot_ends_it_with_one_line(tmp_path: Path, victim: str) -> None:
+    r = robot_fault_run(tmp_path / "robot", victim)
+    assert r["code"] == 3, r["stderr"]
+    assert len(r["stderr"]) == 1, r["stderr"]
+    assert r["stderr"][0].startswith(f"ilcrig: fault: {victim} (pid {r['pids'][victim]}) was killed by SIGKILL")
+    assert r["left"] == [], f"processes left: {r['left']}"
+    s = r["summary"]
+    assert s is not None and s["exit_code"] == 3 and s["end"]["process"] == victim

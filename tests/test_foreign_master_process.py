@@ -1,7 +1,8 @@
 """The real ``ilcrig drive`` process over the hub, driven by python canopen's ``BaseNode402``: boot-up,
 the CiA 402 state machine on SYNC-driven TPDOs, a profile-position move in lockstep with the echo
 plant on the hub's io bus (positions exactly the integer profile's), and the loss of the master's
-heartbeat (EMCY bytes, torque-free drive).  The process is stopped with SIGTERM and must exit 0.
+heartbeat (EMCY bytes, torque-free drive), and 0x1010 saving into the role's ``--param-dir``.  The
+process is stopped with SIGTERM and must exit 0.
 """
 
 from __future__ import annotations
@@ -37,7 +38,8 @@ def test_base_node_402_drives_an_ilcrig_drive_process_over_the_hub(tmp_path: Pat
             NODE,
         )
         drive = subprocess.Popen(
-            [sys.executable, "-m", "host.cli", "drive", "--node", str(NODE), "--bus", "hub", "--hub", address],
+            [sys.executable, "-m", "host.cli", "drive", "--node", str(NODE), "--bus", "hub", "--hub", address]
+            + ["--param-dir", str(tmp_path / "params")],
             cwd=REPO,
             start_new_session=True,
         )
@@ -73,6 +75,8 @@ def test_base_node_402_drives_an_ilcrig_drive_process_over_the_hub(tmp_path: Pat
             torque = rig.plant_tick()
             assert torque.torque_units == 0 and torque.status & 0x02  # torque-free, Fault
             assert node.sdo[0x1003][1].raw == 0x8130 and node.sdo["Statusword"].raw & 0x4F == 0x08
+            node.sdo[0x1010][1].raw = 0x65766173  # "save": into the folder the role was given
+            assert (tmp_path / "params" / f"node{NODE}.json").exists()
         finally:
             rig.close()
             drive.send_signal(signal.SIGTERM)

@@ -15,7 +15,7 @@ from drive402_util import echo_drive, rd, wr
 from bus.cia301.nmt import NmtCommand
 from bus.cyclic import decode_tpdo, encode_csp_rpdo, pdo_config_writes, rpdo_cob_id, tpdo_cob_id
 from bus.errors import AbortCode, SdoAbort
-from bus.objects import ModeOfOperation, Obj, TableSub, TrialSub
+from bus.objects import GainsSub, ModeOfOperation, Obj, TableSub, TrialSub
 from bus.pdo_objects import PDO_NO_RTR, PDO_NOT_VALID
 from firmware_model.drive import Drive
 
@@ -156,6 +156,8 @@ def test_in_a_lockstep_trial_a_syncs_tpdo_carries_its_tick() -> None:
     for index, sub, value, size in pdo_config_writes(NODE):
         d.write_object(index, sub, value.to_bytes(size, "little"))
     d.nmt_command(NmtCommand.START)
+    wr(d, Obj.GAINS, GainsSub.KP, "i32", 0)  # torque 0 whatever the position
+    wr(d, Obj.GAINS, GainsSub.KD, "i32", 0)
     wr(d, Obj.MODES_OF_OPERATION, 0, "i8", ModeOfOperation.CSP)
     for cw in (0x06, 0x07, 0x0F):
         wr(d, Obj.CONTROLWORD, 0, "u16", cw)
@@ -172,3 +174,32 @@ def test_in_a_lockstep_trial_a_syncs_tpdo_carries_its_tick() -> None:
     d.io_tick(1, 222)
     assert [decode_tpdo(b)[0] for _, b in d.pop_tpdos()] == [222]
     assert rd(d, Obj.TRIAL, TrialSub.STATE, "u8") == 2
+
+
+def test_a_drive_of_a_sync_stepped_plant_runs_each_tick_after_its_sync() -> None:
+    """``Drive.step_on_sync`` (``ilcrig drive --lockstep``): outside a trial an io tick waits for
+    its SYNC in every mode and NMT state, the credits (at most two) survive NMT commands, and a
+    SYNC's TPDO carries the io tick of that SYNC in profile position too."""
+    d = Drive(NODE)
+    d.step_on_sync(lambda: 0.0)
+    assert rd(d, Obj.MODES_OF_OPERATION_DISPLAY, 0, "i8") == ModeOfOperation.PROFILE_POSITION
+    assert not d.tick_ready  # PRE-OPERATIONAL, profile position: the encoder frame waits
+    d.on_sync()
+    assert d.tick_ready
+    d.io_tick(0, 10)
+    assert not d.tick_ready
+    d.nmt_command(NmtCommand.STOP)
+    for _ in range(3):
+        d.on_sync()  # STOPPED: the plant's periods go on, so do the credits (two at most)
+    d.nmt_command(NmtCommand.RESET_NODE)
+    d.io_tick(1, 20)
+    assert d.tick_ready
+    d.io_tick(2, 30)
+    assert not d.tick_ready
+    tpdo(d, 1, 1, [POSITION])
+    d.nmt_command(NmtCommand.START)
+    d.on_sync()
+    assert d.pop_tpdos() == []  # waits for the tick of its SYNC
+    d.io_tick(3, 40)
+    assert d.pop_tpdos() == [(TPDO1, struct.pack("<i", 40))]
+    assert d.lockstep_time_s() == 0.004 and d.clock() == 0.004  # the PDO timers count periods

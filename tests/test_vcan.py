@@ -432,3 +432,25 @@ def test_pdo_transport_over_socketcan_equals_sim(tmp_path: Path) -> None:
     assert ids.count(0x080) == n
     for node in (1, 2, 3, 4):
         assert ids.count(0x200 + node) == n and ids.count(0x180 + node) == n
+
+
+# ---------------------------------------------------------------------------------------
+# ilcrig robot over SocketCAN, driven by the python-canopen example as a real master connects
+# ---------------------------------------------------------------------------------------
+
+
+def test_robot_over_socketcan_with_the_python_canopen_example(tmp_path: Path) -> None:
+    from robot_util import RobotProcess, check_pick_and_place, run_example
+
+    robot = RobotProcess(tmp_path / "robot", "--bus", "socketcan", env={"DISPLAY": "", "WAYLAND_DISPLAY": ""})
+    try:
+        where = robot.ready(timeout_s=RIG_TIMEOUT_S)
+        assert (where["interface"], where["channel"]) == ("socketcan", VCAN_FIELDBUS)
+        res = run_example("socketcan", VCAN_FIELDBUS, tmp_path, timeout_s=RIG_TIMEOUT_S, wait_s=60.0)
+        check_pick_and_place(res)
+        assert robot.stop(signal.SIGTERM, timeout_s=120) == 143
+        summary = json.loads((tmp_path / "robot" / "summary.json").read_text())
+        assert summary["transport"]["name"] == "socketcan"
+        assert summary["robot"]["periods"] == res["periods_total"] and summary["robot"]["faults"] == []
+    finally:
+        robot.kill()

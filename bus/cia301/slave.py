@@ -250,8 +250,10 @@ class SlaveNode:
 
     def step(self, max_wait_s: float) -> int:
         """Wait up to ``max_wait_s`` [s] (less if a heartbeat or a subclass deadline is due) for
-        frames, process every frame waiting on both buses (io first), then send due heartbeat,
-        EMCY and SDO-timeout frames and call :meth:`on_service`.
+        frames, process every frame waiting on both buses (the fieldbus first: a SYNC or an NMT
+        command is handled before the io frame it caused, which the transport can only have
+        delivered after it), then send due heartbeat, EMCY and SDO-timeout frames and call
+        :meth:`on_service`.
 
         :return: number of frames received.
         """
@@ -284,25 +286,26 @@ class SlaveNode:
                 if ready:
                     io_ready = fds[1] in ready
                     fieldbus_ready = fds[0] in ready
-            if io_ready:
-                handled += self._drain(self.io)
             if fieldbus_ready:
                 handled += self._drain(self.fieldbus)
+            if io_ready:
+                handled += self._drain(self.io)
         else:
-            handled += self._drain(self.io)
             handled += self._drain(self.fieldbus)
+            handled += self._drain(self.io)
             if not handled:
                 end = self._clock() + wait
                 while True:
                     msg = self.io.recv(timeout=self.POLL_S)
                     if msg is not None:
+                        handled += self._drain(self.fieldbus)
                         self.on_io(msg)
-                        handled += 1 + self._drain(self.io) + self._drain(self.fieldbus)
+                        handled += 1 + self._drain(self.io)
                         break
                     msg = self.fieldbus.recv(timeout=0)
                     if msg is not None:
                         self._on_fieldbus(msg)
-                        handled += 1 + self._drain(self.io) + self._drain(self.fieldbus)
+                        handled += 1 + self._drain(self.fieldbus) + self._drain(self.io)
                         break
                     if self._clock() >= end:
                         break

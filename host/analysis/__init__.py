@@ -1,6 +1,7 @@
 """host.analysis: what a user reads after a run.
 
-Owns the Rerun recording (:mod:`host.analysis.recording`), a run's outputs around the trial loop
+Owns the Rerun recording (:mod:`host.analysis.recording`), the live view of ``--view``
+(:mod:`host.analysis.live_view`: the Rerun stream on loopback, the robot's live stream), a run's outputs around the trial loop
 (:mod:`host.analysis.session`), the run report (:mod:`host.analysis.run_report`), the paper's
 data (:mod:`host.analysis.paper_data`), and the ``ilcrig reproduce`` sweep (run by the sweep
 engine, :mod:`ilcrig.sweep`): its plan (:mod:`host.analysis.sweep_plan`), the definitions on RMSE

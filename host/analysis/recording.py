@@ -1,9 +1,10 @@
 """Rerun recordings of a run (``recording.rrd``) and ``ilcrig view``.
 
-This module owns the layout of ``recording.rrd`` and the only ``import rerun`` of the project
-(lazy: importing this module does not import rerun).  :class:`RunRecorder` implements the
-:class:`host.experiment.trials.TrialRecorder` protocol with a *non-global* ``rr.RecordingStream`` saved
-to a file (no viewer, no network).
+This module owns the layout of ``recording.rrd`` (rerun is imported lazily here and in
+:mod:`host.analysis.live_view`: importing this module does not import rerun).  :class:`RunRecorder`
+implements the :class:`host.experiment.trials.TrialRecorder` protocol with a *non-global*
+``rr.RecordingStream`` saved to a file (no viewer, no network), and with ``--view`` also to the
+live stream of :class:`host.analysis.live_view.LiveView` (loopback only).
 
 Layout (entity paths; timelines ``trial_time`` = t_n = n·Ts as a duration, ``iteration`` = k):
 
@@ -215,6 +216,7 @@ class RunRecorder:
         sets the colour scale).
     :param decimate_3d: 3D frames every this many samples (≥ 1).
     :param folder: the run folder's write-failure switch (fault injection), if any.
+    :param live: also stream the recording live (``--view``: :class:`host.analysis.live_view.LiveView`).
     """
 
     #: free space asked for before the first trial is written, bytes (later: the last trial's growth × 1.5)
@@ -229,6 +231,7 @@ class RunRecorder:
         config_summary: Mapping[str, Any] | None = None,
         decimate_3d: int = 5,
         folder: RunFolder | None = None,
+        live: Any = None,
     ) -> None:
         import pyarrow as pa
 
@@ -259,7 +262,10 @@ class RunRecorder:
         n_planned = self.config_summary.get("iterations")
         self._n_expected = int(n_planned) if isinstance(n_planned, int) else None
         self._rec = rr.RecordingStream(application_id, recording_id=self.recording_id)
-        self._rec.save(str(self.path), default_blueprint=default_blueprint())
+        if live is None:
+            self._rec.save(str(self.path), default_blueprint=default_blueprint())
+        else:
+            self._rec.set_sinks(rr.FileSink(str(self.path)), live.sink(), default_blueprint=default_blueprint())
 
     @property
     def trials(self) -> int:

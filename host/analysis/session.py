@@ -32,22 +32,37 @@ __all__ = ["run_session", "report_fault"]
 
 
 def run_session(
-    plan: Plan, bench: Bench, out: Path, *, mode: str, stream: TextIO, fail_writes_from_trial: int | None = None
+    plan: Plan,
+    bench: Bench,
+    out: Path,
+    *,
+    mode: str,
+    stream: TextIO,
+    fail_writes_from_trial: int | None = None,
+    view: bool = False,
 ) -> ExperimentResult:
     """Run ``plan`` on ``bench`` with a recording in ``out`` and a console row per trial; write
     ``report.md`` when at least one trial completed.
 
     :param fail_writes_from_trial: fault injection: the outputs' writes fail with ``ENOSPC`` from
         this trial on (``--inject diskfull@K``)
+    :param view: the recording also goes live to a Rerun viewer (:mod:`host.analysis.live_view`)
     """
-    print_header(stream)
+    live = None
+    if view:
+        from host.analysis.live_view import LiveView
+
+        live = LiveView()
     folder = RunFolder(out, plan.cfg.iterations)
     folder.reserve()
     folder.fail_writes_from_trial = fail_writes_from_trial
     recorder = Recorders(
-        RunRecorder(out / "recording.rrd", recording_id=out.name, config_summary=plan.cfg.as_dict(), folder=folder),
+        RunRecorder(out / "recording.rrd", recording_id=out.name, config_summary=plan.cfg.as_dict(), folder=folder, live=live),
         TrialArrays(out, folder),
     )
+    if live is not None:
+        stream.write(live.open_viewer() + "\n")
+    print_header(stream)
     res = run_experiment(
         plan, bench, out, mode=mode, on_trial=lambda m, role: print_row(stream, m, role), recorder=recorder, folder=folder
     )

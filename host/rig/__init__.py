@@ -1,4 +1,4 @@
-"""host.rig: the distributed rig, ``ilcrig run`` and ``ilcrig host``.
+"""host.rig: the distributed rig, ``ilcrig run``, ``ilcrig host`` and ``ilcrig robot``.
 
 Owns the host role on the bus (``ilcrig host``):
 
@@ -34,6 +34,13 @@ processes and always cleans them up:
 * :mod:`host.rig.interrupts` — SIGINT / SIGTERM / SIGHUP to the launcher;
 * :mod:`host.rig.inject` — kill / stall / EMCY injection; :mod:`host.rig.idle_poll` — the
   SCHED_IDLE loops that keep the CPUs awake in a real-time run.
+
+and the robot without the ILC host (``ilcrig robot``, docs/robot.md), on the same processes:
+
+* :mod:`host.rig.robot_launcher` — :func:`~host.rig.robot_launcher.launch_robot`: hub, plant in robot
+  mode and drives started, announced, watched until a signal or a fault, cleaned up; the session summary;
+* :mod:`host.rig.robot_watch` — what its channel monitors see: boot-ups, SYNCs, EMCYs, the master's
+  RPDO set-points and the robot's periods (for the live view).
 
 May import: ``bus`` (incl. ``bus.cia301`` and ``bus.transports``), :mod:`host.nodes`,
 :mod:`host.experiment`, :mod:`host.analysis`.  Never ``firmware_model`` or ``plant``: the rig

@@ -69,7 +69,13 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
     try:
         with interrupt_on_signals():
             res = run_session(
-                plan, bench, out, mode="rig", stream=sys.stdout, fail_writes_from_trial=getattr(args, "inject_disk_full", None)
+                plan,
+                bench,
+                out,
+                mode="rig",
+                stream=sys.stdout,
+                fail_writes_from_trial=getattr(args, "inject_disk_full", None),
+                view=bool(getattr(args, "view", False)),
             )
     finally:
         bench.close()  # run_session closed it already, unless it was interrupted before

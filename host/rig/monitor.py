@@ -185,11 +185,14 @@ class ChannelMonitor:
 
     def _read_frames(self) -> np.ndarray:
         """Read and process every frame waiting (after waiting up to :attr:`WAIT_S` for one) as
-        arrays: counted, classified and logged without a Python step per frame."""
+        arrays: counted, classified and logged without a Python step per frame.  A round reads for
+        at most :attr:`FRAMES_ROUND_S`, so that frames that keep coming are still processed in
+        rounds (the live view of ``ilcrig robot`` follows the robot)."""
         assert self._recv_frames is not None
         frames = self._recv_frames(self.WAIT_S)
         more = frames
-        while len(more):
+        end = time.monotonic() + self.FRAMES_ROUND_S
+        while len(more) and time.monotonic() < end:
             more = self._recv_frames(0)
             if len(more):
                 frames = np.concatenate((frames, more))

@@ -86,9 +86,11 @@ def host_role_args(args: argparse.Namespace) -> list[str]:
 
 
 def rig_role_args(args: argparse.Namespace) -> list[str]:
-    """The rig options of ``args`` (``--realtime``, ``--bus-time``, ``--io-bitrate``) that the host role takes too
+    """The rig options of ``args`` (``--realtime``, ``--view``, ``--bus-time``, ``--io-bitrate``) that the host role takes too
     (``--fieldbus-bitrate`` is an experiment option and goes with :func:`host_role_args`)."""
     argv = ["--realtime"] if args.realtime else []
+    if getattr(args, "view", False):
+        argv.append("--view")
     if getattr(args, "bus_time", False):
         argv.append("--bus-time")
     if args.io_bitrate is not None:

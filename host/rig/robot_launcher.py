@@ -1,0 +1,392 @@
+"""``ilcrig robot``: the four drives and the plant as a robot on the bus, for any CANopen master.
+
+This module owns :func:`launch_robot` and :class:`RobotLauncher` (docs/robot.md): no ILC host runs;
+the robot waits at its home pose, its drives in Switch on disabled (the joints held by their
+brakes), for a master — a PLC, ros2_canopen, a python-canopen script — and runs until Ctrl-C /
+SIGTERM (exit 130 / 143) or a fault of one of its own processes (exit 3, one line
+``ilcrig: fault: …``).  It reuses the processes of ``ilcrig run``:
+
+* the transport as ``ilcrig run`` chooses it (``--bus``: SocketCAN vcan0/vcan1 when both exist,
+  else the zero-privilege hub on a fresh private socket, or ``--hub ADDRESS``), the hub started
+  with :func:`host.rig.processes.start_hub_process`;
+* the plant (``ilcrig plant --robot sync|realtime``: one control period per SYNC,
+  :mod:`plant.plant_node_robot`; its period trace ``trace.bin`` and its session summary
+  ``plant.json``) and the drives ``ilcrig drive --node 1..4 --lockstep`` (drives of a SYNC-stepped
+  plant; ``--param-dir`` passed on), started and stopped with
+  :mod:`host.rig.processes` (own sessions, dying with the launcher, reaped on every path);
+  with ``--realtime`` also SCHED_FIFO and the idle-poll loops, as ``ilcrig run --realtime``;
+* two passive channel monitors (:class:`host.rig.monitor.ChannelMonitor`) write the candump logs
+  ``fieldbus.log`` and ``io.log`` and feed :class:`host.rig.robot_watch.RobotBusWatch` (boot-ups:
+  the robot is announced once all five nodes booted; SYNCs; EMCYs; with ``--view`` the live view
+  :class:`host.analysis.live_view.RobotLiveView`).
+
+The run folder (``--out``, default ``runs/robot-<time>``): ``logs/<role>.log``, ``trace.bin``,
+``fieldbus.log``, ``io.log``, ``plant.json`` and, on every exit, ``summary.json`` (schema
+``ilcrig.robot/1``: how it ended, the transport and processes, the plant's session — periods
+stepped, SYNCs seen, late / missing SYNCs, overruns, faults — and what the monitors saw).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+import time
+from pathlib import Path
+from typing import IO, Any
+
+from bus.objects import DRIVE_EDS_PATH, DRIVE_NODE_IDS
+from bus.plant_objects import DEFAULT_PLANT_NODE_ID, PLANT_EDS_PATH
+from bus.transports.config import FIELDBUS, HUB_INTERFACE, TransportConfig
+from bus.transports.config import IO as IO_CHANNEL
+from bus.units import timeout_scale
+from host.experiment.console import EXIT_CHILD_FAILED, EXIT_FAULT
+from host.rig.idle_poll import IdlePollers, idle_poll_available
+from host.rig.interrupts import Interrupts
+from host.rig.launcher import TERMINATE_GRACE_S
+from host.rig.monitor import ChannelMonitor
+from host.rig.processes import Child, Death, LaunchError, describe_status, spawn, start_hub_process, terminate
+from host.rig.realtime import DEFAULT_RT_PRIORITY, raise_lockstep_priority
+from host.rig.robot_watch import RobotBusWatch
+from host.rig.role_commands import child_argv
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["BOOT_TIMEOUT_S", "RobotLauncher", "launch_robot"]
+
+#: how long the nodes get to boot (a first start compiles the numba kernels), s (× scale)
+BOOT_TIMEOUT_S: float = 120.0
+#: watch-loop period, s
+POLL_S: float = 0.05
+SUMMARY_SCHEMA = "ilcrig.robot/1"
+#: the control period the robot starts with (the plant's 0x2400:1 default), s
+DEFAULT_TS_S: float = 1e-3
+
+
+class RobotLauncher:
+    """Starts, announces, watches and stops the robot (see the module docstring).
+
+    :param args: the parsed ``ilcrig robot`` Namespace (``bus``, ``hub``, ``out``, ``realtime``,
+        ``rt_priority``, ``no_idle_poll``, ``param_dir``, ``view``, ``debug``)
+    :param stdout: stream of the announcement and the closing line (default ``sys.stdout``)
+    :param stderr: stream of the fault / error line (default ``sys.stderr``)
+    :param grace_s: SIGTERM → SIGKILL grace period, s
+    :ivar children: the plant and the drives, in start order
+    :ivar out_dir: the run folder
+    """
+
+    def __init__(
+        self,
+        args: argparse.Namespace,
+        stdout: IO[str] | None = None,
+        stderr: IO[str] | None = None,
+        grace_s: float = TERMINATE_GRACE_S,
+    ) -> None:
+        self.args = args
+        self.stdout = stdout
+        self.stderr = stderr
+        self.grace_s = grace_s
+        self.children: list[Child] = []
+        self.hub: Any = None
+        self.hub_address: str | None = None
+        self.transport: TransportConfig | None = None
+        self.out_dir: Path | None = None
+        self.interrupts = Interrupts()
+        self.watch = RobotBusWatch()
+        self.monitors: list[ChannelMonitor] = []
+        self.deaths: list[Death] = []
+        self.live: Any = None
+        self._idle_pollers: IdlePollers | None = None
+        self._t0 = time.time()
+        self._end: dict[str, Any] = {"reason": "starting"}
+        self._scheduling: dict[str, Any] | None = None
+
+    # ------------------------------------------------------------------ run
+
+    def run(self) -> int:
+        """Launch, announce, watch, clean up; the exit code (module docstring)."""
+        self.interrupts.install()
+        code = EXIT_CHILD_FAILED
+        try:
+            try:
+                code = self._launch_and_watch()
+            except LaunchError as err:
+                self._end = {"reason": "launch failed", "error": str(err)}
+                self._say_err(f"ilcrig: error: {err}")
+                code = EXIT_CHILD_FAILED
+            finally:
+                self._shutdown()
+                self._write_summary(code)
+        finally:
+            self.interrupts.restore()
+        return code
+
+    def _launch_and_watch(self) -> int:
+        from bus.transports.config import transport_from_name
+
+        args = self.args
+        debug = bool(getattr(args, "debug", False))
+        tc = transport_from_name(args.bus, args.hub, bool(getattr(args, "allow_remote", False)))
+        self.out_dir = out = Path(args.out) if args.out else Path("runs") / time.strftime("robot-%Y%m%d-%H%M%S")
+        log_dir = out / "logs"
+        try:
+            log_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise ValueError(f"--out {out}: cannot create the run folder: {err.strerror or err}") from err
+        bus_args = ["--bus", tc.name]
+        if tc.needs_hub:
+            self.hub = start_hub_process(args.hub, None, log_dir / "hub.log")
+            self.hub_address = self.hub.address
+            tc = transport_from_name(tc.name, self.hub_address)
+            bus_args += ["--hub", str(self.hub_address)]
+        self.transport = tc
+        if args.view:
+            self._start_view()
+        self._open_monitors(tc, out)
+        if self.interrupts.signum is not None:
+            return self._interrupted()
+        mode = "realtime" if args.realtime else "sync"
+        plant_extra = ["--robot", mode, "--trace", str(out / "trace.bin"), "--summary", str(out / "plant.json")]
+        self._spawn("plant", child_argv("plant", bus_args, extra=plant_extra, debug=debug), log_dir / "plant.log")
+        # drives of a SYNC-stepped plant: a SYNC's TPDOs carry its control cycle (docs/robot.md, Time)
+        param_dir = getattr(args, "param_dir", None)
+        drive_extra = ["--lockstep"] + (["--param-dir", str(Path(param_dir).resolve())] if param_dir else [])
+        for node in DRIVE_NODE_IDS:
+            argv = child_argv("drive", bus_args, node=node, extra=drive_extra, debug=debug)
+            self._spawn(f"drive{node}", argv, log_dir / f"drive{node}.log")
+        code = self._wait_booted()
+        if code is not None:
+            return code
+        if args.realtime:
+            lockstep = ({"hub": self.hub.pid} if self.hub is not None else {}) | {c.name: c.pid for c in self.children}
+            priority = DEFAULT_RT_PRIORITY if args.rt_priority is None else args.rt_priority
+            self._scheduling = raise_lockstep_priority(lockstep, priority) | {"idle_poll": self._start_idle_poll()}
+        self._announce(tc, mode)
+        self._end = {"reason": "running"}
+        return self._watch()
+
+    def _spawn(self, name: str, argv: list[str], log_path: Path) -> Child:
+        child = spawn(name, argv, log_path)
+        self.children.append(child)
+        return child
+
+    def _open_monitors(self, tc: TransportConfig, out: Path) -> None:
+        """The candump logs and the watch, joined before the nodes start (their boot-ups are seen)."""
+        w = self.watch
+        for name, one, many in ((FIELDBUS, w.fieldbus_frame, w.fieldbus_frames), (IO_CHANNEL, w.io_frame, w.io_frames)):
+            bulk = tc.channel(name).interface == HUB_INTERFACE
+            self.monitors.append(
+                ChannelMonitor(tc.open(name, passive=True), name, out / f"{name}.log", one, bulk=bulk, classify_frames=many)
+            )
+
+    def _start_view(self) -> None:
+        from host.analysis.live_view import LiveView, RobotLiveView
+
+        live = LiveView()
+        self.live = RobotLiveView(live, DEFAULT_TS_S)
+        self.watch.on_period = self.live.on_period
+        self.watch.follow_targets(self.live.add_targets)
+        self._say_out(live.open_viewer())
+
+    def _start_idle_poll(self) -> dict[str, Any]:
+        if getattr(self.args, "no_idle_poll", False):
+            return {"loops": 0, "reason": "--no-idle-poll"}
+        if not idle_poll_available():
+            return {"loops": 0, "reason": "this system has no SCHED_IDLE"}
+        try:
+            self._idle_pollers = IdlePollers()
+        except OSError as err:
+            return {"loops": 0, "reason": f"could not start them ({err.strerror or err})"}
+        return {"loops": len(self._idle_pollers.pids)}
+
+    def _wait_booted(self) -> int | None:
+        """Until all five nodes booted; an exit code if a signal, a death or the timeout came first."""
+        deadline = time.monotonic() + BOOT_TIMEOUT_S * timeout_scale()
+        while not self.watch.wait_booted(POLL_S):
+            if self.interrupts.signum is not None:
+                return self._interrupted()
+            if self._note_deaths():
+                return self._fault()
+            if time.monotonic() > deadline:
+                missing = sorted((set(DRIVE_NODE_IDS) | {DEFAULT_PLANT_NODE_ID}) - self.watch.booted)
+                self._end = {"reason": "boot timeout", "missing_nodes": missing}
+                self._say_err(
+                    f"ilcrig: error: node(s) {missing} did not boot within {BOOT_TIMEOUT_S * timeout_scale():.0f} s; "
+                    f"their logs: {self._log('')}"
+                )
+                return EXIT_CHILD_FAILED
+        return None
+
+    def _announce(self, tc: TransportConfig, mode: str) -> None:
+        fb = tc.channel(FIELDBUS)
+        if fb.interface == HUB_INTERFACE:
+            where = (
+                f"  connect: python-can interface={HUB_INTERFACE} channel={fb.channel}\n"
+                f'    (python canopen: network.connect(interface="{HUB_INTERFACE}", channel="{fb.channel}"))\n'
+            )
+        else:
+            where = f"  connect: python-can interface={fb.interface} channel={fb.channel}\n"
+        time_mode = (
+            "one control period per SYNC (COB-ID 0x080), paced to the wall clock (--realtime)"
+            if mode == "realtime"
+            else "one control period per SYNC (COB-ID 0x080), deterministic"
+        )
+        pids = ([f"hub {self.hub.pid}"] if self.hub is not None else []) + [f"{c.name} {c.pid}" for c in self.children]
+        self._say_out(
+            f"ilcrig robot: ready: drives = nodes {', '.join(map(str, DRIVE_NODE_IDS))} (joints 1-4), "
+            f"plant = node {DEFAULT_PLANT_NODE_ID}; transport {tc.name}\n"
+            + where
+            + f"  EDS: drives {DRIVE_EDS_PATH}, plant {PLANT_EDS_PATH}\n"
+            f"  time: {time_mode}; the robot stands at its home pose, drives in Switch on disabled, brakes closed\n"
+            f"  run folder {self.out_dir} (processes: {', '.join(pids)}); Ctrl-C to stop"
+        )
+
+    def _watch(self) -> int:
+        while True:
+            if self.interrupts.signum is not None:
+                return self._interrupted()
+            if self._note_deaths():
+                return self._fault()
+            time.sleep(POLL_S)
+
+    def _note_deaths(self) -> bool:
+        """Note every process (the hub too) that ended since the last look; True if any did."""
+        noted = {d.name for d in self.deaths}
+        now = time.monotonic()
+        if self.hub is not None and "hub" not in noted and not self.hub.alive:
+            code = self.hub.process.returncode
+            self.deaths.append(Death("hub", self.hub.pid, describe_status(code), now, self._log("hub"), code))
+        for c in self.children:
+            if c.name not in noted:
+                code = c.proc.poll()
+                if code is not None:
+                    self.deaths.append(Death(c.name, c.pid, describe_status(code), now, c.log_path, code))
+        return bool(self.deaths)
+
+    def _log(self, name: str) -> Path | None:
+        """The log of process ``name`` (``""``: the logs folder)."""
+        if self.out_dir is None:
+            return None
+        return self.out_dir / "logs" / f"{name}.log" if name else self.out_dir / "logs"
+
+    def _fault(self) -> int:
+        """A process of the robot ended: one line, exit 3 (the rest is stopped by the shutdown)."""
+        hub = next((d for d in self.deaths if d.name == "hub"), None)
+        first = hub or self.deaths[0]
+        self._end = {"reason": "fault", "process": first.name, "pid": first.pid, "status": first.status}
+        self._say_err(f"ilcrig: fault: {first.describe()}; the robot stopped, every process of it ended")
+        return EXIT_FAULT
+
+    def _interrupted(self) -> int:
+        self._end = {"reason": "interrupted", "signal": self.interrupts.name}
+        return self.interrupts.exit_code()
+
+    # ------------------------------------------------------------------ shutdown
+
+    def _shutdown(self) -> None:
+        """Idle-poll loops, the processes (SIGTERM: the plant writes its summary), the hub, the
+        monitors and the live view."""
+        self.interrupts.stopping = True
+        try:
+            if self._idle_pollers is not None:
+                self._idle_pollers.stop()
+            terminate(self.children, self.grace_s, lambda: self.interrupts.hurry)
+            for m in self.monitors:
+                m.catch_up(timeout_s=1.0)
+        finally:
+            try:
+                for m in self.monitors:  # before the hub: its end is not a failure of theirs
+                    m.close()
+                if self.live is not None:
+                    self.live.close()
+            finally:
+                if self.hub is not None:
+                    self.hub.stop()
+
+    def _write_summary(self, code: int) -> None:
+        """``summary.json`` of the session (module docstring); the closing line on stdout."""
+        out = self.out_dir
+        if out is None:
+            return
+        plant: dict[str, Any] | None = None
+        try:
+            plant = json.loads((out / "plant.json").read_text())
+        except (OSError, ValueError):
+            plant = None
+        robot = (plant or {}).get("robot")
+        channels = {m.name: m.counter.as_dict() for m in self.monitors}
+        summary = {
+            "schema": SUMMARY_SCHEMA,
+            "exit_code": code,
+            "end": self._end,
+            "started": self._t0,
+            "duration_s": time.time() - self._t0,
+            "mode": "realtime" if self.args.realtime else "sync",
+            "transport": self.transport.as_dict() if self.transport is not None else None,
+            "processes": {c.name: c.pid for c in self.children} | ({"hub": self.hub_address} if self.hub_address else {}),
+            "deaths": [{"name": d.name, "pid": d.pid, "status": d.status} for d in self.deaths],
+            "scheduling": self._scheduling,
+            "robot": robot,
+            "plant": {k: v for k, v in (plant or {}).items() if k != "robot"} or None,
+            "bus": self.watch.info() | {"channels": channels},
+            "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        }
+        path = out / "summary.json"
+        tmp = out / "summary.json.tmp"
+        try:
+            tmp.write_text(json.dumps(summary, indent=2, default=str) + "\n")
+            tmp.replace(path)
+        except OSError as err:
+            self._say_err(f"ilcrig: error: cannot write {path}: {err.strerror or err}")
+            return
+        if robot is not None:
+            rt = robot.get("realtime") or {}
+            late = f", late {rt.get('late_syncs', 0)}, missing {rt.get('missing_syncs', 0)}" if rt else ""
+            self._say_out(
+                f"ilcrig robot: {robot['periods']} periods stepped, {robot['syncs']} SYNCs seen "
+                f"({robot['sync_overruns']} overruns{late}), {robot['faults_total']} robot faults; summary: {path}"
+            )
+        else:
+            self._say_out(f"ilcrig robot: the plant left no session summary; summary: {path}")
+
+    def _say_out(self, text: str) -> None:
+        stream = self.stdout or sys.stdout
+        stream.write(text + "\n")
+        stream.flush()
+
+    def _say_err(self, text: str) -> None:
+        stream = self.stderr or sys.stderr
+        stream.write(text + "\n")
+        stream.flush()
+
+
+def launch_robot(args: argparse.Namespace) -> int:
+    """``ilcrig robot``: check the options, then run the robot until a signal or a fault (the
+    module docstring); returns the exit code.
+
+    :raises ValueError: bad input (the CLI's one line, exit code 2), before anything starts
+    """
+    if getattr(args, "rt_priority", None) is not None and not args.realtime:
+        raise ValueError(f"--rt-priority {args.rt_priority}: the priority of a real-time robot; add --realtime")
+    if getattr(args, "no_idle_poll", False) and not args.realtime:
+        raise ValueError("--no-idle-poll: the CPUs are kept awake only in real time; add --realtime")
+    for option, value in (("--out", args.out), ("--param-dir", getattr(args, "param_dir", None))):
+        if value and Path(value).exists() and not Path(value).is_dir():
+            raise ValueError(f"{option} {value}: not a folder")
+    from bus.transports.config import transport_from_name, vcan_available
+
+    tc = transport_from_name(args.bus, args.hub, bool(getattr(args, "allow_remote", False)))
+    if tc.name == "virtual":
+        raise ValueError("--bus virtual: the virtual transport works inside one process only; use hub or socketcan")
+    if tc.name == "socketcan" and not vcan_available((tc.fieldbus.channel or "", tc.io.channel or "")):
+        raise ValueError(
+            f"--bus socketcan: {tc.fieldbus.channel} / {tc.io.channel} do not exist here "
+            "(scripts/vcan-setup; or the default transport, the hub)"
+        )
+    if not getattr(args, "debug", False):
+        # a monitor whose bus ends with a process of the robot is part of that fault, which the
+        # launcher reports in its one line
+        logging.getLogger("host.rig.monitor").setLevel(logging.ERROR)
+    return RobotLauncher(args).run()

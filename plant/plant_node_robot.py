@@ -1,0 +1,547 @@
+"""The robot between trials: one control period per SYNC, holding brakes, mechanical limits.
+
+Owns :class:`RobotLoop`, the plant node's robot mode (0x2450:1, ``ilcrig robot``; docs/robot.md):
+while no trial runs, every SYNC frame (COB-ID 0x080) the plant node sees advances the robot by one
+control period Ts (0x2400:1, with the sub-steps of 0x2400:2), whoever sends it — a PLC, ros2_canopen,
+a python-canopen script:
+
+1. encoder frames of all joints with the counts of q at the start of the period (one wire tick,
+   claimed from the trial protocol's counter, :meth:`plant.plant_node_trial.LockstepMaster.claim_wire_tick`,
+   so that a later trial recognises these frames as stale);
+2. the four torque frames of that wire tick are collected (each drive's stream followed by a
+   :class:`bus.io_frames.TickTracker`); a drive whose frame does not say ENABLED (power stage off,
+   or in fault) gives no torque and its joint is held by its brake;
+3. the robot integrates the period (:class:`plant.mechanics.Mechanics`: brakes, end stops, the
+   screw's travel, the mechanism's limits) and the period goes into the trace
+   (:class:`plant.trace.TraceWriter`).
+
+A SYNC that comes while a period is still being computed waits (one at most: the next period
+starts as soon as this one is done); one more is an overrun, counted and dropped — a master that
+sends its next SYNC only after its TPDOs came back never overruns, and the same master script gives
+the same trace.  The drives keep as many SYNC credits (:data:`bus.cyclic.SYNC_CREDITS_MAX`, one in
+progress + one waiting), and handle a SYNC before the io frame it caused
+(:class:`bus.cia301.slave.SlaveNode`), so no drive ever waits for a SYNC the robot has used.
+
+Real time (mode 2): periods are also paced to the wall clock — period n (counted from the first
+SYNC, t0 its arrival) does not start before t0 + n·Ts (its encoder frames are held, as in a paced
+trial, :class:`plant.pacing.TickPacer`); a SYNC that arrives up to Ts/4 before its time moves t0 to
+it (the schedule locks onto the master's phase as seen with the least transport delay, as a drive
+locks onto SYNC); a SYNC later than t0 + n·Ts + Ts/2 is late, one that comes a whole period or more
+after its time counts the periods in between as missing (the robot waits for its drives: it does not
+move without a SYNC) and starts the schedule afresh.
+
+Faults (one EMCY each, from the plant node; :data:`bus.plant_objects.ROBOT_FAULT_EMCY`): a
+mechanical limit (the robot stops at it), a drive that does not answer within ``tick_timeout_s``
+(the period is dropped), a torque frame out of sequence or malformed.  A fault holds every joint by
+its brake — the drives' torques are not applied — until the fault reset (0x2450:2 = 1 or NMT reset
+node; EMCY 0x0000); the periods go on meanwhile, so the drives and the master see the robot
+standing.  A trial (the ILC host) takes precedence: while one is requested or runs, SYNCs only
+count; the robot goes on from where the trial left the plant.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import struct
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+import can
+import numpy as np
+
+from bus import io_frames
+from bus.cia301.emcy import EmcyCode
+from bus.cia301.object_store import ObjectStore
+from bus.cyclic import SYNC_CREDITS_MAX
+from bus.fastmsg import new_message
+from bus.plant_objects import (
+    ROBOT_FAULT_EMCY,
+    ConfigSub,
+    PlantObj,
+    RobotFault,
+    RobotMode,
+    RobotState,
+    RobotSub,
+    robot_fault_emcy_data,
+)
+from plant.mechanics import LimitHit, MechanicalLimits, Mechanics
+from plant.pacing import TickPacer
+from plant.plant_node_model import TrialModel
+from plant.plant_node_status import Emcy
+from plant.plant_node_trial import LockstepMaster
+from plant.simulator import Plant
+from plant.trace import FLAG_FAULT, FLAG_LATE, TraceWriter
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["RobotLoop", "SYNC_COB_ID"]
+
+#: the SYNC the robot steps on (CiA 301 predefined connection set)
+SYNC_COB_ID: int = 0x080
+
+_N = io_frames.N_JOINTS
+_TORQUE_LO = io_frames.TORQUE_COB_BASE
+_TORQUE_HI = io_frames.TORQUE_COB_BASE + _N
+_ENABLED = int(io_frames.TorqueStatus.ENABLED)
+_FAULT_BIT = int(io_frames.TorqueStatus.FAULT)
+_LIMIT_FAULTS = {"end_stop": RobotFault.END_STOP, "screw_stop": RobotFault.SCREW_STOP, "mechanism": RobotFault.MECHANISM}
+#: faults kept with their details for the session summary
+FAULTS_KEPT: int = 100
+
+_ENC_LO = io_frames.ENCODER_COB_BASE
+#: the encoder frame's payload (bus/io_frames.py): i32 counts, u16 wire tick
+_ENC = struct.Struct("<iH")
+_ALL_HELD = (1 << _N) - 1
+#: the brakes of a period (bit j: joint j + 1 held) as the plant's ``locked`` mask
+_HELD_MASKS = [np.array([bool(bits >> j & 1) for j in range(_N)]) for bits in range(1 << _N)]
+
+_IDLE, _HELD, _SENT = 0, 1, 2
+#: SYNCs kept waiting while a period is computed: one in progress + these = the drives' credits
+_WAITING_MAX = SYNC_CREDITS_MAX - 1
+
+
+class _Pacing:
+    """Real time: the schedule t0 + n·Ts of the robot's periods and what it achieved, on
+    :class:`plant.pacing.TickPacer` blocks of :attr:`BLOCK` periods (deadline misses summed over
+    them); the lateness of every period's start in a histogram of :attr:`BIN_S` bins (its
+    percentiles over the whole session)."""
+
+    BLOCK = 1 << 16
+    #: a SYNC up to this fraction of a period before its time moves the schedule to it (the
+    #: schedule follows the master's phase as its SYNCs arrive with the least delay); one earlier is
+    #: held until its time
+    PHASE_S = 0.25
+    #: lateness histogram: bin width, s, and bins (the last one holds everything beyond)
+    BIN_S = 10e-6
+    BINS = 2001
+
+    def __init__(self, ts_s: float) -> None:
+        self.ts_s = ts_s
+        self.pacer: TickPacer | None = None
+        self.n = 0  # period index in the current block
+        self.late = 0
+        self.missing = 0
+        self.deadline_misses = 0
+        self.lateness_max_s = 0.0
+        self.lateness = np.zeros(self.BINS, dtype=np.int64)
+        self.periods = 0
+
+    def schedule(self, arrival_s: float) -> tuple[float, bool]:
+        """The next period's SYNC arrived at ``arrival_s``: (when the period is due, was it late)."""
+        ts = self.ts_s
+        if self.pacer is not None and self.n >= self.BLOCK:
+            self._close_block()
+            self.pacer = TickPacer(ts, self.BLOCK, True, self._t_next)
+            self.n = 0
+        if self.pacer is None:
+            self.pacer = TickPacer(ts, self.BLOCK, True, arrival_s)
+            self.n = 0
+        due = self.pacer.due_s(self.n)
+        behind = arrival_s - due
+        if -self.PHASE_S * ts <= behind < 0.0:  # the master's phase, seen with less delay: follow it
+            self.pacer.t0_s += behind
+            return arrival_s, False
+        if behind >= ts:  # whole periods without a SYNC: the schedule starts afresh at this one
+            self.missing += int(behind // ts)
+            self._close_block()
+            self.pacer = TickPacer(ts, self.BLOCK, True, arrival_s)
+            self.n = 0
+            return arrival_s, True
+        late = behind > 0.5 * ts
+        if late:
+            self.late += 1
+        return due, late
+
+    def started(self, now_s: float) -> None:
+        if self.pacer is not None:
+            self.pacer.started(self.n, now_s)
+            late = now_s - self.pacer.due_s(self.n)
+            if late > 0.0:
+                self.lateness_max_s = max(self.lateness_max_s, late)
+                self.lateness[min(int(late / self.BIN_S), self.BINS - 1)] += 1
+            else:
+                self.lateness[0] += 1
+
+    def completed(self, now_s: float) -> None:
+        if self.pacer is not None:
+            self.pacer.completed(self.n, now_s)
+            self.n += 1
+            self.periods += 1
+
+    @property
+    def _t_next(self) -> float:
+        assert self.pacer is not None
+        return self.pacer.due_s(self.n)
+
+    def _close_block(self) -> None:
+        if self.pacer is None:
+            return
+        self.deadline_misses += self.pacer.result().deadline_misses
+        self.pacer = None
+
+    def percentile_s(self, q: float) -> float:
+        """The ``q``-th percentile of the periods' lateness, s (upper edge of its bin)."""
+        total = int(self.lateness.sum())
+        if not total:
+            return 0.0
+        k = int(np.searchsorted(np.cumsum(self.lateness), q / 100.0 * total))
+        return min(k + 1, self.BINS) * self.BIN_S if k else 0.0
+
+    def info(self) -> dict[str, Any]:
+        """The real-time figures so far (lateness of a period's start after its time, µs)."""
+        pacer = self.pacer
+        return {
+            "late_syncs": self.late,
+            "missing_syncs": self.missing,
+            "deadline_misses": self.deadline_misses + (pacer.result().deadline_misses if pacer is not None else 0),
+            "lateness_p50_us": 1e6 * self.percentile_s(50),
+            "lateness_p99_us": 1e6 * self.percentile_s(99),
+            "lateness_max_us": 1e6 * self.lateness_max_s,
+        }
+
+
+class RobotLoop:
+    """The plant node's robot mode (see the module docstring).
+
+    :param node_id: CANopen node id (log messages).
+    :param store: the node's object store (0x2400 configuration, 0x2450 mode).
+    :param lockstep: the trial protocol (precedence, the wire tick counter).
+    :param model: the plant (shared with the trials).
+    :param send_batch: sends the four encoder frames of a period.
+    :param send_emcy: sends one EMCY ``(error code, error register, data)``.
+    :param clock: monotonic time source [s].
+    :param tick_timeout_s: longest wait for the torque frames of one period, s.
+    :param spin_s: real time: the last part of the wait for a held period, spent in a loop, s.
+    :param limits: the mechanical limits (default :class:`plant.mechanics.MechanicalLimits`).
+    :param trace_path: the period trace to write (None: none).
+    """
+
+    def __init__(
+        self,
+        node_id: int,
+        store: ObjectStore,
+        lockstep: LockstepMaster,
+        model: TrialModel,
+        *,
+        send_batch: Callable[[list[can.Message]], None],
+        send_emcy: Callable[[Emcy], None],
+        clock: Callable[[], float],
+        tick_timeout_s: float,
+        spin_s: float = 0.0,
+        limits: MechanicalLimits | None = None,
+        trace_path: str | None = None,
+    ) -> None:
+        self.node_id = node_id
+        self.store = store
+        self.lockstep = lockstep
+        self.model = model
+        self._send_batch = send_batch
+        self._send_emcy = send_emcy
+        self._clock = clock
+        self.tick_timeout_s = tick_timeout_s
+        self.spin_s = spin_s
+        self.limits = limits if limits is not None else MechanicalLimits()
+        self.trace_path = trace_path
+        self.trace: TraceWriter | None = None
+        self.mechanics: Mechanics | None = None
+        self._trackers = [io_frames.TickTracker(0, f"torque frames of drive {j + 1}") for j in range(_N)]
+        self._tau = np.zeros(_N, dtype=np.int64)
+        self._enabled_bits = 0  # bit j: drive j+1's torque frame of the period said ENABLED
+        self._state = _IDLE
+        self._wire = 0
+        self._got = 0
+        self._deadline = 0.0
+        self._send_at = 0.0
+        self._pending: deque[float] = deque()  # arrival times of the SYNCs waiting for their periods
+        self._late = False
+        self.pacing: _Pacing | None = None
+        self.periods = 0
+        self.syncs = 0
+        self.overruns = 0
+        self.timeouts = 0
+        self.fault = RobotFault.NONE
+        self.fault_joint = 0
+        self.fault_period = 0
+        self.fault_message = ""
+        self.faults: list[dict[str, Any]] = []
+        self.faults_total = 0
+        self.error_register = 0
+        self._held_bits = 0xF
+
+    # ------------------------------------------------------------------ mode
+
+    @property
+    def mode(self) -> RobotMode:
+        return RobotMode(int(self.store.get(PlantObj.ROBOT, RobotSub.MODE)))
+
+    @property
+    def on(self) -> bool:
+        return self.mode != RobotMode.OFF
+
+    @property
+    def state(self) -> RobotState:
+        if not self.on:
+            return RobotState.OFF
+        return RobotState.FAULT if self.fault != RobotFault.NONE else RobotState.READY
+
+    @property
+    def brakes(self) -> int:
+        """0x2450:12: bit j-1 set while joint j is held by its brake (after the last period)."""
+        return self._held_bits
+
+    def set_mode(self, mode: RobotMode) -> None:
+        """0x2450:1 written (or the role's choice): the robot comes on at its home pose (the first
+        time; later it goes on from where it stands), or goes off after the period in progress."""
+        self.store.values[(PlantObj.ROBOT, RobotSub.MODE)] = int(mode)
+        if mode == RobotMode.OFF:
+            self._state = _IDLE
+            self._pending.clear()
+            return
+        self._robot()
+        if mode == RobotMode.REALTIME and self.pacing is None:
+            self.pacing = _Pacing(self._ts_substeps()[0])
+        elif mode != RobotMode.REALTIME:
+            self.pacing = None
+        logger.info("node %d: robot mode %s", self.node_id, mode.name)
+
+    def _ts_substeps(self) -> tuple[float, int]:
+        period_us = int(self.store.get(PlantObj.CONFIG, ConfigSub.CONTROL_PERIOD_US))
+        return period_us / 1_000_000, int(self.store.get(PlantObj.CONFIG, ConfigSub.SUBSTEPS))
+
+    def _robot(self) -> Mechanics:
+        """The mechanics on the model's plant for the configured Ts; homed when the plant is new."""
+        ts_s, substeps = self._ts_substeps()
+        plant = self.model.plant(ts_s, substeps)
+        mech = self.mechanics
+        if mech is None or mech.plant is not plant:
+            if not isinstance(plant, Plant):
+                raise TypeError(f"the robot mode needs a plant.simulator.Plant, got {type(plant).__name__}")
+            mech = self.mechanics = Mechanics(plant, self.limits)
+            mech.home()
+            logger.info("node %d: robot at its home pose, q = %s deg", self.node_id, np.round(np.degrees(plant.q), 3).tolist())
+            if self.trace is not None:
+                self.trace.close()
+            if self.trace_path is not None:
+                try:
+                    self.trace = TraceWriter(self.trace_path, ts_s, substeps)
+                except OSError as err:  # the robot goes on without its trace
+                    self.trace = None
+                    logger.error("node %d: cannot write the robot trace %s: %s", self.node_id, self.trace_path, err)
+        return mech
+
+    # ------------------------------------------------------------------ loop hooks
+
+    def on_sync(self, now: float) -> None:
+        """A SYNC frame: a period starts (or waits for the one in progress)."""
+        self.syncs += 1
+        if not self.on or self.lockstep.busy:
+            return
+        if self._state == _IDLE:
+            self._start(now, now)
+        elif len(self._pending) < _WAITING_MAX:
+            self._pending.append(now)
+        else:
+            self.overruns += 1
+            logger.debug("node %d: SYNC overrun in period %d", self.node_id, self.periods)
+
+    def interrupt(self) -> None:
+        """A trial begins: the period in progress is dropped (its frames are stale for the trial)."""
+        self._state = _IDLE
+        self._pending.clear()
+
+    def next_deadline(self) -> float | None:
+        if self._state == _HELD:
+            return self._send_at - self.spin_s
+        if self._state == _SENT:
+            return self._deadline
+        return None
+
+    def service(self, now: float) -> None:
+        """Send a held period that is due, or detect a period whose torques did not come."""
+        if self._state == _HELD:
+            if self.spin_s and self._send_at - self.spin_s <= now < self._send_at:
+                while now < self._send_at:  # the last stretch on the clock (bounded by spin_s)
+                    now = self._clock()
+            if now >= self._send_at:
+                self._send_encoders(now)
+        elif self._state == _SENT and now >= self._deadline:
+            missing = [j + 1 for j in range(_N) if self._trackers[j].next_tick == self._wire]
+            self.timeouts += 1
+            self._state = _IDLE
+            self._fail(
+                RobotFault.PERIOD_TIMEOUT,
+                missing[0] if missing else 0,
+                f"drive(s) {missing} did not answer period {self.periods} within {self.tick_timeout_s:g} s",
+            )
+            self._next(now)
+
+    @property
+    def expecting_io(self) -> bool:
+        """True while a period waits for its torque frames."""
+        return self._state == _SENT
+
+    def on_io(self, msg: can.Message) -> None:
+        """One io frame while a period waits for its torques."""
+        if msg.is_error_frame:
+            self._fail(RobotFault.BAD_FRAME, 0, f"period {self.periods}: bus error frame on io (a damaged frame)")
+            self._drop_period()
+            return
+        cob = msg.arbitration_id
+        if not _TORQUE_LO <= cob < _TORQUE_HI or self._state != _SENT:
+            return
+        j = cob - _TORQUE_LO
+        try:
+            torque, wire, status = io_frames.torque_fields(msg)
+            if io_frames.tick_diff(wire, self._wire) < 0:
+                return  # an answer to an earlier (dropped) period or trial
+            self._trackers[j].accept(wire)
+        except io_frames.TickError as err:
+            self._fail(RobotFault.TICK_SEQUENCE, j + 1, f"period {self.periods}: {err}")
+            self._drop_period()
+            return
+        except io_frames.IoFrameError as err:
+            self._fail(RobotFault.BAD_FRAME, j + 1, f"period {self.periods}: bad torque frame: {err}")
+            self._drop_period()
+            return
+        if status & _ENABLED and not status & _FAULT_BIT:
+            self._enabled_bits |= 1 << j
+            self._tau[j] = torque
+        else:
+            self._enabled_bits &= ~(1 << j)
+            self._tau[j] = 0
+        self._got += 1
+        if self._got == _N:
+            self._advance()
+
+    # ------------------------------------------------------------------ periods
+
+    def _start(self, arrival: float, now: float) -> None:
+        self._late = False
+        pacing = self.pacing
+        if pacing is not None:
+            due, self._late = pacing.schedule(arrival)
+            if now < due:
+                self._state, self._send_at = _HELD, due
+                return
+        self._send_encoders(now)
+
+    def _send_encoders(self, now: float) -> None:
+        mech = self._robot()
+        self._wire = wire = self.lockstep.claim_wire_tick()
+        w16 = wire & io_frames.TICK_MASK
+        self._send_batch(
+            [new_message(_ENC_LO + j, bytearray(_ENC.pack(c, w16))) for j, c in enumerate(mech.plant.encoder_counts().tolist())]
+        )
+        for tracker in self._trackers:
+            tracker.reset(wire)
+        self._got = 0
+        self._state = _SENT
+        self._deadline = now + self.tick_timeout_s
+        if self.pacing is not None:
+            self.pacing.started(now)
+
+    def _advance(self) -> None:
+        """All four torques are in: the robot integrates the period, the next one may start."""
+        mech = self._robot()
+        faulted = self.fault != RobotFault.NONE
+        self._held_bits = _ALL_HELD if faulted else _ALL_HELD & ~self._enabled_bits
+        hit = mech.step(self._tau, _HELD_MASKS[self._held_bits])
+        if hit is not None:
+            self._limit(hit)
+        if self.trace is not None:
+            flags = (FLAG_LATE if self._late else 0) | (FLAG_FAULT if self.fault != RobotFault.NONE else 0)
+            self.trace.add(self.periods, mech.plant.q, self._tau, self._held_bits, flags)
+        self.periods += 1
+        now = self._clock()
+        if self.pacing is not None:
+            self.pacing.completed(now)
+        self._state = _IDLE
+        self._next(now)
+
+    def _next(self, now: float) -> None:
+        if self._pending:
+            self._start(self._pending.popleft(), now)
+
+    def _drop_period(self) -> None:
+        self._state = _IDLE
+        self._next(self._clock())
+
+    # ------------------------------------------------------------------ faults
+
+    def _limit(self, hit: LimitHit) -> None:
+        if self.fault == RobotFault.NONE:
+            self._fail(_LIMIT_FAULTS[hit.kind], hit.joint, hit.message)
+        else:
+            logger.info("node %d: %s (robot in fault already)", self.node_id, hit.message)
+
+    def _fail(self, fault: RobotFault, joint: int, message: str) -> None:
+        """A robot fault: EMCY, every joint braked until the fault reset."""
+        self.faults_total += 1
+        if len(self.faults) < FAULTS_KEPT:
+            self.faults.append({"fault": fault.name, "joint": joint, "period": self.periods, "message": message})
+        if self.fault != RobotFault.NONE:
+            logger.warning("node %d: robot fault %s while in fault: %s", self.node_id, fault.name, message)
+            return
+        self.fault, self.fault_joint, self.fault_period, self.fault_message = fault, joint, self.periods, message
+        code, register = ROBOT_FAULT_EMCY[fault]
+        self.error_register = register
+        logger.warning("node %d: robot fault %s: %s", self.node_id, fault.name, message)
+        self._send_emcy((code, register, robot_fault_emcy_data(fault, joint, self.periods)))
+
+    def fault_reset(self) -> None:
+        """0x2450:2 = 1 (or NMT reset node): the fault is cleared (EMCY 0x0000), the brakes follow
+        the drives again."""
+        if self.fault == RobotFault.NONE:
+            return
+        logger.info("node %d: robot fault %s reset", self.node_id, self.fault.name)
+        self.fault, self.fault_joint, self.fault_period, self.fault_message = RobotFault.NONE, 0, 0, ""
+        self.error_register = 0
+        self._send_emcy((int(EmcyCode.ERROR_RESET), 0, bytes(5)))
+
+    # ------------------------------------------------------------------ reporting
+
+    def joint_counts(self) -> list[int]:
+        """0x2451: the joint angles in encoder counts (rounded)."""
+        mech = self.mechanics
+        if mech is None:
+            return [0] * _N
+        return [int(c) for c in mech.plant.encoder_counts()]
+
+    def tcp_pose(self) -> tuple[float, float, float, float]:
+        """X = (x, y, z [m], θ [rad]) of the robot now (forward kinematics)."""
+        mech = self.mechanics
+        if mech is None:
+            return (math.nan,) * 4
+        x = mech.plant.task_pose()
+        return float(x[0]), float(x[1]), float(x[2]), float(x[3])
+
+    def close(self) -> None:
+        """Write the rest of the trace and close it."""
+        if self.trace is not None:
+            self.trace.close()
+
+    def info(self) -> dict[str, Any]:
+        """The session so far, for the summary."""
+        out: dict[str, Any] = {
+            "mode": self.mode.name.lower(),
+            "state": self.state.name.lower(),
+            "periods": self.periods,
+            "syncs": self.syncs,
+            "sync_overruns": self.overruns,
+            "period_timeouts": self.timeouts,
+            "faults_total": self.faults_total,
+            "faults": list(self.faults),
+            "fault": None if self.fault == RobotFault.NONE else {"fault": self.fault.name, "joint": self.fault_joint},
+            "brakes": self._held_bits,
+            "ts_s": self._ts_substeps()[0],
+        }
+        if self.pacing is not None:
+            out["realtime"] = self.pacing.info()
+        if self.mechanics is not None:
+            out["q_rad"] = [float(v) for v in self.mechanics.plant.q]
+            out["tcp"] = list(self.tcp_pose())
+        if self.trace is not None:
+            out["trace"] = {"path": str(self.trace.path), "records": self.trace.records, "error": self.trace.error}
+        return out
