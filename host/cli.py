@@ -54,10 +54,10 @@ def cmd_sim(args: argparse.Namespace) -> int:
     """``ilcrig sim``: the experiment in this process, through the public API (:mod:`ilcrig`)."""
     from host.experiment.outputs import check_out_dir
 
-    out = Path(args.out) if args.out else Path("runs") / time.strftime("sim-%Y%m%d-%H%M%S")
-    check_out_dir(out, create=False)  # fast: before the configuration and the preparation
+    out = Path(args.out) if args.out is not None else Path("runs") / time.strftime("sim-%Y%m%d-%H%M%S")
+    check_out_dir(args.out if args.out is not None else out, create=False)  # fast: before the configuration
     cfg = experiment_config(args)
-    check_out_dir(out, iterations=cfg.iterations, create=False)
+    check_out_dir(out, iterations=cfg.iterations, n_ticks=cfg.n_ticks, create=False)
     import ilcrig
     from host.analysis.session import report_fault
     from host.experiment.trials import interrupt_on_signals

@@ -219,10 +219,10 @@ class Session:
             from host.experiment.outputs import RunFolder, check_out_dir
 
             try:
-                check_out_dir(self.out, iterations=plan.cfg.iterations)
+                check_out_dir(self.out, iterations=plan.cfg.iterations, n_ticks=plan.n_ticks)
             except ValueError as exc:
                 raise input_error(exc) from None
-            self._folder = RunFolder(self.out, plan.cfg.iterations)
+            self._folder = RunFolder(self.out, plan.cfg.iterations, plan.n_ticks)
             self._folder.reserve()
             recorder = Recorders(
                 RunRecorder(

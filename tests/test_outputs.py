@@ -52,15 +52,20 @@ def test_no_nan_reaches_the_summary(tmp_path: Path, caplog: pytest.LogCaptureFix
 
 
 def test_the_space_reserve(tmp_path: Path) -> None:
-    folder = RunFolder(tmp_path, iterations=10)
-    assert folder.reserve() and (tmp_path / RESERVE_NAME).stat().st_size == reserve_bytes(10)
+    folder = RunFolder(tmp_path, iterations=10, n_ticks=301)
+    assert folder.reserve()
+    # the reserve is a file without a name, held open: nothing in the folder, the space allocated
+    st = os.fstat(folder._fd)
+    assert st.st_nlink == 0 and st.st_size == reserve_bytes(10, 301) and st.st_blocks * 512 >= reserve_bytes(10, 301)
+    assert reserve_bytes(10, 301) == 128 * 1024 + 10 * 1536 + 320 * 1024 + 301 * 1000
+    assert list(tmp_path.iterdir()) == []
     folder.fail_writes_from_trial = 2
     folder.check_write(1)
     with pytest.raises(OSError) as exc:
         folder.check_write(2)
     assert exc.value.errno == errno.ENOSPC
     folder.release()
-    assert not (tmp_path / RESERVE_NAME).exists()
+    assert folder._fd == -1 and not (tmp_path / RESERVE_NAME).exists()
     folder.check_write(3)  # the reserve's space is what the final results are written into
     (tmp_path / "f.txt").write_text("x")
     with pytest.raises(ValueError, match="exists and is not a folder"):

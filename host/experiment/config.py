@@ -97,6 +97,13 @@ class ExperimentConfig:
     gains: GainSpec = field(default_factory=GainSpec)
     law_options: dict[str, Any] = field(default_factory=dict)
 
+    @property
+    def n_ticks(self) -> int:
+        """Ticks per trial, N = round(2·cycle_s/ts_s) + 1 (pick → place → pick, the end point
+        included; :func:`host.planning.trajectory.trial_samples`, which also checks that the cycle
+        is a whole number of periods)."""
+        return 2 * max(int(round(self.cycle_s / self.ts_s)), 1) + 1
+
     def as_dict(self) -> dict[str, Any]:
         """The configuration as plain values (``law_options`` only when there are any)."""
         d = dataclasses.asdict(self)

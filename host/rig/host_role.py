@@ -40,10 +40,10 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
     """``ilcrig host``: run the experiment over the bus; returns the exit code."""
     from host.experiment.outputs import check_out_dir
 
-    out = Path(args.out) if args.out else Path("runs") / time.strftime("rig-%Y%m%d-%H%M%S")
-    check_out_dir(out, iterations=cfg.iterations, create=False)
+    out = Path(args.out) if args.out is not None else Path("runs") / time.strftime("rig-%Y%m%d-%H%M%S")
+    check_out_dir(args.out if args.out is not None else out, iterations=cfg.iterations, n_ticks=cfg.n_ticks, create=False)
     plan = prepare(cfg)
-    check_out_dir(out, iterations=cfg.iterations)
+    check_out_dir(out, iterations=cfg.iterations, n_ticks=plan.n_ticks)
     print_plan(sys.stdout, "host", plan, extra=f", transport {transport.name}")
     network = None
     try:
