@@ -17,10 +17,11 @@ completed trial) has been written.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
@@ -176,7 +177,8 @@ def cmd_drive(args: argparse.Namespace) -> int:
     if not 1 <= args.node <= 127:
         raise ValueError(f"node id must be 1..127, got {args.node}")
     _role_logging()
-    lost = run_node(args.node, resolve_bus_config(tc.fieldbus), resolve_bus_config(tc.io))
+    with _bus_errors(tc.name):
+        lost = run_node(args.node, resolve_bus_config(tc.fieldbus), resolve_bus_config(tc.io))
     return EXIT_FAULT if lost else 0
 
 
@@ -184,8 +186,25 @@ def cmd_plant(args: argparse.Namespace) -> int:
     from plant.plant_node import run_plant_role
 
     _role_logging()
-    lost = run_plant_role(transport_of(args), node_id=args.node_id)
+    tc = transport_of(args)
+    with _bus_errors(tc.name):
+        lost = run_plant_role(tc, node_id=args.node_id)
     return EXIT_FAULT if lost else 0
+
+
+class _BusUnavailable(Exception):
+    """A role could not open its bus (reported as ``ilcrig: error: cannot open the bus …``, exit 3)."""
+
+
+@contextlib.contextmanager
+def _bus_errors(transport: str) -> Iterator[None]:
+    """A bus a role cannot open (nobody listens, …) as one line, like the host role's."""
+    import can
+
+    try:
+        yield
+    except can.CanInitializationError as exc:
+        raise _BusUnavailable(f"cannot open the bus ({transport}): {exc}") from exc
 
 
 def _role_logging() -> None:
@@ -284,7 +303,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="> 0: a node lost or rebooted between trials is waited for (up to --wait) and set up again "
         "instead of ending the run (default 0: every lost node is a fault)",
     )
-    hp.add_argument("--inject-disk-full", type=int, default=None, metavar="TRIAL", help=argparse.SUPPRESS)
+    hp.add_argument("--inject-disk-full", default=None, metavar="SPEC", help=argparse.SUPPRESS)  # the launcher's diskfull@…
     hp.set_defaults(func=cmd_host)
 
     dp = sub.add_parser("drive", help="one servo-drive node (firmware) on the bus")
@@ -337,6 +356,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         sys.stderr.write("ilcrig: interrupted\n")
         return EXIT_INTERRUPTED
+    except _BusUnavailable as exc:
+        sys.stderr.write(f"ilcrig: error: {exc}\n")
+        return EXIT_FAULT
     except (ValueError, FileNotFoundError) as exc:
         if args.debug:
             raise

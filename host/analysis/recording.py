@@ -386,6 +386,7 @@ class RunRecorder:
         self._k: list[int] = []
         self._trial_bytes = self.FIRST_TRIAL_BYTES
         self._joined = False
+        self._joined_bytes = 0
         n_planned = self.config_summary.get("iterations")
         self._n_expected = int(n_planned) if isinstance(n_planned, int) else None
         self._unwritten: tuple[int, bytes] | None = None  # a trial encoded, its write failed
@@ -408,7 +409,8 @@ class RunRecorder:
         """What the file holds durably: ``bytes`` (its length with complete segments; what
         :func:`cut_back` cuts a longer file back to), ``trials`` (their indices) and whether it was
         ``joined`` into one stream."""
-        return {"file": self.path.name, "bytes": self._file.committed, "trials": list(self._k), "joined": self._joined}
+        size = self._joined_bytes if self._joined else self._file.committed
+        return {"file": self.path.name, "bytes": size, "trials": list(self._k), "joined": self._joined}
 
     def _encoded(self) -> bytes:
         """Everything logged since the last call, as one complete Rerun stream."""
@@ -536,7 +538,7 @@ class RunRecorder:
                     raise OSError(f"the joined recording is incomplete ({end} bytes)")
                 os.fsync(fh.fileno())
             os.replace(tmp, self.path)
-            self._joined = True
+            self._joined, self._joined_bytes = True, end
         except Exception as exc:  # noqa: BLE001 - the segments stay: a valid recording
             logger.info("recording %s: not joined (%s); its segments stay", self.path, exc)
             with contextlib.suppress(OSError):

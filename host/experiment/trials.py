@@ -615,11 +615,15 @@ class TrialRunner:
             result.fault_record = record
             result.fault = record.message
             summary["faults"].append(record.as_dict())
+            if record.position == Position.AFTER_LAST_TRIAL:
+                summary["completed"] = True  # every trial was run and kept; the fault came after
             logger.info("fault (%s, trial %s): %s", record.position, record.trial, exc)  # the run's closing line says it
         except KeyboardInterrupt as exc:  # Ctrl-C, or Interrupted from the SIGTERM/SIGINT handler
             signum = getattr(exc, "signum", signal.SIGINT)
             result.interrupted = int(signum)
             summary["interrupted"] = self._where_now(signal.Signals(signum).name)
+            if summary["interrupted"]["position"] == Position.AFTER_LAST_TRIAL:
+                summary["completed"] = True  # every trial was run and kept
             logger.info("interrupted by %s (%s)", signal.Signals(signum).name, summary["interrupted"]["position"])
         self.finish()
         return None
