@@ -322,14 +322,9 @@ class Session:
         res = self.runner.finish()
         if self.out is not None and not self._reported:
             self._reported = True
-            from host.analysis.run_report import write_run_report
+            from host.analysis.session import write_report
 
-            s = res.summary
-            if s["iterations"] or s["faults"] or res.interrupted:
-                try:
-                    write_run_report(self.out, s)
-                except OSError as err:
-                    logger.error("report.md could not be written: %s", err)
+            write_report(self.out, res, self._folder)
         return self.results
 
     @property

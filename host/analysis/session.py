@@ -30,7 +30,7 @@ from host.experiment.trials import Bench, ExperimentResult, record_output_fault,
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["run_session", "report_fault"]
+__all__ = ["run_session", "report_fault", "write_report"]
 
 
 def run_session(
@@ -62,17 +62,28 @@ def run_session(
     res = run_experiment(
         plan, bench, out, mode=mode, on_trial=lambda m, role: print_row(stream, m, role), recorder=recorder, folder=folder
     )
+    write_report(out, res, folder)
+    return res
+
+
+def write_report(out: Path, res: ExperimentResult, folder: RunFolder | None = None) -> None:
+    """``report.md`` with its convergence plot (when a trial completed, or the run faulted or was
+    interrupted); one that cannot be written (a full disk) is the run's fault when it has none: the
+    summary says so, written into the last part of the reserve. Gives the reserve back."""
     if res.summary["iterations"] or res.summary["faults"] or res.interrupted:
         try:
             write_run_report(out, res.summary)  # report.md + convergence plot next to the summary
         except OSError as err:
             logger.error("report.md could not be written: %s", err)
             if record_output_fault(res, output_error(str(out / "report.md"), err)) is not None:
+                if folder is not None:
+                    folder.release_last()  # the room kept for this last word
                 try:
                     write_summary(out, res.summary)
                 except OutputError as exc:
                     logger.error("the summary could not say so either: %s", exc)
-    return res
+    if folder is not None:
+        folder.release_last()
 
 
 def report_fault(res: ExperimentResult, summary_path: Path | None = None) -> int:

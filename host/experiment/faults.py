@@ -9,6 +9,7 @@ This module owns
   last trial), who detected it and the detection latency in ms (with what the latency was
   measured against);
 * :func:`position_of` — the position of a fault from what the run had kept when it ended;
+* :func:`node_name` — ``drive1`` … ``drive4``, ``plant``, ``host`` for a CANopen node id;
 * the injection records that ``ilcrig run --inject`` leaves in ``RUN_DIR/logs/injections*.jsonl``
   (one JSON object per line: ``kind``, ``target``, ``trial``, ``tick``, ``t_mono``, ``t_wall``, …) and
   :func:`attach_injection`, which measures a detection against the injection that caused it;
@@ -30,6 +31,10 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
+from bus.cia301.nmt import HOST_NODE_ID
+from bus.objects import DRIVE_NODE_IDS
+from bus.plant_objects import DEFAULT_PLANT_NODE_ID
+
 logger = logging.getLogger(__name__)
 
 __all__ = [
@@ -38,6 +43,7 @@ __all__ = [
     "Position",
     "attach_injection",
     "fault_line",
+    "node_name",
     "position_of",
     "read_injections",
     "INJECTION_LOG_GLOB",
@@ -65,6 +71,17 @@ class FaultKind(StrEnum):
     DISK_FULL = "disk_full"  #: the run folder's filesystem is full
     OUTPUT_ERROR = "output_error"  #: another failing write of the run's outputs
     TRIAL_FAULT = "trial_fault"  #: anything else that ended a trial
+
+
+def node_name(node_id: int) -> str:
+    """``drive1`` … ``drive4``, ``plant`` (the plant node), ``host`` (127), else ``node N``."""
+    if node_id in DRIVE_NODE_IDS:
+        return f"drive{node_id}"
+    if node_id == DEFAULT_PLANT_NODE_ID:
+        return "plant"
+    if node_id == HOST_NODE_ID:
+        return "host"
+    return f"node {node_id}"
 
 
 class Position(StrEnum):

@@ -9,9 +9,12 @@ This module owns
   planned trials and ticks: the final summary and report, and one trial's recording and arrays)
   taken when a run starts and given back at the end — before the final outputs are written, so
   that ``summary.json`` with the fault, the last trial's recording and ``report.md`` can still be
-  written after ``ENOSPC``.  The reserve is a file without a name (``O_TMPFILE``; where the
-  filesystem has none, a file unlinked right after it is made) whose space the process holds
-  through an open descriptor: it never outlives the process, whatever ends it (SIGKILL included);
+  written after ``ENOSPC``; a small part of it (:meth:`RunFolder.release_last`, room for the
+  summary once more) is kept until the report is written, so a disk filled by someone else even
+  then still lets the summary say so.  The reserve is made of files without a name (``O_TMPFILE``;
+  where the filesystem has none, a file unlinked right after it is made) whose space the process
+  holds through open descriptors: it never outlives the process, whatever ends it (SIGKILL
+  included);
 * :func:`remove_leftovers` — what a run that was killed may leave in its folder (temporary files of
   atomic writes, trial arrays the summary does not hold), removed by whoever outlives it;
 * :class:`OutputError` / :class:`DiskFullError` — a failing write of the run's outputs as one
@@ -60,6 +63,9 @@ RESERVE_PER_TRIAL_BYTES = 1536
 #: the reference (200 B per tick), with a margin of 1.25
 RESERVE_TRIAL_BASE_BYTES = 320 * 1024
 RESERVE_PER_TICK_BYTES = 1000
+#: the part of the reserve kept for a last summary write (after a failing report): the summary
+#: before the trials and one entry per trial
+RESERVE_LAST_WORD_BASE_BYTES = 32 * 1024
 #: temporary files of the run's atomic writes (removed by :func:`remove_leftovers`)
 LEFTOVER_GLOBS = (
     "summary.json.tmp",
@@ -179,9 +185,12 @@ class RunFolder:
     def __init__(self, path: str | Path, iterations: int, n_ticks: int = 0) -> None:
         self.path = Path(path)
         self.size = reserve_bytes(iterations, n_ticks)
+        #: of it, kept until :meth:`release_last` (room for one more summary write), bytes
+        self.last_word = min(self.size // 2, RESERVE_LAST_WORD_BASE_BYTES + RESERVE_PER_TRIAL_BYTES * max(int(iterations), 0))
         self.reserved = False
         self.released = False
         self._fd = -1
+        self._fd_last = -1
         #: fault injection / tests: writes of the outputs fail with ENOSPC from this trial's on (−1:
         #: from the summary before the first trial), until the reserve is given back (the space the
         #: final results are written into); :attr:`fail_spec`: the ``--inject`` spec that asked for it
@@ -206,41 +215,60 @@ class RunFolder:
             os.unlink(self.reserve_path)
         return fd
 
-    def reserve(self) -> bool:
-        """Take the reserve (:attr:`size` bytes, really allocated, held by an open descriptor of a
-        file without a name). Returns whether it could be taken (a full disk leaves none: logged)."""
-        if self._fd >= 0:
-            return True
-        fd = -1
+    def _allocate(self, size: int) -> int:
+        """A file without a name holding ``size`` bytes, really allocated; its descriptor.
+
+        :raises OSError: no room (or no file)
+        """
+        fd = self._open_nameless()
         try:
-            fd = self._open_nameless()
             try:
-                os.posix_fallocate(fd, 0, self.size)
+                os.posix_fallocate(fd, 0, size)
             except OSError as err:
                 if is_disk_full(err):
                     raise
-                os.pwrite(fd, b"\0" * self.size, 0)  # filesystems without fallocate
+                os.pwrite(fd, b"\0" * size, 0)  # filesystems without fallocate
             os.fsync(fd)
+        except BaseException:
+            os.close(fd)
+            raise
+        return fd
+
+    def reserve(self) -> bool:
+        """Take the reserve (:attr:`size` bytes, really allocated, held by open descriptors of
+        files without a name). Returns whether it could be taken (a full disk leaves none: logged)."""
+        if self._fd >= 0:
+            return True
+        try:
+            self._fd_last = self._allocate(self.last_word)
+            self._fd = self._allocate(self.size - self.last_word)
         except OSError as err:
             logger.warning(
                 "cannot reserve %d KiB in %s for the final results: %s", self.size // 1024, self.path, err.strerror or err
             )
-            if fd >= 0:
-                os.close(fd)
-            self.reserved = False
+            self.release_last()
+            self.reserved = self.released = False
             return False
-        self._fd = fd
         self.reserved = True
         return True
 
     def release(self) -> None:
-        """Give the reserve back: close its descriptor, the filesystem frees its space (idempotent)."""
+        """Give the reserve back but its last part (:meth:`release_last`): close its descriptor,
+        the filesystem frees its space (idempotent)."""
         if self._fd >= 0:
             with contextlib.suppress(OSError):
                 os.close(self._fd)
             self._fd = -1
         self.reserved = False
         self.released = True
+
+    def release_last(self) -> None:
+        """Give back the last part too (room for a last summary write; idempotent)."""
+        self.release()
+        if self._fd_last >= 0:
+            with contextlib.suppress(OSError):
+                os.close(self._fd_last)
+            self._fd_last = -1
 
     def _record_injection(self, trial: int) -> None:
         """The injection record (the format of :func:`bus.transports.fault_inject.write_record`)."""

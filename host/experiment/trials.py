@@ -59,7 +59,15 @@ import numpy as np
 from bus import units
 from bus.cyclic import PDO_MODE, nm_to_permille_array, permille_to_nm_array
 from bus.errors import IlcrigError, SdoAbort
-from host.experiment.faults import FaultKind, FaultRecord, Position, attach_injection, position_of, read_injections
+from host.experiment.faults import (
+    FaultKind,
+    FaultRecord,
+    Position,
+    attach_injection,
+    node_name,
+    position_of,
+    read_injections,
+)
 from host.experiment.outputs import OutputError, RunFolder
 from host.experiment.plan import Plan, reference_tables
 from host.experiment.summary import SCHEMA, jsonable, write_summary
@@ -67,6 +75,7 @@ from host.learning.gains import Gains
 from host.learning.metrics import TraceDigest, TrialMetrics, trial_metrics
 from host.learning.protocol import AUXILIARY, LEARNING, TrialData
 from host.nodes.drive_client import DriveClient
+from host.nodes.sdo_access import SdoTransportError
 from host.planning.trajectory import JointReference
 
 logger = logging.getLogger(__name__)
@@ -662,21 +671,25 @@ def _fault_record(
     if record is None and describe is not None:
         record = describe(exc, kept)
     if record is None:
-        message = str(exc) if isinstance(exc, TrialFault | OutputError) else f"{type(exc).__name__}: {exc}"
+        sdo = isinstance(exc, SdoAbort | SdoTransportError) or "Sdo" in type(exc).__name__
+        message = str(exc) if isinstance(exc, TrialFault | OutputError) or sdo else f"{type(exc).__name__}: {exc}"
+        node_id = getattr(exc, "node_id", None)
+        waited = getattr(exc, "elapsed_s", None) if not getattr(exc, "cancelled", False) else None
         if isinstance(exc, OutputError):
             kind = str(exc.kind)
-        elif isinstance(exc, SdoAbort) or "Sdo" in type(exc).__name__:
+        elif sdo:
             kind = FaultKind.SDO_ERROR
         else:
             kind = FaultKind.TRIAL_FAULT
         record = FaultRecord(
             kind=kind,
             message=message,
-            node="host" if isinstance(exc, OutputError) else None,
+            node=node_name(node_id) if isinstance(node_id, int) else "host",
+            node_id=node_id if isinstance(node_id, int) else None,
             t_detected_mono=time.monotonic(),
             t_detected_wall=time.time(),
-            latency_ms=0.0,
-            latency_basis="same process",
+            latency_ms=1000.0 * waited if isinstance(waited, float) else 0.0,
+            latency_basis="the SDO request (no answer)" if isinstance(waited, float) else "same process",
         )
     if record.injected is None and out_dir is not None:
         attach_injection(record, read_injections(out_dir))

@@ -32,7 +32,7 @@ from bus.io_frames import TICK_TIMEOUT_S
 from bus.objects import DRIVE_NODE_IDS
 from bus.plant_objects import DEFAULT_PLANT_NODE_ID as PLANT_NODE_ID
 from bus.plant_objects import PlantFault
-from host.experiment.faults import FaultKind, FaultRecord
+from host.experiment.faults import FaultKind, FaultRecord, node_name
 from host.nodes.plant_client import PlantTrialFault
 from host.nodes.sdo_access import SdoTransportError
 
@@ -89,17 +89,6 @@ PLANT_FAULT_KINDS: Mapping[PlantFault, FaultKind] = {
     PlantFault.HOST_LOST: FaultKind.HOST_LOST,
     PlantFault.ABORTED: FaultKind.TRIAL_FAULT,
 }
-
-
-def node_name(node_id: int) -> str:
-    """``drive1`` … ``drive4``, ``plant`` (the plant node), ``host`` (127), else ``node N``."""
-    if node_id in DRIVE_NODE_IDS:
-        return f"drive{node_id}"
-    if node_id == PLANT_NODE_ID:
-        return "plant"
-    if node_id == HOST_NODE_ID:
-        return "host"
-    return f"node {node_id}"
 
 
 @dataclass(frozen=True)
