@@ -37,7 +37,7 @@ Grammar::
 Where an injection acts (:attr:`FaultSpec.when`): ``tick`` (``@T:N``), ``end`` (``@T:end``),
 ``before``, ``after``.  What is injected in a trial happens when the plant sends that tick; after
 trial T, when the run's summary holds trial T (for frame faults: when the plant ends trial T);
-before the first trial, when the host starts the nodes (NMT START; frame faults: from the start).
+before the first trial, when the host starts the nodes (its first NMT START on the fieldbus).
 Whether a spec fits the experiment — a trial and a tick inside it, io frame faults only in a trial
 (the io channel carries no frame between trials), a role the transport has — is checked before
 anything starts (:func:`check_specs`).
@@ -353,6 +353,8 @@ class FrameFaultInjector:
         self.buses = {io_bus: "io", fieldbus_bus: "fieldbus"}
         self.follower = io_frames.TrialTickFollower()
         self.injected: list[dict[str, Any]] = []
+        #: the host has started the nodes (an NMT START seen on the fieldbus): ``@before`` from now on
+        self.started = False
 
     @classmethod
     def from_json(cls, text: str) -> FrameFaultInjector:
@@ -364,7 +366,7 @@ class FrameFaultInjector:
     def _reached(self, spec: FaultSpec, tick: int | None) -> bool:
         f = self.follower
         if spec.when == WHEN_BEFORE:
-            return True
+            return self.started
         if spec.when == WHEN_END:
             return f.trial > spec.trial or (f.trial == spec.trial and not f.in_trial)
         if f.trial > spec.trial:
@@ -385,6 +387,8 @@ class FrameFaultInjector:
         if channel is None or is_error:
             return [(0.0, record)]
         tick = self.follower.on_frame(can_id, data) if channel == "io" else None
+        if channel == "fieldbus" and can_id == 0 and data[:1] == b"\x01":
+            self.started = True  # NMT START (command specifier 1)
         for armed in self.armed:
             spec = armed.spec
             if spec.target != channel or armed.hits >= spec.count:
