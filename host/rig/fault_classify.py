@@ -267,11 +267,12 @@ def emcy_fault(frame: EmcyFrame, times: DetectionTimes | None = None) -> FaultRe
 
 def host_stall_fault(gap_s: float, t_end: float, times: DetectionTimes) -> FaultRecord:
     """The host itself did not run for ``gap_s`` seconds (it was stopped), ending at ``t_end``
-    (``t_mono``): longer than the nodes' consumer time of its heartbeat, so they have lost it
-    (their EMCY 0x8130 did not reach the host: they report nothing when NMT STOPPED)."""
+    (``t_mono``): longer than the nodes' consumer time of its heartbeat — a fault even where no
+    node's EMCY 0x8130 says so (a node reports nothing when NMT STOPPED, and its consumer starts
+    with the first heartbeat after it was configured)."""
     return FaultRecord(
         FaultKind.HOST_LOST,
-        f"the host did not run for {1000 * gap_s:.0f} ms (it was stopped): the nodes lost its heartbeat",
+        f"the host did not run for {1000 * gap_s:.0f} ms (it was stopped): longer than the nodes' consumer time of its heartbeat",
         node="host",
         node_id=HOST_NODE_ID,
         detected_by="host",

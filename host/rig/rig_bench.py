@@ -189,7 +189,7 @@ class RigBench:
             time.sleep(self.pause_s)
         watchdog.raise_if_fault()
         if self.recover_s <= 0:
-            watchdog.check()
+            watchdog.check_settled()
             watchdog.raise_if_fault()
             return []
         with sdo_errors(None, "recovery"):
@@ -254,7 +254,7 @@ class RigBench:
         self._closed = True
         watchdog = self.watchdog
         try:
-            watchdog.final_check()
+            watchdog.check_settled()
         except Exception:  # noqa: BLE001 - closing must go on
             logger.debug("final watchdog round failed", exc_info=True)
         trial_running = watchdog.in_trial or self.channels.running_tick() is not None

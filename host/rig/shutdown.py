@@ -72,16 +72,18 @@ def bring_to_safe_state(
 
 
 def safe_state_evidence(watchdog: Watchdog, alive: set[int], t_stop: float, how: str) -> list[dict[str, Any]]:
-    """Wait (at most one consumer time and a heartbeat period) for every live drive's heartbeat to
-    report STOPPED after ``t_stop`` (``time.monotonic()``, s); one entry per drive saying how its
-    torque was removed (``how``) and what shows it."""
+    """Wait (at most one consumer time and a heartbeat period) for the heartbeat of every node of
+    ``alive`` — the drives and the plant node — to report STOPPED after ``t_stop``
+    (``time.monotonic()``, s): a node that does not (it died or stalled while the run ended) is then
+    overdue for the watchdog, which is still armed; one entry per drive saying how its torque was
+    removed (``how``) and what shows it."""
     deadline = t_stop + watchdog.consumer_s + watchdog.period_s
     seen: dict[int, float] = {}
     while True:
         for nid in alive:
             if nid not in seen and (t := watchdog.events.stopped_since(nid, t_stop)) is not None:
                 seen[nid] = t
-        if all(n in seen for n in alive if n in DRIVE_NODE_IDS) or time.monotonic() > deadline:
+        if all(n in seen for n in alive) or time.monotonic() > deadline:
             break
         time.sleep(0.01)
     out = []

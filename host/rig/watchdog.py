@@ -174,8 +174,8 @@ class Watchdog:
             self._thread.join(timeout=1.0)
 
     def arm(self) -> None:
-        """From now on any fault seen is declared (ends the run)."""
-        if self.producer is not None:
+        """From now on any fault seen is declared (ends the run; again: nothing changes)."""
+        if not self._armed and self.producer is not None:
             self.producer.take_gap(float("inf"))  # a gap before the nodes consumed the heartbeat counts for nothing
         self._armed = True
 
@@ -214,9 +214,10 @@ class Watchdog:
             time.sleep(EMCY_SETTLE_S)
             self.check()
 
-    def final_check(self) -> None:
-        """The run's end: one round now, and while this process was stopped a moment ago (its
-        heartbeat's gap) the rounds until the nodes' EMCY frames about it had time to arrive."""
+    def check_settled(self) -> None:
+        """One round now, and while this process was stopped a moment ago (its heartbeat's gap)
+        the rounds until the nodes' EMCY frames about it had time to arrive (before a trial, and at
+        the run's end: a stop of the host is declared before anything goes on)."""
         self.check()
         self.check()  # the first round after a stop only lets the queued frames in
         deadline = time.monotonic() + STALL_SETTLE_S + WATCH_PERIOD_S
