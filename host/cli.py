@@ -91,7 +91,8 @@ def _add_bus_args(p: argparse.ArgumentParser, default: str = "auto") -> None:
         "--hub",
         default=None,
         metavar="ADDRESS",
-        help="hub address, unix:/path or tcp:127.0.0.1:PORT (default: $ILCRIG_HUB or a per-user socket)",
+        help="hub address, unix:/path or tcp:127.0.0.1:PORT (default: $ILCRIG_HUB or hub.sock in this user's "
+        "private folder, $XDG_RUNTIME_DIR/ilcrig or $TMPDIR/ilcrig-<uid>)",
     )
     p.add_argument(
         "--allow-remote",
@@ -276,9 +277,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--inject",
         action="append",
         metavar="SPEC",
-        help="inject a fault (repeatable): kill|stall:ROLE@TRIAL:TICK[,for=S], "
-        "drop|corrupt|duplicate|delay:io|fieldbus@TRIAL:TICK[,rate=P,seed=K,count=C,id=COBID,ms=D], "
-        "emcy:NODE@TRIAL:TICK[,code=C], diskfull@TRIAL (README: Fault injection)",
+        help="inject a fault (repeatable): kill|stall:ROLE@WHEN[,for=S], "
+        "drop|corrupt|duplicate|delay:io|fieldbus@WHEN[,rate=P,seed=K,count=C,id=COBID,ms=D], "
+        "emcy:NODE@WHEN[,code=C], diskfull@WHEN; WHEN = TRIAL:TICK, TRIAL:end, before or after "
+        "(docs/faults.md: Fault injection)",
     )
     rp.set_defaults(func=cmd_run)
 

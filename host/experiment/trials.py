@@ -700,7 +700,7 @@ def _fault_record(
 def place(record: FaultRecord, bench: Any, kept: int, planned: int, in_trial: bool) -> FaultRecord:
     """Put ``record`` where the run was: its position and trial from the trials kept (of
     ``planned``) and whether a trial ran; in a trial its tick (the record's, else the bench's
-    ``progress()``), outside one none. Returns ``record``."""
+    ``progress()``, else 0: no tick of it was seen yet), outside one none. Returns ``record``."""
     position, trial = position_of(kept, planned, in_trial)
     record.position = str(position)
     record.trial = trial
@@ -708,6 +708,8 @@ def place(record: FaultRecord, bench: Any, kept: int, planned: int, in_trial: bo
         if record.tick is None:
             progress = getattr(bench, "progress", None)
             record.tick = progress() if progress is not None else None
+        if record.tick is None:
+            record.tick = 0  # the trial had begun, its first tick was not seen yet
     else:
         record.tick = None
     return record

@@ -96,6 +96,7 @@ def preflight(args: argparse.Namespace) -> list[FaultSpec]:
     if args.out is not None:
         check_out_dir(args.out, iterations=cfg.iterations, n_ticks=cfg.n_ticks, create=False)
     check_specs(specs, iterations=cfg.iterations, n_ticks=cfg.n_ticks, hub=args.bus in ("hub", "auto"))
+    _check_hub_path(getattr(args, "hub", None))
     if getattr(args, "bus_time", False) and args.bus not in ("hub", "auto"):
         raise ValueError(f"--bus-time: bus time is kept by the hub; the transport {args.bus} has none: use --bus hub")
     if getattr(args, "rt_priority", None) is not None and not args.realtime:
@@ -106,6 +107,24 @@ def preflight(args: argparse.Namespace) -> list[FaultSpec]:
 
     prepare(cfg, rig=True)
     return specs
+
+
+def _check_hub_path(address: str | None) -> None:
+    """``--hub unix:PATH`` where another user's socket (or a link, a file) is: refused now, in one
+    line (the hub would refuse it too, but only in its log).
+
+    :raises HubOwnerError: (a ValueError) naming the path and its owner
+    """
+    if not address:
+        return
+    import os
+
+    from bus.transports.hub.addresses import parse_address
+    from bus.transports.hub.owner import check_socket_file
+
+    addr = parse_address(address, allow_remote=True)
+    if addr.kind == "unix" and os.path.lexists(addr.path):
+        check_socket_file(addr.path)
 
 
 class RigLauncher:

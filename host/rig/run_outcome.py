@@ -200,12 +200,11 @@ class RunOutcome:
             planned = int(summary.get("config", {}).get("iterations", kept + 1)) if summary is not None else kept + 1
             where = culprit.where
             in_trial = where is not None and where.trial >= kept and kept < planned
-            if in_trial:
-                record.tick = where.tick if where.tick is not None else 0
             attach_injection(record, read_injections(self.out_dir))
+            if in_trial and where is not None:
+                injected = record.injected or {}
+                record.tick = where.tick if where.tick is not None else injected.get("tick")
             place(record, None, kept, planned, in_trial)
-            if record.tick is None and record.position == Position.IN_TRIAL and record.injected:
-                record.tick = record.injected.get("tick")
             if summary is not None:
                 summary["faults"].append(record.as_dict())
         if first is not None:
