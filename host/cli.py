@@ -22,10 +22,11 @@ completed trial) has been written.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
@@ -59,10 +60,10 @@ def cmd_sim(args: argparse.Namespace) -> int:
     """``ilcrig sim``: the experiment in this process, through the public API (:mod:`ilcrig`)."""
     from host.experiment.outputs import check_out_dir
 
-    out = Path(args.out) if args.out else Path("runs") / time.strftime("sim-%Y%m%d-%H%M%S")
-    check_out_dir(out, create=False)  # fast: before the configuration and the preparation
+    out = Path(args.out) if args.out is not None else Path("runs") / time.strftime("sim-%Y%m%d-%H%M%S")
+    check_out_dir(args.out if args.out is not None else out, create=False)  # fast: before the configuration
     cfg = experiment_config(args)
-    check_out_dir(out, iterations=cfg.iterations, create=False)
+    check_out_dir(out, iterations=cfg.iterations, n_ticks=cfg.n_ticks, create=False)
     import ilcrig
     from host.analysis.session import report_fault
     from host.experiment.trials import interrupt_on_signals
@@ -95,7 +96,8 @@ def _add_bus_args(p: argparse.ArgumentParser, default: str = "auto") -> None:
         "--hub",
         default=None,
         metavar="ADDRESS",
-        help="hub address, unix:/path or tcp:127.0.0.1:PORT (default: $ILCRIG_HUB or a per-user socket)",
+        help="hub address, unix:/path or tcp:127.0.0.1:PORT (default: $ILCRIG_HUB or hub.sock in this user's "
+        "private folder, $XDG_RUNTIME_DIR/ilcrig or $TMPDIR/ilcrig-<uid>)",
     )
     p.add_argument(
         "--allow-remote",
@@ -191,9 +193,14 @@ def cmd_drive(args: argparse.Namespace) -> int:
     if not 1 <= args.node <= 127:
         raise ValueError(f"node id must be 1..127, got {args.node}")
     _role_logging()
-    lost = run_node(
-        args.node, resolve_bus_config(tc.fieldbus), resolve_bus_config(tc.io), param_dir=args.param_dir, lockstep=args.lockstep
-    )
+    with _bus_errors(tc.name):
+        lost = run_node(
+            args.node,
+            resolve_bus_config(tc.fieldbus),
+            resolve_bus_config(tc.io),
+            param_dir=args.param_dir,
+            lockstep=args.lockstep,
+        )
     return EXIT_FAULT if lost else 0
 
 
@@ -203,10 +210,25 @@ def cmd_plant(args: argparse.Namespace) -> int:
 
     _role_logging()
     mode = {None: RobotMode.OFF, "sync": RobotMode.SYNC, "realtime": RobotMode.REALTIME}[args.robot]
-    lost = run_plant_role(
-        transport_of(args), node_id=args.node_id, robot_mode=mode, trace_path=args.trace, summary_path=args.summary
-    )
+    tc = transport_of(args)
+    with _bus_errors(tc.name):
+        lost = run_plant_role(tc, node_id=args.node_id, robot_mode=mode, trace_path=args.trace, summary_path=args.summary)
     return EXIT_FAULT if lost else 0
+
+
+class _BusUnavailable(Exception):
+    """A role could not open its bus (reported as ``ilcrig: error: cannot open the bus …``, exit 3)."""
+
+
+@contextlib.contextmanager
+def _bus_errors(transport: str) -> Iterator[None]:
+    """A bus a role cannot open (nobody listens, …) as one line, like the host role's."""
+    import can
+
+    try:
+        yield
+    except can.CanInitializationError as exc:
+        raise _BusUnavailable(f"cannot open the bus ({transport}): {exc}") from exc
 
 
 def _role_logging() -> None:
@@ -334,9 +356,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--inject",
         action="append",
         metavar="SPEC",
-        help="inject a fault (repeatable): kill|stall:ROLE@TRIAL:TICK[,for=S], "
-        "drop|corrupt|duplicate|delay:io|fieldbus@TRIAL:TICK[,rate=P,seed=K,count=C,id=COBID,ms=D], "
-        "emcy:NODE@TRIAL:TICK[,code=C], diskfull@TRIAL (README: Fault injection)",
+        help="inject a fault (repeatable): kill|stall:ROLE@WHEN[,for=S], "
+        "drop|corrupt|duplicate|delay:io|fieldbus@WHEN[,rate=P,seed=K,count=C,id=COBID,ms=D], "
+        "emcy:NODE@WHEN[,code=C], diskfull@WHEN; WHEN = TRIAL:TICK, TRIAL:end, before or after "
+        "(docs/faults.md: Fault injection)",
     )
     rp.set_defaults(func=cmd_run)
 
@@ -389,7 +412,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="> 0: a node lost or rebooted between trials is waited for (up to --wait) and set up again "
         "instead of ending the run (default 0: every lost node is a fault)",
     )
-    hp.add_argument("--inject-disk-full", type=int, default=None, metavar="TRIAL", help=argparse.SUPPRESS)
+    hp.add_argument("--inject-disk-full", default=None, metavar="SPEC", help=argparse.SUPPRESS)  # the launcher's diskfull@…
     hp.set_defaults(func=cmd_host)
 
     dp = sub.add_parser("drive", help="one servo-drive node (firmware) on the bus")
@@ -516,6 +539,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         sys.stderr.write("ilcrig: interrupted\n")
         return EXIT_INTERRUPTED
+    except _BusUnavailable as exc:
+        sys.stderr.write(f"ilcrig: error: {exc}\n")
+        return EXIT_FAULT
     except (ValueError, FileNotFoundError) as exc:
         if args.debug:
             raise

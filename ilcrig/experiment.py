@@ -232,10 +232,10 @@ class Session:
             from host.experiment.outputs import RunFolder, check_out_dir
 
             try:
-                check_out_dir(self.out, iterations=plan.cfg.iterations)
+                check_out_dir(self.out, iterations=plan.cfg.iterations, n_ticks=plan.n_ticks)
             except ValueError as exc:
                 raise input_error(exc) from None
-            self._folder = RunFolder(self.out, plan.cfg.iterations)
+            self._folder = RunFolder(self.out, plan.cfg.iterations, plan.n_ticks)
             self._folder.reserve()
             recorder = Recorders(
                 RunRecorder(
@@ -344,14 +344,9 @@ class Session:
         res = self.runner.finish()
         if self.out is not None and not self._reported:
             self._reported = True
-            from host.analysis.run_report import write_run_report
+            from host.analysis.session import write_report
 
-            s = res.summary
-            if s["iterations"] or s["faults"] or res.interrupted:
-                try:
-                    write_run_report(self.out, s)
-                except OSError as err:
-                    logger.error("report.md could not be written: %s", err)
+            write_report(self.out, res, self._folder)
         return self.results
 
     @property

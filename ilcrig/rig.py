@@ -124,7 +124,7 @@ class RigRun:
             raise input_error(exc) from None
         self.out = Path(out) if out is not None else Path("runs") / time.strftime("api-rig-%Y%m%d-%H%M%S")
         try:
-            check_out_dir(self.out, iterations=config.iterations)
+            check_out_dir(self.out, iterations=config.iterations, n_ticks=config.n_ticks)
         except ValueError as exc:
             raise input_error(exc) from None
         toml_path = self.out / "experiment.toml"

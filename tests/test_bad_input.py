@@ -205,7 +205,9 @@ def test_bad_inject_specs(capsys: pytest.CaptureFixture[str], tmp_path: Path) ->
         ("drop:io@99:0", "trial 99 is beyond"),
         ("shake:io@1:1", "unknown action 'shake'"),
         ("drop:io@1:2,rate=2", "rate must be in (0, 1]"),
-        ("stall:host@x:1", "@TRIAL:TICK must be two integers"),
+        ("stall:host@x:1", "@WHEN must be TRIAL:TICK (two integers >= 0"),
+        ("stall:host@0:99999", "tick 99999 is beyond a trial of 501 ticks (0..500); after the trial is @0:end"),
+        ("drop:io@after", "the io channel carries frames only during a trial"),
     ):
         code, _, err = run_cli(capsys, "run", "--iterations", "2", "--inject", spec, "--out", str(tmp_path / "r"))
         assert_refused(code, err, f"--inject {spec}", fragment)

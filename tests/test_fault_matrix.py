@@ -3,12 +3,19 @@
 way — exit code 3, one terminal line ``ilcrig: fault: …``, ``summary.json`` with the completed
 trial (its digest equal to ``ilcrig sim --iterations 1``), ``completed: false`` and a ``faults``
 entry naming the kind, node, trial and tick and who detected it, every drive torque-free (on the
-bus or in its log), ``report.md``, and no process or temp folder left.  An interrupt keeps 143 and
-an ``interrupted`` marker.  ``ilcrig robot`` (no host; a python-canopen master holding the enabled
-robot in CSP) ends the same way when one of its processes dies: exit code 3, one line
-``ilcrig: fault: <process> …``, ``summary.json`` saying which, and no process left.  The faults a
-foreign master causes on the robot (its heartbeat, NMT STOP, its RPDOs or SYNCs stopping, an end
-stop): tests/test_robot_faults.py, and the ``robot-master-*`` kinds of ``benchmarks/fault_matrix.py``.
+bus or in its log), ``report.md``, a recording with exactly the summary's trials, and no process,
+temp folder or temporary file left.  An interrupt keeps 143 and an ``interrupted`` marker.
+
+The edges of the run: every kind once more at one of the positions outside a trial — before the
+first trial, between trials, after the last trial (a position chosen per kind, the three spread
+over the kinds; ``benchmarks/fault_matrix.py`` draws all of them at random) — ends the same way,
+with its ``position`` in the record and the line, no field null that can be known, and after the
+last trial ``completed: true`` (every trial was run and kept).  ``ilcrig robot`` (no host; a
+python-canopen master holding the enabled robot in CSP) ends the same way when one of its processes
+dies: exit code 3, one line ``ilcrig: fault: <process> …``, ``summary.json`` saying which, and no
+process left.  The faults a foreign master causes on the robot (its heartbeat, NMT STOP, its RPDOs
+or SYNCs stopping, an end stop): tests/test_robot_faults.py, and the ``robot-master-*`` kinds of
+``benchmarks/fault_matrix.py``.
 
 Runs one rig at a time (they are timing-sensitive on 2 cores); each waits for the launcher to end.
 Marker ``faultmatrix`` (the normal ``pytest`` command runs it; ``-m "not faultmatrix"`` skips it).
@@ -57,21 +64,26 @@ def check_common(o: Outcome, kept: int) -> dict:
     assert "Traceback" not in o.stderr and "Traceback" not in o.stdout
     assert len(o.lines) == 1 and o.lines[0].startswith("ilcrig: fault: "), o.stderr
     s = o.summary
-    assert s is not None and s["completed"] is False
+    assert s is not None
     assert o.kept == kept, (o.fault, o.lines)
     assert s["trace_sha256"] == sim_digest(kept)  # the kept trials are exactly `ilcrig sim --iterations k`'s
     f = o.fault
     assert f is not None
-    for key in ("kind", "node", "trial", "tick", "detected_by", "latency_ms", "message"):
-        assert key in f, key
-    # one line: what, which node, trial, tick
+    assert s["completed"] is (f["position"] == "after_last_trial")  # then every trial was run and kept
+    for key in ("kind", "node", "trial", "position", "detected_by", "latency_ms", "message"):
+        assert f.get(key) is not None, key  # never null where it can be known
+    assert (f["tick"] is not None) == (f["position"] == "in_trial")  # a tick only in a trial
+    # one line: what, which node, where in the run
     assert f"trial {f['trial']}" in o.lines[0] and f"[{f['kind']}]" in o.lines[0]
+    assert recorded_trials(o.out / "recording.rrd") == list(range(kept)) == s["recording"]["trials"]
+    names = {p.name for p in o.out.rglob("*")}
+    assert not {n for n in names if n.endswith(".tmp") or "reserve" in n}, names
     drives = {e["node"]: e for e in s["safe_state"] if str(e["node"]).startswith("drive")}
     assert sorted(drives) == ["drive1", "drive2", "drive3", "drive4"]
     for e in drives.values():
         assert e["torque"] == "off", e
     report = (o.out / "report.md").read_text()
-    assert "**Fault**" in report and (o.out / "convergence.png").exists()
+    assert "**Fault**" in report and (o.out / "convergence.png").exists() == (kept > 0)  # a plot of the trials kept
     return f
 
 
@@ -102,6 +114,55 @@ def test_injected_fault_ends_the_run_the_one_way(
             assert all("heartbeat-of-node-127-lost" in r for r in reasons), reasons
         if spec.startswith(("kill:drive", "kill:plant", "kill:hub")):
             assert f["process_ended"]["name"] == spec.split(":")[1].split("@")[0]
+    finally:
+        kill_session(o)
+
+
+# (id, spec, kinds, node, detectors, trials kept, positions it may be detected at) — two trials
+EDGE_CASES = [
+    ("kill-drive@before", "kill:drive2@before", {"node_lost"}, "drive2", {"host"}, 0, {"before_first_trial", "in_trial"}),
+    ("kill-plant@between", "kill:plant@0:end", {"node_lost"}, "plant", {"host"}, 1, {"between_trials", "in_trial"}),
+    ("kill-hub@after", "kill:hub@after", {"bus_lost", "bus_silent"}, "hub", {"host"}, 2, {"after_last_trial"}),
+    ("kill-host@between", "kill:host@0:end", {"process_died"}, "host", {"launcher"}, 1, {"between_trials"}),
+    ("stall-drive@after", "stall:drive3@after,for=2", {"node_lost"}, "drive3", {"host"}, 2, {"after_last_trial"}),
+    ("stall-plant@before", "stall:plant@before,for=2", {"node_lost"}, "plant", {"host"}, 0, {"before_first_trial", "in_trial"}),
+    ("stall-hub@between", "stall:hub@0:end,for=2", {"bus_silent"}, "hub", {"host"}, 1, {"between_trials", "in_trial"}),
+    (
+        "stall-host@after",
+        "stall:host@after,for=2",
+        {"host_lost"},
+        "host",
+        {"host", "drive1", "drive2", "drive3", "drive4", "plant"},
+        2,
+        {"after_last_trial"},
+    ),
+    ("emcy@between", "emcy:drive1@0:end,code=0x8611", {"emcy"}, "drive1", {"drive1"}, 1, {"between_trials"}),
+    ("corrupt-fieldbus@before", "corrupt:fieldbus@before", {"frame_error"}, "fieldbus", {"host"}, 0, {"before_first_trial"}),
+    ("diskfull@before", "diskfull@before", {"disk_full"}, "host", {"host"}, 0, {"before_first_trial"}),
+    ("diskfull@in-trial", "diskfull@1:100", {"disk_full"}, "host", {"host"}, 1, {"in_trial"}),
+    ("diskfull@after", "diskfull@after", {"disk_full"}, "host", {"host"}, 2, {"after_last_trial"}),
+]
+
+
+@pytest.mark.parametrize(
+    ("spec", "kinds", "node", "detectors", "kept", "positions"), [c[1:] for c in EDGE_CASES], ids=[c[0] for c in EDGE_CASES]
+)
+def test_a_fault_at_the_edges_of_the_run_ends_it_the_one_way(
+    tmp_path: Path, spec: str, kinds: set[str], node: str, detectors: set[str], kept: int, positions: set[str]
+) -> None:
+    o = run_rig(tmp_path / "run", "--inject", spec)
+    try:
+        f = check_common(o, kept=kept)
+        assert f["kind"] in kinds and f["node"] == node and f["detected_by"] in detectors, f
+        assert f["position"] in positions, f
+        position_words = {
+            "before_first_trial": "before the first trial",
+            "between_trials": f"between trials {f['trial'] - 1} and {f['trial']}",
+            "after_last_trial": "after the last trial (trial 1, kept)",
+            "in_trial": f"trial {f['trial']}, tick {f['tick']}",
+        }
+        assert position_words[f["position"]] in o.lines[0], o.lines[0]
+        assert f["injected"]["spec"] == spec and f["latency_basis"] == "injection"
     finally:
         kill_session(o)
 

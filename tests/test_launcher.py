@@ -271,9 +271,10 @@ def test_success_returns_host_code_and_reaps_everything(tmp_path: Path, piddir: 
     assert err.getvalue().splitlines() == [
         f"ilcrig: fault: the host ended the run with exit code 3; its log: {tmp_path / 'run' / 'logs' / 'host.log'}"
     ]
-    # four real drives met on both buses of the hub and talk (boot-up, heartbeats); the plant is fake
+    # four real drives met on both buses of the hub and talk (boot-up, heartbeats); the plant is fake;
+    # the launcher follows the io channel too (the trial and tick of a process's end)
     fb_clients, io_clients, fb_frames = map(int, (piddir / "hub_stats").read_text().split())
-    assert (fb_clients, io_clients) == (4, 4) and fb_frames >= 4
+    assert (fb_clients, io_clients) == (4, 5) and fb_frames >= 4
     hub_pid = int(re.search(r"processes: hub (\d+), ", out.getvalue()).group(1))  # type: ignore[union-attr]
     assert_all_gone(rl, hub_pid)
     assert [c.name for c in rl.children] == ["plant", "drive1", "drive2", "drive3", "drive4", "host"]
@@ -303,8 +304,8 @@ def test_drive_exiting_early_ends_the_run(tmp_path: Path, piddir: Path, roles: d
     lines = err.getvalue().splitlines()
     assert len(lines) == 1, lines
     assert re.fullmatch(
-        r"ilcrig: fault: drive2 \(pid \d+\) exited with code 1 \[process_died\]: drive2, trial 0, "
-        r"tick unknown; detected by launcher; torque removed, 0 completed trials kept; "
+        r"ilcrig: fault: drive2 \(pid \d+\) exited with code 1 \[process_died\]: drive2, before the first trial "
+        r"\(trial 0 not started\); detected by launcher after \d+ ms; torque removed, 0 completed trials kept; "
         r"its log: .*drive2\.log",
         lines[0],
     ), lines[0]

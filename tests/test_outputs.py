@@ -52,16 +52,25 @@ def test_no_nan_reaches_the_summary(tmp_path: Path, caplog: pytest.LogCaptureFix
 
 
 def test_the_space_reserve(tmp_path: Path) -> None:
-    folder = RunFolder(tmp_path, iterations=10)
-    assert folder.reserve() and (tmp_path / RESERVE_NAME).stat().st_size == reserve_bytes(10)
+    folder = RunFolder(tmp_path, iterations=10, n_ticks=301)
+    assert folder.reserve()
+    # the reserve is two files without a name, held open: nothing in the folder, the space allocated;
+    # its last part (room for one more summary) is kept until the report is written
+    parts = [os.fstat(folder._fd), os.fstat(folder._fd_last)]
+    assert [st.st_nlink for st in parts] == [0, 0] and sum(st.st_size for st in parts) == reserve_bytes(10, 301)
+    assert all(st.st_blocks * 512 >= st.st_size for st in parts) and parts[1].st_size == 32 * 1024 + 10 * 1536
+    assert reserve_bytes(10, 301) == 128 * 1024 + 10 * 1536 + 320 * 1024 + 301 * 1000
+    assert list(tmp_path.iterdir()) == []
     folder.fail_writes_from_trial = 2
     folder.check_write(1)
     with pytest.raises(OSError) as exc:
         folder.check_write(2)
     assert exc.value.errno == errno.ENOSPC
     folder.release()
-    assert not (tmp_path / RESERVE_NAME).exists()
+    assert folder._fd == -1 and folder._fd_last >= 0 and not (tmp_path / RESERVE_NAME).exists()
     folder.check_write(3)  # the reserve's space is what the final results are written into
+    folder.release_last()
+    assert folder._fd_last == -1
     (tmp_path / "f.txt").write_text("x")
     with pytest.raises(ValueError, match="exists and is not a folder"):
         check_out_dir(tmp_path / "f.txt", create=False)

@@ -8,8 +8,12 @@ spoofed EMCY frames are done by the launcher (:mod:`host.rig.inject`), which own
 
 Grammar::
 
-    SPEC  := ACTION ':' TARGET ['@' TRIAL [':' TICK]] (',' KEY '=' VALUE)*
-           | 'diskfull' ['@' TRIAL]
+    SPEC  := ACTION ':' TARGET ['@' WHEN] (',' KEY '=' VALUE)*
+           | 'diskfull' ['@' WHEN]
+    WHEN  := TRIAL [':' TICK]         in trial TRIAL at tick TICK
+           | TRIAL ':end'             after trial TRIAL (between it and the next; after the last)
+           | 'before'                 before the first trial (once the host has started the nodes)
+           | 'after'                  after the last trial (while the host ends the run)
 
 =============================  ===========================================================================
 ``kill:ROLE@T:N``              SIGKILL ``ROLE`` (``host``, ``plant``, ``hub``, ``drive1`` … ``drive4``) when
@@ -24,8 +28,19 @@ Grammar::
                                delay is absorbed by the lockstep)
 ``emcy:NODE@T:N,code=C``       an EMCY frame as if ``NODE`` (``drive1`` … ``drive4``, ``plant``) sent it
                                (code default 0x8611, a following error)
-``diskfull@T``                 the host's writes of the run's outputs fail with ENOSPC from trial T on
+``diskfull@T``                 the host's writes of the run's outputs fail with ENOSPC from trial T's on
+                               (``@T:end`` the same, ``@before`` from the first summary on, ``@after``
+                               from the last trial's; ``@T:N``: the channels' candump logs from tick N
+                               of trial T on, in the trial)
 =============================  ===========================================================================
+
+Where an injection acts (:attr:`FaultSpec.when`): ``tick`` (``@T:N``), ``end`` (``@T:end``),
+``before``, ``after``.  What is injected in a trial happens when the plant sends that tick; after
+trial T, when the run's summary holds trial T (for frame faults: when the plant ends trial T);
+before the first trial, when the host starts the nodes (its first NMT START on the fieldbus).
+Whether a spec fits the experiment — a trial and a tick inside it, io frame faults only in a trial
+(the io channel carries no frame between trials), a role the transport has — is checked before
+anything starts (:func:`check_specs`).
 
 Frame faults (drop, corrupt, duplicate, delay) take ``rate=P`` (probability per eligible frame,
 default 1: the next one), ``seed=K`` (default 0), ``count=C`` (at most C frames, default 1) and
@@ -60,6 +75,7 @@ __all__ = [
     "FaultSpec",
     "FaultSpecError",
     "FrameFaultInjector",
+    "check_specs",
     "parse_spec",
     "parse_specs",
     "write_record",
@@ -92,9 +108,14 @@ class FaultSpecError(IlcrigError, ValueError):
     """An ``--inject`` spec is not valid (one line naming it and the allowed form)."""
 
 
+#: where an injection acts (:attr:`FaultSpec.when`)
+WHEN_TICK, WHEN_END, WHEN_BEFORE, WHEN_AFTER = "tick", "end", "before", "after"
+
+
 @dataclass(frozen=True)
 class FaultSpec:
-    """One parsed injection (see the module docstring)."""
+    """One parsed injection (see the module docstring); ``trial``/``tick`` mean something for
+    ``when`` = ``tick`` (both) and ``end`` (the trial)."""
 
     text: str
     action: str
@@ -102,6 +123,13 @@ class FaultSpec:
     trial: int = 0
     tick: int = 0
     options: dict[str, float] = field(default_factory=dict)
+    when: str = WHEN_TICK
+
+    def resolved(self, iterations: int) -> FaultSpec:
+        """``after`` as ``end`` of the last of ``iterations`` trials (the same moment)."""
+        if self.when != WHEN_AFTER:
+            return self
+        return FaultSpec(self.text, self.action, self.target, iterations - 1, 0, dict(self.options), WHEN_END)
 
     @property
     def rate(self) -> float:
@@ -140,13 +168,15 @@ class FaultSpec:
             "target": self.target,
             "trial": self.trial,
             "tick": self.tick,
+            "when": self.when,
             "options": dict(self.options),
         }
 
 
 _FORM = (
-    "kill|stall:ROLE@TRIAL:TICK[,for=S], drop|corrupt|duplicate|delay:io|fieldbus@TRIAL:TICK"
-    "[,rate=P,seed=K,count=C,id=COBID,ms=D], emcy:NODE@TRIAL:TICK[,code=C] or diskfull@TRIAL"
+    "kill|stall:ROLE@WHEN[,for=S], drop|corrupt|duplicate|delay:io|fieldbus@WHEN"
+    "[,rate=P,seed=K,count=C,id=COBID,ms=D], emcy:NODE@WHEN[,code=C] or diskfull@WHEN, "
+    "WHEN = TRIAL:TICK, TRIAL:end, before or after"
 )
 
 
@@ -177,21 +207,14 @@ def parse_spec(text: str) -> FaultSpec:
         raise FaultSpecError(f"--inject {spec}: unknown action {action!r}; the forms are {_FORM}")
     if action == "diskfull":
         if target:
-            raise FaultSpecError(f"--inject {spec}: diskfull takes no target (diskfull@TRIAL)")
+            raise FaultSpecError(f"--inject {spec}: diskfull takes no target (diskfull@WHEN)")
     elif action in PROCESS_ACTIONS and target not in ROLES:
         raise FaultSpecError(f"--inject {spec}: {action} needs a role: {', '.join(ROLES)}")
     elif action in FRAME_ACTIONS and target not in CHANNELS:
         raise FaultSpecError(f"--inject {spec}: {action} needs a channel: {', '.join(CHANNELS)}")
     elif action == "emcy" and target not in EMCY_NODES:
         raise FaultSpecError(f"--inject {spec}: emcy needs a node: {', '.join(EMCY_NODES)}")
-    trial_text, _, tick_text = where.partition(":")
-    try:
-        trial = int(trial_text) if trial_text.strip() else 0
-        tick = int(tick_text) if tick_text.strip() else 0
-    except ValueError:
-        raise FaultSpecError(f"--inject {spec}: @TRIAL:TICK must be two integers >= 0, e.g. @1:150") from None
-    if trial < 0 or tick < 0:
-        raise FaultSpecError(f"--inject {spec}: trial and tick must be >= 0")
+    when, trial, tick = _parse_when(spec, where.strip().lower(), action)
     options: dict[str, float] = {}
     for opt in opts:
         key, sep, value = opt.partition("=")
@@ -214,12 +237,65 @@ def parse_spec(text: str) -> FaultSpec:
         raise FaultSpecError(f"--inject {spec}: id must be an 11-bit COB-ID (0..0x7FF)")
     if "code" in options and not 0x0001 <= options["code"] <= 0xFFFF:
         raise FaultSpecError(f"--inject {spec}: code must be an EMCY error code 0x0001..0xFFFF")
-    return FaultSpec(spec, action, target, trial, tick, options)
+    return FaultSpec(spec, action, target, trial, tick, options, when)
+
+
+def _parse_when(spec: str, where: str, action: str) -> tuple[str, int, int]:
+    """(when, trial, tick) of ``@WHEN`` (empty: ``0:0``; ``diskfull@T``: ``T:end``)."""
+    if where in (WHEN_BEFORE, WHEN_AFTER):
+        return where, 0, 0
+    trial_text, colon, tick_text = where.partition(":")
+    if tick_text.strip() == WHEN_END:
+        when = WHEN_END
+        tick_text = ""
+    elif action == "diskfull" and not colon:
+        when = WHEN_END  # diskfull@T: from trial T's outputs on
+    else:
+        when = WHEN_TICK
+    try:
+        trial = int(trial_text) if trial_text.strip() else 0
+        tick = int(tick_text) if tick_text.strip() else 0
+    except ValueError:
+        raise FaultSpecError(
+            f"--inject {spec}: @WHEN must be TRIAL:TICK (two integers >= 0, e.g. @1:150), TRIAL:end, before or after"
+        ) from None
+    if trial < 0 or tick < 0:
+        raise FaultSpecError(f"--inject {spec}: trial and tick must be >= 0")
+    return when, trial, tick
 
 
 def parse_specs(texts: Sequence[str] | None) -> list[FaultSpec]:
     """Every ``--inject`` spec (see :func:`parse_spec`)."""
     return [parse_spec(t) for t in texts or ()]
+
+
+def check_specs(specs: Sequence[FaultSpec], *, iterations: int, n_ticks: int, hub: bool) -> None:
+    """Refuse an injection that cannot happen in a run of ``iterations`` trials of ``n_ticks``
+    ticks on a transport with (``hub``) or without a hub: a trial or a tick outside it, an io frame
+    fault outside a trial, a frame fault or a hub injection without a hub.
+
+    :raises FaultSpecError: one line naming the spec and what the experiment allows
+    """
+    for sp in specs:
+        if sp.action in FRAME_ACTIONS and not hub:
+            raise FaultSpecError(f"--inject {sp.text}: frame faults are done by the hub: use --bus hub")
+        if sp.target == "hub" and not hub:
+            raise FaultSpecError(f"--inject {sp.text}: this transport has no hub")
+        if sp.when in (WHEN_TICK, WHEN_END) and sp.trial >= iterations:
+            raise FaultSpecError(
+                f"--inject {sp.text}: trial {sp.trial} is beyond the run's {iterations} trial"
+                f"{'s' if iterations != 1 else ''} (0..{iterations - 1})"
+            )
+        if sp.when == WHEN_TICK and sp.tick >= n_ticks:
+            raise FaultSpecError(
+                f"--inject {sp.text}: tick {sp.tick} is beyond a trial of {n_ticks} ticks (0..{n_ticks - 1}); "
+                f"after the trial is @{sp.trial}:end"
+            )
+        if sp.action in FRAME_ACTIONS and sp.target == "io" and sp.when != WHEN_TICK:
+            raise FaultSpecError(
+                f"--inject {sp.text}: the io channel carries frames only during a trial: give @TRIAL:TICK "
+                "(or a fieldbus frame fault)"
+            )
 
 
 def write_record(path: str | Path | None, record: dict[str, Any]) -> dict[str, Any]:
@@ -266,21 +342,33 @@ class FrameFaultInjector:
         *,
         io_bus: str = "io",
         fieldbus_bus: str = "fieldbus",
+        iterations: int | None = None,
     ) -> None:
-        self.armed = [_Armed(s) for s in specs if s.action in FRAME_ACTIONS]
+        self.armed = [
+            _Armed(s.resolved(iterations) if iterations is not None else s)
+            for s in specs
+            if s.action in FRAME_ACTIONS and (s.when != WHEN_AFTER or iterations is not None)
+        ]
         self.log_path = log_path
         self.buses = {io_bus: "io", fieldbus_bus: "fieldbus"}
         self.follower = io_frames.TrialTickFollower()
         self.injected: list[dict[str, Any]] = []
+        #: the host has started the nodes (an NMT START seen on the fieldbus): ``@before`` from now on
+        self.started = False
 
     @classmethod
     def from_json(cls, text: str) -> FrameFaultInjector:
-        """From the hub's ``--inject`` argument: ``{"specs": [...], "log": path}``."""
+        """From the hub's ``--inject`` argument: ``{"specs": [...], "log": path, "iterations": K}``
+        (the run's trials, for ``@after``)."""
         cfg = json.loads(text)
-        return cls(parse_specs(cfg.get("specs", [])), cfg.get("log"))
+        return cls(parse_specs(cfg.get("specs", [])), cfg.get("log"), iterations=cfg.get("iterations"))
 
     def _reached(self, spec: FaultSpec, tick: int | None) -> bool:
         f = self.follower
+        if spec.when == WHEN_BEFORE:
+            return self.started
+        if spec.when == WHEN_END:
+            return f.trial > spec.trial or (f.trial == spec.trial and not f.in_trial)
         if f.trial > spec.trial:
             return True
         return f.trial == spec.trial and tick is not None and tick >= spec.tick
@@ -299,6 +387,8 @@ class FrameFaultInjector:
         if channel is None or is_error:
             return [(0.0, record)]
         tick = self.follower.on_frame(can_id, data) if channel == "io" else None
+        if channel == "fieldbus" and can_id == 0 and data[:1] == b"\x01":
+            self.started = True  # NMT START (command specifier 1)
         for armed in self.armed:
             spec = armed.spec
             if spec.target != channel or armed.hits >= spec.count:

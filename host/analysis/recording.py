@@ -31,16 +31,35 @@ Layout (entity paths; timelines ``trial_time`` = t_n = n·Ts as a duration, ``it
 
 The recording grows trial by trial: :meth:`RunRecorder.log_trial` sends the trial as a few
 multi-entity Arrow record batches (``send_record_batch``: one column per entity, split by Rerun
-into one chunk per entity, the same chunks ``send_columns`` makes) and flushes the file, so a
-killed or interrupted run keeps every completed trial (the file then lacks only Rerun's footer
-index, which readers do without). :meth:`RunRecorder.close` finishes the file (footer).  Nothing
-is logged per sample.  Before a trial is written its size is checked against the free space of
-the filesystem (the previous trial's growth, ×1.5): a full disk is one
-:class:`host.experiment.outputs.DiskFullError` before anything is half written.
+into one chunk per entity, the same chunks ``send_columns`` makes).  Nothing is logged per sample.
+
+Durability: the recording survives whatever the summary survives
+    Rerun's stream goes to a :class:`rerun.BinaryStream`, not to a file sink: after each trial the
+    encoded bytes — one complete Rerun stream (header, the trial's messages, end message, footer
+    index and its 32-byte trailer) — are appended to ``recording.rrd`` by :class:`SegmentFile`, which
+    owns every byte of the file.  The file is always a sequence of such segments whose last trailer
+    is held back (written in front of the next segment): without a trailer at its end Rerun's
+    readers (``RrdReader(...).stream()``, ``rerun rrd print``, the viewer) scan the segments one
+    after the other, while a trailer at the end would make them trust that one segment's index.
+    An append writes the new segment behind a 32-byte gap, then the previous trailer into the
+    gap, then fsyncs: a write cut short by a kill leaves either the gap (readers stop cleanly at
+    the last complete trial) or a partial last segment (readers drop it); a failing write (a full
+    disk) is cut back at once and the trial's bytes are kept to be written again (after the run
+    folder's reserve is given back).  :meth:`RunRecorder.committed` says how many bytes hold
+    complete trials (the summary keeps it as ``summary["recording"]``), and :func:`cut_back` cuts a
+    file back to that length — what a process that outlives a killed host does, so the file holds
+    exactly the trials of the summary.  After a run that ended without a write failure,
+    :meth:`RunRecorder.close` joins the segments into one stream with Rerun's footer index
+    (``rerun rrd``-style: a temporary file renamed over the recording), which readers open without
+    scanning; a recording that was not joined (a killed or faulted run) is read by a scan (``RrdReader``
+    warns that it has no footer).  Before a trial is written its size is checked against the
+    free space of the filesystem (the previous trial's growth, ×1.5): a full disk is one
+    :class:`host.experiment.outputs.DiskFullError` before the disk is filled up.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import logging
@@ -60,7 +79,16 @@ from host.planning.trajectory import JointReference
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["RunRecorder", "RecordingError", "view_run", "viewer_command", "SERIES", "N_JOINTS"]
+__all__ = [
+    "RunRecorder",
+    "RecordingError",
+    "SegmentFile",
+    "cut_back",
+    "view_run",
+    "viewer_command",
+    "SERIES",
+    "N_JOINTS",
+]
 
 N_JOINTS = 4
 #: per-joint time-series quantities (entity name, unit)
@@ -78,8 +106,103 @@ _COLOR_LAST = (30, 144, 255, 255)
 _REFERENCE_GREY = (150, 150, 150, 255)
 
 
+#: the fixed-size trailer at the end of every Rerun stream (footer offset and length, CRC, magic,
+#: version) and its magic: rerun 0.41's RRD layout
+TRAILER_BYTES = 32
+FOOTER_MAGIC = b"RRF2FOOT"
+STREAM_MAGIC = b"RRF2"
+
+
 class RecordingError(ValueError):
     """Bad input to the recorder (shapes that do not match the reference)."""
+
+
+class SegmentFile:
+    """``recording.rrd`` as complete Rerun streams one after the other, the last one's trailer
+    held back (see the module docstring: durability).
+
+    :param path: the file (created, or emptied)
+    :ivar committed: bytes of the file that hold complete segments (the last without its trailer)
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o644)
+        self.committed = 0
+        self._trailer = b""
+
+    @staticmethod
+    def split(segment: bytes) -> tuple[bytes, bytes]:
+        """A complete Rerun stream as (everything but its trailer, its trailer).
+
+        :raises RecordingError: not the layout of rerun 0.41 (header magic, trailer magic)
+        """
+        if (
+            len(segment) < len(STREAM_MAGIC) + TRAILER_BYTES
+            or not segment.startswith(STREAM_MAGIC)
+            or segment[-12:-4] != FOOTER_MAGIC
+        ):
+            raise RecordingError("Rerun's encoder did not return a complete stream (an unknown RRD layout?)")
+        return segment[:-TRAILER_BYTES], segment[-TRAILER_BYTES:]
+
+    def append(self, segment: bytes) -> None:
+        """Append one complete stream: its body behind a gap for the held-back trailer, then that
+        trailer, fsync. On failure the file is cut back to :attr:`committed` and the error raised.
+
+        :raises OSError: the write failed (nothing of the segment stays in the file)
+        """
+        body, trailer = self.split(segment)
+        start = self.committed
+        end = start + len(self._trailer) + len(body)
+        try:
+            _pwrite_all(self.fd, body, start + len(self._trailer))
+            if self._trailer:
+                _pwrite_all(self.fd, self._trailer, start)
+            os.ftruncate(self.fd, end)  # an earlier failed attempt may have left more behind
+            os.fsync(self.fd)
+        except OSError:
+            try:
+                os.ftruncate(self.fd, start)
+            except OSError as err:  # pragma: no cover - a truncation frees space, it does not need it
+                logger.error("recording %s: cannot cut back to %d bytes: %s", self.path, start, err)
+            raise
+        self.committed, self._trailer = end, trailer
+
+    def close(self) -> None:
+        """Close the file (its last trailer stays held back; idempotent)."""
+        if self.fd >= 0:
+            os.close(self.fd)
+            self.fd = -1
+
+
+def _pwrite_all(fd: int, data: bytes, offset: int) -> None:
+    view = memoryview(data)
+    while view:
+        n = os.pwrite(fd, view, offset)
+        view, offset = view[n:], offset + n
+
+
+def cut_back(path: str | Path, committed_bytes: int) -> bool:
+    """Cut a recording back to ``committed_bytes`` (``summary["recording"]["bytes"]``) when it is
+    longer and still a sequence of segments (a joined recording, which ends with Rerun's trailer,
+    is left as it is). Returns whether it was cut. Never raises (a failure is logged)."""
+    p = Path(path)
+    try:
+        with open(p, "r+b") as fh:
+            size = fh.seek(0, os.SEEK_END)
+            if size <= committed_bytes or committed_bytes < 0:
+                return False
+            fh.seek(size - 12)
+            if fh.read(8) == FOOTER_MAGIC:
+                return False  # joined into one stream at the end of the run
+            fh.truncate(committed_bytes)
+            fh.flush()
+            os.fsync(fh.fileno())
+    except OSError as err:
+        logger.warning("cannot cut the recording %s back to %d bytes: %s", p, committed_bytes, err)
+        return False
+    logger.info("recording %s cut back from %d to %d bytes (the summary's trials)", p, size, committed_bytes)
+    return True
 
 
 def _rgba_u32(c: Sequence[int]) -> int:
@@ -198,16 +321,48 @@ class _Batch:
         self.arrays.clear()
 
 
+class _Tee:
+    """Two recording streams as one: the file's (its binary stream taken already) and the live
+    view's; ``log``, ``send_record_batch``, ``send_blueprint``, ``flush`` and ``disconnect`` go to both."""
+
+    def __init__(self, file_rec: Any, live_rec: Any) -> None:
+        self.file_rec, self.live_rec = file_rec, live_rec
+
+    def _both(self, name: str, *args: Any, **kwargs: Any) -> None:
+        getattr(self.file_rec, name)(*args, **kwargs)
+        try:
+            getattr(self.live_rec, name)(*args, **kwargs)
+        except Exception:  # noqa: BLE001 - the live view must never break the recording
+            logger.debug("live view: %s failed", name, exc_info=True)
+
+    def log(self, *args: Any, **kwargs: Any) -> None:
+        self._both("log", *args, **kwargs)
+
+    def send_record_batch(self, *args: Any, **kwargs: Any) -> None:
+        self._both("send_record_batch", *args, **kwargs)
+
+    def send_blueprint(self, *args: Any, **kwargs: Any) -> None:
+        self._both("send_blueprint", *args, **kwargs)
+
+    def flush(self) -> None:
+        self._both("flush")
+
+    def disconnect(self) -> None:
+        self._both("disconnect")
+
+
 class RunRecorder:
     """Writes ``recording.rrd`` of one run, trial by trial; implements
     :class:`host.experiment.trials.TrialRecorder`.
 
     :meth:`log_trial` writes the trial (a few Arrow record batches: Rerun's cost is per entity and
-    per call, not per value) and flushes the file; :meth:`close` finishes it.  The stream and its
-    file (with the default blueprint) are created by the constructor, so a bad path fails before
-    the experiment starts.  :meth:`log_trial` raises :class:`host.experiment.outputs.OutputError`
-    when the trial cannot be written (a full disk): the experiment makes that a fault;
-    :meth:`close` never raises (a failure is logged and kept in :attr:`error`).
+    per call, not per value) and appends it to the file (module docstring: durability);
+    :meth:`close` finishes it.  The stream and its file (with the default blueprint) are created
+    by the constructor, so a bad path fails before the experiment starts.  :meth:`log_trial`
+    raises :class:`host.experiment.outputs.OutputError` when the trial cannot be written (a full
+    disk): the experiment makes that a fault, and a later :meth:`log_trial` of the same trial
+    writes its kept bytes (a trial already in the file is not written twice); :meth:`close` never
+    raises (a failure is logged and kept in :attr:`error`).
 
     :param path: the ``.rrd`` file to write (its folder is created).
     :param application_id: Rerun application id.
@@ -216,6 +371,8 @@ class RunRecorder:
         sets the colour scale).
     :param decimate_3d: 3D frames every this many samples (≥ 1).
     :param folder: the run folder's write-failure switch (fault injection), if any.
+    :param join: at a :meth:`close` after no failure, join the segments into one stream with
+        Rerun's footer index.
     :param live: also stream the recording live (``--view``: :class:`host.analysis.live_view.LiveView`).
     """
 
@@ -231,6 +388,7 @@ class RunRecorder:
         config_summary: Mapping[str, Any] | None = None,
         decimate_3d: int = 5,
         folder: RunFolder | None = None,
+        join: bool = True,
         live: Any = None,
     ) -> None:
         import pyarrow as pa
@@ -253,24 +411,56 @@ class RunRecorder:
         self.config_summary: dict[str, Any] = dict(config_summary or {})
         self.decimate_3d = int(decimate_3d)
         self.folder = folder
+        self.join = join
         self.error: str | None = None
         self._closed = False
         self._failed = False
         self._ref: JointReference | None = None
         self._k: list[int] = []
         self._trial_bytes = self.FIRST_TRIAL_BYTES
+        self._joined = False
+        self._joined_bytes = 0
         n_planned = self.config_summary.get("iterations")
         self._n_expected = int(n_planned) if isinstance(n_planned, int) else None
-        self._rec = rr.RecordingStream(application_id, recording_id=self.recording_id)
-        if live is None:
-            self._rec.save(str(self.path), default_blueprint=default_blueprint())
-        else:
-            self._rec.set_sinks(rr.FileSink(str(self.path)), live.sink(), default_blueprint=default_blueprint())
+        self._unwritten: tuple[int, bytes] | None = None  # a trial encoded, its write failed
+        self._rec: Any = rr.RecordingStream(application_id, recording_id=self.recording_id)
+        self._stream = self._rec.binary_stream()  # type: ignore[misc]  # rerun's stub types it as a free function
+        self._file = SegmentFile(self.path)
+        self._rec.send_blueprint(default_blueprint(), make_active=False, make_default=True)
+        try:
+            self._append(self._encoded())
+        except OSError as err:
+            self._file.close()
+            raise output_error(f"the recording {self.path}", err) from None
+        if live is not None:
+            # the live stream is a second recording stream with the same ids, on the live server's
+            # sink: what is logged goes to both (the file's stream is a binary stream, which no
+            # other sink can join)
+            live_rec = rr.RecordingStream(application_id, recording_id=self.recording_id)
+            live_rec.set_sinks(live.sink(), default_blueprint=default_blueprint())
+            self._rec = _Tee(self._rec, live_rec)
 
     @property
     def trials(self) -> int:
         """Number of trials written so far."""
         return len(self._k)
+
+    def committed(self) -> dict[str, Any]:
+        """What the file holds durably: ``bytes`` (its length with complete segments; what
+        :func:`cut_back` cuts a longer file back to), ``trials`` (their indices) and whether it was
+        ``joined`` into one stream."""
+        size = self._joined_bytes if self._joined else self._file.committed
+        return {"file": self.path.name, "bytes": size, "trials": list(self._k), "joined": self._joined}
+
+    def _encoded(self) -> bytes:
+        """Everything logged since the last call, as one complete Rerun stream."""
+        self._rec.flush()
+        data = self._stream.read(flush=False)
+        return bytes(data or b"")
+
+    def _append(self, data: bytes) -> None:
+        if data:
+            self._file.append(data)
 
     # ---- TrialRecorder ------------------------------------------------------------------------
 
@@ -300,25 +490,33 @@ class RunRecorder:
         tau_fb = np.stack([np.asarray(tr.tau_fb_nm, dtype=np.float64) for tr in traces], axis=1)
         if q_meas.shape != (n, N_JOINTS) or tau_fb.shape != (n, N_JOINTS):
             raise RecordingError(f"trial {k}: traces have {q_meas.shape[0]} samples, the reference {n}")
-        if self._failed:
-            return  # the file is broken already (reported once)
-        self._check_space(k)
-        size0 = self._size()
+        if self._failed or int(k) in self._k:
+            return  # the file is broken already (reported once), or the trial is in it
+        if self.folder is None or not self.folder.released:
+            self._check_space(k)  # after the reserve is given back: the final outputs are written into it
+        if self._unwritten is not None and self._unwritten[0] == int(k):
+            data = self._unwritten[1]  # encoded before, its write failed
+        else:
+            try:
+                first = self._ref is None
+                self._write_trial(ref, int(k), q_meas, error_rad, u, tau_fb, metrics, first)
+                self._ref = ref
+                data = self._encoded()
+            except OutputError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - rerun's own errors: one output fault
+                self._failed = True
+                self.error = f"{type(exc).__name__}: {exc}"
+                raise OutputError(f"cannot write the recording {self.path}: {self.error}") from exc
         try:
-            first = self._ref is None
-            self._write_trial(ref, int(k), q_meas, error_rad, u, tau_fb, metrics, first)
-            self._ref = ref  # after the write: an interrupted first trial is written in full next time
-            self._k.append(int(k))
-            self._rec.flush()
-        except OutputError:
-            raise
-        except Exception as exc:  # noqa: BLE001 - rerun's own errors: one output fault
-            self._failed = True
-            self.error = f"{type(exc).__name__}: {exc}"
-            raise OutputError(f"cannot write the recording {self.path}: {self.error}") from exc
-        grown = self._size() - size0
-        if grown > 0:
-            self._trial_bytes = grown
+            self._append(data)
+        except OSError as err:
+            self._unwritten = (int(k), data)
+            raise output_error(f"trial {k} of the recording {self.path}", err) from None
+        self._unwritten = None
+        self._k.append(int(k))
+        if len(data) > 0:
+            self._trial_bytes = len(data)
 
     def close(self) -> None:
         """Update ``/run_info``, flush and finish the file (footer).  Idempotent; never raises (a
@@ -326,6 +524,7 @@ class RunRecorder:
         if self._closed:
             return
         self._closed = True
+        clean = not self._failed and self._unwritten is None
         try:
             if not self._failed:
                 static = _Batch(self._pa)
@@ -334,7 +533,9 @@ class RunRecorder:
                 else:
                     self._add_run_info(static)
                     static.send(self._rec)
+                self._append(self._encoded())
         except Exception as exc:  # noqa: BLE001 - the recording must never break the experiment
+            clean = False
             self.error = self.error or f"{type(exc).__name__}: {exc}"
             logger.error("recording %s: writing failed: %s", self.path, self.error)
         finally:
@@ -344,7 +545,44 @@ class RunRecorder:
             except Exception as exc:  # noqa: BLE001
                 self.error = self.error or f"{type(exc).__name__}: {exc}"
                 logger.error("recording %s: finalising failed: %s", self.path, exc)
+            self._file.close()
+        if clean and self.join:
+            self._join()
         logger.debug("recording %s: %d trials", self.path, self.trials)
+
+    def _join(self) -> None:
+        """The segments as one Rerun stream with its footer index: written by Rerun's own file
+        sink to a temporary file that replaces the recording once it is whole (on any failure the
+        segments stay, which readers scan). Needs free space for a second copy."""
+        import warnings
+
+        from rerun.chunk import RrdReader
+
+        tmp = self.path.with_name(self.path.name + ".tmp")
+        size = self._file.committed
+        try:
+            if shutil.disk_usage(self.path.parent).free < 2 * size + self.FIRST_TRIAL_BYTES:
+                logger.info("recording %s: not joined (too little free space); its segments stay", self.path)
+                return
+            rec = self._rr.RecordingStream(self.application_id, recording_id=self.recording_id)
+            rec.save(str(tmp), default_blueprint=default_blueprint())
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # the segments have no footer: read by a scan
+                rec.send_chunks(RrdReader(self.path).stream())
+            rec.flush()
+            rec.disconnect()
+            with open(tmp, "rb+") as fh:
+                end = fh.seek(0, os.SEEK_END)
+                fh.seek(max(0, end - 12))
+                if fh.read(8) != FOOTER_MAGIC:
+                    raise OSError(f"the joined recording is incomplete ({end} bytes)")
+                os.fsync(fh.fileno())
+            os.replace(tmp, self.path)
+            self._joined, self._joined_bytes = True, end
+        except Exception as exc:  # noqa: BLE001 - the segments stay: a valid recording
+            logger.info("recording %s: not joined (%s); its segments stay", self.path, exc)
+            with contextlib.suppress(OSError):
+                tmp.unlink()
 
     def __enter__(self) -> RunRecorder:
         return self
@@ -353,12 +591,6 @@ class RunRecorder:
         self.close()
 
     # ---- writing ------------------------------------------------------------------------------
-
-    def _size(self) -> int:
-        try:
-            return self.path.stat().st_size
-        except OSError:
-            return 0
 
     def _check_space(self, k: int) -> None:
         """Refuse to start writing trial ``k`` without room for it (:class:`DiskFullError`)."""

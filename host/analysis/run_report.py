@@ -16,6 +16,7 @@ import numpy as np
 
 from host.analysis.figures import figure, save_png
 from host.analysis.markdown import JOINTS, fmt, md_table
+from host.experiment.faults import FaultRecord
 
 __all__ = ["write_run_report"]
 
@@ -58,9 +59,7 @@ def write_run_report(run_dir: str | Path, summary: Mapping[str, Any]) -> Path:
     for f in summary.get("faults", []):
         lat = f.get("latency_ms")
         lines += [
-            f"**Fault** ({f.get('kind', '?')}) at trial {f.get('trial')}, tick "
-            f"{f.get('tick') if f.get('tick') is not None else '?'}"
-            f"{', ' + str(f.get('node')) if f.get('node') else ''}: {f.get('message')} — detected by "
+            f"**Fault** ({f.get('kind', '?')}) at {FaultRecord.from_dict(dict(f)).where()}: {f.get('message')} — detected by "
             f"{f.get('detected_by', '?')}{f' after {lat:.0f} ms' if isinstance(lat, int | float) else ''}.",
             "",
         ]

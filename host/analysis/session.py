@@ -5,8 +5,9 @@ folder's space reserve (:class:`host.experiment.outputs.RunFolder`), the Rerun r
 (:mod:`host.analysis.recording`, written trial by trial), one console row per trial,
 every trial's signals as numpy files (:mod:`host.experiment.arrays`), ``report.md`` with its
 convergence plot after the last completed trial — also after a fault or an
-interrupt (:mod:`host.analysis.run_report`) — and the closing line with its exit code: one line
-``ilcrig: fault: …`` and 3 after a fault, 130 / 143 after SIGINT / SIGTERM.
+interrupt (:mod:`host.analysis.run_report`); a report that cannot be written (a full disk) is the
+run's fault when it has none (``summary.json`` then says so) — and the closing line with its exit
+code: one line ``ilcrig: fault: …`` and 3 after a fault, 130 / 143 after SIGINT / SIGTERM.
 """
 
 from __future__ import annotations
@@ -22,13 +23,14 @@ from host.analysis.run_report import write_run_report
 from host.experiment.arrays import Recorders, TrialArrays
 from host.experiment.console import EXIT_FAULT, EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATED, print_header, print_row
 from host.experiment.faults import fault_line
-from host.experiment.outputs import RunFolder
+from host.experiment.outputs import OutputError, RunFolder, output_error
 from host.experiment.plan import Plan
-from host.experiment.trials import Bench, ExperimentResult, run_experiment
+from host.experiment.summary import write_summary
+from host.experiment.trials import Bench, ExperimentResult, record_output_fault, run_experiment
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["run_session", "report_fault"]
+__all__ = ["run_session", "report_fault", "write_report"]
 
 
 def run_session(
@@ -40,12 +42,14 @@ def run_session(
     stream: TextIO,
     fail_writes_from_trial: int | None = None,
     view: bool = False,
+    fail_spec: str | None = None,
 ) -> ExperimentResult:
     """Run ``plan`` on ``bench`` with a recording in ``out`` and a console row per trial; write
     ``report.md`` when at least one trial completed.
 
     :param fail_writes_from_trial: fault injection: the outputs' writes fail with ``ENOSPC`` from
-        this trial on (``--inject diskfull@K``)
+        this trial's on (−1: from the first summary on; ``--inject diskfull@K``)
+    :param fail_spec: the ``--inject`` spec of that injection (for its record)
     :param view: the recording also goes live to a Rerun viewer (:mod:`host.analysis.live_view`)
     """
     live = None
@@ -53,9 +57,10 @@ def run_session(
         from host.analysis.live_view import LiveView
 
         live = LiveView()
-    folder = RunFolder(out, plan.cfg.iterations)
+    folder = RunFolder(out, plan.cfg.iterations, plan.n_ticks)
     folder.reserve()
     folder.fail_writes_from_trial = fail_writes_from_trial
+    folder.fail_spec = fail_spec
     recorder = Recorders(
         RunRecorder(out / "recording.rrd", recording_id=out.name, config_summary=plan.cfg.as_dict(), folder=folder, live=live),
         TrialArrays(out, folder),
@@ -66,12 +71,28 @@ def run_session(
     res = run_experiment(
         plan, bench, out, mode=mode, on_trial=lambda m, role: print_row(stream, m, role), recorder=recorder, folder=folder
     )
+    write_report(out, res, folder)
+    return res
+
+
+def write_report(out: Path, res: ExperimentResult, folder: RunFolder | None = None) -> None:
+    """``report.md`` with its convergence plot (when a trial completed, or the run faulted or was
+    interrupted); one that cannot be written (a full disk) is the run's fault when it has none: the
+    summary says so, written into the last part of the reserve. Gives the reserve back."""
     if res.summary["iterations"] or res.summary["faults"] or res.interrupted:
         try:
             write_run_report(out, res.summary)  # report.md + convergence plot next to the summary
         except OSError as err:
             logger.error("report.md could not be written: %s", err)
-    return res
+            if record_output_fault(res, output_error(str(out / "report.md"), err)) is not None:
+                if folder is not None:
+                    folder.release_last()  # the room kept for this last word
+                try:
+                    write_summary(out, res.summary)
+                except OutputError as exc:
+                    logger.error("the summary could not say so either: %s", exc)
+    if folder is not None:
+        folder.release_last()
 
 
 def report_fault(res: ExperimentResult, summary_path: Path | None = None) -> int:

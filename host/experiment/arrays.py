@@ -12,9 +12,10 @@ This module owns the layout of ``<run>/trials/`` (written by ``ilcrig sim`` and 
 
 :class:`TrialArrays` writes them (a :class:`host.experiment.trials.TrialRecorder`; each file
 written to a temporary name and renamed, so a file is whole or absent); :class:`Recorders` hands a
-trial to several recorders; :func:`load_reference` and :func:`load_trial` read them back.  A trial
-file of N = 501 takes 48 KiB.  A failing write is one :class:`host.experiment.outputs.OutputError`
-(a fault of the run, a full disk included).
+trial to several recorders (and says what the first of them that knows holds durably);
+:func:`load_reference` and :func:`load_trial` read them back.  A trial file of N = 501 takes
+48 KiB.  A failing write is one :class:`host.experiment.outputs.OutputError` (a fault of the run,
+a full disk included).
 """
 
 from __future__ import annotations
@@ -111,6 +112,15 @@ class Recorders:
     ) -> None:
         for rec in self.recorders:
             rec.log_trial(k, ref, traces, u, error_rad, metrics)
+
+    def committed(self) -> dict[str, Any] | None:
+        """What the first recorder that says so holds durably (``committed()``), else None."""
+        for rec in self.recorders:
+            committed = getattr(rec, "committed", None)
+            if committed is not None:
+                state: dict[str, Any] | None = committed()
+                return state
+        return None
 
     def close(self) -> None:
         for rec in self.recorders:

@@ -109,6 +109,13 @@ class ExperimentConfig:
     law_options: dict[str, Any] = field(default_factory=dict)
     plant: PlantScales = field(default_factory=PlantScales)
 
+    @property
+    def n_ticks(self) -> int:
+        """Ticks per trial, N = round(2·cycle_s/ts_s) + 1 (pick → place → pick, the end point
+        included; :func:`host.planning.trajectory.trial_samples`, which also checks that the cycle
+        is a whole number of periods)."""
+        return 2 * max(int(round(self.cycle_s / self.ts_s)), 1) + 1
+
     def as_dict(self) -> dict[str, Any]:
         """The configuration as plain values (``law_options`` only when there are any, ``plant``
         only when a factor differs from 1)."""

@@ -4,8 +4,12 @@ This module owns
 
 * :class:`FaultKind` — the vocabulary of fault kinds (a lost node, a lost or silent bus, a lost,
   late, duplicated or damaged io frame, an EMCY, a full disk …);
-* :class:`FaultRecord` — one ``faults`` entry of ``summary.json``: kind, node, trial, tick, who
-  detected it and the detection latency in ms (with what the latency was measured against);
+* :class:`FaultRecord` — one ``faults`` entry of ``summary.json``: kind, node, where in the run
+  (:class:`Position`: before the first trial, in a trial with its tick, between trials, after the
+  last trial), who detected it and the detection latency in ms (with what the latency was
+  measured against);
+* :func:`position_of` — the position of a fault from what the run had kept when it ended;
+* :func:`node_name` — ``drive1`` … ``drive4``, ``plant``, ``host`` for a CANopen node id;
 * the injection records that ``ilcrig run --inject`` leaves in ``RUN_DIR/logs/injections*.jsonl``
   (one JSON object per line: ``kind``, ``target``, ``trial``, ``tick``, ``t_mono``, ``t_wall``, …) and
   :func:`attach_injection`, which measures a detection against the injection that caused it;
@@ -27,9 +31,23 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
+from bus.cia301.nmt import HOST_NODE_ID
+from bus.objects import DRIVE_NODE_IDS
+from bus.plant_objects import DEFAULT_PLANT_NODE_ID
+
 logger = logging.getLogger(__name__)
 
-__all__ = ["FaultKind", "FaultRecord", "attach_injection", "fault_line", "read_injections", "INJECTION_LOG_GLOB"]
+__all__ = [
+    "FaultKind",
+    "FaultRecord",
+    "Position",
+    "attach_injection",
+    "fault_line",
+    "node_name",
+    "position_of",
+    "read_injections",
+    "INJECTION_LOG_GLOB",
+]
 
 #: where the injectors write their records, relative to the run folder
 INJECTION_LOG_GLOB = "logs/injections*.jsonl"
@@ -55,6 +73,43 @@ class FaultKind(StrEnum):
     TRIAL_FAULT = "trial_fault"  #: anything else that ended a trial
 
 
+def node_name(node_id: int) -> str:
+    """``drive1`` … ``drive4``, ``plant`` (the plant node), ``host`` (127), else ``node N``."""
+    if node_id in DRIVE_NODE_IDS:
+        return f"drive{node_id}"
+    if node_id == DEFAULT_PLANT_NODE_ID:
+        return "plant"
+    if node_id == HOST_NODE_ID:
+        return "host"
+    return f"node {node_id}"
+
+
+class Position(StrEnum):
+    """Where in the run a fault happened (``faults[].position``).
+
+    ``trial`` of the record then is: in a trial, that trial (not kept); before the first trial,
+    0; between trials, the next trial (every earlier one kept); after the last trial, the last
+    trial (kept, like every other). ``tick`` is the tick of that trial in a trial, else null.
+    """
+
+    BEFORE_FIRST_TRIAL = "before_first_trial"  #: while the nodes are brought up and configured
+    IN_TRIAL = "in_trial"  #: from the trial's first tick until its data is in the summary
+    BETWEEN_TRIALS = "between_trials"  #: after a trial is in the summary, before the next one's first tick
+    AFTER_LAST_TRIAL = "after_last_trial"  #: after the last trial is in the summary: shutdown, final outputs
+
+
+def position_of(kept: int, planned: int, in_trial: bool) -> tuple[Position, int]:
+    """The position and the ``trial`` of a fault when ``kept`` of ``planned`` trials are in the
+    summary and a trial is (``in_trial``) or is not running (its ticks, or its data not yet kept)."""
+    if in_trial:
+        return Position.IN_TRIAL, kept
+    if kept <= 0:
+        return Position.BEFORE_FIRST_TRIAL, 0
+    if kept >= planned:
+        return Position.AFTER_LAST_TRIAL, planned - 1
+    return Position.BETWEEN_TRIALS, kept
+
+
 @dataclass
 class FaultRecord:
     """One fault of a run (an entry of ``summary["faults"]``).
@@ -63,8 +118,9 @@ class FaultRecord:
     :ivar message: one line saying what happened
     :ivar node: the node or process it concerns: ``drive1`` … ``drive4``, ``plant``, ``hub``, ``host``
     :ivar node_id: its CANopen node id, if it has one
-    :ivar trial: the trial in progress (0-based; = the number of completed trials)
-    :ivar tick: the tick of that trial, if known
+    :ivar trial: the trial it concerns (0-based; see :class:`Position`)
+    :ivar tick: the tick of that trial in a trial (None outside a trial)
+    :ivar position: a :class:`Position` value (None until the run's fault path placed it)
     :ivar detected_by: who noticed: ``host``, ``plant``, ``drive2``, ``launcher`` …
     :ivar latency_ms: detection latency, ms (None if nothing to measure it against)
     :ivar latency_basis: what the latency was measured from (``injection``, ``process exit``, …)
@@ -76,6 +132,7 @@ class FaultRecord:
     node_id: int | None = None
     trial: int | None = None
     tick: int | None = None
+    position: str | None = None
     detected_by: str = "host"
     latency_ms: float | None = None
     latency_basis: str | None = None
@@ -100,24 +157,37 @@ class FaultRecord:
         return rec
 
     def where(self) -> str:
-        """``drive2 (node 2), trial 1, tick 150`` (the parts that are known)."""
+        """``drive2 (node 2), trial 1, tick 150`` in a trial; ``drive2, between trials 0 and 1
+        (trial 1 not started)``, ``…, before the first trial (trial 0 not started)``, ``…, after
+        the last trial (trial 2, kept)`` outside one (the parts that are known)."""
         parts = []
         if self.node:
             parts.append(
                 self.node
                 + (f" (node {self.node_id})" if self.node_id is not None and not self.node.endswith(str(self.node_id)) else "")
             )
-        parts.append(f"trial {self.trial if self.trial is not None else '?'}")
-        parts.append(f"tick {self.tick}" if self.tick is not None else "tick unknown")
+        trial = self.trial if self.trial is not None else "?"
+        if self.position == Position.BEFORE_FIRST_TRIAL:
+            parts.append(f"before the first trial (trial {trial} not started)")
+        elif self.position == Position.BETWEEN_TRIALS and isinstance(self.trial, int):
+            parts.append(f"between trials {self.trial - 1} and {self.trial} (trial {self.trial} not started)")
+        elif self.position == Position.AFTER_LAST_TRIAL:
+            parts.append(f"after the last trial (trial {trial}, kept)")
+        else:
+            parts.append(f"trial {trial}")
+            parts.append(f"tick {self.tick}" if self.tick is not None else "tick unknown")
         return ", ".join(parts)
 
 
 def fault_line(record: FaultRecord, kept: int, *, summary_path: str | Path | None = None, extra: str = "") -> str:
     """The one terminal line of a faulted run: ``ilcrig: fault: <what>: <node>, trial k, tick n; …``."""
     latency = f" after {record.latency_ms:.0f} ms" if record.latency_ms is not None else ""
+    kept_text = f"{kept} completed trial{'s' if kept != 1 else ''} kept"
+    if record.position == Position.AFTER_LAST_TRIAL:
+        kept_text = f"all {kept} trials kept"
     text = (
         f"ilcrig: fault: {record.message} [{record.kind}]: {record.where()}; detected by {record.detected_by}"
-        f"{latency}; torque removed, {kept} completed trial{'s' if kept != 1 else ''} kept"
+        f"{latency}; torque removed, {kept_text}"
     )
     if extra:
         text += f"; {extra}"

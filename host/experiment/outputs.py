@@ -3,16 +3,25 @@
 This module owns
 
 * :func:`check_out_dir` — ``--out`` refused before anything starts (one line naming the option):
-  a path that exists and is not a folder, a folder that cannot be created or written, a filesystem
-  without room for the final results;
-* :class:`RunFolder` — the space reserve: a ballast file (``.ilcrig-reserve``,
-  :func:`reserve_bytes` for the planned trials) taken when a run starts and given back when the
-  disk is full (or at the end), so that ``summary.json`` with the fault and ``report.md`` can still
-  be written after ``ENOSPC``;
+  an empty path, a path that exists and is not a folder, a folder that cannot be created or
+  written, a filesystem without room for the final results;
+* :class:`RunFolder` — the space reserve: room for the final results (:func:`reserve_bytes` for the
+  planned trials and ticks: the final summary and report, and one trial's recording and arrays)
+  taken when a run starts and given back at the end — before the final outputs are written, so
+  that ``summary.json`` with the fault, the last trial's recording and ``report.md`` can still be
+  written after ``ENOSPC``; a small part of it (:meth:`RunFolder.release_last`, room for the
+  summary once more) is kept until the report is written, so a disk filled by someone else even
+  then still lets the summary say so.  The reserve is made of files without a name (``O_TMPFILE``;
+  where the filesystem has none, a file unlinked right after it is made) whose space the process
+  holds through open descriptors: it never outlives the process, whatever ends it (SIGKILL
+  included);
+* :func:`remove_leftovers` — what a run that was killed may leave in its folder (temporary files of
+  atomic writes, trial arrays the summary does not hold), removed by whoever outlives it;
 * :class:`OutputError` / :class:`DiskFullError` — a failing write of the run's outputs as one
   fault (:func:`output_error`), and :func:`is_disk_full`;
 * a test and fault-injection switch: :attr:`RunFolder.fail_writes_from_trial` makes the writes of
-  the outputs fail with ``ENOSPC`` from that trial on (``--inject diskfull@K``).
+  the outputs fail with ``ENOSPC`` from that trial's outputs on (``--inject diskfull@K``; −1: from
+  the summary written before the first trial on, ``diskfull@before``).
 """
 
 from __future__ import annotations
@@ -38,16 +47,35 @@ __all__ = [
     "check_out_dir",
     "is_disk_full",
     "output_error",
+    "remove_leftovers",
     "reserve_bytes",
     "RESERVE_NAME",
 ]
 
-#: the ballast file's name inside the run folder
+#: the reserve's name while it is made, where the filesystem cannot make a file without a name
 RESERVE_NAME = ".ilcrig-reserve"
 #: reserve for the final summary, report.md and convergence.png, bytes …
 RESERVE_BASE_BYTES = 128 * 1024
-#: … plus this much per planned trial (a trial's summary entry and report row)
+#: … plus this much per planned trial (a trial's summary entry and report row) …
 RESERVE_PER_TRIAL_BYTES = 1536
+#: … plus one trial's outputs (written again after a full disk): the first trial's recording
+#: segment (the 3D scene with it: 240 KB + 530 B per tick measured with rerun 0.41), its arrays and
+#: the reference (200 B per tick), with a margin of 1.25
+RESERVE_TRIAL_BASE_BYTES = 320 * 1024
+RESERVE_PER_TICK_BYTES = 1000
+#: the part of the reserve kept for a last summary write (after a failing report): the summary
+#: before the trials and one entry per trial
+RESERVE_LAST_WORD_BASE_BYTES = 32 * 1024
+#: temporary files of the run's atomic writes (removed by :func:`remove_leftovers`)
+LEFTOVER_GLOBS = (
+    "summary.json.tmp",
+    "recording.rrd.tmp",
+    "report.md.tmp",
+    "convergence.tmp.png",
+    "trials/*.tmp",
+    RESERVE_NAME,
+    ".ilcrig-write-test",
+)
 
 _DISK_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
 
@@ -80,19 +108,26 @@ def output_error(what: str, err: OSError) -> OutputError:
     return OutputError(f"cannot write {what}: {err.strerror or err}")
 
 
-def reserve_bytes(iterations: int) -> int:
-    """The space kept back for the final results of a run of ``iterations`` trials, bytes."""
-    return RESERVE_BASE_BYTES + RESERVE_PER_TRIAL_BYTES * max(int(iterations), 0)
+def reserve_bytes(iterations: int, n_ticks: int = 0) -> int:
+    """The space kept back for the final results of a run of ``iterations`` trials of ``n_ticks``
+    ticks, bytes."""
+    trial = RESERVE_TRIAL_BASE_BYTES + RESERVE_PER_TICK_BYTES * max(int(n_ticks), 0) if n_ticks > 0 else 0
+    return RESERVE_BASE_BYTES + RESERVE_PER_TRIAL_BYTES * max(int(iterations), 0) + trial
 
 
-def check_out_dir(path: str | Path, *, option: str = "--out", iterations: int = 0, create: bool = True) -> Path:
+def check_out_dir(
+    path: str | Path, *, option: str = "--out", iterations: int | None = None, n_ticks: int = 0, create: bool = True
+) -> Path:
     """Refuse an unusable run folder before anything starts; create it if ``create``.
 
     Without ``create`` nothing is made: a missing folder is checked through its nearest existing
-    parent (it must be a writable folder).
+    parent (it must be a writable folder).  The free space is checked against the reserve of
+    ``iterations`` trials of ``n_ticks`` ticks (None: not checked yet, the experiment is not known).
 
     :raises OutFolderError: one line naming ``option`` and what is wrong.
     """
+    if str(path).strip() == "":
+        raise OutFolderError(f"{option} {str(path)!r}: an empty path (give the run folder)")
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise OutFolderError(f"{option} {p}: exists and is not a folder (give a new or an existing folder)")
@@ -104,7 +139,8 @@ def check_out_dir(path: str | Path, *, option: str = "--out", iterations: int = 
             raise OutFolderError(f"{option} {p}: {parent} is not a folder")
         if not os.access(parent, os.W_OK | os.X_OK):
             raise OutFolderError(f"{option} {p}: cannot create the run folder: {parent} is not writable")
-        _check_space(parent, p, option, iterations)
+        if iterations is not None:
+            _check_space(parent, p, option, iterations, n_ticks)
         return p
     try:
         p.mkdir(parents=True, exist_ok=True)
@@ -119,21 +155,22 @@ def check_out_dir(path: str | Path, *, option: str = "--out", iterations: int = 
     finally:
         with contextlib.suppress(OSError):
             probe.unlink()
-    _check_space(p, p, option, iterations)
+    if iterations is not None:
+        _check_space(p, p, option, iterations, n_ticks)
     return p
 
 
-def _check_space(where: Path, p: Path, option: str, iterations: int) -> None:
-    need = reserve_bytes(iterations)
+def _check_space(where: Path, p: Path, option: str, iterations: int, n_ticks: int) -> None:
+    need = reserve_bytes(iterations, n_ticks)
     try:
         free = shutil.disk_usage(where).free
     except OSError:
         return
-    existing = (p / RESERVE_NAME).stat().st_size if (p / RESERVE_NAME).is_file() else 0
-    if free + existing < need:
+    if free < need:
+        ticks = f" of {n_ticks} ticks" if n_ticks > 0 else ""
         raise OutFolderError(
             f"{option} {p}: only {free // 1024} KiB free on its filesystem; a run of {iterations} "
-            f"trials needs at least {need // 1024} KiB for its final results"
+            f"trial{'s' if iterations != 1 else ''}{ticks} needs at least {need // 1024} KiB for its final results"
         )
 
 
@@ -142,52 +179,96 @@ class RunFolder:
 
     :param path: the run folder (exists)
     :param iterations: planned trials (sizes the reserve)
+    :param n_ticks: ticks per trial (sizes the reserve)
     """
 
-    def __init__(self, path: str | Path, iterations: int) -> None:
+    def __init__(self, path: str | Path, iterations: int, n_ticks: int = 0) -> None:
         self.path = Path(path)
-        self.size = reserve_bytes(iterations)
+        self.size = reserve_bytes(iterations, n_ticks)
+        #: of it, kept until :meth:`release_last` (room for one more summary write), bytes
+        self.last_word = min(self.size // 2, RESERVE_LAST_WORD_BASE_BYTES + RESERVE_PER_TRIAL_BYTES * max(int(iterations), 0))
         self.reserved = False
         self.released = False
-        #: fault injection / tests: writes of the outputs fail with ENOSPC from this trial on, until
-        #: the reserve is given back (the space the final results are written into)
+        self._fd = -1
+        self._fd_last = -1
+        #: fault injection / tests: writes of the outputs fail with ENOSPC from this trial's on (−1:
+        #: from the summary before the first trial), until the reserve is given back (the space the
+        #: final results are written into); :attr:`fail_spec`: the ``--inject`` spec that asked for it
         self.fail_writes_from_trial: int | None = None
+        self.fail_spec: str | None = None
         self._injected = False
 
     @property
     def reserve_path(self) -> Path:
+        """The name the reserve has for a moment where no file without a name can be made."""
         return self.path / RESERVE_NAME
 
-    def reserve(self) -> bool:
-        """Take the reserve (a ballast file of :attr:`size` bytes, really allocated). Returns
-        whether it could be taken (a full disk leaves none: logged)."""
+    def _open_nameless(self) -> int:
+        """A new file without a name in the run folder (``O_TMPFILE``), else one unlinked at once."""
         try:
-            with open(self.reserve_path, "wb") as fh:
-                try:
-                    os.posix_fallocate(fh.fileno(), 0, self.size)
-                except (AttributeError, OSError) as err:
-                    if is_disk_full(err):
-                        raise
-                    fh.write(b"\0" * self.size)  # filesystems without fallocate
-                fh.flush()
-                os.fsync(fh.fileno())
+            return os.open(self.path, os.O_TMPFILE | os.O_RDWR | os.O_CLOEXEC, 0o600)
+        except (AttributeError, OSError) as err:
+            if isinstance(err, OSError) and is_disk_full(err):
+                raise
+        fd = os.open(self.reserve_path, os.O_CREAT | os.O_EXCL | os.O_RDWR | os.O_CLOEXEC, 0o600)
+        with contextlib.suppress(OSError):
+            os.unlink(self.reserve_path)
+        return fd
+
+    def _allocate(self, size: int) -> int:
+        """A file without a name holding ``size`` bytes, really allocated; its descriptor.
+
+        :raises OSError: no room (or no file)
+        """
+        fd = self._open_nameless()
+        try:
+            try:
+                os.posix_fallocate(fd, 0, size)
+            except OSError as err:
+                if is_disk_full(err):
+                    raise
+                os.pwrite(fd, b"\0" * size, 0)  # filesystems without fallocate
+            os.fsync(fd)
+        except BaseException:
+            os.close(fd)
+            raise
+        return fd
+
+    def reserve(self) -> bool:
+        """Take the reserve (:attr:`size` bytes, really allocated, held by open descriptors of
+        files without a name). Returns whether it could be taken (a full disk leaves none: logged)."""
+        if self._fd >= 0:
+            return True
+        try:
+            self._fd_last = self._allocate(self.last_word)
+            self._fd = self._allocate(self.size - self.last_word)
         except OSError as err:
             logger.warning(
                 "cannot reserve %d KiB in %s for the final results: %s", self.size // 1024, self.path, err.strerror or err
             )
-            with contextlib.suppress(OSError):
-                self.reserve_path.unlink()
-            self.reserved = False
+            self.release_last()
+            self.reserved = self.released = False
             return False
         self.reserved = True
         return True
 
     def release(self) -> None:
-        """Give the reserve back (idempotent)."""
-        with contextlib.suppress(FileNotFoundError):
-            self.reserve_path.unlink()
+        """Give the reserve back but its last part (:meth:`release_last`): close its descriptor,
+        the filesystem frees its space (idempotent)."""
+        if self._fd >= 0:
+            with contextlib.suppress(OSError):
+                os.close(self._fd)
+            self._fd = -1
         self.reserved = False
         self.released = True
+
+    def release_last(self) -> None:
+        """Give back the last part too (room for a last summary write; idempotent)."""
+        self.release()
+        if self._fd_last >= 0:
+            with contextlib.suppress(OSError):
+                os.close(self._fd_last)
+            self._fd_last = -1
 
     def _record_injection(self, trial: int) -> None:
         """The injection record (the format of :func:`bus.transports.fault_inject.write_record`)."""
@@ -196,11 +277,12 @@ class RunFolder:
             return
         record = {
             "by": "host",
-            "spec": f"diskfull@{self.fail_writes_from_trial}",
+            "spec": self.fail_spec or f"diskfull@{self.fail_writes_from_trial}",
             "kind": "diskfull",
             "target": str(self.path),
-            "trial": trial,
+            "trial": max(trial, 0),
             "tick": None,
+            "kept": trial + 1 if trial >= 0 else 0,  # the write after trial k: k + 1 trials kept
             "t_mono": time.monotonic(),
             "t_wall": time.time(),
         }
@@ -220,3 +302,27 @@ class RunFolder:
                 self._injected = True
                 self._record_injection(trial)
             raise OSError(errno.ENOSPC, "No space left on device (injected)")
+
+
+def remove_leftovers(run_dir: str | Path, kept: int | None = None) -> list[Path]:
+    """Remove what a killed run may leave in ``run_dir``: the temporary files of its atomic writes
+    (:data:`LEFTOVER_GLOBS`) and, with ``kept`` (the trials in its summary), trial arrays of later
+    trials (``trials/trial-KKKKK.npz`` written before the process died, not in the summary).
+    Returns what was removed; never raises (a failure is logged)."""
+    d = Path(run_dir)
+    found = [p for pattern in LEFTOVER_GLOBS for p in d.glob(pattern)]
+    if kept is not None:
+        for p in d.glob("trials/trial-*.npz"):
+            number = p.stem.removeprefix("trial-")
+            if number.isdigit() and int(number) >= kept:
+                found.append(p)
+    removed = []
+    for p in found:
+        try:
+            p.unlink()
+            removed.append(p)
+        except FileNotFoundError:
+            pass
+        except OSError as err:
+            logger.warning("cannot remove %s: %s", p, err)
+    return removed

@@ -26,8 +26,19 @@ stopped answering, a failing write of the outputs (a full disk), Ctrl-C / SIGTER
 same way: the bench is closed (every live drive brought to a torque-free safe state, reported by
 the bench's optional ``safe_state()`` into ``summary["safe_state"]``), the fault goes into
 ``summary["faults"]`` as a :class:`host.experiment.faults.FaultRecord` (an interrupt into
-``summary["interrupted"]``), and the summary is written with every completed trial (after giving
-back the run folder's space reserve when the disk was full).
+``summary["interrupted"]``), and the summary is written with every completed trial (the run
+folder's space reserve given back first, so the final outputs fit on a full disk).  The same path
+covers the whole run, not only the trials: a fault before the first trial (bring-up,
+configuration), between two trials, after the last one or while the bench closes (its optional
+``closing_fault()``) is placed with its :class:`host.experiment.faults.Position`, and a completed
+run whose bench reports a fault while closing ends with it too (``completed`` stays true: every
+trial was run and kept).
+
+A trial counts as completed — kept — once its data is in the summary (in memory); its outputs
+(recording, arrays, the summary file) are written right after, with the signals SIGINT / SIGTERM
+held back meanwhile, so an interrupt never falls between a trial's recording and its summary
+entry.  A trial whose outputs could not be written (a full disk) is written again after the
+reserve is given back.
 """
 
 from __future__ import annotations
@@ -49,7 +60,15 @@ from bus import units
 from bus.cyclic import PDO_MODE, nm_to_permille_array, permille_to_nm_array
 from bus.errors import IlcrigError, SdoAbort
 from bus.objects import ModeOfOperation
-from host.experiment.faults import FaultKind, FaultRecord, attach_injection, read_injections
+from host.experiment.faults import (
+    FaultKind,
+    FaultRecord,
+    Position,
+    attach_injection,
+    node_name,
+    position_of,
+    read_injections,
+)
 from host.experiment.outputs import OutputError, RunFolder
 from host.experiment.plan import Plan, reference_tables
 from host.experiment.summary import SCHEMA, jsonable, write_summary
@@ -57,6 +76,7 @@ from host.learning.gains import Gains
 from host.learning.metrics import TraceDigest, TrialMetrics, trial_metrics
 from host.learning.protocol import AUXILIARY, LEARNING, TrialData
 from host.nodes.drive_client import DriveClient
+from host.nodes.sdo_access import SdoTransportError
 from host.planning.trajectory import JointReference
 
 logger = logging.getLogger(__name__)
@@ -74,6 +94,8 @@ __all__ = [
     "TrialOutcome",
     "TrialRunner",
     "new_summary",
+    "place",
+    "record_output_fault",
 ]
 
 
@@ -98,13 +120,36 @@ class Interrupted(KeyboardInterrupt):
 
 class _Shield:
     """While :attr:`active` (the end of a run: safe state, summary), the signal handler of
-    :func:`interrupt_on_signals` records a signal in :attr:`pending` instead of raising."""
+    :func:`interrupt_on_signals` records a signal in :attr:`pending` instead of raising; while
+    :attr:`defer_depth` > 0 (a trial's outputs being written) it keeps it in :attr:`deferred`,
+    raised when the block ends (:func:`_deferred_interrupts`)."""
 
     active: bool = False
     pending: int | None = None
+    defer_depth: int = 0
+    deferred: int | None = None
 
 
 _SHIELD = _Shield()
+
+
+@contextlib.contextmanager
+def _deferred_interrupts() -> Iterator[None]:
+    """Hold SIGINT / SIGTERM back while inside (the handler of :func:`interrupt_on_signals` keeps
+    the signal); at the end raise :class:`Interrupted` for it — unless an exception is already on
+    its way, then the run's end marks the signal (:meth:`TrialRunner.finish`)."""
+    _SHIELD.defer_depth += 1
+    failed = False
+    try:
+        yield
+    except BaseException:
+        failed = True
+        raise
+    finally:
+        _SHIELD.defer_depth -= 1
+        if _SHIELD.defer_depth == 0 and _SHIELD.deferred is not None and not failed:
+            signum, _SHIELD.deferred = _SHIELD.deferred, None
+            raise Interrupted(signum)
 
 
 @contextlib.contextmanager
@@ -124,6 +169,9 @@ def interrupt_on_signals(signals: Sequence[int] = (signal.SIGINT, signal.SIGTERM
             logger.warning("signal %d while stopping: the run ends as soon as its outputs are written", signum)
             return
         fired.append(signum)
+        if _SHIELD.defer_depth > 0:
+            _SHIELD.deferred = signum  # a trial's outputs are being written: raised when they are
+            return
         raise Interrupted(signum)
 
     old = {s: signal.signal(s, handler) for s in signals}
@@ -144,7 +192,11 @@ class TrialRecorder(Protocol):
         ``error_rad`` (N, 4) = q_d − q."""
 
     def close(self) -> None:
-        """Finish the recording (called once, also after a fault)."""
+        """Finish the recording (called once, also after a fault).
+
+        Optional, used when present: ``committed() -> dict | None`` (what is durably in the
+        recording: its ``bytes`` and ``trials``, kept in ``summary["recording"]`` with every
+        summary write, so a survivor can cut the file back to the summary's trials)."""
 
 
 @dataclass(frozen=True)
@@ -201,7 +253,8 @@ class Bench(Protocol):
         Optional, used when present: ``safe_state() -> list[dict]`` (after close: per drive the
         evidence of its torque-free state), ``describe_fault(exc, trial) -> FaultRecord | None``
         (what the bench knows about the fault ``exc``), ``progress() -> int | None`` (the tick of
-        the trial in progress)."""
+        the trial in progress), ``closing_fault() -> FaultRecord | None`` (after close: a fault the
+        bench saw after the trial loop's last step — while the run ended or while it closed)."""
 
 
 @dataclass
@@ -286,6 +339,8 @@ class _Trials:
         #: the learning trial whose auxiliary trials are running, and those done so far
         self.step_trial: TrialData | None = None
         self.step_aux: list[TrialData] = []
+        #: a trial runs: from its first tick until its data is in the summary
+        self.in_trial = False
 
     def setup_drive(self, j: int) -> None:
         """Gains, limits, reference tables, then enable (CiA 402 Operation enabled)."""
@@ -322,6 +377,7 @@ class _Trials:
         if self.pdo:
             cyclic = CyclicSetpoints(self.ref_counts, nm_to_permille_array(u))
         t0 = time.perf_counter()
+        self.in_trial = True
         actuals = bench.run_trial(k, plan.n_ticks, ref.q[0].copy(), ref.qd[0].copy(), cyclic=cyclic)
         self.wall_s += time.perf_counter() - t0
         traces = [drive.read_trace() for drive in bench.drives]
@@ -354,7 +410,7 @@ class _Trials:
         return m, e, tau
 
     def record_pending(self) -> None:
-        """After an interrupt or a fault between a trial's summary entry and its recording: the
+        """After a fault between a trial's summary entry and its recording (a full disk): the
         recording gets the trial too (a failure is logged, never raised)."""
         if self.pending is None or self.recorder is None:
             return
@@ -402,7 +458,9 @@ class _Trials:
         self.pending = None
 
     def record(self, m: TrialMetrics, role: str = LEARNING) -> None:
-        """Add trial ``m`` to the summary (an auxiliary trial with ``"role": "auxiliary"``)."""
+        """Add trial ``m`` to the summary (an auxiliary trial with ``"role": "auxiliary"``): it is
+        kept from now on."""
+        self.in_trial = False
         s = self.result.summary
         s["iterations"].append(m.as_dict() | ({"role": role} if role != LEARNING else {}))
         s["ticks"] = len(s["iterations"]) * self.plan.n_ticks
@@ -470,7 +528,8 @@ class TrialRunner:
 
     def _start(self) -> None:
         if self.out is not None:
-            write_summary(self.out, self.result.summary, folder=self.folder, trial=0)
+            self._note_recording()
+            write_summary(self.out, self.result.summary, folder=self.folder, trial=-1)
         self.bench.start()
         for j in range(len(self.bench.drives)):
             self.trials.setup_drive(j)
@@ -499,15 +558,17 @@ class TrialRunner:
         else:
             role, u = LEARNING, t.u
         m, e, tau = t.run_trial(k, u)
-        t.record(m, role)
-        t.pending = (k, m, e)
-        self.k = k + 1
-        self.result.roles.append(role)
-        if self.on_trial is not None:
-            self.on_trial(m, role)
-        t.log_recording(k, m, e)
-        if self.out is not None:
-            write_summary(self.out, self.result.summary, folder=self.folder, trial=k)
+        with _deferred_interrupts():  # kept from here: summary entry, recording and summary file together
+            t.pending = (k, m, e)
+            t.record(m, role)
+            self.k = k + 1
+            self.result.roles.append(role)
+            if self.on_trial is not None:
+                self.on_trial(m, role)
+            t.log_recording(k, m, e)
+            if self.out is not None:
+                self._note_recording()
+                write_summary(self.out, self.result.summary, folder=self.folder, trial=k)
         data = t.trial_data(k, role, u, e, tau)
         outcome = TrialOutcome(k, role, m, u, e, tau, list(t.last_traces), plan.gains)
         if k + 1 >= n_planned:
@@ -544,6 +605,13 @@ class TrialRunner:
                     torque_limit_nm=plan.torque_limit_nm,
                 )
 
+    def _note_recording(self) -> None:
+        """``summary["recording"]``: what the recording holds durably now (if it says)."""
+        committed = getattr(self.recorder, "committed", None)
+        state = committed() if committed is not None else None
+        if state is not None:
+            self.result.summary["recording"] = state
+
     def _guarded(self, fn: Callable[[], Any]) -> Any:
         """``fn()``; a fault or an interrupt ends the run through the fault path (None)."""
         result, summary, bench = self.result, self.result.summary, self.bench
@@ -554,30 +622,38 @@ class TrialRunner:
             # downloading a table or uploading the recorder), a failing write: torque is removed by
             # closing the bench, the trials so far are kept
             done = len(summary["iterations"])
-            record = _fault_record(bench, exc, done, self.out)
+            record = _fault_record(bench, exc, done, self.out, self.plan.cfg.iterations, self.trials.in_trial)
             result.fault_record = record
             result.fault = record.message
             summary["faults"].append(record.as_dict())
-            logger.info("trial %d faulted: %s", done, exc)  # the run's closing line says it
+            if record.position == Position.AFTER_LAST_TRIAL:
+                summary["completed"] = True  # every trial was run and kept; the fault came after
+            logger.info("fault (%s, trial %s): %s", record.position, record.trial, exc)  # the run's closing line says it
         except KeyboardInterrupt as exc:  # Ctrl-C, or Interrupted from the SIGTERM/SIGINT handler
             signum = getattr(exc, "signum", signal.SIGINT)
             result.interrupted = int(signum)
-            progress = getattr(bench, "progress", None)
-            summary["interrupted"] = {
-                "signal": signal.Signals(signum).name,
-                "trial": len(summary["iterations"]),
-                "tick": progress() if progress is not None else None,
-            }
-            logger.info("interrupted by %s during trial %d", signal.Signals(signum).name, len(summary["iterations"]))
+            summary["interrupted"] = self._where_now(signal.Signals(signum).name)
+            if summary["interrupted"]["position"] == Position.AFTER_LAST_TRIAL:
+                summary["completed"] = True  # every trial was run and kept
+            logger.info("interrupted by %s (%s)", signal.Signals(signum).name, summary["interrupted"]["position"])
         self.finish()
         return None
+
+    def _where_now(self, signal_name: str) -> dict[str, Any]:
+        """The summary's ``interrupted`` marker: signal, position, trial and tick now."""
+        done = len(self.result.summary["iterations"])
+        position, trial = position_of(done, self.plan.cfg.iterations, self.trials.in_trial)
+        progress = getattr(self.bench, "progress", None)
+        tick = progress() if progress is not None and position == Position.IN_TRIAL else None
+        return {"signal": signal_name, "position": str(position), "trial": trial, "tick": tick}
 
     def finish(self) -> ExperimentResult:
         """Close the bench (safe state), finish the recording, write the final summary (idempotent)."""
         if self.finished:
             return self.result
         self.finished = True
-        _SHIELD.active, _SHIELD.pending = True, None
+        _SHIELD.active, _SHIELD.pending = True, _SHIELD.deferred
+        _SHIELD.deferred = None
         try:
             _finish(self.bench, self.result.summary, self.recorder, self.out, self.folder, self.result, self.trials)
         finally:
@@ -587,28 +663,57 @@ class TrialRunner:
         return self.result
 
 
-def _fault_record(bench: Bench, exc: IlcrigError, trial: int, out_dir: Path | None = None) -> FaultRecord:
-    """The :class:`FaultRecord` of ``exc``: the bench's own description when it has one."""
+def _fault_record(
+    bench: Bench, exc: IlcrigError, kept: int, out_dir: Path | None = None, planned: int | None = None, in_trial: bool = False
+) -> FaultRecord:
+    """The :class:`FaultRecord` of ``exc`` (the bench's own description when it has one), placed
+    in the run: ``kept`` trials in the summary of ``planned``, a trial running or not."""
     record = exc.record if isinstance(exc, TrialFault) else None
     describe = getattr(bench, "describe_fault", None)
     if record is None and describe is not None:
-        record = describe(exc, trial)
+        record = describe(exc, kept)
     if record is None:
-        message = str(exc) if isinstance(exc, TrialFault | OutputError) else f"{type(exc).__name__}: {exc}"
+        sdo = isinstance(exc, SdoAbort | SdoTransportError) or "Sdo" in type(exc).__name__
+        message = str(exc) if isinstance(exc, TrialFault | OutputError) or sdo else f"{type(exc).__name__}: {exc}"
+        node_id = getattr(exc, "node_id", None)
+        waited = getattr(exc, "elapsed_s", None) if not getattr(exc, "cancelled", False) else None
         if isinstance(exc, OutputError):
             kind = str(exc.kind)
-        elif isinstance(exc, SdoAbort) or "Sdo" in type(exc).__name__:
+        elif sdo:
             kind = FaultKind.SDO_ERROR
         else:
             kind = FaultKind.TRIAL_FAULT
-        record = FaultRecord(kind=kind, message=message, t_detected_mono=time.monotonic(), t_detected_wall=time.time())
-    if record.trial is None:
-        record.trial = trial
+        record = FaultRecord(
+            kind=kind,
+            message=message,
+            node=node_name(node_id) if isinstance(node_id, int) else "host",
+            node_id=node_id if isinstance(node_id, int) else None,
+            t_detected_mono=time.monotonic(),
+            t_detected_wall=time.time(),
+            latency_ms=1000.0 * waited if isinstance(waited, float) else 0.0,
+            latency_basis="the SDO request (no answer)" if isinstance(waited, float) else "same process",
+        )
     if record.injected is None and out_dir is not None:
         attach_injection(record, read_injections(out_dir))
-    if record.tick is None:
-        progress = getattr(bench, "progress", None)
-        record.tick = progress() if progress is not None else None
+    place(record, bench, kept, planned if planned is not None else kept + 1, in_trial)
+    return record
+
+
+def place(record: FaultRecord, bench: Any, kept: int, planned: int, in_trial: bool) -> FaultRecord:
+    """Put ``record`` where the run was: its position and trial from the trials kept (of
+    ``planned``) and whether a trial ran; in a trial its tick (the record's, else the bench's
+    ``progress()``, else 0: no tick of it was seen yet), outside one none. Returns ``record``."""
+    position, trial = position_of(kept, planned, in_trial)
+    record.position = str(position)
+    record.trial = trial
+    if position == Position.IN_TRIAL:
+        if record.tick is None:
+            progress = getattr(bench, "progress", None)
+            record.tick = progress() if progress is not None else None
+        if record.tick is None:
+            record.tick = 0  # the trial had begun, its first tick was not seen yet
+    else:
+        record.tick = None
     return record
 
 
@@ -674,10 +779,32 @@ def _finish(
         safe_state = getattr(bench, "safe_state", None)
         if safe_state is not None:
             summary["safe_state"] = jsonable(safe_state())
+        _closing_fault(bench, summary, result, trials)
+        if folder is not None:
+            folder.release()  # the final outputs go into the reserve's room
         if recorder is not None:
             trials.record_pending()
             recorder.close()
+            committed = getattr(recorder, "committed", None)
+            state = committed() if committed is not None else None
+            if state is not None:
+                summary["recording"] = state
         _final_write(out, summary, folder, result)
+
+
+def _closing_fault(bench: Bench, summary: dict[str, Any], result: ExperimentResult, trials: _Trials) -> None:
+    """A fault the bench saw after the trial loop's last step (``closing_fault()``), when the run
+    has no fault or interrupt yet: recorded and placed (after the last trial, for a run that
+    completed)."""
+    closing = getattr(bench, "closing_fault", None)
+    record = closing() if closing is not None else None
+    if record is None or result.fault_record is not None or result.interrupted is not None:
+        return
+    place(record, bench, len(summary["iterations"]), trials.plan.cfg.iterations, trials.in_trial)
+    result.fault_record = record
+    result.fault = record.message
+    summary["faults"].append(record.as_dict())
+    logger.info("fault while the run ended (%s): %s", record.position, record.message)
 
 
 def _final_write(out: Path | None, summary: dict[str, Any], folder: RunFolder | None, result: ExperimentResult) -> None:
@@ -692,14 +819,29 @@ def _final_write(out: Path | None, summary: dict[str, Any], folder: RunFolder | 
         write_summary(out, summary, folder=folder)
     except OutputError as exc:
         logger.error("the final summary could not be written (the last one written stays): %s", exc)
-        if result.fault_record is None:
-            record = FaultRecord(
-                kind=exc.kind,
-                message=str(exc),
-                trial=len(summary["iterations"]),
-                t_detected_mono=time.monotonic(),
-                t_detected_wall=time.time(),
-            )
-            result.fault_record = record
-            result.fault = record.message
-            summary["faults"].append(record.as_dict())
+        record_output_fault(result, exc)
+
+
+def record_output_fault(result: ExperimentResult, exc: OutputError) -> FaultRecord | None:
+    """A failing write of the run's final outputs (the final summary, ``report.md``) as the run's
+    fault, when it has none yet (placed after what was kept: after the last trial for a completed
+    run); returns the record (None: the run had a fault or an interrupt already)."""
+    summary = result.summary
+    if result.fault_record is not None or result.interrupted is not None:
+        return None
+    planned = int(summary.get("config", {}).get("iterations", len(summary["iterations"])))
+    record = FaultRecord(
+        kind=exc.kind,
+        message=str(exc),
+        node="host",
+        detected_by="host",
+        t_detected_mono=time.monotonic(),
+        t_detected_wall=time.time(),
+        latency_ms=0.0,
+        latency_basis="failed write",
+    )
+    place(record, None, len(summary["iterations"]), planned, False)
+    result.fault_record = record
+    result.fault = record.message
+    summary["faults"].append(record.as_dict())
+    return record

@@ -5,7 +5,9 @@ client: the rig's implementation of the object-access protocol :class:`bus.cia30
 
 This module owns the mapping of canopen's SDO errors to the project's: an SDO abort from the
 node becomes :class:`bus.errors.SdoAbort` (same code, exactly what the in-process access
-raises), a transport failure (no answer, unexpected response) :class:`SdoTransportError`.
+raises), a transport failure (no answer, unexpected response) :class:`SdoTransportError` — also
+for requests made through canopen's own objects (``node.sdo``, ``node.rpdo``), inside
+:func:`sdo_errors`.
 :meth:`SdoAccess.cancel` (from another thread: the host's watchdog that declared the node or the
 run lost) wakes a request waiting for its answer at once and refuses every later one, so a lost
 node never holds the host for the SDO response timeout.
@@ -13,15 +15,22 @@ node never holds the host for the SDO response timeout.
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import time
+from collections.abc import Iterator
 from typing import Any
 
 import can
 import canopen
+from canopen.sdo.exceptions import SdoAbortedError, SdoError
 
 from bus.errors import IlcrigError, SdoAbort
 
 logger = logging.getLogger(__name__)
+
+
+__all__ = ["SdoAccess", "SdoTransportError", "sdo_errors"]
 
 
 class SdoTransportError(IlcrigError):
@@ -29,12 +38,29 @@ class SdoTransportError(IlcrigError):
     was cancelled (:attr:`cancelled`).
 
     :ivar node_id: the node's id
+    :ivar elapsed_s: how long the request waited before it failed, s (None: not measured)
     """
 
-    def __init__(self, message: str, node_id: int | None = None, cancelled: bool = False) -> None:
+    def __init__(self, message: str, node_id: int | None = None, cancelled: bool = False, elapsed_s: float | None = None) -> None:
         super().__init__(message)
         self.node_id = node_id
         self.cancelled = cancelled
+        self.elapsed_s = elapsed_s
+
+
+@contextlib.contextmanager
+def sdo_errors(node_id: int | None, what: str) -> Iterator[None]:
+    """Inside, canopen's SDO errors (of node ``node_id``, None: any) become the project's: an
+    abort :class:`bus.errors.SdoAbort`, anything else :class:`SdoTransportError` (``what``: the
+    request)."""
+    t0 = time.monotonic()
+    who = f"node {node_id}: " if node_id is not None else ""
+    try:
+        yield
+    except SdoAbortedError as err:
+        raise SdoAbort(err.code, f"{who}{what}") from None
+    except SdoError as err:
+        raise SdoTransportError(f"{who}{what} failed: {err}", node_id, elapsed_s=time.monotonic() - t0) from err
 
 
 #: an SDO abort response (0x80, code 0x05040000) that :meth:`SdoAccess.cancel` puts into the
@@ -73,10 +99,10 @@ class SdoAccess:
             return SdoTransportError(f"node {self.node.id}: {self.cancelled}", self.node.id, cancelled=True)
         return SdoAbort(err.code, f"node {self.node.id} {what}")
 
-    def _failed(self, err: Exception, what: str) -> SdoTransportError:
+    def _failed(self, err: Exception, what: str, t0: float) -> SdoTransportError:
         if self.cancelled is not None:
             return SdoTransportError(f"node {self.node.id}: {self.cancelled}", self.node.id, cancelled=True)
-        return SdoTransportError(f"node {self.node.id}: {what} failed: {err}", self.node.id)
+        return SdoTransportError(f"node {self.node.id}: {what} failed: {err}", self.node.id, elapsed_s=time.monotonic() - t0)
 
     def _is_domain(self, index: int, sub: int) -> bool:
         """True when the node's object dictionary declares ``index:sub`` a DOMAIN (tables,
@@ -91,13 +117,14 @@ class SdoAccess:
     def read_block(self, index: int, sub: int) -> bytes:
         """SDO block upload (for the recorder DOMAIN)."""
         self._check()
+        t0 = time.monotonic()
         try:
             with self.node.sdo.open(index, sub, "rb", block_transfer=True) as fh:
                 return bytes(fh.read())
         except canopen.SdoAbortedError as err:
             raise self._aborted(err, f"read 0x{index:04X}:{sub}") from None
-        except (canopen.SdoCommunicationError, can.CanError) as err:
-            raise self._failed(err, f"read 0x{index:04X}:{sub}") from err
+        except (SdoError, can.CanError) as err:
+            raise self._failed(err, f"read 0x{index:04X}:{sub}", t0) from err
 
     def read_object(self, index: int, sub: int) -> bytes:
         """SDO upload of ``index:sub``.
@@ -108,12 +135,13 @@ class SdoAccess:
         if self.block_transfer and self._is_domain(index, sub):
             return self.read_block(index, sub)
         self._check()
+        t0 = time.monotonic()
         try:
             return bytes(self.node.sdo.upload(index, sub))
         except canopen.SdoAbortedError as err:
             raise self._aborted(err, f"read 0x{index:04X}:{sub}") from None
-        except (canopen.SdoCommunicationError, can.CanError) as err:
-            raise self._failed(err, f"read 0x{index:04X}:{sub}") from err
+        except (SdoError, can.CanError) as err:
+            raise self._failed(err, f"read 0x{index:04X}:{sub}", t0) from err
 
     def write_object(self, index: int, sub: int, data: bytes) -> None:
         """SDO download of ``data`` to ``index:sub`` (expedited up to 4 bytes, else segmented).
@@ -122,6 +150,7 @@ class SdoAccess:
         :raises SdoTransportError: no (valid) answer.
         """
         self._check()
+        t0 = time.monotonic()
         try:
             if self.block_transfer and len(data) >= self.BLOCK_THRESHOLD:
                 with self.node.sdo.open(index, sub, "wb", size=len(data), block_transfer=True) as fh:
@@ -130,5 +159,5 @@ class SdoAccess:
                 self.node.sdo.download(index, sub, bytes(data))
         except canopen.SdoAbortedError as err:
             raise self._aborted(err, f"write 0x{index:04X}:{sub}") from None
-        except (canopen.SdoCommunicationError, can.CanError) as err:
-            raise self._failed(err, f"write 0x{index:04X}:{sub}") from err
+        except (SdoError, can.CanError) as err:
+            raise self._failed(err, f"write 0x{index:04X}:{sub}", t0) from err

@@ -50,6 +50,8 @@ __all__ = [
     "resolve_path",
 ]
 
+#: pick and place closer than this in every coordinate are the same point (refused), m
+_SAME_POINT_M = 1e-6
 #: Keys of a path file and what each must hold.
 PATH_FILE_KEYS: tuple[str, ...] = ("name", "pick", "place", "lift", "rotation_deg")
 
@@ -87,6 +89,8 @@ class PathSpec:
             if len(point) != 3 or not all(_finite_number(c) for c in point):
                 raise PathError(f"path {self.name!r}: {label} must be 3 finite numbers (m)")
             object.__setattr__(self, label, tuple(float(c) for c in point))
+        if all(abs(a - b) < _SAME_POINT_M for a, b in zip(self.pick_xyz, self.place_xyz)):
+            raise PathError(f"path {self.name!r}: pick and place are the same point: there is nothing to move")
         if not _finite_number(self.lift_m) or self.lift_m <= 0.0:
             raise PathError(f"path {self.name!r}: lift must be a number > 0 m, got {self.lift_m!r}")
         if not _finite_number(self.rotation_rad):

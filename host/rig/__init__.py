@@ -29,8 +29,11 @@ processes and always cleans them up:
 * :mod:`host.rig.launcher` — :func:`~host.rig.launcher.launch_rig`: preflight, start, watch, clean up;
 * :mod:`host.rig.role_commands` — the roles' command lines (``python -P -m host.cli ROLE``, test hooks);
 * :mod:`host.rig.processes` — starting (roles, the hub), describing and terminating processes;
-* :mod:`host.rig.supervisor` — the watch loop until the host ends;
-* :mod:`host.rig.run_outcome` — the run's end: exit code, fault record, drives' evidence, the fault line;
+* :mod:`host.rig.run_watch` — the run's trial and tick on the io channel, for the launcher;
+* :mod:`host.rig.supervisor` — the watch loop until the host ends (pidfds: a process's end wakes it);
+* :mod:`host.rig.run_outcome` — the run's end: exit code, fault record, drives' evidence, the fault
+  line, the run folder as the summary says;
+* :mod:`host.rig.janitor` — the run folder settled after a killed launcher (a process of its own);
 * :mod:`host.rig.interrupts` — SIGINT / SIGTERM / SIGHUP to the launcher;
 * :mod:`host.rig.inject` — kill / stall / EMCY injection; :mod:`host.rig.idle_poll` — the
   SCHED_IDLE loops that keep the CPUs awake in a real-time run.

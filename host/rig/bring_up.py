@@ -10,7 +10,10 @@ This module owns
 * :class:`BringUp` — NMT reset communication and every node's boot-up; per node: SDO answered,
   a heartbeat producer period (0x1017) and a consumer entry for the host's heartbeat (0x1016:1),
   PDOs configured, NMT START and its first OPERATIONAL heartbeat; the plant node configured; and
-  with ``--recover`` the same for a node lost or rebooted between trials;
+  with ``--recover`` the same for a node lost or rebooted between trials.  Once every node's
+  heartbeat is watched the watchdog is armed (``on_watched``): a node lost during the rest of the
+  bring-up is a fault of the run like any other; an SDO request of the bring-up that fails is one
+  :class:`host.nodes.sdo_access.SdoTransportError` / :class:`bus.errors.SdoAbort` (an ``sdo_error``);
 * :func:`configure_pdos` — RPDO1 (target position, torque offset) and TPDO1 (position actual,
   torque actual), synchronous, with the canopen library's PDO API (``node.rpdo`` / ``node.tpdo``:
   read, map, save) in NMT PRE-OPERATIONAL (layout: :mod:`bus.cyclic`).
@@ -44,7 +47,7 @@ from host.experiment.config import ExperimentConfig
 from host.experiment.trials import TrialFault
 from host.nodes.drive_client import DriveClient
 from host.nodes.plant_client import PlantClient
-from host.nodes.sdo_access import SdoAccess
+from host.nodes.sdo_access import SdoAccess, sdo_errors
 from host.rig.watchdog import Watchdog
 
 logger = logging.getLogger(__name__)
@@ -94,21 +97,26 @@ def configure_pdos(node: Any) -> tuple[Any, Any]:
     """RPDO1 (target position, torque offset) and TPDO1 (position actual, torque actual) of the
     drive ``node`` (a ``canopen.RemoteNode``), both synchronous, with the canopen library's PDO
     API; the mapping may change only in NMT PRE-OPERATIONAL (CiA 301), so the node is put there
-    first. Returns the (RPDO1, TPDO1) map objects."""
+    first. Returns the (RPDO1, TPDO1) map objects.
+
+    :raises SdoTransportError: an SDO request of the configuration was not answered
+    :raises SdoAbort: the node refused one
+    """
     node.nmt.send_command(NmtCommand.ENTER_PRE_OPERATIONAL)
-    node.rpdo.read()
-    node.tpdo.read()
-    for pdo_map, mapping, cob_id in (
-        (node.rpdo[RPDO_NUMBER], CSP_RPDO_MAP, rpdo_cob_id(node.id)),
-        (node.tpdo[TPDO_NUMBER], TPDO_MAP, tpdo_cob_id(node.id)),
-    ):
-        pdo_map.clear()
-        for index, sub, bits in mapping:
-            pdo_map.add_variable(index, sub, bits)
-        pdo_map.cob_id = cob_id
-        pdo_map.trans_type = TRANSMISSION_TYPE
-        pdo_map.enabled = True
-        pdo_map.save()
+    with sdo_errors(node.id, "PDO configuration"):
+        node.rpdo.read()
+        node.tpdo.read()
+        for pdo_map, mapping, cob_id in (
+            (node.rpdo[RPDO_NUMBER], CSP_RPDO_MAP, rpdo_cob_id(node.id)),
+            (node.tpdo[TPDO_NUMBER], TPDO_MAP, tpdo_cob_id(node.id)),
+        ):
+            pdo_map.clear()
+            for index, sub, bits in mapping:
+                pdo_map.add_variable(index, sub, bits)
+            pdo_map.cob_id = cob_id
+            pdo_map.trans_type = TRANSMISSION_TYPE
+            pdo_map.enabled = True
+            pdo_map.save()
     logger.info("node %d: RPDO1 0x%03X and TPDO1 0x%03X configured", node.id, rpdo_cob_id(node.id), tpdo_cob_id(node.id))
     return node.rpdo[RPDO_NUMBER], node.tpdo[TPDO_NUMBER]
 
@@ -125,6 +133,7 @@ class BringUp:
     :param realtime: the plant node paces the ticks to the wall clock
     :param on_pdos: with ``--ff-transport pdo``: called with each drive's node id and its
         configured (RPDO1, TPDO1) maps; None: the drives keep their PDOs off
+    :param on_watched: called once every node's heartbeat is watched (the watchdog is armed then)
     :ivar recoveries: per node brought up again between trials: node, before which trial, and
         whether its heartbeat was lost and/or its boot-up seen
     """
@@ -140,6 +149,7 @@ class BringUp:
         scale: float,
         realtime: bool,
         on_pdos: Callable[[int, Any, Any], None] | None = None,
+        on_watched: Callable[[], None] | None = None,
     ) -> None:
         self.network = network
         self.nodes = nodes
@@ -149,13 +159,14 @@ class BringUp:
         self.consumer_ms = min(round(CONSUMER_TIME_MS * scale), 0xFFFF)
         self.realtime = realtime
         self.on_pdos = on_pdos
+        self.on_watched = on_watched
         self.recoveries: list[dict[str, Any]] = []
 
     def start_all(self) -> None:
         """Every node's boot-up awaited, then all five brought up (:meth:`bring_up`)."""
         node_ids, what = set(NODE_IDS), "(are the drive and plant processes running on this bus?)"
         self.await_boot_ups(node_ids, what)
-        self.bring_up(node_ids, what)
+        self.bring_up(node_ids, what, first=True)
 
     def await_boot_ups(self, node_ids: set[int], what: str) -> None:
         """NMT reset communication (broadcast), then wait for every node's boot-up: a running node
@@ -186,9 +197,12 @@ class BringUp:
             for nid in node_ids:
                 self.network.unsubscribe(0x700 + nid, on_boot_up)
 
-    def bring_up(self, node_ids: set[int], what: str) -> None:
+    def bring_up(self, node_ids: set[int], what: str, *, first: bool = False) -> None:
         """Wait until ``node_ids`` answer SDO, give them a heartbeat and a consumer of the host's,
         configure their PDOs, NMT-start them and wait for their first operational heartbeat.
+        ``first``: the run's first bring-up — once the heartbeats are watched, the boot-ups seen so
+        far are forgotten, every node gets a consumer time for its first heartbeat and
+        ``on_watched`` is called.
 
         :raises TrialFault: a node did not answer, did not become operational, or a fault was declared
         """
@@ -206,11 +220,17 @@ class BringUp:
             if waiting and time.monotonic() > deadline:
                 raise TrialFault(f"node(s) {', '.join(map(str, sorted(waiting)))} did not answer within {self.wait_s:g} s {what}")
         for nid in sorted(node_ids):
-            remote[nid].sdo.download(0x1017, 0, NODE_HEARTBEAT_MS.to_bytes(2, "little"))
-            remote[nid].sdo.download(
-                CONSUMER_HEARTBEAT_INDEX, 1, consumer_entry(HOST_NODE_ID, self.consumer_ms).to_bytes(4, "little")
-            )
+            with sdo_errors(nid, "heartbeat configuration"):
+                remote[nid].sdo.download(0x1017, 0, NODE_HEARTBEAT_MS.to_bytes(2, "little"))
+                remote[nid].sdo.download(
+                    CONSUMER_HEARTBEAT_INDEX, 1, consumer_entry(HOST_NODE_ID, self.consumer_ms).to_bytes(4, "little")
+                )
             self.watchdog.events.watch(nid)
+        if first:
+            self.watchdog.events.report()  # the boot-ups of the start
+            self.watchdog.events.grace(time.monotonic())  # a consumer time for every first heartbeat
+            if self.on_watched is not None:
+                self.on_watched()
         if self.on_pdos is not None:
             for nid in sorted(node_ids & set(DRIVE_NODE_IDS)):
                 self.on_pdos(nid, *configure_pdos(remote[nid]))
@@ -223,6 +243,7 @@ class BringUp:
             )
         t_end = time.monotonic() + OPERATIONAL_WAIT_S
         while True:
+            self.watchdog.raise_if_fault()
             states = self.watchdog.events.states(node_ids)
             if all(s == NmtState.OPERATIONAL for s in states.values()):
                 break

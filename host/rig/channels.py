@@ -5,7 +5,8 @@ This module owns :class:`RigChannels`: it opens the monitors' buses from the run
 ordinary member of each channel, apart from the canopen network), tells where the io channel's
 trial and tick stand, lists what went wrong on a channel for the watchdog
 (:class:`host.rig.fault_classify.BusError`, :class:`host.rig.fault_classify.ChannelTrouble`) and
-gives the summary's per-channel frame counts.
+gives the summary's per-channel frame counts.  :meth:`RigChannels.fail_log_from` is the fault
+injection of a full disk in a trial (``--inject diskfull@T:N``: the io log fails there).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ class RigChannels:
 
     def __init__(self, transport: TransportConfig, out_dir: Path | None, bus_time: BusTimeAccounting) -> None:
         self.bus_time = bus_time
+        self.out_dir = out_dir
         self.monitors: list[ChannelMonitor] = []
         try:
             for name in (FIELDBUS, IO):
@@ -56,6 +58,35 @@ class RigChannels:
         except BaseException:
             self.close()
             raise
+
+    def fail_log_from(self, trial: int, tick: int, spec: str) -> None:
+        """Fault injection: the io channel's log fails with ``ENOSPC`` from tick ``tick`` of trial
+        ``trial`` on; the injection is recorded as ``spec`` (``logs/injections-host.jsonl``)."""
+        io_mon = self.io
+        if io_mon is None:
+            return
+        log_dir = self.out_dir / "logs" if self.out_dir is not None else None
+
+        def record(at_trial: int, at_tick: int | None) -> None:
+            from bus.transports.fault_inject import write_record
+
+            path = log_dir / "injections-host.jsonl" if log_dir is not None and log_dir.is_dir() else None
+            write_record(
+                path,
+                {
+                    "by": "host",
+                    "spec": spec,
+                    "kind": "diskfull",
+                    "target": "io.log",
+                    "trial": at_trial,
+                    "tick": at_tick,
+                    "kept": at_trial,
+                    "when": "tick",
+                },
+            )
+
+        io_mon.on_log_fail_injected = record
+        io_mon.fail_log_from = (trial, tick)
 
     @property
     def io(self) -> ChannelMonitor | None:

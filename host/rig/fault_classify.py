@@ -13,8 +13,12 @@ This module owns the host's fault vocabulary on the bus, without threads, locks 
   (the plant node's fault state, an SDO request refused, unanswered or cancelled).
 
 Times are ``time.monotonic()`` seconds (``t_mono``) or ``time.time()`` seconds (``t_wall``);
-latencies are in ms. :class:`host.rig.watchdog.Watchdog` gathers the observations and calls these
-in a fixed order.
+latencies are in ms. Every record gets a node and a detection latency measured on the detector's
+own clock (what it waited for before it could tell: a consumer time past the heartbeat that was
+due, a tick deadline, an SDO timeout; 0 for what is seen as it happens — an EMCY, a bus error frame,
+an SDO abort, a failing write); an injection that caused the fault replaces it later with the time
+since the injection (:func:`host.experiment.faults.attach_injection`).
+:class:`host.rig.watchdog.Watchdog` gathers the observations and calls these in a fixed order.
 """
 
 from __future__ import annotations
@@ -22,27 +26,54 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
-from bus.cia301.nmt import HOST_NODE_ID, HeartbeatReport
+from bus.cia301.nmt import CONSUMER_TIME_MS, HOST_NODE_ID, NODE_HEARTBEAT_MS, HeartbeatReport
 from bus.errors import SdoAbort
+from bus.io_frames import TICK_TIMEOUT_S
 from bus.objects import DRIVE_NODE_IDS
 from bus.plant_objects import DEFAULT_PLANT_NODE_ID as PLANT_NODE_ID
 from bus.plant_objects import PlantFault
-from host.experiment.faults import FaultKind, FaultRecord
+from host.experiment.faults import FaultKind, FaultRecord, node_name
 from host.nodes.plant_client import PlantTrialFault
 from host.nodes.sdo_access import SdoTransportError
 
 __all__ = [
     "BusError",
     "ChannelTrouble",
+    "DetectionTimes",
     "EmcyFrame",
     "bus_fault",
     "channel_fault",
     "emcy_fault",
     "heartbeat_fault",
     "node_name",
+    "host_stall_fault",
     "plant_trial_fault",
     "sdo_fault",
 ]
+
+
+@dataclass(frozen=True)
+class DetectionTimes:
+    """What the detectors wait for before they can tell, s (× ``ILCRIG_TIMEOUT_SCALE``).
+
+    :ivar consumer_s: a heartbeat consumer's time (the host's and the nodes')
+    :ivar period_s: the heartbeat period of the nodes and of the host
+    :ivar tick_deadline_s: the plant's deadline for a tick's torque frames
+    """
+
+    consumer_s: float = CONSUMER_TIME_MS / 1000.0
+    period_s: float = NODE_HEARTBEAT_MS / 1000.0
+    tick_deadline_s: float = TICK_TIMEOUT_S
+
+    @classmethod
+    def scaled(cls, scale: float) -> DetectionTimes:
+        return cls(cls.consumer_s * scale, cls.period_s * scale, cls.tick_deadline_s * scale)
+
+    @property
+    def lost_heartbeat_ms(self) -> float:
+        """From the heartbeat that was due to the consumer's verdict, ms."""
+        return 1000.0 * max(self.consumer_s - self.period_s, 0.0)
+
 
 #: EMCY error codes the drives send (docs/canopen-objects.md §3)
 EMCY_HOST_LOST = 0x8130
@@ -58,17 +89,6 @@ PLANT_FAULT_KINDS: Mapping[PlantFault, FaultKind] = {
     PlantFault.HOST_LOST: FaultKind.HOST_LOST,
     PlantFault.ABORTED: FaultKind.TRIAL_FAULT,
 }
-
-
-def node_name(node_id: int) -> str:
-    """``drive1`` … ``drive4``, ``plant`` (the plant node), ``host`` (127), else ``node N``."""
-    if node_id in DRIVE_NODE_IDS:
-        return f"drive{node_id}"
-    if node_id == PLANT_NODE_ID:
-        return "plant"
-    if node_id == HOST_NODE_ID:
-        return "host"
-    return f"node {node_id}"
 
 
 @dataclass(frozen=True)
@@ -133,6 +153,7 @@ def channel_fault(channels: Sequence[ChannelTrouble], now: float) -> FaultRecord
             return FaultRecord(
                 kind,
                 f"{what}: the {ch.channel}.log candump log stopped ({ch.log_error})",
+                node="host",
                 detected_by="host",
                 t_detected_mono=ch.log_error_t or now,
                 latency_ms=0.0,
@@ -145,11 +166,23 @@ def channel_fault(channels: Sequence[ChannelTrouble], now: float) -> FaultRecord
                 node=ch.channel,
                 detected_by="host",
                 t_detected_mono=ch.first_error_frame_t or now,
+                latency_ms=0.0,
+                latency_basis="bus error frame",
             )
     return None
 
 
-def _plant_emcy_fault(frame: EmcyFrame, data: bytes) -> FaultRecord:
+def _plant_latency(fault: PlantFault, times: DetectionTimes) -> tuple[float, str]:
+    """How long the plant node waited before it could tell ``fault``: its tick deadline for a
+    missing frame, its consumer time for a lost host, else nothing (seen as it happened)."""
+    if fault == PlantFault.TICK_TIMEOUT:
+        return 1000.0 * times.tick_deadline_s, "the plant's tick deadline"
+    if fault == PlantFault.HOST_LOST:
+        return times.lost_heartbeat_ms, "its next heartbeat was due"
+    return 0.0, "the plant saw it"
+
+
+def _plant_emcy_fault(frame: EmcyFrame, data: bytes, times: DetectionTimes) -> FaultRecord:
     """The plant node's EMCY: data[0] its fault code, data[1] the drive, data[2:4] the tick."""
     try:
         fault = PlantFault(data[0])
@@ -169,6 +202,7 @@ def _plant_emcy_fault(frame: EmcyFrame, data: bytes) -> FaultRecord:
         PlantFault.ABORTED: f"the plant node aborted the trial at tick {tick}",
     }
     node = f"drive{drive}" if drive else ("host" if fault == PlantFault.HOST_LOST else "plant")
+    latency, basis = _plant_latency(fault, times)
     return FaultRecord(
         PLANT_FAULT_KINDS.get(fault, FaultKind.EMCY),
         f"{texts.get(fault, f'fault {int(fault)}')} (EMCY 0x{frame.code:04X} of the plant node)",
@@ -178,14 +212,18 @@ def _plant_emcy_fault(frame: EmcyFrame, data: bytes) -> FaultRecord:
         detected_by="plant",
         t_detected_mono=frame.t_mono,
         t_detected_wall=frame.t_wall,
+        latency_ms=latency,
+        latency_basis=basis,
     )
 
 
-def emcy_fault(frame: EmcyFrame) -> FaultRecord:
-    """The fault an EMCY frame reports (codes: docs/canopen-objects.md §3)."""
+def emcy_fault(frame: EmcyFrame, times: DetectionTimes | None = None) -> FaultRecord:
+    """The fault an EMCY frame reports (codes: docs/canopen-objects.md §3); ``times``: what the
+    nodes wait for before they report (default: unscaled)."""
+    times = times or DetectionTimes()
     data = frame.data + bytes(8)
     if frame.node_id == PLANT_NODE_ID:
-        return _plant_emcy_fault(frame, data)
+        return _plant_emcy_fault(frame, data, times)
     name = node_name(frame.node_id)
     if frame.code == EMCY_HOST_LOST:
         return FaultRecord(
@@ -196,6 +234,8 @@ def emcy_fault(frame: EmcyFrame) -> FaultRecord:
             detected_by=name,
             t_detected_mono=frame.t_mono,
             t_detected_wall=frame.t_wall,
+            latency_ms=times.lost_heartbeat_ms,
+            latency_basis="its next heartbeat was due",
         )
     if frame.code == EMCY_TICK_SEQUENCE:
         expected, got = int.from_bytes(data[1:3], "little"), int.from_bytes(data[3:5], "little")
@@ -208,6 +248,8 @@ def emcy_fault(frame: EmcyFrame) -> FaultRecord:
             detected_by=name,
             t_detected_mono=frame.t_mono,
             t_detected_wall=frame.t_wall,
+            latency_ms=0.0,
+            latency_basis="the frame's arrival",
         )
     what = "following error" if frame.code == EMCY_FOLLOWING_ERROR else "fault"
     return FaultRecord(
@@ -218,6 +260,25 @@ def emcy_fault(frame: EmcyFrame) -> FaultRecord:
         detected_by=name,
         t_detected_mono=frame.t_mono,
         t_detected_wall=frame.t_wall,
+        latency_ms=0.0,
+        latency_basis="the node's report",
+    )
+
+
+def host_stall_fault(gap_s: float, t_end: float, times: DetectionTimes) -> FaultRecord:
+    """The host itself did not run for ``gap_s`` seconds (it was stopped), ending at ``t_end``
+    (``t_mono``): longer than the nodes' consumer time of its heartbeat — a fault even where no
+    node's EMCY 0x8130 says so (a node reports nothing when NMT STOPPED, and its consumer starts
+    with the first heartbeat after it was configured)."""
+    return FaultRecord(
+        FaultKind.HOST_LOST,
+        f"the host did not run for {1000 * gap_s:.0f} ms (it was stopped): longer than the nodes' consumer time of its heartbeat",
+        node="host",
+        node_id=HOST_NODE_ID,
+        detected_by="host",
+        t_detected_mono=t_end,
+        latency_ms=max(1000.0 * gap_s - 1000.0 * times.period_s, 0.0),
+        latency_basis="its heartbeat was due",
     )
 
 
@@ -242,12 +303,15 @@ def heartbeat_fault(
         quiet = 1.2 * period_s  # > a period: every node missed a beat
         heard = [last_heard.get(n) for n in everyone]
         if set(report.overdue) >= everyone or all(t is None or now - t > quiet for t in heard):
+            last = max((t for t in heard if t is not None), default=None)
             return FaultRecord(
                 FaultKind.BUS_SILENT,
                 f"no heartbeat from any node for {1000 * consumer_s:.0f} ms: the bus is silent ({bus_name} stalled?)",
                 node=bus_name,
                 detected_by="host",
                 t_detected_mono=now,
+                latency_ms=1000 * max(now - last - period_s, 0.0) if last is not None else 1000 * consumer_s,
+                latency_basis="the heartbeats were due",
             )
         nid = sorted(report.overdue, key=lambda n: (n == PLANT_NODE_ID, n))[0]
         seen = last_heard.get(nid)
@@ -271,13 +335,16 @@ def heartbeat_fault(
             node_id=nid,
             detected_by="host",
             t_detected_mono=now,
+            latency_ms=0.0,
+            latency_basis="its boot-up frame",
         )
     return None
 
 
-def plant_trial_fault(exc: PlantTrialFault, trial: int, now: float) -> FaultRecord:
+def plant_trial_fault(exc: PlantTrialFault, trial: int, now: float, times: DetectionTimes | None = None) -> FaultRecord:
     """The plant node's fault state read back after a trial ended in fault."""
     st = exc.state
+    latency, basis = _plant_latency(st.fault, times or DetectionTimes())
     return FaultRecord(
         PLANT_FAULT_KINDS.get(st.fault, FaultKind.TRIAL_FAULT),
         f"plant node: {st.describe()}",
@@ -287,18 +354,25 @@ def plant_trial_fault(exc: PlantTrialFault, trial: int, now: float) -> FaultReco
         tick=st.fault_tick,
         detected_by="plant",
         t_detected_mono=now,
+        latency_ms=latency,
+        latency_basis=basis,
     )
 
 
 def sdo_fault(exc: SdoTransportError | SdoAbort, trial: int, now: float) -> FaultRecord:
-    """An SDO request refused (abort), unanswered or cancelled, as an ``sdo_error``."""
+    """An SDO request refused (abort), unanswered or cancelled, as an ``sdo_error``: the latency is
+    how long the request waited for its answer (an abort: 0)."""
     nid = getattr(exc, "node_id", None)
+    waited = exc.elapsed_s if isinstance(exc, SdoTransportError) else None
+    timed_out = isinstance(exc, SdoTransportError) and not exc.cancelled and waited is not None
     return FaultRecord(
         FaultKind.SDO_ERROR,
         str(exc),
-        node=node_name(nid) if nid else None,
+        node=node_name(nid) if nid else "host",
         node_id=nid,
         trial=trial,
         detected_by="host",
         t_detected_mono=now,
+        latency_ms=1000.0 * waited if timed_out and waited is not None else 0.0,
+        latency_basis="the SDO request (no answer)" if timed_out else "the SDO answer",
     )

@@ -40,10 +40,10 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
     """``ilcrig host``: run the experiment over the bus; returns the exit code."""
     from host.experiment.outputs import check_out_dir
 
-    out = Path(args.out) if args.out else Path("runs") / time.strftime("rig-%Y%m%d-%H%M%S")
-    check_out_dir(out, iterations=cfg.iterations, create=False)
+    out = Path(args.out) if args.out is not None else Path("runs") / time.strftime("rig-%Y%m%d-%H%M%S")
+    check_out_dir(args.out if args.out is not None else out, iterations=cfg.iterations, n_ticks=cfg.n_ticks, create=False)
     plan = prepare(cfg)
-    check_out_dir(out, iterations=cfg.iterations)
+    check_out_dir(out, iterations=cfg.iterations, n_ticks=plan.n_ticks)
     print_plan(sys.stdout, "host", plan, extra=f", transport {transport.name}")
     network = None
     try:
@@ -66,6 +66,7 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
         _disconnect(network)
         sys.stderr.write(f"ilcrig: error: cannot open the bus ({transport.name}): {exc}\n")
         return EXIT_FAULT
+    fail_from, spec = _disk_full_injection(getattr(args, "inject_disk_full", None), cfg.iterations, bench)
     try:
         with interrupt_on_signals():
             res = run_session(
@@ -74,7 +75,8 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
                 out,
                 mode="rig",
                 stream=sys.stdout,
-                fail_writes_from_trial=getattr(args, "inject_disk_full", None),
+                fail_writes_from_trial=fail_from,
+                fail_spec=spec,
                 view=bool(getattr(args, "view", False)),
             )
     finally:
@@ -82,6 +84,21 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
         _disconnect(network)
     _print_closing_lines(res, out)
     return report_fault(res, out / "summary.json")
+
+
+def _disk_full_injection(text: str | None, iterations: int, bench: RigBench) -> tuple[int | None, str | None]:
+    """``--inject diskfull@WHEN`` of the launcher (its spec text): the first trial whose outputs'
+    writes fail (−1: from the first summary on) and the spec; ``@T:N`` is the io log in trial T,
+    set on the bench's channels here (then no output write fails on purpose)."""
+    if not text:
+        return None, None
+    from bus.transports.fault_inject import WHEN_BEFORE, WHEN_TICK, parse_spec
+
+    spec = parse_spec(text).resolved(iterations)
+    if spec.when == WHEN_TICK:
+        bench.channels.fail_log_from(spec.trial, spec.tick, spec.text)
+        return None, spec.text
+    return (-1 if spec.when == WHEN_BEFORE else spec.trial), spec.text
 
 
 def _disconnect(network: canopen.Network | None) -> None:

@@ -16,14 +16,18 @@ together:
   idle-poll loops (:mod:`host.rig.idle_poll`); with ``--inject`` the launcher's injections
   (:class:`host.rig.inject.ProcessInjector`: kill / stall / EMCY; frame faults are the hub's, a
   full disk the host's ``--inject-disk-full``);
-* the watch until the host ends (:class:`host.rig.supervisor.Supervisor`), the run's end
+* the run's position on the io channel (:class:`host.rig.run_watch.RunProgress`), the watch until
+  the host ends (:class:`host.rig.supervisor.Supervisor`), the run's end
   (:class:`host.rig.run_outcome.RunOutcome`) and, on every path, the cleanup: SIGTERM, grace,
-  SIGKILL and reaping of every child, the hub stopped (:func:`host.rig.processes.terminate`).
+  SIGKILL and reaping of every child, the hub stopped (:func:`host.rig.processes.terminate`), the
+  run folder settled; the janitor (:mod:`host.rig.janitor`) does that last part if the launcher
+  itself is killed.
 
 Before anything starts
     ``ilcrig run`` validates the whole experiment first (:func:`preflight`: the configuration,
     :func:`host.experiment.plan.prepare` with the trajectory's feasibility, ``--out``, every
-    ``--inject`` spec): bad input is one line and exit code 2 with no process started.
+    ``--inject`` spec against the experiment's trials and ticks): bad input is one line and exit
+    code 2 with no process started.
 
 Output
     The host's stdout goes to the terminal (the plan and one row per trial); every role's stderr,
@@ -53,7 +57,7 @@ from typing import IO, Any
 from bus.lockstep_process import mechanisms_left_out
 from bus.objects import DRIVE_NODE_IDS
 from bus.timer_slack import FINE_TIMER_SLACK_NS
-from bus.transports.fault_inject import FRAME_ACTIONS, FaultSpec, FaultSpecError, parse_specs
+from bus.transports.fault_inject import FRAME_ACTIONS, FaultSpec, check_specs, parse_specs
 from bus.units import timeout_scale
 from host.experiment.console import EXIT_CHILD_FAILED
 from host.rig.fair_scheduling import host_policy
@@ -63,6 +67,7 @@ from host.rig.processes import Child, Death, LaunchError, spawn, start_hub_proce
 from host.rig.realtime import DEFAULT_RT_PRIORITY, schedule_lockstep, scheduling_mechanisms
 from host.rig.role_commands import bus_time_rates, child_argv, host_role_args, rig_role_args
 from host.rig.run_outcome import RunOutcome
+from host.rig.run_watch import RunProgress
 from host.rig.supervisor import Supervisor
 
 __all__ = ["HOST_GRACE_S", "TERMINATE_GRACE_S", "RigLauncher", "launch_rig", "preflight"]
@@ -78,21 +83,23 @@ HOST_GRACE_S: float = 20.0
 def preflight(args: argparse.Namespace) -> list[FaultSpec]:
     """Everything ``ilcrig run`` checks before it starts a process: the experiment (configuration
     and :func:`host.experiment.plan.prepare`, i.e. trajectory, feasibility, gains, memory),
-    ``--out`` and the ``--inject`` specs. Returns the specs.
+    ``--out`` and the ``--inject`` specs (:func:`bus.transports.fault_inject.check_specs`: inside
+    the experiment's trials and ticks, possible on the transport). Returns the specs.
 
     :raises ValueError: one line naming the option or file (the CLI's exit code 2).
     """
     from host.experiment.outputs import check_out_dir
 
     specs = parse_specs(getattr(args, "inject", None))
-    if args.out:
+    if args.out is not None:
         check_out_dir(args.out, create=False)  # fast: before the configuration and the preparation
     from host.experiment.console import experiment_config
 
     cfg = experiment_config(args)
-    if args.out:
-        check_out_dir(args.out, iterations=cfg.iterations, create=False)
-    _check_specs(specs, args.bus, cfg.iterations)
+    if args.out is not None:
+        check_out_dir(args.out, iterations=cfg.iterations, n_ticks=cfg.n_ticks, create=False)
+    check_specs(specs, iterations=cfg.iterations, n_ticks=cfg.n_ticks, hub=args.bus in ("hub", "auto"))
+    _check_hub_path(getattr(args, "hub", None))
     if getattr(args, "bus_time", False) and args.bus not in ("hub", "auto"):
         raise ValueError(f"--bus-time: bus time is kept by the hub; the transport {args.bus} has none: use --bus hub")
     if getattr(args, "rt_priority", None) is not None and not args.realtime:
@@ -105,14 +112,22 @@ def preflight(args: argparse.Namespace) -> list[FaultSpec]:
     return specs
 
 
-def _check_specs(specs: list[FaultSpec], bus: str, iterations: int) -> None:
-    for spec in specs:
-        if spec.action in FRAME_ACTIONS and bus not in ("hub", "auto"):
-            raise FaultSpecError(f"--inject {spec.text}: frame faults are done by the hub: use --bus hub")
-        if spec.trial >= iterations:
-            raise FaultSpecError(
-                f"--inject {spec.text}: trial {spec.trial} is beyond the run's {iterations} trials (0..{iterations - 1})"
-            )
+def _check_hub_path(address: str | None) -> None:
+    """``--hub unix:PATH`` where another user's socket (or a link, a file) is: refused now, in one
+    line (the hub would refuse it too, but only in its log).
+
+    :raises HubOwnerError: (a ValueError) naming the path and its owner
+    """
+    if not address:
+        return
+    import os
+
+    from bus.transports.hub.addresses import parse_address
+    from bus.transports.hub.owner import check_socket_file
+
+    addr = parse_address(address, allow_remote=True)
+    if addr.kind == "unix" and os.path.lexists(addr.path):
+        check_socket_file(addr.path)
 
 
 class RigLauncher:
@@ -152,6 +167,8 @@ class RigLauncher:
         self.supervisor: Supervisor | None = None
         self._injector: Any = None
         self._idle_pollers: IdlePollers | None = None
+        self._progress: RunProgress | None = None
+        self._janitor: Any = None
 
     @property
     def deaths(self) -> list[Death]:
@@ -186,15 +203,16 @@ class RigLauncher:
                 "udp_multicast or can_config with `ilcrig run`"
             )
         specs = parse_specs(getattr(args, "inject", None))
-        for spec in specs:
-            if spec.action in FRAME_ACTIONS and not tc.needs_hub:
-                raise FaultSpecError(f"--inject {spec.text}: frame faults are done by the hub: use --bus hub")
-            if spec.target == "hub" and not tc.needs_hub:
-                raise FaultSpecError(f"--inject {spec.text}: the transport {tc.name} has no hub")
+        iterations = self._iterations(specs)
+        if specs:
+            from host.experiment.console import experiment_config
+
+            cfg = experiment_config(args)
+            check_specs(specs, iterations=cfg.iterations, n_ticks=cfg.n_ticks, hub=tc.needs_hub)
         self.transport_name = tc.name
         if self.host_grace_s is None:
             self.host_grace_s = HOST_GRACE_S * timeout_scale()
-        self.out_dir = out_dir = Path(args.out) if args.out else Path("runs") / time.strftime("run-%Y%m%d-%H%M%S")
+        self.out_dir = out_dir = Path(args.out) if args.out is not None else Path("runs") / time.strftime("run-%Y%m%d-%H%M%S")
         log_dir = out_dir / "logs"
         try:
             log_dir.mkdir(parents=True, exist_ok=True)
@@ -204,12 +222,19 @@ class RigLauncher:
         bus_args = ["--bus", tc.name]
         if tc.needs_hub:
             frame_specs = [sp.text for sp in specs if sp.action in FRAME_ACTIONS]
-            inject = json.dumps({"specs": frame_specs, "log": str(log_dir / "injections-hub.jsonl")}) if frame_specs else None
+            inject = (
+                json.dumps({"specs": frame_specs, "log": str(log_dir / "injections-hub.jsonl"), "iterations": iterations})
+                if frame_specs
+                else None
+            )
             self.hub = start_hub_process(args.hub, inject, log_dir / "hub.log", bus_time=bus_time_rates(args))
             self.hub_address = self.hub.address
             bus_args += ["--hub", str(self.hub_address)]
+        run_tc = transport_from_name(tc.name, self.hub_address) if tc.needs_hub else tc
+        self._progress = RunProgress(run_tc)
+        self._progress.start()
         self.supervisor = supervisor = Supervisor(
-            self.children, self.hub, log_dir / "hub.log", float(self.host_grace_s), self.interrupts
+            self.children, self.hub, log_dir / "hub.log", float(self.host_grace_s), self.interrupts, self._progress.where
         )
         outcome = RunOutcome(out_dir, self.children, self._say_err, self._resume_stalled)
         if self.interrupts.signum is not None:
@@ -233,9 +258,9 @@ class RigLauncher:
             scheduling = self._schedule_realtime(args)
             host_batch = scheduling.get("host", {}).get("policy") == "SCHED_BATCH"
             host_extra += ["--rt-scheduling", json.dumps(scheduling)]
-        disk = [sp.trial for sp in specs if sp.action == "diskfull"]
+        disk = [sp for sp in specs if sp.action == "diskfull"]
         if disk:
-            host_extra += ["--inject-disk-full", str(min(disk))]
+            host_extra += ["--inject-disk-full", disk[0].text]
         host = self._spawn(
             "host",
             child_argv("host", bus_args, extra=host_extra, debug=debug),
@@ -244,16 +269,34 @@ class RigLauncher:
             batch=host_batch,
         )
         logger.info("host pid %d: %s", host.pid, " ".join(host.argv))
+        from host.rig.janitor import start_janitor
+
+        self._janitor = start_janitor(out_dir, host.pid)
         if any(sp.action in ("kill", "stall", "emcy") for sp in specs):
             from host.rig.inject import ProcessInjector
 
-            run_tc = transport_from_name(tc.name, self.hub_address) if tc.needs_hub else tc
-            self._injector = ProcessInjector(specs, run_tc, self._pid_of, log_dir / "injections-launcher.jsonl")
+            self._injector = ProcessInjector(
+                specs,
+                run_tc,
+                self._pid_of,
+                log_dir / "injections-launcher.jsonl",
+                iterations=iterations or 1,
+                summary_path=out_dir / "summary.json",
+            )
             self._injector.start()
         code = supervisor.watch(host)
         if self.interrupts.signum is not None:
             return self._interrupted(host, supervisor, outcome)
-        return outcome.conclude(host, code, supervisor.deaths, supervisor.host_stopped)
+        host_death = supervisor.host_death(host, code)
+        return outcome.conclude(host, code, supervisor.deaths, supervisor.host_stopped, host_death)
+
+    def _iterations(self, specs: list[FaultSpec]) -> int | None:
+        """The run's trials, when an injection needs them (``@after``); else None (not computed)."""
+        if not any(sp.when in ("after", "end") for sp in specs):
+            return None
+        from host.experiment.console import experiment_config
+
+        return experiment_config(self.args).iterations
 
     def _spawn(
         self, name: str, argv: list[str], log_path: Path | None, *, stderr_only: bool = False, batch: bool = False
@@ -330,7 +373,7 @@ class RigLauncher:
         exit_code = self._signal_exit()
         if host.proc.poll() is None:
             supervisor.stop_host(host, signal.SIGINT if self.interrupts.signum == signal.SIGINT else signal.SIGTERM)
-        outcome.mark_interrupted(self.interrupts.name)
+        outcome.mark_interrupted(self.interrupts.name, self._progress.where() if self._progress is not None else None)
         return exit_code
 
     def _shutdown(self) -> None:
@@ -341,13 +384,24 @@ class RigLauncher:
                 self._idle_pollers.stop()
             if self._injector is not None:
                 self._injector.stop()  # resumes stalled processes
+            if self._progress is not None:
+                self._progress.stop()
             terminate(self.children, self.grace_s, lambda: self.interrupts.hurry)
         finally:
-            if self.hub is not None:
-                try:
-                    self.hub.stop()
-                finally:
-                    self.hub = None
+            try:
+                if self.hub is not None:
+                    try:
+                        self.hub.stop()
+                    finally:
+                        self.hub = None
+            finally:
+                if self._janitor is not None:
+                    if self.out_dir is not None:
+                        from host.rig.janitor import settle_run_folder
+
+                        settle_run_folder(self.out_dir)  # every path: also a launch that failed half way
+                    self._janitor.done()
+                    self._janitor = None
 
     def _say_out(self, text: str) -> None:
         stream = self.stdout or sys.stdout

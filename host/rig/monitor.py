@@ -25,11 +25,14 @@ failing (:attr:`ChannelMonitor.bus_error`), bus error frames (:attr:`ChannelMoni
 the log failing, e.g. on a full disk (:attr:`ChannelMonitor.log_error`: the log stops, the
 counting goes on).  On the io channel the monitor also follows the trials and ticks as the plant's
 frames show them (:attr:`ChannelMonitor.follower`, for a fault's ``tick``; with arrays only the
-control frames and the last encoder frame between them are looked at).
+control frames and the last encoder frame between them are looked at).  For ``--inject
+diskfull@T:N`` the io monitor's log fails with ``ENOSPC`` once the channel shows tick N of trial
+T (:attr:`ChannelMonitor.fail_log_from`; ``on_log_fail_injected`` records it).
 """
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import threading
@@ -116,6 +119,9 @@ class ChannelMonitor:
         #: io: trials and ticks as the plant's frames show them
         self.follower = io_frames.TrialTickFollower()
         self._is_io = name == IO
+        #: fault injection: the log fails from this (trial, tick) of the io channel on
+        self.fail_log_from: tuple[int, int] | None = None
+        self.on_log_fail_injected: Callable[[int, int | None], None] | None = None
         self._thread = threading.Thread(target=self._run, name=f"monitor {name}", daemon=True)
         self._thread.start()
 
@@ -160,10 +166,22 @@ class ChannelMonitor:
                     follower.on_frame(msg.arbitration_id, msg.data)
             if log is not None:
                 try:
+                    self._injected_failure()
                     for msg in batch:
                         log.on_message_received(msg)
                 except (OSError, ValueError) as err:  # ValueError: a write to a file closed by a failure
                     self._log_failed(err)
+
+    def _injected_failure(self) -> None:
+        """Raise the injected ``ENOSPC`` once the io channel shows :attr:`fail_log_from`."""
+        if self.fail_log_from is None or not self._is_io:
+            return
+        f, (trial, tick) = self.follower, self.fail_log_from
+        if f.trial > trial or (f.trial == trial and f.tick is not None and f.tick >= tick):
+            self.fail_log_from = None
+            if self.on_log_fail_injected is not None:
+                self.on_log_fail_injected(f.trial, f.tick)
+            raise OSError(errno.ENOSPC, "No space left on device (injected)")
 
     def _error_frames(self, n: int) -> None:
         if n and self.first_error_frame_t is None:
@@ -207,6 +225,7 @@ class ChannelMonitor:
                     self.follower.on_frame_array(frames["arbitration_id"], frames["data"], frames["length"], ~err)
                 if self.log is not None:
                     try:
+                        self._injected_failure()
                         self.log.write_frames(frames)
                     except (OSError, ValueError) as exc:
                         self._log_failed(exc)

@@ -81,6 +81,8 @@ class Death:
     """A process of the run that ended while the host ran (or the host itself).
 
     :ivar t_mono: when the launcher noticed it, ``time.monotonic()``
+    :ivar latency_s: at most how long after its end the launcher noticed it, s (None: not known)
+    :ivar where: the io channel's position then (a :class:`host.rig.run_watch.Where`), if followed
     """
 
     name: str
@@ -89,6 +91,8 @@ class Death:
     t_mono: float
     log_path: Path | None
     returncode: int
+    latency_s: float | None = None
+    where: Any = None
 
     def describe(self) -> str:
         where = f"; its log: {self.log_path}" if self.log_path else ""

@@ -13,7 +13,13 @@ the caller made and hands over (the ``ilcrig host`` role, :func:`host.rig.host_r
 * the trials (:class:`host.rig.trial_runner.TrialRunner`) and, with ``--ff-transport pdo``, the
   SYNC/RPDO/TPDO streaming (:class:`host.rig.pdo_stream.SyncProducer`);
 * the end: every drive still alive torque-free with the evidence from the bus
-  (:func:`host.rig.shutdown.bring_to_safe_state`), and the facts for the summary (:meth:`RigBench.info`).
+  (:func:`host.rig.shutdown.bring_to_safe_state`) while the watchdog still watches, and a fault
+  seen after the trial loop's last step — between its last trial and the drives' safe state, or
+  an SDO request of the shutdown that failed — as :meth:`RigBench.closing_fault`; the facts for the
+  summary (:meth:`RigBench.info`).
+
+Every SDO error of canopen's own objects that leaves the bring-up or the recovery is the project's
+(:func:`host.nodes.sdo_access.sdo_errors`): an ``sdo_error`` through the run's one fault path.
 """
 
 from __future__ import annotations
@@ -35,9 +41,11 @@ from host.experiment.config import ExperimentConfig
 from host.experiment.faults import FaultRecord
 from host.experiment.trials import CyclicActuals, CyclicSetpoints
 from host.nodes.drive_client import DriveClient
+from host.nodes.sdo_access import sdo_errors
 from host.rig.bring_up import BringUp, RigNodes
 from host.rig.bus_time import BusTimeAccounting
 from host.rig.channels import RigChannels
+from host.rig.fault_classify import sdo_fault
 from host.rig.host_heartbeat import HostHeartbeat
 from host.rig.pdo_stream import SyncProducer
 from host.rig.shutdown import bring_to_safe_state
@@ -102,6 +110,7 @@ class RigBench:
         self.scale = timeout_scale()
         self._t_start = time.monotonic()
         self._safe_state: list[dict[str, Any]] = []
+        self._closing_fault: FaultRecord | None = None
         self._closed = False
         self.nodes: RigNodes | None = None
         self._heartbeat: HostHeartbeat | None = None
@@ -147,6 +156,7 @@ class RigBench:
                 scale=self.scale,
                 realtime=realtime,
                 on_pdos=streamer.attach if streamer is not None else None,
+                on_watched=watchdog.arm,
             )
             self._heartbeat = watchdog.producer = HostHeartbeat(network, HOST_HEARTBEAT_MS / 1000.0)
             self._heartbeat.start()
@@ -162,9 +172,10 @@ class RigBench:
         return self.nodes.drives if self.nodes is not None else []
 
     def start(self) -> None:
-        """Every node booted and brought up (:meth:`host.rig.bring_up.BringUp.start_all`); from now
-        on the watchdog ends the run on any fault."""
-        self.bring_up.start_all()
+        """Every node booted and brought up (:meth:`host.rig.bring_up.BringUp.start_all`); from the
+        moment every node's heartbeat is watched the watchdog ends the run on any fault."""
+        with sdo_errors(None, "bring-up"):
+            self.bring_up.start_all()
         self.watchdog.arm()
 
     def recover(self, trial: int) -> list[int]:
@@ -178,10 +189,11 @@ class RigBench:
             time.sleep(self.pause_s)
         watchdog.raise_if_fault()
         if self.recover_s <= 0:
-            watchdog.check()
+            watchdog.check_settled()
             watchdog.raise_if_fault()
             return []
-        return self.bring_up.recover(trial)
+        with sdo_errors(None, "recovery"):
+            return self.bring_up.recover(trial)
 
     def run_trial(
         self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray, cyclic: CyclicSetpoints | None = None
@@ -193,8 +205,15 @@ class RigBench:
         return self.watchdog.describe(exc, trial)
 
     def progress(self) -> int | None:
-        """The last tick of the current trial as the io channel shows it (None before its first)."""
-        return self.channels.trial_tick(self.watchdog.trial)
+        """The last tick of the current trial as the io channel shows it (0 while it runs and none
+        was seen yet, None outside a trial)."""
+        tick = self.channels.trial_tick(self.watchdog.trial)
+        return 0 if tick is None and self.watchdog.in_trial else tick
+
+    def closing_fault(self) -> FaultRecord | None:
+        """After :meth:`close`: the fault the watchdog declared (also one it declared after the
+        trial loop's last step, which nobody raised), or a failed SDO request of the shutdown."""
+        return self.watchdog.fault or self._closing_fault
 
     def info(self) -> dict[str, Any]:
         """Transport, per-channel frame counts, bus time, heartbeat timing, trial timing, EMCYs,
@@ -226,15 +245,24 @@ class RigBench:
 
     def close(self) -> None:
         """Every drive still alive to a torque-free state with the evidence from the heartbeats
-        (:func:`host.rig.shutdown.bring_to_safe_state`), then stop the host's heartbeat, the
+        (:func:`host.rig.shutdown.bring_to_safe_state`) — the watchdog armed until then: what it
+        sees now (a node lost, an EMCY, this process stopped a moment ago) and while the drives
+        stop is the run's fault (:meth:`closing_fault`) — then stop the host's heartbeat, the
         watchdog and the monitors. The network stays with its owner. Never raises."""
         if self._closed:
             return
         self._closed = True
         watchdog = self.watchdog
-        watchdog.disarm()
+        try:
+            watchdog.check_settled()
+        except Exception:  # noqa: BLE001 - closing must go on
+            logger.debug("final watchdog round failed", exc_info=True)
         trial_running = watchdog.in_trial or self.channels.running_tick() is not None
-        self._safe_state = bring_to_safe_state(self.network, self.nodes, watchdog, trial_running=trial_running)
+        self._safe_state, errors = bring_to_safe_state(self.network, self.nodes, watchdog, trial_running=trial_running)
+        watchdog.check()
+        watchdog.disarm()
+        if errors and watchdog.fault is None:
+            self._closing_fault = sdo_fault(errors[0], watchdog.trial, time.monotonic())
         if self._heartbeat is not None:
             self._heartbeat.stop()
         watchdog.stop()

@@ -1,17 +1,27 @@
 """How an ``ilcrig run`` ends once the host has: its exit code, the summary's fault record and
-evidence, and the one terminal line.
+evidence, the run folder as the summary says, and the one terminal line.
 
 This module owns :class:`RunOutcome`, the launcher's exit paths:
 
-* the host completed the run: exit 0 (a process that ended afterwards gets a note);
+* the host completed the run: exit 0 — unless a process of the run ended while the host was still
+  finishing (after the last trial): then that is the run's fault, placed ``after_last_trial``, exit
+  3 (``completed`` stays true: every trial was run and kept);
 * the host refused the experiment: its ``ilcrig: error:`` line, exit 2;
 * a fault: the record in ``summary.json`` — the host's own, or, when the host itself died or
-  was stopped, a ``process_died`` record naming the process that ended — completed with what only
-  the launcher knows (which process ended, the drives' ``SAFE-STATE`` records from their logs,
-  :mod:`bus.safe_state`, after letting stalled processes resume and live drives react);
-  ``report.md`` rewritten; the one line ``ilcrig: fault: <what>: <node>, trial k, tick n; …; its
-  log: …``; exit 3;
+  was stopped, a ``process_died`` record naming the process that ended, placed where the run was
+  (the trials the summary kept, the trial and tick the io channel showed when the launcher noticed
+  the end: :class:`host.rig.processes.Death`) with the latency of the launcher's notice — completed
+  with what only the launcher knows (which process ended, the drives' ``SAFE-STATE`` records from
+  their logs, :mod:`bus.safe_state`, after letting stalled processes resume and live drives
+  react); ``report.md`` rewritten; the one line ``ilcrig: fault: <what>: <node>, trial k, tick n;
+  …; its log: …``; exit 3;
 * an interrupt: the summary marked ``interrupted`` by the launcher if the host did not mark it.
+
+On every path the drives' safe state that the host could not show (``torque`` not ``off``) is
+taken from their logs, and the run folder is made to hold what the summary says
+(:meth:`RunOutcome.settle_folder`, :func:`host.rig.janitor.settle_run_folder`): ``recording.rrd``
+cut back to the summary's trials, temporary files and trial arrays the summary does not hold
+removed — the host may have died anywhere.
 """
 
 from __future__ import annotations
@@ -27,7 +37,16 @@ from bus.cia301.nmt import CONSUMER_TIME_MS
 from bus.safe_state import last_state_in_log
 from bus.units import timeout_scale
 from host.experiment.console import EXIT_FAULT, EXIT_OK, EXIT_USAGE
-from host.experiment.faults import FaultKind, FaultRecord, attach_injection, fault_line, read_injections
+from host.experiment.faults import (
+    FaultKind,
+    FaultRecord,
+    Position,
+    attach_injection,
+    fault_line,
+    position_of,
+    read_injections,
+)
+from host.experiment.trials import place
 from host.rig.processes import Child, Death, describe_status, node_id_of, tail
 
 logger = logging.getLogger(__name__)
@@ -82,34 +101,64 @@ class RunOutcome:
             except Exception:  # noqa: BLE001 - the report must not hide the fault line
                 logger.info("report.md not written", exc_info=True)
 
-    def mark_interrupted(self, signal_name: str) -> None:
-        """A run interrupted by ``signal_name`` whose host did not say so in the summary: say so."""
+    def settle_folder(self) -> None:
+        """The run folder as its summary says (the host has ended): the recording cut back to its
+        trials, leftovers removed (:func:`host.rig.janitor.settle_run_folder`). Never raises."""
+        from host.rig.janitor import settle_run_folder
+
+        for line in settle_run_folder(self.out_dir):
+            logger.info("%s", line)
+
+    def mark_interrupted(self, signal_name: str, where: Any = None) -> None:
+        """A run interrupted by ``signal_name``: the summary says so (if the host did not; placed
+        with the io channel's position ``where``), the drives' safe state completed from their
+        logs, the folder settled."""
         summary = self.load_summary()
-        if summary is not None and not summary.get("interrupted") and not summary.get("completed"):
-            summary["interrupted"] = {"signal": signal_name, "trial": len(summary["iterations"]), "tick": None, "by": "launcher"}
+        if summary is not None:
+            if not summary.get("interrupted") and not summary.get("completed"):
+                kept = len(summary["iterations"])
+                planned = int(summary.get("config", {}).get("iterations", kept + 1))
+                in_trial = where is not None and where.trial >= kept and kept < planned
+                position, trial = position_of(kept, planned, in_trial)
+                tick = (where.tick or 0) if in_trial else None
+                summary["interrupted"] = {
+                    "signal": signal_name,
+                    "position": str(position),
+                    "trial": trial,
+                    "tick": tick,
+                    "by": "launcher",
+                }
+            self._complete_evidence(summary, time.monotonic())
             self.save(summary)
+        self.settle_folder()
 
     # -- the exit paths -------------------------------------------------------------------
-    def conclude(self, host: Child, code: int, deaths: Sequence[Death], host_stopped: bool) -> int:
+    def conclude(
+        self, host: Child, code: int, deaths: Sequence[Death], host_stopped: bool, host_death: Death | None = None
+    ) -> int:
         """The run's exit code after the host ended with ``code``; ``deaths``: the processes that
-        ended while it ran; ``host_stopped``: the launcher stopped it."""
-        host_death = None
+        ended while it ran; ``host_stopped``: the launcher stopped it; ``host_death``: the host's
+        end as the launcher noticed it."""
         if code != 0 and not host_stopped and code not in (EXIT_USAGE, EXIT_FAULT):
-            host_death = Death("host", host.pid, describe_status(code), time.monotonic(), host.log_path, code)
-        if code == EXIT_OK:
-            if deaths:  # the run completed; something ended afterwards
-                self.say_err(f"ilcrig: note: {deaths[0].describe()} after the last trial")
-            return EXIT_OK
+            host_death = host_death or Death("host", host.pid, describe_status(code), time.monotonic(), host.log_path, code)
+        else:
+            host_death = None
         if code == EXIT_USAGE:
             line = next((ln for ln in reversed(tail(host.log_path, 40)) if ln.startswith("ilcrig: error:")), None)
             self.say_err(line or f"ilcrig: error: the host refused the experiment; its log: {host.log_path}")
             return EXIT_USAGE
         summary = self.load_summary()
+        if code == EXIT_OK and not deaths:
+            if summary is not None and self._complete_evidence(summary, time.monotonic()):
+                self.save(summary)
+            self.settle_folder()
+            return EXIT_OK
         kept = len(summary["iterations"]) if summary is not None else 0
         first = deaths[0] if deaths else host_death
         if (summary is None or not summary.get("faults")) and code == EXIT_FAULT and not deaths:
             # the host ended with a fault it did not put in a summary
             line = next((ln for ln in reversed(tail(host.log_path, 40)) if ln.startswith("ilcrig: ")), None)
+            self.settle_folder()
             self.say_err(
                 f"{line}; the host's log: {host.log_path}"
                 if line
@@ -118,20 +167,22 @@ class RunOutcome:
             return EXIT_FAULT
         record = self._record(summary, kept, host, code, first)
         if summary is not None:
-            summary["completed"] = False
+            summary["completed"] = record.position == Position.AFTER_LAST_TRIAL  # every trial kept
             summary["faults"][0] = record.as_dict()
             since = first.t_mono if first is not None else (record.t_detected_mono or time.monotonic())
             if record.injected and record.injected.get("t_mono") is not None:
                 since = float(record.injected["t_mono"])
-            summary["safe_state"] = self.drive_evidence(summary.get("safe_state") or [], since)
+            self._complete_evidence(summary, since)
             self.save(summary, report=True)
+        self.settle_folder()
         summary_path = self.out_dir / "summary.json" if summary is not None else None
         self.say_err(fault_line(record, kept, summary_path=summary_path, extra=self._where(record, first, host)))
         return EXIT_FAULT
 
     def _record(self, summary: dict[str, Any] | None, kept: int, host: Child, code: int, first: Death | None) -> FaultRecord:
         """The run's fault: the host's first record, else a ``process_died`` one (added to the
-        summary); with the process that ended first attached."""
+        summary, placed where the run was when the launcher noticed the end); with the process
+        that ended first attached."""
         if summary is not None and summary.get("faults"):
             record = FaultRecord.from_dict(summary["faults"][0])
         else:
@@ -141,14 +192,19 @@ class RunOutcome:
                 f"{culprit.name} (pid {culprit.pid}) {culprit.status}",
                 node=culprit.name,
                 node_id=node_id_of(culprit.name),
-                trial=kept,
                 detected_by="launcher",
                 t_detected_mono=culprit.t_mono,
-                latency_basis="process exit",
+                latency_ms=1000.0 * culprit.latency_s if culprit.latency_s is not None else None,
+                latency_basis="the process's end (the launcher's wait on it)",
             )
+            planned = int(summary.get("config", {}).get("iterations", kept + 1)) if summary is not None else kept + 1
+            where = culprit.where
+            in_trial = where is not None and where.trial >= kept and kept < planned
             attach_injection(record, read_injections(self.out_dir))
-            if record.tick is None and record.injected and record.injected.get("trial") == record.trial:
-                record.tick = record.injected.get("tick")
+            if in_trial and where is not None:
+                injected = record.injected or {}
+                record.tick = where.tick if where.tick is not None else injected.get("tick")
+            place(record, None, kept, planned, in_trial)
             if summary is not None:
                 summary["faults"].append(record.as_dict())
         if first is not None:
@@ -173,6 +229,18 @@ class RunOutcome:
             return f"its log: {self.out_dir / 'logs' / 'hub.log'}"
         return f"the host's log: {host.log_path}"
 
+    def _complete_evidence(self, summary: dict[str, Any], since: float) -> bool:
+        """The summary's ``safe_state`` with every drive the host could not show torque-free
+        completed from the drives' logs (:meth:`drive_evidence`). Returns whether it changed."""
+        entries = summary.get("safe_state") or []
+        drives = {e.get("node"): e for e in entries if str(e.get("node", "")).startswith("drive")}
+        if len(drives) == sum(c.name.startswith("drive") for c in self.children) and all(
+            e.get("torque") == "off" for e in drives.values()
+        ):
+            return False
+        summary["safe_state"] = self.drive_evidence(entries, since)
+        return True
+
     def drive_evidence(self, entries: list[dict[str, Any]], since: float) -> list[dict[str, Any]]:
         """Complete the drives' safe-state entries from their logs (SAFE-STATE records): stalled
         processes resume first, live drives get a consumer time to react to a lost host."""
@@ -187,8 +255,11 @@ class RunOutcome:
                 entry = by_node.setdefault(c.name, {"node": c.name, "node_id": node_id_of(c.name), "torque": "unknown"})
                 if entry.get("torque") == "off" and "its log" not in str(entry.get("evidence", "")):
                     continue  # the host saw it on the bus
-                rec, on_after = last_state_in_log(tail(c.log_path, 400), c.name)
-                if rec is not None and not on_after:
+                lines = safe_state_lines(c.log_path)
+                rec, on_after = last_state_in_log(lines, c.name)
+                if rec is None and not on_after and lines is not None and _log_started(c.log_path):
+                    entry.update(torque="off", evidence="its log: its torque never came on (no TORQUE-ON record)")
+                elif rec is not None and not on_after:
                     entry.update(
                         torque="off",
                         cia402=rec.get("cia402"),
@@ -206,3 +277,33 @@ class RunOutcome:
         return [by_node[c.name] for c in drives if c.name in by_node] + [
             e for n, e in by_node.items() if not str(n).startswith("drive")
         ]
+
+
+#: how much of a drive's log is searched for its SAFE-STATE records (from the end), bytes
+LOG_SEARCH_BYTES = 8 << 20
+
+
+def safe_state_lines(path: Path | None) -> list[str]:
+    """The lines of a role's log that carry a safe-state record or say torque came on, in order
+    (the last :data:`LOG_SEARCH_BYTES` of it; a drive that faulted may log much after its record)."""
+    from bus.safe_state import TAG, TORQUE_ON_TAG
+
+    if path is None:
+        return []
+    try:
+        with open(path, "rb") as fh:
+            end = fh.seek(0, 2)
+            fh.seek(max(0, end - LOG_SEARCH_BYTES))
+            data = fh.read()
+    except OSError:
+        return []
+    marks = (TAG.encode(), TORQUE_ON_TAG.encode())
+    return [ln.decode(errors="replace") for ln in data.splitlines() if marks[0] in ln or marks[1] in ln]
+
+
+def _log_started(path: Path | None) -> bool:
+    """The role's log holds lines (it ran and logged: its records, if any, would be there)."""
+    try:
+        return path is not None and path.stat().st_size > 0
+    except OSError:
+        return False

@@ -1,12 +1,15 @@
 """Supervising a running ``ilcrig run``: the host and every other process until the host ends.
 
-This module owns :class:`Supervisor`, the launcher's watch loop: every :data:`POLL_S` it looks at
-the host, the other roles and the hub.  A process that ends meanwhile is noted as a
-:class:`host.rig.processes.Death` and gives the host a grace period to notice it on the bus and
-record it (the host's watchdog takes about three heartbeat periods); a host that does not end by
-then is stopped (:meth:`Supervisor.stop_host`: signal, wait, SIGKILL its group).  A signal to the
-launcher (:class:`host.rig.interrupts.Interrupts`) ends the watch at once.  The CPU and wall time
-the watch took are kept (a few µs of CPU per wake-up).
+This module owns :class:`Supervisor`, the launcher's watch loop: it waits for the end of any
+process of the run — the host, the other roles, the hub — on their pidfds (``poll``, woken by the
+end itself; where the kernel has no pidfd, it looks every :data:`POLL_S`), and at least every
+:data:`POLL_S` for a signal.  A process that ends meanwhile is noted as a
+:class:`host.rig.processes.Death` — when, at most how long after its end (the wait it ended), and
+where the run was (the trial and tick of :class:`host.rig.run_watch.RunProgress`) — and gives the
+host a grace period to notice it on the bus and record it (the host's watchdog takes about three
+heartbeat periods); a host that does not end by then is stopped (:meth:`Supervisor.stop_host`:
+signal, wait, SIGKILL its group).  A signal to the launcher (:class:`host.rig.interrupts.Interrupts`)
+ends the watch at once.  The CPU and wall time the watch took are kept.
 """
 
 from __future__ import annotations
@@ -14,8 +17,10 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import select
 import signal
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +43,7 @@ class Supervisor:
     :param hub_log: the hub's log file
     :param host_grace_s: how long the host gets to end after another process ended, or after a signal, s
     :param interrupts: the launcher's signal state
+    :param where: the run's position now (:meth:`host.rig.run_watch.RunProgress.where`), or None
     :ivar deaths: the processes that ended while the host ran, in the order noticed
     :ivar host_stopped: the supervisor stopped the host after its grace period
     :ivar watch_cpu_s: CPU time (user+sys) the launcher used while watching, s
@@ -45,23 +51,33 @@ class Supervisor:
     """
 
     def __init__(
-        self, children: list[Child], hub: Any, hub_log: Path | None, host_grace_s: float, interrupts: Interrupts
+        self,
+        children: list[Child],
+        hub: Any,
+        hub_log: Path | None,
+        host_grace_s: float,
+        interrupts: Interrupts,
+        where: Callable[[], Any] | None = None,
     ) -> None:
         self.children = children
         self.hub = hub
         self.hub_log = hub_log
         self.host_grace_s = host_grace_s
         self.interrupts = interrupts
+        self.where = where
         self.deaths: list[Death] = []
         self.host_stopped = False
         self.watch_cpu_s = 0.0
         self.watch_wall_s = 0.0
+        self._pidfds: dict[int, int] = {}
+        self._since = time.monotonic()  # the start of the wait a process end is noticed in
 
     def watch(self, host: Child) -> int:
         """Until the host ends (its exit code) or a signal comes (then -1). A process that ends
         meanwhile gives the host :attr:`host_grace_s` to record it; then the host is stopped."""
         cpu0, wall0 = cpu_s(), time.monotonic()
         deadline: float | None = None
+        self._since = wall0
         try:
             while True:
                 if self.interrupts.signum is not None:  # first: the roles may fail because of the same Ctrl-C
@@ -79,26 +95,66 @@ class Supervisor:
                     )
                     self.host_stopped = True
                     return self.stop_host(host, signal.SIGTERM)
-                time.sleep(POLL_S)
+                self._wait(host)
         finally:
             self.watch_cpu_s, self.watch_wall_s = cpu_s() - cpu0, time.monotonic() - wall0
             logger.info("launcher used %.3f s CPU in %.1f s of watching", self.watch_cpu_s, self.watch_wall_s)
+            for fd in self._pidfds.values():
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+            self._pidfds.clear()
+
+    def _wait(self, host: Child) -> None:
+        """Up to :data:`POLL_S` for the end of a process of the run, on their pidfds: a process
+        that ends wakes the wait (or ends it at once, if it ended just before), so an end noticed
+        next happened after the wait returned (:attr:`_since`; the latency of a notice is bounded
+        by the launcher's own steps since). Without pidfds: a sleep of :data:`POLL_S`, and the
+        bound is from its start."""
+        pids = [c.pid for c in self.children if c.proc.returncode is None]
+        if self.hub is not None and self.hub.alive:
+            pids.append(self.hub.pid)
+        fds = [fd for fd in (self._pidfd(p) for p in pids) if fd is not None]
+        if not fds:
+            self._since = time.monotonic()
+            time.sleep(POLL_S)
+            return
+        poller = select.poll()
+        for fd in fds:
+            poller.register(fd, select.POLLIN)
+        poller.poll(1000 * POLL_S)
+        self._since = time.monotonic()
+
+    def _pidfd(self, pid: int) -> int | None:
+        if pid not in self._pidfds:
+            try:
+                self._pidfds[pid] = os.pidfd_open(pid)
+            except (AttributeError, OSError):
+                return None  # no pidfds here, or the process is gone already (its end is seen by poll())
+        return self._pidfds[pid]
 
     def note_deaths(self, host: Child) -> None:
         """Note every process (not the host) that ended since the last look, the hub included."""
         noted = {d.name for d in self.deaths}
         now = time.monotonic()
+        latency = now - self._since
+        where = self.where() if self.where is not None else None
         for c in self.children:
             if c is host or c.name in noted:
                 continue
             code = c.proc.poll()
             if code is not None:
-                self.deaths.append(Death(c.name, c.pid, describe_status(code), now, c.log_path, code))
+                self.deaths.append(Death(c.name, c.pid, describe_status(code), now, c.log_path, code, latency, where))
                 logger.info("%s (pid %d) %s while the host was running", c.name, c.pid, describe_status(code))
         if self.hub is not None and "hub" not in noted and not self.hub.alive:
             code = self.hub.process.returncode
-            self.deaths.append(Death("hub", self.hub.pid, describe_status(code), now, self.hub_log, code))
+            self.deaths.append(Death("hub", self.hub.pid, describe_status(code), now, self.hub_log, code, latency, where))
             logger.info("the hub (pid %d) %s while the host was running", self.hub.pid, describe_status(code))
+
+    def host_death(self, host: Child, code: int) -> Death:
+        """The host's own end as a :class:`Death` (noticed now, in the current wait)."""
+        now = time.monotonic()
+        where = self.where() if self.where is not None else None
+        return Death("host", host.pid, describe_status(code), now, host.log_path, code, now - self._since, where)
 
     def stop_host(self, host: Child, signum: int) -> int:
         """Signal the host alone and wait up to :attr:`host_grace_s` (a second signal: at once) for

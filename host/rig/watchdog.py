@@ -9,15 +9,21 @@ declared, whether a trial runs or not:
 * a thread (every :data:`WATCH_PERIOD_S`), or :meth:`Watchdog.check` in the caller's thread,
   looks at what it has heard, the channels (:class:`host.rig.channels.RigChannels`) and the host's
   heartbeat producer and classifies the first fault visible (:mod:`host.rig.fault_classify`), in
-  order: a bus gone, a channel's log stopped or a bus error frame, an EMCY, a node's heartbeat
-  lost or its boot-up, no node heard at all;
+  order: a bus gone, a channel's log stopped or a bus error frame, an EMCY, the host itself
+  stopped for longer than the nodes' consumer time (its heartbeat's gap, when no node's EMCY says
+  so within :data:`STALL_SETTLE_S`), a node's heartbeat lost or its boot-up, no node heard at all;
+  a round that comes more than a consumer time after the last one (this process did not run)
+  judges no heartbeat: the frames that queued meanwhile are read first;
 * once :meth:`Watchdog.arm` was called, that fault is declared: NMT STOP broadcast at once
   (torque off on every drive still alive), the record kept (the trial and the io channel's tick
   filled in, the injection that caused it attached), and the fault hooks run (the bench cancels
   its SDO requests and wakes a SYNC producer waiting for TPDOs); the main thread then ends the
   run through the experiment's one fault path (:meth:`Watchdog.raise_if_fault`).
 
-Between trials a lost node may be tolerated (``tolerate_lost_between_trials``, ``--recover``): then
+It is armed from the bring-up on (once every node's heartbeat is watched) until the bench has
+brought the drives to their safe state at its close, so a fault before the first trial, between
+trials, after the last one and during the shutdown is declared like one during a trial.  Between
+trials a lost node may be tolerated (``tolerate_lost_between_trials``, ``--recover``): then
 heartbeats are not judged outside a trial and the bench brings the node up again.
 """
 
@@ -43,10 +49,12 @@ from host.nodes.sdo_access import SdoTransportError
 from host.rig.channels import RigChannels
 from host.rig.fault_classify import (
     BusError,
+    DetectionTimes,
     bus_fault,
     channel_fault,
     emcy_fault,
     heartbeat_fault,
+    host_stall_fault,
     plant_trial_fault,
     sdo_fault,
 )
@@ -55,13 +63,16 @@ from host.rig.node_events import NodeEvents
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["EMCY_SETTLE_S", "WATCH_PERIOD_S", "FieldbusErrors", "Watchdog", "nmt_stop_all"]
+__all__ = ["EMCY_SETTLE_S", "STALL_SETTLE_S", "WATCH_PERIOD_S", "FieldbusErrors", "Watchdog", "nmt_stop_all"]
 
 #: the watchdog's period, s
 WATCH_PERIOD_S = 0.02
 #: after a fault the bench saw itself, how long the host lets the nodes' EMCY frames arrive
 #: before it decides what happened, s
 EMCY_SETTLE_S = 0.05
+#: after this process was stopped for longer than the nodes' consumer time, how long the host
+#: waits for their EMCY 0x8130 (queued meanwhile) before it declares the host's loss itself, s
+STALL_SETTLE_S = 0.2
 
 
 def nmt_stop_all(network: canopen.Network) -> bool:
@@ -124,6 +135,8 @@ class Watchdog:
         self.consumer_s = CONSUMER_TIME_MS / 1000.0 * scale
         #: the nodes' heartbeat period as the host allows for it, s
         self.period_s = NODE_HEARTBEAT_MS / 1000.0 * scale
+        #: what the detectors wait for (the latencies of the records)
+        self.times = DetectionTimes.scaled(scale)
         self.tolerate_lost_between_trials = tolerate_lost_between_trials
         #: the nodes' heartbeats and EMCY frames
         self.events = NodeEvents(self.consumer_s, time.monotonic() if t_start is None else t_start)
@@ -140,6 +153,12 @@ class Watchdog:
         self._hooks: list[Callable[[FaultRecord], None]] = []
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._last_round: float | None = None
+        #: when this process was last stopped for longer than the consumer time: (gap s, its end)
+        self._stall: tuple[float, float] | None = None
+        #: from this time (``t_mono``) on the nodes are NMT STOPPED on purpose (the shutdown): a
+        #: stall of the host that begins later costs them nothing
+        self.stopped_at: float | None = None
 
     # -- the thread ---------------------------------------------------------------------------
     def start(self) -> None:
@@ -155,7 +174,9 @@ class Watchdog:
             self._thread.join(timeout=1.0)
 
     def arm(self) -> None:
-        """From now on any fault seen is declared (ends the run)."""
+        """From now on any fault seen is declared (ends the run; again: nothing changes)."""
+        if not self._armed and self.producer is not None:
+            self.producer.take_gap(float("inf"))  # a gap before the nodes consumed the heartbeat counts for nothing
         self._armed = True
 
     def disarm(self) -> None:
@@ -167,16 +188,9 @@ class Watchdog:
         self._hooks.append(hook)
 
     def _loop(self) -> None:
-        last = time.monotonic()
+        self._last_round = time.monotonic()
         while not self._stop.wait(WATCH_PERIOD_S):
-            now = time.monotonic()
-            if now - last > self.consumer_s:
-                # this process did not run (it was stopped): let the notifier read what queued up
-                self.events.grace(now)
-                last = now
-                continue
-            last = now
-            self._round(now)
+            self._round(time.monotonic())
 
     # -- detection and declaration --------------------------------------------------------------
     @property
@@ -200,6 +214,17 @@ class Watchdog:
             time.sleep(EMCY_SETTLE_S)
             self.check()
 
+    def check_settled(self) -> None:
+        """One round now, and while this process was stopped a moment ago (its heartbeat's gap)
+        the rounds until the nodes' EMCY frames about it had time to arrive (before a trial, and at
+        the run's end: a stop of the host is declared before anything goes on)."""
+        self.check()
+        self.check()  # the first round after a stop only lets the queued frames in
+        deadline = time.monotonic() + STALL_SETTLE_S + WATCH_PERIOD_S
+        while self._fault is None and self._stall is not None and time.monotonic() < deadline:
+            time.sleep(WATCH_PERIOD_S)
+            self.check()
+
     def raise_if_fault(self) -> None:
         """:raises TrialFault: a fault was declared."""
         if self._fault is not None:
@@ -216,6 +241,12 @@ class Watchdog:
             self.in_trial = False
 
     def _round(self, now: float) -> None:
+        with self._lock:
+            last, self._last_round = self._last_round, now
+        if last is not None and now - last > self.consumer_s:
+            # this process did not run (it was stopped): let the notifier read what queued up first
+            self.events.grace(now)
+            return
         record = self.detect(now)
         if record is not None:
             self.declare(record)
@@ -235,7 +266,13 @@ class Watchdog:
             return record
         pending = self.events.take_emcy()
         if pending:
-            return emcy_fault(min(pending, key=lambda f: f.t_mono))
+            return emcy_fault(min(pending, key=lambda f: f.t_mono), self.times)
+        if self.producer is not None:
+            gap = self.producer.take_gap(self.consumer_s)
+            if gap is not None and (self.stopped_at is None or gap[1] - gap[0] < self.stopped_at):
+                self._stall = gap
+        if self._stall is not None and now - self._stall[1] >= STALL_SETTLE_S:
+            return host_stall_fault(*self._stall, self.times)  # no node's EMCY came: they were not operational, or lost
         if not self.in_trial and self.tolerate_lost_between_trials:
             return None  # between trials a lost node is waited for (recover)
         report, last = self.events.report(now), self.events.last_heard()
@@ -275,7 +312,7 @@ class Watchdog:
             return self._fault
         now = time.monotonic()
         if isinstance(exc, PlantTrialFault):
-            record = plant_trial_fault(exc, trial, now)
+            record = plant_trial_fault(exc, trial, now, self.times)
         elif isinstance(exc, SdoTransportError | SdoAbort):
             record = sdo_fault(exc, trial, now)
         else:

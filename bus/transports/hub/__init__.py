@@ -5,6 +5,8 @@ members over a Unix socket or loopback TCP, and the client that joins one of the
 
 * :mod:`~bus.transports.hub.wire`: protocol constants, handshake, hub errors
 * :mod:`~bus.transports.hub.addresses`: hub addresses and channel strings, the loopback rule, connecting
+* :mod:`~bus.transports.hub.owner`: who may use a hub — its user and root: the private socket folder,
+  socket modes, the peer's user on both ends
 * :mod:`~bus.transports.hub.records`: frames and filters as records (encode, decode)
 * :mod:`~bus.transports.hub.client`: :class:`HubBus`, the python-can interface ``ilcrig_hub`` (entry point)
 * :mod:`~bus.transports.hub.server`: :class:`HubServer`, the event loop, connections and handshakes

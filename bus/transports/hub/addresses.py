@@ -4,7 +4,11 @@ This module owns :class:`HubAddress`, :func:`parse_address`, :func:`parse_channe
 :func:`default_hub_address`, :func:`connect`, :func:`listen_socket` and the loopback rule: a TCP address that is not
 loopback is refused (:class:`~bus.transports.hub.wire.NonLoopbackAddressError`) unless the caller
 passes ``allow_remote=True`` (``ilcrig hub --allow-remote``, ``--allow-remote`` of the roles) to
-span machines; a wildcard address (all interfaces) is refused even then.
+span machines; a wildcard address (all interfaces) is refused even then.  The owner rule
+(:mod:`bus.transports.hub.owner`) applies on both sides: the default address is a socket in this
+user's private folder, a listening socket file has mode 0600, a stale socket file is removed only
+when it is this user's, and :func:`connect` checks that the hub runs as this user (or root) before
+anything is sent.
 
 Channels
     One hub serves several logical buses. The channel string is ``<address>#<bus name>``, e.g.
@@ -19,10 +23,10 @@ import ipaddress
 import logging
 import os
 import socket
-import tempfile
 from dataclasses import dataclass
 from typing import Any
 
+from bus.transports.hub.owner import check_peer, check_socket_file, private_dir, private_socket_mode, runtime_dir
 from bus.transports.hub.wire import HubAddressError, HubAddressInUseError, NonLoopbackAddressError
 
 DEFAULT_BUS_NAME = "default"
@@ -138,18 +142,25 @@ def parse_channel(channel: str, allow_remote: bool = False) -> tuple[HubAddress,
     return parse_address(addr_text, allow_remote), name
 
 
+#: the socket's name in the user's private folder (:func:`bus.transports.hub.owner.runtime_dir`)
+DEFAULT_SOCKET_NAME = "hub.sock"
+
+
 def default_hub_address() -> str:
-    """``$ILCRIG_HUB`` if set, else a per-user Unix socket in the temp directory,
-    e.g. ``unix:/tmp/ilcrig-hub-1000.sock``."""
+    """``$ILCRIG_HUB`` if set, else a socket in this user's private folder,
+    e.g. ``unix:/run/user/1000/ilcrig/hub.sock`` or ``unix:/tmp/ilcrig-1000/hub.sock``
+    (:func:`bus.transports.hub.owner.runtime_dir`; the hub makes the folder, mode 0700)."""
     env = os.environ.get(HUB_ENV, "").strip()
     if env:
         return env
-    return f"unix:{os.path.join(tempfile.gettempdir(), f'ilcrig-hub-{os.getuid()}.sock')}"
+    return f"unix:{runtime_dir() / DEFAULT_SOCKET_NAME}"
 
 
 def connect(addr: HubAddress, timeout_s: float) -> socket.socket:
-    """A stream socket connected to the hub at ``addr`` (``TCP_NODELAY`` for TCP).
+    """A stream socket connected to the hub at ``addr`` (``TCP_NODELAY`` for TCP), whose process
+    runs as this user or root (checked before anything is sent: :func:`bus.transports.hub.owner.check_peer`).
 
+    :raises HubOwnerError: the hub runs as another user
     :raises OSError: nobody listens there
     """
     sock = socket.socket(addr.family, socket.SOCK_STREAM)
@@ -158,6 +169,7 @@ def connect(addr: HubAddress, timeout_s: float) -> socket.socket:
         sock.connect(addr.sockaddr)
         if addr.kind == "tcp":
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        check_peer(sock, f"the hub at {addr}")
     except BaseException:
         sock.close()
         raise
@@ -166,19 +178,27 @@ def connect(addr: HubAddress, timeout_s: float) -> socket.socket:
 
 def listen_socket(addr: HubAddress) -> tuple[socket.socket, HubAddress]:
     """A non-blocking stream socket listening on ``addr`` (an already parsed, so checked, address)
-    and the address it is bound to (TCP port 0 replaced by the port picked). A Unix socket file
-    nobody listens on any more is removed first.
+    and the address it is bound to (TCP port 0 replaced by the port picked). The default address's
+    folder is made private first (:func:`bus.transports.hub.owner.private_dir`); a Unix socket file
+    of this user nobody listens on any more is removed; the socket file gets mode 0600.
 
+    :raises HubOwnerError: the folder or an old socket file at the path is someone else's
     :raises HubAddressInUseError: a live hub already listens on the Unix path
     :raises OSError: the address cannot be bound
     """
     if addr.kind == "unix":
+        if os.path.dirname(os.path.abspath(addr.path)) == str(runtime_dir()):
+            private_dir(runtime_dir())
         _clear_stale_unix_path(addr.path)
     sock = socket.socket(addr.family, socket.SOCK_STREAM)
     try:
         if addr.kind == "tcp":
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        else:
+            private_socket_mode(sock)
         sock.bind(addr.sockaddr)
+        if addr.kind == "unix":
+            os.chmod(addr.path, 0o600)
         sock.listen(64)
         sock.setblocking(False)
     except BaseException:
@@ -195,8 +215,9 @@ def _clear_stale_unix_path(path: str) -> None:
 
     :raises HubAddressInUseError: someone does
     """
-    if not os.path.exists(path):
+    if not os.path.lexists(path):
         return
+    check_socket_file(path)
     probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
         probe.connect(path)

@@ -4,7 +4,9 @@ This module owns :func:`main`: it parses the options (listen addresses, ``--read
 ``--exit-on-stdin-eof``, ``--allow-remote``, ``--inject``, ``--bus-time``, ``--remove-dir``),
 builds a :class:`bus.transports.hub.server.HubServer` and serves until SIGTERM/SIGINT or, with
 ``--exit-on-stdin-eof``, until stdin closes (the child-process API of
-:mod:`bus.transports.hub.process` relies on it).
+:mod:`bus.transports.hub.process` relies on it).  Bad input — an option, a listen address, a folder
+or socket of another user — is one line ``ilcrig: error: …`` and exit code 2, as for every
+``ilcrig`` command.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import os
 import signal
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 from bus.lockstep_process import freeze_heap
 from bus.transports.hub.addresses import default_hub_address
@@ -27,9 +30,21 @@ from bus.transports.hub.wire import HubAddressError, HubAddressInUseError
 logger = logging.getLogger(__name__)
 
 
+#: the exit code of bad input (as ``ilcrig``'s)
+EXIT_USAGE = 2
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with the one-line error of every ``ilcrig`` command."""
+
+    def error(self, message: str) -> NoReturn:
+        sys.stderr.write(f"ilcrig: error: {message}\n")
+        raise SystemExit(EXIT_USAGE)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m bus.transports.hub.cli --listen unix:/path [--listen tcp:127.0.0.1:0]``; returns the exit code."""
-    parser = argparse.ArgumentParser(prog="python -m bus.transports.hub.cli", description="ilcrig zero-privilege CAN hub")
+    parser = _Parser(prog="python -m bus.transports.hub.cli", description="ilcrig zero-privilege CAN hub")
     parser.add_argument(
         "--listen",
         action="append",
@@ -68,9 +83,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.listen or [default_hub_address()], allow_remote=args.allow_remote, frame_hook=hook, bus_time=bus_time
         )
         if args.allow_remote:
-            logger.warning("hub accepts remote members on %s", ", ".join(map(str, server.addresses)))
+            logger.warning("hub accepts remote members on %s (unauthenticated)", ", ".join(map(str, server.addresses)))
     except (HubAddressError, HubAddressInUseError, OSError) as err:
-        sys.exit(f"error: {err}")
+        text = str(err) if isinstance(err, HubAddressError | HubAddressInUseError) else f"cannot listen: {err.strerror or err}"
+        sys.stderr.write(f"ilcrig: error: {text}\n")
+        return EXIT_USAGE
     signal.signal(signal.SIGTERM, lambda *_: server.wake())
     signal.signal(signal.SIGINT, lambda *_: server.wake())
     try:

@@ -97,6 +97,7 @@ from can import CanProtocol
 
 from bus.bus_features import FRAME_DTYPE, frames_from_messages, recv_waiting
 from bus.transports.hub.addresses import connect, parse_channel
+from bus.transports.hub.owner import HubOwnerError
 from bus.transports.hub.records import classic_frames, decode_records, encode_filters, encode_record
 from bus.transports.hub.wire import (
     PROTOCOL_VERSION,
@@ -189,6 +190,8 @@ class HubBus(can.BusABC):
         timeout = self.CONNECT_TIMEOUT_S if connect_timeout_s is None else connect_timeout_s
         try:
             sock = connect(addr, timeout)
+        except HubOwnerError:
+            raise  # the hub runs as another user: said as it is, not as an unreachable bus
         except OSError as err:
             raise can.CanInitializationError(f"cannot reach ilcrig hub at {addr}: {err}") from err
         try:

@@ -96,6 +96,8 @@ class Client:
     held_since_s: float = 0.0
     #: not read for now: too many of its frames wait for bus time (see BusTime.queue_frames)
     paused: bool = False
+    #: refused at its handshake: why (it runs as another user; :mod:`bus.transports.hub.owner`)
+    refusal: str | None = None
 
     def accepts(self, can_id: int, ext: int) -> bool:
         """Whether this member's acceptance filters let a frame with ``can_id`` (``ext`` 1 =

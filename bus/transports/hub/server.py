@@ -14,8 +14,16 @@ addresses :mod:`bus.transports.hub.addresses`'; the client is
 Listen addresses
     A listen address that is not loopback is refused
     (:class:`~bus.transports.hub.wire.NonLoopbackAddressError`) unless ``allow_remote``; a stale
-    Unix socket file (nobody listening) is removed, a live one refused
-    (:class:`~bus.transports.hub.wire.HubAddressInUseError`): :func:`bus.transports.hub.addresses.listen_socket`.
+    Unix socket file (nobody listening) of this user is removed, a live one refused
+    (:class:`~bus.transports.hub.wire.HubAddressInUseError`), anyone else's refused
+    (:class:`~bus.transports.hub.owner.HubOwnerError`); the socket file has mode 0600:
+    :func:`bus.transports.hub.addresses.listen_socket`.
+
+Who may connect
+    Only processes of the hub's own user and root (:func:`bus.transports.hub.owner.check_peer`:
+    ``SO_PEERCRED`` on a Unix socket, ``/proc/net/tcp`` on loopback TCP); anyone else is refused
+    in the handshake (``ILNO`` and the reason) and logged.  A member on another machine
+    (``--allow-remote``) cannot be checked: remote TCP is unauthenticated.
 
 Timestamps
     Every frame is stamped with the hub's receive time (``time.time_ns()`` taken right after the
@@ -44,6 +52,7 @@ from bus.timer_slack import fine_timer_slack
 from bus.transports.hub.addresses import HubAddress, listen_socket, parse_address
 from bus.transports.hub.bus_time import BusTime
 from bus.transports.hub.core import CoreSelector, hub_core_available, new_core_selector
+from bus.transports.hub.owner import HubOwnerError, check_peer
 from bus.transports.hub.routing import Client, Router
 from bus.transports.hub.stats import HubChannelStats, encode_stats
 from bus.transports.hub.wire import (
@@ -239,6 +248,10 @@ class HubServer:
         if sock.family != socket.AF_UNIX:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         client = Client(sock=sock, peer=str(peer) or "unix")
+        try:
+            check_peer(sock, "a client")
+        except HubOwnerError as err:
+            client.refusal = str(err)  # told at its hello, so the client reads why
         self._clients[sock] = client
         self._sel.register(sock, selectors.EVENT_READ, client)
 
@@ -292,6 +305,9 @@ class HubServer:
 
     def _handshake(self, client: Client, stamp_ns: int) -> None:
         buf = client.inbuf
+        if client.refusal is not None:
+            self._refuse(client, client.refusal)
+            return
         if len(buf) < HELLO_FIXED.size:
             return
         magic, version, role, flags, n = HELLO_FIXED.unpack_from(buf)
