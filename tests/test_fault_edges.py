@@ -131,7 +131,10 @@ def test_pick_equal_to_place_is_refused(tmp_path: Path, capsys: pytest.CaptureFi
     path = tmp_path / "same.toml"
     path.write_text('name = "same"\npick = [0.01, 0.0, -0.65]\nplace = [0.01, 0.0, -0.65]\nlift = 0.02\nrotation_deg = 0\n')
     assert main(["sim", "--path", str(path), "--out", str(tmp_path / "run")]) == 2
-    assert capsys.readouterr().err == "ilcrig: error: path 'same': pick and place are the same point: there is nothing to move\n"
+    assert (
+        capsys.readouterr().err
+        == f"ilcrig: error: path file {path}: pick and place are the same point: there is nothing to carry\n"
+    )
     assert not (tmp_path / "run").exists()
 
 

@@ -50,7 +50,7 @@ __all__ = [
     "resolve_path",
 ]
 
-#: pick and place closer than this in every coordinate are the same point (refused), m
+#: pick and place of a path file closer than this in every coordinate are the same point (refused), m
 _SAME_POINT_M = 1e-6
 #: Keys of a path file and what each must hold.
 PATH_FILE_KEYS: tuple[str, ...] = ("name", "pick", "place", "lift", "rotation_deg")
@@ -89,8 +89,6 @@ class PathSpec:
             if len(point) != 3 or not all(_finite_number(c) for c in point):
                 raise PathError(f"path {self.name!r}: {label} must be 3 finite numbers (m)")
             object.__setattr__(self, label, tuple(float(c) for c in point))
-        if all(abs(a - b) < _SAME_POINT_M for a, b in zip(self.pick_xyz, self.place_xyz)):
-            raise PathError(f"path {self.name!r}: pick and place are the same point: there is nothing to move")
         if not _finite_number(self.lift_m) or self.lift_m <= 0.0:
             raise PathError(f"path {self.name!r}: lift must be a number > 0 m, got {self.lift_m!r}")
         if not _finite_number(self.rotation_rad):
@@ -170,6 +168,9 @@ def load_path_file(path: str | Path) -> PathSpec:
     rot = data["rotation_deg"]
     if not _finite_number(rot):
         raise PathError(f"path file {file}: 'rotation_deg' must be a number (deg), got {rot!r}")
+    if all(abs(a - b) < _SAME_POINT_M for a, b in zip(pick, place)):
+        # the planner can do it (a lift and back), but as a pick-and-place task it is a mistake
+        raise PathError(f"path file {file}: pick and place are the same point: there is nothing to carry")
     spec = PathSpec(name, pick, place, float(lift), math.radians(float(rot)))
     logger.debug("loaded %s from %s", spec.describe(), file)
     return spec
