@@ -37,7 +37,7 @@ Value = int | float | bytes | str
 Key = tuple[int, int]
 
 
-def _struct_of(var: ODVariable) -> struct.Struct | None:
+def struct_of(var: ODVariable) -> struct.Struct | None:
     """The packing of a numeric ``var``; None for DOMAIN, strings and a missing data type."""
     return None if var.data_type is None else _STRUCTS.get(var.data_type)
 
@@ -134,7 +134,7 @@ class ObjectStore:
 
     @staticmethod
     def encode(var: ODVariable, value: Value) -> bytes:
-        s = _struct_of(var)
+        s = struct_of(var)
         if s is not None:
             return s.pack(value)
         if isinstance(value, str):
@@ -146,7 +146,7 @@ class ObjectStore:
     @staticmethod
     def decode(var: ODVariable, data: bytes) -> Value:
         """:raises SdoAbort: 0x06070010 length, 0x06090031/32 limits, 0x06090030 non-ASCII."""
-        s = _struct_of(var)
+        s = struct_of(var)
         if s is None:
             if var.data_type in (dt.VISIBLE_STRING, dt.UNICODE_STRING):
                 try:

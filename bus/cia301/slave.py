@@ -341,12 +341,11 @@ class SlaveNode:
             )
             self.on_heartbeat_lost(producer)
         self._flush_emcy(now)
-        state = int(self.app.nmt_state)
         abort = self.sdo.tick(now)
         if abort is not None:
             self._send(self.fieldbus, self._sdo_tx, abort)
         if self._next_heartbeat_s is not None and now >= self._next_heartbeat_s:
-            self._send(self.fieldbus, self._hb_id, encode_heartbeat(state))
+            self._send(self.fieldbus, self._hb_id, encode_heartbeat(int(self.app.nmt_state)))
             period = self._heartbeat_ms / 1000.0
             # keep the phase; skip missed beats instead of bursting
             self._next_heartbeat_s += period
@@ -390,6 +389,8 @@ class SlaveNode:
                 logger.info("node %d: EMCY 0x%04X not sent: 0x1014 says the EMCY is not valid", self.node_id, int(code))
                 continue
             self._emcy_queue.append(encode_emcy(int(code), int(register), bytes(data)[:5]))
+        if not self._emcy_queue:
+            return
         if int(self.app.nmt_state) == NmtState.STOPPED:
             return  # no EMCY in STOPPED (CiA 301): what waits goes out once the node leaves it
         while self._emcy_queue and (self._next_emcy_s is None or now >= self._next_emcy_s - 1e-9):
