@@ -10,6 +10,7 @@ objects to its state.  The SDO server (:mod:`bus.cia301.sdo`) and the PDO servic
 
 from __future__ import annotations
 
+import functools
 import struct
 from collections.abc import Callable
 from pathlib import Path
@@ -131,6 +132,29 @@ class ObjectStore:
         if hook is not None:
             hook(value)
         self.values[key] = value
+
+    def writer(self, index: int, sub: int) -> Callable[[bytes], None]:
+        """:meth:`write_object` of ``(index, sub)`` with the object looked up now: the same checks,
+        hook and store on every call (for a writer called often, e.g. an RPDO's mapped objects;
+        the hooks must be installed before it is made).
+
+        :raises SdoAbort: unknown object/sub-index (now); when called, as :meth:`write_object`.
+        """
+        var = self.lookup(index, sub)
+        if var.access_type in ("ro", "const"):
+            return functools.partial(self.write_object, index, sub)  # refused at every call
+        key = (index, sub)
+        hook = self.write_hooks.get(key)
+        values = self.values
+        decode = self.decode
+
+        def write(data: bytes) -> None:
+            value = decode(var, bytes(data))
+            if hook is not None:
+                hook(value)
+            values[key] = value
+
+        return write
 
     @staticmethod
     def encode(var: ODVariable, value: Value) -> bytes:

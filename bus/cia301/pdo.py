@@ -145,8 +145,9 @@ class _Config:
     event_ms: int  # sub 5 [ms]
     sync_start: int  # TPDO: sub 6
     nbytes: int  # the mapped bytes
-    #: RPDO: (index, sub, first byte, end byte) of each mapped object, in the order they are written
-    writes: tuple[tuple[int, int, int, int], ...]
+    #: RPDO: (index, sub, first byte, end byte, writer) of each mapped object, in the order they are
+    #: written (writer: :meth:`ObjectStore.writer`, None for an object not in the dictionary)
+    writes: tuple[tuple[int, int, int, int, Callable[[bytes], None] | None], ...]
     #: TPDO: the payload now (None: the mapping names an object that cannot be read; read each time)
     pack: Callable[[], bytes] | None
 
@@ -382,13 +383,17 @@ class PdoEngine:
         for _, _, bits in entries:
             offsets.append(offset)
             offset += bits // 8
-        writes: tuple[tuple[int, int, int, int], ...] = ()
+        writes: tuple[tuple[int, int, int, int, Callable[[bytes], None] | None], ...] = ()
         pack = None
         if pdo.receive:
             # first the objects without a write hook (set-points), then those with one (commands)
             hooks = self.store.write_hooks
             order = sorted(range(len(entries)), key=lambda k: (entries[k][0], entries[k][1]) in hooks)
-            writes = tuple((entries[k][0], entries[k][1], offsets[k], offsets[k] + entries[k][2] // 8) for k in order)
+            writes = tuple(
+                (index, sub, offsets[k], offsets[k] + bits // 8, self._writer(index, sub))
+                for k in order
+                for index, sub, bits in (entries[k],)
+            )
         else:
             pack = self._packer(entries)
         return _Config(
@@ -403,6 +408,12 @@ class PdoEngine:
             writes=writes,
             pack=pack,
         )
+
+    def _writer(self, index: int, sub: int) -> Callable[[bytes], None] | None:
+        try:
+            return self.store.writer(index, sub)
+        except SdoAbort:
+            return None  # not in the dictionary: refused at every write, by write_object
 
     def _packer(self, entries: list[tuple[int, int, int]]) -> Callable[[], bytes] | None:
         """The payload of the mapped objects ``entries`` (index, sub, bits), read when called, as
@@ -426,6 +437,9 @@ class PdoEngine:
         if len(getters) == 1:
             (one,) = getters
             return lambda: packer(one())
+        if len(getters) == 2:
+            first, second = getters
+            return lambda: packer(first(), second())
         return lambda: packer(*[get() for get in getters])
 
     def _config(self, pdo: _Pdo) -> _Config:
@@ -556,10 +570,12 @@ class PdoEngine:
         """Write an RPDO's payload: first the objects without a write hook (set-points), then those
         with one (commands such as a controlword), each group in mapping order -- so a command
         sees the set-points that came in the same RPDO."""
-        write = self.store.write_object
-        for index, sub, start, end in self._config(pdo).writes:
+        for index, sub, start, end, write in self._config(pdo).writes:
             try:
-                write(index, sub, data[start:end])
+                if write is None:
+                    self.store.write_object(index, sub, data[start:end])
+                else:
+                    write(data[start:end])
             except SdoAbort as err:  # the value is refused like an SDO download would be
                 logger.warning("%s: 0x%04X:%d not written: %s", self._name(pdo), index, sub, err)
 
