@@ -295,6 +295,8 @@ class Drive:
         motion = self.motion
         pdo = self.pdo
         pdo.consume_sync()
+        if self.power.quick_stopping:
+            motion.finish_quick_stop()  # the ramp reached standstill in the last cycle
         if not self.power.on:
             self._st[_S_POS] = fp.sat32(motion.position(encoder_count))
             pdo.after_tick()

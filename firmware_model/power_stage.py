@@ -15,9 +15,10 @@ error history 0x1003 and the queue of EMCY messages the node runtime sends
 * **Quick stop** (controlword bit 2 = 0 in Operation enabled, or 0x6007 = 3): Quick stop active;
   0x605A says how (0: torque off at once → Switch on disabled; 1 / 5: the profile deceleration
   0x6084, 2 / 6: the quick stop deceleration 0x6085, from the demand velocity down to 0 on the
-  control cycles); at standstill 1 and 2 end in Switch on disabled (transition 12), 5 and 6 stay
-  in Quick stop active holding the position (statusword bit 10) and accept Enable operation
-  (transition 16).
+  control cycles); the control cycle after the ramp reached standstill completes the quick stop
+  -- a quick stop begun at standstill lasts one control cycle, so Quick stop active is always
+  seen -- 1 and 2 end in Switch on disabled (transition 12), 5 and 6 stay in Quick stop active
+  holding the position (statusword bit 10) and accept Enable operation (transition 16).
 * **Faults** (:meth:`PowerStage.fault`: following error 0x8611, tick sequence 0x8200, bus lost
   0x8100) enter CiA 402 Fault at once (the fault reaction takes no time), end an armed or
   running trial in FAULT with the cause in 0x2120:4, set 0x1001/0x603F, record 0x1003, remove
@@ -98,9 +99,9 @@ class MotionHooks(Protocol):
     def on_torque_on(self) -> None:
         """Torque came on: the selected mode starts from the actual position."""
 
-    def begin_quick_stop(self, deceleration_index: int) -> bool:
-        """Start the stop ramp with the deceleration of object ``deceleration_index``; True when
-        already at standstill."""
+    def begin_quick_stop(self, deceleration_index: int) -> None:
+        """Start the stop ramp with the deceleration of object ``deceleration_index`` (it runs on
+        the next control cycles and calls :meth:`PowerStage.quick_stop_done` at its end)."""
 
 
 class PowerStage:
@@ -236,13 +237,14 @@ class PowerStage:
         if decel is None:  # 0: torque off at once
             self.sm.quick_stop_complete()
             return
-        motion = self.motion
-        if motion is None or motion.begin_quick_stop(decel):
+        if self.motion is None:  # no control cycles to ramp on
             self.quick_stop_done()
+            return
+        self.motion.begin_quick_stop(decel)
 
     def quick_stop_done(self) -> None:
-        """The stop ramp reached standstill: Switch on disabled (0x605A = 1, 2) or holding in
-        Quick stop active (5, 6)."""
+        """The stop ramp is complete (the control cycle after the one that reached standstill):
+        Switch on disabled (0x605A = 1, 2) or holding in Quick stop active (5, 6)."""
         if self.sm.state != _S.QUICK_STOP_ACTIVE:
             return
         if self._option(_QUICK_STOP_OPTION, QuickStopOption.QUICK_STOP_RAMP) in _STAY_OPTIONS:
