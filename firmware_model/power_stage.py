@@ -28,6 +28,10 @@ error history 0x1003 and the queue of EMCY messages the node runtime sends
   0x1003, an armed or running trial ends in FAULT, then the abort connection reaction of 0x6007
   and the NMT reaction of 0x1029:1 (0 pre-operational, 1 none, 2 stopped).  In NMT STOPPED a lost
   heartbeat is only logged (the master stopped the node on purpose).
+* **Frames lost** (:meth:`PowerStage.frames_lost`: the fieldbus receiver overflowed): EMCY 0x8110,
+  0x1001 (generic + communication), 0x1003, then the NMT reaction of 0x1029:1; only when that
+  reaction leaves NMT OPERATIONAL is it an abort connection (0x6007 has no event of its own for
+  it, CiA 402), as any leaving of OPERATIONAL.
 * **Abort connection** (:meth:`PowerStage.abort_connection`: a communication error, or NMT
   STOP / ENTER PRE-OPERATIONAL from OPERATIONAL / RESET COMMUNICATION), only while torque is on,
   by 0x6007: 0 nothing, 1 Fault (0x603F = the error's code), 2 Disable voltage (Switch on
@@ -361,6 +365,11 @@ class PowerStage:
         self._trial.on_fault(cause)
         self.abort_connection(code, reason)
         self._fault_tick = -1
+        self._error_behaviour()
+
+    def _error_behaviour(self) -> None:
+        """The NMT reaction of 0x1029:1 to a communication error (0 pre-operational from
+        OPERATIONAL, 1 none, 2 stopped)."""
         behaviour = self._option(_ERROR_BEHAVIOUR, ErrorBehaviour.PRE_OPERATIONAL)
         react = self.nmt_reaction
         if react is None:
@@ -370,6 +379,27 @@ class PowerStage:
             react(NmtState.PRE_OPERATIONAL)
         elif behaviour == ErrorBehaviour.STOPPED and nmt != NmtState.STOPPED:
             react(NmtState.STOPPED)
+
+    def frames_lost(self) -> None:
+        """Fieldbus frames were lost (the receiver overflowed): EMCY 0x8110 "CAN overrun", 0x1001
+        (generic + communication), 0x1003, then the NMT reaction of 0x1029:1; a reaction that
+        leaves NMT OPERATIONAL while torque is on is an abort connection (0x6007), as any leaving
+        of OPERATIONAL is -- an armed or running trial then ends in FAULT."""
+        self.error_register |= int(_COMM)
+        self._record(EmcyCode.CAN_OVERRUN, self.error_register, struct.pack("<B4x", FaultCause.CAN_OVERRUN))
+        logger.warning("node %d: fieldbus frames lost (EMCY 0x%04X)", self.node_id, EmcyCode.CAN_OVERRUN)
+        operational = self._nmt_state() == NmtState.OPERATIONAL
+        self._error_behaviour()
+        if not operational or self._nmt_state() == NmtState.OPERATIONAL or not self.on:
+            return
+        if self._option(_ABORT_CONNECTION, AbortConnectionOption.FAULT) == AbortConnectionOption.NO_ACTION:
+            return
+        if self._trial.state == TrialState.RUNNING:
+            self._fault_tick = self._trial.next_tick
+        if self._trial.playing:
+            self._trial.on_fault(FaultCause.CAN_OVERRUN)
+        self.abort_connection(EmcyCode.CAN_OVERRUN, "can-overrun")
+        self._fault_tick = -1
 
     def heartbeat_lost(self, node_id: int) -> None:
         """The heartbeat of ``node_id`` (the host) was lost: a communication error with EMCY
