@@ -376,24 +376,20 @@ class PdoEngine:
         return plan
 
     def _read_config(self, pdo: _Pdo) -> _Config:
+        """The :class:`_Config` of ``pdo`` from the object store now."""
         cob = self.cob_id(pdo)
         entries = self.mapping(pdo)
-        offsets = []
-        offset = 0
-        for _, _, bits in entries:
-            offsets.append(offset)
-            offset += bits // 8
-        writes: tuple[tuple[int, int, int, int, Callable[[bytes], None] | None], ...] = ()
+        writes = []
         pack = None
         if pdo.receive:
+            offsets = [0]
+            for _, _, bits in entries:
+                offsets.append(offsets[-1] + bits // 8)
             # first the objects without a write hook (set-points), then those with one (commands)
             hooks = self.store.write_hooks
-            order = sorted(range(len(entries)), key=lambda k: (entries[k][0], entries[k][1]) in hooks)
-            writes = tuple(
-                (index, sub, offsets[k], offsets[k] + bits // 8, self._writer(index, sub))
-                for k in order
-                for index, sub, bits in (entries[k],)
-            )
+            for k in sorted(range(len(entries)), key=lambda k: (entries[k][0], entries[k][1]) in hooks):
+                index, sub, _ = entries[k]
+                writes.append((index, sub, offsets[k], offsets[k + 1], self._writer(index, sub)))
         else:
             pack = self._packer(entries)
         return _Config(
@@ -405,7 +401,7 @@ class PdoEngine:
             event_ms=self._sub(pdo, COMM_EVENT_TIMER),
             sync_start=self._sub(pdo, COMM_SYNC_START),
             nbytes=sum(bits for _, _, bits in entries) // 8,
-            writes=writes,
+            writes=tuple(writes),
             pack=pack,
         )
 
