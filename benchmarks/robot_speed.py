@@ -9,7 +9,9 @@ Two measurements on the default transport (the zero-privilege hub), each with th
   period per SYNC, so the rate is the robot's: periods/s over ``--periods`` periods, best of
   ``--repeat``.  Beside it, measured alternately in the same run, the bare 5-process io lockstep on
   the same transport (benchmarks/transport_speed.py, the floor of benchmarks/rig_speed.py).
-  Target: >= 2,000 periods/s on 2 cores.
+  Target: >= 2,000 periods/s on 2 cores.  With it, the CPU time per period of every process over
+  the measured periods (the kernel's run time of each of its threads, ``/proc/<pid>/task/*/schedstat``):
+  the hub, the plant, each drive, the launcher (its channel monitors) and the master's thread.
 * **real time** (``ilcrig robot --realtime``): the master sends SYNC + RPDOs at 1 kHz on its own
   clock (t0 + k·1 ms, the last 200 µs spun) and takes the TPDOs as they come; the robot paces its
   periods to the wall clock.  After ``--seconds`` the plant's own counts: late SYNCs (after their
@@ -57,6 +59,17 @@ def floor() -> float | None:
     return (res.get("io") or {}).get("ticks_per_s")
 
 
+def cpu_s(pid: int) -> float:
+    """CPU time [s] process ``pid`` has run so far, all its threads (the kernel's run time, ns)."""
+    total = 0
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            total += int((task / "schedstat").read_text().split()[0])
+        except (OSError, IndexError, ValueError):
+            continue  # a thread that ended meanwhile
+    return total * 1e-9
+
+
 def set_up(where: dict[str, Any]) -> dict[int, int]:
     """PDOs, NMT start, CSP, the drives enabled at the home pose (python canopen); the targets."""
     m = LockstepMaster(interface=where["interface"], channel=where["channel"])
@@ -92,9 +105,13 @@ def sync_stepped(periods: int) -> dict[str, Any]:
             bus = raw_bus(where)
             send = batch_sender(bus)
             frames = period_frames(home)
+            pids = {**where["pids"], "launcher": robot.proc.pid}
+            cpu0: dict[str, float] = {}
             try:
                 for k in range(periods + 200):
                     if k == 200:  # the first 200 periods warm up
+                        cpu0 = {name: cpu_s(pid) for name, pid in pids.items()}
+                        master0 = time.thread_time()
                         t0 = time.perf_counter()
                     send(frames)
                     got = 0
@@ -104,11 +121,13 @@ def sync_stepped(periods: int) -> dict[str, Any]:
                             raise TimeoutError(f"period {k}: TPDOs missing")
                         got += 1
                 rate = periods / (time.perf_counter() - t0)
+                cpu_us = {name: (cpu_s(pid) - cpu0[name]) / periods * 1e6 for name, pid in pids.items()}
+                cpu_us["master"] = (time.thread_time() - master0) / periods * 1e6
             finally:
                 bus.shutdown()
             robot.stop()
             summary = json.loads((robot.out / "summary.json").read_text())
-            return {"periods_per_s": rate, "overruns": summary["robot"]["sync_overruns"]}
+            return {"periods_per_s": rate, "overruns": summary["robot"]["sync_overruns"], "cpu_us": cpu_us}
         finally:
             robot.kill()
 
@@ -192,8 +211,12 @@ def main() -> None:
                 floors.append(f)
             r = sync_stepped(args.periods)
             rates.append(r["periods_per_s"])
+            cpu = r["cpu_us"]
+            roles = ", ".join(f"{name} {us:.0f}" for name, us in sorted(cpu.items()))
             print(
-                f"  floor {f or float('nan'):,.0f} ticks/s; robot {r['periods_per_s']:,.0f} periods/s ({r['overruns']} overruns)",
+                f"  floor {f or float('nan'):,.0f} ticks/s; robot {r['periods_per_s']:,.0f} periods/s "
+                f"({r['overruns']} overruns); CPU per period [us]: {roles}, "
+                f"all {sum(cpu.values()):.0f}; load average {os.getloadavg()[0]:.2f}",
                 flush=True,
             )
         best = max(rates)

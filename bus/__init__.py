@@ -6,7 +6,8 @@ the plant node (:mod:`bus.plant_objects`, ``plant.eds``), the CiA 301 PDO object
 (:mod:`bus.pdo_objects`), the rig's cyclic PDO layout and bus fit (:mod:`bus.cyclic`), the DBC files
 (:mod:`bus.dbc`), the io-channel frames (:mod:`bus.io_frames`), bus-load accounting
 (:mod:`bus.busload`), frame classification and bit counting (:mod:`bus.traffic`), the optional
-extras of a python-can bus (:mod:`bus.bus_features`), cheap messages on the hot path
+extras of a python-can bus (:mod:`bus.bus_features`), SocketCAN's error frame of lost frames
+(:mod:`bus.can_errors`), cheap messages on the hot path
 (:mod:`bus.fastmsg`), fine timer slack (:mod:`bus.timer_slack`), the lockstep processes' frozen heap
 and the real-time diagnostic switch (:mod:`bus.lockstep_process`), candump logs (:mod:`bus.canlog`),
 the SAFE-STATE log record (:mod:`bus.safe_state`) and the shared errors (:mod:`bus.errors`).

@@ -16,7 +16,8 @@ when the caller is built — and fall back to plain ``BusABC`` calls otherwise:
 * :class:`BatchReceiver` — ``recv_batch()``: every frame waiting now, at most one read of the
   socket, no waiting: a ``select()``-based caller takes all the frames of one readiness in one
   call instead of one :meth:`can.BusABC.recv` per frame and a last one that finds nothing.
-  :func:`batch_receiver` returns ``recv_batch`` or a loop over ``recv(0)``.
+  :func:`batch_receiver` returns ``recv_batch`` or :func:`recv_waiting` (every frame waiting
+  that the bus's filters pass, past the ones they drop).
 * :class:`FrameArrayReceiver` — ``recv_frames(timeout)``: every frame waiting, as one numpy
   array of :data:`FRAME_DTYPE` (one row per frame, in order), without building a
   :class:`can.Message` per frame; for a reader that looks at every frame of a busy channel (the
@@ -117,8 +118,8 @@ class BatchReceiver(Protocol):
 
 
 def batch_receiver(bus: can.BusABC) -> Callable[[], list[can.Message]]:
-    """``bus.recv_batch`` when ``bus`` is a :class:`BatchReceiver`, else a callable that calls
-    ``bus.recv(0)`` until it returns None."""
+    """``bus.recv_batch`` when ``bus`` is a :class:`BatchReceiver`, else a callable that returns
+    every frame waiting that the bus's filters pass (:func:`recv_waiting` without waiting)."""
     if isinstance(bus, BatchReceiver):
         return bus.recv_batch
 
@@ -209,13 +210,38 @@ def load_of(frames: np.ndarray) -> BusLoadCounter:
 
 def recv_waiting(bus: can.BusABC, timeout: float | None) -> list[can.Message]:
     """:meth:`can.BusABC.recv` waiting up to ``timeout`` s for the first frame, then every frame
-    already waiting (``recv(0)`` until None)."""
+    already waiting that the bus's filters pass, in order (none waits: ``timeout`` 0 takes only
+    what is there).
+
+    python-can's own ``recv`` filters in software where the transport does not (``virtual``,
+    ``udp_multicast``) and, asked not to wait, gives up at the first frame its filters drop, as if
+    nothing were left; for a bus with that ``recv`` the waiting frames are taken from its
+    ``_recv_internal`` (python-can's interface for implementers) until it has none, each filtered
+    as ``recv`` filters it.
+    """
+    take = _waiting_frame(bus)
     msgs = []
-    msg = bus.recv(timeout)
+    msg = take() if timeout is not None and timeout <= 0 else bus.recv(timeout)
     while msg is not None:
         msgs.append(msg)
-        msg = bus.recv(0)
+        msg = take()
     return msgs
+
+
+def _waiting_frame(bus: can.BusABC) -> Callable[[], can.Message | None]:
+    """The next frame waiting on ``bus`` that its filters pass, without waiting (None: none)."""
+    if getattr(type(bus), "recv", None) is not can.BusABC.recv:
+        return lambda: bus.recv(0)  # the bus's own recv decides
+
+    def take() -> can.Message | None:
+        while True:
+            msg, already_filtered = bus._recv_internal(timeout=0.0)
+            if msg is None:
+                return None
+            if already_filtered or bus._matches_filters(msg):
+                return msg
+
+    return take
 
 
 #: (nominal, worst-case) bits of a classic frame by [extended, data bytes]

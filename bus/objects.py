@@ -183,6 +183,7 @@ class FaultCause(IntEnum):
     RPDO_TIMEOUT = 5  #: an RPDO missed its deadline (0x1400+k:5): EMCY 0x8250
     SYNC_LOST = 6  #: no SYNC within 1.5 communication cycle periods (0x1006): EMCY 0x8100
     NMT_ABORT = 7  #: NMT left OPERATIONAL (stop, pre-operational, reset communication) with the power stage on
+    CAN_OVERRUN = 8  #: fieldbus frames lost (the receiver overflowed): EMCY 0x8110
 
 
 class ModeOfOperation(IntEnum):

@@ -73,6 +73,12 @@ _STATUSWORD_OF: dict[int, int] = {
     for st in _S
 }
 _INTERNAL_LIMIT = int(Statusword.INTERNAL_LIMIT)
+#: controlword bits as plain ints (decoded at every controlword write, i.e. every RPDO)
+_CW_SWITCH_ON = int(Controlword.SWITCH_ON)
+_CW_ENABLE_VOLTAGE = int(Controlword.ENABLE_VOLTAGE)
+_CW_QUICK_STOP = int(Controlword.QUICK_STOP)
+_CW_ENABLE_OPERATION = int(Controlword.ENABLE_OPERATION)
+_CW_FAULT_RESET = int(Controlword.FAULT_RESET)
 
 
 class Cia402StateMachine:
@@ -107,21 +113,21 @@ class Cia402StateMachine:
         """Apply a controlword write; returns the new state.  ``qs_to_enabled``: transition 16
         (Quick stop active -> Operation enabled by Enable operation) is allowed."""
         cw = int(cw) & 0xFFFF
-        rising_reset = bool(cw & Controlword.FAULT_RESET) and not (self._last_cw & Controlword.FAULT_RESET)
+        rising_reset = bool(cw & _CW_FAULT_RESET) and not (self._last_cw & _CW_FAULT_RESET)
         self.reset_edge = rising_reset
         self._last_cw = cw
         self.last_transition = None
         s = self.state
-        if cw & Controlword.FAULT_RESET:
+        if cw & _CW_FAULT_RESET:
             if rising_reset and s == _S.FAULT:
                 self._go(_S.SWITCH_ON_DISABLED, 15)
             return self.state
         if s in (_S.FAULT, _S.FAULT_REACTION_ACTIVE, _S.NOT_READY_TO_SWITCH_ON):
             return s
-        so = bool(cw & Controlword.SWITCH_ON)
-        ev = bool(cw & Controlword.ENABLE_VOLTAGE)
-        qs = bool(cw & Controlword.QUICK_STOP)  # 0 = quick stop requested
-        eo = bool(cw & Controlword.ENABLE_OPERATION)
+        so = bool(cw & _CW_SWITCH_ON)
+        ev = bool(cw & _CW_ENABLE_VOLTAGE)
+        qs = bool(cw & _CW_QUICK_STOP)  # 0 = quick stop requested
+        eo = bool(cw & _CW_ENABLE_OPERATION)
         if not ev:  # Disable voltage
             t = {_S.READY_TO_SWITCH_ON: 7, _S.OPERATION_ENABLED: 9, _S.SWITCHED_ON: 10, _S.QUICK_STOP_ACTIVE: 12}.get(s)
             if t is not None:

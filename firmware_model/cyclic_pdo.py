@@ -57,6 +57,9 @@ logger = logging.getLogger(__name__)
 SYNC_TIMEOUT_PERIODS = 1.5
 #: the NMT states in which a SYNC counts for the next io tick (CiA 301: not in STOPPED)
 _SYNC_STATES = (int(NmtState.OPERATIONAL), int(NmtState.PRE_OPERATIONAL))
+_OPERATIONAL = int(NmtState.OPERATIONAL)
+_PERIOD_KEY = (COMM_CYCLE_PERIOD_INDEX, 0)
+_OVERFLOW_KEY = (SYNC_COUNTER_OVERFLOW_INDEX, 0)
 
 
 class CyclicPdo:
@@ -81,6 +84,7 @@ class CyclicPdo:
         on_warning: Callable[[int, bytes], None] | None = None,
     ) -> None:
         self._store = store
+        self._values = store.values  # 0x1006, 0x1019: read at every SYNC (0 where the EDS has none)
         self._nmt_state = nmt_state
         self.clock = clock
         #: the SYNC watchdog's clock [s] (None: :attr:`clock`)
@@ -133,17 +137,20 @@ class CyclicPdo:
         effect, the next io tick may run, the synchronous TPDOs due are sampled (or wait for the
         tick of a lockstep cycle); in PRE-OPERATIONAL only the credit."""
         engine = self.engine
-        if self.sync_credit < SYNC_CREDITS_MAX and (self.sync_stepped or self._nmt_state() in _SYNC_STATES):
+        nmt = int(self._nmt_state())
+        if self.sync_credit < SYNC_CREDITS_MAX and (self.sync_stepped or nmt in _SYNC_STATES):
             self.sync_credit += 1
-        if not engine.active:
+        if nmt != _OPERATIONAL:
             return
-        self._check_sync_length(counter)
-        period_us = self._u(COMM_CYCLE_PERIOD_INDEX)
+        values = self._values
+        overflow = int(values.get(_OVERFLOW_KEY, 0))
+        self._check_sync_length(counter, overflow)
+        period_us = int(values.get(_PERIOD_KEY, 0))
         self._sync_deadline_s = self._watch_now() + SYNC_TIMEOUT_PERIODS * period_us * 1e-6 if period_us else None
         if self._deferred is not None:  # the last SYNC's tick never came
             self._out.extend(engine.sample(self._deferred))
             self._deferred = None
-        if not self._u(SYNC_COUNTER_OVERFLOW_INDEX):
+        if not overflow:
             counter = None  # a counter the drive was not told to expect is not used
         due = engine.on_sync(counter)
         if due:
@@ -155,13 +162,9 @@ class CyclicPdo:
     def _watch_now(self) -> float:
         return (self.clock if self.watch_clock is None else self.watch_clock)()
 
-    def _u(self, index: int) -> int:
-        key = (index, 0)
-        return int(self._store.values[key]) if key in self._store.vars else 0
-
-    def _check_sync_length(self, counter: int | None) -> None:
-        expects = self._u(SYNC_COUNTER_OVERFLOW_INDEX) > 0
-        bad = expects != (counter is not None)
+    def _check_sync_length(self, counter: int | None, overflow: int) -> None:
+        """A SYNC whose length does not fit 0x1019 (``overflow``): EMCY 0x8240 once per change."""
+        bad = (overflow > 0) != (counter is not None)
         if bad and not self._sync_length_bad and self._on_warning is not None:
             self._on_warning(EmcyCode.SYNC_LENGTH, struct.pack("<BB3x", 0, 0 if counter is None else 1))
         self._sync_length_bad = bad
@@ -191,27 +194,31 @@ class CyclicPdo:
         if self._deferred is not None:
             self._out.extend(self.engine.sample(self._deferred))
             self._deferred = None
-        if self.engine.active:
-            self._out.extend(self.engine.poll(self.clock()))
+        out = self.engine.poll(self.clock())  # nothing outside NMT OPERATIONAL
+        if out:
+            self._out.extend(out)
 
     def service(self, now: float) -> None:
         """Timers at ``now`` [s] of :attr:`clock`: RPDO deadlines, the SYNC watchdog (at
         :attr:`watch_clock`'s time, if set), event-driven TPDOs."""
         engine = self.engine
-        if not engine.active:
+        if int(self._nmt_state()) != _OPERATIONAL:
             return
         for number in engine.expired_rpdos(now):
             logger.warning("RPDO%d missed its deadline", number)
             if self._on_error is not None:
                 self._on_error("rpdo", number)
-        watch_now = now if self.watch_clock is None else self.watch_clock()
-        if self._sync_deadline_s is not None and watch_now >= self._sync_deadline_s - 1e-9:  # µs sums carry float rounding
-            self._sync_deadline_s = None
-            logger.warning("no SYNC within %.1f communication cycle periods", SYNC_TIMEOUT_PERIODS)
-            if self._on_error is not None:
-                self._on_error("sync", 0)
-        if engine.active:
-            self._out.extend(engine.poll(now))
+        deadline = self._sync_deadline_s
+        if deadline is not None:
+            watch_now = now if self.watch_clock is None else self.watch_clock()
+            if watch_now >= deadline - 1e-9:  # µs sums carry float rounding
+                self._sync_deadline_s = None
+                logger.warning("no SYNC within %.1f communication cycle periods", SYNC_TIMEOUT_PERIODS)
+                if self._on_error is not None:
+                    self._on_error("sync", 0)
+        out = engine.poll(now)  # nothing once a reaction left NMT OPERATIONAL
+        if out:
+            self._out.extend(out)
 
     def next_deadline(self) -> float | None:
         """The earliest time [s] of :attr:`clock` at which :meth:`service` has work (None: none;
@@ -243,5 +250,8 @@ class CyclicPdo:
 
     def pop_tpdos(self) -> list[tuple[int, bytes]]:
         """(COB-ID, payload) of the TPDOs due, in order; the queue is emptied."""
-        out, self._out = self._out, []
+        out = self._out
+        if not out:
+            return []
+        self._out = []
         return out

@@ -263,6 +263,11 @@ class Drive:
         In NMT STOPPED only logged; otherwise a communication error (EMCY 0x8130, 0x6007, 0x1029)."""
         self.power.heartbeat_lost(node_id)
 
+    def frames_lost(self) -> None:
+        """The fieldbus receiver overflowed (CiA 301 EMCY 0x8110 CAN overrun): recorded, and the
+        NMT reaction of 0x1029:1 (:meth:`firmware_model.power_stage.PowerStage.frames_lost`)."""
+        self.power.frames_lost()
+
     def bus_lost(self, reason: str) -> None:
         """The fieldbus or io bus failed (e.g. the hub is gone): torque off, CiA 402 Fault (no
         EMCY can be sent)."""
@@ -295,6 +300,8 @@ class Drive:
         motion = self.motion
         pdo = self.pdo
         pdo.consume_sync()
+        if self.power.quick_stopping:
+            motion.finish_quick_stop()  # the ramp reached standstill in the last cycle
         if not self.power.on:
             self._st[_S_POS] = fp.sat32(motion.position(encoder_count))
             pdo.after_tick()

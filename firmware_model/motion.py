@@ -8,9 +8,13 @@ position, 6 homing, 8 CSP, 9 CSV, 10 CST -- exactly the modes 0x6502 lists):
 * an io tick with torque on runs the selected mode (:meth:`Motion.tick`), or in Quick stop
   active the stop ramp: the demand (where the mode was going, :meth:`OperationMode.demand`)
   decelerates with the deceleration 0x605A chose (0x6084 or 0x6085, per control cycle in Q16)
-  to standstill and then holds, the PD loop following it; at standstill the power stage is told
-  (:meth:`firmware_model.power_stage.PowerStage.quick_stop_done`).  A trial playing when the
-  quick stop begins ends in FAULT.
+  to standstill and then holds, the PD loop following it.  The ramp runs on the control cycles
+  after the quick stop began -- at least one, also from standstill -- and the cycle after the one
+  that reached standstill tells the power stage, before anything else
+  (:meth:`Motion.finish_quick_stop`, then
+  :meth:`firmware_model.power_stage.PowerStage.quick_stop_done`): Quick stop active lasts at least
+  one whole control cycle, and whatever samples the statusword with that cycle (a synchronous
+  TPDO of a lockstep cycle too) sees it.  A trial playing when the quick stop begins ends in FAULT.
 * the homing offset: the position the drive works with is ``sat32(encoder count + offset)``;
   homing (:meth:`Motion.rehome`) changes the offset and moves every position the drive holds
   (the loop's last and previous count, the hold slot, the profile demand, the modes' targets) by
@@ -90,7 +94,8 @@ class Motion:
         self.mode: OperationMode = self.modes[ModeOfOperation.TABLE_PLAYBACK]
         self.offset = 0
         self._qs_decel: tuple[int, int] = (Obj.QUICK_STOP_DECELERATION, 0)
-        self._qs_done = False
+        self._qs_reached = False  # the stop ramp reached standstill in a control cycle
+        self._qs_done = False  # ... and the power stage was told
         self._qs_setpoint = control_law.new_tables(0)
         self.reset()
 
@@ -136,20 +141,25 @@ class Motion:
         """0x6040 written (after the power stage took it): the mode's bits."""
         self.mode.on_controlword(cw, self._power.on and not self._power.quick_stopping)
 
-    def begin_quick_stop(self, deceleration_index: int) -> bool:
-        """Quick stop active entered: the ramp starts at the mode's demand; True when already at
-        standstill."""
+    def begin_quick_stop(self, deceleration_index: int) -> None:
+        """Quick stop active entered: the ramp starts at the mode's demand and runs from the next
+        control cycle on."""
         if self._trial.playing:
             logger.warning("node %d: quick stop during a trial", self.node_id)
             self._trial.stop(TrialState.FAULT)
         self._qs_decel = (deceleration_index, 0)
+        self._qs_reached = False
         self._qs_done = False
         if not isinstance(self.mode, (ProfilePositionMode, HomingMode, CsvMode)):
             pos, vel = self.mode.demand()
             self.gen.reset(pos, fp.per_tick_q16(vel, self.mode.period_us(), 1))
-        if self.gen.standstill:
+
+    def finish_quick_stop(self) -> None:
+        """At the start of a control cycle in Quick stop active: once the ramp reached standstill in
+        an earlier cycle, the power stage completes the quick stop (transition 12, or holding)."""
+        if self._qs_reached and not self._qs_done:
             self._qs_done = True
-        return self._qs_done
+            self._power.quick_stop_done()
 
     # ------------------------------------------------------------------ io tick
 
@@ -164,11 +174,8 @@ class Motion:
         tau, status = _CONTROL_TICK(count, 0, -1, self._st, sp, self._trial.rec)
         if status:
             return self._power.following_error(int(self._st[_S_ERR]))
-        if gen.standstill and not self._qs_done:
-            self._qs_done = True
-            self._power.quick_stop_done()
-            if not self._power.on:
-                return 0
+        if gen.standstill:
+            self._qs_reached = True
         return tau
 
     def position(self, encoder_count: int) -> int:

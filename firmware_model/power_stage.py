@@ -15,9 +15,10 @@ error history 0x1003 and the queue of EMCY messages the node runtime sends
 * **Quick stop** (controlword bit 2 = 0 in Operation enabled, or 0x6007 = 3): Quick stop active;
   0x605A says how (0: torque off at once → Switch on disabled; 1 / 5: the profile deceleration
   0x6084, 2 / 6: the quick stop deceleration 0x6085, from the demand velocity down to 0 on the
-  control cycles); at standstill 1 and 2 end in Switch on disabled (transition 12), 5 and 6 stay
-  in Quick stop active holding the position (statusword bit 10) and accept Enable operation
-  (transition 16).
+  control cycles); the control cycle after the ramp reached standstill completes the quick stop
+  -- a quick stop begun at standstill lasts one control cycle, so Quick stop active is always
+  seen -- 1 and 2 end in Switch on disabled (transition 12), 5 and 6 stay in Quick stop active
+  holding the position (statusword bit 10) and accept Enable operation (transition 16).
 * **Faults** (:meth:`PowerStage.fault`: following error 0x8611, tick sequence 0x8200, bus lost
   0x8100) enter CiA 402 Fault at once (the fault reaction takes no time), end an armed or
   running trial in FAULT with the cause in 0x2120:4, set 0x1001/0x603F, record 0x1003, remove
@@ -27,6 +28,10 @@ error history 0x1003 and the queue of EMCY messages the node runtime sends
   0x1003, an armed or running trial ends in FAULT, then the abort connection reaction of 0x6007
   and the NMT reaction of 0x1029:1 (0 pre-operational, 1 none, 2 stopped).  In NMT STOPPED a lost
   heartbeat is only logged (the master stopped the node on purpose).
+* **Frames lost** (:meth:`PowerStage.frames_lost`: the fieldbus receiver overflowed): EMCY 0x8110,
+  0x1001 (generic + communication), 0x1003, then the NMT reaction of 0x1029:1; only when that
+  reaction leaves NMT OPERATIONAL is it an abort connection (0x6007 has no event of its own for
+  it, CiA 402), as any leaving of OPERATIONAL.
 * **Abort connection** (:meth:`PowerStage.abort_connection`: a communication error, or NMT
   STOP / ENTER PRE-OPERATIONAL from OPERATIONAL / RESET COMMUNICATION), only while torque is on,
   by 0x6007: 0 nothing, 1 Fault (0x603F = the error's code), 2 Disable voltage (Switch on
@@ -98,9 +103,9 @@ class MotionHooks(Protocol):
     def on_torque_on(self) -> None:
         """Torque came on: the selected mode starts from the actual position."""
 
-    def begin_quick_stop(self, deceleration_index: int) -> bool:
-        """Start the stop ramp with the deceleration of object ``deceleration_index``; True when
-        already at standstill."""
+    def begin_quick_stop(self, deceleration_index: int) -> None:
+        """Start the stop ramp with the deceleration of object ``deceleration_index`` (it runs on
+        the next control cycles and calls :meth:`PowerStage.quick_stop_done` at its end)."""
 
 
 class PowerStage:
@@ -236,13 +241,14 @@ class PowerStage:
         if decel is None:  # 0: torque off at once
             self.sm.quick_stop_complete()
             return
-        motion = self.motion
-        if motion is None or motion.begin_quick_stop(decel):
+        if self.motion is None:  # no control cycles to ramp on
             self.quick_stop_done()
+            return
+        self.motion.begin_quick_stop(decel)
 
     def quick_stop_done(self) -> None:
-        """The stop ramp reached standstill: Switch on disabled (0x605A = 1, 2) or holding in
-        Quick stop active (5, 6)."""
+        """The stop ramp is complete (the control cycle after the one that reached standstill):
+        Switch on disabled (0x605A = 1, 2) or holding in Quick stop active (5, 6)."""
         if self.sm.state != _S.QUICK_STOP_ACTIVE:
             return
         if self._option(_QUICK_STOP_OPTION, QuickStopOption.QUICK_STOP_RAMP) in _STAY_OPTIONS:
@@ -359,6 +365,11 @@ class PowerStage:
         self._trial.on_fault(cause)
         self.abort_connection(code, reason)
         self._fault_tick = -1
+        self._error_behaviour()
+
+    def _error_behaviour(self) -> None:
+        """The NMT reaction of 0x1029:1 to a communication error (0 pre-operational from
+        OPERATIONAL, 1 none, 2 stopped)."""
         behaviour = self._option(_ERROR_BEHAVIOUR, ErrorBehaviour.PRE_OPERATIONAL)
         react = self.nmt_reaction
         if react is None:
@@ -368,6 +379,27 @@ class PowerStage:
             react(NmtState.PRE_OPERATIONAL)
         elif behaviour == ErrorBehaviour.STOPPED and nmt != NmtState.STOPPED:
             react(NmtState.STOPPED)
+
+    def frames_lost(self) -> None:
+        """Fieldbus frames were lost (the receiver overflowed): EMCY 0x8110 "CAN overrun", 0x1001
+        (generic + communication), 0x1003, then the NMT reaction of 0x1029:1; a reaction that
+        leaves NMT OPERATIONAL while torque is on is an abort connection (0x6007), as any leaving
+        of OPERATIONAL is -- an armed or running trial then ends in FAULT."""
+        self.error_register |= int(_COMM)
+        self._record(EmcyCode.CAN_OVERRUN, self.error_register, struct.pack("<B4x", FaultCause.CAN_OVERRUN))
+        logger.warning("node %d: fieldbus frames lost (EMCY 0x%04X)", self.node_id, EmcyCode.CAN_OVERRUN)
+        operational = self._nmt_state() == NmtState.OPERATIONAL
+        self._error_behaviour()
+        if not operational or self._nmt_state() == NmtState.OPERATIONAL or not self.on:
+            return
+        if self._option(_ABORT_CONNECTION, AbortConnectionOption.FAULT) == AbortConnectionOption.NO_ACTION:
+            return
+        if self._trial.state == TrialState.RUNNING:
+            self._fault_tick = self._trial.next_tick
+        if self._trial.playing:
+            self._trial.on_fault(FaultCause.CAN_OVERRUN)
+        self.abort_connection(EmcyCode.CAN_OVERRUN, "can-overrun")
+        self._fault_tick = -1
 
     def heartbeat_lost(self, node_id: int) -> None:
         """The heartbeat of ``node_id`` (the host) was lost: a communication error with EMCY

@@ -203,10 +203,10 @@ def test_quick_stop_ramps_down_then_disables_or_holds(option: int, ticks: int, e
     d, plant, _ = moving_pp(option)
     wr(d, Obj.CONTROLWORD, 0, "u16", 0x0B)  # quick stop (bit 2 = 0)
     assert d.statusword == 0x0217 and d.torque_enabled and truthful(d)
-    seen = plant.run(d, ticks - 1)
-    assert d.statusword == 0x0217  # still ramping
+    seen = plant.run(d, ticks)  # 200 counts/cycle at 5 or 10 per cycle²: standstill in the last
+    assert d.statusword == 0x0217  # the ramp's cycles, the last one's included, are Quick stop active
     plant.step(d)
-    assert d.statusword == end and truthful(d)  # 200 counts/cycle at 5 or 10 per cycle²
+    assert d.statusword == end and truthful(d)  # the next cycle completes the quick stop
     steps = [b - a for a, b in zip(seen, seen[1:])]
     assert steps == sorted(steps, reverse=True)  # decelerating
     if end == 0x0240:
@@ -232,10 +232,17 @@ def test_quick_stop_option_0_removes_torque_at_once_and_2_ignores_enable() -> No
     assert abort(wr, d, Obj.QUICK_STOP_OPTION, 0, "i16", 7) == AbortCode.VALUE_TOO_HIGH
 
 
-def test_quick_stop_at_standstill_completes_without_a_tick() -> None:
-    d, plant = echo_drive(mode=PP, start=0)  # the default 0x605A = 2
+@pytest.mark.parametrize(("option", "end"), [(1, 0x0240), (2, 0x0240), (5, 0x0617), (6, 0x0617)])
+def test_quick_stop_at_standstill_lasts_one_control_cycle(option: int, end: int) -> None:
+    """From standstill the ramp takes one control cycle: Quick stop active until the next one."""
+    d, plant = echo_drive(mode=PP, start=1234)
+    wr(d, Obj.QUICK_STOP_OPTION, 0, "i16", option)
+    assert plant.run(d, 3) == [1234] * 3
     wr(d, Obj.CONTROLWORD, 0, "u16", 0x02)
-    assert d.statusword == 0x0240 and not d.torque_enabled
+    assert d.statusword == 0x0217 and d.torque_enabled and truthful(d)  # entered on the controlword
+    assert plant.run(d, 1) == [1234] and d.statusword == 0x0217 and d.torque_enabled  # the ramp's cycle
+    assert plant.run(d, 1) == [1234] and d.statusword == end and truthful(d)  # completed in the next one
+    assert d.torque_enabled is (end == 0x0617)  # 5, 6 hold with torque
 
 
 # ------------------------------------------------------------------ abort connection, NMT
@@ -273,7 +280,9 @@ def test_abort_connection_quick_stop_ramps_in_stopped() -> None:
     wr(d, Obj.ABORT_CONNECTION_OPTION, 0, "i16", 3)
     d.nmt_command(NmtCommand.STOP)
     assert d.statusword == 0x0217 and d.torque_enabled  # ramping down with torque, in STOPPED
-    plant.run(d, 20)
+    plant.run(d, 20)  # 200 counts/cycle at 10 per cycle²: standstill in the 20th
+    assert d.statusword == 0x0217 and d.torque_enabled
+    plant.step(d)
     assert d.statusword == 0x0240 and not d.torque_enabled
 
 

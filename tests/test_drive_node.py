@@ -19,12 +19,14 @@ from pathlib import Path
 import can
 import canopen
 import pytest
+from can.interfaces.virtual import VirtualBus
 
 from bus import io_frames
+from bus.can_errors import overflow_error_frame
 from bus.cia301.emcy import EmcyCode
 from bus.cia301.nmt import NmtCommand, NmtState, next_state
 from bus.errors import AbortCode, SdoAbort
-from bus.objects import Cia402State, ControlCommand, state_from_statusword
+from bus.objects import Cia402State, ControlCommand, FaultCause, state_from_statusword
 from firmware_model.control_law import warm_up
 from firmware_model.drive import Drive
 from firmware_model.drive_node import DriveNode, run_node
@@ -101,12 +103,12 @@ class ManualClock:
 class Rig:
     """A DriveNode in a thread + a canopen host Network + a plant-side io bus."""
 
-    def __init__(self, drive: object) -> None:
+    def __init__(self, drive: object, fieldbus: type[VirtualBus] = VirtualBus) -> None:
         k = next(_counter)
         self.fb_channel, self.io_channel = f"node-fb-{k}", f"node-io-{k}"
         self.drive = drive
         self.stop = threading.Event()
-        self.fb = can.Bus(interface="virtual", channel=self.fb_channel)
+        self.fb = fieldbus(channel=self.fb_channel)
         self.io = can.Bus(interface="virtual", channel=self.io_channel)
         self.node = DriveNode(drive, self.fb, self.io)  # type: ignore[arg-type]
         self.plant = can.Bus(interface="virtual", channel=self.io_channel)
@@ -349,6 +351,75 @@ def test_real_drive_enable_sequence() -> None:
         assert msg is not None
         torque = io_frames.decode_torque(msg)
         assert torque.torque_units == 0 and not torque.status & io_frames.TorqueStatus.ENABLED
+    finally:
+        rig.close()
+
+
+class ErrorFramesVirtualBus(VirtualBus):
+    """python-can's virtual bus delivering error frames whatever its acceptance filters, as
+    SocketCAN (its error mask) and the project's udp_multicast bus do."""
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        msg, filtered = super()._recv_internal(timeout)
+        return msg, filtered or (msg is not None and msg.is_error_frame)
+
+
+@pytest.mark.parametrize(
+    ("behaviour", "enable", "nmt", "state"),
+    [
+        (0, False, NmtState.PRE_OPERATIONAL, Cia402State.SWITCH_ON_DISABLED),  # 0x1029:1 = 0, the default
+        (0, True, NmtState.PRE_OPERATIONAL, Cia402State.FAULT),  # leaving OPERATIONAL: 0x6007 = 1, Fault
+        (1, True, NmtState.OPERATIONAL, Cia402State.OPERATION_ENABLED),  # no NMT change: torque stays
+        (2, False, NmtState.STOPPED, Cia402State.SWITCH_ON_DISABLED),
+    ],
+)
+def test_lost_fieldbus_frames_are_emcy_8110_and_react_per_0x1029(
+    behaviour: int, enable: bool, nmt: NmtState, state: Cia402State
+) -> None:
+    """A receive-overflow error frame on the fieldbus (udp_multicast's report of dropped datagrams):
+    EMCY 0x8110 "CAN overrun" with the error register's communication bit, 0x1003, and the NMT
+    state 0x1029:1 says -- in STOPPED the EMCY waits until the node leaves it (CiA 301)."""
+    warm_up()
+    drive = Drive(NODE)
+    rig = Rig(drive, fieldbus=ErrorFramesVirtualBus)
+    try:
+        remote = rig.remote
+        assert wait_for(lambda: rig.heartbeats[:1] == [0x00], 10.0)
+        remote.sdo[0x1029][1].raw = behaviour
+        remote.sdo[0x1017].raw = 10
+        remote.nmt.send_command(0x01)
+        assert wait_for(lambda: rig.heartbeats[-1:] == [0x05], 10.0)
+        if enable:
+            for cw in (ControlCommand.SHUTDOWN, ControlCommand.SWITCH_ON, ControlCommand.ENABLE_OPERATION):
+                remote.sdo[0x6040].raw = int(cw)
+            assert drive.torque_enabled
+        rig.network.bus.send(overflow_error_frame(time.time()))
+        byte = {NmtState.PRE_OPERATIONAL: 0x7F, NmtState.OPERATIONAL: 0x05, NmtState.STOPPED: 0x04}[nmt]
+        assert wait_for(lambda: rig.heartbeats[-2:] == [byte, byte], 10.0), rig.heartbeats[-5:]
+        assert drive.nmt_state == nmt and drive.cia402_state == state
+        emcy = bytes.fromhex("10 81 11") + bytes([FaultCause.CAN_OVERRUN, 0, 0, 0, 0])
+        if nmt == NmtState.STOPPED:
+            assert rig.emcys == []  # none in STOPPED
+            remote.nmt.send_command(0x80)
+        assert wait_for(lambda: rig.emcys == [emcy], 10.0), rig.emcys
+        assert remote.sdo[0x1001].raw == 0x11
+        assert (remote.sdo[0x1003][0].raw, remote.sdo[0x1003][1].raw) == (1, 0x8110)
+        assert remote.sdo[0x603F].raw == (0x8110 if state == Cia402State.FAULT else 0)
+    finally:
+        rig.close()
+
+
+def test_other_error_frames_are_passed_over() -> None:
+    """A bus error frame of another kind (a CRC error of a damaged frame): nothing happens."""
+    drive = Drive(NODE)
+    rig = Rig(drive, fieldbus=ErrorFramesVirtualBus)
+    try:
+        remote = rig.remote
+        assert wait_for(lambda: rig.heartbeats[:1] == [0x00], 10.0)
+        crc = can.Message(is_error_frame=True, arbitration_id=0x008, is_extended_id=False, data=bytes([0, 0, 0, 8, 0, 0, 0, 0]))
+        rig.network.bus.send(crc)
+        assert remote.sdo[0x1001].raw == 0  # the probe behind it: the error frame was handled
+        assert remote.sdo[0x1003][0].raw == 0 and rig.emcys == [] and drive.nmt_state == NmtState.PRE_OPERATIONAL
     finally:
         rig.close()
 

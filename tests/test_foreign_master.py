@@ -9,12 +9,19 @@ stopping, NMT STOP mid-motion).
 from __future__ import annotations
 
 import struct
+import threading
+from typing import Any
 
+import canopen
 import pytest
+from canopen.profiles.p402 import BaseNode402, State402
 from drive402_util import K_ECHO, reference_profile
 from foreign_master import WAIT_S, MasterRig, in_process_drive, wait_until
+from robot_util import DRIVES, PLANT_ID, VirtualRobot, new_channels
 
 from bus import fixedpoint as fp
+from bus.objects import DRIVE_EDS_PATH
+from bus.plant_objects import RobotMode
 from bus.units import timeout_scale
 
 NODE = 1
@@ -225,3 +232,132 @@ def test_rtr_and_event_tpdo() -> None:
         node.tpdo[2].remote_request()
         assert node.tpdo[2].wait_for_reception(timeout=20) is not None
         assert node.tpdo[2]["Statusword"].raw == 0x0231
+
+
+# ------------------------------------------------------------------ quick stop seen by BaseNode402
+
+
+def _quick_stop_master(channel: str) -> tuple[canopen.Network, BaseNode402]:
+    """BaseNode402 for drive 1 of a robot on ``channel``."""
+    network = canopen.Network()
+    network.connect(interface="virtual", channel=channel)
+    node = BaseNode402(NODE, str(DRIVE_EDS_PATH))
+    node.sdo.RESPONSE_TIMEOUT = 5.0 * timeout_scale()
+    node.TIMEOUT_SWITCH_STATE_FINAL = WAIT_S
+    node.TIMEOUT_SWITCH_STATE_SINGLE = node.TIMEOUT_SWITCH_OP_MODE = node.TIMEOUT_CHECK_TPDO = WAIT_S / 4
+    network.add_node(node)
+    return network, node
+
+
+class _Tpdos:
+    """(state, position actual) of every TPDO1 (statusword, position actual) of a BaseNode402, in order."""
+
+    def __init__(self, node: BaseNode402) -> None:
+        self.seen: list[tuple[str, int]] = []
+        self._cond = threading.Condition()
+        node.tpdo[1].add_callback(self._on_tpdo)
+
+    def _on_tpdo(self, pdo: Any) -> None:
+        statusword, position = int(pdo["Statusword"].raw), int(pdo["Position actual value"].raw)
+        state = next((name for name, (mask, bits) in State402.SW_MASK.items() if statusword & mask == bits), "UNKNOWN")
+        with self._cond:
+            self.seen.append((state, position))
+            self._cond.notify_all()
+
+    def until(self, state: str, since: int) -> list[tuple[str, int]]:
+        """The TPDOs from number ``since`` on, up to the first in ``state`` (included)."""
+
+        def found() -> int | None:
+            return next((k for k in range(since, len(self.seen)) if self.seen[k][0] == state), None)
+
+        with self._cond:
+            assert self._cond.wait_for(lambda: found() is not None, WAIT_S), self.seen[since:][-20:]
+            end = found()
+            assert end is not None
+            return self.seen[since : end + 1]
+
+    def __len__(self) -> int:
+        with self._cond:
+            return len(self.seen)
+
+
+def test_base_node_402_sees_quick_stop_active_on_the_sync_stepped_robot_at_standstill_and_moving() -> None:
+    """``node.state = "QUICK STOP ACTIVE"`` with 0x605A = 2 on a drive of the SYNC-stepped robot (a
+    TPDO carries the control cycle of its SYNC; the master's SYNC producer runs): the state is
+    entered and seen, and the quick stop ends in Switch on disabled by itself; from standstill the
+    ramp takes one control cycle, moving the drive goes on during the ramp."""
+    fb_channel, io_channel = new_channels()
+    network, node = _quick_stop_master(fb_channel)
+    booted: set[int] = set()
+    cond = threading.Condition()
+
+    def boot_up(cob: int, data: bytearray, _t: float) -> None:
+        if data[:1] == b"\x00":
+            with cond:
+                booted.add(cob - 0x700)
+                cond.notify_all()
+
+    for node_id in (*DRIVES, PLANT_ID):
+        network.subscribe(0x700 + node_id, boot_up)
+    try:
+        robot = VirtualRobot(RobotMode.SYNC, channels=(fb_channel, io_channel))
+        try:
+            with cond:  # the plant boots once its model is ready to step
+                assert cond.wait_for(lambda: booted >= {*DRIVES, PLANT_ID}, WAIT_S), booted
+            node.nmt.state = "PRE-OPERATIONAL"
+            node.tpdo.read()
+            node.rpdo.read()
+            for pdo, names, tt in (
+                (node.tpdo[1], ("Statusword", "Position actual value"), 1),
+                (node.rpdo[1], ("Controlword",), 255),
+            ):
+                pdo.clear()
+                for name in names:
+                    pdo.add_variable(name)
+                pdo.trans_type = tt
+                pdo.enabled = True
+                pdo.save()
+            node.setup_402_state_machine(read_pdos=False)
+            tpdos = _Tpdos(node)
+            node.sdo["Quick stop option code"].raw = 2
+            node.sdo["Profile velocity"].raw = 400_000  # counts/s
+            node.sdo["Profile acceleration"].raw = 4_000_000  # counts/s²
+            node.sdo["Quick stop deceleration"].raw = 2_000_000  # counts/s²: 200 ms from 400 000 counts/s
+            node.nmt.state = "OPERATIONAL"
+            network.sync.start(0.005)  # each SYNC is one control period of the robot
+
+            # at standstill
+            node.state = "OPERATION ENABLED"
+            since = len(tpdos)
+            node.state = "QUICK STOP ACTIVE"  # returns once a TPDO says so
+            states = [state for state, _ in tpdos.until("SWITCH ON DISABLED", since)]
+            first = states.index("QUICK STOP ACTIVE")
+            assert set(states[:first]) <= {"OPERATION ENABLED"}
+            # the ramp's control cycle; a TPDO sampled at a SYNC that came before its period's io
+            # tick (the robot behind the SYNC producer) says it once more
+            assert states[first:-1] in (["QUICK STOP ACTIVE"], ["QUICK STOP ACTIVE"] * 2)
+
+            # moving: a profile-position move, stopped on the way
+            node.state = "OPERATION ENABLED"
+            start = tpdos.until("OPERATION ENABLED", len(tpdos))[-1][1]
+            node.sdo["Target position"].raw = start + 1_000_000
+            node.controlword = 0x1F  # new set-point
+            assert wait_until(lambda: bool(node.check_statusword() & 0x1000))  # set-point acknowledged
+            node.controlword = 0x0F
+            assert wait_until(lambda: tpdos.seen[-1][1] > start + 20_000)
+            since = len(tpdos)
+            node.state = "QUICK STOP ACTIVE"
+            seen = tpdos.until("SWITCH ON DISABLED", since - 1)  # from the last TPDO before the command
+            first = [state for state, _ in seen].index("QUICK STOP ACTIVE")
+            assert first >= 1 and {state for state, _ in seen[:first]} == {"OPERATION ENABLED"}
+            ramp = seen[first:-1]
+            assert {state for state, _ in ramp} == {"QUICK STOP ACTIVE"} and len(ramp) >= 20  # about 200 cycles
+            positions = [position for _, position in seen[first - 1 : -1]]  # the command's period, the ramp
+            steps = [b - a for a, b in zip(positions, positions[1:])]
+            assert steps[0] > 100 and positions[-1] - positions[0] > 5_000  # it went on while decelerating
+            assert abs(steps[-1]) < steps[0] // 10 and positions[-1] < start + 1_000_000  # stopped short of the target
+        finally:
+            network.sync.stop()
+            robot.close()
+    finally:
+        network.disconnect()

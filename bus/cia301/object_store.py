@@ -10,6 +10,7 @@ objects to its state.  The SDO server (:mod:`bus.cia301.sdo`) and the PDO servic
 
 from __future__ import annotations
 
+import functools
 import struct
 from collections.abc import Callable
 from pathlib import Path
@@ -37,7 +38,7 @@ Value = int | float | bytes | str
 Key = tuple[int, int]
 
 
-def _struct_of(var: ODVariable) -> struct.Struct | None:
+def struct_of(var: ODVariable) -> struct.Struct | None:
     """The packing of a numeric ``var``; None for DOMAIN, strings and a missing data type."""
     return None if var.data_type is None else _STRUCTS.get(var.data_type)
 
@@ -132,9 +133,32 @@ class ObjectStore:
             hook(value)
         self.values[key] = value
 
+    def writer(self, index: int, sub: int) -> Callable[[bytes], None]:
+        """:meth:`write_object` of ``(index, sub)`` with the object looked up now: the same checks,
+        hook and store on every call (for a writer called often, e.g. an RPDO's mapped objects;
+        the hooks must be installed before it is made).
+
+        :raises SdoAbort: unknown object/sub-index (now); when called, as :meth:`write_object`.
+        """
+        var = self.lookup(index, sub)
+        if var.access_type in ("ro", "const"):
+            return functools.partial(self.write_object, index, sub)  # refused at every call
+        key = (index, sub)
+        hook = self.write_hooks.get(key)
+        values = self.values
+        decode = self.decode
+
+        def write(data: bytes) -> None:
+            value = decode(var, bytes(data))
+            if hook is not None:
+                hook(value)
+            values[key] = value
+
+        return write
+
     @staticmethod
     def encode(var: ODVariable, value: Value) -> bytes:
-        s = _struct_of(var)
+        s = struct_of(var)
         if s is not None:
             return s.pack(value)
         if isinstance(value, str):
@@ -146,7 +170,7 @@ class ObjectStore:
     @staticmethod
     def decode(var: ODVariable, data: bytes) -> Value:
         """:raises SdoAbort: 0x06070010 length, 0x06090031/32 limits, 0x06090030 non-ASCII."""
-        s = _struct_of(var)
+        s = struct_of(var)
         if s is None:
             if var.data_type in (dt.VISIBLE_STRING, dt.UNICODE_STRING):
                 try:

@@ -64,23 +64,32 @@ enters it: every counter and timer starts afresh)
 * RTR (:meth:`PdoEngine.on_rtr`): a remote frame with the identifier of a valid TPDO whose bit 30
   is 0 is answered with the TPDO's data of that moment (any transmission type).
 
+What the run time reads of the PDO objects -- validity, identifiers, transmission types, inhibit
+times, event timers, SYNC start values, the mappings (as the struct that packs or unpacks them,
+the mapped objects' read hooks, the write order) -- is read from the object store once and kept
+(:class:`_Plan`) until one of those objects is written (their write hooks, installed here, drop it)
+or the engine is reset (NMT reset communication, entering OPERATIONAL): the objects are written
+only through :meth:`ObjectStore.write_object` or by a reset of the store, which the node follows with
+:meth:`PdoEngine.reset`.  The object store's hooks are installed before the node runs.
+
 Time: ``clock`` [s] (the node's clock: the monotonic clock, or the lockstep time of the
 application); no wall clock is read here.
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 import struct
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from canopen.objectdictionary import ODVariable
 
 from bus.cia301.emcy import EmcyCode
 from bus.cia301.nmt import NmtState
-from bus.cia301.object_store import ObjectStore
+from bus.cia301.object_store import ObjectStore, struct_of
 from bus.errors import AbortCode, SdoAbort
 from bus.pdo_objects import (  # noqa: F401 - re-exported
     COB_ID_MASK_11,
@@ -118,8 +127,40 @@ INHIBIT_UNIT_S = 100e-6
 _EVENT = (TT_EVENT_MANUFACTURER, TT_EVENT_PROFILE)
 #: a timer is due this close to its time [s]: time sums of whole µs carry float rounding
 _EPS_S = 1e-9
+_OPERATIONAL = int(NmtState.OPERATIONAL)
+_SYNC_KEY = (COB_ID_SYNC_INDEX, 0)
 
 Frame = tuple[int, bytes]
+
+
+@dataclass(frozen=True)
+class _Config:
+    """What the communication and mapping parameters of one PDO say now (see :class:`_Plan`)."""
+
+    valid: bool
+    can_id: int  # bits 0-10 of the COB-ID
+    rtr: bool  # TPDO: a valid TPDO that answers a remote frame (bit 30 = 0)
+    transmission_type: int
+    inhibit_s: float  # TPDO: sub 3 [s]
+    event_ms: int  # sub 5 [ms]
+    sync_start: int  # TPDO: sub 6
+    nbytes: int  # the mapped bytes
+    #: RPDO: (index, sub, first byte, end byte, writer) of each mapped object, in the order they are
+    #: written (writer: :meth:`ObjectStore.writer`, None for an object not in the dictionary)
+    writes: tuple[tuple[int, int, int, int, Callable[[bytes], None] | None], ...]
+    #: TPDO: the payload now (None: the mapping names an object that cannot be read; read each time)
+    pack: Callable[[], bytes] | None
+
+
+@dataclass
+class _Plan:
+    """The PDO objects as the run time needs them, read once (dropped by a write of any of them or a
+    reset; rebuilt at the next use)."""
+
+    rx_by_cob: dict[int, _Pdo] = field(default_factory=dict)  # CAN identifier -> valid RPDO
+    tx_valid: list[_Pdo] = field(default_factory=list)  # the valid TPDOs, in order
+    tx_sync: list[_Pdo] = field(default_factory=list)  # the valid synchronous TPDOs (0..240)
+    tx_event: list[_Pdo] = field(default_factory=list)  # the valid event-driven TPDOs (254/255)
 
 
 @dataclass
@@ -138,6 +179,7 @@ class _Pdo:
     waiting_start: bool = False  # TPDO: waits for the SYNC whose counter is its start value
     event_due_s: float | None = None  # TPDO 254/255: when the event timer expires
     held: bool = False  # TPDO 254/255: a change waits for the end of the inhibit time
+    cfg: _Config | None = None  # its parameters as the run time reads them (set with the plan)
 
     def forget(self) -> None:
         """Drop the run-time state (a new start, a new configuration)."""
@@ -182,28 +224,37 @@ class PdoEngine:
                     out.append(_Pdo(k + 1, comm_base + k, map_base + k, receive))
         self.sync_count = 0  #: SYNCs received since the start (NMT operational)
         self.length_errors = 0  #: RPDOs too short for their mapping (not processed)
-        self._rx_by_cob: dict[int, _Pdo] | None = None
-        self._tx_valid: list[_Pdo] | None = None  # the valid TPDOs, in order (None: to be computed)
+        self._plan: _Plan | None = None  # the PDO objects as the run time reads them (None: to be read)
         self._install_hooks()
 
     # ------------------------------------------------------------------ configuration
 
     def _install_hooks(self) -> None:
+        """The write hooks of every PDO parameter: the write is checked (an :class:`SdoAbort`
+        refuses it), then the plan is dropped (the store keeps the value right after)."""
         w = self.store.write_hooks
+
+        def put(key: tuple[int, int], check: Callable[[int], None]) -> None:
+            def hook(value: object) -> None:
+                check(int(value))  # type: ignore[call-overload]
+                self._plan = None
+
+            w[key] = hook
+
         for pdo in (*self.rpdos, *self.tpdos):
-            w[(pdo.comm, COMM_COB_ID)] = lambda v, p=pdo: self._write_cob_id(p, int(v))  # type: ignore[misc]
+            put((pdo.comm, COMM_COB_ID), lambda v, p=pdo: self._write_cob_id(p, v))  # type: ignore[misc]
             if (pdo.comm, COMM_TRANSMISSION_TYPE) in self.store.vars:
-                w[(pdo.comm, COMM_TRANSMISSION_TYPE)] = lambda v, p=pdo: self._write_transmission_type(p, int(v))  # type: ignore[misc]
+                put((pdo.comm, COMM_TRANSMISSION_TYPE), lambda v, p=pdo: self._write_transmission_type(p, v))  # type: ignore[misc]
             if (pdo.comm, COMM_EVENT_TIMER) in self.store.vars:
-                w[(pdo.comm, COMM_EVENT_TIMER)] = lambda v, p=pdo: self._write_event_timer(p)  # type: ignore[misc]
+                put((pdo.comm, COMM_EVENT_TIMER), lambda v, p=pdo: self._write_event_timer(p))  # type: ignore[misc]
             if not pdo.receive:
                 for sub, what in ((COMM_INHIBIT_TIME, "inhibit time"), (COMM_SYNC_START, "SYNC start value")):
                     if (pdo.comm, sub) in self.store.vars:
-                        w[(pdo.comm, sub)] = lambda v, p=pdo, t=what: self._write_while_invalid(p, t)  # type: ignore[misc]
-            w[(pdo.mapping, 0)] = lambda v, p=pdo: self._write_map_count(p, int(v))  # type: ignore[misc]
+                        put((pdo.comm, sub), lambda v, p=pdo, t=what: self._write_while_invalid(p, t))  # type: ignore[misc]
+            put((pdo.mapping, 0), lambda v, p=pdo: self._write_map_count(p, v))  # type: ignore[misc]
             for sub in range(1, MAX_MAPPED + 1):
                 if (pdo.mapping, sub) in self.store.vars:
-                    w[(pdo.mapping, sub)] = lambda v, p=pdo, s=sub: self._write_map_entry(p, s, int(v))  # type: ignore[misc]
+                    put((pdo.mapping, sub), lambda v, p=pdo, s=sub: self._write_map_entry(p, s, v))  # type: ignore[misc]
 
     def _value(self, index: int, sub: int) -> int:
         return int(self.store.values[(index, sub)])
@@ -242,8 +293,6 @@ class PdoEngine:
                     AbortCode.VALUE_RANGE, f"{self._name(pdo)} is valid: invalidate it (bit 31) before changing its COB-ID"
                 )
         pdo.forget()
-        self._rx_by_cob = None
-        self._tx_valid = None
         logger.debug("%s COB-ID 0x%08X", self._name(pdo), value)
 
     def _write_transmission_type(self, pdo: _Pdo, value: int) -> None:
@@ -306,15 +355,109 @@ class PdoEngine:
     def _name(pdo: _Pdo) -> str:
         return f"{'RPDO' if pdo.receive else 'TPDO'}{pdo.number}"
 
+    # ------------------------------------------------------------------ the plan
+
+    def _read_plan(self) -> _Plan:
+        """Read the PDO objects as the run time needs them (:class:`_Plan`, :class:`_Config`)."""
+        plan = _Plan()
+        for pdo in (*self.rpdos, *self.tpdos):
+            cfg = pdo.cfg = self._read_config(pdo)
+            if not cfg.valid:
+                continue
+            if pdo.receive:
+                plan.rx_by_cob[cfg.can_id] = pdo
+                continue
+            plan.tx_valid.append(pdo)
+            if cfg.transmission_type <= TT_SYNC_MAX:
+                plan.tx_sync.append(pdo)
+            elif cfg.transmission_type in _EVENT:
+                plan.tx_event.append(pdo)
+        self._plan = plan
+        return plan
+
+    def _read_config(self, pdo: _Pdo) -> _Config:
+        """The :class:`_Config` of ``pdo`` from the object store now."""
+        cob = self.cob_id(pdo)
+        entries = self.mapping(pdo)
+        writes = []
+        pack = None
+        if pdo.receive:
+            offsets = [0]
+            for _, _, bits in entries:
+                offsets.append(offsets[-1] + bits // 8)
+            # first the objects without a write hook (set-points), then those with one (commands)
+            hooks = self.store.write_hooks
+            for k in sorted(range(len(entries)), key=lambda k: (entries[k][0], entries[k][1]) in hooks):
+                index, sub, _ = entries[k]
+                writes.append((index, sub, offsets[k], offsets[k + 1], self._writer(index, sub)))
+        else:
+            pack = self._packer(entries)
+        return _Config(
+            valid=not cob & PDO_NOT_VALID,
+            can_id=cob & COB_ID_MASK_11,
+            rtr=not cob & PDO_NOT_VALID and not cob & PDO_NO_RTR,
+            transmission_type=self.transmission_type(pdo),
+            inhibit_s=self._sub(pdo, COMM_INHIBIT_TIME) * INHIBIT_UNIT_S,
+            event_ms=self._sub(pdo, COMM_EVENT_TIMER),
+            sync_start=self._sub(pdo, COMM_SYNC_START),
+            nbytes=sum(bits for _, _, bits in entries) // 8,
+            writes=tuple(writes),
+            pack=pack,
+        )
+
+    def _writer(self, index: int, sub: int) -> Callable[[bytes], None] | None:
+        try:
+            return self.store.writer(index, sub)
+        except SdoAbort:
+            return None  # not in the dictionary: refused at every write, by write_object
+
+    def _packer(self, entries: list[tuple[int, int, int]]) -> Callable[[], bytes] | None:
+        """The payload of the mapped objects ``entries`` (index, sub, bits), read when called, as
+        :meth:`ObjectStore.read_object` of each would give it; None when one of them cannot be
+        read that way (not in the dictionary, write-only, not a number of its mapped size)."""
+        store = self.store
+        getters: list[Callable[[], object]] = []
+        fmt = "<"
+        for index, sub, bits in entries:
+            var = store.vars.get((index, sub))
+            code = None if var is None else _struct_code(var)
+            if var is None or var.access_type == "wo" or code is None or struct.calcsize("<" + code) * 8 != bits:
+                return None
+            key = (index, sub)
+            hook = store.read_hooks.get(key)
+            getters.append(hook if hook is not None else functools.partial(store.values.__getitem__, key))
+            fmt += code
+        packer = struct.Struct(fmt).pack
+        if not getters:
+            return lambda: b""
+        if len(getters) == 1:
+            (one,) = getters
+            return lambda: packer(one())
+        if len(getters) == 2:
+            first, second = getters
+            return lambda: packer(first(), second())
+        return lambda: packer(*[get() for get in getters])
+
+    def _config(self, pdo: _Pdo) -> _Config:
+        """The current :class:`_Config` of ``pdo``."""
+        if self._plan is None:
+            self._read_plan()
+        assert pdo.cfg is not None
+        return pdo.cfg
+
+    def _current_plan(self) -> _Plan:
+        plan = self._plan
+        return plan if plan is not None else self._read_plan()
+
     # ------------------------------------------------------------------ run time
 
     def reset(self) -> None:
-        """Forget buffered data, counters and timers (NMT reset communication / node)."""
+        """Forget buffered data, counters and timers (NMT reset communication / node); the PDO
+        objects are read afresh (the store may have been reset)."""
         for pdo in (*self.rpdos, *self.tpdos):
             pdo.forget()
         self.sync_count = 0
-        self._rx_by_cob = None
-        self._tx_valid = None
+        self._plan = None
 
     def start(self) -> None:
         """The node entered NMT OPERATIONAL: every counter and timer starts afresh."""
@@ -323,53 +466,50 @@ class PdoEngine:
     @property
     def active(self) -> bool:
         """PDOs are processed only in NMT OPERATIONAL."""
-        return int(self._nmt_state()) == NmtState.OPERATIONAL
+        return int(self._nmt_state()) == _OPERATIONAL
 
     def sync_cob_id(self) -> int:
         """The SYNC identifier this node consumes (0x1005 bits 0–10)."""
-        if (COB_ID_SYNC_INDEX, 0) not in self.store.vars:
-            return SYNC_COB_ID_DEFAULT
-        return self._value(COB_ID_SYNC_INDEX, 0) & COB_ID_MASK_11
+        value = self.store.values.get(_SYNC_KEY)
+        return SYNC_COB_ID_DEFAULT if value is None else int(value) & COB_ID_MASK_11
 
     def rpdo_cob_ids(self) -> dict[int, _Pdo]:
         """CAN identifier → valid RPDO."""
-        if self._rx_by_cob is None:
-            self._rx_by_cob = {self.cob_id(p) & COB_ID_MASK_11: p for p in self.rpdos if self.valid(p)}
-        return self._rx_by_cob
+        return self._current_plan().rx_by_cob
 
     def tpdo_cob_ids(self) -> set[int]:
         """CAN identifiers of the valid TPDOs (the node's own transmit IDs)."""
-        return {self.cob_id(p) & COB_ID_MASK_11 for p in self.tpdos if self.valid(p)}
+        return {self._config(p).can_id for p in self._current_plan().tx_valid}
 
     def tpdo_rtr_ids(self) -> set[int]:
         """CAN identifiers of the valid TPDOs that answer a remote frame (bit 30 = 0)."""
-        return {self.cob_id(p) & COB_ID_MASK_11 for p in self._valid_tpdos() if not self.cob_id(p) & PDO_NO_RTR}
+        return {self._config(p).can_id for p in self._current_plan().tx_valid if self._config(p).rtr}
 
     def _valid_tpdos(self) -> list[_Pdo]:
-        valid = self._tx_valid
-        if valid is None:  # recomputed after a COB-ID write or a reset (the hot path: every io tick)
-            valid = self._tx_valid = [p for p in self.tpdos if self.valid(p)]
-        return valid
+        return self._current_plan().tx_valid
 
     # ------------------------------------------------------------------ receive
 
     def on_rpdo(self, can_id: int, data: bytes) -> bool:
         """A frame with identifier ``can_id``: True when it is one of the valid RPDOs (handled)."""
-        pdo = self.rpdo_cob_ids().get(can_id)
+        plan = self._plan if self._plan is not None else self._read_plan()
+        pdo = plan.rx_by_cob.get(can_id)
         if pdo is None:
             return False
-        if not self.active:
+        if int(self._nmt_state()) != _OPERATIONAL:
             return True
-        need = sum(bits for _, _, bits in self.mapping(pdo)) // 8
+        cfg = pdo.cfg
+        assert cfg is not None
+        need = cfg.nbytes
         if len(data) < need:
             self.length_errors += 1
             logger.warning("%s: %d bytes, mapping needs %d: not processed", self._name(pdo), len(data), need)
             if self._report is not None:
                 self._report(EmcyCode.PDO_LENGTH, pdo.number)
             return True
-        timeout_ms = self._sub(pdo, COMM_EVENT_TIMER)
+        timeout_ms = cfg.event_ms
         pdo.deadline_s = self.clock() + timeout_ms / 1000.0 if timeout_ms else None
-        if self.transmission_type(pdo) <= TT_SYNC_MAX:
+        if cfg.transmission_type <= TT_SYNC_MAX:
             pdo.pending = bytes(data[:need])
         else:
             self._apply(pdo, bytes(data[:need]))
@@ -377,19 +517,17 @@ class PdoEngine:
 
     def expired_rpdos(self, now: float) -> list[int]:
         """Numbers of the RPDOs whose deadline passed at ``now`` [s] (each once per loss)."""
-        if not self.active:
+        late = [pdo for pdo in self.rpdos if pdo.deadline_s is not None and now >= pdo.deadline_s - _EPS_S]
+        if not late or int(self._nmt_state()) != _OPERATIONAL:
             return []
-        out = []
-        for pdo in self.rpdos:
-            if pdo.deadline_s is not None and now >= pdo.deadline_s - _EPS_S:
-                pdo.deadline_s = None
-                out.append(pdo.number)
-        return out
+        for pdo in late:
+            pdo.deadline_s = None
+        return [pdo.number for pdo in late]
 
     def on_sync(self, counter: int | None = None) -> list[_Pdo]:
         """A SYNC (``counter``: its counter byte, None without): write the buffered synchronous
         RPDOs (in PDO order); returns the synchronous TPDOs due at it (to :meth:`sample`)."""
-        if not self.active:
+        if int(self._nmt_state()) != _OPERATIONAL:
             return []
         self.sync_count += 1
         for pdo in self.rpdos:
@@ -397,22 +535,23 @@ class PdoEngine:
                 data, pdo.pending = pdo.pending, None
                 self._apply(pdo, data)
         due = []
-        for pdo in self._valid_tpdos():
-            tt = self.transmission_type(pdo)
+        plan = self._plan if self._plan is not None else self._read_plan()  # the RPDOs may have changed it
+        for pdo in plan.tx_sync:
+            tt = pdo.cfg.transmission_type  # type: ignore[union-attr]
             if tt == TT_SYNC_ACYCLIC:
                 due.append(pdo)
-            elif tt <= TT_SYNC_MAX and self._sync_due(pdo, tt, counter):
+            elif self._sync_due(pdo, tt, counter):
                 due.append(pdo)
         return due
 
     def _sync_due(self, pdo: _Pdo, tt: int, counter: int | None) -> bool:
         """Count one SYNC for TPDO ``pdo`` of type ``tt`` (1..240): True when it is due."""
         if pdo.countdown == 0 and not pdo.waiting_start:  # first SYNC since the start
-            start = self._sub(pdo, COMM_SYNC_START)
+            start = self._config(pdo).sync_start
             pdo.waiting_start = start > 0 and counter is not None
             pdo.countdown = tt
         if pdo.waiting_start:
-            if counter != self._sub(pdo, COMM_SYNC_START):
+            if counter != self._config(pdo).sync_start:
                 return False
             pdo.waiting_start = False
             pdo.countdown = tt
@@ -427,17 +566,12 @@ class PdoEngine:
         """Write an RPDO's payload: first the objects without a write hook (set-points), then those
         with one (commands such as a controlword), each group in mapping order -- so a command
         sees the set-points that came in the same RPDO."""
-        offset = 0
-        plain: list[tuple[int, int, bytes]] = []
-        hooked: list[tuple[int, int, bytes]] = []
-        hooks = self.store.write_hooks
-        for index, sub, bits in self.mapping(pdo):
-            n = bits // 8
-            (hooked if (index, sub) in hooks else plain).append((index, sub, data[offset : offset + n]))
-            offset += n
-        for index, sub, value in (*plain, *hooked):
+        for index, sub, start, end, write in self._config(pdo).writes:
             try:
-                self.store.write_object(index, sub, value)
+                if write is None:
+                    self.store.write_object(index, sub, data[start:end])
+                else:
+                    write(data[start:end])
             except SdoAbort as err:  # the value is refused like an SDO download would be
                 logger.warning("%s: 0x%04X:%d not written: %s", self._name(pdo), index, sub, err)
 
@@ -445,46 +579,50 @@ class PdoEngine:
 
     def pack(self, pdo: _Pdo) -> bytes:
         """The current payload of ``pdo`` (its mapped objects, read now)."""
+        packer = self._config(pdo).pack
+        if packer is not None:
+            return packer()
         return b"".join(self.store.read_object(index, sub) for index, sub, _ in self.mapping(pdo))
 
     def _sent(self, pdo: _Pdo, data: bytes, now: float) -> Frame:
+        cfg = self._config(pdo)
         pdo.last_sent = data
         pdo.last_tx_s = now
         pdo.held = False
-        event_ms = self._sub(pdo, COMM_EVENT_TIMER)
-        pdo.event_due_s = now + event_ms / 1000.0 if event_ms and self.transmission_type(pdo) in _EVENT else None
-        return self.cob_id(pdo) & COB_ID_MASK_11, data
+        event_ms = cfg.event_ms
+        pdo.event_due_s = now + event_ms / 1000.0 if event_ms and cfg.transmission_type in _EVENT else None
+        return cfg.can_id, data
 
     def sample(self, pdos: list[_Pdo]) -> list[Frame]:
         """(CAN identifier, payload) of the synchronous TPDOs ``pdos`` (from :meth:`on_sync`), their
         data read now; a type-0 TPDO only if its data changed since its last transmission."""
-        if not pdos or not self.active:
+        if not pdos or int(self._nmt_state()) != _OPERATIONAL:
             return []
         now = self.clock()
         out = []
         for pdo in pdos:
-            if not self.valid(pdo):
+            cfg = self._config(pdo)
+            if not cfg.valid:
                 continue
-            data = self.pack(pdo)
-            if self.transmission_type(pdo) == TT_SYNC_ACYCLIC and data == pdo.last_sent:
+            data = cfg.pack() if cfg.pack is not None else self.pack(pdo)
+            if cfg.transmission_type == TT_SYNC_ACYCLIC and data == pdo.last_sent:
                 continue
             out.append(self._sent(pdo, data, now))
         return out
 
     def poll(self, now: float) -> list[Frame]:
         """The event-driven TPDOs due at ``now`` [s] (see the module docstring)."""
-        if not self.active:
+        plan = self._plan if self._plan is not None else self._read_plan()
+        if not plan.tx_event or int(self._nmt_state()) != _OPERATIONAL:
             return []
         out = []
-        for pdo in self._valid_tpdos():
-            if self.transmission_type(pdo) not in _EVENT:
-                continue
+        for pdo in plan.tx_event:
             data = self.pack(pdo)
             changed = data != pdo.last_sent
             timer = pdo.event_due_s is not None and now >= pdo.event_due_s - _EPS_S
             if not (changed or timer):
                 continue
-            inhibit_s = self._sub(pdo, COMM_INHIBIT_TIME) * INHIBIT_UNIT_S
+            inhibit_s = self._config(pdo).inhibit_s
             if pdo.last_tx_s is not None and now < pdo.last_tx_s + inhibit_s - _EPS_S:
                 pdo.held = True  # sent when the inhibit time ends
                 continue
@@ -497,8 +635,8 @@ class PdoEngine:
         if not self.active:
             return None
         for pdo in self._valid_tpdos():
-            cob = self.cob_id(pdo)
-            if cob & COB_ID_MASK_11 == can_id and not cob & PDO_NO_RTR:
+            cfg = self._config(pdo)
+            if cfg.can_id == can_id and cfg.rtr:
                 return self._sent(pdo, self.pack(pdo), self.clock())
         return None
 
@@ -512,8 +650,15 @@ class PdoEngine:
             if pdo.event_due_s is not None:
                 times.append(pdo.event_due_s)
             if pdo.held and pdo.last_tx_s is not None:
-                times.append(pdo.last_tx_s + self._sub(pdo, COMM_INHIBIT_TIME) * INHIBIT_UNIT_S)
+                times.append(pdo.last_tx_s + self._config(pdo).inhibit_s)
         return min(times) if times else None
+
+
+def _struct_code(var: ODVariable) -> str | None:
+    """The struct code of a numeric object (None for DOMAIN, strings, a missing data type), as
+    :meth:`ObjectStore.encode` packs it."""
+    s = struct_of(var)
+    return None if s is None else s.format.lstrip("<")
 
 
 def _size_bytes(var: ODVariable) -> int:

@@ -13,7 +13,9 @@ This module owns what every node of the rig does on the wire, independent of its
   every completed SDO transfer.  SDO is silent in the NMT state STOPPED (CiA 301); NMT and
   heartbeat always work.  Heartbeat consumer (object 0x1016,
   re-read like 0x1017): a configured producer (the host) silent for its consumer time calls the
-  app's optional ``heartbeat_lost(node_id)`` once.  A bus that fails (the hub gone) ends
+  app's optional ``heartbeat_lost(node_id)`` once.  A fieldbus error frame that says the receiver
+  overflowed (frames lost, :mod:`bus.can_errors`) calls the app's optional ``frames_lost()``; other
+  error frames are passed over.  A bus that fails (the hub gone) ends
   :meth:`SlaveNode.run` after calling the app's optional ``bus_lost(reason)``; :attr:`SlaveNode.bus_error`
   then says why.  Frames carrying this node's own
   COB-IDs are ignored (udp_multicast echoes a sender's frames back to it).  Fieldbus acceptance
@@ -53,6 +55,7 @@ from typing import Any, Protocol
 import can
 
 from bus.bus_features import batch_receiver, pending_check
+from bus.can_errors import is_receive_overflow
 from bus.cia301.emcy import EMCY_NOT_VALID, emcy_cob_id, encode_emcy
 from bus.cia301.nmt import (
     CONSUMER_HEARTBEAT_INDEX,
@@ -185,6 +188,14 @@ class SlaveNode:
         hook = getattr(self.app, "heartbeat_lost", None)
         if hook is not None:
             hook(node_id)
+
+    def on_frames_lost(self) -> None:
+        """The fieldbus lost frames: its receiver overflowed (an error frame of
+        :func:`bus.can_errors.is_receive_overflow`; default: the app's optional
+        ``frames_lost()``)."""
+        hook = getattr(self.app, "frames_lost", None)
+        if hook is not None:
+            hook()
 
     def on_fieldbus(self, msg: can.Message) -> None:
         """A fieldbus frame that is not NMT, this node's SDO request or its own (e.g. SYNC, PDOs;
@@ -341,12 +352,11 @@ class SlaveNode:
             )
             self.on_heartbeat_lost(producer)
         self._flush_emcy(now)
-        state = int(self.app.nmt_state)
         abort = self.sdo.tick(now)
         if abort is not None:
             self._send(self.fieldbus, self._sdo_tx, abort)
         if self._next_heartbeat_s is not None and now >= self._next_heartbeat_s:
-            self._send(self.fieldbus, self._hb_id, encode_heartbeat(state))
+            self._send(self.fieldbus, self._hb_id, encode_heartbeat(int(self.app.nmt_state)))
             period = self._heartbeat_ms / 1000.0
             # keep the phase; skip missed beats instead of bursting
             self._next_heartbeat_s += period
@@ -390,6 +400,8 @@ class SlaveNode:
                 logger.info("node %d: EMCY 0x%04X not sent: 0x1014 says the EMCY is not valid", self.node_id, int(code))
                 continue
             self._emcy_queue.append(encode_emcy(int(code), int(register), bytes(data)[:5]))
+        if not self._emcy_queue:
+            return
         if int(self.app.nmt_state) == NmtState.STOPPED:
             return  # no EMCY in STOPPED (CiA 301): what waits goes out once the node leaves it
         while self._emcy_queue and (self._next_emcy_s is None or now >= self._next_emcy_s - 1e-9):
@@ -420,7 +432,12 @@ class SlaveNode:
     # ------------------------------------------------------------------ fieldbus
 
     def _on_fieldbus(self, msg: can.Message) -> None:
-        if msg.is_extended_id or msg.is_error_frame:
+        if msg.is_error_frame:
+            if is_receive_overflow(msg):
+                logger.warning("node %d: fieldbus frames lost (receive overflow)", self.node_id)
+                self.on_frames_lost()
+            return
+        if msg.is_extended_id:
             return
         if msg.is_remote_frame:
             self.on_fieldbus(msg)  # e.g. a request for a TPDO

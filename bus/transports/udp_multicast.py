@@ -24,10 +24,11 @@ What udp_multicast guarantees, and what it does not
       (``SO_RXQ_OVFL``: the socket's drop count comes with each datagram; ``SO_MEMINFO`` when
       nothing arrives) and reported, in order, as a bus error frame before the first frame
       received after the loss (:func:`overflow_error_frame`, SocketCAN's form of a controller
-      receive overflow), logged as a warning and counted (:attr:`CheckedUdpMulticastBus.frames_lost`).
-      The host's channel monitors and the plant turn a bus error frame into a fault of the run;
-      a CANopen node (:mod:`bus.cia301.slave`) passes over it, so a loss at a drive shows in the
-      drive's log and as the timeout of whatever the lost frame carried.
+      receive overflow, :mod:`bus.can_errors`), logged as a warning and counted
+      (:attr:`CheckedUdpMulticastBus.frames_lost`).  The host's channel monitors and the plant
+      turn a bus error frame into a fault of the run; a drive reports a loss on its fieldbus as
+      EMCY 0x8110 "CAN overrun" and reacts as its 0x1029 says (:mod:`bus.cia301.slave`,
+      :mod:`firmware_model.power_stage`).
 
     Not detected: a datagram lost before it reaches the socket (the per-CPU input backlog,
     ``net.core.netdev_max_backlog``; on loopback the sender's own CPU delivers its datagram at
@@ -48,6 +49,8 @@ import can
 from can.interfaces.udp_multicast import UdpMulticastBus
 from can.interfaces.udp_multicast.utils import unpack_message
 
+from bus.can_errors import CAN_ERR_CRTL, CAN_ERR_CRTL_RX_OVERFLOW, overflow_error_frame  # noqa: F401 - re-exported
+
 logger = logging.getLogger(__name__)
 
 #: receive buffer wanted for every udp_multicast socket (as the kernel counts it, so twice what is
@@ -65,11 +68,6 @@ _SK_MEMINFO_DROPS = 8
 _TIMESPEC = struct.Struct("@ll")
 _DROPS = struct.Struct("@I")
 
-#: SocketCAN's error class of a controller problem and its detail "receive buffer overflow"
-#: (linux/can/error.h: CAN_ERR_CRTL, data[1] CAN_ERR_CRTL_RX_OVERFLOW)
-CAN_ERR_CRTL: int = 0x004
-CAN_ERR_CRTL_RX_OVERFLOW: int = 0x01
-
 
 def enlarge_receive_buffer(sock: socket.socket, size_bytes: int) -> int:
     """Ask for a receive buffer of ``size_bytes`` on ``sock`` (``SO_RCVBUFFORCE`` where the process
@@ -84,20 +82,6 @@ def enlarge_receive_buffer(sock: socket.socket, size_bytes: int) -> int:
         except OSError as err:
             logger.debug("receive buffer option %d refused: %s", option, err)
     return int(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
-
-
-def overflow_error_frame(timestamp: float, channel: Any = None) -> can.Message:
-    """The bus error frame that reports lost frames: a controller receive overflow, as SocketCAN
-    delivers it (error class :data:`CAN_ERR_CRTL`, data[1] :data:`CAN_ERR_CRTL_RX_OVERFLOW`)."""
-    return can.Message(
-        timestamp=timestamp,
-        arbitration_id=CAN_ERR_CRTL,
-        is_extended_id=False,
-        is_error_frame=True,
-        dlc=8,
-        data=bytes([0, CAN_ERR_CRTL_RX_OVERFLOW, 0, 0, 0, 0, 0, 0]),
-        channel=channel,
-    )
 
 
 class CheckedUdpMulticastBus(UdpMulticastBus):
