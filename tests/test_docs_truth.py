@@ -60,8 +60,10 @@ def test_settling_trial_is_the_first_from_which_every_joint_stays_within_twice_i
 
 @pytest.mark.slow
 @pytest.mark.multiprocess
-def test_digests_and_figures_the_docs_state_are_what_the_commands_give() -> None:
-    findings = docfigures.check()
+@pytest.mark.parametrize("name", ["digests", *docfigures.GENERATORS])
+def test_digests_and_figures_the_docs_state_are_what_the_commands_give(name: str) -> None:
+    """One check per generator (and one for the digest lines), each well inside the test timeout."""
+    findings = docfigures.check(only={name})
     assert not findings, "\n".join(map(str, findings)) + "\n(run `python scripts/docfigures.py --write` for figure blocks)"
 
 
@@ -116,3 +118,11 @@ def test_every_file_path_the_docs_name_exists() -> None:
                 continue
             missing.append(f"{path.relative_to(ROOT)}: {p}")
     assert not missing, missing
+
+
+def test_every_benchmark_is_in_the_benchmarks_table() -> None:
+    """docs/benchmarks.md lists every script of ``benchmarks/`` with what it measures."""
+    text = (ROOT / "docs" / "benchmarks.md").read_text()
+    listed = set(re.findall(r"^\| `benchmarks/([\w-]+\.py)` \|", text, re.M))
+    scripts = {p.name for p in (ROOT / "benchmarks").glob("*.py") if not p.name.startswith("_")}
+    assert scripts <= listed, sorted(scripts - listed)
