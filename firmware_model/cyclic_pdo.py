@@ -47,7 +47,8 @@ from collections.abc import Callable
 from bus.cia301.emcy import EmcyCode
 from bus.cia301.nmt import NmtState
 from bus.cia301.object_store import ObjectStore
-from bus.cia301.pdo import Frame, PdoEngine, _Pdo
+from bus.cia301.pdo import Frame, PdoEngine
+from bus.cia301.pdo_parameters import Pdo
 from bus.cyclic import SYNC_CREDITS_MAX
 from bus.pdo_objects import COMM_CYCLE_PERIOD_INDEX, SYNC_COUNTER_OVERFLOW_INDEX
 
@@ -97,7 +98,7 @@ class CyclicPdo:
         self._on_warning = on_warning
         #: io ticks the SYNCs received allow (0 .. :data:`bus.cyclic.SYNC_CREDITS_MAX`)
         self.sync_credit = 0
-        self._deferred: list[_Pdo] | None = None  # TPDOs of the last SYNC waiting for its io tick
+        self._deferred: list[Pdo] | None = None  # TPDOs of the last SYNC waiting for its io tick
         self._out: list[Frame] = []
         self._sync_deadline_s: float | None = None
         self._sync_length_bad = False

@@ -258,3 +258,19 @@ def test_each_package_docstring_names_every_module_and_subpackage() -> None:
         if absent:
             missing[str(d.relative_to(ROOT))] = absent
     assert not missing, f"__init__ docstrings that do not name every module: {missing}"
+
+
+#: the longest class allowed in the project's packages, lines (a longer one holds several concerns)
+MAX_CLASS_LINES = 400
+
+
+def test_no_class_is_longer_than_the_limit() -> None:
+    long = []
+    for top in ("firmware_model", "bus", "host", "plant", "ilcrig"):
+        for path in sorted((ROOT / top).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.ClassDef) and node.end_lineno is not None:
+                    n = node.end_lineno - node.lineno + 1
+                    if n > MAX_CLASS_LINES:
+                        long.append(f"{path.relative_to(ROOT)}: {node.name} ({n} lines)")
+    assert not long, long

@@ -2,7 +2,8 @@
 
 Owns SDO server and codecs (:mod:`bus.cia301.sdo`: expedited, segmented, block, abort codes),
 NMT and heartbeat (:mod:`bus.cia301.nmt`), EMCY and the error history (:mod:`bus.cia301.emcy`), the
-PDO service and SYNC consumer (:mod:`bus.cia301.pdo`), the EDS-backed object store
+PDO service and SYNC consumer (:mod:`bus.cia301.pdo`) with the PDO parameters and their write
+rules (:mod:`bus.cia301.pdo_parameters`), the EDS-backed object store
 (:mod:`bus.cia301.object_store`), store/restore of parameters (:mod:`bus.cia301.storage`) and the node
 runtime (:mod:`bus.cia301.slave`).  It is the independent implementation that the
 ``canopen`` library on the host checks.

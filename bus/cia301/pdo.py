@@ -9,32 +9,7 @@ PDO payloads, SYNC events and remote requests and hands back the TPDO payloads d
 runtime (``firmware_model.drive_node``) moves the frames, the application
 (``firmware_model.cyclic_pdo``) decides when a SYNC's TPDOs are sampled.
 
-Objects (described by the node's EDS; k = 0..3 → PDO 1..4)
-
-* communication parameter, sub 1 COB-ID (U32): bit 31 = 1 PDO *not valid*, bit 30 = 1 no RTR
-  (TPDO; ignored for RPDO), bit 29 = 1 extended frame (not supported: refused), bits 0–10
-  the CAN identifier; sub 2 transmission type (U8): 0 synchronous acyclic, 1–240 synchronous
-  (a TPDO every n-th SYNC), 254/255 event driven; 241–253 (reserved, RTR-only) are refused.
-  TPDO sub 3 inhibit time (U16, 100 µs) and sub 6 SYNC start value (U8) can change only while
-  the PDO is not valid (else 0x06090030); TPDO sub 5 event timer (U16 ms); RPDO sub 5 event
-  timer (U16 ms): the RPDO's deadline (CiA 301 §7.5.2.35: deadline monitoring).
-* mapping parameter, sub 0 number of mapped objects (0..8), subs 1..8 entries
-  ``index << 16 | sub << 8 | bit length``; whole objects only (the bit length must equal the
-  object's size), at most 64 bits in total.
-
-Rules (CiA 301 re-mapping procedure; abort codes as CANopenNode answers them)
-
-* the COB-ID of a valid PDO cannot change to another valid COB-ID (invalidate it first) →
-  0x06090030; a restricted CAN-ID (CiA 301 Table 3: 0x000, 0x001–0x07F, 0x101–0x180,
-  0x581–0x5FF, 0x601–0x67F, 0x6E0–0x6FF, 0x701–0x77F, 0x780–0x7FF) or an extended frame →
-  0x06090030;
-* the mapping can be written only in NMT PRE-OPERATIONAL (this drive does not support
-  re-mapping while operational) → else 0x08000022, only while the PDO is not valid → else
-  0x06010000, and an entry (sub 1..8) only while sub 0 is 0 → else 0x06010000;
-* an entry naming an object that does not exist → 0x06020000 / 0x06090011; an object that is
-  not PDO-mappable in this direction (an RPDO needs a writable object, a TPDO a readable one),
-  or a bit length other than the object's size → 0x06040041; sub 0 larger than 8 or the
-  entries 1..sub 0 longer than 64 bits → 0x06040042.
+The objects and the rules for writing them are :mod:`bus.cia301.pdo_parameters`'s.
 
 Run time (only in NMT OPERATIONAL, as CiA 301 requires; :meth:`PdoEngine.start` when the node
 enters it: every counter and timer starts afresh)
@@ -67,7 +42,8 @@ enters it: every counter and timer starts afresh)
 What the run time reads of the PDO objects -- validity, identifiers, transmission types, inhibit
 times, event timers, SYNC start values, the mappings (as the struct that packs or unpacks them,
 the mapped objects' read hooks, the write order) -- is read from the object store once and kept
-(:class:`_Plan`) until one of those objects is written (their write hooks, installed here, drop it)
+(:class:`_Plan`) until one of those objects is written (their write hooks, installed by
+:class:`bus.cia301.pdo_parameters.PdoParameters`, drop it)
 or the engine is reset (NMT reset communication, entering OPERATIONAL): the objects are written
 only through :meth:`ObjectStore.write_object` or by a reset of the store, which the node follows with
 :meth:`PdoEngine.reset`.  The object store's hooks are installed before the node runs.
@@ -90,7 +66,8 @@ from canopen.objectdictionary import ODVariable
 from bus.cia301.emcy import EmcyCode
 from bus.cia301.nmt import NmtState
 from bus.cia301.object_store import ObjectStore, struct_of
-from bus.errors import AbortCode, SdoAbort
+from bus.cia301.pdo_parameters import Pdo, PdoConfig, PdoParameters
+from bus.errors import SdoAbort
 from bus.pdo_objects import (  # noqa: F401 - re-exported
     COB_ID_MASK_11,
     COB_ID_SYNC_INDEX,
@@ -133,64 +110,15 @@ _SYNC_KEY = (COB_ID_SYNC_INDEX, 0)
 Frame = tuple[int, bytes]
 
 
-@dataclass(frozen=True)
-class _Config:
-    """What the communication and mapping parameters of one PDO say now (see :class:`_Plan`)."""
-
-    valid: bool
-    can_id: int  # bits 0-10 of the COB-ID
-    rtr: bool  # TPDO: a valid TPDO that answers a remote frame (bit 30 = 0)
-    transmission_type: int
-    inhibit_s: float  # TPDO: sub 3 [s]
-    event_ms: int  # sub 5 [ms]
-    sync_start: int  # TPDO: sub 6
-    nbytes: int  # the mapped bytes
-    #: RPDO: (index, sub, first byte, end byte, writer) of each mapped object, in the order they are
-    #: written (writer: :meth:`ObjectStore.writer`, None for an object not in the dictionary)
-    writes: tuple[tuple[int, int, int, int, Callable[[bytes], None] | None], ...]
-    #: TPDO: the payload now (None: the mapping names an object that cannot be read; read each time)
-    pack: Callable[[], bytes] | None
-
-
 @dataclass
 class _Plan:
     """The PDO objects as the run time needs them, read once (dropped by a write of any of them or a
     reset; rebuilt at the next use)."""
 
-    rx_by_cob: dict[int, _Pdo] = field(default_factory=dict)  # CAN identifier -> valid RPDO
-    tx_valid: list[_Pdo] = field(default_factory=list)  # the valid TPDOs, in order
-    tx_sync: list[_Pdo] = field(default_factory=list)  # the valid synchronous TPDOs (0..240)
-    tx_event: list[_Pdo] = field(default_factory=list)  # the valid event-driven TPDOs (254/255)
-
-
-@dataclass
-class _Pdo:
-    """One PDO of the node (receive or transmit) and its run-time state."""
-
-    number: int  # 1-based
-    comm: int  # communication parameter index
-    mapping: int  # mapping parameter index
-    receive: bool
-    pending: bytes | None = None  # RPDO: synchronous payload waiting for the next SYNC
-    deadline_s: float | None = None  # RPDO: when the next one must have come (event timer)
-    last_sent: bytes | None = None  # TPDO: payload of the last transmission
-    last_tx_s: float | None = None  # TPDO: time of the last transmission
-    countdown: int = 0  # TPDO 1..240: SYNCs until it is due (0: load the transmission type)
-    waiting_start: bool = False  # TPDO: waits for the SYNC whose counter is its start value
-    event_due_s: float | None = None  # TPDO 254/255: when the event timer expires
-    held: bool = False  # TPDO 254/255: a change waits for the end of the inhibit time
-    cfg: _Config | None = None  # its parameters as the run time reads them (set with the plan)
-
-    def forget(self) -> None:
-        """Drop the run-time state (a new start, a new configuration)."""
-        self.pending = None
-        self.deadline_s = None
-        self.last_sent = None
-        self.last_tx_s = None
-        self.countdown = 0
-        self.waiting_start = False
-        self.event_due_s = None
-        self.held = False
+    rx_by_cob: dict[int, Pdo] = field(default_factory=dict)  # CAN identifier -> valid RPDO
+    tx_valid: list[Pdo] = field(default_factory=list)  # the valid TPDOs, in order
+    tx_sync: list[Pdo] = field(default_factory=list)  # the valid synchronous TPDOs (0..240)
+    tx_event: list[Pdo] = field(default_factory=list)  # the valid event-driven TPDOs (254/255)
 
 
 class PdoEngine:
@@ -213,152 +141,35 @@ class PdoEngine:
         self._nmt_state = nmt_state
         self.clock = clock
         self._report = report
-        self.rpdos: list[_Pdo] = []
-        self.tpdos: list[_Pdo] = []
-        for k in range(512):
-            for comm_base, map_base, receive, out in (
-                (RPDO_COMM_BASE, RPDO_MAP_BASE, True, self.rpdos),
-                (TPDO_COMM_BASE, TPDO_MAP_BASE, False, self.tpdos),
-            ):
-                if (comm_base + k, COMM_COB_ID) in store.vars and (map_base + k, 0) in store.vars:
-                    out.append(_Pdo(k + 1, comm_base + k, map_base + k, receive))
+        #: the PDO objects and the rules of writing them; a write drops the plan
+        self.params = PdoParameters(store, nmt_state, self._drop_plan)
+        self.rpdos: list[Pdo] = self.params.rpdos
+        self.tpdos: list[Pdo] = self.params.tpdos
         self.sync_count = 0  #: SYNCs received since the start (NMT operational)
         self.length_errors = 0  #: RPDOs too short for their mapping (not processed)
         self._plan: _Plan | None = None  # the PDO objects as the run time reads them (None: to be read)
-        self._install_hooks()
 
-    # ------------------------------------------------------------------ configuration
+    def _drop_plan(self) -> None:
+        self._plan = None
 
-    def _install_hooks(self) -> None:
-        """The write hooks of every PDO parameter: the write is checked (an :class:`SdoAbort`
-        refuses it), then the plan is dropped (the store keeps the value right after)."""
-        w = self.store.write_hooks
-
-        def put(key: tuple[int, int], check: Callable[[int], None]) -> None:
-            def hook(value: object) -> None:
-                check(int(value))  # type: ignore[call-overload]
-                self._plan = None
-
-            w[key] = hook
-
-        for pdo in (*self.rpdos, *self.tpdos):
-            put((pdo.comm, COMM_COB_ID), lambda v, p=pdo: self._write_cob_id(p, v))  # type: ignore[misc]
-            if (pdo.comm, COMM_TRANSMISSION_TYPE) in self.store.vars:
-                put((pdo.comm, COMM_TRANSMISSION_TYPE), lambda v, p=pdo: self._write_transmission_type(p, v))  # type: ignore[misc]
-            if (pdo.comm, COMM_EVENT_TIMER) in self.store.vars:
-                put((pdo.comm, COMM_EVENT_TIMER), lambda v, p=pdo: self._write_event_timer(p))  # type: ignore[misc]
-            if not pdo.receive:
-                for sub, what in ((COMM_INHIBIT_TIME, "inhibit time"), (COMM_SYNC_START, "SYNC start value")):
-                    if (pdo.comm, sub) in self.store.vars:
-                        put((pdo.comm, sub), lambda v, p=pdo, t=what: self._write_while_invalid(p, t))  # type: ignore[misc]
-            put((pdo.mapping, 0), lambda v, p=pdo: self._write_map_count(p, v))  # type: ignore[misc]
-            for sub in range(1, MAX_MAPPED + 1):
-                if (pdo.mapping, sub) in self.store.vars:
-                    put((pdo.mapping, sub), lambda v, p=pdo, s=sub: self._write_map_entry(p, s, v))  # type: ignore[misc]
-
-    def _value(self, index: int, sub: int) -> int:
-        return int(self.store.values[(index, sub)])
-
-    def _sub(self, pdo: _Pdo, sub: int, default: int = 0) -> int:
-        key = (pdo.comm, sub)
-        return int(self.store.values[key]) if key in self.store.vars else default
-
-    def cob_id(self, pdo: _Pdo) -> int:
+    def cob_id(self, pdo: Pdo) -> int:
         """The raw COB-ID value (U32) of ``pdo``."""
-        return self._value(pdo.comm, COMM_COB_ID)
+        return self.params.cob_id(pdo)
 
-    def valid(self, pdo: _Pdo) -> bool:
-        return not self.cob_id(pdo) & PDO_NOT_VALID
+    def valid(self, pdo: Pdo) -> bool:
+        return self.params.valid(pdo)
 
-    def transmission_type(self, pdo: _Pdo) -> int:
-        return self._sub(pdo, COMM_TRANSMISSION_TYPE, TT_EVENT_PROFILE)
+    def transmission_type(self, pdo: Pdo) -> int:
+        return self.params.transmission_type(pdo)
 
-    def mapping(self, pdo: _Pdo) -> list[tuple[int, int, int]]:
+    def mapping(self, pdo: Pdo) -> list[tuple[int, int, int]]:
         """The active mapping (index, sub, bits) of ``pdo`` (entries 1..sub 0)."""
-        n = self._value(pdo.mapping, 0)
-        return [split_entry(self._value(pdo.mapping, s)) for s in range(1, n + 1)]
-
-    def _write_cob_id(self, pdo: _Pdo, value: int) -> None:
-        new_valid = not value & PDO_NOT_VALID
-        if new_valid:
-            if value & PDO_EXTENDED:
-                raise SdoAbort(AbortCode.VALUE_RANGE, "29-bit PDO identifiers are not supported")
-            can_id = value & COB_ID_MASK_11
-            if value & 0x1FFFF800:
-                raise SdoAbort(AbortCode.VALUE_RANGE, f"COB-ID 0x{value:08X} has bits above the 11-bit identifier")
-            if is_restricted_can_id(can_id):
-                raise SdoAbort(AbortCode.VALUE_RANGE, f"CAN-ID 0x{can_id:03X} is restricted (CiA 301 Table 3)")
-            if self.valid(pdo) and can_id != self.cob_id(pdo) & COB_ID_MASK_11:
-                raise SdoAbort(
-                    AbortCode.VALUE_RANGE, f"{self._name(pdo)} is valid: invalidate it (bit 31) before changing its COB-ID"
-                )
-        pdo.forget()
-        logger.debug("%s COB-ID 0x%08X", self._name(pdo), value)
-
-    def _write_transmission_type(self, pdo: _Pdo, value: int) -> None:
-        if not (value <= TT_SYNC_MAX or value in _EVENT):
-            raise SdoAbort(AbortCode.VALUE_RANGE, f"transmission type {value} not supported (0..240, 254, 255)")
-        pdo.forget()
-
-    def _write_event_timer(self, pdo: _Pdo) -> None:
-        pdo.deadline_s = None  # RPDO: armed again by the next reception
-        pdo.event_due_s = None  # TPDO: restarted by the next transmission
-
-    def _write_while_invalid(self, pdo: _Pdo, what: str) -> None:
-        if self.valid(pdo):
-            raise SdoAbort(
-                AbortCode.VALUE_RANGE, f"{self._name(pdo)} is valid: set bit 31 of its COB-ID before changing its {what}"
-            )
-
-    def _check_mapping_writable(self, pdo: _Pdo) -> None:
-        if int(self._nmt_state()) != NmtState.PRE_OPERATIONAL:
-            raise SdoAbort(AbortCode.DEVICE_STATE, "PDO mapping can be changed only in NMT PRE-OPERATIONAL")
-        if self.valid(pdo):
-            raise SdoAbort(
-                AbortCode.UNSUPPORTED_ACCESS, f"{self._name(pdo)} is valid: set bit 31 of its COB-ID before changing the mapping"
-            )
-
-    def _write_map_count(self, pdo: _Pdo, n: int) -> None:
-        self._check_mapping_writable(pdo)
-        if n > MAX_MAPPED:
-            raise SdoAbort(AbortCode.PDO_LENGTH, f"at most {MAX_MAPPED} objects per PDO, got {n}")
-        bits = 0
-        for sub in range(1, n + 1):
-            entry = self._value(pdo.mapping, sub)
-            self._check_entry(pdo, entry)
-            bits += entry & 0xFF
-        if bits > MAX_PDO_BITS:
-            raise SdoAbort(AbortCode.PDO_LENGTH, f"mapping of {bits} bits exceeds {MAX_PDO_BITS}")
-        pdo.forget()
-
-    def _write_map_entry(self, pdo: _Pdo, sub: int, entry: int) -> None:
-        self._check_mapping_writable(pdo)
-        if self._value(pdo.mapping, 0) != 0:
-            raise SdoAbort(
-                AbortCode.UNSUPPORTED_ACCESS, f"{self._name(pdo)} mapping: set sub-index 0 to 0 before writing entries"
-            )
-        if entry != 0:
-            self._check_entry(pdo, entry)
-
-    def _check_entry(self, pdo: _Pdo, entry: int) -> None:
-        index, sub, bits = split_entry(entry)
-        var = self.store.lookup(index, sub)  # 0x06020000 / 0x06090011
-        size_bits = 8 * _size_bytes(var)
-        if not var.pdo_mappable or size_bits == 0 or bits != size_bits:
-            raise SdoAbort(AbortCode.NOT_MAPPABLE, f"0x{index:04X}:{sub} ({bits} bits) cannot be mapped")
-        if pdo.receive and var.access_type not in ("rw", "wo", "rww"):
-            raise SdoAbort(AbortCode.NOT_MAPPABLE, f"0x{index:04X}:{sub} is not writable: not RPDO-mappable")
-        if not pdo.receive and var.access_type == "wo":
-            raise SdoAbort(AbortCode.NOT_MAPPABLE, f"0x{index:04X}:{sub} is write-only: not TPDO-mappable")
-
-    @staticmethod
-    def _name(pdo: _Pdo) -> str:
-        return f"{'RPDO' if pdo.receive else 'TPDO'}{pdo.number}"
+        return self.params.mapping(pdo)
 
     # ------------------------------------------------------------------ the plan
 
     def _read_plan(self) -> _Plan:
-        """Read the PDO objects as the run time needs them (:class:`_Plan`, :class:`_Config`)."""
+        """Read the PDO objects as the run time needs them (:class:`_Plan`, :class:`PdoConfig`)."""
         plan = _Plan()
         for pdo in (*self.rpdos, *self.tpdos):
             cfg = pdo.cfg = self._read_config(pdo)
@@ -375,8 +186,8 @@ class PdoEngine:
         self._plan = plan
         return plan
 
-    def _read_config(self, pdo: _Pdo) -> _Config:
-        """The :class:`_Config` of ``pdo`` from the object store now."""
+    def _read_config(self, pdo: Pdo) -> PdoConfig:
+        """The :class:`PdoConfig` of ``pdo`` from the object store now."""
         cob = self.cob_id(pdo)
         entries = self.mapping(pdo)
         writes = []
@@ -392,14 +203,14 @@ class PdoEngine:
                 writes.append((index, sub, offsets[k], offsets[k + 1], self._writer(index, sub)))
         else:
             pack = self._packer(entries)
-        return _Config(
+        return PdoConfig(
             valid=not cob & PDO_NOT_VALID,
             can_id=cob & COB_ID_MASK_11,
             rtr=not cob & PDO_NOT_VALID and not cob & PDO_NO_RTR,
             transmission_type=self.transmission_type(pdo),
-            inhibit_s=self._sub(pdo, COMM_INHIBIT_TIME) * INHIBIT_UNIT_S,
-            event_ms=self._sub(pdo, COMM_EVENT_TIMER),
-            sync_start=self._sub(pdo, COMM_SYNC_START),
+            inhibit_s=self.params.sub(pdo, COMM_INHIBIT_TIME) * INHIBIT_UNIT_S,
+            event_ms=self.params.sub(pdo, COMM_EVENT_TIMER),
+            sync_start=self.params.sub(pdo, COMM_SYNC_START),
             nbytes=sum(bits for _, _, bits in entries) // 8,
             writes=tuple(writes),
             pack=pack,
@@ -438,8 +249,8 @@ class PdoEngine:
             return lambda: packer(first(), second())
         return lambda: packer(*[get() for get in getters])
 
-    def _config(self, pdo: _Pdo) -> _Config:
-        """The current :class:`_Config` of ``pdo``."""
+    def _config(self, pdo: Pdo) -> PdoConfig:
+        """The current :class:`PdoConfig` of ``pdo``."""
         if self._plan is None:
             self._read_plan()
         assert pdo.cfg is not None
@@ -473,7 +284,7 @@ class PdoEngine:
         value = self.store.values.get(_SYNC_KEY)
         return SYNC_COB_ID_DEFAULT if value is None else int(value) & COB_ID_MASK_11
 
-    def rpdo_cob_ids(self) -> dict[int, _Pdo]:
+    def rpdo_cob_ids(self) -> dict[int, Pdo]:
         """CAN identifier → valid RPDO."""
         return self._current_plan().rx_by_cob
 
@@ -485,7 +296,7 @@ class PdoEngine:
         """CAN identifiers of the valid TPDOs that answer a remote frame (bit 30 = 0)."""
         return {self._config(p).can_id for p in self._current_plan().tx_valid if self._config(p).rtr}
 
-    def _valid_tpdos(self) -> list[_Pdo]:
+    def _valid_tpdos(self) -> list[Pdo]:
         return self._current_plan().tx_valid
 
     # ------------------------------------------------------------------ receive
@@ -503,7 +314,7 @@ class PdoEngine:
         need = cfg.nbytes
         if len(data) < need:
             self.length_errors += 1
-            logger.warning("%s: %d bytes, mapping needs %d: not processed", self._name(pdo), len(data), need)
+            logger.warning("%s: %d bytes, mapping needs %d: not processed", self.params.name(pdo), len(data), need)
             if self._report is not None:
                 self._report(EmcyCode.PDO_LENGTH, pdo.number)
             return True
@@ -524,7 +335,7 @@ class PdoEngine:
             pdo.deadline_s = None
         return [pdo.number for pdo in late]
 
-    def on_sync(self, counter: int | None = None) -> list[_Pdo]:
+    def on_sync(self, counter: int | None = None) -> list[Pdo]:
         """A SYNC (``counter``: its counter byte, None without): write the buffered synchronous
         RPDOs (in PDO order); returns the synchronous TPDOs due at it (to :meth:`sample`)."""
         if int(self._nmt_state()) != _OPERATIONAL:
@@ -544,7 +355,7 @@ class PdoEngine:
                 due.append(pdo)
         return due
 
-    def _sync_due(self, pdo: _Pdo, tt: int, counter: int | None) -> bool:
+    def _sync_due(self, pdo: Pdo, tt: int, counter: int | None) -> bool:
         """Count one SYNC for TPDO ``pdo`` of type ``tt`` (1..240): True when it is due."""
         if pdo.countdown == 0 and not pdo.waiting_start:  # first SYNC since the start
             start = self._config(pdo).sync_start
@@ -562,7 +373,7 @@ class PdoEngine:
         pdo.countdown = tt
         return True
 
-    def _apply(self, pdo: _Pdo, data: bytes) -> None:
+    def _apply(self, pdo: Pdo, data: bytes) -> None:
         """Write an RPDO's payload: first the objects without a write hook (set-points), then those
         with one (commands such as a controlword), each group in mapping order -- so a command
         sees the set-points that came in the same RPDO."""
@@ -573,18 +384,18 @@ class PdoEngine:
                 else:
                     write(data[start:end])
             except SdoAbort as err:  # the value is refused like an SDO download would be
-                logger.warning("%s: 0x%04X:%d not written: %s", self._name(pdo), index, sub, err)
+                logger.warning("%s: 0x%04X:%d not written: %s", self.params.name(pdo), index, sub, err)
 
     # ------------------------------------------------------------------ transmit
 
-    def pack(self, pdo: _Pdo) -> bytes:
+    def pack(self, pdo: Pdo) -> bytes:
         """The current payload of ``pdo`` (its mapped objects, read now)."""
         packer = self._config(pdo).pack
         if packer is not None:
             return packer()
         return b"".join(self.store.read_object(index, sub) for index, sub, _ in self.mapping(pdo))
 
-    def _sent(self, pdo: _Pdo, data: bytes, now: float) -> Frame:
+    def _sent(self, pdo: Pdo, data: bytes, now: float) -> Frame:
         cfg = self._config(pdo)
         pdo.last_sent = data
         pdo.last_tx_s = now
@@ -593,7 +404,7 @@ class PdoEngine:
         pdo.event_due_s = now + event_ms / 1000.0 if event_ms and cfg.transmission_type in _EVENT else None
         return cfg.can_id, data
 
-    def sample(self, pdos: list[_Pdo]) -> list[Frame]:
+    def sample(self, pdos: list[Pdo]) -> list[Frame]:
         """(CAN identifier, payload) of the synchronous TPDOs ``pdos`` (from :meth:`on_sync`), their
         data read now; a type-0 TPDO only if its data changed since its last transmission."""
         if not pdos or int(self._nmt_state()) != _OPERATIONAL:
@@ -659,13 +470,6 @@ def _struct_code(var: ODVariable) -> str | None:
     :meth:`ObjectStore.encode` packs it."""
     s = struct_of(var)
     return None if s is None else s.format.lstrip("<")
-
-
-def _size_bytes(var: ODVariable) -> int:
-    """Size of a numeric object in bytes (0 for DOMAIN / strings)."""
-    if var.data_type not in ODVariable.STRUCT_TYPES:
-        return 0
-    return len(var) // 8
 
 
 def unpack_fields(data: bytes, sizes_signed: list[tuple[int, bool]]) -> list[int]:

@@ -33,7 +33,8 @@ from typing import Any
 
 import numpy as np
 
-from host.analysis.recording import _Batch, _display_available, _rgba_u32, skeleton_points, viewer_command
+from host.analysis.recording import _display_available, viewer_command
+from host.analysis.recording_scene import Batch, rgba_u32, skeleton_points
 
 logger = logging.getLogger(__name__)
 
@@ -150,13 +151,13 @@ class RobotLiveView:
         phi = np.asarray(g.azimuths_rad)
         a = g.R * np.stack([np.cos(phi), np.sin(phi), np.zeros(4)], axis=1)
         self._rec.log("/robot", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        st = _Batch(pa)
-        grey = _rgba_u32((90, 90, 90, 255))
+        st = Batch(pa)
+        grey = rgba_u32((90, 90, 90, 255))
         st.put("/robot/base", "Points3D:positions", a[None])
         st.put("/robot/base", "Points3D:radii", [[0.012]])
         st.put("/robot/base", "Points3D:colors", [[grey]])
         st.put("/robot/base", "Points3D:labels", [[f"M{i + 1}" for i in range(4)]])
-        blue = [[_rgba_u32((30, 144, 255, 255))]]
+        blue = [[rgba_u32((30, 144, 255, 255))]]
         for ent, radius in (("arms", 0.006), ("sub_platforms", 0.005)):
             st.put(f"/robot/now/{ent}", "LineStrips3D:radii", [[radius]])
             st.put(f"/robot/now/{ent}", "LineStrips3D:colors", blue)
@@ -167,7 +168,7 @@ class RobotLiveView:
         for j in range(1, N_JOINTS + 1):
             for key, name in names.items():
                 st.put(f"/joint{j}/{key}", "SeriesLines:names", [[f"joint {j} {name}"]])
-                st.put(f"/joint{j}/{key}", "SeriesLines:colors", [[_rgba_u32(colors[key])]])
+                st.put(f"/joint{j}/{key}", "SeriesLines:colors", [[rgba_u32(colors[key])]])
         st.send(self._rec)
 
     def add(self, period: int, q_rad: np.ndarray, torque_nm: np.ndarray) -> None:
@@ -245,7 +246,7 @@ class RobotLiveView:
         lower = np.stack([c[:, 1], pl, c[:, 3], c[:, 3]], axis=1)
         shaft = np.stack([pu, pl, tcp, tcp + 0.05 * pts["tool_dir"]], axis=1)
         plat = np.stack([upper, lower, shaft], axis=1).reshape(m, 3, 4, 3)
-        data = _Batch(pa)
+        data = Batch(pa)
         data.put("/robot/now/arms", "LineStrips3D:strips", arms)
         data.put("/robot/now/sub_platforms", "LineStrips3D:strips", plat)
         data.put("/robot/now/tool", "Points3D:positions", tcp[:, None, :])

@@ -60,7 +60,6 @@ Durability: the recording survives whatever the summary survives
 from __future__ import annotations
 
 import contextlib
-import functools
 import json
 import logging
 import os
@@ -73,6 +72,19 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from host.analysis.recording_scene import (
+    COLOR_FIRST,
+    COLOR_LAST,
+    N_JOINTS,
+    REFERENCE_GREY,
+    Batch,
+    add_robot,
+    add_static_scene,
+    components,
+    iteration_color,
+    rerun_environment,
+    rgba_u32,
+)
 from host.experiment.outputs import DiskFullError, OutputError, RunFolder, output_error
 from host.learning.metrics import TrialMetrics
 from host.planning.trajectory import JointReference
@@ -90,7 +102,6 @@ __all__ = [
     "N_JOINTS",
 ]
 
-N_JOINTS = 4
 #: per-joint time-series quantities (entity name, unit)
 SERIES: tuple[tuple[str, str], ...] = (
     ("reference", "deg"),
@@ -100,10 +111,6 @@ SERIES: tuple[tuple[str, str], ...] = (
     ("torque_fb", "N·m"),
 )
 EXIT_USAGE = 2
-
-_COLOR_FIRST = (255, 140, 0, 255)
-_COLOR_LAST = (30, 144, 255, 255)
-_REFERENCE_GREY = (150, 150, 150, 255)
 
 
 #: the fixed-size trailer at the end of every Rerun stream (footer offset and length, CRC, magic,
@@ -203,122 +210,6 @@ def cut_back(path: str | Path, committed_bytes: int) -> bool:
         return False
     logger.info("recording %s cut back from %d to %d bytes (the summary's trials)", p, size, committed_bytes)
     return True
-
-
-def _rgba_u32(c: Sequence[int]) -> int:
-    r, g, b, a = (int(v) & 0xFF for v in c)
-    return (r << 24) | (g << 16) | (b << 8) | a
-
-
-def _iteration_color(k: int, n_expected: int | None) -> tuple[int, int, int, int]:
-    """Red (first trial) → blue (last expected trial); beyond the expected count: blue."""
-    n = max(int(n_expected or 10), 2)
-    f = min(max(k / (n - 1), 0.0), 1.0)
-    a, b = np.array([220, 50, 47]), np.array([38, 139, 210])
-    r, g, bl = (a + f * (b - a)).round().astype(int)
-    return int(r), int(g), int(bl), 255
-
-
-def _data_field(pa: Any, entity: str, descriptor: Any, dtype: Any) -> Any:
-    """Arrow field of one component column of ``entity`` with the Rerun metadata that
-    ``send_columns`` would attach (so ``Chunk.from_record_batch`` splits a batch per entity)."""
-    return pa.field(
-        f"{entity}:{descriptor.component}",
-        dtype,
-        metadata={
-            "rerun:entity_path": entity,
-            "rerun:kind": "data",
-            "rerun:component": descriptor.component,
-            "rerun:archetype": descriptor.archetype or "",
-            "rerun:component_type": descriptor.component_type or "",
-        },
-    )
-
-
-def rerun_environment() -> None:
-    """Set what rerun's native library reads from the environment when it loads (a value the user
-    set is kept): its allocator (mimalloc) reserves address space in arenas of
-    ``MIMALLOC_ARENA_RESERVE``, 1 GiB by default and twice over in a process that records, i.e.
-    2 GiB of virtual memory for a few MB of use; arenas of 64 MiB keep a long run inside a 2 GB
-    address-space limit (``ulimit -v``) with room to spare.  Called before every ``import rerun``."""
-    os.environ.setdefault("MIMALLOC_ARENA_RESERVE", "64MiB")
-
-
-@functools.lru_cache(maxsize=1)
-def _components() -> dict[str, tuple[Any, Any]]:
-    """Component name (``Archetype:field``) → (descriptor, Arrow type), taken once per process
-    from rerun's own converters; the hand-built arrays below are cast to these types."""
-    rerun_environment()
-    import rerun as rr
-
-    cols = [
-        *rr.Scalars.columns(scalars=[0.0]),
-        *rr.SeriesLines.columns(names=["x"], colors=[0]),
-        *rr.SeriesPoints.columns(names=["x"], colors=[0], marker_sizes=[1.0]),
-        *rr.Points3D.columns(positions=[[0.0, 0.0, 0.0]], radii=[1.0], colors=[0], labels=["x"]),
-        *rr.LineStrips3D.columns(strips=[[[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]], radii=[1.0], colors=[0]),
-        *rr.TextDocument.columns(text=["x"], media_type=["text/markdown"]),
-    ]
-    return {c.component_descriptor().component: (c.component_descriptor(), c.as_arrow_array().type) for c in cols}
-
-
-def _nested(pa: Any, xyz: np.ndarray, dtype: Any) -> Any:
-    """Rows of (strips of) 3D points as an Arrow list array: ``xyz`` (R, P, 3) → R rows of P points,
-    (R, S, P, 3) → R rows of S strips of P points."""
-    arr = pa.FixedSizeListArray.from_arrays(pa.array(np.ascontiguousarray(xyz, dtype=np.float32).ravel()), 3)
-    for size in reversed(xyz.shape[1:-1]):
-        count = len(arr) // size
-        arr = pa.ListArray.from_arrays(pa.array(np.arange(0, count * size + 1, size, dtype=np.int32)), arr)
-    return arr.cast(dtype)
-
-
-class _Batch:
-    """Component columns of many entities sharing one index (or static), sent as ONE record batch:
-    one Python→Rust call instead of one per entity."""
-
-    def __init__(self, pa: Any) -> None:
-        self._pa = pa
-        self.fields: list[Any] = []
-        self.arrays: list[Any] = []
-
-    def add(self, entity: str, columns: Any) -> None:
-        """Add the columns of an ``rr.<Archetype>.columns(...)`` list (partitioned or not)."""
-        for c in columns:
-            arr = c.as_arrow_array()
-            self.fields.append(_data_field(self._pa, entity, c.component_descriptor(), arr.type))
-            self.arrays.append(arr)
-
-    def put(self, entity: str, component: str, value: Any) -> None:
-        """Add one column: ``value`` is an Arrow array, (R, [S,] P, 3) points, or a list of rows."""
-        descriptor, dtype = _components()[component]
-        if isinstance(value, np.ndarray):
-            value = _nested(self._pa, value, dtype)
-        elif not isinstance(value, self._pa.Array):
-            value = self._pa.array(value, dtype)
-        self.add_array(entity, descriptor, value)
-
-    def add_array(self, entity: str, descriptor: Any, array: Any) -> None:
-        self.fields.append(_data_field(self._pa, entity, descriptor, array.type))
-        self.arrays.append(array)
-
-    def send(self, rec: Any, index_name: str | None = None, index_array: Any = None) -> None:
-        pa = self._pa
-        if not self.fields:
-            return
-        fields, arrays = list(self.fields), list(self.arrays)
-        if index_name is not None:
-            fields.insert(
-                0,
-                pa.field(
-                    index_name,
-                    index_array.type,
-                    metadata={"rerun:index_name": index_name, "rerun:kind": "index", "rerun:is_sorted": "true"},
-                ),
-            )
-            arrays.insert(0, index_array)
-        rec.send_record_batch(pa.RecordBatch.from_arrays(arrays, schema=pa.schema(fields)), index=index_name)
-        self.fields.clear()
-        self.arrays.clear()
 
 
 class _Tee:
@@ -527,7 +418,7 @@ class RunRecorder:
         clean = not self._failed and self._unwritten is None
         try:
             if not self._failed:
-                static = _Batch(self._pa)
+                static = Batch(self._pa)
                 if self._ref is None:
                     self._write_static_scene(static)  # no trial: the scene and the run info only
                 else:
@@ -620,11 +511,11 @@ class RunRecorder:
         pa, rec = self._pa, self._rec
         n = int(ref.t.shape[0])
         t_ns = pa.array(np.rint(np.asarray(ref.t, dtype=np.float64) * 1e9).astype(np.int64), pa.duration("ns"))
-        comp = _components()
+        comp = components()
         scal = comp["Scalars:scalars"][0]
         sl = {c: comp[c][0] for c in ("SeriesLines:names", "SeriesLines:colors")}
-        static = _Batch(pa)
-        series = _Batch(pa)
+        static = Batch(pa)
+        series = Batch(pa)
         str_list, u32_list = pa.list_(pa.utf8()), pa.list_(pa.uint32())
         off_1 = pa.array(np.arange(n + 1, dtype=np.int32))
         values = {"actual": np.degrees(q), "error": np.degrees(e), "torque_ff": u, "torque_fb": fb}
@@ -634,7 +525,7 @@ class RunRecorder:
                 ent = f"/joint{j + 1}/reference"
                 series.add_array(ent, scal, pa.ListArray.from_arrays(off_1, pa.array(np.ascontiguousarray(ref_deg[:, j]))))
                 static.add_array(ent, sl["SeriesLines:names"], pa.array([["reference [deg]"]], str_list))
-                static.add_array(ent, sl["SeriesLines:colors"], pa.array([[_rgba_u32(_REFERENCE_GREY)]], u32_list))
+                static.add_array(ent, sl["SeriesLines:colors"], pa.array([[rgba_u32(REFERENCE_GREY)]], u32_list))
         # names and colours of every planned iteration's lines go out once, with the first trial
         named = range(max(self._n_expected or 0, k + 1)) if first else ([] if k < (self._n_expected or 0) else [k])
         for j in range(N_JOINTS):
@@ -644,12 +535,12 @@ class RunRecorder:
                 series.add_array(ent, scal, pa.ListArray.from_arrays(off_1, pa.array(col)))
                 for i in named:
                     ent_i = f"/joint{j + 1}/{name}/iter{i}"
-                    color = _rgba_u32(_iteration_color(i, self._n_expected))
+                    color = rgba_u32(iteration_color(i, self._n_expected))
                     static.add_array(ent_i, sl["SeriesLines:names"], pa.array([[f"{name} iter {i} [{unit}]"]], str_list))
                     static.add_array(ent_i, sl["SeriesLines:colors"], pa.array([[color]], u32_list))
         series.send(rec, "trial_time", t_ns)
 
-        met = _Batch(pa)
+        met = Batch(pa)
         f64_list = pa.list_(pa.float64())
         for key, vals in (("rmse_deg", metrics.rmse_deg), ("maxe_deg", metrics.max_abs_deg)):
             for j in range(N_JOINTS):
@@ -662,10 +553,10 @@ class RunRecorder:
             from plant.kinematics import subplatform_from_task
 
             y_guess = subplatform_from_task(ref.task.X[0])
-        robot = _Batch(pa)
-        views = (("first", _COLOR_FIRST), ("last", _COLOR_LAST)) if first else (("last", _COLOR_LAST),)
+        robot = Batch(pa)
+        views = (("first", COLOR_FIRST), ("last", COLOR_LAST)) if first else (("last", COLOR_LAST),)
         for which, c in views:
-            self._add_robot(robot, static, which, q[idx], y_guess, c)
+            add_robot(robot, static, which, q[idx], y_guess, c)
         if robot.fields:
             robot.send(rec, "trial_time", t_ns.take(pa.array(idx)))
         if first:
@@ -673,7 +564,7 @@ class RunRecorder:
         else:
             static.send(rec)
 
-    def _add_run_info(self, st: _Batch) -> None:
+    def _add_run_info(self, st: Batch) -> None:
         text = (
             "# ilcrig run\n\n"
             f"{self.trials} trials recorded.\n\n"
@@ -687,121 +578,12 @@ class RunRecorder:
         st.put("/run_info", "TextDocument:text", [[text]])
         st.put("/run_info", "TextDocument:media_type", [["text/markdown"]])
 
-    def _write_static_scene(self, static: _Batch | None, ref: JointReference | None = None) -> None:
-        rr, rec, pa = self._rr, self._rec, self._pa
-        from plant.params import Geometry
-
-        st = static if static is not None else _Batch(pa)
-        g = Geometry()
-        phi = np.asarray(g.azimuths_rad)
-        e = np.stack([np.cos(phi), np.sin(phi), np.zeros(4)], axis=1)
-        u_axis = np.stack([-np.sin(phi), np.cos(phi), np.zeros(4)], axis=1)
-        A = g.R * e
-        rec.log("/robot", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    def _write_static_scene(self, static: Batch | None, ref: JointReference | None = None) -> None:
+        st = static if static is not None else Batch(self._pa)
+        self._rec.log("/robot", self._rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self._add_run_info(st)
-        grey = _rgba_u32((90, 90, 90, 255))
-        st.put("/robot/base", "Points3D:positions", A[None])
-        st.put("/robot/base", "Points3D:radii", [[0.012]])
-        st.put("/robot/base", "Points3D:colors", [[grey]])
-        st.put("/robot/base", "Points3D:labels", [[f"M{i + 1}" for i in range(4)]])
-        st.put("/robot/base/motor_axes", "LineStrips3D:strips", np.stack([A - 0.04 * u_axis, A + 0.04 * u_axis], axis=1)[None])
-        st.put("/robot/base/motor_axes", "LineStrips3D:radii", [[0.006]])
-        st.put("/robot/base/motor_axes", "LineStrips3D:colors", [[grey]])
-        ref = ref if ref is not None else self._ref
-        if ref is not None:
-            xyz = self._reference_xyz(ref)
-            if xyz is not None:
-                st.put("/robot/reference_path", "LineStrips3D:strips", xyz[None, None])
-                st.put("/robot/reference_path", "LineStrips3D:radii", [[0.0015]])
-                st.put("/robot/reference_path", "LineStrips3D:colors", [[_rgba_u32(_REFERENCE_GREY)]])
-        for key, label in (("rmse_deg", "RMSE"), ("maxe_deg", "MaxE")):
-            for j in range(N_JOINTS):
-                c = _rgba_u32(((228, 26, 28, 255), (55, 126, 184, 255), (77, 175, 74, 255), (152, 78, 163, 255))[j])
-                name = f"{label} joint {j + 1} [deg]"
-                ent = f"/metrics/{key}/joint{j + 1}"
-                st.put(ent, "SeriesLines:names", [[name]])
-                st.put(ent, "SeriesLines:colors", [[c]])
-                st.put(ent, "SeriesPoints:names", [[name]])
-                st.put(ent, "SeriesPoints:colors", [[c]])
-                st.put(ent, "SeriesPoints:marker_sizes", [[4.0]])
-        st.send(rec)
-
-    def _reference_xyz(self, ref: JointReference) -> np.ndarray | None:
-        if ref.task is not None:
-            return np.asarray(ref.task.X[:, :3], dtype=np.float64)
-        from plant.kinematics import KinematicsError, forward_kinematics, task_from_subplatform
-
-        try:
-            return task_from_subplatform(forward_kinematics(ref.q[:: self.decimate_3d]))[:, :3]
-        except KinematicsError as exc:
-            logger.warning("recording: no reference path in 3D: %s", exc)
-            return None
-
-    def _add_robot(
-        self,
-        data: _Batch,
-        static: _Batch,
-        which: str,
-        q: np.ndarray,
-        y_guess: np.ndarray | None,
-        color: tuple[int, int, int, int],
-    ) -> None:
-        """The robot skeleton at every (decimated) sample of one trial under ``/robot/{which}``."""
-        from plant.kinematics import KinematicsError, forward_kinematics
-
-        try:
-            Y = forward_kinematics(q, y_guess)
-        except KinematicsError as exc:
-            logger.warning("recording: no 3D view of the %s trial: %s", which, exc)
-            return
-        pts = skeleton_points(q, Y)
-        m = q.shape[0]
-        base = f"/robot/{which}"
-        arms = np.stack([pts["A"], pts["B"], pts["C"]], axis=2).reshape(m * 4, 3, 3)  # A_i → B_i → C_i
-        C, pu, pl, tcp = pts["C"], pts["P_up"], pts["P_low"], pts["tcp"]
-        upper = np.stack([C[:, 0], pu, C[:, 2], C[:, 2]], axis=1)  # (padded to 4 points)
-        lower = np.stack([C[:, 1], pl, C[:, 3], C[:, 3]], axis=1)
-        shaft = np.stack([pu, pl, tcp, tcp + 0.05 * pts["tool_dir"]], axis=1)  # screw shaft, tool blade at θ
-        plat = np.stack([upper, lower, shaft], axis=1).reshape(m * 3, 4, 3)
-        c = [[_rgba_u32(color)]]
-        data.put(f"{base}/arms", "LineStrips3D:strips", arms.reshape(m, 4, 3, 3))
-        data.put(f"{base}/sub_platforms", "LineStrips3D:strips", plat.reshape(m, 3, 4, 3))
-        data.put(f"{base}/tool", "Points3D:positions", tcp[:, None, :])
-        for ent, radius in (("arms", 0.006), ("sub_platforms", 0.005), ("tcp_path", 0.001)):
-            static.put(f"{base}/{ent}", "LineStrips3D:radii", [[radius]])
-            static.put(f"{base}/{ent}", "LineStrips3D:colors", c)
-        static.put(f"{base}/tcp_path", "LineStrips3D:strips", tcp[None, None])
-        static.put(f"{base}/tool", "Points3D:radii", [[0.012]])
-        static.put(f"{base}/tool", "Points3D:colors", c)
-
-
-def skeleton_points(q: np.ndarray, Y: np.ndarray, geometry: Any | None = None) -> dict[str, np.ndarray]:
-    """Points of the robot's skeleton (docs/robot-model.md §3.1), base frame, m.
-
-    :param q: (M, 4) joint angles, rad.  :param Y: (M, 4) sub-platform coordinates (x, y, z_u, z_l).
-    :returns: ``A`` (M, 4, 3) motor-axis points, ``B`` elbows, ``C`` ball-bar midpoints, ``P_up`` /
-        ``P_low`` (M, 3) sub-platform centres, ``tcp`` (M, 3), ``tool_dir`` (M, 3) unit vector at θ.
-    """
-    from plant.kinematics import task_from_subplatform
-    from plant.params import LIMB_ON_UPPER, Geometry
-
-    g = geometry if geometry is not None else Geometry()
-    q = np.asarray(q, dtype=np.float64)
-    Y = np.asarray(Y, dtype=np.float64)
-    m = q.shape[0]
-    phi = np.asarray(g.azimuths_rad)
-    e = np.stack([np.cos(phi), np.sin(phi), np.zeros(4)], axis=1)  # (4, 3)
-    k = np.array([0.0, 0.0, 1.0])
-    A = np.broadcast_to(g.R * e, (m, 4, 3))
-    B = A + g.l_a * (np.cos(q)[..., None] * e - np.sin(q)[..., None] * k)
-    p_up = np.stack([Y[:, 0], Y[:, 1], Y[:, 2]], axis=1)
-    p_low = np.stack([Y[:, 0], Y[:, 1], Y[:, 3]], axis=1)
-    centre = np.where(np.asarray(LIMB_ON_UPPER)[None, :, None], p_up[:, None, :], p_low[:, None, :])
-    C = centre + g.r * e
-    X = task_from_subplatform(Y, g)
-    tcp = X[:, :3]
-    tool_dir = np.stack([np.cos(X[:, 3]), np.sin(X[:, 3]), np.zeros(m)], axis=1)
-    return {"A": np.array(A), "B": B, "C": C, "P_up": p_up, "P_low": p_low, "tcp": tcp, "tool_dir": tool_dir}
+        add_static_scene(st, ref if ref is not None else self._ref, self.decimate_3d)
+        st.send(self._rec)
 
 
 def default_blueprint() -> Any:
