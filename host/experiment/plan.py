@@ -70,8 +70,10 @@ MEMORY_ENV: str = "ILCRIG_AVAILABLE_MEMORY"
 # each coefficient is rounded up, and the sum is multiplied by MEMORY_MARGIN.
 
 #: the fixed part of the peak memory of ``ilcrig sim`` (one process: the interpreter with numpy,
-#: scipy, numba and its compiled kernels, rerun and matplotlib; the drives' tables of fixed capacity), bytes
-RUN_BASE_BYTES: int = 370 * 1000**2
+#: scipy, numba and its compiled kernels, rerun and matplotlib; the drives' tables of fixed capacity), bytes.
+#: It holds a first run's compilation of the numba kernels (an empty cache, as after installation:
+#: 140 MB above a run that loads them, at N = 20,001)
+RUN_BASE_BYTES: int = 510 * 1000**2
 #: the part per sample of a trial, by law, bytes: the reference, the closed-loop model along it, the
 #: law's operators (norm-optimal: the Riccati gains; no-ilc-id: the identification's regressor),
 #: the convergence check's vectors (a Krylov basis of 41 vectors of 4N when the map is not causal)
