@@ -20,7 +20,7 @@ from bus.plant_objects import PLANT_EDS_PATH, PlantFault
 from bus.transports.config import FIELDBUS, virtual_transport
 from host.experiment.faults import FaultKind, FaultRecord
 from host.experiment.trials import TrialFault
-from host.rig.bus_time import BusTimeAccounting
+from host.rig.bus_accounting import BusTimeAccounting
 from host.rig.channels import RigChannels
 from host.rig.fault_classify import (
     BusError,

@@ -1,4 +1,4 @@
-"""bus.traffic and host.rig.bus_time: known frames give known bits and times; SDO frames are
+"""bus.traffic and host.rig.bus_accounting: known frames give known bits and times; SDO frames are
 attributed to their transfer by the protocol's multiplexer; what does not fit a control period is
 reported as not fitting, by how much; the per-trial exchange follows from the transfers' sizes."""
 
@@ -12,7 +12,7 @@ from bus.bus_features import frames_from_messages
 from bus.objects import Obj
 from bus.plant_objects import DEFAULT_PLANT_NODE_ID, PlantObj
 from bus.traffic import IoTickCounter, SdoTransferCounter, TickBudget, bits_to_s, frame_bits_of
-from host.rig.bus_time import BusTimeAccounting, bus_time_lines, kind_of
+from host.rig.bus_accounting import BusTimeAccounting, bus_time_lines, kind_of
 
 
 def frame(cob: int, data: bytes) -> can.Message:

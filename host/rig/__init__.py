@@ -17,7 +17,7 @@ Owns the host role on the bus (``ilcrig host``):
 * :mod:`host.rig.shutdown` — every live drive torque-free at the end, with the evidence from the bus;
 * :mod:`host.rig.channels`, :mod:`host.rig.monitor` — the passive channel monitors (frame and bit
   counts, candump logs, the io channel's trial and tick);
-* :mod:`host.rig.bus_time` — bus-time figures; :mod:`host.rig.realtime` — trial timing, real-time
+* :mod:`host.rig.bus_accounting` — bus-time figures; :mod:`host.rig.realtime` — trial timing, real-time
   figures, SCHED_FIFO, steal time; :mod:`host.rig.fair_scheduling` — real time without privileges
   (scheduler slice, nice within RLIMIT_NICE, the host in SCHED_BATCH);
   :mod:`host.rig.miss_attribution` — missed ticks beside a kernel scheduler trace;

@@ -1,5 +1,5 @@
 """The host's passive view of both channels: one :class:`host.rig.monitor.ChannelMonitor` per
-channel (fieldbus, io) feeding the bus-time accounting (:class:`host.rig.bus_time.BusTimeAccounting`).
+channel (fieldbus, io) feeding the bus-time accounting (:class:`host.rig.bus_accounting.BusTimeAccounting`).
 
 This module owns :class:`RigChannels`: it opens the monitors' buses from the run's transport (an
 ordinary member of each channel, apart from the canopen network), tells where the io channel's
@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from bus.transports.config import FIELDBUS, HUB_INTERFACE, IO, TransportConfig
-from host.rig.bus_time import BusTimeAccounting
+from host.rig.bus_accounting import BusTimeAccounting
 from host.rig.fault_classify import BusError, ChannelTrouble
 from host.rig.monitor import ChannelMonitor
 

@@ -27,7 +27,7 @@ from host.experiment.config import ExperimentConfig
 from host.experiment.console import EXIT_FAULT, print_plan
 from host.experiment.plan import prepare
 from host.experiment.trials import ExperimentResult, interrupt_on_signals
-from host.rig.bus_time import bus_time_lines
+from host.rig.bus_accounting import bus_time_lines
 from host.rig.realtime import timing_line
 from host.rig.rig_bench import RigBench
 

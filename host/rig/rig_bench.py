@@ -43,7 +43,7 @@ from host.experiment.trials import CyclicActuals, CyclicSetpoints
 from host.nodes.drive_client import DriveClient
 from host.nodes.sdo_access import sdo_errors
 from host.rig.bring_up import BringUp, RigNodes
-from host.rig.bus_time import BusTimeAccounting
+from host.rig.bus_accounting import BusTimeAccounting
 from host.rig.channels import RigChannels
 from host.rig.fault_classify import sdo_fault
 from host.rig.host_heartbeat import HostHeartbeat
