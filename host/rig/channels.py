@@ -109,6 +109,12 @@ class RigChannels:
         f = io_mon.follower
         return f.tick if f.trial == trial else None
 
+    def catch_up(self) -> None:
+        """Wait until every monitor has processed the frames that reached it before the call
+        (:meth:`ChannelMonitor.catch_up`)."""
+        for m in self.monitors:
+            m.catch_up()
+
     def bus_errors(self) -> list[BusError]:
         """The monitors whose bus failed, in channel order."""
         return [BusError(m.name, m.bus_error, m.bus_error_t) for m in self.monitors if m.bus_error is not None]

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import gc
 import logging
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -39,15 +40,24 @@ class TrialRunner:
     :param plant: the plant node's client
     :param watchdog: marks the trial as running, and declares the faults
     :param streamer: the SYNC producer of cyclic trials (None: the drives play their tables)
+    :param catch_up: waits until the channel monitors have read every frame of the trial (a full
+        disk that stopped a log inside the trial is then known before the trial is kept)
     :ivar timings: per completed trial, the plant node's timing
     :ivar misses: per completed trial, its missed ticks (None: none missed, or not paced)
     :ivar steal: per completed trial, the CPU time the hypervisor took meanwhile (None: not counted)
     """
 
-    def __init__(self, plant: PlantClient, watchdog: Watchdog, streamer: SyncProducer | None = None) -> None:
+    def __init__(
+        self,
+        plant: PlantClient,
+        watchdog: Watchdog,
+        streamer: SyncProducer | None = None,
+        catch_up: Callable[[], None] | None = None,
+    ) -> None:
         self.plant = plant
         self.watchdog = watchdog
         self.streamer = streamer
+        self._catch_up = catch_up
         self.timings: list[TrialTiming] = []
         self.misses: list[DeadlineMisses | None] = []
         self.steal: list[MachineSteal | None] = []
@@ -84,6 +94,8 @@ class TrialRunner:
                 watchdog.settle_and_check()
                 record = watchdog.describe(exc, trial)
                 raise TrialFault(record.message if record else f"trial {trial}: {exc}", record) from exc
+        if self._catch_up is not None:  # what the monitors noted at a tick of this trial belongs to it
+            self._catch_up()
         watchdog.check()
         watchdog.raise_if_fault()
         timing = self.plant.trial_timing()
