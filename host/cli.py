@@ -11,10 +11,11 @@ Subcommands:
   four drives and the host as separate processes, and cleans every one of them up;
 * ``robot`` — the drives and the plant as a robot on the bus, without the ILC host, for any CANopen
   master (:mod:`host.rig.robot_launcher`, docs/robot.md);
+* ``view`` — a run's ``recording.rrd`` in the Rerun viewer (:func:`host.analysis.recording.view_run`);
 * ``drive``, ``plant``, ``host``, ``hub`` — one role each, to run the parts in separate terminals
   (or machines, over a transport that spans them).
-  Errors in the input are reported as
-one line ``ilcrig: error: …`` with exit code 2 before anything moves; ``--debug`` shows
+
+Errors in the input are reported as one line ``ilcrig: error: …`` with exit code 2 before anything moves; ``--debug`` shows
 tracebacks.  A fault during a trial ends the run with exit code 3 after the summary (with every
 completed trial) has been written.
 """

@@ -223,6 +223,17 @@ def test_cli_names_match_the_code() -> None:
     assert console._DISTURBANCE_HELP == ", ".join(KINDS)
 
 
+def test_cli_docstring_names_every_subcommand() -> None:
+    import argparse
+
+    from host import cli
+
+    parser = cli.build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    absent = [name for name in sub.choices if f"``{name}``" not in (cli.__doc__ or "")]
+    assert not absent, f"host/cli.py's docstring does not name: {absent}"
+
+
 def _layout_section() -> str:
     """§2 (Layout) of docs/architecture.md."""
     doc = (ROOT / "docs" / "architecture.md").read_text()
