@@ -144,7 +144,8 @@ class SdoAccess:
             raise self._failed(err, f"read 0x{index:04X}:{sub}", t0) from err
 
     def write_object(self, index: int, sub: int, data: bytes) -> None:
-        """SDO download of ``data`` to ``index:sub`` (expedited up to 4 bytes, else segmented).
+        """SDO download of ``data`` to ``index:sub``: expedited up to 4 bytes, block transfer from
+        :attr:`BLOCK_THRESHOLD` bytes on (when ``block_transfer``), else segmented.
 
         :raises SdoAbort: the node refused (abort code as sent).
         :raises SdoTransportError: no (valid) answer.
