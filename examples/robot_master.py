@@ -55,6 +55,7 @@ import json
 import logging
 import math
 import threading
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -288,17 +289,23 @@ class Master:
 
     def robot_pose(self) -> dict[str, Any]:
         """The robot as the plant node reports it: joint positions [counts], TCP (x, y, z [m], θ
-        [rad]), brakes (bit j-1: joint j held), periods stepped."""
+        [rad]), brakes (bit j-1: joint j held), periods stepped — after the plant has ended every
+        period this master stepped: the drives send their TPDOs before the plant has their torques
+        and integrates the period, so the plant's period count (0x2450:4) is waited for first."""
         sdo = self.plant.sdo
 
         def i32(index: int, sub: int) -> int:
             return int.from_bytes(sdo.upload(index, sub), "little", signed=True)
 
+        deadline = time.monotonic() + self.timeout_s
+        while (periods := i32(0x2450, 4)) < self.periods:
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"the robot ended {periods} of {self.periods} periods within {self.timeout_s} s")
         return {
             "q_counts": [i32(0x2451, j) for j in range(1, 5)],
             "tcp": [i32(0x2452, j) * 1e-6 for j in range(1, 5)],
             "brakes": sdo.upload(0x2450, 12)[0],
-            "periods": int.from_bytes(sdo.upload(0x2450, 4), "little"),
+            "periods": periods,
         }
 
     def close(self) -> None:
