@@ -156,15 +156,21 @@ def test_run_from_a_folder_holding_modules_named_like_the_packages(tmp_path: Pat
 
 
 def _idle_loops_left() -> list[int]:
-    """Live processes running the idle-poll loop (host/rig/idle_poll.py)."""
+    """Live processes running the idle-poll loop (host/rig/idle_poll.py: ``python -S -c CODE
+    LAUNCHER_PID NICE``) whose launcher has ended — those of a run still going on the machine (another
+    test session's) are not this run's."""
     left = []
     for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
             if stat.read_text().rsplit(")", 1)[1].split()[0] == "Z":
                 continue
-            if b"os.SCHED_IDLE" in (stat.parent / "cmdline").read_bytes():
-                left.append(int(stat.parent.name))
-        except (OSError, IndexError):
+            argv = (stat.parent / "cmdline").read_bytes().split(b"\0")
+            if any(b"os.SCHED_IDLE" in a for a in argv):
+                code = next(k for k, a in enumerate(argv) if b"os.SCHED_IDLE" in a)
+                launcher = int(argv[code + 1])
+                if not Path(f"/proc/{launcher}").exists():
+                    left.append(int(stat.parent.name))
+        except (OSError, IndexError, ValueError, StopIteration):
             continue
     return left
 
