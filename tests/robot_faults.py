@@ -168,9 +168,18 @@ class FaultMaster(LockstepMaster):
         result.brakes = self.brakes()
         result.still = self.joints() == before
 
-    def nmt_states(self) -> dict[int, str]:
-        """Every drive's NMT state, from its next heartbeat."""
-        return {n: self.drives[n].nmt.wait_for_heartbeat(WAIT_S) for n in DRIVES}
+    def nmt_states(self, expect: str | None = None) -> dict[int, str]:
+        """Every drive's NMT state from its heartbeats: the next one, or with ``expect`` the first
+        that says it within WAIT_S (a heartbeat already on its way when an NMT command went out says
+        the state before the command)."""
+        out = {}
+        for n in DRIVES:
+            deadline = time.monotonic() + WAIT_S
+            state = self.drives[n].nmt.wait_for_heartbeat(WAIT_S)
+            while expect is not None and state != expect and time.monotonic() < deadline:
+                state = self.drives[n].nmt.wait_for_heartbeat(WAIT_S)
+            out[n] = state
+        return out
 
     def errors(self) -> dict[int, tuple[int, int]]:
         """Per drive (0x1003:1 newest error, 0x603F error code)."""
@@ -247,12 +256,12 @@ def nmt_stop(m: FaultMaster) -> FaultResult:
     since, res = len(m.emcy), FaultResult()
     for node in DRIVES:
         m.drives[node].nmt.send_command(0x02)
-    res.nmt = m.nmt_states()
+    res.nmt = m.nmt_states("STOPPED")
     m.after_reaction(res, m.sync_only)
     res.emcy = m.drive_emcy(since, 0x8100)  # none: STOPPED
     for node in DRIVES:
         m.drives[node].nmt.send_command(0x80)
-    res.extra["nmt_after"] = m.nmt_states()
+    res.extra["nmt_after"] = m.nmt_states("PRE-OPERATIONAL")
     res.states = {n: m.drive_u(n, 0x6041, 0, "H") for n in DRIVES}
     res.objects = m.errors()
     return res
