@@ -46,6 +46,7 @@ index   sub  name                      type     meaning / unit
 0x2450  10   robot fault joint         U8       ro: joint 1..4 (or drive node) involved, 0 none
 0x2450  11   robot fault period        U32      ro: period at which the fault happened
 0x2450  12   brakes closed             U8       ro: bit j-1 = joint j held by its brake
+0x2450  13   late periods              U32      ro, real time: periods started late or completed after the next one's time
 0x2451  1-4  joint position            I32      ro: q_j of the robot, counts (the encoder's units)
 0x2452  1-4  TCP pose                  I32      ro: x, y, z [µm], θ [µrad] (forward kinematics)
 0x2453  1-4  mechanical limits         I32      ro: joint end stops low/high [counts], screw gap min/max [µm]
@@ -183,6 +184,7 @@ class RobotSub(IntEnum):
     FAULT_JOINT = 10
     FAULT_PERIOD = 11
     BRAKES = 12
+    LATE_PERIODS = 13
 
 
 class LimitSub(IntEnum):

@@ -133,6 +133,7 @@ def _install_robot_hooks(store: ObjectStore, robot: RobotLoop) -> None:
     r[(o, RobotSub.FAULT_JOINT)] = lambda: robot.fault_joint
     r[(o, RobotSub.FAULT_PERIOD)] = lambda: robot.fault_period & _U32
     r[(o, RobotSub.BRAKES)] = lambda: robot.brakes
+    r[(o, RobotSub.LATE_PERIODS)] = lambda: (robot.pacing.late_periods if robot.pacing is not None else 0) & _U32
     w[(o, RobotSub.MODE)] = lambda value: robot.set_mode(RobotMode(int(value)))
 
     def command(value: Value) -> None:

@@ -54,6 +54,10 @@ def test_one_sched_idle_loop_per_cpu_until_stopped() -> None:
     try:
         assert len(pids) == 2 and len(set(pids)) == 2
         _wait_for("both loops in SCHED_IDLE", lambda: all(_policy(p) == os.SCHED_IDLE for p in pids))
+        # each bound to its own CPU (round the CPUs this process may use)
+        cpus = sorted(os.sched_getaffinity(0))
+        assert pollers.cpus == [cpus[0], cpus[1 % len(cpus)]]
+        _wait_for("each loop on its CPU", lambda: [os.sched_getaffinity(p) for p in pids] == [{c} for c in pollers.cpus])
         # their own session: a terminal's Ctrl-C (our process group) does not reach them
         assert all(os.getsid(p) == p for p in pids)
     finally:

@@ -39,9 +39,7 @@ Lifetime
     that started it dies (``PR_SET_PDEATHSIG``) and checks its parent every few milliseconds, so
     none outlives the launcher, even one killed with SIGKILL.
 
-Measured on the 2-core VM here (default experiment, ``ilcrig run --realtime`` with and without
-``--no-idle-poll``, alternating): with the loops 24, 18 and 17 of 5,010 ticks late, lateness p99
-0.16–0.32 ms; without them 105, 17 and 175, p99 0.9–21.7 ms (docs/timing.md §1).
+What the loops change is measured by ``benchmarks/rt_compare.py`` (docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -57,13 +55,17 @@ logger = logging.getLogger(__name__)
 __all__ = ["AUTOGROUP_NICE", "IdlePollers", "idle_poll_available"]
 
 #: the busy loop, run with ``python -S -c`` (nothing imported but os, sys, time and ctypes): SCHED_IDLE,
-#: its session's autogroup at nice ``argv[2]`` (empty: left alone; retried while the kernel's
+#: bound to CPU ``argv[3]``, its session's autogroup at nice ``argv[2]`` (empty: left alone; retried while the kernel's
 #: 100 ms rate limit refuses it), killed with its parent (PR_SET_PDEATHSIG = 1), and a check of
 #: the parent every ~10 ms
 _LOOP = """
 import os, sys, time
 parent = int(sys.argv[1])
 os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+try:
+    os.sched_setaffinity(0, {int(sys.argv[3])})
+except (OSError, AttributeError):
+    pass
 try:
     import ctypes
     ctypes.CDLL(None, use_errno=True).prctl(1, 9, 0, 0, 0)
@@ -99,20 +101,27 @@ def idle_poll_available() -> bool:
 class IdlePollers:
     """One ``SCHED_IDLE`` busy loop per CPU (see the module docstring), started at once.
 
-    :param n_cpus: how many loops (default: the CPUs this process may run on)
+    Each loop is bound to its CPU: left to the load balancer, two loops may share one CPU while
+    the other halts (the balancer weighs ``SCHED_IDLE`` tasks too lightly to move them apart).
+
+    :param n_cpus: how many loops (default: one on each CPU this process may run on; loop k is
+        bound to the k-th of those CPUs, taken round)
     :param autogroup_nice: the nice value of each loop's autogroup (None: the kernel's 0)
     """
 
     def __init__(self, n_cpus: int | None = None, autogroup_nice: int | None = AUTOGROUP_NICE) -> None:
+        cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else list(range(os.cpu_count() or 1))
         if n_cpus is None:
-            n_cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+            n_cpus = len(cpus)
+        #: the CPU each loop is bound to
+        self.cpus = [cpus[k % len(cpus)] for k in range(n_cpus)]
         self.procs: list[subprocess.Popen[bytes]] = []
         nice = "" if autogroup_nice is None else str(autogroup_nice)
         try:
-            for _ in range(n_cpus):
+            for cpu in self.cpus:
                 self.procs.append(
                     subprocess.Popen(
-                        [sys.executable, "-S", "-c", _LOOP, str(os.getpid()), nice],
+                        [sys.executable, "-S", "-c", _LOOP, str(os.getpid()), nice, str(cpu)],
                         stdin=subprocess.DEVNULL,
                         stdout=subprocess.DEVNULL,
                         stderr=subprocess.DEVNULL,

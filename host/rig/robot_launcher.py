@@ -343,7 +343,12 @@ class RobotLauncher:
             return
         if robot is not None:
             rt = robot.get("realtime") or {}
-            late = f", late {rt.get('late_syncs', 0)}, missing {rt.get('missing_syncs', 0)}" if rt else ""
+            late = (
+                f", late SYNCs {rt.get('late_syncs', 0)}, missing {rt.get('missing_syncs', 0)}, "
+                f"late periods {rt.get('late_periods', 0)}"
+                if rt
+                else ""
+            )
             self._say_out(
                 f"ilcrig robot: {robot['periods']} periods stepped, {robot['syncs']} SYNCs seen "
                 f"({robot['sync_overruns']} overruns{late}), {robot['faults_total']} robot faults; summary: {path}"
