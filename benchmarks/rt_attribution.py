@@ -42,6 +42,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from rt_compare import realtime_run_cmd, split_run_options  # noqa: E402
+
 from host.rig.miss_attribution import attribute_misses, parse_sched_trace, summarise_verdicts  # noqa: E402
 from host.rig.wake_waits import parse_waits, summarise_waits  # noqa: E402
 
@@ -186,11 +188,7 @@ def _print_waits(summary: dict, timing: dict, run_opts: list[str], rc: int, lost
 
 
 def main() -> None:
-    argv = sys.argv[1:]
-    run_opts: list[str] = []
-    if "--" in argv:
-        i = argv.index("--")
-        argv, run_opts = argv[:i], argv[i + 1 :]
+    argv, run_opts = split_run_options(sys.argv[1:])
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=None, help="run directory (default: a temporary one)")
     ap.add_argument("--keep-trace", action="store_true", help="keep the kernel trace as kernel-trace.txt in the run directory")
@@ -200,16 +198,7 @@ def main() -> None:
         raise SystemExit("rt_attribution: the kernel trace needs root (tracefs)")
     with tempfile.TemporaryDirectory(prefix="ilcrig-rt-") as tmp:
         out = args.out or Path(tmp) / "run"
-        cmd = [
-            sys.executable,
-            "-c",
-            "import sys; from host.cli import main; sys.exit(main(sys.argv[1:]))",
-            "run",
-            "--realtime",
-            "--out",
-            str(out),
-            *run_opts,
-        ]
+        cmd = realtime_run_cmd(out, *run_opts)
         watcher = RoleWatcher()
         with kernel_trace(WAIT_EVENTS if args.waits else EVENTS, record_tgid=args.waits) as trace:
             proc = subprocess.Popen(cmd)

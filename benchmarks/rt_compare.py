@@ -49,6 +49,28 @@ FLOOR_SPIN_S = 1.0
 FLOOR_RESOLUTION_S = 10e-6
 
 
+def split_run_options(argv: list[str]) -> tuple[list[str], list[str]]:
+    """A script's command line as (its own arguments, the ``ilcrig run`` options after ``--``)."""
+    if "--" not in argv:
+        return argv, []
+    i = argv.index("--")
+    return argv[:i], argv[i + 1 :]
+
+
+def realtime_run_cmd(out_dir: Path, *options: str) -> list[str]:
+    """``ilcrig run --realtime --out OUT_DIR OPTIONS…`` as a child of this interpreter."""
+    return [
+        sys.executable,
+        "-c",
+        "import sys; from host.cli import main; sys.exit(main(sys.argv[1:]))",
+        "run",
+        "--realtime",
+        "--out",
+        str(out_dir),
+        *options,
+    ]
+
+
 @dataclass(frozen=True)
 class Variant:
     """One way to run ``ilcrig run --realtime``."""
@@ -101,17 +123,7 @@ def run_once(variant: Variant, out_dir: Path, extra: list[str]) -> dict[str, Any
         env[WITHOUT_ENV] = variant.without
     else:
         env.pop(WITHOUT_ENV, None)
-    cmd = [
-        sys.executable,
-        "-c",
-        "import sys; from host.cli import main; sys.exit(main(sys.argv[1:]))",
-        "run",
-        "--realtime",
-        "--out",
-        str(out_dir),
-        *variant.options,
-        *extra,
-    ]
+    cmd = realtime_run_cmd(out_dir, *variant.options, *extra)
     load = os.getloadavg()[0]
     t0 = time.monotonic()
     done = subprocess.run(cmd, capture_output=True, text=True, check=False, env=env, cwd=str(ROOT))
@@ -156,11 +168,7 @@ def line(row: dict[str, Any], floors: dict[bool, dict[str, Any]], variant: Varia
 
 
 def main() -> None:
-    argv = sys.argv[1:]
-    extra: list[str] = []
-    if "--" in argv:
-        i = argv.index("--")
-        argv, extra = argv[:i], argv[i + 1 :]
+    argv, extra = split_run_options(sys.argv[1:])
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--without", action="append", default=[], metavar="MECH", help="add a normal-scheduling variant without MECH")

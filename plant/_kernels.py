@@ -72,6 +72,9 @@ R_AUX = 13  # saturated flags [0:4]
 R_TRIG = 14  # cos q [0:4], sin q [4:8] of the current evaluation
 N_ROWS = 15
 
+#: the ``locked`` mask of :func:`accel_locked` / :func:`plant_step_locked` with no joint held
+_NONE_HELD = np.zeros(4, dtype=np.int64)
+
 # status codes
 ST_OK = 0
 ST_FK_FAIL = 1
@@ -547,21 +550,9 @@ def accel(
     out: np.ndarray,
     oo: int,
 ) -> int:
-    """q̈ = M⁻¹(τ − C q̇ − G − τ_f) into out[oo:oo+4]; returns a status code."""
-    st = eval_terms(q, qo, qd, qdo, p, ws, True)
-    if st != ST_OK:
-        return st
-    v2 = ws[R_V2]
-    v3 = ws[R_V3]
-    friction_torque(qd, qdo, p, v3, 8)
-    for i in range(4):
-        out[oo + i] = tau[to + i] - v2[8 + i] - v2[12 + i] - v3[8 + i]
-    if not chol4_solve(ws[R_M], out, oo):
-        return ST_M_NOT_PD
-    for i in range(4):
-        if not math.isfinite(out[oo + i]):
-            return ST_NONFINITE
-    return ST_OK
+    """q̈ = M⁻¹(τ − C q̇ − G − τ_f) into out[oo:oo+4]; returns a status code (:func:`accel_locked`
+    with no joint held: the same arithmetic)."""
+    return accel_locked(q, qo, qd, qdo, tau, to, p, ws, out, oo, _NONE_HELD)
 
 
 @njit(cache=True, error_model="numpy")
@@ -569,73 +560,9 @@ def plant_step(ws: np.ndarray, p: np.ndarray, torque_units: np.ndarray, dist_nm:
     """One control period: τ = clamp(units·LSB) + d held, RK4 with P_NSUB sub-steps.
 
     State ws[R_STATE] = (q, q̇) is advanced in place; ``counts`` gets the nearest encoder
-    counts of the new q.  Returns a status code (state untouched-or-partial on failure)."""
-    x = ws[R_STATE]
-    stg = ws[R_STG]
-    k1 = ws[R_K1]
-    k2 = ws[R_K2]
-    aux = ws[R_AUX]
-    v3 = ws[R_V3]
-    lsb = p[P_TLSB]
-    tlim = p[P_TLIM]
-    for i in range(4):
-        t = float(torque_units[i]) * lsb
-        sat = 0.0
-        if tlim > 0.0:
-            if t > tlim:
-                t = tlim
-                sat = 1.0
-            elif t < -tlim:
-                t = -tlim
-                sat = 1.0
-        aux[i] = sat
-        v3[12 + i] = t
-        stg[12 + i] = t + dist_nm[i]
-    nsub = int(p[P_NSUB])
-    dt = p[P_TS] / nsub
-    h2 = 0.5 * dt
-    for _ in range(nsub):
-        # stage 1
-        st = accel(x, 0, x, 4, stg, 12, p, ws, k1, 4)
-        if st != ST_OK:
-            return st
-        for i in range(4):
-            k1[i] = x[4 + i]
-            stg[i] = x[i] + h2 * x[4 + i]
-            stg[4 + i] = x[4 + i] + h2 * k1[4 + i]
-        # stage 2
-        st = accel(stg, 0, stg, 4, stg, 12, p, ws, k1, 12)
-        if st != ST_OK:
-            return st
-        for i in range(4):
-            k1[8 + i] = stg[4 + i]
-            stg[i] = x[i] + h2 * k1[8 + i]
-            stg[4 + i] = x[4 + i] + h2 * k1[12 + i]
-        # stage 3
-        st = accel(stg, 0, stg, 4, stg, 12, p, ws, k2, 4)
-        if st != ST_OK:
-            return st
-        for i in range(4):
-            k2[i] = stg[4 + i]
-            stg[i] = x[i] + dt * k2[i]
-            stg[4 + i] = x[4 + i] + dt * k2[4 + i]
-        # stage 4
-        st = accel(stg, 0, stg, 4, stg, 12, p, ws, k2, 12)
-        if st != ST_OK:
-            return st
-        for i in range(4):
-            k2[8 + i] = stg[4 + i]
-        c = dt / 6.0
-        for i in range(4):
-            x[i] += c * (k1[i] + 2.0 * k1[8 + i] + 2.0 * k2[i] + k2[8 + i])
-            x[4 + i] += c * (k1[4 + i] + 2.0 * k1[12 + i] + 2.0 * k2[4 + i] + k2[12 + i])
-        for i in range(8):
-            if not math.isfinite(x[i]):
-                return ST_NONFINITE
-    rpc = p[P_RPC]
-    for i in range(4):
-        counts[i] = np.int64(np.rint(x[i] / rpc))
-    return ST_OK
+    counts of the new q.  Returns a status code (state untouched-or-partial on failure).
+    :func:`plant_step_locked` with no joint held: the same arithmetic."""
+    return plant_step_locked(ws, p, torque_units, dist_nm, counts, _NONE_HELD)
 
 
 @njit(cache=True, error_model="numpy")
@@ -734,6 +661,7 @@ def plant_step_locked(
     dt = p[P_TS] / nsub
     h2 = 0.5 * dt
     for _ in range(nsub):
+        # the four RK4 stages stay written out for numba: fixed workspace offsets, no closure or allocation per stage
         st = accel_locked(x, 0, x, 4, stg, 12, p, ws, k1, 4, locked)
         if st != ST_OK:
             return st

@@ -1,6 +1,14 @@
-"""Running ``ilcrig`` in-process in tests: the exit code and what it printed."""
+"""Running ``ilcrig`` in tests: in-process (the exit code and what it printed) and as a process in
+a session of its own (:func:`run_cli_process`: it and every process it started gone on return)."""
 
 from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import pytest
 
@@ -15,3 +23,42 @@ def run_cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, s
         code = int(exc.code or 0)
     out, err = capsys.readouterr()
     return code, out, err
+
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def run_cli_process(args: list[str], guard_s: float) -> subprocess.CompletedProcess[str]:
+    """``ilcrig ARGS`` in its own session, from the project folder; returns once it and every
+    process it started ended (killed after ``guard_s``, a guard against a hang)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "host.cli", *args],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        out, err = proc.communicate(timeout=guard_s)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    group_gone(proc.pid, guard_s)  # e.g. a local cluster's workers end with the command
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+
+
+def group_gone(pgid: int, guard_s: float) -> None:
+    """Wait until no process of group ``pgid`` is left (a local cluster's workers end with its
+    command); fail after ``guard_s``."""
+    deadline = time.monotonic() + guard_s
+    while True:
+        try:
+            os.killpg(pgid, 0)
+        except ProcessLookupError:
+            return
+        if time.monotonic() > deadline:
+            os.killpg(pgid, signal.SIGKILL)
+            pytest.fail(f"processes of the command (group {pgid}) survived it")
+        time.sleep(0.1)

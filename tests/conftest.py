@@ -5,7 +5,8 @@ the vcan suite was asked for (``-m vcan``, as ``scripts/vcan-tests`` runs it, or
 ``ILCRIG_REQUIRE_VCAN=1``): in CI the suite must really run on SocketCAN, not quietly skip.
 The ordinary ``pytest`` run (no ``-m vcan``) keeps skipping vcan tests on kernels without vcan.
 And the processes the tests start take SIGINT (Ctrl-C) as Python's KeyboardInterrupt however the
-test runner was started (:func:`pytest_configure`). It also holds the ``hub_data_plane`` fixture.
+test runner was started (:func:`pytest_configure`). It also holds the ``hub_data_plane`` fixture
+and the ``sleeper`` fixture (a process to schedule).
 """
 
 from __future__ import annotations
@@ -13,6 +14,9 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import subprocess
+import sys
+from collections.abc import Iterator
 
 import pytest
 
@@ -59,3 +63,17 @@ def hub_data_plane(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPat
         pytest.skip("the hub's C core is not built here (no C compiler at install)")
     monkeypatch.setenv(HUB_CORE_ENV, request.param)
     return str(request.param)
+
+
+@pytest.fixture
+def sleeper() -> Iterator[subprocess.Popen[bytes]]:
+    """A child process of two threads that sleep 60 s (something to schedule), killed after the test."""
+    proc = subprocess.Popen(
+        [sys.executable, "-c", "import threading, time; threading.Thread(target=time.sleep, args=(60,)).start(); time.sleep(60)"],
+        stdin=subprocess.DEVNULL,
+    )
+    try:
+        yield proc
+    finally:
+        proc.kill()
+        proc.wait()

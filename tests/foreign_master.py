@@ -6,6 +6,7 @@
   echo plant of tests/drive402_util.py on the io channel (:meth:`MasterRig.plant_tick`: encoder
   frame out, torque frame back, the count moves by τ // K).  The buses are python-can buses of any
   interface (``virtual`` in process, ``ilcrig_hub`` to a drive process).
+* :func:`configure_pdos` maps the PDOs of any ``BaseNode402`` with the library's PDO API.
 * :func:`in_process_drive` serves a real :class:`firmware_model.drive.Drive` on virtual buses in a
   thread of the test (:class:`firmware_model.drive_node.DriveNode`).
 
@@ -40,6 +41,24 @@ from firmware_model.drive_node import DriveNode
 #: bounds of a failure [s] (× ILCRIG_TIMEOUT_SCALE)
 WAIT_S = 20.0 * timeout_scale()
 _counter = itertools.count()
+
+
+def configure_pdos(node: BaseNode402, tpdos: dict[int, tuple[list[str], int]], rpdos: dict[int, tuple[list[str], int]]) -> None:
+    """Map PDOs of ``node`` with the library's PDO API in PRE-OPERATIONAL: number → (object names,
+    transmission type); the others are left as they are."""
+    node.nmt.state = "PRE-OPERATIONAL"
+    node.tpdo.read()
+    node.rpdo.read()
+    for maps, config in ((node.tpdo, tpdos), (node.rpdo, rpdos)):
+        for number, (names, tt) in config.items():
+            pdo = maps[number]
+            pdo.clear()
+            for name in names:
+                pdo.add_variable(name)
+            pdo.trans_type = tt
+            pdo.enabled = True
+            pdo.save()
+    node.setup_402_state_machine(read_pdos=False)
 
 
 class MasterRig:
@@ -136,22 +155,20 @@ class MasterRig:
     # ------------------------------------------------------------------ helpers on the master's API
 
     def configure_pdos(self, tpdos: dict[int, tuple[list[str], int]], rpdos: dict[int, tuple[list[str], int]]) -> None:
-        """Map PDOs with the library's PDO API in PRE-OPERATIONAL: number → (object names,
-        transmission type); the others are left as they are."""
+        """Map the drive's PDOs (:func:`configure_pdos`)."""
+        configure_pdos(self.node, tpdos, rpdos)
+
+    def enable_position_pdos(self) -> None:
+        """TPDO1 (statusword, position actual value) on every SYNC, RPDO1 (controlword, target
+        position) event driven; OPERATIONAL, OPERATION ENABLED under a 10 ms SYNC, then the SYNC
+        stopped and every frame so far forgotten (:meth:`quiesce`)."""
         node = self.node
-        node.nmt.state = "PRE-OPERATIONAL"
-        node.tpdo.read()
-        node.rpdo.read()
-        for maps, config in ((node.tpdo, tpdos), (node.rpdo, rpdos)):
-            for number, (names, tt) in config.items():
-                pdo = maps[number]
-                pdo.clear()
-                for name in names:
-                    pdo.add_variable(name)
-                pdo.trans_type = tt
-                pdo.enabled = True
-                pdo.save()
-        node.setup_402_state_machine(read_pdos=False)
+        self.configure_pdos({1: (["Statusword", "Position actual value"], 1)}, {1: (["Controlword", "Target position"], 255)})
+        node.nmt.state = "OPERATIONAL"
+        self.network.sync.start(0.01)
+        node.state = "OPERATION ENABLED"
+        self.network.sync.stop()
+        self.quiesce()
 
     def sdo_probe(self) -> None:
         """An SDO round trip: every frame the master sent before it has been handled by the drive."""

@@ -53,7 +53,9 @@ def new_channels() -> tuple[str, str]:
     return f"robot-fb-{k}", f"robot-io-{k}"
 
 
-class _Thread:
+class NodeThread:
+    """A node (a SlaveNode subclass) serving in a thread on its own buses until :meth:`close`."""
+
     def __init__(self, node: Any, buses: list[can.BusABC]) -> None:
         self.node = node
         self.buses = buses
@@ -89,7 +91,7 @@ class VirtualRobot:
         channels: tuple[str, str] | None = None,
     ) -> None:
         self.fb_channel, self.io_channel = channels if channels is not None else new_channels()
-        self.threads: list[_Thread] = []
+        self.threads: list[NodeThread] = []
         try:
             fb = can.Bus(interface="virtual", channel=self.fb_channel)
             io = can.Bus(interface="virtual", channel=self.io_channel)
@@ -102,14 +104,14 @@ class VirtualRobot:
                 trace_path=trace_path,
                 tick_timeout_s=tick_timeout_s,
             )
-            self.threads.append(_Thread(self.plant, [fb, io]))
+            self.threads.append(NodeThread(self.plant, [fb, io]))
             self.drives: list[Drive] = []
             for node_id in DRIVES:
                 drive = Drive(node_id)
                 fb_d = can.Bus(interface="virtual", channel=self.fb_channel)
                 io_d = can.Bus(interface="virtual", channel=self.io_channel)
                 self.drives.append(drive)
-                self.threads.append(_Thread(DriveNode(drive, fb_d, io_d, lockstep=True), [fb_d, io_d]))
+                self.threads.append(NodeThread(DriveNode(drive, fb_d, io_d, lockstep=True), [fb_d, io_d]))
         except BaseException:
             self.close()
             raise

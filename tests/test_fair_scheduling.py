@@ -14,7 +14,6 @@ import platform
 import struct
 import subprocess
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import can
@@ -48,19 +47,6 @@ def _sched_runtime_ns(tid: int) -> int | None:
     if libc.syscall(ctypes.c_long(number), ctypes.c_int(tid), buf, ctypes.c_uint(56), ctypes.c_uint(0)) != 0:
         return None
     return int(struct.unpack("IIQiIQQQII", buf.raw)[5])
-
-
-@pytest.fixture
-def sleeper() -> Iterator[subprocess.Popen[bytes]]:
-    proc = subprocess.Popen(
-        [sys.executable, "-c", "import threading, time; threading.Thread(target=time.sleep, args=(60,)).start(); time.sleep(60)"],
-        stdin=subprocess.DEVNULL,
-    )
-    try:
-        yield proc
-    finally:
-        proc.kill()
-        proc.wait()
 
 
 def test_the_left_out_mechanisms_are_read_from_the_environment() -> None:

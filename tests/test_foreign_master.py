@@ -16,7 +16,7 @@ import canopen
 import pytest
 from canopen.profiles.p402 import BaseNode402, State402
 from drive402_util import K_ECHO, reference_profile
-from foreign_master import WAIT_S, MasterRig, in_process_drive, wait_until
+from foreign_master import WAIT_S, MasterRig, configure_pdos, in_process_drive, wait_until
 from robot_util import DRIVES, PLANT_ID, VirtualRobot, new_channels
 
 from bus import fixedpoint as fp
@@ -94,12 +94,7 @@ def test_profile_position_moves_exactly_along_the_integer_profile() -> None:
         node.sdo["Profile deceleration"].raw = 2_000_000
         rig.count = 1000
         rig.plant_tick()
-        rig.configure_pdos({1: (["Statusword", "Position actual value"], 1)}, {1: (["Controlword", "Target position"], 255)})
-        node.nmt.state = "OPERATIONAL"
-        rig.network.sync.start(0.01)
-        node.state = "OPERATION ENABLED"
-        rig.network.sync.stop()
-        rig.quiesce()
+        rig.enable_position_pdos()
         node.rpdo[1]["Target position"].raw = 31_000
         node.controlword = 0x1F  # new set-point (RPDO1: controlword and target position)
         first = rig.sync_cycle(TPDO1)
@@ -334,20 +329,7 @@ def test_base_node_402_sees_quick_stop_active_on_the_sync_stepped_robot_at_stand
         try:
             with cond:  # the plant boots once its model is ready to step
                 assert cond.wait_for(lambda: booted >= {*DRIVES, PLANT_ID}, WAIT_S), booted
-            node.nmt.state = "PRE-OPERATIONAL"
-            node.tpdo.read()
-            node.rpdo.read()
-            for pdo, names, tt in (
-                (node.tpdo[1], ("Statusword", "Position actual value"), 1),
-                (node.rpdo[1], ("Controlword",), 255),
-            ):
-                pdo.clear()
-                for name in names:
-                    pdo.add_variable(name)
-                pdo.trans_type = tt
-                pdo.enabled = True
-                pdo.save()
-            node.setup_402_state_machine(read_pdos=False)
+            configure_pdos(node, {1: (["Statusword", "Position actual value"], 1)}, {1: (["Controlword"], 255)})
             tpdos = _Tpdos(node)
             node.sdo["Quick stop option code"].raw = 2
             node.sdo["Profile velocity"].raw = 400_000  # counts/s

@@ -54,12 +54,7 @@ def test_base_node_402_drives_an_ilcrig_drive_process_over_the_hub(tmp_path: Pat
             node.sdo["Profile deceleration"].raw = 5_000_000
             rig.count = -500
             rig.plant_tick()
-            rig.configure_pdos({1: (["Statusword", "Position actual value"], 1)}, {1: (["Controlword", "Target position"], 255)})
-            node.nmt.state = "OPERATIONAL"
-            rig.network.sync.start(0.01)
-            node.state = "OPERATION ENABLED"
-            rig.network.sync.stop()
-            rig.quiesce()
+            rig.enable_position_pdos()
             node.rpdo[1]["Target position"].raw = 2_500
             node.controlword = 0x1F
             assert struct.unpack("<Hi", rig.sync_cycle(TPDO1)) == (0x1237, -500)

@@ -16,7 +16,6 @@ import itertools
 import math
 import struct
 import threading
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -29,6 +28,7 @@ from canopen.objectdictionary import ODRecord, ODVariable, import_od
 from canopen.objectdictionary import datatypes as dt
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from robot_util import NodeThread, wait_for
 from short_move import TS_S, configure_drives, short_reference
 
 from bus import io_frames, units
@@ -208,24 +208,6 @@ class Host:
         self.network.disconnect()
 
 
-class NodeThread:
-    """A SlaveNode subclass serving in a thread on its own buses."""
-
-    def __init__(self, node: Any, buses: list[can.BusABC]) -> None:
-        self.node = node
-        self.buses = buses
-        self.stop = threading.Event()
-        self.thread = threading.Thread(target=node.run, args=(self.stop,), daemon=True)
-        self.thread.start()
-
-    def close(self) -> None:
-        self.stop.set()
-        self.thread.join(timeout=3.0)
-        assert not self.thread.is_alive()
-        for bus in self.buses:
-            bus.shutdown()
-
-
 class PlantRig:
     """PlantNode (fake plant) in a thread + canopen host + scripted drives."""
 
@@ -254,16 +236,6 @@ class PlantRig:
         self.node.close()
         self.drives.close()
         self.host.close()
-
-
-def wait_for(predicate: Callable[[], Any], timeout_s: float = 2.0) -> bool:
-    """Poll ``predicate`` until true or ``timeout_s`` passed (the caller asserts the result)."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.002)
-    return bool(predicate())
 
 
 @pytest.fixture(autouse=True)

@@ -8,7 +8,6 @@ import itertools
 import os
 import struct
 import subprocess
-import sys
 
 import can
 import pytest
@@ -330,19 +329,6 @@ def test_a_paced_tick_is_waited_for_on_the_clock_for_the_last_spin_s() -> None:
             bus.shutdown()
     with pytest.raises(ValueError, match="spin_s"):
         PlantNode(fb, io, plant_factory=PlantBox(), disturbance_fn=fake_disturbance, spin_s=0.5)
-
-
-@pytest.fixture
-def sleeper() -> object:
-    proc = subprocess.Popen(
-        [sys.executable, "-c", "import threading, time; threading.Thread(target=time.sleep, args=(60,)).start(); time.sleep(60)"],
-        stdin=subprocess.DEVNULL,
-    )
-    try:
-        yield proc
-    finally:
-        proc.kill()
-        proc.wait()
 
 
 def test_real_time_scheduling_is_fifo_where_permitted_and_said_where_not(

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_util import run_cli_process
 
 import ilcrig
 from ilcrig.sweep.spec import Point, SweepSpec, parse_assignment
@@ -155,37 +156,7 @@ def test_plant_factors_on_the_rig_give_the_digest_of_sim(tmp_path: Path) -> None
 
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:
     """``ilcrig ARGS`` in its own session; returns once it and every process it started ended."""
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "host.cli", *args],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
-    try:
-        out, err = proc.communicate(timeout=GUARD_S)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-    _group_gone(proc.pid)
-    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
-
-
-def _group_gone(pgid: int) -> None:
-    """Wait until no process of group ``pgid`` is left (a local cluster's workers end with its
-    command); fail after the guard."""
-    deadline = time.monotonic() + GUARD_S
-    while True:
-        try:
-            os.killpg(pgid, 0)
-        except ProcessLookupError:
-            return
-        if time.monotonic() > deadline:
-            os.killpg(pgid, signal.SIGKILL)
-            pytest.fail(f"processes of the command (group {pgid}) survived it")
-        time.sleep(0.1)
+    return run_cli_process(list(args), GUARD_S)
 
 
 def _table(out: Path) -> dict[tuple[str, int, int], tuple]:

@@ -5,16 +5,13 @@ reproduces the best value, the study resumes) and the Python block (§6)."""
 from __future__ import annotations
 
 import math
-import os
 import re
 import shlex
-import signal
 import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
+from cli_util import run_cli_process
 
 import ilcrig
 
@@ -40,37 +37,7 @@ def _run(argv: list[str], out: Path, *extra: str) -> subprocess.CompletedProcess
     """``argv`` (``ilcrig …``) with its ``--out`` in ``out`` and ``extra`` options."""
     args = list(argv[1:])
     args[args.index("--out") + 1] = str(out)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "host.cli", *args, *extra],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
-    try:
-        stdout, stderr = proc.communicate(timeout=GUARD_S)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-    _group_gone(proc.pid)  # the local cluster's workers ended with the command
-    return subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
-
-
-def _group_gone(pgid: int) -> None:
-    """Wait until no process of group ``pgid`` is left (a local cluster's workers end with its
-    command); fail after the guard."""
-    deadline = time.monotonic() + GUARD_S
-    while True:
-        try:
-            os.killpg(pgid, 0)
-        except ProcessLookupError:
-            return
-        if time.monotonic() > deadline:
-            os.killpg(pgid, signal.SIGKILL)
-            pytest.fail(f"processes of the command (group {pgid}) survived it")
-        time.sleep(0.1)
+    return run_cli_process([*args, *extra], GUARD_S)
 
 
 @pytest.mark.slow

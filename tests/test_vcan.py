@@ -102,6 +102,29 @@ def stop(proc: subprocess.Popen, sig: int = signal.SIGTERM, wait_s: float = 15.0
     return proc.wait()
 
 
+def run_on_socketcan(out: Path, *options: str, what: str) -> subprocess.CompletedProcess[str]:
+    """``ilcrig run EXP OPTIONS --bus socketcan --out OUT`` to its end (its host waits
+    :data:`BOOT_WAIT_S` for the nodes: the launcher's default 20 s is too short under emulation);
+    the test fails naming ``what`` after :data:`RIG_TIMEOUT_S`."""
+    env = {**os.environ, "ILCRIG_ROLE_CMD_HOST": f"{sys.executable} -m host.cli host --wait {BOOT_WAIT_S:g}"}
+    rig = popen(
+        [sys.executable, "-m", "host.cli", "run", *EXP, *options, "--bus", "socketcan", "--out", str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    try:
+        so, se = rig.communicate(timeout=RIG_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        stop(rig, signal.SIGKILL)
+        so, se = rig.communicate()
+        pytest.fail(f"{what} over socketcan timed out after {RIG_TIMEOUT_S:g} s:\n{so[-3000:]}\n{se[-3000:]}")
+    finally:
+        stop(rig, signal.SIGKILL)
+    return subprocess.CompletedProcess(rig.args, rig.returncode, so, se)
+
+
 def tail(path: Path, n: int = 40) -> str:
     try:
         return "\n".join(path.read_text(errors="replace").splitlines()[-n:])
@@ -179,31 +202,14 @@ def rig_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RigRun]:
         stderr=subprocess.STDOUT,
         text=True,
     )
-    rig: subprocess.Popen | None = None
     try:
         reader = LineReader(logger_proc)
         assert reader.wait_for(r"^Can Logger", 120.0), f"can.logger did not start:\n{reader.text()}"
-        # the launcher's host waits 20 s for the nodes by default: too short under emulation
-        env = {**os.environ, "ILCRIG_ROLE_CMD_HOST": f"{sys.executable} -m host.cli host --wait {BOOT_WAIT_S:g}"}
-        rig = popen(
-            [sys.executable, "-m", "host.cli", "run", *EXP, "--bus", "socketcan", "--out", str(out)],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            env=env,
-        )
-        try:
-            so, se = rig.communicate(timeout=RIG_TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            stop(rig, signal.SIGKILL)
-            so, se = rig.communicate()
-            pytest.fail(f"rig over socketcan timed out after {RIG_TIMEOUT_S:g} s:\n{so[-3000:]}\n{se[-3000:]}")
+        res = run_on_socketcan(out, what="rig")
         time.sleep(1.0)  # the logger drains its socket
         logger_rc = stop(logger_proc, signal.SIGINT, 30.0)  # KeyboardInterrupt: closes the log
-        yield RigRun(out, capture, subprocess.CompletedProcess(rig.args, rig.returncode, so, se), logger_rc)
+        yield RigRun(out, capture, res, logger_rc)
     finally:
-        if rig is not None:
-            stop(rig, signal.SIGKILL)
         stop(logger_proc, signal.SIGKILL)
 
 
@@ -405,24 +411,9 @@ def test_pdo_transport_over_socketcan_equals_sim(tmp_path: Path) -> None:
     the digest equals ``ilcrig sim --ff-transport pdo``, and vcan0 carried one SYNC, four RPDOs
     and four TPDOs per tick (the host's own monitor on vcan0 counts them)."""
     out = tmp_path / "run"
-    env = {**os.environ, "ILCRIG_ROLE_CMD_HOST": f"{sys.executable} -m host.cli host --wait {BOOT_WAIT_S:g}"}
-    rig = popen(
-        [sys.executable, "-m", "host.cli", "run", *EXP, "--ff-transport", "pdo", "--bus", "socketcan", "--out", str(out)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
-    )
-    try:
-        so, se = rig.communicate(timeout=RIG_TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        stop(rig, signal.SIGKILL)
-        so, se = rig.communicate()
-        pytest.fail(f"pdo rig over socketcan timed out after {RIG_TIMEOUT_S:g} s:\n{so[-3000:]}\n{se[-3000:]}")
-    finally:
-        stop(rig, signal.SIGKILL)
+    res = run_on_socketcan(out, "--ff-transport", "pdo", what="pdo rig")
     logs = "\n".join(f"--- {p.name}\n{tail(p, 15)}" for p in sorted((out / "logs").glob("*.log")))
-    assert rig.returncode == 0, so[-3000:] + se[-3000:] + logs
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:] + logs
     s = json.loads((out / "summary.json").read_text())
     assert s["completed"] is True and s["config"]["ff_transport"] == "pdo"
     assert s["trace_sha256"] == sim_digest({**EXP_CFG, "ff_transport": "pdo"})

@@ -68,32 +68,19 @@ from bus.cia301.nmt import NmtState
 from bus.cia301.object_store import ObjectStore, struct_of
 from bus.cia301.pdo_parameters import Pdo, PdoConfig, PdoParameters
 from bus.errors import SdoAbort
-from bus.pdo_objects import (  # noqa: F401 - re-exported
+from bus.pdo_objects import (
     COB_ID_MASK_11,
     COB_ID_SYNC_INDEX,
-    COMM_COB_ID,
     COMM_EVENT_TIMER,
     COMM_INHIBIT_TIME,
     COMM_SYNC_START,
-    COMM_TRANSMISSION_TYPE,
-    MAX_MAPPED,
-    MAX_PDO_BITS,
-    PDO_EXTENDED,
     PDO_NO_RTR,
     PDO_NOT_VALID,
-    RESTRICTED_CAN_IDS,
-    RPDO_COMM_BASE,
-    RPDO_MAP_BASE,
     SYNC_COB_ID_DEFAULT,
-    TPDO_COMM_BASE,
-    TPDO_MAP_BASE,
     TT_EVENT_MANUFACTURER,
     TT_EVENT_PROFILE,
     TT_SYNC_ACYCLIC,
     TT_SYNC_MAX,
-    is_restricted_can_id,
-    mapping_entry,
-    split_entry,
 )
 
 logger = logging.getLogger(__name__)

@@ -35,6 +35,7 @@ from host.learning.check import (
     ConvergenceReport,
     IterationMap,
     check_iteration_map,
+    not_checked,
 )
 from host.learning.gains import Gains
 from host.learning.identification import DynamicsEstimate
@@ -125,6 +126,11 @@ class LearningLaw(ABC):
     def _update(self, u_k: Array, e_k: Array, tau_k: Array) -> Array:
         """The law's arithmetic."""
 
+    @property
+    def has_iteration_map(self) -> bool:
+        """Whether the law gives its trial-to-trial map (:meth:`iteration_map`); every built-in law does."""
+        return True
+
     @abstractmethod
     def iteration_map(self, model: ClosedLoopModel) -> IterationMap:
         """The law's linear trial-to-trial map when the plant is ``model`` (the law's own operators —
@@ -139,8 +145,12 @@ class LearningLaw(ABC):
         inertia_scales: tuple[float, ...] = ROBUST_INERTIA_SCALES,
     ) -> ConvergenceReport:
         """The convergence check of :mod:`host.learning.check` on ``model`` (default: the law's), with
-        the long-run verdict also on the plant whose inertia is scaled by each of ``inertia_scales``."""
+        the long-run verdict also on the plant whose inertia is scaled by each of ``inertia_scales``;
+        "not checked" for a law that gives no iteration map (:attr:`has_iteration_map`)."""
         mdl = model if model is not None else self.ctx.model
+        if not self.has_iteration_map:
+            logger.info("law %s gives no iteration map: convergence not checked", self.name)
+            return not_checked(mdl, self.gains.ld, self.ts_s, self.name, iterations)
         perturbed = []
         for scale in inertia_scales:
             plant = mdl.corrected(mdl.inertia * scale)

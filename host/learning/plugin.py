@@ -19,7 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from bus.errors import IlcrigError
-from host.learning.check import LONG_HORIZON, ROBUST_INERTIA_SCALES, ConvergenceReport, IterationMap, not_checked
+from host.learning.check import IterationMap
 from host.learning.laws import LAW_CLASSES, LawContext, LearningLaw
 from host.learning.model import ClosedLoopModel
 from host.learning.protocol import AUXILIARY, TrialData
@@ -137,18 +137,3 @@ class PluginLaw(LearningLaw):
         if not isinstance(imap, IterationMap):
             raise LawError(f"law {self.name}: iteration_map returned {type(imap).__name__}, not an IterationMap")
         return imap
-
-    def check(
-        self,
-        model: ClosedLoopModel | None = None,
-        probe_torque: Array | None = None,
-        iterations: int = 10,
-        long_horizon: int = LONG_HORIZON,
-        inertia_scales: tuple[float, ...] = ROBUST_INERTIA_SCALES,
-    ) -> ConvergenceReport:
-        """The convergence check of the law's map, or "not checked" without one."""
-        if self.has_iteration_map:
-            return super().check(model, probe_torque, iterations, long_horizon, inertia_scales)
-        mdl = model if model is not None else self.ctx.model
-        logger.info("law %s gives no iteration map: convergence not checked", self.name)
-        return not_checked(mdl, self.gains.ld, self.ts_s, self.name, iterations)

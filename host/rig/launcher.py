@@ -1,7 +1,8 @@
 """``ilcrig run``: check the experiment, start the distributed rig, watch it, always clean it up.
 
 This module owns :func:`launch_rig` and :class:`RigLauncher`, which puts the run's processes
-together:
+together (its terminal lines, :class:`LauncherConsole`, and its run folder, :func:`make_run_folder`,
+serve ``ilcrig robot`` too):
 
 * the bus hub (only when the transport is ``hub``), started with :func:`bus.transports.hub.process.start_hub` on a
   fresh private Unix socket (a temp directory per run, so concurrent runs never collide) unless
@@ -70,7 +71,15 @@ from host.rig.run_outcome import RunOutcome
 from host.rig.run_watch import RunProgress
 from host.rig.supervisor import Supervisor
 
-__all__ = ["HOST_GRACE_S", "TERMINATE_GRACE_S", "RigLauncher", "launch_rig", "preflight"]
+__all__ = [
+    "HOST_GRACE_S",
+    "TERMINATE_GRACE_S",
+    "LauncherConsole",
+    "RigLauncher",
+    "launch_rig",
+    "make_run_folder",
+    "preflight",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -130,7 +139,40 @@ def _check_hub_path(address: str | None) -> None:
         check_socket_file(addr.path)
 
 
-class RigLauncher:
+class LauncherConsole:
+    """A launcher's two terminal streams: its lines go to ``stdout`` / ``stderr`` when given, else
+    to ``sys.stdout`` / ``sys.stderr`` of the moment, each line flushed at once."""
+
+    stdout: IO[str] | None
+    stderr: IO[str] | None
+
+    def _say_out(self, text: str) -> None:
+        stream = self.stdout or sys.stdout
+        stream.write(text + "\n")
+        stream.flush()
+
+    def _say_err(self, text: str) -> None:
+        stream = self.stderr or sys.stderr
+        stream.write(text + "\n")
+        stream.flush()
+
+
+def make_run_folder(out: str | None, kind: str) -> tuple[Path, Path]:
+    """The run folder ``out`` (None: ``runs/<kind>-<local time>``) and its ``logs`` folder, both
+    created; returns (run folder, logs folder).
+
+    :raises ValueError: the folder cannot be created (one line naming ``--out``)
+    """
+    out_dir = Path(out) if out is not None else Path("runs") / time.strftime(f"{kind}-%Y%m%d-%H%M%S")
+    log_dir = out_dir / "logs"
+    try:
+        log_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"--out {out_dir}: cannot create the run folder: {err.strerror or err}") from err
+    return out_dir, log_dir
+
+
+class RigLauncher(LauncherConsole):
     """Starts and supervises the processes of one ``ilcrig run`` (see the module docstring).
 
     :param args: the parsed ``ilcrig run`` Namespace
@@ -212,12 +254,8 @@ class RigLauncher:
         self.transport_name = tc.name
         if self.host_grace_s is None:
             self.host_grace_s = HOST_GRACE_S * timeout_scale()
-        self.out_dir = out_dir = Path(args.out) if args.out is not None else Path("runs") / time.strftime("run-%Y%m%d-%H%M%S")
-        log_dir = out_dir / "logs"
-        try:
-            log_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as err:
-            raise ValueError(f"--out {out_dir}: cannot create the run folder: {err.strerror or err}") from err
+        out_dir, log_dir = make_run_folder(args.out, "run")
+        self.out_dir = out_dir
 
         bus_args = ["--bus", tc.name]
         if tc.needs_hub:
@@ -402,16 +440,6 @@ class RigLauncher:
                         settle_run_folder(self.out_dir)  # every path: also a launch that failed half way
                     self._janitor.done()
                     self._janitor = None
-
-    def _say_out(self, text: str) -> None:
-        stream = self.stdout or sys.stdout
-        stream.write(text + "\n")
-        stream.flush()
-
-    def _say_err(self, text: str) -> None:
-        stream = self.stderr or sys.stderr
-        stream.write(text + "\n")
-        stream.flush()
 
 
 def launch_rig(args: argparse.Namespace) -> int:

@@ -32,7 +32,6 @@ import argparse
 import json
 import logging
 import os
-import sys
 import time
 from pathlib import Path
 from typing import IO, Any
@@ -45,7 +44,7 @@ from bus.units import timeout_scale
 from host.experiment.console import EXIT_CHILD_FAILED, EXIT_FAULT
 from host.rig.idle_poll import IdlePollers, idle_poll_available
 from host.rig.interrupts import Interrupts
-from host.rig.launcher import TERMINATE_GRACE_S
+from host.rig.launcher import TERMINATE_GRACE_S, LauncherConsole, make_run_folder
 from host.rig.monitor import ChannelMonitor
 from host.rig.processes import Child, Death, LaunchError, describe_status, spawn, start_hub_process, terminate
 from host.rig.realtime import DEFAULT_RT_PRIORITY, raise_lockstep_priority
@@ -65,7 +64,7 @@ SUMMARY_SCHEMA = "ilcrig.robot/1"
 DEFAULT_TS_S: float = 1e-3
 
 
-class RobotLauncher:
+class RobotLauncher(LauncherConsole):
     """Starts, announces, watches and stops the robot (see the module docstring).
 
     :param args: the parsed ``ilcrig robot`` Namespace (``bus``, ``hub``, ``out``, ``realtime``,
@@ -129,12 +128,8 @@ class RobotLauncher:
         args = self.args
         debug = bool(getattr(args, "debug", False))
         tc = transport_from_name(args.bus, args.hub, bool(getattr(args, "allow_remote", False)))
-        self.out_dir = out = Path(args.out) if args.out else Path("runs") / time.strftime("robot-%Y%m%d-%H%M%S")
-        log_dir = out / "logs"
-        try:
-            log_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as err:
-            raise ValueError(f"--out {out}: cannot create the run folder: {err.strerror or err}") from err
+        out, log_dir = make_run_folder(args.out or None, "robot")
+        self.out_dir = out
         bus_args = ["--bus", tc.name]
         if tc.needs_hub:
             self.hub = start_hub_process(args.hub, None, log_dir / "hub.log")
@@ -355,16 +350,6 @@ class RobotLauncher:
             )
         else:
             self._say_out(f"ilcrig robot: the plant left no session summary; summary: {path}")
-
-    def _say_out(self, text: str) -> None:
-        stream = self.stdout or sys.stdout
-        stream.write(text + "\n")
-        stream.flush()
-
-    def _say_err(self, text: str) -> None:
-        stream = self.stderr or sys.stderr
-        stream.write(text + "\n")
-        stream.flush()
 
 
 def launch_robot(args: argparse.Namespace) -> int:

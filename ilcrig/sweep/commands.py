@@ -10,9 +10,7 @@ sweep returns 130 with every finished point kept.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-import os
 import sys
 import time
 from pathlib import Path
@@ -20,15 +18,13 @@ from pathlib import Path
 from ilcrig.errors import InputError
 from ilcrig.sweep.engine import Engine, SweepOutcome, run_points
 from ilcrig.sweep.report import write_report
-from ilcrig.sweep.reproduce import EXIT_INTERRUPTED, reproduce_main
+from ilcrig.sweep.reproduce import EXIT_INTERRUPTED, SWEEP_SCHEMA, record_call, reproduce_main
 from ilcrig.sweep.spec import SweepSpec
 from ilcrig.sweep.table import TABLE_FILE, write_table
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["sweep_main", "tune_main", "reproduce_main", "spec_of_args", "engine_of_args"]
-
-SWEEP_FILE = "sweep.json"
 
 
 def spec_of_args(args: argparse.Namespace) -> SweepSpec:
@@ -55,26 +51,8 @@ def engine_of_args(args: argparse.Namespace) -> Engine:
 
 def _record(out: Path, spec: SweepSpec, ids: list[str], where: str, outcome: SweepOutcome, command: str) -> None:
     """Add this call to ``out/sweep.json`` (the spec, the points, the history of calls), atomically."""
-    path = out / SWEEP_FILE
-    try:
-        prev = json.loads(path.read_text())
-    except (OSError, ValueError):
-        prev = {}
-    history = list(prev.get("history", []))
-    history.append(
-        {
-            "command": command,
-            "points": len(ids),
-            "ran": len(outcome.ran),
-            "skipped": len(outcome.skipped),
-            "errors": outcome.errors,
-            "interrupted": outcome.interrupted,
-            "on": where,
-            "wall_s": round(outcome.wall_s, 3),
-        }
-    )
     doc = {
-        "schema": "ilcrig.sweep/1",
+        "schema": SWEEP_SCHEMA,
         "spec": {
             "base": spec.base_options(),
             "vary": spec.vary,
@@ -85,11 +63,8 @@ def _record(out: Path, spec: SweepSpec, ids: list[str], where: str, outcome: Swe
             },
         },
         "points": ids,
-        "history": history,
     }
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(doc, indent=2, default=str))
-    os.replace(tmp, path)
+    record_call(out, doc, {"command": command, "points": len(ids)}, {"on": where}, outcome)
 
 
 def sweep_main(args: argparse.Namespace) -> int:

@@ -5,7 +5,8 @@ This module owns the reproduce run: its points are the experiments of
 :mod:`host.analysis.sweep_plan` (each named by its experiment id, so the sweep folder is the one the
 report reads), run by :func:`ilcrig.sweep.engine.run_points` with their error arrays, followed by
 the paper's report (:func:`host.analysis.report.write_sweep_report`) and the tidy table
-(``results.parquet``).  The sweep folder::
+(``results.parquet``), and the sweep folder's ``sweep.json`` of every sweep command
+(:func:`record_call`).  The sweep folder::
 
     <out>/sweep.json                       what was run, wall times, interruptions
     <out>/runs/<experiment-id>/            summary.json, errors.npy, point.json (ilcrig.sweep.point)
@@ -33,7 +34,7 @@ from ilcrig.sweep.table import write_table
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["SWEEP_SCHEMA", "reproduce_points", "reproduce", "write_sweep_json"]
+__all__ = ["SWEEP_SCHEMA", "record_call", "reproduce_points", "reproduce", "write_sweep_json"]
 
 SWEEP_SCHEMA = "ilcrig.sweep/1"
 #: exit code of an interrupted command (host.experiment.console.EXIT_INTERRUPTED)
@@ -50,30 +51,32 @@ def reproduce_points(experiments: Sequence[Experiment], iterations: int) -> list
     return points
 
 
-def write_sweep_json(out: Path, ids: Sequence[str], iterations: int, workers: str, outcome: SweepOutcome) -> None:
-    """Add this call to ``out/sweep.json`` (its history of calls), atomically."""
+def record_call(out: Path, doc: dict[str, Any], call: dict[str, Any], where: dict[str, Any], outcome: SweepOutcome) -> None:
+    """Add one call of a sweep command to ``out/sweep.json``, atomically: the file becomes ``doc``
+    with its ``history`` so far and this call's entry (``call``, the outcome's counts, ``where``,
+    the wall time in s) at its end."""
     path = out / "sweep.json"
     try:
         prev = json.loads(path.read_text())
     except (OSError, ValueError):
         prev = {}
     history = list(prev.get("history", []))
-    history.append(
-        {
-            "experiments": len(ids),
-            "ran": len(outcome.ran),
-            "skipped": len(outcome.skipped),
-            "errors": outcome.errors,
-            "interrupted": outcome.interrupted,
-            "jobs": workers,
-            "iterations": iterations,
-            "wall_s": round(outcome.wall_s, 3),
-        }
-    )
-    doc = {"schema": SWEEP_SCHEMA, "iterations": iterations, "experiments": list(ids), "history": history}
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(doc, indent=2))
+    counts = {
+        "ran": len(outcome.ran),
+        "skipped": len(outcome.skipped),
+        "errors": outcome.errors,
+        "interrupted": outcome.interrupted,
+    }
+    history.append(call | counts | where | {"wall_s": round(outcome.wall_s, 3)})
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(doc | {"history": history}, indent=2, default=str))
     os.replace(tmp, path)
+
+
+def write_sweep_json(out: Path, ids: Sequence[str], iterations: int, workers: str, outcome: SweepOutcome) -> None:
+    """Add this reproduce call to ``out/sweep.json`` (:func:`record_call`)."""
+    doc = {"schema": SWEEP_SCHEMA, "iterations": iterations, "experiments": list(ids)}
+    record_call(out, doc, {"experiments": len(ids)}, {"jobs": workers, "iterations": iterations}, outcome)
 
 
 def reproduce(
