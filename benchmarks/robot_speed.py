@@ -140,6 +140,8 @@ def sync_stepped(periods: int) -> dict[str, Any]:
 
 #: the robot's counters read by the 1 kHz master at the start and the end of its window (0x2450)
 RT_COUNTERS = {"periods": 4, "late_syncs": 6, "missing_syncs": 7, "overruns": 8, "late_periods": 13}
+#: the last part of the master's wait for a cycle, spent on the clock (a wake-up from sleep can be late), s
+MASTER_SPIN_S = 150e-6
 #: the master sends a cycle's frames at most this long after its time, else it skips the cycle, s
 MASTER_JITTER_S = 100e-6
 #: periods the 1 kHz master sends before its window opens (the first SYNC after the set-up's pause
@@ -188,8 +190,9 @@ def realtime(seconds: float) -> dict[str, Any]:
     """``ilcrig robot --realtime`` with a 1 kHz master: the robot's late periods in the master's window.
 
     The master runs in SCHED_FIFO one step above the robot's processes (a master is a machine of
-    its own; here it shares the CPUs, and a starved master would measure itself): it sleeps to each
-    period's time (fine timer slack), sends the four RPDOs and the SYNC, and takes the TPDOs as
+    its own; here it shares the CPUs, and a starved master would measure itself): it sleeps to
+    :data:`MASTER_SPIN_S` before each period's time (fine timer slack), waits the rest on the
+    clock, sends the four RPDOs and the SYNC, and takes the TPDOs as
     they come. A cycle it reaches more than :data:`MASTER_JITTER_S` late is skipped and counted as
     the master's (the robot counts the period as missing): every SYNC sent left on time, so a late
     period of the robot is the robot's own. The window opens after :data:`RT_WARM_UP`
@@ -222,8 +225,10 @@ def realtime(seconds: float) -> dict[str, Any]:
                         counters.request()
                     due = t0 + k * ts
                     left = due - time.monotonic()
-                    if left > 0:
-                        time.sleep(left)
+                    if left > MASTER_SPIN_S:
+                        time.sleep(left - MASTER_SPIN_S)
+                    while time.monotonic() < due:
+                        pass
                     if time.monotonic() - due > MASTER_JITTER_S:
                         late_master += k >= RT_WARM_UP
                         continue
