@@ -374,3 +374,34 @@ def test_default_law_settles_by_the_third_trial() -> None:
     rmse = _sim()
     assert np.all(rmse[3] <= 2.0 * rmse[-1]), rmse
     assert np.all(rmse[-1] <= 5 * DEG_PER_COUNT), rmse[-1] / DEG_PER_COUNT
+
+
+# ------------------------------------------------------------------ the rig's rehearsal of the first update
+
+
+def test_a_rig_plan_pays_the_laws_first_update_imports_before_the_run_and_leaves_the_law_as_it_was() -> None:
+    """``prepare(cfg, rig=True)`` runs the law's first update once on a copy (plan.rehearse_first_update):
+    what it imports on first use (here scipy.signal, for the identification's zero-phase filter) is
+    imported before the nodes watch the host's heartbeat, and the plan's law gives the same first
+    update as one that was not rehearsed."""
+    import subprocess
+    import sys
+
+    code = """
+import sys
+import numpy as np
+from host.experiment.config import build_config
+from host.experiment.plan import prepare
+cfg = build_config(None, {"cycle_s": 0.15, "iterations": 2})
+plain = prepare(cfg)
+print("plain", "scipy.signal" in sys.modules)
+rig = prepare(cfg, rig=True)
+print("rig", "scipy.signal" in sys.modules)
+rng = np.random.default_rng(5)
+e = 1e-4 * rng.standard_normal(plain.u0.shape)
+tau = plain.u0 + rng.standard_normal(plain.u0.shape)
+same = all(np.array_equal(plain.law.update(plain.u0, e * k, tau), rig.law.update(rig.u0, e * k, tau)) for k in (1, 2, 3))
+print("same", same)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True).stdout.split()
+    assert out == ["plain", "False", "rig", "True", "same", "True"]

@@ -15,10 +15,14 @@ The memory check: :func:`run_memory_bytes` is a model of the peak resident memor
 to measurements (``benchmarks/run_memory.py``; linear in the trial length N, per law, plus a part
 per trial and sample, times a margin); :func:`available_memory_bytes` is MemAvailable, or less under
 a cgroup memory limit, or ``$ILCRIG_AVAILABLE_MEMORY`` (:data:`MEMORY_ENV`) when set.
+
+For ``ilcrig run`` the law's first update is rehearsed on a copy (:func:`rehearse_first_update`),
+so that what it imports or compiles on first use is paid before the nodes watch the host.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import logging
 import math
@@ -58,6 +62,7 @@ __all__ = [
     "preflight",
     "plan_with_gains",
     "reference_tables",
+    "rehearse_first_update",
     "run_memory_bytes",
 ]
 
@@ -356,6 +361,8 @@ def prepare(cfg: ExperimentConfig, *, rig: bool = False) -> Plan:
         # the prediction starts from the error a PROBE_TORQUE_FRACTION error of the nominal torque causes
         check = law.check(closed_loop, PROBE_TORQUE_FRACTION * tau_nominal, cfg.iterations)
         check = _finite_check(check) if check.checked else check
+    if rig:
+        rehearse_first_update(law, u0)
     if check.checked and not check.ok:
         logger.warning(
             "convergence check failed for law %s: spectral radius %.3f, predicted error ratio "
@@ -388,6 +395,25 @@ def prepare(cfg: ExperimentConfig, *, rig: bool = False) -> Plan:
         torque_limit_nm=float(true_cfg.joint_torque_limit_nm),
         bus_fit=bus_fit,
     )
+
+
+def rehearse_first_update(law: LearningLaw, u0_nm: np.ndarray) -> None:
+    """Run a built-in law's first update once, on a copy of it, with zero error and torque: what
+    the update imports or compiles on first use (``scipy.signal`` for the zero-phase filters, the
+    numba kernels of the lifted-model sweeps) is paid here, before ``ilcrig run``'s nodes watch the
+    host's heartbeat.  Paid after the first trial instead, an import or a compilation holds the
+    GIL in long stretches, and on a busy machine the host's heartbeat thread missed the nodes'
+    consumer time (the run ended with the host "lost").  The law itself is untouched (same
+    results); a plug-in law is left alone (a copy of it could act outside itself), as is one whose
+    copy or update fails here (the real update reports that in its place)."""
+    if not type(law).__module__.startswith("host.learning."):
+        return
+    zeros = np.zeros_like(u0_nm, dtype=float)
+    try:
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            copy.deepcopy(law).update(np.array(u0_nm, dtype=float), zeros, zeros)
+    except Exception as exc:  # noqa: BLE001 - a rehearsal; the real update raises in its place
+        logger.debug("law %s: first update not rehearsed: %s", type(law).__name__, exc)
 
 
 def reference_tables(ref: JointReference) -> tuple[np.ndarray, np.ndarray]:
