@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import struct
 import sys
 import tempfile
 import time
@@ -49,6 +50,7 @@ from robot_util import DRIVES, PLANT_ID, RPDO_LAYOUT, LockstepMaster, RobotProce
 
 from bus.bus_features import batch_sender  # noqa: E402
 from bus.fastmsg import new_message  # noqa: E402
+from bus.plant_objects import PlantObj, RobotSub  # noqa: E402
 from bus.timer_slack import fine_timer_slack  # noqa: E402
 from host.rig.realtime import cpu_steal_s  # noqa: E402
 from plant.kinematics import inverse_kinematics  # noqa: E402
@@ -139,7 +141,13 @@ def sync_stepped(periods: int) -> dict[str, Any]:
 
 
 #: the robot's counters read by the 1 kHz master at the start and the end of its window (0x2450)
-RT_COUNTERS = {"periods": 4, "late_syncs": 6, "missing_syncs": 7, "overruns": 8, "late_periods": 13}
+RT_COUNTERS = {
+    "periods": RobotSub.PERIODS,
+    "late_syncs": RobotSub.LATE_SYNCS,
+    "missing_syncs": RobotSub.MISSING_SYNCS,
+    "overruns": RobotSub.SYNC_OVERRUNS,
+    "late_periods": RobotSub.LATE_PERIODS,
+}
 #: the last part of the master's wait for a cycle, spent on the clock (a wake-up from sleep can be late), s
 MASTER_SPIN_S = 150e-6
 #: the master sends a cycle's frames at most this long after its time, else it skips the cycle, s
@@ -149,9 +157,13 @@ MASTER_JITTER_S = 100e-6
 RT_WARM_UP = 200
 
 
+#: an SDO frame's command byte and multiplexer (index LE, sub-index), CiA 301 §7.2.4.3
+_SDO_MUX = struct.Struct("<BHB")
+
+
 def sdo_upload_request(sub: int) -> can.Message:
     """An expedited SDO upload request for 0x2450:``sub`` to the plant node (CiA 301 §7.2.4.3.3)."""
-    return new_message(0x600 + PLANT_ID, bytearray(bytes((0x40, 0x50, 0x24, sub, 0, 0, 0, 0))))
+    return new_message(0x600 + PLANT_ID, bytearray(_SDO_MUX.pack(0x40, PlantObj.ROBOT, sub) + bytes(4)))
 
 
 class CounterReader:
@@ -162,7 +174,7 @@ class CounterReader:
     def __init__(self, send: Any) -> None:
         self._send = send
         self.values: dict[str, int] = {}
-        self._waiting: list[tuple[str, int]] = []
+        self._waiting: list[tuple[str, RobotSub]] = []
 
     def request(self) -> None:
         self.values = {}
@@ -178,8 +190,9 @@ class CounterReader:
             return
         name, sub = self._waiting[0]
         data = bytes(msg.data)
-        if data[0] & 0xE0 != 0x40 or data[1:4] != bytes((0x50, 0x24, sub)):
-            raise RuntimeError(f"unexpected SDO answer {data.hex()} to the upload of 0x2450:{sub}")
+        ccs, index, got = _SDO_MUX.unpack_from(data)
+        if ccs & 0xE0 != 0x40 or (index, got) != (PlantObj.ROBOT, sub):
+            raise RuntimeError(f"unexpected SDO answer {data.hex()} to the upload of 0x{int(PlantObj.ROBOT):04X}:{int(sub)}")
         self.values[name] = int.from_bytes(data[4:8], "little")
         self._waiting.pop(0)
         if self._waiting:  # one transfer at a time, as an SDO client does
