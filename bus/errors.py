@@ -43,6 +43,13 @@ class IlcrigError(Exception):
     """Root of the project's own exceptions."""
 
 
+class InputError(IlcrigError, ValueError):
+    """Bad input (an option, a configuration key or value, a path file, a law, the run folder …):
+    ``str(exc)`` is the one line ``ilcrig`` prints after ``ilcrig: error:`` (exit code 2), raised
+    before any process starts.  The one input-error type of the project: the command line turns this
+    (and only this) into exit code 2; the public API re-exports it as ``ilcrig.InputError``."""
+
+
 class SdoAbort(IlcrigError):
     """An object-dictionary access was refused with a CiA 301 abort code."""
 

@@ -31,14 +31,9 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
+from bus.exit_codes import EXIT_FAULT, EXIT_INTERRUPTED, EXIT_USAGE
 from bus.plant_objects import DEFAULT_PLANT_NODE_ID
-from host.experiment.console import (
-    EXIT_FAULT,
-    EXIT_INTERRUPTED,
-    EXIT_USAGE,
-    add_experiment_args,
-    experiment_config,
-)
+from host.experiment.console import add_experiment_args, experiment_config
 from host.rig.realtime import DEFAULT_RT_PRIORITY
 
 __all__ = ["main"]

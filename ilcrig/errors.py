@@ -10,14 +10,11 @@ from __future__ import annotations
 
 import logging
 
+from bus.errors import InputError
+
 logger = logging.getLogger(__name__)
 
 __all__ = ["InputError", "RigError", "input_error"]
-
-
-class InputError(ValueError):
-    """Bad input (a configuration key or value, a path file, a law, the run folder, the gains …):
-    ``str(exc)`` is the one line ``ilcrig`` prints after ``ilcrig: error:`` (exit code 2 there)."""
 
 
 class RigError(RuntimeError):

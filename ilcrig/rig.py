@@ -32,6 +32,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, TextIO
 
+from bus.exit_codes import EXIT_CHILD_FAILED, EXIT_USAGE
 from host.experiment.arrays import load_reference, load_trial
 from host.experiment.config import ExperimentConfig, gains_table
 from host.learning.protocol import LEARNING
@@ -47,8 +48,6 @@ __all__ = ["RigRun", "config_toml"]
 POLL_S = 0.05
 #: how long the launcher gets to end after SIGINT before it is killed, s
 STOP_GRACE_S = 60.0
-
-_EXIT_USAGE, _EXIT_CHILD_FAILED = 2, 4
 
 
 def _toml_value(v: Any) -> str:
@@ -245,11 +244,11 @@ class RigRun:
         code = self.proc.returncode
         err = self._err_path.read_text(encoding="utf-8", errors="replace").splitlines() if self._err_path.is_file() else []
         line = next((ln for ln in reversed(err) if ln.startswith("ilcrig: ")), "")
-        if code == _EXIT_USAGE:
+        if code == EXIT_USAGE:
             raise InputError(line.removeprefix("ilcrig: error: ") or f"the rig refused the experiment (see {self._err_path})")
         if not (self.out / "summary.json").is_file():
             raise RigError(f"{line or f'the rig ended with exit code {code}'}; its run folder: {self.out}")
-        if code == _EXIT_CHILD_FAILED:
+        if code == EXIT_CHILD_FAILED:
             raise RigError(line or f"a role process of the rig could not be started; its run folder: {self.out}")
         self._results = load(self.out)
         self.trials = self._results.trials

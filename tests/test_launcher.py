@@ -25,8 +25,8 @@ from pathlib import Path
 
 import pytest
 
+from bus.exit_codes import EXIT_CHILD_FAILED, EXIT_FAULT
 from host.cli import build_parser
-from host.experiment.console import EXIT_CHILD_FAILED, EXIT_FAULT
 from host.rig import role_commands
 from host.rig.launcher import RigLauncher
 from host.rig.role_commands import child_argv, host_role_args, role_command

@@ -72,6 +72,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from bus.exit_codes import EXIT_USAGE
 from host.analysis.recording_scene import (
     COLOR_FIRST,
     COLOR_LAST,
@@ -110,7 +111,6 @@ SERIES: tuple[tuple[str, str], ...] = (
     ("torque_ff", "N·m"),
     ("torque_fb", "N·m"),
 )
-EXIT_USAGE = 2
 
 
 #: the fixed-size trailer at the end of every Rerun stream (footer offset and length, CRC, magic,

@@ -18,10 +18,11 @@ import sys
 from pathlib import Path
 from typing import TextIO
 
+from bus.exit_codes import EXIT_FAULT, EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATED
 from host.analysis.recording import RunRecorder
 from host.analysis.run_report import write_run_report
 from host.experiment.arrays import Recorders, TrialArrays
-from host.experiment.console import EXIT_FAULT, EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATED, print_header, print_row
+from host.experiment.console import print_header, print_row
 from host.experiment.faults import fault_line
 from host.experiment.outputs import OutputError, RunFolder, output_error
 from host.experiment.plan import Plan

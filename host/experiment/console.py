@@ -22,12 +22,6 @@ if TYPE_CHECKING:
     from host.learning.metrics import TrialMetrics
 
 __all__ = [
-    "EXIT_OK",
-    "EXIT_USAGE",
-    "EXIT_FAULT",
-    "EXIT_CHILD_FAILED",
-    "EXIT_INTERRUPTED",
-    "EXIT_TERMINATED",
     "add_experiment_args",
     "experiment_config",
     "parse_law_options",
@@ -37,20 +31,6 @@ __all__ = [
     "print_row",
 ]
 
-#: the run completed
-EXIT_OK: int = 0
-#: bad input (one line ``ilcrig: error: …``), nothing was started
-EXIT_USAGE: int = 2
-#: a fault during a run — a drive, the plant, the hub or the host dying or stalling, io frames lost,
-#: damaged, duplicated or late, an EMCY, a full disk: one line ``ilcrig: fault: …``, torque removed,
-#: the completed trials kept in summary.json (``completed: false`` and a ``faults`` entry)
-EXIT_FAULT: int = 3
-#: ``ilcrig run``: a role process could not be started
-EXIT_CHILD_FAILED: int = 4
-#: interrupted by Ctrl-C (SIGINT)
-EXIT_INTERRUPTED: int = 130
-#: terminated by SIGTERM
-EXIT_TERMINATED: int = 143
 
 #: the disturbance kinds (one definition: ``plant.disturbance.KINDS``, whose import is heavy
 #: enough that the help text lists them here; a test checks that both agree)

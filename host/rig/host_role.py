@@ -20,11 +20,12 @@ import can
 import canopen
 
 from bus.errors import IlcrigError
+from bus.exit_codes import EXIT_FAULT
 from bus.traffic import DEFAULT_BITRATE
 from bus.transports.config import FIELDBUS, IO, TransportConfig
 from host.analysis.session import report_fault, run_session
 from host.experiment.config import ExperimentConfig
-from host.experiment.console import EXIT_FAULT, print_plan
+from host.experiment.console import print_plan
 from host.experiment.plan import prepare
 from host.experiment.trials import ExperimentResult, interrupt_on_signals
 from host.rig.bus_accounting import bus_time_lines

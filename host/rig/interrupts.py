@@ -13,7 +13,7 @@ import signal
 import threading
 from typing import Any
 
-from host.experiment.console import EXIT_INTERRUPTED, EXIT_TERMINATED
+from bus.exit_codes import EXIT_INTERRUPTED, EXIT_TERMINATED
 
 logger = logging.getLogger(__name__)
 

@@ -55,12 +55,12 @@ import time
 from pathlib import Path
 from typing import IO, Any
 
+from bus.exit_codes import EXIT_CHILD_FAILED
 from bus.lockstep_process import mechanisms_left_out
 from bus.objects import DRIVE_NODE_IDS
 from bus.timer_slack import FINE_TIMER_SLACK_NS
 from bus.transports.fault_inject import FRAME_ACTIONS, FaultSpec, check_specs, parse_specs
 from bus.units import timeout_scale
-from host.experiment.console import EXIT_CHILD_FAILED
 from host.rig.fair_scheduling import host_policy
 from host.rig.idle_poll import AUTOGROUP_NICE, IdlePollers, idle_poll_available
 from host.rig.interrupts import Interrupts

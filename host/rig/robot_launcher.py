@@ -36,12 +36,12 @@ import time
 from pathlib import Path
 from typing import IO, Any
 
+from bus.exit_codes import EXIT_CHILD_FAILED, EXIT_FAULT
 from bus.objects import DRIVE_EDS_PATH, DRIVE_NODE_IDS
 from bus.plant_objects import DEFAULT_PLANT_NODE_ID, PLANT_EDS_PATH
 from bus.transports.config import FIELDBUS, HUB_INTERFACE, TransportConfig
 from bus.transports.config import IO as IO_CHANNEL
 from bus.units import timeout_scale
-from host.experiment.console import EXIT_CHILD_FAILED, EXIT_FAULT
 from host.rig.idle_poll import IdlePollers, idle_poll_available
 from host.rig.interrupts import Interrupts
 from host.rig.launcher import TERMINATE_GRACE_S, LauncherConsole, make_run_folder

@@ -34,9 +34,9 @@ from pathlib import Path
 from typing import Any
 
 from bus.cia301.nmt import CONSUMER_TIME_MS
+from bus.exit_codes import EXIT_FAULT, EXIT_OK, EXIT_USAGE
 from bus.safe_state import last_state_in_log
 from bus.units import timeout_scale
-from host.experiment.console import EXIT_FAULT, EXIT_OK, EXIT_USAGE
 from host.experiment.faults import (
     FaultKind,
     FaultRecord,

@@ -24,6 +24,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from bus.exit_codes import EXIT_INTERRUPTED
 from host.analysis.report import write_sweep_report
 from host.analysis.sweep_plan import Experiment, ReproduceError, experiment_list
 from host.experiment.config import gains_table
@@ -38,7 +39,6 @@ __all__ = ["SWEEP_SCHEMA", "record_call", "reproduce_points", "reproduce", "writ
 
 SWEEP_SCHEMA = "ilcrig.sweep/1"
 #: exit code of an interrupted command (host.experiment.console.EXIT_INTERRUPTED)
-EXIT_INTERRUPTED = 130
 
 
 def reproduce_points(experiments: Sequence[Experiment], iterations: int) -> list[Point]:

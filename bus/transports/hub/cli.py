@@ -20,6 +20,7 @@ import sys
 from collections.abc import Sequence
 from typing import NoReturn
 
+from bus.exit_codes import EXIT_USAGE
 from bus.lockstep_process import freeze_heap
 from bus.transports.hub.addresses import default_hub_address
 from bus.transports.hub.bus_time import parse_bus_time
@@ -31,7 +32,6 @@ logger = logging.getLogger(__name__)
 
 
 #: the exit code of bad input (as ``ilcrig``'s)
-EXIT_USAGE = 2
 
 
 class _Parser(argparse.ArgumentParser):
