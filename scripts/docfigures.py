@@ -158,6 +158,39 @@ def _fmt(x: float) -> str:
     return f"{x:.3g}" if abs(x) >= 1e-3 else f"{x:.2e}"
 
 
+#: the factor within which an approximate figure (``~7e-04``) must agree with what its command gives
+APPROX_FACTOR = 2.0
+_NUMBER_RE = re.compile(r"~?[-+]?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?")
+
+
+def _approx(x: float) -> str:
+    """A figure that is not reproducible across CPUs (an ill-conditioned solve rounds differently
+    on another CPU's BLAS kernels): one significant digit, marked ``~``, checked within a factor of
+    :data:`APPROX_FACTOR` (:func:`same_figures`)."""
+    return f"~{x:.0e}"
+
+
+def same_figures(stated: str, computed: str) -> bool:
+    """Whether a figure block as stated agrees with the block its command gives now: the same text,
+    except that a number stated as ``~X`` only has to be within a factor of :data:`APPROX_FACTOR` of
+    the computed one (which is then also marked ``~``)."""
+    if stated == computed:
+        return True
+    a, b = _NUMBER_RE.split(stated), _NUMBER_RE.split(computed)
+    na, nb = _NUMBER_RE.findall(stated), _NUMBER_RE.findall(computed)
+    if a != b or len(na) != len(nb):
+        return False
+    for x, y in zip(na, nb):
+        if x == y:
+            continue
+        if not (x.startswith("~") and y.startswith("~")):
+            return False
+        fx, fy = float(x[1:]), float(y[1:])
+        if fx == 0.0 or fy == 0.0 or fx * fy < 0 or max(fx / fy, fy / fx) > APPROX_FACTOR:
+            return False
+    return True
+
+
 def settling_trial(rmse: list[list[float]], factor: float = 2.0) -> int | None:
     """The first trial from which every joint stays within ``factor`` × its final RMSE."""
     final = rmse[-1]
@@ -342,14 +375,18 @@ def gen_no_weight(run: Runner) -> str:
     rows = ["| weight w, cycle | mean RMSE k = 3 | k = 5 | k = 9 | worst MaxE at k = 9 |", "|---|---|---|---|---|"]
     small = run.config_file("no_weight_1e-9.toml", "[gains]\nno_weight = 1e-9\n")
     for label, extra in (("1e-9", ("--config", small)), ("1e-5 (default)", ())):
+        # w = 1e-9 makes the norm-optimal solve ill-conditioned: its figures are stated approximately
+        fmt = _approx if extra else _fmt
         for cycle in ("0.5", "0.25"):
             s = run.summary("sim", "--law", "no-ilc", "--profile", "poly4567", "--cycle", cycle, *extra)
             mean = [sum(_rmse_deg(s, k)) / 4 for k in (3, 5, 9)]
             maxe = max(float(x) for x in s["iterations"][9]["max_abs_deg"])
-            rows.append(f"| {label}, {cycle} s | " + " | ".join(_fmt(x) for x in mean) + f" | {_fmt(maxe)} |")
+            rows.append(f"| {label}, {cycle} s | " + " | ".join(fmt(x) for x in mean) + f" | {fmt(maxe)} |")
     return (
         "`ilcrig sim --law no-ilc --profile poly4567 --cycle C` (path 1, 10 trials; w = 1e-9 through a config file "
-        "with `[gains] no_weight = 1e-9`), RMSE and MaxE in degrees:\n\n" + "\n".join(rows) + "\n"
+        "with `[gains] no_weight = 1e-9`), RMSE and MaxE in degrees. At w = 1e-9 the solve is ill-conditioned and "
+        "its figures depend on the CPU's BLAS kernels (up to 50 % apart between two x86-64 machines measured): they "
+        f"are given to one digit (`~`) and checked within a factor of {APPROX_FACTOR:g}:\n\n" + "\n".join(rows) + "\n"
     )
 
 
@@ -442,8 +479,9 @@ def regenerate(run: Runner, text: str, rel: str, findings: list[Finding], only: 
             findings.append(Finding(rel, f"unknown figures block {m['name']!r}"))
             return m.group(0)
         body = gen.fn(run)
-        if body != m["body"]:
-            findings.append(Finding(rel, f"figures block {m['name']!r} differs from what its command gives now"))
+        if same_figures(m["body"], body):
+            return m.group(0)
+        findings.append(Finding(rel, f"figures block {m['name']!r} differs from what its command gives now"))
         return m.group(1) + body + m.group(4)
 
     return BLOCK_RE.sub(repl, text)
