@@ -62,7 +62,8 @@ def _mypy(script: str, site: Path, where: Path) -> subprocess.CompletedProcess[s
     # the installed copy is where the interpreter finds ilcrig (and the checkout is not: cwd elsewhere)
     env["PYTHONPATH"] = str(site)
     return subprocess.run(
-        [sys.executable, "-m", "mypy", "--no-incremental", "--cache-dir", os.devnull, "--python-executable", sys.executable, "user_script.py"],
+        [sys.executable, "-m", "mypy", "--no-incremental", "--cache-dir", os.devnull]
+        + ["--python-executable", sys.executable, "user_script.py"],
         cwd=where,
         env=env,
         capture_output=True,
