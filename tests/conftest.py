@@ -1,6 +1,12 @@
 """pytest hooks shared by the test suite.
 
-This file owns two rules. Under ``CI=true`` a *skipped* ``vcan`` test is a failure when
+This file owns the test tiers (:func:`pytest_collection_modifyitems`): the README's ``pytest`` runs
+the fast tier; ``pytest -m full`` runs the full tier, every test the fast tier leaves out — the ones
+marked ``slow``, ``multiprocess``, ``faultmatrix``, ``netns`` or ``vcan`` get the ``full`` marker here,
+except those marked ``fast`` (one rig per transport, kept in the fast tier). ``pytest -m ""`` runs
+both. docs/development.md describes them.
+
+It also owns two rules. Under ``CI=true`` a *skipped* ``vcan`` test is a failure when
 the vcan suite was asked for (``-m vcan``, as ``scripts/vcan-tests`` runs it, or
 ``ILCRIG_REQUIRE_VCAN=1``): in CI the suite must really run on SocketCAN, not quietly skip.
 The ordinary ``pytest`` run (no ``-m vcan``) keeps skipping vcan tests on kernels without vcan.
@@ -33,6 +39,18 @@ def pytest_configure(config: pytest.Config) -> None:
     Python installs its KeyboardInterrupt again."""
     if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+#: the markers of a test that belongs to the full tier (unless it is also marked ``fast``)
+FULL_TIER_MARKERS = ("slow", "multiprocess", "faultmatrix", "netns", "vcan")
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark every test of the full tier ``full`` (module docstring), before ``-m`` selects."""
+    for item in items:
+        if item.get_closest_marker("fast") is None and any(item.get_closest_marker(m) for m in FULL_TIER_MARKERS):
+            item.add_marker(pytest.mark.full)
 
 
 def _vcan_required(config: pytest.Config) -> bool:

@@ -122,6 +122,7 @@ def hub_run(tmp_path_factory: pytest.TempPathFactory, sim_digest: str) -> tuple[
     return res, out, check_run(res, out, sim_digest, "hub")
 
 
+@pytest.mark.fast
 def test_rig_over_hub_equals_sim_and_logs_read_back(hub_run: tuple[subprocess.CompletedProcess[str], Path, dict]) -> None:
     res, out, s = hub_run
     assert "RMSE j1" in res.stdout
@@ -238,6 +239,7 @@ def test_bus_time_hub_gives_the_same_results_and_real_bus_spacing(
 
 
 @pytest.mark.netns
+@pytest.mark.fast
 def test_rig_over_udp_multicast_in_private_netns_equals_sim(tmp_path: Path, sim_digest: str) -> None:
     reason = netns_unavailable_reason()
     if reason:
