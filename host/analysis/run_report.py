@@ -21,6 +21,11 @@ from host.experiment.faults import FaultRecord
 __all__ = ["write_run_report"]
 
 
+def _command(summary: Mapping[str, Any]) -> str:
+    """The command that made the run (the summary's mode: ``sim`` in one process, else the rig)."""
+    return "sim" if summary.get("mode") == "sim" else "run"
+
+
 def write_run_report(run_dir: str | Path, summary: Mapping[str, Any]) -> Path:
     """``report.md`` + ``convergence.png`` for one run folder from its summary (``ilcrig sim``/``run``)."""
     d = Path(run_dir)
@@ -29,7 +34,7 @@ def write_run_report(run_dir: str | Path, summary: Mapping[str, Any]) -> Path:
     its = summary.get("iterations", [])
     chk = summary.get("convergence_check", {})
     lines = [
-        f"# ilcrig run — {cfg.get('law', '?')}, path {cfg.get('path', '?')}, {cfg.get('cycle_s', '?')} s, "
+        f"# ilcrig {_command(summary)} — {cfg.get('law', '?')}, path {cfg.get('path', '?')}, {cfg.get('cycle_s', '?')} s, "
         f"{cfg.get('profile', '?')}, disturbance {cfg.get('disturbance', '?')}",
         "",
         f"Mode {summary.get('mode', '?')}; {len(its)} of {cfg.get('iterations', '?')} trials"
@@ -51,11 +56,15 @@ def write_run_report(run_dir: str | Path, summary: Mapping[str, Any]) -> Path:
                 )
             )
         )
-        lines += [
-            f"Convergence check: spectral radius {fmt(chk.get('rho_max'), 4)} "
-            f"({'ok' if chk.get('ok') else 'VIOLATED'}), 2-norm {fmt(chk.get('norm2'), 4)}{long_txt}.",
-            "",
-        ]
+        if chk.get("checked") is False:
+            why = str(chk.get("prediction") or "the law gives no linear iteration map").removeprefix("not checked: ")
+            lines += [f"Convergence check: not checked ({why}).", ""]
+        else:
+            lines += [
+                f"Convergence check: spectral radius {fmt(chk.get('rho_max'), 4)} "
+                f"({'ok' if chk.get('ok') else 'VIOLATED'}), 2-norm {fmt(chk.get('norm2'), 4)}{long_txt}.",
+                "",
+            ]
     for f in summary.get("faults", []):
         lat = f.get("latency_ms")
         lines += [
