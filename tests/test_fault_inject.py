@@ -12,6 +12,7 @@ import can
 import pytest
 
 from bus import io_frames
+from bus.errors import InputError
 from bus.transports.fault_inject import FaultSpecError, FrameFaultInjector, parse_spec
 from bus.transports.hub.records import encode_record
 from bus.transports.hub.wire import FLAG_ERR
@@ -44,12 +45,15 @@ def test_parse_the_forms() -> None:
         ("drop:io@1:1,rate=nan", "must be finite"),
         ("emcy:drive1@1:1,code=0", "code must be an EMCY error code"),
         ("diskfull:x@1", "diskfull takes no target"),
+        ("kill:drive2", "@WHEN is missing"),
+        ("diskfull", "@WHEN is missing"),
     ],
 )
 def test_bad_specs_name_themselves(text: str, fragment: str) -> None:
     with pytest.raises(FaultSpecError) as exc:
         parse_spec(text)
     assert str(exc.value).startswith(f"--inject {text}") and fragment in str(exc.value)
+    assert isinstance(exc.value, InputError)  # the one input-error type: exit code 2
 
 
 def frames_of_trials(trials: int, ticks: int, shuffle: random.Random | None = None) -> list[can.Message]:

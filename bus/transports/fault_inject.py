@@ -66,7 +66,7 @@ from pathlib import Path
 from typing import Any
 
 from bus import io_frames
-from bus.errors import IlcrigError
+from bus.errors import InputError
 from bus.units import timeout_scale
 
 logger = logging.getLogger(__name__)
@@ -104,7 +104,7 @@ _CAN_ERR_PROT = 0x008
 _CAN_ERR_PROT_LOC_CRC_SEQ = 0x08
 
 
-class FaultSpecError(IlcrigError, ValueError):
+class FaultSpecError(InputError):
     """An ``--inject`` spec is not valid (one line naming it and the allowed form)."""
 
 
@@ -197,9 +197,9 @@ def parse_spec(text: str) -> FaultSpec:
     """
     spec = text.strip()
     head, *opts = spec.split(",")
-    where = ""
-    if "@" in head:
-        head, where = head.split("@", 1)
+    if "@" not in head:
+        raise FaultSpecError(f"--inject {spec}: @WHEN is missing (when the fault acts); the forms are {_FORM}")
+    head, where = head.split("@", 1)
     action, _, target = head.partition(":")
     action = action.strip().lower()
     target = target.strip().lower()
@@ -241,7 +241,7 @@ def parse_spec(text: str) -> FaultSpec:
 
 
 def _parse_when(spec: str, where: str, action: str) -> tuple[str, int, int]:
-    """(when, trial, tick) of ``@WHEN`` (empty: ``0:0``; ``diskfull@T``: ``T:end``)."""
+    """(when, trial, tick) of ``@WHEN`` (``diskfull@T``: ``T:end``)."""
     if where in (WHEN_BEFORE, WHEN_AFTER):
         return where, 0, 0
     trial_text, colon, tick_text = where.partition(":")
