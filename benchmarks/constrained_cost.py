@@ -35,11 +35,11 @@ def _vmhwm_mb() -> float:
 
 def measure(n: int) -> dict[str, float]:
     from host.learning.gains import GainSpec, resolve_gains
+    from host.learning.laws.constrained import ConstrainedStep
     from host.learning.model import ClosedLoopModel
     from host.learning.norm_optimal import NormOptimalStep
     from host.planning.paths import resolve_path
     from host.planning.trajectory import joint_reference, plan_task
-    from ilcrig.laws.constrained import ConstrainedStep
     from plant.dynamics import inverse_dynamics, mass_matrix
     from plant.params import nominal_mass_model
 

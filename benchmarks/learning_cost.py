@@ -79,8 +79,10 @@ def _setup(n: int, cycle_s: float, ts_s: float) -> dict[str, Any]:
 
 def _measure(law_name: str, setup: dict[str, Any]) -> dict[str, float]:
     from host.learning.check import PROBE_TORQUE_FRACTION
-    from host.learning.laws import LawContext, make_law
+    from host.learning.laws.base import LawContext
+    from host.learning.laws.checked import build_law as make_law
     from host.learning.model import ClosedLoopModel
+    from host.learning.protocol import TrialData
     from plant.params import Geometry
 
     g, ts = setup["gains"], setup["ts_s"]
@@ -107,7 +109,7 @@ def _measure(law_name: str, setup: dict[str, Any]) -> dict[str, float]:
     tau = u + model.k(e)
     c2 = time.process_time()
     t2 = time.perf_counter()
-    law.update(u, e, tau)
+    law.update(TrialData(0, u, e, tau, tau - u, ts))
     t3 = time.perf_counter()
     c3 = time.process_time()
     floor = math.inf

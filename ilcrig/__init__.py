@@ -14,14 +14,13 @@ Owns the facade over the internals (which stay where they are: ``host/``, ``plan
   (a run folder of ``ilcrig sim`` or ``ilcrig run``);
 * :mod:`ilcrig.rig` — :class:`RigRun`, running on the rig: the multi-process ``ilcrig run`` launcher in a child
   process, its trials read from the run folder as they complete;
-* :mod:`ilcrig.laws` — ilcrig's laws written against the public protocol and registered as plug-ins
-  (``cno-ilc``: :mod:`ilcrig.laws.constrained`, ``adjoint-ilc``: :mod:`ilcrig.laws.adjoint`);
 * :mod:`ilcrig.sweep` — sweeps, Monte Carlo studies and gain tuning of experiments on Dask
   distributed (``ilcrig sweep``, ``ilcrig tune``, ``ilcrig reproduce``; imported on its own:
   ``import ilcrig.sweep``, docs/sweeps.md).
 
 The learning-law protocol (:class:`LearningLaw`, :class:`TrialData`, :class:`LawContext`,
-:class:`IterationMap`, :class:`ClosedLoopModel`) is re-exported here from :mod:`host.learning`;
+:class:`IterationMap`, :class:`ClosedLoopModel`) is re-exported here from :mod:`host.learning`
+(every law of the project lives in :mod:`host.learning.laws`; this package holds none);
 :mod:`ilcrig.signals` re-exports the time operators (lead, difference, Q filter, transposes).
 docs/api.md explains it with runnable examples.
 
@@ -33,7 +32,7 @@ imports ``ilcrig``, except ``host.cli`` (the command line is built on this API).
 from __future__ import annotations
 
 from host.learning.check import ConvergenceReport, IterationMap
-from host.learning.laws import LawContext
+from host.learning.laws.base import LawContext
 from host.learning.model import ClosedLoopModel
 from host.learning.protocol import AUXILIARY, LEARNING, TrialData
 from host.learning.protocol import LawProtocol as LearningLaw

@@ -34,8 +34,11 @@ __all__ = ["Experiment", "Session", "available_laws", "register_law"]
 
 
 def available_laws() -> dict[str, str]:
-    """Every law this process can run by name → its one-line description (built-in, plug-ins of the
-    entry-point group ``ilcrig.laws``, and classes registered here)."""
+    """Every law this process can run by name → its one-line description (the project's laws, plug-ins
+    of the entry-point group ``ilcrig.laws``, and classes registered here).
+
+    :raises InputError: a conflicting installation (a plug-in that claims a project law's name, or
+        two distributions that claim one name), naming the distribution(s)."""
     out = {}
     for name in law_names():
         try:
@@ -50,7 +53,8 @@ def register_law(cls: type[Any], name: str | None = None) -> str:
     """Make the law class ``cls`` usable by ``name`` in this process (in-process runs only; on the
     rig a law must be importable by the host process: a plug-in, or ``module:Class``).
 
-    :raises InputError: the name of a built-in law, or not a law class.
+    :raises InputError: the name of a project law (``ilcrig laws`` lists them; none can be replaced),
+        or not a law class.
     """
     try:
         return _register(cls, name)

@@ -155,8 +155,8 @@ def test_constrained_law_respects_the_torque_limit() -> None:
 
 
 def test_constrained_step_is_the_norm_optimal_step_when_no_limit_binds() -> None:
+    from host.learning.laws.constrained import ConstrainedStep
     from host.learning.norm_optimal import NormOptimalStep
-    from ilcrig.laws.constrained import ConstrainedStep
 
     plan = ilcrig.Experiment(law="no-ilc", cycle_s=0.15).plan
     model = plan.law.ctx.model

@@ -36,7 +36,6 @@ SUBPACKAGES = (
     "host.experiment",
     "host.analysis",
     "host.rig",
-    "ilcrig.laws",
 )
 
 #: unit -> the other units it may import.  A unit is a subpackage, or the top-level modules of a
@@ -82,7 +81,6 @@ ALLOWED: dict[str, set[str]] = {
         "host.analysis",
         "host.rig",
     },
-    "ilcrig.laws": {"ilcrig", "bus", "plant", "host.planning", "host.learning"},
 }
 #: modules allowed to import firmware_model beyond their unit's rule
 FIRMWARE_IMPORTERS = {"host.experiment.inprocess", "host.cli"}
@@ -211,14 +209,16 @@ def test_every_package_says_what_it_owns_and_may_import() -> None:
 def test_cli_names_match_the_code() -> None:
     from bus.plant_objects import DisturbanceKind
     from host.experiment import console
-    from host.learning import gains, laws, names
+    from host.learning import gains, names
+    from host.learning.laws.table import PROJECT_LAWS
     from plant.disturbance import KINDS
 
     assert set(names.GAIN_PRESET_NAMES) == set(gains.GAIN_PRESETS)
-    assert set(names.LAWS) == set(laws.LAW_CLASSES) and names.DEFAULT_LAW in names.LAWS
+    assert tuple(PROJECT_LAWS) == names.PROJECT_LAW_NAMES and names.DEFAULT_LAW in names.LAWS
+    assert set(names.LAWS) < set(names.PROJECT_LAW_NAMES) and {"cno-ilc", "adjoint-ilc"} <= set(names.PROJECT_LAW_NAMES)
     from host.learning.registry import law_names
 
-    assert set(names.LAWS) < set(law_names()) and {"cno-ilc", "adjoint-ilc"} <= set(law_names())
+    assert law_names()[: len(names.PROJECT_LAW_NAMES)] == names.PROJECT_LAW_NAMES
     assert tuple(k.label for k in DisturbanceKind) == KINDS
     assert console._DISTURBANCE_HELP == ", ".join(KINDS)
 

@@ -13,10 +13,13 @@ from dense_learning import dense_g, dense_k, dense_l, dense_norm_optimal, time_o
 from host.learning import check as chk
 from host.learning.gains import GAIN_PRESETS, GainSpec, resolve_gains
 from host.learning.identification import PARAMETER_NAMES, DynamicsEstimate
-from host.learning.laws import LAW_CLASSES, LawContext, make_law
+from host.learning.laws.base import BuiltinLaw, LawContext
+from host.learning.laws.checked import build_law
+from host.learning.laws.table import PROJECT_LAWS
 from host.learning.model import ClosedLoopModel
-from host.learning.names import DEFAULT_LAW, LAWS
+from host.learning.names import DEFAULT_LAW, LAWS, PROJECT_LAW_NAMES
 from host.learning.norm_optimal import NormOptimalStep
+from host.learning.protocol import TrialData
 from host.learning.signals import ZeroPhaseFilter, backward_difference, backward_difference_t, lead, lead_t
 
 TS = 1e-3
@@ -38,6 +41,11 @@ def context(spec: GainSpec, n: int = N, scale: float = 1.0) -> LawContext:
     m = inertia_seq(scale, n)
     gains = resolve_gains(spec, np.mean(np.diagonal(m, axis1=1, axis2=2), axis=0), TS)
     return LawContext(gains=gains, ts_s=TS, model=ClosedLoopModel(m, gains.kp, gains.kd, TS))
+
+
+def trial(u: np.ndarray, e: np.ndarray, tau: np.ndarray, k: int = 0) -> TrialData:
+    """A learning trial as a law receives it: feed-forward u, error e, total torque tau (feedback tau − u)."""
+    return TrialData(k, u, e, tau, tau - u, TS)
 
 
 def simulate_linear(minv: np.ndarray, kp, kd, u: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -145,7 +153,7 @@ def id_context(spec: GainSpec, n: int) -> LawContext:
 def test_iteration_maps_equal_dense_and_check_uses_structure(name: str, lead_m: int) -> None:
     spec = GainSpec(lead=lead_m)
     ctx = id_context(spec, SMALL)
-    law = make_law(name, ctx)
+    law = build_law(name, ctx)
     imap = law.iteration_map(ctx.model)
     kind, E = dense_map(name, ctx)
     assert imap.kind == kind
@@ -191,7 +199,7 @@ def test_iteration_maps_equal_dense_and_check_uses_structure(name: str, lead_m: 
 
 def test_prediction_cost_does_not_grow_with_the_trials() -> None:
     ctx = context(GAIN_PRESETS["normalized"], SMALL)
-    law = make_law("pd-ol", ctx)
+    law = build_law("pd-ol", ctx)
     calls = {"n": 0}
     imap = law.iteration_map(ctx.model)
 
@@ -213,11 +221,11 @@ def test_prediction_cost_does_not_grow_with_the_trials() -> None:
 def test_check_long_run_verdict_flags_growth() -> None:
     # the literal paper's law (total torque) grows over a long run; its open-loop form does not
     ctx = context(GAIN_PRESETS["normalized"])
-    pd = make_law("pd-ilc", ctx).check(None, None, 10)
-    ol = make_law("pd-ol", ctx).check(None, None, 10)
+    pd = build_law("pd-ilc", ctx).check(None, None, 10)
+    ol = build_law("pd-ol", ctx).check(None, None, 10)
     assert not pd.long_bounded and pd.predicted_long_growth > 1e3
     assert ol.long_bounded
-    no = make_law("no-ilc", ctx).check(None, None, 10)
+    no = build_law("no-ilc", ctx).check(None, None, 10)
     assert no.long_bounded and no.norm2 < 1 and no.rho_method.startswith("lanczos")
 
 
@@ -227,7 +235,7 @@ def test_check_long_run_verdict_flags_growth() -> None:
 def run_iterations(name: str, spec: GainSpec, iterations: int = 12, mismatch: float = 1.1):
     """ILC on the linear plant with a 10 % inertia error against the model used by the law."""
     ctx = id_context(spec, N)
-    law = make_law(name, ctx)
+    law = build_law(name, ctx)
     t = np.arange(N) * TS
     d = np.stack([3 * np.sin(2 * np.pi * 4 * t + p) for p in range(4)], axis=1)  # repetitive torque
     report = law.check(ctx.model, d, iterations)
@@ -239,7 +247,7 @@ def run_iterations(name: str, spec: GainSpec, iterations: int = 12, mismatch: fl
         e = e_free + true.g(u)
         tau = u + true.k(e)
         rms.append(float(np.sqrt(np.mean(e**2))))
-        u = law.update(u, e, tau)
+        u = law.update(trial(u, e, tau))
     return rms, report
 
 
@@ -261,10 +269,10 @@ def test_pd_ilc_update_is_the_papers_law() -> None:
     term += g.lp * lead(e, 1)
     term += g.ld * lead(backward_difference(e, TS), 1)
     expected = tau + term  # bit for bit: the trace digest of a pd-ilc run depends on it
-    np.testing.assert_array_equal(make_law("pd-ilc", ctx).update(u, e, tau), expected)
-    robust = make_law("pd-ilc-q", ctx)
+    np.testing.assert_array_equal(build_law("pd-ilc", ctx).update(trial(u, e, tau)), expected)
+    robust = build_law("pd-ilc-q", ctx)
     q = ZeroPhaseFilter(g.spec.pdq_cutoff_hz, g.spec.q_order, TS)
-    np.testing.assert_allclose(robust.update(u, e, tau), u + q(tau - u + expected - tau), rtol=1e-12)
+    np.testing.assert_allclose(robust.update(trial(u, e, tau)), u + q(tau - u + expected - tau), rtol=1e-12)
 
 
 def test_paper_literal_gains_are_flagged_and_diverge() -> None:
@@ -288,19 +296,20 @@ def test_norm_optimal_beats_pd_ilc() -> None:
 
 
 def test_registry_and_errors() -> None:
-    assert set(LAW_CLASSES) == set(LAWS) and DEFAULT_LAW in LAWS
-    assert all(LAW_CLASSES[n].name == n and LAW_CLASSES[n].description for n in LAWS)
+    assert tuple(PROJECT_LAWS) == PROJECT_LAW_NAMES and DEFAULT_LAW in LAWS
+    assert all(PROJECT_LAWS[n].name == n and PROJECT_LAWS[n].description for n in PROJECT_LAW_NAMES)
+    assert all(issubclass(PROJECT_LAWS[n], BuiltinLaw) for n in LAWS)
     ctx = context(GainSpec(), SMALL)
     with pytest.raises(ValueError, match="unknown law 'x-ilc'"):
-        make_law("x-ilc", ctx)
+        build_law("x-ilc", ctx)
     with pytest.raises(ValueError, match="needs the reference"):
-        make_law("no-ilc-id", ctx)
+        build_law("no-ilc-id", ctx)
     with pytest.raises(ValueError, match="alpha must be a finite number"):
         resolve_gains(GainSpec(alpha=float("nan")), np.full(4, 0.1), TS)
-    law = make_law("pd-ol", ctx)
+    law = build_law("pd-ol", ctx)
     bad = np.full((SMALL, 4), np.nan)
     with pytest.raises(FloatingPointError, match="non-finite"):
-        law.update(bad, bad, bad)
+        law.update(trial(bad, bad, bad))
 
 
 # ------------------------------------------------------------------ the estimated model
@@ -380,7 +389,7 @@ def test_default_law_settles_by_the_third_trial() -> None:
 
 
 def test_a_rig_plan_pays_the_laws_first_update_imports_before_the_run_and_leaves_the_law_as_it_was() -> None:
-    """``prepare(cfg, rig=True)`` runs the law's first update once on a copy (plan.rehearse_first_update):
+    """``prepare(cfg, rig=True)`` runs the law's first update once on a copy (CheckedLaw.rehearse_first_update):
     what it imports on first use (here scipy.signal, for the identification's zero-phase filter) is
     imported before the nodes watch the host's heartbeat, and the plan's law gives the same first
     update as one that was not rehearsed."""
@@ -400,7 +409,10 @@ print("rig", "scipy.signal" in sys.modules)
 rng = np.random.default_rng(5)
 e = 1e-4 * rng.standard_normal(plain.u0.shape)
 tau = plain.u0 + rng.standard_normal(plain.u0.shape)
-same = all(np.array_equal(plain.law.update(plain.u0, e * k, tau), rig.law.update(rig.u0, e * k, tau)) for k in (1, 2, 3))
+from host.learning.protocol import TrialData
+def t(u, k):
+    return TrialData(k, u, e * k, tau, tau - u, cfg.ts_s)
+same = all(np.array_equal(plain.law.update(t(plain.u0, k)), rig.law.update(t(rig.u0, k))) for k in (1, 2, 3))
 print("same", same)
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True).stdout.split()

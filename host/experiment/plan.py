@@ -22,7 +22,6 @@ so that what it imports or compiles on first use is paid before the nodes watch 
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import logging
 import math
@@ -40,10 +39,10 @@ from host.experiment.config import ExperimentConfig
 from host.experiment.summary import jsonable
 from host.learning.check import BOUNDED_BLOCK, PROBE_TORQUE_FRACTION, ConvergenceReport
 from host.learning.gains import Gains, GainSpec, resolve_gains
-from host.learning.laws import LawContext, LearningLaw
+from host.learning.laws.base import LawContext
+from host.learning.laws.checked import CheckedLaw, build_law
 from host.learning.model import ClosedLoopModel
 from host.learning.names import LAWS
-from host.learning.plugin import build_law
 from host.learning.registry import law_class
 from host.planning.paths import resolve_path
 from host.planning.trajectory import JointReference, check_feasibility, joint_reference, plan_task, trial_samples
@@ -314,7 +313,7 @@ class Plan:
     cfg: ExperimentConfig
     ref: JointReference
     gains: Gains
-    law: LearningLaw
+    law: CheckedLaw
     check: ConvergenceReport
     u0: np.ndarray  # (N, 4) initial feed-forward, N·m
     feasibility: dict[str, Any]
@@ -397,23 +396,10 @@ def prepare(cfg: ExperimentConfig, *, rig: bool = False) -> Plan:
     )
 
 
-def rehearse_first_update(law: LearningLaw, u0_nm: np.ndarray) -> None:
-    """Run a built-in law's first update once, on a copy of it, with zero error and torque: what
-    the update imports or compiles on first use (``scipy.signal`` for the zero-phase filters, the
-    numba kernels of the lifted-model sweeps) is paid here, before ``ilcrig run``'s nodes watch the
-    host's heartbeat.  Paid after the first trial instead, an import or a compilation holds the
-    GIL in long stretches, and on a busy machine the host's heartbeat thread missed the nodes'
-    consumer time (the run ended with the host "lost").  The law itself is untouched (same
-    results); a plug-in law is left alone (a copy of it could act outside itself), as is one whose
-    copy or update fails here (the real update reports that in its place)."""
-    if not type(law).__module__.startswith("host.learning."):
-        return
-    zeros = np.zeros_like(u0_nm, dtype=float)
-    try:
-        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            copy.deepcopy(law).update(np.array(u0_nm, dtype=float), zeros, zeros)
-    except Exception as exc:  # noqa: BLE001 - a rehearsal; the real update raises in its place
-        logger.debug("law %s: first update not rehearsed: %s", type(law).__name__, exc)
+def rehearse_first_update(law: CheckedLaw, u0_nm: np.ndarray) -> None:
+    """The law's first update rehearsed on a copy before ``ilcrig run``'s nodes watch the host
+    (:meth:`host.learning.laws.checked.CheckedLaw.rehearse_first_update`)."""
+    law.rehearse_first_update(u0_nm)
 
 
 def reference_tables(ref: JointReference) -> tuple[np.ndarray, np.ndarray]:

@@ -278,6 +278,7 @@ def new_summary(plan: Plan, mode: str, digest: TraceDigest) -> dict[str, Any]:
         "schema": SCHEMA,
         "mode": mode,
         "config": plan.cfg.as_dict() | {"n_ticks": plan.n_ticks, "trial_s": float(plan.ref.t[-1])},
+        "law_source": plan.law.source,
         "iterations": [],
         "convergence_check": plan.check.as_dict(),
         "gains": plan.gains.as_dict(),

@@ -12,14 +12,17 @@ Owns, one concern per module:
 * :mod:`host.learning.norm_optimal` — norm-optimal ILC in its Riccati form (O(N) per update);
 * :mod:`host.learning.identification` — the dynamic parameters estimated from measured trials;
 * :mod:`host.learning.check` — the convergence check run before an experiment (matrix-free);
-* :mod:`host.learning.laws` — one class per built-in law, their registry and ``make_law``;
+* :mod:`host.learning.laws` — every project law, one home: the eight classic laws, ``cno-ilc``,
+  ``adjoint-ilc``, the static table ``PROJECT_LAWS``, and ``build_law`` with the one checked wrapper
+  every law runs in;
 * :mod:`host.learning.protocol` — the public protocol of a law (what it receives after each trial,
   what it returns, its optional iteration map and auxiliary trials), re-exported by ``ilcrig``;
-* :mod:`host.learning.registry` — law names: built-in, plug-ins (entry points ``ilcrig.laws``),
-  ``module:Class``, classes registered in the process (import-light);
-* :mod:`host.learning.plugin` — ``build_law`` (any law by name) and the adapter of a protocol law;
+* :mod:`host.learning.registry` — law names: the project's (never shadowed), plug-ins (entry points
+  ``ilcrig.laws``, third parties only), ``module:Class``, classes registered in the process, and
+  where each came from (import-light);
 * :mod:`host.learning.metrics` — the trial metrics and the trace digest.
 
-May import: ``bus``, ``plant`` and :mod:`host.planning`.  Never the nodes, the experiment or the rig.
+May import: ``bus``, ``plant`` and :mod:`host.planning`.  Never the nodes, the experiment, the rig or
+the public API ``ilcrig``.
 No dense lifted (NJ × NJ) matrix is formed anywhere in this package.
 """

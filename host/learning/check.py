@@ -1,7 +1,7 @@
 """The convergence check run before an experiment, matrix-free and O(N).
 
 This module owns :class:`IterationMap` (a law's trial-to-trial map as operators, from
-:mod:`host.learning.laws`), :func:`check_iteration_map` and its result :class:`ConvergenceReport`.
+the laws of :mod:`host.learning.laws`), :func:`check_iteration_map` and its result :class:`ConvergenceReport`.
 
 A law is linearised into its iteration map on the closed-loop model of :mod:`host.learning.model`:
 ``error`` maps e_{k+1} = E e_k (laws that add a correction to the feed-forward) or ``input`` maps

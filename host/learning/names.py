@@ -1,13 +1,21 @@
 """The names of the learning laws and gain presets, the default law and the largest number of
 trials: what the command line, the configuration and the law registry
-(:data:`host.learning.laws.LAW_CLASSES`) share.  Import-light on purpose: every role parses the
-command line, and the laws themselves pull in scipy and numba."""
+(:data:`host.learning.laws.table.PROJECT_LAWS`, :mod:`host.learning.registry`) share.  Import-light on
+purpose: every role parses the command line, and the laws themselves pull in scipy and numba.
+
+This module owns the names only; it imports nothing of the project."""
 
 from __future__ import annotations
 
-#: learning laws; :func:`host.learning.laws.make_law` builds each (its registry is checked
-#: against this tuple at import)
+#: the eight classic built-in laws (:mod:`host.learning.laws.pd`, :mod:`host.learning.laws.norm_optimal`,
+#: on :class:`host.learning.laws.base.BuiltinLaw`; the memory model of the preflight is measured for each)
 LAWS: tuple[str, ...] = ("pd-ilc", "pd-ilc-q", "pd-ol", "p-ol", "d-ilc", "q-ilc", "no-ilc", "no-ilc-id")
+#: the project's laws beyond the classic ones, written on the public protocol directly
+#: (:mod:`host.learning.laws.constrained`, :mod:`host.learning.laws.adjoint`)
+MORE_LAWS: tuple[str, ...] = ("cno-ilc", "adjoint-ilc")
+#: every project law: the names of :data:`host.learning.laws.table.PROJECT_LAWS` (checked at its
+#: import), which no plug-in and no registered class may take
+PROJECT_LAW_NAMES: tuple[str, ...] = LAWS + MORE_LAWS
 #: the law of the default experiment: norm-optimal ILC on the model estimated from the first trial,
 #: bounded over long runs and settled by the third trial (the paper's literal ``pd-ilc`` diverges
 #: after about a dozen trials; its robust form is ``pd-ilc-q``)

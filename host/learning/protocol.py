@@ -2,12 +2,13 @@
 
 This module owns :class:`TrialData` (one completed trial as a law sees it) and
 :class:`LawProtocol` (the ``typing.Protocol`` a law from outside the package implements; the
-public API re-exports it as ``ilcrig.LearningLaw``).  The built-in laws of
-:mod:`host.learning.laws` follow the same contract through their base class; a law from outside is
-wrapped by :class:`host.learning.registry.PluginLaw`.
+public API re-exports it as ``ilcrig.LearningLaw``).  Every law implements it: the project's laws
+of :mod:`host.learning.laws` (the classic ones through their base class
+``host.learning.laws.base.BuiltinLaw``) as well as a plug-in's; each runs inside the one checked
+wrapper :class:`host.learning.laws.checked.CheckedLaw`.
 
 A law is a class built once per experiment with the experiment's
-:class:`host.learning.laws.LawContext` (gains, Ts, the nominal closed-loop model along the
+:class:`host.learning.laws.base.LawContext` (gains, Ts, the nominal closed-loop model along the
 reference, the reference, the initial feed-forward u₀, the joint torque limit, the law's options).
 After each trial the trial loop calls ``update(trial)`` and downloads what it returns as the next
 trial's feed-forward table (N, J) in N·m.  Optional members, used when present:
@@ -26,6 +27,8 @@ trial's feed-forward table (N, J) in N·m.  Optional members, used when present:
   them.
 
 Units: feed-forward and torques in N·m, errors e = q_d − q in rad, (N, J) arrays, time along axis 0.
+
+May import: numpy only (the public API re-exports this module's names).
 """
 
 from __future__ import annotations
@@ -82,7 +85,7 @@ class TrialData:
 @runtime_checkable
 class LawProtocol(Protocol):
     """A learning law (module docstring): built as ``cls(ctx)`` with a
-    :class:`host.learning.laws.LawContext`; after each learning trial ``update(trial)`` returns the
+    :class:`host.learning.laws.base.LawContext`; after each learning trial ``update(trial)`` returns the
     next feed-forward (N, J) in N·m.  Optional: ``name``, ``description``,
     ``iteration_map(model)``, ``auxiliary_trials`` with ``auxiliary_input(trial, done)``."""
 

@@ -1,8 +1,8 @@
 """``adjoint-ilc``: model-free gradient ILC by the adjoint (time-reversal) experiment, with an exact
 line search measured on the plant.
 
-Written against the public protocol (:class:`ilcrig.LearningLaw`) and registered like any plug-in
-(entry point ``adjoint-ilc`` of the group ``ilcrig.laws`` in ilcrig's own ``pyproject.toml``).  No
+A project law (:data:`host.learning.laws.table.PROJECT_LAWS`) written against the public protocol
+(:class:`host.learning.protocol.LawProtocol`, ``ilcrig.LearningLaw``): ``update(trial)``.  No
 model is used: every quantity comes from rollouts of the plant around the current feed-forward.
 
 A learning step after learning trial k (feed-forward u_k, error e_k) takes two auxiliary rollouts
@@ -26,6 +26,8 @@ data): there is no iteration map, and the convergence check says "not checked".
 
 Options (``[law_options]``): ``perturbation_nm`` (peak of each auxiliary perturbation, N·m, default
 5.0).
+
+May import: numpy, :mod:`host.learning.protocol` and :mod:`host.learning.laws.base`.
 """
 
 from __future__ import annotations
@@ -36,7 +38,8 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
-from ilcrig import LawContext, TrialData
+from host.learning.laws.base import LawContext
+from host.learning.protocol import TrialData
 
 logger = logging.getLogger(__name__)
 

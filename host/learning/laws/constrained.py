@@ -1,8 +1,8 @@
 """``cno-ilc``: constrained norm-optimal ILC — the norm-optimal update as a quadratic programme with
 the joint torque limit (and, if asked, a torque-rate limit) as constraints, solved by OSQP.
 
-Written against the public protocol (:class:`ilcrig.LearningLaw`) and registered like any plug-in
-(entry point ``cno-ilc`` of the group ``ilcrig.laws`` in ilcrig's own ``pyproject.toml``).
+A project law (:data:`host.learning.laws.table.PROJECT_LAWS`) written against the public protocol
+(:class:`host.learning.protocol.LawProtocol`, ``ilcrig.LearningLaw``): ``update(trial)``.
 
 After learning trial k (feed-forward u_k, error e_k, feedback τ_fb,k) the change δu minimises
 
@@ -10,7 +10,7 @@ After learning trial k (feed-forward u_k, error e_k, feedback τ_fb,k) the chang
 
 subject to, for every sample n and joint j (L = (1 − margin)·limit):
 
-* the closed-loop model along the reference (:class:`ilcrig.ClosedLoopModel`,
+* the closed-loop model along the reference (:class:`host.learning.model.ClosedLoopModel`,
   x_{n+1} = A_n x_n + B_n δu_n, x = (δq, δq̇, δq_{n−1}), x_0 = 0) as equality constraints;
 * the feed-forward: |u_k[n] + δu[n]| ≤ L;
 * the total torque the drive will command, predicted: |τ_k[n] + δu[n] − Kp δq[n] − Kd (δq[n] −
@@ -33,6 +33,11 @@ Options (``[law_options]``): ``torque_limit_nm`` (default: the drives' joint tor
 ``margin`` (fraction kept free below it for what the model does not predict, default 0.02),
 ``rate_limit_nm_per_s`` (default none), ``model`` (``identified`` | ``nominal``), ``weight`` (the
 relative input weight w, default the experiment's ``gains.no_weight``).
+
+OSQP is imported when the first QP is set up (naming the law costs nothing).
+
+May import: numpy, scipy, osqp, ``bus``, :mod:`host.learning` (model, norm_optimal, identification,
+check, protocol) and :mod:`host.learning.laws.base`.
 """
 
 from __future__ import annotations
@@ -42,13 +47,15 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-import osqp
 import scipy.sparse as sp
 
 from bus import units
+from host.learning.check import IterationMap
 from host.learning.identification import DynamicsEstimate
+from host.learning.laws.base import LawContext
+from host.learning.model import ClosedLoopModel
 from host.learning.norm_optimal import NormOptimalStep
-from ilcrig import ClosedLoopModel, IterationMap, LawContext, TrialData
+from host.learning.protocol import TrialData
 
 logger = logging.getLogger(__name__)
 
@@ -172,6 +179,8 @@ class ConstrainedStep:
         p_diag[xi(np.arange(1, n)[:, None], ii[None, :]).ravel()] = 1.0
         p_diag[nx:] = self.r_scaled
         self._q_index = xi(np.arange(1, n)[:, None], ii[None, :])  # (N-1, J) positions of δq̂
+        import osqp
+
         self.solver = osqp.OSQP()
         self.solver.setup(
             sp.diags(p_diag, format="csc"), np.zeros(self.nz), a_mat, np.zeros(n_rows), np.zeros(n_rows), **OSQP_SETTINGS
