@@ -10,6 +10,7 @@ as ``Any``).
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -45,8 +46,12 @@ BAD = textwrap.dedent(
 def installed(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The project installed from its sources into a folder (no dependencies: they are this venv's)."""
     target = tmp_path_factory.mktemp("site")
+    # a copy of the sources: the build writes build/ beside them, never into the checkout
+    src = tmp_path_factory.mktemp("src") / "ilcrig"
+    keep = ("pyproject.toml", "setup.py", "README.md", "LICENSE", "bus", "firmware_model", "host", "plant", "ilcrig")
+    shutil.copytree(ROOT, src, ignore=lambda d, names: [n for n in names if Path(d) == ROOT and n not in keep] + ["__pycache__"])
     proc = subprocess.run(
-        [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation", "--target", str(target), str(ROOT)],
+        [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation", "--target", str(target), str(src)],
         capture_output=True,
         text=True,
         timeout=600,
