@@ -119,8 +119,37 @@ def test_factories() -> None:
     assert u.fieldbus.channel != u.io.channel and u.fieldbus.kwargs["port"] != u.io.kwargs["port"]
     assert u.io.kwargs["hop_limit"] == 1
     assert transport_from_name("virtual").name == "virtual"
-    with pytest.raises(TransportConfigError, match="unknown transport"):
+    with pytest.raises(TransportConfigError, match="unknown transport") as exc:
         transport_from_name("carrier-pigeon")
+    # the names the command line offers, not the in-process one
+    assert (
+        str(exc.value) == "--bus carrier-pigeon: unknown transport; choose from auto, hub, socketcan, udp_multicast, can_config"
+    )
+
+
+def test_a_transport_this_machine_cannot_carry_is_refused_before_anything_starts(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv(tr.PRIVATE_NETNS_ENV, raising=False)
+    monkeypatch.setattr(tr, "in_private_netns", lambda: False)
+    cases = [
+        (virtual_transport(), {}, "--bus virtual: the virtual transport works inside one process only"),
+        (socketcan_transport("nocan7", "nocan8"), {}, "--bus socketcan: this machine has no CAN interface nocan7, nocan8"),
+        (udp_multicast_transport(), {}, "--bus udp_multicast: only inside a private network namespace"),
+        (socketcan_transport("nocan7", "nocan8"), {"hub_given": True}, "--hub applies to --bus hub"),
+        (hub_transport(f"unix:{tmp_path}/missing/hub.sock"), {}, f"the folder {tmp_path}/missing does not exist"),
+    ]
+    for tc, kw, text in cases:
+        with pytest.raises(TransportConfigError) as exc:
+            tc.check_usable(**kw)
+        assert text in str(exc.value) and "\n" not in str(exc.value)
+    hub_transport(f"unix:{tmp_path}/hub.sock").check_usable()  # a folder of this user's: fine
+    if os.getuid() == 0:  # another user's folder (root can make one)
+        theirs = tmp_path / "theirs"
+        theirs.mkdir()
+        os.chown(theirs, 65534, 65534)
+        with pytest.raises(TransportConfigError, match="is not yours"):
+            hub_transport(f"unix:{theirs}/hub.sock").check_usable()
 
 
 def test_hub_transport_refuses_non_loopback() -> None:

@@ -41,11 +41,12 @@ import os
 import socket
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import can
 
-from bus.errors import IlcrigError
+from bus.errors import InputError
 from bus.transports.hub.addresses import default_hub_address, parse_address
 from bus.transports.udp_multicast import enlarge_receive_buffer
 
@@ -72,7 +73,7 @@ HUB_INTERFACE: str = "ilcrig_hub"
 UDP_MULTICAST_INTERFACE: str = "ilcrig_udp_multicast"
 
 
-class TransportConfigError(IlcrigError, ValueError):
+class TransportConfigError(InputError):
     """A transport or channel configuration is invalid or incomplete."""
 
 
@@ -231,6 +232,47 @@ class TransportConfig:
                 "configure them separately (contexts 'fieldbus' and 'io')"
             )
 
+    def check_usable(self, *, hub_given: bool = False) -> None:
+        """Refuse, before any process starts, a transport that this machine cannot carry between
+        processes (the launchers' preflight; one line naming the option and what to do).
+
+        :param hub_given: the user gave ``--hub`` (it applies to the hub transport only)
+        :raises TransportConfigError: ``virtual`` (one process only); ``socketcan`` without its
+            interfaces in this network namespace; ``udp_multicast`` outside a private network
+            namespace; ``--hub`` with another transport; a hub's Unix socket whose folder is missing,
+            not a folder, or not this user's
+        """
+        if hub_given and not self.needs_hub:
+            raise TransportConfigError(f"--hub applies to --bus hub (or auto without vcan) only, not to --bus {self.name}")
+        if self.name == "virtual":
+            raise TransportConfigError("--bus virtual: the virtual transport works inside one process only; use hub or socketcan")
+        if self.name == "socketcan":
+            wanted = tuple(str(c.channel) for c in (self.fieldbus, self.io))
+            if not vcan_available(wanted):
+                missing = ", ".join(n for n in wanted if n not in net_interfaces())
+                raise TransportConfigError(
+                    f"--bus socketcan: this machine has no CAN interface {missing} in this network namespace "
+                    "(no vcan module in this kernel?); use --bus hub, or scripts/vcan-tests for real SocketCAN"
+                )
+        if self.name == "udp_multicast" and not _multicast_allowed(self.fieldbus):
+            raise TransportConfigError(
+                "--bus udp_multicast: only inside a private network namespace (unshare -rn); use --bus hub"
+            )
+        if self.needs_hub and self.hub_address is not None:
+            addr = parse_address(self.hub_address, allow_remote=True)
+            if addr.kind == "unix":
+                folder = Path(addr.path).absolute().parent
+                if not folder.exists():
+                    raise TransportConfigError(f"--hub {self.hub_address}: the folder {folder} does not exist")
+                if not folder.is_dir():
+                    raise TransportConfigError(f"--hub {self.hub_address}: {folder} is not a folder")
+                owner = folder.stat().st_uid
+                if owner != os.getuid():
+                    raise TransportConfigError(
+                        f"--hub {self.hub_address}: the folder {folder} is not yours (owner uid {owner}); "
+                        "put the hub's socket in a folder of your own"
+                    )
+
     def as_dict(self) -> dict[str, Any]:
         return {
             "name": self.name,
@@ -306,6 +348,8 @@ def auto_transport(hub_address: str | None = None, allow_remote: bool = False) -
 
 
 TRANSPORT_NAMES: tuple[str, ...] = ("auto", "hub", "socketcan", "udp_multicast", "virtual", "can_config")
+#: the transports the command line offers (``virtual`` is for the threads of one process: tests)
+CLI_TRANSPORT_NAMES: tuple[str, ...] = tuple(n for n in TRANSPORT_NAMES if n != "virtual")
 
 
 def transport_from_name(name: str, hub_address: str | None = None, allow_remote: bool = False) -> TransportConfig:
@@ -326,4 +370,4 @@ def transport_from_name(name: str, hub_address: str | None = None, allow_remote:
         return virtual_transport()
     if name == "can_config":
         return can_config_transport()
-    raise TransportConfigError(f"unknown transport {name!r}; choose from {TRANSPORT_NAMES}")
+    raise TransportConfigError(f"--bus {name}: unknown transport; choose from {', '.join(CLI_TRANSPORT_NAMES)}")
