@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from bus.exit_codes import EXIT_CHILD_FAILED, EXIT_USAGE
+from bus.processes import spawn_process
 from host.experiment.arrays import load_reference, load_trial
 from host.experiment.config import ExperimentConfig, gains_table
 from host.learning.protocol import LEARNING
@@ -149,9 +150,9 @@ class RigRun:
         self._err_path = self.out / "console.err"
         self._console = open(self.out / "console.txt", "w", encoding="utf-8")  # noqa: SIM115 - closed in close()
         self._err = open(self._err_path, "wb")  # noqa: SIM115 - closed in close()
-        self.proc = subprocess.Popen(
-            argv, stdout=subprocess.PIPE, stderr=self._err, stdin=subprocess.DEVNULL, env=env, start_new_session=True, text=True
-        )
+        # the launcher's lifetime policy (bus.processes): a session of its own, and SIGTERM (its
+        # interrupt path: the rig stopped, the summary kept) when the thread that started it ends
+        self.proc = spawn_process(argv, stdout=subprocess.PIPE, stderr=self._err, env=env, text=True, death_signal=signal.SIGTERM)
         self._reader = threading.Thread(target=self._pump, name="ilcrig-rig-console", daemon=True)
         self._reader.start()
         self.trials: list[TrialResult] = []
