@@ -28,6 +28,7 @@ from __future__ import annotations
 import logging
 import sys
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
@@ -82,6 +83,7 @@ def make_run_folder(out: str | None, kind: str) -> tuple[Path, Path]:
     return out_dir, log_dir
 
 
+@dataclass(eq=False)
 class LaunchCore(LauncherConsole):
     """What ``ilcrig run`` and ``ilcrig robot`` share (module docstring).
 
@@ -98,24 +100,17 @@ class LaunchCore(LauncherConsole):
     :ivar out_dir: the run folder
     """
 
-    def __init__(
-        self,
-        options: RigOptions,
-        stdout: IO[str] | None = None,
-        stderr: IO[str] | None = None,
-        grace_s: float = TERMINATE_GRACE_S,
-    ) -> None:
-        self.options = options
-        self.stdout = stdout
-        self.stderr = stderr
-        self.grace_s = grace_s
-        self.children: list[Child] = []
-        self.hub: Any = None
-        self.hub_address: str | None = None
-        self.out_dir: Path | None = None
-        self.interrupts = Interrupts()
-        self._idle_pollers: IdlePollers | None = None
-        self._janitor: Any = None
+    options: RigOptions
+    stdout: IO[str] | None = None
+    stderr: IO[str] | None = None
+    grace_s: float = TERMINATE_GRACE_S
+    children: list[Child] = field(default_factory=list, init=False)
+    hub: Any = field(default=None, init=False)
+    hub_address: str | None = field(default=None, init=False)
+    out_dir: Path | None = field(default=None, init=False)
+    interrupts: Interrupts = field(default_factory=Interrupts, init=False)
+    _idle_pollers: IdlePollers | None = field(default=None, init=False, repr=False)
+    _janitor: Any = field(default=None, init=False, repr=False)
 
     # -- the skeleton ---------------------------------------------------------------------------
 

@@ -52,12 +52,13 @@ from __future__ import annotations
 import json
 import logging
 import signal
-from typing import IO, Any
+from dataclasses import dataclass, field
+from typing import Any
 
 from bus.objects import DRIVE_NODE_IDS
 from bus.transports.fault_inject import FRAME_ACTIONS, FaultSpec, check_specs, parse_specs
 from bus.units import timeout_scale
-from host.rig.launch_core import TERMINATE_GRACE_S, LaunchCore, make_run_folder
+from host.rig.launch_core import LaunchCore, make_run_folder
 from host.rig.options import RunOptions
 from host.rig.processes import Child, Death
 from host.rig.role_commands import bus_time_rates, child_argv, host_role_args, rig_role_args
@@ -123,6 +124,7 @@ def _check_hub_path(address: str | None) -> None:
         check_socket_file(addr.path)
 
 
+@dataclass(eq=False)
 class RigLauncher(LaunchCore):
     """Starts and supervises the processes of one ``ilcrig run`` (see the module docstring).
 
@@ -136,21 +138,11 @@ class RigLauncher(LaunchCore):
     """
 
     options: RunOptions
-
-    def __init__(
-        self,
-        options: RunOptions,
-        stdout: IO[str] | None = None,
-        stderr: IO[str] | None = None,
-        grace_s: float = TERMINATE_GRACE_S,
-        host_grace_s: float | None = None,
-    ) -> None:
-        super().__init__(options, stdout, stderr, grace_s)
-        self.host_grace_s = host_grace_s
-        self.transport_name = ""
-        self.supervisor: Supervisor | None = None
-        self._injector: Any = None
-        self._progress: RunProgress | None = None
+    host_grace_s: float | None = None
+    transport_name: str = field(default="", init=False)
+    supervisor: Supervisor | None = field(default=None, init=False)
+    _injector: Any = field(default=None, init=False, repr=False)
+    _progress: RunProgress | None = field(default=None, init=False, repr=False)
 
     @property
     def deaths(self) -> list[Death]:

@@ -34,8 +34,9 @@ import json
 import logging
 import os
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 from bus.atomic import atomic_write
 from bus.exit_codes import EXIT_CHILD_FAILED, EXIT_FAULT
@@ -44,7 +45,7 @@ from bus.plant_objects import DEFAULT_PLANT_NODE_ID, PLANT_EDS_PATH
 from bus.transports.config import FIELDBUS, HUB_INTERFACE, TransportConfig
 from bus.transports.config import IO as IO_CHANNEL
 from bus.units import timeout_scale
-from host.rig.launch_core import TERMINATE_GRACE_S, LaunchCore, make_run_folder
+from host.rig.launch_core import LaunchCore, make_run_folder
 from host.rig.monitor import ChannelMonitor
 from host.rig.options import RobotOptions
 from host.rig.processes import Death, LaunchError, describe_status
@@ -64,6 +65,7 @@ SUMMARY_SCHEMA = "ilcrig.robot/1"
 DEFAULT_TS_S: float = 1e-3
 
 
+@dataclass(eq=False)
 class RobotLauncher(LaunchCore):
     """Starts, announces, watches and stops the robot (see the module docstring).
 
@@ -76,23 +78,14 @@ class RobotLauncher(LaunchCore):
     """
 
     options: RobotOptions
-
-    def __init__(
-        self,
-        options: RobotOptions,
-        stdout: IO[str] | None = None,
-        stderr: IO[str] | None = None,
-        grace_s: float = TERMINATE_GRACE_S,
-    ) -> None:
-        super().__init__(options, stdout, stderr, grace_s)
-        self.transport: TransportConfig | None = None
-        self.watch = RobotBusWatch()
-        self.monitors: list[ChannelMonitor] = []
-        self.deaths: list[Death] = []
-        self.live: Any = None
-        self._t0 = time.time()
-        self._end: dict[str, Any] = {"reason": "starting"}
-        self._scheduling: dict[str, Any] | None = None
+    transport: TransportConfig | None = field(default=None, init=False)
+    watch: RobotBusWatch = field(default_factory=RobotBusWatch, init=False)
+    monitors: list[ChannelMonitor] = field(default_factory=list, init=False)
+    deaths: list[Death] = field(default_factory=list, init=False)
+    live: Any = field(default=None, init=False)
+    _t0: float = field(default_factory=time.time, init=False, repr=False)
+    _end: dict[str, Any] = field(default_factory=lambda: {"reason": "starting"}, init=False, repr=False)
+    _scheduling: dict[str, Any] | None = field(default=None, init=False, repr=False)
 
     # ------------------------------------------------------------------ run
 
