@@ -4,7 +4,9 @@ its trials read from the run folder as they complete.
 This module owns :class:`RigRun`.  The experiment is checked in this process first (the same
 preparation the launcher's preflight makes, so bad input is an :class:`ilcrig.InputError` with the
 command line's message before anything starts), written to ``<out>/experiment.toml`` and run as
-``python -m host.cli run --config <out>/experiment.toml --out <out> --bus …`` in its own session with
+``python -m host.cli run --config <out>/experiment.toml --out <out> --bus …`` (started by
+:func:`bus.processes.spawn_process`: its own session, and SIGTERM — the launcher's interrupt path —
+when the thread that created the :class:`RigRun` ends, so a killed caller leaves no rig running) with
 this interpreter and this process's ``sys.path`` on ``PYTHONPATH`` (so a law importable here —
 a plug-in, or ``module:Class`` — is importable by the rig's host process too).  The launcher's
 console output goes to ``<out>/console.txt`` (and to ``stream``).
