@@ -252,14 +252,16 @@ def cmd_host(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     from host.rig.launcher import launch_rig
+    from host.rig.options import RunOptions
 
-    return launch_rig(args)  # validates everything (preflight) before anything starts
+    return launch_rig(RunOptions.from_args(args))  # validates everything (preflight) before anything starts
 
 
 def cmd_robot(args: argparse.Namespace) -> int:
+    from host.rig.options import RobotOptions
     from host.rig.robot_launcher import launch_robot
 
-    return launch_robot(args)
+    return launch_robot(RobotOptions.from_args(args))
 
 
 def cmd_laws(args: argparse.Namespace) -> int:

@@ -4,7 +4,9 @@ its trials read from the run folder as they complete.
 This module owns :class:`RigRun`.  The experiment is checked in this process first (the same
 preparation the launcher's preflight makes, so bad input is an :class:`ilcrig.InputError` with the
 command line's message before anything starts), written to ``<out>/experiment.toml`` and run as
-``python -m host.cli run --config <out>/experiment.toml --out <out> --bus …`` in its own session with
+``python -m host.cli run --config <out>/experiment.toml --out <out> --bus …`` (started by
+:func:`bus.processes.spawn_process`: its own session, and SIGTERM — the launcher's interrupt path —
+when the thread that created the :class:`RigRun` ends, so a killed caller leaves no rig running) with
 this interpreter and this process's ``sys.path`` on ``PYTHONPATH`` (so a law importable here —
 a plug-in, or ``module:Class`` — is importable by the rig's host process too).  The launcher's
 console output goes to ``<out>/console.txt`` (and to ``stream``).
@@ -33,6 +35,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from bus.exit_codes import EXIT_CHILD_FAILED, EXIT_USAGE
+from bus.processes import spawn_process
 from host.experiment.arrays import load_reference, load_trial
 from host.experiment.config import ExperimentConfig, gains_table
 from host.learning.protocol import LEARNING
@@ -149,9 +152,9 @@ class RigRun:
         self._err_path = self.out / "console.err"
         self._console = open(self.out / "console.txt", "w", encoding="utf-8")  # noqa: SIM115 - closed in close()
         self._err = open(self._err_path, "wb")  # noqa: SIM115 - closed in close()
-        self.proc = subprocess.Popen(
-            argv, stdout=subprocess.PIPE, stderr=self._err, stdin=subprocess.DEVNULL, env=env, start_new_session=True, text=True
-        )
+        # the launcher's lifetime policy (bus.processes): a session of its own, and SIGTERM (its
+        # interrupt path: the rig stopped, the summary kept) when the thread that started it ends
+        self.proc = spawn_process(argv, stdout=subprocess.PIPE, stderr=self._err, env=env, text=True, death_signal=signal.SIGTERM)
         self._reader = threading.Thread(target=self._pump, name="ilcrig-rig-console", daemon=True)
         self._reader.start()
         self.trials: list[TrialResult] = []

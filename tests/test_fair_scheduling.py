@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import ctypes
 import gc
+import io
+import json
 import logging
 import os
 import platform
@@ -28,10 +30,13 @@ from bus.lockstep_process import (
     watch_collections,
 )
 from bus.plant_objects import ConfigSub, PlantObj, PlantTrialSub, TrialTiming, pack_initial_state
-from host.rig import fair_scheduling
+from host.rig import fair_scheduling, realtime, role_commands
 from host.rig.fair_scheduling import LOCKSTEP_SLICE_NS, apply_fair_scheduling, host_policy, lowest_nice_permitted
-from host.rig.processes import spawn, terminate
+from host.rig.launcher import RigLauncher
+from host.rig.options import RobotOptions, RunOptions
+from host.rig.processes import Child, spawn, terminate
 from host.rig.realtime import schedule_lockstep, scheduling_mechanisms, scheduling_text, timing_line, timing_summary
+from host.rig.robot_launcher import RobotLauncher
 from plant.plant_node import PlantNode
 
 REPO = Path(__file__).resolve().parent.parent
@@ -114,6 +119,61 @@ def test_the_host_is_batch_unless_it_produces_the_sync_and_spawn_starts_it_so(tm
     finally:
         terminate([child], 1.0, lambda: False)
     assert (tmp_path / "host.log").read_text().strip() == str(os.SCHED_BATCH)  # the thread it started too
+
+
+def _refuse_fifo(monkeypatch: pytest.MonkeyPatch) -> None:
+    """SCHED_FIFO not permitted (an ordinary user without CAP_SYS_NICE or RLIMIT_RTPRIO), whoever runs the test."""
+    real = os.sched_setscheduler
+
+    def refuse(tid: int, policy: int, param: os.sched_param) -> None:
+        if policy == os.SCHED_FIFO:
+            raise PermissionError(1, "Operation not permitted")
+        real(tid, policy, param)
+
+    monkeypatch.setattr(realtime.os, "sched_setscheduler", refuse)
+
+
+@pytest.mark.parametrize("command", ["run", "robot"])
+def test_both_launchers_take_the_fair_scheduling_fallback_without_sched_fifo(
+    command: str, sleeper: subprocess.Popen[bytes], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The launch core schedules ``ilcrig run --realtime`` and ``ilcrig robot --realtime`` alike:
+    no SCHED_FIFO, then the lockstep processes in fair scheduling and no busy loops; the host's
+    policy only where there is a host."""
+    _refuse_fifo(monkeypatch)
+    launcher = RigLauncher(RunOptions(realtime=True)) if command == "run" else RobotLauncher(RobotOptions(realtime=True))
+    launcher.children.append(Child("plant", sleeper, ["sleeper"]))
+    got = launcher.schedule_realtime(host_in_tick=False if command == "run" else None)
+    assert got["policy"] == "normal" and got["reason"].startswith("SCHED_FIFO 10 not permitted")
+    assert got["roles"] == ["plant"]
+    assert "slice_us" in got["fair"] or got["fair"]["slice"].startswith("not available")
+    assert got["idle_poll"] == {"loops": 0, "reason": "not beside normal scheduling"}
+    assert ("host" in got) is (command == "run")
+    assert all(os.sched_getscheduler(int(t)) == os.SCHED_OTHER for t in os.listdir(f"/proc/{sleeper.pid}/task"))
+
+
+def test_ilcrig_robot_realtime_without_sched_fifo_permission_takes_the_fair_scheduling_fallback(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``ilcrig robot --realtime`` (the robot launcher on a private hub, its roles sleeping stand-ins
+    whose boot is not waited for): where SCHED_FIFO is refused the robot's summary records the
+    fair-scheduling fallback, as ``ilcrig run --realtime``'s does."""
+    _refuse_fifo(monkeypatch)
+    stand_in = [sys.executable, "-c", "import time; time.sleep(60)"]
+    monkeypatch.setattr(role_commands, "ROLE_COMMAND", {"plant": stand_in, "drive": stand_in})
+    monkeypatch.setattr(RobotLauncher, "_wait_booted", lambda self: None)
+    monkeypatch.setattr(RobotLauncher, "_watch", lambda self: 0)
+    out = tmp_path / "robot"
+    launcher = RobotLauncher(RobotOptions(bus="hub", out=str(out), realtime=True), stdout=io.StringIO(), stderr=io.StringIO())
+    assert launcher.run() == 0
+    assert all(c.proc.returncode is not None for c in launcher.children)
+    summary = json.loads((out / "summary.json").read_text())
+    scheduling = summary["scheduling"]
+    assert scheduling["policy"] == "normal" and "not permitted" in scheduling["reason"]
+    assert scheduling["roles"] == ["hub", "plant", "drive1", "drive2", "drive3", "drive4"]
+    assert "fair" in scheduling and "host" not in scheduling
+    assert scheduling["idle_poll"] == {"loops": 0, "reason": "not beside normal scheduling"}
+    assert scheduling["mechanisms"] == scheduling_mechanisms(scheduling)
 
 
 def test_the_console_line_names_every_mechanism_in_force() -> None:

@@ -1,6 +1,6 @@
 """The idle-poll loops of a real-time run (host/rig/idle_poll.py): one SCHED_IDLE busy loop per CPU,
-gone when stopped and gone when the process that started them dies, even by SIGKILL; what the
-run's scheduling line says of them."""
+gone when stopped and gone when the process that started them dies, even by SIGKILL (the death
+signal armed before exec by bus/processes.py); what the run's scheduling line says of them."""
 
 from __future__ import annotations
 
@@ -13,8 +13,9 @@ from collections.abc import Callable, Iterable
 
 import pytest
 
+from bus.processes import spawn_process
 from host.rig.fair_scheduling import autogroups_enabled
-from host.rig.idle_poll import AUTOGROUP_NICE, IdlePollers, idle_poll_available
+from host.rig.idle_poll import _LOOP, AUTOGROUP_NICE, IdlePollers, idle_poll_available
 from host.rig.realtime import scheduling_text
 
 pytestmark = pytest.mark.skipif(not idle_poll_available(), reason="no SCHED_IDLE on this system")
@@ -117,6 +118,18 @@ def test_the_loops_die_with_the_process_that_started_them() -> None:
                 os.kill(pid, signal.SIGKILL)
             except ProcessLookupError:
                 pass
+
+
+@pytest.mark.parametrize("death_signal", [signal.SIGKILL, signal.SIGTERM, None])
+def test_the_death_signal_is_armed_before_the_child_runs_a_line_of_its_own(death_signal: int | None) -> None:
+    """The cause of a loop outliving its killed parent on a busy machine: the loop armed
+    PR_SET_PDEATHSIG itself, after entering SCHED_IDLE, where it may wait long for a CPU. Now
+    bus.processes.spawn_process arms it between fork and exec: the child's first line sees it."""
+    code = "import ctypes; v = ctypes.c_int(); ctypes.CDLL(None).prctl(2, ctypes.byref(v), 0, 0, 0); print(v.value)"
+    proc = spawn_process([sys.executable, "-S", "-c", code], stdout=subprocess.PIPE, death_signal=death_signal)
+    out, _ = proc.communicate(timeout=60)
+    assert int(out) == (0 if death_signal is None else int(death_signal))
+    assert "prctl" not in _LOOP  # the loop does not arm it late itself
 
 
 def test_the_scheduling_line_says_whether_the_cpus_were_kept_awake() -> None:

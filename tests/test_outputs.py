@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from host.experiment import summary as summary_mod
+from bus import atomic as atomic_mod
 from host.experiment.faults import FaultKind
 from host.experiment.outputs import RESERVE_NAME, DiskFullError, RunFolder, check_out_dir, reserve_bytes
 from host.experiment.summary import finite, write_summary
@@ -33,7 +33,7 @@ def test_a_failing_write_keeps_the_previous_summary(tmp_path: Path, monkeypatch:
     def full(fd: int) -> None:
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(summary_mod.os, "fsync", full)
+    monkeypatch.setattr(atomic_mod.os, "fsync", full)  # the one atomic write (bus/atomic.py)
     with pytest.raises(DiskFullError, match="disk full"):
         write_summary(tmp_path, {"iterations": [1, 2], "completed": False})
     assert (tmp_path / "summary.json").read_text() == before

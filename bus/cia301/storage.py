@@ -30,12 +30,12 @@ from __future__ import annotations
 import functools
 import json
 import logging
-import os
 from collections.abc import Collection
 from pathlib import Path
 
 from canopen.objectdictionary import ODVariable
 
+from bus.atomic import atomic_write
 from bus.cia301.object_store import Key, ObjectStore, Value
 from bus.errors import AbortCode, SdoAbort
 
@@ -93,13 +93,9 @@ class ParameterStorage:
             "node": self.node_id,
             "values": {f"{i:04X}:{s}": v for (i, s), v in sorted(self._saved.items())},
         }
-        tmp = self.path.with_name(self.path.name + ".tmp")
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            tmp.write_text(json.dumps(doc, indent=1) + "\n")
-            os.replace(tmp, self.path)
+            atomic_write(self.path, json.dumps(doc, indent=1) + "\n")
         except OSError as err:
-            tmp.unlink(missing_ok=True)
             raise SdoAbort(AbortCode.CANNOT_STORE, f"cannot write {self.path}: {err}") from err
 
     @property

@@ -8,13 +8,13 @@ written atomically (a temporary file, then a rename).
 from __future__ import annotations
 
 import logging
-import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from bus.atomic import atomic_path
 from host.analysis.markdown import LAW_LABEL
 from host.analysis.sweep_plan import LONG_TRIALS, RunData
 
@@ -37,9 +37,8 @@ def figure(nrows: int, ncols: int, w: float, h: float) -> tuple[Any, Any]:
 def save_png(fig: Any, path: Path) -> Path:
     """Lay out ``fig`` and write it to ``path`` as PNG, atomically."""
     fig.tight_layout()
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, format="png")
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
     return path
 
 

@@ -6,14 +6,13 @@ temporary file behind)."""
 
 from __future__ import annotations
 
-import contextlib
-import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from bus.atomic import atomic_write
 from host.analysis.figures import figure, save_png
 from host.analysis.markdown import JOINTS, fmt, md_table
 from host.experiment.faults import FaultRecord
@@ -107,16 +106,5 @@ def write_run_report(run_dir: str | Path, summary: Mapping[str, Any]) -> Path:
             save_png(fig, d / "convergence.png")
             lines += ["![convergence](convergence.png)", ""]
         except OSError as err:
-            with contextlib.suppress(OSError):
-                (d / "convergence.tmp.png").unlink()
             lines += [f"(convergence.png could not be written: {err.strerror or err})", ""]
-    path = d / "report.md"
-    tmp = d / "report.md.tmp"
-    try:
-        tmp.write_text("\n".join(lines))
-        os.replace(tmp, path)
-    except OSError:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        raise
-    return path
+    return atomic_write(d / "report.md", "\n".join(lines))

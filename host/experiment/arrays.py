@@ -21,13 +21,13 @@ a full disk included).
 from __future__ import annotations
 
 import logging
-import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from bus.atomic import atomic_path
 from host.experiment.outputs import RunFolder, output_error
 from host.learning.metrics import TrialMetrics
 from host.planning.trajectory import JointReference
@@ -48,19 +48,12 @@ def trial_path(run_dir: str | Path, k: int) -> Path:
 
 
 def _save(path: Path, arrays: dict[str, np.ndarray], folder: RunFolder | None, trial: int | None) -> None:
-    tmp = path.with_name(path.name + ".tmp")
     try:
         if folder is not None:
             folder.check_write(trial)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(tmp, "wb") as fh:
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
             np.savez(fh, **arrays)  # type: ignore[arg-type]
-        os.replace(tmp, path)
     except OSError as err:
-        try:
-            tmp.unlink()
-        except OSError:
-            pass
         raise output_error(str(path), err) from None
 
 

@@ -71,7 +71,8 @@ LEFTOVER_GLOBS = (
     "summary.json.tmp",
     "recording.rrd.tmp",
     "report.md.tmp",
-    "convergence.tmp.png",
+    "convergence.tmp.png",  # the name of earlier versions
+    "convergence.png.tmp",
     "trials/*.tmp",
     RESERVE_NAME,
     ".ilcrig-write-test",

@@ -10,16 +10,15 @@ the previous ``summary.json`` stays as it was, the temporary file is removed and
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import math
-import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from bus.atomic import atomic_write
 from host.experiment.outputs import OutputError, RunFolder, output_error
 
 logger = logging.getLogger(__name__)
@@ -69,20 +68,13 @@ def write_summary(out_dir: Path, summary: dict[str, Any], *, folder: RunFolder |
     :raises OutputError: the write failed (a :class:`~host.experiment.outputs.DiskFullError` on a
         full disk); the previous summary is untouched and no temporary file is left.
     """
-    tmp = out_dir / "summary.json.tmp"
     data = json.dumps(finite(jsonable(summary)), indent=2, allow_nan=False)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
         if folder is not None:
             folder.check_write(trial)
-        with open(tmp, "w", encoding="utf-8") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, out_dir / "summary.json")
+        atomic_write(out_dir / "summary.json", data, fsync=True)
     except OSError as err:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
         raise output_error(str(out_dir / "summary.json"), err) from None
 
 

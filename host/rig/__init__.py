@@ -26,7 +26,13 @@ Owns the host role on the bus (``ilcrig host``):
 and the launcher (``ilcrig run``), which starts the hub, the plant, the four drives and the host as
 processes and always cleans them up:
 
-* :mod:`host.rig.launcher` — :func:`~host.rig.launcher.launch_rig`: preflight, start, watch, clean up;
+* :mod:`host.rig.launch_core` — :class:`~host.rig.launch_core.LaunchCore`, what ``ilcrig run`` and
+  ``ilcrig robot`` share: the run skeleton, spawning, SCHED_FIFO or the fair-scheduling fallback,
+  the idle-poll loops, interrupts, shutdown, the janitor;
+* :mod:`host.rig.options` — their typed options (:class:`~host.rig.options.RunOptions`,
+  :class:`~host.rig.options.RobotOptions`);
+* :mod:`host.rig.launcher` — :func:`~host.rig.launcher.launch_rig`: preflight, the host role, the
+  run's outcome, injection;
 * :mod:`host.rig.role_commands` — the roles' command lines (``python -P -m host.cli ROLE``, test hooks);
 * :mod:`host.rig.processes` — starting (roles, the hub), describing and terminating processes;
 * :mod:`host.rig.run_watch` — the run's trial and tick on the io channel, for the launcher;

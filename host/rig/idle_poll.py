@@ -34,10 +34,12 @@ Autogroups
     (``/proc/self/autogroup``; raising it needs no privilege).
 
 Lifetime
-    The loops are processes in their own session (a terminal's Ctrl-C does not reach them),
-    killed by :meth:`IdlePollers.stop`; each also asks the kernel to kill it when the process
-    that started it dies (``PR_SET_PDEATHSIG``) and checks its parent every few milliseconds, so
-    none outlives the launcher, even one killed with SIGKILL.
+    The loops are started by :func:`bus.processes.spawn_process`: processes in their own session
+    (a terminal's Ctrl-C does not reach them), killed by :meth:`IdlePollers.stop`, and killed by
+    the kernel when the process that started them dies (``PR_SET_PDEATHSIG``, armed before
+    ``exec``: a loop already in ``SCHED_IDLE`` may get no CPU for a long time on a busy machine, so
+    the signal must not wait for the loop's own code); each also checks its parent every few
+    milliseconds, so none outlives the launcher, even one killed with SIGKILL.
 
 What the loops change is measured by ``benchmarks/rt_compare.py`` (docs/benchmarks.md).
 """
@@ -50,25 +52,22 @@ import signal
 import subprocess
 import sys
 
+from bus.processes import spawn_process
+
 logger = logging.getLogger(__name__)
 
 __all__ = ["AUTOGROUP_NICE", "IdlePollers", "idle_poll_available"]
 
 #: the busy loop, run with ``python -S -c`` (nothing imported but os, sys, time and ctypes): SCHED_IDLE,
 #: bound to CPU ``argv[3]``, its session's autogroup at nice ``argv[2]`` (empty: left alone; retried while the kernel's
-#: 100 ms rate limit refuses it), killed with its parent (PR_SET_PDEATHSIG = 1), and a check of
-#: the parent every ~10 ms
+#: 100 ms rate limit refuses it), and a check of the parent every ~10 ms (the death signal is armed
+#: before exec, by :func:`bus.processes.spawn_process`)
 _LOOP = """
 import os, sys, time
 parent = int(sys.argv[1])
 os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
 try:
     os.sched_setaffinity(0, {int(sys.argv[3])})
-except (OSError, AttributeError):
-    pass
-try:
-    import ctypes
-    ctypes.CDLL(None, use_errno=True).prctl(1, 9, 0, 0, 0)
 except (OSError, AttributeError):
     pass
 if sys.argv[2]:
@@ -119,15 +118,8 @@ class IdlePollers:
         nice = "" if autogroup_nice is None else str(autogroup_nice)
         try:
             for cpu in self.cpus:
-                self.procs.append(
-                    subprocess.Popen(
-                        [sys.executable, "-S", "-c", _LOOP, str(os.getpid()), nice, str(cpu)],
-                        stdin=subprocess.DEVNULL,
-                        stdout=subprocess.DEVNULL,
-                        stderr=subprocess.DEVNULL,
-                        start_new_session=True,
-                    )
-                )
+                argv = [sys.executable, "-S", "-c", _LOOP, str(os.getpid()), nice, str(cpu)]
+                self.procs.append(spawn_process(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
         except OSError:
             self.stop()
             raise

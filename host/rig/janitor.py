@@ -31,6 +31,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import IO, Any
 
+from bus.processes import spawn_process
+
 logger = logging.getLogger(__name__)
 
 __all__ = ["DONE", "HOST_WAIT_S", "Janitor", "main", "settle_run_folder", "start_janitor"]
@@ -96,14 +98,8 @@ def start_janitor(out_dir: Path, host_pid: int) -> Janitor | None:
     not be started; logged — the run goes on without it)."""
     argv = [sys.executable, "-P", "-m", "host.rig.janitor", "--out", str(out_dir), "--wait", str(host_pid)]
     try:
-        proc = subprocess.Popen(
-            argv,
-            stdin=subprocess.PIPE,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-            start_new_session=True,  # a terminal's Ctrl-C is the launcher's; it outlives the launcher
-            close_fds=True,
-        )
+        # a session of its own (a terminal's Ctrl-C is the launcher's) and no death signal: it outlives the launcher
+        proc = spawn_process(argv, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, death_signal=None)
     except OSError as err:
         logger.warning("cannot start the run folder's janitor: %s", err)
         return None

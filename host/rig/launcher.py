@@ -1,8 +1,10 @@
 """``ilcrig run``: check the experiment, start the distributed rig, watch it, always clean it up.
 
-This module owns :func:`launch_rig` and :class:`RigLauncher`, which puts the run's processes
-together (its terminal lines, :class:`LauncherConsole`, and its run folder, :func:`make_run_folder`,
-serve ``ilcrig robot`` too):
+This module owns :func:`launch_rig`, :func:`preflight` and :class:`RigLauncher`, which puts the
+run's processes together: what is particular to an ILC run (the host role, the run's outcome, the
+injections); what ``ilcrig robot`` does alike — spawning under one lifetime policy, the real-time
+scheduling with its fallbacks, the idle-poll loops, the interrupts, the shutdown and the janitor —
+is :class:`host.rig.launch_core.LaunchCore`'s. Its options are :class:`host.rig.options.RunOptions`.
 
 * the bus hub (only when the transport is ``hub``), started with :func:`bus.transports.hub.process.start_hub` on a
   fresh private Unix socket (a temp directory per run, so concurrent runs never collide) unless
@@ -12,9 +14,10 @@ serve ``ilcrig robot`` too):
   ``[sys.executable, "-P", "-m", "host.cli", ROLE, ...]`` with the same ``--bus``/``--hub``
   (:mod:`host.rig.role_commands`; ``-P``: the working folder cannot shadow the project's modules,
   the hub is started the same way) as processes of their own
-  (:mod:`host.rig.processes`);
-* with ``--realtime``, SCHED_FIFO for the lockstep processes (:mod:`host.rig.realtime`) and the
-  idle-poll loops (:mod:`host.rig.idle_poll`); with ``--inject`` the launcher's injections
+  (:mod:`host.rig.processes`, :mod:`bus.processes`);
+* with ``--realtime``, SCHED_FIFO for the lockstep processes where permitted, else the
+  fair-scheduling fallback, and the idle-poll loops (:meth:`host.rig.launch_core.LaunchCore.schedule_realtime`);
+  with ``--inject`` the launcher's injections
   (:class:`host.rig.inject.ProcessInjector`: kill / stall / EMCY; frame faults are the hub's, a
   full disk the host's ``--inject-disk-full``);
 * the run's position on the io channel (:class:`host.rig.run_watch.RunProgress`), the watch until
@@ -46,50 +49,32 @@ One fault path
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import signal
-import sys
-import time
-from pathlib import Path
-from typing import IO, Any
+from dataclasses import dataclass, field
+from typing import Any
 
-from bus.exit_codes import EXIT_CHILD_FAILED
-from bus.lockstep_process import mechanisms_left_out
 from bus.objects import DRIVE_NODE_IDS
-from bus.timer_slack import FINE_TIMER_SLACK_NS
 from bus.transports.fault_inject import FRAME_ACTIONS, FaultSpec, check_specs, parse_specs
 from bus.units import timeout_scale
-from host.rig.fair_scheduling import host_policy
-from host.rig.idle_poll import AUTOGROUP_NICE, IdlePollers, idle_poll_available
-from host.rig.interrupts import Interrupts
-from host.rig.processes import Child, Death, LaunchError, spawn, start_hub_process, terminate
-from host.rig.realtime import DEFAULT_RT_PRIORITY, schedule_lockstep, scheduling_mechanisms
+from host.rig.launch_core import LaunchCore, make_run_folder
+from host.rig.options import RunOptions
+from host.rig.processes import Child, Death
 from host.rig.role_commands import bus_time_rates, child_argv, host_role_args, rig_role_args
 from host.rig.run_outcome import RunOutcome
 from host.rig.run_watch import RunProgress
 from host.rig.supervisor import Supervisor
 
-__all__ = [
-    "HOST_GRACE_S",
-    "TERMINATE_GRACE_S",
-    "LauncherConsole",
-    "RigLauncher",
-    "launch_rig",
-    "make_run_folder",
-    "preflight",
-]
+__all__ = ["HOST_GRACE_S", "RigLauncher", "launch_rig", "preflight"]
 
 logger = logging.getLogger(__name__)
 
-#: how long children get after SIGTERM before SIGKILL, s
-TERMINATE_GRACE_S: float = 3.0
 #: how long the host gets to record a fault (another process ended) or an interrupt, s (× scale)
 HOST_GRACE_S: float = 20.0
 
 
-def preflight(args: argparse.Namespace) -> list[FaultSpec]:
+def preflight(options: RunOptions) -> list[FaultSpec]:
     """Everything ``ilcrig run`` checks before it starts a process: the experiment (configuration
     and :func:`host.experiment.plan.prepare`, i.e. trajectory, feasibility, gains, memory),
     ``--out`` and the ``--inject`` specs (:func:`bus.transports.fault_inject.check_specs`: inside
@@ -99,21 +84,21 @@ def preflight(args: argparse.Namespace) -> list[FaultSpec]:
     """
     from host.experiment.outputs import check_out_dir
 
-    specs = parse_specs(getattr(args, "inject", None))
-    if args.out is not None:
-        check_out_dir(args.out, create=False)  # fast: before the configuration and the preparation
+    specs = parse_specs(options.inject)
+    if options.out is not None:
+        check_out_dir(options.out, create=False)  # fast: before the configuration and the preparation
     from host.experiment.console import experiment_config
 
-    cfg = experiment_config(args)
-    if args.out is not None:
-        check_out_dir(args.out, iterations=cfg.iterations, n_ticks=cfg.n_ticks, create=False)
-    check_specs(specs, iterations=cfg.iterations, n_ticks=cfg.n_ticks, hub=args.bus in ("hub", "auto"))
-    _check_hub_path(getattr(args, "hub", None))
-    if getattr(args, "bus_time", False) and args.bus not in ("hub", "auto"):
-        raise ValueError(f"--bus-time: bus time is kept by the hub; the transport {args.bus} has none: use --bus hub")
-    if getattr(args, "rt_priority", None) is not None and not args.realtime:
-        raise ValueError(f"--rt-priority {args.rt_priority}: the priority of a real-time run; add --realtime")
-    if getattr(args, "no_idle_poll", False) and not args.realtime:
+    cfg = experiment_config(options.namespace())
+    if options.out is not None:
+        check_out_dir(options.out, iterations=cfg.iterations, n_ticks=cfg.n_ticks, create=False)
+    check_specs(specs, iterations=cfg.iterations, n_ticks=cfg.n_ticks, hub=options.bus in ("hub", "auto"))
+    _check_hub_path(options.hub)
+    if options.bus_time and options.bus not in ("hub", "auto"):
+        raise ValueError(f"--bus-time: bus time is kept by the hub; the transport {options.bus} has none: use --bus hub")
+    if options.rt_priority is not None and not options.realtime:
+        raise ValueError(f"--rt-priority {options.rt_priority}: the priority of a real-time run; add --realtime")
+    if options.no_idle_poll and not options.realtime:
         raise ValueError("--no-idle-poll: the CPUs are kept awake only in a real-time run; add --realtime")
     from host.experiment.plan import prepare
 
@@ -139,122 +124,55 @@ def _check_hub_path(address: str | None) -> None:
         check_socket_file(addr.path)
 
 
-class LauncherConsole:
-    """A launcher's two terminal streams: its lines go to ``stdout`` / ``stderr`` when given, else
-    to ``sys.stdout`` / ``sys.stderr`` of the moment, each line flushed at once."""
-
-    stdout: IO[str] | None
-    stderr: IO[str] | None
-
-    def _say_out(self, text: str) -> None:
-        stream = self.stdout or sys.stdout
-        stream.write(text + "\n")
-        stream.flush()
-
-    def _say_err(self, text: str) -> None:
-        stream = self.stderr or sys.stderr
-        stream.write(text + "\n")
-        stream.flush()
-
-
-def make_run_folder(out: str | None, kind: str) -> tuple[Path, Path]:
-    """The run folder ``out`` (None: ``runs/<kind>-<local time>``) and its ``logs`` folder, both
-    created; returns (run folder, logs folder).
-
-    :raises ValueError: the folder cannot be created (one line naming ``--out``)
-    """
-    out_dir = Path(out) if out is not None else Path("runs") / time.strftime(f"{kind}-%Y%m%d-%H%M%S")
-    log_dir = out_dir / "logs"
-    try:
-        log_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise ValueError(f"--out {out_dir}: cannot create the run folder: {err.strerror or err}") from err
-    return out_dir, log_dir
-
-
-class RigLauncher(LauncherConsole):
+@dataclass(eq=False)
+class RigLauncher(LaunchCore):
     """Starts and supervises the processes of one ``ilcrig run`` (see the module docstring).
 
-    :param args: the parsed ``ilcrig run`` Namespace
+    :param options: the run's options
     :param stdout: stream of the status line (default ``sys.stdout``)
     :param stderr: stream of error / exit messages (default ``sys.stderr``)
     :param grace_s: SIGTERM → SIGKILL grace period, s
     :param host_grace_s: how long the host gets to record a fault or an interrupt, s
         (default :data:`HOST_GRACE_S` × ``ILCRIG_TIMEOUT_SCALE``)
     :ivar children: every started role process, in start order (the host last)
-    :ivar hub: the hub handle while it runs
-    :ivar hub_address: the hub's address (None without a hub)
-    :ivar out_dir: the run folder
     """
 
-    def __init__(
-        self,
-        args: argparse.Namespace,
-        stdout: IO[str] | None = None,
-        stderr: IO[str] | None = None,
-        grace_s: float = TERMINATE_GRACE_S,
-        host_grace_s: float | None = None,
-    ) -> None:
-        self.args = args
-        self.stdout = stdout
-        self.stderr = stderr
-        self.grace_s = grace_s
-        self.host_grace_s = host_grace_s
-        self.children: list[Child] = []
-        self.hub: Any = None
-        self.hub_address: str | None = None
-        self.transport_name = ""
-        self.out_dir: Path | None = None
-        self.interrupts = Interrupts()
-        self.supervisor: Supervisor | None = None
-        self._injector: Any = None
-        self._idle_pollers: IdlePollers | None = None
-        self._progress: RunProgress | None = None
-        self._janitor: Any = None
+    options: RunOptions
+    host_grace_s: float | None = None
+    transport_name: str = field(default="", init=False)
+    supervisor: Supervisor | None = field(default=None, init=False)
+    _injector: Any = field(default=None, init=False, repr=False)
+    _progress: RunProgress | None = field(default=None, init=False, repr=False)
 
     @property
     def deaths(self) -> list[Death]:
         """The processes that ended while the host ran, in the order noticed."""
         return self.supervisor.deaths if self.supervisor is not None else []
 
-    def run(self) -> int:
-        """Launch, watch, clean up. Returns the exit code (module docstring)."""
-        self.interrupts.install()
-        try:
-            try:
-                return self._launch_and_watch()
-            except LaunchError as err:
-                self._say_err(f"ilcrig: error: {err}")
-                return EXIT_CHILD_FAILED
-            finally:
-                self._shutdown()
-        finally:
-            self.interrupts.restore()
-
     # -- steps -----------------------------------------------------------------------------
 
     def _launch_and_watch(self) -> int:
         from bus.transports.config import transport_from_name
 
-        args = self.args
-        debug = bool(getattr(args, "debug", False))
-        tc = transport_from_name(args.bus, args.hub)  # ValueError subclasses on bad input
+        opts = self.options
+        debug = opts.debug
+        tc = transport_from_name(opts.bus, opts.hub)  # ValueError subclasses on bad input
         if tc.name == "virtual":
             raise ValueError(
                 "the virtual transport works inside one process only; use hub, socketcan, "
                 "udp_multicast or can_config with `ilcrig run`"
             )
-        specs = parse_specs(getattr(args, "inject", None))
+        specs = parse_specs(opts.inject)
         iterations = self._iterations(specs)
         if specs:
             from host.experiment.console import experiment_config
 
-            cfg = experiment_config(args)
+            cfg = experiment_config(opts.namespace())
             check_specs(specs, iterations=cfg.iterations, n_ticks=cfg.n_ticks, hub=tc.needs_hub)
         self.transport_name = tc.name
         if self.host_grace_s is None:
             self.host_grace_s = HOST_GRACE_S * timeout_scale()
-        out_dir, log_dir = make_run_folder(args.out, "run")
+        out_dir, log_dir = make_run_folder(opts.out, "run")
         self.out_dir = out_dir
 
         bus_args = ["--bus", tc.name]
@@ -265,9 +183,7 @@ class RigLauncher(LauncherConsole):
                 if frame_specs
                 else None
             )
-            self.hub = start_hub_process(args.hub, inject, log_dir / "hub.log", bus_time=bus_time_rates(args))
-            self.hub_address = self.hub.address
-            bus_args += ["--hub", str(self.hub_address)]
+            bus_args += ["--hub", self.start_hub(inject, log_dir / "hub.log", bus_time_rates(opts.namespace()))]
         run_tc = transport_from_name(tc.name, self.hub_address) if tc.needs_hub else tc
         self._progress = RunProgress(run_tc)
         self._progress.start()
@@ -277,29 +193,28 @@ class RigLauncher(LauncherConsole):
         outcome = RunOutcome(out_dir, self.children, self._say_err, self._resume_stalled)
         if self.interrupts.signum is not None:
             return self._signal_exit()
-        self._spawn("plant", child_argv("plant", bus_args, debug=debug), log_dir / "plant.log")
+        self.spawn("plant", child_argv("plant", bus_args, debug=debug), log_dir / "plant.log")
         for node in DRIVE_NODE_IDS:
             if self.interrupts.signum is not None:
                 return self._signal_exit()
-            self._spawn(f"drive{node}", child_argv("drive", bus_args, node=node, debug=debug), log_dir / f"drive{node}.log")
+            self.spawn(f"drive{node}", child_argv("drive", bus_args, node=node, debug=debug), log_dir / f"drive{node}.log")
         if self.interrupts.signum is not None:
             return self._signal_exit()
 
         where = f" ({self.hub_address})" if self.hub_address else ""
-        pids = ([f"hub {self.hub.pid}"] if self.hub is not None else []) + [f"{c.name} {c.pid}" for c in self.children]
         self._say_out(
-            f"ilcrig run: transport {tc.name}{where}; processes: {', '.join(pids)}; role logs in {log_dir}; starting host"
+            f"ilcrig run: transport {tc.name}{where}; processes: {self.pids_text()}; role logs in {log_dir}; starting host"
         )
-        host_extra = host_role_args(args) + rig_role_args(args) + ["--out", str(out_dir)]
+        host_extra = host_role_args(opts.namespace()) + rig_role_args(opts.namespace()) + ["--out", str(out_dir)]
         host_batch = False
-        if args.realtime:
-            scheduling = self._schedule_realtime(args)
+        if opts.realtime:
+            scheduling = self._schedule_run()
             host_batch = scheduling.get("host", {}).get("policy") == "SCHED_BATCH"
             host_extra += ["--rt-scheduling", json.dumps(scheduling)]
         disk = [sp for sp in specs if sp.action == "diskfull"]
         if disk:
             host_extra += ["--inject-disk-full", disk[0].text]
-        host = self._spawn(
+        host = self.spawn(
             "host",
             child_argv("host", bus_args, extra=host_extra, debug=debug),
             log_dir / "host.log",
@@ -307,9 +222,7 @@ class RigLauncher(LauncherConsole):
             batch=host_batch,
         )
         logger.info("host pid %d: %s", host.pid, " ".join(host.argv))
-        from host.rig.janitor import start_janitor
-
-        self._janitor = start_janitor(out_dir, host.pid)
+        self.start_janitor(host.pid)
         if any(sp.action in ("kill", "stall", "emcy") for sp in specs):
             from host.rig.inject import ProcessInjector
 
@@ -334,60 +247,23 @@ class RigLauncher(LauncherConsole):
             return None
         from host.experiment.console import experiment_config
 
-        return experiment_config(self.args).iterations
+        return experiment_config(self.options.namespace()).iterations
 
-    def _spawn(
-        self, name: str, argv: list[str], log_path: Path | None, *, stderr_only: bool = False, batch: bool = False
-    ) -> Child:
-        child = spawn(name, argv, log_path, stderr_only=stderr_only, batch=batch)
-        self.children.append(child)
-        return child
-
-    def _schedule_realtime(self, args: argparse.Namespace) -> dict[str, Any]:
-        """A real-time run's scheduling, before the host starts: the lockstep processes (hub,
-        plant, drives) in SCHED_FIFO or, where that is not permitted, in normal scheduling with
-        what an unprivileged process may use (:func:`host.rig.realtime.schedule_lockstep`), the
-        host's policy (:func:`host.rig.fair_scheduling.host_policy`), the idle-poll loops.
+    def _schedule_run(self) -> dict[str, Any]:
+        """A real-time run's scheduling, before the host starts (:meth:`LaunchCore.schedule_realtime`,
+        the host in the tick with ``--ff-transport pdo``), and whether the plant spins.
 
         :return: the scheduling record (``bench.timing.scheduling`` of the summary)
         """
-        without = mechanisms_left_out()
-        lockstep = ({"hub": self.hub.pid} if self.hub is not None else {}) | {c.name: c.pid for c in self.children}
-        priority = DEFAULT_RT_PRIORITY if args.rt_priority is None else args.rt_priority
-        scheduling = schedule_lockstep(lockstep, priority, without)
-        fifo = scheduling["policy"] == "SCHED_FIFO"
-        if not fifo:
-            from host.experiment.console import experiment_config
+        from bus.lockstep_process import mechanisms_left_out
+        from host.experiment.console import experiment_config
+        from host.rig.realtime import scheduling_mechanisms
 
-            scheduling["host"] = host_policy(experiment_config(args).ff_transport == "pdo", without)
-        scheduling["idle_poll"] = self._start_idle_poll(args, fifo, without)
-        scheduling["in_roles"] = {
-            "heap_frozen": "gc" not in without,
-            "timer_slack_ns": FINE_TIMER_SLACK_NS,
-            "plant_spins": fifo or "sleep-wait" in without,
-        }
+        scheduling = self.schedule_realtime(host_in_tick=experiment_config(self.options.namespace()).ff_transport == "pdo")
+        spins = scheduling["policy"] == "SCHED_FIFO" or "sleep-wait" in mechanisms_left_out()
+        scheduling["in_roles"]["plant_spins"] = spins
         scheduling["mechanisms"] = scheduling_mechanisms(scheduling)
         return scheduling
-
-    def _start_idle_poll(self, args: argparse.Namespace, fifo: bool, without: frozenset[str]) -> dict[str, Any]:
-        """Keep the CPUs awake for a real-time run (host/rig/idle_poll.py), unless ``--no-idle-poll``
-        or the lockstep processes are in normal scheduling (the loops would compete with them:
-        :mod:`host.rig.idle_poll`, "Only beside SCHED_FIFO").
-
-        :return: for the summary's scheduling record: ``{"loops": n}``, or ``{"loops": 0, "reason": ...}``
-        """
-        if getattr(args, "no_idle_poll", False):
-            return {"loops": 0, "reason": "--no-idle-poll"}
-        if not fifo and "idle-poll-fifo-only" not in without:
-            return {"loops": 0, "reason": "not beside normal scheduling"}
-        if not idle_poll_available():
-            return {"loops": 0, "reason": "this system has no SCHED_IDLE"}
-        try:
-            self._idle_pollers = IdlePollers(autogroup_nice=None if "idle-nice" in without else AUTOGROUP_NICE)
-        except OSError as err:
-            logger.warning("cannot start the idle-poll loops: %s", err)
-            return {"loops": 0, "reason": f"could not start them ({err.strerror or err})"}
-        return {"loops": len(self._idle_pollers.pids)}
 
     def _pid_of(self, name: str) -> int | None:
         """The pid of a running role or of the hub (None: not running), for the injector."""
@@ -414,40 +290,20 @@ class RigLauncher(LauncherConsole):
         outcome.mark_interrupted(self.interrupts.name, self._progress.where() if self._progress is not None else None)
         return exit_code
 
-    def _shutdown(self) -> None:
-        """Stop the idle-poll loops and the injector, terminate every child, stop the hub."""
-        self.interrupts.stopping = True
-        try:
-            if self._idle_pollers is not None:
-                self._idle_pollers.stop()
-            if self._injector is not None:
-                self._injector.stop()  # resumes stalled processes
-            if self._progress is not None:
-                self._progress.stop()
-            terminate(self.children, self.grace_s, lambda: self.interrupts.hurry)
-        finally:
-            try:
-                if self.hub is not None:
-                    try:
-                        self.hub.stop()
-                    finally:
-                        self.hub = None
-            finally:
-                if self._janitor is not None:
-                    if self.out_dir is not None:
-                        from host.rig.janitor import settle_run_folder
-
-                        settle_run_folder(self.out_dir)  # every path: also a launch that failed half way
-                    self._janitor.done()
-                    self._janitor = None
+    def _stop_watchers(self) -> None:
+        """The injector (it resumes stalled processes) and the run's progress."""
+        if self._injector is not None:
+            self._injector.stop()
+        if self._progress is not None:
+            self._progress.stop()
 
 
-def launch_rig(args: argparse.Namespace) -> int:
+def launch_rig(options: RunOptions) -> int:
     """``ilcrig run``: check everything (:func:`preflight`), then launch hub (if needed), plant,
     four drives and the host; return the run's exit code after every process is gone (see the
     module docstring).
 
     :raises ValueError: bad input (reported by the CLI in one line, exit code 2)
     """
-    preflight(args)
-    return RigLauncher(args).run()
+    preflight(options)
+    return RigLauncher(options).run()

@@ -2,12 +2,12 @@
 
 This module owns
 
-* :func:`spawn` — start one role in its own session (so its whole process group can be
-  signalled) with ``PR_SET_PDEATHSIG`` = SIGKILL (it dies with the launcher), stdin closed and its
-  output in its log file (:class:`Child`);
+* :func:`spawn` — start one role with the lifetime policy of :func:`bus.processes.spawn_process`
+  (its own session, so its whole process group can be signalled; ``PR_SET_PDEATHSIG`` = SIGKILL,
+  so it dies with the launcher; stdin closed) and its output in its log file (:class:`Child`);
 * :class:`Death` — a process that ended while the host ran, with how and when it was noticed;
-* :func:`start_hub_process` — the bus hub (:func:`bus.transports.hub.process.start_hub`) with
-  SIGINT/SIGHUP blocked (a terminal's Ctrl-C reaches the launcher only);
+* :func:`start_hub_process` — the bus hub (:func:`bus.transports.hub.process.start_hub`, a
+  session of its own: a terminal's Ctrl-C reaches the launcher only), its stderr in its log;
 * :func:`terminate` — SIGTERM every child's process group, wait a grace period, SIGKILL, reap;
 * small helpers: an exit status in words (:func:`describe_status`), the last lines of a log
   (:func:`tail`), a role's node id (:func:`node_id_of`), the launcher's CPU time (:func:`cpu_s`).
@@ -15,15 +15,12 @@ This module owns
 
 from __future__ import annotations
 
-import contextlib
-import ctypes
 import logging
 import os
 import resource
 import shlex
 import signal
 import subprocess
-import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -32,6 +29,7 @@ from typing import Any
 
 from bus.cia301.nmt import HOST_NODE_ID
 from bus.plant_objects import DEFAULT_PLANT_NODE_ID
+from bus.processes import killpg, spawn_process
 
 logger = logging.getLogger(__name__)
 
@@ -48,10 +46,6 @@ __all__ = [
     "tail",
     "terminate",
 ]
-
-_PR_SET_PDEATHSIG = 1
-#: signals blocked while the hub starts: a terminal's Ctrl-C must reach the launcher only
-_HUB_BLOCKED_SIGNALS = frozenset({signal.SIGINT, signal.SIGHUP})
 
 
 class LaunchError(RuntimeError):
@@ -136,48 +130,6 @@ def cpu_s() -> float:
     return ru.ru_utime + ru.ru_stime
 
 
-def killpg(pgid: int, signum: int) -> None:
-    """Signal a child's process group (its own session); the child alone if that fails."""
-    try:
-        os.killpg(pgid, signum)
-    except ProcessLookupError:
-        pass
-    except PermissionError:  # pragma: no cover - setsid failed: pgid is not ours
-        with contextlib.suppress(ProcessLookupError):
-            os.kill(pgid, signum)
-
-
-def _make_preexec(*, batch: bool = False) -> Callable[[], None] | None:
-    """``preexec_fn`` setting PR_SET_PDEATHSIG = SIGKILL (None where prctl is unavailable) and,
-    with ``batch``, the scheduling policy ``SCHED_BATCH`` (any process may take it).
-
-    The libc function is looked up here, in the parent, so the child only calls it. If the
-    parent already died between fork and prctl, the child kills itself.
-    """
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        prctl = ctypes.CDLL(None, use_errno=True).prctl
-    except (OSError, AttributeError):  # pragma: no cover - glibc/musl always have prctl
-        logger.warning("prctl unavailable: children will not die with a SIGKILLed launcher")
-        return None
-    prctl.restype = ctypes.c_int
-    prctl.argtypes = [ctypes.c_int, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong]
-    parent = os.getpid()
-    sigkill = int(signal.SIGKILL)
-
-    batch_policy = getattr(os, "SCHED_BATCH", None) if batch else None
-
-    def preexec() -> None:
-        if batch_policy is not None:
-            os.sched_setscheduler(0, batch_policy, os.sched_param(0))
-        prctl(_PR_SET_PDEATHSIG, sigkill, 0, 0, 0)
-        if os.getppid() != parent:  # the launcher died before prctl took effect
-            os.kill(os.getpid(), sigkill)
-
-    return preexec
-
-
 def spawn(name: str, argv: list[str], log_path: Path | None, *, stderr_only: bool = False, batch: bool = False) -> Child:
     """Start one role (see the module docstring).
 
@@ -189,14 +141,11 @@ def spawn(name: str, argv: list[str], log_path: Path | None, *, stderr_only: boo
     """
     log = open(log_path, "ab") if log_path is not None else None  # noqa: SIM115 - closed below
     try:
-        proc = subprocess.Popen(
+        proc = spawn_process(
             argv,
-            stdin=subprocess.DEVNULL,
             stdout=None if stderr_only else log,
             stderr=log if stderr_only else (subprocess.STDOUT if log is not None else None),
-            start_new_session=True,
-            preexec_fn=_make_preexec(batch=batch),
-            close_fds=True,
+            batch=batch,
         )
     except OSError as err:
         raise LaunchError(f"cannot start {name} ({shlex.join(argv[:4])} …): {err}") from err
@@ -222,10 +171,8 @@ def start_hub_process(
     from bus.transports.hub.process import start_hub
     from bus.transports.hub.wire import HubError
 
-    # The hub stays in the launcher's process group (start_hub's Popen); with SIGINT/SIGHUP
-    # blocked across fork+exec (the signal mask is inherited), a terminal Ctrl-C reaches only
-    # the launcher, and the hub lives until the roles are stopped (then stdin EOF stops it).
-    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, _HUB_BLOCKED_SIGNALS)
+    # The hub is in a session of its own (bus.processes.spawn_process): a terminal Ctrl-C reaches
+    # only the launcher, and the hub lives until the roles are stopped (then stdin EOF stops it).
     log = open(log_path, "ab") if log_path is not None else None  # noqa: SIM115 - closed below
     try:
         hub = start_hub(address, inject=inject, stderr=log, bus_time=bus_time)
@@ -234,7 +181,6 @@ def start_hub_process(
             raise
         raise LaunchError(f"cannot start the bus hub{f' on {address}' if address else ''}: {err}") from err
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)  # a pending Ctrl-C is handled now
         if log is not None:
             log.close()  # the hub has its own descriptor
     logger.info("hub pid %d on %s", hub.pid, hub.address)

@@ -12,9 +12,11 @@ SIGTERM (exit 130 / 143) or a fault of one of its own processes (exit 3, one lin
 * the plant (``ilcrig plant --robot sync|realtime``: one control period per SYNC,
   :mod:`plant.plant_node_robot`; its period trace ``trace.bin`` and its session summary
   ``plant.json``) and the drives ``ilcrig drive --node 1..4 --lockstep`` (drives of a SYNC-stepped
-  plant; ``--param-dir`` passed on), started and stopped with
-  :mod:`host.rig.processes` (own sessions, dying with the launcher, reaped on every path);
-  with ``--realtime`` also SCHED_FIFO and the idle-poll loops, as ``ilcrig run --realtime``;
+  plant; ``--param-dir`` passed on), started and stopped by the launch core
+  (:class:`host.rig.launch_core.LaunchCore`: own sessions, dying with the launcher, reaped on every
+  path); with ``--realtime`` the scheduling of ``ilcrig run --realtime``: SCHED_FIFO where
+  permitted, else the fair-scheduling fallback (:mod:`host.rig.fair_scheduling`), and the
+  idle-poll loops beside SCHED_FIFO;
 * two passive channel monitors (:class:`host.rig.monitor.ChannelMonitor`) write the candump logs
   ``fieldbus.log`` and ``io.log`` and feed :class:`host.rig.robot_watch.RobotBusWatch` (boot-ups:
   the robot is announced once all five nodes booted; SYNCs; EMCYs; with ``--view`` the live view
@@ -28,26 +30,25 @@ stepped, SYNCs seen, late / missing SYNCs, overruns, faults — and what the mon
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import os
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
+from bus.atomic import atomic_write
 from bus.exit_codes import EXIT_CHILD_FAILED, EXIT_FAULT
 from bus.objects import DRIVE_EDS_PATH, DRIVE_NODE_IDS
 from bus.plant_objects import DEFAULT_PLANT_NODE_ID, PLANT_EDS_PATH
 from bus.transports.config import FIELDBUS, HUB_INTERFACE, TransportConfig
 from bus.transports.config import IO as IO_CHANNEL
 from bus.units import timeout_scale
-from host.rig.idle_poll import IdlePollers, idle_poll_available
-from host.rig.interrupts import Interrupts
-from host.rig.launcher import TERMINATE_GRACE_S, LauncherConsole, make_run_folder
+from host.rig.launch_core import LaunchCore, make_run_folder
 from host.rig.monitor import ChannelMonitor
-from host.rig.processes import Child, Death, LaunchError, describe_status, spawn, start_hub_process, terminate
-from host.rig.realtime import DEFAULT_RT_PRIORITY, raise_lockstep_priority
+from host.rig.options import RobotOptions
+from host.rig.processes import Death, LaunchError, describe_status
 from host.rig.robot_watch import RobotBusWatch
 from host.rig.role_commands import child_argv
 
@@ -64,11 +65,11 @@ SUMMARY_SCHEMA = "ilcrig.robot/1"
 DEFAULT_TS_S: float = 1e-3
 
 
-class RobotLauncher(LauncherConsole):
+@dataclass(eq=False)
+class RobotLauncher(LaunchCore):
     """Starts, announces, watches and stops the robot (see the module docstring).
 
-    :param args: the parsed ``ilcrig robot`` Namespace (``bus``, ``hub``, ``out``, ``realtime``,
-        ``rt_priority``, ``no_idle_poll``, ``param_dir``, ``view``, ``debug``)
+    :param options: the robot's options
     :param stdout: stream of the announcement and the closing line (default ``sys.stdout``)
     :param stderr: stream of the fault / error line (default ``sys.stderr``)
     :param grace_s: SIGTERM → SIGKILL grace period, s
@@ -76,96 +77,56 @@ class RobotLauncher(LauncherConsole):
     :ivar out_dir: the run folder
     """
 
-    def __init__(
-        self,
-        args: argparse.Namespace,
-        stdout: IO[str] | None = None,
-        stderr: IO[str] | None = None,
-        grace_s: float = TERMINATE_GRACE_S,
-    ) -> None:
-        self.args = args
-        self.stdout = stdout
-        self.stderr = stderr
-        self.grace_s = grace_s
-        self.children: list[Child] = []
-        self.hub: Any = None
-        self.hub_address: str | None = None
-        self.transport: TransportConfig | None = None
-        self.out_dir: Path | None = None
-        self.interrupts = Interrupts()
-        self.watch = RobotBusWatch()
-        self.monitors: list[ChannelMonitor] = []
-        self.deaths: list[Death] = []
-        self.live: Any = None
-        self._idle_pollers: IdlePollers | None = None
-        self._t0 = time.time()
-        self._end: dict[str, Any] = {"reason": "starting"}
-        self._scheduling: dict[str, Any] | None = None
+    options: RobotOptions
+    transport: TransportConfig | None = field(default=None, init=False)
+    watch: RobotBusWatch = field(default_factory=RobotBusWatch, init=False)
+    monitors: list[ChannelMonitor] = field(default_factory=list, init=False)
+    deaths: list[Death] = field(default_factory=list, init=False)
+    live: Any = field(default=None, init=False)
+    _t0: float = field(default_factory=time.time, init=False, repr=False)
+    _end: dict[str, Any] = field(default_factory=lambda: {"reason": "starting"}, init=False, repr=False)
+    _scheduling: dict[str, Any] | None = field(default=None, init=False, repr=False)
 
     # ------------------------------------------------------------------ run
 
-    def run(self) -> int:
-        """Launch, announce, watch, clean up; the exit code (module docstring)."""
-        self.interrupts.install()
-        code = EXIT_CHILD_FAILED
-        try:
-            try:
-                code = self._launch_and_watch()
-            except LaunchError as err:
-                self._end = {"reason": "launch failed", "error": str(err)}
-                self._say_err(f"ilcrig: error: {err}")
-                code = EXIT_CHILD_FAILED
-            finally:
-                self._shutdown()
-                self._write_summary(code)
-        finally:
-            self.interrupts.restore()
-        return code
+    def _launch_failed(self, err: LaunchError) -> None:
+        self._end = {"reason": "launch failed", "error": str(err)}
 
     def _launch_and_watch(self) -> int:
         from bus.transports.config import transport_from_name
 
-        args = self.args
-        debug = bool(getattr(args, "debug", False))
-        tc = transport_from_name(args.bus, args.hub, bool(getattr(args, "allow_remote", False)))
-        out, log_dir = make_run_folder(args.out or None, "robot")
+        opts = self.options
+        debug = opts.debug
+        tc = transport_from_name(opts.bus, opts.hub, opts.allow_remote)
+        out, log_dir = make_run_folder(opts.out or None, "robot")
         self.out_dir = out
         bus_args = ["--bus", tc.name]
         if tc.needs_hub:
-            self.hub = start_hub_process(args.hub, None, log_dir / "hub.log")
-            self.hub_address = self.hub.address
+            bus_args += ["--hub", self.start_hub(None, log_dir / "hub.log")]
             tc = transport_from_name(tc.name, self.hub_address)
-            bus_args += ["--hub", str(self.hub_address)]
         self.transport = tc
-        if args.view:
+        if opts.view:
             self._start_view()
         self._open_monitors(tc, out)
         if self.interrupts.signum is not None:
             return self._interrupted()
-        mode = "realtime" if args.realtime else "sync"
+        mode = "realtime" if opts.realtime else "sync"
         plant_extra = ["--robot", mode, "--trace", str(out / "trace.bin"), "--summary", str(out / "plant.json")]
-        self._spawn("plant", child_argv("plant", bus_args, extra=plant_extra, debug=debug), log_dir / "plant.log")
+        self.spawn("plant", child_argv("plant", bus_args, extra=plant_extra, debug=debug), log_dir / "plant.log")
         # drives of a SYNC-stepped plant: a SYNC's TPDOs carry its control cycle (docs/robot.md, Time)
-        param_dir = getattr(args, "param_dir", None)
+        param_dir = opts.param_dir
         drive_extra = ["--lockstep"] + (["--param-dir", str(Path(param_dir).resolve())] if param_dir else [])
         for node in DRIVE_NODE_IDS:
             argv = child_argv("drive", bus_args, node=node, extra=drive_extra, debug=debug)
-            self._spawn(f"drive{node}", argv, log_dir / f"drive{node}.log")
+            self.spawn(f"drive{node}", argv, log_dir / f"drive{node}.log")
         code = self._wait_booted()
         if code is not None:
             return code
-        if args.realtime:
-            lockstep = ({"hub": self.hub.pid} if self.hub is not None else {}) | {c.name: c.pid for c in self.children}
-            priority = DEFAULT_RT_PRIORITY if args.rt_priority is None else args.rt_priority
-            self._scheduling = raise_lockstep_priority(lockstep, priority) | {"idle_poll": self._start_idle_poll()}
+        if opts.realtime:
+            self._scheduling = self.schedule_realtime()  # no host: SCHED_FIFO, else the fair-scheduling fallback
         self._announce(tc, mode)
         self._end = {"reason": "running"}
         return self._watch()
-
-    def _spawn(self, name: str, argv: list[str], log_path: Path) -> Child:
-        child = spawn(name, argv, log_path)
-        self.children.append(child)
-        return child
 
     def _open_monitors(self, tc: TransportConfig, out: Path) -> None:
         """The candump logs and the watch, joined before the nodes start (their boot-ups are seen)."""
@@ -184,17 +145,6 @@ class RobotLauncher(LauncherConsole):
         self.watch.on_period = self.live.on_period
         self.watch.follow_targets(self.live.add_targets)
         self._say_out(live.open_viewer())
-
-    def _start_idle_poll(self) -> dict[str, Any]:
-        if getattr(self.args, "no_idle_poll", False):
-            return {"loops": 0, "reason": "--no-idle-poll"}
-        if not idle_poll_available():
-            return {"loops": 0, "reason": "this system has no SCHED_IDLE"}
-        try:
-            self._idle_pollers = IdlePollers()
-        except OSError as err:
-            return {"loops": 0, "reason": f"could not start them ({err.strerror or err})"}
-        return {"loops": len(self._idle_pollers.pids)}
 
     def _wait_booted(self) -> int | None:
         """Until all five nodes booted; an exit code if a signal, a death or the timeout came first."""
@@ -228,14 +178,13 @@ class RobotLauncher(LauncherConsole):
             if mode == "realtime"
             else "one control period per SYNC (COB-ID 0x080), deterministic"
         )
-        pids = ([f"hub {self.hub.pid}"] if self.hub is not None else []) + [f"{c.name} {c.pid}" for c in self.children]
         self._say_out(
             f"ilcrig robot: ready: drives = nodes {', '.join(map(str, DRIVE_NODE_IDS))} (joints 1-4), "
             f"plant = node {DEFAULT_PLANT_NODE_ID}; transport {tc.name}\n"
             + where
             + f"  EDS: drives {DRIVE_EDS_PATH}, plant {PLANT_EDS_PATH}\n"
             f"  time: {time_mode}; the robot stands at its home pose, drives in Switch on disabled, brakes closed\n"
-            f"  run folder {self.out_dir} (processes: {', '.join(pids)}); Ctrl-C to stop"
+            f"  run folder {self.out_dir} (processes: {self.pids_text()}); Ctrl-C to stop"
         )
 
     def _watch(self) -> int:
@@ -280,25 +229,21 @@ class RobotLauncher(LauncherConsole):
 
     # ------------------------------------------------------------------ shutdown
 
-    def _shutdown(self) -> None:
-        """Idle-poll loops, the processes (SIGTERM: the plant writes its summary), the hub, the
-        monitors and the live view."""
-        self.interrupts.stopping = True
+    def _children_ended(self) -> None:
+        for m in self.monitors:
+            m.catch_up(timeout_s=1.0)
+
+    def _close_watchers(self) -> None:
+        """The monitors (before the hub: its end is not a failure of theirs) and the live view."""
         try:
-            if self._idle_pollers is not None:
-                self._idle_pollers.stop()
-            terminate(self.children, self.grace_s, lambda: self.interrupts.hurry)
             for m in self.monitors:
-                m.catch_up(timeout_s=1.0)
+                m.close()
         finally:
-            try:
-                for m in self.monitors:  # before the hub: its end is not a failure of theirs
-                    m.close()
-                if self.live is not None:
-                    self.live.close()
-            finally:
-                if self.hub is not None:
-                    self.hub.stop()
+            if self.live is not None:
+                self.live.close()
+
+    def _closing(self, code: int) -> None:
+        self._write_summary(code)
 
     def _write_summary(self, code: int) -> None:
         """``summary.json`` of the session (module docstring); the closing line on stdout."""
@@ -318,7 +263,7 @@ class RobotLauncher(LauncherConsole):
             "end": self._end,
             "started": self._t0,
             "duration_s": time.time() - self._t0,
-            "mode": "realtime" if self.args.realtime else "sync",
+            "mode": "realtime" if self.options.realtime else "sync",
             "transport": self.transport.as_dict() if self.transport is not None else None,
             "processes": {c.name: c.pid for c in self.children} | ({"hub": self.hub_address} if self.hub_address else {}),
             "deaths": [{"name": d.name, "pid": d.pid, "status": d.status} for d in self.deaths],
@@ -329,10 +274,8 @@ class RobotLauncher(LauncherConsole):
             "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
         }
         path = out / "summary.json"
-        tmp = out / "summary.json.tmp"
         try:
-            tmp.write_text(json.dumps(summary, indent=2, default=str) + "\n")
-            tmp.replace(path)
+            atomic_write(path, json.dumps(summary, indent=2, default=str) + "\n", fsync=True)
         except OSError as err:
             self._say_err(f"ilcrig: error: cannot write {path}: {err.strerror or err}")
             return
@@ -352,22 +295,22 @@ class RobotLauncher(LauncherConsole):
             self._say_out(f"ilcrig robot: the plant left no session summary; summary: {path}")
 
 
-def launch_robot(args: argparse.Namespace) -> int:
+def launch_robot(options: RobotOptions) -> int:
     """``ilcrig robot``: check the options, then run the robot until a signal or a fault (the
     module docstring); returns the exit code.
 
     :raises ValueError: bad input (the CLI's one line, exit code 2), before anything starts
     """
-    if getattr(args, "rt_priority", None) is not None and not args.realtime:
-        raise ValueError(f"--rt-priority {args.rt_priority}: the priority of a real-time robot; add --realtime")
-    if getattr(args, "no_idle_poll", False) and not args.realtime:
+    if options.rt_priority is not None and not options.realtime:
+        raise ValueError(f"--rt-priority {options.rt_priority}: the priority of a real-time robot; add --realtime")
+    if options.no_idle_poll and not options.realtime:
         raise ValueError("--no-idle-poll: the CPUs are kept awake only in real time; add --realtime")
-    for option, value in (("--out", args.out), ("--param-dir", getattr(args, "param_dir", None))):
+    for option, value in (("--out", options.out), ("--param-dir", options.param_dir)):
         if value and Path(value).exists() and not Path(value).is_dir():
             raise ValueError(f"{option} {value}: not a folder")
     from bus.transports.config import transport_from_name, vcan_available
 
-    tc = transport_from_name(args.bus, args.hub, bool(getattr(args, "allow_remote", False)))
+    tc = transport_from_name(options.bus, options.hub, options.allow_remote)
     if tc.name == "virtual":
         raise ValueError("--bus virtual: the virtual transport works inside one process only; use hub or socketcan")
     if tc.name == "socketcan" and not vcan_available((tc.fieldbus.channel or "", tc.io.channel or "")):
@@ -375,8 +318,8 @@ def launch_robot(args: argparse.Namespace) -> int:
             f"--bus socketcan: {tc.fieldbus.channel} / {tc.io.channel} do not exist here "
             "(scripts/vcan-setup; or the default transport, the hub)"
         )
-    if not getattr(args, "debug", False):
+    if not options.debug:
         # a monitor whose bus ends with a process of the robot is part of that fault, which the
         # launcher reports in its one line
         logging.getLogger("host.rig.monitor").setLevel(logging.ERROR)
-    return RobotLauncher(args).run()
+    return RobotLauncher(options).run()

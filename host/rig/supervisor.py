@@ -21,6 +21,7 @@ import select
 import signal
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +36,7 @@ __all__ = ["POLL_S", "Supervisor"]
 POLL_S: float = 0.05
 
 
+@dataclass(eq=False)
 class Supervisor:
     """Watches the processes of one run (see the module docstring).
 
@@ -50,27 +52,19 @@ class Supervisor:
     :ivar watch_wall_s: wall time of the watch loop, s
     """
 
-    def __init__(
-        self,
-        children: list[Child],
-        hub: Any,
-        hub_log: Path | None,
-        host_grace_s: float,
-        interrupts: Interrupts,
-        where: Callable[[], Any] | None = None,
-    ) -> None:
-        self.children = children
-        self.hub = hub
-        self.hub_log = hub_log
-        self.host_grace_s = host_grace_s
-        self.interrupts = interrupts
-        self.where = where
-        self.deaths: list[Death] = []
-        self.host_stopped = False
-        self.watch_cpu_s = 0.0
-        self.watch_wall_s = 0.0
-        self._pidfds: dict[int, int] = {}
-        self._since = time.monotonic()  # the start of the wait a process end is noticed in
+    children: list[Child]
+    hub: Any
+    hub_log: Path | None
+    host_grace_s: float
+    interrupts: Interrupts
+    where: Callable[[], Any] | None = None
+    deaths: list[Death] = field(default_factory=list, init=False)
+    host_stopped: bool = field(default=False, init=False)
+    watch_cpu_s: float = field(default=0.0, init=False)
+    watch_wall_s: float = field(default=0.0, init=False)
+    _pidfds: dict[int, int] = field(default_factory=dict, init=False, repr=False)
+    #: the start of the wait a process end is noticed in
+    _since: float = field(default_factory=time.monotonic, init=False, repr=False)
 
     def watch(self, host: Child) -> int:
         """Until the host ends (its exit code) or a signal comes (then -1). A process that ends

@@ -3,7 +3,8 @@
 This module owns starting a hub in a child process (``python -m bus.transports.hub.cli``),
 waiting until it reports ready (:data:`READY_PREFIX` and its addresses on stdout), asking it for
 its counters, and stopping and reaping it. The child exits when its stdin reaches EOF, so no hub
-outlives the process that started it.
+outlives the process that started it. The child is started with :func:`bus.processes.spawn_process`
+(a session of its own; stdin EOF is its death signal).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import weakref
 from collections.abc import Mapping, Sequence
 from typing import Any, Self
 
+from bus.processes import spawn_process
 from bus.transports.hub.addresses import parse_address
 from bus.transports.hub.bus_time import checked_bus_time
 from bus.transports.hub.stats import HubChannelStats, query_hub_stats
@@ -149,7 +151,9 @@ def start_hub(
         cmd += ["--bus-time", f"{name}={rate}"]
     if tmpdir is not None:
         cmd += ["--remove-dir", tmpdir]  # the hub removes it when it exits, even if this process was killed
-    proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=stderr)
+    # its own session (a terminal's Ctrl-C is its parent's); its death signal is stdin EOF, not
+    # PR_SET_PDEATHSIG: it removes its socket folder on the way out
+    proc = spawn_process(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=stderr, death_signal=None)
     assert proc.stdout is not None
     deadline = time.monotonic() + timeout_s
     line = b""
