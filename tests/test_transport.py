@@ -137,19 +137,23 @@ def test_a_transport_this_machine_cannot_carry_is_refused_before_anything_starts
         (socketcan_transport("nocan7", "nocan8"), {}, "--bus socketcan: this machine has no CAN interface nocan7, nocan8"),
         (udp_multicast_transport(), {}, "--bus udp_multicast: only inside a private network namespace"),
         (socketcan_transport("nocan7", "nocan8"), {"hub_given": True}, "--hub applies to --bus hub"),
-        (hub_transport(f"unix:{tmp_path}/missing/hub.sock"), {}, f"the folder {tmp_path}/missing does not exist"),
+        (
+            hub_transport(f"unix:{tmp_path}/missing/hub.sock"),
+            {"hub_given": True},
+            f"the folder {tmp_path}/missing does not exist",
+        ),
     ]
     for tc, kw, text in cases:
         with pytest.raises(TransportConfigError) as exc:
             tc.check_usable(**kw)
         assert text in str(exc.value) and "\n" not in str(exc.value)
-    hub_transport(f"unix:{tmp_path}/hub.sock").check_usable()  # a folder of this user's: fine
+    hub_transport(f"unix:{tmp_path}/hub.sock").check_usable(hub_given=True)  # a folder of this user's: fine
     if os.getuid() == 0:  # another user's folder (root can make one)
         theirs = tmp_path / "theirs"
         theirs.mkdir()
         os.chown(theirs, 65534, 65534)
         with pytest.raises(TransportConfigError, match="is not yours"):
-            hub_transport(f"unix:{theirs}/hub.sock").check_usable()
+            hub_transport(f"unix:{theirs}/hub.sock").check_usable(hub_given=True)
 
 
 def test_hub_transport_refuses_non_loopback() -> None:

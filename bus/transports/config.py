@@ -48,6 +48,7 @@ import can
 
 from bus.errors import InputError
 from bus.transports.hub.addresses import default_hub_address, parse_address
+from bus.transports.hub.owner import check_socket_file
 from bus.transports.udp_multicast import enlarge_receive_buffer
 
 logger = logging.getLogger(__name__)
@@ -258,9 +259,11 @@ class TransportConfig:
             raise TransportConfigError(
                 "--bus udp_multicast: only inside a private network namespace (unshare -rn); use --bus hub"
             )
-        if self.needs_hub and self.hub_address is not None:
+        if self.needs_hub and self.hub_address is not None and hub_given:  # the default folder is made by the launcher
             addr = parse_address(self.hub_address, allow_remote=True)
             if addr.kind == "unix":
+                if os.path.lexists(addr.path):
+                    check_socket_file(addr.path)  # another user's socket, a link or a file: refused
                 folder = Path(addr.path).absolute().parent
                 if not folder.exists():
                     raise TransportConfigError(f"--hub {self.hub_address}: the folder {folder} does not exist")

@@ -83,6 +83,20 @@ def make_run_folder(out: str | None, kind: str) -> tuple[Path, Path]:
     return out_dir, log_dir
 
 
+def check_transport(options: RigOptions) -> None:
+    """The transport of ``ilcrig run`` / ``ilcrig robot`` checked before any process starts
+    (:meth:`bus.transports.config.TransportConfig.check_usable`: one that this machine cannot
+    carry between processes, conflicting options, a hub socket folder that is missing or not the
+    user's, a socket file there that is another user's).
+
+    :raises bus.errors.InputError: one line naming the option
+    """
+    from bus.transports.config import transport_from_name
+
+    tc = transport_from_name(options.bus, options.hub, options.allow_remote)
+    tc.check_usable(hub_given=options.hub is not None)
+
+
 @dataclass(eq=False)
 class LaunchCore(LauncherConsole):
     """What ``ilcrig run`` and ``ilcrig robot`` share (module docstring).

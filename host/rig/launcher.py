@@ -58,7 +58,7 @@ from typing import Any
 from bus.objects import DRIVE_NODE_IDS
 from bus.transports.fault_inject import FRAME_ACTIONS, FaultSpec, check_specs, parse_specs
 from bus.units import timeout_scale
-from host.rig.launch_core import LaunchCore, make_run_folder
+from host.rig.launch_core import LaunchCore, check_transport, make_run_folder
 from host.rig.options import RunOptions
 from host.rig.processes import Child, Death
 from host.rig.role_commands import bus_time_rates, child_argv, host_role_args, rig_role_args
@@ -93,35 +93,17 @@ def preflight(options: RunOptions) -> list[FaultSpec]:
     if options.out is not None:
         check_out_dir(options.out, iterations=cfg.iterations, n_ticks=cfg.n_ticks, create=False)
     check_specs(specs, iterations=cfg.iterations, n_ticks=cfg.n_ticks, hub=options.bus in ("hub", "auto"))
-    _check_hub_path(options.hub)
     if options.bus_time and options.bus not in ("hub", "auto"):
         raise ValueError(f"--bus-time: bus time is kept by the hub; the transport {options.bus} has none: use --bus hub")
     if options.rt_priority is not None and not options.realtime:
         raise ValueError(f"--rt-priority {options.rt_priority}: the priority of a real-time run; add --realtime")
     if options.no_idle_poll and not options.realtime:
         raise ValueError("--no-idle-poll: the CPUs are kept awake only in a real-time run; add --realtime")
+    check_transport(options)
     from host.experiment.plan import prepare
 
     prepare(cfg, rig=True)
     return specs
-
-
-def _check_hub_path(address: str | None) -> None:
-    """``--hub unix:PATH`` where another user's socket (or a link, a file) is: refused now, in one
-    line (the hub would refuse it too, but only in its log).
-
-    :raises HubOwnerError: (a ValueError) naming the path and its owner
-    """
-    if not address:
-        return
-    import os
-
-    from bus.transports.hub.addresses import parse_address
-    from bus.transports.hub.owner import check_socket_file
-
-    addr = parse_address(address, allow_remote=True)
-    if addr.kind == "unix" and os.path.lexists(addr.path):
-        check_socket_file(addr.path)
 
 
 @dataclass(eq=False)
@@ -156,12 +138,7 @@ class RigLauncher(LaunchCore):
 
         opts = self.options
         debug = opts.debug
-        tc = transport_from_name(opts.bus, opts.hub)  # ValueError subclasses on bad input
-        if tc.name == "virtual":
-            raise ValueError(
-                "the virtual transport works inside one process only; use hub, socketcan, "
-                "udp_multicast or can_config with `ilcrig run`"
-            )
+        tc = transport_from_name(opts.bus, opts.hub, opts.allow_remote)  # checked in preflight (check_transport)
         specs = parse_specs(opts.inject)
         iterations = self._iterations(specs)
         if specs:

@@ -45,7 +45,7 @@ from bus.plant_objects import DEFAULT_PLANT_NODE_ID, PLANT_EDS_PATH
 from bus.transports.config import FIELDBUS, HUB_INTERFACE, TransportConfig
 from bus.transports.config import IO as IO_CHANNEL
 from bus.units import timeout_scale
-from host.rig.launch_core import LaunchCore, make_run_folder
+from host.rig.launch_core import LaunchCore, check_transport, make_run_folder
 from host.rig.monitor import ChannelMonitor
 from host.rig.options import RobotOptions
 from host.rig.processes import Death, LaunchError, describe_status
@@ -308,16 +308,7 @@ def launch_robot(options: RobotOptions) -> int:
     for option, value in (("--out", options.out), ("--param-dir", options.param_dir)):
         if value and Path(value).exists() and not Path(value).is_dir():
             raise ValueError(f"{option} {value}: not a folder")
-    from bus.transports.config import transport_from_name, vcan_available
-
-    tc = transport_from_name(options.bus, options.hub, options.allow_remote)
-    if tc.name == "virtual":
-        raise ValueError("--bus virtual: the virtual transport works inside one process only; use hub or socketcan")
-    if tc.name == "socketcan" and not vcan_available((tc.fieldbus.channel or "", tc.io.channel or "")):
-        raise ValueError(
-            f"--bus socketcan: {tc.fieldbus.channel} / {tc.io.channel} do not exist here "
-            "(scripts/vcan-setup; or the default transport, the hub)"
-        )
+    check_transport(options)
     if not options.debug:
         # a monitor whose bus ends with a process of the robot is part of that fault, which the
         # launcher reports in its one line
