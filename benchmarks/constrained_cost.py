@@ -37,8 +37,9 @@ def measure(n: int) -> dict[str, float]:
     from host.learning.gains import GainSpec, resolve_gains
     from host.learning.model import ClosedLoopModel
     from host.learning.norm_optimal import NormOptimalStep
+    from host.planning.joint_reference import joint_reference
     from host.planning.paths import resolve_path
-    from host.planning.trajectory import joint_reference, plan_task
+    from host.planning.task_plan import plan_task
     from ilcrig.laws.constrained import ConstrainedStep
     from plant.dynamics import inverse_dynamics, mass_matrix
     from plant.params import nominal_mass_model

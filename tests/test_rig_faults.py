@@ -18,8 +18,8 @@ from bus.cia301.nmt import HeartbeatReport, NmtCommand, NmtState, heartbeat_cob_
 from bus.objects import DRIVE_EDS_PATH
 from bus.plant_objects import PLANT_EDS_PATH, PlantFault
 from bus.transports.config import FIELDBUS, virtual_transport
+from host.experiment.bench import TrialFault
 from host.experiment.faults import FaultKind, FaultRecord
-from host.experiment.trials import TrialFault
 from host.rig.bus_accounting import BusTimeAccounting
 from host.rig.channels import RigChannels
 from host.rig.fault_classify import (

@@ -26,7 +26,8 @@ from bus.objects import RATED_TORQUE_MNM
 from host.experiment.config import build_config
 from host.experiment.inprocess import InProcessBench
 from host.experiment.plan import prepare
-from host.experiment.trials import ExperimentResult, run_experiment
+from host.experiment.trial_loop import run_experiment
+from host.experiment.trial_state import ExperimentResult
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 

@@ -45,8 +45,11 @@ from host.learning.model import ClosedLoopModel
 from host.learning.names import LAWS
 from host.learning.plugin import build_law
 from host.learning.registry import law_class
+from host.planning.feasibility import check_feasibility
+from host.planning.joint_reference import JointReference, joint_reference
+from host.planning.journeys import trial_samples
 from host.planning.paths import resolve_path
-from host.planning.trajectory import JointReference, check_feasibility, joint_reference, plan_task, trial_samples
+from host.planning.task_plan import plan_task
 from plant.dynamics import inverse_dynamics, mass_matrix
 from plant.params import Geometry, default_true_plant, nominal_mass_model
 

@@ -44,7 +44,7 @@ from host.learning.names import LAWS
 from host.learning.norm_optimal import NormOptimalStep
 from host.learning.protocol import TrialData
 from host.learning.signals import ZeroPhaseFilter, backward_difference, backward_difference_t, lead, lead_t
-from host.planning.trajectory import JointReference
+from host.planning.joint_reference import JointReference
 from plant.params import Geometry, MassModel
 
 logger = logging.getLogger(__name__)

@@ -42,8 +42,8 @@ import canopen
 from bus.cia301.nmt import CONSUMER_TIME_MS, NODE_HEARTBEAT_MS, NmtCommand
 from bus.errors import SdoAbort
 from bus.transports.config import FIELDBUS
+from host.experiment.bench import TrialFault
 from host.experiment.faults import FaultRecord, attach_injection, read_injections
-from host.experiment.trials import TrialFault
 from host.nodes.plant_client import PlantTrialFault
 from host.nodes.sdo_access import SdoTransportError
 from host.rig.channels import RigChannels
