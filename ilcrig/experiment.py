@@ -20,9 +20,9 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from host.experiment.config import ExperimentConfig, build_config, gains_table
+from host.experiment.loop_state import TrialOutcome
 from host.experiment.plan import Plan, plan_with_gains, prepare
 from host.experiment.trial_loop import TrialLoop
-from host.experiment.trial_state import TrialOutcome
 from host.learning.check import ConvergenceReport
 from host.learning.registry import law_class, law_names
 from host.learning.registry import register_law as _register
@@ -345,14 +345,14 @@ class Session:
         res = self.runner.finish()
         if self.out is not None and not self._reported:
             self._reported = True
-            from host.analysis.session import write_report
+            from host.analysis.session import finish_run_report
 
-            write_report(self.out, res, self._folder)
+            finish_run_report(self.out, res, self._folder)
         return self.results
 
     @property
     def raw(self) -> Any:
-        """The trial loop's own result (:class:`host.experiment.trial_state.ExperimentResult`)."""
+        """The trial loop's own result (:class:`host.experiment.loop_state.ExperimentResult`)."""
         return self.runner.result
 
 

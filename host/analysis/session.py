@@ -26,15 +26,15 @@ from host.experiment.bench import Bench
 from host.experiment.console import print_header, print_row
 from host.experiment.fault_placement import record_output_fault
 from host.experiment.faults import fault_line
+from host.experiment.loop_state import ExperimentResult
 from host.experiment.outputs import OutputError, RunFolder, output_error
 from host.experiment.plan import Plan
 from host.experiment.summary import write_summary
 from host.experiment.trial_loop import run_experiment
-from host.experiment.trial_state import ExperimentResult
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["run_session", "report_fault", "write_report"]
+__all__ = ["finish_run_report", "run_session", "report_fault"]
 
 
 def run_session(
@@ -75,11 +75,11 @@ def run_session(
     res = run_experiment(
         plan, bench, out, mode=mode, on_trial=lambda m, role: print_row(stream, m, role), recorder=recorder, folder=folder
     )
-    write_report(out, res, folder)
+    finish_run_report(out, res, folder)
     return res
 
 
-def write_report(out: Path, res: ExperimentResult, folder: RunFolder | None = None) -> None:
+def finish_run_report(out: Path, res: ExperimentResult, folder: RunFolder | None = None) -> None:
     """``report.md`` with its convergence plot (when a trial completed, or the run faulted or was
     interrupted); one that cannot be written (a full disk) is the run's fault when it has none: the
     summary says so, written into the last part of the reserve. Gives the reserve back."""

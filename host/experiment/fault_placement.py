@@ -2,7 +2,7 @@
 or one made from the exception), where the run was when it came (:func:`place`: position, trial,
 tick), and a failing write of the final outputs as the run's fault (:func:`record_output_fault`).
 
-May import: ``bus``, :mod:`host.experiment` (bench, faults, outputs, trial_state), :mod:`host.nodes`.
+May import: ``bus``, :mod:`host.experiment` (bench, faults, outputs, loop_state), :mod:`host.nodes`.
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ from host.experiment.faults import (
     position_of,
     read_injections,
 )
+from host.experiment.loop_state import ExperimentResult
 from host.experiment.outputs import OutputError
-from host.experiment.trial_state import ExperimentResult
 from host.nodes.sdo_access import SdoTransportError
 
 __all__ = ["fault_record_of", "place", "record_output_fault"]

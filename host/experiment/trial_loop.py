@@ -2,7 +2,7 @@
 
 This module owns the trial loop (:class:`TrialLoop`, :func:`run_experiment`) and the end of every
 run (bench closed, recording finished, final summary).  Its parts: the bench protocol
-(:mod:`host.experiment.bench`), the loop's state (:mod:`host.experiment.trial_state`), the fault
+(:mod:`host.experiment.bench`), the loop's state (:mod:`host.experiment.loop_state`), the fault
 records' placement (:mod:`host.experiment.fault_placement`), the signals
 (:mod:`host.experiment.signal_shield`), the TPDO cross-check (:mod:`host.experiment.tpdo_check`).
 May import: ``bus``, ``numpy``, :mod:`host.experiment`, :mod:`host.learning`, :mod:`host.nodes`,
@@ -62,11 +62,11 @@ from bus.errors import IlcrigError
 from host.experiment.bench import Bench, TrialRecorder
 from host.experiment.fault_placement import fault_record_of, place, record_output_fault
 from host.experiment.faults import Position, position_of
+from host.experiment.loop_state import ExperimentResult, LoopState, TrialOutcome, new_summary
 from host.experiment.outputs import OutputError, RunFolder
 from host.experiment.plan import Plan
 from host.experiment.signal_shield import SHIELD, deferred_interrupts
 from host.experiment.summary import jsonable, write_summary
-from host.experiment.trial_state import ExperimentResult, TrialOutcome, TrialState, new_summary
 from host.learning.metrics import TrialMetrics
 from host.learning.protocol import AUXILIARY, LEARNING
 
@@ -105,7 +105,7 @@ class TrialLoop:
         self.out = Path(out_dir) if out_dir is not None else None
         self.bench, self.on_trial, self.recorder, self.folder = bench, on_trial, recorder, folder
         self.result = ExperimentResult(summary={})
-        self.trials = TrialState(plan, bench, self.result, keep_traces, recorder)
+        self.trials = LoopState(plan, bench, self.result, keep_traces, recorder)
         self.result.summary.update(new_summary(plan, mode, self.trials.digest))
         self.k = 0
         self.started = False
@@ -301,7 +301,7 @@ def _finish(
     out: Path | None,
     folder: RunFolder | None,
     result: ExperimentResult,
-    trials: TrialState,
+    trials: LoopState,
 ) -> None:
     """The end of every run: bench info, close (safe state), recording, the final summary."""
     try:
@@ -327,7 +327,7 @@ def _finish(
         _final_write(out, summary, folder, result)
 
 
-def _closing_fault(bench: Bench, summary: dict[str, Any], result: ExperimentResult, trials: TrialState) -> None:
+def _closing_fault(bench: Bench, summary: dict[str, Any], result: ExperimentResult, trials: LoopState) -> None:
     """A fault the bench saw after the trial loop's last step (``closing_fault()``), when the run
     has no fault or interrupt yet: recorded and placed (after the last trial, for a run that
     completed)."""

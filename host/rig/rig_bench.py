@@ -259,7 +259,7 @@ class RigBench:
             logger.debug("final watchdog round failed", exc_info=True)
         trial_running = watchdog.in_trial or self.channels.running_tick() is not None
         self._safe_state, errors = bring_to_safe_state(self.network, self.nodes, watchdog, trial_running=trial_running)
-        watchdog.check()
+        watchdog.watch_round()
         watchdog.disarm()
         if errors and watchdog.fault is None:
             self._closing_fault = sdo_fault(errors[0], watchdog.trial, time.monotonic())

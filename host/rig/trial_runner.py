@@ -96,7 +96,7 @@ class TrialRunner:
                 raise TrialFault(record.message if record else f"trial {trial}: {exc}", record) from exc
         if self._catch_up is not None:  # what the monitors noted at a tick of this trial belongs to it
             self._catch_up()
-        watchdog.check()
+        watchdog.watch_round()
         watchdog.raise_if_fault()
         timing = self.plant.trial_timing()
         self.timings.append(timing)

@@ -1,4 +1,4 @@
-"""The trial loop's state and what it produces: :class:`TrialState` (the plan, the bench, the
+"""The trial loop's state and what it produces: :class:`LoopState` (the plan, the bench, the
 feed-forward; one trial set up, run, measured and put in the summary), :class:`ExperimentResult`,
 :class:`TrialOutcome` and the summary before the first trial (:func:`new_summary`).
 
@@ -33,7 +33,7 @@ from host.learning.protocol import LEARNING, TrialData
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ExperimentResult", "TrialOutcome", "TrialState", "new_summary"]
+__all__ = ["ExperimentResult", "TrialOutcome", "LoopState", "new_summary"]
 
 
 @dataclass
@@ -96,7 +96,7 @@ class TrialOutcome:
     gains: Gains
 
 
-class TrialState:
+class LoopState:
     """The trial loop's state: the plan, the bench, the feed-forward and what was measured."""
 
     def __init__(
