@@ -48,7 +48,7 @@ SHIELD = Shield()
 def deferred_interrupts() -> Iterator[None]:
     """Hold SIGINT / SIGTERM back while inside (the handler of :func:`interrupt_on_signals` keeps
     the signal); at the end raise :class:`Interrupted` for it — unless an exception is already on
-    its way, then the run's end marks the signal (:meth:`TrialLoop.finish`)."""
+    its way, then the run's end marks the signal (:meth:`host.experiment.trial_loop.TrialLoop.finish`)."""
     SHIELD.defer_depth += 1
     failed = False
     try:
