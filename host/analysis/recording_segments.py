@@ -42,9 +42,7 @@ __all__ = ["FOOTER_MAGIC", "STREAM_MAGIC", "TRAILER_BYTES", "RecordingError", "S
 #: the fixed-size trailer at the end of every Rerun stream (footer offset and length, CRC, magic,
 #: version) and its magic: rerun 0.41's RRD layout
 TRAILER_BYTES = 32
-
 FOOTER_MAGIC = b"RRF2FOOT"
-
 STREAM_MAGIC = b"RRF2"
 
 

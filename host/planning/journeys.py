@@ -46,7 +46,7 @@ __all__ = ["AxisWindows", "Journey", "LATERAL_AXES", "axis_windows", "path_journ
 
 
 #: Tolerance on "cycle is a whole number of samples" (relative to one sample).
-SAMPLE_TOL = 1e-6
+_SAMPLE_TOL = 1e-6
 
 
 def trial_samples(cycle_s: float, ts_s: float, journeys: int = 2) -> int:
@@ -61,7 +61,7 @@ def samples_per_journey(cycle_s: float, ts_s: float) -> int:
         raise TrajectoryError(f"cycle time must be > 0 s, got {cycle_s!r}")
     ratio = cycle_s / ts_s
     m = int(round(ratio))
-    if m < 1 or abs(ratio - m) > SAMPLE_TOL:
+    if m < 1 or abs(ratio - m) > _SAMPLE_TOL:
         raise TrajectoryError(f"cycle {cycle_s:g} s is not a whole number of samples of {ts_s:g} s")
     return m
 

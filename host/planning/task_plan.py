@@ -40,7 +40,6 @@ RUCKIG_STRETCH: tuple[str, ...] = ("scale", "hold")
 
 #: Straightness / bounding-box tolerances (m or rad).
 _STRAIGHT_TOL = 1e-9
-
 _BOX_TOL = 1e-9
 
 
