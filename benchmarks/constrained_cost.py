@@ -38,8 +38,9 @@ def measure(n: int) -> dict[str, float]:
     from host.learning.laws.constrained import ConstrainedStep
     from host.learning.model import ClosedLoopModel
     from host.learning.norm_optimal import NormOptimalStep
+    from host.planning.joint_reference import joint_reference
     from host.planning.paths import resolve_path
-    from host.planning.trajectory import joint_reference, plan_task
+    from host.planning.task_plan import plan_task
     from plant.dynamics import inverse_dynamics, mass_matrix
     from plant.params import nominal_mass_model
 

@@ -63,8 +63,9 @@ def _reset_peak() -> None:
 
 def _setup(n: int, cycle_s: float, ts_s: float) -> dict[str, Any]:
     from host.learning.gains import GainSpec, resolve_gains
+    from host.planning.joint_reference import joint_reference
     from host.planning.paths import resolve_path
-    from host.planning.trajectory import joint_reference, plan_task
+    from host.planning.task_plan import plan_task
     from plant.dynamics import inverse_dynamics, mass_matrix
     from plant.params import nominal_mass_model
 

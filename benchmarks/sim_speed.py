@@ -24,7 +24,7 @@ def main() -> None:
     from host.experiment.config import build_config
     from host.experiment.inprocess import InProcessBench
     from host.experiment.plan import prepare
-    from host.experiment.trials import run_experiment
+    from host.experiment.trial_loop import run_experiment
 
     cfg = build_config(None, {})
     t0 = time.perf_counter()

@@ -114,7 +114,10 @@ class TorqueStatus(enum.IntFlag):
     WARNING = 0x08  #: statusword warning bit
 
 
-class ControlCommand(enum.IntEnum):
+class IoControlCommand(enum.IntEnum):
+    """The command of the io channel's control frame (plant → drives); not the CiA 402
+    controlword commands (:class:`bus.objects.ControlCommand`)."""
+
     TRIAL_START = 1  #: a trial of ``n_ticks`` ticks starts at ``tick``
     TRIAL_STOP = 2  #: the trial ended (normally or aborted) at ``tick``
 
@@ -142,7 +145,7 @@ class TorqueFrame:
 class ControlFrame:
     """Plant → drives: trial start/stop."""
 
-    command: ControlCommand
+    command: IoControlCommand
     tick: int  #: 16-bit wire tick counter
     n_ticks: int  #: trial length in ticks (u32)
 
@@ -258,13 +261,13 @@ def encode_torque(joint: int, tick: int, torque_units: int, status: TorqueStatus
     return new_message(TORQUE_COB_BASE + joint, bytearray(_TORQUE.pack(torque_units, tick & TICK_MASK, int(status))))
 
 
-def encode_control(command: ControlCommand | int, tick: int, n_ticks: int = 0) -> can.Message:
+def encode_control(command: IoControlCommand | int, tick: int, n_ticks: int = 0) -> can.Message:
     """Trial start/stop frame plant → all drives.
 
     :raises IoFrameError: unknown command or ``n_ticks`` outside u32
     """
     try:
-        cmd = ControlCommand(command)
+        cmd = IoControlCommand(command)
     except ValueError as err:
         raise IoFrameError(f"unknown control command {command}") from err
     if not 0 <= n_ticks <= 0xFFFFFFFF:
@@ -340,7 +343,7 @@ def decode_control(msg: can.Message) -> ControlFrame:
     _, data = _payload(msg, CONTROL_COB_ID, 1, _CONTROL.size, "control")
     cmd, tick, n_ticks = _CONTROL.unpack(data)
     try:
-        command = ControlCommand(cmd)
+        command = IoControlCommand(cmd)
     except ValueError as err:
         raise IoFrameError(f"unknown control command {cmd}") from err
     return ControlFrame(command, tick, n_ticks)
@@ -388,10 +391,10 @@ class TrialTickFollower:
         """Take one io frame into account; returns the tick it carries (None for others)."""
         if can_id == CONTROL_COB_ID and len(data) >= 3:
             wire = data[1] | data[2] << 8
-            if data[0] == ControlCommand.TRIAL_START:
+            if data[0] == IoControlCommand.TRIAL_START:
                 self.trial += 1
                 self.origin, self.in_trial, self.tick = wire, True, None
-            elif data[0] == ControlCommand.TRIAL_STOP:
+            elif data[0] == IoControlCommand.TRIAL_STOP:
                 self.in_trial = False
             return None
         if ENCODER_COB_BASE <= can_id < ENCODER_COB_BASE + N_JOINTS and len(data) >= 6 and self.in_trial:

@@ -220,11 +220,11 @@ class DriveNode(SlaveNode):
             except io_frames.IoFrameError as err:
                 logger.warning("node %d: bad control frame: %s", self.node_id, err)
                 return
-            if control.command == io_frames.ControlCommand.TRIAL_START:
+            if control.command == io_frames.IoControlCommand.TRIAL_START:
                 self._tick_origin = control.tick
                 self._next_full_tick = 0
             if self._cyclic is not None:
-                self._cyclic.plant_trial = control.command == io_frames.ControlCommand.TRIAL_START
+                self._cyclic.plant_trial = control.command == io_frames.IoControlCommand.TRIAL_START
             self._held = None
         # anything else (our own torque echo, other joints' frames) is not for us
 

@@ -11,7 +11,7 @@ Subcommands:
   four drives and the host as separate processes, and cleans every one of them up;
 * ``robot`` — the drives and the plant as a robot on the bus, without the ILC host, for any CANopen
   master (:mod:`host.rig.robot_launcher`, docs/robot.md);
-* ``view`` — a run's ``recording.rrd`` in the Rerun viewer (:func:`host.analysis.recording.view_run`);
+* ``view`` — a run's ``recording.rrd`` in the Rerun viewer (:func:`host.analysis.viewer.view_run`);
 * ``drive``, ``plant``, ``host``, ``hub`` — one role each, to run the parts in separate terminals
   (or machines, over a transport that spans them).
 
@@ -62,7 +62,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
     check_out_dir(out, iterations=cfg.iterations, n_ticks=cfg.n_ticks, create=False)
     import ilcrig
     from host.analysis.session import report_fault
-    from host.experiment.trials import interrupt_on_signals
+    from host.experiment.signal_shield import interrupt_on_signals
 
     exp = ilcrig.Experiment.from_config(cfg)
     exp.plan  # noqa: B018 - prepared (and refused with one line) before the run folder is made
@@ -277,7 +277,7 @@ def cmd_laws(args: argparse.Namespace) -> int:
 
 
 def cmd_view(args: argparse.Namespace) -> int:
-    from host.analysis.recording import view_run
+    from host.analysis.viewer import view_run
 
     return int(view_run(Path(args.run_dir)))
 

@@ -8,7 +8,7 @@ command line (``law``, ``iterations``, ``path``, ``cycle_s``, ``profile``, ``dis
 ``force_bus_fit``, ``gains`` = a dict of ``[gains]`` keys, ``law_options`` = a dict), with the same
 validation and the same one-line messages (:class:`ilcrig.InputError`).  In-process runs use the
 same composition as ``ilcrig sim`` (:class:`host.experiment.inprocess.InProcessBench` and the trial
-loop :class:`host.experiment.trials.TrialRunner`), so their digests are the CLI's.
+loop :class:`host.experiment.trial_loop.TrialLoop`), so their digests are the CLI's.
 """
 
 from __future__ import annotations
@@ -20,8 +20,9 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from host.experiment.config import ExperimentConfig, build_config, gains_table
+from host.experiment.loop_state import TrialOutcome
 from host.experiment.plan import Plan, plan_with_gains, prepare
-from host.experiment.trials import TrialOutcome, TrialRunner
+from host.experiment.trial_loop import TrialLoop
 from host.learning.check import ConvergenceReport
 from host.learning.registry import law_class, law_names
 from host.learning.registry import register_law as _register
@@ -261,7 +262,7 @@ class Session:
 
             print_plan(stream, "sim", plan)
             print_header(stream)
-        self.runner = TrialRunner(
+        self.runner = TrialLoop(
             plan,
             InProcessBench(plan.cfg),
             self.out,
@@ -348,14 +349,14 @@ class Session:
         res = self.runner.finish()
         if self.out is not None and not self._reported:
             self._reported = True
-            from host.analysis.session import write_report
+            from host.analysis.session import finish_run_report
 
-            write_report(self.out, res, self._folder)
+            finish_run_report(self.out, res, self._folder)
         return self.results
 
     @property
     def raw(self) -> Any:
-        """The trial loop's own result (:class:`host.experiment.trials.ExperimentResult`)."""
+        """The trial loop's own result (:class:`host.experiment.loop_state.ExperimentResult`)."""
         return self.runner.result
 
 

@@ -284,7 +284,7 @@ class Results:
             return self.out_dir / "recording.rrd"
         from host.analysis.recording import RunRecorder
         from host.learning.metrics import TrialMetrics
-        from host.planning.trajectory import JointReference
+        from host.planning.joint_reference import JointReference
 
         target = Path(path) if path is not None else Path("recording.rrd")
         ref = JointReference(

@@ -11,7 +11,8 @@ and the plant's CANopen node: :mod:`plant.plant_node` (``PlantNode`` and the ``i
 process entry) with its parts :mod:`plant.plant_node_trial` (trial protocol, lockstep tick master,
 pacing), :mod:`plant.plant_node_model` (the plant and disturbance of a trial),
 :mod:`plant.plant_node_status` (trial status, faults and EMCY, timing),
-:mod:`plant.plant_node_robot` (the robot between trials: one period per SYNC, ``ilcrig robot``) and
+:mod:`plant.plant_node_robot` (the robot between trials: one period per SYNC, ``ilcrig robot``),
+:mod:`plant.plant_node_robot_pacing` (its real-time schedule) and
 :mod:`plant.plant_node_hooks` (object hooks).
 
 May import: numpy, scipy, numba and the standard library only — except the plant node,

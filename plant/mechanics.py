@@ -6,7 +6,7 @@ This module owns what a real axis has besides its dynamics (docs/robot.md "Limit
   brake: it does not move, the other joints move with it fixed (:meth:`plant.simulator.Plant.step`
   with ``locked``);
 * **mechanical limits** (:class:`MechanicalLimits`) — an end stop per joint at the ends of the
-  joint range (−20°..80°, the planner's range ``host.planning.trajectory.JointLimits``), the end
+  joint range (−20°..80°, the planner's range ``host.planning.feasibility.JointLimits``), the end
   of the screw's travel between the sub-platforms (gap z_u − z_l, i.e. the tool angle θ), and the
   mechanism itself (forward kinematics fails: a rod at full stretch, a singularity).  Driving into
   one is a :class:`LimitHit`: the robot stops there — a joint at its end stop is clamped to the

@@ -280,7 +280,7 @@ class LockstepMaster:
         )
         paced = bool(store.get(PlantObj.CONFIG, ConfigSub.PACING))
         self._spin_s = self.spin_s if paced and (self._spin_when is None or self._spin_when()) else 0.0
-        self._send_io(io_frames.encode_control(io_frames.ControlCommand.TRIAL_START, self._origin, n_ticks))
+        self._send_io(io_frames.encode_control(io_frames.IoControlCommand.TRIAL_START, self._origin, n_ticks))
         if paced:
             # Tick 0 is due one period after the start command, as a real drive's first cycle is the
             # SYNC after the one that armed it: the drives take TRIAL_START in that period, not in tick 0's.
@@ -337,7 +337,7 @@ class LockstepMaster:
         logger.info("node %d: trial done, %d ticks in %.3f s (%.0f ticks/s)", self.node_id, self.n_ticks, duration_s, rate)
 
     def _stop_io(self) -> None:
-        self._send_io(io_frames.encode_control(io_frames.ControlCommand.TRIAL_STOP, self._origin + self.tick, self.n_ticks))
+        self._send_io(io_frames.encode_control(io_frames.IoControlCommand.TRIAL_STOP, self._origin + self.tick, self.n_ticks))
         self._wire_next = self._origin + self.tick + 1
 
     def _send_io(self, msg: can.Message) -> None:

@@ -136,7 +136,7 @@ def sim_digest(k: int) -> str:
     from host.experiment.config import build_config
     from host.experiment.inprocess import InProcessBench
     from host.experiment.plan import prepare
-    from host.experiment.trials import run_experiment
+    from host.experiment.trial_loop import run_experiment
 
     cfg = build_config(None, {"iterations": max(k, 1), "cycle_s": 0.15})
     res = run_experiment(prepare(cfg), InProcessBench(cfg), None, mode="sim")

@@ -117,9 +117,9 @@ def test_the_rig_counts_its_other_processes(monkeypatch: pytest.MonkeyPatch) -> 
     rig_part = plan_mod.RIG_EXTRA_BYTES + 20001 * plan_mod.RIG_SAMPLE_BYTES
     assert rig_need == pytest.approx(sim_need + plan_mod.MEMORY_MARGIN * rig_part, abs=2)
     monkeypatch.setenv(plan_mod.MEMORY_ENV, str(sim_need))
-    assert plan_mod.preflight(cfg) == 20001
+    assert plan_mod.check_config_limits(cfg) == 20001
     with pytest.raises(plan_mod.PlanError, match=f"the rig's processes need about {rig_need / 1024**3:.1f} GiB of memory"):
-        plan_mod.preflight(cfg, rig=True)
+        plan_mod.check_config_limits(cfg, rig=True)
 
 
 @pytest.mark.parametrize(

@@ -14,7 +14,7 @@ from bus import units
 from host.experiment.config import build_config
 from host.experiment.inprocess import InProcessBench
 from host.experiment.plan import prepare
-from host.experiment.trials import run_experiment
+from host.experiment.trial_loop import run_experiment
 
 
 def assert_one_line_error(code: int, err: str, fragment: str) -> None:

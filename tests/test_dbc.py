@@ -58,7 +58,7 @@ def test_cantools_decodes_io_frames_as_the_codecs_encode_them(
     got = io_db.decode_message(tq.arbitration_id, bytes(tq.data), scaling=False)
     assert got["torque"] == torque and got["wire_tick"] == tick
     assert [got[f"status_{n}"] for n in ("enabled", "fault", "saturated", "warning")] == [(status >> b) & 1 for b in range(4)]
-    ctl = io_frames.encode_control(io_frames.ControlCommand.TRIAL_START, tick, 501)
+    ctl = io_frames.encode_control(io_frames.IoControlCommand.TRIAL_START, tick, 501)
     assert io_db.decode_message(ctl.arbitration_id, bytes(ctl.data), scaling=False, decode_choices=False) == {
         "command": 1,
         "wire_tick": tick,

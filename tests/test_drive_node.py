@@ -208,7 +208,7 @@ def test_emcy_frames_sent(fake_rig: Rig) -> None:
 def test_io_tick_round_trip_and_tick_unwrap(fake_rig: Rig) -> None:
     rig = fake_rig
     joint = NODE - 1
-    rig.plant.send(io_frames.encode_control(io_frames.ControlCommand.TRIAL_START, 0, 70000))
+    rig.plant.send(io_frames.encode_control(io_frames.IoControlCommand.TRIAL_START, 0, 70000))
     torques = []
     for n in [0, 1, 2]:
         rig.plant.send(io_frames.encode_encoder(joint, n, 1000 + n))
@@ -226,7 +226,7 @@ def test_tick_is_relative_to_trial_start_and_unwrapped(fake_rig: Rig) -> None:
     torque frames echo the wire tick."""
     rig = fake_rig
     joint = NODE - 1
-    rig.plant.send(io_frames.encode_control(io_frames.ControlCommand.TRIAL_START, 65533, 6))
+    rig.plant.send(io_frames.encode_control(io_frames.IoControlCommand.TRIAL_START, 65533, 6))
     wire = []
     for k in range(6):
         rig.plant.send(io_frames.encode_encoder(joint, 65533 + k, k))

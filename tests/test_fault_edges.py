@@ -319,7 +319,7 @@ def test_a_signal_while_a_trials_outputs_are_written_waits_for_them(tmp_path: Pa
     """SIGTERM right after trial 0's summary entry is made: the recording and the summary file get
     trial 0 before the run ends as interrupted (143)."""
     from host.analysis.recording import RunRecorder
-    from host.experiment.trials import interrupt_on_signals
+    from host.experiment.signal_shield import interrupt_on_signals
 
     real = RunRecorder.log_trial
 

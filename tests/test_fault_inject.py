@@ -62,14 +62,14 @@ def frames_of_trials(trials: int, ticks: int, shuffle: random.Random | None = No
     out: list[can.Message] = []
     wire = 0
     for _ in range(trials):
-        out.append(io_frames.encode_control(io_frames.ControlCommand.TRIAL_START, wire, ticks))
+        out.append(io_frames.encode_control(io_frames.IoControlCommand.TRIAL_START, wire, ticks))
         for n in range(ticks):
             out += [io_frames.encode_encoder(j, wire + n, 1000 * j + n) for j in range(4)]
             torque = [io_frames.encode_torque(j, wire + n, 5 * n, io_frames.TorqueStatus.ENABLED) for j in range(4)]
             if shuffle is not None:
                 shuffle.shuffle(torque)
             out += torque
-        out.append(io_frames.encode_control(io_frames.ControlCommand.TRIAL_STOP, wire + ticks, ticks))
+        out.append(io_frames.encode_control(io_frames.IoControlCommand.TRIAL_STOP, wire + ticks, ticks))
         wire += ticks + 1
     return out
 

@@ -141,10 +141,10 @@ def test_drive_io_bus_gets_only_its_encoder_and_the_control_frames() -> None:
         try:
             DriveNode(Drive(2), fb, io, node_id=2)
             assert wait_until(lambda: hub.stats()["io"].clients == 2)
-            plant.send(io_frames.encode_control(io_frames.ControlCommand.TRIAL_START, 0, 5))
+            plant.send(io_frames.encode_control(io_frames.IoControlCommand.TRIAL_START, 0, 5))
             plant.send_batch([io_frames.encode_encoder(j, 0, 10 * j) for j in range(4)])  # type: ignore[attr-defined]
             plant.send(io_frames.encode_torque(0, 0, 1, 0))
-            plant.send(io_frames.encode_control(io_frames.ControlCommand.TRIAL_STOP, 1, 5))
+            plant.send(io_frames.encode_control(io_frames.IoControlCommand.TRIAL_STOP, 1, 5))
             got = []
             while len(got) < 3 and (msg := io.recv(2.0)) is not None:
                 got.append(msg.arbitration_id)

@@ -9,9 +9,9 @@ from hypothesis import strategies as st
 
 from bus.io_frames import (
     TICK_MODULUS,
-    ControlCommand,
     ControlFrame,
     EncoderFrame,
+    IoControlCommand,
     IoFrameError,
     TickError,
     TickErrorKind,
@@ -51,7 +51,7 @@ def test_torque_frame_bytes() -> None:
 
 
 def test_control_frame_bytes() -> None:
-    msg = encode_control(ControlCommand.TRIAL_START, 0, 3001)
+    msg = encode_control(IoControlCommand.TRIAL_START, 0, 3001)
     assert msg.arbitration_id == 0x010 and msg.dlc == 7
     assert bytes(msg.data) == bytes.fromhex("010000b90b0000")
 
@@ -79,8 +79,8 @@ def test_torque_round_trip(joint: int, tick: int, torque: int, status: int) -> N
     assert isinstance(frame, TorqueFrame) and frame.status & TorqueStatus.FAULT == status & 2
 
 
-@given(st.sampled_from(list(ControlCommand)), ticks, st.integers(0, 2**32 - 1))
-def test_control_round_trip(cmd: ControlCommand, tick: int, n: int) -> None:
+@given(st.sampled_from(list(IoControlCommand)), ticks, st.integers(0, 2**32 - 1))
+def test_control_round_trip(cmd: IoControlCommand, tick: int, n: int) -> None:
     assert decode_io(encode_control(cmd, tick, n)) == ControlFrame(cmd, tick % TICK_MODULUS, n)
 
 
@@ -215,7 +215,7 @@ def test_follower_on_arrays_equals_frame_by_frame(origin: int, trial_lengths: li
     msgs: list[can.Message] = []
     wire = origin
     for n in trial_lengths:
-        msgs.append(encode_control(ControlCommand.TRIAL_START, wire, n))
+        msgs.append(encode_control(IoControlCommand.TRIAL_START, wire, n))
         ran = rng.randint(1, n)  # a fault may stop it early
         for k in range(ran):
             for j in range(4):
@@ -224,7 +224,7 @@ def test_follower_on_arrays_equals_frame_by_frame(origin: int, trial_lengths: li
                 msgs.append(can.Message(is_error_frame=True, arbitration_id=0, data=b""))
             for j in range(4):
                 msgs.append(encode_torque(j, wire + k, -k, TorqueStatus.ENABLED))
-        msgs.append(encode_control(ControlCommand.TRIAL_STOP, wire + ran))
+        msgs.append(encode_control(IoControlCommand.TRIAL_STOP, wire + ran))
         wire = (wire + n + 7) % TICK_MODULUS
         if rng.random() < 0.5:
             break

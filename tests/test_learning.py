@@ -139,7 +139,7 @@ def dense_map(name: str, ctx: LawContext) -> tuple[str, np.ndarray]:
 
 def id_context(spec: GainSpec, n: int) -> LawContext:
     """A context that also serves no-ilc-id (the reference and mass model are unused before a trial)."""
-    from host.planning.trajectory import JointReference
+    from host.planning.joint_reference import JointReference
     from plant.params import Geometry, nominal_mass_model
 
     ctx = context(spec, n)
@@ -316,8 +316,9 @@ def test_registry_and_errors() -> None:
 
 
 def test_identification_recovers_the_true_parameters() -> None:
+    from host.planning.joint_reference import joint_reference
     from host.planning.paths import resolve_path
-    from host.planning.trajectory import joint_reference, plan_task
+    from host.planning.task_plan import plan_task
     from plant.params import Geometry, default_true_plant, nominal_mass_model
 
     ref = joint_reference(plan_task(resolve_path("1"), 0.25, "ruckig", TS))
@@ -361,7 +362,7 @@ def _sim(**overrides) -> np.ndarray:
     from host.experiment.config import build_config
     from host.experiment.inprocess import InProcessBench
     from host.experiment.plan import prepare
-    from host.experiment.trials import run_experiment
+    from host.experiment.trial_loop import run_experiment
 
     cfg = build_config(None, overrides)
     res = run_experiment(prepare(cfg), InProcessBench(cfg), None, mode="sim")

@@ -23,7 +23,7 @@ from robot_util import DRIVES, LockstepMaster, RobotProcess, counts_of
 
 from bus import units
 from host.analysis.live_view import free_loopback_port
-from host.analysis.recording import viewer_command
+from host.analysis.viewer import viewer_command
 from host.rig.role_commands import rig_role_args
 from plant.kinematics import inverse_kinematics
 from plant.mechanics import HOME_POSE

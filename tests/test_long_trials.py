@@ -90,9 +90,9 @@ def test_a_long_trial_runs_within_its_memory_estimate(
 
 
 def test_the_trial_length_stays_limited_by_the_drives_tables() -> None:
-    assert plan_mod.preflight(build_config(None, {"cycle_s": 29.999, "iterations": 1})) == TABLE_CAPACITY - 1
+    assert plan_mod.check_config_limits(build_config(None, {"cycle_s": 29.999, "iterations": 1})) == TABLE_CAPACITY - 1
     with pytest.raises(plan_mod.PlanError, match=r"N = 60001 samples exceeds the drives' table capacity of 60000"):
-        plan_mod.preflight(build_config(None, {"cycle_s": 30.0}))
+        plan_mod.check_config_limits(build_config(None, {"cycle_s": 30.0}))
 
 
 def test_the_longest_run_fits_this_machine_only_if_the_estimate_says_so(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -101,7 +101,7 @@ def test_the_longest_run_fits_this_machine_only_if_the_estimate_says_so(monkeypa
     cfg = build_config(None, {"cycle_s": 29.999, "iterations": 1000})
     need = plan_mod.run_memory_bytes(59999, 1000, cfg.law)
     monkeypatch.setenv(plan_mod.MEMORY_ENV, str(need))
-    assert plan_mod.preflight(cfg) == 59999
+    assert plan_mod.check_config_limits(cfg) == 59999
     monkeypatch.setenv(plan_mod.MEMORY_ENV, str(need - 1))
     with pytest.raises(plan_mod.PlanError, match=rf"needs about {need / 1024**3:.1f} GiB of memory"):
-        plan_mod.preflight(cfg)
+        plan_mod.check_config_limits(cfg)

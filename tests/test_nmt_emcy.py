@@ -136,20 +136,20 @@ def test_heartbeat_round_trip(state: NmtState, toggle: bool) -> None:
 
 def test_heartbeat_consumer_overdue_and_booted() -> None:
     hb = HeartbeatConsumer({1: 0.15, 2: 0.15})
-    assert hb.check(10.0).overdue == []  # monitoring starts at 10.0
+    assert hb.report_at(10.0).overdue == []  # monitoring starts at 10.0
     hb.on_heartbeat(1, b"\x00", 10.01)  # boot-up
     hb.on_heartbeat(1, b"\x7f", 10.1)
-    report = hb.check(10.12)
+    report = hb.report_at(10.12)
     assert report.booted == [1] and report.overdue == []
     assert report.states == {1: NmtState.PRE_OPERATIONAL}
-    report = hb.check(10.2)
+    report = hb.report_at(10.2)
     assert report.booted == []  # boot-ups are reported once
     assert report.overdue == [2]  # never heard, 0.2 s > 0.15 s since monitoring started
-    report = hb.check(10.3)
+    report = hb.report_at(10.3)
     assert report.overdue == [1, 2]
     assert hb.on_frame(0x702, b"\x05", 10.31) is NmtState.OPERATIONAL
     assert hb.on_frame(0x185, b"\x05", 10.31) is None
-    assert hb.check(10.32).overdue == [1]
+    assert hb.report_at(10.32).overdue == [1]
     assert hb.state(2) is NmtState.OPERATIONAL and hb.state(3) is None
 
 
@@ -166,7 +166,7 @@ def test_heartbeat_consumer_rejects_bad_setup() -> None:
 def test_heartbeat_consumer_unwatched_node_is_only_recorded() -> None:
     hb = HeartbeatConsumer()
     hb.on_heartbeat(9, b"\x00", 1.0)
-    report = hb.check(100.0)
+    report = hb.report_at(100.0)
     assert report.booted == [9] and report.overdue == []
 
 

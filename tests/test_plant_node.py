@@ -157,7 +157,7 @@ class ScriptedDrives:
             frame = io_frames.decode_io(msg)
             if isinstance(frame, io_frames.ControlFrame):
                 self.controls.append(frame)
-                if frame.command == io_frames.ControlCommand.TRIAL_START:
+                if frame.command == io_frames.IoControlCommand.TRIAL_START:
                     self._origin = frame.tick
             elif isinstance(frame, io_frames.EncoderFrame):
                 self.encoders.append(frame)

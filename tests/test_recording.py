@@ -162,7 +162,7 @@ def _record(folder: Path, n: int, trials: int) -> tuple[list[list[str]], list[st
     returns the stream calls made by each log_trial call and by close."""
     from host.analysis.recording import RunRecorder
     from host.learning.metrics import trial_metrics
-    from host.planning.trajectory import JointReference
+    from host.planning.joint_reference import JointReference
     from plant.kinematics import inverse_kinematics
 
     q0 = inverse_kinematics(np.array([0.0, 0.0, -0.65, 0.0]))
@@ -207,9 +207,10 @@ def test_recorder_calls_do_not_grow_with_samples_or_trials(tmp_path: Path) -> No
 
 
 def test_log_trial_rejects_bad_shapes(tmp_path: Path) -> None:
-    from host.analysis.recording import RecordingError, RunRecorder
+    from host.analysis.recording import RunRecorder
+    from host.analysis.recording_segments import RecordingError
     from host.learning.metrics import trial_metrics
-    from host.planning.trajectory import JointReference
+    from host.planning.joint_reference import JointReference
 
     n = 11
     ref = JointReference(t=np.arange(n) * 1e-3, q=np.full((n, 4), 0.5), qd=np.zeros((n, 4)), qdd=np.zeros((n, 4)))
@@ -227,7 +228,7 @@ def test_log_trial_rejects_bad_shapes(tmp_path: Path) -> None:
 def test_view_without_display_prints_the_command(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from importlib.metadata import version
 
-    from host.analysis.recording import view_run
+    from host.analysis.viewer import view_run
 
     (tmp_path / "recording.rrd").write_bytes(b"")
     monkeypatch.delenv("DISPLAY", raising=False)
@@ -244,14 +245,14 @@ def test_view_without_display_prints_the_command(tmp_path: Path, monkeypatch: py
 
 
 def test_view_with_display_spawns_the_viewer(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from host.analysis import recording
+    from host.analysis import viewer
 
     (tmp_path / "recording.rrd").write_bytes(b"")
     monkeypatch.setenv("DISPLAY", ":0")
     spawned: list[Any] = []
-    monkeypatch.setattr(recording, "viewer_command", lambda: ["/x/rerun"])
+    monkeypatch.setattr(viewer, "viewer_command", lambda: ["/x/rerun"])
     monkeypatch.setattr(subprocess, "Popen", lambda argv, **k: spawned.append(argv))
-    assert recording.view_run(tmp_path, stdout=io.StringIO()) == 0
+    assert viewer.view_run(tmp_path, stdout=io.StringIO()) == 0
     assert spawned == [["/x/rerun", str((tmp_path / "recording.rrd").resolve())]]
 
 
@@ -265,7 +266,7 @@ def test_view_missing_recording_is_exit_2(tmp_path: Path, capsys: pytest.Capture
 
 def test_import_host_does_not_import_rerun() -> None:
     code = (
-        "import sys, host, host.analysis.recording, host.cli, host.experiment.trials; "
+        "import sys, host, host.analysis.recording, host.cli, host.experiment.trial_loop; "
         "sys.exit(1 if 'rerun' in sys.modules else 0)"
     )
     assert subprocess.run([sys.executable, "-c", code], timeout=60).returncode == 0

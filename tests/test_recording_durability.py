@@ -26,7 +26,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from host.analysis.recording import TRAILER_BYTES, RunRecorder, SegmentFile, cut_back
+from host.analysis.recording import RunRecorder
+from host.analysis.recording_segments import TRAILER_BYTES, SegmentFile, cut_back
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -43,7 +44,7 @@ def recorded(path: Path) -> list[int]:
 
 def _trial_args(k: int, n: int = 41) -> tuple[Any, ...]:
     from host.learning.metrics import trial_metrics
-    from host.planning.trajectory import JointReference
+    from host.planning.joint_reference import JointReference
     from plant.kinematics import inverse_kinematics
 
     q = np.tile(inverse_kinematics(np.array([0.0, 0.0, -0.65, 0.0])), (n, 1))
@@ -260,7 +261,7 @@ def test_a_full_disk_at_each_phase_keeps_a_readable_recording(
     the recording read by RrdReader holds exactly the summary's trials, no leftover."""
     from host.analysis import run_report, session
     from host.analysis.session import report_fault, run_session
-    from host.experiment import arrays, trials
+    from host.experiment import arrays, trial_loop
     from host.experiment.config import build_config
     from host.experiment.inprocess import InProcessBench
     from host.experiment.plan import prepare
@@ -270,14 +271,14 @@ def test_a_full_disk_at_each_phase_keeps_a_readable_recording(
     cfg = build_config(None, {"iterations": 3, "cycle_s": 0.15})
     plan = prepare(cfg)
     if phase == "before_first_trial":
-        real_write = trials.write_summary
+        real_write = trial_loop.write_summary
 
         def write_first(out_dir: Path, summary: dict, **kw: Any) -> None:
             if not summary["iterations"]:
                 _fill(small_fs)
             real_write(out_dir, summary, **kw)
 
-        monkeypatch.setattr(trials, "write_summary", write_first)
+        monkeypatch.setattr(trial_loop, "write_summary", write_first)
     elif phase == "recording":
         real_log = RunRecorder.log_trial
 

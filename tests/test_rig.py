@@ -26,7 +26,7 @@ from bus.units import timeout_scale
 from host.experiment.config import build_config
 from host.experiment.inprocess import InProcessBench
 from host.experiment.plan import prepare
-from host.experiment.trials import run_experiment
+from host.experiment.trial_loop import run_experiment
 from host.rig.realtime import scheduling_mechanisms
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]

@@ -18,8 +18,8 @@ from bus.cia301.nmt import HeartbeatReport, NmtCommand, NmtState, heartbeat_cob_
 from bus.objects import DRIVE_EDS_PATH
 from bus.plant_objects import PLANT_EDS_PATH, PlantFault
 from bus.transports.config import FIELDBUS, virtual_transport
+from host.experiment.bench import TrialFault
 from host.experiment.faults import FaultKind, FaultRecord
-from host.experiment.trials import TrialFault
 from host.rig.bus_accounting import BusTimeAccounting
 from host.rig.channels import RigChannels
 from host.rig.fault_classify import (
@@ -191,7 +191,7 @@ def test_an_emcy_is_declared_and_logged(rig: Rig) -> None:
     rig.peer.send(can.Message(arbitration_id=emcy_cob_id(2), data=encode_emcy(0x8611, 0x01), is_extended_id=False))
     while not rig.watchdog.events.emcy:
         time.sleep(0.005)
-    rig.watchdog.check()
+    rig.watchdog.watch_round()
     assert len(rig.declared) == 1
     rec = rig.declared[0]
     assert (rec.kind, rec.node, rec.detected_by) == (FaultKind.EMCY, "drive2", "drive2")

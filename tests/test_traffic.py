@@ -55,9 +55,9 @@ def ticks(counter: IoTickCounter, first: int, n: int) -> None:
 
 def test_io_ticks_are_binned_by_their_tick_counter_and_control_frames_counted_apart() -> None:
     c = IoTickCounter()
-    c.add(io_frames.encode_control(io_frames.ControlCommand.TRIAL_START, 65_530, 20))
+    c.add(io_frames.encode_control(io_frames.IoControlCommand.TRIAL_START, 65_530, 20))
     ticks(c, 65_530, 20)  # the 16-bit wire tick wraps inside the trial
-    c.add(io_frames.encode_control(io_frames.ControlCommand.TRIAL_STOP, 65_550, 20))
+    c.add(io_frames.encode_control(io_frames.IoControlCommand.TRIAL_STOP, 65_550, 20))
     c.add(frame(0x7FF, b"\x01"))
     c.close()
     assert (c.ticks, c.bits_mean, c.bits_max) == (20, 960.0, 960)
@@ -147,7 +147,7 @@ def test_per_trial_exchange_follows_from_the_transfer_sizes_not_the_number_of_po
 
 
 def test_io_frames_counted_as_arrays_give_the_same_figures() -> None:
-    msgs = [io_frames.encode_control(io_frames.ControlCommand.TRIAL_START, 65_530, 30)]
+    msgs = [io_frames.encode_control(io_frames.IoControlCommand.TRIAL_START, 65_530, 30)]
     for n in range(65_530, 65_530 + 30):  # wraps; the torque frames of a tick arrive late and mixed
         tick = n & 0xFFFF
         msgs += [io_frames.encode_encoder(j, tick, j) for j in range(4)]
@@ -156,7 +156,7 @@ def test_io_frames_counted_as_arrays_give_the_same_figures() -> None:
         io_frames.encode_torque(1, 65_531, 0, 0),  # a duplicate long after its tick: a bin of its own
         frame(0x7FF, b"\x01"),
         frame(0x101, b"\x01\x02"),
-        io_frames.encode_control(io_frames.ControlCommand.TRIAL_STOP, 65_560, 30),
+        io_frames.encode_control(io_frames.IoControlCommand.TRIAL_STOP, 65_560, 30),
     ]
     one, many = IoTickCounter(), IoTickCounter()
     for m in msgs:

@@ -1,5 +1,6 @@
-"""Tests of host.planning.trajectory: motion laws, trial planning (poly4567, poly5, ruckig), joint
-references by IK and the feasibility check."""
+"""Tests of host.planning (motion_laws, journeys, ruckig_adapter, task_plan, joint_reference,
+feasibility): motion laws, trial planning (poly4567, poly5, ruckig), joint references by IK and the
+feasibility check."""
 
 from __future__ import annotations
 
@@ -10,20 +11,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from host.planning.feasibility import JointLimits, check_feasibility
+from host.planning.joint_reference import joint_reference
+from host.planning.journeys import trial_samples
+from host.planning.motion_laws import poly5, poly4567
 from host.planning.paths import BUILTIN_PATHS, PathSpec
-from host.planning.trajectory import (
-    PROFILES,
-    CartesianLimits,
-    InfeasibleTaskError,
-    JointLimits,
-    TrajectoryError,
-    check_feasibility,
-    joint_reference,
-    plan_task,
-    poly5,
-    poly4567,
-    trial_samples,
-)
+from host.planning.planning_errors import InfeasibleTaskError, TrajectoryError
+from host.planning.ruckig_adapter import CartesianLimits
+from host.planning.task_plan import PROFILES, plan_task
 
 TS = 1e-3
 CYCLES = (0.15, 0.25, 0.50)

@@ -24,7 +24,7 @@ from bus.transports.hub.wire import NonLoopbackAddressError
 from host.experiment.config import build_config
 from host.experiment.inprocess import InProcessBench
 from host.experiment.plan import prepare
-from host.experiment.trials import run_experiment
+from host.experiment.trial_loop import run_experiment
 
 HERE = Path(__file__).resolve().parent
 EXP = ["--iterations", "2", "--cycle", "0.15", "--disturbance", "both", "--seed", "3"]

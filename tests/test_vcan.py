@@ -35,7 +35,7 @@ from bus.transports.config import VCAN_FIELDBUS, VCAN_IO, vcan_available
 from host.experiment.config import build_config
 from host.experiment.inprocess import InProcessBench
 from host.experiment.plan import prepare
-from host.experiment.trials import run_experiment
+from host.experiment.trial_loop import run_experiment
 
 REPO = Path(__file__).resolve().parent.parent
 DRIVE_EDS = REPO / "bus" / "drive.eds"

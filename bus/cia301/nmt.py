@@ -168,7 +168,7 @@ def heartbeat_node_id(cob_id: int) -> int | None:
 
 @dataclass
 class HeartbeatReport:
-    """Result of :meth:`HeartbeatConsumer.check`.
+    """Result of :meth:`HeartbeatConsumer.report_at`.
 
     :ivar overdue: nodes whose heartbeat is late (sorted).
     :ivar booted: nodes that sent a boot-up since the previous check (in arrival order).
@@ -183,7 +183,7 @@ class HeartbeatReport:
 class HeartbeatConsumer:
     """Host-side heartbeat monitor (CiA 301 heartbeat consumer, like object 0x1016).
 
-    Pure: feed received heartbeats with :meth:`on_heartbeat` and ask :meth:`check` with the
+    Pure: feed received heartbeats with :meth:`on_heartbeat` and ask :meth:`report_at` with the
     current time [s].  A monitored node is overdue when nothing was heard from it for longer
     than its timeout; a node never heard is overdue ``timeout`` after monitoring started
     (the first time passed in after :meth:`watch`).
@@ -245,7 +245,7 @@ class HeartbeatConsumer:
         """The consumer timeout of ``node_id`` [s] (None if not monitored)."""
         return self._timeouts_s.get(node_id)
 
-    def check(self, now_s: float) -> HeartbeatReport:
+    def report_at(self, now_s: float) -> HeartbeatReport:
         """Overdue monitored nodes at ``now_s`` [s], and the boot-ups since the last check."""
         overdue = []
         for node_id, timeout_s in self._timeouts_s.items():

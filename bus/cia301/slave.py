@@ -7,11 +7,9 @@ This module owns what every node of the rig does on the wire, independent of its
   ``app.nmt_command(cs)``; SDO requests (0x600 + id) → :class:`bus.cia301.sdo.SdoServer` on the app's
   object access, responses on 0x580 + id; boot-up on start and after an NMT reset; producer
   heartbeat (0x700 + id) every 0x1017 ms (re-read after every completed SDO transfer); EMCY
-  frames for every entry of ``app.pop_emcy()`` (the app queues none in NMT STOPPED) on the COB-ID
-  of 0x1014 (default 0x080 + id; bit 31 set: the EMCY is not valid and nothing is sent), at most
-  one per 0x1015 inhibit time (100 µs units; EMCYs within it wait in order), both re-read after
-  every completed SDO transfer.  SDO is silent in the NMT state STOPPED (CiA 301); NMT and
-  heartbeat always work.  Heartbeat consumer (object 0x1016,
+  frames for every entry of ``app.pop_emcy()`` (the app queues none in NMT STOPPED) by
+  :class:`bus.cia301.emcy_producer.EmcyProducer` (0x1014 COB-ID, 0x1015 inhibit time).  SDO is
+  silent in the NMT state STOPPED (CiA 301); NMT and heartbeat always work.  Heartbeat consumer (object 0x1016,
   re-read like 0x1017): a configured producer (the host) silent for its consumer time calls the
   app's optional ``heartbeat_lost(node_id)`` once.  A fieldbus error frame that says the receiver
   overflowed (frames lost, :mod:`bus.can_errors`) calls the app's optional ``frames_lost()``; other
@@ -56,7 +54,7 @@ import can
 
 from bus.bus_features import batch_receiver, pending_check
 from bus.can_errors import is_receive_overflow
-from bus.cia301.emcy import EMCY_NOT_VALID, emcy_cob_id, encode_emcy
+from bus.cia301.emcy_producer import EmcyProducer
 from bus.cia301.nmt import (
     CONSUMER_HEARTBEAT_INDEX,
     NMT_COB_ID,
@@ -78,10 +76,6 @@ logger = logging.getLogger(__name__)
 
 #: Object index of the producer heartbeat time (U16, ms).
 PRODUCER_HEARTBEAT_INDEX = 0x1017
-#: Object indices of the EMCY COB-ID (U32) and the EMCY inhibit time (U16, 100 µs).
-COB_ID_EMCY_INDEX = 0x1014
-INHIBIT_TIME_EMCY_INDEX = 0x1015
-_INHIBIT_UNIT_S = 100e-6
 
 
 def exact_id_filters(ids: Iterable[int]) -> can.typechecking.CanFilters:
@@ -132,11 +126,8 @@ class SlaveNode:
         self._sdo_rx = sdo_request_cob_id(self.node_id)
         self._sdo_tx = sdo_response_cob_id(self.node_id)
         self._hb_id = heartbeat_cob_id(self.node_id)
-        self._emcy_id: int | None = emcy_cob_id(self.node_id)  # None: the EMCY is not valid (0x1014 bit 31)
-        self._emcy_inhibit_s = 0.0
-        self._emcy_queue: list[bytes] = []  # EMCY frames waiting for the inhibit time
-        self._next_emcy_s: float | None = None  # earliest time the next EMCY may go out
-        self._own_fieldbus_ids = {self._sdo_tx, self._hb_id, emcy_cob_id(self.node_id)}
+        self.emcy = EmcyProducer(self.node_id, app, lambda cob_id, data: self._send(self.fieldbus, cob_id, data))
+        self._own_fieldbus_ids = {self._sdo_tx, self._hb_id} | self.emcy.own_ids()
         self._heartbeat_ms = 0
         self._next_heartbeat_s: float | None = None
         self.consumer = NodeHeartbeatConsumer()
@@ -279,7 +270,7 @@ class SlaveNode:
         due = self.consumer.next_deadline()
         if due is not None and due - now < wait:
             wait = due - now
-        due = self._next_emcy_s if self._emcy_queue else None
+        due = self.emcy.next_deadline()
         if due is not None and due - now < wait:
             wait = due - now
         if wait < 0.0:
@@ -375,41 +366,13 @@ class SlaveNode:
         self._next_heartbeat_s = self._clock() + period_ms / 1000.0 if period_ms else None
 
     def _reload_emcy(self) -> None:
-        """Re-read 0x1014 (COB-ID EMCY) and 0x1015 (inhibit time); an app without them keeps the
-        predefined 0x080 + id and no inhibit time."""
-        try:
-            cob = int.from_bytes(self.app.read_object(COB_ID_EMCY_INDEX, 0)[:4], "little")
-            self._emcy_id = None if cob & EMCY_NOT_VALID else cob & 0x7FF
-        except SdoAbort:
-            self._emcy_id = emcy_cob_id(self.node_id)
-        try:
-            self._emcy_inhibit_s = (
-                int.from_bytes(self.app.read_object(INHIBIT_TIME_EMCY_INDEX, 0)[:2], "little") * _INHIBIT_UNIT_S
-            )
-        except SdoAbort:
-            self._emcy_inhibit_s = 0.0
-        self._own_fieldbus_ids = {self._sdo_tx, self._hb_id, emcy_cob_id(self.node_id)}
-        if self._emcy_id is not None:
-            self._own_fieldbus_ids.add(self._emcy_id)
+        """Re-read the EMCY's 0x1014 / 0x1015 (:meth:`bus.cia301.emcy_producer.EmcyProducer.reload`)
+        and with them the node's own fieldbus identifiers."""
+        self.emcy.reload()
+        self._own_fieldbus_ids = {self._sdo_tx, self._hb_id} | self.emcy.own_ids()
 
     def _flush_emcy(self, now: float) -> None:
-        """Queue the app's new EMCYs, then send what the inhibit time allows (one per inhibit
-        time, in order; without an inhibit time all at once)."""
-        for code, register, data in self.app.pop_emcy():
-            if self._emcy_id is None:
-                logger.info("node %d: EMCY 0x%04X not sent: 0x1014 says the EMCY is not valid", self.node_id, int(code))
-                continue
-            self._emcy_queue.append(encode_emcy(int(code), int(register), bytes(data)[:5]))
-        if not self._emcy_queue:
-            return
-        if int(self.app.nmt_state) == NmtState.STOPPED:
-            return  # no EMCY in STOPPED (CiA 301): what waits goes out once the node leaves it
-        while self._emcy_queue and (self._next_emcy_s is None or now >= self._next_emcy_s - 1e-9):
-            if self._emcy_id is None:
-                self._emcy_queue.clear()
-                break
-            self._send(self.fieldbus, self._emcy_id, self._emcy_queue.pop(0))
-            self._next_emcy_s = now + self._emcy_inhibit_s if self._emcy_inhibit_s > 0 else None
+        self.emcy.flush(now)
 
     def _reload_consumers(self) -> None:
         """Re-read the consumer heartbeat entries 0x1016:1..n (an app without 0x1016 consumes
@@ -489,8 +452,7 @@ class SlaveNode:
 
     def send_emcy(self, code: int, register: int, data: bytes = b"") -> None:
         """Send one EMCY frame now (unless the node is STOPPED or 0x1014 says the EMCY is not valid)."""
-        if int(self.app.nmt_state) != NmtState.STOPPED and self._emcy_id is not None:
-            self._send(self.fieldbus, self._emcy_id, encode_emcy(int(code), int(register), data[:5]))
+        self.emcy.send_now(code, register, data)
 
     def _send(self, bus: can.BusABC, cob_id: int, data: bytes) -> None:
         bus.send(new_message(cob_id, bytearray(data)))

@@ -1,7 +1,8 @@
 """host.analysis: what a user reads after a run.
 
-Owns the Rerun recording (:mod:`host.analysis.recording`: the file; what it shows,
-:mod:`host.analysis.recording_scene`), the live view of ``--view``
+Owns the Rerun recording (:mod:`host.analysis.recording`: the recorder; the file on disk,
+:mod:`host.analysis.recording_segments`; its layout, :mod:`host.analysis.recording_layout`; what it
+shows, :mod:`host.analysis.recording_scene`), ``ilcrig view`` (:mod:`host.analysis.viewer`), the live view of ``--view``
 (:mod:`host.analysis.live_view`: the Rerun stream on loopback, the robot's live stream), a run's outputs around the trial loop
 (:mod:`host.analysis.session`), the run report (:mod:`host.analysis.run_report`), the paper's
 data (:mod:`host.analysis.paper_data`), and the ``ilcrig reproduce`` sweep (run by the sweep

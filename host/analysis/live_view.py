@@ -33,8 +33,8 @@ from typing import Any
 
 import numpy as np
 
-from host.analysis.recording import _display_available, viewer_command
 from host.analysis.recording_scene import Batch, rgba_u32, skeleton_points
+from host.analysis.viewer import display_available, viewer_command
 
 logger = logging.getLogger(__name__)
 
@@ -66,7 +66,7 @@ class LiveView:
         self.url = f"rerun+http://127.0.0.1:{self.port}/proxy"
         cmd = viewer_command()
         self.viewer_cmd = cmd
-        self.spawn = (cmd is not None and _display_available()) if spawn is None else bool(spawn)
+        self.spawn = (cmd is not None and display_available()) if spawn is None else bool(spawn)
         self.viewer: subprocess.Popen[bytes] | None = None
 
     def sink(self) -> Any:

@@ -1,60 +1,21 @@
-"""Rerun recordings of a run (``recording.rrd``) and ``ilcrig view``.
+"""The Rerun recording of a run (``recording.rrd``): :class:`RunRecorder`, written trial by trial.
 
-This module owns the layout of ``recording.rrd`` (rerun is imported lazily here and in
-:mod:`host.analysis.live_view`: importing this module does not import rerun).  :class:`RunRecorder`
-implements the :class:`host.experiment.trials.TrialRecorder` protocol with a *non-global*
-``rr.RecordingStream`` saved to a file (no viewer, no network), and with ``--view`` also to the
-live stream of :class:`host.analysis.live_view.LiveView` (loopback only).
-
-Layout (entity paths; timelines ``trial_time`` = t_n = n·Ts as a duration, ``iteration`` = k):
-
-* ``/joint{j}/reference``  q_d of joint j (1..4), deg — one series (the same in every trial)
-* ``/joint{j}/actual/iter{k}``     measured q (encoder) in trial k, deg
-* ``/joint{j}/error/iter{k}``      e = q_d − q, deg
-* ``/joint{j}/torque_ff/iter{k}``  feed-forward u_k sent to the drive, N·m
-* ``/joint{j}/torque_fb/iter{k}``  feedback torque recorded by the drive, N·m
-  All on ``trial_time`` with N rows (one per tick), one entity per iteration; the static
-  ``SeriesLines`` name it ``<quantity> iter k [unit]`` (colour red = first → blue = last
-  planned trial; reference grey), so the iterations overlay as K lines under
-  ``/joint{j}/<quantity>``.
-* ``/metrics/rmse_deg/joint{j}``, ``/metrics/maxe_deg/joint{j}``: one row per trial on the
-  ``iteration`` sequence timeline (the values of the summary, deg).
-* ``/robot`` (``ViewCoordinates.RIGHT_HAND_Z_UP``, base frame, m): static ``/robot/base``
-  (motor-axis points A_i), ``/robot/base/motor_axes``, ``/robot/reference_path`` (reference TCP
-  path); ``/robot/first/...`` (trial 0) and ``/robot/last/...`` (the last completed trial: logged
-  again after every trial, the newest rows win), on ``trial_time`` every ``decimate_3d``-th
-  sample, by forward kinematics from the MEASURED joint angles: ``arms`` (4 strips A_i → elbow
-  B_i → ball-bar midpoint C_i: inner then outer arm), ``sub_platforms`` (upper bar C_1–C_3,
-  lower bar C_2–C_4, screw shaft down to the tool with a 5 cm blade along θ), ``tool`` (TCP
-  point) and a static ``tcp_path``.
-* ``/run_info``: static text (configuration and how to read the recording).
+This module owns the recorder (rerun is imported lazily here and in :mod:`host.analysis.live_view`:
+importing this module does not import rerun).  :class:`RunRecorder` implements the
+:class:`host.experiment.bench.TrialRecorder` protocol with a *non-global* ``rr.RecordingStream``
+saved to a file (no viewer, no network), and with ``--view`` also to the live stream of
+:class:`host.analysis.live_view.LiveView` (loopback only).  What the recording holds is
+:mod:`host.analysis.recording_layout` (entity paths, blueprint) and :mod:`host.analysis.recording_scene`
+(Arrow batches, the 3D robot); how its bytes go to disk :mod:`host.analysis.recording_segments`
+(durability: the recording survives whatever the summary survives); ``ilcrig view`` is
+:mod:`host.analysis.viewer`.
 
 The recording grows trial by trial: :meth:`RunRecorder.log_trial` sends the trial as a few
 multi-entity Arrow record batches (``send_record_batch``: one column per entity, split by Rerun
 into one chunk per entity, the same chunks ``send_columns`` makes).  Nothing is logged per sample.
 
-Durability: the recording survives whatever the summary survives
-    Rerun's stream goes to a :class:`rerun.BinaryStream`, not to a file sink: after each trial the
-    encoded bytes — one complete Rerun stream (header, the trial's messages, end message, footer
-    index and its 32-byte trailer) — are appended to ``recording.rrd`` by :class:`SegmentFile`, which
-    owns every byte of the file.  The file is always a sequence of such segments whose last trailer
-    is held back (written in front of the next segment): without a trailer at its end Rerun's
-    readers (``RrdReader(...).stream()``, ``rerun rrd print``, the viewer) scan the segments one
-    after the other, while a trailer at the end would make them trust that one segment's index.
-    An append writes the new segment behind a 32-byte gap, then the previous trailer into the
-    gap, then fsyncs: a write cut short by a kill leaves either the gap (readers stop cleanly at
-    the last complete trial) or a partial last segment (readers drop it); a failing write (a full
-    disk) is cut back at once and the trial's bytes are kept to be written again (after the run
-    folder's reserve is given back).  :meth:`RunRecorder.committed` says how many bytes hold
-    complete trials (the summary keeps it as ``summary["recording"]``), and :func:`cut_back` cuts a
-    file back to that length — what a process that outlives a killed host does, so the file holds
-    exactly the trials of the summary.  After a run that ended without a write failure,
-    :meth:`RunRecorder.close` joins the segments into one stream with Rerun's footer index
-    (``rerun rrd``-style: a temporary file renamed over the recording), which readers open without
-    scanning; a recording that was not joined (a killed or faulted run) is read by a scan (``RrdReader``
-    warns that it has no footer).  Before a trial is written its size is checked against the
-    free space of the filesystem (the previous trial's growth, ×1.5): a full disk is one
-    :class:`host.experiment.outputs.DiskFullError` before the disk is filled up.
+May import: ``numpy``, ``rerun`` (lazily), :mod:`host.analysis`, :mod:`host.experiment.outputs`,
+:mod:`host.learning.metrics`, :mod:`host.planning`.
 """
 
 from __future__ import annotations
@@ -64,15 +25,13 @@ import json
 import logging
 import os
 import shutil
-import subprocess
-import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any
 
 import numpy as np
 
-from bus.exit_codes import EXIT_USAGE
+from host.analysis.recording_layout import SERIES, default_blueprint
 from host.analysis.recording_scene import (
     COLOR_FIRST,
     COLOR_LAST,
@@ -86,130 +45,14 @@ from host.analysis.recording_scene import (
     rerun_environment,
     rgba_u32,
 )
+from host.analysis.recording_segments import FOOTER_MAGIC, RecordingError, SegmentFile
 from host.experiment.outputs import DiskFullError, OutputError, RunFolder, output_error
 from host.learning.metrics import TrialMetrics
-from host.planning.trajectory import JointReference
+from host.planning.joint_reference import JointReference
 
 logger = logging.getLogger(__name__)
 
-__all__ = [
-    "RunRecorder",
-    "RecordingError",
-    "SegmentFile",
-    "cut_back",
-    "view_run",
-    "viewer_command",
-    "SERIES",
-    "N_JOINTS",
-]
-
-#: per-joint time-series quantities (entity name, unit)
-SERIES: tuple[tuple[str, str], ...] = (
-    ("reference", "deg"),
-    ("actual", "deg"),
-    ("error", "deg"),
-    ("torque_ff", "N·m"),
-    ("torque_fb", "N·m"),
-)
-
-
-#: the fixed-size trailer at the end of every Rerun stream (footer offset and length, CRC, magic,
-#: version) and its magic: rerun 0.41's RRD layout
-TRAILER_BYTES = 32
-FOOTER_MAGIC = b"RRF2FOOT"
-STREAM_MAGIC = b"RRF2"
-
-
-class RecordingError(ValueError):
-    """Bad input to the recorder (shapes that do not match the reference)."""
-
-
-class SegmentFile:
-    """``recording.rrd`` as complete Rerun streams one after the other, the last one's trailer
-    held back (see the module docstring: durability).
-
-    :param path: the file (created, or emptied)
-    :ivar committed: bytes of the file that hold complete segments (the last without its trailer)
-    """
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self.fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o644)
-        self.committed = 0
-        self._trailer = b""
-
-    @staticmethod
-    def split(segment: bytes) -> tuple[bytes, bytes]:
-        """A complete Rerun stream as (everything but its trailer, its trailer).
-
-        :raises RecordingError: not the layout of rerun 0.41 (header magic, trailer magic)
-        """
-        if (
-            len(segment) < len(STREAM_MAGIC) + TRAILER_BYTES
-            or not segment.startswith(STREAM_MAGIC)
-            or segment[-12:-4] != FOOTER_MAGIC
-        ):
-            raise RecordingError("Rerun's encoder did not return a complete stream (an unknown RRD layout?)")
-        return segment[:-TRAILER_BYTES], segment[-TRAILER_BYTES:]
-
-    def append(self, segment: bytes) -> None:
-        """Append one complete stream: its body behind a gap for the held-back trailer, then that
-        trailer, fsync. On failure the file is cut back to :attr:`committed` and the error raised.
-
-        :raises OSError: the write failed (nothing of the segment stays in the file)
-        """
-        body, trailer = self.split(segment)
-        start = self.committed
-        end = start + len(self._trailer) + len(body)
-        try:
-            _pwrite_all(self.fd, body, start + len(self._trailer))
-            if self._trailer:
-                _pwrite_all(self.fd, self._trailer, start)
-            os.ftruncate(self.fd, end)  # an earlier failed attempt may have left more behind
-            os.fsync(self.fd)
-        except OSError:
-            try:
-                os.ftruncate(self.fd, start)
-            except OSError as err:  # pragma: no cover - a truncation frees space, it does not need it
-                logger.error("recording %s: cannot cut back to %d bytes: %s", self.path, start, err)
-            raise
-        self.committed, self._trailer = end, trailer
-
-    def close(self) -> None:
-        """Close the file (its last trailer stays held back; idempotent)."""
-        if self.fd >= 0:
-            os.close(self.fd)
-            self.fd = -1
-
-
-def _pwrite_all(fd: int, data: bytes, offset: int) -> None:
-    view = memoryview(data)
-    while view:
-        n = os.pwrite(fd, view, offset)
-        view, offset = view[n:], offset + n
-
-
-def cut_back(path: str | Path, committed_bytes: int) -> bool:
-    """Cut a recording back to ``committed_bytes`` (``summary["recording"]["bytes"]``) when it is
-    longer and still a sequence of segments (a joined recording, which ends with Rerun's trailer,
-    is left as it is). Returns whether it was cut. Never raises (a failure is logged)."""
-    p = Path(path)
-    try:
-        with open(p, "r+b") as fh:
-            size = fh.seek(0, os.SEEK_END)
-            if size <= committed_bytes or committed_bytes < 0:
-                return False
-            fh.seek(size - 12)
-            if fh.read(8) == FOOTER_MAGIC:
-                return False  # joined into one stream at the end of the run
-            fh.truncate(committed_bytes)
-            fh.flush()
-            os.fsync(fh.fileno())
-    except OSError as err:
-        logger.warning("cannot cut the recording %s back to %d bytes: %s", p, committed_bytes, err)
-        return False
-    logger.info("recording %s cut back from %d to %d bytes (the summary's trials)", p, size, committed_bytes)
-    return True
+__all__ = ["RunRecorder"]
 
 
 class _Tee:
@@ -244,7 +87,7 @@ class _Tee:
 
 class RunRecorder:
     """Writes ``recording.rrd`` of one run, trial by trial; implements
-    :class:`host.experiment.trials.TrialRecorder`.
+    :class:`host.experiment.bench.TrialRecorder`.
 
     :meth:`log_trial` writes the trial (a few Arrow record batches: Rerun's cost is per entity and
     per call, not per value) and appends it to the file (module docstring: durability);
@@ -584,109 +427,3 @@ class RunRecorder:
         self._add_run_info(st)
         add_static_scene(st, ref if ref is not None else self._ref, self.decimate_3d)
         st.send(self._rec)
-
-
-def default_blueprint() -> Any:
-    """The viewer layout: per-joint error / torque / position plots (tabs), the 3D robot, metrics."""
-    rerun_environment()
-    import rerun.blueprint as rrb
-
-    def grid(kind: str, parts: Sequence[str], unit: str) -> Any:
-        return rrb.Grid(
-            *[
-                rrb.TimeSeriesView(
-                    origin=f"/joint{j}", contents=[f"+ /joint{j}/{p}/**" for p in parts], name=f"joint {j} {kind} [{unit}]"
-                )
-                for j in range(1, N_JOINTS + 1)
-            ],
-            name=kind,
-        )
-
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Tabs(
-                grid("error", ["error"], "deg"),
-                grid("torque", ["torque_ff", "torque_fb"], "N·m"),
-                grid("position", ["reference", "actual"], "deg"),
-            ),
-            rrb.Vertical(
-                rrb.Tabs(
-                    rrb.Spatial3DView(origin="/robot", name="robot: first (orange) vs last (blue) trial"),
-                    rrb.TextDocumentView(origin="/run_info", name="run info"),
-                ),
-                rrb.Horizontal(
-                    rrb.TimeSeriesView(origin="/metrics/rmse_deg", name="RMSE per iteration [deg]"),
-                    rrb.TimeSeriesView(origin="/metrics/maxe_deg", name="MaxE per iteration [deg]"),
-                ),
-                row_shares=[3, 2],
-            ),
-            column_shares=[3, 2],
-        ),
-        rrb.TimePanel(timeline="trial_time"),
-        collapse_panels=False,
-    )
-
-
-# ---- ilcrig view ---------------------------------------------------------------------------------
-
-
-def _rerun_version() -> str | None:
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        return version("rerun-sdk")
-    except PackageNotFoundError:
-        return None
-
-
-def viewer_command() -> list[str] | None:
-    """The command that starts the Rerun viewer here: ``rerun`` on PATH, the one next to this
-    Python, or ``python -m rerun``; None if rerun-sdk is not installed."""
-    exe = shutil.which("rerun")
-    if exe:
-        return [exe]
-    sibling = Path(sys.executable).parent / "rerun"
-    if sibling.is_file() and os.access(sibling, os.X_OK):
-        return [str(sibling)]
-    from importlib.util import find_spec
-
-    if find_spec("rerun_cli") is not None or find_spec("rerun") is not None:
-        return [sys.executable, "-m", "rerun"]
-    return None
-
-
-def _display_available() -> bool:
-    if sys.platform in ("darwin", "win32"):
-        return True
-    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
-
-
-def view_run(run_dir: str | Path, *, stdout: TextIO | None = None, stderr: TextIO | None = None) -> int:
-    """``ilcrig view RUN_DIR``: open ``RUN_DIR/recording.rrd`` in the viewer, or say how to.
-
-    :returns: 0 (viewer spawned, or the command printed), 2 if there is no recording.
-    """
-    out = stdout if stdout is not None else sys.stdout
-    err = stderr if stderr is not None else sys.stderr
-    p = Path(run_dir)
-    rrd = p if p.suffix == ".rrd" else p / "recording.rrd"
-    if not rrd.is_file():
-        err.write(f"ilcrig: error: no recording at {rrd}\n")
-        return EXIT_USAGE
-    rrd = rrd.resolve()
-    cmd = viewer_command()
-    if cmd is not None and _display_available():
-        try:
-            subprocess.Popen([*cmd, str(rrd)], stdin=subprocess.DEVNULL, start_new_session=True)
-        except OSError as exc:
-            logger.warning("cannot start the viewer %s: %s", cmd[0], exc)
-        else:
-            out.write(f"ilcrig view: opened {rrd} in the Rerun viewer ({' '.join(cmd)})\n")
-            return 0
-    ver = _rerun_version()
-    pin = f"rerun-sdk=={ver}" if ver else "rerun-sdk"
-    why = "no display ($DISPLAY / $WAYLAND_DISPLAY unset)" if cmd is not None else "no Rerun viewer installed"
-    out.write(
-        f"ilcrig view: {why}; open the recording on a machine with a display:\n  rerun {rrd}\n  (viewer: pip install {pin})\n"
-    )
-    return 0

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from host.planning.trajectory import JointReference
+from host.planning.joint_reference import JointReference
 
 logger = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """One experiment with all its outputs, as ``ilcrig sim`` and ``ilcrig host`` run it.
 
-This module owns what both commands do around :func:`host.experiment.trials.run_experiment`: the run
+This module owns what both commands do around :func:`host.experiment.trial_loop.run_experiment`: the run
 folder's space reserve (:class:`host.experiment.outputs.RunFolder`), the Rerun recording
 (:mod:`host.analysis.recording`, written trial by trial), one console row per trial,
 every trial's signals as numpy files (:mod:`host.experiment.arrays`), ``report.md`` with its
@@ -22,16 +22,19 @@ from bus.exit_codes import EXIT_FAULT, EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATE
 from host.analysis.recording import RunRecorder
 from host.analysis.run_report import write_run_report
 from host.experiment.arrays import Recorders, TrialArrays
+from host.experiment.bench import Bench
 from host.experiment.console import print_header, print_row
+from host.experiment.fault_placement import record_output_fault
 from host.experiment.faults import fault_line
+from host.experiment.loop_state import ExperimentResult
 from host.experiment.outputs import OutputError, RunFolder, output_error
 from host.experiment.plan import Plan
 from host.experiment.summary import write_summary
-from host.experiment.trials import Bench, ExperimentResult, record_output_fault, run_experiment
+from host.experiment.trial_loop import run_experiment
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["run_session", "report_fault", "write_report"]
+__all__ = ["finish_run_report", "run_session", "report_fault"]
 
 
 def run_session(
@@ -72,11 +75,11 @@ def run_session(
     res = run_experiment(
         plan, bench, out, mode=mode, on_trial=lambda m, role: print_row(stream, m, role), recorder=recorder, folder=folder
     )
-    write_report(out, res, folder)
+    finish_run_report(out, res, folder)
     return res
 
 
-def write_report(out: Path, res: ExperimentResult, folder: RunFolder | None = None) -> None:
+def finish_run_report(out: Path, res: ExperimentResult, folder: RunFolder | None = None) -> None:
     """``report.md`` with its convergence plot (when a trial completed, or the run faulted or was
     interrupted); one that cannot be written (a full disk) is the run's fault when it has none: the
     summary says so, written into the last part of the reserve. Gives the reserve back."""

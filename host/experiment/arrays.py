@@ -10,7 +10,7 @@ This module owns the layout of ``<run>/trials/`` (written by ``ilcrig sim`` and 
   ``torque_fb_units`` (µN·m, feedback), each (N, 4) int32 — and ``feedforward_nm`` (N, 4) float64,
   the table the trial played.
 
-:class:`TrialArrays` writes them (a :class:`host.experiment.trials.TrialRecorder`; each file
+:class:`TrialArrays` writes them (a :class:`host.experiment.bench.TrialRecorder`; each file
 written to a temporary name and renamed, so a file is whole or absent); :class:`Recorders` hands a
 trial to several recorders (and says what the first of them that knows holds durably);
 :func:`load_reference` and :func:`load_trial` read them back.  A trial file of N = 501 takes
@@ -30,7 +30,7 @@ import numpy as np
 from bus.atomic import atomic_path
 from host.experiment.outputs import RunFolder, output_error
 from host.learning.metrics import TrialMetrics
-from host.planning.trajectory import JointReference
+from host.planning.joint_reference import JointReference
 
 logger = logging.getLogger(__name__)
 

@@ -63,7 +63,7 @@ from bus.cyclic import FF_TRANSPORTS, cyclic_bus_fit
 from host.learning.gains import GAIN_PRESETS, GainSpec
 from host.learning.names import DEFAULT_LAW, MAX_ITERATIONS
 from host.learning.registry import check_law_name
-from host.planning.trajectory import PROFILES
+from host.planning.task_plan import PROFILES
 from plant.disturbance import KINDS as DISTURBANCES
 from plant.params import PlantScales
 
@@ -112,7 +112,7 @@ class ExperimentConfig:
     @property
     def n_ticks(self) -> int:
         """Ticks per trial, N = round(2·cycle_s/ts_s) + 1 (pick → place → pick, the end point
-        included; :func:`host.planning.trajectory.trial_samples`, which also checks that the cycle
+        included; :func:`host.planning.journeys.trial_samples`, which also checks that the cycle
         is a whole number of periods)."""
         return 2 * max(int(round(self.cycle_s / self.ts_s)), 1) + 1
 

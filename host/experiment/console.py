@@ -14,7 +14,7 @@ import argparse
 from typing import TYPE_CHECKING, Any, TextIO
 
 from host.learning.names import DEFAULT_LAW, GAIN_PRESET_NAMES, LAWS, MAX_ITERATIONS
-from host.planning.trajectory import PROFILES
+from host.planning.task_plan import PROFILES
 
 if TYPE_CHECKING:
     from host.experiment.config import ExperimentConfig

@@ -27,9 +27,9 @@ from bus.cia301.nmt import NmtCommand
 from bus.cyclic import decode_tpdo, encode_csp_rpdo, pdo_config_writes, rpdo_cob_id, tpdo_cob_id
 from bus.objects import DRIVE_NODE_IDS, ControlCommand, Obj
 from firmware_model.drive import Drive
+from host.experiment.bench import CyclicActuals, CyclicSetpoints, TrialFault
 from host.experiment.config import ExperimentConfig
 from host.experiment.faults import FaultKind, FaultRecord
-from host.experiment.trials import CyclicActuals, CyclicSetpoints, TrialFault
 from host.nodes.drive_client import DriveClient
 from plant.disturbance import disturbance_torque
 from plant.params import default_true_plant, scaled_true_plant

@@ -5,7 +5,7 @@ check feasibility, resolve the gains, build the closed-loop model along the refe
 learning law and its convergence check, and compute the initial feed-forward.  Anything
 infeasible raises a ``ValueError`` subclass (:class:`PlanError` for the checks made here) with a
 one-line message naming the option, before a process starts or a drive is configured.  The cheap
-checks come first (:func:`preflight`), so a bad input is refused in well under a second: the trial
+checks come first (:func:`check_config_limits`), so a bad input is refused in well under a second: the trial
 length against the drives' table capacity, the memory of the run against the memory available,
 the learning lead against N; then path, trajectory and feasibility, then the feedback gains against
 the drive's fixed-point range (:mod:`bus.fixedpoint`), and only then the closed-loop model and the
@@ -44,8 +44,11 @@ from host.learning.laws.checked import CheckedLaw, build_law
 from host.learning.model import ClosedLoopModel
 from host.learning.names import LAWS
 from host.learning.registry import law_class
+from host.planning.feasibility import check_feasibility
+from host.planning.joint_reference import JointReference, joint_reference
+from host.planning.journeys import trial_samples
 from host.planning.paths import resolve_path
-from host.planning.trajectory import JointReference, check_feasibility, joint_reference, plan_task, trial_samples
+from host.planning.task_plan import plan_task
 from plant.dynamics import inverse_dynamics, mass_matrix
 from plant.params import Geometry, default_true_plant, nominal_mass_model
 
@@ -58,7 +61,7 @@ __all__ = [
     "PlanError",
     "available_memory_bytes",
     "prepare",
-    "preflight",
+    "check_config_limits",
     "plan_with_gains",
     "reference_tables",
     "rehearse_first_update",
@@ -245,7 +248,7 @@ def _check_memory(cfg: ExperimentConfig, n: int, rig: bool) -> None:
     )
 
 
-def preflight(cfg: ExperimentConfig, *, rig: bool = False) -> int:
+def check_config_limits(cfg: ExperimentConfig, *, rig: bool = False) -> int:
     """The cheap checks that need no planning: the trial length N against the drives' table
     capacity, the run's memory against the machine's (with ``rig``: of all processes of
     ``ilcrig run``), the learning lead against N. Returns N.
@@ -328,8 +331,8 @@ class Plan:
 def prepare(cfg: ExperimentConfig, *, rig: bool = False) -> Plan:
     """Plan the task, map it to joints, check feasibility and convergence (raise ValueError
     subclasses with one-line messages on anything infeasible); ``rig``: the memory check counts all
-    processes of ``ilcrig run`` (:func:`preflight`)."""
-    preflight(cfg, rig=rig)
+    processes of ``ilcrig run`` (:func:`check_config_limits`)."""
+    check_config_limits(cfg, rig=rig)
     path = resolve_path(cfg.path)
     task = plan_task(path, cfg.cycle_s, cfg.profile, cfg.ts_s)
     ref = joint_reference(task)

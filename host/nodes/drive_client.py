@@ -58,7 +58,7 @@ class DriveInputError(DriveClientError, ValueError):
 
 
 @dataclass(frozen=True)
-class TrialStatus:
+class DriveTrialStatus:
     """0x2120 / 0x2200 as read back."""
 
     state: TrialState
@@ -285,8 +285,8 @@ class DriveClient:
         """Arm playback: the drive starts at io tick 0."""
         self.access.write_object(Obj.TRIAL, TrialSub.COMMAND, _u8(TrialCommand.ARM))
 
-    def trial_status(self) -> TrialStatus:
-        return TrialStatus(
+    def trial_status(self) -> DriveTrialStatus:
+        return DriveTrialStatus(
             state=TrialState(self._read_uint(Obj.TRIAL, TrialSub.STATE)),
             ticks=self._read_uint(Obj.TRIAL, TrialSub.TICKS),
             recorder=RecorderStatus(self._read_uint(Obj.RECORDER, RecorderSub.STATUS)),

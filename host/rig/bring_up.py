@@ -43,8 +43,8 @@ from bus.cyclic import CSP_RPDO_MAP, RPDO_NUMBER, TPDO_MAP, TPDO_NUMBER, TRANSMI
 from bus.objects import DRIVE_EDS_PATH, DRIVE_NODE_IDS
 from bus.plant_objects import DEFAULT_PLANT_NODE_ID as PLANT_NODE_ID
 from bus.plant_objects import PLANT_EDS_PATH
+from host.experiment.bench import TrialFault
 from host.experiment.config import ExperimentConfig
-from host.experiment.trials import TrialFault
 from host.nodes.drive_client import DriveClient
 from host.nodes.plant_client import PlantClient
 from host.nodes.sdo_access import SdoAccess, sdo_errors

@@ -26,8 +26,9 @@ from bus.transports.config import FIELDBUS, IO, TransportConfig
 from host.analysis.session import report_fault, run_session
 from host.experiment.config import ExperimentConfig
 from host.experiment.console import print_plan
+from host.experiment.loop_state import ExperimentResult
 from host.experiment.plan import prepare
-from host.experiment.trials import ExperimentResult, interrupt_on_signals
+from host.experiment.signal_shield import interrupt_on_signals
 from host.rig.bus_accounting import bus_time_lines
 from host.rig.realtime import timing_line
 from host.rig.rig_bench import RigBench

@@ -1,7 +1,7 @@
 """What outlives a killed ``ilcrig run``: its run folder made to hold what its summary says.
 
 This module owns :func:`settle_run_folder` — ``recording.rrd`` cut back to the trials of
-``summary.json`` (:func:`host.analysis.recording.cut_back`), the temporary files of atomic writes
+``summary.json`` (:func:`host.analysis.recording_segments.cut_back`), the temporary files of atomic writes
 and the trial arrays the summary does not hold removed (:func:`host.experiment.outputs.remove_leftovers`)
 — and the janitor process that does it when nobody else can (``python -P -m host.rig.janitor
 --out DIR --wait PID``, :func:`start_janitor` / :class:`Janitor`).
@@ -46,7 +46,7 @@ HOST_WAIT_S = 30.0
 def settle_run_folder(out_dir: str | Path) -> list[str]:
     """Make the run folder hold what its ``summary.json`` says (module docstring); returns what was
     done, one line each. Never raises (a failure is logged)."""
-    from host.analysis.recording import cut_back
+    from host.analysis.recording_segments import cut_back
     from host.experiment.outputs import remove_leftovers
 
     d = Path(out_dir)

@@ -114,4 +114,4 @@ class NodeEvents:
         """The watched nodes overdue at ``now`` (default: now) and the boot-ups since the last
         report, which it forgets."""
         with self._lock:
-            return self._heartbeats.check(time.monotonic() if now is None else now)
+            return self._heartbeats.report_at(time.monotonic() if now is None else now)

@@ -22,8 +22,8 @@ import numpy as np
 from bus.cyclic import decode_tpdo
 from bus.objects import DRIVE_NODE_IDS
 from bus.units import timeout_scale
+from host.experiment.bench import CyclicActuals, CyclicSetpoints, TrialFault
 from host.experiment.faults import FaultRecord
-from host.experiment.trials import CyclicActuals, CyclicSetpoints, TrialFault
 
 logger = logging.getLogger(__name__)
 
@@ -41,7 +41,7 @@ class SyncProducer:
     """SYNC + RPDO out, TPDO in, one tick at a time (see the module docstring).
 
     :param network: the fieldbus (the SYNC producer is ``network.sync``)
-    :param raise_if_fault: raises the declared fault (:class:`host.experiment.trials.TrialFault`), if any
+    :param raise_if_fault: raises the declared fault (:class:`host.experiment.bench.TrialFault`), if any
     :param explain_missing: called before a missing TPDO is reported (with the timeout scale): the
         bench waits briefly for the plant node's own fault, which explains it better
     :ivar frames: the SYNC, RPDO and TPDO frames of every trial so far

@@ -1,4 +1,4 @@
-"""The rig as the trial loop's bench: a :class:`host.experiment.trials.Bench` whose four drives and
+"""The rig as the trial loop's bench: a :class:`host.experiment.bench.Bench` whose four drives and
 plant are other processes, reached only over CAN with the ``canopen`` library.
 
 This module owns :class:`RigBench`, which puts the rig's parts together on a canopen network that
@@ -37,9 +37,9 @@ from bus.objects import DRIVE_NODE_IDS
 from bus.traffic import DEFAULT_BITRATE
 from bus.transports.config import FIELDBUS, IO, TransportConfig
 from bus.units import timeout_scale
+from host.experiment.bench import CyclicActuals, CyclicSetpoints
 from host.experiment.config import ExperimentConfig
 from host.experiment.faults import FaultRecord
-from host.experiment.trials import CyclicActuals, CyclicSetpoints
 from host.nodes.drive_client import DriveClient
 from host.nodes.sdo_access import sdo_errors
 from host.rig.bring_up import BringUp, RigNodes
@@ -259,7 +259,7 @@ class RigBench:
             logger.debug("final watchdog round failed", exc_info=True)
         trial_running = watchdog.in_trial or self.channels.running_tick() is not None
         self._safe_state, errors = bring_to_safe_state(self.network, self.nodes, watchdog, trial_running=trial_running)
-        watchdog.check()
+        watchdog.watch_round()
         watchdog.disarm()
         if errors and watchdog.fault is None:
             self._closing_fault = sdo_fault(errors[0], watchdog.trial, time.monotonic())

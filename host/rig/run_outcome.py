@@ -37,6 +37,7 @@ from bus.cia301.nmt import CONSUMER_TIME_MS
 from bus.exit_codes import EXIT_FAULT, EXIT_OK, EXIT_USAGE
 from bus.safe_state import last_state_in_log
 from bus.units import timeout_scale
+from host.experiment.fault_placement import place
 from host.experiment.faults import (
     FaultKind,
     FaultRecord,
@@ -46,7 +47,6 @@ from host.experiment.faults import (
     position_of,
     read_injections,
 )
-from host.experiment.trials import place
 from host.rig.processes import Child, Death, describe_status, node_id_of, tail
 
 logger = logging.getLogger(__name__)

@@ -5,7 +5,7 @@ This module owns :class:`TrialRunner`: per trial it sends TRIAL_START to the pla
 then leads the lockstep on the io channel), streams the SYNC/RPDO set-points through a
 :class:`host.rig.pdo_stream.SyncProducer` when the trial has cyclic set-points, and waits for the
 plant node to report the trial done.  A fault during the trial ends as one
-:class:`host.experiment.trials.TrialFault` carrying the watchdog's record (or the record of the
+:class:`host.experiment.bench.TrialFault` carrying the watchdog's record (or the record of the
 exception, :meth:`host.rig.watchdog.Watchdog.describe`).  After each trial it keeps the plant
 node's :class:`bus.plant_objects.TrialTiming`, the ticks that missed their deadline (only when
 some did) and the CPU time the hypervisor took meanwhile (:func:`host.rig.realtime.steal_during`).
@@ -22,7 +22,7 @@ import numpy as np
 
 from bus.errors import SdoAbort
 from bus.plant_objects import DeadlineMisses, TrialTiming
-from host.experiment.trials import CyclicActuals, CyclicSetpoints, TrialFault
+from host.experiment.bench import CyclicActuals, CyclicSetpoints, TrialFault
 from host.nodes.plant_client import PlantClient, PlantClientError
 from host.nodes.sdo_access import SdoTransportError
 from host.rig.pdo_stream import SyncProducer
@@ -96,7 +96,7 @@ class TrialRunner:
                 raise TrialFault(record.message if record else f"trial {trial}: {exc}", record) from exc
         if self._catch_up is not None:  # what the monitors noted at a tick of this trial belongs to it
             self._catch_up()
-        watchdog.check()
+        watchdog.watch_round()
         watchdog.raise_if_fault()
         timing = self.plant.trial_timing()
         self.timings.append(timing)

@@ -6,7 +6,7 @@ declared, whether a trial runs or not:
 * it hears the nodes through :class:`host.rig.node_events.NodeEvents` (their heartbeats and EMCY
   frames, canopen's ``RemoteNode.nmt`` / ``RemoteNode.emcy`` callbacks) and the canopen
   notifier's errors (:class:`FieldbusErrors`);
-* a thread (every :data:`WATCH_PERIOD_S`), or :meth:`Watchdog.check` in the caller's thread,
+* a thread (every :data:`WATCH_PERIOD_S`), or :meth:`Watchdog.watch_round` in the caller's thread,
   looks at what it has heard, the channels (:class:`host.rig.channels.RigChannels`) and the host's
   heartbeat producer and classifies the first fault visible (:mod:`host.rig.fault_classify`), in
   order: a bus gone, a channel's log stopped or a bus error frame, an EMCY, the host itself
@@ -42,8 +42,8 @@ import canopen
 from bus.cia301.nmt import CONSUMER_TIME_MS, NODE_HEARTBEAT_MS, NmtCommand
 from bus.errors import SdoAbort
 from bus.transports.config import FIELDBUS
+from host.experiment.bench import TrialFault
 from host.experiment.faults import FaultRecord, attach_injection, read_injections
-from host.experiment.trials import TrialFault
 from host.nodes.plant_client import PlantTrialFault
 from host.nodes.sdo_access import SdoTransportError
 from host.rig.channels import RigChannels
@@ -203,7 +203,7 @@ class Watchdog:
         """The fieldbus is open and the canopen notifier has seen no error on it."""
         return self.network.bus is not None and self.fieldbus_errors.error is None
 
-    def check(self) -> None:
+    def watch_round(self) -> None:
         """One watchdog round in the caller's thread."""
         self._round(time.monotonic())
 
@@ -212,18 +212,18 @@ class Watchdog:
         it first), then one round."""
         if self._fault is None:
             time.sleep(EMCY_SETTLE_S)
-            self.check()
+            self.watch_round()
 
     def check_settled(self) -> None:
         """One round now, and while this process was stopped a moment ago (its heartbeat's gap)
         the rounds until the nodes' EMCY frames about it had time to arrive (before a trial, and at
         the run's end: a stop of the host is declared before anything goes on)."""
-        self.check()
-        self.check()  # the first round after a stop only lets the queued frames in
+        self.watch_round()
+        self.watch_round()  # the first round after a stop only lets the queued frames in
         deadline = time.monotonic() + STALL_SETTLE_S + WATCH_PERIOD_S
         while self._fault is None and self._stall is not None and time.monotonic() < deadline:
             time.sleep(WATCH_PERIOD_S)
-            self.check()
+            self.watch_round()
 
     def raise_if_fault(self) -> None:
         """:raises TrialFault: a fault was declared."""

@@ -30,7 +30,7 @@ from host.learning.check import IterationMap
 from host.learning.gains import Gains
 from host.learning.model import ClosedLoopModel
 from host.learning.protocol import TrialData
-from host.planning.trajectory import JointReference
+from host.planning.joint_reference import JointReference
 from plant.params import Geometry, MassModel
 
 logger = logging.getLogger(__name__)

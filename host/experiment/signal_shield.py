@@ -1,0 +1,93 @@
+"""SIGINT / SIGTERM during a run: raised as :class:`Interrupted` in the main thread, held back
+while a trial's outputs are written, recorded (not raised) while the run ends.
+
+Owns the one signal shield of the process (:data:`SHIELD`), :func:`interrupt_on_signals` (the
+handlers of a run) and :func:`deferred_interrupts` (a block the signals wait for).  Used by the trial
+loop (:mod:`host.experiment.trial_loop`), ``ilcrig sim`` and the rig's host role.
+
+May import: the standard library only.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import signal
+import threading
+from collections.abc import Iterator, Sequence
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["Interrupted", "SHIELD", "Shield", "deferred_interrupts", "interrupt_on_signals"]
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGINT / SIGTERM during a run (raised by the signal handler of the process)."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+class Shield:
+    """While :attr:`active` (the end of a run: safe state, summary), the signal handler of
+    :func:`interrupt_on_signals` records a signal in :attr:`pending` instead of raising; while
+    :attr:`defer_depth` > 0 (a trial's outputs being written) it keeps it in :attr:`deferred`,
+    raised when the block ends (:func:`deferred_interrupts`)."""
+
+    active: bool = False
+    pending: int | None = None
+    defer_depth: int = 0
+    deferred: int | None = None
+
+
+SHIELD = Shield()
+
+
+@contextlib.contextmanager
+def deferred_interrupts() -> Iterator[None]:
+    """Hold SIGINT / SIGTERM back while inside (the handler of :func:`interrupt_on_signals` keeps
+    the signal); at the end raise :class:`Interrupted` for it — unless an exception is already on
+    its way, then the run's end marks the signal (:meth:`host.experiment.trial_loop.TrialLoop.finish`)."""
+    SHIELD.defer_depth += 1
+    failed = False
+    try:
+        yield
+    except BaseException:
+        failed = True
+        raise
+    finally:
+        SHIELD.defer_depth -= 1
+        if SHIELD.defer_depth == 0 and SHIELD.deferred is not None and not failed:
+            signum, SHIELD.deferred = SHIELD.deferred, None
+            raise Interrupted(signum)
+
+
+@contextlib.contextmanager
+def interrupt_on_signals(signals: Sequence[int] = (signal.SIGINT, signal.SIGTERM)) -> Iterator[None]:
+    """While inside: SIGINT / SIGTERM raise :class:`Interrupted` in the main thread (the run then
+    ends through its fault path: safe state, summary with an ``interrupted`` marker); a second
+    signal during that shutdown is ignored so the summary gets written. Restores the handlers."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    fired: list[int] = []
+
+    def handler(signum: int, _frame: object) -> None:
+        if fired or SHIELD.active:
+            if SHIELD.active and SHIELD.pending is None:
+                SHIELD.pending = signum  # the run is ending already: marked, not raised
+            logger.warning("signal %d while stopping: the run ends as soon as its outputs are written", signum)
+            return
+        fired.append(signum)
+        if SHIELD.defer_depth > 0:
+            SHIELD.deferred = signum  # a trial's outputs are being written: raised when they are
+            return
+        raise Interrupted(signum)
+
+    old = {s: signal.signal(s, handler) for s in signals}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)

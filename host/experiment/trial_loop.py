@@ -1,0 +1,357 @@
+"""One ILC experiment: plan, check, then trial after trial on a bench, learning in between.
+
+This module owns the trial loop (:class:`TrialLoop`, :func:`run_experiment`) and the end of every
+run (bench closed, recording finished, final summary).  Its parts: the bench protocol
+(:mod:`host.experiment.bench`), the loop's state (:mod:`host.experiment.loop_state`), the fault
+records' placement (:mod:`host.experiment.fault_placement`), the signals
+(:mod:`host.experiment.signal_shield`), the TPDO cross-check (:mod:`host.experiment.tpdo_check`).
+May import: ``bus``, ``numpy``, :mod:`host.experiment`, :mod:`host.learning`, :mod:`host.nodes`,
+:mod:`host.planning`.
+
+The host side is the same for every mode: it talks to the four drives only through
+:class:`host.nodes.drive_client.DriveClient` (object-dictionary reads and writes) and asks a
+:class:`Bench` to run a trial.  ``ilcrig sim`` uses the in-process bench of
+:mod:`host.experiment.inprocess`; ``ilcrig run`` a bench whose drives and plant are other processes on CAN.
+
+Feed-forward transport (``cfg.ff_transport``): ``table`` downloads the learned feed-forward by SDO
+before every trial (the drives play it back in their manufacturer mode −1); ``pdo`` puts the drives
+in cyclic synchronous position (CSP) and hands the bench the per-tick set-points (target position,
+counts, and torque offset, ‰ of the rated torque) that it streams by SYNC + RPDO; the bench returns
+the TPDO actuals (position counts, torque ‰), from which the learning takes q and τ.  The recorder
+is uploaded in both modes (the trace digest, the recording) and must agree with the TPDOs.
+
+Trials: :class:`TrialLoop` runs one trial per step — a learning trial, or one of the auxiliary
+rollouts a law asks for after a learning trial (:mod:`host.learning.protocol`: counted as trials
+everywhere, marked ``"role": "auxiliary"`` in the summary) — and runs the law after a learning
+trial (or after the last auxiliary trial of its step); :func:`run_experiment` steps it to the end.
+
+The run folder gets ``summary.json`` (:mod:`host.experiment.summary`), written before the first
+trial and rewritten atomically after every trial so a fault or Ctrl-C never corrupts the results
+of earlier trials.
+
+One fault path: whatever ends a run early — a :class:`TrialFault` of the bench, a node that
+stopped answering, a failing write of the outputs (a full disk), Ctrl-C / SIGTERM — ends it the
+same way: the bench is closed (every live drive brought to a torque-free safe state, reported by
+the bench's optional ``safe_state()`` into ``summary["safe_state"]``), the fault goes into
+``summary["faults"]`` as a :class:`host.experiment.faults.FaultRecord` (an interrupt into
+``summary["interrupted"]``), and the summary is written with every completed trial (the run
+folder's space reserve given back first, so the final outputs fit on a full disk).  The same path
+covers the whole run, not only the trials: a fault before the first trial (bring-up,
+configuration), between two trials, after the last one or while the bench closes (its optional
+``closing_fault()``) is placed with its :class:`host.experiment.faults.Position`, and a completed
+run whose bench reports a fault while closing ends with it too (``completed`` stays true: every
+trial was run and kept).
+
+A trial counts as completed — kept — once its data is in the summary (in memory); its outputs
+(recording, arrays, the summary file) are written right after, with the signals SIGINT / SIGTERM
+held back meanwhile, so an interrupt never falls between a trial's recording and its summary
+entry.  A trial whose outputs could not be written (a full disk) is written again after the
+reserve is given back.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import signal
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from bus.errors import IlcrigError
+from host.experiment.bench import Bench, TrialRecorder
+from host.experiment.fault_placement import fault_record_of, place, record_output_fault
+from host.experiment.faults import Position, position_of
+from host.experiment.loop_state import ExperimentResult, LoopState, TrialOutcome, new_summary
+from host.experiment.outputs import OutputError, RunFolder
+from host.experiment.plan import Plan
+from host.experiment.signal_shield import SHIELD, deferred_interrupts
+from host.experiment.summary import jsonable, write_summary
+from host.learning.metrics import TrialMetrics
+from host.learning.protocol import AUXILIARY, LEARNING
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["TrialLoop", "run_experiment"]
+
+
+class TrialLoop:
+    """The trial loop, one trial per :meth:`step` (``run_experiment`` and the API's stepping).
+
+    :meth:`start` writes the summary before the first trial, starts the bench and configures the
+    drives; every :meth:`step` runs the next trial — a learning trial, or an auxiliary rollout the
+    law asked for (:mod:`host.learning.protocol`) — records it (summary, recording), and after a
+    learning trial (or the last auxiliary trial of its step) runs the law for the next learning
+    trial's feed-forward; :meth:`finish` closes the bench and writes the final summary.  A fault or
+    an interrupt during :meth:`start` or :meth:`step` ends the run through the one fault path (module
+    docstring) and :meth:`step` returns None from then on, as it does after the last planned trial.
+    Between steps :meth:`set_gains` changes the gains (in-process stepping of the API).
+
+    Parameters as :func:`run_experiment`.
+    """
+
+    def __init__(
+        self,
+        plan: Plan,
+        bench: Bench,
+        out_dir: str | Path | None,
+        *,
+        mode: str,
+        on_trial: Callable[[TrialMetrics, str], None] | None = None,
+        keep_traces: bool = False,
+        recorder: TrialRecorder | None = None,
+        folder: RunFolder | None = None,
+    ) -> None:
+        self.out = Path(out_dir) if out_dir is not None else None
+        self.bench, self.on_trial, self.recorder, self.folder = bench, on_trial, recorder, folder
+        self.result = ExperimentResult(summary={})
+        self.trials = LoopState(plan, bench, self.result, keep_traces, recorder)
+        self.result.summary.update(new_summary(plan, mode, self.trials.digest))
+        self.k = 0
+        self.started = False
+        self.finished = False
+
+    @property
+    def plan(self) -> Plan:
+        return self.trials.plan
+
+    @property
+    def done(self) -> bool:
+        """No trial left to run (all planned trials ran, or the run ended by a fault or interrupt)."""
+        return self.finished or self.k >= self.plan.cfg.iterations
+
+    def start(self) -> None:
+        """Summary before the first trial, bench started, drives configured (idempotent)."""
+        if self.started:
+            return
+        self.started = True
+        self._guarded(self._start)
+
+    def _start(self) -> None:
+        if self.out is not None:
+            self._note_recording()
+            write_summary(self.out, self.result.summary, folder=self.folder, trial=-1)
+        self.bench.start()
+        for j in range(len(self.bench.drives)):
+            self.trials.setup_drive(j)
+
+    def step(self) -> TrialOutcome | None:
+        """Run the next trial; None when the run is over (then it is finished: bench closed)."""
+        if not self.started:
+            self.start()
+        if self.done:
+            self.finish()
+            return None
+        outcome = self._guarded(self._step)
+        if outcome is None or self.k >= self.plan.cfg.iterations:
+            if outcome is not None:
+                self.result.summary["completed"] = True
+            self.finish()
+        return outcome
+
+    def _step(self) -> TrialOutcome:
+        t, plan, law = self.trials, self.plan, self.plan.law
+        k, n_planned = self.k, plan.cfg.iterations
+        aux_step = t.step_trial
+        if aux_step is not None:
+            role = AUXILIARY
+            u = t.checked_table(lambda: law.auxiliary_input(aux_step, tuple(t.step_aux)), k)
+        else:
+            role, u = LEARNING, t.u
+        m, e, tau = t.run_trial(k, u)
+        with deferred_interrupts():  # kept from here: summary entry, recording and summary file together
+            t.pending = (k, m, e)
+            t.record(m, role)
+            self.k = k + 1
+            self.result.roles.append(role)
+            if self.on_trial is not None:
+                self.on_trial(m, role)
+            t.log_recording(k, m, e)
+            if self.out is not None:
+                self._note_recording()
+                write_summary(self.out, self.result.summary, folder=self.folder, trial=k)
+        data = t.trial_data(k, role, u, e, tau)
+        outcome = TrialOutcome(k, role, m, u, e, tau, list(t.last_traces), plan.gains)
+        if k + 1 >= n_planned:
+            return outcome
+        if role == AUXILIARY:
+            assert aux_step is not None
+            t.step_aux.append(data)
+            if len(t.step_aux) == law.auxiliary_trials:
+                full = dataclasses.replace(aux_step, auxiliary=tuple(t.step_aux))
+                t.step_trial, t.step_aux = None, []
+                t.u = t.checked_table(lambda: law.learn(full), k + 1)
+        elif law.auxiliary_trials and n_planned - (k + 1) >= law.auxiliary_trials + 1:
+            t.step_trial, t.step_aux = data, []
+        else:
+            t.u = t.checked_table(lambda: law.learn(data), k + 1)
+        return outcome
+
+    def set_gains(self, plan: Plan) -> None:
+        """Continue with ``plan`` (the same experiment with other gains and the law built again for
+        them, :func:`host.experiment.plan.plan_with_gains`): the drives get its feedback gains
+        before the next trial; the next learning trial keeps the current feed-forward.
+
+        :raises RuntimeError: during an auxiliary step (the law's rollouts belong together).
+        """
+        if self.trials.step_trial is not None:
+            raise RuntimeError("the gains cannot change between a learning trial and its auxiliary trials")
+        self.trials.plan = plan
+        self.result.summary.setdefault("gain_changes", []).append({"before_trial": self.k, "gains": plan.gains.as_dict()})
+        if self.started and not self.finished:
+            for j, drive in enumerate(self.bench.drives):
+                drive.configure(
+                    kp_nm_per_rad=float(plan.gains.kp[j]),
+                    kd_nms_per_rad=float(plan.gains.kd[j]),
+                    torque_limit_nm=plan.torque_limit_nm,
+                )
+
+    def _note_recording(self) -> None:
+        """``summary["recording"]``: what the recording holds durably now (if it says)."""
+        committed = getattr(self.recorder, "committed", None)
+        state = committed() if committed is not None else None
+        if state is not None:
+            self.result.summary["recording"] = state
+
+    def _guarded(self, fn: Callable[[], Any]) -> Any:
+        """``fn()``; a fault or an interrupt ends the run through the fault path (None)."""
+        result, summary, bench = self.result, self.result.summary, self.bench
+        try:
+            return fn()
+        except IlcrigError as exc:
+            # a fault, a drive that stopped answering between trials (SDO timeout/abort while
+            # downloading a table or uploading the recorder), a failing write: torque is removed by
+            # closing the bench, the trials so far are kept
+            done = len(summary["iterations"])
+            record = fault_record_of(bench, exc, done, self.out, self.plan.cfg.iterations, self.trials.in_trial)
+            result.fault_record = record
+            result.fault = record.message
+            summary["faults"].append(record.as_dict())
+            if record.position == Position.AFTER_LAST_TRIAL:
+                summary["completed"] = True  # every trial was run and kept; the fault came after
+            logger.info("fault (%s, trial %s): %s", record.position, record.trial, exc)  # the run's closing line says it
+        except KeyboardInterrupt as exc:  # Ctrl-C, or Interrupted from the SIGTERM/SIGINT handler
+            signum = getattr(exc, "signum", signal.SIGINT)
+            result.interrupted = int(signum)
+            summary["interrupted"] = self._where_now(signal.Signals(signum).name)
+            if summary["interrupted"]["position"] == Position.AFTER_LAST_TRIAL:
+                summary["completed"] = True  # every trial was run and kept
+            logger.info("interrupted by %s (%s)", signal.Signals(signum).name, summary["interrupted"]["position"])
+        self.finish()
+        return None
+
+    def _where_now(self, signal_name: str) -> dict[str, Any]:
+        """The summary's ``interrupted`` marker: signal, position, trial and tick now."""
+        done = len(self.result.summary["iterations"])
+        position, trial = position_of(done, self.plan.cfg.iterations, self.trials.in_trial)
+        progress = getattr(self.bench, "progress", None)
+        tick = progress() if progress is not None and position == Position.IN_TRIAL else None
+        return {"signal": signal_name, "position": str(position), "trial": trial, "tick": tick}
+
+    def finish(self) -> ExperimentResult:
+        """Close the bench (safe state), finish the recording, write the final summary (idempotent)."""
+        if self.finished:
+            return self.result
+        self.finished = True
+        SHIELD.active, SHIELD.pending = True, SHIELD.deferred
+        SHIELD.deferred = None
+        try:
+            _finish(self.bench, self.result.summary, self.recorder, self.out, self.folder, self.result, self.trials)
+        finally:
+            SHIELD.active = False
+            if SHIELD.pending is not None and self.result.interrupted is None and not self.result.summary.get("completed"):
+                self.result.interrupted = SHIELD.pending
+        return self.result
+
+
+def run_experiment(
+    plan: Plan,
+    bench: Bench,
+    out_dir: str | Path | None,
+    *,
+    mode: str,
+    on_trial: Callable[[TrialMetrics, str], None] | None = None,
+    keep_traces: bool = False,
+    recorder: TrialRecorder | None = None,
+    folder: RunFolder | None = None,
+) -> ExperimentResult:
+    """Run ``plan.cfg.iterations`` trials on ``bench``; write ``summary.json`` before the first
+    and after each.
+
+    A fault (:class:`TrialFault`, a node that stopped answering, a failing write of the outputs)
+    or an interrupt ends the run (module docstring): torque is removed by closing the bench, the
+    completed trials are kept, the fault is in ``summary["faults"]`` / ``result.fault_record``, an
+    interrupt in ``summary["interrupted"]`` / ``result.interrupted``.
+
+    :param folder: the run folder's space reserve (given back on a full disk before the final write)
+    :param on_trial: called after each trial with its metrics and its role (``learning`` / ``auxiliary``)
+    """
+    runner = TrialLoop(
+        plan, bench, out_dir, mode=mode, on_trial=on_trial, keep_traces=keep_traces, recorder=recorder, folder=folder
+    )
+    while runner.step() is not None:
+        pass
+    return runner.finish()
+
+
+def _finish(
+    bench: Bench,
+    summary: dict[str, Any],
+    recorder: TrialRecorder | None,
+    out: Path | None,
+    folder: RunFolder | None,
+    result: ExperimentResult,
+    trials: LoopState,
+) -> None:
+    """The end of every run: bench info, close (safe state), recording, the final summary."""
+    try:
+        summary["bench"] = jsonable(bench.info())
+    except Exception:  # noqa: BLE001 - the summary must still be written
+        logger.warning("bench info unavailable", exc_info=True)
+    try:
+        bench.close()
+    finally:
+        safe_state = getattr(bench, "safe_state", None)
+        if safe_state is not None:
+            summary["safe_state"] = jsonable(safe_state())
+        _closing_fault(bench, summary, result, trials)
+        if folder is not None:
+            folder.release()  # the final outputs go into the reserve's room
+        if recorder is not None:
+            trials.record_pending()
+            recorder.close()
+            committed = getattr(recorder, "committed", None)
+            state = committed() if committed is not None else None
+            if state is not None:
+                summary["recording"] = state
+        _final_write(out, summary, folder, result)
+
+
+def _closing_fault(bench: Bench, summary: dict[str, Any], result: ExperimentResult, trials: LoopState) -> None:
+    """A fault the bench saw after the trial loop's last step (``closing_fault()``), when the run
+    has no fault or interrupt yet: recorded and placed (after the last trial, for a run that
+    completed)."""
+    closing = getattr(bench, "closing_fault", None)
+    record = closing() if closing is not None else None
+    if record is None or result.fault_record is not None or result.interrupted is not None:
+        return
+    place(record, bench, len(summary["iterations"]), trials.plan.cfg.iterations, trials.in_trial)
+    result.fault_record = record
+    result.fault = record.message
+    summary["faults"].append(record.as_dict())
+    logger.info("fault while the run ended (%s): %s", record.position, record.message)
+
+
+def _final_write(out: Path | None, summary: dict[str, Any], folder: RunFolder | None, result: ExperimentResult) -> None:
+    """The last summary write, after giving back the run folder's space reserve (room for it on
+    a full disk). A failure here is logged and recorded in the result (the previous summary stays
+    valid)."""
+    if folder is not None:
+        folder.release()
+    if out is None:
+        return
+    try:
+        write_summary(out, summary, folder=folder)
+    except OutputError as exc:
+        logger.error("the final summary could not be written (the last one written stays): %s", exc)
+        record_output_fault(result, exc)
