@@ -6,7 +6,7 @@ them; MaxE = max |e|, "mean error" = MAE = mean |e| (the paper's eq. 36), deg, j
 :func:`verdict_beats` (Table 2), :func:`verdict_floor_raised` (Table 3 on the paper's numbers),
 :func:`verdict_paths` (Table 4), :func:`verdict_cycles` (Table 5), :func:`verdict_profiles_similar`
 and :func:`verdict_profiles_order` (Table 6).  The rules on RMSE histories (settling, floors, long
-runs) are :mod:`host.analysis.convergence_verdicts`.
+runs) are :mod:`host.studies.paper.convergence_verdicts`.
 """
 
 from __future__ import annotations

@@ -151,7 +151,7 @@ PAPER_GAINS: dict[str, float] = {"alpha": 1.1, "beta": 1.22, "Lp": 1000.0, "Ld":
 #: §5.1: "The joint errors will become constant after the fourth iteration under the PD-ILC controller."
 PAPER_SETTLE_ITERATIONS: int = 4
 
-#: the claims of §5 that the reproduction judges, keyed as host.analysis.claims and host.analysis.report use them
+#: the claims of §5 that the reproduction judges, keyed as host.studies.paper.claims and host.studies.paper.report use them
 CLAIMS: dict[str, str] = {
     "table2": "PD-ILC gives smaller MaxE and mean error than D-ILC on every joint (Table 2)",
     "fig8_settle": "PD-ILC errors settle within about 4 iterations (Fig. 8)",
