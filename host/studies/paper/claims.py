@@ -13,7 +13,6 @@ from typing import Any
 
 import numpy as np
 
-from host.analysis.markdown import LAW_LABEL
 from host.studies.paper import paper_data
 from host.studies.paper.convergence_verdicts import (
     criterion_disturbance,
@@ -27,6 +26,7 @@ from host.studies.paper.paper_data import TABLES
 from host.studies.paper.plan import (
     BASELINE_LAW,
     DISTURBED,
+    LAW_LABEL,
     LONG_TRIALS,
     PAPER_LAW,
     Experiment,

@@ -13,9 +13,9 @@ import logging
 
 import numpy as np
 
-from host.analysis.markdown import fmt, jlist
+from host.analysis.markdown import fmt
 from host.studies.paper.paper_data import PAPER_SETTLE_ITERATIONS
-from host.studies.paper.verdicts import Verdict, verdict_floor_raised
+from host.studies.paper.verdicts import Verdict, jlist, verdict_floor_raised
 from host.studies.settling import (
     SETTLE_FACTOR,
     SPLIT_TRIALS,

@@ -12,8 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from host.analysis.figures import figure, save_png
-from host.analysis.markdown import LAW_LABEL
-from host.studies.paper.plan import LONG_TRIALS, RunData
+from host.studies.paper.plan import LAW_LABEL, LONG_TRIALS, RunData
 
 logger = logging.getLogger(__name__)
 

@@ -30,6 +30,7 @@ from host.studies.point import is_finished, read_summary
 logger = logging.getLogger(__name__)
 
 __all__ = [
+    "LAW_LABEL",
     "Experiment",
     "TableRow",
     "GROUPS",
@@ -53,6 +54,20 @@ __all__ = [
     "RunData",
 ]
 
+
+#: display names of the learning laws, in the order the reports list them
+LAW_LABEL = {
+    "pd-ilc": "PD-ILC",
+    "pd-ilc-q": "PD-ILC-Q",
+    "d-ilc": "D-ILC",
+    "q-ilc": "Q-ILC",
+    "no-ilc": "NO-ILC",
+    "no-ilc-id": "NO-ILC-ID",
+    "pd-ol": "PD-OL",
+    "p-ol": "P-OL",
+    "cno-ilc": "CNO-ILC",
+    "adjoint-ilc": "ADJOINT-ILC",
+}
 
 #: the paper's law, its baseline, and the laws shown beyond the paper's tables
 PAPER_LAW = "pd-ilc"

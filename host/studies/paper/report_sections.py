@@ -8,12 +8,12 @@ import logging
 from collections.abc import Sequence
 from pathlib import Path
 
-from host.analysis.markdown import JOINTS, LAW_LABEL, Floats, fmt, md_table, paper_value
+from host.analysis.markdown import JOINTS, Floats, fmt, md_table
 from host.studies.paper import paper_data
 from host.studies.paper.claims import SweepRuns, experiment
 from host.studies.paper.figures import plot_fig8
-from host.studies.paper.paper_data import PAPER_SETTLE_ITERATIONS, TABLES
-from host.studies.paper.plan import BASELINE_LAW, DISTURBED, PAPER_LAW, table_rows
+from host.studies.paper.paper_data import PAPER_SETTLE_ITERATIONS, TABLES, paper_value
+from host.studies.paper.plan import BASELINE_LAW, DISTURBED, LAW_LABEL, PAPER_LAW, table_rows
 from host.studies.settling import SPLIT_TRIALS, settle_iteration, split_repeatable
 
 logger = logging.getLogger(__name__)
