@@ -1,10 +1,10 @@
 """``ilcrig tune``: gains tuned with Optuna, each trial's experiments run on the sweep engine.
 
-This module owns the search space (:class:`Param`: ``KEY=LOW:HIGH[:log|:int]``), the objective
-(:class:`Objective`), the study (Optuna, kept in the tuning folder as SQLite: ``study.db``, so a
-tuning run resumes) and its outputs: ``best.toml`` (an experiment file of the best gains, for
-``ilcrig sim --config``), ``report.md`` with ``tuning.png``, ``results.parquet`` and every point's
-folder in ``runs/`` (:mod:`host.studies.point`).
+This module owns :class:`Tuner`: the study (Optuna, kept in the tuning folder as SQLite:
+``study.db``, so a tuning run resumes), its trials run on the engine, and its outputs:
+``best.toml`` (an experiment file of the best gains, for ``ilcrig sim --config``), ``report.md``
+with ``tuning.png``, ``results.parquet`` and every point's folder in ``runs/``
+(:mod:`host.studies.point`).
 
 **Objective** (minimised), per experiment: J = mean over the joints of the final RMSE (the last
 learning trial's, deg) + ``settle_weight`` × the settle iteration (the first trial from which every
