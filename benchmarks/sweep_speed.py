@@ -5,7 +5,7 @@ process-pool engine it replaced.
 Scaling (default): ``--points`` points (``pd-ilc-q`` on the paper's condition: path 1, 4-5-6-7
 law, ``--trials`` 10 trials of a ``--cycle`` 0.25 s cycle; each gain α a point) on ``--workers``
 (a list: the scaling can be measured on any machine) worker processes, once on a Dask
-``LocalCluster`` (:func:`ilcrig.sweep.engine.run_points`) and once on a plain
+``LocalCluster`` (:func:`host.studies.engine.run_points`) and once on a plain
 ``ProcessPoolExecutor`` running the same point function and writing the same folders,
 alternately, ``--repeat`` times each.  Both are warmed up first (every worker: imports, numba's
 cache); the cluster's start is timed on its own.  The overhead per point is (t_dask − t_pool) /
@@ -71,7 +71,7 @@ POINT: dict[str, Any] = {"law": "pd-ilc-q", "path": "1", "profile": "poly4567", 
 
 def _points(n: int, tag: float) -> list[Any]:
     """``n`` distinct points, each gain α another (``tag`` keeps the runs of a benchmark apart)."""
-    from ilcrig.sweep.spec import Point
+    from host.studies.spec import Point
 
     return [Point.of(POINT | {"gains": {"alpha": 2.0 + tag + i / (10 * n)}}, index=i) for i in range(n)]
 
@@ -82,8 +82,8 @@ def _init() -> None:
 
 def pool_run(pool: ProcessPoolExecutor, out: Path, points: list[Any]) -> float:
     """The points on the process pool, each result written as the engine writes it; wall s."""
-    from ilcrig.sweep.engine import point_doc
-    from ilcrig.sweep.point import commit, run_point
+    from host.studies.engine import point_doc
+    from host.studies.point import commit, run_point
 
     t0 = time.perf_counter()
     futures = {pool.submit(run_point, p.id, p.options, False): p for p in points}
@@ -94,7 +94,7 @@ def pool_run(pool: ProcessPoolExecutor, out: Path, points: list[Any]) -> float:
 
 
 def dask_run(engine: Any, out: Path, points: list[Any]) -> float:
-    from ilcrig.sweep.engine import run_points
+    from host.studies.engine import run_points
 
     t0 = time.perf_counter()
     outcome = run_points(engine, out, points, progress=False)
@@ -103,8 +103,8 @@ def dask_run(engine: Any, out: Path, points: list[Any]) -> float:
 
 
 def scaling(workers: list[int], n_points: int, repeat: int) -> None:
-    from ilcrig.sweep.engine import Engine
-    from ilcrig.sweep.point import run_point
+    from host.studies.engine import Engine
+    from host.studies.point import run_point
 
     print(
         f"sweep engine scaling: {n_points} points ({POINT['law']}, {POINT['iterations']} trials of a {POINT['cycle_s']} s "

@@ -1,7 +1,7 @@
 """The paper's Table 2 (PD-ILC vs D-ILC) with the public API alone — a notebook-style script.
 
 The experiment behind each row is what ``ilcrig reproduce`` runs for Table 2
-(host/analysis/sweep_plan.py): path 1, a 0.25 s single journey, the paper's 4-5-6-7 polynomial motion
+(host/studies/paper/plan.py): path 1, a 0.25 s single journey, the paper's 4-5-6-7 polynomial motion
 law, no disturbance, ten trials; the table gives MaxE and the mean error (MAE) of each joint in the
 last trial, in degrees.  The published numbers are typed in below (Li et al. 2022, Table 2).
 

@@ -37,7 +37,7 @@ from typing import Any, TextIO
 from bus.exit_codes import EXIT_CHILD_FAILED, EXIT_USAGE
 from bus.processes import spawn_process
 from host.experiment.arrays import load_reference, load_trial
-from host.experiment.config import ExperimentConfig, gains_table
+from host.experiment.config import ExperimentConfig, config_toml
 from host.learning.protocol import LEARNING
 from host.learning.registry import registered_here
 from ilcrig.errors import InputError, RigError, input_error
@@ -51,36 +51,6 @@ __all__ = ["RigRun", "config_toml"]
 POLL_S = 0.05
 #: how long the launcher gets to end after SIGINT before it is killed, s
 STOP_GRACE_S = 60.0
-
-
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        return repr(v)
-    return json.dumps(str(v), ensure_ascii=False)
-
-
-def config_toml(config: ExperimentConfig) -> str:
-    """The configuration as the TOML file of the command line (exact values: floats as ``repr``; a
-    path file as an absolute path)."""
-    cfg = config.as_dict()
-    gains = gains_table(config.gains)
-    law_options = cfg.pop("law_options", {})
-    plant = cfg.pop("plant", {})
-    cfg.pop("gains")
-    path = str(cfg["path"])
-    if path not in ("1", "2", "3", "4"):
-        cfg["path"] = str(Path(path).resolve())
-    lines = [f"{k} = {_toml_value(v)}" for k, v in cfg.items()]
-    lines += ["", "[gains]"] + [f"{k} = {_toml_value(v)}" for k, v in gains.items()]
-    if law_options:
-        lines += ["", "[law_options]"] + [f"{k} = {_toml_value(v)}" for k, v in law_options.items()]
-    if plant:
-        lines += ["", "[plant]"] + [f"{k} = {_toml_value(v)}" for k, v in plant.items()]
-    return "\n".join(lines) + "\n"
 
 
 class RigRun:

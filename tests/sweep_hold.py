@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from ilcrig.sweep import engine, point
+from host.studies import engine, point
 
 HOLD_ENV = "ILCRIG_TEST_HOLD"
 HOLD_DIR_ENV = "ILCRIG_TEST_HOLD_DIR"

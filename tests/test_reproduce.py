@@ -16,31 +16,24 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from host.analysis import paper_data
-from host.analysis.claims import paper_self_check
-from host.analysis.convergence_verdicts import verdict_disturbance, verdict_long_bounded, verdict_rise, verdict_settle
 from host.analysis.markdown import fmt
 from host.analysis.run_report import write_run_report
-from host.analysis.settling import (
-    settle_iteration,
-    settle_iterations,
-    settled_floor,
-    settled_windows,
-    split_repeatable,
-)
-from host.analysis.sweep_plan import (
+from host.learning.names import LAWS
+from host.studies.paper import paper_data
+from host.studies.paper.claims import paper_self_check
+from host.studies.paper.convergence_verdicts import verdict_disturbance, verdict_long_bounded, verdict_rise, verdict_settle
+from host.studies.paper.plan import (
     GROUPS,
     PLUGIN_LAWS,
     Experiment,
     ReproduceError,
     all_experiments,
     experiment_list,
-    is_finished,
     limit_experiments,
     run_dir_of,
     table_rows,
 )
-from host.analysis.verdicts import (
+from host.studies.paper.verdicts import (
     Verdict,
     verdict_beats,
     verdict_cycles,
@@ -49,7 +42,14 @@ from host.analysis.verdicts import (
     verdict_profiles_order,
     verdict_profiles_similar,
 )
-from host.learning.names import LAWS
+from host.studies.point import is_finished
+from host.studies.settling import (
+    settle_iteration,
+    settle_iterations,
+    settled_floor,
+    settled_windows,
+    split_repeatable,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -381,7 +381,7 @@ def test_sweep_report_judges_with_settled_floors_and_windows(tmp_path: Path) -> 
     """The report on a sweep folder: the disturbed run's floor starts at the settle iteration of the
     run without disturbance; a long run's best window starts at the settle iteration over the first
     ``iterations`` trials; every verdict line states its criterion."""
-    from host.analysis.report import write_sweep_report
+    from host.studies.paper.report import write_sweep_report
 
     none = np.tile(np.array([[0.2, 0.1, 0.05, 0.02, 0.01, 0.005, 0.004, 0.004, 0.002, 0.002]]).T, (1, 4))
     dist = np.tile(np.array([[0.25, 0.12, 0.06, 0.03, 0.02, 0.015, 0.01, 0.03, 0.01, 0.03]]).T, (1, 4))

@@ -19,7 +19,7 @@ import pytest
 from cli_util import run_cli_process
 
 import ilcrig
-from ilcrig.sweep.spec import Point, SweepSpec, parse_assignment
+from host.studies.spec import Point, SweepSpec, parse_assignment
 from plant.params import PlantScales, default_true_plant, scaled_true_plant
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -185,7 +185,7 @@ def _grid_points() -> list[Point]:
 def local_sweep(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The grid swept in this process on a 2-worker local cluster (:class:`Engine`): every socket of
     the cluster on loopback, and its worker processes gone once the engine is closed."""
-    from ilcrig.sweep.engine import Engine, run_points
+    from host.studies.engine import Engine, run_points
 
     out = tmp_path_factory.mktemp("local") / "grid"
     with Engine(workers=2, dashboard=True) as engine:
@@ -422,7 +422,7 @@ def test_scheduler_and_workers_as_processes_same_results_loopback_and_a_killed_w
     p = _cli("sweep", "--out", str(remote), "--scheduler", address, "--no-progress", *GRID)
     assert p.returncode == 0, p.stderr
     assert f"on the cluster at {address} (2 workers)" in p.stderr
-    from ilcrig.sweep.table import write_table
+    from host.studies.table import write_table
 
     write_table(local_sweep, _grid_points())  # the local run's table (the resume test may not have run)
     assert _table(local_sweep) == _table(remote)
@@ -475,7 +475,7 @@ def test_tune_over_monte_carlo_plants(tmp_path: Path) -> None:
     """A trial's value is the mean of J over its plants (the spec's draws), each plant a point."""
     import optuna
 
-    from ilcrig.sweep.tune import Objective
+    from host.studies.tune_params import Objective
 
     spec = tmp_path / "t.toml"
     spec.write_text(

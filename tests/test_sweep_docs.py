@@ -73,8 +73,8 @@ def _study(out: Path):  # type: ignore[no-untyped-def]
 @pytest.mark.multiprocess
 @pytest.mark.parametrize("example", ["tune_pd_ilc_q", "tune_pd_ilc"])
 def test_tuning_examples(tmp_path: Path, example: str) -> None:
-    from ilcrig.sweep.spec import SweepSpec
-    from ilcrig.sweep.tune import Objective
+    from host.studies.spec import SweepSpec
+    from host.studies.tune_params import Objective
 
     (cmd,) = _commands(f"ilcrig tune --spec examples/{example}.toml")
     out = tmp_path / "tune"

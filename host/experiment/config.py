@@ -8,7 +8,9 @@ moves.  Refused: an unreadable, binary or invalid TOML file; a key of the wrong 
 (``gains = 5``, ``law = 3``); NaN or ±inf anywhere; values out of range, among them more than
 :data:`MAX_ITERATIONS` trials and a seed outside the bench's 32 bits.  A relative ``path`` given
 in the file is a path file relative to the file's folder (on the command line: to the working
-directory).
+directory).  The one writer of experiment files is here too: :func:`config_toml` (a configuration,
+as ``ilcrig.RigRun`` hands it to ``ilcrig run``) and :func:`options_toml` (experiment options, as
+``ilcrig tune`` writes its ``best.toml``).
 
 TOML layout::
 
@@ -72,6 +74,9 @@ __all__ = [
     "ExperimentConfig",
     "build_config",
     "gains_table",
+    "toml_value",
+    "options_toml",
+    "config_toml",
     "validate",
     "PROFILES",
     "DISTURBANCES",
@@ -400,3 +405,49 @@ def validate(cfg: ExperimentConfig) -> None:
         raise ConfigError(f"gains.q_order must be >= 1, got {g.q_order}")
     if not g.no_weight > 0:
         raise ConfigError(f"gains.no_weight must be > 0, got {g.no_weight}")
+
+
+# -- writing an experiment file ------------------------------------------------------------------
+
+#: the tables of an experiment file, in the order they are written
+_TOML_TABLES = ("gains", "law_options", "plant")
+
+
+def toml_value(v: Any) -> str:
+    """One value as TOML: booleans, integers, floats (``repr``: exact; ``inf``/``nan`` as TOML
+    writes them) and strings (a TOML basic string).
+
+    :raises ValueError: a value TOML has no literal for (None, a list, …)."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        return repr(v) if math.isfinite(v) else ("nan" if math.isnan(v) else ("inf" if v > 0 else "-inf"))
+    if isinstance(v, str):
+        import json
+
+        return json.dumps(v, ensure_ascii=False)  # a JSON string is a TOML basic string
+    raise ValueError(f"no TOML value for {v!r}")
+
+
+def options_toml(options: Mapping[str, Any]) -> str:
+    """Experiment options (the keys of this file's TOML layout) as an experiment file: the top-level
+    keys, then ``[gains]``, ``[law_options]``, ``[plant]`` (left out when empty); ``None`` values
+    are left out (the default holds)."""
+    lines = [f"{k} = {toml_value(v)}" for k, v in options.items() if k not in _TOML_TABLES and v is not None]
+    for table in _TOML_TABLES:
+        values = {k: v for k, v in (options.get(table) or {}).items() if v is not None}
+        if values:
+            lines += ["", f"[{table}]"] + [f"{k} = {toml_value(v)}" for k, v in values.items()]
+    return "\n".join(lines) + "\n"
+
+
+def config_toml(config: ExperimentConfig) -> str:
+    """The configuration as the TOML file of the command line (:func:`build_config` of it gives the
+    same configuration: exact floats, the gains as their ``[gains]`` table, a path file as an
+    absolute path)."""
+    options = config.as_dict() | {"gains": gains_table(config.gains)}
+    if str(options["path"]) not in _BUILTIN_PATH_NAMES:
+        options["path"] = str(Path(str(options["path"])).resolve())
+    return options_toml(options)

@@ -1,28 +1,39 @@
-"""ilcrig.sweep: sweeps, Monte Carlo robustness studies and gain tuning on Dask distributed.
+"""ilcrig.sweep: sweeps, Monte Carlo robustness studies and gain tuning on Dask distributed — the
+public face of :mod:`host.studies`.
 
-Owns, one module per concern:
+Owns nothing but the names users import (docs/sweeps.md §6), re-exported from the studies:
 
-* :mod:`ilcrig.sweep.spec` — :class:`SweepSpec` (base options, grid, seeded Monte Carlo draws; from a
-  TOML spec and the command line's ``--set`` / ``--vary``) and :class:`Point`;
-* :mod:`ilcrig.sweep.point` — what a worker runs for a point (:func:`run_point`, the experiment
-  through :class:`ilcrig.Experiment`) and the point's folder in the sweep (atomic commit, resume);
-* :mod:`ilcrig.sweep.engine` — :class:`Engine` (a loopback ``LocalCluster`` or an existing
-  ``dask scheduler``) and :func:`run_points` (resumable, progress bar, Ctrl-C keeps what finished);
-* :mod:`ilcrig.sweep.table` — the tidy table ``results.parquet`` (one row per point, trial, joint);
-* :mod:`ilcrig.sweep.report` — ``report.md`` of a sweep with its figures;
-* :mod:`ilcrig.sweep.tune` — gain tuning with Optuna on the same engine (``ilcrig tune``);
-* :mod:`ilcrig.sweep.reproduce` — ``ilcrig reproduce`` as a predefined sweep;
-* :mod:`ilcrig.sweep.commands` — what the command line's ``sweep``, ``tune`` and ``reproduce`` do.
+* :class:`SweepSpec` and :class:`Point` (:mod:`host.studies.spec`: base options, grid, seeded
+  Monte Carlo draws);
+* :class:`Engine` (a loopback ``LocalCluster`` or an existing ``dask scheduler``),
+  :func:`run_points` (resumable, progress bar, Ctrl-C keeps what finished) and
+  :class:`SweepOutcome` (:mod:`host.studies.engine`);
+* :func:`run_point` and :func:`load_point` (:mod:`host.studies.point`: a point on a worker, its
+  folder in the sweep);
+* :func:`write_table` (:mod:`host.studies.table`: ``results.parquet``) and :func:`write_report`
+  (:mod:`host.studies.report`: ``report.md``).
 
-docs/sweeps.md explains them with commands.  May import what :mod:`ilcrig` may import (``host``,
-``plant``, ``bus``; the points run through :mod:`ilcrig.experiment`), and dask, distributed, optuna,
-pyarrow.
+``ilcrig sweep``, ``ilcrig tune`` and ``ilcrig reproduce`` are the command line's
+(:mod:`host.studies.commands`).  May import :mod:`host.studies` (and what :mod:`ilcrig` may import);
+``import ilcrig`` does not import this package (nor Dask).
 """
 
 from __future__ import annotations
 
-from ilcrig.sweep.engine import Engine, SweepOutcome, run_points
-from ilcrig.sweep.point import load_point, run_point
-from ilcrig.sweep.spec import Point, SweepSpec
+from host.studies.engine import Engine, SweepOutcome, run_points
+from host.studies.point import load_point, run_point
+from host.studies.report import write_report
+from host.studies.spec import Point, SweepSpec
+from host.studies.table import write_table
 
-__all__ = ["Engine", "Point", "SweepOutcome", "SweepSpec", "load_point", "run_point", "run_points"]
+__all__ = [
+    "Engine",
+    "Point",
+    "SweepOutcome",
+    "SweepSpec",
+    "load_point",
+    "run_point",
+    "run_points",
+    "write_report",
+    "write_table",
+]

@@ -1,14 +1,14 @@
 """``ilcrig tune``: gains tuned with Optuna, each trial's experiments run on the sweep engine.
 
-This module owns the search space (:class:`Param`: ``KEY=LOW:HIGH[:log|:int]``), the objective
-(:class:`Objective`), the study (Optuna, kept in the tuning folder as SQLite: ``study.db``, so a
-tuning run resumes) and its outputs: ``best.toml`` (an experiment file of the best gains, for
-``ilcrig sim --config``), ``report.md`` with ``tuning.png``, ``results.parquet`` and every point's
-folder in ``runs/`` (:mod:`ilcrig.sweep.point`).
+This module owns :class:`Tuner`: the study (Optuna, kept in the tuning folder as SQLite:
+``study.db``, so a tuning run resumes), its trials run on the engine, and its outputs:
+``best.toml`` (an experiment file of the best gains, for ``ilcrig sim --config``), ``report.md``
+with ``tuning.png``, ``results.parquet`` and every point's folder in ``runs/``
+(:mod:`host.studies.point`).
 
 **Objective** (minimised), per experiment: J = mean over the joints of the final RMSE (the last
 learning trial's, deg) + ``settle_weight`` × the settle iteration (the first trial from which every
-joint stays within 2× of its final RMSE, :func:`host.analysis.settling.settle_iteration`); a run
+joint stays within 2× of its final RMSE, :func:`host.studies.settling.settle_iteration`); a run
 ended by a fault (a diverging law, a drive fault) gives J = inf.  With Monte Carlo plants
 (``plants`` > 0: the draws of the spec's ``[monte_carlo.draw]``, sample 0 … plants − 1) a trial
 runs one experiment per plant and its value is the mean (or the worst, ``aggregate = "max"``) of
@@ -23,30 +23,16 @@ study's first trial, so the best value is never worse than the hand-picked one. 
 until it holds ``budget`` trials (an interrupted trial is run again on resume, from its finished
 points).
 
-Spec file: the sections of :mod:`ilcrig.sweep.spec` and
-
-.. code-block:: toml
-
-    [tune]
-    "gains.alpha" = { low = 1.5, high = 8.0 }
-    "gains.lp_norm" = { low = 2e-4, high = 4e-3, log = true }
-    "gains.lead" = { low = 1, high = 4, int = true }
-    budget = 40
-
-    [objective]
-    settle_weight = 0.001   # deg per trial
-    plants = 20             # Monte Carlo plants per trial (the [monte_carlo.draw] distributions)
-    aggregate = "mean"      # or "max"
-    require_check = true
+The settings (the tuned keys, the objective, the budget) are :mod:`host.studies.tune_params`'s; a
+trial's points run on the engine's one submit loop (:class:`host.studies.engine.PointQueue`).
+``best.toml`` is written by the experiment file writer, :func:`host.experiment.config.options_toml`.
 """
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import logging
 import math
-import os
 import sys
 import time
 from collections.abc import Mapping, Sequence
@@ -56,23 +42,24 @@ from typing import Any
 
 import numpy as np
 
+from bus.atomic import atomic_write
+from bus.errors import InputError
 from host.analysis.figures import figure, save_png
 from host.analysis.markdown import fmt, md_table
-from host.analysis.settling import settle_iteration
-from ilcrig.errors import InputError
-from ilcrig.sweep.engine import TASK_GROUP, Engine, interrupt_on_sigterm, point_doc
-from ilcrig.sweep.point import commit, is_finished, load_point, run_dir
-from ilcrig.sweep.spec import Point, SweepSpec, check_key, parse_value, set_key
-from ilcrig.sweep.table import metrics_of, write_table
+from host.experiment.config import options_toml
+from host.studies.engine import Engine, PointQueue, interrupt_on_sigterm, point_doc
+from host.studies.point import is_finished, load_point, plan_of, run_dir
+from host.studies.spec import Point, SweepSpec, set_key
+from host.studies.table import write_table
+from host.studies.tune_params import Objective, Param
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Param", "Objective", "Tuner", "TuneOutcome", "tune_main", "STUDY_NAME", "STUDY_FILE", "BEST_FILE", "toml_text"]
+__all__ = ["Tuner", "TuneOutcome", "STUDY_NAME", "STUDY_FILE", "BEST_FILE", "json_safe"]
 
 STUDY_NAME = "ilcrig-tune"
 STUDY_FILE = "study.db"
 BEST_FILE = "best.toml"
-DEFAULT_BUDGET = 30
 #: the command-line flag of a tunable gain (for the printed options); others go by ``best.toml``
 GAIN_FLAGS = {
     "alpha": "--alpha",
@@ -85,120 +72,6 @@ GAIN_FLAGS = {
     "pdq_cutoff_hz": "--pdq-cutoff-hz",
     "lead": "--lead",
 }
-
-
-@dataclass(frozen=True)
-class Param:
-    """One tuned key and its range (``log``: sampled on a log scale; ``integer``: whole numbers)."""
-
-    key: str
-    low: float
-    high: float
-    log: bool = False
-    integer: bool = False
-
-    @classmethod
-    def parse(cls, text: str) -> Param:
-        """``KEY=LOW:HIGH[:log|:int]``.
-
-        :raises InputError: one line naming the option."""
-        key, eq, rest = text.partition("=")
-        parts = rest.split(":") if eq else []
-        flags = {p.strip() for p in parts[2:]}
-        if len(parts) < 2 or flags - {"log", "int"}:
-            raise InputError(f"--param {text!r}: expected KEY=LOW:HIGH[:log|:int]")
-        return cls.of(
-            key.strip(),
-            {"low": parse_value(parts[0]), "high": parse_value(parts[1]), "log": "log" in flags, "int": "int" in flags},
-            "--param",
-        )
-
-    @classmethod
-    def of(cls, key: str, table: Mapping[str, Any], where: str) -> Param:
-        """A ``[tune]`` entry ``{low, high[, log][, int]}``."""
-        check_key(key, where)
-        if key.startswith("plant."):
-            raise InputError(f"{where} {key}: plant factors are drawn (Monte Carlo), not tuned")
-        bad = set(table) - {"low", "high", "log", "int"}
-        low, high = table.get("low"), table.get("high")
-        if bad or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in (low, high)):
-            raise InputError(f"{where} {key}: a range is {{low, high[, log = true][, int = true]}} with numbers")
-        assert isinstance(low, (int, float)) and isinstance(high, (int, float))
-        if not (math.isfinite(low) and math.isfinite(high) and low < high):
-            raise InputError(f"{where} {key}: needs low < high, got {low} .. {high}")
-        log, integer = bool(table.get("log", False)), bool(table.get("int", False))
-        if log and low <= 0:
-            raise InputError(f"{where} {key}: a log range needs low > 0")
-        if integer and not (float(low).is_integer() and float(high).is_integer()):
-            raise InputError(f"{where} {key}: an integer range needs whole numbers")
-        return cls(key, float(low), float(high), log, integer)
-
-    def distribution(self) -> Any:
-        import optuna
-
-        if self.integer:
-            return optuna.distributions.IntDistribution(int(self.low), int(self.high), log=self.log)
-        return optuna.distributions.FloatDistribution(self.low, self.high, log=self.log)
-
-    def contains(self, value: Any) -> bool:
-        return isinstance(value, (int, float)) and not isinstance(value, bool) and self.low <= value <= self.high
-
-    def describe(self) -> str:
-        kind = ", log" if self.log else ""
-        return f"`{self.key}` in [{fmt(self.low, 4)}, {fmt(self.high, 4)}]{kind}{', integer' if self.integer else ''}"
-
-
-@dataclass(frozen=True)
-class Objective:
-    """J of one experiment and of a trial over its plants (module docstring)."""
-
-    settle_weight: float = 0.0
-    plants: int = 0
-    aggregate: str = "mean"
-    require_check: bool = False
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.settle_weight) and self.settle_weight >= 0):
-            raise InputError(f"settle_weight must be a number >= 0, got {self.settle_weight}")
-        if self.plants < 0:
-            raise InputError(f"plants must be >= 0, got {self.plants}")
-        if self.aggregate not in ("mean", "max"):
-            raise InputError(f"aggregate must be 'mean' or 'max', got {self.aggregate!r}")
-
-    def of_summary(self, summary: Mapping[str, Any] | None) -> float:
-        """J of one run's summary (inf: it could not run, faulted or has no finite RMSE)."""
-        m = metrics_of(dict(summary) if summary is not None else None)
-        final = m["final_rmse_deg"]
-        if m["error"] is not None or m["fault"] or final is None or not np.all(np.isfinite(final)):
-            return math.inf
-        value = float(np.mean(final))
-        if self.settle_weight:
-            value += self.settle_weight * settle_iteration(m["rmse_deg"])
-        return value
-
-    def combine(self, values: Sequence[float]) -> float:
-        """A trial's value over its plants."""
-        if not values:
-            return math.inf
-        return float(np.mean(values)) if self.aggregate == "mean" else float(np.max(values))
-
-    def describe(self) -> str:
-        text = "J = mean over joints of the final RMSE (deg)"
-        if self.settle_weight:
-            text += f" + {self.settle_weight:g} × settle iteration"
-        if self.plants:
-            text += f"; {'mean' if self.aggregate == 'mean' else 'worst'} over {self.plants} Monte Carlo plants"
-        if self.require_check:
-            text += "; gains whose convergence check fails are infeasible (J = inf)"
-        return text + "; a run ended by a fault: J = inf"
-
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "settle_weight": self.settle_weight,
-            "plants": self.plants,
-            "aggregate": self.aggregate,
-            "require_check": self.require_check,
-        }
 
 
 @dataclass
@@ -354,13 +227,11 @@ class Tuner:
         """Why the trial's gains are not run (``require_check``: the convergence check fails)."""
         if not self.objective.require_check:
             return None
-        from ilcrig.experiment import Experiment
-
         host_log = logging.getLogger("host")  # the plan's warnings about these gains: the reason says it
         level = host_log.level
         host_log.setLevel(logging.ERROR)
         try:
-            check = Experiment(**run.points[0].options).check
+            check = plan_of(run.points[0].options).check
         except InputError as exc:
             return str(exc)
         finally:
@@ -378,7 +249,6 @@ class Tuner:
         """Run trials until the study holds ``budget`` of them (Ctrl-C / SIGTERM: interrupted, the
         trials in flight queued again for the next call)."""
         import optuna
-        from distributed import as_completed
         from tqdm import tqdm
 
         if self.study is None:
@@ -389,16 +259,11 @@ class Tuner:
         bar = tqdm(total=max(todo, 0), desc="tune", unit="trial", file=sys.stderr, disable=not progress, dynamic_ncols=True)
         workers = max(1, engine.n_workers)
         in_flight: dict[int, _Running] = {}
-        by_future: dict[Any, tuple[_Running, Point]] = {}
-        ac = as_completed([], loop=engine.client.loop)
+        queue = PointQueue(engine, self.out)
         started = 0
 
         def finish(run: _Running, state: Any = None, value: float | None = None) -> None:
-            for f in run.futures:
-                if f in by_future:
-                    by_future.pop(f)
-                    with contextlib.suppress(Exception):
-                        f.cancel()
+            queue.drop(run.futures)
             in_flight.pop(run.trial.number, None)
             if state is optuna.trial.TrialState.PRUNED:
                 self.study.tell(run.trial, state=state)
@@ -406,7 +271,7 @@ class Tuner:
                 self.study.tell(run.trial, value)
             outcome.completed += 1
             bar.update(1)
-            with contextlib.suppress(ValueError):
+            with contextlib.suppress(ValueError):  # no completed trial yet
                 bar.set_postfix_str(f"best J {self.study.best_value:.4g}", refresh=False)
 
         def add_value(run: _Running, p: Point, value: float) -> None:
@@ -436,12 +301,8 @@ class Tuner:
                     if run.trial.number not in in_flight:
                         return
                     continue
-                fut = engine.submit(
-                    engine_point_function(), p.id, p.options, False, key=(TASK_GROUP, p.id, f"trial-{run.trial.number}")
-                )
-                run.futures.append(fut)
-                by_future[fut] = (run, p)
-                ac.add(fut)
+                doc = point_doc(p) | {"trial": run.trial.number}
+                run.futures.append(queue.submit(p, tag=f"trial-{run.trial.number}", doc=doc, owner=run))
 
         try:
             with interrupt_on_sigterm():
@@ -450,36 +311,27 @@ class Tuner:
                         while started < todo and sum(len(r.points) - len(r.values) for r in in_flight.values()) < workers:
                             started += 1
                             start_trial()
-                        if not by_future:
+                        if not len(queue):
                             if started >= todo:
                                 break
                             continue  # every point of the trials started so far was finished before
-                        fut = next(ac)
-                        if fut not in by_future:
-                            continue  # a point of a pruned trial
-                        run, p = by_future.pop(fut)
-                        try:
-                            result = fut.result()
-                        except Exception as exc:  # noqa: BLE001 - KilledWorker: the point's error
-                            result = {"id": p.id, "error": f"{type(exc).__name__}: {exc}", "summary": None, "wall_s": 0.0}
-                        commit(self.out, p.id, point_doc(p) | {"trial": run.trial.number}, result)
+                        p, result, run = queue.next()  # written into its folder; a pruned trial's are dropped
                         outcome.points_ran += 1
                         add_value(run, p, self.objective.of_summary(result.get("summary")))
                 except KeyboardInterrupt:
                     outcome.interrupted = True
-                    self._requeue(in_flight.values(), engine)
+                    queue.cancel()
+                    self._requeue(in_flight.values())
         finally:
             bar.close()
             outcome.wall_s = time.perf_counter() - t0
         self._fill_best(outcome)
         return outcome
 
-    def _requeue(self, runs: Any, engine: Engine) -> None:
+    def _requeue(self, runs: Any) -> None:
+        """The trials in flight (their points cancelled): failed, and their parameters queued again."""
         import optuna
 
-        futures = [f for r in runs for f in r.futures]
-        with contextlib.suppress(Exception):
-            engine.client.cancel(futures, force=True)
         for r in list(runs):
             self.study.tell(r.trial, state=optuna.trial.TrialState.FAIL)
             self.study.set_user_attr(f"interrupted_{r.trial.number}", True)
@@ -516,11 +368,7 @@ class Tuner:
             f"# objective: {self.objective.describe()}",
             f"# run it: ilcrig sim --config {self.out / BEST_FILE}",
         ]
-        path = self.out / BEST_FILE
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text("\n".join(head) + "\n" + toml_text(opts), encoding="utf-8")
-        os.replace(tmp, path)
-        return path
+        return atomic_write(self.out / BEST_FILE, "\n".join(head) + "\n" + options_toml(opts))
 
     def write_outputs(self, outcome: TuneOutcome) -> Path:
         """``best.toml``, ``results.parquet`` (every point of every trial) and ``report.md`` with
@@ -596,11 +444,7 @@ class Tuner:
                 + [fmt(t.value, 4) if t.value is not None else "—", state]
             )
         lines += md_table(["trial"] + [f"`{p.key}`" for p in self.params] + ["J", "state"], rows) + [""]
-        path = self.out / "report.md"
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
-        os.replace(tmp, path)
-        return path
+        return atomic_write(self.out / "report.md", "\n".join(lines) + "\n")
 
     def cli_options(self, params: Mapping[str, Any]) -> str:
         """The best gains as command-line options of ``ilcrig sim`` (where a flag exists)."""
@@ -614,111 +458,8 @@ class Tuner:
         return " ".join(words)
 
 
-def engine_point_function() -> Any:
-    """The point function of the engine (a test may have put a wrapper in its place)."""
-    import ilcrig.sweep.engine
-
-    return ilcrig.sweep.engine.POINT_FUNCTION
-
-
 def json_safe(obj: Any) -> Any:
     """``obj`` as JSON types (what Optuna stores as a user attribute)."""
     import json
 
     return json.loads(json.dumps(obj, default=str))
-
-
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if not math.isfinite(v):
-            raise ValueError(f"TOML has no {v}")
-        return repr(v)
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    raise ValueError(f"no TOML value for {v!r}")
-
-
-def toml_text(options: Mapping[str, Any]) -> str:
-    """Experiment options as an experiment file (top-level keys, then ``[gains]``, ``[law_options]``,
-    ``[plant]``); ``None`` values are left out (the default)."""
-    lines = [f"{k} = {_toml_value(v)}" for k, v in options.items() if not isinstance(v, dict) and v is not None]
-    for table in ("gains", "law_options", "plant"):
-        values = {k: v for k, v in (options.get(table) or {}).items() if v is not None}
-        if values:
-            lines += ["", f"[{table}]"] + [f"{k} = {_toml_value(v)}" for k, v in values.items()]
-    return "\n".join(lines) + "\n"
-
-
-def _tune_settings(spec: SweepSpec, args: argparse.Namespace) -> tuple[list[Param], Objective, int]:
-    tune = dict(spec.extra.get("tune") or {})
-    budget = tune.pop("budget", DEFAULT_BUDGET)
-    params = [Param.of(k, v, "[tune]") if isinstance(v, Mapping) else _bad_tune(k) for k, v in tune.items()]
-    for text in getattr(args, "param", None) or []:
-        p = Param.parse(text)
-        params = [q for q in params if q.key != p.key] + [p]
-    obj = dict(spec.extra.get("objective") or {})
-    bad = set(obj) - {"settle_weight", "plants", "aggregate", "require_check"}
-    if bad:
-        raise InputError(
-            f"[objective]: unknown key(s) {', '.join(sorted(bad))}; choose from settle_weight, plants, aggregate, require_check"
-        )
-    for key in ("settle_weight", "plants", "aggregate", "require_check"):
-        if getattr(args, key, None) is not None:
-            obj[key] = getattr(args, key)
-    if getattr(args, "budget", None) is not None:
-        budget = args.budget
-    if isinstance(budget, bool) or not isinstance(budget, int):
-        raise InputError(f"budget must be an integer, got {budget!r}")
-    try:
-        objective = Objective(
-            settle_weight=float(obj.get("settle_weight", 0.0)),
-            plants=int(obj.get("plants", 0)),
-            aggregate=str(obj.get("aggregate", "mean")),
-            require_check=bool(obj.get("require_check", False)),
-        )
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"[objective]: {exc}") from None
-    return params, objective, budget
-
-
-def _bad_tune(key: str) -> Param:
-    raise InputError(f"[tune] {key}: a range is {{low, high[, log = true][, int = true]}}")
-
-
-def tune_main(args: argparse.Namespace, spec: SweepSpec, engine: Engine) -> int:
-    """``ilcrig tune`` with its spec and (not started) engine: open (or resume) the study, run it to
-    its budget, write the outputs and print the best gains."""
-    if spec.vary:
-        raise InputError("ilcrig tune takes no --vary / [vary]: the tuned keys are --param / [tune]")
-    params, objective, budget = _tune_settings(spec, args)
-    out = Path(args.out) if getattr(args, "out", None) else Path("runs") / time.strftime("tune-%Y%m%d-%H%M%S")
-    tuner = Tuner(out, spec, params, objective, budget, sampler_seed=getattr(args, "sampler_seed", 0) or 0)
-    tuner.open_study()
-    with engine:
-        sys.stderr.write(
-            f"ilcrig tune: {', '.join(p.key for p in params)}; {budget} trials "
-            f"({len(tuner.finished())} in the study already) on {engine.describe()}; folder {out}\n"
-        )
-        if engine.dashboard:
-            sys.stderr.write(f"ilcrig tune: dashboard {engine.dashboard}\n")
-        outcome = tuner.run(engine, progress=not getattr(args, "no_progress", False))
-    report = tuner.write_outputs(outcome)
-    if outcome.interrupted:
-        sys.stderr.write(f"ilcrig: interrupted; the study in {out / STUDY_FILE} is kept; run the same command again to resume\n")
-        return 130
-    if outcome.best_trial is None:
-        sys.stderr.write("ilcrig tune: no trial gave a finite objective (every run faulted or was infeasible)\n")
-        return 1
-    start = f" (starting point {outcome.start_value:.6g})" if outcome.start_value is not None else ""
-    sys.stdout.write(
-        f"ilcrig tune: best J = {outcome.best_value:.6g}{start}, trial {outcome.best_trial} of {len(tuner.finished())}; "
-        f"{outcome.wall_s:.1f} s\n"
-        f"best gains: {tuner.cli_options(outcome.best_params)}\n"
-        f"run them: ilcrig sim --config {out / BEST_FILE}\n"
-        f"report: {report}\n"
-    )
-    return 0

@@ -1,10 +1,12 @@
 """One point of a sweep: running it (on a worker) and keeping its result (in the sweep folder).
 
-This module owns :func:`run_point` — the function a worker runs: the experiment in-process through
-the public API (:class:`ilcrig.Experiment`, so its digest is the one of ``ilcrig sim`` with the same
-options), returning its summary, optionally its errors, and the warnings it logged; it never raises
-for the experiment's own failures (an infeasible task or a bad law is the point's ``error``) — and
-:func:`commit`, :func:`is_finished` and :func:`load_point`: the point's folder in the sweep::
+This module owns :func:`run_point` — the function a worker runs: the experiment in-process with the
+composition of ``ilcrig sim`` and of ``ilcrig.Experiment`` (:func:`plan_of`, then
+:class:`host.experiment.inprocess.InProcessBench` and :func:`host.experiment.trials.run_experiment`,
+so its digest is the one of ``ilcrig sim`` with the same options), returning its summary, optionally
+its errors, and the warnings it logged; it never raises for the experiment's own failures (an
+infeasible task or a bad law is the point's ``error``) — and :func:`commit`, :func:`is_finished`
+and :func:`load_point`: the point's folder in the sweep::
 
     <out>/runs/<point id>/point.json     the point: options, labels, worker, wall time, warnings
     <out>/runs/<point id>/summary.json   the run's summary (host.experiment.trials schema)
@@ -34,13 +36,24 @@ from typing import Any
 
 import numpy as np
 
-from host.analysis.sweep_plan import is_finished as _run_finished
-from host.experiment.config import ExperimentConfig
+from bus.errors import InputError
+from host.experiment.config import ExperimentConfig, build_config
+from host.experiment.plan import Plan, prepare
 from host.experiment.summary import jsonable, write_summary
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["run_point", "commit", "is_finished", "load_point", "PointRecord", "POINT_FILE", "run_dir"]
+__all__ = [
+    "run_point",
+    "plan_of",
+    "commit",
+    "is_finished",
+    "read_summary",
+    "load_point",
+    "PointRecord",
+    "POINT_FILE",
+    "run_dir",
+]
 
 POINT_FILE = "point.json"
 #: at most this many warnings of a point are kept (a diverging law can log one per trial)
@@ -59,13 +72,25 @@ class _Collect(logging.Handler):
             self.lines.append(f"{record.levelname} {record.name}: {record.getMessage()}")
 
 
+def plan_of(options: dict[str, Any]) -> Plan:
+    """The plan of the experiment of ``options`` (the keys of ``ilcrig.Experiment``).
+
+    :raises InputError: a bad key or value, or an infeasible experiment (the first line of the
+        configuration's or the plan's message, as ``ilcrig.Experiment`` raises it)."""
+    try:
+        return prepare(build_config(None, dict(options)))
+    except (ValueError, FileNotFoundError) as exc:
+        raise InputError(str(exc).splitlines()[0] if str(exc) else type(exc).__name__) from None
+
+
 def run_point(point_id: str, options: dict[str, Any], save_errors: bool) -> dict[str, Any]:
     """Run one point's experiment in this process (a worker) and return its result:
     ``{"id", "summary", "errors", "error", "traceback", "wall_s", "worker", "warnings"}``.
 
     ``errors`` is the (K, N, 4) float32 error array when ``save_errors``, else None; ``error`` is
     None, or one line saying why the experiment could not run (then ``summary`` is None)."""
-    from ilcrig.experiment import Experiment
+    from host.experiment.inprocess import InProcessBench
+    from host.experiment.trials import run_experiment
 
     t0 = time.perf_counter()
     collect = _Collect()
@@ -80,14 +105,12 @@ def run_point(point_id: str, options: dict[str, Any], save_errors: bool) -> dict
         "worker": f"{socket.gethostname()}:{os.getpid()}",
     }
     try:
-        exp = Experiment(**options)
-        with exp.start() as session:
-            for _ in session:
-                pass
-        out["summary"] = jsonable(session.results.summary)
+        plan = plan_of(options)
+        res = run_experiment(plan, InProcessBench(plan.cfg), None, mode="sim")
+        out["summary"] = jsonable(res.summary)
         if save_errors:
-            errs = session.raw.errors
-            n = exp.n_ticks
+            errs = res.errors
+            n = plan.n_ticks
             out["errors"] = np.stack(errs).astype(np.float32) if errs else np.zeros((0, n, 4), np.float32)
     except Exception as exc:  # noqa: BLE001 - infeasible task, bad law, bug: the point's error, the sweep goes on
         out["error"] = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}".rstrip(": ")
@@ -104,10 +127,25 @@ def run_dir(out: Path, point_id: str) -> Path:
     return Path(out) / "runs" / point_id
 
 
-def is_finished(folder: Path, cfg: ExperimentConfig, need_errors: bool) -> bool:
+def read_summary(folder: Path) -> dict[str, Any] | None:
+    """``folder/summary.json``, or None (absent or unreadable)."""
+    try:
+        doc: dict[str, Any] = json.loads((Path(folder) / "summary.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return doc
+
+
+def is_finished(folder: Path, cfg: ExperimentConfig, need_errors: bool = True) -> bool:
     """True if ``folder`` holds the finished run (completed, or ended by a recorded fault: both
-    deterministic results) of exactly ``cfg``, with its errors file if ``need_errors``."""
-    return _run_finished(folder, cfg, need_errors)
+    deterministic results) of exactly ``cfg``, with its errors file (``errors.npy``) if ``need_errors``."""
+    s = read_summary(folder)
+    if s is None or not (s.get("completed") or s.get("faults")):
+        return False
+    stored = {k: v for k, v in s.get("config", {}).items() if k not in ("n_ticks", "trial_s")}
+    if stored != json.loads(json.dumps(cfg.as_dict())):
+        return False
+    return not need_errors or (Path(folder) / "errors.npy").is_file()
 
 
 def commit(out: Path, point_id: str, point: dict[str, Any], result: dict[str, Any]) -> Path:

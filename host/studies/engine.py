@@ -1,7 +1,9 @@
 """The sweep engine: points run on Dask distributed, from a laptop to a cluster.
 
 This module owns :class:`Engine` (the Dask client: a ``LocalCluster`` started here, or an existing
-scheduler) and :func:`run_points` (a resumable run of a list of points with a progress bar).
+scheduler), :class:`PointQueue` (the one submit loop: points as tasks, their results written as they
+complete, a lost point's error record) and :func:`run_points` (a resumable run of a list of points
+with a progress bar).  It knows nothing of what a study does with the results.
 
 * **Local** (default): ``LocalCluster`` with one worker process per core (``workers``), one thread
   each, everything listening on 127.0.0.1 only; the dashboard (when its optional dependency bokeh is
@@ -10,8 +12,8 @@ scheduler) and :func:`run_points` (a resumable run of a list of points with a pr
   ``dask worker`` processes (docs/sweeps.md: on a private network; the workers need ilcrig
   installed, not the sweep folder: results come back to this process).
 
-A point is a task (:func:`ilcrig.sweep.point.run_point`); its result is written here, atomically,
-as soon as it arrives (:func:`ilcrig.sweep.point.commit`).  A worker that dies takes no result with
+A point is a task (:func:`host.studies.point.run_point`); its result is written here, atomically,
+as soon as it arrives (:func:`host.studies.point.commit`).  A worker that dies takes no result with
 it: the scheduler runs its points elsewhere (``distributed.scheduler.allowed-failures``), and a
 point that kills every worker it lands on ends as that point's error.  Resume: a point whose
 folder holds its finished run is not submitted (unless ``fresh``).  Ctrl-C or SIGTERM: what has
@@ -21,6 +23,7 @@ point is kept, and :attr:`SweepOutcome.interrupted` is set.
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import logging
 import os
@@ -34,13 +37,23 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ilcrig.errors import InputError
-from ilcrig.sweep.point import commit, is_finished, run_dir, run_point
-from ilcrig.sweep.spec import Point
+from bus.errors import InputError
+from host.studies.point import commit, is_finished, run_dir, run_point
+from host.studies.spec import Point
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Engine", "SweepOutcome", "run_points", "LOOPBACK", "dashboard_available", "interrupt_on_sigterm"]
+__all__ = [
+    "Engine",
+    "SweepOutcome",
+    "PointQueue",
+    "run_points",
+    "point_doc",
+    "lost_point",
+    "LOOPBACK",
+    "dashboard_available",
+    "interrupt_on_sigterm",
+]
 
 #: the only address the processes this module starts listen on
 LOOPBACK = "127.0.0.1"
@@ -209,6 +222,81 @@ def point_doc(p: Point) -> dict[str, Any]:
     return {"index": p.index, "labels": p.labels, "options": p.options, "config": p.config.as_dict()}
 
 
+def lost_point(p: Point, exc: BaseException) -> dict[str, Any]:
+    """The result of a point whose task raised instead of returning one (``KilledWorker``: the
+    point ended every worker it landed on; cancelled): the point's error record."""
+    return {"id": p.id, "error": f"{type(exc).__name__}: {exc}", "summary": None, "wall_s": 0.0}
+
+
+class PointQueue:
+    """The engine's one submit loop: points submitted as tasks (any time, also while others run),
+    their results taken as they complete — each written into the sweep folder (:func:`commit`)
+    before it is handed back — and tasks dropped or cancelled.  :func:`run_points` and the tuner
+    (:mod:`host.studies.tune`) run their points through it.
+
+    :param save_errors: the points keep their error arrays (``errors.npy``)
+    """
+
+    def __init__(self, engine: Engine, out: Path, *, save_errors: bool = False) -> None:
+        from distributed import as_completed
+
+        self.engine, self.out, self.save_errors = engine, Path(out), save_errors
+        self._pending: dict[Any, tuple[Point, dict[str, Any], Any]] = {}
+        self._completed = as_completed([], loop=engine.client.loop)
+
+    def __len__(self) -> int:
+        """Points submitted and not yet taken (or dropped)."""
+        return len(self._pending)
+
+    def submit(
+        self, p: Point, *, tag: str | None = None, priority: int = 0, doc: dict[str, Any] | None = None, owner: Any = None
+    ) -> Any:
+        """Submit point ``p`` (its key: :data:`TASK_GROUP`, its id and ``tag``); ``doc`` is what its
+        ``point.json`` says besides the result (default :func:`point_doc`); ``owner`` comes back with
+        its result (the tuner's trial).  Returns its future."""
+        key = (TASK_GROUP, p.id) if tag is None else (TASK_GROUP, p.id, tag)
+        fut = self.engine.submit(POINT_FUNCTION, p.id, p.options, self.save_errors, key=key, priority=priority)
+        self._pending[fut] = (p, point_doc(p) if doc is None else doc, owner)
+        self._completed.add(fut)
+        return fut
+
+    def next(self) -> tuple[Point, dict[str, Any], Any]:
+        """Wait for the next point to complete: the point, its result (:func:`run_point`'s, or
+        :func:`lost_point`'s), written into its folder, and its ``owner``.  Tasks dropped meanwhile
+        are skipped."""
+        while True:
+            fut = next(self._completed)
+            if fut not in self._pending:
+                continue  # dropped
+            p, doc, owner = self._pending.pop(fut)
+            try:
+                result = fut.result()
+            except Exception as exc:  # noqa: BLE001 - KilledWorker (the point ended every worker), cancelled
+                result = lost_point(p, exc)
+            fut.release()
+            commit(self.out, p.id, doc, result)
+            return p, result, owner
+
+    def drop(self, futures: Sequence[Any]) -> None:
+        """Forget these tasks and cancel them (a pruned trial's points)."""
+        for f in futures:
+            if self._pending.pop(f, None) is not None:
+                with contextlib.suppress(Exception):
+                    f.cancel()
+
+    def cancel(self) -> None:
+        """Cancel every task not taken yet (a task running on a worker of another's cluster runs on;
+        its result is dropped)."""
+        futures = list(self._pending)
+        self._pending.clear()
+        if not futures or self.engine.client is None:
+            return
+        try:
+            self.engine.client.cancel(futures, force=True)
+        except Exception:  # noqa: BLE001 - the cluster may be going away
+            logger.debug("cancelling failed", exc_info=True)
+
+
 def run_points(
     engine: Engine,
     out: Path,
@@ -225,7 +313,6 @@ def run_points(
 
     Ctrl-C / SIGTERM while it runs: cancels what has not finished and returns with
     ``interrupted`` (the caller closes the engine, which ends a local cluster's workers)."""
-    from distributed import as_completed
     from tqdm import tqdm
 
     out = Path(out)
@@ -242,23 +329,14 @@ def run_points(
         return outcome
     t0 = time.perf_counter()
     bar = tqdm(total=len(todo), desc=desc, unit="pt", file=sys.stderr, disable=not progress, dynamic_ncols=True)
-    futures: dict[Any, Point] = {}
+    queue = PointQueue(engine, out, save_errors=save_errors)
     try:
         with interrupt_on_sigterm():
             try:
                 for i, p in enumerate(todo):  # the first points first (reproduce: the slowest)
-                    fut = engine.submit(
-                        POINT_FUNCTION, p.id, p.options, save_errors, key=(TASK_GROUP, p.id), priority=len(todo) - i
-                    )
-                    futures[fut] = p
-                for fut in as_completed(list(futures), loop=engine.client.loop):
-                    p = futures.pop(fut)
-                    try:
-                        result = fut.result()
-                    except Exception as exc:  # noqa: BLE001 - KilledWorker (the point ended every worker), cancelled
-                        result = {"id": p.id, "error": f"{type(exc).__name__}: {exc}", "summary": None, "wall_s": 0.0}
-                    fut.release()
-                    commit(out, p.id, point_doc(p), result)
+                    queue.submit(p, priority=len(todo) - i)
+                while len(queue):
+                    p, result, _ = queue.next()
                     outcome.ran.append(p.id)
                     if result.get("error"):
                         outcome.errors[p.id] = str(result["error"])
@@ -269,19 +347,8 @@ def run_points(
                     bar.update(1)
             except KeyboardInterrupt:
                 outcome.interrupted = True
-                _cancel(engine, list(futures))
+                queue.cancel()
     finally:
         bar.close()
         outcome.wall_s = time.perf_counter() - t0
     return outcome
-
-
-def _cancel(engine: Engine, futures: list[Any]) -> None:
-    """Cancel what has not finished (a task running on a worker of another's cluster runs on; its
-    result is dropped)."""
-    if not futures or engine.client is None:
-        return
-    try:
-        engine.client.cancel(futures, force=True)
-    except Exception:  # noqa: BLE001 - the cluster may be going away
-        logger.debug("cancelling failed", exc_info=True)

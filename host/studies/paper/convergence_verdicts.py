@@ -2,8 +2,8 @@
 settles, whether its RMSE rises on the way, the floor under a disturbance, and whether a long run
 stays settled.
 
-The definitions (settle iteration, floor, block windows) are :mod:`host.analysis.settling`;
-every verdict states the criterion it was judged by (:attr:`~host.analysis.verdicts.Verdict.criterion`).
+The definitions (settle iteration, floor, block windows) are :mod:`host.studies.settling`;
+every verdict states the criterion it was judged by (:attr:`~host.studies.paper.verdicts.Verdict.criterion`).
 RMSE histories are (K, J) arrays in deg, k = 0 the first trial, before any learning.
 """
 
@@ -13,9 +13,10 @@ import logging
 
 import numpy as np
 
-from host.analysis.markdown import fmt, jlist
-from host.analysis.paper_data import PAPER_SETTLE_ITERATIONS
-from host.analysis.settling import (
+from host.analysis.markdown import fmt
+from host.studies.paper.paper_data import PAPER_SETTLE_ITERATIONS
+from host.studies.paper.verdicts import Verdict, jlist, verdict_floor_raised
+from host.studies.settling import (
     SETTLE_FACTOR,
     SPLIT_TRIALS,
     block_means,
@@ -24,7 +25,6 @@ from host.analysis.settling import (
     settled_floor,
     settled_windows,
 )
-from host.analysis.verdicts import Verdict, verdict_floor_raised
 
 logger = logging.getLogger(__name__)
 
@@ -98,7 +98,7 @@ def criterion_long(block: int = LONG_BLOCK, limit: float = LONG_GROWTH_LIMIT) ->
 
 
 def verdict_settle(rmse_hist: np.ndarray, limit: int = SETTLE_LIMIT, law: str = "PD-ILC", claim: str | None = None) -> Verdict:
-    """Every joint settles (:func:`~host.analysis.settling.settle_iteration`) at k ≤ ``limit``."""
+    """Every joint settles (:func:`~host.studies.settling.settle_iteration`) at k ≤ ``limit``."""
     claim = claim or f"{law} errors settle within about {PAPER_SETTLE_ITERATIONS} iterations (k ≤ {limit})"
     crit = criterion_settle(limit)
     if len(rmse_hist) < 2:
@@ -195,7 +195,7 @@ def verdict_long_bounded(
     ``limit``× the best ``block``-trial mean starting at the settle iteration or later.
 
     :param settle: the settle iteration over the paper's horizon (of the same experiment without
-        disturbance for a disturbed run; :mod:`host.analysis.settling`)
+        disturbance for a disturbed run; :mod:`host.studies.settling`)
     """
     crit = criterion_long(block, limit)
     if len(rmse_hist) < 2 * block:

@@ -3,9 +3,9 @@ the paper's, a verdict per claim with the criterion it was judged by, Figs. 8/10
 the law comparison (the single-run report is :mod:`host.analysis.run_report`).
 
 This module puts the report together (header, verdicts, sections, definitions, the list of runs);
-the rules are :mod:`host.analysis.verdicts` and :mod:`host.analysis.convergence_verdicts` (on the
-definitions of :mod:`host.analysis.settling`), the claims on the runs :mod:`host.analysis.claims`,
-the sections :mod:`host.analysis.report_sections` and :mod:`host.analysis.report_beyond`, the
+the rules are :mod:`host.studies.paper.verdicts` and :mod:`host.studies.paper.convergence_verdicts` (on the
+definitions of :mod:`host.studies.settling`), the claims on the runs :mod:`host.studies.paper.claims`,
+the sections :mod:`host.studies.paper.report_sections` and :mod:`host.studies.paper.report_beyond`, the
 figures :mod:`host.analysis.figures`.
 """
 
@@ -15,9 +15,10 @@ import logging
 import os
 from pathlib import Path
 
-from host.analysis import paper_data
-from host.analysis.claims import SweepRuns, claims_for_law, experiment, paper_self_check
-from host.analysis.convergence_verdicts import (
+from host.analysis.markdown import fmt, md_table
+from host.studies.paper import paper_data
+from host.studies.paper.claims import SweepRuns, claims_for_law, experiment, paper_self_check
+from host.studies.paper.convergence_verdicts import (
     CRITERION_FLOOR,
     CRITERION_RISE,
     CRITERION_SETTLE_ITERATION,
@@ -27,12 +28,11 @@ from host.analysis.convergence_verdicts import (
     SETTLE_LIMIT,
     verdict_rise,
 )
-from host.analysis.markdown import fmt, md_table
-from host.analysis.report_beyond import beyond_section, long_section
-from host.analysis.report_sections import fig_section, split_section, table_section
-from host.analysis.sweep_plan import BASELINE_LAW, BEYOND_LAWS, DISTURBED, LONG_TRIALS, PAPER_LAW, PROFILE, all_experiments
-from host.analysis.torque_limit import torque_limit_section
-from host.analysis.verdicts import PATH_SPREAD_LIMIT, PROFILE_RATIO_LIMIT, Verdict, missing
+from host.studies.paper.plan import BASELINE_LAW, BEYOND_LAWS, DISTURBED, LONG_TRIALS, PAPER_LAW, PROFILE, all_experiments
+from host.studies.paper.report_beyond import beyond_section, long_section
+from host.studies.paper.report_sections import fig_section, split_section, table_section
+from host.studies.paper.torque_limit import torque_limit_section
+from host.studies.paper.verdicts import PATH_SPREAD_LIMIT, PROFILE_RATIO_LIMIT, Verdict, missing
 
 logger = logging.getLogger(__name__)
 

@@ -30,8 +30,8 @@ import numpy as np
 
 from host.experiment.config import PLANT_KEYS
 from host.learning.gains import GainSpec
-from ilcrig.sweep.point import PointRecord, load_point, run_dir
-from ilcrig.sweep.spec import Point
+from host.studies.point import PointRecord, load_point, run_dir
+from host.studies.spec import Point
 
 logger = logging.getLogger(__name__)
 

@@ -6,24 +6,25 @@ them; MaxE = max |e|, "mean error" = MAE = mean |e| (the paper's eq. 36), deg, j
 :func:`verdict_beats` (Table 2), :func:`verdict_floor_raised` (Table 3 on the paper's numbers),
 :func:`verdict_paths` (Table 4), :func:`verdict_cycles` (Table 5), :func:`verdict_profiles_similar`
 and :func:`verdict_profiles_order` (Table 6).  The rules on RMSE histories (settling, floors, long
-runs) are :mod:`host.analysis.convergence_verdicts`.
+runs) are :mod:`host.studies.paper.convergence_verdicts`.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from host.analysis.markdown import Floats, fmt, jlist
+from host.analysis.markdown import Floats, fmt
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
     "Verdict",
+    "jlist",
     "missing",
     "verdict_beats",
     "verdict_floor_raised",
@@ -230,3 +231,8 @@ def verdict_profiles_order(mae_4567: Floats, mae_5: Floats, claim: str | None = 
     tie = all(a[j] <= b[j] * (1 + TIE_FRACTION) for j in worse)
     note = f" (every difference within {TIE_FRACTION:.0%}: effectively a tie)" if tie else ""
     return Verdict(claim, False, f"4567 not smaller on {jlist(worse)}: {txt} deg{note}", crit)
+
+
+def jlist(idx: Sequence[int]) -> str:
+    """Zero-based joint indices as 'j1, j3'."""
+    return ", ".join(f"j{i + 1}" for i in idx)

@@ -1,6 +1,6 @@
 """The paper's sections of the sweep report as markdown lines: Tables 2–6 beside the paper's
 numbers, Figs. 8 and 10 with their first/final RMSE and settle iteration, and the repeatable /
-non-repeatable split of the error (:mod:`host.analysis.report` puts them together)."""
+non-repeatable split of the error (:mod:`host.studies.paper.report` puts them together)."""
 
 from __future__ import annotations
 
@@ -8,13 +8,13 @@ import logging
 from collections.abc import Sequence
 from pathlib import Path
 
-from host.analysis import paper_data
-from host.analysis.claims import SweepRuns, experiment
-from host.analysis.figures import plot_fig8
-from host.analysis.markdown import JOINTS, LAW_LABEL, Floats, fmt, md_table, paper_value
-from host.analysis.paper_data import PAPER_SETTLE_ITERATIONS, TABLES
-from host.analysis.settling import SPLIT_TRIALS, settle_iteration, split_repeatable
-from host.analysis.sweep_plan import BASELINE_LAW, DISTURBED, PAPER_LAW, table_rows
+from host.analysis.markdown import JOINTS, Floats, fmt, md_table
+from host.studies.paper import paper_data
+from host.studies.paper.claims import SweepRuns, experiment
+from host.studies.paper.figures import plot_fig8
+from host.studies.paper.paper_data import PAPER_SETTLE_ITERATIONS, TABLES, paper_value
+from host.studies.paper.plan import BASELINE_LAW, DISTURBED, LAW_LABEL, PAPER_LAW, table_rows
+from host.studies.settling import SPLIT_TRIALS, settle_iteration, split_repeatable
 
 logger = logging.getLogger(__name__)
 

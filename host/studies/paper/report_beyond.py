@@ -11,13 +11,21 @@ from pathlib import Path
 
 import numpy as np
 
-from host.analysis.claims import SweepRuns, claims_for_law, disturbed_floor, experiment, long_settle, long_verdict, long_verdicts
-from host.analysis.convergence_verdicts import LONG_BLOCK, LONG_GROWTH_LIMIT, SETTLE_LIMIT
-from host.analysis.figures import plot_laws, plot_long
-from host.analysis.markdown import JOINTS, LAW_LABEL, fmt, md_table
-from host.analysis.settling import SETTLE_FACTOR, settle_iteration, settled_windows
-from host.analysis.sweep_plan import BEYOND_LAWS, DISTURBED, LONG_TRIALS, PAPER_LAW, RunData
-from host.analysis.verdicts import Verdict
+from host.analysis.markdown import JOINTS, fmt, md_table
+from host.studies.paper.claims import (
+    SweepRuns,
+    claims_for_law,
+    disturbed_floor,
+    experiment,
+    long_settle,
+    long_verdict,
+    long_verdicts,
+)
+from host.studies.paper.convergence_verdicts import LONG_BLOCK, LONG_GROWTH_LIMIT, SETTLE_LIMIT
+from host.studies.paper.figures import plot_laws, plot_long
+from host.studies.paper.plan import BEYOND_LAWS, DISTURBED, LAW_LABEL, LONG_TRIALS, PAPER_LAW, RunData
+from host.studies.paper.verdicts import Verdict
+from host.studies.settling import SETTLE_FACTOR, settle_iteration, settled_windows
 
 logger = logging.getLogger(__name__)
 

@@ -1,6 +1,7 @@
 """The experiment plan of ``ilcrig reproduce``: which configuration stands behind which row of
 the paper's Tables 2–6, Figs. 8 and 10, and the beyond-the-paper comparison of learning laws;
-the run-folder layout of a sweep and the loading of finished runs.
+the experiments' folders in the sweep folder and the loading of finished runs (a finished run:
+:func:`host.studies.point.is_finished`).
 
 Motion law: the paper's Tables 2–5 use its 4-5-6-7 polynomial law (Table 6 compares it with the
 5th-order law), so every paper-table experiment here uses ``profile = "poly4567"`` — Table 6 then
@@ -14,7 +15,6 @@ law on path 1 with and without disturbance, every law for a fixed ``LONG_TRIALS`
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -25,10 +25,12 @@ import numpy as np
 
 from host.experiment.config import ExperimentConfig, build_config
 from host.learning.names import LAWS
+from host.studies.point import is_finished, read_summary
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
+    "LAW_LABEL",
     "Experiment",
     "TableRow",
     "GROUPS",
@@ -48,11 +50,24 @@ __all__ = [
     "table_rows",
     "all_experiments",
     "run_dir_of",
-    "is_finished",
     "load_run",
     "RunData",
 ]
 
+
+#: display names of the learning laws, in the order the reports list them
+LAW_LABEL = {
+    "pd-ilc": "PD-ILC",
+    "pd-ilc-q": "PD-ILC-Q",
+    "d-ilc": "D-ILC",
+    "q-ilc": "Q-ILC",
+    "no-ilc": "NO-ILC",
+    "no-ilc-id": "NO-ILC-ID",
+    "pd-ol": "PD-OL",
+    "p-ol": "P-OL",
+    "cno-ilc": "CNO-ILC",
+    "adjoint-ilc": "ADJOINT-ILC",
+}
 
 #: the paper's law, its baseline, and the laws shown beyond the paper's tables
 PAPER_LAW = "pd-ilc"
@@ -131,7 +146,7 @@ class TableRow:
     table: str  # "table2" ...
     label: str
     experiment: Experiment
-    paper_key: str | None  # key into host.analysis.paper_data.TABLES[table].rows; None = beyond the paper
+    paper_key: str | None  # key into host.studies.paper.paper_data.TABLES[table].rows; None = beyond the paper
     law: str
 
 
@@ -227,29 +242,6 @@ def run_dir_of(out: Path, exp: Experiment) -> Path:
     return Path(out) / "runs" / exp.id
 
 
-def _config_json(cfg: ExperimentConfig) -> dict[str, Any]:
-    return json.loads(json.dumps(cfg.as_dict()))
-
-
-def _read_summary(run_dir: Path) -> dict[str, Any] | None:
-    try:
-        return json.loads((run_dir / "summary.json").read_text())
-    except (OSError, ValueError):
-        return None
-
-
-def is_finished(run_dir: Path, cfg: ExperimentConfig, need_errors: bool = True) -> bool:
-    """True if ``run_dir`` holds a finished run (completed, or ended by a recorded fault) of
-    exactly ``cfg`` together with its errors file (unless not ``need_errors``)."""
-    s = _read_summary(Path(run_dir))
-    if s is None or not (s.get("completed") or s.get("faults")):
-        return False
-    stored = {k: v for k, v in s.get("config", {}).items() if k not in ("n_ticks", "trial_s")}
-    if stored != _config_json(cfg):
-        return False
-    return not need_errors or (Path(run_dir) / "errors.npy").is_file()
-
-
 @dataclass
 class RunData:
     """A finished experiment as the report needs it."""
@@ -273,6 +265,6 @@ def load_run(out: Path, exp: Experiment, iterations: int) -> RunData | None:
     d = run_dir_of(out, exp)
     if not is_finished(d, exp.config(iterations)):
         return None
-    summary = _read_summary(d)
+    summary = read_summary(d)
     assert summary is not None
     return RunData(exp, summary, np.load(d / "errors.npy"))

@@ -52,8 +52,8 @@ from typing import Any
 
 import numpy as np
 
+from bus.errors import InputError
 from host.experiment.config import PLANT_KEYS, ExperimentConfig, build_config
-from ilcrig.errors import InputError
 
 logger = logging.getLogger(__name__)
 

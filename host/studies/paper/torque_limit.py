@@ -2,7 +2,7 @@
 torque limit and what the constrained law (``cno-ilc``) does there.
 
 This module owns :func:`torque_limit_section` (markdown lines).  Per experiment of
-:func:`host.analysis.sweep_plan.limit_experiments` (the laws of :data:`LIMIT_LAWS` at
+:func:`host.studies.paper.plan.limit_experiments` (the laws of :data:`LIMIT_LAWS` at
 :data:`LIMIT_CYCLE_S` and at 0.15 s, the paper's Table 5 row): the peak total torque the drives
 applied over the learned trials (k ≥ 1; trial 0 plays the same initial feed-forward for every law),
 how many of those trials reached the limit (the drive clamps there: ≥ 99.9 % of it), the final mean
@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from host.analysis.sweep_plan import LIMIT_CYCLE_S, Experiment, RunData, limit_experiments
+from host.studies.paper.plan import LIMIT_CYCLE_S, Experiment, RunData, limit_experiments
 from plant.params import default_true_plant
 
 logger = logging.getLogger(__name__)

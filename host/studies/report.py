@@ -1,7 +1,7 @@
 """The report of a sweep: ``report.md`` with its figures, in the sweep folder.
 
 This module owns the report of ``ilcrig sweep`` (``ilcrig reproduce`` has the paper's report,
-:mod:`host.analysis.report`): what was swept, how many points finished, the final RMSE (the last
+:mod:`host.studies.paper.report`): what was swept, how many points finished, the final RMSE (the last
 learning trial's, per joint) across the grid (``grid.png``: against the first varied key, one line
 per combination of the others; with Monte Carlo draws the median over the samples and the 5–95 %
 band), the distribution over the Monte Carlo plants (``montecarlo.png``: a histogram per joint,
@@ -21,8 +21,8 @@ import numpy as np
 
 from host.analysis.figures import figure, save_png
 from host.analysis.markdown import JOINTS, fmt, md_table
-from ilcrig.sweep.spec import Point, SweepSpec
-from ilcrig.sweep.table import TABLE_FILE, final_metrics
+from host.studies.spec import Point, SweepSpec
+from host.studies.table import TABLE_FILE, final_metrics
 
 logger = logging.getLogger(__name__)
 

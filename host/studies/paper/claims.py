@@ -1,8 +1,8 @@
 """The paper's claims judged on the finished runs of a sweep folder: :class:`SweepRuns` (the runs,
 looked up by experiment), :func:`claims_for_law` (every claim for the paper's law or a law beyond
 it) and :func:`paper_self_check` (the same rules applied to the paper's own numbers, which shows
-the rules are calibrated).  The rules themselves are :mod:`host.analysis.verdicts` and
-:mod:`host.analysis.convergence_verdicts`.
+the rules are calibrated).  The rules themselves are :mod:`host.studies.paper.verdicts` and
+:mod:`host.studies.paper.convergence_verdicts`.
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from host.analysis import paper_data
-from host.analysis.convergence_verdicts import (
+from host.studies.paper import paper_data
+from host.studies.paper.convergence_verdicts import (
     criterion_disturbance,
     criterion_long,
     criterion_settle,
@@ -22,12 +22,11 @@ from host.analysis.convergence_verdicts import (
     verdict_long_bounded,
     verdict_settle,
 )
-from host.analysis.markdown import LAW_LABEL
-from host.analysis.paper_data import TABLES
-from host.analysis.settling import settle_iteration, settled_floor
-from host.analysis.sweep_plan import (
+from host.studies.paper.paper_data import TABLES
+from host.studies.paper.plan import (
     BASELINE_LAW,
     DISTURBED,
+    LAW_LABEL,
     LONG_TRIALS,
     PAPER_LAW,
     Experiment,
@@ -35,7 +34,7 @@ from host.analysis.sweep_plan import (
     all_experiments,
     load_run,
 )
-from host.analysis.verdicts import (
+from host.studies.paper.verdicts import (
     CRITERION_CYCLES,
     CRITERION_PROFILES_ORDER,
     Verdict,
@@ -50,6 +49,7 @@ from host.analysis.verdicts import (
     verdict_profiles_order,
     verdict_profiles_similar,
 )
+from host.studies.settling import settle_iteration, settled_floor
 
 logger = logging.getLogger(__name__)
 
@@ -253,7 +253,7 @@ def _verdict_histories(runs: SweepRuns, law: str, v: dict[str, Verdict]) -> None
 
 def claims_for_law(runs: SweepRuns, law: str) -> dict[str, Verdict]:
     """Every claim evaluated for ``law`` (the paper's law or one beyond it) on the runs, keyed as
-    :data:`host.analysis.paper_data.CLAIMS` (without ``fig8_dilc_rise``)."""
+    :data:`host.studies.paper.paper_data.CLAIMS` (without ``fig8_dilc_rise``)."""
     v: dict[str, Verdict] = {}
     _verdict_finals(runs, law, v)
     _verdict_histories(runs, law, v)
