@@ -10,7 +10,8 @@ extras of a python-can bus (:mod:`bus.bus_features`), SocketCAN's error frame of
 (:mod:`bus.can_errors`), cheap messages on the hot path
 (:mod:`bus.fastmsg`), fine timer slack (:mod:`bus.timer_slack`), the lockstep processes' frozen heap
 and the real-time diagnostic switch (:mod:`bus.lockstep_process`), candump logs (:mod:`bus.canlog`),
-the SAFE-STATE log record (:mod:`bus.safe_state`) and the shared errors (:mod:`bus.errors`).
+the SAFE-STATE log record (:mod:`bus.safe_state`), the shared errors (:mod:`bus.errors`), every
+exit code (:mod:`bus.exit_codes`) and atomic file writes (:mod:`bus.atomic`).
 Subpackages: :mod:`bus.cia301` (the hand-written CANopen stack) and :mod:`bus.transports` (how
 channels are carried).
 

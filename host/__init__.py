@@ -3,12 +3,14 @@
 Owns, by subpackage: :mod:`host.planning` (paths and trajectories), :mod:`host.learning` (gains,
 laws, convergence checks, metrics), :mod:`host.nodes` (the clients of the drives and the bench
 node over an object-access protocol), :mod:`host.experiment` (configuration, plan, trial loop,
-summary, console, the in-process composition of ``ilcrig sim``), :mod:`host.analysis`
-(recording, reports, the ``reproduce`` sweep), :mod:`host.rig` (the host role on the bus and
-the launcher of ``ilcrig run``); :mod:`host.cli` only parses and dispatches.
+summary, console), :mod:`host.analysis` (recording, run outputs, reports, the ``reproduce``
+sweep), :mod:`host.sim` (the in-process experiment of ``ilcrig sim`` and the API: a composition
+root), :mod:`host.rig` (the host role on the bus and the launcher of ``ilcrig run``);
+:mod:`host.cli` parses the command line and hands typed options to the commands.
 
 May import: ``bus`` and ``plant`` (the nominal model and kinematics).  Never ``firmware_model``,
-except :mod:`host.experiment.inprocess` (composition root of ``ilcrig sim``) and :mod:`host.cli`
-(``ilcrig drive`` hands its process to the firmware).  Direction inside: planning → learning →
-nodes → experiment → analysis → rig → cli (tests/test_architecture.py).
+except the two composition roots :mod:`host.sim` (the in-process experiment) and :mod:`host.cli`
+(``ilcrig drive`` hands its process to the firmware).  Never the public API ``ilcrig``
+(TEMPORARY: :mod:`host.cli.studies`).  Direction inside: planning → learning → nodes →
+experiment → analysis → sim, rig → cli (tests/test_architecture.py).
 """

@@ -26,7 +26,7 @@ The learning-law protocol (:class:`LearningLaw`, :class:`TrialData`, :class:`Law
 docs/api.md explains it with runnable examples.
 
 May import: ``host`` (every subpackage), ``plant``, ``bus``, and ``firmware_model`` through
-:mod:`host.experiment.inprocess`.  Nothing in ``firmware_model``, ``bus``, ``host`` or ``plant``
+:mod:`host.sim.inprocess`.  Nothing in ``firmware_model``, ``bus``, ``host`` or ``plant``
 imports ``ilcrig``, except ``host.cli`` (the command line is built on this API).
 """
 

@@ -12,9 +12,9 @@ from cli_util import run_cli
 
 from bus import units
 from host.experiment.config import build_config
-from host.experiment.inprocess import InProcessBench
 from host.experiment.plan import prepare
 from host.experiment.trials import run_experiment
+from host.sim.inprocess import InProcessBench
 
 
 def assert_one_line_error(code: int, err: str, fragment: str) -> None:

@@ -45,7 +45,7 @@ from typing import Any
 
 import can
 
-from bus.errors import IlcrigError
+from bus.errors import InputError
 from bus.transports.hub.addresses import default_hub_address, parse_address
 from bus.transports.udp_multicast import enlarge_receive_buffer
 
@@ -72,7 +72,7 @@ HUB_INTERFACE: str = "ilcrig_hub"
 UDP_MULTICAST_INTERFACE: str = "ilcrig_udp_multicast"
 
 
-class TransportConfigError(IlcrigError, ValueError):
+class TransportConfigError(InputError):
     """A transport or channel configuration is invalid or incomplete."""
 
 

@@ -66,7 +66,7 @@ from pathlib import Path
 from typing import Any
 
 from bus import io_frames
-from bus.errors import IlcrigError
+from bus.errors import InputError
 from bus.units import timeout_scale
 
 logger = logging.getLogger(__name__)
@@ -104,7 +104,7 @@ _CAN_ERR_PROT = 0x008
 _CAN_ERR_PROT_LOC_CRC_SEQ = 0x08
 
 
-class FaultSpecError(IlcrigError, ValueError):
+class FaultSpecError(InputError):
     """An ``--inject`` spec is not valid (one line naming it and the allowed form)."""
 
 

@@ -14,7 +14,8 @@ This module owns how a law name given in ``--law``, in a TOML file or in the API
 
 It is import-light (``importlib.metadata`` only): the command line validates a law name before
 anything heavy is imported; the plug-in's module is imported when its class is asked for
-(:func:`law_class`).  Every failure is a ``ValueError`` with one line naming the law.
+(:func:`law_class`).  Every failure is a :class:`LawNameError` (:class:`bus.errors.InputError`,
+a ``ValueError``) with one line naming the law.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import logging
 from importlib import metadata
 from typing import Any
 
+from bus.errors import InputError
 from host.learning.names import LAWS
 
 logger = logging.getLogger(__name__)
@@ -31,6 +33,7 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "ENTRY_POINT_GROUP",
     "LawNameError",
+    "law_descriptions",
     "check_law_name",
     "law_class",
     "law_names",
@@ -46,8 +49,8 @@ ENTRY_POINT_GROUP = "ilcrig.laws"
 _REGISTERED: dict[str, type[Any]] = {}
 
 
-class LawNameError(ValueError):
-    """A law name that names no law, or a plug-in that cannot be loaded (one line)."""
+class LawNameError(InputError):
+    """A law name that names no law, or a plug-in that cannot be loaded (one line; bad input)."""
 
 
 def plugin_entry_points() -> dict[str, metadata.EntryPoint]:
@@ -145,3 +148,16 @@ def law_class(name: str) -> type[Any]:
 def _check_class(cls: Any, what: str) -> None:
     if not isinstance(cls, type) or not callable(getattr(cls, "update", None)):
         raise LawNameError(f"law {what}: not a learning-law class (a class with update(trial), docs/api.md)")
+
+
+def law_descriptions() -> dict[str, str]:
+    """Every law this process can run by name → its one-line description (``ilcrig laws``); a
+    plug-in that cannot be loaded says so in its description."""
+    out = {}
+    for name in law_names():
+        try:
+            cls = law_class(name)
+            out[name] = str(getattr(cls, "description", "") or (cls.__doc__ or "").strip().splitlines()[0])
+        except (ValueError, IndexError) as exc:
+            out[name] = f"(cannot be loaded: {exc})"
+    return out

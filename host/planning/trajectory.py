@@ -56,7 +56,7 @@ built-in path is feasible with ``ruckig`` at 0.15 s (path 1 needs ≥ 0.132 s).
 
 Errors
 ------
-All subclass ``ValueError`` (the CLI maps them to exit code 2) and :class:`bus.errors.IlcrigError`:
+All subclass :class:`bus.errors.InputError` (a ``ValueError``; the CLI maps it to exit code 2):
 :class:`TrajectoryError` (bad arguments, internal planning failure) and
 :class:`InfeasibleTaskError` (the task cannot be done within the limits).  Reach failures are the
 plant's ``OutOfReachError``, re-raised with the sample time and the point.
@@ -72,7 +72,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from bus.errors import IlcrigError
+from bus.errors import InputError
 from host.planning.paths import PathSpec
 
 logger = logging.getLogger(__name__)
@@ -111,11 +111,11 @@ _BOX_TOL = 1e-9
 _LAT_NEGLIGIBLE = 1e-9
 
 
-class TrajectoryError(IlcrigError, ValueError):
+class TrajectoryError(InputError):
     """Bad planning arguments or an internal planning failure (one-line message)."""
 
 
-class InfeasibleTaskError(IlcrigError, ValueError):
+class InfeasibleTaskError(InputError):
     """The task cannot be executed within the kinematic, joint or torque limits."""
 
 
