@@ -42,6 +42,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import traceback
 from collections.abc import Sequence
 from typing import NoReturn
 
@@ -108,7 +109,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stderr.write(f"ilcrig: error: {_first_line(exc) or type(exc).__name__}\n")
         return EXIT_USAGE
     except Exception as exc:  # noqa: BLE001 - a bug: one line, the traceback in the log
-        logger.log(logging.ERROR if args.debug else logging.DEBUG, "internal error", exc_info=True)
+        if args.debug:
+            traceback.print_exc(file=sys.stderr)
+        else:
+            logger.debug("internal error", exc_info=True)
         hint = "" if args.debug else " (run with --debug for details)"
         sys.stderr.write(f"ilcrig: internal error: {type(exc).__name__}: {_first_line(exc)}{hint}\n")
         return EXIT_ERROR

@@ -12,6 +12,8 @@ import argparse
 import sys
 from typing import Any, TextIO
 
+from bus.exit_codes import EXIT_OK
+
 __all__ = ["add_parser", "cmd_laws", "print_laws"]
 
 
@@ -35,4 +37,4 @@ def print_laws(stream: TextIO) -> int:
     for name, text in laws.items():
         stream.write(f"{name:<{width}}  {text}\n")
     stream.write(f"(plug-ins: entry-point group {ENTRY_POINT_GROUP}; any law also as --law module:Class)\n")
-    return 0
+    return EXIT_OK
