@@ -6,9 +6,10 @@ This module owns :class:`Experiment`, :class:`Session` (the in-process trial-by-
 command line (``law``, ``iterations``, ``path``, ``cycle_s``, ``profile``, ``disturbance``, ``seed``,
 ``ts_s``, ``substeps``, ``ff0``, ``following_error_deg``, ``ff_transport``, ``fieldbus_bitrate``,
 ``force_bus_fit``, ``gains`` = a dict of ``[gains]`` keys, ``law_options`` = a dict), with the same
-validation and the same one-line messages (:class:`ilcrig.InputError`).  In-process runs use the
-same composition as ``ilcrig sim`` (:class:`host.sim.inprocess.InProcessBench` and the trial
-loop :class:`host.experiment.trials.TrialRunner`), so their digests are the CLI's.
+validation and the same one-line messages (:class:`ilcrig.InputError`).  A thin wrapper over host
+code: the configuration is :func:`host.experiment.config.build_config`'s, the plan
+:func:`host.experiment.console.prepared`'s, and an in-process run is
+:class:`host.sim.session.SimSession` — the run of ``ilcrig sim``, so their digests are the CLI's.
 """
 
 from __future__ import annotations
