@@ -28,8 +28,8 @@ sys.path.insert(0, str(HERE.parent))
 def timed_experiment(cfg: Any, plan: Any, folder: Path | None) -> tuple[float, float]:
     """(wall s, process CPU s) of one run_experiment, including the recorder's creation."""
     from host.analysis.recording import RunRecorder
-    from host.experiment.inprocess import InProcessBench
     from host.experiment.trial_loop import run_experiment
+    from host.sim.inprocess import InProcessBench
 
     w0, c0 = time.perf_counter(), time.process_time()
     rec = RunRecorder(folder / "recording.rrd", config_summary=cfg.as_dict()) if folder is not None else None

@@ -22,9 +22,9 @@ def main() -> None:
     args = ap.parse_args()
 
     from host.experiment.config import build_config
-    from host.experiment.inprocess import InProcessBench
     from host.experiment.plan import prepare
     from host.experiment.trial_loop import run_experiment
+    from host.sim.inprocess import InProcessBench
 
     cfg = build_config(None, {})
     t0 = time.perf_counter()

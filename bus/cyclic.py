@@ -3,7 +3,7 @@ carry, their COB-IDs and byte layout, the CiA 301 configuration writes, and whet
 period of these frames fits the fieldbus.
 
 This module owns the one definition both sides use — the host (:mod:`host.rig.bring_up` and
-:mod:`host.rig.pdo_stream` with the canopen library's PDO API, :mod:`host.experiment.inprocess` with
+:mod:`host.rig.pdo_stream` with the canopen library's PDO API, :mod:`host.sim.inprocess` with
 the same bytes in one process),
 the DBC files (:mod:`bus.dbc`) and the tests:
 

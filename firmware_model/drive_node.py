@@ -35,21 +35,25 @@ plant node (:mod:`plant.plant_node`); :class:`DriveNode` adds the io side:
   serves the master between cycles (heartbeat producer and consumer, SDO timeout, EMCY inhibit
   time, the SYNC watchdog) stays on ``clock``, so a master that pauses its SYNCs still gets
   heartbeats and a master that stops them is noticed.
+
+The drive process (``ilcrig drive``, parsed by :mod:`host.cli.drive`) is :func:`run_drive` with a
+typed :class:`DriveOptions`; :func:`run_node` is its core (also for tests).
 """
 
 from __future__ import annotations
 
-import argparse
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
 import can
 
 from bus import io_frames
 from bus.cia301.slave import PRODUCER_HEARTBEAT_INDEX, SlaveApp, SlaveNode, exact_id_filters, install_sigterm
+from bus.exit_codes import EXIT_FAULT, EXIT_OK
 from bus.lockstep_process import freeze_heap
 
 logger = logging.getLogger(__name__)
@@ -59,7 +63,16 @@ _FAULT = int(io_frames.TorqueStatus.FAULT)
 _SATURATED = int(io_frames.TorqueStatus.SATURATED)
 _WARNING = int(io_frames.TorqueStatus.WARNING)
 
-__all__ = ["CyclicDriveLike", "DriveLike", "DriveNode", "PRODUCER_HEARTBEAT_INDEX", "install_sigterm", "run_node", "main"]
+__all__ = [
+    "CyclicDriveLike",
+    "DriveLike",
+    "DriveNode",
+    "PRODUCER_HEARTBEAT_INDEX",
+    "DriveOptions",
+    "install_sigterm",
+    "run_drive",
+    "run_node",
+]
 
 
 class DriveLike(SlaveApp, Protocol):
@@ -353,30 +366,24 @@ def _quiet_shutdown(bus: can.BusABC) -> None:
         logger.debug("closing %s: %s", bus, err)
 
 
-def main(argv: Sequence[str] | None = None) -> None:
-    """``python -m firmware_model.drive_node --node-id 1 --fieldbus-interface … --io-channel …``."""
-    parser = argparse.ArgumentParser(description="ilcrig drive node process")
-    parser.add_argument("--node-id", type=int, required=True)
-    for prefix in ("fieldbus", "io"):
-        parser.add_argument(f"--{prefix}-interface", required=True)
-        parser.add_argument(f"--{prefix}-channel", required=True)
-    parser.add_argument("--log-level", default="WARNING")
-    parser.add_argument("--param-dir", default=None, help="folder of the parameters 0x1010 saves (default: in memory)")
-    parser.add_argument(
-        "--lockstep",
-        action="store_true",
-        help="a drive of a SYNC-stepped plant (ilcrig robot): the control cycle's timers on lockstep time",
-    )
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s node%(process)d %(name)s %(message)s")
-    run_node(
-        args.node_id,
-        {"interface": args.fieldbus_interface, "channel": args.fieldbus_channel},
-        {"interface": args.io_interface, "channel": args.io_channel},
-        param_dir=args.param_dir,
-        lockstep=args.lockstep,
-    )
+@dataclass(frozen=True)
+class DriveOptions:
+    """The drive process's options (``ilcrig drive``)."""
+
+    #: CANopen node id, 1..127 (1..4: the robot's joints)
+    node_id: int
+    #: keyword arguments of ``can.Bus`` for the fieldbus
+    fieldbus_config: dict[str, Any] = field(default_factory=dict)
+    #: keyword arguments of ``can.Bus`` for the io channel
+    io_config: dict[str, Any] = field(default_factory=dict)
+    #: folder of the parameters 0x1010 saves (``node<id>.json``); None: in memory
+    param_dir: str | None = None
+    #: a drive of a SYNC-stepped plant (``ilcrig robot``)
+    lockstep: bool = False
 
 
-if __name__ == "__main__":
-    main()
+def run_drive(opts: DriveOptions, stop: threading.Event | None = None) -> int:
+    """The drive process: :func:`run_node` with ``opts``; returns the exit code (3 when a bus failed
+    and the node stopped early, 0 otherwise)."""
+    lost = run_node(opts.node_id, opts.fieldbus_config, opts.io_config, stop, param_dir=opts.param_dir, lockstep=opts.lockstep)
+    return EXIT_FAULT if lost else EXIT_OK

@@ -24,9 +24,9 @@ The learning-law protocol (:class:`LearningLaw`, :class:`TrialData`, :class:`Law
 :mod:`ilcrig.signals` re-exports the time operators (lead, difference, Q filter, transposes).
 docs/api.md explains it with runnable examples.
 
-May import: ``host`` (every subpackage), ``plant``, ``bus``, and ``firmware_model`` through
-:mod:`host.experiment.inprocess`.  Nothing in ``firmware_model``, ``bus``, ``host`` or ``plant``
-imports ``ilcrig``, except ``host.cli`` (the command line is built on this API).
+May import: ``host`` (every subpackage), ``plant``, ``bus``, and ``firmware_model`` only through
+:mod:`host.sim` (the in-process experiment this API wraps).  Nothing in ``firmware_model``, ``bus``,
+``host`` or ``plant`` imports ``ilcrig``.
 """
 
 from __future__ import annotations

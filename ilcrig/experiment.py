@@ -6,9 +6,10 @@ This module owns :class:`Experiment`, :class:`Session` (the in-process trial-by-
 command line (``law``, ``iterations``, ``path``, ``cycle_s``, ``profile``, ``disturbance``, ``seed``,
 ``ts_s``, ``substeps``, ``ff0``, ``following_error_deg``, ``ff_transport``, ``fieldbus_bitrate``,
 ``force_bus_fit``, ``gains`` = a dict of ``[gains]`` keys, ``law_options`` = a dict), with the same
-validation and the same one-line messages (:class:`ilcrig.InputError`).  In-process runs use the
-same composition as ``ilcrig sim`` (:class:`host.experiment.inprocess.InProcessBench` and the trial
-loop :class:`host.experiment.trial_loop.TrialLoop`), so their digests are the CLI's.
+validation and the same one-line messages (:class:`ilcrig.InputError`).  A thin wrapper over host
+code: the configuration is :func:`host.experiment.config.build_config`'s, the plan
+:func:`host.experiment.console.prepared`'s, and an in-process run is
+:class:`host.sim.session.SimSession` — the run of ``ilcrig sim``, so their digests are the CLI's.
 """
 
 from __future__ import annotations
@@ -20,9 +21,9 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from host.experiment.config import ExperimentConfig, build_config, gains_table
+from host.experiment.console import prepared
 from host.experiment.loop_state import TrialOutcome
-from host.experiment.plan import Plan, plan_with_gains, prepare
-from host.experiment.trial_loop import TrialLoop
+from host.experiment.plan import Plan
 from host.learning.check import ConvergenceReport
 from host.learning.registry import law_class, law_names
 from host.learning.registry import register_law as _register
@@ -126,10 +127,7 @@ class Experiment:
 
         :raises InputError: an infeasible experiment (the command line's one-line message)."""
         if self._plan is None:
-            try:
-                self._plan = prepare(self.config)
-            except (ValueError, FileNotFoundError) as exc:
-                raise input_error(exc) from None
+            self._plan = prepared(self.config)
         return self._plan
 
     @property
@@ -207,79 +205,25 @@ class Session:
     a context manager: leaving it ends the run with the bench's safe state and the final summary).
 
     Between trials :meth:`set_gains` changes the gains: the drives get the new feedback gains, the law
-    is built again for them and continues from the current feed-forward.
+    is built again for them and continues from the current feed-forward.  The run itself is
+    :class:`host.sim.session.SimSession` (as ``ilcrig sim``'s); this class gives its trials as
+    :class:`TrialResult`.
     """
 
     def __init__(
         self, experiment: Experiment, out: str | Path | None = None, *, stream: TextIO | None = None, view: bool = False
     ) -> None:
-        from host.experiment.inprocess import InProcessBench
+        from host.sim.session import SimSession
 
         self.experiment = experiment
         plan = experiment.plan
-        self.out = Path(out) if out is not None else None
+        self._sim = SimSession(plan, out, stream=stream, view=view)
+        self.out = self._sim.out
         self.stream = stream
-        self._folder: Any = None
-        recorder: Any = None
-        live: Any = None
         #: the live stream's address (``rerun+http://127.0.0.1:PORT/proxy``) with ``view``, else None
-        self.live_url: str | None = None
-        if view:
-            if self.out is None:
-                raise InputError("view: the live view streams the run's recording; give a run folder (out)")
-            from host.analysis.live_view import LiveView
-
-            live = LiveView()
-            self.live_url = live.url
-        if self.out is not None:
-            from host.analysis.recording import RunRecorder
-            from host.experiment.arrays import Recorders, TrialArrays
-            from host.experiment.outputs import RunFolder, check_out_dir
-
-            try:
-                check_out_dir(self.out, iterations=plan.cfg.iterations, n_ticks=plan.n_ticks)
-            except ValueError as exc:
-                raise input_error(exc) from None
-            self._folder = RunFolder(self.out, plan.cfg.iterations, plan.n_ticks)
-            self._folder.reserve()
-            recorder = Recorders(
-                RunRecorder(
-                    self.out / "recording.rrd",
-                    recording_id=self.out.name,
-                    config_summary=plan.cfg.as_dict(),
-                    folder=self._folder,
-                    live=live,
-                ),
-                TrialArrays(self.out, self._folder),
-            )
-            if live is not None:
-                line = live.open_viewer()
-                if stream is not None:
-                    stream.write(line + "\n")
-                    stream.flush()
-        if stream is not None:
-            from host.experiment.console import print_header, print_plan
-
-            print_plan(stream, "sim", plan)
-            print_header(stream)
-        self.runner = TrialLoop(
-            plan,
-            InProcessBench(plan.cfg),
-            self.out,
-            mode="sim",
-            on_trial=self._row if stream is not None else None,
-            recorder=recorder,
-            folder=self._folder,
-        )
+        self.live_url: str | None = self._sim.live_url
         self.trials: list[TrialResult] = []
         self._reference = {"t_s": plan.ref.t, "q_rad": plan.ref.q}
-        self._reported = False
-
-    def _row(self, m: Any, role: str) -> None:
-        from host.experiment.console import print_row
-
-        assert self.stream is not None
-        print_row(self.stream, m, role)
 
     def __enter__(self) -> Session:
         return self
@@ -294,24 +238,21 @@ class Session:
     @property
     def plan(self) -> Plan:
         """The plan in force (its gains change with :meth:`set_gains`)."""
-        return self.runner.plan
+        return self._sim.plan
 
     @property
     def done(self) -> bool:
-        return self.runner.done
+        return self._sim.done
 
     def step(self) -> TrialResult | None:
         """Run the next trial (a learning trial, or an auxiliary rollout its law asked for); None
         when the run is over (every trial ran, or a fault or an interrupt ended it: see
         :attr:`results`)."""
-        outcome = self.runner.step()
+        outcome = self._sim.step()
         if outcome is None:
-            self.close()
             return None
         result = self._result(outcome)
         self.trials.append(result)
-        if self.runner.finished:
-            self.close()
         return result
 
     def _result(self, o: TrialOutcome) -> TrialResult:
@@ -331,33 +272,22 @@ class Session:
         :raises InputError: a bad key or value (the configuration's message), a feedback gain outside
             the drive's range, or a change between a learning trial and its auxiliary trials.
         """
-        cfg = self.plan.cfg
-        base = {k: v for k, v in cfg.as_dict().items() if k != "gains"}
-        try:
-            new = build_config(None, base | {"gains": gains_table(cfg.gains) | changes})
-            self.runner.set_gains(plan_with_gains(self.plan, new.gains))
-        except (ValueError, RuntimeError) as exc:
-            raise input_error(exc) from None
+        self._sim.set_gains(**changes)
 
     @property
     def results(self) -> Results:
         """The results so far (all of them after the run)."""
-        return Results(self.runner.result.summary, self.trials, self.out)
+        return Results(self._sim.result.summary, self.trials, self.out)
 
     def close(self) -> Results:
         """End the run (bench closed, final summary; with a run folder also ``report.md``)."""
-        res = self.runner.finish()
-        if self.out is not None and not self._reported:
-            self._reported = True
-            from host.analysis.session import finish_run_report
-
-            finish_run_report(self.out, res, self._folder)
+        self._sim.close()
         return self.results
 
     @property
     def raw(self) -> Any:
         """The trial loop's own result (:class:`host.experiment.loop_state.ExperimentResult`)."""
-        return self.runner.result
+        return self._sim.result
 
 
 def _stack_columns(columns: list[Any]) -> Any:

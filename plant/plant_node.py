@@ -34,6 +34,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +45,7 @@ from bus.bus_features import batch_sender
 from bus.cia301.nmt import NmtCommand, NmtState, next_state
 from bus.cia301.object_store import ObjectStore
 from bus.cia301.slave import SlaveNode, install_sigterm
+from bus.exit_codes import EXIT_FAULT, EXIT_OK
 from bus.lockstep_process import freeze_heap, spin_in_this_class
 from bus.plant_objects import (
     DEFAULT_PLANT_NODE_ID,
@@ -64,7 +66,7 @@ from plant.plant_node_trial import LockstepMaster
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["PlantNode", "run_plant_role"]
+__all__ = ["PlantNode", "PlantOptions", "run_plant", "run_plant_role"]
 
 _TORQUE_LO = io_frames.TORQUE_COB_BASE
 _TORQUE_HI = io_frames.TORQUE_COB_BASE + io_frames.N_JOINTS
@@ -416,3 +418,29 @@ def _quiet_shutdown(bus: can.BusABC) -> None:
         bus.shutdown()
     except (can.CanError, OSError) as err:
         logger.debug("closing %s: %s", bus, err)
+
+
+@dataclass(frozen=True)
+class PlantOptions:
+    """The plant process's options (``ilcrig plant``, parsed by :mod:`host.cli.plant`)."""
+
+    transport: TransportConfig
+    node_id: int = DEFAULT_PLANT_NODE_ID
+    robot_mode: RobotMode = RobotMode.OFF
+    #: with a robot mode: the period trace file
+    trace_path: str | None = None
+    #: the node's counters as JSON on exit
+    summary_path: str | None = None
+
+
+def run_plant(opts: PlantOptions) -> int:
+    """The plant process: :func:`run_plant_role` with ``opts``; returns the exit code (3 when a bus
+    failed and the node stopped early, 0 otherwise)."""
+    lost = run_plant_role(
+        opts.transport,
+        node_id=opts.node_id,
+        robot_mode=opts.robot_mode,
+        trace_path=opts.trace_path,
+        summary_path=opts.summary_path,
+    )
+    return EXIT_FAULT if lost else EXIT_OK

@@ -134,9 +134,9 @@ def kill_session(outcome: Outcome) -> None:
 def sim_digest(k: int) -> str:
     """``trace_sha256`` of ``ilcrig sim --iterations k`` with the matrix's experiment."""
     from host.experiment.config import build_config
-    from host.experiment.inprocess import InProcessBench
     from host.experiment.plan import prepare
     from host.experiment.trial_loop import run_experiment
+    from host.sim.inprocess import InProcessBench
 
     cfg = build_config(None, {"iterations": max(k, 1), "cycle_s": 0.15})
     res = run_experiment(prepare(cfg), InProcessBench(cfg), None, mode="sim")

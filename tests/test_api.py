@@ -91,7 +91,7 @@ def test_stepping_with_a_gain_change_between_trials() -> None:
         second = session.step()
         assert second is not None
         np.testing.assert_allclose(second.gains["kp_nm_per_rad"], kp1, rtol=1e-12)
-        for j, drive in enumerate(session.runner.bench.drives):  # the drive holds the new gain (Q16)
+        for j, drive in enumerate(session._sim.runner.bench.drives):  # the drive holds the new gain (Q16)
             assert drive.gains()[0] == pytest.approx(kp1[j], abs=2**-16)
         with pytest.raises(ilcrig.InputError, match=r"gains.alpha and gains.beta must be >= 1, got 0.5"):
             session.set_gains(alpha=0.5)

@@ -1,14 +1,14 @@
 """The dependency rules of docs/architecture.md, checked on the source (every import, including
 the ones inside functions):
 
-* each package and subpackage may import only the project packages listed in ``ALLOWED``;
-* host never imports firmware_model except the composition root of ``ilcrig sim``
-  (host/experiment/inprocess.py) and the CLI's role dispatch (which hands a whole process over to
-  the firmware);
+* each package and subpackage may import only the project packages listed in ``ALLOWED`` (no
+  exceptions per module: the two composition roots are units with rules of their own);
+* host never imports firmware_model except its two composition roots, :mod:`host.sim` (the
+  in-process experiment of ``ilcrig sim`` and the API) and :mod:`host.cli` (the role dispatch, which
+  hands a whole process over to the firmware);
 * the plant's model modules use numpy, scipy, numba and the standard library only;
 * the public API ``ilcrig`` may import host, bus and plant (the firmware only through
-  host/experiment/inprocess.py, never directly), and nothing in firmware_model, bus, host or plant
-  imports ``ilcrig`` except ``host.cli`` (the command line is built on the API);
+  host/sim/, never directly), and nothing in firmware_model, bus, host or plant imports ``ilcrig``;
 * no import circle between modules;
 * the names the command line offers are the names the code knows.
 """
@@ -38,6 +38,8 @@ SUBPACKAGES = (
     "host.rig",
     "host.studies.paper",
     "host.studies",
+    "host.sim",
+    "host.cli",
 )
 
 #: unit -> the other units it may import.  A unit is a subpackage, or the top-level modules of a
@@ -57,17 +59,30 @@ ALLOWED: dict[str, set[str]] = {
     "host.experiment": {"bus", "bus.cia301", "plant", "host.planning", "host.learning", "host.nodes"},
     "host.analysis": {"bus", "plant", "host.planning", "host.learning", "host.experiment"},
     "host.rig": {"bus", "bus.cia301", "bus.transports", "bus.transports.hub", "host.nodes", "host.experiment", "host.analysis"},
-    # the studies; host.studies imports the paper only in host/studies/commands.py (the command line's
-    # reproduce, moving to host/cli/)
-    "host.studies": {"bus", "plant", "host.planning", "host.learning", "host.experiment", "host.analysis", "host.studies.paper"},
+    # the studies of many experiments (the generic engine) and the paper's study on it
+    "host.studies": {"bus", "plant", "host.planning", "host.learning", "host.experiment", "host.analysis"},
     "host.studies.paper": {"bus", "plant", "host.planning", "host.learning", "host.experiment", "host.analysis", "host.studies"},
-    "host": {
+    # composition root of the in-process experiment (ilcrig sim, the API): the firmware in this process
+    "host.sim": {
+        "bus",
+        "bus.cia301",
+        "plant",
+        "firmware_model",
+        "host.planning",
+        "host.learning",
+        "host.nodes",
+        "host.experiment",
+        "host.analysis",
+    },
+    # the command line: every role's process, the drive's included (firmware_model)
+    "host.cli": {
         "bus",
         "bus.cia301",
         "bus.transports",
         "bus.transports.hub",
         "plant",
         "plant.plant_node",
+        "firmware_model",
         "host.planning",
         "host.learning",
         "host.nodes",
@@ -75,7 +90,10 @@ ALLOWED: dict[str, set[str]] = {
         "host.analysis",
         "host.rig",
         "host.studies",
+        "host.studies.paper",
+        "host.sim",
     },
+    "host": set(),
     "ilcrig": {
         "bus",
         "bus.cia301",
@@ -88,12 +106,9 @@ ALLOWED: dict[str, set[str]] = {
         "host.analysis",
         "host.rig",
         "host.studies",
+        "host.sim",
     },
 }
-#: modules allowed to import firmware_model beyond their unit's rule
-FIRMWARE_IMPORTERS = {"host.experiment.inprocess", "host.cli"}
-#: modules of the internals allowed to import the public API ``ilcrig`` (the command line is built on it)
-API_IMPORTERS = {"host.cli"}
 
 
 def unit_of(module: str) -> str:
@@ -146,21 +161,29 @@ def test_dependency_direction(unit: str) -> None:
     for mod, path in MODULES.items():
         if unit_of(mod) != unit:
             continue
-        allowed = ALLOWED[unit] | {unit} | ({"firmware_model"} if mod in FIRMWARE_IMPORTERS else set())
-        allowed |= {"ilcrig"} if mod in API_IMPORTERS else set()
+        allowed = ALLOWED[unit] | {unit}
         wrong = sorted(m for m in project_imports(path) if unit_of(m) not in allowed)
         if wrong:
             bad[mod] = wrong
     assert not bad, f"{unit} may import only {sorted(ALLOWED[unit])}: {bad}"
 
 
-def test_only_the_cli_imports_the_public_api() -> None:
+def test_nothing_below_the_public_api_imports_it() -> None:
     importers = sorted(
         mod
         for mod, path in MODULES.items()
         if unit_of(mod).split(".")[0] != "ilcrig" and any(unit_of(m).split(".")[0] == "ilcrig" for m in project_imports(path))
     )
-    assert importers == sorted(API_IMPORTERS), importers
+    assert importers == [], importers
+
+
+def test_only_the_composition_roots_import_the_firmware() -> None:
+    importers = {
+        unit_of(mod)
+        for mod, path in MODULES.items()
+        if unit_of(mod).startswith("host") and any(unit_of(m) == "firmware_model" for m in project_imports(path))
+    }
+    assert importers <= {"host.sim", "host.cli"}, importers
 
 
 def test_plant_models_use_numeric_libraries_only() -> None:
@@ -239,7 +262,7 @@ def test_cli_docstring_names_every_subcommand() -> None:
     parser = cli.build_parser()
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     absent = [name for name in sub.choices if f"``{name}``" not in (cli.__doc__ or "")]
-    assert not absent, f"host/cli.py's docstring does not name: {absent}"
+    assert not absent, f"host/cli/__init__.py's docstring does not name: {absent}"
 
 
 def _layout_section() -> str:

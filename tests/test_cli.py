@@ -1,9 +1,12 @@
 """`ilcrig sim`: bad input is one line + exit 2; the run folder; determinism; the acceptance
-numbers of the default experiment (PD-ILC against D-ILC, the best law against the encoder LSB)."""
+numbers of the default experiment (PD-ILC against D-ILC, the best law against the encoder LSB).
+The command line as a whole: only bad input is exit 2 (an internal error is exit 1, with or without
+``--debug``), every command lives in host/cli/, and docs/usage.md lists every exit code."""
 
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -11,10 +14,11 @@ import pytest
 from cli_util import run_cli
 
 from bus import units
+from bus.exit_codes import EXIT_ERROR, EXIT_USAGE, ExitCode
 from host.experiment.config import build_config
-from host.experiment.inprocess import InProcessBench
 from host.experiment.plan import prepare
 from host.experiment.trial_loop import run_experiment
+from host.sim.inprocess import InProcessBench
 
 
 def assert_one_line_error(code: int, err: str, fragment: str) -> None:
@@ -46,6 +50,71 @@ def test_bad_input_is_one_line_and_exit_2(capsys, tmp_path: Path, argv: list[str
     code, _, err = run_cli(capsys, "sim", *argv, "--out", str(tmp_path / "run"))
     assert_one_line_error(code, err, fragment)
     assert not (tmp_path / "run" / "summary.json").exists()  # nothing moved
+
+
+def test_debug_keeps_exit_code_2_for_bad_input(capsys, tmp_path: Path) -> None:
+    code, _, err = run_cli(capsys, "--debug", "sim", "--iterations", "0", "--out", str(tmp_path / "run"))
+    assert code == EXIT_USAGE and "ilcrig: error: iterations must be between 1 and 1000" in err
+    code, _, err = run_cli(capsys, "--debug", "run", "--rt-priority", "5", "--out", str(tmp_path / "run2"))
+    assert code == EXIT_USAGE and "ilcrig: error: --rt-priority 5" in err
+
+
+@pytest.mark.parametrize("debug", [False, True])
+def test_a_value_error_of_the_internals_is_an_internal_error(capsys, monkeypatch, debug: bool) -> None:
+    """A ValueError that is no InputError is a bug: exit 1 and ``internal error``, never 2 — and the
+    same code with ``--debug`` (which prints the traceback too)."""
+    from host.learning import registry
+
+    def broken() -> dict[str, str]:
+        raise ValueError("an internal value went wrong")
+
+    monkeypatch.setattr(registry, "law_descriptions", broken)
+    code, _, err = run_cli(capsys, *(["--debug"] if debug else []), "laws")
+    assert code == EXIT_ERROR
+    assert "ilcrig: internal error: ValueError: an internal value went wrong" in err
+    assert ("Traceback" in err) == debug
+
+
+def test_laws_lists_every_law_of_the_registry(capsys) -> None:
+    from host.learning.registry import law_names
+
+    code, out, _ = run_cli(capsys, "laws")
+    assert code == 0 and [line.split()[0] for line in out.splitlines()[:-1]] == list(law_names())
+
+
+ROOT = Path(__file__).resolve().parent.parent
+#: modules outside host/cli that still read a parsed ``argparse.Namespace``: the experiment options
+#: of ``run`` travel as one mapping into the host role's argv (role_commands, rig/options.py,
+#: console.experiment_config); janitor, bus.dbc and plant.selfcheck are ``python -m`` tools of
+#: their own (the janitor is the launcher's internal helper process, not a user command)
+NAMESPACE_ELSEWHERE = {
+    "host/rig/role_commands.py",
+    "host/rig/options.py",
+    "host/experiment/console.py",
+    "host/rig/janitor.py",
+    "bus/dbc.py",
+    "plant/selfcheck.py",
+}
+
+
+def test_argparse_lives_only_in_host_cli() -> None:
+    found = set()
+    for top in ("bus", "firmware_model", "host", "plant", "ilcrig"):
+        for path in (ROOT / top).rglob("*.py"):
+            rel = path.relative_to(ROOT).as_posix()
+            if rel.startswith("host/cli/"):
+                continue
+            if re.search(r"^\s*import argparse|ArgumentParser", path.read_text(), re.MULTILINE):
+                found.add(rel)
+    assert found <= NAMESPACE_ELSEWHERE, sorted(found - NAMESPACE_ELSEWHERE)
+
+
+def test_usage_lists_every_exit_code() -> None:
+    usage = (ROOT / "docs" / "usage.md").read_text()
+    table = usage[usage.index("## Exit codes") :]
+    table = table[: table.index("\n## ")] if "\n## " in table else table
+    rows = {int(m.group(1)): m.group(2) for m in re.finditer(r"^\| (\d+) \| `(\w+)` \|", table, re.MULTILINE)}
+    assert rows == {int(code): code.name for code in ExitCode}, rows
 
 
 def test_unknown_toml_key_and_nan_gain(capsys, tmp_path: Path) -> None:

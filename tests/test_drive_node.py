@@ -29,7 +29,7 @@ from bus.errors import AbortCode, SdoAbort
 from bus.objects import Cia402State, ControlCommand, FaultCause, state_from_statusword
 from firmware_model.control_law import warm_up
 from firmware_model.drive import Drive
-from firmware_model.drive_node import DriveNode, run_node
+from firmware_model.drive_node import DriveNode, DriveOptions, run_drive
 
 EDS = Path(__file__).resolve().parents[1] / "bus" / "drive.eds"
 NODE = 2
@@ -502,14 +502,17 @@ def test_select_path_with_fileno_buses() -> None:
     assert not thread.is_alive()
 
 
-def test_run_node_process_entry_with_stop_event() -> None:
-    """run_node builds the real Drive and both buses, serves, and cleans up on stop."""
+def test_run_drive_process_entry_with_stop_event() -> None:
+    """run_drive (``ilcrig drive``'s typed entry over run_node) builds the real Drive and both
+    buses, serves, cleans up on stop and exits 0."""
     k = next(_counter)
     fb_cfg = {"interface": "virtual", "channel": f"run-fb-{k}"}
     io_cfg = {"interface": "virtual", "channel": f"run-io-{k}"}
+    codes: list[int] = []
     with can.Bus(**fb_cfg) as host, can.Bus(**io_cfg) as plant:
         stop = threading.Event()
-        thread = threading.Thread(target=run_node, args=(3, fb_cfg, io_cfg, stop), daemon=True)
+        opts = DriveOptions(3, fb_cfg, io_cfg)
+        thread = threading.Thread(target=lambda: codes.append(run_drive(opts, stop)), daemon=True)
         thread.start()
         try:
             boot = host.recv(timeout=5.0)
@@ -520,7 +523,7 @@ def test_run_node_process_entry_with_stop_event() -> None:
         finally:
             stop.set()
             thread.join(timeout=2.0)
-        assert not thread.is_alive()
+        assert not thread.is_alive() and codes == [0]
 
 
 def test_emcy_cob_id_valid_bit_and_inhibit_time_and_rtr_on_the_node_clock() -> None:

@@ -211,7 +211,7 @@ class FakeBench:
     """The in-process bench with faults at chosen moments."""
 
     def __init__(self, cfg: Any, *, fail_start: BaseException | None = None, closing: FaultRecord | None = None) -> None:
-        from host.experiment.inprocess import InProcessBench
+        from host.sim.inprocess import InProcessBench
 
         self.inner = InProcessBench(cfg)
         self.fail_start = fail_start
@@ -294,8 +294,8 @@ def test_a_fault_while_the_bench_closes_ends_a_completed_run_with_3(tmp_path: Pa
 def test_a_full_disk_after_the_last_trial_keeps_every_trial(tmp_path: Path) -> None:
     from host.analysis.session import report_fault, run_session
     from host.experiment.config import build_config
-    from host.experiment.inprocess import InProcessBench
     from host.experiment.plan import prepare
+    from host.sim.inprocess import InProcessBench
 
     cfg = build_config(None, {"iterations": 2, "cycle_s": 0.15})
     out = tmp_path / "run"

@@ -278,7 +278,7 @@ def test_non_loopback_listen_refused(addr: str) -> None:
 
 def test_cli_refuses_non_loopback() -> None:
     res = subprocess.run(
-        [sys.executable, "-m", "bus.transports.hub.cli", "--listen", "tcp:0.0.0.0:0"],
+        [sys.executable, "-m", "host.cli", "hub", "--listen", "tcp:0.0.0.0:0"],
         capture_output=True,
         text=True,
         timeout=30,

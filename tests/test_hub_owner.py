@@ -53,14 +53,14 @@ def public_tmp() -> Iterator[Path]:
 
 
 def hub_cli(*args: str, env: dict[str, str] | None = None, umask: int | None = None) -> subprocess.Popen[str]:
-    """``python -m bus.transports.hub.cli --ready ARGS`` (its stdin closes it)."""
+    """``python -m host.cli hub --ready ARGS`` (its stdin closes it)."""
 
     def pre() -> None:
         if umask is not None:
             os.umask(umask)
 
     return subprocess.Popen(
-        [sys.executable, "-m", "bus.transports.hub.cli", "--ready", "--exit-on-stdin-eof", *args],
+        [sys.executable, "-m", "host.cli", "hub", "--ready", "--exit-on-stdin-eof", *args],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -141,7 +141,7 @@ def test_hub_errors_are_one_line_and_exit_2(tmp_path: Path) -> None:
         res = subprocess.run([sys.executable, "-m", "host.cli", *args], capture_output=True, text=True, cwd=REPO, timeout=60)
         assert res.returncode == 2 and res.stderr.startswith(text) and len(res.stderr.splitlines()) == 1, res.stderr
     res = subprocess.run(
-        [sys.executable, "-m", "bus.transports.hub.cli", "--bus-time", "x"], capture_output=True, text=True, cwd=REPO, timeout=60
+        [sys.executable, "-m", "host.cli", "hub", "--bus-time", "x"], capture_output=True, text=True, cwd=REPO, timeout=60
     )
     assert res.returncode == 2 and res.stderr.startswith("ilcrig: error: ") and len(res.stderr.splitlines()) == 1
 

@@ -360,9 +360,9 @@ def test_identification_recovers_the_true_parameters() -> None:
 def _sim(**overrides) -> np.ndarray:
     """RMSE (K, 4) deg of an in-process run of the default experiment with ``overrides``."""
     from host.experiment.config import build_config
-    from host.experiment.inprocess import InProcessBench
     from host.experiment.plan import prepare
     from host.experiment.trial_loop import run_experiment
+    from host.sim.inprocess import InProcessBench
 
     cfg = build_config(None, overrides)
     res = run_experiment(prepare(cfg), InProcessBench(cfg), None, mode="sim")

@@ -81,8 +81,8 @@ def test_the_space_reserve(tmp_path: Path) -> None:
 def sim_with_full_disk(out: Path, from_trial: int):  # type: ignore[no-untyped-def]
     from host.analysis.session import report_fault, run_session
     from host.experiment.config import build_config
-    from host.experiment.inprocess import InProcessBench
     from host.experiment.plan import prepare
+    from host.sim.inprocess import InProcessBench
 
     cfg = build_config(None, {"iterations": 3, "cycle_s": 0.15})
     import io
@@ -143,8 +143,8 @@ def test_learning_that_diverges_is_a_fault_and_no_nan_is_written(tmp_path: Path)
     run faults cleanly when the feed-forward leaves the drive's range; the summary is valid JSON."""
     from host.analysis.session import report_fault, run_session
     from host.experiment.config import build_config
-    from host.experiment.inprocess import InProcessBench
     from host.experiment.plan import prepare
+    from host.sim.inprocess import InProcessBench
 
     cfg = build_config(None, {"law": "pd-ilc", "iterations": 3, "cycle_s": 0.15, "gains": {"alpha": 1.0, "lp": 1e12}})
     plan = prepare(cfg)

@@ -746,7 +746,7 @@ def test_run_plant_role_serves_until_stopped() -> None:
 
 def _in_process_traces(n: int, trials: int, disturbance: str, seed: int) -> list[list[Any]]:
     from host.experiment.config import ExperimentConfig
-    from host.experiment.inprocess import InProcessBench
+    from host.sim.inprocess import InProcessBench
 
     q, qd, ff, q0 = short_reference(n)
     bench = InProcessBench(ExperimentConfig(ts_s=TS_S, substeps=4, disturbance=disturbance, seed=seed))
@@ -767,8 +767,8 @@ def test_rig_on_virtual_buses_is_bit_identical_to_in_process() -> None:
     from firmware_model.drive import Drive
     from firmware_model.drive_node import DriveNode
     from host.experiment.config import ExperimentConfig
-    from host.experiment.inprocess import make_plant
     from host.nodes.drive_client import DriveClient
+    from host.sim.inprocess import make_plant
     from plant.disturbance import disturbance_torque
 
     n, trials, disturbance, seed = 60, 2, "both", 11

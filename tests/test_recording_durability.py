@@ -263,8 +263,8 @@ def test_a_full_disk_at_each_phase_keeps_a_readable_recording(
     from host.analysis.session import report_fault, run_session
     from host.experiment import arrays, trial_loop
     from host.experiment.config import build_config
-    from host.experiment.inprocess import InProcessBench
     from host.experiment.plan import prepare
+    from host.sim.inprocess import InProcessBench
 
     out = small_fs / "run"
     out.mkdir()

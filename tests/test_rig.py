@@ -24,10 +24,10 @@ from bus.transports.config import hub_transport
 from bus.transports.hub.process import start_hub
 from bus.units import timeout_scale
 from host.experiment.config import build_config
-from host.experiment.inprocess import InProcessBench
 from host.experiment.plan import prepare
 from host.experiment.trial_loop import run_experiment
 from host.rig.realtime import scheduling_mechanisms
+from host.sim.inprocess import InProcessBench
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 

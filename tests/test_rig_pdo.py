@@ -24,10 +24,10 @@ from bus.cyclic import rpdo_cob_id, tpdo_cob_id
 from bus.dbc import FIELDBUS_DBC_PATH, IO_DBC_PATH
 from bus.objects import RATED_TORQUE_MNM
 from host.experiment.config import build_config
-from host.experiment.inprocess import InProcessBench
 from host.experiment.loop_state import ExperimentResult
 from host.experiment.plan import prepare
 from host.experiment.trial_loop import run_experiment
+from host.sim.inprocess import InProcessBench
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 

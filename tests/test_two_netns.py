@@ -22,9 +22,9 @@ from bus.transports.hub.addresses import parse_address
 from bus.transports.hub.server import HubServer
 from bus.transports.hub.wire import NonLoopbackAddressError
 from host.experiment.config import build_config
-from host.experiment.inprocess import InProcessBench
 from host.experiment.plan import prepare
 from host.experiment.trial_loop import run_experiment
+from host.sim.inprocess import InProcessBench
 
 HERE = Path(__file__).resolve().parent
 EXP = ["--iterations", "2", "--cycle", "0.15", "--disturbance", "both", "--seed", "3"]

@@ -33,9 +33,9 @@ import pytest
 from bus.io_frames import ENCODER_COB_BASE, TORQUE_COB_BASE
 from bus.transports.config import VCAN_FIELDBUS, VCAN_IO, vcan_available
 from host.experiment.config import build_config
-from host.experiment.inprocess import InProcessBench
 from host.experiment.plan import prepare
 from host.experiment.trial_loop import run_experiment
+from host.sim.inprocess import InProcessBench
 
 REPO = Path(__file__).resolve().parent.parent
 DRIVE_EDS = REPO / "bus" / "drive.eds"

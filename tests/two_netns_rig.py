@@ -75,7 +75,8 @@ def main() -> int:
             [
                 sys.executable,
                 "-m",
-                "bus.transports.hub.cli",
+                "host.cli",
+                "hub",
                 "--listen",
                 hub_addr,
                 "--allow-remote",

@@ -1,11 +1,12 @@
-"""One experiment with all its outputs, as ``ilcrig sim`` and ``ilcrig host`` run it.
+"""One experiment with all its outputs, as ``ilcrig sim``, ``ilcrig host`` and the API run it.
 
-This module owns what both commands do around :func:`host.experiment.trial_loop.run_experiment`: the run
-folder's space reserve (:class:`host.experiment.outputs.RunFolder`), the Rerun recording
-(:mod:`host.analysis.recording`, written trial by trial), one console row per trial,
-every trial's signals as numpy files (:mod:`host.experiment.arrays`), ``report.md`` with its
-convergence plot after the last completed trial — also after a fault or an
-interrupt (:mod:`host.analysis.run_report`); a report that cannot be written (a full disk) is the
+This module owns the one run-outputs path of every run (:func:`open_outputs`, used by
+:func:`run_session` and by the in-process :class:`host.sim.session.SimSession`) and what the
+commands do around :func:`host.experiment.trial_loop.run_experiment`: the run folder's space reserve
+(:class:`host.experiment.outputs.RunFolder`), the Rerun recording (:mod:`host.analysis.recording`,
+written trial by trial), one console row per trial, every trial's signals as numpy files
+(:mod:`host.experiment.arrays`), ``report.md`` with its convergence plot after the last completed
+trial — also after a fault or an interrupt (:mod:`host.analysis.run_report`); a report that cannot be written (a full disk) is the
 run's fault when it has none (``summary.json`` then says so) — and the closing line with its exit
 code: one line ``ilcrig: fault: …`` and 3 after a fault, 130 / 143 after SIGINT / SIGTERM.
 """
@@ -15,6 +16,7 @@ from __future__ import annotations
 import logging
 import signal
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
 
@@ -34,7 +36,52 @@ from host.experiment.trial_loop import run_experiment
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["finish_run_report", "run_session", "report_fault"]
+__all__ = ["RunOutputs", "finish_run_report", "open_outputs", "run_session", "report_fault"]
+
+
+@dataclass(frozen=True)
+class RunOutputs:
+    """The outputs of a run in its folder: the space reserve, the trial recorder (Rerun recording +
+    trials/*.npz), and, with ``view``, the live stream's address and the line that tells how to see
+    it (both None without ``view``)."""
+
+    folder: RunFolder
+    recorder: Recorders
+    live_url: str | None = None
+    live_line: str | None = None
+
+
+def open_outputs(
+    plan: Plan,
+    out: Path,
+    *,
+    view: bool = False,
+    fail_writes_from_trial: int | None = None,
+    fail_spec: str | None = None,
+) -> RunOutputs:
+    """The run folder ``out`` (checked by the caller) with its space reserve, the Rerun recording
+    (live to a viewer with ``view``, :mod:`host.analysis.live_view`) and the trials' arrays.
+
+    :param fail_writes_from_trial: fault injection: the outputs' writes fail with ``ENOSPC`` from
+        this trial's on (−1: from the first summary on; ``--inject diskfull@K``)
+    :param fail_spec: the ``--inject`` spec of that injection (for its record)
+    """
+    live = None
+    if view:
+        from host.analysis.live_view import LiveView
+
+        live = LiveView()
+    folder = RunFolder(out, plan.cfg.iterations, plan.n_ticks)
+    folder.reserve()
+    folder.fail_writes_from_trial = fail_writes_from_trial
+    folder.fail_spec = fail_spec
+    recorder = Recorders(
+        RunRecorder(out / "recording.rrd", recording_id=out.name, config_summary=plan.cfg.as_dict(), folder=folder, live=live),
+        TrialArrays(out, folder),
+    )
+    if live is None:
+        return RunOutputs(folder, recorder)
+    return RunOutputs(folder, recorder, live.url, live.open_viewer())
 
 
 def run_session(
@@ -56,26 +103,20 @@ def run_session(
     :param fail_spec: the ``--inject`` spec of that injection (for its record)
     :param view: the recording also goes live to a Rerun viewer (:mod:`host.analysis.live_view`)
     """
-    live = None
-    if view:
-        from host.analysis.live_view import LiveView
-
-        live = LiveView()
-    folder = RunFolder(out, plan.cfg.iterations, plan.n_ticks)
-    folder.reserve()
-    folder.fail_writes_from_trial = fail_writes_from_trial
-    folder.fail_spec = fail_spec
-    recorder = Recorders(
-        RunRecorder(out / "recording.rrd", recording_id=out.name, config_summary=plan.cfg.as_dict(), folder=folder, live=live),
-        TrialArrays(out, folder),
-    )
-    if live is not None:
-        stream.write(live.open_viewer() + "\n")
+    outputs = open_outputs(plan, out, view=view, fail_writes_from_trial=fail_writes_from_trial, fail_spec=fail_spec)
+    if outputs.live_line is not None:
+        stream.write(outputs.live_line + "\n")
     print_header(stream)
     res = run_experiment(
-        plan, bench, out, mode=mode, on_trial=lambda m, role: print_row(stream, m, role), recorder=recorder, folder=folder
+        plan,
+        bench,
+        out,
+        mode=mode,
+        on_trial=lambda m, role: print_row(stream, m, role),
+        recorder=outputs.recorder,
+        folder=outputs.folder,
     )
-    finish_run_report(out, res, folder)
+    finish_run_report(out, res, outputs.folder)
     return res
 
 

@@ -7,9 +7,9 @@ Owns the configuration (:mod:`host.experiment.config`), the plan decided before 
 the bench protocol (:mod:`host.experiment.bench`), ``summary.json`` (:mod:`host.experiment.summary`), every trial's
 signals as numpy files in the run folder (:mod:`host.experiment.arrays`), fault records and the fault line
 (:mod:`host.experiment.faults`), the run folder with its space reserve (:mod:`host.experiment.outputs`), the console
-lines, experiment options and exit codes (:mod:`host.experiment.console`) and the in-process
-composition root of ``ilcrig sim`` (:mod:`host.experiment.inprocess`).
+lines, the experiment options as data and the plan's refusals as bad input
+(:mod:`host.experiment.console`).  The in-process bench is :mod:`host.sim`'s.
 
-May import: ``bus``, ``plant``, :mod:`host.planning`, :mod:`host.learning`, :mod:`host.nodes`;
-``firmware_model`` only in :mod:`host.experiment.inprocess`.  Never the rig or the analysis.
+May import: ``bus``, ``plant``, :mod:`host.planning`, :mod:`host.learning`, :mod:`host.nodes`.
+Never ``firmware_model``, the rig or the analysis.
 """

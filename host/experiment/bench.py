@@ -2,7 +2,7 @@
 plant, whatever connects them), a :class:`TrialRecorder`, the pdo transport's per-tick
 set-points and actuals, and :class:`TrialFault` (a trial that did not complete).
 
-Implementations: :class:`host.experiment.inprocess.InProcessBench` (``ilcrig sim``) and
+Implementations: :class:`host.sim.inprocess.InProcessBench` (``ilcrig sim``) and
 :class:`host.rig.rig_bench.RigBench` (``ilcrig run``); recorders :class:`host.analysis.recording.RunRecorder`
 and :class:`host.experiment.arrays.TrialArrays`.
 

@@ -62,6 +62,7 @@ from typing import Any
 
 from bus.busload import DEFAULT_BITRATE_BPS
 from bus.cyclic import FF_TRANSPORTS, cyclic_bus_fit
+from bus.errors import InputError
 from host.learning.gains import GAIN_PRESETS, GainSpec
 from host.learning.names import DEFAULT_LAW, MAX_ITERATIONS
 from host.learning.registry import check_law_name
@@ -90,8 +91,8 @@ MAX_SEED: int = 0xFFFFFFFF
 _BUILTIN_PATH_NAMES = {"1", "2", "3", "4"}
 
 
-class ConfigError(ValueError):
-    """A configuration value or key is not acceptable."""
+class ConfigError(InputError):
+    """A configuration value or key is not acceptable (bad input: exit code 2)."""
 
 
 @dataclass(frozen=True)

@@ -1,18 +1,21 @@
 """What an experiment says on the terminal, and the options that define it.
 
-This module owns the process exit codes of every ``ilcrig`` command, the experiment options of
-the command line (one definition, used by ``sim``, ``run`` and ``host`` and by the launcher that
-passes them on to the host role), the translation of parsed options into an
-:class:`~host.experiment.config.ExperimentConfig`, and the console lines of a run: the plan with
+This module owns the experiment options of the command line (:data:`EXPERIMENT_OPTIONS`, one
+definition: :mod:`host.cli.options` builds ``sim``'s, ``run``'s and ``host``'s parsers from it, the
+launcher passes them on to the host role with it), the translation of parsed options into an
+:class:`~host.experiment.config.ExperimentConfig` and of that into the plan (:func:`prepared`: what
+the plan refuses is :class:`bus.errors.InputError`), and the console lines of a run: the plan with
 its convergence check, one row of RMSE/MaxE per trial, and the closing line.  It is kept
 import-light: every role parses the command line.
 """
 
 from __future__ import annotations
 
-import argparse
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TextIO
 
+from bus.errors import InputError
 from host.learning.names import DEFAULT_LAW, GAIN_PRESET_NAMES, LAWS, MAX_ITERATIONS
 from host.planning.task_plan import PROFILES
 
@@ -22,9 +25,11 @@ if TYPE_CHECKING:
     from host.learning.metrics import TrialMetrics
 
 __all__ = [
-    "add_experiment_args",
+    "EXPERIMENT_OPTIONS",
+    "ExperimentOption",
     "experiment_config",
     "parse_law_options",
+    "prepared",
     "check_line",
     "print_plan",
     "print_header",
@@ -36,90 +41,107 @@ __all__ = [
 #: enough that the help text lists them here; a test checks that both agree)
 _DISTURBANCE_HELP = "none, repetitive, nonrepetitive, both"
 
-#: the parsed options that are not part of the experiment (the launcher does not pass them on)
-NOT_EXPERIMENT: frozenset[str] = frozenset({"help", "out", "bus", "hub"})
+
+@dataclass(frozen=True)
+class ExperimentOption:
+    """One experiment option of the command line (``ilcrig sim``, ``run``, ``host``): its flag, the
+    attribute it is parsed into, its help, the type of its value (None: the text) and whether it is
+    a switch without a value.  :mod:`host.cli.options` builds the parser from these;
+    :mod:`host.rig.role_commands` passes the given ones on to the host role."""
+
+    flag: str
+    dest: str
+    help: str
+    type: Callable[[str], Any] | None = None
+    metavar: str | None = None
+    switch: bool = False
 
 
-def add_experiment_args(p: argparse.ArgumentParser) -> None:
-    """The experiment options (``--law``, ``--iterations``, …, ``--out``) on ``p``."""
-    p.add_argument("--config", metavar="TOML", help="experiment file (keys as the options; unknown keys are errors)")
-    p.add_argument(
-        "--law",
-        help=f"learning law: {', '.join(LAWS)} (default {DEFAULT_LAW}), an installed plug-in's name "
-        "(`ilcrig laws` lists them) or module:Class",
-    )
-    p.add_argument(
-        "--law-options",
-        dest="law_options",
-        metavar="KEY=VALUE[,KEY=VALUE…]",
-        help="the law's own options ([law_options] of the TOML file), e.g. torque_limit_nm=200",
-    )
-    p.add_argument("--iterations", type=int, help=f"number of trials, 1..{MAX_ITERATIONS} (default 10)")
-    p.add_argument("--path", help="1-4 or a path TOML file (default 1)")
-    p.add_argument("--cycle", type=float, dest="cycle_s", help="single-journey time in s (default 0.25)")
-    p.add_argument("--profile", help=f"motion law: {', '.join(PROFILES)} (default ruckig)")
-    p.add_argument("--disturbance", help=f"{_DISTURBANCE_HELP} (default none)")
-    p.add_argument("--seed", type=int, help="seed of every random generator (default 0)")
-    p.add_argument("--ff0", help="initial feed-forward: model | zero (default model)")
-    p.add_argument("--gains", dest="preset", help=f"gain preset: {', '.join(GAIN_PRESET_NAMES)} (default normalized)")
-    for name, hlp in (
-        ("alpha", "α of the paper's law (feedback Kp = (α−1)Lp)"),
-        ("beta", "β of the paper's law (feedback Kd = (β−1)Ld)"),
-        ("lp", "learning P gain, N·m/rad (overrides lp_norm)"),
-        ("ld", "learning D gain, N·m·s/rad (overrides ld_norm)"),
-        ("lp-norm", "Lp·Ts²/I_joint"),
-        ("ld-norm", "Ld·Ts/I_joint"),
-        ("q-cutoff-hz", "Q-filter cut-off of q-ilc, Hz"),
-        ("pdq-cutoff-hz", "Q-filter cut-off of pd-ilc-q, Hz"),
-    ):
-        p.add_argument(f"--{name}", type=float, dest=f"g_{name.replace('-', '_')}", help=hlp)
-    p.add_argument("--lead", type=int, dest="g_lead", help="learning lead in samples (default 1)")
-    p.add_argument(
-        "--ff-transport",
-        dest="ff_transport",
-        help="feed-forward transport: table (SDO tables before each trial) | pdo (CiA 402 CSP, "
-        "SYNC + RPDO/TPDO every tick) (default table)",
-    )
-    p.add_argument(
-        "--fieldbus-bitrate",
-        type=int,
-        dest="fieldbus_bitrate",
-        help="fieldbus bit rate in bit/s for the bus-fit check (default 1000000)",
-    )
-    p.add_argument(
-        "--force-bus-fit",
-        action="store_true",
-        default=None,
-        dest="force_bus_fit",
-        help="run a pdo configuration even if its cyclic frames do not fit the fieldbus",
-    )
-    for name, what in (
-        ("inertia", "rotational inertias"),
-        ("mass", "link and platform masses"),
-        ("friction", "Coulomb and viscous friction"),
-        ("payload", "payload"),
-    ):
-        p.add_argument(
-            f"--{name}-scale",
-            type=float,
-            dest=f"p_{name}_scale",
-            metavar="FACTOR",
-            help=f"plant uncertainty: the emulated robot's {what} times FACTOR ([plant] {name}_scale, default 1)",
+def _gain_options() -> tuple[ExperimentOption, ...]:
+    out = [
+        ExperimentOption(f"--{name}", f"g_{name.replace('-', '_')}", hlp, float)
+        for name, hlp in (
+            ("alpha", "α of the paper's law (feedback Kp = (α−1)Lp)"),
+            ("beta", "β of the paper's law (feedback Kd = (β−1)Ld)"),
+            ("lp", "learning P gain, N·m/rad (overrides lp_norm)"),
+            ("ld", "learning D gain, N·m·s/rad (overrides ld_norm)"),
+            ("lp-norm", "Lp·Ts²/I_joint"),
+            ("ld-norm", "Ld·Ts/I_joint"),
+            ("q-cutoff-hz", "Q-filter cut-off of q-ilc, Hz"),
+            ("pdq-cutoff-hz", "Q-filter cut-off of pd-ilc-q, Hz"),
         )
-    p.add_argument("--out", default=None, help="run folder (default runs/<mode>-<time>)")
+    ]
+    out.append(ExperimentOption("--lead", "g_lead", "learning lead in samples (default 1)", int))
+    return tuple(out)
 
 
-def experiment_actions() -> list[argparse.Action]:
-    """The argparse actions of the experiment options, without ``--out`` (for the launcher)."""
-    parser = argparse.ArgumentParser(add_help=False)
-    add_experiment_args(parser)
-    return [a for a in parser._actions if a.option_strings and a.dest not in NOT_EXPERIMENT]
+def _plant_options() -> tuple[ExperimentOption, ...]:
+    return tuple(
+        ExperimentOption(
+            f"--{name}-scale",
+            f"p_{name}_scale",
+            f"plant uncertainty: the emulated robot's {what} times FACTOR ([plant] {name}_scale, default 1)",
+            float,
+            "FACTOR",
+        )
+        for name, what in (
+            ("inertia", "rotational inertias"),
+            ("mass", "link and platform masses"),
+            ("friction", "Coulomb and viscous friction"),
+            ("payload", "payload"),
+        )
+    )
 
 
-def experiment_config(args: argparse.Namespace) -> ExperimentConfig:
-    """The validated configuration of parsed experiment options (a ``--config`` file below them).
+#: the experiment options, in the order of ``--help`` (the run folder ``--out`` is not one of them)
+EXPERIMENT_OPTIONS: tuple[ExperimentOption, ...] = (
+    ExperimentOption("--config", "config", "experiment file (keys as the options; unknown keys are errors)", metavar="TOML"),
+    ExperimentOption(
+        "--law",
+        "law",
+        f"learning law: {', '.join(LAWS)} (default {DEFAULT_LAW}), an installed plug-in's name "
+        "(`ilcrig laws` lists them) or module:Class",
+    ),
+    ExperimentOption(
+        "--law-options",
+        "law_options",
+        "the law's own options ([law_options] of the TOML file), e.g. torque_limit_nm=200",
+        metavar="KEY=VALUE[,KEY=VALUE…]",
+    ),
+    ExperimentOption("--iterations", "iterations", f"number of trials, 1..{MAX_ITERATIONS} (default 10)", int),
+    ExperimentOption("--path", "path", "1-4 or a path TOML file (default 1)"),
+    ExperimentOption("--cycle", "cycle_s", "single-journey time in s (default 0.25)", float),
+    ExperimentOption("--profile", "profile", f"motion law: {', '.join(PROFILES)} (default ruckig)"),
+    ExperimentOption("--disturbance", "disturbance", f"{_DISTURBANCE_HELP} (default none)"),
+    ExperimentOption("--seed", "seed", "seed of every random generator (default 0)", int),
+    ExperimentOption("--ff0", "ff0", "initial feed-forward: model | zero (default model)"),
+    ExperimentOption("--gains", "preset", f"gain preset: {', '.join(GAIN_PRESET_NAMES)} (default normalized)"),
+    *_gain_options(),
+    ExperimentOption(
+        "--ff-transport",
+        "ff_transport",
+        "feed-forward transport: table (SDO tables before each trial) | pdo (CiA 402 CSP, "
+        "SYNC + RPDO/TPDO every tick) (default table)",
+    ),
+    ExperimentOption(
+        "--fieldbus-bitrate", "fieldbus_bitrate", "fieldbus bit rate in bit/s for the bus-fit check (default 1000000)", int
+    ),
+    ExperimentOption(
+        "--force-bus-fit",
+        "force_bus_fit",
+        "run a pdo configuration even if its cyclic frames do not fit the fieldbus",
+        switch=True,
+    ),
+    *_plant_options(),
+)
 
-    :raises ValueError: one-line message naming the option or file.
+
+def experiment_config(args: Any) -> ExperimentConfig:
+    """The validated configuration of parsed experiment options (``args``: their values as
+    attributes named as :attr:`ExperimentOption.dest`, e.g. an ``argparse.Namespace``; a
+    ``--config`` file below them).
+
+    :raises InputError: one-line message naming the option or file.
     """
     from host.experiment.config import build_config  # heavy (plant, learning): only when needed
 
@@ -155,11 +177,28 @@ def experiment_config(args: argparse.Namespace) -> ExperimentConfig:
     return build_config(args.config, overrides)
 
 
+def prepared(cfg: ExperimentConfig) -> Plan:
+    """The plan of ``cfg`` (:func:`host.experiment.plan.prepare`) for a command: what the plan
+    refuses before anything moves — an infeasible task, a point out of reach, a trial too long for
+    the drives' tables or the memory — is bad input, :class:`InputError` with its first line.
+
+    :raises InputError: the experiment cannot be run as given
+    """
+    from host.experiment.plan import prepare
+
+    try:
+        return prepare(cfg)
+    except (ValueError, FileNotFoundError) as exc:  # the planning's refusals (plant, trajectory, plan)
+        if isinstance(exc, InputError):
+            raise
+        raise InputError(str(exc).splitlines()[0] if str(exc) else type(exc).__name__) from exc
+
+
 def parse_law_options(text: str) -> dict[str, Any]:
     """``--law-options KEY=VALUE,KEY=VALUE``: values as in TOML (numbers, true/false, strings with or
     without quotes).
 
-    :raises ValueError: one line naming the option.
+    :raises InputError: one line naming the option.
     """
     import tomllib
 
@@ -170,7 +209,7 @@ def parse_law_options(text: str) -> dict[str, Any]:
         key, eq, raw = item.partition("=")
         key, raw = key.strip(), raw.strip()
         if not eq or not key or not raw:
-            raise ValueError(f"--law-options {text!r}: expected KEY=VALUE[,KEY=VALUE…], got {item!r}")
+            raise InputError(f"--law-options {text!r}: expected KEY=VALUE[,KEY=VALUE…], got {item!r}")
         try:
             out[key] = tomllib.loads(f"v = {raw}")["v"]
         except tomllib.TOMLDecodeError:

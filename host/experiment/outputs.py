@@ -35,7 +35,7 @@ import shutil
 import time
 from pathlib import Path
 
-from bus.errors import IlcrigError
+from bus.errors import IlcrigError, InputError
 
 logger = logging.getLogger(__name__)
 
@@ -81,7 +81,7 @@ LEFTOVER_GLOBS = (
 _DISK_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
 
 
-class OutFolderError(ValueError):
+class OutFolderError(InputError):
     """``--out`` cannot be used (the CLI's exit code 2, nothing started)."""
 
 

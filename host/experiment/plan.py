@@ -34,6 +34,7 @@ import numpy as np
 from bus import fixedpoint as fp
 from bus import units
 from bus.cyclic import cyclic_bus_fit
+from bus.errors import InputError
 from bus.objects import TABLE_CAPACITY
 from host.experiment.config import ExperimentConfig
 from host.experiment.summary import jsonable
@@ -112,7 +113,7 @@ if set(SAMPLE_BYTES) != set(LAWS):  # pragma: no cover - a programming error, ca
     raise ImportError(f"SAMPLE_BYTES {sorted(SAMPLE_BYTES)} differs from host.learning.names.LAWS {sorted(LAWS)}")
 
 
-class PlanError(ValueError):
+class PlanError(InputError):
     """The experiment cannot be prepared (one line naming the option and the allowed range)."""
 
 

@@ -11,7 +11,7 @@ May import: ``bus``, ``numpy``, :mod:`host.experiment`, :mod:`host.learning`, :m
 The host side is the same for every mode: it talks to the four drives only through
 :class:`host.nodes.drive_client.DriveClient` (object-dictionary reads and writes) and asks a
 :class:`Bench` to run a trial.  ``ilcrig sim`` uses the in-process bench of
-:mod:`host.experiment.inprocess`; ``ilcrig run`` a bench whose drives and plant are other processes on CAN.
+:mod:`host.sim.inprocess`; ``ilcrig run`` a bench whose drives and plant are other processes on CAN.
 
 Feed-forward transport (``cfg.ff_transport``): ``table`` downloads the learned feed-forward by SDO
 before every trial (the drives play it back in their manufacturer mode −1); ``pdo`` puts the drives

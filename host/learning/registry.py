@@ -41,6 +41,7 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "ENTRY_POINT_GROUP",
     "LawNameError",
+    "law_descriptions",
     "check_law_name",
     "discover_entry_points",
     "law_class",
@@ -231,3 +232,16 @@ def law_source(name: str) -> dict[str, str]:
 def _check_class(cls: Any, what: str) -> None:
     if not isinstance(cls, type) or not callable(getattr(cls, "update", None)):
         raise LawNameError(f"law {what}: not a learning-law class (a class with update(trial), docs/api.md)")
+
+
+def law_descriptions() -> dict[str, str]:
+    """Every law this process can run by name → its one-line description (``ilcrig laws``); a
+    plug-in that cannot be loaded says so in its description."""
+    out = {}
+    for name in law_names():
+        try:
+            cls = law_class(name)
+            out[name] = str(getattr(cls, "description", "") or (cls.__doc__ or "").strip().splitlines()[0])
+        except (ValueError, IndexError) as exc:
+            out[name] = f"(cannot be loaded: {exc})"
+    return out

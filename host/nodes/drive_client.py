@@ -3,7 +3,7 @@
 Owns the host's view of the drive's object dictionary.  It only calls
 ``access.read_object(index, sub) -> bytes`` and ``access.write_object(index, sub, data)``, so the same
 code drives an in-process firmware (the ``Drive`` object itself, wired by
-:mod:`host.experiment.inprocess`) and a drive over CAN (:class:`host.nodes.sdo_access.SdoAccess`).  Imports only
+:mod:`host.sim.inprocess`) and a drive over CAN (:class:`host.nodes.sdo_access.SdoAccess`).  Imports only
 :mod:`bus` (object indices, fixed-point converters, units).
 """
 

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from bus.errors import IlcrigError
+from bus.errors import InputError
 
 logger = logging.getLogger(__name__)
 
@@ -56,7 +56,7 @@ _SAME_POINT_M = 1e-6
 PATH_FILE_KEYS: tuple[str, ...] = ("name", "pick", "place", "lift", "rotation_deg")
 
 
-class PathError(IlcrigError, ValueError):
+class PathError(InputError):
     """A path specification, path number or path file is invalid (one-line message)."""
 
 

@@ -33,6 +33,7 @@ import can
 import numpy as np
 
 from bus.busload import frame_bits_worst_case
+from bus.errors import InputError
 from bus.objects import DRIVE_NODE_IDS, Obj
 from bus.plant_objects import DEFAULT_PLANT_NODE_ID, PlantObj, PlantTrialSub
 from bus.traffic import DEFAULT_BITRATE, IoTickCounter, SdoKey, SdoTransferCounter, TickBudget, bits_to_s
@@ -115,7 +116,7 @@ class BusTimeAccounting:
     ) -> None:
         for name, rate in (("io_bitrate", io_bitrate), ("fieldbus_bitrate", fieldbus_bitrate)):
             if int(rate) != rate or rate <= 0:
-                raise ValueError(f"{name} must be a positive integer in bit/s, got {rate!r}")
+                raise InputError(f"{name} must be a positive integer in bit/s, got {rate!r}")
         self.io_bitrate = int(io_bitrate)
         self.fieldbus_bitrate = int(fieldbus_bitrate)
         self.ts_s = ts_s

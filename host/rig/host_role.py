@@ -1,6 +1,7 @@
 """``ilcrig host``: the host role of the rig (also what ``ilcrig run`` starts).
 
-This module owns :func:`run_host_role`, the composition root of the host process: it prepares
+This module owns :class:`HostOptions` (the role's typed options) and :func:`run_host_role`, the
+composition root of the host process: it prepares
 the experiment, opens the fieldbus and builds the ``canopen.Network`` on it, hands the network to
 a :class:`host.rig.rig_bench.RigBench`, runs the session (:func:`host.analysis.session.run_session`,
 summary mode ``rig``) and prints the run's closing lines (timing, bus time, frame counts, the
@@ -9,10 +10,10 @@ trace digest). It disconnects the network at the end, after the bench is closed.
 
 from __future__ import annotations
 
-import json
 import logging
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -25,9 +26,8 @@ from bus.traffic import DEFAULT_BITRATE
 from bus.transports.config import FIELDBUS, IO, TransportConfig
 from host.analysis.session import report_fault, run_session
 from host.experiment.config import ExperimentConfig
-from host.experiment.console import print_plan
+from host.experiment.console import prepared, print_plan
 from host.experiment.loop_state import ExperimentResult
-from host.experiment.plan import prepare
 from host.experiment.signal_shield import interrupt_on_signals
 from host.rig.bus_accounting import bus_time_lines
 from host.rig.realtime import timing_line
@@ -35,16 +35,45 @@ from host.rig.rig_bench import RigBench
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["run_host_role"]
+__all__ = ["HostOptions", "run_host_role"]
 
 
-def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) -> int:
-    """``ilcrig host``: run the experiment over the bus; returns the exit code."""
+@dataclass(frozen=True)
+class HostOptions:
+    """The host role's options beyond the experiment and the transport (``ilcrig host``)."""
+
+    #: the run folder (None: ``runs/rig-<time>``)
+    out: Path | None = None
+    #: seconds to wait for the nodes to answer
+    wait_s: float = 120.0
+    #: seconds to pause between trials
+    pause_s: float = 0.0
+    #: > 0: a node lost between trials is waited for (up to ``wait_s``) and set up again
+    recover_s: float = 0.0
+    #: the plant paces its ticks to the wall clock (``--realtime``)
+    realtime: bool = False
+    #: what the launcher's ``--realtime`` got (its scheduling record), None when started alone
+    rt_scheduling: dict[str, Any] | None = None
+    #: the io channel's bit rate for the bus-time figures, bit/s (None: the default)
+    io_bitrate: int | None = None
+    #: the hub carries both channels in bus time
+    bus_time: bool = False
+    #: stream the recording live to a Rerun viewer
+    view: bool = False
+    #: the launcher's ``--inject diskfull@…`` spec text
+    inject_disk_full: str | None = None
+
+
+def run_host_role(opts: HostOptions, cfg: ExperimentConfig, transport: TransportConfig) -> int:
+    """``ilcrig host``: run the experiment over the bus; returns the exit code.
+
+    :raises InputError: a bad run folder or an infeasible experiment (before the bus is opened)
+    """
     from host.experiment.outputs import check_out_dir
 
-    out = Path(args.out) if args.out is not None else Path("runs") / time.strftime("rig-%Y%m%d-%H%M%S")
-    check_out_dir(args.out if args.out is not None else out, iterations=cfg.iterations, n_ticks=cfg.n_ticks, create=False)
-    plan = prepare(cfg)
+    out = opts.out if opts.out is not None else Path("runs") / time.strftime("rig-%Y%m%d-%H%M%S")
+    check_out_dir(opts.out if opts.out is not None else out, iterations=cfg.iterations, n_ticks=cfg.n_ticks, create=False)
+    plan = prepared(cfg)
     check_out_dir(out, iterations=cfg.iterations, n_ticks=plan.n_ticks)
     print_plan(sys.stdout, "host", plan, extra=f", transport {transport.name}")
     network = None
@@ -55,20 +84,20 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
             network,
             transport,
             out_dir=out,
-            wait_s=args.wait,
-            pause_s=args.pause,
-            recover_s=getattr(args, "recover", 0.0) or 0.0,
-            realtime=bool(args.realtime),
-            rt_scheduling=json.loads(args.rt_scheduling) if getattr(args, "rt_scheduling", None) else None,
-            io_bitrate=args.io_bitrate or DEFAULT_BITRATE,
+            wait_s=opts.wait_s,
+            pause_s=opts.pause_s,
+            recover_s=opts.recover_s,
+            realtime=opts.realtime,
+            rt_scheduling=opts.rt_scheduling,
+            io_bitrate=opts.io_bitrate or DEFAULT_BITRATE,
             fieldbus_bitrate=cfg.fieldbus_bitrate,
-            bus_time_hub=bool(getattr(args, "bus_time", False)),
+            bus_time_hub=opts.bus_time,
         )
     except (OSError, can.CanError, IlcrigError) as exc:
         _disconnect(network)
         sys.stderr.write(f"ilcrig: error: cannot open the bus ({transport.name}): {exc}\n")
         return EXIT_FAULT
-    fail_from, spec = _disk_full_injection(getattr(args, "inject_disk_full", None), cfg.iterations, bench)
+    fail_from, spec = _disk_full_injection(opts.inject_disk_full, cfg.iterations, bench)
     try:
         with interrupt_on_signals():
             res = run_session(
@@ -79,7 +108,7 @@ def run_host_role(args: Any, cfg: ExperimentConfig, transport: TransportConfig) 
                 stream=sys.stdout,
                 fail_writes_from_trial=fail_from,
                 fail_spec=spec,
-                view=bool(getattr(args, "view", False)),
+                view=opts.view,
             )
     finally:
         bench.close()  # run_session closed it already, unless it was interrupted before

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
+from bus.errors import InputError
 from bus.exit_codes import EXIT_CHILD_FAILED
 from bus.lockstep_process import mechanisms_left_out
 from bus.timer_slack import FINE_TIMER_SLACK_NS
@@ -79,7 +80,7 @@ def make_run_folder(out: str | None, kind: str) -> tuple[Path, Path]:
     try:
         log_dir.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        raise ValueError(f"--out {out_dir}: cannot create the run folder: {err.strerror or err}") from err
+        raise InputError(f"--out {out_dir}: cannot create the run folder: {err.strerror or err}") from err
     return out_dir, log_dir
 
 

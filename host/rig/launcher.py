@@ -55,6 +55,7 @@ import signal
 from dataclasses import dataclass, field
 from typing import Any
 
+from bus.errors import InputError
 from bus.objects import DRIVE_NODE_IDS
 from bus.transports.fault_inject import FRAME_ACTIONS, FaultSpec, check_specs, parse_specs
 from bus.units import timeout_scale
@@ -94,11 +95,11 @@ def preflight(options: RunOptions) -> list[FaultSpec]:
         check_out_dir(options.out, iterations=cfg.iterations, n_ticks=cfg.n_ticks, create=False)
     check_specs(specs, iterations=cfg.iterations, n_ticks=cfg.n_ticks, hub=options.bus in ("hub", "auto"))
     if options.bus_time and options.bus not in ("hub", "auto"):
-        raise ValueError(f"--bus-time: bus time is kept by the hub; the transport {options.bus} has none: use --bus hub")
+        raise InputError(f"--bus-time: bus time is kept by the hub; the transport {options.bus} has none: use --bus hub")
     if options.rt_priority is not None and not options.realtime:
-        raise ValueError(f"--rt-priority {options.rt_priority}: the priority of a real-time run; add --realtime")
+        raise InputError(f"--rt-priority {options.rt_priority}: the priority of a real-time run; add --realtime")
     if options.no_idle_poll and not options.realtime:
-        raise ValueError("--no-idle-poll: the CPUs are kept awake only in a real-time run; add --realtime")
+        raise InputError("--no-idle-poll: the CPUs are kept awake only in a real-time run; add --realtime")
     check_transport(options)
     from host.experiment.plan import prepare
 

@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from bus.atomic import atomic_write
+from bus.errors import InputError
 from bus.exit_codes import EXIT_CHILD_FAILED, EXIT_FAULT
 from bus.objects import DRIVE_EDS_PATH, DRIVE_NODE_IDS
 from bus.plant_objects import DEFAULT_PLANT_NODE_ID, PLANT_EDS_PATH
@@ -302,12 +303,12 @@ def launch_robot(options: RobotOptions) -> int:
     :raises ValueError: bad input (the CLI's one line, exit code 2), before anything starts
     """
     if options.rt_priority is not None and not options.realtime:
-        raise ValueError(f"--rt-priority {options.rt_priority}: the priority of a real-time robot; add --realtime")
+        raise InputError(f"--rt-priority {options.rt_priority}: the priority of a real-time robot; add --realtime")
     if options.no_idle_poll and not options.realtime:
-        raise ValueError("--no-idle-poll: the CPUs are kept awake only in real time; add --realtime")
+        raise InputError("--no-idle-poll: the CPUs are kept awake only in real time; add --realtime")
     for option, value in (("--out", options.out), ("--param-dir", options.param_dir)):
         if value and Path(value).exists() and not Path(value).is_dir():
-            raise ValueError(f"{option} {value}: not a folder")
+            raise InputError(f"{option} {value}: not a folder")
     check_transport(options)
     if not options.debug:
         # a monitor whose bus ends with a process of the robot is part of that fault, which the

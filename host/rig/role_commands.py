@@ -26,7 +26,7 @@ from collections.abc import Sequence
 from bus.busload import DEFAULT_BITRATE_BPS
 from bus.transports.config import FIELDBUS
 from bus.transports.config import IO as IO_CHANNEL
-from host.experiment.console import experiment_actions
+from host.experiment.console import EXPERIMENT_OPTIONS
 
 __all__ = [
     "PYTHON_ROLE_FLAGS",
@@ -72,16 +72,14 @@ def host_role_args(args: argparse.Namespace) -> list[str]:
     are added by the launcher. Floats keep their exact value (``repr`` round-trips).
     """
     argv: list[str] = []
-    for action in experiment_actions():
-        value = getattr(args, action.dest, None)
+    for option in EXPERIMENT_OPTIONS:
+        value = getattr(args, option.dest, None)
         if value is None or value is False:
             continue
-        flag = next((o for o in action.option_strings if o.startswith("--")), action.option_strings[0])
-        if action.nargs == 0:  # store_true / store_const
-            if value is True or value == action.const:
-                argv.append(flag)
+        if option.switch:
+            argv.append(option.flag)
             continue
-        argv += [flag, repr(value) if isinstance(value, float) else str(value)]
+        argv += [option.flag, repr(value) if isinstance(value, float) else str(value)]
     return argv
 
 

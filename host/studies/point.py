@@ -2,14 +2,14 @@
 
 This module owns :func:`run_point` — the function a worker runs: the experiment in-process with the
 composition of ``ilcrig sim`` and of ``ilcrig.Experiment`` (:func:`plan_of`, then
-:class:`host.experiment.inprocess.InProcessBench` and :func:`host.experiment.trials.run_experiment`,
+:class:`host.sim.inprocess.InProcessBench` and :func:`host.experiment.trial_loop.run_experiment`,
 so its digest is the one of ``ilcrig sim`` with the same options), returning its summary, optionally
 its errors, and the warnings it logged; it never raises for the experiment's own failures (an
 infeasible task or a bad law is the point's ``error``) — and :func:`commit`, :func:`is_finished`
 and :func:`load_point`: the point's folder in the sweep::
 
     <out>/runs/<point id>/point.json     the point: options, labels, worker, wall time, warnings
-    <out>/runs/<point id>/summary.json   the run's summary (host.experiment.trials schema)
+    <out>/runs/<point id>/summary.json   the run's summary (host.experiment.summary schema)
     <out>/runs/<point id>/errors.npy     (K, N, 4) float32 joint errors q_d − q, rad (when asked for)
     <out>/runs/<point id>/error.txt      instead of the summary: why the point could not run
 
@@ -89,8 +89,8 @@ def run_point(point_id: str, options: dict[str, Any], save_errors: bool) -> dict
 
     ``errors`` is the (K, N, 4) float32 error array when ``save_errors``, else None; ``error`` is
     None, or one line saying why the experiment could not run (then ``summary`` is None)."""
-    from host.experiment.inprocess import InProcessBench
-    from host.experiment.trials import run_experiment
+    from host.experiment.trial_loop import run_experiment
+    from host.sim.inprocess import InProcessBench
 
     t0 = time.perf_counter()
     collect = _Collect()

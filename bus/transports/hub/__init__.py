@@ -15,7 +15,8 @@ members over a Unix socket or loopback TCP, and the client that joins one of the
 * :mod:`~bus.transports.hub.core`: the adapter to the C data plane ``_hubcore`` (``_hubcore.c``, built by setup.py)
 * :mod:`~bus.transports.hub.stats`: per-bus counters and the stats query
 * :mod:`~bus.transports.hub.process`: :func:`start_hub`, the hub as a child process (:class:`HubHandle`)
-* :mod:`~bus.transports.hub.cli`: the command line (``ilcrig hub``, ``python -m bus.transports.hub.cli``)
+* :mod:`~bus.transports.hub.serve`: :func:`run_hub` with :class:`HubOptions`, the hub process (its
+  command line is ``ilcrig hub``, :mod:`host.cli.hub`)
 
 May import: the top-level modules of ``bus``, :mod:`bus.transports.fault_inject` (the ``--inject``
 frame faults), python-can and numpy.  Never ``bus.cia301``, ``firmware_model``, ``host`` or

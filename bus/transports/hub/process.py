@@ -142,7 +142,7 @@ def start_hub(
     for text in listen_list:
         parse_address(text)  # fail fast on a bad or non-loopback address
     # -P: the working folder is not on the hub's import path (a bus.py there must not shadow the package)
-    cmd = [sys.executable, "-P", "-m", "bus.transports.hub.cli", "--ready", "--exit-on-stdin-eof", "--log-level", log_level]
+    cmd = [sys.executable, "-P", "-m", "host.cli", "hub", "--ready", "--exit-on-stdin-eof", "--log-level", log_level]
     for text in listen_list:
         cmd += ["--listen", text]
     if inject:

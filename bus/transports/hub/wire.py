@@ -41,7 +41,7 @@ import struct
 
 import can
 
-from bus.errors import IlcrigError
+from bus.errors import IlcrigError, InputError
 
 MAGIC_HELLO = b"ILCH"
 MAGIC_OK = b"ILOK"
@@ -86,7 +86,7 @@ class HubError(IlcrigError):
     """Root of hub errors."""
 
 
-class HubAddressError(HubError, ValueError):
+class HubAddressError(HubError, InputError):
     """A hub address or channel string is malformed."""
 
 

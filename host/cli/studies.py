@@ -8,9 +8,9 @@ table and the report, and print one closing line.  Bad input is a :class:`bus.er
 (one line, exit code 2) raised before anything starts; an interrupted sweep returns 130
 (``EXIT_INTERRUPTED``) with every finished point kept.
 
-May import what :mod:`host.studies` may import and :mod:`host.studies.paper` (the reproduce
-command); the only module of :mod:`host.studies` that imports the paper study.  The studies are
-imported when a handler runs, so building the command line's parser imports none of them.
+May import: what ``host.cli`` may (:mod:`host.studies` and, for ``reproduce``,
+:mod:`host.studies.paper`).  The studies are imported when a handler runs, so building the command
+line's parser imports none of them.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
-"""Composition root of ``ilcrig sim``: the only host module (with the CLI's role dispatch) that
-imports the drive firmware.  It wires four firmware drives and the true plant in one process,
-no IPC.
+"""The in-process bench of ``ilcrig sim`` and the API: with :mod:`host.sim` (its composition
+root) and the CLI's drive role, the only host code that imports the drive firmware.  It wires four
+firmware drives and the true plant in one process, no IPC.
 
 In-process lockstep is exactly the rig's tick protocol without frames: per tick the plant's
 encoder counts go to each drive's ``io_tick`` and the returned integer torques drive the

@@ -1,0 +1,122 @@
+"""The ``ilcrig`` command line.
+
+Subcommands:
+
+* ``sim``   — a whole experiment in one process (no bus), run by :mod:`host.sim` (not the public API);
+* ``laws``  — the learning laws this installation knows (built-in and plug-ins);
+* ``sweep`` — a grid and/or Monte Carlo draws of experiments on Dask distributed, ``tune`` — gains
+  tuned with Optuna on the same engine, ``reproduce`` — the paper's experiments as a predefined
+  sweep (:mod:`ilcrig.sweep`);
+* ``run``   — the distributed rig: launches the bus hub (if the transport needs one), the plant,
+  four drives and the host as separate processes, and cleans every one of them up;
+* ``robot`` — the drives and the plant as a robot on the bus, without the ILC host, for any CANopen
+  master (:mod:`host.rig.robot_launcher`, docs/robot.md);
+* ``view`` — a run's ``recording.rrd`` in the Rerun viewer (:func:`host.analysis.recording.view_run`);
+* ``drive``, ``plant``, ``host``, ``hub`` — one role each, to run the parts in separate terminals
+  (or machines, over a transport that spans them).
+
+This package owns the command line: :func:`build_parser` (one module per command, each with its
+``add_parser(sub)``: :mod:`host.cli.sim`, :mod:`host.cli.run`, :mod:`host.cli.robot`,
+:mod:`host.cli.host`, :mod:`host.cli.drive`, :mod:`host.cli.plant`, :mod:`host.cli.hub`,
+:mod:`host.cli.laws`, :mod:`host.cli.view`, :mod:`host.cli.studies`; the option groups several of
+them share, defined once, in :mod:`host.cli.options`), the one-line error parser and :func:`main`
+with the error handling of every command; ``python -m host.cli`` is :mod:`host.cli.__main__`.
+Below the command line the commands take typed options (frozen dataclasses), not the parsed
+``argparse.Namespace`` (``run`` and ``robot`` still hand theirs to the launchers).
+
+Errors: bad input (:class:`bus.errors.InputError`, and argparse's own errors) is one line
+``ilcrig: error: …`` with exit code 2 before anything moves; a bus a role cannot open is one line
+and exit code 3; an unexpected exception (a bug) is one line ``ilcrig: internal error: …`` with
+exit code 1 and its traceback in the log (printed with ``--debug``).  The exit codes are the same
+with and without ``--debug`` (:mod:`bus.exit_codes`).  A fault during a trial ends the run with
+exit code 3 after the summary (with every completed trial) has been written.
+
+May import: ``bus``, ``plant`` (the plant role), ``firmware_model`` (the drive role hands its whole
+process to the firmware: :mod:`host.cli.drive`), every ``host`` subpackage; never the public API
+``ilcrig``.  Kept import-light: every role parses the
+command line, so commands import their work when they run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import traceback
+from collections.abc import Sequence
+from typing import NoReturn
+
+from bus.errors import InputError
+from bus.exit_codes import EXIT_ERROR, EXIT_FAULT, EXIT_INTERRUPTED, EXIT_USAGE
+from host.cli import drive, host, hub, laws, plant, robot, run, sim, studies, view
+from host.cli.options import BusUnavailable
+
+__all__ = ["build_parser", "main"]
+
+logger = logging.getLogger(__name__)
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (no usage dump) and exit code 2."""
+
+    def error(self, message: str) -> NoReturn:
+        sys.stderr.write(f"ilcrig: error: {message}\n")
+        raise SystemExit(EXIT_USAGE)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``ilcrig`` parser: ``--debug`` and one subcommand per command module."""
+    p = _Parser(prog="ilcrig", description="ILC on an emulated 4-DOF parallel robot with CAN servo drives")
+    p.add_argument("--debug", action="store_true", help="show tracebacks and debug logging (exit codes unchanged)")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sim.add_parser(sub)
+    run.add_parser(sub)
+    robot.add_parser(sub)
+    host.add_parser(sub)
+    drive.add_parser(sub)
+    plant.add_parser(sub)
+    laws.add_parser(sub)
+    view.add_parser(sub)
+    studies.add_reproduce_parser(sub)
+    studies.add_sweep_parser(sub)
+    studies.add_tune_parser(sub)
+    hub.add_parser(sub)
+    return p
+
+
+def _first_line(exc: BaseException) -> str:
+    return str(exc).splitlines()[0] if str(exc) else ""
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``ilcrig [--debug] COMMAND …``; returns the exit code (:mod:`bus.exit_codes`)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.debug else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return EXIT_USAGE
+    try:
+        return int(args.func(args))
+    except KeyboardInterrupt:
+        sys.stderr.write("ilcrig: interrupted\n")
+        return EXIT_INTERRUPTED
+    except BusUnavailable as exc:
+        sys.stderr.write(f"ilcrig: error: {exc}\n")
+        return EXIT_FAULT
+    except InputError as exc:
+        logger.debug("bad input", exc_info=True)
+        sys.stderr.write(f"ilcrig: error: {_first_line(exc) or type(exc).__name__}\n")
+        return EXIT_USAGE
+    except Exception as exc:  # noqa: BLE001 - a bug: one line, the traceback in the log
+        if args.debug:
+            traceback.print_exc(file=sys.stderr)
+        else:
+            logger.debug("internal error", exc_info=True)
+        hint = "" if args.debug else " (run with --debug for details)"
+        sys.stderr.write(f"ilcrig: internal error: {type(exc).__name__}: {_first_line(exc)}{hint}\n")
+        return EXIT_ERROR
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,43 @@
+"""``ilcrig run``: an experiment on the distributed rig (hub, plant, four drives, host as processes).
+
+This module owns the ``run`` subcommand's options (experiment, bus, rig, ``--inject``) and
+:func:`cmd_run`, which hands the parsed options to the launcher
+(:func:`host.rig.launcher.launch_rig`: preflight, start, watch, clean up).
+
+May import: what ``host.cli`` may.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from host.cli.options import add_bus_args, add_experiment_args, add_rig_args
+
+__all__ = ["add_parser", "cmd_run"]
+
+
+def add_parser(sub: Any) -> None:
+    """``run`` on the subcommands ``sub``."""
+    rp = sub.add_parser("run", help="run an experiment on the distributed rig (6 processes over CAN)")
+    add_experiment_args(rp)
+    add_bus_args(rp)
+    add_rig_args(rp)
+    rp.add_argument(
+        "--inject",
+        action="append",
+        metavar="SPEC",
+        help="inject a fault (repeatable): kill|stall:ROLE@WHEN[,for=S], "
+        "drop|corrupt|duplicate|delay:io|fieldbus@WHEN[,rate=P,seed=K,count=C,id=COBID,ms=D], "
+        "emcy:NODE@WHEN[,code=C], diskfull@WHEN; WHEN = TRIAL:TICK, TRIAL:end, before or after "
+        "(docs/faults.md: Fault injection)",
+    )
+    rp.set_defaults(func=cmd_run)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """``ilcrig run``: the launcher validates everything (preflight) before anything starts."""
+    from host.rig.launcher import launch_rig
+    from host.rig.options import RunOptions
+
+    return launch_rig(RunOptions.from_args(args))
