@@ -60,7 +60,7 @@ ALLOWED: dict[str, set[str]] = {
     "host.analysis": {"bus", "plant", "host.planning", "host.learning", "host.experiment"},
     "host.rig": {"bus", "bus.cia301", "bus.transports", "bus.transports.hub", "host.nodes", "host.experiment", "host.analysis"},
     # the studies of many experiments (the generic engine) and the paper's study on it
-    "host.studies": {"bus", "plant", "host.planning", "host.learning", "host.experiment", "host.analysis"},
+    "host.studies": {"bus", "plant", "host.planning", "host.learning", "host.experiment", "host.analysis", "host.sim"},
     "host.studies.paper": {"bus", "plant", "host.planning", "host.learning", "host.experiment", "host.analysis", "host.studies"},
     # composition root of the in-process experiment (ilcrig sim, the API): the firmware in this process
     "host.sim": {
