@@ -36,5 +36,5 @@ def cmd_sim(args: argparse.Namespace) -> int:
     from host.sim.session import SimOptions, run_sim
 
     out = Path(args.out) if args.out is not None else Path("runs") / time.strftime("sim-%Y%m%d-%H%M%S")
-    check_out_dir(args.out if args.out is not None else out, create=False)  # fast: before the configuration
+    check_out_dir(args.out if args.out is not None else out, create=False, new_run=True)  # fast: before the configuration
     return run_sim(SimOptions(experiment_config(args), out, view=bool(args.view)), sys.stdout)

@@ -45,6 +45,7 @@ __all__ = [
     "OutFolderError",
     "RunFolder",
     "check_out_dir",
+    "RUN_FOLDER_MARKERS",
     "is_disk_full",
     "output_error",
     "remove_leftovers",
@@ -116,10 +117,23 @@ def reserve_bytes(iterations: int, n_ticks: int = 0) -> int:
     return RESERVE_BASE_BYTES + RESERVE_PER_TRIAL_BYTES * max(int(iterations), 0) + trial
 
 
+#: what a run leaves in its folder: a folder holding one of them holds a run
+RUN_FOLDER_MARKERS: tuple[str, ...] = ("summary.json", "trials", "recording.rrd", "report.md", "logs", "fieldbus.log", "io.log")
+
+
 def check_out_dir(
-    path: str | Path, *, option: str = "--out", iterations: int | None = None, n_ticks: int = 0, create: bool = True
+    path: str | Path,
+    *,
+    option: str = "--out",
+    iterations: int | None = None,
+    n_ticks: int = 0,
+    create: bool = True,
+    new_run: bool = False,
 ) -> Path:
     """Refuse an unusable run folder before anything starts; create it if ``create``.
+
+    With ``new_run`` (a run about to start in it, as the user named it) a folder that already holds
+    a run (:data:`RUN_FOLDER_MARKERS`) is refused: one run, one folder, never two runs mixed.
 
     Without ``create`` nothing is made: a missing folder is checked through its nearest existing
     parent (it must be a writable folder).  The free space is checked against the reserve of
@@ -131,7 +145,13 @@ def check_out_dir(
         raise OutFolderError(f"{option} {str(path)!r}: an empty path (give the run folder)")
     p = Path(path)
     if p.exists() and not p.is_dir():
-        raise OutFolderError(f"{option} {p}: exists and is not a folder (give a new or an existing folder)")
+        raise OutFolderError(f"{option} {p}: exists and is not a folder (give a new or an empty folder)")
+    if new_run and p.is_dir():
+        held = [m for m in RUN_FOLDER_MARKERS if (p / m).exists()]
+        if held:
+            raise OutFolderError(
+                f"{option} {p}: holds another run ({', '.join(held)}); give a new or an empty folder, or remove that run"
+            )
     if not create and not p.exists():
         parent = p.absolute().parent
         while not parent.exists():

@@ -87,10 +87,12 @@ def preflight(options: RunOptions) -> list[FaultSpec]:
 
     specs = parse_specs(options.inject)
     if options.out is not None:
-        check_out_dir(options.out, create=False)  # fast: before the configuration and the preparation
+        check_out_dir(options.out, create=False, new_run=True)  # fast: before the configuration and the preparation
     from host.experiment.console import experiment_config
+    from host.experiment.plan import check_config_limits
 
     cfg = experiment_config(options.namespace())
+    check_config_limits(cfg, rig=True)  # the trial length and the memory before the disk space
     if options.out is not None:
         check_out_dir(options.out, iterations=cfg.iterations, n_ticks=cfg.n_ticks, create=False)
     check_specs(specs, iterations=cfg.iterations, n_ticks=cfg.n_ticks, hub=options.bus in ("hub", "auto"))

@@ -62,7 +62,7 @@ class SimSession:
             raise InputError("view: the live view streams the run's recording; give a run folder (out)")
         outputs: RunOutputs | None = None
         if self.out is not None:
-            check_out_dir(self.out, iterations=plan.cfg.iterations, n_ticks=plan.n_ticks)
+            check_out_dir(self.out, iterations=plan.cfg.iterations, n_ticks=plan.n_ticks, new_run=True)
         if stream is not None:
             print_plan(stream, "sim", plan)
         if self.out is not None:
@@ -162,8 +162,10 @@ def run_sim(opts: SimOptions, stream: TextIO) -> int:
     :raises InputError: an infeasible experiment or a bad run folder, before the folder is made
     """
     from host.experiment.console import prepared
+    from host.experiment.plan import check_config_limits
 
     cfg = opts.config
+    check_config_limits(cfg)  # the trial length and the memory first: an out-of-range --cycle is said as such
     check_out_dir(opts.out, iterations=cfg.iterations, n_ticks=cfg.n_ticks, create=False)
     plan = prepared(cfg)  # refused with one line before the run folder is made
     session = SimSession(plan, opts.out, stream=stream, view=opts.view)

@@ -1,0 +1,60 @@
+"""One run, one folder: a run folder that holds another run is refused before anything starts
+(``ilcrig sim``, ``ilcrig run``, the API), with one line and exit code 2, and nothing in it changes."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from cli_util import run_cli
+
+import ilcrig
+from host.experiment.outputs import RUN_FOLDER_MARKERS
+
+SHORT = ["--iterations", "2", "--cycle", "0.15"]
+
+
+def _files(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("command", ["sim", "run"])
+def test_a_folder_holding_a_run_is_refused_and_left_as_it_was(
+    command: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "x"
+    code, _, err = run_cli(capsys, "sim", *SHORT, "--out", str(out))
+    assert code == 0, err
+    before = _files(out)
+    assert json.loads(before["summary.json"])["completed"] is True
+    code, _, err = run_cli(capsys, command, "--iterations", "1", "--cycle", "0.15", "--out", str(out))
+    assert code == 2
+    held = "summary.json, trials, recording.rrd, report.md"
+    assert err.splitlines() == [
+        f"ilcrig: error: --out {out}: holds another run ({held}); give a new or an empty folder, or remove that run"
+    ]
+    assert _files(out) == before  # nothing of the second run, nothing of the first changed
+
+
+def test_an_empty_or_new_folder_is_taken(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "empty").mkdir()
+    for out in (tmp_path / "empty", tmp_path / "new"):
+        code, _, err = run_cli(capsys, "sim", "--iterations", "1", "--cycle", "0.15", "--out", str(out))
+        assert code == 0, err
+
+
+def test_the_api_refuses_a_folder_holding_a_run_too(tmp_path: Path) -> None:
+    exp = ilcrig.Experiment(iterations=1, cycle_s=0.15)
+    exp.run(out=tmp_path / "r")
+    with pytest.raises(ilcrig.InputError, match="holds another run"):
+        exp.run(out=tmp_path / "r")
+
+
+@pytest.mark.parametrize("marker", RUN_FOLDER_MARKERS)
+def test_any_output_of_a_run_marks_the_folder(marker: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "x"
+    out.mkdir()
+    (out / marker).mkdir() if marker in ("trials", "logs") else (out / marker).write_text("")
+    code, _, err = run_cli(capsys, "sim", "--iterations", "1", "--cycle", "0.15", "--out", str(out))
+    assert code == 2 and f"holds another run ({marker})" in err
