@@ -20,7 +20,6 @@ May import: ``numpy``, ``rerun`` (lazily), :mod:`host.analysis`, :mod:`host.expe
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import os
@@ -31,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from bus.atomic import atomic_path
 from host.analysis.recording_layout import SERIES, default_blueprint
 from host.analysis.recording_scene import (
     COLOR_FIRST,
@@ -292,31 +292,27 @@ class RunRecorder:
 
         from rerun.chunk import RrdReader
 
-        tmp = self.path.with_name(self.path.name + ".tmp")
         size = self._file.committed
+        if shutil.disk_usage(self.path.parent).free < 2 * size + self.FIRST_TRIAL_BYTES:
+            logger.info("recording %s: not joined (too little free space); its segments stay", self.path)
+            return
         try:
-            if shutil.disk_usage(self.path.parent).free < 2 * size + self.FIRST_TRIAL_BYTES:
-                logger.info("recording %s: not joined (too little free space); its segments stay", self.path)
-                return
-            rec = self._rr.RecordingStream(self.application_id, recording_id=self.recording_id)
-            rec.save(str(tmp), default_blueprint=default_blueprint())
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # the segments have no footer: read by a scan
-                rec.send_chunks(RrdReader(self.path).stream())
-            rec.flush()
-            rec.disconnect()
-            with open(tmp, "rb+") as fh:
-                end = fh.seek(0, os.SEEK_END)
-                fh.seek(max(0, end - 12))
-                if fh.read(8) != FOOTER_MAGIC:
-                    raise OSError(f"the joined recording is incomplete ({end} bytes)")
-                os.fsync(fh.fileno())
-            os.replace(tmp, self.path)
+            with atomic_path(self.path, fsync=True, mkdir=False) as tmp:
+                rec = self._rr.RecordingStream(self.application_id, recording_id=self.recording_id)
+                rec.save(str(tmp), default_blueprint=default_blueprint())
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")  # the segments have no footer: read by a scan
+                    rec.send_chunks(RrdReader(self.path).stream())
+                rec.flush()
+                rec.disconnect()
+                with open(tmp, "rb") as fh:
+                    end = fh.seek(0, os.SEEK_END)
+                    fh.seek(max(0, end - 12))
+                    if fh.read(8) != FOOTER_MAGIC:
+                        raise OSError(f"the joined recording is incomplete ({end} bytes)")
             self._joined, self._joined_bytes = True, end
         except Exception as exc:  # noqa: BLE001 - the segments stay: a valid recording
             logger.info("recording %s: not joined (%s); its segments stay", self.path, exc)
-            with contextlib.suppress(OSError):
-                tmp.unlink()
 
     def __enter__(self) -> RunRecorder:
         return self
