@@ -56,7 +56,8 @@ STOP_GRACE_S = 60.0
 class RigRun:
     """One experiment on the rig (module docstring); an iterator of its trials and a context manager.
 
-    :param config: the experiment's configuration (validated: :attr:`ilcrig.Experiment.config`)
+    :param config: the experiment (an :class:`ilcrig.Experiment`, or its validated configuration
+        :attr:`ilcrig.Experiment.config`)
     :param out: the run folder (default ``runs/api-rig-<time>``)
     :param stream: where the launcher's console lines go besides ``<out>/console.txt``
     :param bus: the transport (``auto``, ``hub``, ``socketcan``, ``udp_multicast``, ``can_config``)
@@ -69,7 +70,7 @@ class RigRun:
 
     def __init__(
         self,
-        config: ExperimentConfig,
+        config: ExperimentConfig | Any,
         out: str | Path | None = None,
         *,
         stream: TextIO | None = None,
@@ -83,6 +84,10 @@ class RigRun:
         from host.experiment.outputs import check_out_dir
         from host.experiment.plan import prepare
 
+        if not isinstance(config, ExperimentConfig):  # an ilcrig.Experiment (not imported: no import circle)
+            config = getattr(config, "config", config)
+        if not isinstance(config, ExperimentConfig):
+            raise InputError(f"RigRun: an ilcrig.Experiment (or its ExperimentConfig), got {type(config).__name__}")
         self.config = config
         law = config.law
         if registered_here(law):
