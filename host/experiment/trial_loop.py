@@ -24,6 +24,13 @@ Trials: :class:`TrialLoop` runs one trial per step — a learning trial, or one 
 rollouts a law asks for after a learning trial (:mod:`host.learning.protocol`: counted as trials
 everywhere, marked ``"role": "auxiliary"`` in the summary) — and runs the law after a learning
 trial (or after the last auxiliary trial of its step); :func:`run_experiment` steps it to the end.
+Running a trial and updating the law are two guarded parts of a step: the trial is kept (summary,
+recording, arrays) before the law runs, and a law that fails — or an interrupt during its update —
+ends the run after that trial, which the step still returns (so the API's results hold it too).  A
+law's failure is a fault with its full traceback in ``<out>/logs/law-error.log`` (and at DEBUG: the
+terminal with ``--debug``).  ``summary["end_reason"]`` says how the run ended
+(:class:`host.experiment.loop_state.EndReason`); :meth:`TrialLoop.end_by_user` ends a run for an
+exception of the caller's own code (the API's ``with`` block).
 
 The run folder gets ``summary.json`` (:mod:`host.experiment.summary`), written before the first
 trial and rewritten atomically after every trial so a fault or Ctrl-C never corrupts the results
