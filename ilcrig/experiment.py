@@ -339,7 +339,8 @@ class Session:
         return self
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: object) -> None:
-        if exc is not None and not self._raised:
+        if exc is not None and not self._raised and not isinstance(exc, GeneratorExit):  # GeneratorExit: a
+            # loop over ``Experiment.trials()`` left early, the run is stopped, as by ``close()``
             # the caller's own code failed (or was interrupted) inside the ``with`` block: the
             # run ends with every kept trial and the summary says why; the exception goes on
             self._sim.end_by_user(exc)

@@ -77,6 +77,11 @@ class TrialResult:
         """True for an auxiliary rollout."""
         return self.role == AUXILIARY
 
+    @property
+    def peak_feedforward_nm(self) -> Array:
+        """(4,) peak |feed-forward| per joint, N·m (``summary.json``: ``peak_feedforward_nm``)."""
+        return np.asarray(np.max(np.abs(self.feedforward_nm), axis=0), dtype=np.float64)
+
     @classmethod
     def from_recorder(
         cls,
@@ -212,6 +217,11 @@ class Results:
     def peak_torque_nm(self) -> Array:
         """(K, 4) peak total torque, N·m."""
         return self._stack("peak_torque_nm")
+
+    @property
+    def peak_feedforward_nm(self) -> Array:
+        """(K, 4) peak |feed-forward| per trial and joint, N·m."""
+        return self._stack("peak_feedforward_nm") if self.trials else np.zeros((0, 4))
 
     @property
     def time_s(self) -> Array:

@@ -247,3 +247,14 @@ def test_the_law_authors_traceback_on_the_terminal_with_debug(tmp_path: Path) ->
         runs.append(subprocess.run(argv, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300))
     assert [r.returncode for r in runs] == [3, 3]
     assert "in helper" not in runs[0].stderr and "in helper" in runs[1].stderr
+
+
+def test_leaving_a_trials_loop_early_is_a_stop_not_an_exception(tmp_path: Path) -> None:
+    exp = ilcrig.Experiment(law="pd-ol", iterations=3, cycle_s=0.15)
+    for trial in exp.trials(out=tmp_path / "run"):
+        if trial.trial == 1:
+            break
+    res = ilcrig.load(tmp_path / "run")
+    assert len(res) == 2 and res.end_reason == "stopped" and "user_exception" not in res.summary
+    peaks = [it["peak_feedforward_nm"] for it in res.summary["iterations"]]
+    np.testing.assert_array_equal(res.peak_feedforward_nm, peaks)
