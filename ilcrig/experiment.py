@@ -102,6 +102,8 @@ def _instance_class(law: Any) -> type[Any]:
         "name": name,
         "description": getattr(law, "description", None) or f"a {type(law).__name__} instance given to the API",
         "update": lambda self, trial: law.update(trial),
+        #: marks the class of an instance (:class:`ilcrig.RigRun` refuses it: in-process runs only)
+        "law_instance": True,
         "__module__": __name__,
     }
     return type(f"Instance{type(law).__name__}", (), attrs)

@@ -39,7 +39,7 @@ from bus.processes import spawn_process
 from host.experiment.arrays import load_reference, load_trial
 from host.experiment.config import ExperimentConfig, config_toml
 from host.learning.protocol import LEARNING
-from host.learning.registry import registered_here
+from host.learning.registry import law_class, registered_here
 from ilcrig.errors import InputError, RigError, input_error
 from ilcrig.results import Results, TrialResult, load
 
@@ -90,6 +90,11 @@ class RigRun:
             raise InputError(f"RigRun: an ilcrig.Experiment (or its ExperimentConfig), got {type(config).__name__}")
         self.config = config
         law = config.law
+        if registered_here(law) and getattr(law_class(law), "law_instance", False):
+            raise InputError(
+                f"law {law!r} is a law instance, which runs in this process only; on the rig give its class, "
+                "importable by module:Class (or installed as a plug-in, entry point group ilcrig.laws)"
+            )
         if registered_here(law):
             raise InputError(
                 f"law {law!r} is registered in this process only; on the rig the host process must import it: "

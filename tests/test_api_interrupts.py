@@ -163,7 +163,7 @@ def test_api_edges() -> None:
         ilcrig.Experiment(law=3.5)
     assert "cycle_s" in (ilcrig.Experiment.__init__.__doc__ or ilcrig.Experiment.__doc__ or "")
     exp = ilcrig.Experiment(law=ScriptedLaw(None, None), iterations=1, cycle_s=0.15)
-    with pytest.raises(ilcrig.InputError, match="registered in this process only"):
+    with pytest.raises(ilcrig.InputError, match="a law instance, which runs in this process only"):
         ilcrig.RigRun(exp)  # an Experiment is taken; an instance cannot run on the rig
 
 
