@@ -14,6 +14,8 @@ code: the configuration is :func:`host.experiment.config.build_config`'s, the pl
 
 from __future__ import annotations
 
+import dataclasses
+import difflib
 import logging
 import sys
 from collections.abc import Iterator
@@ -24,6 +26,7 @@ from host.experiment.config import ExperimentConfig, build_config, gains_table
 from host.experiment.console import prepared
 from host.experiment.loop_state import TrialOutcome
 from host.experiment.plan import Plan
+from host.experiment.signal_shield import Interrupted, interrupt_on_signals
 from host.learning.check import ConvergenceReport
 from host.learning.registry import law_class, law_names
 from host.learning.registry import register_law as _register
@@ -66,9 +69,16 @@ def register_law(cls: type[Any], name: str | None = None) -> str:
 
 def _law_name(law: Any) -> str:
     """A law given as a class: ``module:Class`` when importable by that name (then the rig's host
-    process can import it too), else registered in this process."""
+    process can import it too), else registered in this process; a law instance (an object with
+    ``update``): registered in this process (in-process runs only), built as that very object."""
+    if isinstance(law, str):
+        return law
     if not isinstance(law, type):
-        return str(law)
+        if not callable(getattr(law, "update", None)):
+            raise InputError(
+                f"law: a name, a law class or a law instance (with update(trial)), got {type(law).__name__} {law!r:.60}"
+            )
+        return register_law(_instance_class(law))
     module, qual = law.__module__, law.__qualname__
     found: Any = sys.modules.get(module)
     for part in qual.split("."):
@@ -78,19 +88,119 @@ def _law_name(law: Any) -> str:
     return register_law(law)
 
 
+def _instance_class(law: Any) -> type[Any]:
+    """A law class whose construction gives the instance ``law`` (the context is not passed to it:
+    the instance was built by the caller), named as the instance (its ``name``, else its class's)."""
+    own = getattr(law, "name", None)
+    name = own if isinstance(own, str) and own.strip() else type(law).__name__
+
+    def new(cls: type[Any], ctx: Any) -> Any:
+        return law
+
+    attrs = {
+        "__new__": new,
+        "name": name,
+        "description": getattr(law, "description", None) or f"a {type(law).__name__} instance given to the API",
+        "update": lambda self, trial: law.update(trial),
+        #: marks the class of an instance (:class:`ilcrig.RigRun` refuses it: in-process runs only)
+        "law_instance": True,
+        "__module__": __name__,
+    }
+    return type(f"Instance{type(law).__name__}", (), attrs)
+
+
+def _suggest(unknown: dict[str, Any]) -> InputError:
+    """The one-line error of unknown keys, each with the closest known key when there is one."""
+    parts = []
+    for key in sorted(unknown):
+        close = difflib.get_close_matches(key, KEYS, n=1)
+        parts.append(f"{key!r} (did you mean {close[0]}?)" if close else repr(key))
+    noun = "key" if len(parts) == 1 else "keys"
+    return InputError(f"unknown {noun} {', '.join(parts)}; the keys: {', '.join(KEYS)}")
+
+
+#: the configuration keys (the TOML file's and the command line's), in :class:`Experiment`'s order
+KEYS: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(ExperimentConfig))
+
+
 class Experiment:
     """One experiment (module docstring).
 
     ``Experiment(law="pd-ilc", iterations=5)`` or ``Experiment("exp.toml", cycle_s=0.15)``: keyword
     arguments override the file's keys (``gains`` and ``law_options`` merge key by key), as command
-    line options do.  ``law`` may also be a law class (``module:Class`` when importable by that name,
-    else registered in this process).
+    line options do; a key left at None takes the file's value, else the command line's default
+    (in brackets below).
 
+    :param config: a TOML file of the keys (``ilcrig sim --config``)
+    :param law: a law's name [``no-ilc-id``], a law class (``module:Class`` when importable by that
+        name, else registered in this process) or a law instance (in-process runs only)
+    :param iterations: trials to run [10]
+    :param path: a built-in path 1–4 or a path file [``1``]
+    :param cycle_s: the pick-and-place cycle, s [0.25]
+    :param profile: ``ruckig`` or a motion law (``poly4567``, ``poly5``) [``ruckig``]
+    :param disturbance: ``none``, ``repetitive``, ``nonrepetitive`` … [``none``]
+    :param seed: the random seed of the disturbance [0]
+    :param ts_s: the sample time, s [0.001]
+    :param substeps: RK4 sub-steps per tick [4]
+    :param ff0: the first trial's feed-forward (``model``, ``zero``) [``model``]
+    :param following_error_deg: the drives' following-error limit, deg [10]
+    :param ff_transport: ``table`` (SDO) or ``pdo`` (CSP set-points) [``table``]
+    :param fieldbus_bitrate: the fieldbus bit rate, bit/s [1000000]
+    :param force_bus_fit: run even when the cyclic frames do not fit the bus [False]
+    :param gains: ``[gains]`` keys (``preset``, ``alpha``, ``beta``, ``lp``, ``ld``, …)
+    :param law_options: the law's own options
+    :param plant: plant uncertainty factors (``inertia_scale``, ``mass_scale``, …)
+    :param unknown: no other key: refused with the closest known key as a hint
     :raises InputError: a bad key or value (the command line's one-line message).
     """
 
-    def __init__(self, config: str | Path | None = None, /, **keys: Any) -> None:
-        if "law" in keys and keys["law"] is not None:
+    def __init__(
+        self,
+        config: str | Path | None = None,
+        /,
+        *,
+        law: str | type[Any] | object | None = None,
+        iterations: int | None = None,
+        path: str | int | Path | None = None,
+        cycle_s: float | None = None,
+        profile: str | None = None,
+        disturbance: str | None = None,
+        seed: int | None = None,
+        ts_s: float | None = None,
+        substeps: int | None = None,
+        ff0: str | None = None,
+        following_error_deg: float | None = None,
+        ff_transport: str | None = None,
+        fieldbus_bitrate: int | None = None,
+        force_bus_fit: bool | None = None,
+        gains: dict[str, Any] | None = None,
+        law_options: dict[str, Any] | None = None,
+        plant: dict[str, Any] | None = None,
+        **unknown: Any,
+    ) -> None:
+        if unknown:
+            raise _suggest(unknown)
+        given = {
+            "law": law,
+            "iterations": iterations,
+            "path": path,
+            "cycle_s": cycle_s,
+            "profile": profile,
+            "disturbance": disturbance,
+            "seed": seed,
+            "ts_s": ts_s,
+            "substeps": substeps,
+            "ff0": ff0,
+            "following_error_deg": following_error_deg,
+            "ff_transport": ff_transport,
+            "fieldbus_bitrate": fieldbus_bitrate,
+            "force_bus_fit": force_bus_fit,
+            "gains": gains,
+            "law_options": law_options,
+            "plant": plant,
+        }
+        keys = {k: v for k, v in given.items() if v is not None}
+        if "law" in keys:
             keys["law"] = _law_name(keys["law"])
         try:
             self.config: ExperimentConfig = build_config(config, keys)
@@ -224,11 +334,18 @@ class Session:
         self.live_url: str | None = self._sim.live_url
         self.trials: list[TrialResult] = []
         self._reference = {"t_s": plan.ref.t, "q_rad": plan.ref.q}
+        #: the run's interrupt was raised to the caller already
+        self._raised = False
 
     def __enter__(self) -> Session:
         return self
 
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: object) -> None:
+        if exc is not None and not self._raised and not isinstance(exc, GeneratorExit):  # GeneratorExit: a
+            # loop over ``Experiment.trials()`` left early, the run is stopped, as by ``close()``
+            # the caller's own code failed (or was interrupted) inside the ``with`` block: the
+            # run ends with every kept trial and the summary says why; the exception goes on
+            self._sim.end_by_user(exc)
         self.close()
 
     def __iter__(self) -> Iterator[TrialResult]:
@@ -246,14 +363,29 @@ class Session:
 
     def step(self) -> TrialResult | None:
         """Run the next trial (a learning trial, or an auxiliary rollout its law asked for); None
-        when the run is over (every trial ran, or a fault or an interrupt ended it: see
-        :attr:`results`)."""
-        outcome = self._sim.step()
-        if outcome is None:
-            return None
-        result = self._result(outcome)
-        self.trials.append(result)
-        return result
+        when the run is over (every trial ran, or a fault ended it: see :attr:`results`).
+
+        A trial is kept before the law learns from it: when the law's update fails, the trial is
+        still returned (and in :attr:`results`), the run has ended (``end_reason`` ``law_error``)
+        and the next step returns None.  SIGINT / SIGTERM (Ctrl-C) during a step end the run
+        through its fault path and are then raised here as :class:`KeyboardInterrupt` (the
+        completed trials in :attr:`results`, the run folder and ``summary.json`` alike).
+        """
+        with interrupt_on_signals():  # SIGINT / SIGTERM during the step: through the run's fault path
+            try:
+                outcome = self._sim.step()
+            except KeyboardInterrupt as exc:  # raised outside the trial loop's guard: end the run here
+                self._sim.end_by_user(exc)
+                outcome = None
+        if outcome is not None:
+            self.trials.append(self._result(outcome))  # kept: in every view of the run
+        interrupted = self._sim.result.interrupted
+        if interrupted is not None and not self._raised:
+            # the run ended by an interrupt (also one during the law's update): its trials are in
+            # every view now; the interrupt goes on to the caller, never swallowed
+            self._raised = True
+            raise Interrupted(interrupted)
+        return self.trials[-1] if outcome is not None else None
 
     def _result(self, o: TrialOutcome) -> TrialResult:
         channels = {

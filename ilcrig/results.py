@@ -25,6 +25,7 @@ import numpy as np
 import numpy.typing as npt
 
 from bus import units
+from bus.errors import InputError
 from host.experiment.arrays import load_reference, load_trial
 from host.learning.protocol import AUXILIARY, LEARNING
 
@@ -75,6 +76,11 @@ class TrialResult:
     def auxiliary(self) -> bool:
         """True for an auxiliary rollout."""
         return self.role == AUXILIARY
+
+    @property
+    def peak_feedforward_nm(self) -> Array:
+        """(4,) peak |feed-forward| per joint, N·m (``summary.json``: ``peak_feedforward_nm``)."""
+        return np.asarray(np.max(np.abs(self.feedforward_nm), axis=0), dtype=np.float64)
 
     @classmethod
     def from_recorder(
@@ -160,6 +166,13 @@ class Results:
         return bool(self.summary.get("interrupted"))
 
     @property
+    def end_reason(self) -> str | None:
+        """How the run ended: ``completed``, ``fault``, ``interrupted``, ``law_error``,
+        ``user_exception`` or ``stopped`` (None while it runs)."""
+        reason = self.summary.get("end_reason")
+        return str(reason) if reason is not None else None
+
+    @property
     def check(self) -> dict[str, Any]:
         """The convergence check made before the run (``checked`` False: the law gives no map)."""
         return dict(self.summary.get("convergence_check", {}))
@@ -204,6 +217,11 @@ class Results:
     def peak_torque_nm(self) -> Array:
         """(K, 4) peak total torque, N·m."""
         return self._stack("peak_torque_nm")
+
+    @property
+    def peak_feedforward_nm(self) -> Array:
+        """(K, 4) peak |feed-forward| per trial and joint, N·m."""
+        return self._stack("peak_feedforward_nm") if self.trials else np.zeros((0, 4))
 
     @property
     def time_s(self) -> Array:
@@ -336,10 +354,16 @@ class Results:
 def load(run_dir: str | Path) -> Results:
     """The results of a run folder (``ilcrig sim``, ``ilcrig run``, or the API with ``out``).
 
-    :raises FileNotFoundError: no ``summary.json`` there.
+    :raises InputError: no run folder there (no readable ``summary.json``), naming the path.
     """
     d = Path(run_dir)
-    summary = json.loads((d / "summary.json").read_text(encoding="utf-8"))
+    try:
+        summary = json.loads((d / "summary.json").read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        what = "no such folder" if not d.exists() else "not a run folder (no summary.json)"
+        raise InputError(f"load: {d}: {what}") from None
+    except (OSError, ValueError) as exc:
+        raise InputError(f"load: {d / 'summary.json'}: cannot be read ({exc})") from None
     its = summary.get("iterations", [])
     trials = []
     if its:

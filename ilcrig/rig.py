@@ -39,7 +39,7 @@ from bus.processes import spawn_process
 from host.experiment.arrays import load_reference, load_trial
 from host.experiment.config import ExperimentConfig, config_toml
 from host.learning.protocol import LEARNING
-from host.learning.registry import registered_here
+from host.learning.registry import law_class, registered_here
 from ilcrig.errors import InputError, RigError, input_error
 from ilcrig.results import Results, TrialResult, load
 
@@ -56,7 +56,8 @@ STOP_GRACE_S = 60.0
 class RigRun:
     """One experiment on the rig (module docstring); an iterator of its trials and a context manager.
 
-    :param config: the experiment's configuration (validated: :attr:`ilcrig.Experiment.config`)
+    :param config: the experiment (an :class:`ilcrig.Experiment`, or its validated configuration
+        :attr:`ilcrig.Experiment.config`)
     :param out: the run folder (default ``runs/api-rig-<time>``)
     :param stream: where the launcher's console lines go besides ``<out>/console.txt``
     :param bus: the transport (``auto``, ``hub``, ``socketcan``, ``udp_multicast``, ``can_config``)
@@ -69,7 +70,7 @@ class RigRun:
 
     def __init__(
         self,
-        config: ExperimentConfig,
+        config: ExperimentConfig | Any,
         out: str | Path | None = None,
         *,
         stream: TextIO | None = None,
@@ -83,8 +84,17 @@ class RigRun:
         from host.experiment.outputs import check_out_dir
         from host.experiment.plan import prepare
 
+        if not isinstance(config, ExperimentConfig):  # an ilcrig.Experiment (not imported: no import circle)
+            config = getattr(config, "config", config)
+        if not isinstance(config, ExperimentConfig):
+            raise InputError(f"RigRun: an ilcrig.Experiment (or its ExperimentConfig), got {type(config).__name__}")
         self.config = config
         law = config.law
+        if registered_here(law) and getattr(law_class(law), "law_instance", False):
+            raise InputError(
+                f"law {law!r} is a law instance, which runs in this process only; on the rig give its class, "
+                "importable by module:Class (or installed as a plug-in, entry point group ilcrig.laws)"
+            )
         if registered_here(law):
             raise InputError(
                 f"law {law!r} is registered in this process only; on the rig the host process must import it: "

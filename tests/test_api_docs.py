@@ -56,3 +56,11 @@ def test_table2_example_uses_the_api_alone(capsys: pytest.CaptureFixture[str], m
     runpy.run_path(str(script), run_name="__main__")
     out = capsys.readouterr().out
     assert "PD-ILC    ilcrig" in out and "D-ILC     ilcrig" in out and "PD-ILC below D-ILC on every joint:" in out
+
+
+def test_every_public_name_is_documented() -> None:
+    import ilcrig
+
+    text = DOC.read_text(encoding="utf-8")
+    missing = [name for name in ilcrig.__all__ if f"`{name}`" not in text and f"ilcrig.{name}" not in text]
+    assert not missing, f"names of ilcrig.__all__ not in docs/api.md: {missing}"

@@ -14,6 +14,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Any
 
 import numpy as np
@@ -33,7 +34,18 @@ from host.learning.protocol import LEARNING, TrialData
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ExperimentResult", "TrialOutcome", "LoopState", "new_summary"]
+__all__ = ["EndReason", "ExperimentResult", "TrialOutcome", "LoopState", "end_reason", "new_summary"]
+
+
+class EndReason(StrEnum):
+    """How a run ended: ``summary["end_reason"]`` (docs/api.md, docs/faults.md)."""
+
+    COMPLETED = "completed"  # every planned trial ran and was kept
+    FAULT = "fault"  # a fault ended it (summary["faults"])
+    INTERRUPTED = "interrupted"  # SIGINT / SIGTERM / Ctrl-C (summary["interrupted"])
+    LAW_ERROR = "law_error"  # the learning law failed or diverged (a fault of the law, in summary["faults"])
+    USER_EXCEPTION = "user_exception"  # an exception of the caller's code in the API (summary["user_exception"])
+    STOPPED = "stopped"  # the caller ended it early (the API: a break, close())
 
 
 @dataclass
@@ -49,6 +61,21 @@ class ExperimentResult:
     fault_record: FaultRecord | None = None
     interrupted: int | None = None  # the signal number
     roles: list[str] = field(default_factory=list)  # per trial: "learning" or "auxiliary"
+    end_reason: EndReason | None = None  # set where it is decided (law error, user exception), else derived
+
+
+def end_reason(result: ExperimentResult) -> EndReason:
+    """How the run of ``result`` ended: an exception of the caller's code first, then an interrupt,
+    a fault of the law, another fault, all trials done, else stopped early by the caller."""
+    if result.end_reason == EndReason.USER_EXCEPTION:
+        return EndReason.USER_EXCEPTION
+    if result.interrupted is not None:
+        return EndReason.INTERRUPTED
+    if result.end_reason is not None:
+        return result.end_reason
+    if result.fault_record is not None or result.fault:
+        return EndReason.FAULT
+    return EndReason.COMPLETED if result.summary.get("completed") else EndReason.STOPPED
 
 
 def new_summary(plan: Plan, mode: str, digest: TraceDigest) -> dict[str, Any]:
@@ -70,6 +97,7 @@ def new_summary(plan: Plan, mode: str, digest: TraceDigest) -> dict[str, Any]:
         "trace_sha256": digest.hexdigest(),
         "faults": [],
         "completed": False,
+        "end_reason": None,
     } | ({"bus_fit": plan.bus_fit} if plan.bus_fit is not None else {})
 
 
@@ -242,7 +270,9 @@ class LoopState:
         kept from now on."""
         self.in_trial = False
         s = self.result.summary
-        s["iterations"].append(m.as_dict() | ({"role": role} if role != LEARNING else {}))
+        peak_ff = np.max(np.abs(self.last_u), axis=0) if self.last_u.size else np.zeros(self.last_u.shape[-1])
+        entry = m.as_dict() | {"peak_feedforward_nm": [float(v) for v in peak_ff]}
+        s["iterations"].append(entry | ({"role": role} if role != LEARNING else {}))
         s["ticks"] = len(s["iterations"]) * self.plan.n_ticks
         s["wall_s"] = self.wall_s
         s["ticks_per_s"] = s["ticks"] / self.wall_s if self.wall_s > 0 else 0.0

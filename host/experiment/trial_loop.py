@@ -24,6 +24,13 @@ Trials: :class:`TrialLoop` runs one trial per step — a learning trial, or one 
 rollouts a law asks for after a learning trial (:mod:`host.learning.protocol`: counted as trials
 everywhere, marked ``"role": "auxiliary"`` in the summary) — and runs the law after a learning
 trial (or after the last auxiliary trial of its step); :func:`run_experiment` steps it to the end.
+Running a trial and updating the law are two guarded parts of a step: the trial is kept (summary,
+recording, arrays) before the law runs, and a law that fails — or an interrupt during its update —
+ends the run after that trial, which the step still returns (so the API's results hold it too).  A
+law's failure is a fault with its full traceback in ``<out>/logs/law-error.log`` (and at DEBUG: the
+terminal with ``--debug``).  ``summary["end_reason"]`` says how the run ended
+(:class:`host.experiment.loop_state.EndReason`); :meth:`TrialLoop.end_by_user` ends a run for an
+exception of the caller's own code (the API's ``with`` block).
 
 The run folder gets ``summary.json`` (:mod:`host.experiment.summary`), written before the first
 trial and rewritten atomically after every trial so a fault or Ctrl-C never corrupts the results
@@ -54,25 +61,31 @@ from __future__ import annotations
 import dataclasses
 import logging
 import signal
+import traceback
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from bus.atomic import atomic_write
 from bus.errors import IlcrigError
 from host.experiment.bench import Bench, TrialRecorder
 from host.experiment.fault_placement import fault_record_of, place, record_output_fault
-from host.experiment.faults import Position, position_of
-from host.experiment.loop_state import ExperimentResult, LoopState, TrialOutcome, new_summary
+from host.experiment.faults import FaultKind, Position, position_of
+from host.experiment.loop_state import EndReason, ExperimentResult, LoopState, TrialOutcome, end_reason, new_summary
 from host.experiment.outputs import OutputError, RunFolder
 from host.experiment.plan import Plan
 from host.experiment.signal_shield import SHIELD, deferred_interrupts
 from host.experiment.summary import jsonable, write_summary
+from host.learning.laws.checked import LawError
 from host.learning.metrics import TrialMetrics
-from host.learning.protocol import AUXILIARY, LEARNING
+from host.learning.protocol import AUXILIARY, LEARNING, TrialData
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["TrialLoop", "run_experiment"]
+__all__ = ["LAW_ERROR_LOG", "TrialLoop", "run_experiment"]
+
+#: the run's log of a failed law (its full traceback), in ``<out>/logs/``
+LAW_ERROR_LOG = "law-error.log"
 
 
 class TrialLoop:
@@ -110,6 +123,9 @@ class TrialLoop:
         self.k = 0
         self.started = False
         self.finished = False
+        #: the last kept trial as the law receives it, and the learning trial of its auxiliary step
+        self._data: TrialData | None = None
+        self._aux_step: TrialData | None = None
 
     @property
     def plan(self) -> Plan:
@@ -142,16 +158,22 @@ class TrialLoop:
         if self.done:
             self.finish()
             return None
-        outcome = self._guarded(self._step)
-        if outcome is None or self.k >= self.plan.cfg.iterations:
-            if outcome is not None:
-                self.result.summary["completed"] = True
+        outcome: TrialOutcome | None = self._guarded(self._run_next_trial)
+        if outcome is None:
+            return None  # the run ended before this trial was kept (finished by the fault path)
+        if self.k >= self.plan.cfg.iterations:
+            self.result.summary["completed"] = True
             self.finish()
+            return outcome
+        # the trial is kept in every view before the law runs: a law that fails (or an interrupt
+        # during its update) ends the run after this trial, which is still returned
+        self._guarded(lambda: self._learn(outcome))
         return outcome
 
-    def _step(self) -> TrialOutcome:
+    def _run_next_trial(self) -> TrialOutcome:
+        """The next trial run, measured and kept (summary entry, recording, summary file)."""
         t, plan, law = self.trials, self.plan, self.plan.law
-        k, n_planned = self.k, plan.cfg.iterations
+        k = self.k
         aux_step = t.step_trial
         if aux_step is not None:
             role = AUXILIARY
@@ -170,10 +192,16 @@ class TrialLoop:
             if self.out is not None:
                 self._note_recording()
                 write_summary(self.out, self.result.summary, folder=self.folder, trial=k)
-        data = t.trial_data(k, role, u, e, tau)
-        outcome = TrialOutcome(k, role, m, u, e, tau, list(t.last_traces), plan.gains)
-        if k + 1 >= n_planned:
-            return outcome
+        self._data = t.trial_data(k, role, u, e, tau)
+        self._aux_step = aux_step
+        return TrialOutcome(k, role, m, u, e, tau, list(t.last_traces), plan.gains)
+
+    def _learn(self, outcome: TrialOutcome) -> None:
+        """After the kept trial ``outcome``: the law's update for the next learning trial (or the
+        start or end of an auxiliary step)."""
+        t, law, n_planned = self.trials, self.plan.law, self.plan.cfg.iterations
+        k, role, data, aux_step = outcome.k, outcome.role, self._data, self._aux_step
+        assert data is not None
         if role == AUXILIARY:
             assert aux_step is not None
             t.step_aux.append(data)
@@ -185,7 +213,6 @@ class TrialLoop:
             t.step_trial, t.step_aux = data, []
         else:
             t.u = t.checked_table(lambda: law.learn(data), k + 1)
-        return outcome
 
     def set_gains(self, plan: Plan) -> None:
         """Continue with ``plan`` (the same experiment with other gains and the law built again for
@@ -230,6 +257,9 @@ class TrialLoop:
             if record.position == Position.AFTER_LAST_TRIAL:
                 summary["completed"] = True  # every trial was run and kept; the fault came after
             logger.info("fault (%s, trial %s): %s", record.position, record.trial, exc)  # the run's closing line says it
+            if isinstance(exc, LawError) or record.kind == FaultKind.LEARNING_DIVERGED:
+                result.end_reason = EndReason.LAW_ERROR
+                self._law_traceback(exc)
         except KeyboardInterrupt as exc:  # Ctrl-C, or Interrupted from the SIGTERM/SIGINT handler
             signum = getattr(exc, "signum", signal.SIGINT)
             result.interrupted = int(signum)
@@ -239,6 +269,42 @@ class TrialLoop:
             logger.info("interrupted by %s (%s)", signal.Signals(signum).name, summary["interrupted"]["position"])
         self.finish()
         return None
+
+    def _law_traceback(self, exc: BaseException) -> None:
+        """The law's own traceback (its exception is the ``__cause__`` of the :class:`LawError`):
+        always in the run's log ``<out>/logs/law-error.log``, on the terminal at DEBUG (``--debug``)."""
+        text = "".join(traceback.format_exception(exc))
+        logger.debug("the learning law failed:\n%s", text.rstrip())
+        if self.out is None:
+            return
+        path = self.out / "logs" / LAW_ERROR_LOG
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write(path, text)
+            self.result.summary["law_error_log"] = str(path.relative_to(self.out))
+        except OSError as err:
+            logger.warning("the law's traceback could not be written to %s: %s", path, err)
+
+    def end_by_user(self, exc: BaseException) -> ExperimentResult:
+        """End the run for an exception of the caller's own code (the API's ``with`` block): a
+        :class:`KeyboardInterrupt` is an interrupt between trials, anything else ``user_exception``
+        with its type and first line in the summary.  Every kept trial stays; then :meth:`finish`."""
+        if not self.finished:
+            summary = self.result.summary
+            if isinstance(exc, KeyboardInterrupt):
+                signum = int(getattr(exc, "signum", signal.SIGINT))
+                if self.result.interrupted is None:
+                    self.result.interrupted = signum
+                    summary["interrupted"] = self._where_now(signal.Signals(signum).name)
+            elif self.result.end_reason is None:
+                self.result.end_reason = EndReason.USER_EXCEPTION
+                text = str(exc)
+                summary["user_exception"] = {
+                    "type": type(exc).__qualname__,
+                    "message": text.splitlines()[0] if text else "",
+                    "after_trial": len(summary["iterations"]) - 1 if summary["iterations"] else None,
+                }
+        return self.finish()
 
     def _where_now(self, signal_name: str) -> dict[str, Any]:
         """The summary's ``interrupted`` marker: signal, position, trial and tick now."""
@@ -315,6 +381,7 @@ def _finish(
         if safe_state is not None:
             summary["safe_state"] = jsonable(safe_state())
         _closing_fault(bench, summary, result, trials)
+        summary["end_reason"] = str(end_reason(result))
         if folder is not None:
             folder.release()  # the final outputs go into the reserve's room
         if recorder is not None:

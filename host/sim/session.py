@@ -122,6 +122,13 @@ class SimSession:
             self.close()
         return outcome
 
+    def end_by_user(self, exc: BaseException) -> ExperimentResult:
+        """End the run for an exception of the caller's code (the API's ``with`` block; a
+        :class:`KeyboardInterrupt` is an interrupt): every kept trial stays, the summary says why
+        (:meth:`host.experiment.trial_loop.TrialLoop.end_by_user`), then :meth:`close`."""
+        self.runner.end_by_user(exc)
+        return self.close()
+
     def set_gains(self, **changes: Any) -> None:
         """Change the gains before the next trial (``[gains]`` keys: ``alpha``, ``beta``, ``lp``, …).
 
