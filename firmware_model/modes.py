@@ -23,8 +23,11 @@ error are faults of the power stage (:class:`FaultSink`).
   [counts/s] in the profile generator's Q16 (:mod:`firmware_model.profile`; it starts at the
   actual position when torque comes on, the mode is selected or a trial starts); the PD loop
   closes on it with the velocity reference 0x60FF and the feed-forward 0x60B2.
-* CST (10, cyclic synchronous torque): torque = 0x6071 + 0x60B2 [‰ of 0x6076], no feedback and
-  no following-error check, clamped to 0x6072.
+* CST (10, cyclic synchronous torque): torque = 0x6071 + 0x60B2 [‰ of 0x6076], no feedback (in
+  either loop structure) and no following-error check, clamped to 0x6072.
+
+"The PD loop" below is the drive's feedback structure (0x2110:4): the PD loop of 0x2110:1/2, or the
+cascade of 0x60FB/0x60F9 (:mod:`firmware_model.control_law`).
 
 The cyclic modes (:attr:`OperationMode.CYCLIC`) are paced by SYNC while NMT OPERATIONAL
 (:mod:`firmware_model.cyclic_pdo`) and set statusword bit 12 ("drive follows the command
@@ -61,6 +64,7 @@ _TARGET_TORQUE = (Obj.TARGET_TORQUE, 0)
 _TORQUE_OFFSET = (Obj.TORQUE_OFFSET, 0)
 _TARGET_VELOCITY = (Obj.TARGET_VELOCITY, 0)
 _PERIOD = (Obj.CONTROL_PERIOD, 0)
+_P_LOOP = control_law.P_LOOP
 
 
 class FaultSink(Protocol):
@@ -149,6 +153,7 @@ class OperationMode(ABC):
         st = self.st
         st[_S_HAVE_PREV] = 0
         st[_S_VF] = self.initial_velocity() << fp.VEL_STATE_Q
+        st[control_law.S_VINT] = 0
         self.trial.start()
 
     def in_sequence(self, tick: int) -> bool:
@@ -309,8 +314,9 @@ class CstMode(CyclicSynchronousMode):
     def _control(self, encoder_count: int, rec_index: int) -> tuple[int, int]:
         st, sp = self.st, self._setpoint
         target_torque = int(self.values[_TARGET_TORQUE]) * self.rated_mnm
-        saved = int(st[_P_KP]), int(st[_P_KD]), int(st[_P_FE])
+        saved = int(st[_P_KP]), int(st[_P_KD]), int(st[_P_FE]), int(st[_P_LOOP])
         st[_P_KP] = st[_P_KD] = 0  # no feedback
+        st[_P_LOOP] = control_law.LOOP_PD  # (in either structure)
         st[_P_FE] = -1  # no following-error check
         sp[0, 0] = fp.sat32(encoder_count)
         sp[1, 0] = 0
@@ -318,4 +324,4 @@ class CstMode(CyclicSynchronousMode):
         try:
             return _CONTROL_TICK(encoder_count, 0, rec_index, st, sp, self.trial.rec)
         finally:
-            st[_P_KP], st[_P_KD], st[_P_FE] = saved
+            st[_P_KP], st[_P_KD], st[_P_FE], st[_P_LOOP] = saved

@@ -385,6 +385,27 @@ def test_cob_id_sync_emcy_and_sync_counter_rules() -> None:
     wr(d, Obj.SYNC_COUNTER_OVERFLOW, 0, "u8", 10)
 
 
+def test_cob_id_objects_refuse_the_restricted_can_ids() -> None:
+    """0x1005 and a valid 0x1014 refuse every restricted CAN-ID of CiA 301 (Table 3) with 0x06090030
+    (an invalid 0x1014 may hold one: it is never sent); a refused write changes nothing."""
+    from bus.pdo_objects import RESTRICTED_CAN_IDS
+
+    d = Drive(NODE)
+    wr(d, Obj.COB_ID_EMCY, 0, "u32", PDO_NOT_VALID | (0x80 + NODE))
+    for lo, hi in RESTRICTED_CAN_IDS:
+        for can_id in sorted({lo, hi, (lo + hi) // 2}):
+            assert abort(wr, d, Obj.COB_ID_SYNC, 0, "u32", can_id) == AbortCode.VALUE_RANGE, hex(can_id)
+            wr(d, Obj.COB_ID_EMCY, 0, "u32", PDO_NOT_VALID | can_id)
+            assert abort(wr, d, Obj.COB_ID_EMCY, 0, "u32", can_id) == AbortCode.VALUE_RANGE, hex(can_id)
+    assert d.sync_cob_id() == 0x080
+    assert rd(d, Obj.COB_ID_EMCY, 0, "u32") == PDO_NOT_VALID | 0x7FF
+    # the issue's case: node 2 taking node 1's heartbeat identifier
+    d2 = Drive(2)
+    wr(d2, Obj.COB_ID_EMCY, 0, "u32", PDO_NOT_VALID | 0x82)
+    assert abort(wr, d2, Obj.COB_ID_EMCY, 0, "u32", 0x701) == AbortCode.VALUE_RANGE
+    assert rd(d2, Obj.COB_ID_EMCY, 0, "u32") == PDO_NOT_VALID | 0x82
+
+
 def test_vendor_id_is_the_documented_one() -> None:
     from bus.objects import PRODUCT_CODE, REVISION_NUMBER, VENDOR_ID
 

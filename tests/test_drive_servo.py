@@ -1,0 +1,150 @@
+"""The drive as a servo drive (issue 35, item 3): the cascade of robot mode holds the robot.
+
+In one process: four drives of a SYNC-stepped plant (robot mode, :meth:`Drive.step_on_sync`) on
+the robot's plant (:class:`plant.mechanics.Mechanics` at its home pose), CSP by SDO, one SYNC
+and one io tick per period.  A 5° move of all four joints (smooth-step over 500 ms) then 200 ms of
+hold: every joint ends within 30 counts (0.001°) of its target.  The paper's PD loop
+(0x2110:4 = 0, the ILC experiments' default) sags under gravity by thousands of counts; the same
+check documents that too.  Also: the cascade's anti-windup, its objects and their boot values.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+from drive402_util import rd, wr
+from robot_util import plant_factory
+
+from bus import fixedpoint as fp
+from bus import units
+from bus.cia301.nmt import NmtCommand
+from bus.objects import GainsSub, LoopStructure, Obj, PositionControlSub, VelocityControlSub
+from firmware_model import control_law
+from firmware_model.drive import Drive
+from plant.mechanics import Mechanics
+
+#: the hold requirement of issue 35 [counts]
+HOLD_COUNTS = 30
+MOVE_MS = 500
+HOLD_MS = 200
+
+
+def _robot_move(robot_mode: bool, signs: tuple[int, ...]) -> np.ndarray:
+    """The final position error [counts] of the four joints after the move and the hold."""
+    mech = Mechanics(plant_factory(1e-3, 4))
+    mech.home()
+    plant = mech.plant
+    drives = [Drive(n) for n in range(1, 5)]
+    for d in drives:
+        if robot_mode:
+            d.step_on_sync(time.monotonic)
+        d.nmt_command(NmtCommand.START)
+        wr(d, Obj.MODES_OF_OPERATION, 0, "i8", 8)
+    held = np.zeros(4, dtype=bool)
+    counts = plant.encoder_counts().astype(np.int64)
+
+    def period(targets: np.ndarray) -> None:
+        nonlocal counts
+        tau = np.zeros(4, dtype=np.int64)
+        for j, d in enumerate(drives):
+            wr(d, Obj.TARGET_POSITION, 0, "i32", int(targets[j]))
+            d.on_sync()
+            tau[j] = d.io_tick(0, int(counts[j]))
+            d.service()
+        assert mech.step(tau, held) is None  # inside the workspace: no limit reached
+        counts = plant.encoder_counts().astype(np.int64)
+
+    start = counts.copy()
+    period(start)
+    for cw in (0x06, 0x07, 0x0F):
+        for d in drives:
+            wr(d, Obj.CONTROLWORD, 0, "u16", cw)
+        period(start)
+    assert all(d.torque_enabled for d in drives)
+    dq = round(math.radians(5.0) / units.RAD_PER_COUNT)
+    goal = start + np.array(signs, dtype=np.int64) * dq
+    for k in range(1, MOVE_MS + 1):
+        s = k / MOVE_MS
+        s = s * s * (3 - 2 * s)
+        period(np.round(start + (goal - start) * s).astype(np.int64))
+    for _ in range(HOLD_MS):
+        period(goal)
+    assert all(d.torque_enabled for d in drives)
+    return goal - counts
+
+
+@pytest.mark.parametrize("signs", [(1, 1, 1, 1), (-1, -1, -1, -1), (1, 1, -1, -1)])
+def test_robot_mode_holds_a_5_degree_csp_move_within_30_counts(signs: tuple[int, ...]) -> None:
+    err = _robot_move(True, signs)
+    assert np.all(np.abs(err) <= HOLD_COUNTS), err
+
+
+def test_the_pd_loop_sags_under_gravity() -> None:
+    """The ILC experiments' loop (0x2110:4 = 0): the holding torque is Kp·e, thousands of counts."""
+    err = _robot_move(False, (1, 1, 1, 1))
+    assert np.all(np.abs(err) > 1000), err
+
+
+def test_robot_mode_boots_with_the_cascade_and_keeps_it_over_reset_node() -> None:
+    d = Drive(1)
+    assert rd(d, Obj.GAINS, GainsSub.LOOP, "u8") == LoopStructure.PD  # the EDS default
+    d.step_on_sync(time.monotonic)
+    assert rd(d, Obj.GAINS, GainsSub.LOOP, "u8") == LoopStructure.CASCADE
+    wr(d, Obj.GAINS, GainsSub.LOOP, "u8", LoopStructure.PD)  # a master may choose the PD loop
+    d.nmt_command(NmtCommand.RESET_NODE)
+    assert rd(d, Obj.GAINS, GainsSub.LOOP, "u8") == LoopStructure.CASCADE
+    assert int(d._st[control_law.P_LOOP]) == LoopStructure.CASCADE
+
+
+def test_cascade_gains_reach_the_loop_in_their_formats() -> None:
+    d = Drive(1)
+    wr(d, Obj.POSITION_CONTROL, PositionControlSub.KPP, "i32", 100 << 16)
+    wr(d, Obj.POSITION_CONTROL, PositionControlSub.VELOCITY_FF, "i32", 1 << 15)
+    wr(d, Obj.POSITION_CONTROL, PositionControlSub.TORQUE_FF, "i32", 0)
+    wr(d, Obj.VELOCITY_CONTROL, VelocityControlSub.KVP, "i32", 123456)
+    wr(d, Obj.VELOCITY_CONTROL, VelocityControlSub.KVI, "i32", 1_000_001)
+    st = d._st
+    assert int(st[control_law.P_KPP]) == 100 << 16
+    assert int(st[control_law.P_KVFF]) == 1 << 15 and int(st[control_law.P_KTFF]) == 0
+    assert int(st[control_law.P_KVP]) == 123456
+    assert int(st[control_law.P_KVI]) == fp.ki_per_tick_q16(1_000_001, 1000) == 1000  # Kvi · 1 ms, nearest
+    wr(d, Obj.CONTROL_PERIOD, 0, "u32", 2000)  # the per-period I gain follows the period
+    assert int(st[control_law.P_KVI]) == 2000
+
+
+def _cascade_state(kvp: int, kvi_tick: int, kpp: int, limit: int) -> np.ndarray:
+    st = control_law.new_state()
+    st[control_law.P_LOOP] = control_law.LOOP_CASCADE
+    st[control_law.P_KVP] = kvp
+    st[control_law.P_KVI] = kvi_tick
+    st[control_law.P_KPP] = kpp
+    st[control_law.P_TLIM] = limit
+    return st
+
+
+def test_cascade_arithmetic_and_anti_windup_by_clamping() -> None:
+    """One tick by hand; then a blocked joint: the integrator stops at the torque limit (clamping),
+    and the torque leaves the limit on the first tick the velocity error reverses."""
+    tables = control_law.new_tables(1)
+    rec = control_law.new_recorder(1)
+    st = _cascade_state(kvp=3 << 16, kvi_tick=1 << 16, kpp=10 << 16, limit=10**9)
+    tables[control_law.ROW_REF_POS, 0] = 100
+    tables[control_law.ROW_FF, 0] = 7
+    tau, status = control_law.control_tick(0, 0, -1, st, tables, rec)
+    # v_cmd = 10·100 = 1000 counts/s, v_est = 0 (first tick): I = 1000, τ = 3·1000 + 1000 + 7
+    assert (tau, status) == (4007, control_law.STATUS_OK)
+    assert int(st[control_law.S_VINT]) == 1000 << 16 and int(st[control_law.S_VCMD]) == 1000
+
+    limit = 50_000
+    st = _cascade_state(kvp=1 << 16, kvi_tick=1 << 16, kpp=10 << 16, limit=limit)
+    for _ in range(200):  # the joint does not move: error 100 counts for ever
+        tau, _ = control_law.control_tick(0, 0, -1, st, tables, rec)
+    # the integrator stops one I step short of the limit (it would push the torque beyond it)
+    assert limit - 1007 <= tau <= limit
+    assert int(st[control_law.S_VINT]) <= limit << 16  # bounded, not wound up
+    tables[control_law.ROW_REF_POS, 0] = 0  # the demand comes back: the torque falls at once
+    tau, _ = control_law.control_tick(0, 0, -1, st, tables, rec)
+    assert tau < limit
