@@ -321,7 +321,7 @@ class Statusword(IntFlag):
     FOLLOWS_COMMAND = 0x1000  # cyclic synchronous modes
     SETPOINT_ACKNOWLEDGE = 0x1000  # profile position
     HOMING_ATTAINED = 0x1000  # homing
-    FOLLOWING_ERROR = 0x2000  # profile position (the drive faults instead: always 0)
+    FOLLOWING_ERROR = 0x2000  # PP, CSP: |e| > 0x6065, not yet longer than 0x6066 (then a fault)
 
 
 class Cia402State(IntEnum):

@@ -80,7 +80,9 @@ P_KVP = 19  #: velocity loop P gain, Q16 µN·m/(count/s) (cascade)
 P_KVI = 20  #: velocity loop I gain per control period, Q16 µN·m/(count/s) (cascade)
 S_VINT = 21  #: velocity loop integrator, µN·m Q16 (cascade), |.| <= torque limit
 S_VCMD = 22  #: last velocity command of the position loop, counts/s (cascade)
-N_STATE = 24
+P_FE_TICKS = 23  #: following-error time-out, control periods (0x6066 · 1000 // 0x2300)
+S_FE_COUNT = 24  #: control periods in a row with |e| above the following-error window
+N_STATE = 26
 
 #: P_LOOP values
 LOOP_PD = 0
@@ -143,8 +145,9 @@ def control_tick(
     :param tables: reference position/velocity and feed-forward tables.
     :param rec: recorder planes (written at ``rec_idx``).
 
-    Status ``STATUS_FOLLOWING_ERROR`` means |e| exceeded the window; the caller removes
-    torque.  Velocity: with no previous count (first tick after enable or trial start)
+    Status ``STATUS_FOLLOWING_ERROR`` means |e| exceeded the window for more than ``P_FE_TICKS``
+    periods in a row (0x6066 following error time-out; 0: at once); the caller removes torque.
+    Velocity: with no previous count (first tick after enable or trial start)
     the raw velocity is taken equal to the filter state, i.e. the estimate is held.
     """
     c = _sat32(count)
@@ -204,7 +207,11 @@ def control_tick(
         rec[REC_TAU_FB, rec_idx] = fb
     window = st[P_FE_WINDOW]
     if window >= 0 and (e > window or -e > window):
-        return tau, STATUS_FOLLOWING_ERROR
+        st[S_FE_COUNT] += 1
+        if st[S_FE_COUNT] > st[P_FE_TICKS]:
+            return tau, STATUS_FOLLOWING_ERROR
+    else:
+        st[S_FE_COUNT] = 0
     return tau, STATUS_OK
 
 

@@ -14,7 +14,8 @@ error are faults of the power stage (:class:`FaultSink`).
   first tick after torque came on, velocity 0, no feed-forward; after a trial, the last entry).
   At tick 0 the velocity estimator starts at the reference velocity of sample 0 (the alignment
   assumption).
-* CSP (8, cyclic synchronous position): the PD loop closes on 0x607A target position; the
+* CSP (8, cyclic synchronous position; statusword bit 13 = following error within 0x6066): the
+  PD loop closes on 0x607A target position; the
   velocity reference is the backward difference of successive targets,
   ``(p[n] − p[n−1])·rate`` in the loop's Q12 arithmetic, rounded and saturated to int32 (0 on
   the first tick of a trial and after a mode change); the feed-forward is 0x60B2 torque offset
@@ -266,6 +267,11 @@ class CspMode(CyclicSynchronousMode):
 
     def on_rehome(self, delta_counts: int) -> None:
         self._prev_target = None  # the next target is in the new coordinates
+
+    def status_bits(self) -> int:
+        """Bit 12, and bit 13 (following error) while |e| is above 0x6065, not yet for longer than
+        0x6066 (then it is a fault)."""
+        return self.STATUS_BITS | (0x2000 if int(self.st[control_law.S_FE_COUNT]) > 0 else 0)
 
     def demand(self) -> tuple[int, int]:
         sp = self._setpoint

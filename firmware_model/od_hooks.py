@@ -22,7 +22,8 @@ hooks act on a write and may refuse it with :class:`bus.errors.SdoAbort`:
   (:mod:`bus.fixedpoint`): gains 0x2110 (Kp Q16 µN·m/count, Kd Q16 µN·m/(count/s), velocity
   filter Q15), control period 0x2300 [µs] (tick rate Hz Q12) and its CiA 402 form 0x60C2
   (value · 10^index s), max torque 0x6072 [‰ of 0x6076] (limit in µN·m), following-error window
-  0x6065 [counts] (0xFFFFFFFF: check off), the control structure 0x2110:4 (0 PD, 1 cascade)
+  0x6065 [counts] (0xFFFFFFFF: check off) and its time-out 0x6066 [ms] (whole control periods:
+  the error must stay outside the window longer than it), the control structure 0x2110:4 (0 PD, 1 cascade)
   and the cascade's gains 0x60FB:1–3 (position P Q16 1/s, velocity and torque feed-forward Q16)
   and 0x60F9:1/2 (velocity PI; the I gain is kept per control period, Kvi · Ts).  They cannot
   change while a trial is armed or running (abort 0x08000022).
@@ -141,6 +142,7 @@ class ObjectHooks:
         self._set_period(int(v[(Obj.CONTROL_PERIOD, 0)]))
         self._set_max_torque(int(v[(Obj.MAX_TORQUE, 0)]))
         self._set_fe_window(int(v[(Obj.FOLLOWING_ERROR_WINDOW, 0)]))
+        self._set_fe_time_out()
         for psub in PositionControlSub:
             self._set_position_control(psub, int(v[(Obj.POSITION_CONTROL, psub)]))
         self._st[control_law.P_KVP] = int(v[(Obj.VELOCITY_CONTROL, VelocityControlSub.KVP)])
@@ -187,6 +189,9 @@ class ObjectHooks:
         w[(Obj.CONTROLWORD, 0)] = self._write_controlword
         w[(Obj.MODES_OF_OPERATION, 0)] = lambda v: self._motion.select(int(v))
         w[(Obj.FOLLOWING_ERROR_WINDOW, 0)] = self._parameter_hook("the following-error window", self._set_fe_window)
+        w[(Obj.FOLLOWING_ERROR_TIME_OUT, 0)] = self._parameter_hook(
+            "the following-error time-out", lambda ms: self._set_fe_time_out(time_out_ms=ms)
+        )
         w[(Obj.MAX_TORQUE, 0)] = self._parameter_hook("the max torque", self._set_max_torque)
         w[(Obj.TABLE, TableSub.LENGTH)] = lambda v: trial.write_length(int(v))
         for sub in GainsSub:
@@ -277,6 +282,13 @@ class ObjectHooks:
         period = int(v[(Obj.CONTROL_PERIOD, 0)]) if period_us is None else period_us
         self._st[control_law.P_KVI] = fp.ki_per_tick_q16(ki, period)
 
+    def _set_fe_time_out(self, time_out_ms: int | None = None, period_us: int | None = None) -> None:
+        """0x6066 [ms] as whole control periods: a following error longer than it is a fault."""
+        v = self._values
+        ms = int(v[(Obj.FOLLOWING_ERROR_TIME_OUT, 0)]) if time_out_ms is None else time_out_ms
+        period = int(v[(Obj.CONTROL_PERIOD, 0)]) if period_us is None else period_us
+        self._st[control_law.P_FE_TICKS] = ms * 1000 // period
+
     def _set_fe_window(self, value: int) -> None:
         self._st[control_law.P_FE_WINDOW] = -1 if value == _FE_WINDOW_OFF else value
 
@@ -286,6 +298,7 @@ class ObjectHooks:
     def _set_period(self, period_us: int) -> None:
         self._st[control_law.P_RATE] = fp.rate_q12_from_period_us(period_us)
         self._set_kvi(period_us=period_us)
+        self._set_fe_time_out(period_us=period_us)
 
     def _period_repr(self) -> tuple[int, int]:
         return period_repr(int(self._values[(Obj.CONTROL_PERIOD, 0)]))

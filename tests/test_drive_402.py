@@ -85,9 +85,17 @@ def test_pp_move_ends_exactly_on_the_target_along_the_integer_profile() -> None:
         actuals.append(rd(d, Obj.POSITION_ACTUAL, 0, "i32"))
     assert demands == expected
     assert actuals == [1000, *expected[:-1]]  # tick n+1 is at the demand of tick n
-    assert demands[-1] == 31_000 and d.statusword & 0x0400  # target reached
+    # the demand is on the target, the actual position one cycle behind but inside the 30-count
+    # position window: target reached only once it has stayed there for 0x6068 (CiA 402: from the
+    # actual position), here 10 cycles counting this one
+    assert demands[-1] == 31_000 and abs(actuals[-1] - 31_000) <= 30 and not d.statusword & 0x0400
+    window_ms = rd(d, Obj.POSITION_WINDOW_TIME, 0, "u16")
     plant.step(d)
     assert rd(d, Obj.POSITION_ACTUAL, 0, "i32") == 31_000 and plant.step(d) == 0  # there, no torque
+    plant.run(d, window_ms - 4)  # in the window for 0x6068 - 1 cycles: not yet
+    assert not d.statusword & 0x0400
+    plant.step(d)
+    assert d.statusword & 0x0400  # in the window for 0x6068: target reached
     steps = [b - a for a, b in zip([1000, *expected], expected)]
     assert max(steps) == 200 and all(s >= 0 for s in steps)  # profile velocity, no reversal
     # the continuous trapezoid: 30 000 / 200 + 200 / (2·4) + 200 / (2·2) = 225 cycles

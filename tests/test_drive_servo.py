@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 import pytest
-from drive402_util import rd, wr
+from drive402_util import echo_drive, rd, wr
 from robot_util import plant_factory
 
 from bus import fixedpoint as fp
@@ -148,3 +148,57 @@ def test_cascade_arithmetic_and_anti_windup_by_clamping() -> None:
     tables[control_law.ROW_REF_POS, 0] = 0  # the demand comes back: the torque falls at once
     tau, _ = control_law.control_tick(0, 0, -1, st, tables, rec)
     assert tau < limit
+
+
+# ------------------------------------------------------------------ CiA 402 windows
+
+
+def _setpoint(d: Drive, target: int) -> None:
+    wr(d, Obj.TARGET_POSITION, 0, "i32", target)
+    wr(d, Obj.CONTROLWORD, 0, "u16", 0x0F)
+    wr(d, Obj.CONTROLWORD, 0, "u16", 0x1F)
+
+
+def test_pp_target_reached_only_inside_the_position_window_for_its_time() -> None:
+    """Bit 10 from the ACTUAL position: the actual pushed out of 0x6067 clears it at once; back in,
+    it returns after 0x6068; with 0x6067 = 0xFFFFFFFF it follows the demand."""
+    d, plant = echo_drive(mode=1, start=0)
+    wr(d, Obj.POSITION_WINDOW, 0, "u32", 20)
+    wr(d, Obj.POSITION_WINDOW_TIME, 0, "u16", 5)
+    _setpoint(d, 300)
+    plant.run(d, 100)
+    assert plant.count == 300 and d.statusword & 0x0400
+    plant.count += 21  # pushed outside the window (the echo plant then holds it there for a tick)
+    plant.step(d)
+    assert not d.statusword & 0x0400
+    plant.count = 300 + 20  # back inside (at its edge)
+    reached = []
+    for _ in range(6):
+        d.io_tick(plant.tick, plant.count)  # held at the edge of the window
+        plant.tick += 1
+        reached.append(bool(d.statusword & 0x0400))
+    assert reached == [False, False, False, False, True, True]  # 5 ms = 5 cycles in the window
+    wr(d, Obj.POSITION_WINDOW, 0, "u32", 0xFFFFFFFF)  # the window off: the demand decides
+    d.io_tick(plant.tick, 300 + 1000)
+    assert d.statusword & 0x0400
+
+
+def test_following_error_time_out_then_fault() -> None:
+    """|e| above 0x6065: statusword bit 13 while it lasts up to 0x6066, a fault (0x8611) after."""
+    d, plant = echo_drive(mode=8, start=0)
+    wr(d, Obj.FOLLOWING_ERROR_WINDOW, 0, "u32", 50)
+    wr(d, Obj.FOLLOWING_ERROR_TIME_OUT, 0, "u16", 3)  # ms = 3 control cycles
+    wr(d, Obj.TARGET_POSITION, 0, "i32", 100)
+    for _ in range(3):  # the joint does not follow: 100 counts off, for 3 cycles tolerated
+        d.io_tick(plant.tick, 0)
+        plant.tick += 1
+        assert d.torque_enabled and d.statusword & 0x2000
+    d.io_tick(plant.tick, 0)
+    assert not d.torque_enabled
+    assert [e[0] for e in d.pop_emcy()][-1] == 0x8611
+    # 0x6066 = 0: a fault on the first cycle outside the window (as before the time-out existed)
+    d, plant = echo_drive(mode=8, start=0)
+    wr(d, Obj.FOLLOWING_ERROR_WINDOW, 0, "u32", 50)
+    wr(d, Obj.TARGET_POSITION, 0, "i32", 100)
+    d.io_tick(plant.tick, 0)
+    assert not d.torque_enabled
