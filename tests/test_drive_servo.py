@@ -1,4 +1,4 @@
-"""The drive as a servo drive (issue 35, item 3): the cascade of robot mode holds the robot.
+"""The drive as a servo drive: the cascade of robot mode holds the robot.
 
 In one process: four drives of a SYNC-stepped plant (robot mode, :meth:`Drive.step_on_sync`) on
 the robot's plant (:class:`plant.mechanics.Mechanics` at its home pose), CSP by SDO, one SYNC
@@ -26,7 +26,7 @@ from firmware_model import control_law
 from firmware_model.drive import Drive
 from plant.mechanics import Mechanics
 
-#: the hold requirement of issue 35 [counts]
+#: the hold requirement [counts]: 0.001°
 HOLD_COUNTS = 30
 MOVE_MS = 500
 HOLD_MS = 200
