@@ -414,6 +414,13 @@ def test_cob_id_objects_refuse_the_restricted_can_ids() -> None:
     assert rd(d2, Obj.COB_ID_EMCY, 0, "u32") == PDO_NOT_VALID | 0x82
 
 
+def test_a_mapping_of_more_than_8_objects_is_a_value_too_high() -> None:
+    """docs/canopen-objects.md §10: sub 0 above the EDS HighLimit 8 is 0x06090031."""
+    d = Drive(NODE)
+    for index in (0x1600, 0x1A00):
+        assert abort(wr, d, index, 0, "u8", 9) == AbortCode.VALUE_TOO_HIGH
+
+
 def test_vendor_id_is_the_documented_one() -> None:
     from bus.objects import PRODUCT_CODE, REVISION_NUMBER, VENDOR_ID
 

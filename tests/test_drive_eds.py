@@ -58,8 +58,6 @@ LIMIT_REFUSED: dict[tuple[int, int, int], int] = {
     (Obj.INTERPOLATION_PERIOD, 2, -6): AbortCode.VALUE_RANGE,  # 1 µs: below 0x2300's 100 µs
     (Obj.TRIAL, 1, 1): AbortCode.DEVICE_STATE,  # arming needs the tables
     **{(index, 0, 8): AbortCode.NO_OBJECT for index in _MAPPINGS},  # 8 entries, all empty
-    # CiA 301 gives sub 0 the range 0..0x40; more than 8 objects exceed the PDO's 64 bits
-    **{(index, 0, 0x40): AbortCode.PDO_LENGTH for index in _MAPPINGS},
 }
 
 
