@@ -164,7 +164,7 @@ class ProfilePositionMode(_ProfileMode):
             return False
         if int(self.values[_POSITION_WINDOW]) == _WINDOW_OFF:
             return True
-        return self._in_window_us >= int(self.values[_POSITION_WINDOW_TIME]) * 1000
+        return self._in_window_us > 0 and self._in_window_us >= int(self.values[_POSITION_WINDOW_TIME]) * 1000
 
     def status_bits(self) -> int:
         following = _FOLLOWING_ERROR if int(self.st[_S_FE_COUNT]) > 0 else 0

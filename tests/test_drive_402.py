@@ -74,6 +74,8 @@ def test_pp_move_ends_exactly_on_the_target_along_the_integer_profile() -> None:
     wr(d, Obj.PROFILE_VELOCITY, 0, "u32", 200_000)  # counts/s: 200 counts per 1 ms cycle
     wr(d, Obj.PROFILE_ACCELERATION, 0, "u32", 4_000_000)  # 4 counts/cycle²
     wr(d, Obj.PROFILE_DECELERATION, 0, "u32", 2_000_000)
+    window_ms = 10
+    wr(d, Obj.POSITION_WINDOW_TIME, 0, "u16", window_ms)  # (the default 0: reached on entering the window)
     assert d.statusword == 0x0637  # enabled, target reached (bit 10), no acknowledge
     new_setpoint(d, 31_000)
     assert d.statusword & 0x1400 == 0x1000  # acknowledged, target not reached
@@ -87,9 +89,8 @@ def test_pp_move_ends_exactly_on_the_target_along_the_integer_profile() -> None:
     assert actuals == [1000, *expected[:-1]]  # tick n+1 is at the demand of tick n
     # the demand is on the target, the actual position one cycle behind but inside the 30-count
     # position window: target reached only once it has stayed there for 0x6068 (CiA 402: from the
-    # actual position), here 10 cycles counting this one
+    # actual position), here 10 ms = 10 cycles counting this one
     assert demands[-1] == 31_000 and abs(actuals[-1] - 31_000) <= 30 and not d.statusword & 0x0400
-    window_ms = rd(d, Obj.POSITION_WINDOW_TIME, 0, "u16")
     plant.step(d)
     assert rd(d, Obj.POSITION_ACTUAL, 0, "i32") == 31_000 and plant.step(d) == 0  # there, no torque
     plant.run(d, window_ms - 4)  # in the window for 0x6068 - 1 cycles: not yet
