@@ -202,3 +202,32 @@ def test_following_error_time_out_then_fault() -> None:
     wr(d, Obj.TARGET_POSITION, 0, "i32", 100)
     d.io_tick(plant.tick, 0)
     assert not d.torque_enabled
+
+
+def test_cascade_matches_its_float_twin_within_the_bound_of_its_formats() -> None:
+    """The fixed-point cascade against :class:`firmware_twin.CascadeTwin` (the reference of a C
+    port) on a random unsaturated run: per tick the velocity error differs by at most 1 count/s
+    (two roundings of v_cmd), so the torque by Kvp·1 + 1 µN·m and the integrator by Kvi·1 per tick
+    plus the quantisation of Kvi·Ts (half a Q16 LSB) times the errors integrated."""
+    from firmware_twin import CascadeParams, CascadeTwin
+
+    kpp, kvff, ktff, kvp, kvi_tick = 80 << 16, 60000, 70000, 2356194, fp.ki_per_tick_q16(235619400, 1000)
+    limit = 10**12  # never reached here: the unsaturated law
+    st = _cascade_state(kvp=kvp, kvi_tick=kvi_tick, kpp=kpp, limit=limit)
+    st[control_law.P_KVFF], st[control_law.P_KTFF] = kvff, ktff
+    q = 1 << 16
+    twin = CascadeTwin(CascadeParams(kpp / q, kvff / q, ktff / q, kvp / q, kvi_tick / q, 1000.0, float(limit)))
+    rng = np.random.default_rng(35)
+    tables, rec = control_law.new_tables(1), control_law.new_recorder(1)
+    count, sum_ev, n = 0, 0.0, 300
+    for k in range(n):
+        ref_pos = int(2000 * math.sin(k / 30))
+        ref_vel = int(2000 * math.cos(k / 30) * 1000 / 30)
+        ff = int(rng.integers(-50_000, 50_000))
+        tables[:, 0] = ref_pos, ref_vel, ff
+        tau, _ = control_law.control_tick(count, 0, -1, st, tables, rec)
+        tau_twin = twin.step(count, ref_pos, ref_vel, ff)
+        sum_ev += abs(int(st[control_law.S_VCMD]) - int(st[control_law.S_VEST]))
+        bound = kvp / q * 1.0 + 1.0 + (k + 1) * kvi_tick / q * 1.0 + 0.5 / q * sum_ev + 1.0
+        assert abs(tau - tau_twin) <= bound, (k, tau, tau_twin, bound)
+        count += int(rng.integers(-40, 41)) + (ref_pos - count) // 4  # a plant that roughly follows
