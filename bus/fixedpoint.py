@@ -32,6 +32,12 @@ torque limit                int64         µN·m = 0x6072 [‰] · 0x6076 [mN·m
 torque actual 0x6077        int16         per-thousand of 0x6076                round(τ_µNm / rated_mNm)
 following error window      uint32        counts (0xFFFFFFFF = off)             ``* RAD_PER_COUNT`` rad
 control period              uint32        µs (object 0x2300)                    1000 µs = 1 kHz
+cascade: position gain Kpp  int32 >= 0    (counts/s) per count, Q16 (``GAIN_Q``)  1/s; 0x60FB:1
+cascade: feed-forward gains int32 >= 0    Q16 (``GAIN_Q``), 65536 = 1.0         velocity 0x60FB:2, torque 0x60FB:3
+cascade: velocity P Kvp     int32 >= 0    µN·m per (count/s), Q16               as Kd; 0x60F9:1
+cascade: velocity I Kvi     int32 >= 0    µN·m per (count/s) per s, Q16         0x60F9:2; per period: Kvi·Ts, nearest
+cascade: velocity command   int64->int32  counts/s, saturated                   rshift_round(Kpp·e, 16) + v_ff
+cascade: integrator         int64         µN·m, Q16, clamped to +-limit·2^16    sum of Kvi_tick·ė_v
 profile position demand     int64         counts, Q16 (``PROFILE_Q``)           LSB 1/65536 count; int32 counts · 2^16
 profile velocity            int64         counts/tick, Q16                      0x6081 [counts/s] · Ts · 2^16, nearest
 profile accel./decel.       int64         counts/tick², Q16 (>= 1)              0x6083/4/5 [counts/s²] · Ts² · 2^16, nearest
@@ -45,6 +51,19 @@ Control law of one tick (the float twin in tests/firmware_twin.py is the same in
     e       = sat32(ref_pos[n] - count);  ė = sat32(ref_vel[n] - v_est)
     fb      = sat32(rshift_round(Kp_q16 · e + Kd_q16 · ė, 16))        (µN·m)
     τ       = clamp(sat32(fb + ff[n]), -limit, +limit)                (µN·m)
+
+Cascade (0x2110:4 = 1; the step is the same function, the PD lines replaced)::
+
+    ff      = sat32(rshift_round(Ktff_q16 · ff[n], 16))                      (µN·m)
+    v_cmd   = sat32(rshift_round(Kpp_q16 · e, 16) + rshift_round(Kvff_q16 · ref_vel[n], 16))
+    ė_v     = sat32(v_cmd - v_est)                                          (counts/s)
+    I'      = sat(I + Kvi_tick_q16 · ė_v, -limit·2^16, +limit·2^16)          (µN·m Q16)
+    u       = rshift_round(Kvp_q16 · ė_v + I', 16) + ff
+    I       = I' unless (u > limit and ė_v > 0) or (u < -limit and ė_v < 0)  (anti-windup: clamping)
+    fb      = sat32(rshift_round(Kvp_q16 · ė_v + I, 16));  τ = clamp(sat32(fb + ff), ±limit)
+
+    Kvi_tick_q16 = (Kvi_q16 · period_us + 500 000) // 1 000 000   (nearest, computed when 0x60F9:2
+    or the period is written).  Every product is below 2^62 and |I| <= 2^47: no int64 overflow.
 
 Resolution (why these formats do not limit learning): one torque LSB (1 µN·m) moves the
 steady-state position through Kp >= 100 N·m/rad by <= 1e-8 rad = 0.017 encoder counts; the
@@ -83,6 +102,8 @@ KP_Q: int = 16
 KD_Q: int = 16
 #: Q of the PD accumulator (= KP_Q = KD_Q, one shift for the sum)
 ACC_Q: int = 16
+#: Q of the cascade's position gain (counts/s per count) and feed-forward gains (1.0 = 65536)
+GAIN_Q: int = 16
 #: Q of the velocity filter coefficient (1.0 = 32768 = unfiltered)
 VEL_FILTER_Q: int = 15
 VEL_FILTER_ONE: int = 1 << VEL_FILTER_Q
@@ -219,6 +240,12 @@ def rate_q12_from_period_us(period_us: int) -> int:
         raise FixedPointRangeError(f"control period must be > 0 µs, got {period_us}")
     num = 1_000_000 << RATE_Q
     return (2 * num + period_us) // (2 * period_us)  # nearest, exact for divisors of 1 s
+
+
+def ki_per_tick_q16(ki_q16: int, period_us: int) -> int:
+    """The velocity loop's integral gain per control period, Q16 µN·m/(count/s): ``Kvi · Ts``,
+    nearest (``ki_q16`` >= 0 [Q16 µN·m/(count/s)/s], ``period_us`` > 0)."""
+    return (ki_q16 * period_us + 500_000) // 1_000_000
 
 
 def per_tick_q16(value: int, period_us: int, power: int) -> int:

@@ -19,6 +19,7 @@ index   sub  name                      type     meaning / unit
 0x2110  1    Kp                        I32      Q16 µN·m/count (bus.fixedpoint)
 0x2110  2    Kd                        I32      Q16 µN·m/(count/s)
 0x2110  3    velocity filter coeff.    U16      Q15, 1..32768 (32768 = unfiltered)
+0x2110  4    control structure         U8       0 PD, 1 cascade (0x60FB, 0x60F9)
 0x2120  1    trial command             U8       wo: 1 = arm, 0 = disarm/abort
 0x2120  2    trial state               U8       ro: :class:`TrialState`
 0x2120  3    trial tick count          U32      ro: ticks played in this trial
@@ -82,6 +83,9 @@ class Obj(IntEnum):
     POSITION_DEMAND = 0x6062  # I32 counts: the position set-point of the last control cycle
     POSITION_ACTUAL = 0x6064
     FOLLOWING_ERROR_WINDOW = 0x6065
+    FOLLOWING_ERROR_TIME_OUT = 0x6066  # U16 ms
+    POSITION_WINDOW = 0x6067  # U32 counts (0xFFFFFFFF: off)
+    POSITION_WINDOW_TIME = 0x6068  # U16 ms
     VELOCITY_ACTUAL = 0x606C
     TARGET_TORQUE = 0x6071  # I16, per thousand of 0x6076 (CST)
     MAX_TORQUE = 0x6072
@@ -96,6 +100,8 @@ class Obj(IntEnum):
     HOMING_METHOD = 0x6098  # I8: 35 or 37 (on the current position)
     TORQUE_OFFSET = 0x60B2  # I16, per thousand of 0x6076 (CSP/CSV/CST feed-forward)
     INTERPOLATION_PERIOD = 0x60C2
+    VELOCITY_CONTROL = 0x60F9  # velocity control parameter set (the cascade's velocity PI)
+    POSITION_CONTROL = 0x60FB  # position control parameter set (the cascade's position P, feed-forward)
     TARGET_VELOCITY = 0x60FF  # I32 counts/s (CSV)
     SUPPORTED_DRIVE_MODES = 0x6502
     # manufacturer
@@ -125,6 +131,29 @@ class GainsSub(IntEnum):
     KP = 1
     KD = 2
     VEL_FILTER = 3
+    LOOP = 4  # U8: :class:`LoopStructure`
+
+
+class LoopStructure(IntEnum):
+    """0x2110:4: the drive's feedback (firmware_model.control_law)."""
+
+    PD = 0  # 0x2110:1/2, the paper's loop (the ILC experiments)
+    CASCADE = 1  # position P → velocity PI → torque (0x60FB, 0x60F9); robot mode
+
+
+class VelocityControlSub(IntEnum):
+    """0x60F9 velocity control parameter set."""
+
+    KVP = 1  # I32 Q16 µN·m/(count/s)
+    KVI = 2  # I32 Q16 µN·m/(count/s)/s
+
+
+class PositionControlSub(IntEnum):
+    """0x60FB position control parameter set."""
+
+    KPP = 1  # I32 Q16 (counts/s)/count
+    VELOCITY_FF = 2  # I32 Q16, 65536 = 1.0
+    TORQUE_FF = 3  # I32 Q16, 65536 = 1.0
 
 
 class TrialSub(IntEnum):
@@ -292,7 +321,7 @@ class Statusword(IntFlag):
     FOLLOWS_COMMAND = 0x1000  # cyclic synchronous modes
     SETPOINT_ACKNOWLEDGE = 0x1000  # profile position
     HOMING_ATTAINED = 0x1000  # homing
-    FOLLOWING_ERROR = 0x2000  # profile position (the drive faults instead: always 0)
+    FOLLOWING_ERROR = 0x2000  # PP, CSP: |e| > 0x6065, not yet longer than 0x6066 (then a fault)
 
 
 class Cia402State(IntEnum):

@@ -1,9 +1,20 @@
 """The drive's per-tick fixed-point control law (numba kernel on integer arrays).
 
 Owns the arithmetic of one control tick: velocity estimate by difference plus a
-first-order IIR filter, PD feedback with Q16 gains in a 64-bit accumulator, the
-feed-forward table value, the torque clamp, the following-error check and the
-recorder write.  Every format is defined in :mod:`bus.fixedpoint` (the integer
+first-order IIR filter, the feedback -- one of two structures, ``P_LOOP``:
+
+* ``LOOP_PD`` (0, the paper's loop and the default of the ILC experiments): PD with Q16 gains
+  in a 64-bit accumulator (0x2110:1/2);
+* ``LOOP_CASCADE`` (1, a servo drive's cascade, the default of robot mode): position loop P
+  (0x60FB:1) with velocity feed-forward (0x60FB:2) → velocity loop PI (0x60F9:1/2) with
+  anti-windup by *clamping* (conditional integration: the integrator holds while the torque is
+  at its limit and the velocity error would drive it further; it is also bounded by the limit)
+  → torque, plus the torque feed-forward (0x60FB:3);
+
+the feed-forward table value, the torque clamp, the following-error check and the
+recorder write.  The step is one function with explicit inputs and outputs per period
+(:func:`control_tick`: encoder count, set-points, the ``st`` vector in, torque and status out).
+Every format is defined in :mod:`bus.fixedpoint` (the integer
 helpers used here are compiled from there, so they exist once).  The Python glue lives
 beside it: the operation modes that call the kernel (:mod:`firmware_model.modes`), the tick
 sequence, tables and recorder (:mod:`firmware_model.playback`), the parameter objects
@@ -61,7 +72,21 @@ S_TAU = 11  #: last torque command, µN·m
 S_TAU_FB = 12  #: last feedback torque, µN·m
 S_ERR = 13  #: last position error, counts
 S_LIMITED = 14  #: 1 when the last torque was clamped
-N_STATE = 16
+P_LOOP = 15  #: feedback structure: LOOP_PD or LOOP_CASCADE
+P_KPP = 16  #: position loop gain, Q16 (counts/s)/count (cascade)
+P_KVFF = 17  #: velocity feed-forward gain, Q16 (65536 = 1.0) (cascade)
+P_KTFF = 18  #: torque feed-forward gain, Q16 (65536 = 1.0) (cascade)
+P_KVP = 19  #: velocity loop P gain, Q16 µN·m/(count/s) (cascade)
+P_KVI = 20  #: velocity loop I gain per control period, Q16 µN·m/(count/s) (cascade)
+S_VINT = 21  #: velocity loop integrator, µN·m Q16 (cascade), |.| <= torque limit
+S_VCMD = 22  #: last velocity command of the position loop, counts/s (cascade)
+P_FE_TICKS = 23  #: following-error time-out, control periods (0x6066 · 1000 // 0x2300)
+S_FE_COUNT = 24  #: control periods in a row with |e| above the following-error window
+N_STATE = 26
+
+#: P_LOOP values
+LOOP_PD = 0
+LOOP_CASCADE = 1
 
 ROW_REF_POS = 0
 ROW_REF_VEL = 1
@@ -87,6 +112,8 @@ def new_state() -> npt.NDArray[np.int64]:
     st[P_ALPHA] = fp.VEL_FILTER_ONE
     st[P_RATE] = fp.rate_q12_from_period_us(1000)
     st[P_FE_WINDOW] = -1
+    st[P_KVFF] = 1 << fp.GAIN_Q
+    st[P_KTFF] = 1 << fp.GAIN_Q
     return st
 
 
@@ -118,8 +145,9 @@ def control_tick(
     :param tables: reference position/velocity and feed-forward tables.
     :param rec: recorder planes (written at ``rec_idx``).
 
-    Status ``STATUS_FOLLOWING_ERROR`` means |e| exceeded the window; the caller removes
-    torque.  Velocity: with no previous count (first tick after enable or trial start)
+    Status ``STATUS_FOLLOWING_ERROR`` means |e| exceeded the window for more than ``P_FE_TICKS``
+    periods in a row (0x6066 following error time-out; 0: at once); the caller removes torque.
+    Velocity: with no previous count (first tick after enable or trial start)
     the raw velocity is taken equal to the filter state, i.e. the estimate is held.
     """
     c = _sat32(count)
@@ -133,11 +161,28 @@ def control_tick(
     v_est = _sat32(_rshift_round(vf, fp.VEL_STATE_Q))
 
     e = _sat32(np.int64(tables[ROW_REF_POS, idx]) - c)
-    ed = _sat32(np.int64(tables[ROW_REF_VEL, idx]) - v_est)
-    acc = st[P_KP] * e + st[P_KD] * ed  # each < 2^62, sum < 2^63 - 2^32
-    fb = _sat32(_rshift_round(acc, fp.ACC_Q))
-    tau = _sat32(fb + np.int64(tables[ROW_FF, idx]))
     lim = st[P_TLIM]
+    if st[P_LOOP] == LOOP_CASCADE:
+        ff = _sat32(_rshift_round(st[P_KTFF] * np.int64(tables[ROW_FF, idx]), fp.GAIN_Q))
+        v_ff = _rshift_round(st[P_KVFF] * np.int64(tables[ROW_REF_VEL, idx]), fp.GAIN_Q)
+        v_cmd = _sat32(_rshift_round(st[P_KPP] * e, fp.GAIN_Q) + v_ff)
+        ev = _sat32(v_cmd - v_est)
+        p_term = st[P_KVP] * ev  # < 2^62
+        vint = st[S_VINT]
+        trial_int = _sat(vint + st[P_KVI] * ev, -(lim << fp.ACC_Q), lim << fp.ACC_Q)
+        u = _rshift_round(p_term + trial_int, fp.ACC_Q) + ff
+        # anti-windup (clamping): integrate unless the torque saturates and ev pushes it further
+        if not ((u > lim and ev > 0) or (u < -lim and ev < 0)):
+            vint = trial_int
+        fb = _sat32(_rshift_round(p_term + vint, fp.ACC_Q))
+        tau = _sat32(fb + ff)
+        st[S_VINT] = vint
+        st[S_VCMD] = v_cmd
+    else:
+        ed = _sat32(np.int64(tables[ROW_REF_VEL, idx]) - v_est)
+        acc = st[P_KP] * e + st[P_KD] * ed  # each < 2^62, sum < 2^63 - 2^32
+        fb = _sat32(_rshift_round(acc, fp.ACC_Q))
+        tau = _sat32(fb + np.int64(tables[ROW_FF, idx]))
     limited = 0
     if tau > lim:
         tau = lim
@@ -162,7 +207,11 @@ def control_tick(
         rec[REC_TAU_FB, rec_idx] = fb
     window = st[P_FE_WINDOW]
     if window >= 0 and (e > window or -e > window):
-        return tau, STATUS_FOLLOWING_ERROR
+        st[S_FE_COUNT] += 1
+        if st[S_FE_COUNT] > st[P_FE_TICKS]:
+            return tau, STATUS_FOLLOWING_ERROR
+    else:
+        st[S_FE_COUNT] = 0
     return tau, STATUS_OK
 
 

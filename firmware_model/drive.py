@@ -30,7 +30,9 @@ read :attr:`Drive.clock` [s].  By default it is the drive's *lockstep time*
 integer count of µs -- deterministic, the same in every run); the node runtime may give the
 monotonic clock instead (:class:`firmware_model.drive_node.DriveNode`), or make it a drive of a
 SYNC-stepped plant (:meth:`Drive.step_on_sync`, ``ilcrig robot``): lockstep time for the timers of
-the control cycle, the monotonic clock for the SYNC watchdog.  The per-period work is
+the control cycle, the monotonic clock for the SYNC watchdog; such a drive (robot mode) boots with the servo
+drive's cascade (0x2110:4 = 1, :data:`ROBOT_MODE_DEFAULTS`) where ``ilcrig sim``/``run`` keep the
+paper's PD loop.  The per-period work is
 :meth:`Drive.io_tick` followed by :meth:`Drive.service`.
 
 The CANopen protocol layer (SDO server, NMT frames, heartbeat, EMCY frames, PDO frames) is
@@ -48,10 +50,20 @@ from pathlib import Path
 from bus import fixedpoint as fp
 from bus.cia301.emcy import EmcyCode
 from bus.cia301.nmt import NmtCommand, NmtState
-from bus.cia301.object_store import ObjectStore
+from bus.cia301.object_store import Key, ObjectStore, Value
 from bus.cia301.storage import ParameterStorage
 from bus.errors import IlcrigError
-from bus.objects import DRIVE_EDS_PATH, Cia402State, FaultCause, Obj, TableSub, TrialState, TrialSub
+from bus.objects import (
+    DRIVE_EDS_PATH,
+    Cia402State,
+    FaultCause,
+    GainsSub,
+    LoopStructure,
+    Obj,
+    TableSub,
+    TrialState,
+    TrialSub,
+)
 from firmware_model import control_law
 from firmware_model.cyclic_pdo import CyclicPdo
 from firmware_model.modes import MotionContext
@@ -80,6 +92,11 @@ NOT_PARAMETERS = frozenset(
         (Obj.ERROR_HISTORY, 0),
     }
 )
+
+
+#: robot mode (:meth:`Drive.step_on_sync`, ``ilcrig robot``): the values it boots with where they
+#: differ from the EDS defaults -- a servo drive's cascade instead of the paper's PD loop
+ROBOT_MODE_DEFAULTS: dict[Key, Value] = {(Obj.GAINS, GainsSub.LOOP): int(LoopStructure.CASCADE)}
 
 
 class NmtCommandError(IlcrigError, ValueError):
@@ -119,6 +136,8 @@ class Drive:
         self.clock: Callable[[], float] = clock if clock is not None else self.lockstep_time_s
         #: a drive of a SYNC-stepped plant (:meth:`step_on_sync`)
         self.sync_stepped = False
+        #: the values this drive boots with over the EDS defaults (robot mode: ROBOT_MODE_DEFAULTS)
+        self.role_defaults: dict[Key, Value] = {}
         #: the plant runs a trial (its io control frames TRIAL_START … TRIAL_STOP): the plant paces
         #: those ticks, not SYNC
         self.plant_trial = False
@@ -166,6 +185,15 @@ class Drive:
         self.sync_stepped = self.pdo.sync_stepped = True
         self.clock = self.lockstep_time_s
         self.pdo.watch_clock = watch_clock
+        self.role_defaults = dict(ROBOT_MODE_DEFAULTS)
+        self._apply_role_defaults()
+        self.storage.restore(self.store, 0x2000, 0xFFFF)
+        self.objects.apply_parameters()
+
+    def _apply_role_defaults(self) -> None:
+        """The role's boot values (:attr:`role_defaults`) over the EDS defaults."""
+        for key, value in self.role_defaults.items():
+            self.store.values[key] = value
 
     def watch_deadline(self) -> float | None:
         """When the SYNC watchdog fires, on the clock given to :meth:`step_on_sync` [s] (None:
@@ -367,6 +395,7 @@ class Drive:
         """NMT reset node: the application objects 0x2000..0xFFFF (EDS defaults, then what 0x1010
         saved) and every part start afresh."""
         self.store.reset(0x2000, 0xFFFF)
+        self._apply_role_defaults()
         self.storage.restore(self.store, 0x2000, 0xFFFF)
         self.power.reset("nmt-reset_node")
         self.trial.reset()

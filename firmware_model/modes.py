@@ -14,7 +14,8 @@ error are faults of the power stage (:class:`FaultSink`).
   first tick after torque came on, velocity 0, no feed-forward; after a trial, the last entry).
   At tick 0 the velocity estimator starts at the reference velocity of sample 0 (the alignment
   assumption).
-* CSP (8, cyclic synchronous position): the PD loop closes on 0x607A target position; the
+* CSP (8, cyclic synchronous position; statusword bit 13 = following error within 0x6066): the
+  PD loop closes on 0x607A target position; the
   velocity reference is the backward difference of successive targets,
   ``(p[n] − p[n−1])·rate`` in the loop's Q12 arithmetic, rounded and saturated to int32 (0 on
   the first tick of a trial and after a mode change); the feed-forward is 0x60B2 torque offset
@@ -23,8 +24,11 @@ error are faults of the power stage (:class:`FaultSink`).
   [counts/s] in the profile generator's Q16 (:mod:`firmware_model.profile`; it starts at the
   actual position when torque comes on, the mode is selected or a trial starts); the PD loop
   closes on it with the velocity reference 0x60FF and the feed-forward 0x60B2.
-* CST (10, cyclic synchronous torque): torque = 0x6071 + 0x60B2 [‰ of 0x6076], no feedback and
-  no following-error check, clamped to 0x6072.
+* CST (10, cyclic synchronous torque): torque = 0x6071 + 0x60B2 [‰ of 0x6076], no feedback (in
+  either loop structure) and no following-error check, clamped to 0x6072.
+
+"The PD loop" below is the drive's feedback structure (0x2110:4): the PD loop of 0x2110:1/2, or the
+cascade of 0x60FB/0x60F9 (:mod:`firmware_model.control_law`).
 
 The cyclic modes (:attr:`OperationMode.CYCLIC`) are paced by SYNC while NMT OPERATIONAL
 (:mod:`firmware_model.cyclic_pdo`) and set statusword bit 12 ("drive follows the command
@@ -61,6 +65,7 @@ _TARGET_TORQUE = (Obj.TARGET_TORQUE, 0)
 _TORQUE_OFFSET = (Obj.TORQUE_OFFSET, 0)
 _TARGET_VELOCITY = (Obj.TARGET_VELOCITY, 0)
 _PERIOD = (Obj.CONTROL_PERIOD, 0)
+_P_LOOP = control_law.P_LOOP
 
 
 class FaultSink(Protocol):
@@ -149,6 +154,7 @@ class OperationMode(ABC):
         st = self.st
         st[_S_HAVE_PREV] = 0
         st[_S_VF] = self.initial_velocity() << fp.VEL_STATE_Q
+        st[control_law.S_VINT] = 0
         self.trial.start()
 
     def in_sequence(self, tick: int) -> bool:
@@ -262,6 +268,11 @@ class CspMode(CyclicSynchronousMode):
     def on_rehome(self, delta_counts: int) -> None:
         self._prev_target = None  # the next target is in the new coordinates
 
+    def status_bits(self) -> int:
+        """Bit 12, and bit 13 (following error) while |e| is above 0x6065, not yet for longer than
+        0x6066 (then it is a fault)."""
+        return self.STATUS_BITS | (0x2000 if int(self.st[control_law.S_FE_COUNT]) > 0 else 0)
+
     def demand(self) -> tuple[int, int]:
         sp = self._setpoint
         if self._prev_target is None:
@@ -309,8 +320,9 @@ class CstMode(CyclicSynchronousMode):
     def _control(self, encoder_count: int, rec_index: int) -> tuple[int, int]:
         st, sp = self.st, self._setpoint
         target_torque = int(self.values[_TARGET_TORQUE]) * self.rated_mnm
-        saved = int(st[_P_KP]), int(st[_P_KD]), int(st[_P_FE])
+        saved = int(st[_P_KP]), int(st[_P_KD]), int(st[_P_FE]), int(st[_P_LOOP])
         st[_P_KP] = st[_P_KD] = 0  # no feedback
+        st[_P_LOOP] = control_law.LOOP_PD  # (in either structure)
         st[_P_FE] = -1  # no following-error check
         sp[0, 0] = fp.sat32(encoder_count)
         sp[1, 0] = 0
@@ -318,4 +330,4 @@ class CstMode(CyclicSynchronousMode):
         try:
             return _CONTROL_TICK(encoder_count, 0, rec_index, st, sp, self.trial.rec)
         finally:
-            st[_P_KP], st[_P_KD], st[_P_FE] = saved
+            st[_P_KP], st[_P_KD], st[_P_FE], st[_P_LOOP] = saved

@@ -11,7 +11,8 @@ hooks act on a write and may refuse it with :class:`bus.errors.SdoAbort`:
 * 0x1003 error history (sub 0: number of errors, writing 0 clears, any other value 0x06090030;
   subs 1..8 the errors, newest first) → the power stage's history;
 * 0x1005 COB-ID SYNC: bit 30 (generate SYNC) and 29-bit identifiers are refused (0x06090030): the
-  drive consumes SYNC, it does not produce it; 0x1014 COB-ID EMCY: the rules of
+  drive consumes SYNC, it does not produce it, and a restricted CAN-ID of CiA 301 (Table 3) is refused
+  too (0x06090030); 0x1014 COB-ID EMCY: the rules of
   :func:`bus.cia301.emcy.check_emcy_cob_id` (0x06090030); 0x1019 synchronous counter overflow:
   only while 0x1006 is 0 (else 0x08000022, CiA 301), 1 is refused (0x06090030);
 * 0x605A quick stop option: 3, 4 (current / voltage limit) are refused (0x06090030); 0x6098
@@ -21,8 +22,11 @@ hooks act on a write and may refuse it with :class:`bus.errors.SdoAbort`:
   (:mod:`bus.fixedpoint`): gains 0x2110 (Kp Q16 µN·m/count, Kd Q16 µN·m/(count/s), velocity
   filter Q15), control period 0x2300 [µs] (tick rate Hz Q12) and its CiA 402 form 0x60C2
   (value · 10^index s), max torque 0x6072 [‰ of 0x6076] (limit in µN·m), following-error window
-  0x6065 [counts] (0xFFFFFFFF: check off).  They cannot change while a trial is armed or running
-  (abort 0x08000022).
+  0x6065 [counts] (0xFFFFFFFF: check off) and its time-out 0x6066 [ms] (whole control periods:
+  the error must stay outside the window longer than it), the control structure 0x2110:4 (0 PD, 1 cascade)
+  and the cascade's gains 0x60FB:1–3 (position P Q16 1/s, velocity and torque feed-forward Q16)
+  and 0x60F9:1/2 (velocity PI; the I gain is kept per control period, Kvi · Ts).  They cannot
+  change while a trial is armed or running (abort 0x08000022).
 """
 
 from __future__ import annotations
@@ -42,19 +46,31 @@ from bus.objects import (
     HomingMethod,
     InterpolationPeriodSub,
     Obj,
+    PositionControlSub,
     QuickStopOption,
     RecorderSub,
     TableSub,
     TrialCommand,
     TrialSub,
+    VelocityControlSub,
 )
-from bus.pdo_objects import PDO_EXTENDED, SYNC_PRODUCER
+from bus.pdo_objects import COB_ID_MASK_11, PDO_EXTENDED, SYNC_PRODUCER, is_restricted_can_id
 from firmware_model import control_law
 from firmware_model.motion import Motion
 from firmware_model.playback import TABLE_ROWS, TrialPlayback
 from firmware_model.power_stage import PowerStage
 
-_GAIN_SLOTS = {GainsSub.KP: control_law.P_KP, GainsSub.KD: control_law.P_KD, GainsSub.VEL_FILTER: control_law.P_ALPHA}
+_GAIN_SLOTS = {
+    GainsSub.KP: control_law.P_KP,
+    GainsSub.KD: control_law.P_KD,
+    GainsSub.VEL_FILTER: control_law.P_ALPHA,
+    GainsSub.LOOP: control_law.P_LOOP,
+}
+_POSITION_CONTROL_SLOTS = {
+    PositionControlSub.KPP: control_law.P_KPP,
+    PositionControlSub.VELOCITY_FF: control_law.P_KVFF,
+    PositionControlSub.TORQUE_FF: control_law.P_KTFF,
+}
 _FE_WINDOW_OFF = 0xFFFFFFFF
 _QUICK_STOP_OPTIONS = frozenset(int(o) for o in QuickStopOption)
 _HOMING_METHODS = frozenset(int(m) for m in HomingMethod)
@@ -126,6 +142,11 @@ class ObjectHooks:
         self._set_period(int(v[(Obj.CONTROL_PERIOD, 0)]))
         self._set_max_torque(int(v[(Obj.MAX_TORQUE, 0)]))
         self._set_fe_window(int(v[(Obj.FOLLOWING_ERROR_WINDOW, 0)]))
+        self._set_fe_time_out()
+        for psub in PositionControlSub:
+            self._set_position_control(psub, int(v[(Obj.POSITION_CONTROL, psub)]))
+        self._st[control_law.P_KVP] = int(v[(Obj.VELOCITY_CONTROL, VelocityControlSub.KVP)])
+        self._set_kvi()
 
     # ------------------------------------------------------------------ installation
 
@@ -168,10 +189,21 @@ class ObjectHooks:
         w[(Obj.CONTROLWORD, 0)] = self._write_controlword
         w[(Obj.MODES_OF_OPERATION, 0)] = lambda v: self._motion.select(int(v))
         w[(Obj.FOLLOWING_ERROR_WINDOW, 0)] = self._parameter_hook("the following-error window", self._set_fe_window)
+        w[(Obj.FOLLOWING_ERROR_TIME_OUT, 0)] = self._parameter_hook(
+            "the following-error time-out", lambda ms: self._set_fe_time_out(time_out_ms=ms)
+        )
         w[(Obj.MAX_TORQUE, 0)] = self._parameter_hook("the max torque", self._set_max_torque)
         w[(Obj.TABLE, TableSub.LENGTH)] = lambda v: trial.write_length(int(v))
         for sub in GainsSub:
             w[(Obj.GAINS, sub)] = self._parameter_hook("the gains", functools.partial(self._set_gain, sub))
+        for psub in PositionControlSub:
+            w[(Obj.POSITION_CONTROL, psub)] = self._parameter_hook(
+                "the position control parameters", functools.partial(self._set_position_control, psub)
+            )
+        w[(Obj.VELOCITY_CONTROL, VelocityControlSub.KVP)] = self._parameter_hook("the velocity loop gain", self._set_kvp)
+        w[(Obj.VELOCITY_CONTROL, VelocityControlSub.KVI)] = self._parameter_hook(
+            "the velocity loop integral gain", lambda ki: self._set_kvi(ki)
+        )
         w[(Obj.TRIAL, TrialSub.COMMAND)] = self._write_trial_command
         w[(Obj.CONTROL_PERIOD, 0)] = self._parameter_hook("the control period", self._set_period)
         w[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.VALUE)] = lambda v: self._write_interp(int(v), None)
@@ -196,6 +228,9 @@ class ObjectHooks:
             raise SdoAbort(AbortCode.VALUE_RANGE, "the drive consumes SYNC; it cannot produce it (0x1005 bit 30)")
         if v & PDO_EXTENDED or v & 0xDFFFF800:
             raise SdoAbort(AbortCode.VALUE_RANGE, f"COB-ID SYNC 0x{v:08X}: only an 11-bit identifier is supported")
+        if is_restricted_can_id(v & COB_ID_MASK_11):
+            can_id = v & COB_ID_MASK_11
+            raise SdoAbort(AbortCode.VALUE_RANGE, f"COB-ID SYNC 0x{v:08X}: CAN-ID 0x{can_id:03X} is restricted (CiA 301 Table 3)")
 
     def _write_emcy_cob_id(self, value: Value) -> None:
         try:
@@ -234,6 +269,26 @@ class ObjectHooks:
     def _set_gain(self, sub: GainsSub, value: int) -> None:
         self._st[_GAIN_SLOTS[sub]] = value
 
+    def _set_position_control(self, sub: PositionControlSub, value: int) -> None:
+        self._st[_POSITION_CONTROL_SLOTS[sub]] = value
+
+    def _set_kvp(self, value: int) -> None:
+        self._st[control_law.P_KVP] = value
+
+    def _set_kvi(self, ki_q16: int | None = None, period_us: int | None = None) -> None:
+        """The velocity loop's integral gain per control period (0x60F9:2 · 0x2300, nearest)."""
+        v = self._values
+        ki = int(v[(Obj.VELOCITY_CONTROL, VelocityControlSub.KVI)]) if ki_q16 is None else ki_q16
+        period = int(v[(Obj.CONTROL_PERIOD, 0)]) if period_us is None else period_us
+        self._st[control_law.P_KVI] = fp.ki_per_tick_q16(ki, period)
+
+    def _set_fe_time_out(self, time_out_ms: int | None = None, period_us: int | None = None) -> None:
+        """0x6066 [ms] as whole control periods: a following error longer than it is a fault."""
+        v = self._values
+        ms = int(v[(Obj.FOLLOWING_ERROR_TIME_OUT, 0)]) if time_out_ms is None else time_out_ms
+        period = int(v[(Obj.CONTROL_PERIOD, 0)]) if period_us is None else period_us
+        self._st[control_law.P_FE_TICKS] = ms * 1000 // period
+
     def _set_fe_window(self, value: int) -> None:
         self._st[control_law.P_FE_WINDOW] = -1 if value == _FE_WINDOW_OFF else value
 
@@ -242,6 +297,8 @@ class ObjectHooks:
 
     def _set_period(self, period_us: int) -> None:
         self._st[control_law.P_RATE] = fp.rate_q12_from_period_us(period_us)
+        self._set_kvi(period_us=period_us)
+        self._set_fe_time_out(period_us=period_us)
 
     def _period_repr(self) -> tuple[int, int]:
         return period_repr(int(self._values[(Obj.CONTROL_PERIOD, 0)]))

@@ -18,8 +18,11 @@ plays trials (0x2120 arming is refused).
   acceleration and 0x6084 profile deceleration [counts/s²], converted per control cycle with
   :func:`bus.fixedpoint.per_tick_q16`; it always ends exactly on the target;
 * bit 8 (halt) decelerates with 0x6084 to standstill and holds; clearing it resumes the move;
-* statusword bit 10 (target reached): the demand is on the target with no set-point waiting, or
-  halted at standstill.  Bit 13 (following error) stays 0: a following error is a fault here.
+* statusword bit 10 (target reached), CiA 402: the demand is on the target with no set-point
+  waiting and the *actual* position has been within 0x6067 position window [counts] of the target
+  for 0x6068 position window time [ms] (whole control periods; 0x6067 = 0xFFFFFFFF: the window is
+  off, bit 10 follows the demand), or halted at standstill.  Bit 13 (following error): |e| is
+  above 0x6065 but not yet for longer than 0x6066 (then it is a fault, 0x8611).
 * torque on, or the mode selected with torque on: the demand starts at the actual position,
   which is the target (reached).
 
@@ -58,8 +61,17 @@ _PROFILE_VELOCITY = (Obj.PROFILE_VELOCITY, 0)
 _PROFILE_ACCELERATION = (Obj.PROFILE_ACCELERATION, 0)
 _PROFILE_DECELERATION = (Obj.PROFILE_DECELERATION, 0)
 _HOME_OFFSET = (Obj.HOME_OFFSET, 0)
+_POSITION_WINDOW = (Obj.POSITION_WINDOW, 0)
+_POSITION_WINDOW_TIME = (Obj.POSITION_WINDOW_TIME, 0)
+_WINDOW_OFF = 0xFFFFFFFF
+_FOLLOWING_ERROR = int(Statusword.FOLLOWING_ERROR)
+_S_FE_COUNT = control_law.S_FE_COUNT
 _HOMING_METHOD = (Obj.HOMING_METHOD, 0)
 _CURRENT_POSITION_METHODS = frozenset(int(m) for m in HomingMethod)
+
+
+#: the in-window time that counts as "reached" whatever 0x6068 says (its maximum, 65 535 ms)
+_REACHED_NOW = 65_535_000
 
 
 class _ProfileMode(OperationMode):
@@ -110,6 +122,7 @@ class ProfilePositionMode(_ProfileMode):
         self.ack = False
         self._bit4 = False
         self._halt = False
+        self._in_window_us = 0  #: how long the actual position has been in the position window [µs]
 
     def on_enable(self) -> None:
         here = int(self.st[_S_POS])
@@ -118,6 +131,7 @@ class ProfilePositionMode(_ProfileMode):
         self.moving = False
         self.buffered = None
         self.ack = False
+        self._in_window_us = _REACHED_NOW  # the actual position is the target
 
     def on_rehome(self, delta_counts: int) -> None:
         self.target = fp.sat32(self.target + delta_counts)
@@ -146,10 +160,23 @@ class ProfilePositionMode(_ProfileMode):
     def target_reached(self) -> bool:
         if self._halt:
             return self.gen.standstill
-        return not self.moving and self.buffered is None
+        if self.moving or self.buffered is not None:
+            return False
+        if int(self.values[_POSITION_WINDOW]) == _WINDOW_OFF:
+            return True
+        return self._in_window_us > 0 and self._in_window_us >= int(self.values[_POSITION_WINDOW_TIME]) * 1000
 
     def status_bits(self) -> int:
-        return (_REACHED if self.target_reached else 0) | (_ACK if self.ack else 0)
+        following = _FOLLOWING_ERROR if int(self.st[_S_FE_COUNT]) > 0 else 0
+        return (_REACHED if self.target_reached else 0) | (_ACK if self.ack else 0) | following
+
+    def _track_window(self) -> None:
+        """After a tick: how long the actual position has stayed in the position window."""
+        window = int(self.values[_POSITION_WINDOW])
+        if self.moving or self.buffered is not None or abs(self.target - int(self.st[_S_POS])) > window:
+            self._in_window_us = 0
+        else:
+            self._in_window_us = min(self._in_window_us + self.period_us(), _REACHED_NOW)
 
     def tick(self, tick: int, encoder_count: int) -> int:
         v_max, acc, dec = self._rates()
@@ -163,7 +190,9 @@ class ProfilePositionMode(_ProfileMode):
                     self.ack = False
             else:
                 self.moving = False
-        return self._follow(encoder_count)
+        tau = self._follow(encoder_count)
+        self._track_window()
+        return tau
 
 
 class HomingMode(_ProfileMode):

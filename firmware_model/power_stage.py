@@ -270,6 +270,8 @@ class PowerStage:
             st[control_law.S_VF] = 0
             st[control_law.S_VEST] = 0
             st[control_law.S_ERR] = 0
+            st[control_law.S_VINT] = 0
+            st[control_law.S_FE_COUNT] = 0
             trial.on_torque_on()
             if self.motion is not None:
                 self.motion.on_torque_on()

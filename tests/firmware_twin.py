@@ -3,8 +3,8 @@
 Owns the reference implementation the fixed-point kernel
 (:func:`firmware_model.control_law.control_tick`) is checked against: the same law, in the
 same units (counts, counts/s, µN·m), with real-valued gains and no rounding or
-saturation (tests keep inputs inside the int32 ranges).  See the law in
-:mod:`bus.fixedpoint`.
+saturation (tests keep inputs inside the int32 ranges): the PD loop (:class:`FirmwareTwin`) and
+the cascade of 0x2110:4 = 1 (:class:`CascadeTwin`).  See the laws in :mod:`bus.fixedpoint`.
 """
 
 from __future__ import annotations
@@ -104,3 +104,42 @@ def run_twin(
         i = min(n, n_tab - 1)
         tau[n], fb[n], vel[n] = twin.step(c[n], rp[i], rv[i], f[i])
     return tau, fb, vel
+
+
+@dataclass(frozen=True)
+class CascadeParams:
+    """The cascade's real gains: kpp 1/s, kvff, ktff (1.0 = full), kvp µN·m/(count/s),
+    kvi_tick µN·m/(count/s) per control period, rate_hz 1/Ts, limit µN·m (velocity unfiltered)."""
+
+    kpp: float
+    kvff: float
+    ktff: float
+    kvp: float
+    kvi_tick: float
+    rate_hz: float
+    limit: float
+
+
+class CascadeTwin:
+    """The cascade (position P → velocity PI with clamping anti-windup → torque) in float64, as
+    :mod:`bus.fixedpoint` writes it, without rounding or saturation of the formats."""
+
+    def __init__(self, params: CascadeParams) -> None:
+        self.p = params
+        self.prev: float | None = None
+        self.v = 0.0
+        self.integ = 0.0
+
+    def step(self, count: float, ref_pos: float, ref_vel: float, ff: float) -> float:
+        """One tick: τ [µN·m]."""
+        p = self.p
+        self.v = self.v if self.prev is None else (count - self.prev) * p.rate_hz
+        self.prev = count
+        tff = p.ktff * ff
+        v_cmd = p.kpp * (ref_pos - count) + p.kvff * ref_vel
+        ev = v_cmd - self.v
+        trial = min(max(self.integ + p.kvi_tick * ev, -p.limit), p.limit)
+        u = p.kvp * ev + trial + tff
+        if not ((u > p.limit and ev > 0) or (u < -p.limit and ev < 0)):
+            self.integ = trial
+        return min(max(p.kvp * ev + self.integ + tff, -p.limit), p.limit)

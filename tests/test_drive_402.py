@@ -74,6 +74,8 @@ def test_pp_move_ends_exactly_on_the_target_along_the_integer_profile() -> None:
     wr(d, Obj.PROFILE_VELOCITY, 0, "u32", 200_000)  # counts/s: 200 counts per 1 ms cycle
     wr(d, Obj.PROFILE_ACCELERATION, 0, "u32", 4_000_000)  # 4 counts/cycle²
     wr(d, Obj.PROFILE_DECELERATION, 0, "u32", 2_000_000)
+    window_ms = 10
+    wr(d, Obj.POSITION_WINDOW_TIME, 0, "u16", window_ms)  # (the default 0: reached on entering the window)
     assert d.statusword == 0x0637  # enabled, target reached (bit 10), no acknowledge
     new_setpoint(d, 31_000)
     assert d.statusword & 0x1400 == 0x1000  # acknowledged, target not reached
@@ -85,9 +87,16 @@ def test_pp_move_ends_exactly_on_the_target_along_the_integer_profile() -> None:
         actuals.append(rd(d, Obj.POSITION_ACTUAL, 0, "i32"))
     assert demands == expected
     assert actuals == [1000, *expected[:-1]]  # tick n+1 is at the demand of tick n
-    assert demands[-1] == 31_000 and d.statusword & 0x0400  # target reached
+    # the demand is on the target, the actual position one cycle behind but inside the 30-count
+    # position window: target reached only once it has stayed there for 0x6068 (CiA 402: from the
+    # actual position), here 10 ms = 10 cycles counting this one
+    assert demands[-1] == 31_000 and abs(actuals[-1] - 31_000) <= 30 and not d.statusword & 0x0400
     plant.step(d)
     assert rd(d, Obj.POSITION_ACTUAL, 0, "i32") == 31_000 and plant.step(d) == 0  # there, no torque
+    plant.run(d, window_ms - 4)  # in the window for 0x6068 - 1 cycles: not yet
+    assert not d.statusword & 0x0400
+    plant.step(d)
+    assert d.statusword & 0x0400  # in the window for 0x6068: target reached
     steps = [b - a for a, b in zip([1000, *expected], expected)]
     assert max(steps) == 200 and all(s >= 0 for s in steps)  # profile velocity, no reversal
     # the continuous trapezoid: 30 000 / 200 + 200 / (2·4) + 200 / (2·2) = 225 cycles
@@ -383,6 +392,34 @@ def test_cob_id_sync_emcy_and_sync_counter_rules() -> None:
     assert abort(wr, d, Obj.SYNC_COUNTER_OVERFLOW, 0, "u8", 10) == AbortCode.DEVICE_STATE  # 0x1006 ≠ 0
     wr(d, Obj.COMM_CYCLE_PERIOD, 0, "u32", 0)
     wr(d, Obj.SYNC_COUNTER_OVERFLOW, 0, "u8", 10)
+
+
+def test_cob_id_objects_refuse_the_restricted_can_ids() -> None:
+    """0x1005 and a valid 0x1014 refuse every restricted CAN-ID of CiA 301 (Table 3) with 0x06090030
+    (an invalid 0x1014 may hold one: it is never sent); a refused write changes nothing."""
+    from bus.pdo_objects import RESTRICTED_CAN_IDS
+
+    d = Drive(NODE)
+    wr(d, Obj.COB_ID_EMCY, 0, "u32", PDO_NOT_VALID | (0x80 + NODE))
+    for lo, hi in RESTRICTED_CAN_IDS:
+        for can_id in sorted({lo, hi, (lo + hi) // 2}):
+            assert abort(wr, d, Obj.COB_ID_SYNC, 0, "u32", can_id) == AbortCode.VALUE_RANGE, hex(can_id)
+            wr(d, Obj.COB_ID_EMCY, 0, "u32", PDO_NOT_VALID | can_id)
+            assert abort(wr, d, Obj.COB_ID_EMCY, 0, "u32", can_id) == AbortCode.VALUE_RANGE, hex(can_id)
+    assert d.sync_cob_id() == 0x080
+    assert rd(d, Obj.COB_ID_EMCY, 0, "u32") == PDO_NOT_VALID | 0x7FF
+    # the issue's case: node 2 taking node 1's heartbeat identifier
+    d2 = Drive(2)
+    wr(d2, Obj.COB_ID_EMCY, 0, "u32", PDO_NOT_VALID | 0x82)
+    assert abort(wr, d2, Obj.COB_ID_EMCY, 0, "u32", 0x701) == AbortCode.VALUE_RANGE
+    assert rd(d2, Obj.COB_ID_EMCY, 0, "u32") == PDO_NOT_VALID | 0x82
+
+
+def test_a_mapping_of_more_than_8_objects_is_a_value_too_high() -> None:
+    """docs/canopen-objects.md §10: sub 0 above the EDS HighLimit 8 is 0x06090031."""
+    d = Drive(NODE)
+    for index in (0x1600, 0x1A00):
+        assert abort(wr, d, index, 0, "u8", 9) == AbortCode.VALUE_TOO_HIGH
 
 
 def test_vendor_id_is_the_documented_one() -> None:

@@ -7,7 +7,9 @@ bytes.  Error code 0x0000 means "error reset / no error".
 
 Object 0x1014 (COB-ID EMCY, U32): bit 31 = 1 the EMCY is not valid (not sent), bit 29 = 1 a
 29-bit identifier (not supported), bits 0–10 the identifier; the identifier can change only while
-bit 31 is set (:func:`check_emcy_cob_id`).  Object 0x1003 (:class:`ErrorHistory`): sub 0 the number
+bit 31 is set, and a valid EMCY cannot take a restricted CAN-ID of CiA 301 (Table 3: 0x000,
+0x001–0x07F, 0x101–0x180, 0x581–0x5FF, 0x601–0x67F, 0x6E0–0x6FF, 0x701–0x77F, 0x780–0x7FF;
+:func:`check_emcy_cob_id`).  Object 0x1003 (:class:`ErrorHistory`): sub 0 the number
 of errors recorded, subs 1.. the errors, newest first, each ``additional info << 16 | error code``;
 writing 0 to sub 0 clears it, any other value is refused.
 """
@@ -18,6 +20,8 @@ import logging
 import struct
 from dataclasses import dataclass
 from enum import IntEnum, IntFlag
+
+from bus.pdo_objects import is_restricted_can_id
 
 logger = logging.getLogger(__name__)
 
@@ -99,11 +103,14 @@ EMCY_EXTENDED = 1 << 29
 def check_emcy_cob_id(old: int, new: int) -> None:
     """Refuse a 0x1014 write (CiA 301 §7.5.2.13).
 
-    :raises ValueError: a 29-bit identifier, bits other than 31, 29 and 0–10, or a new identifier
-        while the EMCY is valid (set bit 31 first).
+    :raises ValueError: a 29-bit identifier, bits other than 31, 29 and 0–10, a restricted CAN-ID
+        of CiA 301 (Table 3, :func:`bus.pdo_objects.is_restricted_can_id`) in a valid COB-ID, or a
+        new identifier while the EMCY is valid (set bit 31 first).
     """
     if new & EMCY_EXTENDED or new & 0x5FFFF800:
         raise ValueError(f"COB-ID EMCY 0x{new:08X}: only an 11-bit identifier and bit 31 are supported")
+    if not new & EMCY_NOT_VALID and is_restricted_can_id(new & 0x7FF):
+        raise ValueError(f"COB-ID EMCY 0x{new:08X}: CAN-ID 0x{new & 0x7FF:03X} is restricted (CiA 301 Table 3)")
     if not old & EMCY_NOT_VALID and not new & EMCY_NOT_VALID and (new & 0x7FF) != (old & 0x7FF):
         raise ValueError("the EMCY is valid: set bit 31 of 0x1014 before changing its identifier")
 
