@@ -13,13 +13,14 @@ import itertools
 import struct
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import can
 import canopen
 import pytest
 from can.interfaces.virtual import VirtualBus
+from clock_util import ManualClock
 
 from bus import io_frames
 from bus.can_errors import overflow_error_frame
@@ -88,16 +89,6 @@ class FakeDrive:
     @property
     def statusword(self) -> int:
         return int(struct.unpack("<H", self.objects[(0x6041, 0)])[0])
-
-
-class ManualClock:
-    """A node clock that only the test moves: heartbeats fall due exactly when it says."""
-
-    def __init__(self, now: float = 1000.0) -> None:
-        self.now = now
-
-    def __call__(self) -> float:
-        return self.now
 
 
 class Rig:
@@ -260,6 +251,26 @@ def test_own_frames_are_ignored(fake_rig: Rig) -> None:
     assert rig.remote.sdo.upload(0x1018, 1) == struct.pack("<L", 0x1234)  # and SDO still answers
 
 
+def _stepper(
+    node: DriveNode, host: can.BusABC, clock: ManualClock
+) -> tuple[Callable[[], list[tuple[int, bytes]]], Callable[[float], list[tuple[int, bytes]]]]:
+    """For a node the test steps on a manual clock: ``sent()``, the frames waiting at the host
+    (id, data), and ``step_at(t)``, one step of the node at clock time ``t`` s and what it sent."""
+
+    def sent() -> list[tuple[int, bytes]]:
+        out = []
+        while (msg := host.recv(timeout=0)) is not None:
+            out.append((msg.arbitration_id, bytes(msg.data)))
+        return out
+
+    def step_at(t: float) -> list[tuple[int, bytes]]:
+        clock.now = t
+        node.step(0.0)
+        return sent()
+
+    return sent, step_at
+
+
 def test_heartbeat_period_is_0x1017_on_the_node_clock() -> None:
     """Heartbeat timing, deterministic: the node is stepped by the test (no thread) on a manual
     clock; a virtual bus delivers on send, so after ``step`` every frame the node sent is
@@ -274,16 +285,7 @@ def test_heartbeat_period_is_0x1017_on_the_node_clock() -> None:
     drive = FakeDrive(NODE)
     node = DriveNode(drive, fb_node, io_node, clock=clock)  # type: ignore[arg-type]
 
-    def sent() -> list[tuple[int, bytes]]:
-        out = []
-        while (msg := host.recv(timeout=0)) is not None:
-            out.append((msg.arbitration_id, bytes(msg.data)))
-        return out
-
-    def step_at(t: float) -> list[tuple[int, bytes]]:
-        clock.now = t
-        node.step(0.0)
-        return sent()
+    sent, step_at = _stepper(node, host, clock)
 
     beat = (0x702, b"\x7f")  # pre-operational
     try:
@@ -541,16 +543,7 @@ def test_emcy_cob_id_valid_bit_and_inhibit_time_and_rtr_on_the_node_clock() -> N
         drive.write_object(index, sub, value.to_bytes(4 if sub else 1, "little"))
     node = DriveNode(drive, fb_node, io_node, clock=clock)
 
-    def sent() -> list[tuple[int, bytes]]:
-        out = []
-        while (msg := host.recv(timeout=0)) is not None:
-            out.append((msg.arbitration_id, bytes(msg.data)))
-        return out
-
-    def step_at(t: float) -> list[tuple[int, bytes]]:
-        clock.now = t
-        node.step(0.0)
-        return sent()
+    sent, step_at = _stepper(node, host, clock)
 
     def sdo_write(index: int, sub: int, data: bytes, t: float) -> None:
         cs = {1: 0x2F, 2: 0x2B, 4: 0x23}[len(data)]

@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 from canopen.objectdictionary import ODRecord, ODVariable, import_od
 from canopen.objectdictionary import datatypes as dt
+from clock_util import ManualClock
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from robot_util import NodeThread, wait_for
@@ -174,16 +175,6 @@ class ScriptedDrives:
         self._thread.join(timeout=2.0)
         assert not self._thread.is_alive()
         self.bus.shutdown()
-
-
-class ManualClock:
-    """A node clock that only the test moves: timeouts fall due exactly when it says."""
-
-    def __init__(self, now: float = 1000.0) -> None:
-        self.now = now
-
-    def __call__(self) -> float:
-        return self.now
 
 
 class Host:
