@@ -1,5 +1,7 @@
 """Running ``ilcrig`` in tests: in-process (the exit code and what it printed) and as a process in
-a session of its own (:func:`run_cli_process`: it and every process it started gone on return)."""
+a session of its own (:func:`run_cli_process`: it and every process it started gone on return);
+any command in a session of its own, its group killed on a hang (:func:`run_in_session`); a process
+asked to stop, killed if it does not (:func:`stop_process`)."""
 
 from __future__ import annotations
 
@@ -9,6 +11,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -47,6 +50,31 @@ def run_cli_process(args: list[str], guard_s: float) -> subprocess.CompletedProc
             proc.wait()
     group_gone(proc.pid, guard_s)  # e.g. a local cluster's workers end with the command
     return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+
+
+def run_in_session(
+    cmd: list[str], timeout_s: float, cwd: Path = ROOT, what: str | None = None
+) -> subprocess.CompletedProcess[str]:
+    """``cmd`` in a session of its own, from ``cwd``; its whole group killed and the test failed
+    (``what`` timed out, by default the command) if it takes longer than ``timeout_s``."""
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True, cwd=cwd)
+    try:
+        out, err = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        pytest.fail(f"{what or cmd} timed out:\n{out}\n{err}")
+    return subprocess.CompletedProcess(cmd, proc.returncode, out, err)
+
+
+def stop_process(proc: subprocess.Popen[Any], sig: int = signal.SIGTERM, wait_s: float = 10.0) -> None:
+    """Send ``sig`` to ``proc`` and wait ``wait_s`` for it to end; kill it if it does not."""
+    proc.send_signal(sig)
+    try:
+        proc.wait(wait_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
 
 
 def group_gone(pgid: int, guard_s: float) -> None:

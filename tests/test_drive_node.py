@@ -251,6 +251,17 @@ def test_own_frames_are_ignored(fake_rig: Rig) -> None:
     assert rig.remote.sdo.upload(0x1018, 1) == struct.pack("<L", 0x1234)  # and SDO still answers
 
 
+def _virtual_buses(name: str) -> tuple[can.BusABC, can.BusABC, can.BusABC]:
+    """Fresh virtual buses: the node's fieldbus end, the host's end of it, the node's io bus."""
+    k = next(_counter)
+    fb = f"{name}-fb-{k}"
+    return (
+        can.Bus(interface="virtual", channel=fb),
+        can.Bus(interface="virtual", channel=fb),
+        can.Bus(interface="virtual", channel=f"{name}-io-{k}"),
+    )
+
+
 def _stepper(
     node: DriveNode, host: can.BusABC, clock: ManualClock
 ) -> tuple[Callable[[], list[tuple[int, bytes]]], Callable[[float], list[tuple[int, bytes]]]]:
@@ -277,10 +288,7 @@ def test_heartbeat_period_is_0x1017_on_the_node_clock() -> None:
     waiting.  The period comes from 0x1017 (written over SDO, the timer restarts then); one
     beat per period with the NMT state, none before it is due, a late step sends one beat (no
     burst) and a beat less than a period late keeps the phase."""
-    k = next(_counter)
-    fb_node = can.Bus(interface="virtual", channel=f"hb-fb-{k}")
-    host = can.Bus(interface="virtual", channel=f"hb-fb-{k}")
-    io_node = can.Bus(interface="virtual", channel=f"hb-io-{k}")
+    fb_node, host, io_node = _virtual_buses("hb")
     clock = ManualClock(1000.0)
     drive = FakeDrive(NODE)
     node = DriveNode(drive, fb_node, io_node, clock=clock)  # type: ignore[arg-type]
@@ -533,10 +541,7 @@ def test_emcy_cob_id_valid_bit_and_inhibit_time_and_rtr_on_the_node_clock() -> N
     out on the COB-ID of 0x1014 (none while its bit 31 is set), at most one per inhibit time (the
     next waits, then goes out exactly when the time ends); a remote frame on a TPDO whose bit 30
     is 0 is answered with the TPDO."""
-    k = next(_counter)
-    fb_node = can.Bus(interface="virtual", channel=f"emcy-fb-{k}")
-    host = can.Bus(interface="virtual", channel=f"emcy-fb-{k}")
-    io_node = can.Bus(interface="virtual", channel=f"emcy-io-{k}")
+    fb_node, host, io_node = _virtual_buses("emcy")
     clock = ManualClock(50.0)
     drive = Drive(NODE)
     for index, sub, value in ((0x1A00, 0, 0), (0x1A00, 1, 0x60410010), (0x1A00, 0, 1), (0x1800, 1, 0x180 + NODE)):

@@ -250,6 +250,16 @@ Q0 = np.array([0.5, 0.25, -0.125, 1.0])
 QD0 = np.array([0.0, 0.1, 0.2, 0.30000000000000004])
 
 
+def request_paced_trial(bench: PlantNode, n_ticks: int) -> None:
+    """Boot ``bench``, configure pacing and a trial of ``n_ticks`` from (Q0, QD0) as the host
+    would, and command its start (the bench not stepped yet)."""
+    bench.start()
+    bench.write_object(PlantObj.CONFIG, ConfigSub.PACING, b"\x01")
+    bench.write_object(PlantObj.INITIAL_STATE, 0, pack_initial_state(Q0, QD0))
+    bench.write_object(PlantObj.TRIAL, PlantTrialSub.N_TICKS, struct.pack("<I", n_ticks))
+    bench.write_object(PlantObj.TRIAL, PlantTrialSub.COMMAND, b"\x01")
+
+
 # ---------------------------------------------------------------------------------------
 # EDS and object encodings
 # ---------------------------------------------------------------------------------------

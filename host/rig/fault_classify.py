@@ -316,29 +316,37 @@ def heartbeat_fault(
         nid = sorted(report.overdue, key=lambda n: (n == PLANT_NODE_ID, n))[0]
         seen = last_heard.get(nid)
         silent = f"{1000 * (now - seen):.0f} ms" if seen is not None else "ever"
-        return FaultRecord(
-            FaultKind.NODE_LOST,
+        return _node_lost(
+            nid,
             f"heartbeat of {node_name(nid)} lost (silent for {silent}: the process died or stalled)",
-            node=node_name(nid),
-            node_id=nid,
-            detected_by="host",
-            t_detected_mono=now,
+            now,
             latency_ms=1000 * (now - seen - period_s) if seen else None,
             latency_basis="its next heartbeat was due" if seen else None,
         )
     if report.booted:
         nid = report.booted[0]
-        return FaultRecord(
-            FaultKind.NODE_LOST,
+        return _node_lost(
+            nid,
             f"{node_name(nid)} booted again during the run (it was reset or restarted)",
-            node=node_name(nid),
-            node_id=nid,
-            detected_by="host",
-            t_detected_mono=now,
+            now,
             latency_ms=0.0,
             latency_basis="its boot-up frame",
         )
     return None
+
+
+def _node_lost(nid: int, message: str, now: float, *, latency_ms: float | None, latency_basis: str | None) -> FaultRecord:
+    """A ``node_lost`` fault of node ``nid`` the host detected at ``now`` (``t_mono``, s)."""
+    return FaultRecord(
+        FaultKind.NODE_LOST,
+        message,
+        node=node_name(nid),
+        node_id=nid,
+        detected_by="host",
+        t_detected_mono=now,
+        latency_ms=latency_ms,
+        latency_basis=latency_basis,
+    )
 
 
 def plant_trial_fault(exc: PlantTrialFault, trial: int, now: float, times: DetectionTimes | None = None) -> FaultRecord:
