@@ -253,16 +253,6 @@ class LockstepMaster:
             logging.getLogger(__name__).debug("master: %s", err)
 
 
-def wait_for(predicate: Callable[[], Any], timeout_s: float = 10.0) -> bool:
-    """Poll ``predicate`` until true or ``timeout_s`` passed (the caller asserts the result)."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.002)
-    return bool(predicate())
-
-
 def counts_of(q_rad: np.ndarray) -> dict[int, int]:
     """Joint angles [rad] as encoder counts per drive node."""
     return {n: round(float(q_rad[n - 1]) / units.RAD_PER_COUNT) for n in DRIVES}

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import can
 import canopen
+import clock_util
 import pytest
 from can.interfaces.virtual import VirtualBus
 from clock_util import ManualClock
@@ -125,14 +126,9 @@ class Rig:
         self.io.shutdown()
 
 
-def wait_for(predicate, timeout_s: float = 1.0) -> bool:
-    """Poll ``predicate`` until true or ``timeout_s`` passed (the caller asserts the result)."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.002)
-    return predicate()
+def wait_for(predicate: Callable[[], object], timeout_s: float = 1.0) -> bool:
+    """:func:`clock_util.wait_for`, by default for 1 s."""
+    return clock_util.wait_for(predicate, timeout_s)
 
 
 @pytest.fixture(autouse=True)

@@ -26,10 +26,10 @@ import numpy as np
 import pytest
 from canopen.objectdictionary import ODRecord, ODVariable, import_od
 from canopen.objectdictionary import datatypes as dt
-from clock_util import ManualClock
+from clock_util import ManualClock, wait_for
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from robot_util import NodeThread, wait_for
+from robot_util import NodeThread
 from short_move import TS_S, configure_drives, short_reference
 
 from bus import io_frames, units
@@ -390,18 +390,15 @@ def test_objects_over_sdo(rig: PlantRig) -> None:
     with pytest.raises(PlantInputError, match="payload_scale must be >= 0"):
         client.configure(0.0005, 8, "both", 0, plant_scales=(1.0, 1.0, 1.0, -1.0))
     # EDS limits, lengths and access enforced by the node, mapped to SdoAbort by the adapter
-    with pytest.raises(SdoAbort) as err:
-        access.write_object(PlantObj.CONFIG, ConfigSub.DISTURBANCE, b"\x04")
-    assert err.value.code == AbortCode.VALUE_TOO_HIGH
-    with pytest.raises(SdoAbort) as err:
-        access.write_object(PlantObj.CONFIG, ConfigSub.SUBSTEPS, b"\x00\x00")
-    assert err.value.code == AbortCode.VALUE_TOO_LOW
-    with pytest.raises(SdoAbort) as err:
-        access.write_object(PlantObj.CONFIG, ConfigSub.CONTROL_PERIOD_US, b"\x01\x00")
-    assert err.value.code == AbortCode.LENGTH_MISMATCH
-    with pytest.raises(SdoAbort) as err:
-        access.write_object(PlantObj.TRIAL, PlantTrialSub.STATUS, b"\x01")
-    assert err.value.code == AbortCode.READ_ONLY
+    for sub_index, data, code in (
+        ((PlantObj.CONFIG, ConfigSub.DISTURBANCE), b"\x04", AbortCode.VALUE_TOO_HIGH),
+        ((PlantObj.CONFIG, ConfigSub.SUBSTEPS), b"\x00\x00", AbortCode.VALUE_TOO_LOW),
+        ((PlantObj.CONFIG, ConfigSub.CONTROL_PERIOD_US), b"\x01\x00", AbortCode.LENGTH_MISMATCH),
+        ((PlantObj.TRIAL, PlantTrialSub.STATUS), b"\x01", AbortCode.READ_ONLY),
+    ):
+        with pytest.raises(SdoAbort) as err:
+            access.write_object(*sub_index, data)
+        assert err.value.code == code
     with pytest.raises(SdoAbort) as err:
         access.read_object(PlantObj.TRIAL, PlantTrialSub.COMMAND)
     assert err.value.code == AbortCode.WRITE_ONLY

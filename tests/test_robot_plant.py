@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from robot_util import DRIVES, PLANT_ID, LockstepMaster, VirtualRobot, counts_of, new_channels, plant_factory, wait_for
+from clock_util import wait_for
+from robot_util import DRIVES, PLANT_ID, LockstepMaster, VirtualRobot, counts_of, new_channels, plant_factory
 
 from bus import units
 from bus.plant_objects import ROBOT_EMCY_FLAG, LimitSub, PlantObj, RobotFault, RobotMode, RobotState, RobotSub
