@@ -1,7 +1,8 @@
 """Running ``ilcrig`` in tests: in-process (the exit code and what it printed) and as a process in
 a session of its own (:func:`run_cli_process`: it and every process it started gone on return);
 any command in a session of its own, its group killed on a hang (:func:`run_in_session`); a process
-asked to stop, killed if it does not (:func:`stop_process`)."""
+asked to stop, killed if it does not (:func:`stop_process`); ``ilcrig sim`` signalled at a row of its
+table (:func:`sim_signalled_at_row`)."""
 
 from __future__ import annotations
 
@@ -90,3 +91,27 @@ def group_gone(pgid: int, guard_s: float) -> None:
             os.killpg(pgid, signal.SIGKILL)
             pytest.fail(f"processes of the command (group {pgid}) survived it")
         time.sleep(0.1)
+
+
+def sim_signalled_at_row(out: Path, row: str, sig: int) -> tuple[int, str]:
+    """``ilcrig sim --iterations 1000 --cycle 0.15 --out out``, sent ``sig`` when it prints the
+    table row of trial ``row``; (exit code, stderr). The process is always reaped."""
+    proc = subprocess.Popen(
+        [sys.executable, "-u", "-m", "host.cli", "sim", "--iterations", "1000", "--cycle", "0.15", "--out", str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            if line.split()[:1] == [row]:
+                proc.send_signal(sig)
+                break
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    return proc.returncode, err
