@@ -37,6 +37,8 @@ EDS = Path(__file__).resolve().parents[1] / "bus" / "drive.eds"
 NODE = 2
 _counter = itertools.count()
 
+pytestmark = pytest.mark.usefixtures("no_leaked_virtual_channels")
+
 
 class FakeDrive:
     """Minimal stand-in for firmware_model.drive.Drive (object access, NMT, EMCY, io_tick and
@@ -129,14 +131,6 @@ class Rig:
 def wait_for(predicate: Callable[[], object], timeout_s: float = 1.0) -> bool:
     """:func:`clock_util.wait_for`, by default for 1 s."""
     return clock_util.wait_for(predicate, timeout_s)
-
-
-@pytest.fixture(autouse=True)
-def _no_leaked_virtual_channels() -> Iterator[None]:
-    from can.interfaces import virtual
-
-    yield
-    assert not virtual.channels, f"virtual channels left open: {list(virtual.channels)}"
 
 
 @pytest.fixture

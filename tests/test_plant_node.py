@@ -62,6 +62,8 @@ PLANT_ID = 32
 
 _counter = itertools.count()
 
+pytestmark = pytest.mark.usefixtures("no_leaked_virtual_channels")
+
 
 # ---------------------------------------------------------------------------------------
 # helpers
@@ -227,14 +229,6 @@ class PlantRig:
         self.node.close()
         self.drives.close()
         self.host.close()
-
-
-@pytest.fixture(autouse=True)
-def _no_leaked_virtual_channels() -> Iterator[None]:
-    from can.interfaces import virtual
-
-    yield
-    assert not virtual.channels, f"virtual channels left open: {list(virtual.channels)}"
 
 
 @pytest.fixture

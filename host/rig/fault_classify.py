@@ -239,29 +239,32 @@ def emcy_fault(frame: EmcyFrame, times: DetectionTimes | None = None) -> FaultRe
         )
     if frame.code == EMCY_TICK_SEQUENCE:
         expected, got = int.from_bytes(data[1:3], "little"), int.from_bytes(data[3:5], "little")
-        return FaultRecord(
+        return _own_report(
             FaultKind.FRAME_SEQUENCE,
             f"io tick out of sequence at {name}: expected tick {expected}, got {got} (EMCY 0x8200)",
-            node=name,
-            node_id=frame.node_id,
+            frame,
+            "the frame's arrival",
             tick=expected,
-            detected_by=name,
-            t_detected_mono=frame.t_mono,
-            t_detected_wall=frame.t_wall,
-            latency_ms=0.0,
-            latency_basis="the frame's arrival",
         )
     what = "following error" if frame.code == EMCY_FOLLOWING_ERROR else "fault"
+    return _own_report(FaultKind.EMCY, f"{what} of {name} (EMCY 0x{frame.code:04X})", frame, "the node's report")
+
+
+def _own_report(kind: FaultKind, message: str, frame: EmcyFrame, basis: str, tick: int | None = None) -> FaultRecord:
+    """A fault the drive that sent ``frame`` reports of itself: detected by it when the EMCY came
+    (latency 0, measured from ``basis``)."""
+    name = node_name(frame.node_id)
     return FaultRecord(
-        FaultKind.EMCY,
-        f"{what} of {name} (EMCY 0x{frame.code:04X})",
+        kind,
+        message,
         node=name,
         node_id=frame.node_id,
+        tick=tick,
         detected_by=name,
         t_detected_mono=frame.t_mono,
         t_detected_wall=frame.t_wall,
         latency_ms=0.0,
-        latency_basis="the node's report",
+        latency_basis=basis,
     )
 
 
