@@ -217,33 +217,67 @@ def table(results: list[dict[str, Any]], key: str, order: list[str]) -> list[str
     return rows
 
 
-def robot_run(i: int, kind: str, victim: str, out: Path, periods_before: int) -> dict[str, Any]:
-    """One ``robot-kill-*`` run (module docstring); its row."""
-    t0 = time.monotonic()
-    o = robot_fault_run(out, victim, periods_before=periods_before)
-    detected = o["code"] == 3 and len(o["stderr"]) == 1 and o["stderr"][0].startswith(f"ilcrig: fault: {victim} (pid ")
-    r = {
+def _robot_row(
+    i: int,
+    kind: str,
+    spec: str,
+    code: int | None,
+    detected: bool,
+    fault_kind: str,
+    detected_by: str,
+    latency_ms: float | None,
+    tick_latency: int | None,
+    *,
+    unsafe: list[str],
+    left: list[str],
+    t0: float,
+    line: str,
+) -> dict[str, Any]:
+    """The row of one run on the robot (no trials, no recording to judge); ``t0``: its start (``time.monotonic()``)."""
+    return {
         "i": i,
         "kind": kind,
-        "spec": f"kill:{victim} after {periods_before} periods",
-        "code": o["code"],
+        "spec": spec,
+        "code": code,
         "detected": detected,
-        "fault_kind": "process_died",
-        "detected_by": "launcher",
-        "latency_ms": o["latency_ms"],
-        "tick_latency": None,
+        "fault_kind": fault_kind,
+        "detected_by": detected_by,
+        "latency_ms": latency_ms,
+        "tick_latency": tick_latency,
         "position": "robot",
         "drawn": "robot",
         "kept": 0,
         "expected_kept": 0,
         "lost": 0,
         "nulls": [],
-        "unsafe": [],
+        "unsafe": unsafe,
         "recording_ok": True,
-        "left": [f"pid {p}" for p in o["left"]],
+        "left": left,
         "wall_s": round(time.monotonic() - t0, 1),
-        "line": o["stderr"][0] if o["stderr"] else "",
+        "line": line,
     }
+
+
+def robot_run(i: int, kind: str, victim: str, out: Path, periods_before: int) -> dict[str, Any]:
+    """One ``robot-kill-*`` run (module docstring); its row."""
+    t0 = time.monotonic()
+    o = robot_fault_run(out, victim, periods_before=periods_before)
+    detected = o["code"] == 3 and len(o["stderr"]) == 1 and o["stderr"][0].startswith(f"ilcrig: fault: {victim} (pid ")
+    r = _robot_row(
+        i,
+        kind,
+        f"kill:{victim} after {periods_before} periods",
+        o["code"],
+        detected,
+        "process_died",
+        "launcher",
+        o["latency_ms"],
+        None,
+        unsafe=[],
+        left=[f"pid {p}" for p in o["left"]],
+        t0=t0,
+        line=o["stderr"][0] if o["stderr"] else "",
+    )
     print(
         f"{i:3d} {r['spec']:34s} exit {o['code']} {'detected' if detected else 'MISSED':8s} by launcher "
         f"{o['latency_ms']:7.0f} ms (exit after {o['exit_ms']:.0f} ms) left {len(o['left'])} ({r['wall_s']:.0f} s)",
@@ -270,28 +304,21 @@ def robot_master_run(i: int, kind: str, scenario: str, out: Path) -> dict[str, A
     safe = res.brakes == 0xF and res.still
     emcy = bool(res.emcy or res.robot_emcy) or scenario == "nmt-stop"
     detected = safe and emcy and len(left_running) == len(where["pids"]) and code == 143
-    r = {
-        "i": i,
-        "kind": kind,
-        "spec": f"master: {scenario}",
-        "code": code,
-        "detected": detected,
-        "fault_kind": scenario,
-        "detected_by": "plant" if res.robot_emcy else "drives",
-        "latency_ms": res.latency_ms if res.latency_ms else None,
-        "tick_latency": res.periods or None,
-        "position": "robot",
-        "drawn": "robot",
-        "kept": 0,
-        "expected_kept": 0,
-        "lost": 0,
-        "nulls": [],
-        "unsafe": [] if safe else ["robot"],
-        "recording_ok": True,
-        "left": [],
-        "wall_s": round(time.monotonic() - t0, 1),
-        "line": "",
-    }
+    r = _robot_row(
+        i,
+        kind,
+        f"master: {scenario}",
+        code,
+        detected,
+        scenario,
+        "plant" if res.robot_emcy else "drives",
+        res.latency_ms if res.latency_ms else None,
+        res.periods or None,
+        unsafe=[] if safe else ["robot"],
+        left=[],
+        t0=t0,
+        line="",
+    )
     lat = f"{res.latency_ms:7.0f} ms" if res.latency_ms else "      - ms"
     print(
         f"{i:3d} {r['spec']:34s} exit {code} {'detected' if detected else 'MISSED':8s} by {r['detected_by']:8s} "

@@ -35,6 +35,7 @@ import struct
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -103,16 +104,21 @@ def period_frames(home: dict[int, int]) -> list[can.Message]:
     return [*rpdos, new_message(0x080, bytearray())]
 
 
+def master_of(robot: RobotProcess) -> tuple[dict[str, Any], can.BusABC, Callable[[list[can.Message]], None], list[can.Message]]:
+    """The robot ready and set up (:func:`set_up`): where it is, the master's bus, its batch sender and
+    the frames of one period."""
+    where = robot.ready()
+    home = set_up(where)
+    bus = raw_bus(where)
+    return where, bus, batch_sender(bus), period_frames(home)
+
+
 def sync_stepped(periods: int) -> dict[str, Any]:
     """``ilcrig robot``, a master waiting for the TPDOs every period: periods/s."""
     with tempfile.TemporaryDirectory() as tmp:
         robot = RobotProcess(Path(tmp) / "robot")
         try:
-            where = robot.ready()
-            home = set_up(where)
-            bus = raw_bus(where)
-            send = batch_sender(bus)
-            frames = period_frames(home)
+            where, bus, send, frames = master_of(robot)
             pids = {**where["pids"], "launcher": robot.proc.pid}
             cpu0: dict[str, float] = {}
             try:
@@ -214,11 +220,7 @@ def realtime(seconds: float) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as tmp:
         robot = RobotProcess(Path(tmp) / "robot", "--realtime")
         try:
-            where = robot.ready()
-            home = set_up(where)
-            bus = raw_bus(where)
-            send = batch_sender(bus)
-            frames = period_frames(home)
+            where, bus, send, frames = master_of(robot)
             counters = CounterReader(send)
             robot_priority = max(os.sched_getparam(pid).sched_priority for pid in where["pids"].values())
             try:

@@ -129,16 +129,9 @@ class Cia402StateMachine:
         qs = bool(cw & _CW_QUICK_STOP)  # 0 = quick stop requested
         eo = bool(cw & _CW_ENABLE_OPERATION)
         if not ev:  # Disable voltage
-            t = {_S.READY_TO_SWITCH_ON: 7, _S.OPERATION_ENABLED: 9, _S.SWITCHED_ON: 10, _S.QUICK_STOP_ACTIVE: 12}.get(s)
-            if t is not None:
-                self._go(_S.SWITCH_ON_DISABLED, t)
+            self.disable_voltage()
         elif not qs:  # Quick stop
-            if s == _S.READY_TO_SWITCH_ON:
-                self._go(_S.SWITCH_ON_DISABLED, 7)
-            elif s == _S.SWITCHED_ON:
-                self._go(_S.SWITCH_ON_DISABLED, 10)
-            elif s == _S.OPERATION_ENABLED:
-                self._go(_S.QUICK_STOP_ACTIVE, 11)
+            self.quick_stop()
         elif not so:  # Shutdown
             t = {_S.SWITCH_ON_DISABLED: 2, _S.SWITCHED_ON: 6, _S.OPERATION_ENABLED: 8}.get(s)
             if t is not None:

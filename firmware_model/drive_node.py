@@ -52,7 +52,14 @@ from typing import Any, Protocol, runtime_checkable
 import can
 
 from bus import io_frames
-from bus.cia301.slave import PRODUCER_HEARTBEAT_INDEX, SlaveApp, SlaveNode, exact_id_filters, install_sigterm
+from bus.cia301.slave import (
+    PRODUCER_HEARTBEAT_INDEX,
+    SlaveApp,
+    SlaveNode,
+    exact_id_filters,
+    install_sigterm,
+    quiet_shutdown,
+)
 from bus.exit_codes import EXIT_FAULT, EXIT_OK
 from bus.lockstep_process import freeze_heap
 
@@ -351,19 +358,11 @@ def run_node(
             freeze_heap(f"drive {node_id}")
             node.run(stop)
         finally:
-            _quiet_shutdown(io)
+            quiet_shutdown(io)
     finally:
-        _quiet_shutdown(fieldbus)
+        quiet_shutdown(fieldbus)
     drive.power_off("process-stop")
     return node.bus_error
-
-
-def _quiet_shutdown(bus: can.BusABC) -> None:
-    """Close a bus that may have failed already (the hub gone): never raise on the way out."""
-    try:
-        bus.shutdown()
-    except (can.CanError, OSError) as err:
-        logger.debug("closing %s: %s", bus, err)
 
 
 @dataclass(frozen=True)

@@ -44,7 +44,7 @@ from bus import io_frames, units
 from bus.bus_features import batch_sender
 from bus.cia301.nmt import NmtCommand, NmtState, next_state
 from bus.cia301.object_store import ObjectStore
-from bus.cia301.slave import SlaveNode, install_sigterm
+from bus.cia301.slave import SlaveNode, install_sigterm, quiet_shutdown
 from bus.exit_codes import EXIT_FAULT, EXIT_OK
 from bus.lockstep_process import freeze_heap, spin_in_this_class
 from bus.plant_objects import (
@@ -396,9 +396,9 @@ def run_plant_role(
                     _write_summary(Path(summary_path), node)
             return node.bus_error
         finally:
-            _quiet_shutdown(io)
+            quiet_shutdown(io)
     finally:
-        _quiet_shutdown(fieldbus)
+        quiet_shutdown(fieldbus)
 
 
 def _write_summary(path: Path, node: PlantNode) -> None:
@@ -410,14 +410,6 @@ def _write_summary(path: Path, node: PlantNode) -> None:
         tmp.replace(path)
     except OSError as err:
         logger.error("cannot write the plant summary %s: %s", path, err)
-
-
-def _quiet_shutdown(bus: can.BusABC) -> None:
-    """Close a bus that may have failed already (the hub gone): never raise on the way out."""
-    try:
-        bus.shutdown()
-    except (can.CanError, OSError) as err:
-        logger.debug("closing %s: %s", bus, err)
 
 
 @dataclass(frozen=True)

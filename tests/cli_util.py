@@ -1,5 +1,8 @@
 """Running ``ilcrig`` in tests: in-process (the exit code and what it printed) and as a process in
-a session of its own (:func:`run_cli_process`: it and every process it started gone on return)."""
+a session of its own (:func:`run_cli_process`: it and every process it started gone on return);
+any command in a session of its own, its group killed on a hang (:func:`run_in_session`); a process
+asked to stop, killed if it does not (:func:`stop_process`); ``ilcrig sim`` signalled at a row of its
+table (:func:`sim_signalled_at_row`)."""
 
 from __future__ import annotations
 
@@ -9,6 +12,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -49,6 +53,31 @@ def run_cli_process(args: list[str], guard_s: float) -> subprocess.CompletedProc
     return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
 
 
+def run_in_session(
+    cmd: list[str], timeout_s: float, cwd: Path = ROOT, what: str | None = None
+) -> subprocess.CompletedProcess[str]:
+    """``cmd`` in a session of its own, from ``cwd``; its whole group killed and the test failed
+    (``what`` timed out, by default the command) if it takes longer than ``timeout_s``."""
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True, cwd=cwd)
+    try:
+        out, err = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        pytest.fail(f"{what or cmd} timed out:\n{out}\n{err}")
+    return subprocess.CompletedProcess(cmd, proc.returncode, out, err)
+
+
+def stop_process(proc: subprocess.Popen[Any], sig: int = signal.SIGTERM, wait_s: float = 10.0) -> None:
+    """Send ``sig`` to ``proc`` and wait ``wait_s`` for it to end; kill it if it does not."""
+    proc.send_signal(sig)
+    try:
+        proc.wait(wait_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
 def group_gone(pgid: int, guard_s: float) -> None:
     """Wait until no process of group ``pgid`` is left (a local cluster's workers end with its
     command); fail after ``guard_s``."""
@@ -62,3 +91,27 @@ def group_gone(pgid: int, guard_s: float) -> None:
             os.killpg(pgid, signal.SIGKILL)
             pytest.fail(f"processes of the command (group {pgid}) survived it")
         time.sleep(0.1)
+
+
+def sim_signalled_at_row(out: Path, row: str, sig: int) -> tuple[int, str]:
+    """``ilcrig sim --iterations 1000 --cycle 0.15 --out out``, sent ``sig`` when it prints the
+    table row of trial ``row``; (exit code, stderr). The process is always reaped."""
+    proc = subprocess.Popen(
+        [sys.executable, "-u", "-m", "host.cli", "sim", "--iterations", "1000", "--cycle", "0.15", "--out", str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            if line.split()[:1] == [row]:
+                proc.send_signal(sig)
+                break
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    return proc.returncode, err

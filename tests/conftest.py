@@ -95,3 +95,12 @@ def sleeper() -> Iterator[subprocess.Popen[bytes]]:
     finally:
         proc.kill()
         proc.wait()
+
+
+@pytest.fixture
+def no_leaked_virtual_channels() -> Iterator[None]:
+    """The test closes every python-can ``virtual`` bus it opened (a module uses it for all its tests)."""
+    from can.interfaces import virtual
+
+    yield
+    assert not virtual.channels, f"virtual channels left open: {list(virtual.channels)}"

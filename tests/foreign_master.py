@@ -30,6 +30,7 @@ from typing import Any
 import can
 import canopen
 from canopen.profiles.p402 import BaseNode402
+from clock_util import wait_for
 from drive402_util import K_ECHO
 
 from bus import io_frames
@@ -182,12 +183,8 @@ class MasterRig:
 
 
 def wait_until(predicate: Callable[[], bool], timeout_s: float = WAIT_S) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.005)
-    return predicate()
+    """:func:`clock_util.wait_for`, by default for :data:`WAIT_S`."""
+    return wait_for(predicate, timeout_s)
 
 
 @contextlib.contextmanager

@@ -7,12 +7,16 @@ this environment"), so udp_multicast traffic never reaches a real interface.
 from __future__ import annotations
 
 import functools
+import json
 import os
 import shutil
 import signal
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
+
+import pytest
 
 NETNS_SETUP = "ip link set lo up && ip link set lo multicast on && ip route add 224.0.0.0/4 dev lo"
 
@@ -49,3 +53,16 @@ def run_in_netns(script: Path, *args: str, timeout_s: float = 30.0) -> subproces
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
     return subprocess.CompletedProcess(cmd, proc.returncode, out, err)
+
+
+def script_report_in_netns(folder: Path, name: str, text: str, timeout_s: float) -> Any:
+    """The script ``text`` (saved as ``folder/name``) run in a private netns (the test skipped where
+    there is none); it must exit 0, and its last stdout line, JSON, is returned."""
+    reason = netns_unavailable_reason()
+    if reason:
+        pytest.skip(reason)
+    script = folder / name
+    script.write_text(text)
+    res = run_in_netns(script, timeout_s=timeout_s)
+    assert res.returncode == 0, res.stderr
+    return json.loads(res.stdout.strip().splitlines()[-1])

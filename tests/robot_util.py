@@ -184,20 +184,18 @@ class LockstepMaster:
         actual (both synchronous, every SYNC), mode of operation ``mode`` (8 = CSP)."""
         for node in self.drives.values():
             sdo = node.sdo
-            sdo.download(0x1400, 1, struct.pack("<I", 0x80000200 + node.id))
-            sdo.download(0x1600, 0, b"\x00")
-            sdo.download(0x1600, 1, struct.pack("<I", 0x60400010))
-            sdo.download(0x1600, 2, struct.pack("<I", 0x607A0020))
-            sdo.download(0x1600, 0, b"\x02")
-            sdo.download(0x1400, 2, b"\x01")
-            sdo.download(0x1400, 1, struct.pack("<I", 0x200 + node.id))
-            sdo.download(0x1800, 1, struct.pack("<I", 0xC0000180 + node.id))
-            sdo.download(0x1A00, 0, b"\x00")
-            sdo.download(0x1A00, 1, struct.pack("<I", 0x60410010))
-            sdo.download(0x1A00, 2, struct.pack("<I", 0x60640020))
-            sdo.download(0x1A00, 0, b"\x02")
-            sdo.download(0x1800, 2, b"\x01")
-            sdo.download(0x1800, 1, struct.pack("<I", 0x40000180 + node.id))
+            for comm, entries, cob_id in (
+                (0x1400, (0x60400010, 0x607A0020), 0x200 + node.id),  # RPDO1
+                (0x1800, (0x60410010, 0x60640020), 0x40000180 + node.id),  # TPDO1, no RTR
+            ):
+                mapping = comm + 0x200  # 0x1600 / 0x1A00
+                sdo.download(comm, 1, struct.pack("<I", 0x80000000 | cob_id))  # invalid while mapped
+                sdo.download(mapping, 0, b"\x00")
+                for sub, entry in enumerate(entries, start=1):
+                    sdo.download(mapping, sub, struct.pack("<I", entry))
+                sdo.download(mapping, 0, bytes([len(entries)]))
+                sdo.download(comm, 2, b"\x01")  # synchronous, every SYNC
+                sdo.download(comm, 1, struct.pack("<I", cob_id))
             sdo.download(0x6060, 0, struct.pack("<b", mode))
 
     def start(self) -> None:
@@ -251,16 +249,6 @@ class LockstepMaster:
             self.network.disconnect()
         except (can.CanError, OSError) as err:
             logging.getLogger(__name__).debug("master: %s", err)
-
-
-def wait_for(predicate: Callable[[], Any], timeout_s: float = 10.0) -> bool:
-    """Poll ``predicate`` until true or ``timeout_s`` passed (the caller asserts the result)."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.002)
-    return bool(predicate())
 
 
 def counts_of(q_rad: np.ndarray) -> dict[int, int]:

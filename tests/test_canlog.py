@@ -8,6 +8,7 @@ from typing import IO
 
 import can
 import pytest
+from cli_util import stop_process
 
 from bus.bus_features import frames_from_messages
 from bus.canlog import CanLogError, open_log, read_log
@@ -137,12 +138,7 @@ def test_python_can_logger_records_a_hub_channel(tmp_path: Path) -> None:
             proc.wait(10)  # the logger saw the end: everything before it is read and written
         finally:
             if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-                try:
-                    proc.wait(10)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
+                stop_process(proc, signal.SIGINT)
             proc.stdout.close()
     back = list(read_log(path))
     # can.logger writes msg.channel as it is: the full hub channel string (bus.transports.hub.client)

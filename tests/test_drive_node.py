@@ -13,13 +13,15 @@ import itertools
 import struct
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import can
 import canopen
+import clock_util
 import pytest
 from can.interfaces.virtual import VirtualBus
+from clock_util import ManualClock
 
 from bus import io_frames
 from bus.can_errors import overflow_error_frame
@@ -34,6 +36,8 @@ from firmware_model.drive_node import DriveNode, DriveOptions, run_drive
 EDS = Path(__file__).resolve().parents[1] / "bus" / "drive.eds"
 NODE = 2
 _counter = itertools.count()
+
+pytestmark = pytest.mark.usefixtures("no_leaked_virtual_channels")
 
 
 class FakeDrive:
@@ -90,16 +94,6 @@ class FakeDrive:
         return int(struct.unpack("<H", self.objects[(0x6041, 0)])[0])
 
 
-class ManualClock:
-    """A node clock that only the test moves: heartbeats fall due exactly when it says."""
-
-    def __init__(self, now: float = 1000.0) -> None:
-        self.now = now
-
-    def __call__(self) -> float:
-        return self.now
-
-
 class Rig:
     """A DriveNode in a thread + a canopen host Network + a plant-side io bus."""
 
@@ -134,22 +128,9 @@ class Rig:
         self.io.shutdown()
 
 
-def wait_for(predicate, timeout_s: float = 1.0) -> bool:
-    """Poll ``predicate`` until true or ``timeout_s`` passed (the caller asserts the result)."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.002)
-    return predicate()
-
-
-@pytest.fixture(autouse=True)
-def _no_leaked_virtual_channels() -> Iterator[None]:
-    from can.interfaces import virtual
-
-    yield
-    assert not virtual.channels, f"virtual channels left open: {list(virtual.channels)}"
+def wait_for(predicate: Callable[[], object], timeout_s: float = 1.0) -> bool:
+    """:func:`clock_util.wait_for`, by default for 1 s."""
+    return clock_util.wait_for(predicate, timeout_s)
 
 
 @pytest.fixture
@@ -260,19 +241,22 @@ def test_own_frames_are_ignored(fake_rig: Rig) -> None:
     assert rig.remote.sdo.upload(0x1018, 1) == struct.pack("<L", 0x1234)  # and SDO still answers
 
 
-def test_heartbeat_period_is_0x1017_on_the_node_clock() -> None:
-    """Heartbeat timing, deterministic: the node is stepped by the test (no thread) on a manual
-    clock; a virtual bus delivers on send, so after ``step`` every frame the node sent is
-    waiting.  The period comes from 0x1017 (written over SDO, the timer restarts then); one
-    beat per period with the NMT state, none before it is due, a late step sends one beat (no
-    burst) and a beat less than a period late keeps the phase."""
+def _virtual_buses(name: str) -> tuple[can.BusABC, can.BusABC, can.BusABC]:
+    """Fresh virtual buses: the node's fieldbus end, the host's end of it, the node's io bus."""
     k = next(_counter)
-    fb_node = can.Bus(interface="virtual", channel=f"hb-fb-{k}")
-    host = can.Bus(interface="virtual", channel=f"hb-fb-{k}")
-    io_node = can.Bus(interface="virtual", channel=f"hb-io-{k}")
-    clock = ManualClock(1000.0)
-    drive = FakeDrive(NODE)
-    node = DriveNode(drive, fb_node, io_node, clock=clock)  # type: ignore[arg-type]
+    fb = f"{name}-fb-{k}"
+    return (
+        can.Bus(interface="virtual", channel=fb),
+        can.Bus(interface="virtual", channel=fb),
+        can.Bus(interface="virtual", channel=f"{name}-io-{k}"),
+    )
+
+
+def _stepper(
+    node: DriveNode, host: can.BusABC, clock: ManualClock
+) -> tuple[Callable[[], list[tuple[int, bytes]]], Callable[[float], list[tuple[int, bytes]]]]:
+    """For a node the test steps on a manual clock: ``sent()``, the frames waiting at the host
+    (id, data), and ``step_at(t)``, one step of the node at clock time ``t`` s and what it sent."""
 
     def sent() -> list[tuple[int, bytes]]:
         out = []
@@ -284,6 +268,22 @@ def test_heartbeat_period_is_0x1017_on_the_node_clock() -> None:
         clock.now = t
         node.step(0.0)
         return sent()
+
+    return sent, step_at
+
+
+def test_heartbeat_period_is_0x1017_on_the_node_clock() -> None:
+    """Heartbeat timing, deterministic: the node is stepped by the test (no thread) on a manual
+    clock; a virtual bus delivers on send, so after ``step`` every frame the node sent is
+    waiting.  The period comes from 0x1017 (written over SDO, the timer restarts then); one
+    beat per period with the NMT state, none before it is due, a late step sends one beat (no
+    burst) and a beat less than a period late keeps the phase."""
+    fb_node, host, io_node = _virtual_buses("hb")
+    clock = ManualClock(1000.0)
+    drive = FakeDrive(NODE)
+    node = DriveNode(drive, fb_node, io_node, clock=clock)  # type: ignore[arg-type]
+
+    sent, step_at = _stepper(node, host, clock)
 
     beat = (0x702, b"\x7f")  # pre-operational
     try:
@@ -531,26 +531,14 @@ def test_emcy_cob_id_valid_bit_and_inhibit_time_and_rtr_on_the_node_clock() -> N
     out on the COB-ID of 0x1014 (none while its bit 31 is set), at most one per inhibit time (the
     next waits, then goes out exactly when the time ends); a remote frame on a TPDO whose bit 30
     is 0 is answered with the TPDO."""
-    k = next(_counter)
-    fb_node = can.Bus(interface="virtual", channel=f"emcy-fb-{k}")
-    host = can.Bus(interface="virtual", channel=f"emcy-fb-{k}")
-    io_node = can.Bus(interface="virtual", channel=f"emcy-io-{k}")
+    fb_node, host, io_node = _virtual_buses("emcy")
     clock = ManualClock(50.0)
     drive = Drive(NODE)
     for index, sub, value in ((0x1A00, 0, 0), (0x1A00, 1, 0x60410010), (0x1A00, 0, 1), (0x1800, 1, 0x180 + NODE)):
         drive.write_object(index, sub, value.to_bytes(4 if sub else 1, "little"))
     node = DriveNode(drive, fb_node, io_node, clock=clock)
 
-    def sent() -> list[tuple[int, bytes]]:
-        out = []
-        while (msg := host.recv(timeout=0)) is not None:
-            out.append((msg.arbitration_id, bytes(msg.data)))
-        return out
-
-    def step_at(t: float) -> list[tuple[int, bytes]]:
-        clock.now = t
-        node.step(0.0)
-        return sent()
+    sent, step_at = _stepper(node, host, clock)
 
     def sdo_write(index: int, sub: int, data: bytes, t: float) -> None:
         cs = {1: 0x2F, 2: 0x2B, 4: 0x23}[len(data)]

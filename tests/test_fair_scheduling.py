@@ -20,7 +20,8 @@ from pathlib import Path
 
 import can
 import pytest
-from test_plant_node import Q0, QD0, ManualClock, PlantBox, fake_disturbance
+from clock_util import ManualClock
+from test_plant_node import PlantBox, fake_disturbance, request_paced_trial
 
 from bus.lockstep_process import (
     WITHOUT_ENV,
@@ -29,7 +30,7 @@ from bus.lockstep_process import (
     spin_in_this_class,
     watch_collections,
 )
-from bus.plant_objects import ConfigSub, PlantObj, PlantTrialSub, TrialTiming, pack_initial_state
+from bus.plant_objects import TrialTiming
 from host.rig import fair_scheduling, realtime, role_commands
 from host.rig.fair_scheduling import LOCKSTEP_SLICE_NS, apply_fair_scheduling, host_policy, lowest_nice_permitted
 from host.rig.launcher import RigLauncher
@@ -216,11 +217,7 @@ def test_the_plant_sleeps_until_a_paced_tick_when_it_may_not_spin() -> None:
         fb, io, plant_factory=PlantBox(), disturbance_fn=fake_disturbance, clock=clock, spin_s=200e-6, spin_when=lambda: False
     )
     try:
-        bench.start()
-        bench.write_object(PlantObj.CONFIG, ConfigSub.PACING, b"\x01")
-        bench.write_object(PlantObj.INITIAL_STATE, 0, pack_initial_state(Q0, QD0))
-        bench.write_object(PlantObj.TRIAL, PlantTrialSub.N_TICKS, struct.pack("<I", 2))
-        bench.write_object(PlantObj.TRIAL, PlantTrialSub.COMMAND, b"\x01")
+        request_paced_trial(bench, 2)
         bench.step(0.0)
         assert bench.next_deadline() == pytest.approx(100.001)  # not 100.001 - 200 µs
         while drives.recv(timeout=0) is not None:

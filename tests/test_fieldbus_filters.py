@@ -18,7 +18,7 @@ from pathlib import Path
 import can
 import canopen
 import pytest
-from hub_util import serving
+from hub_util import serving_in
 from test_hub_extras import wait_until
 
 from bus.cia301.nmt import NmtCommand
@@ -98,9 +98,7 @@ def test_the_filters_change_before_the_sdo_response_goes_out() -> None:
 
 @pytest.fixture
 def hub(hub_data_plane: str, tmp_path: Path) -> Iterator[HubServer]:
-    server = HubServer([f"unix:{tmp_path}/hub.sock"])
-    assert server.data_plane == hub_data_plane
-    with serving(server):
+    with serving_in(tmp_path, hub_data_plane) as server:
         yield server
 
 

@@ -15,6 +15,7 @@ from typing import Any
 
 import can
 import pytest
+from clock_util import ManualClock
 
 from bus.cia301.nmt import (
     CONSUMER_TIME_MS,
@@ -34,14 +35,6 @@ from firmware_model.drive_node import DriveNode
 from plant.plant_node import PlantNode
 
 _counter = itertools.count()
-
-
-class ManualClock:
-    def __init__(self, now: float) -> None:
-        self.now = now
-
-    def __call__(self) -> float:
-        return self.now
 
 
 def u16(v: int) -> bytes:

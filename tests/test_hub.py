@@ -14,12 +14,12 @@ import sys
 import textwrap
 import threading
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import can
 import pytest
+from clock_util import wait_for
 
 from bus.busload import frame_bits, frame_bits_worst_case
 from bus.transports.hub.addresses import parse_address, parse_channel
@@ -62,16 +62,6 @@ def no_process_left() -> Any:
     yield
     left = set(_child_pids()) - before
     assert not left, f"test left child processes {sorted(left)}"
-
-
-def _wait_until(condition: Callable[[], bool], timeout_s: float) -> bool:
-    """Poll ``condition`` (a state only the hub knows, e.g. its client count) until true."""
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.005)
-    return True
 
 
 def _frames_of(sender: int, k: int) -> list[can.Message]:
@@ -245,7 +235,7 @@ def test_client_disconnect_does_not_disturb_others() -> None:
                     assert m is not None and m.data[0] == i % 256
                     b.send(can.Message(arbitration_id=3, is_extended_id=False, data=b""))
                     assert a.recv(2.0) is not None
-                assert _wait_until(lambda: hub.stats()["rig"].clients == 2, 5.0)
+                assert wait_for(lambda: hub.stats()["rig"].clients == 2, 5.0)
         finally:
             if victim.is_alive():
                 victim.kill()
@@ -390,16 +380,21 @@ def test_stats_reset_and_record_encoding() -> None:
     assert rec == bytes.fromhex("01 00 02 02 23010000 0000000000000000 0102000000000000")  # stamp 0: the hub's
 
 
+def _raw_reply(hub: HubHandle, data: bytes) -> bytes:
+    """What the hub answers ``data`` sent on a plain socket to its address (first 256 bytes)."""
+    raw = socket.socket(socket.AF_UNIX)
+    try:
+        raw.settimeout(5)
+        raw.connect(parse_address(hub.address).path)
+        raw.sendall(data)
+        return raw.recv(256)
+    finally:
+        raw.close()
+
+
 def test_hub_refuses_bad_hello_and_keeps_serving() -> None:
     with start_hub() as hub:
-        raw = socket.socket(socket.AF_UNIX)
-        try:
-            raw.settimeout(5)
-            raw.connect(parse_address(hub.address).path)
-            raw.sendall(b"GET / HTTP/1.0\r\n\r\n")
-            reply = raw.recv(256)
-        finally:
-            raw.close()
+        reply = _raw_reply(hub, b"GET / HTTP/1.0\r\n\r\n")
         assert reply.startswith(b"ILNO") and b"bad hello" in reply
         with HubBus(hub.channel("a")) as x, HubBus(hub.channel("a")) as y:
             x.send(can.Message(arbitration_id=5, is_extended_id=False, data=b"ok"))
@@ -419,7 +414,7 @@ def _stamping_run(hub: HubHandle, bus_name: str) -> tuple[list[float], list[floa
         for i in range(6):
             sent.append(time.time())
             tx.send(can.Message(arbitration_id=0x100 + i, is_extended_id=False, data=bytes([i])))
-            assert _wait_until(lambda n=i + 1: hub.stats()[bus_name].frames == n, 5.0)  # the hub has it
+            assert wait_for(lambda n=i + 1: hub.stats()[bus_name].frames == n, 5.0)  # the hub has it
             stamped.append(time.time())
         got = [rx.recv(2.0) for _ in range(6)]
         read_at = time.time()
@@ -559,7 +554,7 @@ def test_bitrates_are_kept_reported_and_enforced_per_bus() -> None:
                 HubBus(ch, bitrate=250_000)
             st = hub.stats()["b"]
             assert (st.bitrate, st.data_bitrate) == (500_000, 2_000_000)
-        assert _wait_until(lambda: hub.stats()["b"].clients == 0, 5.0)
+        assert wait_for(lambda: hub.stats()["b"].clients == 0, 5.0)
         # an empty bus takes the next first member's bitrates; a BitTiming gives them too
         timing = can.BitTiming(f_clock=8_000_000, brp=1, tseg1=5, tseg2=2, sjw=1)
         with HubBus(ch, timing=timing, fd=False) as c:
@@ -573,14 +568,7 @@ def test_bitrates_are_kept_reported_and_enforced_per_bus() -> None:
 
 def test_old_protocol_version_is_refused_with_a_clear_message() -> None:
     with start_hub() as hub:
-        raw = socket.socket(socket.AF_UNIX)
-        try:
-            raw.settimeout(5)
-            raw.connect(parse_address(hub.address).path)
-            raw.sendall(b"ILCH" + bytes([1, 1, 0, 2]) + b"io")  # a version-1 member hello
-            reply = raw.recv(256)
-        finally:
-            raw.close()
+        reply = _raw_reply(hub, b"ILCH" + bytes([1, 1, 0, 2]) + b"io")  # a version-1 member hello
         assert reply.startswith(b"ILNO")
         text = reply[5:].decode()
         assert f"protocol version 1 not supported: this hub speaks version {PROTOCOL_VERSION}" in text

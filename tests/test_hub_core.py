@@ -13,7 +13,7 @@ from pathlib import Path
 
 import can
 import pytest
-from hub_util import serving
+from hub_util import serving_in
 from test_hub_extras import wait_until
 
 from bus.transports.fault_inject import FrameFaultInjector
@@ -40,9 +40,7 @@ class _SmallBuffers(HubServer):
 @pytest.fixture
 def served(hub_data_plane: str, tmp_path: Path) -> Iterator[HubServer]:
     """A hub serving in a thread of this process (so a test can read its state)."""
-    server = _SmallBuffers([f"unix:{tmp_path}/hub.sock"])
-    assert server.data_plane == hub_data_plane
-    with serving(server):
+    with serving_in(tmp_path, hub_data_plane, _SmallBuffers) as server:
         yield server
 
 

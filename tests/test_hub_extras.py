@@ -14,6 +14,7 @@ from collections.abc import Callable
 import can
 import numpy as np
 import pytest
+from clock_util import wait_for
 
 from bus import io_frames
 from bus.bus_features import (
@@ -38,12 +39,8 @@ pytestmark = pytest.mark.usefixtures("hub_data_plane")
 
 
 def wait_until(condition: Callable[[], bool], timeout_s: float = 5.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.002)
-    return True
+    """:func:`clock_util.wait_for`, by default for 5 s."""
+    return wait_for(condition, timeout_s)
 
 
 def frames(n: int, base: int = 0x100) -> list[can.Message]:

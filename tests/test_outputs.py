@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_util import sim_signalled_at_row
 
 from bus import atomic as atomic_mod
 from host.experiment.faults import FaultKind
@@ -159,35 +160,11 @@ def test_learning_that_diverges_is_a_fault_and_no_nan_is_written(tmp_path: Path)
     assert s["faults"][0]["kind"] in ("learning_diverged", "emcy")
 
 
-def _sim_signalled_at_row(out: Path, row: str, sig: int) -> tuple[int, str]:
-    """``ilcrig sim --iterations 1000 --cycle 0.15 --out out``, sent ``sig`` when it prints the
-    table row of trial ``row``; (exit code, stderr). The process is always reaped."""
-    proc = subprocess.Popen(
-        [sys.executable, "-u", "-m", "host.cli", "sim", "--iterations", "1000", "--cycle", "0.15", "--out", str(out)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=REPO,
-    )
-    try:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            if line.split()[:1] == [row]:
-                proc.send_signal(sig)
-                break
-        _, err = proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    return proc.returncode, err
-
-
 def test_sigterm_during_sim_is_marked(tmp_path: Path) -> None:
     """``ilcrig sim`` killed with SIGTERM after its first trial: exit 143, ``interrupted`` in the
     summary, the completed trial kept."""
     out = tmp_path / "run"
-    code, err = _sim_signalled_at_row(out, "0", signal.SIGTERM)  # the row of trial 0
+    code, err = sim_signalled_at_row(out, "0", signal.SIGTERM)  # the row of trial 0
     assert code == 143, err
     # nothing on stderr but the plan's warning that 1000 trials of this law would diverge
     assert "Traceback" not in err
@@ -203,7 +180,7 @@ def test_a_killed_run_keeps_a_recording_of_its_completed_trials(tmp_path: Path) 
     """SIGKILL after trial k: the recording holds exactly the trials the summary holds, readable
     by rerun (its footer index is missing, which readers do without)."""
     out = tmp_path / "run"
-    _sim_signalled_at_row(out, "1", signal.SIGKILL)  # the row of trial 1: trials 0 and 1 are complete
+    sim_signalled_at_row(out, "1", signal.SIGKILL)  # the row of trial 1: trials 0 and 1 are complete
     s = json.loads((out / "summary.json").read_text())
     k = len(s["iterations"])
     assert k >= 1  # trial 0 was written before the row of trial 1 was printed

@@ -26,9 +26,10 @@ import numpy as np
 import pytest
 from canopen.objectdictionary import ODRecord, ODVariable, import_od
 from canopen.objectdictionary import datatypes as dt
+from clock_util import ManualClock, wait_for
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from robot_util import NodeThread, wait_for
+from robot_util import NodeThread
 from short_move import TS_S, configure_drives, short_reference
 
 from bus import io_frames, units
@@ -60,6 +61,8 @@ DRIVE_EDS = ROOT / "bus" / "drive.eds"
 PLANT_ID = 32
 
 _counter = itertools.count()
+
+pytestmark = pytest.mark.usefixtures("no_leaked_virtual_channels")
 
 
 # ---------------------------------------------------------------------------------------
@@ -176,16 +179,6 @@ class ScriptedDrives:
         self.bus.shutdown()
 
 
-class ManualClock:
-    """A node clock that only the test moves: timeouts fall due exactly when it says."""
-
-    def __init__(self, now: float = 1000.0) -> None:
-        self.now = now
-
-    def __call__(self) -> float:
-        return self.now
-
-
 class Host:
     """canopen Network on a virtual fieldbus channel, EMCY and heartbeat capture."""
 
@@ -238,14 +231,6 @@ class PlantRig:
         self.host.close()
 
 
-@pytest.fixture(autouse=True)
-def _no_leaked_virtual_channels() -> Iterator[None]:
-    from can.interfaces import virtual
-
-    yield
-    assert not virtual.channels, f"virtual channels left open: {list(virtual.channels)}"
-
-
 @pytest.fixture
 def rig() -> Iterator[PlantRig]:
     r = PlantRig()
@@ -257,6 +242,16 @@ def rig() -> Iterator[PlantRig]:
 
 Q0 = np.array([0.5, 0.25, -0.125, 1.0])
 QD0 = np.array([0.0, 0.1, 0.2, 0.30000000000000004])
+
+
+def request_paced_trial(bench: PlantNode, n_ticks: int) -> None:
+    """Boot ``bench``, configure pacing and a trial of ``n_ticks`` from (Q0, QD0) as the host
+    would, and command its start (the bench not stepped yet)."""
+    bench.start()
+    bench.write_object(PlantObj.CONFIG, ConfigSub.PACING, b"\x01")
+    bench.write_object(PlantObj.INITIAL_STATE, 0, pack_initial_state(Q0, QD0))
+    bench.write_object(PlantObj.TRIAL, PlantTrialSub.N_TICKS, struct.pack("<I", n_ticks))
+    bench.write_object(PlantObj.TRIAL, PlantTrialSub.COMMAND, b"\x01")
 
 
 # ---------------------------------------------------------------------------------------
@@ -389,18 +384,15 @@ def test_objects_over_sdo(rig: PlantRig) -> None:
     with pytest.raises(PlantInputError, match="payload_scale must be >= 0"):
         client.configure(0.0005, 8, "both", 0, plant_scales=(1.0, 1.0, 1.0, -1.0))
     # EDS limits, lengths and access enforced by the node, mapped to SdoAbort by the adapter
-    with pytest.raises(SdoAbort) as err:
-        access.write_object(PlantObj.CONFIG, ConfigSub.DISTURBANCE, b"\x04")
-    assert err.value.code == AbortCode.VALUE_TOO_HIGH
-    with pytest.raises(SdoAbort) as err:
-        access.write_object(PlantObj.CONFIG, ConfigSub.SUBSTEPS, b"\x00\x00")
-    assert err.value.code == AbortCode.VALUE_TOO_LOW
-    with pytest.raises(SdoAbort) as err:
-        access.write_object(PlantObj.CONFIG, ConfigSub.CONTROL_PERIOD_US, b"\x01\x00")
-    assert err.value.code == AbortCode.LENGTH_MISMATCH
-    with pytest.raises(SdoAbort) as err:
-        access.write_object(PlantObj.TRIAL, PlantTrialSub.STATUS, b"\x01")
-    assert err.value.code == AbortCode.READ_ONLY
+    for sub_index, data, code in (
+        ((PlantObj.CONFIG, ConfigSub.DISTURBANCE), b"\x04", AbortCode.VALUE_TOO_HIGH),
+        ((PlantObj.CONFIG, ConfigSub.SUBSTEPS), b"\x00\x00", AbortCode.VALUE_TOO_LOW),
+        ((PlantObj.CONFIG, ConfigSub.CONTROL_PERIOD_US), b"\x01\x00", AbortCode.LENGTH_MISMATCH),
+        ((PlantObj.TRIAL, PlantTrialSub.STATUS), b"\x01", AbortCode.READ_ONLY),
+    ):
+        with pytest.raises(SdoAbort) as err:
+            access.write_object(*sub_index, data)
+        assert err.value.code == code
     with pytest.raises(SdoAbort) as err:
         access.read_object(PlantObj.TRIAL, PlantTrialSub.COMMAND)
     assert err.value.code == AbortCode.WRITE_ONLY

@@ -16,8 +16,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import signal
 import site
 import subprocess
 import sys
@@ -27,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_util import run_in_session
 
 import ilcrig
 from host.learning import registry
@@ -40,14 +39,7 @@ EXP = ["--law", "leaky-p", "--law-options", "gain=0.8,forgetting=0.99", "--itera
 
 
 def _run(cmd: list[str], cwd: Path, timeout_s: float = 600.0) -> subprocess.CompletedProcess[str]:
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=cwd, start_new_session=True)
-    try:
-        out, err = proc.communicate(timeout=timeout_s)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        out, err = proc.communicate()
-        pytest.fail(f"{cmd} timed out:\n{out}\n{err}")
-    return subprocess.CompletedProcess(cmd, proc.returncode, out, err)
+    return run_in_session(cmd, timeout_s, cwd)
 
 
 @pytest.fixture(scope="module")

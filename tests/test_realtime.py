@@ -11,22 +11,20 @@ import subprocess
 
 import can
 import pytest
+from clock_util import ManualClock
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_plant_node import Q0, QD0, ManualClock, PlantBox, fake_disturbance
+from test_plant_node import PlantBox, fake_disturbance, request_paced_trial
 
 from bus import io_frames
 from bus.plant_objects import (
     DEADLINE_MISSES_KEPT,
-    ConfigSub,
     DeadlineMiss,
     DeadlineMisses,
     PlantObj,
     PlantStatus,
-    PlantTrialSub,
     TrialTiming,
     pack_deadline_misses,
-    pack_initial_state,
     pack_trial_timing,
     unpack_deadline_misses,
     unpack_trial_timing,
@@ -78,11 +76,7 @@ def _start_paced_trial(bench: PlantNode, n_ticks: int, clock: ManualClock) -> fl
     """Boot ``bench``, configure pacing and a trial of ``n_ticks`` as the host would and start it
     at ``clock.now``: TRIAL_START goes out at once, tick 0 one period later (Ts = 1 ms), when the
     clock is moved there and the bench stepped. Returns t0, when tick 0 was due."""
-    bench.start()
-    bench.write_object(PlantObj.CONFIG, ConfigSub.PACING, b"\x01")
-    bench.write_object(PlantObj.INITIAL_STATE, 0, pack_initial_state(Q0, QD0))
-    bench.write_object(PlantObj.TRIAL, PlantTrialSub.N_TICKS, struct.pack("<I", n_ticks))
-    bench.write_object(PlantObj.TRIAL, PlantTrialSub.COMMAND, b"\x01")
+    request_paced_trial(bench, n_ticks)
     bench.step(0.0)
     t0 = clock.now + 0.001
     assert bench.next_deadline() == pytest.approx(t0 - bench.spin_s)
@@ -121,11 +115,7 @@ def test_paced_bench_holds_each_tick_until_its_time() -> None:
         bench.step(0.0)
 
     try:
-        bench.start()
-        bench.write_object(PlantObj.CONFIG, ConfigSub.PACING, b"\x01")
-        bench.write_object(PlantObj.INITIAL_STATE, 0, pack_initial_state(Q0, QD0))
-        bench.write_object(PlantObj.TRIAL, PlantTrialSub.N_TICKS, struct.pack("<I", 4))
-        bench.write_object(PlantObj.TRIAL, PlantTrialSub.COMMAND, b"\x01")
+        request_paced_trial(bench, 4)
         bench.step(0.0)  # at 100.0: the start command only; tick 0 is due at t0 = 100.001
         assert io_frames_seen() == ["ControlFrame"]
         assert bench.next_deadline() == pytest.approx(100.001)

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from cli_util import sim_signalled_at_row
 
 from host.analysis.recording import RunRecorder
 from host.analysis.recording_segments import TRAILER_BYTES, SegmentFile, cut_back
@@ -363,22 +364,7 @@ def test_a_killed_sim_never_leaves_an_unreadable_recording(tmp_path: Path) -> No
     recording opens with RrdReader and holds the summary's trials, or one more (killed between
     the two writes; the launcher or the janitor cut that back in ``ilcrig run``)."""
     out = tmp_path / "run"
-    proc = subprocess.Popen(
-        [sys.executable, "-u", "-m", "host.cli", "sim", "--iterations", "1000", "--cycle", "0.15", "--out", str(out)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
-        text=True,
-        cwd=REPO,
-    )
-    try:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            if line.split()[:1] == ["3"]:
-                proc.send_signal(signal.SIGKILL)
-                break
-    finally:
-        proc.kill()
-        proc.wait()
+    sim_signalled_at_row(out, "3", signal.SIGKILL)
     s = json.loads((out / "summary.json").read_text())
     k = len(s["iterations"])
     assert recorded(out / "recording.rrd") in (list(range(k)), list(range(k + 1)))

@@ -15,6 +15,7 @@ from pathlib import Path
 import can
 import canopen
 import pytest
+from cli_util import run_in_session, stop_process
 from netns_util import NETNS_SETUP, netns_unavailable_reason
 
 from bus.busload import bits_lookup
@@ -46,14 +47,7 @@ def sim_digest() -> str:
 
 def run_rig(cmd: list[str], timeout_s: float = 300.0, cwd: Path = REPO) -> subprocess.CompletedProcess[str]:
     """Run a launcher command in its own session; kill the whole group if it hangs."""
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True, cwd=cwd)
-    try:
-        out, err = proc.communicate(timeout=timeout_s)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        out, err = proc.communicate()
-        pytest.fail(f"rig timed out:\n{out}\n{err}")
-    return subprocess.CompletedProcess(cmd, proc.returncode, out, err)
+    return run_in_session(cmd, timeout_s, cwd, what="rig")
 
 
 #: trials and ticks per trial of EXP (a 0.15 s cycle is 2 × 0.15 s of motion at Ts = 1 ms, plus tick 0)
@@ -287,12 +281,7 @@ def test_canopen_library_reads_and_writes_a_drive_process(tmp_path: Path) -> Non
             assert int(Obj.RECORDER_DATA) in node.object_dictionary
         finally:
             network.disconnect()
-            drive.send_signal(signal.SIGTERM)
-            try:
-                drive.wait(10)
-            except subprocess.TimeoutExpired:
-                drive.kill()
-                drive.wait()
+            stop_process(drive)
         assert drive.returncode == 0
 
 

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from robot_util import DRIVES, PLANT_ID, LockstepMaster, VirtualRobot, counts_of, new_channels, plant_factory, wait_for
+from clock_util import wait_for
+from robot_util import DRIVES, PLANT_ID, LockstepMaster, VirtualRobot, counts_of, new_channels, plant_factory
 
 from bus import units
 from bus.plant_objects import ROBOT_EMCY_FLAG, LimitSub, PlantObj, RobotFault, RobotMode, RobotState, RobotSub
@@ -119,10 +120,7 @@ def ramp(m: LockstepMaster, start: dict[int, int], targets: np.ndarray) -> list[
 
 def test_csp_moves_the_robot_and_the_tpdos_carry_the_plants_positions(robot: Robot) -> None:
     m = robot.master
-    m.configure()
-    m.start()
-    home = counts_of(HOME_Q)
-    m.enable(home)
+    home = enabled_at_home(m)
     assert robot.plant.robot.brakes == 0  # torque on, brakes open
     x = np.linspace(HOME_POSE, (0.05, -0.03, -0.70, 0.3), 300)
     q_ref = inverse_kinematics(np.concatenate([x, np.repeat(x[-1:], 100, axis=0)]))
@@ -146,11 +144,17 @@ def test_csp_moves_the_robot_and_the_tpdos_carry_the_plants_positions(robot: Rob
     assert all(rec["held"][n0 + 1 :] == 0)
 
 
-def script(m: LockstepMaster, n: int) -> None:
+def enabled_at_home(m: LockstepMaster) -> dict[int, int]:
+    """PDOs configured, NMT START, every drive enabled holding the home pose; its counts per node."""
     m.configure()
     m.start()
     home = counts_of(HOME_Q)
     m.enable(home)
+    return home
+
+
+def script(m: LockstepMaster, n: int) -> None:
+    home = enabled_at_home(m)
     x = np.linspace(HOME_POSE, (-0.04, 0.02, -0.68, -0.2), n)
     ramp(m, home, inverse_kinematics(x))
 
@@ -172,10 +176,7 @@ def test_the_same_master_script_gives_the_same_trace(tmp_path: Path) -> None:
 
 def test_driving_into_an_end_stop_is_one_emcy_and_the_robot_held_there(robot: Robot) -> None:
     m = robot.master
-    m.configure()
-    m.start()
-    home = counts_of(HOME_Q)
-    m.enable(home)
+    enabled_at_home(m)
     # straight down until the lower sub-platform's arms (joints 2, 4) pass 80 deg
     z = np.linspace(HOME_POSE[2], -0.87, 460)
     q_ref = inverse_kinematics(np.stack([np.zeros_like(z), np.zeros_like(z), z, np.zeros_like(z)], axis=1))

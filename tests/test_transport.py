@@ -12,7 +12,7 @@ from pathlib import Path
 
 import can
 import pytest
-from netns_util import NETNS_SETUP, netns_unavailable_reason, run_in_netns
+from netns_util import NETNS_SETUP, netns_unavailable_reason, script_report_in_netns
 
 import bus.transports.config as tr
 from bus.transports.config import (
@@ -274,14 +274,7 @@ NETNS_SCRIPT = textwrap.dedent(
 @pytest.mark.netns
 @pytest.mark.multiprocess
 def test_udp_multicast_in_private_netns(tmp_path: Path) -> None:
-    reason = netns_unavailable_reason()
-    if reason:
-        pytest.skip(reason)
-    script = tmp_path / "udp_netns.py"
-    script.write_text(NETNS_SCRIPT)
-    res = run_in_netns(script, timeout_s=30)
-    assert res.returncode == 0, res.stderr
-    out = json.loads(res.stdout.strip().splitlines()[-1])
+    out = script_report_in_netns(tmp_path, "udp_netns.py", NETNS_SCRIPT, timeout_s=30)
     assert out["private"] is True  # the policy allowed it by detection, no flag set
     assert out["got"] == [
         [0x101, "010203040506", 6, False],
@@ -344,14 +337,7 @@ def test_udp_multicast_reports_every_lost_datagram_as_a_bus_error(tmp_path: Path
     """A receiver whose socket overflows gets one bus error frame (a controller receive overflow)
     exactly where the frames are missing, and counts every datagram the kernel dropped; by default
     the receive buffer is as large as the kernel grants, up to UDP_RCVBUF_BYTES."""
-    reason = netns_unavailable_reason()
-    if reason:
-        pytest.skip(reason)
-    script = tmp_path / "udp_loss.py"
-    script.write_text(LOSS_SCRIPT)
-    res = run_in_netns(script, timeout_s=60)
-    assert res.returncode == 0, res.stderr
-    out = json.loads(res.stdout.strip().splitlines()[-1])
+    out = script_report_in_netns(tmp_path, "udp_loss.py", LOSS_SCRIPT, timeout_s=60)
     assert out["default_rcvbuf"] >= min(out["wanted"], 2 * out["rmem_max"])
     got, lost = out["got"], out["frames_lost"]
     assert lost > 0 and lost == out["kernel"]  # every drop of the namespace, on this socket, counted

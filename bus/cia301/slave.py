@@ -27,7 +27,8 @@ This module owns what every node of the rig does on the wire, independent of its
   any frame the node consumes.  io frames are
   handed to the subclass hook :meth:`SlaveNode.on_io`; :meth:`SlaveNode.on_service` and
   :meth:`SlaveNode.next_deadline` let a subclass run its own timers in the same loop.
-* :func:`install_sigterm` — SIGTERM/SIGINT set a stop event (process entry points).
+* :func:`install_sigterm` — SIGTERM/SIGINT set a stop event (process entry points);
+  :func:`quiet_shutdown` — closing a role's bus on the way out, never raising.
 
 Waiting: ``select()`` on both buses' ``fileno()`` where both have one (udp_multicast,
 socketcan, the ilcrig hub), otherwise short-timeout polling (``virtual``); a bus that keeps
@@ -468,3 +469,11 @@ def install_sigterm(stop: threading.Event) -> None:
 
     signal.signal(signal.SIGTERM, _handler)
     signal.signal(signal.SIGINT, _handler)
+
+
+def quiet_shutdown(bus: can.BusABC) -> None:
+    """Close a bus that may have failed already (the hub gone): never raise on the way out."""
+    try:
+        bus.shutdown()
+    except (can.CanError, OSError) as err:
+        logger.debug("closing %s: %s", bus, err)

@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from host.analysis.recording_layout import joint_grid
 from host.analysis.recording_scene import Batch, rgba_u32, skeleton_points
 from host.analysis.viewer import display_available, viewer_command
 
@@ -268,21 +269,10 @@ def robot_blueprint() -> Any:
     """The robot view's layout: the 3D robot beside per-joint position and torque plots."""
     import rerun.blueprint as rrb
 
-    def joints(kind: str, parts: list[str], unit: str) -> Any:
-        return rrb.Grid(
-            *[
-                rrb.TimeSeriesView(
-                    origin=f"/joint{j}", contents=[f"+ /joint{j}/{p}" for p in parts], name=f"joint {j} {kind} [{unit}]"
-                )
-                for j in range(1, N_JOINTS + 1)
-            ],
-            name=kind,
-        )
-
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Spatial3DView(origin="/robot", name="robot"),
-            rrb.Tabs(joints("position", ["reference", "actual"], "deg"), joints("torque", ["torque"], "N·m")),
+            rrb.Tabs(joint_grid("position", ["reference", "actual"], "deg"), joint_grid("torque", ["torque"], "N·m")),
             column_shares=[2, 3],
         ),
         rrb.TimePanel(timeline="period"),

@@ -1,5 +1,5 @@
 """The layout of ``recording.rrd``: its entity paths (:data:`SERIES`) and the viewer's blueprint
-(:func:`default_blueprint`); rerun is imported lazily (inside the function).
+(:func:`default_blueprint`, its per-joint tabs :func:`joint_grid`); rerun is imported lazily (inside the function).
 
 Layout (entity paths; timelines ``trial_time`` = t_n = n·Ts as a duration, ``iteration`` = k):
 
@@ -34,7 +34,7 @@ from typing import Any
 
 from host.analysis.recording_scene import N_JOINTS, rerun_environment
 
-__all__ = ["SERIES", "default_blueprint"]
+__all__ = ["SERIES", "default_blueprint", "joint_grid"]
 
 
 #: per-joint time-series quantities (entity name, unit)
@@ -47,21 +47,29 @@ SERIES: tuple[tuple[str, str], ...] = (
 )
 
 
+def joint_grid(kind: str, contents: Sequence[str], unit: str) -> Any:
+    """A tab of the viewer: per joint j one time-series view of ``/joint{j}/<content>`` for each of
+    ``contents`` (entity paths below the joint), named ``joint j <kind> [<unit>]``."""
+    import rerun.blueprint as rrb
+
+    return rrb.Grid(
+        *[
+            rrb.TimeSeriesView(
+                origin=f"/joint{j}", contents=[f"+ /joint{j}/{c}" for c in contents], name=f"joint {j} {kind} [{unit}]"
+            )
+            for j in range(1, N_JOINTS + 1)
+        ],
+        name=kind,
+    )
+
+
 def default_blueprint() -> Any:
     """The viewer layout: per-joint error / torque / position plots (tabs), the 3D robot, metrics."""
     rerun_environment()
     import rerun.blueprint as rrb
 
     def grid(kind: str, parts: Sequence[str], unit: str) -> Any:
-        return rrb.Grid(
-            *[
-                rrb.TimeSeriesView(
-                    origin=f"/joint{j}", contents=[f"+ /joint{j}/{p}/**" for p in parts], name=f"joint {j} {kind} [{unit}]"
-                )
-                for j in range(1, N_JOINTS + 1)
-            ],
-            name=kind,
-        )
+        return joint_grid(kind, [f"{p}/**" for p in parts], unit)
 
     return rrb.Blueprint(
         rrb.Horizontal(

@@ -151,6 +151,13 @@ def _check_number(name: str, v: Any, *, integer: bool = False) -> None:
         raise ConfigError(f"{name} must be finite, got {v!r}")
 
 
+def _check_positive(name: str, v: Any, unit: str = "", *, integer: bool = False) -> None:
+    """:func:`_check_number`, and > 0 (``unit``: how the message names its unit, e.g. `` bit/s``)."""
+    _check_number(name, v, integer=integer)
+    if v <= 0:
+        raise ConfigError(f"{name} must be > 0{unit}, got {v}")
+
+
 def _check_str(name: str, v: Any) -> None:
     if not isinstance(v, str):
         raise ConfigError(f"{name} must be a string, got {v!r}")
@@ -350,9 +357,7 @@ def validate(cfg: ExperimentConfig) -> None:
     _check_number("iterations", cfg.iterations, integer=True)
     if not 1 <= cfg.iterations <= MAX_ITERATIONS:
         raise ConfigError(f"iterations must be between 1 and {MAX_ITERATIONS}, got {cfg.iterations}")
-    _check_number("cycle_s", cfg.cycle_s)
-    if cfg.cycle_s <= 0:
-        raise ConfigError(f"cycle_s must be > 0, got {cfg.cycle_s}")
+    _check_positive("cycle_s", cfg.cycle_s)
     if cfg.profile not in PROFILES:
         raise ConfigError(f"unknown profile {cfg.profile!r}; choose one of {', '.join(PROFILES)}")
     if cfg.disturbance not in DISTURBANCES:
@@ -368,14 +373,10 @@ def validate(cfg: ExperimentConfig) -> None:
         raise ConfigError(f"substeps must be between 1 and 100, got {cfg.substeps}")
     if cfg.ff0 not in ("model", "zero"):
         raise ConfigError(f"ff0 must be 'model' or 'zero', got {cfg.ff0!r}")
-    _check_number("following_error_deg", cfg.following_error_deg)
-    if cfg.following_error_deg <= 0:
-        raise ConfigError(f"following_error_deg must be > 0, got {cfg.following_error_deg}")
+    _check_positive("following_error_deg", cfg.following_error_deg)
     if cfg.ff_transport not in FF_TRANSPORTS:
         raise ConfigError(f"ff_transport must be one of {', '.join(FF_TRANSPORTS)}, got {cfg.ff_transport!r}")
-    _check_number("fieldbus_bitrate", cfg.fieldbus_bitrate, integer=True)
-    if cfg.fieldbus_bitrate <= 0:
-        raise ConfigError(f"fieldbus_bitrate must be > 0 bit/s, got {cfg.fieldbus_bitrate}")
+    _check_positive("fieldbus_bitrate", cfg.fieldbus_bitrate, " bit/s", integer=True)
     if not isinstance(cfg.force_bus_fit, bool):
         raise ConfigError(f"force_bus_fit must be true or false, got {cfg.force_bus_fit!r}")
     if cfg.ff_transport == "pdo":

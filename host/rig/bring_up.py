@@ -25,7 +25,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import KW_ONLY, InitVar, dataclass, field
 from typing import Any
 
 import canopen
@@ -121,46 +121,40 @@ def configure_pdos(node: Any) -> tuple[Any, Any]:
     return node.rpdo[RPDO_NUMBER], node.tpdo[TPDO_NUMBER]
 
 
+@dataclass(eq=False)
 class BringUp:
     """Brings the nodes of ``nodes`` to NMT OPERATIONAL (see the module docstring).
 
-    :param network: the fieldbus (NMT broadcasts, boot-up frames)
-    :param nodes: the nodes and their clients
-    :param watchdog: hears the heartbeats; a fault it declares meanwhile ends the bring-up
-    :param cfg: the experiment (the plant node's configuration)
-    :param wait_s: how long a node may take to boot and answer SDO, s
+    :ivar network: the fieldbus (NMT broadcasts, boot-up frames)
+    :ivar nodes: the nodes and their clients
+    :ivar watchdog: hears the heartbeats; a fault it declares meanwhile ends the bring-up
+    :ivar cfg: the experiment (the plant node's configuration)
+    :ivar wait_s: how long a node may take to boot and answer SDO, s
     :param scale: the timeout scale of the consumer time the nodes get for the host's heartbeat
-    :param realtime: the plant node paces the ticks to the wall clock
-    :param on_pdos: with ``--ff-transport pdo``: called with each drive's node id and its
+    :ivar realtime: the plant node paces the ticks to the wall clock
+    :ivar on_pdos: with ``--ff-transport pdo``: called with each drive's node id and its
         configured (RPDO1, TPDO1) maps; None: the drives keep their PDOs off
-    :param on_watched: called once every node's heartbeat is watched (the watchdog is armed then)
+    :ivar on_watched: called once every node's heartbeat is watched (the watchdog is armed then)
     :ivar recoveries: per node brought up again between trials: node, before which trial, and
         whether its heartbeat was lost and/or its boot-up seen
     """
 
-    def __init__(
-        self,
-        network: canopen.Network,
-        nodes: RigNodes,
-        watchdog: Watchdog,
-        cfg: ExperimentConfig,
-        *,
-        wait_s: float,
-        scale: float,
-        realtime: bool,
-        on_pdos: Callable[[int, Any, Any], None] | None = None,
-        on_watched: Callable[[], None] | None = None,
-    ) -> None:
-        self.network = network
-        self.nodes = nodes
-        self.watchdog = watchdog
-        self.cfg = cfg
-        self.wait_s = wait_s
+    network: canopen.Network
+    nodes: RigNodes
+    watchdog: Watchdog
+    cfg: ExperimentConfig
+    _: KW_ONLY
+    wait_s: float
+    scale: InitVar[float]
+    realtime: bool
+    on_pdos: Callable[[int, Any, Any], None] | None = None
+    on_watched: Callable[[], None] | None = None
+    #: the consumer time the nodes get for the host's heartbeat, ms
+    consumer_ms: int = field(init=False)
+    recoveries: list[dict[str, Any]] = field(default_factory=list, init=False)
+
+    def __post_init__(self, scale: float) -> None:
         self.consumer_ms = min(round(CONSUMER_TIME_MS * scale), 0xFFFF)
-        self.realtime = realtime
-        self.on_pdos = on_pdos
-        self.on_watched = on_watched
-        self.recoveries: list[dict[str, Any]] = []
 
     def start_all(self) -> None:
         """Every node's boot-up awaited, then all five brought up (:meth:`bring_up`)."""

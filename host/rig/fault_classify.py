@@ -239,29 +239,32 @@ def emcy_fault(frame: EmcyFrame, times: DetectionTimes | None = None) -> FaultRe
         )
     if frame.code == EMCY_TICK_SEQUENCE:
         expected, got = int.from_bytes(data[1:3], "little"), int.from_bytes(data[3:5], "little")
-        return FaultRecord(
+        return _own_report(
             FaultKind.FRAME_SEQUENCE,
             f"io tick out of sequence at {name}: expected tick {expected}, got {got} (EMCY 0x8200)",
-            node=name,
-            node_id=frame.node_id,
+            frame,
+            "the frame's arrival",
             tick=expected,
-            detected_by=name,
-            t_detected_mono=frame.t_mono,
-            t_detected_wall=frame.t_wall,
-            latency_ms=0.0,
-            latency_basis="the frame's arrival",
         )
     what = "following error" if frame.code == EMCY_FOLLOWING_ERROR else "fault"
+    return _own_report(FaultKind.EMCY, f"{what} of {name} (EMCY 0x{frame.code:04X})", frame, "the node's report")
+
+
+def _own_report(kind: FaultKind, message: str, frame: EmcyFrame, basis: str, tick: int | None = None) -> FaultRecord:
+    """A fault the drive that sent ``frame`` reports of itself: detected by it when the EMCY came
+    (latency 0, measured from ``basis``)."""
+    name = node_name(frame.node_id)
     return FaultRecord(
-        FaultKind.EMCY,
-        f"{what} of {name} (EMCY 0x{frame.code:04X})",
+        kind,
+        message,
         node=name,
         node_id=frame.node_id,
+        tick=tick,
         detected_by=name,
         t_detected_mono=frame.t_mono,
         t_detected_wall=frame.t_wall,
         latency_ms=0.0,
-        latency_basis="the node's report",
+        latency_basis=basis,
     )
 
 
@@ -316,29 +319,37 @@ def heartbeat_fault(
         nid = sorted(report.overdue, key=lambda n: (n == PLANT_NODE_ID, n))[0]
         seen = last_heard.get(nid)
         silent = f"{1000 * (now - seen):.0f} ms" if seen is not None else "ever"
-        return FaultRecord(
-            FaultKind.NODE_LOST,
+        return _node_lost(
+            nid,
             f"heartbeat of {node_name(nid)} lost (silent for {silent}: the process died or stalled)",
-            node=node_name(nid),
-            node_id=nid,
-            detected_by="host",
-            t_detected_mono=now,
+            now,
             latency_ms=1000 * (now - seen - period_s) if seen else None,
             latency_basis="its next heartbeat was due" if seen else None,
         )
     if report.booted:
         nid = report.booted[0]
-        return FaultRecord(
-            FaultKind.NODE_LOST,
+        return _node_lost(
+            nid,
             f"{node_name(nid)} booted again during the run (it was reset or restarted)",
-            node=node_name(nid),
-            node_id=nid,
-            detected_by="host",
-            t_detected_mono=now,
+            now,
             latency_ms=0.0,
             latency_basis="its boot-up frame",
         )
     return None
+
+
+def _node_lost(nid: int, message: str, now: float, *, latency_ms: float | None, latency_basis: str | None) -> FaultRecord:
+    """A ``node_lost`` fault of node ``nid`` the host detected at ``now`` (``t_mono``, s)."""
+    return FaultRecord(
+        FaultKind.NODE_LOST,
+        message,
+        node=node_name(nid),
+        node_id=nid,
+        detected_by="host",
+        t_detected_mono=now,
+        latency_ms=latency_ms,
+        latency_basis=latency_basis,
+    )
 
 
 def plant_trial_fault(exc: PlantTrialFault, trial: int, now: float, times: DetectionTimes | None = None) -> FaultRecord:

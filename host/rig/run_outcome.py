@@ -30,6 +30,7 @@ import json
 import logging
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -54,26 +55,20 @@ logger = logging.getLogger(__name__)
 __all__ = ["RunOutcome"]
 
 
+@dataclass(eq=False)
 class RunOutcome:
     """The end of one run (see the module docstring).
 
-    :param out_dir: the run folder
-    :param children: the role processes
-    :param say_err: writes one line to the launcher's stderr
-    :param resume_all: resumes every process an injection stalled (before the drives' evidence is read)
+    :ivar out_dir: the run folder
+    :ivar children: the role processes
+    :ivar say_err: writes one line to the launcher's stderr
+    :ivar resume_all: resumes every process an injection stalled (before the drives' evidence is read)
     """
 
-    def __init__(
-        self,
-        out_dir: Path,
-        children: Sequence[Child],
-        say_err: Callable[[str], None],
-        resume_all: Callable[[], None] | None = None,
-    ) -> None:
-        self.out_dir = out_dir
-        self.children = children
-        self.say_err = say_err
-        self.resume_all = resume_all
+    out_dir: Path
+    children: Sequence[Child]
+    say_err: Callable[[str], None]
+    resume_all: Callable[[], None] | None = None
 
     # -- the summary ----------------------------------------------------------------------
     def load_summary(self) -> dict[str, Any] | None:

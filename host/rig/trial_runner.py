@@ -16,6 +16,7 @@ from __future__ import annotations
 import gc
 import logging
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -34,34 +35,28 @@ logger = logging.getLogger(__name__)
 __all__ = ["TrialRunner"]
 
 
+@dataclass(eq=False)
 class TrialRunner:
     """Runs the trials on the plant node (see the module docstring).
 
-    :param plant: the plant node's client
-    :param watchdog: marks the trial as running, and declares the faults
-    :param streamer: the SYNC producer of cyclic trials (None: the drives play their tables)
-    :param catch_up: waits until the channel monitors have read every frame of the trial (a full
+    :ivar plant: the plant node's client
+    :ivar watchdog: marks the trial as running, and declares the faults
+    :ivar streamer: the SYNC producer of cyclic trials (None: the drives play their tables)
+    :ivar catch_up: waits until the channel monitors have read every frame of the trial (a full
         disk that stopped a log inside the trial is then known before the trial is kept)
     :ivar timings: per completed trial, the plant node's timing
     :ivar misses: per completed trial, its missed ticks (None: none missed, or not paced)
     :ivar steal: per completed trial, the CPU time the hypervisor took meanwhile (None: not counted)
     """
 
-    def __init__(
-        self,
-        plant: PlantClient,
-        watchdog: Watchdog,
-        streamer: SyncProducer | None = None,
-        catch_up: Callable[[], None] | None = None,
-    ) -> None:
-        self.plant = plant
-        self.watchdog = watchdog
-        self.streamer = streamer
-        self._catch_up = catch_up
-        self.timings: list[TrialTiming] = []
-        self.misses: list[DeadlineMisses | None] = []
-        self.steal: list[MachineSteal | None] = []
-        self._gc_frozen = False
+    plant: PlantClient
+    watchdog: Watchdog
+    streamer: SyncProducer | None = None
+    catch_up: Callable[[], None] | None = None
+    timings: list[TrialTiming] = field(default_factory=list, init=False)
+    misses: list[DeadlineMisses | None] = field(default_factory=list, init=False)
+    steal: list[MachineSteal | None] = field(default_factory=list, init=False)
+    _gc_frozen: bool = field(default=False, init=False)
 
     def run(
         self, trial: int, n_ticks: int, q0: np.ndarray, qd0: np.ndarray, cyclic: CyclicSetpoints | None = None
@@ -94,8 +89,8 @@ class TrialRunner:
                 watchdog.settle_and_check()
                 record = watchdog.describe(exc, trial)
                 raise TrialFault(record.message if record else f"trial {trial}: {exc}", record) from exc
-        if self._catch_up is not None:  # what the monitors noted at a tick of this trial belongs to it
-            self._catch_up()
+        if self.catch_up is not None:  # what the monitors noted at a tick of this trial belongs to it
+            self.catch_up()
         watchdog.watch_round()
         watchdog.raise_if_fault()
         timing = self.plant.trial_timing()

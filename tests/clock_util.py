@@ -1,0 +1,29 @@
+"""Test helpers of time: :class:`ManualClock`, a node clock (``() -> float``, s) that only the test
+moves, for nodes the test steps itself (heartbeats and timeouts fall due exactly when it says);
+:func:`wait_for`, polling a condition on the real clock until it holds or a timeout passes."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+
+class ManualClock:
+    """A node clock that only the test moves: ``now`` is the time it returns, s."""
+
+    def __init__(self, now: float = 1000.0) -> None:
+        self.now = now
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def wait_for(predicate: Callable[[], Any], timeout_s: float = 10.0) -> bool:
+    """Poll ``predicate`` until true or ``timeout_s`` passed (the caller asserts the result)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.002)
+    return bool(predicate())
