@@ -28,7 +28,7 @@ from host.experiment.loop_state import TrialOutcome
 from host.experiment.plan import Plan
 from host.experiment.signal_shield import Interrupted, interrupt_on_signals
 from host.learning.check import ConvergenceReport
-from host.learning.registry import law_class, law_names
+from host.learning.registry import law_descriptions
 from host.learning.registry import register_law as _register
 from ilcrig.errors import InputError, input_error
 from ilcrig.results import Results, TrialResult
@@ -44,14 +44,7 @@ def available_laws() -> dict[str, str]:
 
     :raises InputError: a conflicting installation (a plug-in that claims a project law's name, or
         two distributions that claim one name), naming the distribution(s)."""
-    out = {}
-    for name in law_names():
-        try:
-            cls = law_class(name)
-            out[name] = str(getattr(cls, "description", "") or (cls.__doc__ or "").strip().splitlines()[0])
-        except (ValueError, IndexError) as exc:
-            out[name] = f"(cannot be loaded: {exc})"
-    return out
+    return law_descriptions()
 
 
 def register_law(cls: type[Any], name: str | None = None) -> str:
