@@ -136,7 +136,7 @@ class Engine:
         self.dashboard: str | None = None
         self.cluster: Any = None
         self.client: Any = None
-        self._log_level: int | None = None
+        self._log_levels: dict[str, int] = {}
 
     def __enter__(self) -> Engine:
         self.start()
@@ -149,9 +149,7 @@ class Engine:
         """Start the local cluster, or connect to the scheduler."""
         from distributed import Client
 
-        quiet = logging.getLogger("distributed")  # the scheduler's INFO lines are not the user's business
-        self._log_level = quiet.level
-        quiet.setLevel(max(logging.ERROR, logging.getLogger().getEffectiveLevel()))
+        self._quiet_dask()
         if self.scheduler is not None:
             try:
                 self.client = Client(self.scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
@@ -178,10 +176,11 @@ class Engine:
                     host=LOOPBACK,
                     worker_class=nanny_cls,
                     dashboard_address=address if serve else None,
-                    silence_logs=logging.ERROR,
+                    silence_logs=self._dask_log_level(),  # the workers' log level (their stderr is the terminal's)
                 )
         finally:
             _restore_sigint(old_sigint)
+        self._quiet_dask()  # the cluster set the level of this process's Dask loggers: quiet again
         self.client = Client(self.cluster, set_as_default=False)
         self.dashboard = self._link() if serve else None
 
@@ -253,9 +252,32 @@ class Engine:
             except Exception:  # noqa: BLE001 - closing must not hide the outcome
                 logger.debug("closing %s failed", what, exc_info=True)
         self.client = self.cluster = None
-        if self._log_level is not None:
-            logging.getLogger("distributed").setLevel(self._log_level)
-            self._log_level = None
+        for name, level in self._log_levels.items():
+            logging.getLogger(name).setLevel(level)
+        self._log_levels = {}
+
+    @staticmethod
+    def _dask_log_level() -> int:
+        """ERROR with ``--debug`` (the root logger at DEBUG), else above CRITICAL: nothing."""
+        return logging.ERROR if logging.getLogger().getEffectiveLevel() <= logging.DEBUG else logging.CRITICAL + 1
+
+    def _quiet_dask(self) -> None:
+        """Dask's log lines (its INFO, and the tracebacks it logs when a connection goes) are not the
+        user's business: the engine says what happened in one line.  Silenced (``distributed`` and
+        every child logger Dask gave a level of its own) unless the root logger is at DEBUG
+        (``ilcrig --debug``: its errors stay); restored by :meth:`close`."""
+        import distributed  # noqa: F401 - Dask's logging configuration is applied on import
+
+        level = self._dask_log_level()
+        names = ["distributed"] + [
+            n
+            for n, lg in logging.root.manager.loggerDict.items()
+            if n.startswith("distributed.") and isinstance(lg, logging.Logger) and lg.level != logging.NOTSET
+        ]
+        for name in names:
+            lg = logging.getLogger(name)
+            self._log_levels.setdefault(name, lg.level)
+            lg.setLevel(max(level, lg.level))
 
 
 def _ignore_sigint() -> Any:
