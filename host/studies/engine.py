@@ -71,8 +71,8 @@ LOOPBACK = "127.0.0.1"
 CONNECT_TIMEOUT_S = 30.0
 #: seconds to wait for a worker when the cluster has none (at the start or later), said on the terminal
 WAIT_WORKERS_S = 60.0
-#: seconds between two looks at the cluster while waiting for a point
-POLL_S = 0.1
+#: seconds between two looks at the cluster (its connection, its workers) while waiting for a point
+POLL_S = 1.0
 #: the Dask task group of the points (the first element of their keys)
 TASK_GROUP = "ilcrig-point"
 #: Dask settings of the local cluster: a point is seconds of Python, so what Dask does in the
@@ -369,9 +369,11 @@ class PointQueue:
         return fut
 
     def _next_done(self) -> Any:
-        """The next completed future, watching the cluster meanwhile.
+        """The next completed future, looking at the cluster every :data:`POLL_S` s meanwhile.
 
         :raises ClusterLost: the scheduler's connection lost, or no worker for ``wait_workers_s``."""
+        from distributed import wait
+
         engine = self.engine
         no_workers_since: float | None = None
         said = False
@@ -390,7 +392,17 @@ class PointQueue:
                 sys.stderr.write(f"ilcrig: {engine.name()} has no workers; waiting up to {engine.wait_workers_s:.0f} s for one\n")
             elif time.monotonic() - no_workers_since > engine.wait_workers_s:
                 raise ClusterLost(f"{engine.name()} has had no workers for {engine.wait_workers_s:.0f} s")
-            time.sleep(POLL_S)
+            if not self._pending:
+                time.sleep(0.01)
+                continue
+            try:  # returns as soon as one completes (then as_completed has it a moment later)
+                wait(list(self._pending), timeout=POLL_S, return_when="FIRST_COMPLETED")
+                time.sleep(0.002)
+            except TimeoutError:
+                pass
+            except Exception:  # noqa: BLE001 - the client going away: engine.lost() says so next
+                logger.debug("waiting for the points failed", exc_info=True)
+                time.sleep(0.1)
 
     def next(self) -> tuple[Point, dict[str, Any], Any]:
         """Wait for the next point to complete: the point, its result (:func:`run_point`'s, or
