@@ -6,8 +6,11 @@ the command's, which cancels the points and closes the cluster — no worker pri
 Dask's scheduler would otherwise serve its HTTP routes on 8787 and every worker on a port of its
 own, dashboard or not), the nannies that start those workers (:class:`QuietNanny`,
 :class:`NoHttpNanny`) and :class:`QuietLocalCluster` (a ``LocalCluster`` whose scheduler class is
-chosen).  Imported by :mod:`host.studies.engine` when a local cluster starts (it imports Dask);
-the worker classes are module-level so the worker processes import them by name.
+chosen), and the quiet of this process: :func:`quiet_dask_logs` (Dask's log lines and the
+tracebacks it logs when a connection goes silenced, unless ``--debug``) and :func:`sigint_ignored`
+(the worker processes are spawned with SIGINT ignored).  Imported by :mod:`host.studies.engine`
+when the engine starts (it imports Dask); the worker classes are module-level so the worker
+processes import them by name.
 
 May import: ``distributed``, ``tornado`` (nothing of ilcrig).
 """
@@ -15,14 +18,62 @@ May import: ``distributed``, ``tornado`` (nothing of ilcrig).
 from __future__ import annotations
 
 import contextlib
+import logging
 import signal
+import threading
+from collections.abc import Iterator
 from typing import Any
 
 from distributed import LocalCluster, Nanny, Scheduler, Worker
 from distributed.http.routing import RoutingApplication
 from tornado.httpserver import HTTPServer
 
-__all__ = ["QuietWorker", "NoHttpWorker", "NoHttpScheduler", "QuietNanny", "NoHttpNanny", "QuietLocalCluster"]
+__all__ = [
+    "QuietWorker",
+    "NoHttpWorker",
+    "NoHttpScheduler",
+    "QuietNanny",
+    "NoHttpNanny",
+    "QuietLocalCluster",
+    "NoHttpLocalCluster",
+    "dask_log_level",
+    "quiet_dask_logs",
+    "sigint_ignored",
+]
+
+
+def dask_log_level() -> int:
+    """ERROR with ``ilcrig --debug`` (the root logger at DEBUG), else above CRITICAL: nothing."""
+    return logging.ERROR if logging.getLogger().getEffectiveLevel() <= logging.DEBUG else logging.CRITICAL + 1
+
+
+def quiet_dask_logs(saved: dict[str, int]) -> None:
+    """Silence ``distributed`` and every child logger Dask gave a level of its own (to
+    :func:`dask_log_level`); their levels before go into ``saved`` (first call wins), for the caller
+    to restore."""
+    level = dask_log_level()
+    names = ["distributed"] + [
+        n
+        for n, lg in logging.root.manager.loggerDict.items()
+        if n.startswith("distributed.") and isinstance(lg, logging.Logger) and lg.level != logging.NOTSET
+    ]
+    for name in names:
+        lg = logging.getLogger(name)
+        saved.setdefault(name, lg.level)
+        lg.setLevel(max(level, lg.level))
+
+
+@contextlib.contextmanager
+def sigint_ignored() -> Iterator[None]:
+    """While inside (main thread only): SIGINT ignored — processes spawned meanwhile inherit it."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
 
 
 class _NoHttpListener:

@@ -149,7 +149,9 @@ class Engine:
         """Start the local cluster, or connect to the scheduler."""
         from distributed import Client
 
-        self._quiet_dask()
+        from host.studies.dask_quiet import quiet_dask_logs
+
+        quiet_dask_logs(self._log_levels)  # Dask's log lines are not the user's business
         if self.scheduler is not None:
             try:
                 self.client = Client(self.scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
@@ -161,26 +163,29 @@ class Engine:
 
         serve = dashboard_available() and self.dashboard_option is not False
         address = self.dashboard_option if isinstance(self.dashboard_option, str) else f"{LOOPBACK}:0"
-        from host.studies.dask_quiet import NoHttpLocalCluster, NoHttpNanny, QuietLocalCluster, QuietNanny
+        from host.studies.dask_quiet import (
+            NoHttpLocalCluster,
+            NoHttpNanny,
+            QuietLocalCluster,
+            QuietNanny,
+            dask_log_level,
+            sigint_ignored,
+        )
 
         http = self.dashboard_option is not False  # --no-dashboard: no HTTP listener at all
         cluster_cls, nanny_cls = (QuietLocalCluster, QuietNanny) if http else (NoHttpLocalCluster, NoHttpNanny)
         # the worker processes are spawned with SIGINT ignored (inherited): Ctrl-C is this process's
-        old_sigint = _ignore_sigint()
-        try:
-            with dask.config.set(WORKER_CONFIG):
-                self.cluster = cluster_cls(
-                    n_workers=self.workers,
-                    threads_per_worker=1,
-                    processes=True,
-                    host=LOOPBACK,
-                    worker_class=nanny_cls,
-                    dashboard_address=address if serve else None,
-                    silence_logs=self._dask_log_level(),  # the workers' log level (their stderr is the terminal's)
-                )
-        finally:
-            _restore_sigint(old_sigint)
-        self._quiet_dask()  # the cluster set the level of this process's Dask loggers: quiet again
+        with sigint_ignored(), dask.config.set(WORKER_CONFIG):
+            self.cluster = cluster_cls(
+                n_workers=self.workers,
+                threads_per_worker=1,
+                processes=True,
+                host=LOOPBACK,
+                worker_class=nanny_cls,
+                dashboard_address=address if serve else None,
+                silence_logs=dask_log_level(),  # the workers' log level (their stderr is the terminal's)
+            )
+        quiet_dask_logs(self._log_levels)  # the cluster set the level of this process's Dask loggers
         self.client = Client(self.cluster, set_as_default=False)
         self.dashboard = self._link() if serve else None
 
@@ -255,40 +260,6 @@ class Engine:
         for name, level in self._log_levels.items():
             logging.getLogger(name).setLevel(level)
         self._log_levels = {}
-
-    @staticmethod
-    def _dask_log_level() -> int:
-        """ERROR with ``--debug`` (the root logger at DEBUG), else above CRITICAL: nothing."""
-        return logging.ERROR if logging.getLogger().getEffectiveLevel() <= logging.DEBUG else logging.CRITICAL + 1
-
-    def _quiet_dask(self) -> None:
-        """Dask's log lines (its INFO, and the tracebacks it logs when a connection goes) are not the
-        user's business: the engine says what happened in one line.  Silenced (``distributed`` and
-        every child logger Dask gave a level of its own) unless the root logger is at DEBUG
-        (``ilcrig --debug``: its errors stay); restored by :meth:`close`."""
-        import distributed  # noqa: F401 - Dask's logging configuration is applied on import
-
-        level = self._dask_log_level()
-        names = ["distributed"] + [
-            n
-            for n, lg in logging.root.manager.loggerDict.items()
-            if n.startswith("distributed.") and isinstance(lg, logging.Logger) and lg.level != logging.NOTSET
-        ]
-        for name in names:
-            lg = logging.getLogger(name)
-            self._log_levels.setdefault(name, lg.level)
-            lg.setLevel(max(level, lg.level))
-
-
-def _ignore_sigint() -> Any:
-    if threading.current_thread() is not threading.main_thread():
-        return None
-    return signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-def _restore_sigint(old: Any) -> None:
-    if old is not None:
-        signal.signal(signal.SIGINT, old)
 
 
 @dataclass
