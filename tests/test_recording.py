@@ -225,35 +225,104 @@ def test_log_trial_rejects_bad_shapes(tmp_path: Path) -> None:
     assert [r.recording_id for r in RrdReader(tmp_path / "x" / "recording.rrd").recordings()] == ["x"]
 
 
-def test_view_without_display_prints_the_command(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def _fake_viewer(tmp_path: Path, native: str) -> list[str]:
+    """A stand-in for ``rerun``: as the native viewer it runs ``native`` (shell); as the web viewer
+    it says Rerun's line with a URL and ends a moment later."""
+    script = tmp_path / "fake-rerun"
+    script.write_text(
+        "#!/bin/sh\n"
+        'case " $* " in *" --web-viewer "*)\n'
+        '  echo "INFO Hosting a web-viewer at http://127.0.0.1:1 - connect at http://127.0.0.1:1?url=x"; sleep 0.5; exit 0;;\n'
+        "esac\n"
+        f"{native}\n"
+    )
+    script.chmod(0o755)
+    return [str(script)]
+
+
+def test_view_without_a_viewer_prints_the_command(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from importlib.metadata import version
 
-    from host.analysis.viewer import view_run
+    from host.analysis import viewer
 
     (tmp_path / "recording.rrd").write_bytes(b"")
-    monkeypatch.delenv("DISPLAY", raising=False)
-    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
-    monkeypatch.setattr(sys, "platform", "linux")
+    monkeypatch.setattr(viewer, "viewer_command", lambda: None)
     spawned: list[Any] = []
     monkeypatch.setattr(subprocess, "Popen", lambda *a, **k: spawned.append(a))
     out, err = io.StringIO(), io.StringIO()
-    assert view_run(tmp_path, stdout=out, stderr=err) == 0
+    assert viewer.view_run(tmp_path, stdout=out, stderr=err) == 0
     text = out.getvalue()
     assert f"rerun {(tmp_path / 'recording.rrd').resolve()}" in text
     assert f"pip install rerun-sdk=={version('rerun-sdk')}" in text
-    assert not spawned and err.getvalue() == ""
+    assert "opened" not in text and not spawned and err.getvalue() == ""
 
 
-def test_view_with_display_spawns_the_viewer(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_view_with_display_opens_a_native_viewer_that_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from host.analysis import viewer
 
     (tmp_path / "recording.rrd").write_bytes(b"")
     monkeypatch.setenv("DISPLAY", ":0")
-    spawned: list[Any] = []
-    monkeypatch.setattr(viewer, "viewer_command", lambda: ["/x/rerun"])
-    monkeypatch.setattr(subprocess, "Popen", lambda argv, **k: spawned.append(argv))
-    assert viewer.view_run(tmp_path, stdout=io.StringIO()) == 0
-    assert spawned == [["/x/rerun", str((tmp_path / "recording.rrd").resolve())]]
+    monkeypatch.setattr(viewer, "NATIVE_SETTLE_S", 0.5)
+    monkeypatch.setattr(viewer, "viewer_command", lambda: _fake_viewer(tmp_path, 'echo "$1" > "$0.args"; exec sleep 5'))
+    out = io.StringIO()
+    assert viewer.view_run(tmp_path, stdout=out, stderr=io.StringIO()) == 0
+    assert out.getvalue().startswith("ilcrig view: opened ")
+    assert (tmp_path / "fake-rerun.args").read_text().strip() == str((tmp_path / "recording.rrd").resolve())
+
+
+def test_view_native_viewer_exiting_at_once_falls_back_to_the_web_viewer(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from host.analysis import viewer
+
+    (tmp_path / "recording.rrd").write_bytes(b"")
+    monkeypatch.setenv("DISPLAY", ":0")
+    monkeypatch.setattr(viewer, "viewer_command", lambda: _fake_viewer(tmp_path, "exit 101"))
+    out, err = io.StringIO(), io.StringIO()
+    assert viewer.view_run(tmp_path, stdout=out, stderr=err) == 0
+    assert "opened" not in out.getvalue()
+    assert "the native viewer exited at once (exit code 101" in err.getvalue()
+    assert "in Rerun's web viewer on 127.0.0.1: open http://127.0.0.1:1?url=x" in out.getvalue()
+
+
+@pytest.mark.multiprocess
+def test_view_headless_serves_the_web_viewer_on_loopback(tmp_path: Path) -> None:
+    """No display: the real Rerun web viewer, its URL printed, answering an HTTP GET on loopback;
+    Ctrl-C ends the command and the viewer."""
+    import os
+    import signal
+    import time
+    import urllib.request
+
+    import psutil
+
+    (tmp_path / "recording.rrd").write_bytes(b"")
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "host.cli", "view", str(tmp_path)],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        line = proc.stdout.readline() if proc.stdout else ""
+        assert "in Rerun's web viewer on 127.0.0.1: open http://127.0.0.1:" in line, (line, proc.stderr and proc.stderr.read())
+        url = line.split("open ", 1)[1].strip()
+        viewers = psutil.Process(proc.pid).children(recursive=True)
+        listening = [c.laddr for v in viewers for c in v.net_connections(kind="inet") if c.status == "LISTEN"]
+        assert listening and all(a.ip == "127.0.0.1" for a in listening), listening
+        with urllib.request.urlopen(url, timeout=10) as resp:  # noqa: S310 - a loopback http URL
+            assert resp.status == 200 and resp.read(100)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=30)
+        assert proc.returncode == 130, err
+        assert "Traceback" not in err and "opened" not in err
+        time.sleep(0.2)
+        assert not [v for v in viewers if v.is_running() and v.status() != psutil.STATUS_ZOMBIE]
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
 
 
 def test_view_missing_recording_is_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

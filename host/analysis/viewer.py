@@ -1,7 +1,15 @@
-"""``ilcrig view``: a run's ``recording.rrd`` opened in the Rerun viewer, or the command to open it
-printed (no display, no viewer installed).  :func:`view_run` takes typed arguments (no argparse);
-:func:`viewer_command` and :func:`display_available` are shared with the live view
-(:mod:`host.analysis.live_view`).  Imports no rerun.
+"""``ilcrig view``: a run's ``recording.rrd`` in the Rerun viewer — the native one, or Rerun's web
+viewer served on loopback when the native one cannot start — or the command to open it printed (no
+viewer installed).  :func:`view_run` takes typed arguments (no argparse); :func:`viewer_command`
+and :func:`display_available` are shared with the live view (:mod:`host.analysis.live_view`).
+Imports no rerun (the viewer is a child process).
+
+* A display and a viewer: the native viewer is started and watched for :data:`NATIVE_SETTLE_S`;
+  only one still running then is reported as opened.
+* No display, or a native viewer that exited at once (graphics it cannot use): Rerun's web viewer
+  (``rerun RRD --web-viewer``), every listener bound to 127.0.0.1 on a free port; its URL is printed
+  and the command serves it until Ctrl-C / SIGTERM, which stop the viewer too.  A web viewer that
+  does not come up within :data:`WEB_START_S` is said as such (exit 1); never "opened".
 
 May import: ``bus`` (exit codes).
 """
@@ -10,17 +18,30 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import shutil
+import signal
 import subprocess
 import sys
+import tempfile
+import time
 from pathlib import Path
 from typing import TextIO
 
-from bus.exit_codes import EXIT_USAGE
+from bus.exit_codes import EXIT_ERROR, EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATED, EXIT_USAGE
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["display_available", "view_run", "viewer_command"]
+__all__ = ["display_available", "view_run", "viewer_command", "web_viewer_args", "NATIVE_SETTLE_S", "WEB_START_S"]
+
+#: seconds a native viewer must keep running to count as opened
+NATIVE_SETTLE_S = 3.0
+#: seconds to wait for the web viewer's URL
+WEB_START_S = 30.0
+#: the only address the web viewer listens on
+LOOPBACK = "127.0.0.1"
+#: the line Rerun writes when its web viewer is up (the address to open is the second URL)
+_WEB_URL = re.compile(r"Hosting a web-viewer at (\S+) - connect at (\S+)")
 
 
 def _rerun_version() -> str | None:
@@ -54,10 +75,101 @@ def display_available() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
-def view_run(run_dir: str | Path, *, stdout: TextIO | None = None, stderr: TextIO | None = None) -> int:
-    """``ilcrig view RUN_DIR``: open ``RUN_DIR/recording.rrd`` in the viewer, or say how to.
+def web_viewer_args(rrd: Path) -> list[str]:
+    """The viewer's arguments that serve ``rrd`` in the web viewer, every listener (HTTP and gRPC)
+    on 127.0.0.1 and a free port."""
+    return [str(rrd), "--web-viewer", "--bind", LOOPBACK, "--web-viewer-port", "0", "--port", "0"]
 
-    :returns: 0 (viewer spawned, or the command printed), 2 if there is no recording.
+
+def _native(cmd: list[str], rrd: Path, log: Path) -> str | None:
+    """Start the native viewer; None if it runs after :data:`NATIVE_SETTLE_S`, else why not."""
+    try:
+        with open(log, "wb") as fh:
+            proc = subprocess.Popen([*cmd, str(rrd)], stdin=subprocess.DEVNULL, stdout=fh, stderr=fh, start_new_session=True)
+    except OSError as exc:
+        return f"cannot start the native viewer {cmd[0]}: {exc.strerror or exc}"
+    try:
+        code = proc.wait(timeout=NATIVE_SETTLE_S)
+    except subprocess.TimeoutExpired:
+        return None
+    return f"the native viewer exited at once (exit code {code}; its output: {log})"
+
+
+def _serve_web(cmd: list[str], rrd: Path, log: Path, out: TextIO, err: TextIO) -> int:
+    """Serve ``rrd`` in the web viewer on loopback until Ctrl-C / SIGTERM; print its URL."""
+    try:
+        with open(log, "wb") as fh:
+            proc = subprocess.Popen(
+                [*cmd, *web_viewer_args(rrd)], stdin=subprocess.DEVNULL, stdout=fh, stderr=fh, start_new_session=True
+            )
+    except OSError as exc:
+        err.write(f"ilcrig view: cannot start the web viewer {cmd[0]}: {exc.strerror or exc}\n")
+        return EXIT_ERROR
+    old_term = signal.getsignal(signal.SIGTERM)
+    terminated = False
+
+    def on_term(signum: int, frame: object) -> None:
+        nonlocal terminated
+        terminated = True
+        raise KeyboardInterrupt
+
+    try:
+        signal.signal(signal.SIGTERM, on_term)
+    except ValueError:  # not the main thread
+        old_term = None
+    try:
+        deadline = time.monotonic() + WEB_START_S
+        url = None
+        while url is None:
+            m = _WEB_URL.search(log.read_text(errors="replace"))
+            if m:
+                url = m.group(2)
+                break
+            if proc.poll() is not None or time.monotonic() > deadline:
+                why = f"exited (exit code {proc.returncode})" if proc.returncode is not None else "did not start"
+                err.write(f"ilcrig view: Rerun's web viewer {why} within {WEB_START_S:.0f} s (its output: {log})\n")
+                return EXIT_ERROR
+            time.sleep(0.1)
+        out.write(f"ilcrig view: {rrd} in Rerun's web viewer on {LOOPBACK}: open {url}\n")
+        out.write("ilcrig view: serving until Ctrl-C\n")
+        out.flush()
+        code = proc.wait()
+        err.write(f"ilcrig view: the web viewer ended (exit code {code})\n")
+        return EXIT_OK if code == 0 else EXIT_ERROR
+    except KeyboardInterrupt:
+        return EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
+    finally:
+        _end_group(proc)
+        if old_term is not None:
+            signal.signal(signal.SIGTERM, old_term)
+
+
+def _end_group(proc: subprocess.Popen[bytes]) -> None:
+    """End the viewer and whatever it started (its own session: ``rerun`` may run the viewer binary
+    as a child): SIGTERM to the group, SIGKILL after 5 s."""
+    for sig, wait_s in ((signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
+        try:
+            os.killpg(proc.pid, sig)
+        except (ProcessLookupError, PermissionError):
+            break
+        deadline = time.monotonic() + wait_s
+        while time.monotonic() < deadline:
+            proc.poll()
+            try:
+                os.killpg(proc.pid, 0)
+            except (ProcessLookupError, PermissionError):
+                return
+            time.sleep(0.05)
+    proc.poll()
+
+
+def view_run(run_dir: str | Path, *, stdout: TextIO | None = None, stderr: TextIO | None = None) -> int:
+    """``ilcrig view RUN_DIR``: open ``RUN_DIR/recording.rrd`` in the native viewer, or serve it in
+    the web viewer on loopback (module docstring), or say how to open it.
+
+    :returns: 0 (the native viewer running, the web viewer served and ended, or the command
+        printed), 1 if no viewer could be started, 2 if there is no recording, 130 / 143 when the
+        web viewer's serving was ended by Ctrl-C / SIGTERM.
     """
     out = stdout if stdout is not None else sys.stdout
     err = stderr if stderr is not None else sys.stderr
@@ -68,18 +180,21 @@ def view_run(run_dir: str | Path, *, stdout: TextIO | None = None, stderr: TextI
         return EXIT_USAGE
     rrd = rrd.resolve()
     cmd = viewer_command()
-    if cmd is not None and display_available():
-        try:
-            subprocess.Popen([*cmd, str(rrd)], stdin=subprocess.DEVNULL, start_new_session=True)
-        except OSError as exc:
-            logger.warning("cannot start the viewer %s: %s", cmd[0], exc)
-        else:
+    if cmd is None:
+        ver = _rerun_version()
+        pin = f"rerun-sdk=={ver}" if ver else "rerun-sdk"
+        out.write(
+            "ilcrig view: no Rerun viewer installed; open the recording where one is:\n"
+            f"  rerun {rrd}\n  (viewer: pip install {pin})\n"
+        )
+        return EXIT_OK
+    logs = Path(tempfile.mkdtemp(prefix="ilcrig-view-"))
+    if display_available():
+        why = _native(cmd, rrd, logs / "native.log")
+        if why is None:
             out.write(f"ilcrig view: opened {rrd} in the Rerun viewer ({' '.join(cmd)})\n")
-            return 0
-    ver = _rerun_version()
-    pin = f"rerun-sdk=={ver}" if ver else "rerun-sdk"
-    why = "no display ($DISPLAY / $WAYLAND_DISPLAY unset)" if cmd is not None else "no Rerun viewer installed"
-    out.write(
-        f"ilcrig view: {why}; open the recording on a machine with a display:\n  rerun {rrd}\n  (viewer: pip install {pin})\n"
-    )
-    return 0
+            return EXIT_OK
+    else:
+        why = "no display ($DISPLAY / $WAYLAND_DISPLAY unset)"
+    err.write(f"ilcrig view: {why}; falling back to Rerun's web viewer on {LOOPBACK}\n")
+    return _serve_web(cmd, rrd, logs / "web.log", out, err)

@@ -5,8 +5,10 @@ only calls it: :func:`add_sweep_parser`, :func:`add_tune_parser` and :func:`add_
 each add one subcommand with all its options and its handler (:func:`sweep_main`,
 :func:`tune_main`, :func:`reproduce_main`): build the points, run them on the engine, write the
 table and the report, and print one closing line.  Bad input is a :class:`bus.errors.InputError`
-(one line, exit code 2) raised before anything starts; an interrupted sweep returns 130
-(``EXIT_INTERRUPTED``) with every finished point kept.
+(one line, exit code 2) raised before anything starts, among it an ``--out`` that holds a run or
+another study (:func:`host.studies.sweep_record.check_study_folder`); an interrupted sweep returns
+130 (``EXIT_INTERRUPTED``) and a lost scheduler or a cluster without workers returns 5
+(``EXIT_CLUSTER_LOST``), one line each, with every finished point kept for the resume.
 
 May import: what ``host.cli`` may (:mod:`host.studies` and, for ``reproduce``,
 :mod:`host.studies.paper`).  The studies are imported when a handler runs, so building the command
@@ -24,7 +26,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from bus.errors import InputError
-from bus.exit_codes import EXIT_INTERRUPTED
+from bus.exit_codes import EXIT_CLUSTER_LOST, EXIT_INTERRUPTED
 
 if TYPE_CHECKING:  # the handlers import the studies when they run: building the parser stays cheap
     from host.studies.engine import Engine, SweepOutcome
@@ -59,7 +61,8 @@ def spec_of_args(args: argparse.Namespace) -> SweepSpec:
 
 
 def engine_of_args(args: argparse.Namespace) -> Engine:
-    """The engine of ``--workers`` / ``--scheduler`` / ``--dashboard`` / ``--no-dashboard``."""
+    """The engine of ``--workers`` / ``--scheduler`` / ``--dashboard`` / ``--no-dashboard`` /
+    ``--wait-workers``."""
     from host.studies.engine import Engine
 
     dashboard: bool | str = True
@@ -67,40 +70,62 @@ def engine_of_args(args: argparse.Namespace) -> Engine:
         dashboard = False
     elif getattr(args, "dashboard", None):
         dashboard = args.dashboard
-    return Engine(workers=getattr(args, "workers", None), scheduler=getattr(args, "scheduler", None), dashboard=dashboard)
+    return Engine(
+        workers=getattr(args, "workers", None),
+        scheduler=getattr(args, "scheduler", None),
+        dashboard=dashboard,
+        wait_workers_s=_wait_workers(args),
+    )
+
+
+def _wait_workers(args: argparse.Namespace) -> float:
+    from host.studies.engine import WAIT_WORKERS_S
+
+    wait = getattr(args, "wait_workers", None)
+    return WAIT_WORKERS_S if wait is None else float(wait)
+
+
+def _spec_doc(spec: SweepSpec) -> dict[str, Any]:
+    """What ``sweep.json`` says of the spec (a resume must give the same)."""
+    return {
+        "base": spec.base_options(),
+        "vary": spec.vary,
+        "monte_carlo": {
+            "samples": spec.samples,
+            "seed": spec.seed,
+            "draw": {d.key: {d.dist: list(d.params)} for d in spec.draws},
+        },
+    }
 
 
 def _record(out: Path, spec: SweepSpec, ids: list[str], where: str, outcome: SweepOutcome, command: str) -> None:
     """Add this call to ``out/sweep.json`` (the spec, the points, the history of calls), atomically."""
     from host.studies.sweep_record import SWEEP_SCHEMA, record_call
 
-    doc = {
-        "schema": SWEEP_SCHEMA,
-        "spec": {
-            "base": spec.base_options(),
-            "vary": spec.vary,
-            "monte_carlo": {
-                "samples": spec.samples,
-                "seed": spec.seed,
-                "draw": {d.key: {d.dist: list(d.params)} for d in spec.draws},
-            },
-        },
-        "points": ids,
-    }
+    doc = {"schema": SWEEP_SCHEMA, "spec": _spec_doc(spec), "points": ids}
     record_call(out, doc, {"command": command, "points": len(ids)}, {"on": where}, outcome)
+
+
+def _say_cluster_lost(command: str, outcome: SweepOutcome, out: Path) -> int:
+    """One line for a lost scheduler or a cluster without workers; returns ``EXIT_CLUSTER_LOST``."""
+    sys.stderr.write(
+        f"ilcrig {command}: {outcome.cluster_lost}; {len(outcome.ran)} point(s) finished in this call are kept in "
+        f"{out}; run the same command again to resume (only the unfinished points run)\n"
+    )
+    return EXIT_CLUSTER_LOST
 
 
 def sweep_main(args: argparse.Namespace) -> int:
     """``ilcrig sweep``: run the points of the spec, write ``results.parquet`` and ``report.md``."""
     from host.studies.engine import run_points
     from host.studies.report import write_report
+    from host.studies.sweep_record import check_study_folder
     from host.studies.table import TABLE_FILE, write_table
 
     spec = spec_of_args(args)
     points = spec.points()  # every point validated before anything starts
     out = Path(args.out) if getattr(args, "out", None) else Path("runs") / time.strftime("sweep-%Y%m%d-%H%M%S")
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out} is a file, not a folder")
+    check_study_folder(out, "sweep", _spec_doc(spec))  # one study, one folder: a resume or a new folder
     keys = ", ".join(spec.varied_keys) or "nothing varied"
     with engine_of_args(args) as engine:
         where = engine.describe()
@@ -117,6 +142,8 @@ def sweep_main(args: argparse.Namespace) -> int:
             desc="sweep",
         )
     _record(out, spec, [p.id for p in points], where, outcome, "sweep")
+    if outcome.cluster_lost:
+        return _say_cluster_lost("sweep", outcome, out / "runs")
     if outcome.interrupted:
         sys.stderr.write(
             f"ilcrig: interrupted; {len(outcome.ran)} point(s) finished in this call are kept in {out / 'runs'}; "
@@ -138,6 +165,7 @@ def sweep_main(args: argparse.Namespace) -> int:
 def tune_main(args: argparse.Namespace) -> int:
     """``ilcrig tune``: open (or resume) the study in ``--out``, run it to its budget on the engine,
     write the outputs and print the best gains."""
+    from host.studies.sweep_record import check_study_folder
     from host.studies.tune import BEST_FILE, STUDY_FILE, Tuner
     from host.studies.tune_params import tune_settings
 
@@ -147,6 +175,7 @@ def tune_main(args: argparse.Namespace) -> int:
         raise InputError("ilcrig tune takes no --vary / [vary]: the tuned keys are --param / [tune]")
     params, objective, budget = tune_settings(spec, args)
     out = Path(args.out) if getattr(args, "out", None) else Path("runs") / time.strftime("tune-%Y%m%d-%H%M%S")
+    check_study_folder(out, "tune")  # one study, one folder: study.db resumes, anything else is refused
     tuner = Tuner(out, spec, params, objective, budget, sampler_seed=getattr(args, "sampler_seed", 0) or 0)
     tuner.open_study()
     with engine:
@@ -158,6 +187,12 @@ def tune_main(args: argparse.Namespace) -> int:
             sys.stderr.write(f"ilcrig tune: dashboard {engine.dashboard}\n")
         outcome = tuner.run(engine, progress=not getattr(args, "no_progress", False))
     report = tuner.write_outputs(outcome)
+    if outcome.cluster_lost:
+        sys.stderr.write(
+            f"ilcrig tune: {outcome.cluster_lost}; the study in {out / STUDY_FILE} is kept; "
+            "run the same command again to resume\n"
+        )
+        return EXIT_CLUSTER_LOST
     if outcome.interrupted:
         sys.stderr.write(f"ilcrig: interrupted; the study in {out / STUDY_FILE} is kept; run the same command again to resume\n")
         return EXIT_INTERRUPTED
@@ -195,7 +230,10 @@ def reproduce_main(args: argparse.Namespace) -> int:
         fresh=bool(getattr(args, "fresh", False)),
         progress=not getattr(args, "no_progress", False),
         dashboard=not getattr(args, "no_dashboard", False),
+        wait_workers_s=_wait_workers(args),
     )
+    if outcome.cluster_lost:
+        return _say_cluster_lost("reproduce", outcome, out / "runs")
     if outcome.interrupted:
         sys.stderr.write(
             f"ilcrig: interrupted; {len(outcome.ran)} experiment(s) finished in this call are kept "
@@ -234,8 +272,15 @@ def _add_engine_args(p: argparse.ArgumentParser, workers_flag: str = "--workers"
         metavar="tcp://HOST:PORT",
         help="run on an existing Dask cluster (`dask scheduler` + `dask worker` on a private network; docs/sweeps.md)",
     )
+    p.add_argument(
+        "--wait-workers",
+        type=float,
+        default=None,
+        metavar="S",
+        help="how long to wait for a worker when the cluster has none, then exit 5 (default 60 s)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--no-dashboard", action="store_true", help="do not serve the local cluster's dashboard")
+    p.add_argument("--no-dashboard", action="store_true", help="no dashboard: the local cluster opens no HTTP listener at all")
     p.add_argument(
         "--dashboard", default=None, metavar="127.0.0.1:PORT", help="the local cluster's dashboard address (loopback only)"
     )

@@ -9,10 +9,14 @@ Owns, one module per concern (docs/sweeps.md explains them with commands):
   the composition of ``ilcrig sim``) and the point's folder in the sweep (atomic commit, resume);
 * :mod:`host.studies.engine` — :class:`Engine` (a loopback ``LocalCluster`` or an existing ``dask
   scheduler``), :class:`PointQueue` (the one submit loop) and :func:`run_points` (resumable,
-  progress bar, Ctrl-C keeps what finished); generic: it knows nothing of what a study is for;
+  progress bar, Ctrl-C keeps what finished, a lost cluster is :class:`ClusterLost`); generic: it
+  knows nothing of what a study is for;
+* :mod:`host.studies.dask_quiet` — the local cluster's Dask classes (workers that ignore SIGINT; no
+  HTTP listener without a dashboard);
 * :mod:`host.studies.table` — the tidy table ``results.parquet`` (one row per point, trial, joint);
 * :mod:`host.studies.report` — ``report.md`` of a sweep with its figures;
-* :mod:`host.studies.sweep_record` — the sweep folder's ``sweep.json`` (the calls of its commands);
+* :mod:`host.studies.sweep_record` — the sweep folder's ``sweep.json`` (the calls of its commands)
+  and one study, one folder (an ``--out`` holding a run or another study is refused);
 * :mod:`host.studies.settling` — the definitions on RMSE histories (settle iteration, floor, block
   windows, repeatable error) the tuner's objective and the paper's verdicts use;
 * :mod:`host.studies.tune_params` — the settings of ``ilcrig tune`` (tuned keys and ranges, the

@@ -47,7 +47,7 @@ from bus.errors import InputError
 from host.analysis.figures import figure, save_png
 from host.analysis.markdown import fmt, md_table
 from host.experiment.config import options_toml
-from host.studies.engine import Engine, PointQueue, interrupt_on_sigterm, point_doc
+from host.studies.engine import ClusterLost, Engine, PointQueue, interrupt_on_sigterm, point_doc
 from host.studies.point import is_finished, load_point, plan_of, run_dir
 from host.studies.spec import Point, SweepSpec, set_key
 from host.studies.table import write_table
@@ -84,6 +84,7 @@ class TuneOutcome:
     best_trial: int | None = None
     start_value: float | None = None
     interrupted: bool = False
+    cluster_lost: str | None = None
     wall_s: float = 0.0
     points_ran: int = 0
 
@@ -256,6 +257,18 @@ class Tuner:
         outcome = TuneOutcome()
         t0 = time.perf_counter()
         todo = self.budget - len(self.finished())
+        try:
+            with interrupt_on_sigterm():
+                if todo > 0:
+                    engine.await_workers()
+        except ClusterLost as exc:
+            outcome.cluster_lost = str(exc)
+            self._fill_best(outcome)
+            return outcome
+        except KeyboardInterrupt:
+            outcome.interrupted = True
+            self._fill_best(outcome)
+            return outcome
         bar = tqdm(total=max(todo, 0), desc="tune", unit="trial", file=sys.stderr, disable=not progress, dynamic_ncols=True)
         workers = max(1, engine.n_workers)
         in_flight: dict[int, _Running] = {}
@@ -320,6 +333,10 @@ class Tuner:
                         add_value(run, p, self.objective.of_summary(result.get("summary")))
                 except KeyboardInterrupt:
                     outcome.interrupted = True
+                    queue.cancel()
+                    self._requeue(in_flight.values())
+                except ClusterLost as exc:  # the trials in flight run again on resume
+                    outcome.cluster_lost = str(exc)
                     queue.cancel()
                     self._requeue(in_flight.values())
         finally:

@@ -22,13 +22,13 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from bus.errors import InputError
-from bus.exit_codes import EXIT_INTERRUPTED
+from bus.exit_codes import EXIT_CLUSTER_LOST, EXIT_INTERRUPTED
 from host.experiment.config import gains_table
-from host.studies.engine import Engine, SweepOutcome, run_points
+from host.studies.engine import WAIT_WORKERS_S, Engine, SweepOutcome, run_points
 from host.studies.paper.plan import Experiment, ReproduceError, experiment_list
 from host.studies.paper.report import write_sweep_report
 from host.studies.spec import Point
-from host.studies.sweep_record import SWEEP_SCHEMA, record_call
+from host.studies.sweep_record import SWEEP_SCHEMA, check_study_folder, record_call
 from host.studies.table import write_table
 
 logger = logging.getLogger(__name__)
@@ -62,11 +62,13 @@ def reproduce(
     fresh: bool = False,
     progress: bool = True,
     dashboard: bool | str = True,
+    wait_workers_s: float = WAIT_WORKERS_S,
 ) -> tuple[int, SweepOutcome]:
     """Run the reproduction into sweep folder ``out`` and write its report.
 
     Returns (exit code, outcome): 0, 1 if an experiment could not run (its error.txt says why),
-    130 if interrupted (the finished experiments are kept; running again resumes).
+    130 if interrupted, 5 if the cluster was lost (the finished experiments are kept; running again
+    resumes).
 
     :raises InputError: bad arguments (before anything starts)."""
     if iterations < 1:
@@ -77,12 +79,15 @@ def reproduce(
         raise InputError(str(exc)) from None
     points = reproduce_points(experiments, iterations)  # every configuration validated before anything runs
     out = Path(out)
-    with Engine(workers=workers, scheduler=scheduler, dashboard=dashboard) as engine:
+    check_study_folder(out, "sweep")  # a run's or a tuning study's folder is refused
+    with Engine(workers=workers, scheduler=scheduler, dashboard=dashboard, wait_workers_s=wait_workers_s) as engine:
         where = engine.describe()
         if engine.dashboard:
             sys.stderr.write(f"ilcrig reproduce: dashboard {engine.dashboard}\n")
         outcome = run_points(engine, out, points, save_errors=True, fresh=fresh, progress=progress, desc="reproduce")
     write_sweep_json(out, [p.id for p in points], iterations, where, outcome)
+    if outcome.cluster_lost:
+        return EXIT_CLUSTER_LOST, outcome
     if outcome.interrupted:
         return EXIT_INTERRUPTED, outcome
     write_sweep_report(out, iterations)
