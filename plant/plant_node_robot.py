@@ -20,7 +20,7 @@ starts as soon as this one is done); one more is an overrun, counted and dropped
 never silently: it is a robot fault (``SYNC_OVERRUN``, EMCY 0x8110), as the periods and the master's
 SYNCs part there; in real time a counted miss.  A master that sends its next SYNC only after its
 TPDOs came back never overruns, and the same master script gives the same trace.  Every kernel a
-period may use is compiled before the node boots (:func:`warm_up_robot`; issue 35: the first period
+period may use is compiled before the node boots (:func:`warm_up_robot`: otherwise the first period
 with one drive enabled compiled the locked-joint dynamics, seconds on a loaded machine).  The
 drives keep as many SYNC credits (:data:`bus.cyclic.SYNC_CREDITS_MAX`, one in progress + one
 waiting), and handle a SYNC before the io frame it caused (:class:`bus.cia301.slave.SlaveNode`),
@@ -108,7 +108,7 @@ def warm_up_robot(scratch: Plant, limits: MechanicalLimits) -> float:
     with some held (the locked-joint dynamics, first used when the first drive is enabled), with
     all held, the forward kinematics of 0x2452.  Without it the first period with one drive
     enabled paid the compilation — seconds on a loaded machine, while the master's SYNCs piled up
-    (issue 35's stall).  Returns the seconds it took."""
+    (a stall of the SYNC-stepped robot).  Returns the seconds it took."""
     t0 = time.perf_counter()
     mech = Mechanics(scratch, limits)
     mech.home()

@@ -1,4 +1,4 @@
-"""Issue 35's stall of the SYNC-stepped robot, and that a SYNC the robot cannot keep is never dropped
+"""A stall of the SYNC-stepped robot under a streaming master, and that a SYNC the robot cannot keep is never dropped
 silently.
 
 The cause of the stall: the first period with one drive enabled (some joints braked, the others
@@ -11,7 +11,7 @@ and in SYNC-stepped mode a SYNC beyond what the robot and its drives keep
 ``fault``, torque-free), not a silent drop; in real time it stays a counted overrun.
 
 The fast tests drive :class:`plant.plant_node_robot.RobotLoop` by its hooks (no threads); the slow one
-runs the issue's python-canopen master against ``ilcrig robot``.
+runs a streaming python-canopen master (tests/streaming_master.py) against ``ilcrig robot``.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from plant.plant_node import PlantNode
 from plant.plant_node_robot import warm_up_robot
 
 REPO = Path(__file__).resolve().parents[1]
-MASTER = Path(__file__).resolve().parent / "issue35_master.py"
+MASTER = Path(__file__).resolve().parent / "streaming_master.py"
 
 
 @pytest.fixture
@@ -88,7 +88,7 @@ def test_in_real_time_an_overrun_stays_a_counted_miss(node: tuple[PlantNode, can
 
 @pytest.mark.slow
 @pytest.mark.multiprocess
-def test_the_issue_35_master_never_meets_a_silent_robot(tmp_path: Path) -> None:
+def test_a_streaming_master_never_meets_a_silent_robot(tmp_path: Path) -> None:
     """Map, start, 30 SYNCs 10 ms apart, enable the drives by SDO one SYNC per step, then RPDO1 +
     SYNC every 2–5 ms: every SYNC is a period, or the robot says it faulted (EMCY, state, summary,
     one console line) — never a stall with the state ``ready``."""

@@ -1,5 +1,5 @@
-"""Issue 35's master sequence, python canopen over any python-can bus, against a running
-``ilcrig robot`` (``python tests/issue35_master.py INTERFACE CHANNEL [SEED]``): per drive 1–4 in
+"""A streaming master sequence, python canopen over any python-can bus, against a running
+``ilcrig robot`` (``python tests/streaming_master.py INTERFACE CHANNEL [SEED]``): per drive 1–4 in
 PRE-OPERATIONAL TPDO1 = 0x6041 + 0x6064 and RPDO1 = 0x6040 + 0x607A (type 1); NMT start; 30 SYNCs
 10 ms apart; per drive 0x6060 = 8, 0x607A = 0x6064, controlword 0x80, 0x06, 0x07, 0x0F by SDO with
 one SYNC after each step; then RPDO1 + SYNC every 2–5 ms (a seeded draw) up to 565 SYNCs.  Prints
