@@ -224,6 +224,7 @@ class RobotFault(IntEnum):
     PERIOD_TIMEOUT = 4  #: a drive did not answer a period's encoder frame in time
     TICK_SEQUENCE = 5  #: a torque frame was missing, duplicated, stale or early
     BAD_FRAME = 6  #: a malformed torque frame, or a bus error frame on io
+    SYNC_OVERRUN = 7  #: SYNC-stepped: more SYNCs waiting than the robot and its drives keep (a SYNC dropped)
 
 
 #: EMCY error code and error register per robot fault (0xFF1x: manufacturer specific, mechanical)
@@ -234,6 +235,7 @@ ROBOT_FAULT_EMCY: Final[dict[RobotFault, tuple[int, int]]] = {
     RobotFault.PERIOD_TIMEOUT: (0x8100, 0x11),
     RobotFault.TICK_SEQUENCE: (0x8200, 0x11),
     RobotFault.BAD_FRAME: (0x8200, 0x11),
+    RobotFault.SYNC_OVERRUN: (0x8110, 0x11),
 }
 #: bit 7 of a plant node EMCY's first manufacturer byte: the code is a :class:`RobotFault`
 ROBOT_EMCY_FLAG: Final[int] = 0x80

@@ -16,11 +16,15 @@ a python-canopen script:
    (:class:`plant.trace.TraceWriter`).
 
 A SYNC that comes while a period is still being computed waits (one at most: the next period
-starts as soon as this one is done); one more is an overrun, counted and dropped — a master that
-sends its next SYNC only after its TPDOs came back never overruns, and the same master script gives
-the same trace.  The drives keep as many SYNC credits (:data:`bus.cyclic.SYNC_CREDITS_MAX`, one in
-progress + one waiting), and handle a SYNC before the io frame it caused
-(:class:`bus.cia301.slave.SlaveNode`), so no drive ever waits for a SYNC the robot has used.
+starts as soon as this one is done); one more is an overrun, counted and dropped — SYNC-stepped,
+never silently: it is a robot fault (``SYNC_OVERRUN``, EMCY 0x8110), as the periods and the master's
+SYNCs part there; in real time a counted miss.  A master that sends its next SYNC only after its
+TPDOs came back never overruns, and the same master script gives the same trace.  Every kernel a
+period may use is compiled before the node boots (:func:`warm_up_robot`: otherwise the first period
+with one drive enabled compiled the locked-joint dynamics, seconds on a loaded machine).  The
+drives keep as many SYNC credits (:data:`bus.cyclic.SYNC_CREDITS_MAX`, one in progress + one
+waiting), and handle a SYNC before the io frame it caused (:class:`bus.cia301.slave.SlaveNode`),
+so no drive ever waits for a SYNC the robot has used.
 
 Real time (mode 2): periods are also paced to the wall clock (the schedule and its figures:
 :class:`plant.plant_node_robot_pacing.RobotPacing`).
@@ -39,6 +43,7 @@ from __future__ import annotations
 import logging
 import math
 import struct
+import time
 from collections import deque
 from collections.abc import Callable
 from typing import Any
@@ -71,7 +76,7 @@ from plant.trace import FLAG_FAULT, FLAG_LATE, TraceWriter
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["RobotLoop", "SYNC_COB_ID"]
+__all__ = ["RobotLoop", "SYNC_COB_ID", "warm_up_robot"]
 
 #: the SYNC the robot steps on (CiA 301 predefined connection set)
 SYNC_COB_ID: int = 0x080
@@ -95,6 +100,26 @@ _HELD_MASKS = [np.array([bool(bits >> j & 1) for j in range(_N)]) for bits in ra
 _IDLE, _HELD, _SENT = 0, 1, 2
 #: SYNCs kept waiting while a period is computed: one in progress + these = the drives' credits
 _WAITING_MAX = SYNC_CREDITS_MAX - 1
+
+
+def warm_up_robot(scratch: Plant, limits: MechanicalLimits) -> float:
+    """Compile (or load from numba's cache) every kernel a robot period may use, on ``scratch`` (a
+    plant of the robot's Ts and sub-steps, thrown away afterwards): a period with no joint held,
+    with some held (the locked-joint dynamics, first used when the first drive is enabled), with
+    all held, the forward kinematics of 0x2452.  Without it the first period with one drive
+    enabled paid the compilation — seconds on a loaded machine, while the master's SYNCs piled up
+    (a stall of the SYNC-stepped robot).  Returns the seconds it took."""
+    t0 = time.perf_counter()
+    mech = Mechanics(scratch, limits)
+    mech.home()
+    zero = np.zeros(_N, dtype=np.int64)
+    for held in (0, 1, _ALL_HELD):
+        mech.step(zero, _HELD_MASKS[held])
+    scratch.encoder_counts()
+    scratch.task_pose()
+    seconds = time.perf_counter() - t0
+    logger.info("robot kernels ready in %.2f s", seconds)
+    return seconds
 
 
 class RobotLoop:
@@ -160,6 +185,7 @@ class RobotLoop:
         self.fault_joint = 0
         self.fault_period = 0
         self.fault_message = ""
+        self.fault_time_s = 0.0  # wall clock (time.time()) of the fault in force, s
         self.faults: list[dict[str, Any]] = []
         self.faults_total = 0
         self.error_register = 0
@@ -215,6 +241,12 @@ class RobotLoop:
                 raise TypeError(f"the robot mode needs a plant.simulator.Plant, got {type(plant).__name__}")
             mech = self.mechanics = Mechanics(plant, self.limits)
             mech.home()
+            try:
+                scratch = self.model.plant_factory(ts_s, substeps)
+                if isinstance(scratch, Plant):
+                    warm_up_robot(scratch, self.limits)
+            except Exception:  # the robot goes on; the first periods pay for it
+                logger.exception("node %d: warming up the robot's kernels failed", self.node_id)
             logger.info("node %d: robot at its home pose, q = %s deg", self.node_id, np.round(np.degrees(plant.q), 3).tolist())
             if self.trace is not None:
                 self.trace.close()
@@ -229,7 +261,9 @@ class RobotLoop:
     # ------------------------------------------------------------------ loop hooks
 
     def on_sync(self, now: float) -> None:
-        """A SYNC frame: a period starts (or waits for the one in progress)."""
+        """A SYNC frame: a period starts (or waits for the one in progress).  One more than the
+        robot keeps waiting is an overrun: counted and dropped; SYNC-stepped, also a robot fault
+        (never a silent drop: the master's SYNCs and the robot's periods part here)."""
         self.syncs += 1
         if not self.on or self.lockstep.busy:
             return
@@ -240,6 +274,13 @@ class RobotLoop:
         else:
             self.overruns += 1
             logger.debug("node %d: SYNC overrun in period %d", self.node_id, self.periods)
+            if self.pacing is None and self.fault != RobotFault.SYNC_OVERRUN:
+                self._fail(
+                    RobotFault.SYNC_OVERRUN,
+                    0,
+                    f"SYNC {self.syncs} dropped in period {self.periods}: {SYNC_CREDITS_MAX} SYNCs already wait "
+                    f"for the robot (one period in progress, {_WAITING_MAX} waiting); the master is faster than the robot",
+                )
 
     def interrupt(self) -> None:
         """A trial begins: the period in progress is dropped (its frames are stale for the trial)."""
@@ -375,11 +416,14 @@ class RobotLoop:
         """A robot fault: EMCY, every joint braked until the fault reset."""
         self.faults_total += 1
         if len(self.faults) < FAULTS_KEPT:
-            self.faults.append({"fault": fault.name, "joint": joint, "period": self.periods, "message": message})
+            self.faults.append(
+                {"fault": fault.name, "joint": joint, "period": self.periods, "t_s": time.time(), "message": message}
+            )
         if self.fault != RobotFault.NONE:
             logger.warning("node %d: robot fault %s while in fault: %s", self.node_id, fault.name, message)
             return
         self.fault, self.fault_joint, self.fault_period, self.fault_message = fault, joint, self.periods, message
+        self.fault_time_s = time.time()
         code, register = ROBOT_FAULT_EMCY[fault]
         self.error_register = register
         logger.warning("node %d: robot fault %s: %s", self.node_id, fault.name, message)
@@ -428,7 +472,15 @@ class RobotLoop:
             "period_timeouts": self.timeouts,
             "faults_total": self.faults_total,
             "faults": list(self.faults),
-            "fault": None if self.fault == RobotFault.NONE else {"fault": self.fault.name, "joint": self.fault_joint},
+            "fault": None
+            if self.fault == RobotFault.NONE
+            else {
+                "fault": self.fault.name,
+                "joint": self.fault_joint,
+                "period": self.fault_period,
+                "t_s": self.fault_time_s,
+                "message": self.fault_message,
+            },
             "brakes": self._held_bits,
             "ts_s": self._ts_substeps()[0],
         }

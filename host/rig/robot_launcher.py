@@ -50,7 +50,7 @@ from host.rig.launch_core import LaunchCore, check_transport, make_run_folder
 from host.rig.monitor import ChannelMonitor
 from host.rig.options import RobotOptions
 from host.rig.processes import Death, LaunchError, describe_status
-from host.rig.robot_watch import RobotBusWatch
+from host.rig.robot_watch import RobotBusWatch, robot_fault_of
 from host.rig.role_commands import child_argv
 
 logger = logging.getLogger(__name__)
@@ -189,12 +189,25 @@ class RobotLauncher(LaunchCore):
         )
 
     def _watch(self) -> int:
+        emcys_seen = 0
         while True:
             if self.interrupts.signum is not None:
                 return self._interrupted()
             if self._note_deaths():
                 return self._fault()
+            emcys_seen = self._say_robot_faults(emcys_seen)
             time.sleep(POLL_S)
+
+    def _say_robot_faults(self, start: int) -> int:
+        """One console line per robot fault the plant reported by EMCY since the ``start``-th EMCY
+        (never a silent fault: the robot stays up, torque-free, until the master resets it)."""
+        with self.watch.lock:
+            new = self.watch.emcys[start:]
+        for emcy in new:
+            text = robot_fault_of(emcy)
+            if text is not None:
+                self._say_err(f"ilcrig robot: {text}; joints braked, torques not applied until 0x2450:2 = 1 (fault reset)")
+        return start + len(new)
 
     def _note_deaths(self) -> bool:
         """Note every process (the hub too) that ended since the last look; True if any did."""

@@ -35,7 +35,7 @@ from bus import io_frames, units
 from bus.bus_features import FRAME_ERR, FRAME_EXT, FRAME_RTR
 from bus.objects import DRIVE_EDS_PATH, DRIVE_NODE_IDS
 from bus.pdo_objects import PDO_NOT_VALID, RPDO_COMM_BASE, RPDO_MAP_BASE, SYNC_COB_ID_DEFAULT
-from bus.plant_objects import DEFAULT_PLANT_NODE_ID
+from bus.plant_objects import DEFAULT_PLANT_NODE_ID, ROBOT_EMCY_FLAG, ROBOT_FAULT_EMCY, RobotFault
 
 logger = logging.getLogger(__name__)
 
@@ -61,6 +61,23 @@ class EmcySeen:
     register: int
     data: bytes
     t_s: float
+
+
+def robot_fault_of(emcy: EmcySeen) -> str | None:
+    """The robot fault an EMCY of the plant node reports, in words (None: not a robot fault; the
+    bytes are :func:`bus.plant_objects.robot_fault_emcy_data`'s: u8 0x80 | fault, u8 joint, u16 period)."""
+    if emcy.node != DEFAULT_PLANT_NODE_ID or len(emcy.data) < 4 or not emcy.data[0] & ROBOT_EMCY_FLAG:
+        return None
+    code = emcy.data[0] & ~ROBOT_EMCY_FLAG
+    try:
+        fault = RobotFault(code)
+    except ValueError:
+        return None
+    if fault not in ROBOT_FAULT_EMCY:
+        return None
+    joint, period = emcy.data[1], int.from_bytes(emcy.data[2:4], "little")
+    where = f", joint/drive {joint}" if joint else ""
+    return f"robot fault {fault.name} (EMCY 0x{emcy.code:04X}){where} in period {period} (mod 2^16)"
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,118 @@
+"""A stall of the SYNC-stepped robot under a streaming master, and that a SYNC the robot cannot keep is never dropped
+silently.
+
+The cause of the stall: the first period with one drive enabled (some joints braked, the others
+free) was the first call of the locked-joint dynamics (``plant._kernels.plant_step_locked``), which
+numba compiled then — seconds on a loaded machine, while the master's SYNCs (every 2–5 ms) piled
+up and all but one were counted as overruns, dropped, with the robot's state still ``ready``.  Now
+the robot compiles every kernel of a period before its boot-up (:func:`plant.plant_node_robot.warm_up_robot`),
+and in SYNC-stepped mode a SYNC beyond what the robot and its drives keep
+(:data:`bus.cyclic.SYNC_CREDITS_MAX`) is a robot fault (EMCY 0x8110 from node 32, the robot's state
+``fault``, torque-free), not a silent drop; in real time it stays a counted overrun.
+
+The fast tests drive :class:`plant.plant_node_robot.RobotLoop` by its hooks (no threads); the slow one
+runs a streaming python-canopen master (tests/streaming_master.py) against ``ilcrig robot``.
+"""
+
+from __future__ import annotations
+
+import struct
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import can
+import numpy as np
+import pytest
+from robot_util import RobotProcess, new_channels, plant_factory
+
+from bus.cyclic import SYNC_CREDITS_MAX
+from bus.plant_objects import ROBOT_EMCY_FLAG, ROBOT_FAULT_EMCY, RobotFault, RobotMode, RobotState
+from plant import _kernels as K
+from plant.disturbance import disturbance_torque
+from plant.mechanics import MechanicalLimits
+from plant.plant_node import PlantNode
+from plant.plant_node_robot import warm_up_robot
+
+REPO = Path(__file__).resolve().parents[1]
+MASTER = Path(__file__).resolve().parent / "streaming_master.py"
+
+
+@pytest.fixture
+def node() -> Iterator[tuple[PlantNode, can.BusABC]]:
+    """A plant node in robot mode on virtual buses (not serving: the test calls its hooks), and a
+    listener on its fieldbus."""
+    fb_ch, io_ch = new_channels()
+    fb, io, listener = (can.Bus(interface="virtual", channel=c) for c in (fb_ch, io_ch, fb_ch))
+    plant = PlantNode(fb, io, plant_factory=plant_factory, disturbance_fn=disturbance_torque, robot_mode=RobotMode.SYNC)
+    plant.robot.set_mode(RobotMode.SYNC)
+    try:
+        yield plant, listener
+    finally:
+        plant.robot.close()
+        for bus in (fb, io, listener):
+            bus.shutdown()
+
+
+def test_the_robot_compiles_the_locked_joint_dynamics_before_it_boots() -> None:
+    warm_up_robot(plant_factory(1e-3, 4), MechanicalLimits())
+    assert K.plant_step_locked.signatures  # compiled (or loaded from the cache) here, not in a period
+
+
+def test_a_sync_beyond_what_the_robot_keeps_is_a_robot_fault_with_its_emcy(node: tuple[PlantNode, can.BusABC]) -> None:
+    plant, listener = node
+    robot = plant.robot
+    for k in range(SYNC_CREDITS_MAX):  # one period in progress (no drive answers here), one waiting
+        robot.on_sync(float(k))
+    assert robot.state == RobotState.READY and robot.overruns == 0
+    robot.on_sync(9.0)
+    assert robot.overruns == 1 and robot.state == RobotState.FAULT and robot.fault == RobotFault.SYNC_OVERRUN
+    info = robot.info()
+    assert info["fault"]["fault"] == "SYNC_OVERRUN" and info["fault"]["period"] == 0 and "dropped" in info["fault"]["message"]
+    emcy = [m for m in iter(lambda: listener.recv(timeout=0.5), None) if m.arbitration_id == 0x080 + plant.node_id]
+    code, register = ROBOT_FAULT_EMCY[RobotFault.SYNC_OVERRUN]
+    assert [bytes(m.data) for m in emcy] == [struct.pack("<HBBBHx", code, register, ROBOT_EMCY_FLAG | 7, 0, 0)]
+    robot.on_sync(10.0)  # more overruns while in that fault: counted, one EMCY
+    assert robot.overruns == 2 and robot.faults_total == 1
+
+
+def test_in_real_time_an_overrun_stays_a_counted_miss(node: tuple[PlantNode, can.BusABC]) -> None:
+    plant, _ = node
+    robot = plant.robot
+    robot.set_mode(RobotMode.REALTIME)
+    for k in range(SYNC_CREDITS_MAX + 2):
+        robot.on_sync(plant._clock() + k * 1e-3)
+    assert robot.overruns >= 1 and robot.state == RobotState.READY
+
+
+@pytest.mark.slow
+@pytest.mark.multiprocess
+def test_a_streaming_master_never_meets_a_silent_robot(tmp_path: Path) -> None:
+    """Map, start, 30 SYNCs 10 ms apart, enable the drives by SDO one SYNC per step, then RPDO1 +
+    SYNC every 2–5 ms: every SYNC is a period, or the robot says it faulted (EMCY, state, summary,
+    one console line) — never a stall with the state ``ready``."""
+    robot = RobotProcess(tmp_path / "run")
+    try:
+        ready = robot.ready()
+        done = subprocess.run(
+            [sys.executable, str(MASTER), ready["interface"], ready["channel"]],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert done.returncode == 0, done.stderr
+        syncs, periods, seen, overruns, state = (int(v) for v in done.stdout.split()[-5:])
+        assert syncs == seen == 565
+        if overruns:
+            assert state == RobotState.FAULT
+            robot.wait_line(r"robot fault SYNC_OVERRUN \(EMCY 0x8110\)", timeout_s=30)
+        else:
+            assert periods == syncs and state == RobotState.READY
+    finally:
+        code = robot.stop()
+        robot.kill()
+    assert code == 143
+    assert "robot kernels ready" in (tmp_path / "run" / "logs" / "plant.log").read_text()
+    assert np.isfinite(periods)
