@@ -183,12 +183,16 @@ def _plant_latency(fault: PlantFault, times: DetectionTimes) -> tuple[float, str
 
 
 def _plant_emcy_fault(frame: EmcyFrame, data: bytes, times: DetectionTimes) -> FaultRecord:
-    """The plant node's EMCY: data[0] its fault code, data[1] the drive, data[2:4] the tick."""
+    """The plant node's EMCY: data[0] its fault code, data[1] the drive, data[2:4] the tick. An
+    EMCY without one of the plant's fault codes (data[0] 0 or unknown: not the plant's own report
+    of a stopped trial) carries no tick: the record's tick is left unknown (None), so the run
+    places it where its io channel was (:func:`host.experiment.fault_placement.place`), never at 0."""
     try:
         fault = PlantFault(data[0])
     except ValueError:
         fault = PlantFault.NONE
-    drive, tick = data[1], int.from_bytes(data[2:4], "little")
+    drive = data[1] if fault != PlantFault.NONE else 0
+    tick: int | None = int.from_bytes(data[2:4], "little") if fault != PlantFault.NONE else None
     texts = {
         PlantFault.PLANT: f"plant error at tick {tick}",
         PlantFault.TICK_TIMEOUT: f"io frame lost or late: no torque frame of drive {drive} for tick {tick} within the deadline",
@@ -205,7 +209,7 @@ def _plant_emcy_fault(frame: EmcyFrame, data: bytes, times: DetectionTimes) -> F
     latency, basis = _plant_latency(fault, times)
     return FaultRecord(
         PLANT_FAULT_KINDS.get(fault, FaultKind.EMCY),
-        f"{texts.get(fault, f'fault {int(fault)}')} (EMCY 0x{frame.code:04X} of the plant node)",
+        f"{texts.get(fault, 'fault')} (EMCY 0x{frame.code:04X} of the plant node)",
         node=node,
         node_id=drive or (HOST_NODE_ID if fault == PlantFault.HOST_LOST else PLANT_NODE_ID),
         tick=tick,

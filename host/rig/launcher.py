@@ -170,7 +170,7 @@ class RigLauncher(LaunchCore):
         self.supervisor = supervisor = Supervisor(
             self.children, self.hub, log_dir / "hub.log", float(self.host_grace_s), self.interrupts, self._progress.where
         )
-        outcome = RunOutcome(out_dir, self.children, self._say_err, self._resume_stalled)
+        outcome = RunOutcome(out_dir, self.children, self._say_err, self._resume_stalled, self._config_dict)
         if self.interrupts.signum is not None:
             return self._signal_exit()
         self.spawn("plant", child_argv("plant", bus_args, debug=debug), log_dir / "plant.log")
@@ -244,6 +244,14 @@ class RigLauncher(LaunchCore):
         scheduling["in_roles"]["plant_spins"] = spins
         scheduling["mechanisms"] = scheduling_mechanisms(scheduling)
         return scheduling
+
+    def _config_dict(self) -> dict[str, Any]:
+        """The run's configuration as a summary holds it (for the summary the launcher writes when
+        the host left none)."""
+        from host.experiment.console import experiment_config
+
+        cfg = experiment_config(self.options.namespace())
+        return cfg.as_dict() | {"n_ticks": cfg.n_ticks}
 
     def _pid_of(self, name: str) -> int | None:
         """The pid of a running role or of the hub (None: not running), for the injector."""

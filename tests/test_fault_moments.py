@@ -1,0 +1,87 @@
+"""Outside signals at the edges of a run (issue 33): a process killed while the host starts up
+still leaves a summary.json (the launcher writes the one the host could not), with the fault's
+kind, node and both detection times; a printed trial is never lost.
+
+Each test runs the real multi-process rig (tests/fault_harness.py) and signals a process at a
+moment it waits for on the launcher's stdout (the status line, the host's header line, a trial's
+row) — never sleep-then-assert.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import threading
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fault_harness import Outcome, kill_session, run_rig
+
+pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
+
+
+def _pids(line: str) -> dict[str, int]:
+    """name → pid of the launcher's status line (``processes: hub 12, plant 13, …``)."""
+    m = re.search(r"processes: (.*); role logs", line)
+    return {n: int(p) for n, p in (part.split() for part in m.group(1).split(", "))} if m else {}
+
+
+def _host_pid(out: Path) -> int:
+    """The host's pid, from /proc (the status line is printed before the host starts)."""
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                argv = (d / "cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if b"host" in argv and str(out).encode() in argv and b"host.cli" in argv:
+                return int(d.name)
+    raise AssertionError("no host process")
+
+
+def _check_launcher_summary(o: Outcome, node: str) -> dict[str, Any]:
+    try:
+        assert o.code == 3, o.stderr
+        assert o.summary is not None, f"no summary.json: {sorted(p.name for p in o.out.iterdir())}"
+        assert o.summary["written_by"] == "launcher" and o.summary["iterations"] == [] and not o.summary["completed"]
+        assert o.summary["config"]["iterations"] == 2
+        fault = o.fault
+        assert fault is not None
+        assert (fault["kind"], fault["node"], fault["position"], fault["trial"]) == (
+            "process_died",
+            node,
+            "before_first_trial",
+            0,
+        )
+        assert fault["t_detected_wall"] is not None and fault["t_detected_mono"] is not None
+        assert (o.out / "report.md").exists()
+        assert o.lines[-1].startswith("ilcrig: fault: ") and str(o.out / "summary.json") in o.lines[-1]
+        assert not o.left
+        return fault
+    except AssertionError:
+        kill_session(o)
+        raise
+
+
+def test_host_killed_while_it_starts_up_leaves_a_summary(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+
+    def on_line(line: str, proc: Any) -> None:
+        if line.startswith("ilcrig host:"):  # the host's header line: it is starting up
+            host = _host_pid(out)
+            threading.Timer(0.08, os.kill, (host, signal.SIGKILL)).start()
+
+    _check_launcher_summary(run_rig(out, on_line=on_line), "host")
+
+
+def test_hub_killed_during_bring_up_leaves_a_summary(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+
+    def on_line(line: str, proc: Any) -> None:
+        if pids := _pids(line):  # every role started, the host about to: bring-up
+            os.kill(pids["hub"], signal.SIGKILL)
+
+    fault = _check_launcher_summary(run_rig(out, on_line=on_line), "hub")
+    assert fault["process_ended"]["name"] == "hub"
