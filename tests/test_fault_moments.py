@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from fault_harness import Outcome, kill_session, run_rig
+from fault_harness import Outcome, kill_session, recorded_trials, run_rig
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 
@@ -85,3 +85,28 @@ def test_hub_killed_during_bring_up_leaves_a_summary(tmp_path: Path) -> None:
 
     fault = _check_launcher_summary(run_rig(out, on_line=on_line), "hub")
     assert fault["process_ended"]["name"] == "hub"
+
+
+@pytest.mark.parametrize("delay_s", [0.005, 0.03])
+def test_a_printed_trial_is_kept_when_the_host_is_killed_after_its_row(tmp_path: Path, delay_s: float) -> None:
+    out = tmp_path / "run"
+    host: list[int] = []
+
+    def on_line(line: str, proc: Any) -> None:
+        if line.startswith("ilcrig host:"):
+            host.append(_host_pid(out))
+        elif re.match(r"\s+0\s+\d", line):  # trial 0's row: from now on trial 0 must be kept
+            threading.Timer(delay_s, os.kill, (host[0], signal.SIGKILL)).start()
+
+    o = run_rig(out, iterations=3, on_line=on_line)
+    try:
+        assert o.code == 3, o.stderr
+        assert o.summary is not None and o.kept >= 1, o.stderr
+        fault = o.fault
+        assert fault is not None and (fault["kind"], fault["node"]) == ("process_died", "host")
+        assert fault["t_detected_wall"] is not None
+        assert (o.out / "trials").is_dir() and any((o.out / "trials").iterdir())
+        assert 0 in recorded_trials(o.out / "recording.rrd")
+        assert not o.left
+    finally:
+        kill_session(o)

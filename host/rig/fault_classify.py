@@ -23,6 +23,7 @@ since the injection (:func:`host.experiment.faults.attach_injection`).
 
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -49,6 +50,7 @@ __all__ = [
     "host_stall_fault",
     "plant_trial_fault",
     "sdo_fault",
+    "with_wall_time",
 ]
 
 
@@ -380,3 +382,15 @@ def sdo_fault(exc: SdoTransportError | SdoAbort, trial: int, now: float) -> Faul
         latency_ms=1000.0 * waited if timed_out and waited is not None else 0.0,
         latency_basis="the SDO request (no answer)" if timed_out else "the SDO answer",
     )
+
+
+def with_wall_time(record: FaultRecord) -> FaultRecord:
+    """``record`` with both detection times: ``t_detected_wall`` from ``t_detected_mono`` (one
+    machine: the wall clock's offset from CLOCK_MONOTONIC now), or both now when neither is known.
+    Returns ``record``."""
+    if record.t_detected_wall is None:
+        now_mono, now_wall = time.monotonic(), time.time()
+        if record.t_detected_mono is None:
+            record.t_detected_mono = now_mono
+        record.t_detected_wall = now_wall - (now_mono - record.t_detected_mono)
+    return record

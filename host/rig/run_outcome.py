@@ -58,6 +58,7 @@ from host.experiment.faults import (
     position_of,
     read_injections,
 )
+from host.rig.fault_classify import with_wall_time
 from host.rig.processes import Child, Death, describe_status, node_id_of, tail
 
 logger = logging.getLogger(__name__)
@@ -200,10 +201,10 @@ class RunOutcome:
         record = self._record(summary, kept, host, code, first)
         if record.kind != FaultKind.PROCESS_DIED or record.node != "hub":
             record = hub_first(record, deaths)
-        if record.t_detected_wall is None and record.t_detected_mono is not None:
-            record.t_detected_wall = time.time() - (time.monotonic() - record.t_detected_mono)
         summary["completed"] = record.position == Position.AFTER_LAST_TRIAL  # every trial kept
-        summary["faults"][0] = record.as_dict()
+        summary["faults"][0] = with_wall_time(record).as_dict()
+        for i, entry in enumerate(summary["faults"][1:], 1):
+            summary["faults"][i] = with_wall_time(FaultRecord.from_dict(entry)).as_dict()
         since = first.t_mono if first is not None else (record.t_detected_mono or time.monotonic())
         if record.injected and record.injected.get("t_mono") is not None:
             since = float(record.injected["t_mono"])
