@@ -1,4 +1,4 @@
-"""Outside signals at the edges of a run (issue 33): a process killed while the host starts up
+"""Outside signals at the edges of a run: a process killed while the host starts up
 still leaves a summary.json (the launcher writes the one the host could not), with the fault's
 kind, node and both detection times; a printed trial is never lost.
 
