@@ -110,3 +110,35 @@ def test_a_printed_trial_is_kept_when_the_host_is_killed_after_its_row(tmp_path:
         assert not o.left
     finally:
         kill_session(o)
+
+
+def test_an_emcy_of_the_plant_is_recorded_where_it_came(tmp_path: Path) -> None:
+    o = run_rig(tmp_path / "run", "--inject", "emcy:plant@1:150,code=0x8611")
+    try:
+        assert o.code == 3, o.stderr
+        fault = o.fault
+        assert fault is not None and (fault["kind"], fault["node"], fault["trial"]) == ("emcy", "plant", 1), fault
+        assert fault["position"] == "in_trial" and fault["tick"] is not None and fault["tick"] >= 150, fault
+        assert fault["t_detected_wall"] is not None and fault["injected"]["spec"].startswith("emcy:plant@1:150")
+        assert o.kept == 1 and not o.left
+    finally:
+        kill_session(o)
+
+
+def test_a_hub_killed_between_trials_is_recorded_as_the_hub(tmp_path: Path) -> None:
+    pids: dict[str, int] = {}
+
+    def on_line(line: str, proc: Any) -> None:
+        pids.update(_pids(line))
+        if re.match(r"\s+0\s+\d", line):  # trial 0 kept: the host configures trial 1 (SDO traffic)
+            os.kill(pids["hub"], signal.SIGKILL)
+
+    o = run_rig(tmp_path / "run", iterations=3, on_line=on_line)
+    try:
+        assert o.code == 3, o.stderr
+        fault = o.fault
+        assert fault is not None and fault["node"] == "hub" and fault["kind"] in ("bus_lost", "bus_silent"), fault
+        assert fault["t_detected_wall"] is not None and fault["t_detected_mono"] is not None
+        assert o.kept >= 1 and not o.left
+    finally:
+        kill_session(o)
