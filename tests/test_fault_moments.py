@@ -142,3 +142,28 @@ def test_a_hub_killed_between_trials_is_recorded_as_the_hub(tmp_path: Path) -> N
         assert o.kept >= 1 and not o.left
     finally:
         kill_session(o)
+
+
+@pytest.mark.parametrize(("victim", "kind"), [("drive2", "node_lost"), ("hub", "bus_silent")])
+def test_a_stall_after_the_last_row_is_a_fault(tmp_path: Path, victim: str, kind: str) -> None:
+    pids: dict[str, int] = {}
+
+    def stall(pid: int) -> None:
+        os.kill(pid, signal.SIGSTOP)
+        threading.Timer(3.0, os.kill, (pid, signal.SIGCONT)).start()
+
+    def on_line(line: str, proc: Any) -> None:
+        pids.update(_pids(line))
+        if re.match(r"\s+1\s+\d", line):  # the last trial's row: the host closes and writes its outputs
+            threading.Timer(0.6, stall, (pids[victim],)).start()
+
+    o = run_rig(tmp_path / "run", on_line=on_line)
+    try:
+        assert o.code == 3, o.stderr
+        assert o.summary is not None and o.kept == 2 and o.summary["completed"]
+        fault = o.fault
+        assert fault is not None and (fault["kind"], fault["node"], fault["detected_by"]) == (kind, victim, "launcher"), fault
+        assert fault["position"] == "after_last_trial" and fault["t_detected_wall"] is not None
+        assert o.lines[-1].startswith("ilcrig: fault: ") and not o.left
+    finally:
+        kill_session(o)

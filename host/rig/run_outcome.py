@@ -6,6 +6,9 @@ This module owns :class:`RunOutcome`, the launcher's exit paths:
 * the host completed the run: exit 0 — unless a process of the run ended while the host was still
   finishing (after the last trial): then that is the run's fault, placed ``after_last_trial``, exit
   3 (``completed`` stays true: every trial was run and kept);
+* the host completed the run but the launcher's heartbeat consumer (:mod:`host.rig.liveness`)
+  found a node silent longer than its consumer time: before the host ended, the run's fault
+  (exit 3); after, a ``liveness_incidents`` entry with an ``ilcrig: note:`` line (exit 0);
 * the host refused the experiment: its ``ilcrig: error:`` line, exit 2;
 * a fault: the record in ``summary.json`` — the host's own, or, when the host itself died or
   was stopped, a ``process_died`` record naming the process that ended, placed where the run was
@@ -90,6 +93,9 @@ class RunOutcome:
         self.say_err = say_err
         self.resume_all = resume_all
         self.config = config
+        #: what the launcher's heartbeat consumer found (:class:`host.rig.liveness.Silence`), and when the host ended
+        self.silences: Sequence[Any] = ()
+        self.host_ended_mono: float = float("inf")
 
     # -- the summary ----------------------------------------------------------------------
     def load_summary(self) -> dict[str, Any] | None:
@@ -99,6 +105,11 @@ class RunOutcome:
         except (OSError, ValueError):
             return None
         return data if isinstance(data, dict) and isinstance(data.get("iterations"), list) else None
+
+    def kept_now(self) -> int:
+        """The trials the run's summary holds now (0: none yet)."""
+        summary = self.load_summary()
+        return len(summary["iterations"]) if summary is not None else 0
 
     def launcher_summary(self) -> dict[str, Any]:
         """The summary the host could not write (it ended before its first one): the run's
@@ -186,6 +197,10 @@ class RunOutcome:
             self.say_err(line or f"ilcrig: error: the host refused the experiment; its log: {host.log_path}")
             return EXIT_USAGE
         summary = self.load_summary()
+        if code == EXIT_OK and not deaths and summary is not None and self.silences:
+            end = self._silences(summary, host)
+            if end is not None:
+                return end
         if code == EXIT_OK and not deaths:
             if summary is not None and self._complete_evidence(summary, time.monotonic()):
                 self.save(summary)
@@ -213,6 +228,31 @@ class RunOutcome:
         self.settle_folder()
         summary_path = self.out_dir / "summary.json"
         self.say_err(fault_line(record, kept, summary_path=summary_path, extra=self._where(record, first, host)))
+        return EXIT_FAULT
+
+    def _silences(self, summary: dict[str, Any], host: Child) -> int | None:
+        """A completed run whose nodes the launcher's heartbeat consumer found silent
+        (:mod:`host.rig.liveness`): a silence before the host ended is the run's fault (exit 3,
+        ``completed`` as the host left it); after it, an incident in the summary with its line.
+        None: the run ends as the host said (exit 0)."""
+        from host.rig.liveness import judge_silences
+
+        planned = int(summary.get("config", {}).get("iterations", len(summary["iterations"])))
+        faults, incidents = judge_silences(list(self.silences), planned, self.host_ended_mono, read_injections(self.out_dir))
+        if incidents:
+            summary["liveness_incidents"] = incidents
+            for inc in incidents:
+                self.say_err(f"ilcrig: note: {inc['what']}; recorded in {self.out_dir / 'summary.json'}")
+        if not faults:
+            self.save(summary)
+            return None
+        record = faults[0]
+        summary["faults"] = [r.as_dict() for r in faults]
+        self._complete_evidence(summary, record.t_detected_mono or time.monotonic())
+        self.save(summary, report=True)
+        self.settle_folder()
+        kept = len(summary["iterations"])
+        self.say_err(fault_line(record, kept, summary_path=self.out_dir / "summary.json", extra=self._where(record, None, host)))
         return EXIT_FAULT
 
     def _host_line_record(self, host: Child) -> FaultRecord:
