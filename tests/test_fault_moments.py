@@ -167,3 +167,41 @@ def test_a_stall_after_the_last_row_is_a_fault(tmp_path: Path, victim: str, kind
         assert o.lines[-1].startswith("ilcrig: fault: ") and not o.left
     finally:
         kill_session(o)
+
+
+@pytest.mark.parametrize(
+    ("moment", "victim", "kind", "position"),
+    [
+        ("header", "drive2", "node_lost", "before_first_trial"),
+        ("header", "host", "host_lost", "before_first_trial"),
+        ("last_row", "host", "host_lost", "after_last_trial"),
+    ],
+)
+def test_a_stall_at_bring_up_or_of_the_host_at_the_end_is_a_fault(
+    tmp_path: Path, moment: str, victim: str, kind: str, position: str
+) -> None:
+    out = tmp_path / "run"
+    pids: dict[str, int] = {}
+
+    def stall(pid: int) -> None:
+        os.kill(pid, signal.SIGSTOP)
+        threading.Timer(3.0, os.kill, (pid, signal.SIGCONT)).start()
+
+    def on_line(line: str, proc: Any) -> None:
+        pids.update(_pids(line))
+        if line.startswith("ilcrig host:"):
+            pids["host"] = _host_pid(out)
+            if moment == "header":  # the host brings the nodes up
+                threading.Timer(0.1, stall, (pids[victim],)).start()
+        elif moment == "last_row" and re.match(r"\s+1\s+\d", line):
+            threading.Timer(0.6, stall, (pids[victim],)).start()
+
+    o = run_rig(out, on_line=on_line)
+    try:
+        assert o.code == 3, o.stderr
+        fault = o.fault
+        assert fault is not None and (fault["kind"], fault["node"], fault["position"]) == (kind, victim, position), fault
+        assert fault["t_detected_wall"] is not None and o.summary is not None
+        assert o.lines[-1].startswith("ilcrig: fault: ") and not o.left
+    finally:
+        kill_session(o)

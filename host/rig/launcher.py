@@ -61,7 +61,7 @@ from bus.objects import DRIVE_NODE_IDS
 from bus.transports.fault_inject import FRAME_ACTIONS, FaultSpec, check_specs, parse_specs
 from bus.units import timeout_scale
 from host.rig.launch_core import LaunchCore, check_transport, make_run_folder
-from host.rig.liveness import LivenessWatch
+from host.rig.liveness import LivenessWatch, StopWatch
 from host.rig.options import RunOptions
 from host.rig.processes import Child, Death
 from host.rig.role_commands import bus_time_rates, child_argv, host_role_args, rig_role_args
@@ -176,6 +176,7 @@ class RigLauncher(LaunchCore):
         outcome = RunOutcome(out_dir, self.children, self._say_err, self._resume_stalled, self._config_dict)
         self._liveness = LivenessWatch(run_tc, self._progress.where, outcome.kept_now)
         self._liveness.start()
+        supervisor.stops = StopWatch(self._progress.where, outcome.kept_now)
         if self.interrupts.signum is not None:
             return self._signal_exit()
         self.spawn("plant", child_argv("plant", bus_args, debug=debug), log_dir / "plant.log")
@@ -226,7 +227,7 @@ class RigLauncher(LaunchCore):
         host_death = supervisor.host_death(host, code)
         if code == 0 and not supervisor.deaths:  # every node heard once more after the host's end
             outcome.host_ended_mono = time.monotonic()
-            outcome.silences = self._liveness.settle(outcome.host_ended_mono)
+            outcome.silences = self._liveness.settle(outcome.host_ended_mono) + supervisor.stops.silences
         return outcome.conclude(host, code, supervisor.deaths, supervisor.host_stopped, host_death)
 
     def _iterations(self, specs: list[FaultSpec]) -> int | None:

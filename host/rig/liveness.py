@@ -1,6 +1,9 @@
-"""The launcher's heartbeat consumer: every node watched from its first heartbeat to the end of
-the run, also where the host does not watch (after its bench closed, while it writes its final
-outputs).
+"""The launcher's heartbeat consumer and stop watch: every process of the run watched from its
+start to the end of the run, also where the host does not watch (the bring-up before the nodes'
+heartbeats are configured; after its bench closed, while it writes its final outputs).
+
+:class:`StopWatch` (called by :class:`host.rig.supervisor.Supervisor` every round) notes a process
+stopped (SIGSTOP) for longer than the consumer time: a stall whose heartbeat nobody consumes then.
 
 This module owns :class:`LivenessWatch`, a thread of the launcher that joins the fieldbus as a
 passive member (acceptance filter: the heartbeats ``0x701``–``0x77E``, the host's ``0x77F`` left
@@ -39,10 +42,11 @@ from bus.transports.config import FIELDBUS, TransportConfig
 from bus.units import timeout_scale
 from host.experiment.fault_placement import place
 from host.experiment.faults import FaultKind, FaultRecord, attach_injection, node_name, position_of
+from host.rig.processes import node_id_of
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["LivenessWatch", "Silence", "judge_silences"]
+__all__ = ["LivenessWatch", "Silence", "StopWatch", "judge_silences"]
 
 #: the watch's read period, s
 POLL_S: float = 0.05
@@ -59,6 +63,7 @@ class Silence:
     :ivar t_heard_mono: when it was heard again (None: not before the watch ended)
     :ivar where: the run's position when it was noticed (:class:`host.rig.run_watch.Where`), or None
     :ivar kept: the trials in the summary when it was noticed
+    :ivar how: ``heartbeat`` (its heartbeat not heard) or ``stopped`` (its process stopped, SIGSTOP)
     """
 
     node_id: int | None
@@ -68,6 +73,12 @@ class Silence:
     t_heard_mono: float | None = None
     where: Any = None
     kept: int = 0
+    how: str = "heartbeat"
+
+    @property
+    def node(self) -> str:
+        """``drive2``, ``plant``, ``host``, or ``hub`` (node id None)."""
+        return "hub" if self.node_id is None else node_name(self.node_id)
 
     @property
     def silent_ms(self) -> float | None:
@@ -180,6 +191,66 @@ class LivenessWatch(threading.Thread):
             self.join(timeout=1.0)
 
 
+class StopWatch:
+    """Processes seen stopped (``T`` in ``/proc/PID/stat``: SIGSTOP) for longer than the nodes'
+    consumer time, by the launcher's watch loop (:meth:`look`, every few tens of ms): the stall of
+    a process whose heartbeat nobody consumes at that moment (the bring-up, before its heartbeat is
+    configured; the host after its own heartbeat stopped) is seen too.
+
+    :param where: the run's position now, or None
+    :param kept: the trials the summary holds now
+    """
+
+    def __init__(self, where: Callable[[], Any] | None = None, kept: Callable[[], int] | None = None) -> None:
+        self.where, self.kept = where, kept
+        self.consumer_s = CONSUMER_TIME_MS / 1000.0 * timeout_scale()
+        self.silences: list[Silence] = []
+        self._since: dict[str, float] = {}
+        self._open: dict[str, Silence] = {}
+
+    def look(self, procs: dict[str, int]) -> None:
+        """One look at the processes ``procs`` (name → pid)."""
+        now = time.monotonic()
+        for name, pid in procs.items():
+            if process_stopped(pid):
+                since = self._since.setdefault(name, now)
+                if name not in self._open and now - since > self.consumer_s:
+                    nid = None if name == "hub" else node_id_of(name)
+                    where = self.where() if self.where is not None else None
+                    kept = self.kept() if self.kept is not None else 0
+                    silence = Silence(nid, since, now, time.time(), where=where, kept=kept, how="stopped")
+                    self._open[name] = silence
+                    self.silences.append(silence)
+                    logger.info("%s (pid %d) stopped for %.0f ms", name, pid, 1000 * (now - since))
+            else:
+                self._since.pop(name, None)
+                ended = self._open.pop(name, None)
+                if ended is not None:
+                    ended.t_heard_mono = now
+
+
+def process_stopped(pid: int) -> bool:
+    """The process is stopped (state ``T``: SIGSTOP); False when it is gone or cannot be read."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as fh:
+            stat = fh.read()
+    except OSError:
+        return False
+    return stat.rsplit(b")", 1)[-1].split()[:1] == [b"T"]
+
+
+def first_per_node(silences: list[Silence]) -> list[Silence]:
+    """The first silence of each node (the heartbeat consumer and the stop watch see the same
+    stall), in the order noticed."""
+    seen: set[str] = set()
+    out = []
+    for s in sorted(silences, key=lambda x: x.t_noticed_mono):
+        if s.node not in seen:
+            seen.add(s.node)
+            out.append(s)
+    return out
+
+
 def judge_silences(
     silences: list[Silence], planned: int, t_safe_mono: float, injections: list[dict[str, Any]]
 ) -> tuple[list[FaultRecord], list[dict[str, Any]]]:
@@ -187,18 +258,19 @@ def judge_silences(
     records, the later ones as incidents (JSON-ready); ``planned``: the run's trials."""
     faults: list[FaultRecord] = []
     incidents: list[dict[str, Any]] = []
-    for s in silences:
-        node = "hub" if s.node_id is None else node_name(s.node_id)
+    for s in first_per_node(silences):
+        node = s.node
         w = s.where
         in_trial = w is not None and bool(getattr(w, "in_trial", False)) and w.trial >= s.kept and s.kept < planned
         silent = s.silent_ms
-        text = f"silent for {silent:.0f} ms" if silent is not None else "silent until the end of the run"
+        verb = "stopped" if s.how == "stopped" else "silent"
+        text = f"{verb} for {silent:.0f} ms" if silent is not None else f"{verb} until the end of the run"
         if s.t_noticed_mono >= t_safe_mono:
             position, trial = position_of(s.kept, planned, False)
             incidents.append(
                 {
                     "node": node,
-                    "what": f"{node} {text} (heartbeat; results safe already)",
+                    "what": f"{node} {text} ({s.how}; results safe already)",
                     "silent_ms": None if silent is None else round(silent, 1),
                     "position": str(position),
                     "trial": trial,
@@ -208,9 +280,18 @@ def judge_silences(
                 }
             )
             continue
+        if s.how == "stopped":
+            what = f"{node} {text} (its process stopped, seen by the launcher)"
+        else:
+            what = f"{'every node' if s.node_id is None else 'heartbeat of ' + node} {text} (the launcher's heartbeat consumer)"
+        kind = FaultKind.NODE_LOST
+        if s.node_id is None:
+            kind = FaultKind.BUS_SILENT
+        elif s.node_id == HOST_NODE_ID:
+            kind = FaultKind.HOST_LOST
         record = FaultRecord(
-            FaultKind.BUS_SILENT if s.node_id is None else FaultKind.NODE_LOST,
-            f"{'every node' if s.node_id is None else 'heartbeat of ' + node} {text} (the launcher's heartbeat consumer)",
+            kind,
+            what,
             node=node,
             node_id=s.node_id,
             tick=w.tick if in_trial and w is not None else None,
@@ -218,7 +299,7 @@ def judge_silences(
             t_detected_mono=s.t_noticed_mono,
             t_detected_wall=s.t_noticed_wall,
             latency_ms=1000.0 * (s.t_noticed_mono - s.t_last_mono),
-            latency_basis="its last heartbeat (consumer time)",
+            latency_basis="its last heartbeat (consumer time)" if s.how == "heartbeat" else "its stop (consumer time)",
         )
         attach_injection(record, injections)
         place(record, None, s.kept, planned, in_trial)
