@@ -64,6 +64,11 @@ def test_emcy_frames_as_faults() -> None:
     assert rec.message == "io tick out of sequence at drive4: expected tick 7, got 9 (EMCY 0x8200)"
     rec = emcy_fault(EmcyFrame(1, 0x8611, b"", 1.0, 2.0))
     assert (rec.kind, rec.message) == (FaultKind.EMCY, "following error of drive1 (EMCY 0x8611)")
+    # an EMCY of the plant node without one of its fault codes (e.g. --inject emcy:plant@1:150):
+    # no tick in it, so none is made up (the run places it where its io channel was), not tick 0
+    rec = emcy_fault(EmcyFrame(32, 0x8611, bytes([0, 1, 0, 0, 0]), 1.0, 2.0))
+    assert (rec.kind, rec.node, rec.tick) == (FaultKind.EMCY, "plant", None)
+    assert rec.message == "fault (EMCY 0x8611 of the plant node)"
 
 
 def test_heartbeat_rules() -> None:

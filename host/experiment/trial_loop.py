@@ -186,12 +186,12 @@ class TrialLoop:
             t.record(m, role)
             self.k = k + 1
             self.result.roles.append(role)
-            if self.on_trial is not None:
-                self.on_trial(m, role)
             t.log_recording(k, m, e)
             if self.out is not None:
                 self._note_recording()
                 write_summary(self.out, self.result.summary, folder=self.folder, trial=k)
+            if self.on_trial is not None:  # shown once durable: a printed trial is never lost
+                self.on_trial(m, role)
         self._data = t.trial_data(k, role, u, e, tau)
         self._aux_step = aux_step
         return TrialOutcome(k, role, m, u, e, tau, list(t.last_traces), plan.gains)

@@ -36,6 +36,7 @@ processes and always cleans them up:
 * :mod:`host.rig.role_commands` — the roles' command lines (``python -P -m host.cli ROLE``, test hooks);
 * :mod:`host.rig.processes` — starting (roles, the hub), describing and terminating processes;
 * :mod:`host.rig.run_watch` — the run's trial and tick on the io channel, for the launcher;
+* :mod:`host.rig.liveness` — the launcher's heartbeat consumer and stop watch: every process watched to the end of the run;
 * :mod:`host.rig.supervisor` — the watch loop until the host ends (pidfds: a process's end wakes it);
 * :mod:`host.rig.run_outcome` — the run's end: exit code, fault record, drives' evidence, the fault
   line, the run folder as the summary says;

@@ -23,6 +23,7 @@ since the injection (:func:`host.experiment.faults.attach_injection`).
 
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -49,6 +50,7 @@ __all__ = [
     "host_stall_fault",
     "plant_trial_fault",
     "sdo_fault",
+    "with_wall_time",
 ]
 
 
@@ -183,12 +185,16 @@ def _plant_latency(fault: PlantFault, times: DetectionTimes) -> tuple[float, str
 
 
 def _plant_emcy_fault(frame: EmcyFrame, data: bytes, times: DetectionTimes) -> FaultRecord:
-    """The plant node's EMCY: data[0] its fault code, data[1] the drive, data[2:4] the tick."""
+    """The plant node's EMCY: data[0] its fault code, data[1] the drive, data[2:4] the tick. An
+    EMCY without one of the plant's fault codes (data[0] 0 or unknown: not the plant's own report
+    of a stopped trial) carries no tick: the record's tick is left unknown (None), so the run
+    places it where its io channel was (:func:`host.experiment.fault_placement.place`), never at 0."""
     try:
         fault = PlantFault(data[0])
     except ValueError:
         fault = PlantFault.NONE
-    drive, tick = data[1], int.from_bytes(data[2:4], "little")
+    drive = data[1] if fault != PlantFault.NONE else 0
+    tick: int | None = int.from_bytes(data[2:4], "little") if fault != PlantFault.NONE else None
     texts = {
         PlantFault.PLANT: f"plant error at tick {tick}",
         PlantFault.TICK_TIMEOUT: f"io frame lost or late: no torque frame of drive {drive} for tick {tick} within the deadline",
@@ -205,7 +211,7 @@ def _plant_emcy_fault(frame: EmcyFrame, data: bytes, times: DetectionTimes) -> F
     latency, basis = _plant_latency(fault, times)
     return FaultRecord(
         PLANT_FAULT_KINDS.get(fault, FaultKind.EMCY),
-        f"{texts.get(fault, f'fault {int(fault)}')} (EMCY 0x{frame.code:04X} of the plant node)",
+        f"{texts.get(fault, 'fault')} (EMCY 0x{frame.code:04X} of the plant node)",
         node=node,
         node_id=drive or (HOST_NODE_ID if fault == PlantFault.HOST_LOST else PLANT_NODE_ID),
         tick=tick,
@@ -387,3 +393,15 @@ def sdo_fault(exc: SdoTransportError | SdoAbort, trial: int, now: float) -> Faul
         latency_ms=1000.0 * waited if timed_out and waited is not None else 0.0,
         latency_basis="the SDO request (no answer)" if timed_out else "the SDO answer",
     )
+
+
+def with_wall_time(record: FaultRecord) -> FaultRecord:
+    """``record`` with both detection times: ``t_detected_wall`` from ``t_detected_mono`` (one
+    machine: the wall clock's offset from CLOCK_MONOTONIC now), or both now when neither is known.
+    Returns ``record``."""
+    if record.t_detected_wall is None:
+        now_mono, now_wall = time.monotonic(), time.time()
+        if record.t_detected_mono is None:
+            record.t_detected_mono = now_mono
+        record.t_detected_wall = now_wall - (now_mono - record.t_detected_mono)
+    return record

@@ -52,6 +52,7 @@ from __future__ import annotations
 import json
 import logging
 import signal
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -60,6 +61,7 @@ from bus.objects import DRIVE_NODE_IDS
 from bus.transports.fault_inject import FRAME_ACTIONS, FaultSpec, check_specs, parse_specs
 from bus.units import timeout_scale
 from host.rig.launch_core import LaunchCore, check_transport, make_run_folder
+from host.rig.liveness import LivenessWatch, StopWatch
 from host.rig.options import RunOptions
 from host.rig.processes import Child, Death
 from host.rig.role_commands import bus_time_rates, child_argv, host_role_args, rig_role_args
@@ -128,6 +130,7 @@ class RigLauncher(LaunchCore):
     supervisor: Supervisor | None = field(default=None, init=False)
     _injector: Any = field(default=None, init=False, repr=False)
     _progress: RunProgress | None = field(default=None, init=False, repr=False)
+    _liveness: LivenessWatch | None = field(default=None, init=False, repr=False)
 
     @property
     def deaths(self) -> list[Death]:
@@ -170,7 +173,10 @@ class RigLauncher(LaunchCore):
         self.supervisor = supervisor = Supervisor(
             self.children, self.hub, log_dir / "hub.log", float(self.host_grace_s), self.interrupts, self._progress.where
         )
-        outcome = RunOutcome(out_dir, self.children, self._say_err, self._resume_stalled)
+        outcome = RunOutcome(out_dir, self.children, self._say_err, self._resume_stalled, self._config_dict)
+        self._liveness = LivenessWatch(run_tc, self._progress.where, outcome.kept_now)
+        self._liveness.start()
+        supervisor.stops = StopWatch(self._progress.where, outcome.kept_now)
         if self.interrupts.signum is not None:
             return self._signal_exit()
         self.spawn("plant", child_argv("plant", bus_args, debug=debug), log_dir / "plant.log")
@@ -219,6 +225,9 @@ class RigLauncher(LaunchCore):
         if self.interrupts.signum is not None:
             return self._interrupted(host, supervisor, outcome)
         host_death = supervisor.host_death(host, code)
+        if code == 0 and not supervisor.deaths:  # every node heard once more after the host's end
+            outcome.host_ended_mono = time.monotonic()
+            outcome.silences = self._liveness.settle(outcome.host_ended_mono) + supervisor.stops.silences
         return outcome.conclude(host, code, supervisor.deaths, supervisor.host_stopped, host_death)
 
     def _iterations(self, specs: list[FaultSpec]) -> int | None:
@@ -244,6 +253,14 @@ class RigLauncher(LaunchCore):
         scheduling["in_roles"]["plant_spins"] = spins
         scheduling["mechanisms"] = scheduling_mechanisms(scheduling)
         return scheduling
+
+    def _config_dict(self) -> dict[str, Any]:
+        """The run's configuration as a summary holds it (for the summary the launcher writes when
+        the host left none)."""
+        from host.experiment.console import experiment_config
+
+        cfg = experiment_config(self.options.namespace())
+        return cfg.as_dict() | {"n_ticks": cfg.n_ticks}
 
     def _pid_of(self, name: str) -> int | None:
         """The pid of a running role or of the hub (None: not running), for the injector."""
@@ -276,6 +293,8 @@ class RigLauncher(LaunchCore):
             self._injector.stop()
         if self._progress is not None:
             self._progress.stop()
+        if self._liveness is not None:
+            self._liveness.stop()
 
 
 def launch_rig(options: RunOptions) -> int:

@@ -6,6 +6,9 @@ This module owns :class:`RunOutcome`, the launcher's exit paths:
 * the host completed the run: exit 0 — unless a process of the run ended while the host was still
   finishing (after the last trial): then that is the run's fault, placed ``after_last_trial``, exit
   3 (``completed`` stays true: every trial was run and kept);
+* the host completed the run but the launcher's heartbeat consumer (:mod:`host.rig.liveness`)
+  found a node silent longer than its consumer time: before the host ended, the run's fault
+  (exit 3); after, a ``liveness_incidents`` entry with an ``ilcrig: note:`` line (exit 0);
 * the host refused the experiment: its ``ilcrig: error:`` line, exit 2;
 * a fault: the record in ``summary.json`` — the host's own, or, when the host itself died or
   was stopped, a ``process_died`` record naming the process that ended, placed where the run was
@@ -16,6 +19,17 @@ This module owns :class:`RunOutcome`, the launcher's exit paths:
   react); ``report.md`` rewritten; the one line ``ilcrig: fault: <what>: <node>, trial k, tick n;
   …; its log: …``; exit 3;
 * an interrupt: the summary marked ``interrupted`` by the launcher if the host did not mark it.
+
+A summary always: when the host ended (or was stopped) before it wrote ``summary.json`` — killed
+while it started up, the hub gone during bring-up, the bus never opened — the launcher writes the
+one the host could not (:meth:`RunOutcome.launcher_summary`: the configuration, 0 trials kept, the
+fault with kind, node and when; ``written_by: launcher``), atomically like every summary
+(:func:`host.experiment.summary.write_summary`, :mod:`bus.atomic`), and ``report.md`` with it.
+
+Records true: when the hub ended while the host ran, the bus was gone for every node: a record the
+host made of what followed (an SDO request unanswered, nodes silent) is the hub's (``bus_lost``,
+node ``hub``, the host's detection kept as ``host_saw``). Every record leaves with both detection
+times (``t_detected_wall`` from ``t_detected_mono`` when only that one is known: one machine).
 
 On every path the drives' safe state that the host could not show (``torque`` not ``off``) is
 taken from their logs, and the run folder is made to hold what the summary says
@@ -30,7 +44,7 @@ import json
 import logging
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -48,6 +62,7 @@ from host.experiment.faults import (
     position_of,
     read_injections,
 )
+from host.rig.fault_classify import with_wall_time
 from host.rig.processes import Child, Death, describe_status, node_id_of, tail
 
 logger = logging.getLogger(__name__)
@@ -63,12 +78,18 @@ class RunOutcome:
     :ivar children: the role processes
     :ivar say_err: writes one line to the launcher's stderr
     :ivar resume_all: resumes every process an injection stalled (before the drives' evidence is read)
+    :ivar config: the run's configuration (``config`` of a summary), for the summary the launcher
+        writes when the host left none (called only then)
     """
 
     out_dir: Path
     children: Sequence[Child]
     say_err: Callable[[str], None]
     resume_all: Callable[[], None] | None = None
+    config: Callable[[], dict[str, Any]] | None = None
+    #: what the launcher's heartbeat consumer found (:class:`host.rig.liveness.Silence`), and when the host ended
+    silences: Sequence[Any] = field(default=(), init=False)
+    host_ended_mono: float = field(default=float("inf"), init=False)
 
     # -- the summary ----------------------------------------------------------------------
     def load_summary(self) -> dict[str, Any] | None:
@@ -78,6 +99,33 @@ class RunOutcome:
         except (OSError, ValueError):
             return None
         return data if isinstance(data, dict) and isinstance(data.get("iterations"), list) else None
+
+    def kept_now(self) -> int:
+        """The trials the run's summary holds now (0: none yet)."""
+        summary = self.load_summary()
+        return len(summary["iterations"]) if summary is not None else 0
+
+    def launcher_summary(self) -> dict[str, Any]:
+        """The summary the host could not write (it ended before its first one): the run's
+        configuration, no trials, no faults yet, ``completed`` false, ``written_by: launcher``."""
+        from host.experiment.summary import SCHEMA
+
+        config: dict[str, Any] = {}
+        if self.config is not None:
+            try:
+                config = self.config()
+            except Exception:  # noqa: BLE001 - checked in preflight; the fault must still be recorded
+                logger.warning("the run's configuration is not in the launcher's summary", exc_info=True)
+        return {
+            "schema": SCHEMA,
+            "mode": "rig",
+            "config": config,
+            "iterations": [],
+            "ticks": 0,
+            "faults": [],
+            "completed": False,
+            "written_by": "launcher",
+        }
 
     def save(self, summary: dict[str, Any], report: bool = False) -> None:
         """Rewrite ``summary.json`` (and with ``report`` ``report.md``); failures are logged."""
@@ -108,7 +156,7 @@ class RunOutcome:
         """A run interrupted by ``signal_name``: the summary says so (if the host did not; placed
         with the io channel's position ``where``), the drives' safe state completed from their
         logs, the folder settled."""
-        summary = self.load_summary()
+        summary = self.load_summary() or self.launcher_summary()
         if summary is not None:
             if not summary.get("interrupted") and not summary.get("completed"):
                 kept = len(summary["iterations"])
@@ -143,6 +191,10 @@ class RunOutcome:
             self.say_err(line or f"ilcrig: error: the host refused the experiment; its log: {host.log_path}")
             return EXIT_USAGE
         summary = self.load_summary()
+        if code == EXIT_OK and not deaths and summary is not None and self.silences:
+            end = self._silences(summary, host)
+            if end is not None:
+                return end
         if code == EXIT_OK and not deaths:
             if summary is not None and self._complete_evidence(summary, time.monotonic()):
                 self.save(summary)
@@ -150,29 +202,71 @@ class RunOutcome:
             return EXIT_OK
         kept = len(summary["iterations"]) if summary is not None else 0
         first = deaths[0] if deaths else host_death
-        if (summary is None or not summary.get("faults")) and code == EXIT_FAULT and not deaths:
-            # the host ended with a fault it did not put in a summary
-            line = next((ln for ln in reversed(tail(host.log_path, 40)) if ln.startswith("ilcrig: ")), None)
-            self.settle_folder()
-            self.say_err(
-                f"{line}; the host's log: {host.log_path}"
-                if line
-                else f"ilcrig: fault: the host ended the run with exit code {code}; its log: {host.log_path}"
-            )
-            return EXIT_FAULT
+        if summary is None:
+            summary = self.launcher_summary()  # the host ended before its first summary: a summary always
+        if not summary.get("faults") and code == EXIT_FAULT and not deaths:
+            # the host ended with a fault it did not put in a summary (e.g. it could not open the bus)
+            summary["faults"].append(self._host_line_record(host).as_dict())
         record = self._record(summary, kept, host, code, first)
-        if summary is not None:
-            summary["completed"] = record.position == Position.AFTER_LAST_TRIAL  # every trial kept
-            summary["faults"][0] = record.as_dict()
-            since = first.t_mono if first is not None else (record.t_detected_mono or time.monotonic())
-            if record.injected and record.injected.get("t_mono") is not None:
-                since = float(record.injected["t_mono"])
-            self._complete_evidence(summary, since)
-            self.save(summary, report=True)
+        if record.kind != FaultKind.PROCESS_DIED or record.node != "hub":
+            record = hub_first(record, deaths)
+        summary["completed"] = record.position == Position.AFTER_LAST_TRIAL  # every trial kept
+        summary["faults"][0] = with_wall_time(record).as_dict()
+        for i, entry in enumerate(summary["faults"][1:], 1):
+            summary["faults"][i] = with_wall_time(FaultRecord.from_dict(entry)).as_dict()
+        since = first.t_mono if first is not None else (record.t_detected_mono or time.monotonic())
+        if record.injected and record.injected.get("t_mono") is not None:
+            since = float(record.injected["t_mono"])
+        self._complete_evidence(summary, since)
+        self.save(summary, report=True)
         self.settle_folder()
-        summary_path = self.out_dir / "summary.json" if summary is not None else None
+        summary_path = self.out_dir / "summary.json"
         self.say_err(fault_line(record, kept, summary_path=summary_path, extra=self._where(record, first, host)))
         return EXIT_FAULT
+
+    def _silences(self, summary: dict[str, Any], host: Child) -> int | None:
+        """A completed run whose nodes the launcher's heartbeat consumer found silent
+        (:mod:`host.rig.liveness`): a silence before the host ended is the run's fault (exit 3,
+        ``completed`` as the host left it); after it, an incident in the summary with its line.
+        None: the run ends as the host said (exit 0)."""
+        from host.rig.liveness import judge_silences
+
+        planned = int(summary.get("config", {}).get("iterations", len(summary["iterations"])))
+        faults, incidents = judge_silences(list(self.silences), planned, self.host_ended_mono, read_injections(self.out_dir))
+        if incidents:
+            summary["liveness_incidents"] = incidents
+            for inc in incidents:
+                self.say_err(f"ilcrig: note: {inc['what']}; recorded in {self.out_dir / 'summary.json'}")
+        if not faults:
+            self.save(summary)
+            return None
+        record = faults[0]
+        summary["faults"] = [r.as_dict() for r in faults]
+        self._complete_evidence(summary, record.t_detected_mono or time.monotonic())
+        self.save(summary, report=True)
+        self.settle_folder()
+        kept = len(summary["iterations"])
+        self.say_err(fault_line(record, kept, summary_path=self.out_dir / "summary.json", extra=self._where(record, None, host)))
+        return EXIT_FAULT
+
+    def _host_line_record(self, host: Child) -> FaultRecord:
+        """The fault the host ended with but did not record (its last ``ilcrig:`` line): before
+        the first trial, detected by the host."""
+        line = next((ln for ln in reversed(tail(host.log_path, 40)) if ln.startswith("ilcrig: ")), None)
+        what = (line or f"the host ended the run with exit code {EXIT_FAULT}").split(": ", 2)[-1]
+        bus = "cannot open the bus" in what
+        now = time.monotonic()
+        record = FaultRecord(
+            FaultKind.BUS_LOST if bus else FaultKind.TRIAL_FAULT,
+            what,
+            node="hub" if bus and any(c.name == "hub" for c in self.children) else "host",
+            detected_by="host",
+            t_detected_mono=now,
+            t_detected_wall=time.time(),
+            extra={"host_log": str(host.log_path)},
+        )
+        place(record, None, 0, 1, False)
+        return record
 
     def _record(self, summary: dict[str, Any] | None, kept: int, host: Child, code: int, first: Death | None) -> FaultRecord:
         """The run's fault: the host's first record, else a ``process_died`` one (added to the
@@ -272,6 +366,33 @@ class RunOutcome:
         return [by_node[c.name] for c in drives if c.name in by_node] + [
             e for n, e in by_node.items() if not str(n).startswith("drive")
         ]
+
+
+#: the kinds of record a lost bus leaves with the host: what it saw after the hub had ended
+HUB_CONSEQUENCES = frozenset(
+    {
+        FaultKind.SDO_ERROR,
+        FaultKind.NODE_LOST,
+        FaultKind.BUS_LOST,
+        FaultKind.BUS_SILENT,
+        FaultKind.FRAME_LOST,
+        FaultKind.PROCESS_DIED,
+        FaultKind.TRIAL_FAULT,
+    }
+)
+
+
+def hub_first(record: FaultRecord, deaths: Sequence[Death]) -> FaultRecord:
+    """``record`` as the hub's when the hub ended while the host ran and the record is of what a
+    lost bus leaves (:data:`HUB_CONSEQUENCES`): kind ``bus_lost``, node ``hub``, the host's own
+    words kept as ``host_saw``; its trial, tick, position and detection times unchanged."""
+    hub = next((d for d in deaths if d.name == "hub"), None)
+    if hub is None or record.kind not in HUB_CONSEQUENCES or record.node == "hub":
+        return record
+    record.extra["host_saw"] = {"kind": record.kind, "node": record.node, "message": record.message}
+    record.kind, record.node, record.node_id = FaultKind.BUS_LOST, "hub", None
+    record.message = f"the hub (pid {hub.pid}) {hub.status}: the bus is gone"
+    return record
 
 
 #: how much of a drive's log is searched for its SAFE-STATE records (from the end), bytes

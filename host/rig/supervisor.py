@@ -8,7 +8,8 @@ end itself; where the kernel has no pidfd, it looks every :data:`POLL_S`), and a
 where the run was (the trial and tick of :class:`host.rig.run_watch.RunProgress`) — and gives the
 host a grace period to notice it on the bus and record it (the host's watchdog takes about three
 heartbeat periods); a host that does not end by then is stopped (:meth:`Supervisor.stop_host`:
-signal, wait, SIGKILL its group).  A signal to the launcher (:class:`host.rig.interrupts.Interrupts`)
+signal, wait, SIGKILL its group).  With a :class:`host.rig.liveness.StopWatch` it also looks,
+every round, at which processes are stopped.  A signal to the launcher (:class:`host.rig.interrupts.Interrupts`)
 ends the watch at once.  The CPU and wall time the watch took are kept.
 """
 
@@ -58,6 +59,8 @@ class Supervisor:
     host_grace_s: float
     interrupts: Interrupts
     where: Callable[[], Any] | None = None
+    #: looks at which processes are stopped (:class:`host.rig.liveness.StopWatch`), or None
+    stops: Any = None
     deaths: list[Death] = field(default_factory=list, init=False)
     host_stopped: bool = field(default=False, init=False)
     watch_cpu_s: float = field(default=0.0, init=False)
@@ -81,6 +84,8 @@ class Supervisor:
                     self.note_deaths(host)
                     return code
                 self.note_deaths(host)
+                if self.stops is not None:
+                    self.stops.look(self._running())
                 if self.deaths and deadline is None:
                     deadline = time.monotonic() + self.host_grace_s
                 if deadline is not None and time.monotonic() > deadline:
@@ -117,6 +122,13 @@ class Supervisor:
             poller.register(fd, select.POLLIN)
         poller.poll(1000 * POLL_S)
         self._since = time.monotonic()
+
+    def _running(self) -> dict[str, int]:
+        """Every process of the run still running (the hub included): name → pid."""
+        procs = {c.name: c.pid for c in self.children if c.proc.returncode is None}
+        if self.hub is not None and self.hub.alive:
+            procs["hub"] = self.hub.pid
+        return procs
 
     def _pidfd(self, pid: int) -> int | None:
         if pid not in self._pidfds:

@@ -57,6 +57,7 @@ from host.rig.fault_classify import (
     host_stall_fault,
     plant_trial_fault,
     sdo_fault,
+    with_wall_time,
 )
 from host.rig.host_heartbeat import HostHeartbeat
 from host.rig.node_events import NodeEvents
@@ -290,6 +291,7 @@ class Watchdog:
             record.trial = self.trial
         if record.tick is None:
             record.tick = self.channels.trial_tick(self.trial)
+        with_wall_time(record)
         if self.out_dir is not None:
             attach_injection(record, read_injections(self.out_dir))
         with self._lock:
@@ -317,6 +319,7 @@ class Watchdog:
             record = sdo_fault(exc, trial, now)
         else:
             return None
+        with_wall_time(record)
         if self.out_dir is not None:
             attach_injection(record, read_injections(self.out_dir))
         return record

@@ -1,0 +1,207 @@
+"""Outside signals at the edges of a run: a process killed while the host starts up
+still leaves a summary.json (the launcher writes the one the host could not), with the fault's
+kind, node and both detection times; a printed trial is never lost.
+
+Each test runs the real multi-process rig (tests/fault_harness.py) and signals a process at a
+moment it waits for on the launcher's stdout (the status line, the host's header line, a trial's
+row) — never sleep-then-assert.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import threading
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fault_harness import Outcome, kill_session, recorded_trials, run_rig
+
+pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
+
+
+def _pids(line: str) -> dict[str, int]:
+    """name → pid of the launcher's status line (``processes: hub 12, plant 13, …``)."""
+    m = re.search(r"processes: (.*); role logs", line)
+    return {n: int(p) for n, p in (part.split() for part in m.group(1).split(", "))} if m else {}
+
+
+def _host_pid(out: Path) -> int:
+    """The host's pid, from /proc (the status line is printed before the host starts)."""
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                argv = (d / "cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if b"host" in argv and str(out).encode() in argv and b"host.cli" in argv:
+                return int(d.name)
+    raise AssertionError("no host process")
+
+
+def _check_launcher_summary(o: Outcome, node: str) -> dict[str, Any]:
+    try:
+        assert o.code == 3, o.stderr
+        assert o.summary is not None, f"no summary.json: {sorted(p.name for p in o.out.iterdir())}"
+        assert o.summary["written_by"] == "launcher" and o.summary["iterations"] == [] and not o.summary["completed"]
+        assert o.summary["config"]["iterations"] == 2
+        fault = o.fault
+        assert fault is not None
+        assert (fault["kind"], fault["node"], fault["position"], fault["trial"]) == (
+            "process_died",
+            node,
+            "before_first_trial",
+            0,
+        )
+        assert fault["t_detected_wall"] is not None and fault["t_detected_mono"] is not None
+        assert (o.out / "report.md").exists()
+        assert o.lines[-1].startswith("ilcrig: fault: ") and str(o.out / "summary.json") in o.lines[-1]
+        assert not o.left
+        return fault
+    except AssertionError:
+        kill_session(o)
+        raise
+
+
+def test_host_killed_while_it_starts_up_leaves_a_summary(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+
+    def on_line(line: str, proc: Any) -> None:
+        if line.startswith("ilcrig host:"):  # the host's header line: it is starting up
+            host = _host_pid(out)
+            threading.Timer(0.08, os.kill, (host, signal.SIGKILL)).start()
+
+    _check_launcher_summary(run_rig(out, on_line=on_line), "host")
+
+
+def test_hub_killed_during_bring_up_leaves_a_summary(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+
+    def on_line(line: str, proc: Any) -> None:
+        if pids := _pids(line):  # every role started, the host about to: bring-up
+            os.kill(pids["hub"], signal.SIGKILL)
+
+    fault = _check_launcher_summary(run_rig(out, on_line=on_line), "hub")
+    assert fault["process_ended"]["name"] == "hub"
+
+
+@pytest.mark.parametrize("delay_s", [0.005, 0.03])
+def test_a_printed_trial_is_kept_when_the_host_is_killed_after_its_row(tmp_path: Path, delay_s: float) -> None:
+    out = tmp_path / "run"
+    host: list[int] = []
+
+    def on_line(line: str, proc: Any) -> None:
+        if line.startswith("ilcrig host:"):
+            host.append(_host_pid(out))
+        elif re.match(r"\s+0\s+\d", line):  # trial 0's row: from now on trial 0 must be kept
+            threading.Timer(delay_s, os.kill, (host[0], signal.SIGKILL)).start()
+
+    o = run_rig(out, iterations=3, on_line=on_line)
+    try:
+        assert o.code == 3, o.stderr
+        assert o.summary is not None and o.kept >= 1, o.stderr
+        fault = o.fault
+        assert fault is not None and (fault["kind"], fault["node"]) == ("process_died", "host")
+        assert fault["t_detected_wall"] is not None
+        assert (o.out / "trials").is_dir() and any((o.out / "trials").iterdir())
+        assert 0 in recorded_trials(o.out / "recording.rrd")
+        assert not o.left
+    finally:
+        kill_session(o)
+
+
+def test_an_emcy_of_the_plant_is_recorded_where_it_came(tmp_path: Path) -> None:
+    o = run_rig(tmp_path / "run", "--inject", "emcy:plant@1:150,code=0x8611")
+    try:
+        assert o.code == 3, o.stderr
+        fault = o.fault
+        assert fault is not None and (fault["kind"], fault["node"], fault["trial"]) == ("emcy", "plant", 1), fault
+        assert fault["position"] == "in_trial" and fault["tick"] is not None and fault["tick"] >= 150, fault
+        assert fault["t_detected_wall"] is not None and fault["injected"]["spec"].startswith("emcy:plant@1:150")
+        assert o.kept == 1 and not o.left
+    finally:
+        kill_session(o)
+
+
+def test_a_hub_killed_between_trials_is_recorded_as_the_hub(tmp_path: Path) -> None:
+    pids: dict[str, int] = {}
+
+    def on_line(line: str, proc: Any) -> None:
+        pids.update(_pids(line))
+        if re.match(r"\s+0\s+\d", line):  # trial 0 kept: the host configures trial 1 (SDO traffic)
+            os.kill(pids["hub"], signal.SIGKILL)
+
+    o = run_rig(tmp_path / "run", iterations=3, on_line=on_line)
+    try:
+        assert o.code == 3, o.stderr
+        fault = o.fault
+        assert fault is not None and fault["node"] == "hub" and fault["kind"] in ("bus_lost", "bus_silent"), fault
+        assert fault["t_detected_wall"] is not None and fault["t_detected_mono"] is not None
+        assert o.kept >= 1 and not o.left
+    finally:
+        kill_session(o)
+
+
+@pytest.mark.parametrize(("victim", "kind"), [("drive2", "node_lost"), ("hub", "bus_silent")])
+def test_a_stall_after_the_last_row_is_a_fault(tmp_path: Path, victim: str, kind: str) -> None:
+    pids: dict[str, int] = {}
+
+    def stall(pid: int) -> None:
+        os.kill(pid, signal.SIGSTOP)
+        threading.Timer(3.0, os.kill, (pid, signal.SIGCONT)).start()
+
+    def on_line(line: str, proc: Any) -> None:
+        pids.update(_pids(line))
+        if re.match(r"\s+1\s+\d", line):  # the last trial's row: the host closes and writes its outputs
+            threading.Timer(0.6, stall, (pids[victim],)).start()
+
+    o = run_rig(tmp_path / "run", on_line=on_line)
+    try:
+        assert o.code == 3, o.stderr
+        assert o.summary is not None and o.kept == 2 and o.summary["completed"]
+        fault = o.fault
+        assert fault is not None and (fault["kind"], fault["node"], fault["detected_by"]) == (kind, victim, "launcher"), fault
+        assert fault["position"] == "after_last_trial" and fault["t_detected_wall"] is not None
+        assert o.lines[-1].startswith("ilcrig: fault: ") and not o.left
+    finally:
+        kill_session(o)
+
+
+@pytest.mark.parametrize(
+    ("moment", "victim", "kind", "position"),
+    [
+        ("header", "drive2", "node_lost", "before_first_trial"),
+        ("header", "host", "host_lost", "before_first_trial"),
+        ("last_row", "host", "host_lost", "after_last_trial"),
+    ],
+)
+def test_a_stall_at_bring_up_or_of_the_host_at_the_end_is_a_fault(
+    tmp_path: Path, moment: str, victim: str, kind: str, position: str
+) -> None:
+    out = tmp_path / "run"
+    pids: dict[str, int] = {}
+
+    def stall(pid: int) -> None:
+        os.kill(pid, signal.SIGSTOP)
+        threading.Timer(3.0, os.kill, (pid, signal.SIGCONT)).start()
+
+    def on_line(line: str, proc: Any) -> None:
+        pids.update(_pids(line))
+        if line.startswith("ilcrig host:"):
+            pids["host"] = _host_pid(out)
+            if moment == "header":  # the host brings the nodes up
+                threading.Timer(0.1, stall, (pids[victim],)).start()
+        elif moment == "last_row" and re.match(r"\s+1\s+\d", line):
+            threading.Timer(0.6, stall, (pids[victim],)).start()
+
+    o = run_rig(out, on_line=on_line)
+    try:
+        assert o.code == 3, o.stderr
+        fault = o.fault
+        assert fault is not None and (fault["kind"], fault["node"], fault["position"]) == (kind, victim, position), fault
+        assert fault["t_detected_wall"] is not None and o.summary is not None
+        assert o.lines[-1].startswith("ilcrig: fault: ") and not o.left
+    finally:
+        kill_session(o)
