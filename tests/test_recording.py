@@ -5,6 +5,7 @@ benchmarks/recording_cost.py."""
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import subprocess
@@ -289,7 +290,6 @@ def test_view_headless_serves_the_web_viewer_on_loopback(tmp_path: Path) -> None
     Ctrl-C ends the command and the viewer."""
     import os
     import signal
-    import time
     import urllib.request
 
     import psutil
@@ -304,6 +304,7 @@ def test_view_headless_serves_the_web_viewer_on_loopback(tmp_path: Path) -> None
         text=True,
         start_new_session=True,
     )
+    viewers: list[psutil.Process] = []
     try:
         line = proc.stdout.readline() if proc.stdout else ""
         assert "in Rerun's web viewer on 127.0.0.1: open http://127.0.0.1:" in line, (line, proc.stderr and proc.stderr.read())
@@ -317,12 +318,15 @@ def test_view_headless_serves_the_web_viewer_on_loopback(tmp_path: Path) -> None
         _, err = proc.communicate(timeout=30)
         assert proc.returncode == 130, err
         assert "Traceback" not in err and "opened" not in err
-        time.sleep(0.2)
-        assert not [v for v in viewers if v.is_running() and v.status() != psutil.STATUS_ZOMBIE]
+        _, alive = psutil.wait_procs(viewers, timeout=10)  # the viewer ends with the command
+        assert not [v for v in alive if v.status() != psutil.STATUS_ZOMBIE]
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
+        for v in viewers:  # whatever the test's outcome, no viewer outlives it
+            with contextlib.suppress(psutil.NoSuchProcess):
+                v.kill()
 
 
 def test_view_missing_recording_is_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
