@@ -269,14 +269,19 @@ def test_success_returns_host_code_and_reaps_everything(tmp_path: Path, piddir: 
     rl = RigLauncher(run_args(tmp_path / "run"), stdout=out, stderr=err)
     code = run_launcher(rl)
     assert code == 3, err.getvalue()
-    # a host that ends with a fault but wrote no summary: one line naming its log
+    # a host that ends with a fault but wrote no summary: one line naming its log and the summary the
+    # launcher wrote in its place (a summary always)
+    run = tmp_path / "run"
     assert err.getvalue().splitlines() == [
-        f"ilcrig: fault: the host ended the run with exit code 3; its log: {tmp_path / 'run' / 'logs' / 'host.log'}"
+        "ilcrig: fault: the host ended the run with exit code 3 [trial_fault]: host, before the first trial (trial 0 not "
+        f"started); detected by host; torque removed, 0 completed trials kept; its log: {run / 'logs' / 'host.log'}; "
+        f"summary: {run / 'summary.json'}"
     ]
     # four real drives met on both buses of the hub and talk (boot-up, heartbeats); the plant is fake;
-    # the launcher follows the io channel too (the trial and tick of a process's end)
+    # the launcher follows the io channel too (the trial and tick of a process's end) and consumes
+    # every node's heartbeat on the fieldbus (host/rig/liveness.py)
     fb_clients, io_clients, fb_frames = map(int, (piddir / "hub_stats").read_text().split())
-    assert (fb_clients, io_clients) == (4, 5) and fb_frames >= 4
+    assert (fb_clients, io_clients) == (5, 5) and fb_frames >= 4
     hub_pid = int(re.search(r"processes: hub (\d+), ", out.getvalue()).group(1))  # type: ignore[union-attr]
     assert_all_gone(rl, hub_pid)
     assert [c.name for c in rl.children] == ["plant", "drive1", "drive2", "drive3", "drive4", "host"]
@@ -308,7 +313,7 @@ def test_drive_exiting_early_ends_the_run(tmp_path: Path, piddir: Path, roles: d
     assert re.fullmatch(
         r"ilcrig: fault: drive2 \(pid \d+\) exited with code 1 \[process_died\]: drive2, before the first trial "
         r"\(trial 0 not started\); detected by launcher after \d+ ms; torque removed, 0 completed trials kept; "
-        r"its log: .*drive2\.log",
+        r"its log: .*drive2\.log; summary: .*summary\.json",
         lines[0],
     ), lines[0]
     assert [d.name for d in rl.deaths] == ["drive2"]
@@ -342,7 +347,7 @@ def test_crash_is_one_line_naming_the_log(tmp_path: Path, piddir: Path, roles: d
     lines = err.getvalue().splitlines()
     assert len(lines) == 1 and "Traceback" not in err.getvalue()  # no traceback on the terminal
     assert lines[0].startswith("ilcrig: fault: plant (pid ") and "exited with code 1" in lines[0]
-    assert lines[0].endswith(f"its log: {tmp_path / 'logs' / 'plant.log'}")
+    assert lines[0].endswith(f"its log: {tmp_path / 'logs' / 'plant.log'}; summary: {tmp_path / 'summary.json'}")
     log = (tmp_path / "logs" / "plant.log").read_text()
     assert "Traceback" in log and "RuntimeError: fake plant crashed on purpose" in log  # it is in the log
     assert_all_gone(rl)

@@ -7,7 +7,8 @@ and pauses.  After every step, the invariants:
 * periods stepped = SYNCs sent (0x2450:4 of the plant node, within a bound: no stall), no overrun,
   the robot ``ready``;
 * torque only where CiA 402 allows it: after a lockstep SYNC, a joint is free of its brake
-  (0x2450:12) only if its drive is NMT OPERATIONAL and its TPDO says Operation enabled;
+  (0x2450:12) only if its drive is in Operation enabled (its TPDO when OPERATIONAL, its statusword
+  by SDO when PRE-OPERATIONAL: NMT does not switch a power stage off);
 * the TPDO of period k carries period k: after a lockstep SYNC, each drive's TPDO1 position actual is
   the joint count the plant had at the start of that period (0x2451, read before the SYNC).
 
@@ -110,9 +111,17 @@ class RandomMaster(RuleBasedStateMachine):
 
     @initialize()
     def begin(self) -> None:
+        """Every example starts from the same robot (the robot lives for the module): each drive
+        PRE-OPERATIONAL with its power stage off, applied by one SYNC — so what a rule does never
+        depends on the examples before it."""
         self.syncs0 = self.m.u32(RobotSub.SYNCS)
         self.periods0 = self.m.u32(RobotSub.PERIODS)
         self.sent = 0
+        for n, node in self.m.drives.items():
+            node.nmt.state = "PRE-OPERATIONAL"
+            self.m.nmt[n] = "PRE-OPERATIONAL"
+            node.sdo.download(0x6040, 0, struct.pack("<H", 0x00))  # disable voltage (after the NMT command)
+        self._sync()
 
     # ------------------------------------------------------------------ rules
 
@@ -188,9 +197,16 @@ class RandomMaster(RuleBasedStateMachine):
             assert got[n][1] == counts[n], (n, got[n], counts)
         self._wait_stepped()
         brakes = self.m.u32(RobotSub.BRAKES)
-        for n in DRIVES:  # torque only where CiA 402 allows it: a free joint's drive is OPERATIONAL, Operation enabled
-            if not brakes >> (n - 1) & 1:
-                assert n in live and got[n][0] & 0x6F == _OP_ENABLED, (n, brakes, got.get(n), self.m.nmt)
+        for n in DRIVES:  # torque only where CiA 402 allows it: a free joint's drive is in Operation enabled
+            if brakes >> (n - 1) & 1:
+                continue
+            if n in live:  # its TPDO of this period
+                status = got[n][0]
+            elif self.m.nmt[n] == "PRE-OPERATIONAL":  # no PDOs (NMT does not switch a power stage off): by SDO
+                status = struct.unpack("<H", self.m.drives[n].sdo.upload(0x6041, 0))[0]
+            else:
+                continue  # STOPPED: nothing but NMT and heartbeats reach the drive, nothing to read
+            assert status & 0x6F == _OP_ENABLED, (n, brakes, status, self.m.nmt)
 
     @rule(count=st.integers(1, SYNC_CREDITS_MAX))
     def sync_burst(self, count: int) -> None:

@@ -95,12 +95,30 @@ def _native(cmd: list[str], rrd: Path, log: Path) -> str | None:
     return f"the native viewer exited at once (exit code {code}; its output: {log})"
 
 
+#: the viewer's log line that gives the web viewer's URL (read from its output) is at this level
+_URL_LOG_DIRECTIVE = "re_sdk::web_viewer=info"
+
+
+def _web_viewer_env() -> dict[str, str]:
+    """This environment with the viewer's URL line logged whatever ``RUST_LOG`` says (a recording
+    made in this process, or the user, may have set it to ``off``): the directive for that one
+    module is added to the user's."""
+    env = dict(os.environ)
+    env["RUST_LOG"] = ",".join(d for d in (env.get("RUST_LOG", "").strip(), _URL_LOG_DIRECTIVE) if d)
+    return env
+
+
 def _serve_web(cmd: list[str], rrd: Path, log: Path, out: TextIO, err: TextIO) -> int:
     """Serve ``rrd`` in the web viewer on loopback until Ctrl-C / SIGTERM; print its URL."""
     try:
         with open(log, "wb") as fh:
             proc = subprocess.Popen(
-                [*cmd, *web_viewer_args(rrd)], stdin=subprocess.DEVNULL, stdout=fh, stderr=fh, start_new_session=True
+                [*cmd, *web_viewer_args(rrd)],
+                stdin=subprocess.DEVNULL,
+                stdout=fh,
+                stderr=fh,
+                start_new_session=True,
+                env=_web_viewer_env(),
             )
     except OSError as exc:
         err.write(f"ilcrig view: cannot start the web viewer {cmd[0]}: {exc.strerror or exc}\n")

@@ -144,7 +144,8 @@ class RigLauncher(LaunchCore):
 
         opts = self.options
         debug = opts.debug
-        tc = transport_from_name(opts.bus, opts.hub, opts.allow_remote)  # checked in preflight (check_transport)
+        check_transport(opts)  # also in preflight; here for a launcher run without it
+        tc = transport_from_name(opts.bus, opts.hub, opts.allow_remote)
         specs = parse_specs(opts.inject)
         iterations = self._iterations(specs)
         if specs:
