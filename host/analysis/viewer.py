@@ -211,8 +211,12 @@ def view_run(run_dir: str | Path, *, stdout: TextIO | None = None, stderr: TextI
         why = _native(cmd, rrd, logs / "native.log")
         if why is None:
             out.write(f"ilcrig view: opened {rrd} in the Rerun viewer ({' '.join(cmd)})\n")
+            shutil.rmtree(logs, ignore_errors=True)  # the viewer keeps its open log; nothing is left behind
             return EXIT_OK
     else:
         why = "no display ($DISPLAY / $WAYLAND_DISPLAY unset)"
     err.write(f"ilcrig view: {why}; falling back to Rerun's web viewer on {LOOPBACK}\n")
-    return _serve_web(cmd, rrd, logs / "web.log", out, err)
+    code = _serve_web(cmd, rrd, logs / "web.log", out, err)
+    if code != EXIT_ERROR:  # a failure's output stays where its message said
+        shutil.rmtree(logs, ignore_errors=True)
+    return code
