@@ -39,7 +39,6 @@ __all__ = [
     "LaunchError",
     "cpu_s",
     "describe_status",
-    "killpg",
     "node_id_of",
     "spawn",
     "start_hub_process",

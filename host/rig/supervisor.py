@@ -26,8 +26,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from bus.processes import killpg
 from host.rig.interrupts import Interrupts
-from host.rig.processes import Child, Death, cpu_s, describe_status, killpg
+from host.rig.processes import Child, Death, cpu_s, describe_status
 
 logger = logging.getLogger(__name__)
 
