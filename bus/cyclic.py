@@ -55,10 +55,21 @@ SYNC_COB_ID: Final[int] = SYNC_COB_ID_DEFAULT
 SYNC_BYTES: Final[int] = 0
 #: the drive mode of the pdo transport
 PDO_MODE: Final[ModeOfOperation] = ModeOfOperation.CSP
-#: SYNCs a drive keeps as credits for io ticks not yet run (firmware_model.cyclic_pdo), and SYNCs the
-#: robot keeps for its periods (one in progress, one waiting; plant.plant_node_robot): with the same
-#: bound on both sides no drive waits for a SYNC the plant has already used
+#: SYNCs a drive keeps as credits for io ticks not yet run (firmware_model.cyclic_pdo): the next SYNC
+#: of a lockstep trial may come before the io tick of the last one.  A drive of a SYNC-stepped robot
+#: never has more than one: its frames after a SYNC wait until that SYNC's io tick ran
+#: (:data:`SYNC_BACKLOG_MAX`)
 SYNC_CREDITS_MAX: Final[int] = 2
+#: a SYNC-stepped robot (``ilcrig robot``, docs/robot.md "Time"): the SYNCs that may wait behind the
+#: period in progress.  A master faster than the robot is served late: every SYNC is one period, taken
+#: in order, the drives' fieldbus frames waiting behind the SYNC whose period is in progress
+#: (firmware_model.drive_node); the SYNC that finds this many waiting is a SYNC overrun, a robot fault
+#: (EMCY 0x8110 of the plant node) -- and is served all the same, late, like every SYNC before it
+SYNC_BACKLOG_MAX: Final[int] = 1024
+#: a drive of a SYNC-stepped robot: the fieldbus frames (SYNCs aside) that may wait behind the SYNC
+#: whose period is in progress; one more is lost as in a CAN controller's full receive queue (EMCY
+#: 0x8110 CAN overrun of the drive).  SYNCs are never lost: a drive steps every SYNC the robot steps
+FRAME_BACKLOG_MAX: Final[int] = 16 * SYNC_BACKLOG_MAX
 #: PDO number (1-based) used for the cyclic set-points and actuals
 RPDO_NUMBER: Final[int] = 1
 TPDO_NUMBER: Final[int] = 1

@@ -11,7 +11,9 @@ CST (:mod:`firmware_model.modes`) --, profile position and homing
 (:mod:`firmware_model.playback`), the cyclic PDO exchange, its timers and SYNC pacing
 (:mod:`firmware_model.cyclic_pdo`), the object-dictionary hooks (:mod:`firmware_model.od_hooks`),
 the drive as their composition with its NMT state and its clock (:mod:`firmware_model.drive`, class
-``Drive``) and the drive process on the bus (:mod:`firmware_model.drive_node`, ``ilcrig drive``).
+``Drive``), the drive process on the bus (:mod:`firmware_model.drive_node`, ``ilcrig drive``) and
+its fieldbus frames waiting in order for the period of the SYNC-stepped robot in progress
+(:mod:`firmware_model.sync_backlog`).
 
 May import: ``bus`` and ``bus.cia301`` (the contract it shares with the host).  Never ``host`` or
 ``plant``: the drive knows the robot only through its encoder and its torque command.

@@ -10,10 +10,12 @@ OPERATIONAL and start afresh when the drive enters it.
 * a SYNC (:meth:`CyclicPdo.on_sync`, with its counter byte if it has one) grants one io tick --
   in PRE-OPERATIONAL too, where CiA 301 consumes SYNC as well, so a drive started between a SYNC
   and its io tick runs that tick at once; the credits are the SYNCs whose io tick has not run yet,
-  at most :data:`bus.cyclic.SYNC_CREDITS_MAX` (a SYNC-stepped plant, ``ilcrig robot``, may have
-  the next SYNC queued behind the period in progress: no drive waits for a SYNC the plant used).
-  A drive of a SYNC-stepped plant (:attr:`CyclicPdo.sync_stepped`) counts every SYNC, in every
-  NMT state and over NMT resets: the plant's periods go on whatever the drive's state.
+  at most :data:`bus.cyclic.SYNC_CREDITS_MAX` (a lockstep trial's next SYNC may come before the
+  io tick of the last one).  A drive of a SYNC-stepped plant (:attr:`CyclicPdo.sync_stepped`,
+  ``ilcrig robot``) counts every SYNC, in every NMT state and over NMT resets: the plant's periods
+  go on whatever the drive's state; its node runtime hands it the next SYNC only after the io tick
+  of the last one (:class:`firmware_model.sync_backlog.SyncBacklog`: a faster master is served
+  late), so it has one credit at most, and the RPDOs of SYNC k are those that came before it.
   In OPERATIONAL it also writes the buffered synchronous RPDOs to their objects (e.g. 0x607A,
   0x6071, 0x60B2).  A SYNC whose length does not fit 0x1019 (no counter byte when 0x1019 > 0, or
   one when 0x1019 = 0) is reported as EMCY 0x8240 once per change and is a SYNC all the same.

@@ -35,6 +35,9 @@ plant node (:mod:`plant.plant_node`); :class:`DriveNode` adds the io side:
   serves the master between cycles (heartbeat producer and consumer, SDO timeout, EMCY inhibit
   time, the SYNC watchdog) stays on ``clock``, so a master that pauses its SYNCs still gets
   heartbeats and a master that stops them is noticed.
+* a master faster than the robot is served late: in lockstep, the fieldbus frames after a SYNC wait
+  in order until its io tick ran (:class:`firmware_model.sync_backlog.SyncBacklog`), so period k
+  takes the frames that came before SYNC k and its TPDOs carry it (docs/robot.md "Time").
 
 The drive process (``ilcrig drive``, parsed by :mod:`host.cli.drive`) is :func:`run_drive` with a
 typed :class:`DriveOptions`; :func:`run_node` is its core (also for tests).
@@ -51,7 +54,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import can
 
-from bus import io_frames
+from bus import io_frames, units
 from bus.cia301.slave import (
     PRODUCER_HEARTBEAT_INDEX,
     SlaveApp,
@@ -62,6 +65,7 @@ from bus.cia301.slave import (
 )
 from bus.exit_codes import EXIT_FAULT, EXIT_OK
 from bus.lockstep_process import freeze_heap
+from firmware_model.sync_backlog import SyncBacklog
 
 logger = logging.getLogger(__name__)
 
@@ -176,8 +180,14 @@ class DriveNode(SlaveNode):
     :param node_id: CANopen node id (default ``drive.node_id``); joint index = node id − 1.
     :param clock: time source [s] of the node and the drive (monotonic by default).
     :param lockstep: a drive of a SYNC-stepped plant: the control cycle's timers on the drive's
-        lockstep time, the rest on ``clock`` (see the module docstring).
+        lockstep time, the rest on ``clock``, the frames after a SYNC waiting for its io tick (see
+        the module docstring).
+    :param hold_timeout_s: lockstep: the longest wait for a SYNC's io tick while frames wait behind
+        it, s (default :attr:`HOLD_TIMEOUT_S`, × ``ILCRIG_TIMEOUT_SCALE``).
     """
+
+    #: lockstep: the longest wait for a SYNC's io tick while frames wait behind it, s
+    HOLD_TIMEOUT_S: float = 10.0
 
     def __init__(
         self,
@@ -188,6 +198,7 @@ class DriveNode(SlaveNode):
         node_id: int | None = None,
         clock: Callable[[], float] = time.monotonic,
         lockstep: bool = False,
+        hold_timeout_s: float | None = None,
     ) -> None:
         cyclic = drive if isinstance(drive, CyclicDriveLike) else None
         if cyclic is not None:
@@ -210,6 +221,10 @@ class DriveNode(SlaveNode):
         self.lockstep = lockstep
         self.syncs_in = 0
         self.tpdos_out = 0
+        hold_s = (self.HOLD_TIMEOUT_S if hold_timeout_s is None else hold_timeout_s) * units.timeout_scale()
+        sync_id = cyclic.sync_cob_id if cyclic is not None else lambda: -1
+        #: lockstep: the fieldbus frames waiting for the period in progress
+        self.backlog = SyncBacklog(self.node_id, super()._on_fieldbus, sync_id, self.on_frames_lost, hold_s)
         io.set_filters(self.io_filters())
 
     # ------------------------------------------------------------------ io
@@ -245,6 +260,8 @@ class DriveNode(SlaveNode):
                 self._next_full_tick = 0
             if self._cyclic is not None:
                 self._cyclic.plant_trial = control.command == io_frames.IoControlCommand.TRIAL_START
+                if self._cyclic.plant_trial:
+                    self.backlog.no_ticks()
             self._held = None
         # anything else (our own torque echo, other joints' frames) is not for us
 
@@ -258,6 +275,12 @@ class DriveNode(SlaveNode):
         self.io.send(io_frames.encode_torque(self.joint, wire, torque, self._torque_status()))
         self.frames_out += 1
         self._send_tpdos()
+        self.backlog.tick_ran()
+
+    def _on_fieldbus(self, msg: can.Message) -> None:
+        """Lockstep: a frame that comes while a SYNC waits for its io tick waits too, in order."""
+        if not self.backlog.offer(msg):
+            super()._on_fieldbus(msg)
 
     def _send_tpdos(self) -> None:
         """The TPDOs the drive has due, on the fieldbus."""
@@ -285,6 +308,8 @@ class DriveNode(SlaveNode):
                 self._send_tpdos()
         elif cob == drive.sync_cob_id():
             self.syncs_in += 1
+            if self.lockstep and not drive.plant_trial:
+                self.backlog.sync_handled(self._clock())
             drive.on_sync(int(msg.data[0]) if msg.dlc >= 1 else None)
             self._send_tpdos()
             if self._held is not None and drive.tick_ready:
@@ -300,6 +325,7 @@ class DriveNode(SlaveNode):
         if drive is not None:
             drive.service(None if self.lockstep else now)  # lockstep: the control cycle's timers at the drive's time
             self._send_tpdos()
+        self.backlog.expire(now)
 
     def next_deadline(self) -> float | None:
         """The drive's next timer on the node's clock (lockstep: the SYNC watchdog alone; the
@@ -307,7 +333,10 @@ class DriveNode(SlaveNode):
         drive = self._cyclic
         if drive is None:
             return None
-        return drive.watch_deadline() if self.lockstep else drive.next_deadline()
+        if not self.lockstep:
+            return drive.next_deadline()
+        times = [t for t in (drive.watch_deadline(), self.backlog.deadline()) if t is not None]
+        return min(times) if times else None
 
     def _torque_status(self) -> int:
         """Torque-frame status bits from ``drive.torque_enabled`` and the CiA 402 statusword

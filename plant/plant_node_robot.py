@@ -15,16 +15,19 @@ a python-canopen script:
    screw's travel, the mechanism's limits) and the period goes into the trace
    (:class:`plant.trace.TraceWriter`).
 
-A SYNC that comes while a period is still being computed waits (one at most: the next period
-starts as soon as this one is done); one more is an overrun, counted and dropped — SYNC-stepped,
-never silently: it is a robot fault (``SYNC_OVERRUN``, EMCY 0x8110), as the periods and the master's
-SYNCs part there; in real time a counted miss.  A master that sends its next SYNC only after its
-TPDOs came back never overruns, and the same master script gives the same trace.  Every kernel a
-period may use is compiled before the node boots (:func:`warm_up_robot`: otherwise the first period
-with one drive enabled compiled the locked-joint dynamics, seconds on a loaded machine).  The
-drives keep as many SYNC credits (:data:`bus.cyclic.SYNC_CREDITS_MAX`, one in progress + one
-waiting), and handle a SYNC before the io frame it caused (:class:`bus.cia301.slave.SlaveNode`),
-so no drive ever waits for a SYNC the robot has used.
+A master faster than the robot is served late, never dropped: a SYNC that comes while a period is
+still being computed waits, in order, and its period starts as soon as the ones before it are done
+(the drives' frames wait behind it likewise, :class:`firmware_model.drive_node.DriveNode`, so each
+period takes the RPDOs that came before its SYNC and its TPDOs carry it).  Up to
+:data:`bus.cyclic.SYNC_BACKLOG_MAX` SYNCs wait; the one that finds that many waiting is a SYNC
+overrun (0x2450:8) — SYNC-stepped, a robot fault (``SYNC_OVERRUN``, EMCY 0x8110, once per overrun
+episode: the robot torque-free until the fault reset), in real time a counted miss — and is served
+late all the same: periods stepped = SYNCs seen, whatever the master's speed and the machine's
+load, and the same master sequence gives the same trace.  Every kernel a period may use is compiled
+before the node boots (:func:`warm_up_robot`: otherwise the first period with one drive enabled
+compiled the locked-joint dynamics, seconds on a loaded machine).  The drives handle a SYNC before
+the io frame it caused (:class:`bus.cia301.slave.SlaveNode`), so no drive waits for a SYNC the robot
+has used.
 
 Real time (mode 2): periods are also paced to the wall clock (the schedule and its figures:
 :class:`plant.plant_node_robot_pacing.RobotPacing`).
@@ -54,7 +57,7 @@ import numpy as np
 from bus import io_frames
 from bus.cia301.emcy import EmcyCode
 from bus.cia301.object_store import ObjectStore
-from bus.cyclic import SYNC_CREDITS_MAX
+from bus.cyclic import SYNC_BACKLOG_MAX
 from bus.fastmsg import new_message
 from bus.plant_objects import (
     ROBOT_FAULT_EMCY,
@@ -98,8 +101,6 @@ _ALL_HELD = (1 << _N) - 1
 _HELD_MASKS = [np.array([bool(bits >> j & 1) for j in range(_N)]) for bits in range(1 << _N)]
 
 _IDLE, _HELD, _SENT = 0, 1, 2
-#: SYNCs kept waiting while a period is computed: one in progress + these = the drives' credits
-_WAITING_MAX = SYNC_CREDITS_MAX - 1
 
 
 def warm_up_robot(scratch: Plant, limits: MechanicalLimits) -> float:
@@ -180,6 +181,8 @@ class RobotLoop:
         self.periods = 0
         self.syncs = 0
         self.overruns = 0
+        self.backlog_max = 0  # the most SYNCs that waited behind a period in progress
+        self._overrunning = False  # an overrun episode: more than SYNC_BACKLOG_MAX waited (reported once)
         self.timeouts = 0
         self.fault = RobotFault.NONE
         self.fault_joint = 0
@@ -261,26 +264,34 @@ class RobotLoop:
     # ------------------------------------------------------------------ loop hooks
 
     def on_sync(self, now: float) -> None:
-        """A SYNC frame: a period starts (or waits for the one in progress).  One more than the
-        robot keeps waiting is an overrun: counted and dropped; SYNC-stepped, also a robot fault
-        (never a silent drop: the master's SYNCs and the robot's periods part here)."""
+        """A SYNC frame: a period starts, or waits in order behind the one in progress (served
+        late, never dropped).  The SYNC that finds :data:`bus.cyclic.SYNC_BACKLOG_MAX` waiting is
+        an overrun: counted, and SYNC-stepped a robot fault (once per episode) — the master is
+        told it outruns the robot — and it waits all the same."""
         self.syncs += 1
         if not self.on or self.lockstep.busy:
             return
         if self._state == _IDLE:
             self._start(now, now)
-        elif len(self._pending) < _WAITING_MAX:
-            self._pending.append(now)
-        else:
+            return
+        pending = self._pending
+        waiting = len(pending)
+        if waiting >= SYNC_BACKLOG_MAX:
             self.overruns += 1
-            logger.debug("node %d: SYNC overrun in period %d", self.node_id, self.periods)
-            if self.pacing is None and self.fault != RobotFault.SYNC_OVERRUN:
-                self._fail(
-                    RobotFault.SYNC_OVERRUN,
-                    0,
-                    f"SYNC {self.syncs} dropped in period {self.periods}: {SYNC_CREDITS_MAX} SYNCs already wait "
-                    f"for the robot (one period in progress, {_WAITING_MAX} waiting); the master is faster than the robot",
-                )
+            if not self._overrunning:
+                self._overrunning = True
+                logger.warning("node %d: SYNC overrun in period %d: %d SYNCs wait", self.node_id, self.periods, waiting)
+                if self.pacing is None:
+                    self._fail(
+                        RobotFault.SYNC_OVERRUN,
+                        0,
+                        f"SYNC {self.syncs} came in period {self.periods} with {waiting} SYNCs waiting "
+                        f"(bus.cyclic.SYNC_BACKLOG_MAX): the master is faster than the robot; every SYNC is "
+                        "served late, in order, the robot torque-free until the fault reset",
+                    )
+        pending.append(now)
+        if waiting >= self.backlog_max:
+            self.backlog_max = waiting + 1
 
     def interrupt(self) -> None:
         """A trial begins: the period in progress is dropped (its frames are stale for the trial)."""
@@ -397,8 +408,11 @@ class RobotLoop:
         self._next(now)
 
     def _next(self, now: float) -> None:
-        if self._pending:
-            self._start(self._pending.popleft(), now)
+        pending = self._pending
+        if pending:
+            self._start(pending.popleft(), now)
+            if self._overrunning and len(pending) < SYNC_BACKLOG_MAX // 2:
+                self._overrunning = False  # caught up: a new overrun is a new episode
 
     def _drop_period(self) -> None:
         self._state = _IDLE
@@ -469,6 +483,8 @@ class RobotLoop:
             "periods": self.periods,
             "syncs": self.syncs,
             "sync_overruns": self.overruns,
+            "sync_backlog_max": self.backlog_max,
+            "syncs_waiting": len(self._pending),
             "period_timeouts": self.timeouts,
             "faults_total": self.faults_total,
             "faults": list(self.faults),
