@@ -41,7 +41,7 @@ index   sub  name                      type     meaning / unit
 0x2450  5    SYNCs seen                U32      ro, SYNC frames (COB-ID 0x080) received
 0x2450  6    late SYNCs                U32      ro, real time: SYNCs after their period's window
 0x2450  7    missing SYNCs             U32      ro, real time: whole periods without a SYNC
-0x2450  8    SYNC overruns             U32      ro, SYNCs that came with one still waiting (dropped)
+0x2450  8    SYNC overruns             U32      ro, SYNCs that came with SYNC_BACKLOG_MAX waiting (served late)
 0x2450  9    robot fault code          U8       ro: :class:`RobotFault`
 0x2450  10   robot fault joint         U8       ro: joint 1..4 (or drive node) involved, 0 none
 0x2450  11   robot fault period        U32      ro: period at which the fault happened
@@ -204,6 +204,17 @@ class RobotMode(IntEnum):
     REALTIME = 2  #: one control period per SYNC, none before its time t0 + n·Ts on the wall clock
 
 
+#: the values a plant node without the robot mode (``ilcrig plant``, ``ilcrig run``) boots with where
+#: they differ from the EDS: bus/plant.eds gives 0x2450–0x2453 as ``ilcrig robot`` boots them
+#: (SYNC-stepped, the robot at its home pose, every brake closed; ``--realtime`` has 0x2450:1 = 2)
+ROBOT_OFF_BOOT_VALUES: Final[dict[tuple[int, int], int]] = {
+    (int(PlantObj.ROBOT), int(RobotSub.MODE)): int(RobotMode.OFF),
+    (int(PlantObj.ROBOT), int(RobotSub.STATE)): 0,
+    **{(int(PlantObj.JOINT_POSITION), j): 0 for j in range(1, 5)},
+    (int(PlantObj.TCP_POSE), 3): 0,
+}
+
+
 class RobotCommand(IntEnum):
     FAULT_RESET = 1
 
@@ -224,7 +235,7 @@ class RobotFault(IntEnum):
     PERIOD_TIMEOUT = 4  #: a drive did not answer a period's encoder frame in time
     TICK_SEQUENCE = 5  #: a torque frame was missing, duplicated, stale or early
     BAD_FRAME = 6  #: a malformed torque frame, or a bus error frame on io
-    SYNC_OVERRUN = 7  #: SYNC-stepped: more SYNCs waiting than the robot and its drives keep (a SYNC dropped)
+    SYNC_OVERRUN = 7  #: SYNC-stepped: more than bus.cyclic.SYNC_BACKLOG_MAX SYNCs waiting (served late all the same)
 
 
 #: EMCY error code and error register per robot fault (0xFF1x: manufacturer specific, mechanical)

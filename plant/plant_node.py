@@ -52,8 +52,10 @@ from bus.plant_objects import (
     PLANT_EDS_PATH,
     DisturbanceKind,
     PlantFault,
+    PlantObj,
     PlantStatus,
     RobotMode,
+    RobotSub,
 )
 from bus.timer_slack import fine_timer_slack
 from bus.transports.config import TransportConfig
@@ -168,6 +170,8 @@ class PlantNode(SlaveNode):
             trace_path=trace_path,
         )
         self._robot_mode = RobotMode(robot_mode)
+        # the EDS gives 0x2450:1 as ``ilcrig robot`` boots; the robot comes on at start() (if at all)
+        self.store.values[(PlantObj.ROBOT, RobotSub.MODE)] = int(RobotMode.OFF)
         install_hooks(self.store, self.lockstep, self.trial_status, self.robot)
 
     # ------------------------------------------------------------------ slave app interface
@@ -193,6 +197,8 @@ class PlantNode(SlaveNode):
             if mode != RobotMode.OFF:  # the robot stays on where it stands; a reset clears its fault
                 self.robot.set_mode(mode)
                 self.robot.fault_reset()
+            else:  # and off stays off (the EDS default is ``ilcrig robot``'s)
+                self.store.values[(PlantObj.ROBOT, RobotSub.MODE)] = int(RobotMode.OFF)
         if cmd in (NmtCommand.RESET_NODE, NmtCommand.RESET_COMMUNICATION):
             self.store.reset(0x1000, 0x1FFF)
         self._nmt_state = next_state(self._nmt_state, cmd)
