@@ -1,4 +1,4 @@
-"""The EDS DefaultValues are what a master reads after boot (issue 35): every object of bus/plant.eds
+"""The EDS DefaultValues are what a master reads after boot: every object of bus/plant.eds
 and bus/drive.eds with a DefaultValue, read as python canopen's ``import_od`` reads the EDS, is
 uploaded over SDO from the booted robot (``ilcrig robot``'s nodes in process:
 :class:`robot_util.VirtualRobot`, the plant in SYNC-stepped robot mode, drives of a SYNC-stepped
