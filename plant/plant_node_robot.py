@@ -15,19 +15,12 @@ a python-canopen script:
    screw's travel, the mechanism's limits) and the period goes into the trace
    (:class:`plant.trace.TraceWriter`).
 
-A master faster than the robot is served late, never dropped: a SYNC that comes while a period is
-still being computed waits, in order, and its period starts as soon as the ones before it are done
-(the drives' frames wait behind it likewise, :class:`firmware_model.drive_node.DriveNode`, so each
-period takes the RPDOs that came before its SYNC and its TPDOs carry it).  Up to
-:data:`bus.cyclic.SYNC_BACKLOG_MAX` SYNCs wait; the one that finds that many waiting is a SYNC
-overrun (0x2450:8) — SYNC-stepped, a robot fault (``SYNC_OVERRUN``, EMCY 0x8110, once per overrun
-episode: the robot torque-free until the fault reset), in real time a counted miss — and is served
-late all the same: periods stepped = SYNCs seen, whatever the master's speed and the machine's
-load, and the same master sequence gives the same trace.  Every kernel a period may use is compiled
-before the node boots (:func:`warm_up_robot`: otherwise the first period with one drive enabled
-compiled the locked-joint dynamics, seconds on a loaded machine).  The drives handle a SYNC before
-the io frame it caused (:class:`bus.cia301.slave.SlaveNode`), so no drive waits for a SYNC the robot
-has used.
+A master faster than the robot is served late, never dropped: a SYNC that comes during a period
+waits in order (the drives' frames wait behind it likewise, :mod:`firmware_model.sync_backlog`).
+The one that finds :data:`bus.cyclic.SYNC_BACKLOG_MAX` waiting is a SYNC overrun (0x2450:8; SYNC-
+stepped a robot fault, EMCY 0x8110, once per episode; in real time a counted miss), served late all
+the same: periods stepped = SYNCs seen, the same master sequence the same trace.  Every kernel a
+period may use is compiled before the node boots (:func:`warm_up_robot`).
 
 Real time (mode 2): periods are also paced to the wall clock (the schedule and its figures:
 :class:`plant.plant_node_robot_pacing.RobotPacing`).
@@ -264,10 +257,8 @@ class RobotLoop:
     # ------------------------------------------------------------------ loop hooks
 
     def on_sync(self, now: float) -> None:
-        """A SYNC frame: a period starts, or waits in order behind the one in progress (served
-        late, never dropped).  The SYNC that finds :data:`bus.cyclic.SYNC_BACKLOG_MAX` waiting is
-        an overrun: counted, and SYNC-stepped a robot fault (once per episode) — the master is
-        told it outruns the robot — and it waits all the same."""
+        """A SYNC frame: a period starts, or waits in order behind the one in progress (past
+        :data:`bus.cyclic.SYNC_BACKLOG_MAX` waiting: an overrun, SYNC-stepped a robot fault)."""
         self.syncs += 1
         if not self.on or self.lockstep.busy:
             return
@@ -282,13 +273,9 @@ class RobotLoop:
                 self._overrunning = True
                 logger.warning("node %d: SYNC overrun in period %d: %d SYNCs wait", self.node_id, self.periods, waiting)
                 if self.pacing is None:
-                    self._fail(
-                        RobotFault.SYNC_OVERRUN,
-                        0,
-                        f"SYNC {self.syncs} came in period {self.periods} with {waiting} SYNCs waiting "
-                        f"(bus.cyclic.SYNC_BACKLOG_MAX): the master is faster than the robot; every SYNC is "
-                        "served late, in order, the robot torque-free until the fault reset",
-                    )
+                    text = f"SYNC {self.syncs} came in period {self.periods} with {waiting} SYNCs waiting (bus.cyclic."
+                    text += "SYNC_BACKLOG_MAX): the master outruns the robot; every SYNC served late, torque-free until reset"
+                    self._fail(RobotFault.SYNC_OVERRUN, 0, text)
         pending.append(now)
         if waiting >= self.backlog_max:
             self.backlog_max = waiting + 1
