@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from bus.errors import InputError
-from host.cli.options import add_bus_args, add_experiment_args, add_rig_args, transport_of
+from host.cli.options import add_bus_args, add_experiment_args, add_rig_args, experiment_options, transport_of
 from host.experiment.console import experiment_config
 
 if TYPE_CHECKING:
@@ -79,4 +79,4 @@ def cmd_host(args: argparse.Namespace) -> int:
     """``ilcrig host``: :func:`host.rig.host_role.run_host_role` with typed options."""
     from host.rig.host_role import run_host_role
 
-    return run_host_role(host_options(args), experiment_config(args), transport_of(args))
+    return run_host_role(host_options(args), experiment_config(experiment_options(args)), transport_of(args))

@@ -8,7 +8,8 @@ This module owns the experiment options' parser (:func:`add_experiment_args`, bu
 options that do not change the experiment (:func:`add_rig_args`: the real-time options,
 ``--io-bitrate``, ``--view``, ``--bus-time``), ``--view`` (:func:`add_view_arg`), the option value
 types (:func:`rt_priority`, :func:`bitrate`), what every node role does around its loop
-(:func:`role_logging`, :func:`bus_errors`).
+(:func:`role_logging`, :func:`bus_errors`), and the typed options the parsed groups become
+(:func:`experiment_options`, :func:`rig_options`: nothing below the command line gets a Namespace).
 
 May import: what ``host.cli`` may (it is part of it); kept import-light: every role parses the
 command line.
@@ -21,9 +22,9 @@ import contextlib
 import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
-from host.experiment.console import EXPERIMENT_OPTIONS
+from host.experiment.console import EXPERIMENT_OPTIONS, ExperimentOptions
 from host.rig.realtime import DEFAULT_RT_PRIORITY
 
 if TYPE_CHECKING:
@@ -40,6 +41,8 @@ __all__ = [
     "bitrate",
     "bus_errors",
     "bus_options",
+    "experiment_options",
+    "rig_options",
     "role_logging",
     "rt_priority",
     "transport_of",
@@ -203,3 +206,24 @@ def role_logging() -> None:
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     for name in ("bus", "firmware_model", "plant"):
         logging.getLogger(name).setLevel(min(logging.INFO, root.level))
+
+
+def experiment_options(args: argparse.Namespace) -> ExperimentOptions:
+    """The typed experiment options of a command parsed with :func:`add_experiment_args`."""
+    return ExperimentOptions.from_values(vars(args))
+
+
+def rig_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The fields of :class:`host.rig.options.RigOptions` (what both launchers take) of a parsed
+    ``run`` or ``robot`` command line."""
+    return {
+        "bus": args.bus,
+        "hub": args.hub,
+        "out": None if args.out is None else str(args.out),
+        "realtime": bool(args.realtime),
+        "rt_priority": args.rt_priority,
+        "no_idle_poll": bool(args.no_idle_poll),
+        "allow_remote": bool(args.allow_remote),
+        "view": bool(args.view),
+        "debug": bool(args.debug),
+    }

@@ -1,7 +1,7 @@
 """``ilcrig run``: an experiment on the distributed rig (hub, plant, four drives, host as processes).
 
-This module owns the ``run`` subcommand's options (experiment, bus, rig, ``--inject``) and
-:func:`cmd_run`, which hands the parsed options to the launcher
+This module owns the ``run`` subcommand's options (experiment, bus, rig, ``--inject``), their typed
+form (:func:`run_options`) and :func:`cmd_run`, which hands them to the launcher
 (:func:`host.rig.launcher.launch_rig`: preflight, start, watch, clean up).
 
 May import: what ``host.cli`` may.
@@ -10,11 +10,14 @@ May import: what ``host.cli`` may.
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from host.cli.options import add_bus_args, add_experiment_args, add_rig_args
+from host.cli.options import add_bus_args, add_experiment_args, add_rig_args, experiment_options, rig_options
 
-__all__ = ["add_parser", "cmd_run"]
+if TYPE_CHECKING:
+    from host.rig.options import RunOptions
+
+__all__ = ["add_parser", "cmd_run", "run_options"]
 
 
 def add_parser(sub: Any) -> None:
@@ -35,9 +38,21 @@ def add_parser(sub: Any) -> None:
     rp.set_defaults(func=cmd_run)
 
 
+def run_options(args: argparse.Namespace) -> RunOptions:
+    """The typed options of a parsed ``ilcrig run`` command line."""
+    from host.rig.options import RunOptions
+
+    return RunOptions(
+        **rig_options(args),
+        inject=tuple(args.inject or ()),
+        bus_time=bool(args.bus_time),
+        io_bitrate=args.io_bitrate,
+        experiment=experiment_options(args),
+    )
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """``ilcrig run``: the launcher validates everything (preflight) before anything starts."""
     from host.rig.launcher import launch_rig
-    from host.rig.options import RunOptions
 
-    return launch_rig(RunOptions.from_args(args))
+    return launch_rig(run_options(args))
