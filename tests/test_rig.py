@@ -289,13 +289,15 @@ def test_drive_killed_and_restarted_between_trials_is_set_up_again(tmp_path: Pat
     """Heartbeat loss + boot-up of drive 2 between trials: the host brings it up again,
     configures it and the next trial runs; the traces equal a run without the restart."""
 
-    def role(*args: str) -> subprocess.Popen:
+    def role(*args: str, stdout: int = subprocess.DEVNULL, stderr: int | None = subprocess.DEVNULL) -> subprocess.Popen:
+        """``ilcrig ROLE ARGS`` on the test's hub (output unbuffered: the host's rows as they come)."""
         return subprocess.Popen(
-            [sys.executable, "-m", "host.cli", *args, "--bus", "hub", "--hub", hub.address],
+            [sys.executable, "-u", "-m", "host.cli", *args, "--bus", "hub", "--hub", hub.address],
             start_new_session=True,
             cwd=REPO,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
+            stdout=stdout,
+            stderr=stderr,
+            text=True,
         )
 
     procs: list[subprocess.Popen] = []
@@ -304,33 +306,8 @@ def test_drive_killed_and_restarted_between_trials_is_set_up_again(tmp_path: Pat
             drives = {n: role("drive", "--node", str(n)) for n in (1, 2, 3, 4)}
             procs += [*drives.values(), role("plant")]
             out = tmp_path / "rig"
-            host = subprocess.Popen(
-                [
-                    sys.executable,
-                    "-u",
-                    "-m",
-                    "host.cli",
-                    "host",
-                    "--iterations",
-                    "3",
-                    "--cycle",
-                    "0.15",
-                    "--pause",
-                    "4",
-                    "--recover",
-                    "60",
-                    "--bus",
-                    "hub",
-                    "--hub",
-                    hub.address,
-                    "--out",
-                    str(out),
-                ],
-                start_new_session=True,
-                cwd=REPO,
-                stdout=subprocess.PIPE,
-                text=True,
-            )
+            host_args = ("--iterations", "3", "--cycle", "0.15", "--pause", "4", "--recover", "60", "--out", str(out))
+            host = role("host", *host_args, stdout=subprocess.PIPE, stderr=None)
             procs.append(host)
             lines = []
             for line in host.stdout:  # type: ignore[union-attr]
