@@ -1,5 +1,6 @@
 """Running ``ilcrig`` in tests: in-process (the exit code and what it printed) and as a process in
-a session of its own (:func:`run_cli_process`: it and every process it started gone on return);
+a session of its own (:func:`ilcrig_argv`, :func:`run_cli_process`: it and every process it started
+gone on return);
 any command started in a session of its own (:func:`start_in_session`), or run there, its group
 killed on a hang (:func:`run_in_session`); a process
 asked to stop, killed if it does not (:func:`stop_process`); ``ilcrig sim`` signalled at a row of its
@@ -34,6 +35,11 @@ def run_cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, s
 ROOT = Path(__file__).resolve().parent.parent
 
 
+def ilcrig_argv(*args: str) -> list[str]:
+    """The command line of ``ilcrig ARGS`` as a process of this interpreter (``python -m host.cli``)."""
+    return [sys.executable, "-m", "host.cli", *args]
+
+
 def start_in_session(cmd: list[str], cwd: Path = ROOT, env: Mapping[str, str] | None = None) -> subprocess.Popen[str]:
     """``cmd`` started in a session of its own (its whole group can be killed), from ``cwd``, its
     stdout and stderr piped as text."""
@@ -44,7 +50,7 @@ def start_in_session(cmd: list[str], cwd: Path = ROOT, env: Mapping[str, str] | 
 def run_cli_process(args: list[str], guard_s: float) -> subprocess.CompletedProcess[str]:
     """``ilcrig ARGS`` in its own session, from the project folder; returns once it and every
     process it started ended (killed after ``guard_s``, a guard against a hang)."""
-    proc = start_in_session([sys.executable, "-m", "host.cli", *args])
+    proc = start_in_session(ilcrig_argv(*args))
     try:
         out, err = proc.communicate(timeout=guard_s)
     finally:
