@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 from typing import TYPE_CHECKING, Any
 
-from host.cli.options import add_bus_args, add_realtime_args, add_view_arg, rig_options
+from host.cli.options import add_bus_args, add_realtime_args, add_view_arg, options_of
 
 if TYPE_CHECKING:
     from host.rig.options import RobotOptions
@@ -45,7 +45,7 @@ def robot_options(args: argparse.Namespace) -> RobotOptions:
     """The typed options of a parsed ``ilcrig robot`` command line."""
     from host.rig.options import RobotOptions
 
-    return RobotOptions(**rig_options(args), param_dir=None if args.param_dir is None else str(args.param_dir))
+    return options_of(RobotOptions, args)
 
 
 def cmd_robot(args: argparse.Namespace) -> int:

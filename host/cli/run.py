@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 from typing import TYPE_CHECKING, Any
 
-from host.cli.options import add_bus_args, add_experiment_args, add_rig_args, experiment_options, rig_options
+from host.cli.options import add_rig_experiment_args, experiment_options, options_of
 
 if TYPE_CHECKING:
     from host.rig.options import RunOptions
@@ -23,9 +23,7 @@ __all__ = ["add_parser", "cmd_run", "run_options"]
 def add_parser(sub: Any) -> None:
     """``run`` on the subcommands ``sub``."""
     rp = sub.add_parser("run", help="run an experiment on the distributed rig (6 processes over CAN)")
-    add_experiment_args(rp)
-    add_bus_args(rp)
-    add_rig_args(rp)
+    add_rig_experiment_args(rp)
     rp.add_argument(
         "--inject",
         action="append",
@@ -42,13 +40,7 @@ def run_options(args: argparse.Namespace) -> RunOptions:
     """The typed options of a parsed ``ilcrig run`` command line."""
     from host.rig.options import RunOptions
 
-    return RunOptions(
-        **rig_options(args),
-        inject=tuple(args.inject or ()),
-        bus_time=bool(args.bus_time),
-        io_bitrate=args.io_bitrate,
-        experiment=experiment_options(args),
-    )
+    return options_of(RunOptions, args, inject=tuple(args.inject or ()), experiment=experiment_options(args))
 
 
 def cmd_run(args: argparse.Namespace) -> int:

@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 from bus.errors import InputError
 from bus.exit_codes import EXIT_CLUSTER_LOST, EXIT_INTERRUPTED
+from host.cli.options import options_of
 
 if TYPE_CHECKING:  # the handlers import the studies when they run: building the parser stays cheap
     from host.studies.engine import Engine, SweepOutcome
@@ -173,15 +174,7 @@ def tune_main(args: argparse.Namespace) -> int:
     engine = engine_of_args(args)
     if spec.vary:
         raise InputError("ilcrig tune takes no --vary / [vary]: the tuned keys are --param / [tune]")
-    overrides = TuneOverrides(
-        params=tuple(args.param or ()),
-        budget=args.budget,
-        settle_weight=args.settle_weight,
-        plants=args.plants,
-        aggregate=args.aggregate,
-        require_check=args.require_check,
-    )
-    params, objective, budget = tune_settings(spec, overrides)
+    params, objective, budget = tune_settings(spec, options_of(TuneOverrides, args, params=tuple(args.param or ())))
     out = Path(args.out) if getattr(args, "out", None) else Path("runs") / time.strftime("tune-%Y%m%d-%H%M%S")
     check_study_folder(out, "tune")  # one study, one folder: study.db resumes, anything else is refused
     tuner = Tuner(out, spec, params, objective, budget, sampler_seed=getattr(args, "sampler_seed", 0) or 0)
