@@ -1,6 +1,7 @@
 """Test helpers for the CiA 402 drive tests: a stand-in plant whose position follows the drive's
 demand exactly, object access by format, a reference transcription of the profile rules, and a
-drive node served in a thread as the canopen library sees it (:func:`canopen_view`).
+drive node served in a thread as the canopen library sees it (:func:`canopen_view`), and the first
+answer of a drive process that is starting (:func:`vendor_id_once_up`).
 
 The echo plant: with Kp = ``K`` µN·m per count (Q16: ``K << 16``), Kd = 0 and no feed-forward the
 drive's torque is exactly ``K · (demand − count)``; the plant integrates it as a velocity source,
@@ -14,7 +15,9 @@ from __future__ import annotations
 
 import contextlib
 import struct
+import subprocess
 import threading
+import time
 from collections.abc import Iterator
 from math import isqrt
 from typing import Any
@@ -121,3 +124,18 @@ def canopen_view(node: DriveNode, node_id: int, **connect: Any) -> Iterator[tupl
         stop.set()
         thread.join(5)
     assert not thread.is_alive()
+
+
+def vendor_id_once_up(node: canopen.RemoteNode, proc: subprocess.Popen[Any], wait_s: float) -> int:
+    """The vendor-ID (0x1018:1) of the drive process ``proc`` that is starting, asked by SDO again
+    until it answers.
+
+    :raises canopen.SdoCommunicationError: no answer within ``wait_s``, or the process ended
+    """
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            return int(node.sdo[0x1018][1].raw)
+        except canopen.SdoCommunicationError:
+            if time.monotonic() > deadline or proc.poll() is not None:
+                raise

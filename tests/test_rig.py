@@ -9,13 +9,13 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import can
 import canopen
 import pytest
 from cli_util import run_in_session, stop_process
+from drive402_util import vendor_id_once_up
 from netns_util import NETNS_SETUP, netns_unavailable_reason
 
 from bus.busload import bits_lookup
@@ -256,15 +256,7 @@ def test_canopen_library_reads_and_writes_a_drive_process(tmp_path: Path) -> Non
             network.connect()
             node = network.add_node(2, str(DRIVE_EDS))
             node.sdo.RESPONSE_TIMEOUT = 2.0
-            deadline = time.monotonic() + 30
-            while True:
-                try:
-                    vendor = node.sdo[0x1018][1].raw
-                    break
-                except canopen.SdoCommunicationError:
-                    if time.monotonic() > deadline or drive.poll() is not None:
-                        raise
-            assert vendor == node.object_dictionary[0x1018][1].default
+            assert vendor_id_once_up(node, drive, 30.0) == node.object_dictionary[0x1018][1].default
             assert node.sdo[0x6041].raw & 0x004F == 0x0040  # switch on disabled
             node.sdo[0x6040].raw = 0x0006  # shutdown -> ready to switch on
             assert node.sdo[0x6041].raw & 0x006F == 0x0021
