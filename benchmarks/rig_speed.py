@@ -43,26 +43,15 @@ sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(REPO))
 
+from cli_util import ilcrig_argv  # noqa: E402
+
 from bus.transports.hub.core import hub_core_available  # noqa: E402
 
 
 def rig(bus: str, iterations: int, netns: bool = False) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "run"
-        cmd = [
-            sys.executable,
-            "-m",
-            "host.cli",
-            "run",
-            "--iterations",
-            str(iterations),
-            "--cycle",
-            "0.5",
-            "--bus",
-            bus,
-            "--out",
-            str(out),
-        ]
+        cmd = ilcrig_argv("run", "--iterations", str(iterations), "--cycle", "0.5", "--bus", bus, "--out", str(out))
         if netns:
             from netns_util import NETNS_SETUP
 

@@ -154,6 +154,40 @@ class FrameArrayReceiver(Protocol):
         ...
 
 
+def frame_flags(msg: can.Message) -> int:
+    """The kind bits of ``msg``: :data:`FRAME_EXT` … :data:`FRAME_ESI` (the hub's wire flags are the
+    same bits); :data:`FRAME_TX` is the caller's."""
+    return (
+        (FRAME_EXT if msg.is_extended_id else 0)
+        | (FRAME_RTR if msg.is_remote_frame else 0)
+        | (FRAME_ERR if msg.is_error_frame else 0)
+        | (FRAME_FD if msg.is_fd else 0)
+        | (FRAME_BRS if msg.bitrate_switch else 0)
+        | (FRAME_ESI if msg.error_state_indicator else 0)
+    )
+
+
+def message_of(
+    can_id: int, data: bytearray, flags: int, timestamp: float, channel: str | None = None, dlc: int | None = None
+) -> can.Message:
+    """A frame as a :class:`can.Message`: ``flags`` the bits of :func:`frame_flags` (+ :data:`FRAME_TX`:
+    a frame this process sent, ``is_rx`` False)."""
+    return new_message(
+        can_id,
+        data,
+        timestamp=timestamp,
+        is_extended_id=bool(flags & FRAME_EXT),
+        is_remote_frame=bool(flags & FRAME_RTR),
+        is_error_frame=bool(flags & FRAME_ERR),
+        channel=channel,
+        dlc=dlc,
+        is_fd=bool(flags & FRAME_FD),
+        is_rx=not flags & FRAME_TX,
+        bitrate_switch=bool(flags & FRAME_BRS),
+        error_state_indicator=bool(flags & FRAME_ESI),
+    )
+
+
 def frames_from_messages(msgs: Sequence[can.Message]) -> np.ndarray:
     """``msgs`` as an array of :data:`FRAME_DTYPE`."""
     out = np.zeros(len(msgs), dtype=FRAME_DTYPE)
@@ -162,15 +196,7 @@ def frames_from_messages(msgs: Sequence[can.Message]) -> np.ndarray:
         row = out[i]
         row["timestamp"] = msg.timestamp
         row["arbitration_id"] = msg.arbitration_id
-        row["flags"] = (
-            (FRAME_EXT if msg.is_extended_id else 0)
-            | (FRAME_RTR if msg.is_remote_frame else 0)
-            | (FRAME_ERR if msg.is_error_frame else 0)
-            | (FRAME_FD if msg.is_fd else 0)
-            | (FRAME_BRS if msg.bitrate_switch else 0)
-            | (FRAME_ESI if msg.error_state_indicator else 0)
-            | (0 if msg.is_rx else FRAME_TX)
-        )
+        row["flags"] = frame_flags(msg) | (0 if msg.is_rx else FRAME_TX)
         row["dlc"] = msg.dlc
         row["length"] = len(data)
         row["data"][: len(data)] = np.frombuffer(data, dtype=np.uint8)
@@ -181,22 +207,7 @@ def messages_from_frames(frames: np.ndarray, channel: str | None = None) -> list
     """The rows of ``frames`` (:data:`FRAME_DTYPE`) as :class:`can.Message` objects on ``channel``."""
     out = []
     for ts, can_id, flags, dlc, length, data in frames.tolist():
-        out.append(
-            new_message(
-                can_id,
-                bytearray(data[:length]),
-                timestamp=ts,
-                is_extended_id=bool(flags & FRAME_EXT),
-                is_remote_frame=bool(flags & FRAME_RTR),
-                is_error_frame=bool(flags & FRAME_ERR),
-                channel=channel,
-                dlc=dlc,
-                is_fd=bool(flags & FRAME_FD),
-                is_rx=not flags & FRAME_TX,
-                bitrate_switch=bool(flags & FRAME_BRS),
-                error_state_indicator=bool(flags & FRAME_ESI),
-            )
-        )
+        out.append(message_of(can_id, bytearray(data[:length]), flags, ts, channel, dlc))
     return out
 
 

@@ -19,7 +19,7 @@ CAN FD frames are not modelled: they are counted in ``fd_frames`` and add no bit
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import can
 
@@ -167,12 +167,7 @@ class BusLoadCounter:
 
     def as_dict(self) -> dict[str, int]:
         """Totals as a plain dict (for summary.json)."""
-        return {
-            "frames": self.frames,
-            "bits": self.bits,
-            "bits_worst_case": self.bits_worst_case,
-            "fd_frames": self.fd_frames,
-        }
+        return asdict(self)
 
 
 class BusLoadListener(can.Listener):

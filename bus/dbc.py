@@ -4,7 +4,7 @@ This module owns ``bus/rig_io.dbc`` (the io channel: control, encoder and torque
 :mod:`bus.io_frames`) and ``bus/rig_fieldbus.dbc`` (the fieldbus's cyclic frames of the pdo
 transport: SYNC, RPDO1 and TPDO1 of every drive as :mod:`bus.cyclic` maps them).  Two files
 because the two channels reuse identifiers (0x181–0x184 is a torque frame on io and a TPDO on the
-fieldbus), and a DBC describes one bus.  The files are text generated here (``python -m bus.dbc``
+fieldbus), and a DBC describes one bus.  The files are text generated here (``python -m host.cli.dbc``
 rewrites them); ``tests/test_dbc.py`` checks that the committed files equal the generated text and
 that ``cantools`` decodes every frame the codecs encode to the same values, so a CAN engineer's
 tools read ``io.log`` / ``fieldbus.log`` (candump format) of a run::
@@ -19,9 +19,7 @@ torque 0x6076 × 0.0882 N·m).
 
 from __future__ import annotations
 
-import argparse
 import logging
-from collections.abc import Sequence
 from pathlib import Path
 
 from bus import io_frames
@@ -117,23 +115,10 @@ def write_dbc_files(io_path: Path = IO_DBC_PATH, fieldbus_path: Path = FIELDBUS_
     logger.info("wrote %s and %s", io_path, fieldbus_path)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m bus.dbc [--check]``: rewrite the DBC files, or check that they are current."""
-    parser = argparse.ArgumentParser(prog="python -m bus.dbc", description=__doc__.splitlines()[0])
-    parser.add_argument("--check", action="store_true", help="exit 1 when a file differs from the generated text")
-    args = parser.parse_args(argv)
-    if args.check:
-        stale = [
-            p
-            for p, text in ((IO_DBC_PATH, io_dbc()), (FIELDBUS_DBC_PATH, fieldbus_dbc()))
-            if not p.exists() or p.read_text() != text
-        ]
-        for p in stale:
-            logger.error("%s is not the generated text: run python -m bus.dbc", p)
-        return 1 if stale else 0
-    write_dbc_files()
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+def stale_dbc_files() -> list[Path]:
+    """The DBC files that are missing or differ from the generated text (each logged as an error)."""
+    generated = ((IO_DBC_PATH, io_dbc()), (FIELDBUS_DBC_PATH, fieldbus_dbc()))
+    stale = [p for p, text in generated if not p.exists() or p.read_text() != text]
+    for p in stale:
+        logger.error("%s is not the generated text: run python -m host.cli.dbc", p)
+    return stale

@@ -284,6 +284,16 @@ def _payload(msg: can.Message, cob_base: int, n_ids: int, size: int, what: str) 
     return joint, bytes(msg.data)
 
 
+def _is_joint_frame(msg: can.Message, base: int, size: int) -> bool:
+    """The per-tick paths' quick check: a classic standard data frame of ``size`` bytes from one of
+    the joints' COB-IDs ``base`` … ``base + 3`` (when not, the full decoder says what is wrong)."""
+    return (
+        len(msg.data) == size
+        and not (msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame or msg.is_fd)
+        and 0 <= msg.arbitration_id - base < N_JOINTS
+    )
+
+
 def decode_encoder(msg: can.Message) -> EncoderFrame:
     """:raises IoFrameError: not an encoder frame (ID, flags, length)"""
     joint, data = _payload(msg, ENCODER_COB_BASE, N_JOINTS, _ENCODER.size, "encoder")
@@ -298,14 +308,7 @@ def encoder_fields(msg: can.Message) -> tuple[int, int]:
     :raises IoFrameError: not an encoder frame (ID, flags, length)
     """
     data = msg.data
-    if (
-        len(data) != 6
-        or msg.is_extended_id
-        or msg.is_remote_frame
-        or msg.is_error_frame
-        or msg.is_fd
-        or not 0 <= msg.arbitration_id - ENCODER_COB_BASE < N_JOINTS
-    ):
+    if not _is_joint_frame(msg, ENCODER_COB_BASE, 6):
         decode_encoder(msg)  # raises with the precise reason
     count, tick = _ENCODER.unpack(data)
     return count, tick
@@ -318,14 +321,7 @@ def torque_fields(msg: can.Message) -> tuple[int, int, int]:
     :raises IoFrameError: not a torque frame (ID, flags, length)
     """
     data = msg.data
-    if (
-        len(data) != 7
-        or msg.is_extended_id
-        or msg.is_remote_frame
-        or msg.is_error_frame
-        or msg.is_fd
-        or not 0 <= msg.arbitration_id - TORQUE_COB_BASE < N_JOINTS
-    ):
+    if not _is_joint_frame(msg, TORQUE_COB_BASE, 7):
         decode_torque(msg)  # raises with the precise reason
     torque, tick, status = _TORQUE.unpack(data)
     return torque, tick, status

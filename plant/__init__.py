@@ -6,7 +6,7 @@ the true-plant effects and the RK4 integrator (:mod:`plant.simulator`), the per-
 (:mod:`plant.disturbance`), the robot's holding brakes, mechanical limits and home pose
 (:mod:`plant.mechanics`), its period trace file (:mod:`plant.trace`), the real-time tick schedule
 (:mod:`plant.pacing`), the numba kernels
-(:mod:`plant._kernels`), a kernel timing and drive-train load check (``python -m plant.selfcheck``, :mod:`plant.selfcheck`)
+(:mod:`plant._kernels`), a kernel timing and drive-train load check (``python -m host.cli.selfcheck``, :mod:`plant.selfcheck`)
 and the plant's CANopen node: :mod:`plant.plant_node` (``PlantNode`` and the ``ilcrig plant``
 process entry) with its parts :mod:`plant.plant_node_trial` (trial protocol, lockstep tick master,
 pacing), :mod:`plant.plant_node_model` (the plant and disturbance of a trial),

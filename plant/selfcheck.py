@@ -1,4 +1,4 @@
-"""Plant micro-benchmark and drivetrain feasibility check: ``python -m plant.selfcheck``.
+"""Plant micro-benchmark and drivetrain feasibility check (``python -m host.cli.selfcheck`` runs it).
 
 This module owns two quick measurements the lead asked for, printed (logging at INFO):
 
@@ -14,7 +14,6 @@ only; the host's trajectory module is the reference for real runs.
 
 from __future__ import annotations
 
-import argparse
 import logging
 import math
 import time
@@ -101,10 +100,8 @@ def peak_torques() -> list[tuple[float, str, np.ndarray, np.ndarray]]:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``python -m plant.selfcheck``."""
-    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
+def report() -> None:
+    """Both measurements, logged at INFO (what ``python -m host.cli.selfcheck`` shows)."""
     r = bench_step()
     logger.info("first Plant step (compile or cache load): %.2f s", r["first_step_s"])
     logger.info("Plant.step: best %.2f us, median %.2f us (CPU time, 4 RK4 sub-steps)", r["step_us_best"], r["step_us_median"])
@@ -117,8 +114,3 @@ def main(argv: list[str] | None = None) -> int:
             np.array2string(pk, precision=1),
             np.array2string(rms, precision=1),
         )
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -1,6 +1,8 @@
 """Running ``ilcrig`` in tests: in-process (the exit code and what it printed) and as a process in
-a session of its own (:func:`run_cli_process`: it and every process it started gone on return);
-any command in a session of its own, its group killed on a hang (:func:`run_in_session`); a process
+a session of its own (:func:`ilcrig_argv`, :func:`run_cli_process`: it and every process it started
+gone on return);
+any command started in a session of its own (:func:`start_in_session`), or run there, its group
+killed on a hang (:func:`run_in_session`); a process
 asked to stop, killed if it does not (:func:`stop_process`); ``ilcrig sim`` signalled at a row of its
 table (:func:`sim_signalled_at_row`)."""
 
@@ -11,6 +13,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -32,17 +35,22 @@ def run_cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, s
 ROOT = Path(__file__).resolve().parent.parent
 
 
+def ilcrig_argv(*args: str) -> list[str]:
+    """The command line of ``ilcrig ARGS`` as a process of this interpreter (``python -m host.cli``)."""
+    return [sys.executable, "-m", "host.cli", *args]
+
+
+def start_in_session(cmd: list[str], cwd: Path = ROOT, env: Mapping[str, str] | None = None) -> subprocess.Popen[str]:
+    """``cmd`` started in a session of its own (its whole group can be killed), from ``cwd``, its
+    stdout and stderr piped as text."""
+    pipe = subprocess.PIPE
+    return subprocess.Popen(cmd, cwd=cwd, env=env, stdout=pipe, stderr=pipe, text=True, start_new_session=True)
+
+
 def run_cli_process(args: list[str], guard_s: float) -> subprocess.CompletedProcess[str]:
     """``ilcrig ARGS`` in its own session, from the project folder; returns once it and every
     process it started ended (killed after ``guard_s``, a guard against a hang)."""
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "host.cli", *args],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
+    proc = start_in_session(ilcrig_argv(*args))
     try:
         out, err = proc.communicate(timeout=guard_s)
     finally:
@@ -58,7 +66,7 @@ def run_in_session(
 ) -> subprocess.CompletedProcess[str]:
     """``cmd`` in a session of its own, from ``cwd``; its whole group killed and the test failed
     (``what`` timed out, by default the command) if it takes longer than ``timeout_s``."""
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True, cwd=cwd)
+    proc = start_in_session(cmd, cwd)
     try:
         out, err = proc.communicate(timeout=timeout_s)
     except subprocess.TimeoutExpired:

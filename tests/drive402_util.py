@@ -1,5 +1,7 @@
 """Test helpers for the CiA 402 drive tests: a stand-in plant whose position follows the drive's
-demand exactly, object access by format, and a reference transcription of the profile rules.
+demand exactly, object access by format, a reference transcription of the profile rules, and a
+drive node served in a thread as the canopen library sees it (:func:`canopen_view`), and the first
+answer of a drive process that is starting (:func:`vendor_id_once_up`).
 
 The echo plant: with Kp = ``K`` µN·m per count (Q16: ``K << 16``), Kd = 0 and no feed-forward the
 drive's torque is exactly ``K · (demand − count)``; the plant integrates it as a velocity source,
@@ -11,13 +13,22 @@ docstring, written apart from the firmware).
 
 from __future__ import annotations
 
+import contextlib
 import struct
+import subprocess
+import threading
+import time
+from collections.abc import Iterator
 from math import isqrt
+from typing import Any
+
+import canopen
 
 from bus import fixedpoint as fp
 from bus.cia301.nmt import NmtCommand
-from bus.objects import GainsSub, Obj
+from bus.objects import DRIVE_EDS_PATH, GainsSub, Obj
 from firmware_model.drive import Drive
+from firmware_model.drive_node import DriveNode
 
 #: µN·m per count of the echo plant (= the drive's Kp)
 K_ECHO = 1000
@@ -91,3 +102,40 @@ def reference_profile(start: int, target: int, v_max: int, acc: int, dec: int) -
         v = s * u_new
         p += v
         out.append(fp.profile_position_counts(p))
+
+
+@contextlib.contextmanager
+def canopen_view(node: DriveNode, node_id: int, **connect: Any) -> Iterator[tuple[canopen.Network, canopen.RemoteNode]]:
+    """``node`` served in a thread, and the canopen library's view of it: a network connected with
+    ``connect`` (python-can's bus arguments), the drive added from its EDS with a 5 s SDO timeout.
+    On the way out the network is disconnected and the node's thread stopped (the buses are the
+    caller's)."""
+    stop = threading.Event()
+    thread = threading.Thread(target=node.run, args=(stop,), daemon=True)
+    thread.start()
+    network = canopen.Network()
+    network.connect(**connect)
+    try:
+        remote = network.add_node(node_id, str(DRIVE_EDS_PATH))
+        remote.sdo.RESPONSE_TIMEOUT = 5.0
+        yield network, remote
+    finally:
+        network.disconnect()
+        stop.set()
+        thread.join(5)
+    assert not thread.is_alive()
+
+
+def vendor_id_once_up(node: canopen.RemoteNode, proc: subprocess.Popen[Any], wait_s: float) -> int:
+    """The vendor-ID (0x1018:1) of the drive process ``proc`` that is starting, asked by SDO again
+    until it answers.
+
+    :raises canopen.SdoCommunicationError: no answer within ``wait_s``, or the process ended
+    """
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            return int(node.sdo[0x1018][1].raw)
+        except canopen.SdoCommunicationError:
+            if time.monotonic() > deadline or proc.poll() is not None:
+                raise

@@ -20,11 +20,12 @@ import os
 import re
 import signal
 import subprocess
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from cli_util import ilcrig_argv
 
 REPO = Path(__file__).resolve().parent.parent
 #: the experiment of the matrix: short trials
@@ -79,20 +80,7 @@ def session_pids(session_id: int) -> list[int]:
 def run_rig(out: Path, *args: str, iterations: int = 2, timeout_s: float = 300.0, on_line: Any = None) -> Outcome:
     """``python -m host.cli run --iterations N --cycle 0.15 --bus hub --out OUT ARGS`` in its own
     session; ``on_line(line, proc)`` sees every stdout line (e.g. to signal the launcher)."""
-    cmd = [
-        sys.executable,
-        "-m",
-        "host.cli",
-        "run",
-        "--iterations",
-        str(iterations),
-        *EXPERIMENT,
-        "--bus",
-        "hub",
-        "--out",
-        str(out),
-        *args,
-    ]
+    cmd = ilcrig_argv("run", "--iterations", str(iterations), *EXPERIMENT, "--bus", "hub", "--out", str(out), *args)
     t0 = time.monotonic()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO, start_new_session=True)
     try:

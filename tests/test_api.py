@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from cli_util import run_cli
+from test_plugin import HalfP
 
 import ilcrig
 from bus import units
@@ -103,17 +104,11 @@ def test_stepping_with_a_gain_change_between_trials() -> None:
     assert res.summary["gain_changes"][0]["before_trial"] == 1
 
 
-class FixedGainLaw:
-    """u_{k+1} = u_k + 0.5·Lp·e_k (shifted by one sample): a protocol law defined in a test module."""
+class FixedGainLaw(HalfP):
+    """u_{k+1} = u_k + 0.5·Lp·e_k (shifted by one sample): a protocol law defined in this test module."""
 
-    name = "half-p"
     description = "half the learning P gain, one-sample lead"
-
-    def __init__(self, ctx: ilcrig.LawContext) -> None:
-        self.lp = 0.5 * ctx.gains.lp
-
-    def update(self, trial: ilcrig.TrialData) -> np.ndarray:
-        return trial.feedforward_nm + self.lp * ilcrig.signals.lead(trial.error_rad, 1)
+    shift = 1
 
 
 def test_protocol_laws_by_module_class_and_registration() -> None:

@@ -42,6 +42,16 @@ SUBPACKAGES = (
     "host.cli",
 )
 
+#: what both entry points, the command line (host.cli) and the public API (ilcrig), stand on: the
+#: bus, the plant and every host subpackage but the command line and the paper's study
+_BELOW_THE_ENTRY_POINTS: set[str] = {
+    "bus",
+    "bus.cia301",
+    "bus.transports",
+    "plant",
+    *(sub for sub in SUBPACKAGES if sub.startswith("host.") and sub not in ("host.cli", "host.studies.paper")),
+}
+
 #: unit -> the other units it may import.  A unit is a subpackage, or the top-level modules of a
 #: package (``bus``, ``host``), or ``plant.plant_node`` (the plant's CANopen node, which alone of plant/
 #: speaks CAN: plant/plant_node.py and its parts plant/plant_node_*.py).
@@ -76,38 +86,14 @@ ALLOWED: dict[str, set[str]] = {
     },
     # the command line: every role's process, the drive's included (firmware_model)
     "host.cli": {
-        "bus",
-        "bus.cia301",
-        "bus.transports",
         "bus.transports.hub",
-        "plant",
         "plant.plant_node",
         "firmware_model",
-        "host.planning",
-        "host.learning",
-        "host.nodes",
-        "host.experiment",
-        "host.analysis",
-        "host.rig",
-        "host.studies",
         "host.studies.paper",
-        "host.sim",
+        *_BELOW_THE_ENTRY_POINTS,
     },
     "host": set(),
-    "ilcrig": {
-        "bus",
-        "bus.cia301",
-        "bus.transports",
-        "plant",
-        "host.planning",
-        "host.learning",
-        "host.nodes",
-        "host.experiment",
-        "host.analysis",
-        "host.rig",
-        "host.studies",
-        "host.sim",
-    },
+    "ilcrig": set(_BELOW_THE_ENTRY_POINTS),
 }
 
 

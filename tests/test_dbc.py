@@ -11,7 +11,8 @@ from hypothesis import strategies as st
 
 from bus import io_frames
 from bus.cyclic import decode_tpdo, encode_csp_rpdo, rpdo_cob_id, tpdo_cob_id
-from bus.dbc import FIELDBUS_DBC_PATH, IO_DBC_PATH, fieldbus_dbc, io_dbc, main
+from bus.dbc import FIELDBUS_DBC_PATH, IO_DBC_PATH, fieldbus_dbc, io_dbc
+from host.cli.dbc import main
 
 I32 = st.integers(-(1 << 31), (1 << 31) - 1)
 I16 = st.integers(-(1 << 15), (1 << 15) - 1)

@@ -41,6 +41,16 @@ def _host_pid(out: Path) -> int:
     raise AssertionError("no host process")
 
 
+def _stall_after(delay_s: float, pid: int, stall_s: float = 3.0) -> None:
+    """In ``delay_s``: stop process ``pid`` (SIGSTOP) for ``stall_s`` (then SIGCONT); returns at once."""
+
+    def stall() -> None:
+        os.kill(pid, signal.SIGSTOP)
+        threading.Timer(stall_s, os.kill, (pid, signal.SIGCONT)).start()
+
+    threading.Timer(delay_s, stall).start()
+
+
 def _check_launcher_summary(o: Outcome, node: str) -> dict[str, Any]:
     try:
         assert o.code == 3, o.stderr
@@ -148,14 +158,10 @@ def test_a_hub_killed_between_trials_is_recorded_as_the_hub(tmp_path: Path) -> N
 def test_a_stall_after_the_last_row_is_a_fault(tmp_path: Path, victim: str, kind: str) -> None:
     pids: dict[str, int] = {}
 
-    def stall(pid: int) -> None:
-        os.kill(pid, signal.SIGSTOP)
-        threading.Timer(3.0, os.kill, (pid, signal.SIGCONT)).start()
-
     def on_line(line: str, proc: Any) -> None:
         pids.update(_pids(line))
         if re.match(r"\s+1\s+\d", line):  # the last trial's row: the host closes and writes its outputs
-            threading.Timer(0.6, stall, (pids[victim],)).start()
+            _stall_after(0.6, pids[victim])
 
     o = run_rig(tmp_path / "run", on_line=on_line)
     try:
@@ -183,18 +189,14 @@ def test_a_stall_at_bring_up_or_of_the_host_at_the_end_is_a_fault(
     out = tmp_path / "run"
     pids: dict[str, int] = {}
 
-    def stall(pid: int) -> None:
-        os.kill(pid, signal.SIGSTOP)
-        threading.Timer(3.0, os.kill, (pid, signal.SIGCONT)).start()
-
     def on_line(line: str, proc: Any) -> None:
         pids.update(_pids(line))
         if line.startswith("ilcrig host:"):
             pids["host"] = _host_pid(out)
             if moment == "header":  # the host brings the nodes up
-                threading.Timer(0.1, stall, (pids[victim],)).start()
+                _stall_after(0.1, pids[victim])
         elif moment == "last_row" and re.match(r"\s+1\s+\d", line):
-            threading.Timer(0.6, stall, (pids[victim],)).start()
+            _stall_after(0.6, pids[victim])
 
     o = run_rig(out, on_line=on_line)
     try:

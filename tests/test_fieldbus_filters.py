@@ -10,19 +10,17 @@ filtered away. Waits are for SDO answers and frames, never sleeps.
 
 from __future__ import annotations
 
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import can
-import canopen
 import pytest
+from drive402_util import canopen_view
 from hub_util import serving_in
 from test_hub_extras import wait_until
 
 from bus.cia301.nmt import NmtCommand
-from bus.objects import DRIVE_EDS_PATH
 from bus.transports.hub.server import HubServer
 from firmware_model.drive import Drive
 from firmware_model.drive_node import DriveNode
@@ -107,32 +105,22 @@ def test_over_the_hub_other_nodes_frames_never_reach_the_drive_and_a_moved_rpdo_
     fb = can.Bus(interface="ilcrig_hub", channel=f"{address}#fieldbus")
     io = can.Bus(interface="ilcrig_hub", channel=f"{address}#io")
     node = RecordingDriveNode(Drive(NODE), fb, io)
-    stop = threading.Event()
-    thread = threading.Thread(target=node.run, args=(stop,), daemon=True)
-    thread.start()
-    network = canopen.Network()
-    network.connect(interface="ilcrig_hub", channel=f"{address}#fieldbus")
     try:
-        remote = network.add_node(NODE, str(DRIVE_EDS_PATH))
-        remote.sdo.RESPONSE_TIMEOUT = 5.0
-        assert remote.sdo[0x1000].raw == 0x0002_0192  # the node is up (a CiA 402 drive), its filters set
-        other = [0x600 + NODE + 1, 0x580 + NODE + 1, 0x180 + NODE, 0x200 + NODE + 1, 0x3A0, 0x701]
-        for cob in other:  # SDO of another node, TPDOs, RPDOs not (yet) ours, a heartbeat
-            network.send_message(cob, bytes(8))
-        assert remote.sdo[0x1000].raw == 0x0002_0192  # answered after the frames above: they were all routed
-        assert node.seen == []
-        # move RPDO2 to 0x3A0 (invalidate, set, valid) and use it as soon as the answer is in
-        remote.sdo[0x1401][1].raw = PDO_NOT_VALID | (0x300 + NODE)
-        remote.sdo[0x1401][1].raw = 0x3A0
-        network.send_message(0x3A0, bytes(8))
-        network.send_message(0x300 + NODE, bytes(8))  # the old identifier is not ours any more
-        network.send_message(0x080, b"")  # SYNC
-        assert wait_until(lambda: 0x080 in node.seen)
-        assert node.seen == [0x3A0, 0x080]
+        with canopen_view(node, NODE, interface="ilcrig_hub", channel=f"{address}#fieldbus") as (network, remote):
+            assert remote.sdo[0x1000].raw == 0x0002_0192  # the node is up (a CiA 402 drive), its filters set
+            other = [0x600 + NODE + 1, 0x580 + NODE + 1, 0x180 + NODE, 0x200 + NODE + 1, 0x3A0, 0x701]
+            for cob in other:  # SDO of another node, TPDOs, RPDOs not (yet) ours, a heartbeat
+                network.send_message(cob, bytes(8))
+            assert remote.sdo[0x1000].raw == 0x0002_0192  # answered after the frames above: they were all routed
+            assert node.seen == []
+            # move RPDO2 to 0x3A0 (invalidate, set, valid) and use it as soon as the answer is in
+            remote.sdo[0x1401][1].raw = PDO_NOT_VALID | (0x300 + NODE)
+            remote.sdo[0x1401][1].raw = 0x3A0
+            network.send_message(0x3A0, bytes(8))
+            network.send_message(0x300 + NODE, bytes(8))  # the old identifier is not ours any more
+            network.send_message(0x080, b"")  # SYNC
+            assert wait_until(lambda: 0x080 in node.seen)
+            assert node.seen == [0x3A0, 0x080]
     finally:
-        network.disconnect()
-        stop.set()
-        thread.join(5)
         fb.shutdown()
         io.shutdown()
-    assert not thread.is_alive()

@@ -26,6 +26,8 @@ import pytest
 
 from bus.exit_codes import EXIT_CHILD_FAILED, EXIT_FAULT
 from host.cli import build_parser
+from host.cli.options import experiment_options
+from host.cli.run import run_options
 from host.rig import role_commands
 from host.rig.launcher import RigLauncher
 from host.rig.options import RunOptions
@@ -71,9 +73,7 @@ def fake_env(role_key: str, *opts: str) -> str:
 
 
 def run_args(out: Path, *extra: str) -> RunOptions:
-    return RunOptions.from_args(
-        build_parser().parse_args(["run", "--iterations", "2", "--out", str(out), "--bus", "hub", *extra])
-    )
+    return run_options(build_parser().parse_args(["run", "--iterations", "2", "--out", str(out), "--bus", "hub", *extra]))
 
 
 def fake_pids(piddir: Path) -> dict[str, int]:
@@ -210,32 +210,15 @@ def test_host_args_round_trip_through_the_host_parser(tmp_path: Path) -> None:
             "hub",
         ]
     )
-    argv = host_role_args(args)
+    argv = host_role_args(experiment_options(args))
     assert "--out" not in argv and "--bus" not in argv and "--hub" not in argv
     assert argv[argv.index("--cycle") + 1] == "0.30000000000000004"
     host = build_parser().parse_args(["host", *argv, "--out", str(tmp_path), "--bus", "hub"])
-    for key in (
-        "law",
-        "iterations",
-        "path",
-        "cycle_s",
-        "profile",
-        "disturbance",
-        "seed",
-        "ff0",
-        "preset",
-        "g_alpha",
-        "g_beta",
-        "g_ld",
-        "g_lp",
-        "g_lead",
-        "config",
-        "out",
-        "bus",
-    ):
-        assert getattr(host, key) == getattr(args, key), key
+    assert experiment_options(host) == experiment_options(args)
+    assert experiment_options(args).gains == {"alpha": 1.1, "ld": 230.0, "lead": 2}
+    assert (host.out, host.bus) == (args.out, args.bus)
     # options not given stay absent (the host's defaults apply)
-    assert host_role_args(build_parser().parse_args(["run"])) == []
+    assert host_role_args(experiment_options(build_parser().parse_args(["run"]))) == []
 
 
 def test_role_command_hooks(monkeypatch: pytest.MonkeyPatch, roles: dict[str, list[str]]) -> None:
@@ -254,7 +237,7 @@ def test_role_command_hooks(monkeypatch: pytest.MonkeyPatch, roles: dict[str, li
 
 def test_virtual_transport_is_refused(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="virtual"):
-        RigLauncher(RunOptions.from_args(build_parser().parse_args(["run", "--out", str(tmp_path), "--bus", "virtual"]))).run()
+        RigLauncher(run_options(build_parser().parse_args(["run", "--out", str(tmp_path), "--bus", "virtual"]))).run()
 
 
 # ---------------------------------------------------------------------------------------

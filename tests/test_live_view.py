@@ -179,10 +179,10 @@ def test_sim_live_view_streams_each_trial_as_it_completes(tmp_path: Path, no_dis
 
 def test_run_passes_view_to_the_host_role() -> None:
     from host.cli import build_parser
+    from host.cli.run import run_options
 
-    args = build_parser().parse_args(["run", "--view"])
-    assert "--view" in rig_role_args(args)
-    assert "--view" not in rig_role_args(build_parser().parse_args(["run"]))
+    assert "--view" in rig_role_args(run_options(build_parser().parse_args(["run", "--view"])))
+    assert "--view" not in rig_role_args(run_options(build_parser().parse_args(["run"])))
 
 
 def test_view_needs_a_run_folder_in_the_api() -> None:

@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import queue
 import struct
-import threading
 import time
 
 import can
 import canopen
 import pytest
+from drive402_util import canopen_view
 
 from bus import fixedpoint as fp
 from bus import io_frames
@@ -204,74 +204,64 @@ def test_canopen_library_configures_pdos_enables_cst_and_moves_the_drive_with_sy
     fb_node = can.Bus(interface="virtual", channel=f"{prefix}-fb")
     io_node = can.Bus(interface="virtual", channel=f"{prefix}-io")
     plant = can.Bus(interface="virtual", channel=f"{prefix}-io")
-    stop = threading.Event()
     node_rt = DriveNode(Drive(NODE), fb_node, io_node)
-    thread = threading.Thread(target=node_rt.run, args=(stop,), daemon=True)
-    thread.start()
-    network = canopen.Network()
-    network.connect(interface="virtual", channel=f"{prefix}-fb")
     try:
-        node = network.add_node(NODE, str(DRIVE_EDS_PATH))
-        node.sdo.RESPONSE_TIMEOUT = 5.0
-        node.nmt.send_command(0x80)  # pre-operational (it booted there already)
-        node.rpdo.read()
-        node.tpdo.read()
-        rpdo, tpdo = node.rpdo[1], node.tpdo[1]
-        rpdo.clear()
-        rpdo.add_variable("Target torque")
-        rpdo.add_variable("Torque offset")
-        rpdo.trans_type = 1
-        rpdo.enabled = True
-        tpdo.clear()
-        for index, sub, _ in TPDO_MAP:
-            tpdo.add_variable(index, sub)
-        tpdo.trans_type = 1
-        tpdo.enabled = True
-        rpdo.save()
-        tpdo.save()
-        # the drive holds exactly what the library wrote
-        assert node.sdo[0x1400][1].raw == 0x200 + NODE and node.sdo[0x1400][2].raw == 1
-        assert [node.sdo[0x1600][s].raw for s in range(3)] == [2, 0x60710010, 0x60B20010]
-        assert [node.sdo[0x1A00][s].raw for s in range(3)] == [2, 0x60640020, 0x60770010]
-        node.sdo[0x6060].raw = int(ModeOfOperation.CST)
-        node.nmt.state = "OPERATIONAL"
-        for cw in (0x06, 0x07, 0x0F):
-            node.sdo[0x6040].raw = cw
-        assert node.sdo[0x6041].raw & 0x106F == 0x1027  # operation enabled, follows the command
-        assert node.sdo[0x6061].raw == 10
+        with canopen_view(node_rt, NODE, interface="virtual", channel=f"{prefix}-fb") as (network, node):
+            node.nmt.send_command(0x80)  # pre-operational (it booted there already)
+            node.rpdo.read()
+            node.tpdo.read()
+            rpdo, tpdo = node.rpdo[1], node.tpdo[1]
+            rpdo.clear()
+            rpdo.add_variable("Target torque")
+            rpdo.add_variable("Torque offset")
+            rpdo.trans_type = 1
+            rpdo.enabled = True
+            tpdo.clear()
+            for index, sub, _ in TPDO_MAP:
+                tpdo.add_variable(index, sub)
+            tpdo.trans_type = 1
+            tpdo.enabled = True
+            rpdo.save()
+            tpdo.save()
+            # the drive holds exactly what the library wrote
+            assert node.sdo[0x1400][1].raw == 0x200 + NODE and node.sdo[0x1400][2].raw == 1
+            assert [node.sdo[0x1600][s].raw for s in range(3)] == [2, 0x60710010, 0x60B20010]
+            assert [node.sdo[0x1A00][s].raw for s in range(3)] == [2, 0x60640020, 0x60770010]
+            node.sdo[0x6060].raw = int(ModeOfOperation.CST)
+            node.nmt.state = "OPERATIONAL"
+            for cw in (0x06, 0x07, 0x0F):
+                node.sdo[0x6040].raw = cw
+            assert node.sdo[0x6041].raw & 0x106F == 0x1027  # operation enabled, follows the command
+            assert node.sdo[0x6061].raw == 10
 
-        def plant_tick(tick: int, count: int) -> io_frames.TorqueFrame:
-            plant.send(io_frames.encode_encoder(NODE - 1, tick, count))
-            deadline = time.monotonic() + 10
-            while time.monotonic() < deadline:
-                msg = plant.recv(0.5)
-                if msg is not None and msg.arbitration_id == io_frames.torque_cob_id(NODE - 1):
-                    return io_frames.decode_torque(msg)
-            raise AssertionError(f"no torque frame for tick {tick}")
+            def plant_tick(tick: int, count: int) -> io_frames.TorqueFrame:
+                plant.send(io_frames.encode_encoder(NODE - 1, tick, count))
+                deadline = time.monotonic() + 10
+                while time.monotonic() < deadline:
+                    msg = plant.recv(0.5)
+                    if msg is not None and msg.arbitration_id == io_frames.torque_cob_id(NODE - 1):
+                        return io_frames.decode_torque(msg)
+                raise AssertionError(f"no torque frame for tick {tick}")
 
-        received: queue.Queue[bytes] = queue.Queue()
-        tpdo.add_callback(lambda m: received.put(bytes(m.data)))
-        got = []
-        for tick, (target, offset) in enumerate([(100, 0), (250, -50), (-30, 10)]):
-            rpdo["Target torque"].raw = target
-            rpdo["Torque offset"].raw = offset
-            rpdo.transmit()
-            network.sync.transmit()
-            frame = plant_tick(tick, 1000 + tick)
-            data = received.get(timeout=10)
-            assert data == tpdo.data
-            got.append((frame.torque_units, tpdo["Position actual value"].raw, tpdo["Torque actual value"].raw))
-            assert frame.status & io_frames.TorqueStatus.ENABLED
-        r = RATED_TORQUE_MNM
-        # each SYNC's TPDO carries the latest completed control cycle (the previous tick's)
-        assert got == [(100 * r, 0, 0), (200 * r, 1000, 100), (-20 * r, 1001, 200)]
+            received: queue.Queue[bytes] = queue.Queue()
+            tpdo.add_callback(lambda m: received.put(bytes(m.data)))
+            got = []
+            for tick, (target, offset) in enumerate([(100, 0), (250, -50), (-30, 10)]):
+                rpdo["Target torque"].raw = target
+                rpdo["Torque offset"].raw = offset
+                rpdo.transmit()
+                network.sync.transmit()
+                frame = plant_tick(tick, 1000 + tick)
+                data = received.get(timeout=10)
+                assert data == tpdo.data
+                got.append((frame.torque_units, tpdo["Position actual value"].raw, tpdo["Torque actual value"].raw))
+                assert frame.status & io_frames.TorqueStatus.ENABLED
+            r = RATED_TORQUE_MNM
+            # each SYNC's TPDO carries the latest completed control cycle (the previous tick's)
+            assert got == [(100 * r, 0, 0), (200 * r, 1000, 100), (-20 * r, 1001, 200)]
     finally:
-        stop.set()
-        thread.join(5)
-        network.disconnect()
         for bus in (fb_node, io_node, plant):
             bus.shutdown()
-    assert not thread.is_alive()
 
 
 def test_rig_mapping_constants_are_the_config_writes() -> None:

@@ -203,16 +203,18 @@ def test_law_source_is_in_the_summary_of_ilcrig_sim(tmp_path: Path) -> None:
 
 
 class HalfP:
-    """u_{k+1} = u_k + 0.5·Lp·e_k: a protocol law defined in a test module."""
+    """u_{k+1} = u_k + 0.5·Lp·e_k (e led by ``shift`` samples, none here): a protocol law defined in a
+    test module (tests/test_api.py's FixedGainLaw is this law with a one-sample lead)."""
 
     name = "half-p"
     description = "half the learning P gain"
+    shift = 0
 
     def __init__(self, ctx: ilcrig.LawContext) -> None:
         self.lp = 0.5 * ctx.gains.lp
 
     def update(self, trial: ilcrig.TrialData) -> np.ndarray:
-        return trial.feedforward_nm + self.lp * trial.error_rad
+        return trial.feedforward_nm + self.lp * ilcrig.signals.lead(trial.error_rad, self.shift)
 
 
 class Broken(HalfP):

@@ -196,7 +196,7 @@ def test_the_janitor_settles_the_folder_after_a_killed_launcher(tmp_path: Path) 
     out, _ = _run_folder(tmp_path)
     host = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])  # stands in for the host
     janitor = subprocess.Popen(
-        [sys.executable, "-m", "host.rig.janitor", "--out", str(out), "--wait", str(host.pid)], cwd=REPO, stdin=subprocess.PIPE
+        [sys.executable, "-m", "host.cli.janitor", "--out", str(out), "--wait", str(host.pid)], cwd=REPO, stdin=subprocess.PIPE
     )
     try:
         assert janitor.stdin is not None

@@ -9,13 +9,13 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import can
 import canopen
 import pytest
 from cli_util import run_in_session, stop_process
+from drive402_util import vendor_id_once_up
 from netns_util import NETNS_SETUP, netns_unavailable_reason
 
 from bus.busload import bits_lookup
@@ -256,15 +256,7 @@ def test_canopen_library_reads_and_writes_a_drive_process(tmp_path: Path) -> Non
             network.connect()
             node = network.add_node(2, str(DRIVE_EDS))
             node.sdo.RESPONSE_TIMEOUT = 2.0
-            deadline = time.monotonic() + 30
-            while True:
-                try:
-                    vendor = node.sdo[0x1018][1].raw
-                    break
-                except canopen.SdoCommunicationError:
-                    if time.monotonic() > deadline or drive.poll() is not None:
-                        raise
-            assert vendor == node.object_dictionary[0x1018][1].default
+            assert vendor_id_once_up(node, drive, 30.0) == node.object_dictionary[0x1018][1].default
             assert node.sdo[0x6041].raw & 0x004F == 0x0040  # switch on disabled
             node.sdo[0x6040].raw = 0x0006  # shutdown -> ready to switch on
             assert node.sdo[0x6041].raw & 0x006F == 0x0021
@@ -289,13 +281,15 @@ def test_drive_killed_and_restarted_between_trials_is_set_up_again(tmp_path: Pat
     """Heartbeat loss + boot-up of drive 2 between trials: the host brings it up again,
     configures it and the next trial runs; the traces equal a run without the restart."""
 
-    def role(*args: str) -> subprocess.Popen:
+    def role(*args: str, stdout: int = subprocess.DEVNULL, stderr: int | None = subprocess.DEVNULL) -> subprocess.Popen:
+        """``ilcrig ROLE ARGS`` on the test's hub (output unbuffered: the host's rows as they come)."""
         return subprocess.Popen(
-            [sys.executable, "-m", "host.cli", *args, "--bus", "hub", "--hub", hub.address],
+            [sys.executable, "-u", "-m", "host.cli", *args, "--bus", "hub", "--hub", hub.address],
             start_new_session=True,
             cwd=REPO,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
+            stdout=stdout,
+            stderr=stderr,
+            text=True,
         )
 
     procs: list[subprocess.Popen] = []
@@ -304,33 +298,8 @@ def test_drive_killed_and_restarted_between_trials_is_set_up_again(tmp_path: Pat
             drives = {n: role("drive", "--node", str(n)) for n in (1, 2, 3, 4)}
             procs += [*drives.values(), role("plant")]
             out = tmp_path / "rig"
-            host = subprocess.Popen(
-                [
-                    sys.executable,
-                    "-u",
-                    "-m",
-                    "host.cli",
-                    "host",
-                    "--iterations",
-                    "3",
-                    "--cycle",
-                    "0.15",
-                    "--pause",
-                    "4",
-                    "--recover",
-                    "60",
-                    "--bus",
-                    "hub",
-                    "--hub",
-                    hub.address,
-                    "--out",
-                    str(out),
-                ],
-                start_new_session=True,
-                cwd=REPO,
-                stdout=subprocess.PIPE,
-                text=True,
-            )
+            host_args = ("--iterations", "3", "--cycle", "0.15", "--pause", "4", "--recover", "60", "--out", str(out))
+            host = role("host", *host_args, stdout=subprocess.PIPE, stderr=None)
             procs.append(host)
             lines = []
             for line in host.stdout:  # type: ignore[union-attr]

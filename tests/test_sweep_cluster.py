@@ -15,7 +15,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from cli_util import run_cli
+from cli_util import run_cli, start_in_session
 from test_sweep import DASK, GUARD_S, ROOT, TINY, _cli, _listening, _start, _stop
 
 from bus.errors import InputError
@@ -181,15 +181,7 @@ def test_a_lost_scheduler_is_exit_5_not_point_errors_and_resumes(
     out = tmp_path / "sweep"
     args = ["sweep", "--out", str(out), "--scheduler", address, "--no-progress"]
     args += [a for s in HELD_SPEC for a in ("--set", s)] + ["--vary", "gains.alpha=2,3"]
-    client = subprocess.Popen(
-        [sys.executable, "tests/sweep_hold.py", *args],
-        cwd=ROOT,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
+    client = start_in_session([sys.executable, "tests/sweep_hold.py", *args], env=env)
     try:
         deadline = time.monotonic() + GUARD_S
         while not ((hold / HELD.id / "held").is_file() and any(out.glob("runs/*/summary.json"))):

@@ -1,7 +1,7 @@
 """``ilcrig view``: a run's ``recording.rrd`` in the Rerun viewer — the native one, or Rerun's web
 viewer served on loopback when the native one cannot start — or the command to open it printed (no
-viewer installed).  :func:`view_run` takes typed arguments (no argparse); :func:`viewer_command`
-and :func:`display_available` are shared with the live view (:mod:`host.analysis.live_view`).
+viewer installed).  :func:`view_run` takes typed arguments (not the parsed command line);
+:func:`viewer_command` and :func:`display_available` are shared with the live view (:mod:`host.analysis.live_view`).
 Imports no rerun (the viewer is a child process).
 
 * A display and a viewer: the native viewer is started and watched for :data:`NATIVE_SETTLE_S`;

@@ -20,9 +20,13 @@ This package owns the command line: :func:`build_parser` (one module per command
 :mod:`host.cli.host`, :mod:`host.cli.drive`, :mod:`host.cli.plant`, :mod:`host.cli.hub`,
 :mod:`host.cli.laws`, :mod:`host.cli.view`, :mod:`host.cli.studies`; the option groups several of
 them share, defined once, in :mod:`host.cli.options`), the one-line error parser and :func:`main`
-with the error handling of every command; ``python -m host.cli`` is :mod:`host.cli.__main__`.
-Below the command line the commands take typed options (frozen dataclasses), not the parsed
-``argparse.Namespace`` (``run`` and ``robot`` still hand theirs to the launchers).
+with the error handling of every command; ``python -m host.cli`` is :mod:`host.cli.__main__`.  The
+command lines of the ``python -m`` tools that are not ``ilcrig`` subcommands live here too:
+:mod:`host.cli.dbc` (the DBC files), :mod:`host.cli.selfcheck` (the plant's check),
+:mod:`host.cli.janitor` (the launcher's janitor process).
+Below the command line the commands take typed options (frozen dataclasses: the experiment's
+:class:`host.experiment.console.ExperimentOptions`, the launchers' :mod:`host.rig.options`, the
+roles' own), never the parsed ``argparse.Namespace``: argparse lives only in this package.
 
 Errors: bad input (:class:`bus.errors.InputError`, and argparse's own errors) is one line
 ``ilcrig: error: …`` with exit code 2 before anything moves; a bus a role cannot open is one line

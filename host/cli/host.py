@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from bus.errors import InputError
-from host.cli.options import add_bus_args, add_experiment_args, add_rig_args, transport_of
+from host.cli.options import add_rig_experiment_args, experiment_options, transport_of
 from host.experiment.console import experiment_config
 
 if TYPE_CHECKING:
@@ -29,9 +29,7 @@ __all__ = ["add_parser", "cmd_host", "host_options"]
 def add_parser(sub: Any) -> None:
     """``host`` on the subcommands ``sub``."""
     hp = sub.add_parser("host", help="the host role alone (expects 4 drives and the plant on the bus)")
-    add_experiment_args(hp)
-    add_bus_args(hp)
-    add_rig_args(hp)
+    add_rig_experiment_args(hp)
     hp.add_argument("--rt-scheduling", default=None, help=argparse.SUPPRESS)  # the launcher's: what --realtime got
     hp.add_argument(
         "--wait",
@@ -79,4 +77,4 @@ def cmd_host(args: argparse.Namespace) -> int:
     """``ilcrig host``: :func:`host.rig.host_role.run_host_role` with typed options."""
     from host.rig.host_role import run_host_role
 
-    return run_host_role(host_options(args), experiment_config(args), transport_of(args))
+    return run_host_role(host_options(args), experiment_config(experiment_options(args)), transport_of(args))

@@ -14,6 +14,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from host.cli.options import options_of
+
 __all__ = ["add_parser", "cmd_hub"]
 
 
@@ -51,15 +53,4 @@ def cmd_hub(args: argparse.Namespace) -> int:
     """``ilcrig hub``: :func:`bus.transports.hub.serve.run_hub`."""
     from bus.transports.hub.serve import HubOptions, run_hub
 
-    return run_hub(
-        HubOptions(
-            listen=tuple(args.listen or ()),
-            ready=args.ready,
-            exit_on_stdin_eof=args.exit_on_stdin_eof,
-            allow_remote=args.allow_remote,
-            inject=args.inject,
-            remove_dir=args.remove_dir,
-            bus_time=tuple(args.bus_time),
-            log_level=args.log_level,
-        )
-    )
+    return run_hub(options_of(HubOptions, args, listen=tuple(args.listen or ()), bus_time=tuple(args.bus_time)))

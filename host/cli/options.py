@@ -8,7 +8,8 @@ This module owns the experiment options' parser (:func:`add_experiment_args`, bu
 options that do not change the experiment (:func:`add_rig_args`: the real-time options,
 ``--io-bitrate``, ``--view``, ``--bus-time``), ``--view`` (:func:`add_view_arg`), the option value
 types (:func:`rt_priority`, :func:`bitrate`), what every node role does around its loop
-(:func:`role_logging`, :func:`bus_errors`).
+(:func:`role_logging`, :func:`bus_errors`), and the typed options the parsed groups become
+(:func:`options_of`, :func:`experiment_options`: nothing below the command line gets a Namespace).
 
 May import: what ``host.cli`` may (it is part of it); kept import-light: every role parses the
 command line.
@@ -18,16 +19,21 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, TypeVar
 
-from host.experiment.console import EXPERIMENT_OPTIONS
+from host.experiment.console import EXPERIMENT_OPTIONS, ExperimentOptions
 from host.rig.realtime import DEFAULT_RT_PRIORITY
 
 if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
     from bus.transports.config import TransportConfig
+
+_Options = TypeVar("_Options", bound="DataclassInstance")
 
 __all__ = [
     "BusOptions",
@@ -35,11 +41,14 @@ __all__ = [
     "add_bus_args",
     "add_experiment_args",
     "add_realtime_args",
+    "add_rig_experiment_args",
     "add_rig_args",
     "add_view_arg",
     "bitrate",
     "bus_errors",
     "bus_options",
+    "experiment_options",
+    "options_of",
     "role_logging",
     "rt_priority",
     "transport_of",
@@ -79,6 +88,14 @@ def add_experiment_args(p: argparse.ArgumentParser) -> None:
         else:
             p.add_argument(o.flag, dest=o.dest, type=o.type or str, metavar=o.metavar, help=o.help)
     p.add_argument("--out", default=None, help="run folder (default runs/<mode>-<time>)")
+
+
+def add_rig_experiment_args(p: argparse.ArgumentParser) -> None:
+    """An experiment on the rig: the experiment, bus and rig options — what ``run`` takes, and the
+    host role too (the launcher passes them on to it)."""
+    add_experiment_args(p)
+    add_bus_args(p)
+    add_rig_args(p)
 
 
 def add_bus_args(p: argparse.ArgumentParser, default: str = "auto") -> None:
@@ -203,3 +220,16 @@ def role_logging() -> None:
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     for name in ("bus", "firmware_model", "plant"):
         logging.getLogger(name).setLevel(min(logging.INFO, root.level))
+
+
+def experiment_options(args: argparse.Namespace) -> ExperimentOptions:
+    """The typed experiment options of a command parsed with :func:`add_experiment_args`."""
+    return ExperimentOptions.from_values(vars(args))
+
+
+def options_of(cls: type[_Options], args: argparse.Namespace, **given: Any) -> _Options:
+    """The typed options ``cls`` (a dataclass) of a parsed command line: each field the value of
+    the option of its name, ``given`` for the fields whose option is named or formed otherwise (a
+    field without either keeps its default)."""
+    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if hasattr(args, f.name)}
+    return cls(**(values | given))

@@ -1,8 +1,8 @@
 """``ilcrig robot``: the four drives and the plant as a robot on the bus, for any CANopen master.
 
 This module owns the ``robot`` subcommand's options (bus, real-time, ``--out``, ``--param-dir``,
-``--view``) and :func:`cmd_robot`, which hands them to the launcher
-(:func:`host.rig.robot_launcher.launch_robot`, docs/robot.md).
+``--view``), their typed form (:func:`robot_options`) and :func:`cmd_robot`, which hands them to the
+launcher (:func:`host.rig.robot_launcher.launch_robot`, docs/robot.md).
 
 May import: what ``host.cli`` may.
 """
@@ -10,11 +10,14 @@ May import: what ``host.cli`` may.
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from host.cli.options import add_bus_args, add_realtime_args, add_view_arg
+from host.cli.options import add_bus_args, add_realtime_args, add_view_arg, options_of
 
-__all__ = ["add_parser", "cmd_robot"]
+if TYPE_CHECKING:
+    from host.rig.options import RobotOptions
+
+__all__ = ["add_parser", "cmd_robot", "robot_options"]
 
 
 def add_parser(sub: Any) -> None:
@@ -38,9 +41,15 @@ def add_parser(sub: Any) -> None:
     op.set_defaults(func=cmd_robot)
 
 
+def robot_options(args: argparse.Namespace) -> RobotOptions:
+    """The typed options of a parsed ``ilcrig robot`` command line."""
+    from host.rig.options import RobotOptions
+
+    return options_of(RobotOptions, args)
+
+
 def cmd_robot(args: argparse.Namespace) -> int:
     """``ilcrig robot``: :func:`host.rig.robot_launcher.launch_robot`."""
-    from host.rig.options import RobotOptions
     from host.rig.robot_launcher import launch_robot
 
-    return launch_robot(RobotOptions.from_args(args))
+    return launch_robot(robot_options(args))

@@ -1,7 +1,7 @@
 """``ilcrig run``: an experiment on the distributed rig (hub, plant, four drives, host as processes).
 
-This module owns the ``run`` subcommand's options (experiment, bus, rig, ``--inject``) and
-:func:`cmd_run`, which hands the parsed options to the launcher
+This module owns the ``run`` subcommand's options (experiment, bus, rig, ``--inject``), their typed
+form (:func:`run_options`) and :func:`cmd_run`, which hands them to the launcher
 (:func:`host.rig.launcher.launch_rig`: preflight, start, watch, clean up).
 
 May import: what ``host.cli`` may.
@@ -10,19 +10,20 @@ May import: what ``host.cli`` may.
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from host.cli.options import add_bus_args, add_experiment_args, add_rig_args
+from host.cli.options import add_rig_experiment_args, experiment_options, options_of
 
-__all__ = ["add_parser", "cmd_run"]
+if TYPE_CHECKING:
+    from host.rig.options import RunOptions
+
+__all__ = ["add_parser", "cmd_run", "run_options"]
 
 
 def add_parser(sub: Any) -> None:
     """``run`` on the subcommands ``sub``."""
     rp = sub.add_parser("run", help="run an experiment on the distributed rig (6 processes over CAN)")
-    add_experiment_args(rp)
-    add_bus_args(rp)
-    add_rig_args(rp)
+    add_rig_experiment_args(rp)
     rp.add_argument(
         "--inject",
         action="append",
@@ -35,9 +36,15 @@ def add_parser(sub: Any) -> None:
     rp.set_defaults(func=cmd_run)
 
 
+def run_options(args: argparse.Namespace) -> RunOptions:
+    """The typed options of a parsed ``ilcrig run`` command line."""
+    from host.rig.options import RunOptions
+
+    return options_of(RunOptions, args, inject=tuple(args.inject or ()), experiment=experiment_options(args))
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """``ilcrig run``: the launcher validates everything (preflight) before anything starts."""
     from host.rig.launcher import launch_rig
-    from host.rig.options import RunOptions
 
-    return launch_rig(RunOptions.from_args(args))
+    return launch_rig(run_options(args))

@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from host.cli.options import add_experiment_args, add_view_arg
+from host.cli.options import add_experiment_args, add_view_arg, experiment_options
 from host.experiment.console import experiment_config
 
 __all__ = ["add_parser", "cmd_sim"]
@@ -37,4 +37,4 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
     out = Path(args.out) if args.out is not None else Path("runs") / time.strftime("sim-%Y%m%d-%H%M%S")
     check_out_dir(args.out if args.out is not None else out, create=False, new_run=True)  # fast: before the configuration
-    return run_sim(SimOptions(experiment_config(args), out, view=bool(args.view)), sys.stdout)
+    return run_sim(SimOptions(experiment_config(experiment_options(args)), out, view=bool(args.view)), sys.stdout)

@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 from bus.errors import InputError
 from bus.exit_codes import EXIT_CLUSTER_LOST, EXIT_INTERRUPTED
+from host.cli.options import options_of
 
 if TYPE_CHECKING:  # the handlers import the studies when they run: building the parser stays cheap
     from host.studies.engine import Engine, SweepOutcome
@@ -167,13 +168,13 @@ def tune_main(args: argparse.Namespace) -> int:
     write the outputs and print the best gains."""
     from host.studies.sweep_record import check_study_folder
     from host.studies.tune import BEST_FILE, STUDY_FILE, Tuner
-    from host.studies.tune_params import tune_settings
+    from host.studies.tune_params import TuneOverrides, tune_settings
 
     spec = spec_of_args(args)
     engine = engine_of_args(args)
     if spec.vary:
         raise InputError("ilcrig tune takes no --vary / [vary]: the tuned keys are --param / [tune]")
-    params, objective, budget = tune_settings(spec, args)
+    params, objective, budget = tune_settings(spec, options_of(TuneOverrides, args, params=tuple(args.param or ())))
     out = Path(args.out) if getattr(args, "out", None) else Path("runs") / time.strftime("tune-%Y%m%d-%H%M%S")
     check_study_folder(out, "tune")  # one study, one folder: study.db resumes, anything else is refused
     tuner = Tuner(out, spec, params, objective, budget, sampler_seed=getattr(args, "sampler_seed", 0) or 0)

@@ -2,17 +2,19 @@
 
 This module owns the experiment options of the command line (:data:`EXPERIMENT_OPTIONS`, one
 definition: :mod:`host.cli.options` builds ``sim``'s, ``run``'s and ``host``'s parsers from it, the
-launcher passes them on to the host role with it), the translation of parsed options into an
-:class:`~host.experiment.config.ExperimentConfig` and of that into the plan (:func:`prepared`: what
-the plan refuses is :class:`bus.errors.InputError`), and the console lines of a run: the plan with
-its convergence check, one row of RMSE/MaxE per trial, and the closing line.  It is kept
+launcher passes them on to the host role with it), their typed values (:class:`ExperimentOptions`:
+what the command line hands down, never its parsed namespace), the translation of those into
+an :class:`~host.experiment.config.ExperimentConfig` (:func:`experiment_config`) and of that into
+the plan (:func:`prepared`: what the plan refuses is :class:`bus.errors.InputError`), and the
+console lines of a run: the plan with its convergence check, one row of RMSE/MaxE per trial, and
+the closing line.  It is kept
 import-light: every role parses the command line.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING, Any, TextIO
 
 from bus.errors import InputError
@@ -27,6 +29,7 @@ if TYPE_CHECKING:
 __all__ = [
     "EXPERIMENT_OPTIONS",
     "ExperimentOption",
+    "ExperimentOptions",
     "experiment_config",
     "parse_law_options",
     "prepared",
@@ -136,45 +139,102 @@ EXPERIMENT_OPTIONS: tuple[ExperimentOption, ...] = (
 )
 
 
-def experiment_config(args: Any) -> ExperimentConfig:
-    """The validated configuration of parsed experiment options (``args``: their values as
-    attributes named as :attr:`ExperimentOption.dest`, e.g. an ``argparse.Namespace``; a
-    ``--config`` file below them).
+#: the keys of :class:`ExperimentOptions` that go to the configuration as they are
+_PLAIN_KEYS = (
+    "law",
+    "iterations",
+    "path",
+    "cycle_s",
+    "profile",
+    "disturbance",
+    "seed",
+    "ff0",
+    "ff_transport",
+    "fieldbus_bitrate",
+    "force_bus_fit",
+)
+#: the prefixes of the :attr:`ExperimentOption.dest` of the gain and plant-uncertainty options
+_GAIN_PREFIX, _PLANT_PREFIX = "g_", "p_"
+
+
+@dataclass(frozen=True)
+class ExperimentOptions:
+    """The experiment options as given on a command line (None: not given, the file's or the
+    default value applies): what :func:`experiment_config` builds the configuration from and what
+    ``ilcrig run`` passes on to its host role (:meth:`given`).
+
+    :ivar config: ``--config``, the experiment TOML file
+    :ivar law_options: ``--law-options`` as given (``KEY=VALUE[,KEY=VALUE…]``)
+    :ivar cycle_s: ``--cycle``, s
+    :ivar fieldbus_bitrate: ``--fieldbus-bitrate``, bit/s
+    :ivar preset: ``--gains``, the gain preset
+    :ivar gains: the gain options given (``alpha``, ``lp``, ``lead``, …: the ``[gains]`` keys)
+    :ivar plant: the plant-uncertainty options given (``inertia_scale``, …: the ``[plant]`` keys)
+    """
+
+    config: str | None = None
+    law: str | None = None
+    law_options: str | None = None
+    iterations: int | None = None
+    path: str | None = None
+    cycle_s: float | None = None
+    profile: str | None = None
+    disturbance: str | None = None
+    seed: int | None = None
+    ff0: str | None = None
+    preset: str | None = None
+    ff_transport: str | None = None
+    fieldbus_bitrate: int | None = None
+    force_bus_fit: bool | None = None
+    gains: Mapping[str, float] = field(default_factory=dict)
+    plant: Mapping[str, float] = field(default_factory=dict)
+
+    @classmethod
+    def from_values(cls, values: Mapping[str, Any]) -> ExperimentOptions:
+        """The options of parsed values keyed by :attr:`ExperimentOption.dest` (others are ignored)."""
+        plain: dict[str, Any] = {}
+        gains: dict[str, Any] = {}
+        plant: dict[str, Any] = {}
+        for o in EXPERIMENT_OPTIONS:
+            value = values.get(o.dest)
+            if value is None:
+                continue
+            if o.dest.startswith(_GAIN_PREFIX):
+                gains[o.dest.removeprefix(_GAIN_PREFIX)] = value
+            elif o.dest.startswith(_PLANT_PREFIX):
+                plant[o.dest.removeprefix(_PLANT_PREFIX)] = value
+            else:
+                plain[o.dest] = value
+        return cls(**plain, gains=gains, plant=plant)
+
+    def given(self) -> dict[str, Any]:
+        """The options given, keyed by :attr:`ExperimentOption.dest`, in the order of
+        :data:`EXPERIMENT_OPTIONS`."""
+        values = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("gains", "plant")}
+        values |= {_GAIN_PREFIX + k: v for k, v in self.gains.items()}
+        values |= {_PLANT_PREFIX + k: v for k, v in self.plant.items()}
+        return {o.dest: values[o.dest] for o in EXPERIMENT_OPTIONS if values.get(o.dest) is not None}
+
+
+def experiment_config(options: ExperimentOptions) -> ExperimentConfig:
+    """The validated configuration of the experiment options given (a ``--config`` file below them).
 
     :raises InputError: one-line message naming the option or file.
     """
     from host.experiment.config import build_config  # heavy (plant, learning): only when needed
 
-    overrides: dict[str, Any] = {
-        k: getattr(args, k)
-        for k in (
-            "law",
-            "iterations",
-            "path",
-            "cycle_s",
-            "profile",
-            "disturbance",
-            "seed",
-            "ff0",
-            "ff_transport",
-            "fieldbus_bitrate",
-            "force_bus_fit",
-        )
-    }
-    if getattr(args, "law_options", None) is not None:
-        overrides["law_options"] = parse_law_options(args.law_options)
+    overrides: dict[str, Any] = {k: getattr(options, k) for k in _PLAIN_KEYS}
+    if options.law_options is not None:
+        overrides["law_options"] = parse_law_options(options.law_options)
     gains: dict[str, Any] = {}  # merged over the file's [gains] table by build_config
-    if args.preset is not None:
-        gains["preset"] = args.preset
-    for k, v in vars(args).items():
-        if k.startswith("g_") and v is not None:
-            gains[k[2:]] = v
+    if options.preset is not None:
+        gains["preset"] = options.preset
+    gains |= options.gains
     if gains:
         overrides["gains"] = gains
-    plant = {k[2:]: v for k, v in vars(args).items() if k.startswith("p_") and k.endswith("_scale") and v is not None}
-    if plant:
-        overrides["plant"] = plant  # merged over the file's [plant] table
-    return build_config(args.config, overrides)
+    if options.plant:
+        overrides["plant"] = dict(options.plant)  # merged over the file's [plant] table
+    return build_config(options.config, overrides)
 
 
 def prepared(cfg: ExperimentConfig) -> Plan:

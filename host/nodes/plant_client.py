@@ -73,6 +73,17 @@ class PlantTimeoutError(PlantClientError, TimeoutError):
     """The trial did not end within the host's timeout (it was aborted)."""
 
 
+#: what a plant fault says ({node}: the drive's node id, {tick}: the tick)
+_FAULT_TEXT: dict[PlantFault, str] = {
+    PlantFault.TICK_TIMEOUT: "drive {node} did not answer tick {tick}",
+    PlantFault.TICK_SEQUENCE: "torque frame of drive {node} out of sequence at tick {tick}",
+    PlantFault.BAD_FRAME: "malformed torque frame of drive {node} at tick {tick}",
+    PlantFault.HOST_LOST: "the host's heartbeat was lost at tick {tick}",
+    PlantFault.PLANT: "plant error at tick {tick}",
+    PlantFault.ABORTED: "aborted at tick {tick}",
+}
+
+
 @dataclass(frozen=True)
 class PlantState:
     """0x2410 as read back."""
@@ -87,24 +98,11 @@ class PlantState:
         """One line for messages and logs."""
         if self.status != PlantStatus.FAULT:
             return f"{self.status.name.lower()}, {self.ticks_done} ticks done"
-        if self.fault == PlantFault.TICK_TIMEOUT:
-            what = f"drive {self.fault_node} did not answer tick {self.fault_tick}"
-        elif self.fault == PlantFault.TICK_SEQUENCE:
-            what = f"torque frame of drive {self.fault_node} out of sequence at tick {self.fault_tick}"
-        elif self.fault == PlantFault.BAD_FRAME:
-            what = (
-                f"malformed torque frame of drive {self.fault_node} at tick {self.fault_tick}"
-                if self.fault_node
-                else f"bus error frame (a damaged frame) on io at tick {self.fault_tick}"
-            )
-        elif self.fault == PlantFault.HOST_LOST:
-            what = f"the host's heartbeat was lost at tick {self.fault_tick}"
-        elif self.fault == PlantFault.PLANT:
-            what = f"plant error at tick {self.fault_tick}"
-        elif self.fault == PlantFault.ABORTED:
-            what = f"aborted at tick {self.fault_tick}"
+        if self.fault == PlantFault.BAD_FRAME and not self.fault_node:
+            what = f"bus error frame (a damaged frame) on io at tick {self.fault_tick}"
         else:
-            what = f"fault code {int(self.fault)} at tick {self.fault_tick}"
+            text = _FAULT_TEXT.get(self.fault, f"fault code {int(self.fault)} at tick {{tick}}")
+            what = text.format(node=self.fault_node, tick=self.fault_tick)
         return f"fault: {what} ({self.ticks_done} ticks done)"
 
 

@@ -3,8 +3,8 @@
 This module owns :func:`settle_run_folder` — ``recording.rrd`` cut back to the trials of
 ``summary.json`` (:func:`host.analysis.recording_segments.cut_back`), the temporary files of atomic writes
 and the trial arrays the summary does not hold removed (:func:`host.experiment.outputs.remove_leftovers`)
-— and the janitor process that does it when nobody else can (``python -P -m host.rig.janitor
---out DIR --wait PID``, :func:`start_janitor` / :class:`Janitor`).
+— and the janitor process that does it when nobody else can (``python -P -m host.cli.janitor
+--out DIR --wait PID``: :func:`run_janitor`; :func:`start_janitor` / :class:`Janitor`).
 
 The launcher settles the folder itself on every exit path it lives through (the host killed
 included: :class:`host.rig.run_outcome.RunOutcome`).  A SIGKILL of the launcher ends the host too
@@ -18,7 +18,6 @@ and exits.  The space reserve needs nobody: it is a file without a name held ope
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import json
 import logging
@@ -27,7 +26,6 @@ import select
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
 from pathlib import Path
 from typing import IO, Any
 
@@ -35,7 +33,7 @@ from bus.processes import spawn_process
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["DONE", "HOST_WAIT_S", "Janitor", "main", "settle_run_folder", "start_janitor"]
+__all__ = ["DONE", "HOST_WAIT_S", "Janitor", "run_janitor", "settle_run_folder", "start_janitor"]
 
 #: what the launcher writes when it has settled the folder itself
 DONE = b"done\n"
@@ -96,7 +94,7 @@ class Janitor:
 def start_janitor(out_dir: Path, host_pid: int) -> Janitor | None:
     """Start the janitor of the run folder ``out_dir`` whose host is ``host_pid`` (None: it could
     not be started; logged — the run goes on without it)."""
-    argv = [sys.executable, "-P", "-m", "host.rig.janitor", "--out", str(out_dir), "--wait", str(host_pid)]
+    argv = [sys.executable, "-P", "-m", "host.cli.janitor", "--out", str(out_dir), "--wait", str(host_pid)]
     try:
         # a session of its own (a terminal's Ctrl-C is the launcher's) and no death signal: it outlives the launcher
         proc = spawn_process(argv, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, death_signal=None)
@@ -134,27 +132,20 @@ def _wait_for(pidfd: int | None, pid: int, timeout_s: float) -> None:
         time.sleep(0.05)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m host.rig.janitor --out DIR --wait PID`` (module docstring)."""
-    p = argparse.ArgumentParser(prog="python -m host.rig.janitor")
-    p.add_argument("--out", required=True, help="the run folder")
-    p.add_argument("--wait", type=int, required=True, help="the host's pid")
-    args = p.parse_args(argv)
+def run_janitor(out: str | Path, host_pid: int) -> int:
+    """The janitor process of the run folder ``out`` whose host is ``host_pid`` (module docstring);
+    its exit code."""
     try:
-        pidfd: int | None = os.pidfd_open(args.wait)
+        pidfd: int | None = os.pidfd_open(host_pid)
     except (AttributeError, OSError):
         pidfd = None  # no pidfds here, or the host is gone already
     if not _launcher_gone(sys.stdin.buffer):
         return 0
-    _wait_for(pidfd, args.wait, HOST_WAIT_S)
-    done = settle_run_folder(args.out)
+    _wait_for(pidfd, host_pid, HOST_WAIT_S)
+    done = settle_run_folder(out)
     if done:
-        logs = Path(args.out) / "logs"
+        logs = Path(out) / "logs"
         with contextlib.suppress(OSError), open(logs / "janitor.log", "a", encoding="utf-8") as fh:
             stamp = time.strftime("%Y-%m-%d %H:%M:%S")
             fh.writelines(f"{stamp} janitor: the launcher was killed; {line}\n" for line in done)
     return 0
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

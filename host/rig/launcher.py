@@ -93,7 +93,7 @@ def preflight(options: RunOptions) -> list[FaultSpec]:
     from host.experiment.console import experiment_config
     from host.experiment.plan import check_config_limits
 
-    cfg = experiment_config(options.namespace())
+    cfg = experiment_config(options.experiment)
     check_config_limits(cfg, rig=True)  # the trial length and the memory before the disk space
     if options.out is not None:
         check_out_dir(options.out, iterations=cfg.iterations, n_ticks=cfg.n_ticks, create=False)
@@ -151,7 +151,7 @@ class RigLauncher(LaunchCore):
         if specs:
             from host.experiment.console import experiment_config
 
-            cfg = experiment_config(opts.namespace())
+            cfg = experiment_config(opts.experiment)
             check_specs(specs, iterations=cfg.iterations, n_ticks=cfg.n_ticks, hub=tc.needs_hub)
         self.transport_name = tc.name
         if self.host_grace_s is None:
@@ -167,7 +167,7 @@ class RigLauncher(LaunchCore):
                 if frame_specs
                 else None
             )
-            bus_args += ["--hub", self.start_hub(inject, log_dir / "hub.log", bus_time_rates(opts.namespace()))]
+            bus_args += ["--hub", self.start_hub(inject, log_dir / "hub.log", bus_time_rates(opts))]
         run_tc = transport_from_name(tc.name, self.hub_address) if tc.needs_hub else tc
         self._progress = RunProgress(run_tc)
         self._progress.start()
@@ -192,7 +192,7 @@ class RigLauncher(LaunchCore):
         self._say_out(
             f"ilcrig run: transport {tc.name}{where}; processes: {self.pids_text()}; role logs in {log_dir}; starting host"
         )
-        host_extra = host_role_args(opts.namespace()) + rig_role_args(opts.namespace()) + ["--out", str(out_dir)]
+        host_extra = host_role_args(opts.experiment) + rig_role_args(opts) + ["--out", str(out_dir)]
         host_batch = False
         if opts.realtime:
             scheduling = self._schedule_run()
@@ -237,7 +237,7 @@ class RigLauncher(LaunchCore):
             return None
         from host.experiment.console import experiment_config
 
-        return experiment_config(self.options.namespace()).iterations
+        return experiment_config(self.options.experiment).iterations
 
     def _schedule_run(self) -> dict[str, Any]:
         """A real-time run's scheduling, before the host starts (:meth:`LaunchCore.schedule_realtime`,
@@ -249,7 +249,7 @@ class RigLauncher(LaunchCore):
         from host.experiment.console import experiment_config
         from host.rig.realtime import scheduling_mechanisms
 
-        scheduling = self.schedule_realtime(host_in_tick=experiment_config(self.options.namespace()).ff_transport == "pdo")
+        scheduling = self.schedule_realtime(host_in_tick=experiment_config(self.options.experiment).ff_transport == "pdo")
         spins = scheduling["policy"] == "SCHED_FIFO" or "sleep-wait" in mechanisms_left_out()
         scheduling["in_roles"]["plant_spins"] = spins
         scheduling["mechanisms"] = scheduling_mechanisms(scheduling)
@@ -260,7 +260,7 @@ class RigLauncher(LaunchCore):
         the host left none)."""
         from host.experiment.console import experiment_config
 
-        cfg = experiment_config(self.options.namespace())
+        cfg = experiment_config(self.options.experiment)
         return cfg.as_dict() | {"n_ticks": cfg.n_ticks}
 
     def _pid_of(self, name: str) -> int | None:

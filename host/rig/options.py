@@ -2,22 +2,21 @@
 :class:`RobotOptions` (``ilcrig robot``), built once from the parsed command line.
 
 This module owns what the launch code (:mod:`host.rig.launch_core`, :mod:`host.rig.launcher`,
-:mod:`host.rig.robot_launcher`) may know of the command line: frozen dataclasses instead of an
-``argparse.Namespace`` travelling into it.  The experiment options of ``ilcrig run`` stay the raw
-option mapping (:attr:`RunOptions.experiment`): the host role gets them back as its own command
-line (:func:`host.rig.role_commands.host_role_args`) and the configuration is built from them by
-:func:`host.experiment.console.experiment_config` — both take a Namespace, which
-:meth:`RunOptions.namespace` gives.
+:mod:`host.rig.robot_launcher`) may know of the command line: frozen dataclasses, built by the
+command line (:mod:`host.cli.run`, :mod:`host.cli.robot`).  The experiment options of ``ilcrig run``
+are the typed :class:`host.experiment.console.ExperimentOptions` (:attr:`RunOptions.experiment`):
+the host role gets them back as its own command line
+(:func:`host.rig.role_commands.host_role_args`) and the configuration is built from them by
+:func:`host.experiment.console.experiment_config`.
 
-May import: the standard library only.
+May import: the standard library, :mod:`host.experiment.console` (import-light).
 """
 
 from __future__ import annotations
 
-import argparse
-from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Self
+
+from host.experiment.console import ExperimentOptions
 
 __all__ = ["RigOptions", "RobotOptions", "RunOptions"]
 
@@ -47,20 +46,6 @@ class RigOptions:
     view: bool = False
     debug: bool = False
 
-    @classmethod
-    def _common(cls, args: argparse.Namespace) -> dict[str, Any]:
-        return {
-            "bus": getattr(args, "bus", "auto"),
-            "hub": getattr(args, "hub", None),
-            "out": None if getattr(args, "out", None) is None else str(args.out),
-            "realtime": bool(getattr(args, "realtime", False)),
-            "rt_priority": getattr(args, "rt_priority", None),
-            "no_idle_poll": bool(getattr(args, "no_idle_poll", False)),
-            "allow_remote": bool(getattr(args, "allow_remote", False)),
-            "view": bool(getattr(args, "view", False)),
-            "debug": bool(getattr(args, "debug", False)),
-        }
-
 
 @dataclass(frozen=True)
 class RunOptions(RigOptions):
@@ -69,29 +54,13 @@ class RunOptions(RigOptions):
     :ivar inject: the ``--inject`` specs, as given
     :ivar bus_time: ``--bus-time``
     :ivar io_bitrate: ``--io-bitrate``, bit/s (None: the default)
-    :ivar experiment: every parsed option of the command (the experiment's among them), as parsed
+    :ivar experiment: the experiment options given
     """
 
     inject: tuple[str, ...] = ()
     bus_time: bool = False
     io_bitrate: int | None = None
-    experiment: Mapping[str, Any] = field(default_factory=dict)
-
-    @classmethod
-    def from_args(cls, args: argparse.Namespace) -> Self:
-        """The options of a parsed ``ilcrig run`` command line."""
-        return cls(
-            **cls._common(args),
-            inject=tuple(getattr(args, "inject", None) or ()),
-            bus_time=bool(getattr(args, "bus_time", False)),
-            io_bitrate=getattr(args, "io_bitrate", None),
-            experiment=dict(vars(args)),
-        )
-
-    def namespace(self) -> argparse.Namespace:
-        """The parsed command line again (for :func:`host.experiment.console.experiment_config`
-        and :func:`host.rig.role_commands.host_role_args`)."""
-        return argparse.Namespace(**self.experiment)
+    experiment: ExperimentOptions = field(default_factory=ExperimentOptions)
 
 
 @dataclass(frozen=True)
@@ -102,9 +71,3 @@ class RobotOptions(RigOptions):
     """
 
     param_dir: str | None = None
-
-    @classmethod
-    def from_args(cls, args: argparse.Namespace) -> Self:
-        """The options of a parsed ``ilcrig robot`` command line."""
-        param_dir = getattr(args, "param_dir", None)
-        return cls(**cls._common(args), param_dir=None if param_dir is None else str(param_dir))

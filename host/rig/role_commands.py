@@ -17,16 +17,19 @@ Test hook
 
 from __future__ import annotations
 
-import argparse
 import os
 import shlex
 import sys
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 from bus.busload import DEFAULT_BITRATE_BPS
 from bus.transports.config import FIELDBUS
 from bus.transports.config import IO as IO_CHANNEL
-from host.experiment.console import EXPERIMENT_OPTIONS
+from host.experiment.console import EXPERIMENT_OPTIONS, ExperimentOptions
+
+if TYPE_CHECKING:
+    from host.rig.options import RunOptions
 
 __all__ = [
     "PYTHON_ROLE_FLAGS",
@@ -65,15 +68,16 @@ def role_command(role: str, node: int | None = None, *, debug: bool = False) -> 
     return [sys.executable, *PYTHON_ROLE_FLAGS, "-m", "host.cli"] + (["--debug"] if debug else []) + [role]
 
 
-def host_role_args(args: argparse.Namespace) -> list[str]:
-    """The experiment options of ``args`` (a parsed ``run`` Namespace) as host-role arguments.
+def host_role_args(experiment: ExperimentOptions) -> list[str]:
+    """The experiment options given to ``run`` as host-role arguments.
 
     Only options that were given (not ``None``) are passed; ``--out``, ``--bus`` and ``--hub``
     are added by the launcher. Floats keep their exact value (``repr`` round-trips).
     """
     argv: list[str] = []
+    given = experiment.given()
     for option in EXPERIMENT_OPTIONS:
-        value = getattr(args, option.dest, None)
+        value = given.get(option.dest)
         if value is None or value is False:
             continue
         if option.switch:
@@ -83,16 +87,16 @@ def host_role_args(args: argparse.Namespace) -> list[str]:
     return argv
 
 
-def rig_role_args(args: argparse.Namespace) -> list[str]:
-    """The rig options of ``args`` (``--realtime``, ``--view``, ``--bus-time``, ``--io-bitrate``) that the host role takes too
+def rig_role_args(options: RunOptions) -> list[str]:
+    """The rig options of ``run`` (``--realtime``, ``--view``, ``--bus-time``, ``--io-bitrate``) that the host role takes too
     (``--fieldbus-bitrate`` is an experiment option and goes with :func:`host_role_args`)."""
-    argv = ["--realtime"] if args.realtime else []
-    if getattr(args, "view", False):
+    argv = ["--realtime"] if options.realtime else []
+    if options.view:
         argv.append("--view")
-    if getattr(args, "bus_time", False):
+    if options.bus_time:
         argv.append("--bus-time")
-    if args.io_bitrate is not None:
-        argv += ["--io-bitrate", str(args.io_bitrate)]
+    if options.io_bitrate is not None:
+        argv += ["--io-bitrate", str(options.io_bitrate)]
     return argv
 
 
@@ -104,11 +108,14 @@ def child_argv(
     return role_command(role, node, debug=debug) + own + list(extra) + list(bus_args)
 
 
-def bus_time_rates(args: argparse.Namespace) -> dict[str, int] | None:
+def bus_time_rates(options: RunOptions) -> dict[str, int] | None:
     """``--bus-time``: the hub's bit rate per channel (``--io-bitrate``, the experiment's fieldbus bit
     rate), None without the option."""
-    if not getattr(args, "bus_time", False):
+    if not options.bus_time:
         return None
     from host.experiment.console import experiment_config
 
-    return {FIELDBUS: int(experiment_config(args).fieldbus_bitrate), IO_CHANNEL: int(args.io_bitrate or DEFAULT_BITRATE_BPS)}
+    return {
+        FIELDBUS: int(experiment_config(options.experiment).fieldbus_bitrate),
+        IO_CHANNEL: int(options.io_bitrate or DEFAULT_BITRATE_BPS),
+    }

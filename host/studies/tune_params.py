@@ -3,7 +3,8 @@
 This module owns :class:`Param` (one tuned key and its range: ``KEY=LOW:HIGH[:log|:int]`` on the
 command line, ``{low, high[, log][, int]}`` in ``[tune]``), :class:`Objective` (J of one run's
 summary and of a trial over its plants; defined in :mod:`host.studies.tune`'s docstring) and
-:func:`tune_settings` (the spec's ``[tune]`` and ``[objective]`` under the command line's options).
+:func:`tune_settings` (the spec's ``[tune]`` and ``[objective]`` under the command line's options,
+:class:`TuneOverrides`).
 
 Spec file: the sections of :mod:`host.studies.spec` and
 
@@ -29,7 +30,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
@@ -42,7 +43,7 @@ from host.studies.table import metrics_of
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Param", "Objective", "tune_settings", "DEFAULT_BUDGET"]
+__all__ = ["DEFAULT_BUDGET", "OBJECTIVE_KEYS", "Objective", "Param", "TuneOverrides", "tune_settings"]
 
 #: trials of a study when neither ``[tune] budget`` nor ``--budget`` says
 DEFAULT_BUDGET = 30
@@ -154,37 +155,53 @@ class Objective:
         return text + "; a run ended by a fault: J = inf"
 
     def as_dict(self) -> dict[str, Any]:
-        return {
-            "settle_weight": self.settle_weight,
-            "plants": self.plants,
-            "aggregate": self.aggregate,
-            "require_check": self.require_check,
-        }
+        return asdict(self)
 
 
-def tune_settings(spec: SweepSpec, args: Any) -> tuple[list[Param], Objective, int]:
+#: the keys of ``[objective]`` (the fields of :class:`Objective`)
+OBJECTIVE_KEYS = ("settle_weight", "plants", "aggregate", "require_check")
+
+
+@dataclass(frozen=True)
+class TuneOverrides:
+    """What the command line sets over the spec's ``[tune]`` and ``[objective]`` (None: not given).
+
+    :ivar params: the ``--param`` ranges as given (``KEY=LOW:HIGH[:log|:int]``)
+    :ivar budget: ``--budget``, trials of the study in all
+    :ivar settle_weight: ``--settle-weight``, deg per trial
+    :ivar plants: ``--plants``
+    :ivar aggregate: ``--aggregate``
+    :ivar require_check: ``--require-check``
+    """
+
+    params: tuple[str, ...] = ()
+    budget: int | None = None
+    settle_weight: float | None = None
+    plants: int | None = None
+    aggregate: str | None = None
+    require_check: bool | None = None
+
+
+def tune_settings(spec: SweepSpec, overrides: TuneOverrides) -> tuple[list[Param], Objective, int]:
     """The tuned keys, the objective and the budget of ``ilcrig tune``: the spec's ``[tune]`` and
-    ``[objective]`` with the command line's options (``args``: ``param``, ``settle_weight``,
-    ``plants``, ``aggregate``, ``require_check``, ``budget``; None: not given) over them.
+    ``[objective]`` with the command line's options over them.
 
     :raises InputError: a bad range, objective key or budget (one line)."""
     tune = dict(spec.extra.get("tune") or {})
     budget = tune.pop("budget", DEFAULT_BUDGET)
     params = [Param.of(k, v, "[tune]") if isinstance(v, Mapping) else _bad_tune(k) for k, v in tune.items()]
-    for text in getattr(args, "param", None) or []:
+    for text in overrides.params:
         p = Param.parse(text)
         params = [q for q in params if q.key != p.key] + [p]
     obj = dict(spec.extra.get("objective") or {})
-    bad = set(obj) - {"settle_weight", "plants", "aggregate", "require_check"}
+    bad = set(obj) - set(OBJECTIVE_KEYS)
     if bad:
-        raise InputError(
-            f"[objective]: unknown key(s) {', '.join(sorted(bad))}; choose from settle_weight, plants, aggregate, require_check"
-        )
-    for key in ("settle_weight", "plants", "aggregate", "require_check"):
-        if getattr(args, key, None) is not None:
-            obj[key] = getattr(args, key)
-    if getattr(args, "budget", None) is not None:
-        budget = args.budget
+        raise InputError(f"[objective]: unknown key(s) {', '.join(sorted(bad))}; choose from {', '.join(OBJECTIVE_KEYS)}")
+    for key in OBJECTIVE_KEYS:
+        if getattr(overrides, key) is not None:
+            obj[key] = getattr(overrides, key)
+    if overrides.budget is not None:
+        budget = overrides.budget
     if isinstance(budget, bool) or not isinstance(budget, int):
         raise InputError(f"budget must be an integer, got {budget!r}")
     try:

@@ -13,8 +13,9 @@ from collections.abc import Callable
 import can
 import numpy as np
 
-from bus.bus_features import FRAME_DTYPE, FRAME_TX
-from bus.fastmsg import FAST, new_message
+from bus import bus_features as bf
+from bus.bus_features import FRAME_DTYPE, frame_flags, message_of
+from bus.fastmsg import FAST
 from bus.transports.hub.wire import (
     FILTER_ENTRY,
     FLAG_BRS,
@@ -45,20 +46,17 @@ _WIRE_DTYPE = np.dtype(
         ("inline", "u1", (8,)),
     ]
 )
-assert _WIRE_DTYPE.itemsize == HEADER_SIZE and FLAG_ECHO == FRAME_TX
+#: the wire's flag bits are the FRAME_* bits (the echo of a sent frame: FRAME_TX)
+assert _WIRE_DTYPE.itemsize == HEADER_SIZE
+assert [FLAG_EXT, FLAG_RTR, FLAG_ERR, FLAG_FD, FLAG_BRS, FLAG_ESI, FLAG_ECHO] == [
+    getattr(bf, f"FRAME_{kind}") for kind in ("EXT", "RTR", "ERR", "FD", "BRS", "ESI", "TX")
+]
 
 
 def encode_record(msg: can.Message) -> bytes:
     """The wire record (24-byte header + FD tail) of one frame, timestamp 0 (the hub stamps it)."""
     data = b"" if msg.is_remote_frame else bytes(msg.data)
-    flags = (
-        (FLAG_EXT if msg.is_extended_id else 0)
-        | (FLAG_RTR if msg.is_remote_frame else 0)
-        | (FLAG_ERR if msg.is_error_frame else 0)
-        | (FLAG_FD if msg.is_fd else 0)
-        | (FLAG_BRS if msg.bitrate_switch else 0)
-        | (FLAG_ESI if msg.error_state_indicator else 0)
-    )
+    flags = frame_flags(msg)
     n = len(data)
     if n > 64:
         raise ValueError(f"frame data too long ({n} bytes)")
@@ -103,20 +101,7 @@ def decode_records(data: bytes, channel: str, append: Callable[[can.Message], No
         else:
             payload = bytearray(inline[:length])
         if flags or not FAST:
-            msg = new_message(
-                can_id,
-                payload,
-                timestamp=stamp_ns / 1e9,
-                is_extended_id=bool(flags & FLAG_EXT),
-                is_remote_frame=bool(flags & FLAG_RTR),
-                is_error_frame=bool(flags & FLAG_ERR),
-                channel=channel,
-                dlc=dlc,
-                is_fd=bool(flags & FLAG_FD),
-                is_rx=not flags & FLAG_ECHO,
-                bitrate_switch=bool(flags & FLAG_BRS),
-                error_state_indicator=bool(flags & FLAG_ESI),
-            )
+            msg = message_of(can_id, payload, flags, stamp_ns / 1e9, channel, dlc)
         else:  # the common case: a classic data frame with an 11-bit id
             msg = new(_Message)
             msg.timestamp = stamp_ns / 1e9

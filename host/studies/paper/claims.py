@@ -8,8 +8,9 @@ the rules are calibrated).  The rules themselves are :mod:`host.studies.paper.ve
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -71,6 +72,9 @@ def experiment(law: str, **kw: Any) -> Experiment:
     return Experiment(law=law, **kw)
 
 
+_K = TypeVar("_K")
+
+
 class SweepRuns:
     """Finished runs of a sweep folder, looked up by experiment."""
 
@@ -115,6 +119,16 @@ class SweepRuns:
         if v is None:
             raise LookupError(f"experiment {e.id}: no finished run with a trial in {self.out}")
         return v
+
+    def floors(self, e: Experiment) -> tuple[np.ndarray, np.ndarray]:
+        """The errors a run converged to: (MaxE, MAE) per joint of its last trial, deg
+        (:meth:`need_final`: the caller has checked that the run exists)."""
+        return self.need_final(e, "max_abs_deg"), self.need_final(e, "mae_deg")
+
+    def floors_by(self, exps: Mapping[_K, Experiment]) -> tuple[dict[_K, np.ndarray], dict[_K, np.ndarray]]:
+        """:meth:`floors` of several runs keyed alike: (MaxE by key, MAE by key)."""
+        floors = {k: self.floors(e) for k, e in exps.items()}
+        return {k: f[0] for k, f in floors.items()}, {k: f[1] for k, f in floors.items()}
 
 
 def settle_of(runs: SweepRuns, e: Experiment) -> int | None:
@@ -171,35 +185,19 @@ def _verdict_finals(runs: SweepRuns, law: str, v: dict[str, Verdict]) -> None:
     if law != BASELINE_LAW:
         claim = C["table2"] if law == PAPER_LAW else f"{label} gives smaller MaxE and mean error than D-ILC on every joint"
         if runs.usable(a) and runs.usable(b):
-            v["table2"] = verdict_beats(
-                runs.need_final(a, "max_abs_deg"),
-                runs.need_final(a, "mae_deg"),
-                runs.need_final(b, "max_abs_deg"),
-                runs.need_final(b, "mae_deg"),
-                label,
-                "D-ILC",
-                claim,
-            )
+            v["table2"] = verdict_beats(*runs.floors(a), *runs.floors(b), label, "D-ILC", claim)
         else:
             v["table2"] = missing(claim, f"{a.id}, {b.id}", criterion_beats(label, "D-ILC"))
     claim = C["table4"] if law == PAPER_LAW else f"with {label}, the converged errors are similar across the paths"
     ps = {p: experiment(law, path=p) for p in ("1", "2", "3", "4")}
     if all(runs.usable(e) for e in ps.values()):
-        v["table4"] = verdict_paths(
-            {p: runs.need_final(e, "max_abs_deg") for p, e in ps.items()},
-            {p: runs.need_final(e, "mae_deg") for p, e in ps.items()},
-            claim=claim,
-        )
+        v["table4"] = verdict_paths(*runs.floors_by(ps), claim=claim)
     else:
         v["table4"] = missing(claim, "paths 1-4", criterion_paths())
     claim = C["table5"] if law == PAPER_LAW else f"with {label}, slower cycles give smaller errors on every joint"
     cs = {c: experiment(law, cycle_s=c) for c in (0.15, 0.25, 0.50)}
     if all(runs.usable(e) for e in cs.values()):
-        v["table5"] = verdict_cycles(
-            {c: runs.need_final(e, "max_abs_deg") for c, e in cs.items()},
-            {c: runs.need_final(e, "mae_deg") for c, e in cs.items()},
-            claim=claim,
-        )
+        v["table5"] = verdict_cycles(*runs.floors_by(cs), claim=claim)
     else:
         v["table5"] = missing(claim, "0.15/0.25/0.50 s", CRITERION_CYCLES)
     p5 = experiment(law, profile="poly5")
@@ -209,13 +207,7 @@ def _verdict_finals(runs: SweepRuns, law: str, v: dict[str, Verdict]) -> None:
             crit = criterion_profiles_similar() if key == "table6_similar" else CRITERION_PROFILES_ORDER
             v[key] = missing(claim, p5.id, crit)
         elif key == "table6_similar":
-            v[key] = verdict_profiles_similar(
-                runs.need_final(a, "max_abs_deg"),
-                runs.need_final(a, "mae_deg"),
-                runs.need_final(p5, "max_abs_deg"),
-                runs.need_final(p5, "mae_deg"),
-                claim=claim,
-            )
+            v[key] = verdict_profiles_similar(*runs.floors(a), *runs.floors(p5), claim=claim)
         else:
             v[key] = verdict_profiles_order(runs.need_final(a, "mae_deg"), runs.need_final(p5, "mae_deg"), claim=claim)
 
@@ -264,22 +256,12 @@ def paper_self_check() -> dict[str, Verdict]:
     """The same rules applied to the paper's own numbers (shows they are calibrated)."""
     T2, T3, T4, T5, T6 = (TABLES[k] for k in ("table2", "table3", "table4", "table5", "table6"))
     return {
-        "table2": verdict_beats(
-            T2.rows["PD-ILC"].max_err_deg,
-            T2.rows["PD-ILC"].mean_err_deg,
-            T2.rows["D-ILC"].max_err_deg,
-            T2.rows["D-ILC"].mean_err_deg,
-        ),
+        "table2": verdict_beats(*T2.rows["PD-ILC"].floors, *T2.rows["D-ILC"].floors),
         "table3": verdict_floor_raised(T3.rows["none"].mean_err_deg, T3.rows["both"].mean_err_deg),
         "table4": verdict_paths({k: r.max_err_deg for k, r in T4.rows.items()}, {k: r.mean_err_deg for k, r in T4.rows.items()}),
         "table5": verdict_cycles(
             {float(k): r.max_err_deg for k, r in T5.rows.items()}, {float(k): r.mean_err_deg for k, r in T5.rows.items()}
         ),
-        "table6_similar": verdict_profiles_similar(
-            T6.rows["poly4567"].max_err_deg,
-            T6.rows["poly4567"].mean_err_deg,
-            T6.rows["poly5"].max_err_deg,
-            T6.rows["poly5"].mean_err_deg,
-        ),
+        "table6_similar": verdict_profiles_similar(*T6.rows["poly4567"].floors, *T6.rows["poly5"].floors),
         "table6_order": verdict_profiles_order(T6.rows["poly4567"].mean_err_deg, T6.rows["poly5"].mean_err_deg),
     }

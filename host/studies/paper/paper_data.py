@@ -57,6 +57,11 @@ class PaperRow:
     max_err_deg: Joint4
     mean_err_deg: Joint4
 
+    @property
+    def floors(self) -> tuple[Joint4, Joint4]:
+        """(MaxE, MAE): what the verdicts take of a run (:meth:`host.studies.paper.claims.SweepRuns.floors`)."""
+        return self.max_err_deg, self.mean_err_deg
+
 
 @dataclass(frozen=True)
 class PaperTable:
