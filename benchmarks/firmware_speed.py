@@ -13,6 +13,8 @@
 
     python benchmarks/firmware_speed.py [--repeat 2] [--iterations 3] [--no-rig]
 
+On a heavily loaded machine give the rig's timeouts room with ``ILCRIG_TIMEOUT_SCALE`` (e.g. 4).
+
 Both firmwares give the same results bit for bit (tests/test_firmware_c.py); this measures only time.
 """
 
@@ -48,7 +50,7 @@ def per_tick_ns(kind: str, loop: int, calls: int, rounds: int) -> float:
     st[cl.P_KP], st[cl.P_KD], st[cl.P_TLIM] = 78539816, 1570796, 264_600_000
     st[cl.P_KPP], st[cl.P_KVP], st[cl.P_KVI] = 5242880, 2356194, 235619
     tables, rec = cl.new_tables(1001), cl.new_recorder(1001)
-    tables[0, :] = range(1001)
+    tables[0, :1001] = range(1001)
     tick(0, 0, 0, st, tables, rec)  # compiled / loaded before timing
     times = []
     for _ in range(rounds):
@@ -111,7 +113,11 @@ def main() -> None:
         if bare:
             floors.append(float(bare))
         for kind in FIRMWARES:
-            tps, digest = rig_ticks_per_s(kind, args.iterations)
+            try:
+                tps, digest = rig_ticks_per_s(kind, args.iterations)
+            except RuntimeError as exc:  # a busy machine can starve a run (ILCRIG_TIMEOUT_SCALE helps): say so, go on
+                print(f"  a {kind} rig run failed: {exc}")
+                continue
             rigs[kind].append(tps)
             digests.add(digest)
     load1 = os.getloadavg()[0]
@@ -119,6 +125,8 @@ def main() -> None:
     print(f"ilcrig run over the hub ({args.iterations} x 1001-tick trials), lockstep ticks/s, best of {args.repeat}:")
     print(f"  floor {best_floor:8,.0f}   (all: {' '.join(f'{x:,.0f}' for x in floors)})")
     for kind in FIRMWARES:
+        if not rigs[kind]:
+            continue
         best = max(rigs[kind])
         print(f"  {kind:<6}{best:8,.0f}   {best / best_floor:.2f} x floor   (all: {' '.join(f'{x:,.0f}' for x in rigs[kind])})")
     print(f"  load average {load0:.1f} -> {load1:.1f}; trace digests equal: {len(digests) == 1}")
