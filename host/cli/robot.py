@@ -1,8 +1,8 @@
 """``ilcrig robot``: the four drives and the plant as a robot on the bus, for any CANopen master.
 
 This module owns the ``robot`` subcommand's options (bus, real-time, ``--out``, ``--param-dir``,
-``--view``), their typed form (:func:`robot_options`) and :func:`cmd_robot`, which hands them to the
-launcher (:func:`host.rig.robot_launcher.launch_robot`, docs/robot.md).
+``--view``, ``--firmware``), their typed form (:func:`robot_options`) and :func:`cmd_robot`, which hands
+them to the launcher (:func:`host.rig.robot_launcher.launch_robot`, docs/robot.md).
 
 May import: what ``host.cli`` may.
 """
@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 from typing import TYPE_CHECKING, Any
 
-from host.cli.options import add_bus_args, add_realtime_args, add_view_arg, options_of
+from host.cli.options import add_bus_args, add_firmware_arg, add_realtime_args, add_view_arg, options_of
 
 if TYPE_CHECKING:
     from host.rig.options import RobotOptions
@@ -38,6 +38,7 @@ def add_parser(sub: Any) -> None:
         help="folder where the drives keep the parameters a master saves with 0x1010 (default: in memory, one session)",
     )
     add_view_arg(op)
+    add_firmware_arg(op)
     op.set_defaults(func=cmd_robot)
 
 

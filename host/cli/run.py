@@ -1,7 +1,7 @@
 """``ilcrig run``: an experiment on the distributed rig (hub, plant, four drives, host as processes).
 
-This module owns the ``run`` subcommand's options (experiment, bus, rig, ``--inject``), their typed
-form (:func:`run_options`) and :func:`cmd_run`, which hands them to the launcher
+This module owns the ``run`` subcommand's options (experiment, bus, rig with ``--firmware``,
+``--inject``), their typed form (:func:`run_options`) and :func:`cmd_run`, which hands them to the launcher
 (:func:`host.rig.launcher.launch_rig`: preflight, start, watch, clean up).
 
 May import: what ``host.cli`` may.

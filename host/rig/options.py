@@ -34,6 +34,7 @@ class RigOptions:
     :ivar allow_remote: ``--allow-remote`` (a hub address off this machine)
     :ivar view: ``--view``
     :ivar debug: ``--debug``
+    :ivar firmware: ``--firmware``, the drives' control-period implementation (``python``, ``c``, ``pil``)
     """
 
     bus: str = "auto"
@@ -45,6 +46,7 @@ class RigOptions:
     allow_remote: bool = False
     view: bool = False
     debug: bool = False
+    firmware: str = "python"
 
 
 @dataclass(frozen=True)

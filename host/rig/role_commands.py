@@ -88,8 +88,9 @@ def host_role_args(experiment: ExperimentOptions) -> list[str]:
 
 
 def rig_role_args(options: RunOptions) -> list[str]:
-    """The rig options of ``run`` (``--realtime``, ``--view``, ``--bus-time``, ``--io-bitrate``) that the host role takes too
-    (``--fieldbus-bitrate`` is an experiment option and goes with :func:`host_role_args`)."""
+    """The rig options of ``run`` (``--realtime``, ``--view``, ``--bus-time``, ``--io-bitrate``, ``--firmware``) that the
+    host role takes too (``--fieldbus-bitrate`` is an experiment option and goes with :func:`host_role_args`; the host
+    records the drives' firmware in the summary)."""
     argv = ["--realtime"] if options.realtime else []
     if options.view:
         argv.append("--view")
@@ -97,6 +98,8 @@ def rig_role_args(options: RunOptions) -> list[str]:
         argv.append("--bus-time")
     if options.io_bitrate is not None:
         argv += ["--io-bitrate", str(options.io_bitrate)]
+    if options.firmware != "python":
+        argv += ["--firmware", options.firmware]
     return argv
 
 
