@@ -1,7 +1,9 @@
 """firmware_model: the servo drive's firmware.
 
 Owns, one module each: the fixed-point control law (:mod:`firmware_model.control_law`, numba
-kernel), the CiA 402 state machine (:mod:`firmware_model.cia402`), the power stage -- torque
+kernel: the reference model; the same control period in C99 is ``c/ilc_control.c`` with its
+interface ``c/ilc_drive.h``, built as the extension ``_fwcore``), which implementation a drive runs
+(:mod:`firmware_model.firmware_select`, ``--firmware``; docs/firmware.md), the CiA 402 state machine (:mod:`firmware_model.cia402`), the power stage -- torque
 on/off, quick stop, faults, communication errors, EMCY, SAFE-STATE records
 (:mod:`firmware_model.power_stage`) --, the motion profile generator in fixed point
 (:mod:`firmware_model.profile`), the operation modes that play trials -- table playback, CSP, CSV,

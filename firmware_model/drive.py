@@ -66,6 +66,7 @@ from bus.objects import (
 )
 from firmware_model import control_law
 from firmware_model.cyclic_pdo import CyclicPdo
+from firmware_model.firmware_select import DEFAULT_FIRMWARE, control_tick_for
 from firmware_model.modes import MotionContext
 from firmware_model.motion import Motion
 from firmware_model.od_hooks import ObjectHooks, eds_default
@@ -110,7 +111,11 @@ class Drive:
     :param eds_path: EDS describing the object dictionary.
     :param clock: the drive's time [s] for its timers (default: :meth:`lockstep_time_s`).
     :param param_dir: where 0x1010 saves the parameters (a file per node); None: in memory.
+    :param firmware: the implementation of the control period it runs, one of
+        :data:`firmware_model.firmware_select.FIRMWARES` (``python``: the reference model; ``c``:
+        the C core, software in the loop).
     :raises ValueError: bad node id, or an EDS without the defaults/limits the drive needs.
+    :raises InputError: a firmware this installation cannot run.
 
     :ivar store: the object store.
     :ivar trial: trial playback.
@@ -127,6 +132,7 @@ class Drive:
         *,
         clock: Callable[[], float] | None = None,
         param_dir: str | Path | None = None,
+        firmware: str = DEFAULT_FIRMWARE,
     ) -> None:
         if not 1 <= int(node_id) <= 127:
             raise ValueError(f"node id must be 1..127, got {node_id}")
@@ -149,7 +155,10 @@ class Drive:
         values = self.store.values
         self.trial = TrialPlayback(self.node_id, eds_default(self.store, Obj.TABLE, TableSub.CAPACITY))
         self.power = PowerStage(self.node_id, self._st, self.trial, lambda: self.nmt_state, values)
-        ctx = MotionContext(self._st, self.trial, values, rated_mnm, self.power, ProfileGenerator())
+        #: the firmware this drive runs (``--firmware``)
+        self.firmware = firmware
+        kernel = control_tick_for(firmware, self.node_id)
+        ctx = MotionContext(self._st, self.trial, values, rated_mnm, self.power, ProfileGenerator(), kernel)
         self.motion = Motion(self.node_id, ctx, self.power)
         self.power.motion = self.motion
         self.power.nmt_reaction = self._nmt_error_reaction

@@ -331,6 +331,7 @@ def run_node(
     *,
     param_dir: str | None = None,
     lockstep: bool = False,
+    firmware: str = "python",
 ) -> str | None:
     """Drive process entry: build the Drive and both buses, serve until stopped, clean up.
 
@@ -340,6 +341,7 @@ def run_node(
     :param stop: stop event; by default a new one set by SIGTERM/SIGINT.
     :param param_dir: folder of the parameters 0x1010 saves (``node<id>.json``); None: in memory.
     :param lockstep: a drive of a SYNC-stepped plant (:class:`DriveNode`, ``ilcrig robot``).
+    :param firmware: the control period's implementation (``--firmware``, :mod:`firmware_model.firmware_select`).
     :returns: None, or why the node stopped early (a bus failed; the drive faulted first).
     """
     from firmware_model.control_law import warm_up
@@ -349,7 +351,7 @@ def run_node(
     if stop is None:
         stop = threading.Event()
         install_sigterm(stop)
-    drive = Drive(node_id, param_dir=param_dir)
+    drive = Drive(node_id, param_dir=param_dir, firmware=firmware)
     fieldbus = can.Bus(**fieldbus_config)
     try:
         io = can.Bus(**io_config)
@@ -379,10 +381,20 @@ class DriveOptions:
     param_dir: str | None = None
     #: a drive of a SYNC-stepped plant (``ilcrig robot``)
     lockstep: bool = False
+    #: the control period's implementation (``--firmware``: python, c, pil)
+    firmware: str = "python"
 
 
 def run_drive(opts: DriveOptions, stop: threading.Event | None = None) -> int:
     """The drive process: :func:`run_node` with ``opts``; returns the exit code (3 when a bus failed
     and the node stopped early, 0 otherwise)."""
-    lost = run_node(opts.node_id, opts.fieldbus_config, opts.io_config, stop, param_dir=opts.param_dir, lockstep=opts.lockstep)
+    lost = run_node(
+        opts.node_id,
+        opts.fieldbus_config,
+        opts.io_config,
+        stop,
+        param_dir=opts.param_dir,
+        lockstep=opts.lockstep,
+        firmware=opts.firmware,
+    )
     return EXIT_FAULT if lost else EXIT_OK

@@ -4,7 +4,8 @@ Owns the base class of the modes (:class:`OperationMode`) and the modes that pla
 playback and the cyclic synchronous modes.  Profile position and homing are
 :mod:`firmware_model.positioning`; the mode selected now, the quick-stop ramp and the homing
 offset are :mod:`firmware_model.motion`.  Each mode turns (tick, encoder count [counts]) into a
-torque [µN·m] with :func:`firmware_model.control_law.control_tick`; the trial bookkeeping (tick 0
+torque [µN·m] with the drive's control-period kernel (:attr:`MotionContext.control_tick`: the
+firmware it runs, :mod:`firmware_model.firmware_select`); the trial bookkeeping (tick 0
 starts an armed trial, then ticks must come in order, N ticks end it) is the same for every mode
 that plays trials (:meth:`OperationMode.in_sequence`).  A tick out of sequence and a following
 error are faults of the power stage (:class:`FaultSink`).
@@ -50,13 +51,13 @@ from bus import fixedpoint as fp
 from bus.cia301.object_store import Key, Value
 from bus.objects import ModeOfOperation, Obj, TrialState
 from firmware_model import control_law
+from firmware_model.firmware_select import ControlTick
 from firmware_model.playback import TrialPlayback
 from firmware_model.profile import ProfileGenerator
 
 logger = logging.getLogger(__name__)
 
 _RUNNING = TrialState.RUNNING
-_CONTROL_TICK = control_law.control_tick
 _S_VF, _S_HAVE_PREV, _S_ERR = control_law.S_VF, control_law.S_HAVE_PREV, control_law.S_ERR
 _S_POS, _S_VEST = control_law.S_POS, control_law.S_VEST
 _P_KP, _P_KD, _P_FE, _P_RATE = control_law.P_KP, control_law.P_KD, control_law.P_FE_WINDOW, control_law.P_RATE
@@ -87,6 +88,8 @@ class MotionContext:
     :ivar rated_mnm: rated torque 0x6076 [mN·m] (‰ set-points → µN·m).
     :ivar faults: where faults go.
     :ivar gen: the profile generator the profile-based modes and the quick-stop ramp share.
+    :ivar control_tick: the drive's control-period kernel, the firmware it runs
+        (:func:`firmware_model.firmware_select.control_tick_for`; default: the Python model).
     """
 
     st: npt.NDArray[np.int64]
@@ -95,6 +98,7 @@ class MotionContext:
     rated_mnm: int
     faults: FaultSink
     gen: ProfileGenerator
+    control_tick: ControlTick = control_law.control_tick
 
 
 class OperationMode(ABC):
@@ -118,6 +122,7 @@ class OperationMode(ABC):
         self.rated_mnm = ctx.rated_mnm
         self.faults = ctx.faults
         self.gen = ctx.gen
+        self.control_tick = ctx.control_tick
 
     def reset(self) -> None:  # noqa: B027 - a mode without state between ticks has nothing to forget
         """Forget what earlier ticks left (NMT reset node, this mode selected again)."""
@@ -201,11 +206,11 @@ class TablePlaybackMode(OperationMode):
         trial = self.trial
         if trial.state != _RUNNING:
             trial.hold_here(encoder_count)
-            tau, status = _CONTROL_TICK(encoder_count, trial.capacity, -1, self.st, trial.tables, trial.rec)
+            tau, status = self.control_tick(encoder_count, trial.capacity, -1, self.st, trial.tables, trial.rec)
             if status:
                 return self._following_error_fault(-1)
             return tau
-        tau, status = _CONTROL_TICK(encoder_count, tick, tick, self.st, trial.tables, trial.rec)
+        tau, status = self.control_tick(encoder_count, tick, tick, self.st, trial.tables, trial.rec)
         trial.next_tick = tick + 1
         if status:
             return self._following_error_fault(tick)
@@ -286,7 +291,7 @@ class CspMode(CyclicSynchronousMode):
         vref = 0 if prev is None else fp.sat32(fp.rshift_round(fp.sat32(target - prev) * int(st[_P_RATE]), fp.VEL_STATE_Q))
         self._prev_target = target
         sp[0, 0], sp[1, 0], sp[2, 0] = target, vref, fp.sat32(self._offset_units())
-        return _CONTROL_TICK(encoder_count, 0, rec_index, st, sp, self.trial.rec)
+        return self.control_tick(encoder_count, 0, rec_index, st, sp, self.trial.rec)
 
 
 class CsvMode(CyclicSynchronousMode):
@@ -309,7 +314,7 @@ class CsvMode(CyclicSynchronousMode):
         v_target = int(self.values[_TARGET_VELOCITY])
         gen.step_velocity(fp.per_tick_q16(v_target, self.period_us(), 1))
         sp[0, 0], sp[1, 0], sp[2, 0] = gen.position_counts, v_target, fp.sat32(self._offset_units())
-        return _CONTROL_TICK(encoder_count, 0, rec_index, st, sp, self.trial.rec)
+        return self.control_tick(encoder_count, 0, rec_index, st, sp, self.trial.rec)
 
 
 class CstMode(CyclicSynchronousMode):
@@ -328,6 +333,6 @@ class CstMode(CyclicSynchronousMode):
         sp[1, 0] = 0
         sp[2, 0] = fp.sat32(target_torque + self._offset_units())
         try:
-            return _CONTROL_TICK(encoder_count, 0, rec_index, st, sp, self.trial.rec)
+            return self.control_tick(encoder_count, 0, rec_index, st, sp, self.trial.rec)
         finally:
             st[_P_KP], st[_P_KD], st[_P_FE], st[_P_LOOP] = saved

@@ -53,7 +53,6 @@ MODE_CLASSES: dict[int, type[OperationMode]] = {
     cls.CODE: cls for cls in (TablePlaybackMode, ProfilePositionMode, HomingMode, CspMode, CsvMode, CstMode)
 }
 
-_CONTROL_TICK = control_law.control_tick
 _S_POS, _S_PREV, _S_ERR = control_law.S_POS, control_law.S_PREV_COUNT, control_law.S_ERR
 
 
@@ -86,6 +85,7 @@ class Motion:
         self._values = ctx.values
         self._trial = ctx.trial
         self._st = ctx.st
+        self._control_tick = ctx.control_tick
         self._power = power
         self.gen = ctx.gen
         self.modes: dict[int, OperationMode] = {}
@@ -171,7 +171,7 @@ class Motion:
         period = self.mode.period_us()
         gen.step_stop(fp.per_tick_q16(int(self._values[self._qs_decel]), period, 2))
         sp[0, 0], sp[1, 0], sp[2, 0] = gen.position_counts, fp.velocity_from_tick_q16(gen.v, period), 0
-        tau, status = _CONTROL_TICK(count, 0, -1, self._st, sp, self._trial.rec)
+        tau, status = self._control_tick(count, 0, -1, self._st, sp, self._trial.rec)
         if status:
             return self._power.following_error(int(self._st[_S_ERR]))
         if gen.standstill:

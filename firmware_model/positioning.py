@@ -46,7 +46,6 @@ from firmware_model.modes import MotionContext, OperationMode
 
 logger = logging.getLogger(__name__)
 
-_CONTROL_TICK = control_law.control_tick
 _S_POS = control_law.S_POS
 _NEW_SETPOINT = int(Controlword.NEW_SETPOINT)
 _IMMEDIATELY = int(Controlword.CHANGE_IMMEDIATELY)
@@ -100,7 +99,7 @@ class _ProfileMode(OperationMode):
         """The PD loop on the generator's demand this cycle: torque [µN·m]."""
         gen, sp = self.gen, self._setpoint
         sp[0, 0], sp[1, 0], sp[2, 0] = gen.position_counts, fp.velocity_from_tick_q16(gen.v, self.period_us()), 0
-        tau, status = _CONTROL_TICK(encoder_count, 0, -1, self.st, sp, self.trial.rec)
+        tau, status = self.control_tick(encoder_count, 0, -1, self.st, sp, self.trial.rec)
         if status:
             return self._following_error_fault(-1)
         return tau

@@ -6,7 +6,9 @@ This module owns :class:`Experiment`, :class:`Session` (the in-process trial-by-
 command line (``law``, ``iterations``, ``path``, ``cycle_s``, ``profile``, ``disturbance``, ``seed``,
 ``ts_s``, ``substeps``, ``ff0``, ``following_error_deg``, ``ff_transport``, ``fieldbus_bitrate``,
 ``force_bus_fit``, ``gains`` = a dict of ``[gains]`` keys, ``law_options`` = a dict), with the same
-validation and the same one-line messages (:class:`ilcrig.InputError`).  A thin wrapper over host
+validation and the same one-line messages (:class:`ilcrig.InputError`); ``firmware`` (the drives'
+control period, ``--firmware``: ``python``, ``c``, ``pil``) is not a configuration key -- it does
+not change the experiment -- and goes with the experiment to its in-process and rig runs.  A thin wrapper over host
 code: the configuration is :func:`host.experiment.config.build_config`'s, the plan
 :func:`host.experiment.console.prepared`'s, and an in-process run is
 :class:`host.sim.session.SimSession` — the run of ``ilcrig sim``, so their digests are the CLI's.
@@ -143,6 +145,8 @@ class Experiment:
     :param gains: ``[gains]`` keys (``preset``, ``alpha``, ``beta``, ``lp``, ``ld``, …)
     :param law_options: the law's own options
     :param plant: plant uncertainty factors (``inertia_scale``, ``mass_scale``, …)
+    :param firmware: the drives' control period, ``python`` (the reference model), ``c`` (the C core,
+        software in the loop) or ``pil`` (``--firmware``, docs/firmware.md) [``python``]
     :param unknown: no other key: refused with the closest known key as a hint
     :raises InputError: a bad key or value (the command line's one-line message).
     """
@@ -169,10 +173,15 @@ class Experiment:
         gains: dict[str, Any] | None = None,
         law_options: dict[str, Any] | None = None,
         plant: dict[str, Any] | None = None,
+        firmware: str | None = None,
         **unknown: Any,
     ) -> None:
+        from host.sim.session import check_firmware
+
         if unknown:
             raise _suggest(unknown)
+        #: the drives' firmware (``--firmware``), checked now: before anything starts
+        self.firmware: str = check_firmware(firmware if firmware is not None else "python")
         given = {
             "law": law,
             "iterations": iterations,
@@ -210,7 +219,7 @@ class Experiment:
     def from_config(cls, config: ExperimentConfig) -> Experiment:
         """An experiment of an already validated configuration."""
         exp = cls.__new__(cls)
-        exp.config, exp._plan = config, None
+        exp.config, exp._plan, exp.firmware = config, None, "python"
         return exp
 
     def __repr__(self) -> str:
@@ -221,7 +230,7 @@ class Experiment:
         """A copy with ``keys`` changed (validated like the constructor's)."""
         base = {k: v for k, v in self.config.as_dict().items() if k != "gains"}
         base["gains"] = gains_table(self.config.gains) | dict(keys.pop("gains", None) or {})
-        return Experiment(**(base | keys))
+        return Experiment(**({"firmware": self.firmware} | base | keys))
 
     @property
     def plan(self) -> Plan:
@@ -279,7 +288,7 @@ class Experiment:
         if mode == "rig":
             from ilcrig.rig import RigRun
 
-            with RigRun(self.config, out, stream=stream, **rig) as run:
+            with RigRun(self.config, out, stream=stream, firmware=self.firmware, **rig) as run:
                 for _ in run:
                     pass
             return run.results
@@ -297,7 +306,7 @@ class Experiment:
         if mode == "rig":
             from ilcrig.rig import RigRun
 
-            with RigRun(self.config, out, **rig) as run:
+            with RigRun(self.config, out, firmware=self.firmware, **rig) as run:
                 yield from run
             return
         raise InputError(f"mode must be 'sim' or 'rig', got {mode!r}")
@@ -320,7 +329,7 @@ class Session:
 
         self.experiment = experiment
         plan = experiment.plan
-        self._sim = SimSession(plan, out, stream=stream, view=view)
+        self._sim = SimSession(plan, out, stream=stream, view=view, firmware=experiment.firmware)
         self.out = self._sim.out
         self.stream = stream
         #: the live stream's address (``rerun+http://127.0.0.1:PORT/proxy``) with ``view``, else None

@@ -65,6 +65,7 @@ class RigRun:
     :param realtime: pace the plant to the wall clock (``--realtime``)
     :param bus_time: the hub carries the channels in bus time (``--bus-time``)
     :param io_bitrate: the io channel's bit rate for the bus-time figures, bit/s
+    :param firmware: the drives' control period (``--firmware``: ``python``, ``c``, ``pil``)
     :param timeout_s: stop the rig (and raise :class:`ilcrig.RigError`) after this long (None: no limit)
     """
 
@@ -79,10 +80,14 @@ class RigRun:
         realtime: bool = False,
         bus_time: bool = False,
         io_bitrate: int | None = None,
+        firmware: str = "python",
         timeout_s: float | None = None,
     ) -> None:
         from host.experiment.outputs import check_out_dir
         from host.experiment.plan import prepare
+        from host.sim.session import check_firmware
+
+        check_firmware(firmware)  # refused with one line before anything starts
 
         if not isinstance(config, ExperimentConfig):  # an ilcrig.Experiment (not imported: no import circle)
             config = getattr(config, "config", config)
@@ -120,6 +125,8 @@ class RigRun:
             argv.append("--bus-time")
         if io_bitrate is not None:
             argv += ["--io-bitrate", str(int(io_bitrate))]
+        if firmware != "python":
+            argv += ["--firmware", firmware]
         env = dict(os.environ)
         # the folder that holds the project's packages first: a plant.py, bus.py or host.py in the
         # user's folders (on this process's sys.path) must not shadow them in the rig's processes

@@ -5,7 +5,7 @@
  * first-order IIR filter; PD or the cascade position P -> velocity PI with clamping anti-windup;
  * the feed-forward table value; the torque clamp; the following-error count; the recorder write)
  * and of the integer helpers of bus/fixedpoint.py it uses (sat32, sat, rshift_round).  The
- * formats are defined in bus/fixedpoint.py; the Q shifts below mirror its constants (the test
+ * formats are defined in bus/fixedpoint.py; the Q shifts of ilc_drive.h mirror its constants (the test
  * tests/test_firmware_c.py checks that they are equal).
  *
  * Integer semantics (why this is bit-exact and free of undefined behaviour):
@@ -25,11 +25,7 @@
  */
 #include "ilc_drive.h"
 
-/* bus/fixedpoint.py */
-#define ILC_ACC_Q 16      /* ACC_Q: the PD / velocity-loop accumulator */
-#define ILC_GAIN_Q 16     /* GAIN_Q: cascade gains */
-#define ILC_VEL_FILTER_Q 15 /* VEL_FILTER_Q */
-#define ILC_VEL_STATE_Q 12  /* VEL_STATE_Q */
+/* the int ranges of bus/fixedpoint.py */
 #define ILC_INT32_MIN (-INT64_C(2147483647) - 1)
 #define ILC_INT32_MAX INT64_C(2147483647)
 #define ILC_INT16_MIN INT64_C(-32768)

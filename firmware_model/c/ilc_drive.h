@@ -70,6 +70,14 @@ extern "C" {
 #define ILC_REC_TAU 2       /* torque command, µN·m */
 #define ILC_REC_TAU_FB 3    /* feedback torque, µN·m */
 
+/* Q shifts of bus/fixedpoint.py (defined there; mirrored here for C code, checked equal by
+   tests/test_firmware_c.py) */
+#define ILC_ACC_Q 16        /* ACC_Q: the PD / velocity-loop accumulator */
+#define ILC_GAIN_Q 16       /* GAIN_Q: cascade gains */
+#define ILC_VEL_FILTER_Q 15 /* VEL_FILTER_Q: filter coefficient */
+#define ILC_VEL_STATE_Q 12  /* VEL_STATE_Q: velocity filter state */
+#define ILC_RATE_Q 12       /* RATE_Q: tick rate */
+
 /* status codes of ilc_control_tick */
 #define ILC_STATUS_OK 0
 #define ILC_STATUS_FOLLOWING_ERROR 1

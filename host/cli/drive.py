@@ -1,7 +1,7 @@
 """``ilcrig drive``: one servo-drive node (the firmware) on the bus.
 
 This module owns the ``drive`` subcommand's options (``--node``, ``--param-dir``, ``--lockstep``,
-the bus options) and :func:`cmd_drive`, which resolves the transport and hands the whole process to
+``--firmware``, the bus options) and :func:`cmd_drive`, which resolves the transport and hands the whole process to
 the firmware with a typed :class:`firmware_model.drive_node.DriveOptions`
 (:func:`firmware_model.drive_node.run_drive`).  It is why ``host.cli`` may import
 ``firmware_model`` (tests/test_architecture.py).
@@ -15,7 +15,7 @@ import argparse
 from typing import Any
 
 from bus.errors import InputError
-from host.cli.options import add_bus_args, bus_errors, role_logging, transport_of
+from host.cli.options import add_bus_args, add_firmware_arg, bus_errors, role_logging, transport_of
 
 __all__ = ["add_parser", "cmd_drive"]
 
@@ -36,6 +36,7 @@ def add_parser(sub: Any) -> None:
         help="a drive of a SYNC-stepped plant (ilcrig robot): a SYNC's TPDOs carry its control cycle, "
         "the PDO timers count control periods (docs/robot.md)",
     )
+    add_firmware_arg(dp)
     add_bus_args(dp)
     dp.set_defaults(func=cmd_drive)
 
@@ -54,6 +55,7 @@ def cmd_drive(args: argparse.Namespace) -> int:
         resolve_bus_config(tc.io),
         param_dir=args.param_dir,
         lockstep=args.lockstep,
+        firmware=args.firmware,
     )
     role_logging()
     with bus_errors(tc.name):

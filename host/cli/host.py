@@ -72,6 +72,7 @@ def host_options(args: argparse.Namespace) -> HostOptions:
         bus_time=bool(args.bus_time),
         view=bool(args.view),
         inject_disk_full=args.inject_disk_full,
+        firmware=args.firmware,
     )
 
 

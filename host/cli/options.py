@@ -6,8 +6,9 @@ This module owns the experiment options' parser (:func:`add_experiment_args`, bu
 :func:`transport_of`), the real-time options (``--realtime``, ``--rt-priority``,
 ``--no-idle-poll``: :func:`add_realtime_args`, used by ``run``, ``host`` and ``robot``), the rig
 options that do not change the experiment (:func:`add_rig_args`: the real-time options,
-``--io-bitrate``, ``--view``, ``--bus-time``), ``--view`` (:func:`add_view_arg`), the option value
-types (:func:`rt_priority`, :func:`bitrate`), what every node role does around its loop
+``--io-bitrate``, ``--view``, ``--bus-time``, ``--firmware``), ``--view`` (:func:`add_view_arg`),
+``--firmware`` (:func:`add_firmware_arg`: the drives' firmware, checked at parse time), the option
+value types (:func:`rt_priority`, :func:`bitrate`, :func:`firmware`), what every node role does around its loop
 (:func:`role_logging`, :func:`bus_errors`).
 
 May import: what ``host.cli`` may (it is part of it); kept import-light: every role parses the
@@ -34,12 +35,14 @@ __all__ = [
     "BusUnavailable",
     "add_bus_args",
     "add_experiment_args",
+    "add_firmware_arg",
     "add_realtime_args",
     "add_rig_args",
     "add_view_arg",
     "bitrate",
     "bus_errors",
     "bus_options",
+    "firmware",
     "role_logging",
     "rt_priority",
     "transport_of",
@@ -140,6 +143,7 @@ def add_rig_args(p: argparse.ArgumentParser) -> None:
         help="bit rate of the io channel for the bus-time figures (default 1000000)",
     )
     add_view_arg(p)
+    add_firmware_arg(p)
     p.add_argument(
         "--bus-time",
         action="store_true",
@@ -156,6 +160,34 @@ def add_view_arg(p: argparse.ArgumentParser) -> None:
         help="stream to a Rerun viewer as it happens: the viewer opens when there is a display, otherwise the "
         "stream is served on 127.0.0.1 and the command that connects a viewer is printed",
     )
+
+
+def add_firmware_arg(p: argparse.ArgumentParser) -> None:
+    """``--firmware {python,c,pil}``: the implementation of the drives' control period (the results and
+    the digest are the same with each; docs/firmware.md)."""
+    from firmware_model.firmware_select import DEFAULT_FIRMWARE, FIRMWARES
+
+    p.add_argument(
+        "--firmware",
+        type=firmware,
+        default=DEFAULT_FIRMWARE,
+        metavar="{" + ",".join(FIRMWARES) + "}",
+        help="the drives' control period: python (the reference model), c (the C core, software in the loop), "
+        "pil (processor in the loop) (default %(default)s; docs/firmware.md)",
+    )
+
+
+def firmware(text: str) -> str:
+    """``--firmware``: one of :data:`firmware_model.firmware_select.FIRMWARES` that this installation can
+    run (``c`` needs the built extension) -- checked when the command line is parsed, before any
+    process starts."""
+    from bus.errors import InputError
+    from firmware_model.firmware_select import check_firmware
+
+    try:
+        return check_firmware(text)
+    except InputError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("--firmware: ")) from None  # argparse names it
 
 
 def rt_priority(text: str) -> int:

@@ -1,7 +1,7 @@
 """``ilcrig robot``: the four drives and the plant as a robot on the bus, for any CANopen master.
 
 This module owns the ``robot`` subcommand's options (bus, real-time, ``--out``, ``--param-dir``,
-``--view``) and :func:`cmd_robot`, which hands them to the launcher
+``--view``, ``--firmware``) and :func:`cmd_robot`, which hands them to the launcher
 (:func:`host.rig.robot_launcher.launch_robot`, docs/robot.md).
 
 May import: what ``host.cli`` may.
@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from host.cli.options import add_bus_args, add_realtime_args, add_view_arg
+from host.cli.options import add_bus_args, add_firmware_arg, add_realtime_args, add_view_arg
 
 __all__ = ["add_parser", "cmd_robot"]
 
@@ -35,6 +35,7 @@ def add_parser(sub: Any) -> None:
         help="folder where the drives keep the parameters a master saves with 0x1010 (default: in memory, one session)",
     )
     add_view_arg(op)
+    add_firmware_arg(op)
     op.set_defaults(func=cmd_robot)
 
 

@@ -1,6 +1,7 @@
 """``ilcrig run``: an experiment on the distributed rig (hub, plant, four drives, host as processes).
 
-This module owns the ``run`` subcommand's options (experiment, bus, rig, ``--inject``) and
+This module owns the ``run`` subcommand's options (experiment, bus, rig with ``--firmware``,
+``--inject``) and
 :func:`cmd_run`, which hands the parsed options to the launcher
 (:func:`host.rig.launcher.launch_rig`: preflight, start, watch, clean up).
 

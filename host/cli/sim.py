@@ -1,6 +1,7 @@
 """``ilcrig sim``: a whole experiment in one process (no bus).
 
-This module owns the ``sim`` subcommand: its options (the experiment options, ``--view``) and
+This module owns the ``sim`` subcommand: its options (the experiment options, ``--view``,
+``--firmware``) and
 :func:`cmd_sim`, which checks the run folder, builds the configuration and hands a typed
 :class:`host.sim.session.SimOptions` to :func:`host.sim.session.run_sim` (host code, not the
 public API).
@@ -16,7 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from host.cli.options import add_experiment_args, add_view_arg
+from host.cli.options import add_experiment_args, add_firmware_arg, add_view_arg
 from host.experiment.console import experiment_config
 
 __all__ = ["add_parser", "cmd_sim"]
@@ -27,6 +28,7 @@ def add_parser(sub: Any) -> None:
     sp = sub.add_parser("sim", help="run an experiment in one process (no bus)")
     add_experiment_args(sp)
     add_view_arg(sp)
+    add_firmware_arg(sp)
     sp.set_defaults(func=cmd_sim)
 
 
@@ -37,4 +39,4 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
     out = Path(args.out) if args.out is not None else Path("runs") / time.strftime("sim-%Y%m%d-%H%M%S")
     check_out_dir(args.out if args.out is not None else out, create=False, new_run=True)  # fast: before the configuration
-    return run_sim(SimOptions(experiment_config(args), out, view=bool(args.view)), sys.stdout)
+    return run_sim(SimOptions(experiment_config(args), out, view=bool(args.view), firmware=args.firmware), sys.stdout)

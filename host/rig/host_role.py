@@ -62,6 +62,8 @@ class HostOptions:
     view: bool = False
     #: the launcher's ``--inject diskfull@…`` spec text
     inject_disk_full: str | None = None
+    #: the drives' firmware (``--firmware``), recorded in ``summary["bench"]["firmware"]``
+    firmware: str = "python"
 
 
 def run_host_role(opts: HostOptions, cfg: ExperimentConfig, transport: TransportConfig) -> int:
@@ -92,6 +94,7 @@ def run_host_role(opts: HostOptions, cfg: ExperimentConfig, transport: Transport
             io_bitrate=opts.io_bitrate or DEFAULT_BITRATE,
             fieldbus_bitrate=cfg.fieldbus_bitrate,
             bus_time_hub=opts.bus_time,
+            firmware=opts.firmware,
         )
     except (OSError, can.CanError, IlcrigError) as exc:
         _disconnect(network)

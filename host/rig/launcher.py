@@ -184,7 +184,9 @@ class RigLauncher(LaunchCore):
         for node in DRIVE_NODE_IDS:
             if self.interrupts.signum is not None:
                 return self._signal_exit()
-            self.spawn(f"drive{node}", child_argv("drive", bus_args, node=node, debug=debug), log_dir / f"drive{node}.log")
+            firmware = ["--firmware", opts.firmware] if opts.firmware != "python" else []  # (the default)
+            drive_argv = child_argv("drive", bus_args, node=node, extra=firmware, debug=debug)
+            self.spawn(f"drive{node}", drive_argv, log_dir / f"drive{node}.log")
         if self.interrupts.signum is not None:
             return self._signal_exit()
 

@@ -35,6 +35,7 @@ class RigOptions:
     :ivar allow_remote: ``--allow-remote`` (a hub address off this machine)
     :ivar view: ``--view``
     :ivar debug: ``--debug``
+    :ivar firmware: ``--firmware``, the drives' control-period implementation (``python``, ``c``, ``pil``)
     """
 
     bus: str = "auto"
@@ -46,6 +47,7 @@ class RigOptions:
     allow_remote: bool = False
     view: bool = False
     debug: bool = False
+    firmware: str = "python"
 
     @classmethod
     def _common(cls, args: argparse.Namespace) -> dict[str, Any]:
@@ -59,6 +61,7 @@ class RigOptions:
             "allow_remote": bool(getattr(args, "allow_remote", False)),
             "view": bool(getattr(args, "view", False)),
             "debug": bool(getattr(args, "debug", False)),
+            "firmware": str(getattr(args, "firmware", "python")),
         }
 
 

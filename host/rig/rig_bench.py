@@ -96,8 +96,11 @@ class RigBench:
         fieldbus_bitrate: int = DEFAULT_BITRATE,
         bus_time_hub: bool = False,
         rt_scheduling: dict[str, Any] | None = None,
+        firmware: str = "python",
     ) -> None:
         self.cfg = cfg
+        #: the drives' firmware as the launcher started them (``--firmware``; recorded, not checked)
+        self.firmware = firmware
         self.network = network
         self.transport = transport
         self.out_dir = out_dir
@@ -237,6 +240,7 @@ class RigBench:
             "timing": self.trials.timing(self.cfg.ts_s, self.realtime, self.rt_scheduling),
             "emcy": self.watchdog.events.emcy,
             "recoveries": self.bring_up.recoveries,
+            "firmware": self.firmware,
         } | ({"pdo_frames": dict(self.streamer.frames)} if self.streamer is not None else {})
 
     def safe_state(self) -> list[dict[str, Any]]:

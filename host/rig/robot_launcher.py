@@ -117,6 +117,7 @@ class RobotLauncher(LaunchCore):
         # drives of a SYNC-stepped plant: a SYNC's TPDOs carry its control cycle (docs/robot.md, Time)
         param_dir = opts.param_dir
         drive_extra = ["--lockstep"] + (["--param-dir", str(Path(param_dir).resolve())] if param_dir else [])
+        drive_extra += ["--firmware", opts.firmware] if opts.firmware != "python" else []  # (the default)
         for node in DRIVE_NODE_IDS:
             argv = child_argv("drive", bus_args, node=node, extra=drive_extra, debug=debug)
             self.spawn(f"drive{node}", argv, log_dir / f"drive{node}.log")
@@ -278,6 +279,7 @@ class RobotLauncher(LaunchCore):
             "started": self._t0,
             "duration_s": time.time() - self._t0,
             "mode": "realtime" if self.options.realtime else "sync",
+            "firmware": self.options.firmware,
             "transport": self.transport.as_dict() if self.transport is not None else None,
             "processes": {c.name: c.pid for c in self.children} | ({"hub": self.hub_address} if self.hub_address else {}),
             "deaths": [{"name": d.name, "pid": d.pid, "status": d.status} for d in self.deaths],

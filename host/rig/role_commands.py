@@ -84,8 +84,9 @@ def host_role_args(args: argparse.Namespace) -> list[str]:
 
 
 def rig_role_args(args: argparse.Namespace) -> list[str]:
-    """The rig options of ``args`` (``--realtime``, ``--view``, ``--bus-time``, ``--io-bitrate``) that the host role takes too
-    (``--fieldbus-bitrate`` is an experiment option and goes with :func:`host_role_args`)."""
+    """The rig options of ``args`` (``--realtime``, ``--view``, ``--bus-time``, ``--io-bitrate``, ``--firmware``) that the
+    host role takes too (``--fieldbus-bitrate`` is an experiment option and goes with :func:`host_role_args`; the host
+    records the drives' firmware in the summary)."""
     argv = ["--realtime"] if args.realtime else []
     if getattr(args, "view", False):
         argv.append("--view")
@@ -93,6 +94,8 @@ def rig_role_args(args: argparse.Namespace) -> list[str]:
         argv.append("--bus-time")
     if args.io_bitrate is not None:
         argv += ["--io-bitrate", str(args.io_bitrate)]
+    if getattr(args, "firmware", "python") != "python":
+        argv += ["--firmware", str(args.firmware)]
     return argv
 
 

@@ -27,6 +27,7 @@ from bus.cia301.nmt import NmtCommand
 from bus.cyclic import decode_tpdo, encode_csp_rpdo, pdo_config_writes, rpdo_cob_id, tpdo_cob_id
 from bus.objects import DRIVE_NODE_IDS, ControlCommand, Obj
 from firmware_model.drive import Drive
+from firmware_model.firmware_select import DEFAULT_FIRMWARE, check_firmware
 from host.experiment.bench import CyclicActuals, CyclicSetpoints, TrialFault
 from host.experiment.config import ExperimentConfig
 from host.experiment.faults import FaultKind, FaultRecord
@@ -46,12 +47,18 @@ def make_plant(cfg: ExperimentConfig) -> Plant:
 
 
 class InProcessBench:
-    """Four firmware drives and the plant in this process, ticked in lockstep."""
+    """Four firmware drives and the plant in this process, ticked in lockstep.
 
-    def __init__(self, cfg: ExperimentConfig) -> None:
+    :param firmware: the drives' control-period implementation (``--firmware``, one of
+        :data:`firmware_model.firmware_select.FIRMWARES`; recorded in ``summary["bench"]["firmware"]``)
+    :raises InputError: a firmware this installation cannot run
+    """
+
+    def __init__(self, cfg: ExperimentConfig, firmware: str = DEFAULT_FIRMWARE) -> None:
         self.cfg = cfg
         self.plant = make_plant(cfg)
-        self.firmware = [Drive(node) for node in DRIVE_NODE_IDS]
+        self.firmware_kind = check_firmware(firmware)
+        self.firmware = [Drive(node, firmware=firmware) for node in DRIVE_NODE_IDS]
         self.drives = [DriveClient(fw, node) for fw, node in zip(self.firmware, DRIVE_NODE_IDS)]
         self.emcy: list[dict[str, Any]] = []
         self._tick: int | None = None
@@ -176,7 +183,7 @@ class InProcessBench:
         return []
 
     def info(self) -> dict[str, Any]:
-        return {"emcy": self.emcy}
+        return {"emcy": self.emcy, "firmware": self.firmware_kind}
 
     def progress(self) -> int | None:
         """The tick of the trial in progress (None between trials)."""

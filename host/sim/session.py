@@ -8,8 +8,12 @@ in-process bench :class:`host.sim.inprocess.InProcessBench`, the trial loop
 ``report.md`` at the end) and :func:`run_sim`, the whole run of ``ilcrig sim``.  Bad input is
 :class:`bus.errors.InputError`.
 
-May import: ``bus``, ``plant``, ``firmware_model`` (through :mod:`host.sim.inprocess`), and
-``host`` below the rig (planning, learning, nodes, experiment, analysis).
+The drives' firmware (``--firmware``) is checked here before anything is made
+(:func:`firmware_model.firmware_select.check_firmware`, also what the public API checks with).
+
+May import: ``bus``, ``plant``, ``firmware_model`` (the firmware's selection here, the drives
+through :mod:`host.sim.inprocess`), and ``host`` below the rig (planning, learning, nodes,
+experiment, analysis).
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from bus.errors import InputError
+from firmware_model.firmware_select import DEFAULT_FIRMWARE, check_firmware
 from host.analysis.session import RunOutputs, finish_run_report, open_outputs, report_fault
 from host.experiment.config import ExperimentConfig, build_config, gains_table
 from host.experiment.console import print_header, print_plan, print_row
@@ -33,7 +38,7 @@ from host.learning.metrics import TrialMetrics
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["SimOptions", "SimSession", "run_sim"]
+__all__ = ["SimOptions", "SimSession", "check_firmware", "run_sim"]
 
 
 def _first_line(exc: BaseException) -> str:
@@ -50,14 +55,25 @@ class SimSession:
         nothing is written
     :param stream: the console lines (plan, header, one row per trial); None: silent
     :param view: stream the recording live to a Rerun viewer (needs ``out``)
-    :raises InputError: a bad run folder, or ``view`` without one
+    :param firmware: the drives' control-period implementation (``--firmware``: ``python``, ``c``, ``pil``)
+    :raises InputError: a bad run folder, ``view`` without one, or a firmware this installation
+        cannot run
     """
 
-    def __init__(self, plan: Plan, out: str | Path | None = None, *, stream: TextIO | None = None, view: bool = False) -> None:
+    def __init__(
+        self,
+        plan: Plan,
+        out: str | Path | None = None,
+        *,
+        stream: TextIO | None = None,
+        view: bool = False,
+        firmware: str = DEFAULT_FIRMWARE,
+    ) -> None:
         from host.sim.inprocess import InProcessBench
 
         self.out = Path(out) if out is not None else None
         self.stream = stream
+        check_firmware(firmware)  # before anything is made
         if view and self.out is None:
             raise InputError("view: the live view streams the run's recording; give a run folder (out)")
         outputs: RunOutputs | None = None
@@ -77,7 +93,7 @@ class SimSession:
         self._folder: RunFolder | None = outputs.folder if outputs is not None else None
         self.runner = TrialLoop(
             plan,
-            InProcessBench(plan.cfg),
+            InProcessBench(plan.cfg, firmware),
             self.out,
             mode="sim",
             on_trial=self._row if stream is not None else None,
@@ -154,11 +170,13 @@ class SimSession:
 
 @dataclass(frozen=True)
 class SimOptions:
-    """What ``ilcrig sim`` runs: the validated experiment, its run folder, the live view."""
+    """What ``ilcrig sim`` runs: the validated experiment, its run folder, the live view, the drives'
+    firmware."""
 
     config: ExperimentConfig
     out: Path
     view: bool = False
+    firmware: str = DEFAULT_FIRMWARE
 
 
 def run_sim(opts: SimOptions, stream: TextIO) -> int:
@@ -175,7 +193,7 @@ def run_sim(opts: SimOptions, stream: TextIO) -> int:
     check_config_limits(cfg)  # the trial length and the memory first: an out-of-range --cycle is said as such
     check_out_dir(opts.out, iterations=cfg.iterations, n_ticks=cfg.n_ticks, create=False)
     plan = prepared(cfg)  # refused with one line before the run folder is made
-    session = SimSession(plan, opts.out, stream=stream, view=opts.view)
+    session = SimSession(plan, opts.out, stream=stream, view=opts.view, firmware=opts.firmware)
     with interrupt_on_signals():
         for _ in session:
             pass

@@ -1,0 +1,26 @@
+"""Type stub of the C extension firmware_model/_fwcore.c (the drive firmware's C core, firmware_model/c/)."""
+
+import numpy as np
+import numpy.typing as npt
+
+# every constant of firmware_model/c/ilc_drive.h without its ILC_ prefix (the ones used from Python)
+N_STATE: int
+ACC_Q: int
+GAIN_Q: int
+VEL_FILTER_Q: int
+VEL_STATE_Q: int
+RATE_Q: int
+STATUS_OK: int
+STATUS_FOLLOWING_ERROR: int
+LOOP_PD: int
+LOOP_CASCADE: int
+
+def control_tick(
+    count: int,
+    idx: int,
+    rec_idx: int,
+    st: npt.NDArray[np.int64],
+    tables: npt.NDArray[np.int32],
+    rec: npt.NDArray[np.int32],
+) -> tuple[int, int]: ...
+def rshift_round(x: int, q: int) -> int: ...

@@ -1,0 +1,101 @@
+"""Which implementation of the drive's control period a drive runs: ``--firmware {python,c,pil}``.
+
+This module owns the names of the firmwares (:data:`FIRMWARES`), their check before anything
+starts (:func:`check_firmware`: a bad name, or ``c`` without the built extension, is one
+:class:`bus.errors.InputError`) and the kernel of one drive (:func:`control_tick_for`), which
+:class:`firmware_model.drive.Drive` passes to its operation modes:
+
+* ``python`` -- the reference model, the numba kernel
+  :func:`firmware_model.control_law.control_tick`;
+* ``c`` -- the C core firmware_model/c/ilc_control.c (interface firmware_model/c/ilc_drive.h)
+  built for the host as the extension :mod:`firmware_model._fwcore` by setup.py (software in the
+  loop; bit-exact with ``python``, tests/test_firmware_c.py);
+* ``pil`` -- processor in the loop: the same C sources on an emulated Cortex-M4.  **Not built
+  yet**: :func:`_pil_control_tick` and :func:`_pil_check` are the seam the processor-in-the-loop
+  part fills in (a kernel of the same signature that exchanges one period's inputs and outputs
+  with the emulated board); until then ``pil`` is refused with one line.
+
+Every kernel has the signature and the semantics of :data:`ControlTick`.  Kept import-light (the
+command line imports it to check ``--firmware``): numpy, numba and the extension are imported
+when a kernel is asked for.
+
+May import: ``bus`` (and ``firmware_model``'s own modules, lazily).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import logging
+from collections.abc import Callable
+from typing import TYPE_CHECKING, TypeAlias
+
+from bus.errors import InputError
+
+if TYPE_CHECKING:
+    import numpy as np
+    import numpy.typing as npt
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["DEFAULT_FIRMWARE", "FIRMWARES", "ControlTick", "c_available", "check_firmware", "control_tick_for"]
+
+#: the firmwares a drive can run (``--firmware``), the first is the default
+FIRMWARES: tuple[str, ...] = ("python", "c", "pil")
+DEFAULT_FIRMWARE: str = "python"
+
+#: one control period: ``(count, idx, rec_idx, st, tables, rec) -> (torque µN·m, status)``, as
+#: :func:`firmware_model.control_law.control_tick`
+ControlTick: TypeAlias = Callable[
+    [int, int, int, "npt.NDArray[np.int64]", "npt.NDArray[np.int32]", "npt.NDArray[np.int32]"], tuple[int, int]
+]
+
+
+def c_available() -> bool:
+    """The C core's extension :mod:`firmware_model._fwcore` is built in this installation."""
+    return importlib.util.find_spec("firmware_model._fwcore") is not None
+
+
+def _pil_check() -> None:
+    """Processor in the loop can run here (toolchain, emulator, the built image).
+
+    The seam of the processor-in-the-loop part: until it is filled in, ``pil`` is refused."""
+    raise InputError("--firmware: pil (processor in the loop) is not available in this version")
+
+
+def _pil_control_tick(node_id: int) -> ControlTick:
+    """The processor-in-the-loop kernel of drive ``node_id`` (the seam: see :func:`_pil_check`)."""
+    _pil_check()
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
+def check_firmware(kind: str) -> str:
+    """``kind`` if this installation can run it, before any process starts.
+
+    :raises InputError: not one of :data:`FIRMWARES`, ``c`` without the built extension, or
+        ``pil`` where processor in the loop cannot run (one line each)."""
+    if kind not in FIRMWARES:
+        raise InputError(f"--firmware: must be one of {', '.join(FIRMWARES)}, got {kind!r}")
+    if kind == "c" and not c_available():
+        raise InputError(
+            "--firmware: c needs the C firmware (extension firmware_model._fwcore), which is not built in this "
+            "installation (reinstall with a C compiler: pip install -e .)"
+        )
+    if kind == "pil":
+        _pil_check()
+    return kind
+
+
+def control_tick_for(kind: str, node_id: int) -> ControlTick:
+    """The control-period kernel drive ``node_id`` runs with firmware ``kind``.
+
+    :raises InputError: as :func:`check_firmware`."""
+    check_firmware(kind)
+    if kind == "c":
+        from firmware_model import _fwcore
+
+        return _fwcore.control_tick
+    if kind == "pil":
+        return _pil_control_tick(node_id)
+    from firmware_model import control_law
+
+    return control_law.control_tick
