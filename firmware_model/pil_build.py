@@ -96,13 +96,13 @@ def missing_tools() -> list[str]:
     return [tool for tool in (GCC, QEMU) if shutil.which(tool) is None]
 
 
-def require_tools(option: str = "--firmware pil") -> None:
+def require_tools(option: str = "--firmware") -> None:
     """Raise :class:`bus.errors.InputError` (one line, exit 2) naming ``option`` and the apt
     packages when the cross compiler or QEMU is missing -- called before any process starts."""
     missing = missing_tools()
     if missing:
         raise InputError(
-            f"{option} needs {' and '.join(missing)} on PATH: "
+            f"{option}: pil needs {' and '.join(missing)} on PATH (processor in the loop): "
             f"apt-get install {' '.join(APT_PACKAGES)}"
         )
 
