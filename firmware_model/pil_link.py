@@ -152,7 +152,7 @@ class TargetInfo:
 
 def qemu_argv(elf: Path) -> list[str]:
     """The emulator's command line: the board, UART0 on stdio, instruction counting, no display,
-    monitor or default devices."""
+    monitor, network or default devices."""
     return [
         "qemu-system-arm",
         "-M",
@@ -160,6 +160,8 @@ def qemu_argv(elf: Path) -> list[str]:
         "-cpu",
         CPU,
         "-nodefaults",
+        "-nic",
+        "none",
         "-display",
         "none",
         "-monitor",
@@ -221,11 +223,14 @@ class PilTarget:
     def pid(self) -> int:
         return int(self._proc.pid)
 
-    def exchange(self, kind: int, payload: bytes | bytearray, timeout_s: float = REPLY_TIMEOUT_S) -> tuple[int, bytes]:
+    def exchange(self, kind: int, payload: bytes | bytearray, timeout_s: float | None = None) -> tuple[int, bytes]:
         """Send one request frame and return the reply frame (type, payload).
 
-        :raises PilError: an ERROR or FAULT frame, QEMU gone, or no reply in ``timeout_s`` × scale
+        :param timeout_s: the longest wait for the reply [s] (default :data:`REPLY_TIMEOUT_S`), × scale
+        :raises PilError: an ERROR or FAULT frame, QEMU gone, or no reply in time
         """
+        if timeout_s is None:
+            timeout_s = REPLY_TIMEOUT_S
         try:
             os.write(self._in, frame(kind, payload))
         except (BrokenPipeError, OSError) as err:
@@ -328,4 +333,3 @@ class PilTarget:
                         stream.close()
         with contextlib.suppress(OSError):
             self._stderr.close()
-
