@@ -153,12 +153,74 @@ static PyObject *fw_rshift_round(PyObject *self, PyObject *const *args, Py_ssize
     return PyLong_FromLongLong((long long)ilc_rshift_round((int64_t)x, (int)q));
 }
 
+/* The int64 arguments of a helper (OverflowError outside int64). */
+static int int64_args(const char *name, PyObject *const *args, Py_ssize_t nargs, Py_ssize_t n, int64_t *out)
+{
+    Py_ssize_t i;
+    if (nargs != n) {
+        PyErr_Format(PyExc_TypeError, "%s() takes %zd arguments (%zd given)", name, n, nargs);
+        return -1;
+    }
+    for (i = 0; i < n; ++i) {
+        long long v = PyLong_AsLongLong(args[i]);
+        if (v == -1 && PyErr_Occurred()) {
+            return -1;
+        }
+        out[i] = (int64_t)v;
+    }
+    return 0;
+}
+
+static PyObject *fw_csp_velocity_ref(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t a[3];
+    (void)self;
+    if (int64_args("csp_velocity_ref", args, nargs, 3, a) != 0) {
+        return NULL;
+    }
+    return PyLong_FromLong((long)ilc_csp_velocity_ref(a[0], a[1], a[2]));
+}
+
+static PyObject *fw_velocity_from_tick_q16(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t a[2];
+    (void)self;
+    if (int64_args("velocity_from_tick_q16", args, nargs, 2, a) != 0) {
+        return NULL;
+    }
+    if (a[1] < 1 || a[1] > 100000 || a[0] >= (INT64_C(1) << 62) || a[0] <= -(INT64_C(1) << 62)) {
+        PyErr_SetString(PyExc_ValueError, "velocity_from_tick_q16(): period_us 1..100000, |v_q16| < 2^62");
+        return NULL;
+    }
+    return PyLong_FromLong((long)ilc_velocity_from_tick_q16(a[0], a[1]));
+}
+
+static PyObject *fw_torque_units_to_permille(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t a[2];
+    (void)self;
+    if (int64_args("torque_units_to_permille", args, nargs, 2, a) != 0) {
+        return NULL;
+    }
+    if (a[0] >= (INT64_C(1) << 61) || a[0] <= -(INT64_C(1) << 61) || a[1] >= (INT64_C(1) << 32)) {
+        PyErr_SetString(PyExc_ValueError, "torque_units_to_permille(): |tau_units| < 2^61, rated_mnm < 2^32");
+        return NULL;
+    }
+    return PyLong_FromLong((long)ilc_torque_units_to_permille(a[0], a[1]));
+}
+
 static PyMethodDef fw_methods[] = {
     {"control_tick", (PyCFunction)(void (*)(void))fw_control_tick, METH_FASTCALL,
      "control_tick(count, idx, rec_idx, st, tables, rec) -> (tau, status): one control period "
      "of the C core (firmware_model/c/ilc_control.c), as firmware_model.control_law.control_tick."},
     {"rshift_round", (PyCFunction)(void (*)(void))fw_rshift_round, METH_FASTCALL,
      "rshift_round(x, q) -> int: the C core's rounding right shift (bus.fixedpoint.rshift_round)."},
+    {"csp_velocity_ref", (PyCFunction)(void (*)(void))fw_csp_velocity_ref, METH_FASTCALL,
+     "csp_velocity_ref(target, prev, rate_q12) -> int: ilc_csp_velocity_ref (CspMode's velocity reference)."},
+    {"velocity_from_tick_q16", (PyCFunction)(void (*)(void))fw_velocity_from_tick_q16, METH_FASTCALL,
+     "velocity_from_tick_q16(v_q16, period_us) -> int: bus.fixedpoint.velocity_from_tick_q16 in C."},
+    {"torque_units_to_permille", (PyCFunction)(void (*)(void))fw_torque_units_to_permille, METH_FASTCALL,
+     "torque_units_to_permille(tau_units, rated_mnm) -> int: bus.fixedpoint.torque_units_to_permille in C."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -20,6 +20,12 @@ beside it: the operation modes that call the kernel (:mod:`firmware_model.modes`
 sequence, tables and recorder (:mod:`firmware_model.playback`), the parameter objects
 (:mod:`firmware_model.od_hooks`) and the power stage (:mod:`firmware_model.power_stage`).
 
+This kernel is the reference model of the drive's control period.  The same period in C99,
+bit for bit, is ``firmware_model/c/ilc_control.c`` (interface ``c/ilc_drive.h``; the extension
+:mod:`firmware_model._fwcore`); which of the two a drive runs is
+:mod:`firmware_model.firmware_select` (``--firmware``, docs/firmware.md).  A change here is a change
+there too: tests/test_firmware_c.py checks them against each other.
+
 Arrays the kernel works on (allocate them with :func:`new_state`, :func:`new_tables`,
 :func:`new_recorder`):
 

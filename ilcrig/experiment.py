@@ -176,7 +176,7 @@ class Experiment:
         firmware: str | None = None,
         **unknown: Any,
     ) -> None:
-        from host.sim.session import check_firmware
+        from host.sim import check_firmware
 
         if unknown:
             raise _suggest(unknown)

@@ -85,7 +85,7 @@ class RigRun:
     ) -> None:
         from host.experiment.outputs import check_out_dir
         from host.experiment.plan import prepare
-        from host.sim.session import check_firmware
+        from host.sim import check_firmware
 
         check_firmware(firmware)  # refused with one line before anything starts
 

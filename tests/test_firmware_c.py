@@ -7,7 +7,9 @@ with the Python reference model (the numba kernel :func:`firmware_model.control_
   extremes, random tables, table columns and recorder columns, parameter writes and trial starts
   between the ticks -- the two kernels give the same torque, status, state vector and recorder, bit
   for bit, over sequences of ticks;
-* the C constants (indices, Q shifts) are the Python ones, the rounding helper is Python's;
+* the C constants (indices, Q shifts) are the Python ones, the rounding helper is Python's, and so
+  are the other integer steps of the period in C (CSP velocity reference, profile velocity in
+  counts/s, torque actual 0x6077);
 * the extension checks its arguments (no out-of-bounds write from Python);
 * ``--firmware``: the choice, its one-line errors, and the reference digests of ``ilcrig sim`` with
   the C firmware (in-process, fast).  The rig and robot digests are in tests/test_firmware_c_rig.py
@@ -22,14 +24,14 @@ from typing import Any
 
 import numpy as np
 import pytest
+from cli_util import run_cli
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from test_cli import REFERENCE_DIGESTS
 
 from bus import fixedpoint as fp
 from firmware_model import control_law as cl
 from firmware_model.firmware_select import FIRMWARES, c_available, check_firmware, control_tick_for
-from tests.cli_util import run_cli
-from tests.test_cli import REFERENCE_DIGESTS
 
 pytestmark = pytest.mark.skipif(not c_available(), reason="the C firmware (firmware_model._fwcore) is not built")
 
@@ -139,6 +141,26 @@ def test_c_kernel_is_the_python_kernel_bit_for_bit(sc: dict[str, Any]) -> None:
 @given(st.one_of(st.integers(*I64), st.sampled_from([*I64, -1, 0, 1, -(1 << 15), (1 << 15) - 1])), st.integers(0, 62))
 def test_rounding_shift_is_pythons(x: int, q: int) -> None:
     assert _fwcore.rshift_round(x, q) == fp.rshift_round(x, q)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.integers(*I32), st.integers(*I32), _period_us)
+def test_csp_velocity_reference_is_the_python_one(target: int, prev: int, period_us: int) -> None:
+    rate = fp.rate_q12_from_period_us(period_us)
+    python = fp.sat32(fp.rshift_round(fp.sat32(target - prev) * rate, fp.VEL_STATE_Q))  # as CspMode computes it
+    assert _fwcore.csp_velocity_ref(target, prev, rate) == python
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.one_of(st.integers(-(1 << 46), 1 << 46), st.integers(-(1 << 62) + 1, (1 << 62) - 1)), _period_us)
+def test_velocity_from_tick_is_the_python_one(v_q16: int, period_us: int) -> None:
+    assert _fwcore.velocity_from_tick_q16(v_q16, period_us) == fp.velocity_from_tick_q16(v_q16, period_us)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.integers(-(1 << 61) + 1, (1 << 61) - 1), _with_edges(-1, U32_MAX, 0, 1, 88200))
+def test_torque_actual_quantisation_is_the_python_one(tau: int, rated_mnm: int) -> None:
+    assert _fwcore.torque_units_to_permille(tau, rated_mnm) == fp.torque_units_to_permille(tau, rated_mnm)
 
 
 def test_constants_are_the_python_ones() -> None:

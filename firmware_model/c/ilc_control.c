@@ -10,9 +10,10 @@
  *
  * Integer semantics (why this is bit-exact and free of undefined behaviour):
  *  - every product and sum is formed in int64_t; for inputs within the ranges of
- *    bus/fixedpoint.py (gains 0 .. 2^31-1, errors saturated to int32, rate < 2^32, filter
- *    coefficient <= 2^15, torque limit 0 .. 2^31-1) each intermediate is below 2^63 (the bounds
- *    are noted beside the lines), so no signed overflow happens;
+ *    bus/fixedpoint.py and the EDS (gains 0 .. 2^31-1, errors saturated to int32, rate < 2^32,
+ *    filter coefficient <= 2^15, torque limit 0 .. 3000 * (2^32-1) < 2^44, the ranges of
+ *    ilc_drive.h) each intermediate is below 2^63 (the bounds are noted beside the lines), so no
+ *    signed overflow happens;
  *  - a right shift of a negative value is implementation-defined in C: ilc_asr() forms the
  *    floor division by 2^q as ~((~x) >> q) for negative x, which only shifts non-negative
  *    values; it equals Python's and numba's ">>" (floor) on every int64;
@@ -103,13 +104,14 @@ int32_t ilc_control_tick(int64_t count, int64_t idx, int64_t rec_idx, int64_t *s
 
     e = ilc_sat32(ref_pos - c);
     if (st[ILC_P_LOOP] == ILC_LOOP_CASCADE) {
-        const int64_t lim_q = lim * (INT64_C(1) << ILC_ACC_Q); /* |.| < 2^47 */
+        const int64_t lim_q = lim * (INT64_C(1) << ILC_ACC_Q); /* < 2^60 */
         const int64_t ff = ilc_sat32(ilc_rshift_round(st[ILC_P_KTFF] * ff_table, ILC_GAIN_Q));
         const int64_t v_ff = ilc_rshift_round(st[ILC_P_KVFF] * ref_vel, ILC_GAIN_Q);
         const int64_t v_cmd = ilc_sat32(ilc_rshift_round(st[ILC_P_KPP] * e, ILC_GAIN_Q) + v_ff);
         const int64_t ev = ilc_sat32(v_cmd - v_est);
         const int64_t p_term = st[ILC_P_KVP] * ev; /* < 2^62 */
         int64_t vint = st[ILC_S_VINT];
+        /* |vint| <= 2^60, |Kvi·ev| < 2^62: the sum and p_term + trial_int stay below 2^63 */
         const int64_t trial_int = ilc_sat(vint + st[ILC_P_KVI] * ev, -lim_q, lim_q);
         const int64_t u = ilc_rshift_round(p_term + trial_int, ILC_ACC_Q) + ff;
         /* anti-windup (clamping): integrate unless the torque saturates and ev pushes it further */
@@ -160,4 +162,40 @@ int32_t ilc_control_tick(int64_t count, int64_t idx, int64_t rec_idx, int64_t *s
         st[ILC_S_FE_COUNT] = 0;
     }
     return (int32_t)tau;
+}
+
+int64_t ilc_floor_div(int64_t num, int64_t den)
+{
+    int64_t q = num / den; /* truncates toward 0 (C99 6.5.5) */
+    if ((num % den) != 0 && num < 0) {
+        q -= 1; /* den > 0: a negative inexact quotient rounds down */
+    }
+    return q;
+}
+
+int32_t ilc_csp_velocity_ref(int64_t target, int64_t prev, int64_t rate_q12)
+{
+    /* |sat32(.)| <= 2^31, rate < 2^32: the product is below 2^63 */
+    return (int32_t)ilc_sat32(ilc_rshift_round(ilc_sat32(target - prev) * rate_q12, ILC_VEL_STATE_Q));
+}
+
+int32_t ilc_velocity_from_tick_q16(int64_t v_q16, int64_t period_us)
+{
+    /* Python: (2·v·10^6 + den) // (2·den), den = period_us · 2^16, which can exceed int64 in the
+       numerator.  With v = a·den + b (0 <= b < den <= 2^33): the value is
+       a·10^6 + (2·b·10^6 + den) // (2·den), every term below 2^63 once a is saturated. */
+    const int64_t den = period_us * (INT64_C(1) << 16);
+    const int64_t a = ilc_floor_div(v_q16, den);
+    const int64_t b = v_q16 - a * den;
+    const int64_t frac = ilc_floor_div(2 * b * INT64_C(1000000) + den, 2 * den); /* 0 or 1 .. 10^6 */
+    const int64_t a_sat = ilc_sat(a, ILC_INT32_MIN - 1, ILC_INT32_MAX + 1);    /* keeps the sign, saturates below */
+    return (int32_t)ilc_sat32(a_sat * INT64_C(1000000) + frac);
+}
+
+int16_t ilc_torque_units_to_permille(int64_t tau_units, int64_t rated_mnm)
+{
+    if (rated_mnm <= 0) {
+        return 0;
+    }
+    return (int16_t)ilc_sat16(ilc_floor_div(2 * tau_units + rated_mnm, 2 * rated_mnm));
 }

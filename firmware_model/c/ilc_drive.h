@@ -34,8 +34,8 @@ extern "C" {
 #define ILC_P_KP 0          /* Kp, Q16 µN·m/count (0 .. INT32_MAX) */
 #define ILC_P_KD 1          /* Kd, Q16 µN·m/(count/s) (0 .. INT32_MAX) */
 #define ILC_P_ALPHA 2       /* velocity filter coefficient, Q15 (1 .. 32768) */
-#define ILC_P_RATE 3        /* tick rate, Hz Q12 (> 0, < 2^32) */
-#define ILC_P_TLIM 4        /* torque limit, µN·m (0 .. INT32_MAX) */
+#define ILC_P_RATE 3        /* tick rate, Hz Q12 (> 0, < 2^32: a period >= 1 µs) */
+#define ILC_P_TLIM 4        /* torque limit, µN·m = 0x6072 · 0x6076 (0 .. 3000 · (2^32 - 1) < 2^44) */
 #define ILC_P_FE_WINDOW 5   /* following-error window, counts; < 0: check off */
 #define ILC_S_PREV_COUNT 6  /* previous encoder count */
 #define ILC_S_HAVE_PREV 7   /* 1 when ILC_S_PREV_COUNT is valid */
@@ -48,13 +48,13 @@ extern "C" {
 #define ILC_S_LIMITED 14    /* 1 when the last torque was clamped */
 #define ILC_P_LOOP 15       /* feedback structure: ILC_LOOP_PD or ILC_LOOP_CASCADE */
 #define ILC_P_KPP 16        /* position loop gain, Q16 (counts/s)/count (cascade) */
-#define ILC_P_KVFF 17       /* velocity feed-forward gain, Q16, 65536 = 1.0 (cascade) */
-#define ILC_P_KTFF 18       /* torque feed-forward gain, Q16, 65536 = 1.0 (cascade) */
+#define ILC_P_KVFF 17       /* velocity feed-forward gain, Q16, 65536 = 1.0 (0 .. INT32_MAX) */
+#define ILC_P_KTFF 18       /* torque feed-forward gain, Q16, 65536 = 1.0 (0 .. INT32_MAX) */
 #define ILC_P_KVP 19        /* velocity loop P gain, Q16 µN·m/(count/s) (cascade) */
-#define ILC_P_KVI 20        /* velocity loop I gain per period, Q16 µN·m/(count/s) (cascade) */
+#define ILC_P_KVI 20        /* velocity loop I gain per period, Q16 µN·m/(count/s) (0 .. INT32_MAX) */
 #define ILC_S_VINT 21       /* velocity loop integrator, µN·m Q16, |.| <= limit·2^16 (cascade) */
 #define ILC_S_VCMD 22       /* last velocity command, counts/s (cascade) */
-#define ILC_P_FE_TICKS 23   /* following-error time-out, control periods (>= 0) */
+#define ILC_P_FE_TICKS 23   /* following-error time-out, control periods (0 .. 2^31) */
 #define ILC_S_FE_COUNT 24   /* periods in a row with |e| above the window */
 
 /* P_LOOP values */
@@ -116,6 +116,29 @@ int64_t ilc_asr(int64_t x, int q);
 /* Rounding right shift, round half up (toward +inf; -2.5 -> -2), as Python's
    (x >> q) + ((x >> (q-1)) & 1); q <= 0 returns x.  Cannot overflow for any int64 x. */
 int64_t ilc_rshift_round(int64_t x, int q);
+
+/* Floor division num // den as Python's (rounds toward -inf; C's "/" truncates), den > 0. */
+int64_t ilc_floor_div(int64_t num, int64_t den);
+
+/* ---------------------------------------------------------------- set-points and the power stage
+ * The other pure integer steps of the drive's control period (their Python twins in brackets;
+ * the drive's Python glue calls those, these are for a drive that runs the whole period in C and
+ * are checked bit for bit against them by tests/test_firmware_c.py). */
+
+/* CSP velocity reference, counts/s, from two successive target positions (int32 counts) and the
+   tick rate st[ILC_P_RATE] [Hz Q12]: sat32(rshift_round(sat32(target - prev) · rate, 12))
+   (firmware_model/modes.py, CspMode). */
+int32_t ilc_csp_velocity_ref(int64_t target, int64_t prev, int64_t rate_q12);
+
+/* A profile velocity in counts/tick Q16 as counts/s, nearest (half up), saturated to int32
+   (bus.fixedpoint.velocity_from_tick_q16); period_us 1 .. 100000, |v_q16| < 2^62 (formed
+   without the 128-bit product of the Python formula). */
+int32_t ilc_velocity_from_tick_q16(int64_t v_q16, int64_t period_us);
+
+/* Torque µN·m as per-thousand of the rated torque (0x6077 torque actual), round half up,
+   saturated to int16; 0 when rated_mnm <= 0 (bus.fixedpoint.torque_units_to_permille);
+   |tau_units| < 2^61, rated_mnm < 2^32. */
+int16_t ilc_torque_units_to_permille(int64_t tau_units, int64_t rated_mnm);
 
 #ifdef __cplusplus
 }

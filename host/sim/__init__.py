@@ -6,7 +6,15 @@ Owns the composition root of ``ilcrig sim`` and of the public API's in-process r
 (:mod:`host.sim.session`).  The run outputs (run folder, recording, arrays, ``report.md``) are the
 ones of every run, :mod:`host.analysis.session`.
 
+The drives' firmware of a run (``--firmware``) is checked with :func:`check_firmware`
+(:func:`firmware_model.firmware_select.check_firmware`, re-exported here, import-light, for the
+public API, which reaches the firmware only through this unit).
+
 May import: ``bus``, ``plant``, ``firmware_model`` (the unit is a composition root),
 :mod:`host.planning`, :mod:`host.learning`, :mod:`host.nodes`, :mod:`host.experiment`,
 :mod:`host.analysis`.  Never the rig, the CLI or the public API ``ilcrig``.
 """
+
+from firmware_model.firmware_select import FIRMWARES, check_firmware
+
+__all__ = ["FIRMWARES", "check_firmware"]

@@ -9,7 +9,7 @@ in-process bench :class:`host.sim.inprocess.InProcessBench`, the trial loop
 :class:`bus.errors.InputError`.
 
 The drives' firmware (``--firmware``) is checked here before anything is made
-(:func:`firmware_model.firmware_select.check_firmware`, also what the public API checks with).
+(:func:`firmware_model.firmware_select.check_firmware`).
 
 May import: ``bus``, ``plant``, ``firmware_model`` (the firmware's selection here, the drives
 through :mod:`host.sim.inprocess`), and ``host`` below the rig (planning, learning, nodes,
@@ -38,7 +38,7 @@ from host.learning.metrics import TrialMetrics
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["SimOptions", "SimSession", "check_firmware", "run_sim"]
+__all__ = ["SimOptions", "SimSession", "run_sim"]
 
 
 def _first_line(exc: BaseException) -> str:
