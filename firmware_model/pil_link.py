@@ -152,7 +152,7 @@ class TargetInfo:
 
 def qemu_argv(elf: Path) -> list[str]:
     """The emulator's command line: the board, UART0 on stdio, instruction counting, no display,
-    monitor, network or default devices."""
+    monitor or default devices."""
     return [
         "qemu-system-arm",
         "-M",
@@ -160,8 +160,6 @@ def qemu_argv(elf: Path) -> list[str]:
         "-cpu",
         CPU,
         "-nodefaults",
-        "-nic",
-        "none",
         "-display",
         "none",
         "-monitor",
