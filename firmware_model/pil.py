@@ -28,7 +28,6 @@ from __future__ import annotations
 import atexit
 import logging
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -193,7 +192,7 @@ def _close_all() -> None:
     _KERNELS.clear()
 
 
-def pil_control_tick(node_id: int) -> Any:
+def pil_control_tick(node_id: int) -> PilKernel:
     """The control kernel of drive ``node_id`` on its own PIL target: builds the image (cached),
     starts QEMU as this process's child and returns a :class:`PilKernel` (stopped at exit).
 

@@ -15,6 +15,7 @@ May import: bus (and the standard library).
 from __future__ import annotations
 
 import fcntl
+import functools
 import hashlib
 import logging
 import os
@@ -117,6 +118,7 @@ def cache_dir() -> Path:
     return Path(base) / "ilcrig" / "pil"
 
 
+@functools.cache
 def _compiler_version() -> str:
     out = subprocess.run([GCC, "--version"], capture_output=True, text=True, check=False, timeout=_BUILD_TIMEOUT_S)
     return out.stdout.splitlines()[0] if out.stdout else ""
