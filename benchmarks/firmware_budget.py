@@ -9,6 +9,10 @@ rig's speed with each firmware.
 
    * ``pd``: the PD loop of the ILC experiments -- the periods of the drives of the rig run below
      (``ilcrig run --firmware pil``, the default experiment), from the drives' logs;
+   * ``cascade (robot session)``: the four drives of a robot session -- examples/robot_master.py's
+     CSP pick-and-place against the SYNC-stepped robot in this process (tests/robot_util.py), the
+     drives booted as robot mode does, with the servo drive's cascade (0x2110:4 = 1) --, whose
+     result and period trace are checked equal to the Python firmware's;
    * ``pd (replay)`` / ``cascade (replay)``: one drive's kernel replaying a 1,001-period move
      (a smooth 100,000-count reference with its velocity and a feed-forward, the encoder 0..±64
      counts off it) with the EDS parameters: the PD loop of the ILC experiments, and the servo
@@ -23,7 +27,7 @@ rig's speed with each firmware.
    every firmware); and the floor of the same machine minutes: the bare 5-process io lockstep on
    the hub (benchmarks/transport_speed.py).
 
-    python benchmarks/firmware_budget.py [--iterations 2] [--clock-mhz 168] [--skip-rig]
+    python benchmarks/firmware_budget.py [--iterations 2] [--clock-mhz 168] [--skip-rig] [--skip-robot]
 """
 
 from __future__ import annotations
@@ -41,6 +45,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 sys.path.insert(0, str(HERE))
+sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
@@ -78,6 +83,35 @@ def replay(loop: int, n: int = 1001) -> tuple[float, float, int]:
         return stats.mean, stats.largest, stats.periods
     finally:
         kernel.close()
+
+
+def robot_session() -> tuple[dict[str, tuple[int, float, float]], bool]:
+    """The robot session with the Python firmware, then with PIL: per loop structure (periods, mean,
+    max instructions) over the four drives, and whether result and period trace were equal."""
+    import functools
+    import logging
+
+    import robot_util
+
+    import firmware_model.pil as pil
+    from firmware_model.drive import Drive
+
+    logging.getLogger("canopen").setLevel(logging.ERROR)  # the example master's notes on SDO fallbacks
+
+    outcome = {}
+    figures: dict[str, tuple[int, float, float]] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for fw in ("python", "pil"):
+            robot_util.Drive = functools.partial(Drive, firmware=fw)  # type: ignore[attr-defined]
+            outcome[fw] = robot_util.run_example_in_process(Path(tmp) / fw)
+            if fw == "pil":
+                for kernel in list(pil._KERNELS):  # noqa: SLF001 - the four drives' kernels
+                    for name, st in kernel.stats.items():
+                        periods, total, largest = figures.get(name, (0, 0.0, 0.0))
+                        figures[name] = (periods + st.periods, total + st.total, max(largest, st.largest))
+                    kernel.close()
+                pil._KERNELS.clear()  # noqa: SLF001
+    return {k: (p, t / p, m) for k, (p, t, m) in figures.items()}, outcome["python"] == outcome["pil"]
 
 
 def rig(firmware: str, iterations: int) -> dict:
@@ -124,7 +158,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--iterations", type=int, default=2, help="trials per rig run")
     ap.add_argument("--clock-mhz", type=float, default=168.0, help="drive MCU clock for the share of 1 ms")
-    ap.add_argument("--skip-rig", action="store_true", help="only the replay on the emulated Cortex-M4")
+    ap.add_argument("--skip-rig", action="store_true", help="no rig runs (the replay and the robot session only)")
+    ap.add_argument("--skip-robot", action="store_true", help="no robot session")
     args = ap.parse_args()
     from firmware_model.firmware_select import c_available
     from firmware_model.pil_build import require_tools
@@ -146,6 +181,11 @@ def main() -> None:
     for loop, name in ((cl.LOOP_PD, "pd (replay)"), (cl.LOOP_CASCADE, "cascade (replay)")):
         mean, largest, periods = replay(loop)
         row(name, periods, mean, largest)
+    if not args.skip_robot:
+        loops, same = robot_session()
+        for name, (periods, mean, largest) in sorted(loops.items()):
+            row(f"{name} (robot session)", periods, mean, largest)
+        print(f"{'':<20}robot session with pil: result and period trace equal to python's: {same}")
     if args.skip_rig:
         return
     firmwares = ["python", *(["c"] if c_available() else []), "pil"]
