@@ -10,10 +10,10 @@ starts (:func:`check_firmware`: a bad name, or ``c`` without the built extension
 * ``c`` -- the C core firmware_model/c/ilc_control.c (interface firmware_model/c/ilc_drive.h)
   built for the host as the extension :mod:`firmware_model._fwcore` by setup.py (software in the
   loop; bit-exact with ``python``, tests/test_firmware_c.py);
-* ``pil`` -- processor in the loop: the same C sources on an emulated Cortex-M4.  **Not built
-  yet**: :func:`_pil_control_tick` and :func:`_pil_check` are the seam the processor-in-the-loop
-  part fills in (a kernel of the same signature that exchanges one period's inputs and outputs
-  with the emulated board); until then ``pil`` is refused with one line.
+* ``pil`` -- processor in the loop: the same C sources cross-compiled for a Cortex-M4F and run
+  on QEMU's ``mps2-an386``, one emulator per drive, one request/reply per control period over
+  the board's UART (:mod:`firmware_model.pil`; needs ``arm-none-eabi-gcc`` and
+  ``qemu-system-arm``, checked by :func:`_pil_check`).
 
 Every kernel has the signature and the semantics of :data:`ControlTick`.  Kept import-light (the
 command line imports it to check ``--firmware``): numpy, numba and the extension are imported
@@ -56,16 +56,21 @@ def c_available() -> bool:
 
 
 def _pil_check() -> None:
-    """Processor in the loop can run here (toolchain, emulator, the built image).
+    """Processor in the loop can run here: the cross compiler and QEMU are on PATH.
 
-    The seam of the processor-in-the-loop part: until it is filled in, ``pil`` is refused."""
-    raise InputError("--firmware: pil (processor in the loop) is not available in this version")
+    :raises InputError: one of them is missing (one line naming the apt packages)."""
+    from firmware_model.pil_build import require_tools
+
+    require_tools()
 
 
 def _pil_control_tick(node_id: int) -> ControlTick:
-    """The processor-in-the-loop kernel of drive ``node_id`` (the seam: see :func:`_pil_check`)."""
-    _pil_check()
-    raise AssertionError("unreachable")  # pragma: no cover
+    """The processor-in-the-loop kernel of drive ``node_id``: its own QEMU, started now as this
+    process's child (:func:`firmware_model.pil.pil_control_tick`)."""
+    from firmware_model.pil import pil_control_tick
+
+    kernel: ControlTick = pil_control_tick(node_id)
+    return kernel
 
 
 def check_firmware(kind: str) -> str:

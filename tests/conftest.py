@@ -2,7 +2,7 @@
 
 This file owns the test tiers (:func:`pytest_collection_modifyitems`): the README's ``pytest`` runs
 the fast tier; ``pytest -m full`` runs the full tier, every test the fast tier leaves out — the ones
-marked ``slow``, ``multiprocess``, ``faultmatrix``, ``netns`` or ``vcan`` get the ``full`` marker here,
+marked ``slow``, ``multiprocess``, ``faultmatrix``, ``netns``, ``vcan`` or ``pil`` get the ``full`` marker here,
 except those marked ``fast`` (one rig per transport, kept in the fast tier). ``pytest -m ""`` runs
 both. docs/development.md describes them.
 
@@ -42,7 +42,7 @@ def pytest_configure(config: pytest.Config) -> None:
 
 
 #: the markers of a test that belongs to the full tier (unless it is also marked ``fast``)
-FULL_TIER_MARKERS = ("slow", "multiprocess", "faultmatrix", "netns", "vcan")
+FULL_TIER_MARKERS = ("slow", "multiprocess", "faultmatrix", "netns", "vcan", "pil")
 
 
 @pytest.hookimpl(tryfirst=True)

@@ -203,11 +203,14 @@ def test_the_extension_checks_its_arguments() -> None:
 # ---------------------------------------------------------------- the choice
 
 
-def test_firmware_choice() -> None:
+def test_firmware_choice(monkeypatch: pytest.MonkeyPatch) -> None:
     assert FIRMWARES == ("python", "c", "pil")
     assert control_tick_for("python", 1) is cl.control_tick
     assert control_tick_for("c", 1) is _fwcore.control_tick
     assert check_firmware("c") == "c"
+    import firmware_model.pil_build as pil_build
+
+    monkeypatch.setattr(pil_build, "missing_tools", lambda: ["qemu-system-arm"])  # no QEMU here
     with pytest.raises(Exception, match="pil"):
         check_firmware("pil")
 
@@ -218,6 +221,9 @@ def test_firmware_option_errors_are_one_line(
     code, _, err = run_cli(capsys, "sim", "--firmware", "rust", "--out", str(tmp_path / "a"))
     assert code == 2 and err.count("\n") == 1
     assert "--firmware" in err and "python, c, pil" in err
+    import firmware_model.pil_build as pil_build
+
+    monkeypatch.setattr(pil_build, "missing_tools", lambda: ["qemu-system-arm"])  # no QEMU here
     code, _, err = run_cli(capsys, "run", "--firmware", "pil", "--out", str(tmp_path / "b"))
     assert code == 2 and err.count("\n") == 1 and "pil" in err
     import firmware_model.firmware_select as sel
