@@ -263,13 +263,14 @@ def test_api_takes_the_firmware() -> None:
 
 def test_the_launchers_pass_the_firmware_on() -> None:
     from host.cli import build_parser
-    from host.rig.options import RobotOptions, RunOptions
+    from host.cli.robot import robot_options
+    from host.cli.run import run_options
     from host.rig.role_commands import rig_role_args
 
-    args = build_parser().parse_args(["run", "--firmware", "c"])
-    assert RunOptions.from_args(args).firmware == "c"
-    host = build_parser().parse_args(["host", *rig_role_args(args)])
+    opts = run_options(build_parser().parse_args(["run", "--firmware", "c"]))
+    assert opts.firmware == "c"
+    host = build_parser().parse_args(["host", *rig_role_args(opts)])
     assert host.firmware == "c"  # the host role records it (summary bench.firmware)
-    assert "--firmware" not in rig_role_args(build_parser().parse_args(["run"]))  # the default: command lines unchanged
-    assert RobotOptions.from_args(build_parser().parse_args(["robot", "--firmware", "c"])).firmware == "c"
+    assert "--firmware" not in rig_role_args(run_options(build_parser().parse_args(["run"])))  # the default: unchanged
+    assert robot_options(build_parser().parse_args(["robot", "--firmware", "c"])).firmware == "c"
     assert build_parser().parse_args(["drive", "--node", "1", "--firmware", "c"]).firmware == "c"
