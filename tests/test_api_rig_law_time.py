@@ -55,6 +55,8 @@ def test_past_the_limit_the_run_ends_with_a_fault_naming_the_law(tmp_path: Path)
     message = rig.summary["faults"][0]["message"]
     assert "law rig-scripted-p did not return from its update after trial 0 within the limit on the rig (2 s" in message
     assert "in update" in (tmp_path / "rig" / "logs" / "law-error.log").read_text()  # where the law's code was
+    err = (tmp_path / "rig" / "console.err").read_text()  # the launcher's fault line points to it
+    assert f"the law's traceback: {tmp_path / 'rig' / 'logs' / 'law-error.log'}" in err
 
 
 def test_a_call_holding_the_gil_is_named_as_the_cause_of_the_lost_host(tmp_path: Path) -> None:
