@@ -66,4 +66,5 @@ def test_a_call_holding_the_gil_is_named_as_the_cause_of_the_lost_host(tmp_path:
     assert rig.end_reason == "law_error" and len(rig) == 1
     fault = rig.summary["faults"][0]
     assert fault["kind"] == "host_lost"
-    assert "law rig-scripted-p held the interpreter (the GIL) for" in fault["message"]
+    assert "during law rig-scripted-p's update after trial 0 the host's threads did not run for" in fault["message"]
+    assert "a call of the law that holds the GIL" in fault["message"]

@@ -1,4 +1,4 @@
-"""A law's code on the rig, watched: its time limit and how long it held the interpreter.
+"""A law's code on the rig, watched: its time limit, and how long the host's threads stood still meanwhile.
 
 This module owns :class:`LawWatch`.  On the rig (``ilcrig run``, :class:`ilcrig.RigRun`) the trial
 loop runs the law's code between trials — ``update`` and ``auxiliary_input`` — in a worker thread
@@ -12,10 +12,11 @@ while the loop's thread waits for it in short slices, so:
   it in its long loops);
 * a single call that holds the interpreter (the GIL) without letting it switch — a C extension's
   long loop, ``sum(range(10**9))`` — stops the host's heartbeat thread too: the nodes then lose the
-  host after their consumer time (:data:`bus.cia301.nmt.CONSUMER_TIME_MS`).  The waiting thread
-  measures the longest such hold (it cannot wake while it lasts); a hold longer than the consumer
-  time is logged, and the host-lost fault that follows names the law as its cause
-  (:meth:`LawWatch.blame`).
+  host after their consumer time (:data:`bus.cia301.nmt.CONSUMER_TIME_MS`).  So does a machine
+  without a CPU to spare for the host's threads while the law computes.  The waiting thread
+  measures the longest time the host's threads did not run (it cannot wake meanwhile, whichever
+  the cause); one longer than the consumer time is logged, and the host-lost fault that follows
+  names the law's update and both possible causes (:meth:`LawWatch.blame`).
 
 In process (``ilcrig sim``, the API's sessions) the law runs in the loop's own thread, unwatched.
 May import: ``bus``, ``numpy``, :mod:`host.learning`.
@@ -47,7 +48,7 @@ LAW_UPDATE_LIMIT_S = 600.0
 LAW_LIMIT_ENV = "ILCRIG_LAW_UPDATE_LIMIT_S"
 #: how often the waiting thread wakes while the law runs, s (its longest sleep is the measure of a
 #: hold of the interpreter)
-WAKE_S = 0.02
+WAKE_S = 0.1
 
 
 def law_update_limit_s() -> float:
@@ -67,7 +68,8 @@ def law_update_limit_s() -> float:
 
 @dataclass
 class LastCall:
-    """The law's last call: after which trial, how long it ran and held the interpreter, s."""
+    """The law's last call: after which trial, how long it ran, and the longest the host's threads did
+    not run meanwhile (``held_s``), s."""
 
     after_trial: int
     seconds: float
@@ -126,11 +128,12 @@ class LawWatch:
         )
         if self.last.held_s > self.consumer_s:
             logger.warning(
-                "law %s held the interpreter for %.2f s in one call after trial %d (longer than the nodes' "
-                "heartbeat consumer time, %.2f s: they lose the host; docs/api.md)",
+                "during law %s's update after trial %d the host's threads did not run for %.2f s (longer than the "
+                "nodes' heartbeat consumer time, %.2f s: they lose the host): a call that holds the GIL, or no CPU "
+                "to spare for the host (docs/api.md)",
                 self.law_name,
-                self.last.held_s,
                 after_trial,
+                self.last.held_s,
                 self.consumer_s,
             )
         if "error" in box:
@@ -148,13 +151,13 @@ class LawWatch:
         return err
 
     def blame(self, message: str) -> str:
-        """A host-lost fault's ``message`` with its cause when the law's last call held the
-        interpreter longer than the consumer time, else ``message``."""
+        """A host-lost fault's ``message`` with its cause when the host's threads did not run for
+        longer than the consumer time during the law's last call, else ``message``."""
         last = self.last
         if last is None or last.held_s <= self.consumer_s:
             return message
         return (
-            f"{message}: law {self.law_name} held the interpreter (the GIL) for {last.held_s:.1f} s in one call of "
-            f"its update after trial {last.after_trial} (longer than the heartbeat consumer time, "
-            f"{self.consumer_s:.2f} s; docs/api.md)"
+            f"{message}: during law {self.law_name}'s update after trial {last.after_trial} the host's threads did "
+            f"not run for {last.held_s:.1f} s (longer than the heartbeat consumer time, {self.consumer_s:.2f} s): a "
+            "call of the law that holds the GIL, or no CPU to spare for the host (docs/api.md)"
         )

@@ -30,9 +30,9 @@ ends the run after that trial, which the step still returns (so the API's result
 law's failure is a fault with its full traceback in ``<out>/logs/law-error.log`` (and at DEBUG: the
 terminal with ``--debug``).  On the rig the law's code runs watched
 (:mod:`host.experiment.law_watch`): up to a time limit, past which the run ends with a fault of the
-law; a host-lost fault after a call that held the interpreter names the law.  ``summary["end_reason"]`` says how the run ended
-(:class:`host.experiment.loop_state.EndReason`); :meth:`TrialLoop.end_by_user` ends a run for an
-exception of the caller's own code (the API's ``with`` block).
+law; a host-lost fault after an update during which the host's threads did not run names the
+law.  ``summary["end_reason"]`` says how the run ended (:class:`host.experiment.loop_state.EndReason`);
+:meth:`TrialLoop.end_by_user` ends a run for an exception of the caller's own code (the API's ``with`` block).
 
 The run folder gets ``summary.json`` (:mod:`host.experiment.summary`), written before the first
 trial and rewritten atomically after every trial so a fault or Ctrl-C never corrupts the results
@@ -258,7 +258,7 @@ class TrialLoop:
             record = fault_record_of(bench, exc, done, self.out, self.plan.cfg.iterations, self.trials.in_trial)
             watch = self.trials.law_watch
             if record.kind == FaultKind.HOST_LOST and watch is not None:
-                blamed = watch.blame(record.message)  # the law that held the interpreter, named
+                blamed = watch.blame(record.message)  # the law's update during which the host stood still, named
                 if blamed != record.message:
                     record.message, result.end_reason = blamed, EndReason.LAW_ERROR
             result.fault_record = record
