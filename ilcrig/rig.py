@@ -126,7 +126,9 @@ class RigRun:
         # the folder that holds the project's packages first: a plant.py, bus.py or host.py in the
         # user's folders (on this process's sys.path) must not shadow them in the rig's processes
         home = str(Path(__file__).resolve().parent.parent)
-        paths = [home] + [p for p in sys.path if p and p != home and Path(p).is_dir()]
+        # (the empty entry of ``python -c`` and the REPL is this process's working folder)
+        found = [p or os.getcwd() for p in sys.path]
+        paths = [home] + [p for p in found if p != home and Path(p).is_dir()]
         env["PYTHONPATH"] = os.pathsep.join(paths + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
         self.stream = stream
         self.timeout_s = timeout_s
