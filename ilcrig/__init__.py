@@ -5,7 +5,8 @@ Owns the facade over the internals (which stay where they are: ``host/``, ``plan
 ``firmware_model/``, ``bus/``), one module per concern:
 
 * :mod:`ilcrig.errors` — :class:`InputError` (bad input, the command line's one-line message),
-  :class:`RigError`;
+  :class:`RigError`; :class:`ClusterLost` (a sweep's Dask cluster gone, from :mod:`host.studies.engine`,
+  importable without Dask);
 * :mod:`ilcrig.experiment` — :class:`Experiment` (from keyword arguments or a TOML file: the keys of
   the command line), :class:`Session` (in-process, one trial per step, gains changeable between
   trials), :func:`available_laws`, :func:`register_law`;
@@ -37,6 +38,7 @@ from host.learning.model import ClosedLoopModel
 from host.learning.protocol import AUXILIARY, LEARNING, TrialData
 from host.learning.protocol import LawProtocol as LearningLaw
 from host.learning.registry import ENTRY_POINT_GROUP
+from host.studies.engine import ClusterLost
 from ilcrig import signals
 from ilcrig.errors import InputError, RigError
 from ilcrig.experiment import Experiment, Session, available_laws, register_law
@@ -46,6 +48,7 @@ from ilcrig.rig import RigRun
 __all__ = [
     "AUXILIARY",
     "ClosedLoopModel",
+    "ClusterLost",
     "ConvergenceReport",
     "ENTRY_POINT_GROUP",
     "Experiment",

@@ -14,8 +14,10 @@ console output goes to ``<out>/console.txt`` (and to ``stream``).
 Trials as they complete: the host role rewrites ``summary.json`` after every trial, after the
 trial's arrays (``trials/``, :mod:`host.experiment.arrays`) are written; each trial listed there is
 read back as a :class:`ilcrig.TrialResult`.  Leaving early (``stop()``, a ``break`` out of the
-iteration, Ctrl-C) sends the launcher SIGINT: the rig ends through its one fault path (torque off,
-``interrupted`` in the summary) and the completed trials are kept.  A law registered only in this
+iteration, Ctrl-C, an exception of the caller's code in the ``with`` block) sends the launcher SIGINT:
+the rig ends through its one fault path (torque off, ``interrupted`` in the summary) and the
+completed trials are kept; the caller's own exception is then recorded in the summary as an
+in-process session records it (``end_reason`` ``user_exception``).  A law registered only in this
 process (:func:`ilcrig.register_law`) cannot run on the rig: it is refused before the start.
 """
 
@@ -131,7 +133,9 @@ class RigRun:
         # the folder that holds the project's packages first: a plant.py, bus.py or host.py in the
         # user's folders (on this process's sys.path) must not shadow them in the rig's processes
         home = str(Path(__file__).resolve().parent.parent)
-        paths = [home] + [p for p in sys.path if p and p != home and Path(p).is_dir()]
+        # (the empty entry of ``python -c`` and the REPL is this process's working folder)
+        found = [p or os.getcwd() for p in sys.path]
+        paths = [home] + [p for p in found if p != home and Path(p).is_dir()]
         env["PYTHONPATH"] = os.pathsep.join(paths + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
         self.stream = stream
         self.timeout_s = timeout_s
@@ -162,8 +166,37 @@ class RigRun:
     def __enter__(self) -> RigRun:
         return self
 
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: object) -> None:
+        if exc is not None and not isinstance(exc, GeneratorExit):
+            # the caller's own code failed (or was interrupted) inside the ``with`` block: the rig is
+            # stopped now (not run to its end), its completed trials kept, and the summary says why
+            self.stop()
+            if not isinstance(exc, KeyboardInterrupt):
+                self._note_user_exception(exc)
         self.close()
+
+    def _note_user_exception(self, exc: BaseException) -> None:
+        """``end_reason`` ``user_exception`` (and ``user_exception``: type, first line, the last kept
+        trial) in the stopped rig's summary, as an in-process session records it; a run that had
+        completed before the caller's code raised stays completed.  The rig was stopped by SIGINT:
+        ``interrupted`` says where."""
+        summary = self._summary()
+        if summary is None or summary.get("completed"):
+            return
+        from host.experiment.summary import write_summary
+
+        text = str(exc)
+        iterations = summary.get("iterations", [])
+        summary["end_reason"] = "user_exception"
+        summary["user_exception"] = {
+            "type": type(exc).__qualname__,
+            "message": text.splitlines()[0] if text else "",
+            "after_trial": len(iterations) - 1 if iterations else None,
+        }
+        try:
+            write_summary(self.out, summary)
+        except Exception as err:  # noqa: BLE001 - the caller's exception goes on; the rig's summary stays
+            logger.warning("the user exception could not be noted in %s: %s", self.out / "summary.json", err)
 
     def _summary(self) -> dict[str, Any] | None:
         try:

@@ -7,7 +7,10 @@ the multi-process rig with the digest of sim."""
 from __future__ import annotations
 
 import json
+import os
+import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -189,3 +192,25 @@ def test_api_on_the_rig_has_the_digest_of_sim(tmp_path: Path) -> None:
     np.testing.assert_array_equal(rig.error_rad, sim.error_rad)
     np.testing.assert_array_equal(rig.feedforward_nm, sim.feedforward_nm)
     assert rig.roles == sim.roles and units.RAD_PER_COUNT > 0
+
+
+def test_the_rig_imports_laws_from_this_processs_working_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``python -c`` / the REPL have '' on sys.path (the working folder): the rig's host gets that
+    folder on its PYTHONPATH, so a law importable here by module:Class is importable there."""
+    import ilcrig.rig
+
+    class Spawned(Exception):
+        pass
+
+    seen: dict[str, str] = {}
+
+    def fake_spawn(argv: list[str], **kw: Any) -> Any:
+        seen.update(kw["env"])
+        raise Spawned
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "path", ["", *sys.path])
+    monkeypatch.setattr(ilcrig.rig, "spawn_process", fake_spawn)
+    with pytest.raises(Spawned):
+        ilcrig.RigRun(ilcrig.Experiment(law="pd-ol", iterations=1, cycle_s=0.15), tmp_path / "rig")
+    assert str(tmp_path) in seen["PYTHONPATH"].split(os.pathsep)

@@ -4,7 +4,7 @@ feed-forward; one trial set up, run, measured and put in the summary), :class:`E
 
 The loop that steps it is :class:`host.experiment.trial_loop.TrialLoop`.
 
-May import: ``bus``, ``numpy``, :mod:`host.experiment` (bench, faults, plan, summary, tpdo_check),
+May import: ``bus``, ``numpy``, :mod:`host.experiment` (bench, faults, law_watch, plan, summary, tpdo_check),
 :mod:`host.learning`, :mod:`host.nodes`, :mod:`host.planning`.
 """
 
@@ -25,6 +25,7 @@ from bus.errors import IlcrigError
 from bus.objects import ModeOfOperation
 from host.experiment.bench import Bench, CyclicSetpoints, TrialFault, TrialRecorder
 from host.experiment.faults import FaultKind, FaultRecord
+from host.experiment.law_watch import LawWatch
 from host.experiment.plan import Plan, reference_tables
 from host.experiment.summary import SCHEMA
 from host.experiment.tpdo_check import check_tpdos_against_recorder
@@ -149,6 +150,8 @@ class LoopState:
         self.step_aux: list[TrialData] = []
         #: a trial runs: from its first tick until its data is in the summary
         self.in_trial = False
+        #: the law's calls watched (the rig, :mod:`host.experiment.law_watch`), else None (in process)
+        self.law_watch: LawWatch | None = None
 
     def setup_drive(self, j: int) -> None:
         """Gains, limits, reference tables, then enable (CiA 402 Operation enabled)."""
@@ -233,9 +236,14 @@ class LoopState:
         """A feed-forward table from the learning law (``make``); one that is not finite or beyond
         the drive's int32 µN·m table is a fault (the law diverged), never a table."""
         limit = units.INT32_MAX * units.TORQUE_LSB_NM
-        try:
+
+        def quiet() -> np.ndarray:
             with np.errstate(over="ignore", invalid="ignore"):
-                u = make()
+                return make()
+
+        try:
+            # on the rig the law's code runs watched: a time limit, its hold of the interpreter
+            u = quiet() if self.law_watch is None else self.law_watch.call(quiet, next_trial - 1)
             ok = bool(np.all(np.isfinite(u))) and float(np.max(np.abs(u), initial=0.0)) <= limit
         except FloatingPointError:
             ok, u = False, self.u

@@ -28,9 +28,11 @@ Running a trial and updating the law are two guarded parts of a step: the trial 
 recording, arrays) before the law runs, and a law that fails — or an interrupt during its update —
 ends the run after that trial, which the step still returns (so the API's results hold it too).  A
 law's failure is a fault with its full traceback in ``<out>/logs/law-error.log`` (and at DEBUG: the
-terminal with ``--debug``).  ``summary["end_reason"]`` says how the run ended
-(:class:`host.experiment.loop_state.EndReason`); :meth:`TrialLoop.end_by_user` ends a run for an
-exception of the caller's own code (the API's ``with`` block).
+terminal with ``--debug``).  On the rig the law's code runs watched
+(:mod:`host.experiment.law_watch`): up to a time limit, past which the run ends with a fault of the
+law; a host-lost fault after an update during which the host's threads did not run names the
+law.  ``summary["end_reason"]`` says how the run ended (:class:`host.experiment.loop_state.EndReason`);
+:meth:`TrialLoop.end_by_user` ends a run for an exception of the caller's own code (the API's ``with`` block).
 
 The run folder gets ``summary.json`` (:mod:`host.experiment.summary`), written before the first
 trial and rewritten atomically after every trial so a fault or Ctrl-C never corrupts the results
@@ -71,6 +73,7 @@ from bus.errors import IlcrigError
 from host.experiment.bench import Bench, TrialRecorder
 from host.experiment.fault_placement import fault_record_of, place, record_output_fault
 from host.experiment.faults import FaultKind, Position, position_of
+from host.experiment.law_watch import LawWatch
 from host.experiment.loop_state import EndReason, ExperimentResult, LoopState, TrialOutcome, end_reason, new_summary
 from host.experiment.outputs import OutputError, RunFolder
 from host.experiment.plan import Plan
@@ -120,6 +123,8 @@ class TrialLoop:
         self.result = ExperimentResult(summary={})
         self.trials = LoopState(plan, bench, self.result, keep_traces, recorder)
         self.result.summary.update(new_summary(plan, mode, self.trials.digest))
+        if mode == "rig":  # the law's code watched: a time limit, the host kept alive meanwhile
+            self.trials.law_watch = LawWatch(plan.law.name)
         self.k = 0
         self.started = False
         self.finished = False
@@ -251,6 +256,11 @@ class TrialLoop:
             # closing the bench, the trials so far are kept
             done = len(summary["iterations"])
             record = fault_record_of(bench, exc, done, self.out, self.plan.cfg.iterations, self.trials.in_trial)
+            watch = self.trials.law_watch
+            if record.kind == FaultKind.HOST_LOST and watch is not None:
+                blamed = watch.blame(record.message)  # the law's update during which the host stood still, named
+                if blamed != record.message:
+                    record.message, result.end_reason = blamed, EndReason.LAW_ERROR
             result.fault_record = record
             result.fault = record.message
             summary["faults"].append(record.as_dict())

@@ -221,7 +221,10 @@ class RunOutcome:
         self.save(summary, report=True)
         self.settle_folder()
         summary_path = self.out_dir / "summary.json"
-        self.say_err(fault_line(record, kept, summary_path=summary_path, extra=self._where(record, first, host)))
+        where = self._where(record, first, host)
+        if summary.get("law_error_log") and first is None:  # the law failed: its own traceback, not the host's log
+            where = f"the law's traceback: {self.out_dir / summary['law_error_log']}"
+        self.say_err(fault_line(record, kept, summary_path=summary_path, extra=where))
         return EXIT_FAULT
 
     def _silences(self, summary: dict[str, Any], host: Child) -> int | None:

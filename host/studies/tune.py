@@ -23,6 +23,11 @@ study's first trial, so the best value is never worse than the hand-picked one. 
 until it holds ``budget`` trials (an interrupted trial is run again on resume, from its finished
 points).
 
+**Reproducibility**: on one worker the sampler seed fixes the study trial by trial; on more, a
+trial's gains are asked while others run and the sampler (and the pruner) learn only from the
+finished ones, so the sequence depends on the order the points finish in (docs/sweeps.md §4,
+measured there).
+
 The settings (the tuned keys, the objective, the budget) are :mod:`host.studies.tune_params`'s; a
 trial's points run on the engine's one submit loop (:class:`host.studies.engine.PointQueue`).
 ``best.toml`` is written by the experiment file writer, :func:`host.experiment.config.options_toml`.

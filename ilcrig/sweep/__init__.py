@@ -7,7 +7,8 @@ Owns nothing but the names users import (docs/sweeps.md §6), re-exported from t
   Monte Carlo draws);
 * :class:`Engine` (a loopback ``LocalCluster`` or an existing ``dask scheduler``),
   :func:`run_points` (resumable, progress bar, Ctrl-C keeps what finished) and
-  :class:`SweepOutcome` (:mod:`host.studies.engine`);
+  :class:`SweepOutcome`, :class:`ClusterLost` (the cluster gone; also ``ilcrig.ClusterLost``)
+  (:mod:`host.studies.engine`);
 * :func:`run_point` and :func:`load_point` (:mod:`host.studies.point`: a point on a worker, its
   folder in the sweep);
 * :func:`write_table` (:mod:`host.studies.table`: ``results.parquet``) and :func:`write_report`
@@ -20,13 +21,14 @@ Owns nothing but the names users import (docs/sweeps.md §6), re-exported from t
 
 from __future__ import annotations
 
-from host.studies.engine import Engine, SweepOutcome, run_points
+from host.studies.engine import ClusterLost, Engine, SweepOutcome, run_points
 from host.studies.point import load_point, run_point
 from host.studies.report import write_report
 from host.studies.spec import Point, SweepSpec
 from host.studies.table import write_table
 
 __all__ = [
+    "ClusterLost",
     "Engine",
     "Point",
     "SweepOutcome",
