@@ -171,3 +171,33 @@ def test_a_member_leaving_mid_stream_disturbs_nobody(served: HubServer) -> None:
             tx.send(can.Message(arbitration_id=0x100 + i, is_extended_id=False, data=bytes([i])))
         got = [rx.recv(5.0) for _ in range(50)]
     assert [m.arbitration_id for m in got if m is not None] == [0x100 + i for i in range(50)]
+
+
+def test_a_bulk_member_gets_its_held_frames_when_it_asks(
+    hub_data_plane: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The release record (wire protocol 3): a bulk member's held frames come at once when it asks,
+    not after the hold (made 60 s here, so only the release can deliver them); a member that
+    is not bulk asking changes nothing."""
+    import bus.transports.hub.core as core
+    import bus.transports.hub.routing as routing
+
+    monkeypatch.setattr(routing, "BULK_HOLD_S", 60.0)
+    monkeypatch.setattr(core, "BULK_HOLD_S", 60.0)
+    with serving_in(tmp_path, hub_data_plane) as server, HubBus(_channel(server, "r")) as tx:
+        with HubBus(_channel(server, "r"), bulk_delivery=True) as bulk, HubBus(_channel(server, "r")) as live:
+            assert wait_until(lambda: server.stats()["r"].clients == 3)
+            for i in range(3):
+                tx.send(can.Message(arbitration_id=0x100 + i, is_extended_id=False, data=bytes([i])))
+            assert [m.arbitration_id for m in (live.recv(5.0) for _ in range(3)) if m is not None] == [0x100, 0x101, 0x102]
+            assert bulk.recv(0.2) is None  # held
+            bulk.release_held()
+            live.release_held()
+            got = [bulk.recv(5.0) for _ in range(3)]
+            assert [m.arbitration_id for m in got if m is not None] == [0x100, 0x101, 0x102]
+            tx.send(can.Message(arbitration_id=0x200, is_extended_id=False, data=b"x"))
+            m = live.recv(5.0)
+            assert m is not None and m.arbitration_id == 0x200
+            bulk.release_held()
+            m = bulk.recv(5.0)
+            assert m is not None and m.arbitration_id == 0x200

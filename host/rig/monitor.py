@@ -27,7 +27,9 @@ Waiting for a marker, not for rounds
     the receive time every transport gives a frame: the hub's, the kernel's).  While someone waits
     the monitor reads without pauses and notifies after every batch, so the wait costs the time
     the marker takes to arrive, not two reading rounds (each of which blocked up to
-    :attr:`ChannelMonitor.WAIT_S` on a channel that had gone quiet).
+    :attr:`ChannelMonitor.WAIT_S` on a channel that had gone quiet); on the hub it first asks for
+    the frames held for it (:func:`bus.bus_features.release_held`), so the wait does not include
+    the bulk delivery's hold either.
 
 What can go wrong is noted, with the monotonic time it was seen, for the host's watchdog: the bus
 failing (:attr:`ChannelMonitor.bus_error`), bus error frames (:attr:`ChannelMonitor.error_frames`),
@@ -54,7 +56,7 @@ import can
 import numpy as np
 
 from bus import io_frames
-from bus.bus_features import FRAME_ERR, FrameArrayReceiver, load_of, recv_waiting
+from bus.bus_features import FRAME_ERR, FrameArrayReceiver, load_of, recv_waiting, release_held
 from bus.busload import BusLoadCounter
 from bus.canlog import open_log
 from bus.transports.config import IO
@@ -261,6 +263,10 @@ class ChannelMonitor:
         with self._round_done:
             self._waiters += 1
             self._kick.set()
+        try:
+            release_held(self.bus)  # frames the hub holds for this bulk member: now
+        except (can.CanError, OSError, ValueError) as err:  # the reading thread notes a failed bus
+            logger.debug("%s monitor: release of held frames failed: %s", self.name, err)
         try:
             yield
         finally:

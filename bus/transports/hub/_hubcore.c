@@ -34,6 +34,7 @@
 #define STAMP_OFFSET 8
 #define KIND_FRAME 1
 #define KIND_FILTERS 2
+#define KIND_RELEASE 3
 #define FLAG_EXT 0x01
 #define FLAG_RTR 0x02
 #define FLAG_ERR 0x04
@@ -277,6 +278,8 @@ static void route_frame(Core *c, Member *sender, const uint8_t *rec, size_t tota
     }
 }
 
+static void release_held(Core *c, Member *m);
+
 /* every whole record of m->in (stamped with stamp_ns) */
 static void parse_input(Core *c, Member *m, uint64_t stamp_ns) {
     Buf *b = &m->in;
@@ -313,6 +316,10 @@ static void parse_input(Core *c, Member *m, uint64_t stamp_ns) {
             free(m->filters);
             m->filters = fs;
             m->nfilters = count;
+        } else if (kind == KIND_RELEASE) {
+            /* a bulk member asks for what is held for it (and this round routed to it) now */
+            total = HEADER_SIZE;
+            if (m->bulk && m->pend.len) release_held(c, m);
         } else {
             char text[48];
             snprintf(text, sizeof text, "unknown record kind %u", kind);
@@ -359,6 +366,7 @@ static void send_round(Core *c) {
         m->queued = 0;
         if (m->dead) continue;
         if (m->bulk) {
+            if (!m->pend.len) continue; /* released by its own request this round */
             if (m->held_since == 0.0) m->held_since = mono_s();
             if (m->pend.len >= c->bulk_max_bytes) release_held(c, m);
         } else {

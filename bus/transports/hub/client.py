@@ -98,7 +98,7 @@ from can import CanProtocol
 from bus.bus_features import FRAME_DTYPE, frames_from_messages, recv_waiting
 from bus.transports.hub.addresses import connect, parse_channel
 from bus.transports.hub.owner import HubOwnerError
-from bus.transports.hub.records import classic_frames, decode_records, encode_filters, encode_record
+from bus.transports.hub.records import classic_frames, decode_records, encode_filters, encode_record, encode_release
 from bus.transports.hub.wire import (
     PROTOCOL_VERSION,
     ROLE_MEMBER,
@@ -436,6 +436,15 @@ class HubBus(can.BusABC):
         if self._closed:
             raise can.CanOperationError(_CLOSED)
         return super().send_periodic(*args, **kwargs)
+
+    def release_held(self) -> None:
+        """Ask the hub for the frames it holds for this bulk member now (the release record of
+        :mod:`bus.transports.hub.wire`; :class:`bus.bus_features.HeldReleaser`): a reader waiting
+        for a marker does not wait out ``BULK_HOLD_S``.  Nothing is held for a member that is not
+        bulk; the request then does nothing."""
+        if self._closed:
+            raise can.CanOperationError(_CLOSED)
+        self._sock_send(encode_release())
 
     def flush_tx_buffer(self) -> None:
         """Nothing to discard: :meth:`send` returns when the kernel holds the frame."""

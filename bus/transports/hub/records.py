@@ -28,6 +28,7 @@ from bus.transports.hub.wire import (
     HEADER_SIZE,
     KIND_FILTERS,
     KIND_FRAME,
+    KIND_RELEASE,
     HubProtocolError,
 )
 
@@ -77,6 +78,11 @@ def encode_filters(filters: can.typechecking.CanFilters | None) -> bytes:
         for f in (filters or ())
     )
     return HEADER.pack(KIND_FILTERS, 0, 0, 0, len(entries), 0, b"") + entries
+
+
+def encode_release() -> bytes:
+    """The release record (client → hub): a bulk member's held frames, now."""
+    return HEADER.pack(KIND_RELEASE, 0, 0, 0, 0, 0, b"")
 
 
 def decode_records(data: bytes, channel: str, append: Callable[[can.Message], None]) -> int:

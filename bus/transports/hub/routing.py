@@ -25,8 +25,9 @@ Delivery
     The frames routed in one round of the hub's loop (all ready members) are queued per
     destination and written with one ``send`` per destination at the end of the round (a member
     that joined for bulk delivery, e.g. a monitor, gets them held up to ``BULK_HOLD_S`` or
-    ``BULK_MAX_BYTES``, in fewer writes). Who gets a frame of a given sender and identifier is
-    cached per logical bus until a member joins, leaves or changes its filters.
+    ``BULK_MAX_BYTES``, in fewer writes; a release record of its own has them sent at once). Who
+    gets a frame of a given sender and identifier is cached per logical bus until a member joins,
+    leaves or changes its filters.
 
 Counting
     Every frame record is counted on its logical bus as sent (:mod:`bus.transports.hub.stats`),
@@ -68,6 +69,7 @@ from bus.transports.hub.wire import (
     HEADER_SIZE,
     KIND_FILTERS,
     KIND_FRAME,
+    KIND_RELEASE,
     ROLE_MEMBER,
     STAMP,
     STAMP_OFFSET,
@@ -268,6 +270,10 @@ class Router:
                     FILTER_ENTRY.unpack_from(body, i) for i in range(0, n - n % FILTER_ENTRY.size, FILTER_ENTRY.size)
                 ] or None
                 self._cache.pop(sender.bus, None)
+            elif kind == KIND_RELEASE:
+                total = HEADER_SIZE
+                if sender.bulk:
+                    self.release_now(sender)
             else:
                 return f"unknown record kind {kind}"
             off += total
@@ -352,6 +358,15 @@ class Router:
             return
         now_s = time.monotonic()
         for peer in [c for c in self._held if now_s - c.held_since_s >= BULK_HOLD_S]:
+            self._release(peer)
+
+    def release_now(self, peer: Client) -> None:
+        """A bulk member's release record: what it holds and what this round routed to it so far,
+        sent now."""
+        chunks = self._pending.pop(peer, None)
+        if chunks:
+            peer.held += chunks
+        if peer.held:
             self._release(peer)
 
     def _release(self, peer: Client) -> None:
