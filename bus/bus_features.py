@@ -1,6 +1,6 @@
 """Optional capabilities of a python-can bus beyond :class:`can.BusABC`, and how callers use them.
 
-This module owns the five documented extras a transport may offer on top of python-can's
+This module owns the six documented extras a transport may offer on top of python-can's
 ``BusABC`` (which stays the interface of every transport); callers use an extra only when the
 bus declares it — an ``isinstance`` check against the :class:`typing.Protocol` below, done once
 when the caller is built — and fall back to plain ``BusABC`` calls otherwise:
@@ -27,6 +27,10 @@ when the caller is built — and fall back to plain ``BusABC`` calls otherwise:
   deliver them in fewer writes (the hub's bulk members) and delivers them at once when asked; for
   a reader that waits for a marker (the host's monitors at the end of a trial).
   :func:`release_held` asks, or does nothing on a bus that holds nothing.
+* :class:`FrameGatherer` — ``gather_frames(n)``: the transport delivers a reader's frames n at a
+  time (the hub); a lockstep master that waits for the n answers of a tick (the plant: four
+  torque frames) wakes once per tick instead of once per answer. :func:`frame_gatherer` returns
+  it, or a callable that does nothing.
 """
 
 from __future__ import annotations
@@ -173,6 +177,27 @@ def release_held(bus: can.BusABC) -> None:
     never held)."""
     if isinstance(bus, HeldReleaser):
         bus.release_held()
+
+
+@runtime_checkable
+class FrameGatherer(Protocol):
+    """A bus whose transport can deliver the frames for it n at a time."""
+
+    def gather_frames(self, count: int) -> None:
+        """Deliver this bus's frames ``count`` at a time from now on (0: each at once)."""
+        ...
+
+
+def _gather_nothing(count: int) -> None:
+    return None
+
+
+def frame_gatherer(bus: can.BusABC) -> Callable[[int], None]:
+    """``bus.gather_frames`` when ``bus`` is a :class:`FrameGatherer`, else a callable that does
+    nothing (every frame comes as it comes)."""
+    if isinstance(bus, FrameGatherer):
+        return bus.gather_frames
+    return _gather_nothing
 
 
 def frames_from_messages(msgs: Sequence[can.Message]) -> np.ndarray:

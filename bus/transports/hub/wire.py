@@ -29,11 +29,15 @@ Wire format (all little-endian), protocol version 3
     ``<IIb`` entries (can_id, can_mask, extended: −1 any, 0 standard, 1 extended); no
     entries = accept all; kind 3 = release (client → hub, a header alone): a bulk member asks
     for the frames the hub holds for it now, not at the end of ``BULK_HOLD_S`` (a reader that
-    waits for a marker; a member that is not bulk has nothing held). Frame flags: 0x01 extended, 0x02 remote, 0x04 error, 0x08 FD,
+    waits for a marker; a member that is not bulk has nothing held); kind 4 = gather (client →
+    hub, a header whose ``can_id`` field is a count n): from now on the hub holds the frames it
+    routes to this member until n of them are held (or ``BULK_HOLD_S`` passed) and delivers them
+    in one write — a lockstep master that waits for n answers wakes once, not per answer; n = 0
+    delivers at once again (and sends what is held). Frame flags: 0x01 extended, 0x02 remote, 0x04 error, 0x08 FD,
     0x10 BRS, 0x20 ESI, 0x40 own message echoed back.
 
     Version history: 1 = 16-byte records without timestamp, no bitrates in the handshake;
-    2 = hub receive timestamps, bitrates and the classic-CAN flag; 3 = the release record.
+    2 = hub receive timestamps, bitrates and the classic-CAN flag; 3 = the release and gather records.
 """
 
 from __future__ import annotations
@@ -64,6 +68,7 @@ BULK_MAX_BYTES = 32 << 10
 KIND_FRAME = 1
 KIND_FILTERS = 2
 KIND_RELEASE = 3
+KIND_GATHER = 4
 
 FLAG_EXT = 0x01
 FLAG_RTR = 0x02
