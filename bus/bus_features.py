@@ -1,6 +1,6 @@
 """Optional capabilities of a python-can bus beyond :class:`can.BusABC`, and how callers use them.
 
-This module owns the four documented extras a transport may offer on top of python-can's
+This module owns the six documented extras a transport may offer on top of python-can's
 ``BusABC`` (which stays the interface of every transport); callers use an extra only when the
 bus declares it — an ``isinstance`` check against the :class:`typing.Protocol` below, done once
 when the caller is built — and fall back to plain ``BusABC`` calls otherwise:
@@ -23,6 +23,14 @@ when the caller is built — and fall back to plain ``BusABC`` calls otherwise:
   :class:`can.Message` per frame; for a reader that looks at every frame of a busy channel (the
   host's io monitor). :func:`frames_from_messages` and :func:`messages_from_frames` convert;
   :func:`frame_bits` and :func:`load_of` give the frames' classic-CAN bit lengths and totals.
+* :class:`HeldReleaser` — ``release_held()``: the transport holds a reader's frames a while to
+  deliver them in fewer writes (the hub's bulk members) and delivers them at once when asked; for
+  a reader that waits for a marker (the host's monitors at the end of a trial).
+  :func:`release_held` asks, or does nothing on a bus that holds nothing.
+* :class:`FrameGatherer` — ``gather_frames(n)``: the transport delivers a reader's frames n at a
+  time (the hub); a lockstep master that waits for the n answers of a tick (the plant: four
+  torque frames) wakes once per tick instead of once per answer. :func:`frame_gatherer` returns
+  it, or a callable that does nothing.
 """
 
 from __future__ import annotations
@@ -186,6 +194,42 @@ def message_of(
         bitrate_switch=bool(flags & FRAME_BRS),
         error_state_indicator=bool(flags & FRAME_ESI),
     )
+@runtime_checkable
+class HeldReleaser(Protocol):
+    """A bus whose transport may hold received frames a while to deliver them in fewer writes (the
+    hub's bulk members) and can be asked to deliver them now."""
+
+    def release_held(self) -> None:
+        """Ask for the frames held for this bus to be delivered now."""
+        ...
+
+
+def release_held(bus: can.BusABC) -> None:
+    """``bus.release_held()`` when ``bus`` is a :class:`HeldReleaser`; else nothing (frames are
+    never held)."""
+    if isinstance(bus, HeldReleaser):
+        bus.release_held()
+
+
+@runtime_checkable
+class FrameGatherer(Protocol):
+    """A bus whose transport can deliver the frames for it n at a time."""
+
+    def gather_frames(self, count: int) -> None:
+        """Deliver this bus's frames ``count`` at a time from now on (0: each at once)."""
+        ...
+
+
+def _gather_nothing(count: int) -> None:
+    return None
+
+
+def frame_gatherer(bus: can.BusABC) -> Callable[[int], None]:
+    """``bus.gather_frames`` when ``bus`` is a :class:`FrameGatherer`, else a callable that does
+    nothing (every frame comes as it comes)."""
+    if isinstance(bus, FrameGatherer):
+        return bus.gather_frames
+    return _gather_nothing
 
 
 def frames_from_messages(msgs: Sequence[can.Message]) -> np.ndarray:

@@ -367,11 +367,15 @@ class TrialTickFollower:
     :ivar trial: index of the current (or last) trial, counted from its TRIAL_START frames
         (−1 before the first)
     :ivar in_trial: between a TRIAL_START and its TRIAL_STOP
+    :ivar ended: index of the last trial whose TRIAL_STOP was seen (−1 before the first): the
+        explicit end-of-trial marker an observer waits for (every frame of trial ``k`` has been
+        seen once ``ended >= k``)
     :ivar tick: the tick of the current trial that the last encoder frame carried (None before it)
     """
 
     def __init__(self) -> None:
         self.trial = -1
+        self.ended = -1
         self.in_trial = False
         self.tick: int | None = None
         self.origin = 0
@@ -392,6 +396,7 @@ class TrialTickFollower:
                 self.origin, self.in_trial, self.tick = wire, True, None
             elif data[0] == IoControlCommand.TRIAL_STOP:
                 self.in_trial = False
+                self.ended = self.trial
             return None
         if ENCODER_COB_BASE <= can_id < ENCODER_COB_BASE + N_JOINTS and len(data) >= 6 and self.in_trial:
             self.tick = self.frame_tick(data[4] | data[5] << 8)

@@ -41,7 +41,7 @@ from typing import Any
 import can
 
 from bus import io_frames, units
-from bus.bus_features import batch_sender
+from bus.bus_features import batch_sender, frame_gatherer
 from bus.cia301.nmt import NmtCommand, NmtState, next_state
 from bus.cia301.object_store import ObjectStore
 from bus.cia301.slave import SlaveNode, install_sigterm, quiet_shutdown
@@ -150,6 +150,8 @@ class PlantNode(SlaveNode):
             send=self._send_io,
             send_batch=self._send_io_batch,
             send_emcy=self._send_fault_emcy,
+            # in a trial the hub hands the plant the four torque frames of a tick in one write
+            gather=frame_gatherer(io),
             clock=clock,
             tick_timeout_s=tick_s,
             first_tick_timeout_s=first_s,

@@ -19,6 +19,10 @@ control frame goes out, then per tick n = 0..N-1:
    FAULT status bit is applied as zero torque;
 3. the plant integrates [t_n, t_n + Ts] with the four torques held and disturbance[n].
 
+From TRIAL_START to TRIAL_STOP the plant asks its io transport to deliver the frames for it four
+at a time (``gather``; the hub's gather record, :mod:`bus.transports.hub.wire`): the four torques
+of a tick wake the plant once, not once per drive.
+
 After tick N-1: TRIAL_STOP, status DONE.  No answer within ``tick_timeout_s`` [s]
 (``first_tick_timeout_s`` for tick 0) is a TICK_TIMEOUT fault; a bus error frame on io is
 BAD_FRAME; a plant that raises is PLANT.  A fault ends the trial: TRIAL_STOP (if it had
@@ -76,6 +80,9 @@ class LockstepMaster:
     :param model: the plant and the disturbance of the trials.
     :param send: sends one io frame; ``send_batch`` sends the four encoder frames of a tick.
     :param send_emcy: sends one EMCY ``(error code, error register, data)``.
+    :param gather: asks the io transport to deliver the frames for the plant n at a time
+        (:func:`bus.bus_features.frame_gatherer`): 4 from a trial's start (the torques of a tick
+        come in one wake-up), 0 once it stopped; None: every frame as it comes.
     :param clock: monotonic time source [s].
     :param tick_timeout_s: longest wait for the torque frames of one tick, s; ``first_tick_timeout_s``
         the same for tick 0.
@@ -96,6 +103,7 @@ class LockstepMaster:
         send: Callable[[can.Message], None],
         send_batch: Callable[[list[can.Message]], None],
         send_emcy: Callable[[Emcy], None],
+        gather: Callable[[int], None] | None = None,
         clock: Callable[[], float],
         tick_timeout_s: float,
         first_tick_timeout_s: float,
@@ -109,6 +117,7 @@ class LockstepMaster:
         self._send = send
         self._send_batch = send_batch
         self._send_emcy = send_emcy
+        self._gather = gather
         self._clock = clock
         self.tick_timeout_s = tick_timeout_s
         self.first_tick_timeout_s = first_tick_timeout_s
@@ -280,6 +289,8 @@ class LockstepMaster:
         )
         paced = bool(store.get(PlantObj.CONFIG, ConfigSub.PACING))
         self._spin_s = self.spin_s if paced and (self._spin_when is None or self._spin_when()) else 0.0
+        if self._gather is not None:  # before TRIAL_START: the hub takes it first
+            self._gather(_N)
         self._send_io(io_frames.encode_control(io_frames.IoControlCommand.TRIAL_START, self._origin, n_ticks))
         if paced:
             # Tick 0 is due one period after the start command, as a real drive's first cycle is the
@@ -339,6 +350,8 @@ class LockstepMaster:
     def _stop_io(self) -> None:
         self._send_io(io_frames.encode_control(io_frames.IoControlCommand.TRIAL_STOP, self._origin + self.tick, self.n_ticks))
         self._wire_next = self._origin + self.tick + 1
+        if self._gather is not None:  # outside a trial every frame comes as it comes
+            self._gather(0)
 
     def _send_io(self, msg: can.Message) -> None:
         self._send(msg)

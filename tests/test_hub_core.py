@@ -171,3 +171,68 @@ def test_a_member_leaving_mid_stream_disturbs_nobody(served: HubServer) -> None:
             tx.send(can.Message(arbitration_id=0x100 + i, is_extended_id=False, data=bytes([i])))
         got = [rx.recv(5.0) for _ in range(50)]
     assert [m.arbitration_id for m in got if m is not None] == [0x100 + i for i in range(50)]
+
+
+def test_a_bulk_member_gets_its_held_frames_when_it_asks(
+    hub_data_plane: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The release record (wire protocol 3): a bulk member's held frames come at once when it asks,
+    not after the hold (made 60 s here, so only the release can deliver them); a member that
+    is not bulk asking changes nothing."""
+    import bus.transports.hub.core as core
+    import bus.transports.hub.routing as routing
+
+    monkeypatch.setattr(routing, "BULK_HOLD_S", 60.0)
+    monkeypatch.setattr(core, "BULK_HOLD_S", 60.0)
+    with serving_in(tmp_path, hub_data_plane) as server, HubBus(_channel(server, "r")) as tx:
+        with HubBus(_channel(server, "r"), bulk_delivery=True) as bulk, HubBus(_channel(server, "r")) as live:
+            assert wait_until(lambda: server.stats()["r"].clients == 3)
+            for i in range(3):
+                tx.send(can.Message(arbitration_id=0x100 + i, is_extended_id=False, data=bytes([i])))
+            assert [m.arbitration_id for m in (live.recv(5.0) for _ in range(3)) if m is not None] == [0x100, 0x101, 0x102]
+            assert bulk.recv(0.2) is None  # held
+            bulk.release_held()
+            live.release_held()
+            got = [bulk.recv(5.0) for _ in range(3)]
+            assert [m.arbitration_id for m in got if m is not None] == [0x100, 0x101, 0x102]
+            tx.send(can.Message(arbitration_id=0x200, is_extended_id=False, data=b"x"))
+            m = live.recv(5.0)
+            assert m is not None and m.arbitration_id == 0x200
+            bulk.release_held()
+            m = bulk.recv(5.0)
+            assert m is not None and m.arbitration_id == 0x200
+
+
+def test_a_gathering_member_gets_its_frames_n_at_a_time(
+    hub_data_plane: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The gather record (wire protocol 3): the hub holds a member's frames until the count is held
+    and delivers them in one write (a hold of 60 s here: only the count releases them); count 0
+    delivers what is held and every frame at once again."""
+    import bus.transports.hub.core as core
+    import bus.transports.hub.routing as routing
+
+    monkeypatch.setattr(routing, "BULK_HOLD_S", 60.0)
+    monkeypatch.setattr(core, "BULK_HOLD_S", 60.0)
+    with serving_in(tmp_path, hub_data_plane) as server:
+        with HubBus(_channel(server, "g")) as master, HubBus(_channel(server, "g")) as a, HubBus(_channel(server, "g")) as b:
+            assert wait_until(lambda: server.stats()["g"].clients == 3)
+            master.gather_frames(4)
+            master.send(can.Message(arbitration_id=0x10, is_extended_id=False, data=b"s"))  # after the record: in order
+            assert a.recv(5.0) is not None and b.recv(5.0) is not None
+            for i in range(3):
+                (a if i % 2 else b).send(can.Message(arbitration_id=0x180 + i, is_extended_id=False, data=bytes([i])))
+            assert wait_until(lambda: server.stats()["g"].frames == 4)
+            assert master.recv(0.2) is None  # three of four: held
+            a.send(can.Message(arbitration_id=0x183, is_extended_id=False, data=b"\x03"))
+            got = [master.recv(5.0) for _ in range(4)]
+            assert [m.arbitration_id for m in got if m is not None] == [0x180, 0x181, 0x182, 0x183]
+            b.send(can.Message(arbitration_id=0x184, is_extended_id=False, data=b"\x04"))
+            assert wait_until(lambda: server.stats()["g"].frames == 6)
+            assert master.recv(0.2) is None
+            master.gather_frames(0)  # what is held goes out, and from now on every frame at once
+            m = master.recv(5.0)
+            assert m is not None and m.arbitration_id == 0x184
+            a.send(can.Message(arbitration_id=0x185, is_extended_id=False, data=b"\x05"))
+            m = master.recv(5.0)
+            assert m is not None and m.arbitration_id == 0x185

@@ -238,4 +238,10 @@ def test_follower_on_arrays_equals_frame_by_frame(origin: int, trial_lengths: li
     for a, b in zip(bounds, bounds[1:]):
         f = frames[a:b]
         arr.on_frame_array(f["arbitration_id"], f["data"], f["length"], (f["flags"] & FRAME_ERR) == 0)
-    assert (arr.trial, arr.in_trial, arr.tick, arr.origin) == (one.trial, one.in_trial, one.tick, one.origin)
+    assert (arr.trial, arr.ended, arr.in_trial, arr.tick, arr.origin) == (
+        one.trial,
+        one.ended,
+        one.in_trial,
+        one.tick,
+        one.origin,
+    )

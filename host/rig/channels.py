@@ -11,7 +11,10 @@ injection of a full disk in a trial (``--inject diskfull@T:N``: the io log fails
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -109,6 +112,32 @@ class RigChannels:
         f = io_mon.follower
         return f.tick if f.trial == trial else None
 
+    def next_trial(self) -> int:
+        """The io channel's index (:attr:`bus.io_frames.TrialTickFollower.trial`) of the trial that
+        starts next; the argument of :meth:`wait_trial_end` once it ran.  Call it before the
+        start command, with the previous trial's end awaited (the io monitor is then up to date)."""
+        io_mon = self.io
+        return io_mon.follower.trial + 1 if io_mon is not None else 0
+
+    def wait_trial_end(self, io_trial: int, end_stamp: float, timeout_s: float = 2.0) -> bool:
+        """Wait until every frame of the trial that just ended is processed, by explicit markers
+        (no reading rounds): the io monitor has seen the TRIAL_STOP of io trial ``io_trial``
+        (:meth:`next_trial`), the other monitors a frame received at or after ``end_stamp``
+        (``time.time()`` when the host learnt that the trial had ended; the caller makes sure a
+        frame follows, e.g. by one more request).  Both monitors read unpaused meanwhile.  False
+        (and a note in the log) when a marker did not come within ``timeout_s``: the trial is kept
+        all the same, as after the rounds this replaces."""
+        deadline = time.monotonic() + timeout_s
+        with contextlib.ExitStack() as stack:
+            for m in self.monitors:
+                stack.enter_context(m.unpaused())
+            missing = [
+                m.name for m in self.monitors if not m.wait_until(_end_seen(m, io_trial, end_stamp), deadline - time.monotonic())
+            ]
+        if missing:
+            logger.info("end of trial: no marker on %s within %g s", ", ".join(missing), timeout_s)
+        return not missing
+
     def catch_up(self) -> None:
         """Wait until every monitor has processed the frames that reached it before the call
         (:meth:`ChannelMonitor.catch_up`)."""
@@ -151,3 +180,11 @@ class RigChannels:
             except Exception:  # noqa: BLE001 - closing must never hide the original error
                 logger.warning("closing the %s monitor failed", m.name, exc_info=True)
         self.monitors = []
+
+
+def _end_seen(monitor: ChannelMonitor, io_trial: int, end_stamp: float) -> Callable[[], bool]:
+    """The end-of-trial marker of ``monitor`` (:meth:`RigChannels.wait_trial_end`)."""
+    if monitor.name == IO:
+        follower = monitor.follower
+        return lambda: follower.ended >= io_trial
+    return lambda: monitor.last_stamp >= end_stamp

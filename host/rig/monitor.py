@@ -20,6 +20,17 @@ Reading in bulk
     :meth:`ChannelMonitor.catch_up` waits until everything sent before the call
     has been processed (the summary reads the counters after it).
 
+Waiting for a marker, not for rounds
+    At the end of a trial the host waits for an explicit marker (:meth:`ChannelMonitor.wait_until`):
+    on the io channel the trial's TRIAL_STOP control frame (:attr:`bus.io_frames.TrialTickFollower.ended`),
+    on the fieldbus a frame the transport stamped after the trial's end (:attr:`ChannelMonitor.last_stamp`,
+    the receive time every transport gives a frame: the hub's, the kernel's).  While someone waits
+    the monitor reads without pauses and notifies after every batch, so the wait costs the time
+    the marker takes to arrive, not two reading rounds (each of which blocked up to
+    :attr:`ChannelMonitor.WAIT_S` on a channel that had gone quiet); on the hub it first asks for
+    the frames held for it (:func:`bus.bus_features.release_held`), so the wait does not include
+    the bulk delivery's hold either.
+
 What can go wrong is noted, with the monotonic time it was seen, for the host's watchdog: the bus
 failing (:attr:`ChannelMonitor.bus_error`), bus error frames (:attr:`ChannelMonitor.error_frames`),
 the log failing, e.g. on a full disk (:attr:`ChannelMonitor.log_error`: the log stops, the
@@ -32,19 +43,20 @@ T (:attr:`ChannelMonitor.fail_log_from`; ``on_log_fail_injected`` records it).
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import os
 import threading
 import time
-from collections.abc import Callable, Sized
+from collections.abc import Callable, Iterator, Sized
 from pathlib import Path
 
 import can
 import numpy as np
 
 from bus import io_frames
-from bus.bus_features import FRAME_ERR, FrameArrayReceiver, load_of, recv_waiting
+from bus.bus_features import FRAME_ERR, FrameArrayReceiver, load_of, recv_waiting, release_held
 from bus.busload import BusLoadCounter
 from bus.canlog import open_log
 from bus.transports.config import IO
@@ -104,7 +116,10 @@ class ChannelMonitor:
         self._classify = classify
         self._stop = threading.Event()
         self._kick = threading.Event()
+        self._waiters = 0
         self._rounds = 0
+        #: the latest receive time (``Message.timestamp`` scale, s) of a frame processed
+        self.last_stamp = float("-inf")
         self._round_done = threading.Condition()
         #: the bus failed: description and monotonic time [s]
         self.bus_error: str | None = None
@@ -156,6 +171,7 @@ class ChannelMonitor:
         with self.lock:
             counter, log, classify = self.counter, self.log, self._classify
             follower = self.follower if self._is_io else None
+            self.last_stamp = max(self.last_stamp, batch[-1].timestamp)
             for msg in batch:
                 counter.add(msg)
                 if classify is not None:
@@ -210,12 +226,13 @@ class ChannelMonitor:
         frames = self._recv_frames(self.WAIT_S)
         more = frames
         end = time.monotonic() + self.FRAMES_ROUND_S
-        while len(more) and time.monotonic() < end:
+        while len(more) and not self._kick.is_set() and time.monotonic() < end:
             more = self._recv_frames(0)
             if len(more):
                 frames = np.concatenate((frames, more))
         if len(frames):
             with self.lock:
+                self.last_stamp = max(self.last_stamp, float(frames["timestamp"].max()))
                 self.counter.merge(load_of(frames))
                 if self._classify_frames is not None:
                     self._classify_frames(frames)
@@ -233,20 +250,43 @@ class ChannelMonitor:
 
     def catch_up(self, timeout_s: float = 2.0) -> None:
         """Return once every frame that reached this monitor's bus before the call is processed
-        (two complete reading rounds later), or after ``timeout_s``."""
-        if not self._thread.is_alive():
-            return
+        (two complete reading rounds later), or after ``timeout_s``.  Where a marker is known, use
+        :meth:`wait_until`: a round on a quiet channel blocks up to :attr:`WAIT_S`."""
         with self._round_done:
             target = self._rounds + 2
+        self.wait_until(lambda: self._rounds >= target, timeout_s)
+
+    @contextlib.contextmanager
+    def unpaused(self) -> Iterator[None]:
+        """While the block runs the monitor reads without pausing between rounds (a reader that
+        waits for something is not kept waiting by a pause)."""
+        with self._round_done:
+            self._waiters += 1
             self._kick.set()
-            try:
-                deadline = time.monotonic() + timeout_s
-                while self._rounds < target and self._thread.is_alive():
-                    left = deadline - time.monotonic()
-                    if left <= 0 or not self._round_done.wait(left):
-                        break
-            finally:
-                self._kick.clear()
+        try:
+            release_held(self.bus)  # frames the hub holds for this bulk member: now
+        except (can.CanError, OSError, ValueError) as err:  # the reading thread notes a failed bus
+            logger.debug("%s monitor: release of held frames failed: %s", self.name, err)
+        try:
+            yield
+        finally:
+            with self._round_done:
+                self._waiters -= 1
+                if not self._waiters:
+                    self._kick.clear()
+
+    def wait_until(self, done: Callable[[], bool], timeout_s: float) -> bool:
+        """Read without pauses until ``done()`` holds (checked after every processed batch), at most
+        ``timeout_s`` s; whether it holds.  ``done`` looks at what the monitor noted, e.g. the io
+        follower's :attr:`~bus.io_frames.TrialTickFollower.ended` or :attr:`last_stamp`."""
+        with self.unpaused(), self._round_done:
+            deadline = time.monotonic() + timeout_s
+            while not done():
+                left = deadline - time.monotonic()
+                if left <= 0 or not self._thread.is_alive():
+                    return done()
+                self._round_done.wait(left)
+            return True
 
     def close(self) -> None:
         """Stop reading, close the log and the bus."""

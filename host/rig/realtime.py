@@ -40,6 +40,7 @@ __all__ = [
     "scheduling_mechanisms",
     "scheduling_text",
     "DEFAULT_RT_PRIORITY",
+    "HostBoundary",
     "MachineSteal",
     "cpu_steal_s",
     "steal_during",
@@ -78,6 +79,39 @@ class MachineSteal:
     window_s: float
     #: CPUs of the machine
     cpus: int
+
+
+@dataclass(frozen=True)
+class HostBoundary:
+    """One trial by the host's clock (``time.perf_counter``), s: the set-up (the start command),
+    the ticks (start command done until the plant reported the trial done) and the end (the
+    plant's timing read, the channels' end-of-trial markers awaited, the watchdog's round)."""
+
+    setup_s: float
+    ticks_s: float
+    end_s: float
+
+    @property
+    def total_s(self) -> float:
+        return self.setup_s + self.ticks_s + self.end_s
+
+
+def host_timing(boundaries: Sequence[HostBoundary], ticks: int, plant_rate: float) -> dict[str, Any]:
+    """The summary's ``timing.host``: the trials by the host's clock, their set-up, ticks and end
+    summed and per trial, and the host's ticks per second against the plant's."""
+    total = sum(b.total_s for b in boundaries)
+    rate = ticks / total if total > 0 else 0.0
+    return {
+        "basis": "the host's clock around each trial: set-up (start command), ticks (until the plant "
+        "reported done), end (the plant's timing read, the channels' end-of-trial markers)",
+        "seconds": total,
+        "setup_s": sum(b.setup_s for b in boundaries),
+        "ticks_s": sum(b.ticks_s for b in boundaries),
+        "end_s": sum(b.end_s for b in boundaries),
+        "ticks_per_s": rate,
+        "of_plant_rate": rate / plant_rate if plant_rate > 0 else 0.0,
+        "per_trial": [{"setup_s": b.setup_s, "ticks_s": b.ticks_s, "end_s": b.end_s} for b in boundaries],
+    }
 
 
 def steal_during(
@@ -209,6 +243,7 @@ def timing_summary(
     scheduling: Mapping[str, Any] | None = None,
     steal: Sequence[MachineSteal | None] | None = None,
     missed: Sequence[DeadlineMisses | None] | None = None,
+    host: Sequence[HostBoundary] | None = None,
 ) -> dict[str, Any]:
     """The run's timing figures from the trials' :class:`TrialTiming` (see the module docstring);
     ``scheduling``: what :func:`raise_lockstep_priority` gave the run (real time only); ``steal``:
@@ -216,7 +251,8 @@ def timing_summary(
     ``machine_steal`` when every trial has it); ``missed``: per trial, the plant's list of the ticks
     that missed their deadline (0x2441, read only after a trial with misses; real time only), as
     ``per_trial[k].missed_ticks`` with ``t0_monotonic_s``, the machine's ``CLOCK_MONOTONIC`` when tick 0
-    was due.
+    was due; ``host``: per trial, its boundary by the host's clock (:func:`host_timing`, the
+    summary's ``host`` when every trial has it).
 
     Over several trials: lateness p50 is the median of the trials' medians, p99 the worst trial's
     p99, max the worst tick; the achieved rate is all ticks over the sum of the trials' durations.
@@ -267,6 +303,8 @@ def timing_summary(
             "basis": "/proc/stat steal: CPU time the hypervisor gave to others while a trial ran (from the host's "
             "trial start to its completion), all CPUs summed; no process of the machine could run then",
         }
+    if host and len(host) == len(timings):
+        out["host"] = host_timing(host, ticks, rate)
     if realtime:
         misses = sum(t.deadline_misses for t in timings)
         late_max_s = max((t.lateness_max_us for t in timings), default=0) * 1e-6

@@ -146,7 +146,7 @@ class RigBench:
                 watchdog.events.listen_to(nid, node)
             watchdog.on_fault(lambda record: nodes.cancel(f"the run stopped: {record.message}"))
             streamer = self.streamer = SyncProducer(network, watchdog.raise_if_fault) if cfg.ff_transport == "pdo" else None
-            self.trials = TrialRunner(nodes.plant, watchdog, streamer, catch_up=self.channels.catch_up)
+            self.trials = TrialRunner(nodes.plant, watchdog, streamer, marks=self.channels)
             if streamer is not None:
                 streamer.explain_missing = self.trials.explain_missing_tpdo
                 watchdog.on_fault(streamer.wake)

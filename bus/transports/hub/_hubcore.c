@@ -5,7 +5,8 @@
  * them to the other members of their logical bus and writing them out, in one epoll loop, with
  * the same rules as the pure-Python path of bus/transports/hub/routing.py (that module's docstring
  * is the specification: forwarding, echo, classic-CAN members, acceptance filters, one send per
- * destination per round, bulk members held up to BULK_HOLD_S / BULK_MAX_BYTES, a member that
+ * destination per round, bulk members held up to BULK_HOLD_S / BULK_MAX_BYTES (a gathering member
+ * until a count of frames is held), a member that
  * stops reading dropped past MAX_OUTBUF_BYTES). The wire format is bus/transports/hub/wire.py's.
  *
  * Why C: profiling the rig (benchmarks/profile_rig.py, perf) showed the hub process spending
@@ -34,6 +35,8 @@
 #define STAMP_OFFSET 8
 #define KIND_FRAME 1
 #define KIND_FILTERS 2
+#define KIND_RELEASE 3
+#define KIND_GATHER 4
 #define FLAG_EXT 0x01
 #define FLAG_RTR 0x02
 #define FLAG_ERR 0x04
@@ -64,7 +67,9 @@ typedef struct Member {
     Buf in;              /* a partial record */
     Buf out;             /* unsent bytes (written when the socket is writable) */
     Buf pend;            /* routed this round; a bulk member's held frames */
-    double held_since;   /* bulk: monotonic s of the oldest held frame */
+    double held_since;   /* bulk / gather: monotonic s of the oldest held frame */
+    uint32_t gather;     /* > 0: frames held until this many are (or BULK_HOLD_S passed) */
+    uint32_t held_n;     /* records in pend */
     int queued;          /* on the round's destination list */
     int writing;         /* registered for EPOLLOUT */
     int dead;
@@ -181,7 +186,7 @@ static void set_events(Core *c, Member *m) {
 
 /* one send of data, the rest queued (as HubServer._send_to) */
 static void send_to(Core *c, Member *m, const uint8_t *data, size_t n) {
-    if (m->dead) return;
+    if (m->dead || !n) return;
     if (m->out.len == 0) {
         ssize_t sent = send(m->fd, data, n, MSG_DONTWAIT | MSG_NOSIGNAL);
         if (sent < 0) {
@@ -230,6 +235,7 @@ static void queue_for(Core *c, Member *m, const uint8_t *rec, size_t n, int echo
         return;
     }
     if (echo) m->pend.p[m->pend.len - n + 1] |= FLAG_ECHO;
+    m->held_n++;
     if (!m->queued) {
         if (c->round_len == c->round_cap) {
             int cap = c->round_cap ? 2 * c->round_cap : 16;
@@ -277,6 +283,8 @@ static void route_frame(Core *c, Member *sender, const uint8_t *rec, size_t tota
     }
 }
 
+static void release_held(Core *c, Member *m);
+
 /* every whole record of m->in (stamped with stamp_ns) */
 static void parse_input(Core *c, Member *m, uint64_t stamp_ns) {
     Buf *b = &m->in;
@@ -313,6 +321,15 @@ static void parse_input(Core *c, Member *m, uint64_t stamp_ns) {
             free(m->filters);
             m->filters = fs;
             m->nfilters = count;
+        } else if (kind == KIND_GATHER) {
+            /* deliver this member's frames once this many are routed to it (0: at once again) */
+            total = HEADER_SIZE;
+            m->gather = u32le(rec + 4);
+            if (m->pend.len && (!m->gather || m->held_n >= m->gather)) release_held(c, m);
+        } else if (kind == KIND_RELEASE) {
+            /* a bulk member asks for what is held for it (and this round routed to it) now */
+            total = HEADER_SIZE;
+            if (m->bulk && m->pend.len) release_held(c, m);
         } else {
             char text[48];
             snprintf(text, sizeof text, "unknown record kind %u", kind);
@@ -348,6 +365,7 @@ static void on_readable(Core *c, Member *m) {
 static void release_held(Core *c, Member *m) {
     size_t n = m->pend.len;
     m->pend.len = 0;
+    m->held_n = 0;
     m->held_since = 0.0;
     send_to(c, m, m->pend.p, n);
 }
@@ -358,12 +376,14 @@ static void send_round(Core *c) {
         Member *m = c->round[i];
         m->queued = 0;
         if (m->dead) continue;
-        if (m->bulk) {
+        if (m->bulk || m->gather) {
+            if (!m->pend.len) continue; /* released by its own request this round */
             if (m->held_since == 0.0) m->held_since = mono_s();
-            if (m->pend.len >= c->bulk_max_bytes) release_held(c, m);
+            if (m->pend.len >= c->bulk_max_bytes || (m->gather && m->held_n >= m->gather)) release_held(c, m);
         } else {
             size_t n = m->pend.len;
             m->pend.len = 0;
+            m->held_n = 0;
             send_to(c, m, m->pend.p, n);
         }
     }
@@ -591,7 +611,7 @@ static int report_dead(Core *c, PyObject *list) {
 static void release_due(Core *c, double now) {
     for (int i = 0; i < c->members_cap; i++) {
         Member *m = c->members[i];
-        if (m && !m->dead && m->bulk && m->held_since != 0.0 && now - m->held_since >= c->bulk_hold_s)
+        if (m && !m->dead && (m->bulk || m->gather) && m->held_since != 0.0 && now - m->held_since >= c->bulk_hold_s)
             release_held(c, m);
     }
 }
@@ -605,7 +625,7 @@ static PyObject *Core_poll(Core *c, PyObject *args) {
     /* the next bulk release bounds the wait */
     for (int i = 0; i < c->members_cap; i++) {
         Member *m = c->members[i];
-        if (m && !m->dead && m->bulk && m->held_since != 0.0) {
+        if (m && !m->dead && (m->bulk || m->gather) && m->held_since != 0.0) {
             double due = m->held_since + c->bulk_hold_s - now;
             if (timeout_s < 0 || due < timeout_s) timeout_s = due < 0 ? 0 : due;
         }

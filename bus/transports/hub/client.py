@@ -98,7 +98,14 @@ from can import CanProtocol
 from bus.bus_features import FRAME_DTYPE, frames_from_messages, recv_waiting
 from bus.transports.hub.addresses import connect, parse_channel
 from bus.transports.hub.owner import HubOwnerError
-from bus.transports.hub.records import classic_frames, decode_records, encode_filters, encode_record
+from bus.transports.hub.records import (
+    classic_frames,
+    decode_records,
+    encode_filters,
+    encode_gather,
+    encode_record,
+    encode_release,
+)
 from bus.transports.hub.wire import (
     PROTOCOL_VERSION,
     ROLE_MEMBER,
@@ -436,6 +443,24 @@ class HubBus(can.BusABC):
         if self._closed:
             raise can.CanOperationError(_CLOSED)
         return super().send_periodic(*args, **kwargs)
+
+    def release_held(self) -> None:
+        """Ask the hub for the frames it holds for this bulk member now (the release record of
+        :mod:`bus.transports.hub.wire`; :class:`bus.bus_features.HeldReleaser`): a reader waiting
+        for a marker does not wait out ``BULK_HOLD_S``.  Nothing is held for a member that is not
+        bulk; the request then does nothing."""
+        if self._closed:
+            raise can.CanOperationError(_CLOSED)
+        self._sock_send(encode_release())
+
+    def gather_frames(self, count: int) -> None:
+        """From now on have the hub deliver this member's frames ``count`` at a time (the gather
+        record of :mod:`bus.transports.hub.wire`; :class:`bus.bus_features.FrameGatherer`): a
+        lockstep master waiting for ``count`` answers wakes once for them, not once per answer;
+        fewer are delivered after ``BULK_HOLD_S``.  0: every frame at once again."""
+        if not 0 <= int(count) <= 0xFFFFFFFF:
+            raise ValueError(f"gather count must be 0..2**32-1, got {count!r}")
+        self._sock_send(encode_gather(int(count)))
 
     def flush_tx_buffer(self) -> None:
         """Nothing to discard: :meth:`send` returns when the kernel holds the frame."""

@@ -29,6 +29,8 @@ from bus.transports.hub.wire import (
     HEADER_SIZE,
     KIND_FILTERS,
     KIND_FRAME,
+    KIND_GATHER,
+    KIND_RELEASE,
     HubProtocolError,
 )
 
@@ -75,6 +77,17 @@ def encode_filters(filters: can.typechecking.CanFilters | None) -> bytes:
         for f in (filters or ())
     )
     return HEADER.pack(KIND_FILTERS, 0, 0, 0, len(entries), 0, b"") + entries
+
+
+def encode_gather(count: int) -> bytes:
+    """The gather record (client → hub): hold this member's frames until ``count`` are held
+    (0: deliver at once)."""
+    return HEADER.pack(KIND_GATHER, 0, 0, 0, count & 0xFFFFFFFF, 0, b"")
+
+
+def encode_release() -> bytes:
+    """The release record (client → hub): a bulk member's held frames, now."""
+    return HEADER.pack(KIND_RELEASE, 0, 0, 0, 0, 0, b"")
 
 
 def decode_records(data: bytes, channel: str, append: Callable[[can.Message], None]) -> int:

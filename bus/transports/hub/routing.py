@@ -25,8 +25,9 @@ Delivery
     The frames routed in one round of the hub's loop (all ready members) are queued per
     destination and written with one ``send`` per destination at the end of the round (a member
     that joined for bulk delivery, e.g. a monitor, gets them held up to ``BULK_HOLD_S`` or
-    ``BULK_MAX_BYTES``, in fewer writes). Who gets a frame of a given sender and identifier is
-    cached per logical bus until a member joins, leaves or changes its filters.
+    ``BULK_MAX_BYTES``, in fewer writes; a release record of its own has them sent at once). Who
+    gets a frame of a given sender and identifier is cached per logical bus until a member joins,
+    leaves or changes its filters.
 
 Counting
     Every frame record is counted on its logical bus as sent (:mod:`bus.transports.hub.stats`),
@@ -68,6 +69,8 @@ from bus.transports.hub.wire import (
     HEADER_SIZE,
     KIND_FILTERS,
     KIND_FRAME,
+    KIND_GATHER,
+    KIND_RELEASE,
     ROLE_MEMBER,
     STAMP,
     STAMP_OFFSET,
@@ -94,6 +97,8 @@ class Client:
     held: list[bytes] = field(default_factory=list)
     held_bytes: int = 0
     held_since_s: float = 0.0
+    #: > 0: its frames are held until this many are (a gather record; see send_round)
+    gather: int = 0
     #: not read for now: too many of its frames wait for bus time (see BusTime.queue_frames)
     paused: bool = False
     #: refused at its handshake: why (it runs as another user; :mod:`bus.transports.hub.owner`)
@@ -268,6 +273,14 @@ class Router:
                     FILTER_ENTRY.unpack_from(body, i) for i in range(0, n - n % FILTER_ENTRY.size, FILTER_ENTRY.size)
                 ] or None
                 self._cache.pop(sender.bus, None)
+            elif kind == KIND_GATHER:
+                total = HEADER_SIZE
+                sender.gather = U32.unpack_from(buf, off + 4)[0]
+                self.gather_changed(sender)
+            elif kind == KIND_RELEASE:
+                total = HEADER_SIZE
+                if sender.bulk:
+                    self.release_now(sender)
             else:
                 return f"unknown record kind {kind}"
             off += total
@@ -329,13 +342,13 @@ class Router:
             return
         self._pending = {}
         for peer, chunks in pending.items():
-            if peer.bulk:
+            if peer.bulk or peer.gather:
                 if not peer.held:
                     peer.held_since_s = time.monotonic()
                     self._held[peer] = None
                 peer.held += chunks
                 peer.held_bytes += sum(map(len, chunks))
-                if peer.held_bytes >= BULK_MAX_BYTES:
+                if peer.held_bytes >= BULK_MAX_BYTES or (peer.gather and len(peer.held) >= peer.gather):
                     self._release(peer)
             else:
                 self._send(peer, chunks[0] if len(chunks) == 1 else b"".join(chunks))
@@ -352,6 +365,28 @@ class Router:
             return
         now_s = time.monotonic()
         for peer in [c for c in self._held if now_s - c.held_since_s >= BULK_HOLD_S]:
+            self._release(peer)
+
+    def release_now(self, peer: Client) -> None:
+        """A bulk member's release record: what it holds and what this round routed to it so far,
+        sent now."""
+        chunks = self._pending.pop(peer, None)
+        if chunks:
+            peer.held += chunks
+        if peer.held:
+            self._release(peer)
+
+    def gather_changed(self, peer: Client) -> None:
+        """A member's gather record: what it holds (and this round routed to it so far) is sent
+        now when that is the new count already, or when it gathers no more."""
+        chunks = self._pending.pop(peer, None)
+        if chunks:
+            if not peer.held:
+                peer.held_since_s = time.monotonic()
+                self._held[peer] = None
+            peer.held += chunks
+            peer.held_bytes += sum(map(len, chunks))
+        if peer.held and (not peer.gather or len(peer.held) >= peer.gather):
             self._release(peer)
 
     def _release(self, peer: Client) -> None:

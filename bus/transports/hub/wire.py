@@ -6,8 +6,8 @@ This module owns what the hub client (:mod:`bus.transports.hub.client`) and the 
 filter records are built and read by :mod:`bus.transports.hub.records`; where a hub listens is
 :mod:`bus.transports.hub.addresses`'s.
 
-Wire format (all little-endian), protocol version 2
-    Handshake, client → hub: ``b"ILCH"``, u8 version (2), u8 role (1 member, 2 stats,
+Wire format (all little-endian), protocol version 3
+    Handshake, client → hub: ``b"ILCH"``, u8 version (3), u8 role (1 member, 2 stats,
     3 stats and reset), u8 flags (bit 0 receive own messages, bit 1 classic CAN: the client
     was opened with ``fd=False`` and gets no CAN FD frames, bit 2 bulk delivery: a passive
     member that accepts its frames up to ``BULK_HOLD_S`` late, in fewer writes; a hub that
@@ -27,11 +27,17 @@ Wire format (all little-endian), protocol version 2
     it forwards (clients send 0). kind 1 = frame; kind 2 = acceptance filters (client →
     hub): the ``can_id`` field holds the payload size, followed by that many bytes of
     ``<IIb`` entries (can_id, can_mask, extended: −1 any, 0 standard, 1 extended); no
-    entries = accept all. Frame flags: 0x01 extended, 0x02 remote, 0x04 error, 0x08 FD,
+    entries = accept all; kind 3 = release (client → hub, a header alone): a bulk member asks
+    for the frames the hub holds for it now, not at the end of ``BULK_HOLD_S`` (a reader that
+    waits for a marker; a member that is not bulk has nothing held); kind 4 = gather (client →
+    hub, a header whose ``can_id`` field is a count n): from now on the hub holds the frames it
+    routes to this member until n of them are held (or ``BULK_HOLD_S`` passed) and delivers them
+    in one write — a lockstep master that waits for n answers wakes once, not per answer; n = 0
+    delivers at once again (and sends what is held). Frame flags: 0x01 extended, 0x02 remote, 0x04 error, 0x08 FD,
     0x10 BRS, 0x20 ESI, 0x40 own message echoed back.
 
     Version history: 1 = 16-byte records without timestamp, no bitrates in the handshake;
-    2 = hub receive timestamps, bitrates and the classic-CAN flag.
+    2 = hub receive timestamps, bitrates and the classic-CAN flag; 3 = the release and gather records.
 """
 
 from __future__ import annotations
@@ -47,7 +53,7 @@ MAGIC_HELLO = b"ILCH"
 MAGIC_OK = b"ILOK"
 MAGIC_NO = b"ILNO"
 #: wire protocol version; hub and clients must speak the same one (see the module docstring)
-PROTOCOL_VERSION = 2
+PROTOCOL_VERSION = 3
 
 ROLE_MEMBER = 1
 ROLE_STATS = 2
@@ -61,6 +67,8 @@ BULK_MAX_BYTES = 32 << 10
 
 KIND_FRAME = 1
 KIND_FILTERS = 2
+KIND_RELEASE = 3
+KIND_GATHER = 4
 
 FLAG_EXT = 0x01
 FLAG_RTR = 0x02
