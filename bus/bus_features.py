@@ -194,6 +194,8 @@ def message_of(
         bitrate_switch=bool(flags & FRAME_BRS),
         error_state_indicator=bool(flags & FRAME_ESI),
     )
+
+
 @runtime_checkable
 class HeldReleaser(Protocol):
     """A bus whose transport may hold received frames a while to deliver them in fewer writes (the
