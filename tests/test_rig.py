@@ -325,6 +325,7 @@ def test_drive_killed_and_restarted_between_trials_is_set_up_again(tmp_path: Pat
     assert s["completed"] and len(s["iterations"]) == 3
     rec = s["bench"]["recoveries"]
     assert [r["node"] for r in rec] == [2] and rec[0]["before_trial"] == 1
+    assert rec[0]["heartbeat_lost"] or rec[0]["boot_up_seen"]
     cfg = build_config(None, {"iterations": 3, "cycle_s": 0.15})
     ref = run_experiment(prepare(cfg), InProcessBench(cfg), None, mode="sim")
     assert s["trace_sha256"] == ref.summary["trace_sha256"]

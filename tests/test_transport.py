@@ -354,12 +354,20 @@ def test_udp_multicast_reports_every_lost_datagram_as_a_bus_error(tmp_path: Path
 def test_a_lost_datagram_is_a_fault_of_the_run(tmp_path: Path) -> None:
     """``ilcrig run --bus udp_multicast`` with fieldbus receive buffers far too small for an SDO
     block: the losses are reported as bus errors and the run stops with a fault (exit code 3)
-    instead of going on with frames missing."""
+    instead of going on with frames missing. The losses come at the first burst of the bus (the
+    nodes' boot-ups answering the host's NMT reset); when the host's own loss was a boot-up, the
+    fault is that boot-up's absence, after the host's ``--wait``: 30 s here (the nodes are up in
+    seconds), not its default 120 s."""
     reason = netns_unavailable_reason()
     if reason:
         pytest.skip(reason)
     out = tmp_path / "rig"
-    env = {**os.environ, "ILCRIG_PRIVATE_NETNS": "1", "CAN_CONFIG_fieldbus": json.dumps({"receive_buffer_bytes": 4096})}
+    env = {
+        **os.environ,
+        "ILCRIG_PRIVATE_NETNS": "1",
+        "CAN_CONFIG_fieldbus": json.dumps({"receive_buffer_bytes": 4096}),
+        "ILCRIG_ROLE_CMD_HOST": f"{sys.executable} -P -m host.cli host --wait 30",
+    }
     cmd = [sys.executable, "-m", "host.cli", "run", "--iterations", "1", "--bus", "udp_multicast", "--out", str(out)]
     wrapped = ["unshare", "-rn", "sh", "-c", f'{NETNS_SETUP} && exec "$0" "$@"', *cmd]
     res = subprocess.run(wrapped, capture_output=True, text=True, env=env, timeout=300, start_new_session=True, check=False)
