@@ -240,6 +240,20 @@ _PIL_FAILURE_TEXT: Final[dict[PilFailure, str]] = {
 }
 #: bytes 2..4 of a PIL target's EMCY outside a trial
 PIL_NO_TICK: Final[int] = 0xFFFFFF
+#: the EMCY error code of a failed PIL target (CiA 301 0x6100, internal software)
+PIL_EMCY_CODE: Final[int] = 0x6100
+
+
+def pil_target_fault(code: int, mfr: bytes) -> tuple[str, int | None] | None:
+    """A drive's EMCY ``code`` with its manufacturer bytes ``mfr`` read as a failed PIL target:
+    (``"PIL target: <what happened>"``, the trial tick or None outside a trial); None when it is
+    not one (another code, or byte 0 not :attr:`FaultCause.PIL_TARGET`)."""
+    data = bytes(mfr) + bytes(5)
+    if code != PIL_EMCY_CODE or data[0] != FaultCause.PIL_TARGET:
+        return None
+    what = PilFailure(data[1]).text if data[1] in PilFailure._value2member_map_ else f"failure {data[1]}"
+    tick = int.from_bytes(data[2:5], "little")
+    return f"PIL target: {what}", None if tick == PIL_NO_TICK else tick
 
 
 class ModeOfOperation(IntEnum):

@@ -144,7 +144,7 @@ def _check_drive_fault(code: int, err: str, out: Path) -> dict[str, object]:
     assert summary["end_reason"] == "fault" and len(summary["iterations"]) == 1
     (fault,) = summary["faults"]
     assert (fault["kind"], fault["node"], fault["trial"], fault["tick"]) == ("emcy", "drive2", 1, FAIL_TICK), fault
-    assert "EMCY 0x6100" in fault["message"]
+    assert fault["message"].startswith("node 2: PIL target: ") and fault["message"].endswith("EMCY 0x6100"), fault
     return dict(fault)
 
 

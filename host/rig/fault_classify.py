@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from bus.cia301.nmt import CONSUMER_TIME_MS, HOST_NODE_ID, NODE_HEARTBEAT_MS, HeartbeatReport
 from bus.errors import SdoAbort
 from bus.io_frames import TICK_TIMEOUT_S
-from bus.objects import DRIVE_NODE_IDS, PIL_NO_TICK, FaultCause, PilFailure
+from bus.objects import DRIVE_NODE_IDS, pil_target_fault
 from bus.plant_objects import DEFAULT_PLANT_NODE_ID as PLANT_NODE_ID
 from bus.plant_objects import PlantFault
 from host.experiment.faults import FaultKind, FaultRecord, node_name
@@ -81,7 +81,6 @@ class DetectionTimes:
 EMCY_HOST_LOST = 0x8130
 EMCY_TICK_SEQUENCE = 0x8200
 EMCY_FOLLOWING_ERROR = 0x8611
-EMCY_INTERNAL_SOFTWARE = 0x6100  # byte 0 FaultCause.PIL_TARGET: a PIL target failed (PilFailure)
 
 #: the plant node's fault codes as fault kinds
 PLANT_FAULT_KINDS: Mapping[PlantFault, FaultKind] = {
@@ -253,16 +252,10 @@ def emcy_fault(frame: EmcyFrame, times: DetectionTimes | None = None) -> FaultRe
             "the frame's arrival",
             tick=expected,
         )
-    if frame.code == EMCY_INTERNAL_SOFTWARE and data[0] == FaultCause.PIL_TARGET:
-        failure = PilFailure(data[1]) if data[1] in PilFailure._value2member_map_ else None
-        tick = int.from_bytes(data[2:5], "little")
-        return _own_report(
-            FaultKind.EMCY,
-            f"PIL target: {failure.text if failure else f'failure {data[1]}'} (internal error of {name}, EMCY 0x6100)",
-            frame,
-            "the node's report",
-            tick=None if tick == PIL_NO_TICK else tick,
-        )
+    pil = pil_target_fault(frame.code, frame.data)
+    if pil is not None:  # the drive's PIL target failed (EMCY 0x6100, cause 9)
+        text, tick = pil
+        return _own_report(FaultKind.EMCY, f"{text} (internal error of {name}, EMCY 0x6100)", frame, "the node's report", tick)
     what = "following error" if frame.code == EMCY_FOLLOWING_ERROR else "fault"
     return _own_report(FaultKind.EMCY, f"{what} of {name} (EMCY 0x{frame.code:04X})", frame, "the node's report")
 
