@@ -67,8 +67,10 @@ ICOUNT_SHIFT = 0
 #: the board of the target (Cortex-M4; 4 MB at 0, 4 MB RAM at 0x20000000)
 MACHINE = "mps2-an386"
 CPU = "cortex-m4"
-#: the longest wait for a reply [s] (× ILCRIG_TIMEOUT_SCALE); the first one includes QEMU's start
-REPLY_TIMEOUT_S = 5.0
+#: the longest wait for a reply [s] (× ILCRIG_TIMEOUT_SCALE): shorter than the host's consumer time
+#: of the drive's heartbeat (500 ms, produced every 200 ms), so a silent target is the drive's fault
+#: (EMCY 0x6100), not a lost drive; the first wait (HELLO) includes QEMU's start
+REPLY_TIMEOUT_S = 0.3
 BOOT_TIMEOUT_S = 20.0
 _EXCEPTIONS = {2: "NMI", 3: "HardFault", 4: "MemManage", 5: "BusFault", 6: "UsageFault"}
 
