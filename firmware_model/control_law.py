@@ -221,6 +221,13 @@ def control_tick(
     return tau, STATUS_OK
 
 
+def csp_velocity_ref(target: int, prev: int, rate_q12: int) -> int:
+    """CSP's velocity reference from two successive targets [counts]: ``(target − prev)·rate`` in
+    the loop's Q12 arithmetic, rounded half up and saturated to int32 [counts/s] (the C core's
+    ``ilc_csp_velocity_ref``)."""
+    return fp.sat32(fp.rshift_round(fp.sat32(int(target) - int(prev)) * int(rate_q12), fp.VEL_STATE_Q))
+
+
 def run_table(
     counts: npt.NDArray[np.int64],
     st: npt.NDArray[np.int64],

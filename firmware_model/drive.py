@@ -66,10 +66,11 @@ from bus.objects import (
 )
 from firmware_model import control_law
 from firmware_model.cyclic_pdo import CyclicPdo
-from firmware_model.firmware_select import DEFAULT_FIRMWARE, control_tick_for
+from firmware_model.firmware_select import DEFAULT_FIRMWARE, control_tick_for, period_steps_for
 from firmware_model.modes import MotionContext
 from firmware_model.motion import Motion
 from firmware_model.od_hooks import ObjectHooks, eds_default
+from firmware_model.pil_link import PilError
 from firmware_model.playback import TrialPlayback
 from firmware_model.power_stage import Emcy, PowerStage
 from firmware_model.profile import ProfileGenerator
@@ -158,7 +159,8 @@ class Drive:
         #: the firmware this drive runs (``--firmware``)
         self.firmware = firmware
         kernel = control_tick_for(firmware, self.node_id)
-        ctx = MotionContext(self._st, self.trial, values, rated_mnm, self.power, ProfileGenerator(), kernel)
+        steps = period_steps_for(firmware)
+        ctx = MotionContext(self._st, self.trial, values, rated_mnm, self.power, ProfileGenerator(), kernel, steps)
         self.motion = Motion(self.node_id, ctx, self.power)
         self.power.motion = self.motion
         self.power.nmt_reaction = self._nmt_error_reaction
@@ -343,7 +345,10 @@ class Drive:
             self._st[_S_POS] = fp.sat32(motion.position(encoder_count))
             pdo.after_tick()
             return 0
-        tau = motion.tick(tick, motion.position(encoder_count))
+        try:
+            tau = motion.tick(tick, motion.position(encoder_count))
+        except PilError as err:  # the PIL target died or stopped answering: the drive's internal error
+            tau = self.power.target_failed(err.failure, str(err))
         pdo.after_tick()
         return tau
 

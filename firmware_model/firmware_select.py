@@ -15,7 +15,12 @@ starts (:func:`check_firmware`: a bad name, or ``c`` without the built extension
   the board's UART (:mod:`firmware_model.pil`; needs ``arm-none-eabi-gcc`` and
   ``qemu-system-arm``, checked by :func:`_pil_check`).
 
-Every kernel has the signature and the semantics of :data:`ControlTick`.  Kept import-light (the
+Every kernel has the signature and the semantics of :data:`ControlTick`.  The other integer steps
+of the period (:class:`PeriodSteps`: the CSP velocity reference, a profile velocity in counts/s,
+the torque actual 0x6077 in ‰) come with the firmware too (:func:`period_steps_for`): the Python
+model for ``python``, the C core's functions of the host build for ``c``; with ``pil`` they run on
+the host (the protocol carries one period's kernel call), in that same host build of the C core
+where it is built, otherwise in the Python model.  Kept import-light (the
 command line imports it to check ``--firmware``): numpy, numba and the extension are imported
 when a kernel is asked for.
 
@@ -27,6 +32,7 @@ from __future__ import annotations
 import importlib.util
 import logging
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, TypeAlias
 
 from bus.errors import InputError
@@ -37,7 +43,16 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["DEFAULT_FIRMWARE", "FIRMWARES", "ControlTick", "c_available", "check_firmware", "control_tick_for"]
+__all__ = [
+    "DEFAULT_FIRMWARE",
+    "FIRMWARES",
+    "ControlTick",
+    "PeriodSteps",
+    "c_available",
+    "check_firmware",
+    "control_tick_for",
+    "period_steps_for",
+]
 
 #: the firmwares a drive can run (``--firmware``), the first is the default
 FIRMWARES: tuple[str, ...] = ("python", "c", "pil")
@@ -104,3 +119,51 @@ def control_tick_for(kind: str, node_id: int) -> ControlTick:
     from firmware_model import control_law
 
     return control_law.control_tick
+
+
+@dataclass(frozen=True)
+class PeriodSteps:
+    """The pure integer steps of a control period besides its kernel (each the same function, bit
+    for bit, in the Python model and in firmware_model/c/ilc_control.c):
+
+    :ivar csp_velocity_ref: ``(target, previous target [counts], rate Q12) -> counts/s``, CSP's
+        velocity reference (``ilc_csp_velocity_ref``)
+    :ivar velocity_from_tick_q16: ``(v [counts/tick Q16], period [µs]) -> counts/s``, a profile
+        velocity as the loop's reference (``ilc_velocity_from_tick_q16``)
+    :ivar torque_units_to_permille: ``(torque [µN·m], rated torque [mN·m]) -> ‰``, the torque
+        actual 0x6077 (``ilc_torque_units_to_permille``)
+    :ivar where: which implementation: ``"python"`` or ``"c"``
+    """
+
+    csp_velocity_ref: Callable[[int, int, int], int]
+    velocity_from_tick_q16: Callable[[int, int], int]
+    torque_units_to_permille: Callable[[int, int], int]
+    where: str
+
+
+def _python_steps() -> PeriodSteps:
+    from bus import fixedpoint as fp
+    from firmware_model import control_law
+
+    return PeriodSteps(control_law.csp_velocity_ref, fp.velocity_from_tick_q16, fp.torque_units_to_permille, "python")
+
+
+def _c_steps() -> PeriodSteps:
+    from firmware_model import _fwcore
+
+    return PeriodSteps(_fwcore.csp_velocity_ref, _fwcore.velocity_from_tick_q16, _fwcore.torque_units_to_permille, "c")
+
+
+def period_steps_for(kind: str) -> PeriodSteps:
+    """The period's other integer steps with firmware ``kind`` (see the module docstring): C for
+    ``c``, and for ``pil`` where the host build of the C core exists; the Python model otherwise.
+
+    :raises InputError: ``kind`` is not one of :data:`FIRMWARES`, or ``c`` without the extension."""
+    if kind not in FIRMWARES:
+        raise InputError(f"--firmware: must be one of {', '.join(FIRMWARES)}, got {kind!r}")
+    if kind == "c":
+        check_firmware(kind)
+        return _c_steps()
+    if kind == "pil" and c_available():
+        return _c_steps()
+    return _python_steps()

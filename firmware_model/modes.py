@@ -19,7 +19,8 @@ error are faults of the power stage (:class:`FaultSink`).
   PD loop closes on 0x607A target position; the
   velocity reference is the backward difference of successive targets,
   ``(p[n] − p[n−1])·rate`` in the loop's Q12 arithmetic, rounded and saturated to int32 (0 on
-  the first tick of a trial and after a mode change); the feed-forward is 0x60B2 torque offset
+  the first tick of a trial and after a mode change; the firmware's ``csp_velocity_ref``,
+  :attr:`MotionContext.steps`); the feed-forward is 0x60B2 torque offset
   [‰ of 0x6076].
 * CSV (9, cyclic synchronous velocity): the position demand integrates 0x60FF target velocity
   [counts/s] in the profile generator's Q16 (:mod:`firmware_model.profile`; it starts at the
@@ -41,7 +42,7 @@ from __future__ import annotations
 
 import logging
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import ClassVar, Protocol
 
 import numpy as np
@@ -51,7 +52,7 @@ from bus import fixedpoint as fp
 from bus.cia301.object_store import Key, Value
 from bus.objects import ModeOfOperation, Obj, TrialState
 from firmware_model import control_law
-from firmware_model.firmware_select import ControlTick
+from firmware_model.firmware_select import ControlTick, PeriodSteps, period_steps_for
 from firmware_model.playback import TrialPlayback
 from firmware_model.profile import ProfileGenerator
 
@@ -90,6 +91,8 @@ class MotionContext:
     :ivar gen: the profile generator the profile-based modes and the quick-stop ramp share.
     :ivar control_tick: the drive's control-period kernel, the firmware it runs
         (:func:`firmware_model.firmware_select.control_tick_for`; default: the Python model).
+    :ivar steps: the period's other integer steps of that firmware (CSP velocity reference,
+        profile velocity in counts/s, 0x6077; :func:`firmware_model.firmware_select.period_steps_for`).
     """
 
     st: npt.NDArray[np.int64]
@@ -99,6 +102,7 @@ class MotionContext:
     faults: FaultSink
     gen: ProfileGenerator
     control_tick: ControlTick = control_law.control_tick
+    steps: PeriodSteps = field(default_factory=lambda: period_steps_for("python"))
 
 
 class OperationMode(ABC):
@@ -123,6 +127,7 @@ class OperationMode(ABC):
         self.faults = ctx.faults
         self.gen = ctx.gen
         self.control_tick = ctx.control_tick
+        self.steps = ctx.steps
 
     def reset(self) -> None:  # noqa: B027 - a mode without state between ticks has nothing to forget
         """Forget what earlier ticks left (NMT reset node, this mode selected again)."""
@@ -288,7 +293,7 @@ class CspMode(CyclicSynchronousMode):
         st, sp = self.st, self._setpoint
         target = int(self.values[_TARGET_POSITION])
         prev = self._prev_target
-        vref = 0 if prev is None else fp.sat32(fp.rshift_round(fp.sat32(target - prev) * int(st[_P_RATE]), fp.VEL_STATE_Q))
+        vref = 0 if prev is None else self.steps.csp_velocity_ref(target, prev, int(st[_P_RATE]))
         self._prev_target = target
         sp[0, 0], sp[1, 0], sp[2, 0] = target, vref, fp.sat32(self._offset_units())
         return self.control_tick(encoder_count, 0, rec_index, st, sp, self.trial.rec)

@@ -86,6 +86,9 @@ class Motion:
         self._trial = ctx.trial
         self._st = ctx.st
         self._control_tick = ctx.control_tick
+        #: the firmware's integer steps of a period besides its kernel (firmware_select.PeriodSteps)
+        self.steps = ctx.steps
+        self._velocity_from_tick_q16 = ctx.steps.velocity_from_tick_q16
         self._power = power
         self.gen = ctx.gen
         self.modes: dict[int, OperationMode] = {}
@@ -170,7 +173,7 @@ class Motion:
         gen, sp = self.gen, self._qs_setpoint
         period = self.mode.period_us()
         gen.step_stop(fp.per_tick_q16(int(self._values[self._qs_decel]), period, 2))
-        sp[0, 0], sp[1, 0], sp[2, 0] = gen.position_counts, fp.velocity_from_tick_q16(gen.v, period), 0
+        sp[0, 0], sp[1, 0], sp[2, 0] = gen.position_counts, self._velocity_from_tick_q16(gen.v, period), 0
         tau, status = self._control_tick(count, 0, -1, self._st, sp, self._trial.rec)
         if status:
             return self._power.following_error(int(self._st[_S_ERR]))

@@ -165,7 +165,8 @@ class ObjectHooks:
         r[(Obj.POSITION_DEMAND, 0)] = self._motion.demand_position
         r[(Obj.POSITION_ACTUAL, 0)] = lambda: int(st[control_law.S_POS])
         r[(Obj.VELOCITY_ACTUAL, 0)] = lambda: int(st[control_law.S_VEST])
-        r[(Obj.TORQUE_ACTUAL, 0)] = lambda: fp.torque_units_to_permille(int(st[control_law.S_TAU]), self._rated_mnm)
+        permille = self._motion.steps.torque_units_to_permille  # the firmware's (firmware_select.PeriodSteps)
+        r[(Obj.TORQUE_ACTUAL, 0)] = lambda: permille(int(st[control_law.S_TAU]), self._rated_mnm)
         r[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.VALUE)] = lambda: self._period_repr()[0]
         r[(Obj.INTERPOLATION_PERIOD, InterpolationPeriodSub.INDEX)] = lambda: self._period_repr()[1]
         for index in TABLE_ROWS:

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from bus.objects import PilFailure
 from firmware_model import control_law
 from firmware_model.pil_build import build_image, missing_tools, require_tools
 from firmware_model.pil_link import TICK, TICK_COLUMN, TICK_REPLY, PilError, PilTarget, get_s, get_u, put_s, put_u, wrap64
@@ -92,6 +93,8 @@ class PilKernel:
         self._per_tick = target.info.instructions_per_tick
         #: instructions per period by loop structure (LOOP_NAMES)
         self.stats: dict[str, InstructionStats] = {}
+        #: the failure that stopped the target (every later period raises it again at once)
+        self.failed: PilError | None = None
 
     def __call__(
         self,
@@ -104,8 +107,32 @@ class PilKernel:
     ) -> tuple[int, int]:
         """One control period on the target; same contract as ``control_law.control_tick``.
 
-        :raises PilError: the target failed (a drive fault: the message says which and where)
+        :raises PilError: the target failed (a drive fault: the message says which and where,
+            ``failure`` what happened); the target is then stopped and every later call raises
+            the same failure at once, without touching the link
         """
+        if self.failed is not None:
+            raise PilError(str(self.failed), self.failed.failure)
+        try:
+            return self._step(count, idx, rec_idx, st, tables, rec)
+        except PilError as err:
+            failed = err
+        except IndexError:  # a reply shorter than its contents
+            failed = PilError(f"{self.target.label}: a truncated TICK reply", PilFailure.PROTOCOL)
+        self.failed = failed
+        self.target.close()
+        raise failed
+
+    def _step(
+        self,
+        count: int,
+        idx: int,
+        rec_idx: int,
+        st: npt.NDArray[np.int64],
+        tables: npt.NDArray[np.int32],
+        rec: npt.NDArray[np.int32],
+    ) -> tuple[int, int]:
+        """One period over the link (:meth:`__call__` without the failure bookkeeping)."""
         idx = int(idx)
         rec_idx = int(rec_idx)
         if not 0 <= idx < self._table_cols:

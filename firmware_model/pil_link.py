@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from bus.errors import IlcrigError
+from bus.objects import PilFailure
 from bus.processes import spawn_process
 from bus.units import timeout_scale
 
@@ -66,15 +67,23 @@ ICOUNT_SHIFT = 0
 #: the board of the target (Cortex-M4; 4 MB at 0, 4 MB RAM at 0x20000000)
 MACHINE = "mps2-an386"
 CPU = "cortex-m4"
-#: the longest wait for a reply [s] (× ILCRIG_TIMEOUT_SCALE); the first one includes QEMU's start
-REPLY_TIMEOUT_S = 5.0
+#: the longest wait for a reply [s] (× ILCRIG_TIMEOUT_SCALE): shorter than the host's consumer time
+#: of the drive's heartbeat (500 ms, produced every 200 ms), so a silent target is the drive's fault
+#: (EMCY 0x6100), not a lost drive; the first wait (HELLO) includes QEMU's start
+REPLY_TIMEOUT_S = 0.3
 BOOT_TIMEOUT_S = 20.0
 _EXCEPTIONS = {2: "NMI", 3: "HardFault", 4: "MemManage", 5: "BusFault", 6: "UsageFault"}
 
 
 class PilError(IlcrigError):
     """The PIL target failed: QEMU exited or did not answer in time, the core faulted, or the
-    link broke the protocol.  A drive fault: the message says which target and where."""
+    link broke the protocol.  A drive fault: the message says which target and where, and
+    :attr:`failure` which of those it was (:class:`bus.objects.PilFailure`, the EMCY's byte 1).
+    """
+
+    def __init__(self, message: str, failure: PilFailure = PilFailure.PROTOCOL) -> None:
+        super().__init__(message)
+        self.failure = failure
 
 
 # ------------------------------------------------------------ integer coding
@@ -187,6 +196,7 @@ class PilTarget:
         self._scale = timeout_scale()
         self._stderr: IO[bytes] = tempfile.TemporaryFile()
         self._buf = bytearray()
+        self._closed = False  # close() ran: the pipes' descriptors are gone (never write to them)
         try:
             self._proc: subprocess.Popen[Any] = spawn_process(
                 qemu_argv(elf), stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._stderr
@@ -229,17 +239,19 @@ class PilTarget:
         """
         if timeout_s is None:
             timeout_s = REPLY_TIMEOUT_S
+        if self._closed:
+            raise PilError(f"{self.label}: the target was stopped (QEMU pid {self._proc.pid})", PilFailure.EXITED)
         try:
             os.write(self._in, frame(kind, payload))
         except (BrokenPipeError, OSError) as err:
-            raise self._gone(f"could not send ({err})") from None
+            raise self._gone(f"could not send ({err})", PilFailure.EXITED) from None
         reply_kind, body = self._read_frame(timeout_s * self._scale)
         if reply_kind == ERROR:
             code, pos = get_u(body, 0)
             detail, _ = get_u(body, pos)
             raise PilError(f"{self.label}: the target refused a request: {ERRORS.get(code, code)} ({detail})")
         if reply_kind == FAULT:
-            raise PilError(f"{self.label}: {self._fault_text(body)}")
+            raise PilError(f"{self.label}: {self._fault_text(body)}", PilFailure.CORE_FAULT)
         return reply_kind, body
 
     def _read_frame(self, timeout_s: float) -> tuple[int, bytes]:
@@ -251,7 +263,7 @@ class PilTarget:
                 return parsed
             left = deadline - time.monotonic()
             if left <= 0:
-                raise self._gone(f"no reply within {timeout_s:g} s", kill=True)
+                raise self._gone(f"no reply within {timeout_s:g} s", PilFailure.NO_ANSWER, kill=True)
             if not self._poll.poll(left * 1000.0):
                 continue
             try:
@@ -259,7 +271,7 @@ class PilTarget:
             except BlockingIOError:
                 continue
             if not chunk:
-                raise self._gone("QEMU closed the serial line")
+                raise self._gone("QEMU closed the serial line", PilFailure.EXITED)
             buf += chunk
 
     def _parse(self, buf: bytearray) -> tuple[int, bytes] | None:
@@ -296,7 +308,7 @@ class PilTarget:
         name = _EXCEPTIONS.get(exc, f"exception {exc}")
         return f"the Cortex-M4 took a {name} (CFSR 0x{cfsr:08X}, HFSR 0x{hfsr:08X}) at PC 0x{pc:08X}"
 
-    def _gone(self, what: str, kill: bool = False) -> PilError:
+    def _gone(self, what: str, failure: PilFailure, kill: bool = False) -> PilError:
         """The PilError of a broken link; stops QEMU and adds its exit status and last words."""
         if kill:
             self.close()
@@ -306,7 +318,7 @@ class PilTarget:
                 rc = self._proc.wait(0.5)
         words = self._stderr_tail()
         status = "running" if rc is None else f"exit status {rc}"
-        return PilError(f"{self.label}: {what} (QEMU pid {self._proc.pid}, {status}{': ' + words if words else ''})")
+        return PilError(f"{self.label}: {what} (QEMU pid {self._proc.pid}, {status}{': ' + words if words else ''})", failure)
 
     def _stderr_tail(self) -> str:
         try:
@@ -319,6 +331,7 @@ class PilTarget:
 
     def close(self) -> None:
         """Stop QEMU (idempotent)."""
+        self._closed = True
         proc = self._proc if hasattr(self, "_proc") else None
         if proc is not None and proc.poll() is None:
             proc.kill()

@@ -93,12 +93,12 @@ class _ProfileMode(OperationMode):
 
     def demand(self) -> tuple[int, int]:
         gen = self.gen
-        return gen.position_counts, fp.velocity_from_tick_q16(gen.v, self.period_us())
+        return gen.position_counts, self.steps.velocity_from_tick_q16(gen.v, self.period_us())
 
     def _follow(self, encoder_count: int) -> int:
         """The PD loop on the generator's demand this cycle: torque [µN·m]."""
         gen, sp = self.gen, self._setpoint
-        sp[0, 0], sp[1, 0], sp[2, 0] = gen.position_counts, fp.velocity_from_tick_q16(gen.v, self.period_us()), 0
+        sp[0, 0], sp[1, 0], sp[2, 0] = gen.position_counts, self.steps.velocity_from_tick_q16(gen.v, self.period_us()), 0
         tau, status = self.control_tick(encoder_count, 0, -1, self.st, sp, self.trial.rec)
         if status:
             return self._following_error_fault(-1)

@@ -20,9 +20,9 @@ error history 0x1003 and the queue of EMCY messages the node runtime sends
   seen -- 1 and 2 end in Switch on disabled (transition 12), 5 and 6 stay in Quick stop active
   holding the position (statusword bit 10) and accept Enable operation (transition 16).
 * **Faults** (:meth:`PowerStage.fault`: following error 0x8611, tick sequence 0x8200, bus lost
-  0x8100) enter CiA 402 Fault at once (the fault reaction takes no time), end an armed or
-  running trial in FAULT with the cause in 0x2120:4, set 0x1001/0x603F, record 0x1003, remove
-  torque and queue an EMCY.
+  0x8100, the PIL target died or stopped answering 0x6100) enter CiA 402 Fault at once (the
+  fault reaction takes no time), end an armed or running trial in FAULT with the cause in
+  0x2120:4, set 0x1001/0x603F, record 0x1003, remove torque and queue an EMCY.
 * **Communication errors** (:meth:`PowerStage.communication_error`: the host's heartbeat lost
   0x8130, an RPDO deadline 0x8250, SYNC lost 0x8100): EMCY, 0x1001 (generic + communication),
   0x1003, an armed or running trial ends in FAULT, then the abort connection reaction of 0x6007
@@ -62,11 +62,13 @@ from bus.cia301.emcy import EmcyCode, ErrorHistory, ErrorRegister
 from bus.cia301.nmt import NmtState
 from bus.cia301.object_store import Key, Value
 from bus.objects import (
+    PIL_NO_TICK,
     AbortConnectionOption,
     Cia402State,
     ErrorBehaviour,
     FaultCause,
     Obj,
+    PilFailure,
     QuickStopOption,
     Statusword,
     TrialState,
@@ -342,6 +344,17 @@ class PowerStage:
             FaultCause.TICK_SEQUENCE,
             struct.pack("<BHH", FaultCause.TICK_SEQUENCE, expected & 0xFFFF, int(tick) & 0xFFFF),
         )
+
+    def target_failed(self, failure: PilFailure, message: str) -> int:
+        """The processor-in-the-loop target failed (``--firmware pil``; ``message``: what the link
+        said): the drive's internal error, EMCY 0x6100 with the cause, ``failure`` and the trial
+        tick (U24, 0xFFFFFF outside a trial).  Returns the torque of the tick, 0 [µN·m]."""
+        trial = self._trial
+        tick = trial.next_tick if trial.state == TrialState.RUNNING else PIL_NO_TICK
+        logger.error("%s (tick %s): torque off", message, tick if tick != PIL_NO_TICK else "-")
+        mfr = struct.pack("<BB", FaultCause.PIL_TARGET, int(failure)) + (tick & PIL_NO_TICK).to_bytes(3, "little")
+        register = ErrorRegister.GENERIC | ErrorRegister.MANUFACTURER
+        return self.fault(EmcyCode.INTERNAL_SOFTWARE, register, FaultCause.PIL_TARGET, mfr, reason="fault-pil_target")
 
     def bus_lost(self, reason: str) -> None:
         """The fieldbus or io bus failed: a fault (its EMCY cannot be sent)."""

@@ -215,6 +215,31 @@ def test_firmware_choice(monkeypatch: pytest.MonkeyPatch) -> None:
         check_firmware("pil")
 
 
+def test_the_period_steps_follow_the_firmware(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With ``c`` the drive calls the C core's CSP velocity reference, profile velocity and 0x6077;
+    with ``python`` their Python models; with ``pil`` the host build of the C (PIL: host-side)."""
+    from firmware_model.drive import Drive
+    from firmware_model.firmware_select import period_steps_for
+
+    python, c = period_steps_for("python"), period_steps_for("c")
+    assert (python.where, c.where, period_steps_for("pil").where) == ("python", "c", "c")
+    assert python.csp_velocity_ref is cl.csp_velocity_ref and python.torque_units_to_permille is fp.torque_units_to_permille
+    assert c.csp_velocity_ref is _fwcore.csp_velocity_ref and c.velocity_from_tick_q16 is _fwcore.velocity_from_tick_q16
+    calls: list[tuple[int, int]] = []
+    c_permille = _fwcore.torque_units_to_permille
+
+    def permille(tau: int, rated: int) -> int:
+        calls.append((tau, rated))
+        return int(c_permille(tau, rated))
+
+    monkeypatch.setattr(_fwcore, "torque_units_to_permille", permille)
+    drive = Drive(1, firmware="c")
+    assert drive.motion.steps.where == "c" and all(m.steps is drive.motion.steps for m in drive.motion.modes.values())
+    drive.read_object(0x6077, 0)
+    assert len(calls) == 1  # 0x6077 is the C function's
+    assert Drive(1).motion.steps.where == "python"
+
+
 def test_firmware_option_errors_are_one_line(
     capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -7,7 +7,11 @@
 * marked ``pil`` (full tier; skipped where the tools are missing unless ``ILCRIG_REQUIRE_PIL=1``,
   as CI's PIL step sets, then they fail): the PIL kernel is the numba kernel bit for bit on random
   inputs and parameter writes; a QEMU that dies or stops answering is a PilError, not a hang;
-  ``ilcrig run --firmware pil --iterations 2`` prints the digest of the Python firmware.
+  ``ilcrig run --firmware pil --iterations 2`` prints the digest of the Python firmware;
+* a PIL target that fails is a drive fault, not the end of the drive process: torque off, CiA 402
+  Fault, EMCY 0x6100 with cause 9, what happened and the trial tick, the run ends with exit 3 and a
+  true summary -- in the fast tier with a stand-in kernel that raises the link's error, in the
+  ``pil`` tier with a QEMU killed, or SIGSTOPed, mid-trial (in ``ilcrig sim`` and in the rig).
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +32,7 @@ import pytest
 from firmware_model import control_law as cl
 from firmware_model import pil_link
 from firmware_model.pil_build import APT_PACKAGES, SOURCES, missing_tools
-from tests.cli_util import ROOT, run_cli_process
+from tests.cli_util import ROOT, run_cli, run_cli_process
 
 REQUIRE_ENV = "ILCRIG_REQUIRE_PIL"
 PROTOCOL_H = Path(pil_link.__file__).resolve().parent / "c" / "pil" / "pil_protocol.h"
@@ -101,6 +105,107 @@ def test_missing_tools_are_one_line_before_anything_starts(tmp_path: Path) -> No
     assert done.stderr.count("\n") == 1, done.stderr
     assert "--firmware" in done.stderr and f"apt-get install {' '.join(APT_PACKAGES)}" in done.stderr
     assert not out.exists()
+
+
+# ---------------------------------------------------------------- a failed target is a drive fault
+
+SHORT = ["--iterations", "2", "--cycle", "0.15"]
+FAIL_TICK = 60  # node 2's target fails at trial 1, tick 60
+
+
+def _failing_kernels(monkeypatch: pytest.MonkeyPatch, act: Callable[[object], None]) -> None:
+    """Node 2's kernel runs ``act(kernel)`` before its period of trial 1, tick FAIL_TICK (the
+    second call with that table column); the others are left alone."""
+    import firmware_model.drive as drive_mod
+    from firmware_model.firmware_select import control_tick_for
+
+    def kernel_for(firmware: str, node_id: int) -> object:
+        kernel = control_tick_for(firmware, node_id)
+        if node_id != 2:
+            return kernel
+        seen = [0]
+
+        def tick(*args: object) -> object:
+            if args[1] == FAIL_TICK and args[2] == FAIL_TICK:
+                seen[0] += 1
+                if seen[0] == 2:
+                    act(kernel)
+            return kernel(*args)  # type: ignore[operator]
+
+        return tick
+
+    monkeypatch.setattr(drive_mod, "control_tick_for", kernel_for)
+
+
+def _check_drive_fault(code: int, err: str, out: Path) -> dict[str, object]:
+    """The run ended in the fault of drive 2 at trial 1, tick FAIL_TICK, with trial 0 kept."""
+    assert code == 3, err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["end_reason"] == "fault" and len(summary["iterations"]) == 1
+    (fault,) = summary["faults"]
+    assert (fault["kind"], fault["node"], fault["trial"], fault["tick"]) == ("emcy", "drive2", 1, FAIL_TICK), fault
+    assert fault["message"].startswith("node 2: PIL target: ") and fault["message"].endswith("EMCY 0x6100"), fault
+    return dict(fault)
+
+
+@pytest.mark.slow
+def test_a_failed_pil_target_is_a_drive_fault_not_the_end_of_the_drive(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """No tools needed: node 2's kernel raises the link's error as a dead QEMU makes it."""
+    from bus.objects import PilFailure
+
+    def die(kernel: object) -> None:
+        raise pil_link.PilError("node 2 PIL target: QEMU closed the serial line (QEMU pid 1, exit status -9)", PilFailure.EXITED)
+
+    _failing_kernels(monkeypatch, die)
+    code, _, err = run_cli(capsys, "sim", *SHORT, "--out", str(tmp_path / "run"))
+    _check_drive_fault(code, err, tmp_path / "run")
+
+
+def test_the_drive_reacts_to_a_failed_target_like_to_an_internal_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The power stage's reaction: Fault, torque off, 0x1001/0x603F/0x1003, the trial in FAULT
+    with cause 9, EMCY 0x6100 with cause, what happened and the tick (U24; none outside a trial)."""
+    from bus.cia301.nmt import NmtState
+    from bus.objects import PIL_NO_TICK, Cia402State, FaultCause, PilFailure, TrialState
+    from firmware_model.drive import Drive
+
+    drive = Drive(2)
+    drive.nmt_state = NmtState.OPERATIONAL
+    for cw in (0x06, 0x07, 0x0F):
+        drive.power.controlword(cw)
+    assert drive.power.on
+    drive.trial.state = TrialState.RUNNING
+    drive.trial.next_tick = 700
+    drive.pop_emcy()
+
+    def dead(*args: object) -> tuple[int, int]:
+        raise pil_link.PilError("node 2 PIL target: no reply within 5 s", PilFailure.NO_ANSWER)
+
+    drive.motion.mode.control_tick = dead
+    assert drive.io_tick(700, 1234) == 0
+    assert drive.power.state == Cia402State.FAULT and not drive.power.on
+    assert drive.trial.state == TrialState.FAULT and drive.trial.fault_cause == FaultCause.PIL_TARGET
+    assert drive.power.error_code == 0x6100 and drive.power.error_register == 0x81
+    ((code, register, mfr),) = drive.pop_emcy()
+    assert (code, register) == (0x6100, 0x81)
+    assert mfr == bytes((9, 2)) + (700).to_bytes(3, "little")
+    assert drive.io_tick(701, 1234) == 0  # torque is off: no period runs any more
+    # outside a trial: no tick
+    drive.power.target_failed(PilFailure.CORE_FAULT, "node 2 PIL target: HardFault")
+    (emcy,) = drive.pop_emcy()
+    assert emcy[2] == bytes((9, 3)) + PIL_NO_TICK.to_bytes(3, "little")
+
+
+def test_the_hosts_record_of_a_pil_target_emcy() -> None:
+    from host.rig.fault_classify import EmcyFrame, emcy_fault
+
+    frame = EmcyFrame(node_id=3, code=0x6100, data=bytes((9, 1)) + (60).to_bytes(3, "little"), t_mono=1.0, t_wall=2.0)
+    record = emcy_fault(frame)
+    assert (record.node, record.tick) == ("drive3", 60)
+    assert record.message.startswith("PIL target: the emulator exited") and "EMCY 0x6100" in record.message
+    outside = emcy_fault(EmcyFrame(3, 0x6100, bytes((9, 2, 0xFF, 0xFF, 0xFF)), 1.0, 2.0))
+    assert outside.tick is None and outside.message.startswith("PIL target: no answer within the reply time")
 
 
 # ---------------------------------------------------------------- on the emulated Cortex-M4
@@ -200,3 +305,150 @@ def test_rig_with_pil_firmware_prints_the_python_digest(tmp_path: Path) -> None:
     digest = _digest(tmp_path / "py")
     assert _digest(tmp_path / "pil") == digest
     assert f"trace_sha256 {digest[:16]}" in pil.stdout
+
+
+# ---------------------------------------------------------------- a target that fails mid-trial
+
+
+def _stop_and_wait(pid: int) -> None:
+    """SIGSTOP ``pid`` and return once the kernel says it is stopped (state T)."""
+    os.kill(pid, signal.SIGSTOP)
+    deadline = time.monotonic() + 30.0
+    while Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] not in ("T", "t"):
+        assert time.monotonic() < deadline, "QEMU did not stop"
+        time.sleep(0.005)
+
+
+@pytest.mark.pil
+@pytest.mark.slow
+@pytest.mark.parametrize("how", ["killed", "stopped"])
+def test_a_qemu_killed_or_stopped_mid_trial_is_a_drive_fault(
+    how: str,
+    capsys: pytest.CaptureFixture[str],
+    caplog: pytest.LogCaptureFixture,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``ilcrig sim --firmware pil``: node 2's QEMU is killed (the event: it has exited) or stopped
+    (the event: its state is T) just before its period of trial 1, tick FAIL_TICK; the drive
+    faults (a stopped one after the bounded reply time), the run ends with exit 3."""
+    _require()
+    from firmware_model import pil
+
+    targets: list[pil_link.PilTarget] = []
+
+    def fail(kernel: object) -> None:
+        target = kernel.target  # type: ignore[attr-defined]
+        targets.append(target)
+        if how == "killed":
+            os.kill(target.pid, signal.SIGKILL)
+            target._proc.wait(30.0)
+        else:
+            _stop_and_wait(target.pid)
+
+    _failing_kernels(monkeypatch, fail)
+    t0 = time.monotonic()
+    try:
+        code, _, err = run_cli(capsys, "sim", "--firmware", "pil", *SHORT, "--out", str(tmp_path / "run"))
+    finally:
+        pil._close_all()
+    fault = _check_drive_fault(code, err, tmp_path / "run")
+    assert targets and targets[0]._proc.poll() is not None  # the failed target is gone, never left stopped
+    assert time.monotonic() - t0 < 300.0
+    said = (
+        r"node 2 PIL target: (QEMU closed the serial line|could not send)"
+        if how == "killed"
+        else r"node 2 PIL target: no reply within [0-9.]+ s"
+    )
+    assert re.search(said + r".*exit status -9.*\(tick " + str(FAIL_TICK) + r"\): torque off", caplog.text), caplog.text
+    assert "EMCY 0x6100" in str(fault["message"])
+
+
+def _ancestors(pid: int) -> Iterator[int]:
+    while pid > 1:
+        try:
+            pid = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            return
+        yield pid
+
+
+def _qemu_of_drive(root: int, node: int) -> int | None:
+    """The pid of drive ``node``'s QEMU among the descendants of ``root`` (None: not yet)."""
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            argv = (entry / "cmdline").read_bytes().split(b"\0")
+            if not argv[0].endswith(b"qemu-system-arm"):
+                continue
+            parent = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            drive = Path(f"/proc/{parent}/cmdline").read_bytes().split(b"\0")
+        except (OSError, ValueError, IndexError):
+            continue
+        if b"--node" in drive and drive[drive.index(b"--node") + 1] == str(node).encode() and root in _ancestors(parent):
+            return int(entry.name)
+    return None
+
+
+def _rchar(pid: int) -> int:
+    """Bytes ``pid`` has read so far (/proc/PID/io): QEMU reads the drive's requests."""
+    for line in Path(f"/proc/{pid}/io").read_text().splitlines():
+        if line.startswith("rchar:"):
+            return int(line.split()[1])
+    raise AssertionError("no rchar")
+
+
+@pytest.mark.pil
+@pytest.mark.slow
+@pytest.mark.multiprocess
+@pytest.mark.parametrize("how", ["killed", "stopped"])
+def test_rig_a_qemu_killed_or_stopped_mid_trial_is_a_drive_fault(how: str, tmp_path: Path) -> None:
+    """``ilcrig run --firmware pil --iterations 2``: once trial 0's row is printed and drive 2's
+    QEMU has read some 40 more periods' requests (trial 1 runs), it is killed or stopped; the
+    host's fault record names drive 2, trial 1, a tick and ``PIL target: <what happened>`` (a
+    stopped one: after the bounded reply time, before the drive's heartbeat is missed); exit 3."""
+    _require()
+    import queue
+    import threading
+
+    out = tmp_path / "run"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "host.cli", "run", "--firmware", "pil", "--iterations", "2", "--out", str(out)],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    lines: queue.Queue[str] = queue.Queue()
+    assert proc.stdout is not None
+    stdout = proc.stdout
+    threading.Thread(target=lambda: [lines.put(line) for line in stdout], daemon=True).start()
+    deadline = time.monotonic() + 900.0
+    try:
+        while not re.match(r"^\s+0\s+\d", lines.get(timeout=max(deadline - time.monotonic(), 0.1))):
+            pass  # the event: trial 0's row (trial 1 comes next)
+        qemu = _qemu_of_drive(proc.pid, 2)
+        assert qemu is not None, "drive 2 has no QEMU"
+        start = _rchar(qemu)
+        while _rchar(qemu) < start + 600:  # the event: trial 1's periods reach the target
+            assert time.monotonic() < deadline and proc.poll() is None
+            time.sleep(0.002)
+        os.kill(qemu, signal.SIGKILL if how == "killed" else signal.SIGSTOP)
+        code = proc.wait(max(deadline - time.monotonic(), 1.0))
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    err = proc.stderr.read() if proc.stderr else ""
+    assert code == 3, err[-3000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["end_reason"] == "fault" and len(summary["iterations"]) == 1
+    fault = summary["faults"][0]
+    assert (fault["node"], fault["trial"]) == ("drive2", 1), fault
+    assert fault["tick"] is not None and 0 < fault["tick"] < 501, fault
+    what = "the emulator exited" if how == "killed" else "no answer within the reply time"
+    assert fault["message"].startswith(f"PIL target: {what}"), fault
+    said = r"(QEMU closed the serial line|could not send)" if how == "killed" else r"no reply within"
+    assert re.search(r"PIL target: " + said, (out / "logs" / "drive2.log").read_text())

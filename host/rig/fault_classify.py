@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from bus.cia301.nmt import CONSUMER_TIME_MS, HOST_NODE_ID, NODE_HEARTBEAT_MS, HeartbeatReport
 from bus.errors import SdoAbort
 from bus.io_frames import TICK_TIMEOUT_S
-from bus.objects import DRIVE_NODE_IDS
+from bus.objects import DRIVE_NODE_IDS, pil_target_fault
 from bus.plant_objects import DEFAULT_PLANT_NODE_ID as PLANT_NODE_ID
 from bus.plant_objects import PlantFault
 from host.experiment.faults import FaultKind, FaultRecord, node_name
@@ -252,6 +252,10 @@ def emcy_fault(frame: EmcyFrame, times: DetectionTimes | None = None) -> FaultRe
             "the frame's arrival",
             tick=expected,
         )
+    pil = pil_target_fault(frame.code, frame.data)
+    if pil is not None:  # the drive's PIL target failed (EMCY 0x6100, cause 9)
+        text, tick = pil
+        return _own_report(FaultKind.EMCY, f"{text} (internal error of {name}, EMCY 0x6100)", frame, "the node's report", tick)
     what = "following error" if frame.code == EMCY_FOLLOWING_ERROR else "fault"
     return _own_report(FaultKind.EMCY, f"{what} of {name} (EMCY 0x{frame.code:04X})", frame, "the node's report")
 

@@ -25,7 +25,7 @@ import numpy as np
 from bus import units
 from bus.cia301.nmt import NmtCommand
 from bus.cyclic import decode_tpdo, encode_csp_rpdo, pdo_config_writes, rpdo_cob_id, tpdo_cob_id
-from bus.objects import DRIVE_NODE_IDS, ControlCommand, Obj
+from bus.objects import DRIVE_NODE_IDS, ControlCommand, Obj, pil_target_fault
 from firmware_model.drive import Drive
 from firmware_model.firmware_select import DEFAULT_FIRMWARE, check_firmware
 from host.experiment.bench import CyclicActuals, CyclicSetpoints, TrialFault
@@ -119,7 +119,7 @@ class InProcessBench:
         first = faults[0]
         fw = self.firmware[DRIVE_NODE_IDS.index(first["node"])]
         tick = int.from_bytes(fw.read_object(0x2120, 3), "little")
-        msg = "; ".join(f"node {e['node']}: EMCY 0x{e['code']:04X}" for e in faults)
+        msg = "; ".join(f"node {e['node']}: {e['pil'][0] + ', ' if e['pil'] else ''}EMCY 0x{e['code']:04X}" for e in faults)
         return TrialFault(
             msg,
             FaultRecord(
@@ -171,11 +171,11 @@ class InProcessBench:
         """Move pending EMCY frames into the log; return the new fault (non-reset) ones."""
         faults = []
         for node, fw in zip(DRIVE_NODE_IDS, self.firmware):
-            for code, reg, _data in fw.pop_emcy():
+            for code, reg, data in fw.pop_emcy():
                 entry = {"node": node, "code": code, "register": reg, "trial": trial}
                 self.emcy.append(entry)
                 if code != 0:
-                    faults.append(entry)
+                    faults.append(entry | {"pil": pil_target_fault(code, data)})
         return faults
 
     def recover(self, trial: int) -> list[int]:
