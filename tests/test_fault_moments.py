@@ -17,28 +17,20 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from fault_harness import Outcome, kill_session, recorded_trials, run_rig
+from fault_harness import Outcome, host_pid, kill_session, recorded_trials, run_rig, status_pids
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 
 
 def _pids(line: str) -> dict[str, int]:
-    """name → pid of the launcher's status line (``processes: hub 12, plant 13, …``)."""
-    m = re.search(r"processes: (.*); role logs", line)
-    return {n: int(p) for n, p in (part.split() for part in m.group(1).split(", "))} if m else {}
+    return status_pids(line)
 
 
 def _host_pid(out: Path) -> int:
-    """The host's pid, from /proc (the status line is printed before the host starts)."""
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                argv = (d / "cmdline").read_bytes().split(b"\0")
-            except OSError:
-                continue
-            if b"host" in argv and str(out).encode() in argv and b"host.cli" in argv:
-                return int(d.name)
-    raise AssertionError("no host process")
+    pid = host_pid(out)
+    if pid is None:
+        raise AssertionError("no host process")
+    return pid
 
 
 def _check_launcher_summary(o: Outcome, node: str) -> dict[str, Any]:
