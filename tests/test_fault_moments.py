@@ -197,3 +197,22 @@ def test_a_stall_at_bring_up_or_of_the_host_at_the_end_is_a_fault(
         assert o.lines[-1].startswith("ilcrig: fault: ") and not o.left
     finally:
         kill_session(o)
+
+
+def test_a_role_that_cannot_be_started_leaves_a_summary(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Exit 4 (a process of the run could not be started) ends with a summary too, naming it."""
+    monkeypatch.setenv("ILCRIG_ROLE_CMD_DRIVE3", str(tmp_path / "no-such-program"))
+    o = run_rig(tmp_path / "run")
+    try:
+        assert o.code == 4, o.stderr
+        assert o.lines[-1].startswith("ilcrig: error: cannot start drive3"), o.stderr
+        assert o.summary is not None and o.summary["written_by"] == "launcher" and o.summary["exit_code"] == 4
+        fault = o.fault
+        assert fault is not None and (fault["kind"], fault["node"], fault["position"]) == (
+            "process_died",
+            "drive3",
+            "before_first_trial",
+        )
+        assert fault["t_detected_wall"] is not None and not o.left
+    finally:
+        kill_session(o)
