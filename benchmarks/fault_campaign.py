@@ -2,7 +2,8 @@
 ``ilcrig run`` rigs, each run checked against the invariants of the fault path.
 
 ``python benchmarks/fault_campaign.py [--runs 300] [--seed 33] [--iterations 2] [--cycle 0.15]
-[--jobs 1] [--out DIR] [--json FILE]``
+[--jobs 1] [--only I,J,…] [--out DIR] [--json FILE]``; ``--table FILE``: the table of the runs in
+a ``--json`` file so far
 
 Each run (seeded draw, short: 2 trials of 0.3 s) is one of
 
@@ -401,7 +402,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--only", default=None, help="comma-separated run numbers to run (a rerun of failures)")
     p.add_argument("--out", default=None, help="keep the run folders here (default: a temp folder)")
     p.add_argument("--json", default=None, help="write every run's result to this file (JSON lines, as they end)")
+    p.add_argument("--table", default=None, help="only print the table of the runs in this --json file (so far)")
     args = p.parse_args(argv)
+    if args.table:
+        done = [json.loads(ln) for ln in Path(args.table).read_text(encoding="utf-8").splitlines() if ln.strip()]
+        print(f"{len(done)} runs\n")
+        print("\n".join(table(sorted(done, key=lambda r: r["i"]))))
+        return 0
     EXPERIMENT[:] = ["--cycle", repr(args.cycle)]
     n_ticks = round(2 * args.cycle / 0.001) + 1
     todo = plans(args.runs, args.seed, args.iterations, n_ticks)

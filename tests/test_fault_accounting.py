@@ -118,3 +118,9 @@ def test_an_interrupt_before_the_host_started_leaves_a_summary(tmp_path: Path) -
 def test_bad_input_writes_no_summary(tmp_path: Path) -> None:
     assert not _outcome(tmp_path, []).ensure_summary(2)
     assert not (tmp_path / "summary.json").exists()
+
+
+def test_a_launcher_that_failed_leaves_a_summary(tmp_path: Path) -> None:
+    assert _outcome(tmp_path, []).ensure_summary(1)
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["exit_code"] == 1 and s["faults"][0]["node"] == "launcher" and "exit code 1" in s["faults"][0]["message"]

@@ -138,7 +138,7 @@ class RunOutcome:
         ``process_died`` of the process that could not start, before the first trial) or the
         ``interrupted`` marker, the injections accounted for, and ``report.md``. Returns whether it
         wrote one."""
-        if (self.out_dir / "summary.json").exists() or code == EXIT_USAGE:
+        if (self.out_dir / "summary.json").exists() or code in (EXIT_OK, EXIT_USAGE):
             return False
         summary = self.launcher_summary()
         now_mono, now_wall = time.monotonic(), time.time()
