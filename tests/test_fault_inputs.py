@@ -1,4 +1,4 @@
-"""The bad inputs of a run (issue 33, item 6) are refused before anything starts: exit code 2,
+"""The bad inputs of a run are refused before anything starts: exit code 2,
 one line ``ilcrig: error: …`` with the reason, no run folder written, no process started — a
 transport this machine lacks, conflicting transport options, a hub address whose folder is
 missing or not a loopback one, an ``--inject`` without ``@WHEN``, a cycle out of range; the same
