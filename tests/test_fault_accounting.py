@@ -124,3 +124,11 @@ def test_a_launcher_that_failed_leaves_a_summary(tmp_path: Path) -> None:
     assert _outcome(tmp_path, []).ensure_summary(1)
     s = json.loads((tmp_path / "summary.json").read_text())
     assert s["exit_code"] == 1 and s["faults"][0]["node"] == "launcher" and "exit code 1" in s["faults"][0]["message"]
+
+
+def test_a_fault_of_another_node_is_not_the_injections() -> None:
+    spec = parse_spec("stall:drive3@before,for=0.1")
+    rec = {"by": "launcher", "spec": spec.text, "kind": "stall", "target": "drive3", "kept": 0, "when": "before", "t_mono": 1.0}
+    fault = {"kind": "node_lost", "node": "drive1", "message": "heartbeat of drive1 lost", "injected": {"spec": spec.text}}
+    [entry] = account_injections([spec], [rec], [fault], planned=2, ended_early=True)
+    assert entry["effect"] == "tolerated" and "node_lost of drive1" in entry["what"] and "was not its" in entry["what"]

@@ -13,7 +13,8 @@ are the first hit's; none of them when nothing was injected.)
 
 ``effect`` is one of
 
-* ``fault`` — the run's fault came from it (a fault record's ``injected`` names it);
+* ``fault`` — the run's fault came from it (a fault record's ``injected`` names it, and a kill,
+  stall or EMCY names its target: a fault of another node that came after it is not its);
 * ``tolerated`` — it was injected (``hits`` ≥ 1) and the protocol absorbed it: no fault followed
   from it (a duplicated or delayed SDO request answered correctly, a late or lost heartbeat
   inside its consumer time, a stall shorter than the consumer time); ``what`` says what was hit;
@@ -123,7 +124,7 @@ def account_injections(
     first); ``faults``: the summary's fault records; ``planned``: the run's trials; ``ended_early``:
     the run ended before its end (a fault, an interrupt, a launch that failed)."""
     entries: list[dict[str, Any]] = []
-    blamed = {str((f.get("injected") or {}).get("spec")) for f in faults if f.get("injected")}
+    by_spec = {str((f.get("injected") or {}).get("spec")): f for f in reversed(faults) if f.get("injected")}
     unattributed = [f for f in faults if not f.get("injected")]
     seen: set[str] = set()
     for spec in specs:
@@ -136,11 +137,14 @@ def account_injections(
             first = recs[0]
             entry |= {k: first.get(k) for k in ("by", "can_id", "kept") if k in first}
             entry |= _placed(first, planned)
-        if spec.text in blamed or (recs and unattributed and _before(recs[0], unattributed[0])):
-            fault = next((f for f in faults if (f.get("injected") or {}).get("spec") == spec.text), None) or unattributed[0]
+        fault = by_spec.get(spec.text)
+        if fault is None and recs and unattributed and _before(recs[0], unattributed[0]):
+            fault = unattributed[0]
+        if fault is not None and recs and _its_node(spec, fault):
             entry |= {"effect": FAULT, "what": f"{fault.get('kind')} of {fault.get('node')}: {fault.get('message')}"}
         elif recs:
-            entry |= {"effect": TOLERATED, "what": _what_tolerated(spec, recs)}
+            other = f"; the run's fault ({fault.get('kind')} of {fault.get('node')}) was not its" if fault is not None else ""
+            entry |= {"effect": TOLERATED, "what": _what_tolerated(spec, recs) + other}
         elif ended_early:
             entry |= {"effect": NOT_INJECTED, "what": "the run had ended (or faulted) before its moment came"}
         else:
@@ -158,6 +162,14 @@ def _placed(rec: dict[str, Any], planned: int) -> dict[str, Any]:
     position, trial = position_of(kept, planned, in_trial and kept < planned)
     tick = rec.get("tick") if position == Position.IN_TRIAL else None
     return {"position": str(position), "trial": trial, "tick": tick}
+
+
+def _its_node(spec: FaultSpec, fault: dict[str, Any]) -> bool:
+    """A fault record can be of this injection: one of a process or a node (kill, stall, EMCY) names
+    that process or node (the hub's: the hub); frame faults and a full disk can reach any node."""
+    if spec.action in ("kill", "stall", "emcy"):
+        return fault.get("node") == spec.target
+    return True
 
 
 def _before(rec: dict[str, Any], fault: dict[str, Any]) -> bool:
