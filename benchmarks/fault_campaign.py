@@ -261,7 +261,8 @@ def check(plan: Plan, o: Outcome, sent: dict[str, Any], iterations: int) -> dict
             bad.setdefault("null_times", []).append(f"{f.get('kind')} of {f.get('node')}")
     f = faults[0] if faults else None
     if f is not None:
-        _check_consistent(f, o.kept, iterations, bad)
+        n_ticks = int((s or {}).get("config", {}).get("n_ticks") or 1 << 30)
+        _check_consistent(f, o.kept, iterations, n_ticks, bad)
     if plan.family == "signal":
         _check_signal(plan, o, sent, f, bad)
     else:
@@ -277,7 +278,7 @@ def check(plan: Plan, o: Outcome, sent: dict[str, Any], iterations: int) -> dict
 LAUNCHER_SILENCES = {"node_lost", "host_lost", "bus_silent"}
 
 
-def _check_consistent(f: dict[str, Any], kept: int, iterations: int, bad: dict[str, list[str]]) -> None:
+def _check_consistent(f: dict[str, Any], kept: int, iterations: int, n_ticks: int, bad: dict[str, list[str]]) -> None:
     """A record's place agrees with the trials kept (a silence the launcher noticed: with those
     kept when it noticed it, at most those kept in the end)."""
     pos, trial, tick = f.get("position"), f.get("trial"), f.get("tick")
@@ -292,6 +293,8 @@ def _check_consistent(f: dict[str, Any], kept: int, iterations: int, bad: dict[s
     }.get(str(pos))
     if want is None or trial != want[0] or not want[1]:
         bad.setdefault("wrong", []).append(f"{pos} trial {trial} tick {tick} with {kept} kept")
+    elif isinstance(tick, int) and not 0 <= tick < n_ticks:
+        bad.setdefault("wrong", []).append(f"tick {tick} outside a trial of {n_ticks} ticks")
 
 
 def _check_signal(plan: Plan, o: Outcome, sent: dict[str, Any], f: dict[str, Any] | None, bad: dict[str, list[str]]) -> None:

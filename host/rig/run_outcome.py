@@ -366,6 +366,9 @@ class RunOutcome:
             if in_trial and where is not None:
                 injected = record.injected or {}
                 record.tick = where.tick if where.tick is not None else injected.get("tick")
+                n_ticks = summary.get("config", {}).get("n_ticks") if summary is not None else None
+                if isinstance(record.tick, int) and isinstance(n_ticks, int):
+                    record.tick = min(record.tick, n_ticks - 1)  # tick N on the io channel: the state after the last
             place(record, None, kept, planned, in_trial)
             if summary is not None:
                 summary["faults"].append(record.as_dict())
