@@ -132,3 +132,16 @@ def test_a_fault_of_another_node_is_not_the_injections() -> None:
     fault = {"kind": "node_lost", "node": "drive1", "message": "heartbeat of drive1 lost", "injected": {"spec": spec.text}}
     [entry] = account_injections([spec], [rec], [fault], planned=2, ended_early=True)
     assert entry["effect"] == "tolerated" and "node_lost of drive1" in entry["what"] and "was not its" in entry["what"]
+
+
+def test_a_fault_in_a_trial_is_not_placed_before_its_injection() -> None:
+    from host.experiment.faults import FaultRecord
+    from host.rig.run_outcome import not_before_injection
+
+    record = FaultRecord("bus_lost", "the hub was killed", node="hub", position="in_trial", trial=1, tick=44)
+    record.injected = {"spec": "kill:hub@1:92", "trial": 1, "tick": 92}
+    assert not_before_injection(record, 301).tick == 92  # the host's io monitor was a round behind
+    record.tick = 120
+    assert not_before_injection(record, 301).tick == 120  # a later tick is the detector's own
+    record.position, record.tick = "between_trials", None
+    assert not_before_injection(record, 301).tick is None

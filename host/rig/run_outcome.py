@@ -281,6 +281,7 @@ class RunOutcome:
         record = self._record(summary, kept, host, code, first)
         if record.kind != FaultKind.PROCESS_DIED or record.node != "hub":
             record = hub_first(record, deaths)
+        not_before_injection(record, summary.get("config", {}).get("n_ticks"))
         summary["completed"] = record.position == Position.AFTER_LAST_TRIAL  # every trial kept
         summary["faults"][0] = with_wall_time(record).as_dict()
         for i, entry in enumerate(summary["faults"][1:], 1):
@@ -442,6 +443,20 @@ class RunOutcome:
         return [by_node[c.name] for c in drives if c.name in by_node] + [
             e for n, e in by_node.items() if not str(n).startswith("drive")
         ]
+
+
+def not_before_injection(record: FaultRecord, n_ticks: Any = None) -> FaultRecord:
+    """A fault in a trial is not placed before the injection that caused it: a detector that saw the
+    io channel late (the host's monitor a round behind when the hub, and with it the frames in
+    flight, was killed) leaves an earlier tick than the one the injector acted at; the record takes
+    the injection's tick then (at most the trial's last, ``n_ticks`` − 1). Returns ``record``."""
+    inj = record.injected or {}
+    tick = inj.get("tick")
+    if record.position != Position.IN_TRIAL or inj.get("trial") != record.trial or not isinstance(tick, int):
+        return record
+    if record.tick is None or record.tick < tick:
+        record.tick = min(tick, n_ticks - 1) if isinstance(n_ticks, int) else tick
+    return record
 
 
 def _signal_name(signum: int) -> str:
