@@ -145,3 +145,5 @@ def test_a_fault_in_a_trial_is_not_placed_before_its_injection() -> None:
     assert not_before_injection(record, 301).tick == 120  # a later tick is the detector's own
     record.position, record.tick = "between_trials", None
     assert not_before_injection(record, 301).tick is None
+    record.position, record.tick, record.injected = "in_trial", 301, None
+    assert not_before_injection(record, 301).tick == 300  # never after the trial's last tick

@@ -449,13 +449,15 @@ def not_before_injection(record: FaultRecord, n_ticks: Any = None) -> FaultRecor
     """A fault in a trial is not placed before the injection that caused it: a detector that saw the
     io channel late (the host's monitor a round behind when the hub, and with it the frames in
     flight, was killed) leaves an earlier tick than the one the injector acted at; the record takes
-    the injection's tick then (at most the trial's last, ``n_ticks`` − 1). Returns ``record``."""
+    the injection's tick then; and never after the trial's last tick, ``n_ticks`` − 1. Returns ``record``."""
     inj = record.injected or {}
     tick = inj.get("tick")
-    if record.position != Position.IN_TRIAL or inj.get("trial") != record.trial or not isinstance(tick, int):
+    if record.position != Position.IN_TRIAL:
         return record
-    if record.tick is None or record.tick < tick:
-        record.tick = min(tick, n_ticks - 1) if isinstance(n_ticks, int) else tick
+    if inj.get("trial") == record.trial and isinstance(tick, int) and (record.tick is None or record.tick < tick):
+        record.tick = tick
+    if isinstance(record.tick, int) and isinstance(n_ticks, int):
+        record.tick = min(record.tick, n_ticks - 1)  # tick N on the io channel: the state after the last
     return record
 
 
