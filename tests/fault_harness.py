@@ -5,6 +5,8 @@
   and, if a run hangs, killed) and waits for it to end;
 * :class:`Outcome` is what came out: exit code, the terminal's lines, the summary, whether any
   process of the session is left, whether the hub's private folder is gone;
+* :func:`status_pids`, :func:`host_pid`, :func:`printed_rows`: the processes of a run and the
+  rows it printed, from its stdout and /proc;
 * :func:`sim_digest` is ``trace_sha256`` of ``ilcrig sim`` with the same experiment and k trials
   (in process, cached): the kept trials of a faulted run must equal it.
 
@@ -107,6 +109,34 @@ def run_rig(out: Path, *args: str, iterations: int = 2, timeout_s: float = 300.0
         summary = None
     m = re.search(r"\(unix:(\S+)/hub\.sock\)", stdout)
     return Outcome(proc.returncode, stdout, stderr, out, summary, left, m.group(1) if m else None, wall)
+
+
+def status_pids(line: str) -> dict[str, int]:
+    """name → pid of the launcher's status line (``processes: hub 12, plant 13, …``); {} for another line."""
+    m = re.search(r"processes: (.*); role logs", line)
+    return {n: int(p) for n, p in (part.split() for part in m.group(1).split(", "))} if m else {}
+
+
+def host_pid(out: Path) -> int | None:
+    """The host's pid, from /proc (the status line is printed before the host starts); None: none."""
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                argv = (d / "cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if b"host" in argv and str(out).encode() in argv and b"host.cli" in argv:
+                return int(d.name)
+    return None
+
+
+#: a trial's row on the host's stdout: its trial number first (``   0  0.26427  0.09146 …``)
+ROW = re.compile(r"^\s+(\d+)\s+\d+\.\d+\s")
+
+
+def printed_rows(stdout: str) -> list[int]:
+    """The trials whose row was printed."""
+    return [int(m.group(1)) for m in map(ROW.match, stdout.splitlines()) if m]
 
 
 def kill_session(outcome: Outcome) -> None:

@@ -121,3 +121,20 @@ def test_what_is_delivered(tmp_path: Path) -> None:
     assert [d for d, _, _ in out if d > 0] == [0.03]
     out = feed(FrameFaultInjector([parse_spec("drop:io@1:3")]), frames)  # a fresh injector: count 1
     assert len(out) == n - 1
+
+
+def test_a_frame_fault_after_a_trial_acts_when_the_summary_holds_it(tmp_path: Path) -> None:
+    """``@T:end`` / ``@after``: not when the plant ends trial T, but when the summary holds it (the
+    moment docs/faults.md gives, the same as the launcher's injections)."""
+    summary = tmp_path / "summary.json"
+    sdo = can.Message(arbitration_id=0x602, is_extended_id=False, data=bytes(8))
+    for text in ("drop:fieldbus@0:end", "drop:fieldbus@after"):
+        inj = FrameFaultInjector([parse_spec(text)], iterations=1, summary=summary)
+        inj.kept.poll_s = 0.0
+        feed(inj, frames_of_trials(1, 5))  # trial 0 ended on the io channel
+        summary.write_text(json.dumps({"iterations": []}))
+        assert inj.deliveries("fieldbus", encode_record(sdo), 0x602, bytes(8)) != []  # not yet: the summary holds no trial
+        summary.write_text(json.dumps({"iterations": [{"iteration": 0}]}))
+        assert inj.deliveries("fieldbus", encode_record(sdo), 0x602, bytes(8)) == []  # now: dropped
+        assert inj.injected[0]["kept"] == 1 and inj.injected[0]["in_trial"] is False
+        summary.unlink()

@@ -17,28 +17,20 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from fault_harness import Outcome, kill_session, recorded_trials, run_rig
+from fault_harness import Outcome, host_pid, kill_session, recorded_trials, run_rig, status_pids
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 
 
 def _pids(line: str) -> dict[str, int]:
-    """name → pid of the launcher's status line (``processes: hub 12, plant 13, …``)."""
-    m = re.search(r"processes: (.*); role logs", line)
-    return {n: int(p) for n, p in (part.split() for part in m.group(1).split(", "))} if m else {}
+    return status_pids(line)
 
 
 def _host_pid(out: Path) -> int:
-    """The host's pid, from /proc (the status line is printed before the host starts)."""
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                argv = (d / "cmdline").read_bytes().split(b"\0")
-            except OSError:
-                continue
-            if b"host" in argv and str(out).encode() in argv and b"host.cli" in argv:
-                return int(d.name)
-    raise AssertionError("no host process")
+    pid = host_pid(out)
+    if pid is None:
+        raise AssertionError("no host process")
+    return pid
 
 
 def _stall_after(delay_s: float, pid: int, stall_s: float = 3.0) -> None:
@@ -205,5 +197,24 @@ def test_a_stall_at_bring_up_or_of_the_host_at_the_end_is_a_fault(
         assert fault is not None and (fault["kind"], fault["node"], fault["position"]) == (kind, victim, position), fault
         assert fault["t_detected_wall"] is not None and o.summary is not None
         assert o.lines[-1].startswith("ilcrig: fault: ") and not o.left
+    finally:
+        kill_session(o)
+
+
+def test_a_role_that_cannot_be_started_leaves_a_summary(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Exit 4 (a process of the run could not be started) ends with a summary too, naming it."""
+    monkeypatch.setenv("ILCRIG_ROLE_CMD_DRIVE3", str(tmp_path / "no-such-program"))
+    o = run_rig(tmp_path / "run")
+    try:
+        assert o.code == 4, o.stderr
+        assert o.lines[-1].startswith("ilcrig: error: cannot start drive3"), o.stderr
+        assert o.summary is not None and o.summary["written_by"] == "launcher" and o.summary["exit_code"] == 4
+        fault = o.fault
+        assert fault is not None and (fault["kind"], fault["node"], fault["position"]) == (
+            "process_died",
+            "drive3",
+            "before_first_trial",
+        )
+        assert fault["t_detected_wall"] is not None and not o.left
     finally:
         kill_session(o)

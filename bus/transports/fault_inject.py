@@ -36,7 +36,8 @@ Grammar::
 
 Where an injection acts (:attr:`FaultSpec.when`): ``tick`` (``@T:N``), ``end`` (``@T:end``),
 ``before``, ``after``.  What is injected in a trial happens when the plant sends that tick; after
-trial T, when the run's summary holds trial T (for frame faults: when the plant ends trial T);
+trial T (``@after``: the last trial), when the run's summary holds trial T — for every injector
+alike, the hub's frame faults too (:class:`SummaryTrials`: the hub is given the summary's path);
 before the first trial, when the host starts the nodes (its first NMT START on the fieldbus).
 Whether a spec fits the experiment — a trial and a tick inside it, io frame faults only in a trial
 (the io channel carries no frame between trials), a role the transport has — is checked before
@@ -75,6 +76,7 @@ __all__ = [
     "FaultSpec",
     "FaultSpecError",
     "FrameFaultInjector",
+    "SummaryTrials",
     "check_specs",
     "parse_spec",
     "parse_specs",
@@ -314,6 +316,45 @@ def write_record(path: str | Path | None, record: dict[str, Any]) -> dict[str, A
     return record
 
 
+class SummaryTrials:
+    """How many trials a run's ``summary.json`` holds now: the moment of ``@T:end`` / ``@after``
+    (the summary is replaced atomically after every trial). The file is looked at no more often
+    than every ``poll_s`` and read again only when it changed; a missing or half-seen file counts
+    as what was read last (0 at first).
+
+    :param path: the run's ``summary.json`` (None: never any trial)
+    :param poll_s: the least time between two looks, s
+    """
+
+    def __init__(self, path: str | Path | None, poll_s: float = 0.002) -> None:
+        self.path = None if path is None else Path(path)
+        self.poll_s = poll_s
+        self._stamp: tuple[int, int] | None = None
+        self._kept = 0
+        self._next_look = 0.0
+
+    def __call__(self) -> int:
+        if self.path is None:
+            return 0
+        now = time.monotonic()
+        if now < self._next_look:
+            return self._kept
+        self._next_look = now + self.poll_s
+        try:
+            st = os.stat(self.path)
+        except OSError:
+            return self._kept
+        stamp = (st.st_mtime_ns, st.st_ino)
+        if stamp != self._stamp:
+            try:
+                data = json.loads(self.path.read_text(encoding="utf-8"))
+                self._kept = len(data.get("iterations", []))
+                self._stamp = stamp
+            except (OSError, ValueError, AttributeError, TypeError):
+                pass  # replaced meanwhile: read at the next look
+        return self._kept
+
+
 def _unit(seed: int, *parts: int) -> float:
     """A uniform number in [0, 1) from (seed, parts): the same inputs, the same number."""
     digest = hashlib.blake2b(struct.pack(f"<{1 + len(parts)}q", seed, *parts), digest_size=8).digest()
@@ -343,6 +384,7 @@ class FrameFaultInjector:
         io_bus: str = "io",
         fieldbus_bus: str = "fieldbus",
         iterations: int | None = None,
+        summary: str | Path | None = None,
     ) -> None:
         self.armed = [
             _Armed(s.resolved(iterations) if iterations is not None else s)
@@ -355,20 +397,24 @@ class FrameFaultInjector:
         self.injected: list[dict[str, Any]] = []
         #: the host has started the nodes (an NMT START seen on the fieldbus): ``@before`` from now on
         self.started = False
+        #: the trials the run's summary holds (``@T:end``, ``@after``)
+        self.kept = SummaryTrials(summary)
 
     @classmethod
     def from_json(cls, text: str) -> FrameFaultInjector:
-        """From the hub's ``--inject`` argument: ``{"specs": [...], "log": path, "iterations": K}``
-        (the run's trials, for ``@after``)."""
+        """From the hub's ``--inject`` argument: ``{"specs": [...], "log": path, "iterations": K,
+        "summary": path}`` (the run's trials, for ``@after``; its summary, for ``@T:end``)."""
         cfg = json.loads(text)
-        return cls(parse_specs(cfg.get("specs", [])), cfg.get("log"), iterations=cfg.get("iterations"))
+        return cls(
+            parse_specs(cfg.get("specs", [])), cfg.get("log"), iterations=cfg.get("iterations"), summary=cfg.get("summary")
+        )
 
     def _reached(self, spec: FaultSpec, tick: int | None) -> bool:
         f = self.follower
         if spec.when == WHEN_BEFORE:
             return self.started
         if spec.when == WHEN_END:
-            return f.trial > spec.trial or (f.trial == spec.trial and not f.in_trial)
+            return self.kept() > spec.trial  # when the summary holds trial T (not when the plant ends it)
         if f.trial > spec.trial:
             return True
         return f.trial == spec.trial and tick is not None and tick >= spec.tick
@@ -418,6 +464,8 @@ class FrameFaultInjector:
                         "target": channel,
                         "trial": self.follower.trial,
                         "tick": tick if tick is not None else self.follower.tick,
+                        "in_trial": self.follower.in_trial,
+                        "kept": self.kept(),
                         "can_id": can_id,
                         "pid": os.getpid(),
                     },

@@ -39,7 +39,10 @@ processes and always cleans them up:
 * :mod:`host.rig.liveness` — the launcher's heartbeat consumer and stop watch: every process watched to the end of the run;
 * :mod:`host.rig.supervisor` — the watch loop until the host ends (pidfds: a process's end wakes it);
 * :mod:`host.rig.run_outcome` — the run's end: exit code, fault record, drives' evidence, the fault
-  line, the run folder as the summary says;
+  line, the run folder as the summary says, a summary on every exit code;
+  :mod:`host.rig.role_logs` — the drives' safe-state records in their logs;
+  :mod:`host.rig.injection_account` — every ``--inject`` spec accounted for in the summary (a fault,
+  tolerated, not injected);
 * :mod:`host.rig.janitor` — the run folder settled after a killed launcher (a process of its own);
 * :mod:`host.rig.interrupts` — SIGINT / SIGTERM / SIGHUP to the launcher;
 * :mod:`host.rig.inject` — kill / stall / EMCY injection; :mod:`host.rig.idle_poll` — the

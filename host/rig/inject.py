@@ -8,8 +8,8 @@ on the fieldbus as if the node had sent it, when the spec's moment comes:
 * in a trial (``@T:N``): it joins the io channel as an ordinary (filtered) bus member and follows
   the plant's trials and ticks (:class:`bus.io_frames.TrialTickFollower`): tick N of trial T;
 * after a trial (``@T:end``; ``@after``: the last trial): when the run's ``summary.json`` holds
-  trial T (the file is replaced atomically after every trial; the thread looks every
-  :data:`SUMMARY_POLL_S`);
+  trial T (:class:`bus.transports.fault_inject.SummaryTrials`, the hub's frame faults look the
+  same way; the thread looks every :data:`SUMMARY_POLL_S`);
 * before the first trial (``@before``): when the host starts the nodes (its first NMT START on the
   fieldbus, which the thread joins with a filter for NMT).
 
@@ -22,7 +22,6 @@ and the launcher can measure how fast it was detected.  The frame faults are the
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import os
 import signal
@@ -37,7 +36,7 @@ from bus.cia301.emcy import emcy_cob_id, encode_emcy
 from bus.cia301.nmt import NmtCommand
 from bus.plant_objects import DEFAULT_PLANT_NODE_ID
 from bus.transports.config import TransportConfig
-from bus.transports.fault_inject import WHEN_BEFORE, WHEN_END, WHEN_TICK, FaultSpec, write_record
+from bus.transports.fault_inject import WHEN_BEFORE, WHEN_END, WHEN_TICK, FaultSpec, SummaryTrials, write_record
 
 logger = logging.getLogger(__name__)
 
@@ -73,8 +72,7 @@ class ProcessInjector(threading.Thread):
         super().__init__(name="injector", daemon=True)
         self.pending = [s.resolved(iterations) for s in specs if s.action in ("kill", "stall", "emcy")]
         self.summary_path = summary_path
-        self._summary_stamp: tuple[int, int] | None = None
-        self._kept = 0
+        self._summary_trials = SummaryTrials(summary_path, poll_s=0.0)
         self.transport = transport
         self.pid_of = pid_of
         self.log_path = log_path
@@ -142,24 +140,6 @@ class ProcessInjector(threading.Thread):
             if self.follower.trial > spec.trial or (self.follower.trial == spec.trial and tick >= spec.tick):
                 self.pending.remove(spec)
                 self._inject(spec, tick, kept=self.follower.trial)
-
-    def _summary_trials(self) -> int:
-        """The trials in the run's summary now (read again only when the file changed)."""
-        if self.summary_path is None:
-            return 0
-        try:
-            st = os.stat(self.summary_path)
-        except OSError:
-            return self._kept
-        stamp = (st.st_mtime_ns, st.st_ino)
-        if stamp != self._summary_stamp:
-            try:
-                data = json.loads(self.summary_path.read_text(encoding="utf-8"))
-                self._kept = len(data.get("iterations", []))
-                self._summary_stamp = stamp
-            except (OSError, ValueError, AttributeError):
-                pass  # replaced meanwhile: read at the next look
-        return self._kept
 
     def _inject(self, spec: FaultSpec, tick: int | None, *, kept: int) -> None:
         record: dict[str, object] = {

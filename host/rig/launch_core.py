@@ -6,7 +6,7 @@ This module owns :class:`LaunchCore`, the base of :class:`host.rig.launcher.RigL
 * the run skeleton (:meth:`LaunchCore.run`): the interrupts installed (:mod:`host.rig.interrupts`),
   the launcher's own steps (``_launch_and_watch``), a :class:`host.rig.processes.LaunchError` as one
   line and exit code 4, and on *every* path the shutdown (:meth:`LaunchCore.shutdown`) and the
-  launcher's closing step (``_closing``);
+  launcher's closing step (``_closing``, with the exit code: 1 when the launcher itself failed);
 * spawning: the hub (:func:`host.rig.processes.start_hub_process`) and the roles
   (:func:`host.rig.processes.spawn`, i.e. :func:`bus.processes.spawn_process`: one lifetime policy —
   a session of its own, SIGKILL when the launcher dies — for every process started);
@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from bus.errors import InputError
-from bus.exit_codes import EXIT_CHILD_FAILED
+from bus.exit_codes import EXIT_CHILD_FAILED, EXIT_ERROR
 from bus.lockstep_process import mechanisms_left_out
 from bus.timer_slack import FINE_TIMER_SLACK_NS
 from host.rig.fair_scheduling import host_policy
@@ -140,6 +140,9 @@ class LaunchCore(LauncherConsole):
                 self._launch_failed(err)
                 self._say_err(f"ilcrig: error: {err}")
                 code = EXIT_CHILD_FAILED
+            except BaseException:
+                code = EXIT_ERROR  # an internal error: the command line reports it (exit 1); the summary says so
+                raise
             finally:
                 self.shutdown()
                 self._closing(code)

@@ -63,7 +63,7 @@ from bus.units import timeout_scale
 from host.rig.launch_core import LaunchCore, check_transport, make_run_folder
 from host.rig.liveness import LivenessWatch, StopWatch
 from host.rig.options import RunOptions
-from host.rig.processes import Child, Death
+from host.rig.processes import Child, Death, LaunchError
 from host.rig.role_commands import bus_time_rates, child_argv, host_role_args, rig_role_args
 from host.rig.run_outcome import RunOutcome
 from host.rig.run_watch import RunProgress
@@ -131,6 +131,8 @@ class RigLauncher(LaunchCore):
     _injector: Any = field(default=None, init=False, repr=False)
     _progress: RunProgress | None = field(default=None, init=False, repr=False)
     _liveness: LivenessWatch | None = field(default=None, init=False, repr=False)
+    _outcome: RunOutcome | None = field(default=None, init=False, repr=False)
+    _launch_error: LaunchError | None = field(default=None, init=False, repr=False)
 
     @property
     def deaths(self) -> list[Death]:
@@ -158,12 +160,21 @@ class RigLauncher(LaunchCore):
             self.host_grace_s = HOST_GRACE_S * timeout_scale()
         out_dir, log_dir = make_run_folder(opts.out, "run")
         self.out_dir = out_dir
+        outcome = RunOutcome(out_dir, self.children, self._say_err, self._resume_stalled, self._config_dict, specs=specs)
+        self._outcome = outcome
 
         bus_args = ["--bus", tc.name]
         if tc.needs_hub:
             frame_specs = [sp.text for sp in specs if sp.action in FRAME_ACTIONS]
             inject = (
-                json.dumps({"specs": frame_specs, "log": str(log_dir / "injections-hub.jsonl"), "iterations": iterations})
+                json.dumps(
+                    {
+                        "specs": frame_specs,
+                        "log": str(log_dir / "injections-hub.jsonl"),
+                        "iterations": iterations,
+                        "summary": str(out_dir / "summary.json"),
+                    }
+                )
                 if frame_specs
                 else None
             )
@@ -174,7 +185,6 @@ class RigLauncher(LaunchCore):
         self.supervisor = supervisor = Supervisor(
             self.children, self.hub, log_dir / "hub.log", float(self.host_grace_s), self.interrupts, self._progress.where
         )
-        outcome = RunOutcome(out_dir, self.children, self._say_err, self._resume_stalled, self._config_dict)
         self._liveness = LivenessWatch(run_tc, self._progress.where, outcome.kept_now)
         self._liveness.start()
         supervisor.stops = StopWatch(self._progress.where, outcome.kept_now)
@@ -289,6 +299,15 @@ class RigLauncher(LaunchCore):
             supervisor.stop_host(host, signal.SIGINT if self.interrupts.signum == signal.SIGINT else signal.SIGTERM)
         outcome.mark_interrupted(self.interrupts.name, self._progress.where() if self._progress is not None else None)
         return exit_code
+
+    def _launch_failed(self, err: LaunchError) -> None:
+        self._launch_error = err  # its summary once every process is gone (_closing)
+
+    def _closing(self, code: int) -> None:
+        """A summary on every exit code (:meth:`host.rig.run_outcome.RunOutcome.ensure_summary`):
+        also when a process could not be started (exit 4) or the run ended before the host did."""
+        if self._outcome is not None:
+            self._outcome.ensure_summary(code, self._launch_error)
 
     def _stop_watchers(self) -> None:
         """The injector (it resumes stalled processes) and the run's progress."""

@@ -48,7 +48,14 @@ __all__ = [
 
 
 class LaunchError(RuntimeError):
-    """A role process or the hub could not be started."""
+    """A role process or the hub could not be started.
+
+    :ivar name: which (``hub``, ``plant``, ``drive1`` … ``drive4``, ``host``; None: not known)
+    """
+
+    def __init__(self, message: str, name: str | None = None) -> None:
+        super().__init__(message)
+        self.name = name
 
 
 @dataclass
@@ -147,7 +154,7 @@ def spawn(name: str, argv: list[str], log_path: Path | None, *, stderr_only: boo
             batch=batch,
         )
     except OSError as err:
-        raise LaunchError(f"cannot start {name} ({shlex.join(argv[:4])} …): {err}") from err
+        raise LaunchError(f"cannot start {name} ({shlex.join(argv[:4])} …): {err}", name) from err
     finally:
         if log is not None:
             log.close()  # the child has its own descriptor
@@ -178,7 +185,7 @@ def start_hub_process(
     except HubError as err:
         if isinstance(err, ValueError):
             raise
-        raise LaunchError(f"cannot start the bus hub{f' on {address}' if address else ''}: {err}") from err
+        raise LaunchError(f"cannot start the bus hub{f' on {address}' if address else ''}: {err}", "hub") from err
     finally:
         if log is not None:
             log.close()  # the hub has its own descriptor

@@ -209,8 +209,11 @@ class RigBench:
 
     def progress(self) -> int | None:
         """The last tick of the current trial as the io channel shows it (0 while it runs and none
-        was seen yet, None outside a trial)."""
+        was seen yet, None outside a trial; at most the trial's last tick N − 1: the plant's
+        encoder frame of tick N is the state after it)."""
         tick = self.channels.trial_tick(self.watchdog.trial)
+        if tick is not None:
+            tick = min(tick, self.cfg.n_ticks - 1)
         return 0 if tick is None and self.watchdog.in_trial else tick
 
     def closing_fault(self) -> FaultRecord | None:

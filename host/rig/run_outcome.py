@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import json
 import logging
+import signal
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -49,7 +50,7 @@ from pathlib import Path
 from typing import Any
 
 from bus.cia301.nmt import CONSUMER_TIME_MS
-from bus.exit_codes import EXIT_FAULT, EXIT_OK, EXIT_USAGE
+from bus.exit_codes import EXIT_FAULT, EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATED, EXIT_USAGE
 from bus.safe_state import last_state_in_log
 from bus.units import timeout_scale
 from host.experiment.fault_placement import place
@@ -64,6 +65,7 @@ from host.experiment.faults import (
 )
 from host.rig.fault_classify import with_wall_time
 from host.rig.processes import Child, Death, describe_status, node_id_of, tail
+from host.rig.role_logs import log_started, safe_state_lines
 
 logger = logging.getLogger(__name__)
 
@@ -87,6 +89,8 @@ class RunOutcome:
     say_err: Callable[[str], None]
     resume_all: Callable[[], None] | None = None
     config: Callable[[], dict[str, Any]] | None = None
+    #: the run's ``--inject`` specs (:class:`bus.transports.fault_inject.FaultSpec`): each accounted for in the summary
+    specs: Sequence[Any] = ()
     #: what the launcher's heartbeat consumer found (:class:`host.rig.liveness.Silence`), and when the host ended
     silences: Sequence[Any] = field(default=(), init=False)
     host_ended_mono: float = field(default=float("inf"), init=False)
@@ -127,6 +131,52 @@ class RunOutcome:
             "written_by": "launcher",
         }
 
+    def ensure_summary(self, code: int, launch_error: BaseException | None = None) -> bool:
+        """A summary on every exit code: when the run ends and none was written — a process could
+        not be started (exit 4, ``launch_error``), an interrupt before the host started, the
+        launcher itself failed — the launcher's own (:meth:`launcher_summary`) with the fault (kind
+        ``process_died`` of the process that could not start, before the first trial) or the
+        ``interrupted`` marker, the injections accounted for, and ``report.md``. Returns whether it
+        wrote one."""
+        if (self.out_dir / "summary.json").exists() or code in (EXIT_OK, EXIT_USAGE):
+            return False
+        summary = self.launcher_summary()
+        now_mono, now_wall = time.monotonic(), time.time()
+        planned = int(summary.get("config", {}).get("iterations", 1) or 1)
+        if code in (EXIT_INTERRUPTED, EXIT_TERMINATED) or code > 128:
+            position, trial = position_of(0, planned, False)
+            signame = _signal_name(code - 128)
+            summary["interrupted"] = {
+                "signal": signame,
+                "position": str(position),
+                "trial": trial,
+                "tick": None,
+                "by": "launcher",
+            }
+            summary["end_reason"] = "interrupted"
+        else:
+            name = getattr(launch_error, "name", None) or "launcher"
+            what = str(launch_error) if launch_error is not None else f"the launcher ended with exit code {code}"
+            record = FaultRecord(
+                FaultKind.PROCESS_DIED,
+                what,
+                node=name,
+                node_id=node_id_of(name),
+                detected_by="launcher",
+                t_detected_mono=now_mono,
+                t_detected_wall=now_wall,
+                latency_ms=0.0,
+                latency_basis="the start failed" if launch_error is not None else "same process",
+            )
+            place(record, None, 0, planned, False)
+            summary["faults"] = [record.as_dict()]
+            summary["end_reason"] = "fault"
+        summary["exit_code"] = code
+        self._complete_evidence(summary, now_mono)
+        self.account(summary, ended_early=True)
+        self.save(summary, report=True)
+        return True
+
     def save(self, summary: dict[str, Any], report: bool = False) -> None:
         """Rewrite ``summary.json`` (and with ``report`` ``report.md``); failures are logged."""
         from host.experiment.summary import OutputError, write_summary
@@ -143,6 +193,19 @@ class RunOutcome:
                 write_run_report(self.out_dir, summary)
             except Exception:  # noqa: BLE001 - the report must not hide the fault line
                 logger.info("report.md not written", exc_info=True)
+
+    def account(self, summary: dict[str, Any], *, ended_early: bool) -> list[dict[str, Any]]:
+        """``summary["injections"]``: what each ``--inject`` spec did (:mod:`host.rig.injection_account`:
+        a fault, tolerated, not injected); nothing without specs. Returns the entries."""
+        if not self.specs:
+            return []
+        from host.rig.injection_account import account_injections
+
+        planned = int(summary.get("config", {}).get("iterations", len(summary.get("iterations", []))) or 1)
+        faults = summary.get("faults") or []
+        entries = account_injections(self.specs, read_injections(self.out_dir), faults, planned=planned, ended_early=ended_early)
+        summary["injections"] = entries
+        return entries
 
     def settle_folder(self) -> None:
         """The run folder as its summary says (the host has ended): the recording cut back to its
@@ -172,6 +235,7 @@ class RunOutcome:
                     "by": "launcher",
                 }
             self._complete_evidence(summary, time.monotonic())
+            self.account(summary, ended_early=True)
             self.save(summary)
         self.settle_folder()
 
@@ -196,8 +260,15 @@ class RunOutcome:
             if end is not None:
                 return end
         if code == EXIT_OK and not deaths:
-            if summary is not None and self._complete_evidence(summary, time.monotonic()):
-                self.save(summary)
+            if summary is not None:
+                changed = self._complete_evidence(summary, time.monotonic())
+                entries = self.account(summary, ended_early=False)
+                if changed or entries:
+                    self.save(summary)
+                from host.rig.injection_account import note_lines
+
+                for line in note_lines(entries, str(self.out_dir / "summary.json")):
+                    self.say_err(line)
             self.settle_folder()
             return EXIT_OK
         kept = len(summary["iterations"]) if summary is not None else 0
@@ -210,6 +281,7 @@ class RunOutcome:
         record = self._record(summary, kept, host, code, first)
         if record.kind != FaultKind.PROCESS_DIED or record.node != "hub":
             record = hub_first(record, deaths)
+        not_before_injection(record, summary.get("config", {}).get("n_ticks"))
         summary["completed"] = record.position == Position.AFTER_LAST_TRIAL  # every trial kept
         summary["faults"][0] = with_wall_time(record).as_dict()
         for i, entry in enumerate(summary["faults"][1:], 1):
@@ -218,6 +290,7 @@ class RunOutcome:
         if record.injected and record.injected.get("t_mono") is not None:
             since = float(record.injected["t_mono"])
         self._complete_evidence(summary, since)
+        self.account(summary, ended_early=True)
         self.save(summary, report=True)
         self.settle_folder()
         summary_path = self.out_dir / "summary.json"
@@ -246,6 +319,7 @@ class RunOutcome:
         record = faults[0]
         summary["faults"] = [r.as_dict() for r in faults]
         self._complete_evidence(summary, record.t_detected_mono or time.monotonic())
+        self.account(summary, ended_early=True)
         self.save(summary, report=True)
         self.settle_folder()
         kept = len(summary["iterations"])
@@ -296,6 +370,9 @@ class RunOutcome:
             if in_trial and where is not None:
                 injected = record.injected or {}
                 record.tick = where.tick if where.tick is not None else injected.get("tick")
+                n_ticks = summary.get("config", {}).get("n_ticks") if summary is not None else None
+                if isinstance(record.tick, int) and isinstance(n_ticks, int):
+                    record.tick = min(record.tick, n_ticks - 1)  # tick N on the io channel: the state after the last
             place(record, None, kept, planned, in_trial)
             if summary is not None:
                 summary["faults"].append(record.as_dict())
@@ -349,7 +426,7 @@ class RunOutcome:
                     continue  # the host saw it on the bus
                 lines = safe_state_lines(c.log_path)
                 rec, on_after = last_state_in_log(lines, c.name)
-                if rec is None and not on_after and lines is not None and _log_started(c.log_path):
+                if rec is None and not on_after and lines is not None and log_started(c.log_path):
                     entry.update(torque="off", evidence="its log: its torque never came on (no TORQUE-ON record)")
                 elif rec is not None and not on_after:
                     entry.update(
@@ -369,6 +446,29 @@ class RunOutcome:
         return [by_node[c.name] for c in drives if c.name in by_node] + [
             e for n, e in by_node.items() if not str(n).startswith("drive")
         ]
+
+
+def not_before_injection(record: FaultRecord, n_ticks: Any = None) -> FaultRecord:
+    """A fault in a trial is not placed before the injection that caused it: a detector that saw the
+    io channel late (the host's monitor a round behind when the hub, and with it the frames in
+    flight, was killed) leaves an earlier tick than the one the injector acted at; the record takes
+    the injection's tick then; and never after the trial's last tick, ``n_ticks`` − 1. Returns ``record``."""
+    inj = record.injected or {}
+    tick = inj.get("tick")
+    if record.position != Position.IN_TRIAL:
+        return record
+    if inj.get("trial") == record.trial and isinstance(tick, int) and (record.tick is None or record.tick < tick):
+        record.tick = tick
+    if isinstance(record.tick, int) and isinstance(n_ticks, int):
+        record.tick = min(record.tick, n_ticks - 1)  # tick N on the io channel: the state after the last
+    return record
+
+
+def _signal_name(signum: int) -> str:
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"
 
 
 #: the kinds of record a lost bus leaves with the host: what it saw after the hub had ended
@@ -396,33 +496,3 @@ def hub_first(record: FaultRecord, deaths: Sequence[Death]) -> FaultRecord:
     record.kind, record.node, record.node_id = FaultKind.BUS_LOST, "hub", None
     record.message = f"the hub (pid {hub.pid}) {hub.status}: the bus is gone"
     return record
-
-
-#: how much of a drive's log is searched for its SAFE-STATE records (from the end), bytes
-LOG_SEARCH_BYTES = 8 << 20
-
-
-def safe_state_lines(path: Path | None) -> list[str]:
-    """The lines of a role's log that carry a safe-state record or say torque came on, in order
-    (the last :data:`LOG_SEARCH_BYTES` of it; a drive that faulted may log much after its record)."""
-    from bus.safe_state import TAG, TORQUE_ON_TAG
-
-    if path is None:
-        return []
-    try:
-        with open(path, "rb") as fh:
-            end = fh.seek(0, 2)
-            fh.seek(max(0, end - LOG_SEARCH_BYTES))
-            data = fh.read()
-    except OSError:
-        return []
-    marks = (TAG.encode(), TORQUE_ON_TAG.encode())
-    return [ln.decode(errors="replace") for ln in data.splitlines() if marks[0] in ln or marks[1] in ln]
-
-
-def _log_started(path: Path | None) -> bool:
-    """The role's log holds lines (it ran and logged: its records, if any, would be there)."""
-    try:
-        return path is not None and path.stat().st_size > 0
-    except OSError:
-        return False
