@@ -1,7 +1,8 @@
 """bus: everything both ends of a CAN frame must agree on.
 
 Owns the units on the wire (:mod:`bus.units`), the firmware's fixed-point formats
-(:mod:`bus.fixedpoint`), the object indices of the drive (:mod:`bus.objects`, ``drive.eds``) and of
+(:mod:`bus.fixedpoint`), the object indices of the drive (:mod:`bus.objects`, ``drive.eds``; a PIL target's
+fault EMCY: :mod:`bus.pil_fault`) and of
 the plant node (:mod:`bus.plant_objects`, ``plant.eds``), the CiA 301 PDO object indices
 (:mod:`bus.pdo_objects`), the rig's cyclic PDO layout and bus fit (:mod:`bus.cyclic`), the DBC files
 (:mod:`bus.dbc`), the io-channel frames (:mod:`bus.io_frames`), bus-load accounting

@@ -1,7 +1,6 @@
 """Type stub of the C extension firmware_model/_fwcore.c (the drive firmware's C core, firmware_model/c/)."""
 
-import numpy as np
-import numpy.typing as npt
+from firmware_model.control_law import RecorderArray, StateArray, TableArray
 
 # every constant of firmware_model/c/ilc_drive.h without its ILC_ prefix (the ones used from Python)
 N_STATE: int
@@ -16,12 +15,7 @@ LOOP_PD: int
 LOOP_CASCADE: int
 
 def control_tick(
-    count: int,
-    idx: int,
-    rec_idx: int,
-    st: npt.NDArray[np.int64],
-    tables: npt.NDArray[np.int32],
-    rec: npt.NDArray[np.int32],
+    count: int, idx: int, rec_idx: int, st: StateArray, tables: TableArray, rec: RecorderArray
 ) -> tuple[int, int]: ...
 def rshift_round(x: int, q: int) -> int: ...
 def csp_velocity_ref(target: int, prev: int, rate_q12: int) -> int: ...

@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from typing import Any, cast
+from typing import Any, TypeAlias, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -54,6 +54,12 @@ logger = logging.getLogger(__name__)
 
 #: An integer scalar inside the kernel: a Python int or a numpy integer (numba: int64).
 _Int = int | np.integer[Any]
+
+#: the kernel's arrays (see the module docstring): parameters and state ``st``, the tables
+#: (3, capacity + 1) and the recorder (4, capacity)
+StateArray: TypeAlias = npt.NDArray[np.int64]
+TableArray: TypeAlias = npt.NDArray[np.int32]
+RecorderArray: TypeAlias = npt.NDArray[np.int32]
 
 # numba's stubs give a dispatcher the call signature of the Python function (``x: int``), but
 # the compiled helpers take any integer scalar, here also the np.int64 values of the kernel:
@@ -134,14 +140,7 @@ def new_recorder(capacity: int) -> npt.NDArray[np.int32]:
 
 
 @njit(cache=True)
-def control_tick(
-    count: int,
-    idx: int,
-    rec_idx: int,
-    st: npt.NDArray[np.int64],
-    tables: npt.NDArray[np.int32],
-    rec: npt.NDArray[np.int32],
-) -> tuple[int, int]:
+def control_tick(count: int, idx: int, rec_idx: int, st: StateArray, tables: TableArray, rec: RecorderArray) -> tuple[int, int]:
     """One control tick.  Returns ``(torque µN·m, status)``.
 
     :param count: encoder count (counts), saturated to int32 on entry.

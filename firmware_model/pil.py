@@ -29,11 +29,9 @@ import atexit
 import logging
 from dataclasses import dataclass
 
-import numpy as np
-import numpy.typing as npt
-
-from bus.objects import PilFailure
+from bus.pil_fault import PilFailure
 from firmware_model import control_law
+from firmware_model.control_law import RecorderArray, StateArray, TableArray
 from firmware_model.pil_build import build_image, missing_tools, require_tools
 from firmware_model.pil_link import TICK, TICK_COLUMN, TICK_REPLY, PilError, PilTarget, get_s, get_u, put_s, put_u, wrap64
 
@@ -97,13 +95,7 @@ class PilKernel:
         self.failed: PilError | None = None
 
     def __call__(
-        self,
-        count: int,
-        idx: int,
-        rec_idx: int,
-        st: npt.NDArray[np.int64],
-        tables: npt.NDArray[np.int32],
-        rec: npt.NDArray[np.int32],
+        self, count: int, idx: int, rec_idx: int, st: StateArray, tables: TableArray, rec: RecorderArray
     ) -> tuple[int, int]:
         """One control period on the target; same contract as ``control_law.control_tick``.
 
@@ -124,13 +116,7 @@ class PilKernel:
         raise failed
 
     def _step(
-        self,
-        count: int,
-        idx: int,
-        rec_idx: int,
-        st: npt.NDArray[np.int64],
-        tables: npt.NDArray[np.int32],
-        rec: npt.NDArray[np.int32],
+        self, count: int, idx: int, rec_idx: int, st: StateArray, tables: TableArray, rec: RecorderArray
     ) -> tuple[int, int]:
         """One period over the link (:meth:`__call__` without the failure bookkeeping)."""
         idx = int(idx)

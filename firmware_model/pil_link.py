@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from bus.errors import IlcrigError
-from bus.objects import PilFailure
+from bus.pil_fault import PilFailure
 from bus.processes import spawn_process
 from bus.units import timeout_scale
 
@@ -78,7 +78,7 @@ _EXCEPTIONS = {2: "NMI", 3: "HardFault", 4: "MemManage", 5: "BusFault", 6: "Usag
 class PilError(IlcrigError):
     """The PIL target failed: QEMU exited or did not answer in time, the core faulted, or the
     link broke the protocol.  A drive fault: the message says which target and where, and
-    :attr:`failure` which of those it was (:class:`bus.objects.PilFailure`, the EMCY's byte 1).
+    :attr:`failure` which of those it was (:class:`bus.pil_fault.PilFailure`, the EMCY's byte 1).
     """
 
     def __init__(self, message: str, failure: PilFailure = PilFailure.PROTOCOL) -> None:

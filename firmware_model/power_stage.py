@@ -62,17 +62,16 @@ from bus.cia301.emcy import EmcyCode, ErrorHistory, ErrorRegister
 from bus.cia301.nmt import NmtState
 from bus.cia301.object_store import Key, Value
 from bus.objects import (
-    PIL_NO_TICK,
     AbortConnectionOption,
     Cia402State,
     ErrorBehaviour,
     FaultCause,
     Obj,
-    PilFailure,
     QuickStopOption,
     Statusword,
     TrialState,
 )
+from bus.pil_fault import PIL_NO_TICK, PilFailure
 from bus.safe_state import TORQUE_ON_TAG, format_safe_state
 from firmware_model import control_law
 from firmware_model.cia402 import Cia402StateMachine

@@ -47,10 +47,10 @@ def start_in_session(cmd: list[str], cwd: Path = ROOT, env: Mapping[str, str] | 
     return subprocess.Popen(cmd, cwd=cwd, env=env, stdout=pipe, stderr=pipe, text=True, start_new_session=True)
 
 
-def run_cli_process(args: list[str], guard_s: float) -> subprocess.CompletedProcess[str]:
-    """``ilcrig ARGS`` in its own session, from the project folder; returns once it and every
-    process it started ended (killed after ``guard_s``, a guard against a hang)."""
-    proc = start_in_session(ilcrig_argv(*args))
+def run_cli_process(args: list[str], guard_s: float, env: Mapping[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    """``ilcrig ARGS`` in its own session, from the project folder (with ``env`` if given); returns
+    once it and every process it started ended (killed after ``guard_s``, a guard against a hang)."""
+    proc = start_in_session(ilcrig_argv(*args), env=env)
     try:
         out, err = proc.communicate(timeout=guard_s)
     finally:

@@ -93,14 +93,7 @@ def test_missing_tools_are_one_line_before_anything_starts(tmp_path: Path) -> No
     bare.mkdir()
     env = {k: v for k, v in os.environ.items() if k != "PATH"} | {"PATH": str(bare)}
     out = tmp_path / "run"
-    done = subprocess.run(
-        [sys.executable, "-m", "host.cli", "run", "--firmware", "pil", "--iterations", "1", "--out", str(out)],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    done = run_cli_process(["run", "--firmware", "pil", "--iterations", "1", "--out", str(out)], 120, env=env)
     assert done.returncode == 2, done.stderr
     assert done.stderr.count("\n") == 1, done.stderr
     assert "--firmware" in done.stderr and f"apt-get install {' '.join(APT_PACKAGES)}" in done.stderr
@@ -153,7 +146,7 @@ def test_a_failed_pil_target_is_a_drive_fault_not_the_end_of_the_drive(
     capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """No tools needed: node 2's kernel raises the link's error as a dead QEMU makes it."""
-    from bus.objects import PilFailure
+    from bus.pil_fault import PilFailure
 
     def die(kernel: object) -> None:
         raise pil_link.PilError("node 2 PIL target: QEMU closed the serial line (QEMU pid 1, exit status -9)", PilFailure.EXITED)
@@ -167,7 +160,8 @@ def test_the_drive_reacts_to_a_failed_target_like_to_an_internal_error(monkeypat
     """The power stage's reaction: Fault, torque off, 0x1001/0x603F/0x1003, the trial in FAULT
     with cause 9, EMCY 0x6100 with cause, what happened and the tick (U24; none outside a trial)."""
     from bus.cia301.nmt import NmtState
-    from bus.objects import PIL_NO_TICK, Cia402State, FaultCause, PilFailure, TrialState
+    from bus.objects import Cia402State, FaultCause, TrialState
+    from bus.pil_fault import PIL_NO_TICK, PilFailure
     from firmware_model.drive import Drive
 
     drive = Drive(2)

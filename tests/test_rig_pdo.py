@@ -28,6 +28,7 @@ from host.experiment.loop_state import ExperimentResult
 from host.experiment.plan import prepare
 from host.experiment.trial_loop import run_experiment
 from host.sim.inprocess import InProcessBench
+from tests.cli_util import run_cli_process
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 
@@ -124,13 +125,7 @@ def test_stock_cantools_decode_command_reads_io_log(
 
 def test_a_configuration_that_does_not_fit_is_refused_before_anything_starts(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    res = subprocess.run(
-        [sys.executable, "-m", "host.cli", "run", "--ff-transport", "pdo", "--fieldbus-bitrate", "500000", "--out", str(out)],
-        capture_output=True,
-        text=True,
-        cwd=REPO,
-        timeout=300,
-    )
+    res = run_cli_process(["run", "--ff-transport", "pdo", "--fieldbus-bitrate", "500000", "--out", str(out)], 300)
     assert res.returncode == 2
     assert res.stderr.startswith("ilcrig: error: the cyclic PDO exchange does not fit the fieldbus")
     assert "195.0 %" in res.stderr and "--force-bus-fit" in res.stderr

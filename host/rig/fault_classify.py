@@ -30,7 +30,8 @@ from dataclasses import dataclass
 from bus.cia301.nmt import CONSUMER_TIME_MS, HOST_NODE_ID, NODE_HEARTBEAT_MS, HeartbeatReport
 from bus.errors import SdoAbort
 from bus.io_frames import TICK_TIMEOUT_S
-from bus.objects import DRIVE_NODE_IDS, pil_target_fault
+from bus.objects import DRIVE_NODE_IDS
+from bus.pil_fault import pil_target_fault
 from bus.plant_objects import DEFAULT_PLANT_NODE_ID as PLANT_NODE_ID
 from bus.plant_objects import PlantFault
 from host.experiment.faults import FaultKind, FaultRecord, node_name

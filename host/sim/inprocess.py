@@ -25,7 +25,8 @@ import numpy as np
 from bus import units
 from bus.cia301.nmt import NmtCommand
 from bus.cyclic import decode_tpdo, encode_csp_rpdo, pdo_config_writes, rpdo_cob_id, tpdo_cob_id
-from bus.objects import DRIVE_NODE_IDS, ControlCommand, Obj, pil_target_fault
+from bus.objects import DRIVE_NODE_IDS, ControlCommand, Obj
+from bus.pil_fault import pil_target_fault
 from firmware_model.drive import Drive
 from firmware_model.firmware_select import DEFAULT_FIRMWARE, check_firmware
 from host.experiment.bench import CyclicActuals, CyclicSetpoints, TrialFault
