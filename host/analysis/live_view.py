@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from host.analysis.recording_layout import joint_grid
-from host.analysis.recording_scene import Batch, rgba_u32, skeleton_points
+from host.analysis.recording_scene import Batch, rerun_environment, rgba_u32, skeleton_points
 from host.analysis.viewer import display_available, viewer_command
 
 logger = logging.getLogger(__name__)
@@ -116,6 +116,7 @@ class RobotLiveView:
 
     def __init__(self, live: LiveView, ts_s: float) -> None:
         os.environ.setdefault("RUST_LOG", "off")
+        rerun_environment()
         import pyarrow as pa
         import rerun as rr
 

@@ -125,13 +125,12 @@ class RunRecorder:
         join: bool = True,
         live: Any = None,
     ) -> None:
-        import pyarrow as pa
-
         # Rerun's Rust side logs to stderr by itself (e.g. its file sink on a full disk: an ERROR
         # line); the recorder reports its failures itself (``error``, a fault), so no stray line may
         # reach the terminal.  A RUST_LOG set by the user is kept.
         os.environ.setdefault("RUST_LOG", "off")
         rerun_environment()
+        import pyarrow as pa
         import rerun as rr
         import rerun.blueprint  # noqa: F401
 

@@ -79,8 +79,13 @@ def rerun_environment() -> None:
     set is kept): its allocator (mimalloc) reserves address space in arenas of
     ``MIMALLOC_ARENA_RESERVE``, 1 GiB by default and twice over in a process that records, i.e.
     2 GiB of virtual memory for a few MB of use; arenas of 64 MiB keep a long run inside a 2 GB
-    address-space limit (``ulimit -v``) with room to spare.  Called before every ``import rerun``."""
+    address-space limit (``ulimit -v``) with room to spare.  pyarrow's default memory pool (its
+    own mimalloc, which does not take that option) reserves an arena of 1 GiB at its first Arrow
+    array; the recording's few MB of Arrow batches take the system allocator instead
+    (``ARROW_DEFAULT_MEMORY_POOL``, read when the pool is first used).  Called before every
+    ``import rerun`` and before the recording's first Arrow array."""
     os.environ.setdefault("MIMALLOC_ARENA_RESERVE", "64MiB")
+    os.environ.setdefault("ARROW_DEFAULT_MEMORY_POOL", "system")
 
 
 @functools.lru_cache(maxsize=1)
