@@ -71,16 +71,14 @@ def sim_ticks_per_s(kind: str) -> float:
 
 
 def rig_ticks_per_s(kind: str, iterations: int) -> tuple[float, str]:
-    """(the plant's lockstep ticks/s, the trace digest) of ``ilcrig run --firmware kind`` over the hub."""
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "run"
-        cmd = [sys.executable, "-m", "host.cli", "run", "--iterations", str(iterations), "--cycle", "0.5"]
-        cmd += ["--bus", "hub", "--firmware", kind, "--out", str(out)]
-        res = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=900)
-        if res.returncode != 0:
-            raise RuntimeError((res.stderr or res.stdout).strip().splitlines()[-1])
-        s = json.loads((out / "summary.json").read_text())
-        return float(s["bench"]["timing"]["achieved_ticks_per_s"]), str(s["trace_sha256"])
+    """(the plant's lockstep ticks/s, the trace digest) of ``ilcrig run --firmware kind`` over the hub
+    (the run of benchmarks/rig_speed.py)."""
+    import rig_speed
+
+    r = rig_speed.rig("hub", iterations, options=("--firmware", kind))
+    if "error" in r:
+        raise RuntimeError(" ".join(r["error"]))
+    return float(r["lockstep_ticks_per_s"]), str(r["trace_sha256"])
 
 
 def main() -> None:

@@ -37,6 +37,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
@@ -50,10 +51,12 @@ from cli_util import ilcrig_argv  # noqa: E402
 from bus.transports.hub.core import hub_core_available  # noqa: E402
 
 
-def rig(bus: str, iterations: int, netns: bool = False) -> dict:
+def rig(bus: str, iterations: int, netns: bool = False, options: Sequence[str] = ()) -> dict:
+    """``ilcrig run`` of ``iterations`` 1001-tick trials on ``bus`` (``options``: more of its options,
+    e.g. ``--firmware c``): what its summary says of speed, or ``{"error": [last line]}``."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "run"
-        cmd = ilcrig_argv("run", "--iterations", str(iterations), "--cycle", "0.5", "--bus", bus, "--out", str(out))
+        cmd = ilcrig_argv("run", "--iterations", str(iterations), "--cycle", "0.5", "--bus", bus, *options, "--out", str(out))
         if netns:
             from netns_util import NETNS_SETUP
 
@@ -67,6 +70,7 @@ def rig(bus: str, iterations: int, netns: bool = False) -> dict:
         fb = s["bench"]["channels"]["fieldbus"]
         return {
             "ticks": s["ticks"],
+            "trace_sha256": s["trace_sha256"],
             "ticks_per_s": s["ticks_per_s"],
             "total_s": total,
             "fieldbus_frames": fb["frames"],
