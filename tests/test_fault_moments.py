@@ -9,6 +9,7 @@ row) — never sleep-then-assert.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
@@ -33,12 +34,18 @@ def _host_pid(out: Path) -> int:
     return pid
 
 
+def _signal(pid: int, signum: int) -> None:
+    """``signum`` to ``pid`` from a timer thread; a process already gone (the run ended) is no error."""
+    with contextlib.suppress(ProcessLookupError):
+        os.kill(pid, signum)
+
+
 def _stall_after(delay_s: float, pid: int, stall_s: float = 3.0) -> None:
     """In ``delay_s``: stop process ``pid`` (SIGSTOP) for ``stall_s`` (then SIGCONT); returns at once."""
 
     def stall() -> None:
-        os.kill(pid, signal.SIGSTOP)
-        threading.Timer(stall_s, os.kill, (pid, signal.SIGCONT)).start()
+        _signal(pid, signal.SIGSTOP)
+        threading.Timer(stall_s, _signal, (pid, signal.SIGCONT)).start()
 
     threading.Timer(delay_s, stall).start()
 
@@ -73,7 +80,7 @@ def test_host_killed_while_it_starts_up_leaves_a_summary(tmp_path: Path) -> None
     def on_line(line: str, proc: Any) -> None:
         if line.startswith("ilcrig host:"):  # the host's header line: it is starting up
             host = _host_pid(out)
-            threading.Timer(0.08, os.kill, (host, signal.SIGKILL)).start()
+            threading.Timer(0.08, _signal, (host, signal.SIGKILL)).start()
 
     _check_launcher_summary(run_rig(out, on_line=on_line), "host")
 
@@ -98,7 +105,7 @@ def test_a_printed_trial_is_kept_when_the_host_is_killed_after_its_row(tmp_path:
         if line.startswith("ilcrig host:"):
             host.append(_host_pid(out))
         elif re.match(r"\s+0\s+\d", line):  # trial 0's row: from now on trial 0 must be kept
-            threading.Timer(delay_s, os.kill, (host[0], signal.SIGKILL)).start()
+            threading.Timer(delay_s, _signal, (host[0], signal.SIGKILL)).start()
 
     o = run_rig(out, iterations=3, on_line=on_line)
     try:

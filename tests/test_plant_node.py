@@ -439,6 +439,34 @@ def test_sdo_access_maps_a_silent_node_to_a_transport_error(rig: PlantRig) -> No
         SdoAccess(ghost).write_object(0x1017, 0, b"\x00\x00")
 
 
+def test_an_interrupt_inside_a_block_download_stays_the_interrupt(rig: PlantRig, monkeypatch: pytest.MonkeyPatch) -> None:
+    """SIGINT (a KeyboardInterrupt) while a 64-byte object goes by SDO block download: the caller
+    gets the interrupt, not the "Block download unsuccessful" canopen's stream raises as it is
+    closed on the way out (a Ctrl-C read as an ``sdo_error`` fault); the node is sent an abort and
+    serves the next transfer."""
+    sdo = rig.remote.sdo
+    real = sdo.send_request
+    sent: list[bytes] = []
+
+    def send(request: bytes) -> None:
+        sent.append(bytes(request))
+        if len(sent) == 2:  # the first segment of the first sub-block, after the initiation
+            raise KeyboardInterrupt
+        real(request)
+
+    monkeypatch.setattr(sdo, "send_request", send)
+    with pytest.raises(KeyboardInterrupt):
+        rig.access.write_object(PlantObj.INITIAL_STATE, 0, pack_initial_state(Q0, QD0))
+    assert sent[0][0] & 0xE0 == 0xC0  # block download initiate
+    assert sent[-1][0] == 0x80  # the transfer aborted at the node
+    monkeypatch.undo()
+    q1 = np.array([0.25, -0.5, 0.125, 0.0])
+    rig.access.write_object(PlantObj.INITIAL_STATE, 0, pack_initial_state(q1, QD0))
+    q, qd = unpack_initial_state(rig.access.read_object(PlantObj.INITIAL_STATE, 0))
+    np.testing.assert_array_equal(q, q1)
+    np.testing.assert_array_equal(qd, QD0)
+
+
 def test_nmt_reset_node_restores_defaults(rig: PlantRig) -> None:
     rig.client.configure(0.002, 2, "repetitive", 9)
     rig.host.heartbeats.clear()

@@ -11,6 +11,11 @@ for requests made through canopen's own objects (``node.sdo``, ``node.rpdo``), i
 :meth:`SdoAccess.cancel` (from another thread: the host's watchdog that declared the node or the
 run lost) wakes a request waiting for its answer at once and refuses every later one, so a lost
 node never holds the host for the SDO response timeout.
+
+An interrupt (SIGINT / SIGTERM raised as :class:`KeyboardInterrupt`) inside a block transfer stays
+the interrupt: canopen's stream, closed on the way out, would end the unfinished transfer and raise
+its own ``SdoCommunicationError`` in place of the interrupt (a Ctrl-C would read as an
+``sdo_error`` fault). The transfer is aborted at the node instead (:func:`_interrupt_behind`).
 """
 
 from __future__ import annotations
@@ -58,9 +63,31 @@ def sdo_errors(node_id: int | None, what: str) -> Iterator[None]:
     try:
         yield
     except SdoAbortedError as err:
+        _reraise_interrupt(err)
         raise SdoAbort(err.code, f"{who}{what}") from None
     except SdoError as err:
+        _reraise_interrupt(err)
         raise SdoTransportError(f"{who}{what} failed: {err}", node_id, elapsed_s=time.monotonic() - t0) from err
+
+
+def _reraise_interrupt(err: BaseException) -> None:
+    """Raise the interrupt behind ``err`` (:func:`_interrupt_behind`), if there is one."""
+    interrupt = _interrupt_behind(err)
+    if interrupt is not None:
+        raise interrupt
+
+
+def _interrupt_behind(err: BaseException) -> KeyboardInterrupt | None:
+    """The :class:`KeyboardInterrupt` that ``err`` was raised while handling (its ``__context__``
+    chain), if any: the stream's close failed because the transfer was interrupted."""
+    seen: set[int] = set()
+    cause: BaseException | None = err.__context__
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, KeyboardInterrupt):
+            return cause
+        seen.add(id(cause))
+        cause = cause.__context__
+    return None
 
 
 #: an SDO abort response (0x80, code 0x05040000) that :meth:`SdoAccess.cancel` puts into the
@@ -104,6 +131,19 @@ class SdoAccess:
             return SdoTransportError(f"node {self.node.id}: {self.cancelled}", self.node.id, cancelled=True)
         return SdoTransportError(f"node {self.node.id}: {what} failed: {err}", self.node.id, elapsed_s=time.monotonic() - t0)
 
+    def _interrupted_transfer(self, err: BaseException) -> None:
+        """When ``err`` is the block stream's failure to close a transfer an interrupt broke off:
+        the transfer aborted at the node (best effort, so it does not wait for its SDO timeout) and
+        the interrupt raised (module docstring)."""
+        interrupt = _interrupt_behind(err)
+        if interrupt is None:
+            return
+        try:
+            self.node.sdo.abort()
+        except (can.CanError, OSError) as abort_err:
+            logger.info("node %s: the interrupted transfer could not be aborted: %s", self.node.id, abort_err)
+        raise interrupt
+
     def _is_domain(self, index: int, sub: int) -> bool:
         """True when the node's object dictionary declares ``index:sub`` a DOMAIN (tables,
         recorder data): those are read by block upload."""
@@ -122,8 +162,10 @@ class SdoAccess:
             with self.node.sdo.open(index, sub, "rb", block_transfer=True) as fh:
                 return bytes(fh.read())
         except canopen.SdoAbortedError as err:
+            self._interrupted_transfer(err)
             raise self._aborted(err, f"read 0x{index:04X}:{sub}") from None
         except (SdoError, can.CanError) as err:
+            self._interrupted_transfer(err)
             raise self._failed(err, f"read 0x{index:04X}:{sub}", t0) from err
 
     def read_object(self, index: int, sub: int) -> bytes:
@@ -159,6 +201,8 @@ class SdoAccess:
             else:
                 self.node.sdo.download(index, sub, bytes(data))
         except canopen.SdoAbortedError as err:
+            self._interrupted_transfer(err)
             raise self._aborted(err, f"write 0x{index:04X}:{sub}") from None
         except (SdoError, can.CanError) as err:
+            self._interrupted_transfer(err)
             raise self._failed(err, f"write 0x{index:04X}:{sub}", t0) from err
