@@ -389,24 +389,30 @@ def test_default_law_settles_by_the_third_trial() -> None:
 # ------------------------------------------------------------------ the rig's rehearsal of the first update
 
 
-def test_a_rig_plan_pays_the_laws_first_update_imports_before_the_run_and_leaves_the_law_as_it_was() -> None:
-    """``prepare(cfg, rig=True)`` runs the law's first update once on a copy (CheckedLaw.rehearse_first_update):
-    what it imports on first use (here scipy.signal, for the identification's zero-phase filter) is
-    imported before the nodes watch the host's heartbeat, and the plan's law gives the same first
-    update as one that was not rehearsed."""
+def test_the_rig_host_pays_the_laws_first_update_imports_before_the_run_and_leaves_the_law_as_it_was() -> None:
+    """The rig's host process rehearses the law's first update on a copy (plan.rehearse_first_update,
+    called by host.rig.host_role before it opens the bus): what the update imports on first use
+    (here scipy.signal, for the identification's zero-phase filter) is imported before the nodes
+    watch the host's heartbeat, and the plan's law gives the same first update as one that was not
+    rehearsed. Planning alone (the launcher's preflight, the API's check) imports nothing of it."""
+    import inspect
     import subprocess
     import sys
 
+    from host.rig import host_role
+
+    assert "rehearse_first_update(plan.law, plan.u0)" in inspect.getsource(host_role.run_host_role)
     code = """
 import sys
 import numpy as np
 from host.experiment.config import build_config
-from host.experiment.plan import prepare
+from host.experiment.plan import prepare, rehearse_first_update
 cfg = build_config(None, {"cycle_s": 0.15, "iterations": 2})
 plain = prepare(cfg)
-print("plain", "scipy.signal" in sys.modules)
 rig = prepare(cfg, rig=True)
-print("rig", "scipy.signal" in sys.modules)
+print("planned", "scipy.signal" in sys.modules)
+rehearse_first_update(rig.law, rig.u0)
+print("rehearsed", "scipy.signal" in sys.modules)
 rng = np.random.default_rng(5)
 e = 1e-4 * rng.standard_normal(plain.u0.shape)
 tau = plain.u0 + rng.standard_normal(plain.u0.shape)
@@ -417,4 +423,4 @@ same = all(np.array_equal(plain.law.update(t(plain.u0, k)), rig.law.update(t(rig
 print("same", same)
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True).stdout.split()
-    assert out == ["plain", "False", "rig", "True", "same", "True"]
+    assert out == ["planned", "False", "rehearsed", "True", "same", "True"]

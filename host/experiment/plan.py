@@ -16,8 +16,9 @@ to measurements (``benchmarks/run_memory.py``; linear in the trial length N, per
 per trial and sample, times a margin); :func:`available_memory_bytes` is MemAvailable, or less under
 a cgroup memory limit, or ``$ILCRIG_AVAILABLE_MEMORY`` (:data:`MEMORY_ENV`) when set.
 
-For ``ilcrig run`` the law's first update is rehearsed on a copy (:func:`rehearse_first_update`),
-so that what it imports or compiles on first use is paid before the nodes watch the host.
+For ``ilcrig run`` the host process rehearses the law's first update on a copy
+(:func:`rehearse_first_update`), so that what it imports or compiles on first use is paid before
+the nodes watch its heartbeat.
 """
 
 from __future__ import annotations
@@ -332,7 +333,8 @@ class Plan:
 def prepare(cfg: ExperimentConfig, *, rig: bool = False) -> Plan:
     """Plan the task, map it to joints, check feasibility and convergence (raise ValueError
     subclasses with one-line messages on anything infeasible); ``rig``: the memory check counts all
-    processes of ``ilcrig run`` (:func:`check_config_limits`)."""
+    processes of ``ilcrig run`` (:func:`check_config_limits`). The law's first update is not
+    rehearsed here: that is the rig's host process's own step (:func:`rehearse_first_update`)."""
     check_config_limits(cfg, rig=rig)
     path = resolve_path(cfg.path)
     task = plan_task(path, cfg.cycle_s, cfg.profile, cfg.ts_s)
@@ -364,8 +366,6 @@ def prepare(cfg: ExperimentConfig, *, rig: bool = False) -> Plan:
         # the prediction starts from the error a PROBE_TORQUE_FRACTION error of the nominal torque causes
         check = law.check(closed_loop, PROBE_TORQUE_FRACTION * tau_nominal, cfg.iterations)
         check = _finite_check(check) if check.checked else check
-    if rig:
-        rehearse_first_update(law, u0)
     if check.checked and not check.ok:
         logger.warning(
             "convergence check failed for law %s: spectral radius %.3f, predicted error ratio "
@@ -401,8 +401,10 @@ def prepare(cfg: ExperimentConfig, *, rig: bool = False) -> Plan:
 
 
 def rehearse_first_update(law: CheckedLaw, u0_nm: np.ndarray) -> None:
-    """The law's first update rehearsed on a copy before ``ilcrig run``'s nodes watch the host
-    (:meth:`host.learning.laws.checked.CheckedLaw.rehearse_first_update`)."""
+    """The law's first update rehearsed on a copy in the rig's host process, before its nodes watch
+    its heartbeat (:meth:`host.learning.laws.checked.CheckedLaw.rehearse_first_update`): what the
+    update imports or compiles on first use is paid in that process (where it counts: a launcher or
+    an API process that rehearsed it would only have paid it once more)."""
     law.rehearse_first_update(u0_nm)
 
 

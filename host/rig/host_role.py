@@ -28,6 +28,7 @@ from host.analysis.session import report_fault, run_session
 from host.experiment.config import ExperimentConfig
 from host.experiment.console import prepared, print_plan
 from host.experiment.loop_state import ExperimentResult
+from host.experiment.plan import rehearse_first_update
 from host.experiment.signal_shield import interrupt_on_signals
 from host.rig.bus_accounting import bus_time_lines
 from host.rig.realtime import timing_line
@@ -78,6 +79,10 @@ def run_host_role(opts: HostOptions, cfg: ExperimentConfig, transport: Transport
     plan = prepared(cfg)
     check_out_dir(out, iterations=cfg.iterations, n_ticks=plan.n_ticks)
     print_plan(sys.stdout, "host", plan, extra=f", transport {transport.name}")
+    # what the law's first update imports or compiles (scipy.signal, numba kernels) is paid now, in
+    # this process, while the nodes boot: not after trial 0, under the watch of their heartbeat
+    # consumers, and not as a delay of trial 1
+    rehearse_first_update(plan.law, plan.u0)
     network = None
     try:
         network = canopen.Network(transport.open(FIELDBUS))
