@@ -95,7 +95,7 @@ import can
 import numpy as np
 from can import CanProtocol
 
-from bus.bus_features import FRAME_DTYPE, frames_from_messages, recv_waiting
+from bus.bus_features import FRAME_DTYPE, exact_standard_ids, frames_from_messages, recv_waiting
 from bus.transports.hub.addresses import connect, parse_channel
 from bus.transports.hub.owner import HubOwnerError
 from bus.transports.hub.records import (
@@ -181,6 +181,7 @@ class HubBus(can.BusABC):
         **kwargs: Any,
     ) -> None:
         self._closed = True  # until connected: nothing to operate on
+        self._exact_ids: frozenset[int] | None = None
         self._rxq: collections.deque[can.Message] = collections.deque()
         self._rxbuf = bytearray()
         if channel is None:
@@ -309,7 +310,8 @@ class HubBus(can.BusABC):
         :raises HubProtocolError: a record of another kind than a frame
         """
         used = decode_records(data, self.channel, self._rxq.append)
-        self._rxbuf = bytearray(data[used:]) if used < len(data) else bytearray()
+        if used < len(data):  # else the buffer is empty already (_read took what it held)
+            self._rxbuf = bytearray(data[used:])
 
     def recv_batch(self) -> list[can.Message]:
         """Every frame waiting now, in order (:class:`bus.bus_features.BatchReceiver`): the local
@@ -332,8 +334,12 @@ class HubBus(can.BusABC):
         msgs = list(rxq)
         rxq.clear()
         if self._filters is not None:  # the hub filtered too, but maybe with filters set before
-            matches = self._matches_filters
-            msgs = [m for m in msgs if matches(m)]
+            exact = self._exact_ids
+            if exact is not None:  # standard-frame identifiers only: the same test, as a set lookup
+                msgs = [m for m in msgs if not m.is_extended_id and m.arbitration_id & 0x7FF in exact]
+            else:
+                matches = self._matches_filters
+                msgs = [m for m in msgs if matches(m)]
         return msgs
 
     def recv_frames(self, timeout: float | None = None) -> np.ndarray:
@@ -468,6 +474,7 @@ class HubBus(can.BusABC):
             raise can.CanOperationError(_CLOSED)
 
     def _apply_filters(self, filters: can.typechecking.CanFilters | None) -> None:
+        self._exact_ids = exact_standard_ids(filters)
         self._sock_send(encode_filters(filters))
 
     # -- lifetime -------------------------------------------------------------------------
