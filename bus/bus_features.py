@@ -55,6 +55,7 @@ __all__ = [
     "FrameArrayReceiver",
     "batch_receiver",
     "batch_sender",
+    "exact_standard_ids",
     "frame_bits",
     "frames_from_messages",
     "load_of",
@@ -315,3 +316,18 @@ def frame_bits(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     nominal = np.where(classic, bits[:, 0], 0)
     worst = np.where(classic, bits[:, 1], 0)
     return classic, nominal, worst
+
+
+def exact_standard_ids(filters: can.typechecking.CanFilters | None) -> frozenset[int] | None:
+    """The identifiers ``filters`` pass when every filter is one standard-frame identifier (mask
+    0x7FF, ``extended`` False): a frame passes python-can's test (``BusABC._matches_filters``) iff
+    it is a standard frame whose ``arbitration_id & 0x7FF`` is in the set.  None: other filters
+    (or none)."""
+    if not filters:
+        return None
+    ids = set()
+    for f in filters:
+        if f.get("extended", None) is not False or f["can_mask"] != 0x7FF:
+            return None
+        ids.add(f["can_id"] & 0x7FF)
+    return frozenset(ids)

@@ -9,7 +9,7 @@ from collections.abc import Iterator
 import can
 import pytest
 
-from bus.bus_features import BatchReceiver, batch_receiver, recv_waiting
+from bus.bus_features import BatchReceiver, batch_receiver, exact_standard_ids, recv_waiting
 
 _channels = itertools.count()
 
@@ -87,3 +87,40 @@ def test_recv_waiting_keeps_a_bus_with_its_own_recv() -> None:
     bus = OwnRecv()
     assert [m.arbitration_id for m in recv_waiting(bus, 0)] == [1, 2]
     bus.shutdown()
+
+
+@pytest.mark.parametrize(
+    "filters",
+    [
+        [{"can_id": 0x080, "can_mask": 0x7FF, "extended": False}, {"can_id": 0x201, "can_mask": 0x7FF, "extended": False}],
+        [{"can_id": 0x880, "can_mask": 0x7FF, "extended": False}],  # bits above the mask: compared under it
+    ],
+)
+def test_exact_standard_ids_pass_what_python_can_passes(filters: can.typechecking.CanFilters) -> None:
+    """The set of :func:`exact_standard_ids` passes exactly the frames python-can's own test passes."""
+    ids = exact_standard_ids(filters)
+    assert ids is not None
+    bus = can.Bus(interface="virtual", channel=f"bus-features-{next(_channels)}", can_filters=filters)
+    try:
+        for arb, ext in itertools.product((0x000, 0x080, 0x880, 0x201, 0x202, 0x7FF, 0x10080, 0x1FFFFFFF), (False, True)):
+            if not ext and arb > 0x7FF:
+                continue
+            msg = can.Message(arbitration_id=arb, is_extended_id=ext)
+            assert (not ext and arb & 0x7FF in ids) == bus._matches_filters(msg), (hex(arb), ext)
+    finally:
+        bus.shutdown()
+
+
+@pytest.mark.parametrize(
+    "filters",
+    [
+        None,
+        [],
+        [{"can_id": 0x080, "can_mask": 0x7F0, "extended": False}],
+        [{"can_id": 0x080, "can_mask": 0x7FF}],
+        [{"can_id": 0x080, "can_mask": 0x7FF, "extended": True}],
+        [{"can_id": 0x080, "can_mask": 0x7FF, "extended": False}, {"can_id": 0x100, "can_mask": 0x1FFFFFFF, "extended": False}],
+    ],
+)
+def test_exact_standard_ids_none_for_other_filters(filters: can.typechecking.CanFilters | None) -> None:
+    assert exact_standard_ids(filters) is None

@@ -290,9 +290,17 @@ class SlaveNode:
                     io_ready = fds[1] in ready
                     fieldbus_ready = fds[0] in ready
             if fieldbus_ready:
-                handled += self._drain(self.fieldbus)
+                frames = self._fieldbus_batch()
+                on_fieldbus = self._on_fieldbus
+                for frame in frames:
+                    on_fieldbus(frame)
+                handled += len(frames)
             if io_ready:
-                handled += self._drain(self.io)
+                frames = self._io_batch()
+                on_io = self.on_io
+                for frame in frames:
+                    on_io(frame)
+                handled += len(frames)
         else:
             handled += self._drain(self.fieldbus)
             handled += self._drain(self.io)
@@ -316,7 +324,7 @@ class SlaveNode:
         now = self._clock()
         self._service(now)
         self.on_service(now)
-        self._flush_emcy(now)
+        self.emcy.flush(now)
         return handled
 
     def _drain(self, bus: can.BusABC) -> int:
@@ -343,7 +351,7 @@ class SlaveNode:
                 1000 * self.consumer.producers.get(producer, 0.0),
             )
             self.on_heartbeat_lost(producer)
-        self._flush_emcy(now)
+        self.emcy.flush(now)
         abort = self.sdo.tick(now)
         if abort is not None:
             self._send(self.fieldbus, self._sdo_tx, abort)
@@ -371,9 +379,6 @@ class SlaveNode:
         and with them the node's own fieldbus identifiers."""
         self.emcy.reload()
         self._own_fieldbus_ids = {self._sdo_tx, self._hb_id} | self.emcy.own_ids()
-
-    def _flush_emcy(self, now: float) -> None:
-        self.emcy.flush(now)
 
     def _reload_consumers(self) -> None:
         """Re-read the consumer heartbeat entries 0x1016:1..n (an app without 0x1016 consumes

@@ -51,9 +51,10 @@ CAN FD, classic CAN and bitrates
     (:class:`~bus.transports.hub.stats.HubChannelStats`).
 
 Acceptance filters
-    ``can_filters`` / :meth:`can.BusABC.set_filters` are pushed to the hub, which then only
-    forwards matching frames (like SocketCAN's kernel filters); the client still checks
-    them in software, so frames in flight while filters change are filtered too.
+    ``can_filters`` / :meth:`can.BusABC.set_filters` are pushed to the hub, which then only forwards matching
+    frames (like SocketCAN's kernel filters); the client still checks them in software, so frames in flight
+    while filters change are filtered too (as one set lookup when each filter is one standard identifier,
+    :func:`bus.bus_features.exact_standard_ids`).
 
 Reading
     A client reads as many records as are there (up to :attr:`HubBus.RECV_CHUNK` bytes) per
@@ -95,7 +96,7 @@ import can
 import numpy as np
 from can import CanProtocol
 
-from bus.bus_features import FRAME_DTYPE, frames_from_messages, recv_waiting
+from bus.bus_features import FRAME_DTYPE, exact_standard_ids, frames_from_messages, recv_waiting
 from bus.transports.hub.addresses import connect, parse_channel
 from bus.transports.hub.owner import HubOwnerError
 from bus.transports.hub.records import (
@@ -181,6 +182,7 @@ class HubBus(can.BusABC):
         **kwargs: Any,
     ) -> None:
         self._closed = True  # until connected: nothing to operate on
+        self._exact_ids: frozenset[int] | None = None
         self._rxq: collections.deque[can.Message] = collections.deque()
         self._rxbuf = bytearray()
         if channel is None:
@@ -250,7 +252,7 @@ class HubBus(can.BusABC):
             raise can.CanOperationError(_CLOSED)
         rxq = self._rxq
         if rxq:
-            return rxq.popleft(), False
+            return self._passed(rxq.popleft())
         try:
             if timeout is None:
                 while not rxq:
@@ -268,7 +270,12 @@ class HubBus(can.BusABC):
             if self._closed:
                 raise can.CanOperationError(_CLOSED) from err
             raise can.CanOperationError(f"hub receive failed: {err}") from err
-        return (rxq.popleft() if rxq else None), False
+        return self._passed(rxq.popleft()) if rxq else (None, False)
+
+    def _passed(self, msg: can.Message) -> tuple[can.Message, bool]:
+        """``msg``, True when :attr:`_exact_ids` passes it (else ``BusABC.recv`` tests it)."""
+        exact = self._exact_ids
+        return msg, exact is not None and not msg.is_extended_id and msg.arbitration_id & 0x7FF in exact
 
     def _fill(self, block: bool) -> None:
         """One read of up to :attr:`RECV_CHUNK` bytes; every whole record read goes to the local
@@ -332,8 +339,11 @@ class HubBus(can.BusABC):
         msgs = list(rxq)
         rxq.clear()
         if self._filters is not None:  # the hub filtered too, but maybe with filters set before
-            matches = self._matches_filters
-            msgs = [m for m in msgs if matches(m)]
+            exact, matches = self._exact_ids, self._matches_filters
+            if exact is not None:  # standard ids only: python-can's test as a set lookup
+                msgs = [m for m in msgs if not m.is_extended_id and m.arbitration_id & 0x7FF in exact]
+            else:
+                msgs = [m for m in msgs if matches(m)]
         return msgs
 
     def recv_frames(self, timeout: float | None = None) -> np.ndarray:
@@ -381,15 +391,13 @@ class HubBus(can.BusABC):
         return frames
 
     def frames_pending(self) -> bool:
-        """True when frames wait in the local queue (:class:`bus.bus_features.BufferedReceiver`):
-        :meth:`recv` returns one without reading the socket, although :meth:`fileno` may not be
-        readable."""
+        """True when frames wait in the local queue (:class:`bus.bus_features.BufferedReceiver`): :meth:`recv`
+        returns one without reading the socket, although :meth:`fileno` may not be readable."""
         return bool(self._rxq)
 
     def fileno(self) -> int:
-        """The socket's descriptor, -1 after :meth:`shutdown`. Readable ⇒ bytes from the hub
-        are waiting; frames already read may also wait in the local queue: a frame is waiting
-        ⇔ readable or :meth:`frames_pending`."""
+        """The socket's descriptor, -1 after :meth:`shutdown`. Readable ⇒ bytes from the hub are waiting;
+        frames already read may also wait in the local queue: a frame is waiting ⇔ readable or :meth:`frames_pending`."""
         return self._sock.fileno()
 
     # -- sending --------------------------------------------------------------------------
@@ -397,11 +405,11 @@ class HubBus(can.BusABC):
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """Send one frame to every other client of this bus.
 
-        Blocking (the hub always reads); ``timeout`` is accepted for the BusABC signature
-        and not used. Thread-safe (python-can's periodic tasks send from threads).
+        Blocking (the hub always reads); ``timeout`` is accepted for the BusABC signature and not used.
+        Thread-safe (python-can's periodic tasks send from threads).
 
-        :raises can.CanOperationError: the bus is shut down or the hub gone; on a classic
-            bus (``fd=False``) an FD frame or more than 8 data bytes (``EINVAL``)
+        :raises can.CanOperationError: the bus is shut down or the hub gone; on a classic bus
+            (``fd=False``) an FD frame or more than 8 data bytes (``EINVAL``)
         """
         if self._closed:
             raise can.CanOperationError(_CLOSED)
@@ -445,19 +453,18 @@ class HubBus(can.BusABC):
         return super().send_periodic(*args, **kwargs)
 
     def release_held(self) -> None:
-        """Ask the hub for the frames it holds for this bulk member now (the release record of
-        :mod:`bus.transports.hub.wire`; :class:`bus.bus_features.HeldReleaser`): a reader waiting
-        for a marker does not wait out ``BULK_HOLD_S``.  Nothing is held for a member that is not
-        bulk; the request then does nothing."""
+        """Ask the hub for the frames it holds for this bulk member now (the release record of :mod:`bus.transports.hub.wire`;
+        :class:`bus.bus_features.HeldReleaser`): a reader waiting for a marker does not wait out ``BULK_HOLD_S``.
+        Nothing is held for a member that is not bulk; the request then does nothing."""
         if self._closed:
             raise can.CanOperationError(_CLOSED)
         self._sock_send(encode_release())
 
     def gather_frames(self, count: int) -> None:
-        """From now on have the hub deliver this member's frames ``count`` at a time (the gather
-        record of :mod:`bus.transports.hub.wire`; :class:`bus.bus_features.FrameGatherer`): a
-        lockstep master waiting for ``count`` answers wakes once for them, not once per answer;
-        fewer are delivered after ``BULK_HOLD_S``.  0: every frame at once again."""
+        """From now on have the hub deliver this member's frames ``count`` at a time (the gather record of
+        :mod:`bus.transports.hub.wire`; :class:`bus.bus_features.FrameGatherer`): a lockstep master waiting for
+        ``count`` answers wakes once for them, not once per answer; fewer are delivered after ``BULK_HOLD_S``.
+        0: every frame at once again."""
         if not 0 <= int(count) <= 0xFFFFFFFF:
             raise ValueError(f"gather count must be 0..2**32-1, got {count!r}")
         self._sock_send(encode_gather(int(count)))
@@ -468,6 +475,7 @@ class HubBus(can.BusABC):
             raise can.CanOperationError(_CLOSED)
 
     def _apply_filters(self, filters: can.typechecking.CanFilters | None) -> None:
+        self._exact_ids = exact_standard_ids(filters)
         self._sock_send(encode_filters(filters))
 
     # -- lifetime -------------------------------------------------------------------------
