@@ -290,17 +290,9 @@ class SlaveNode:
                     io_ready = fds[1] in ready
                     fieldbus_ready = fds[0] in ready
             if fieldbus_ready:
-                frames = self._fieldbus_batch()
-                on_fieldbus = self._on_fieldbus
-                for frame in frames:
-                    on_fieldbus(frame)
-                handled += len(frames)
+                handled += self._drain(self.fieldbus)
             if io_ready:
-                frames = self._io_batch()
-                on_io = self.on_io
-                for frame in frames:
-                    on_io(frame)
-                handled += len(frames)
+                handled += self._drain(self.io)
         else:
             handled += self._drain(self.fieldbus)
             handled += self._drain(self.io)

@@ -154,19 +154,25 @@ class SdoAccess:
         except (KeyError, TypeError):
             return False
 
+    @contextlib.contextmanager
+    def _mapped(self, what: str) -> Iterator[None]:
+        """Inside, canopen's errors of the request ``what`` become the project's (module docstring);
+        an interrupt that broke off a block transfer stays the interrupt."""
+        t0 = time.monotonic()
+        try:
+            yield
+        except canopen.SdoAbortedError as err:
+            self._interrupted_transfer(err)
+            raise self._aborted(err, what) from None
+        except (SdoError, can.CanError) as err:
+            self._interrupted_transfer(err)
+            raise self._failed(err, what, t0) from err
+
     def read_block(self, index: int, sub: int) -> bytes:
         """SDO block upload (for the recorder DOMAIN)."""
         self._check()
-        t0 = time.monotonic()
-        try:
-            with self.node.sdo.open(index, sub, "rb", block_transfer=True) as fh:
-                return bytes(fh.read())
-        except canopen.SdoAbortedError as err:
-            self._interrupted_transfer(err)
-            raise self._aborted(err, f"read 0x{index:04X}:{sub}") from None
-        except (SdoError, can.CanError) as err:
-            self._interrupted_transfer(err)
-            raise self._failed(err, f"read 0x{index:04X}:{sub}", t0) from err
+        with self._mapped(f"read 0x{index:04X}:{sub}"), self.node.sdo.open(index, sub, "rb", block_transfer=True) as fh:
+            return bytes(fh.read())
 
     def read_object(self, index: int, sub: int) -> bytes:
         """SDO upload of ``index:sub``.
@@ -177,13 +183,8 @@ class SdoAccess:
         if self.block_transfer and self._is_domain(index, sub):
             return self.read_block(index, sub)
         self._check()
-        t0 = time.monotonic()
-        try:
+        with self._mapped(f"read 0x{index:04X}:{sub}"):
             return bytes(self.node.sdo.upload(index, sub))
-        except canopen.SdoAbortedError as err:
-            raise self._aborted(err, f"read 0x{index:04X}:{sub}") from None
-        except (SdoError, can.CanError) as err:
-            raise self._failed(err, f"read 0x{index:04X}:{sub}", t0) from err
 
     def write_object(self, index: int, sub: int, data: bytes) -> None:
         """SDO download of ``data`` to ``index:sub``: expedited up to 4 bytes, block transfer from
@@ -193,16 +194,9 @@ class SdoAccess:
         :raises SdoTransportError: no (valid) answer.
         """
         self._check()
-        t0 = time.monotonic()
-        try:
+        with self._mapped(f"write 0x{index:04X}:{sub}"):
             if self.block_transfer and len(data) >= self.BLOCK_THRESHOLD:
                 with self.node.sdo.open(index, sub, "wb", size=len(data), block_transfer=True) as fh:
                     fh.write(bytes(data))
             else:
                 self.node.sdo.download(index, sub, bytes(data))
-        except canopen.SdoAbortedError as err:
-            self._interrupted_transfer(err)
-            raise self._aborted(err, f"write 0x{index:04X}:{sub}") from None
-        except (SdoError, can.CanError) as err:
-            self._interrupted_transfer(err)
-            raise self._failed(err, f"write 0x{index:04X}:{sub}", t0) from err
