@@ -155,6 +155,13 @@ def test_a_hub_killed_between_trials_is_recorded_as_the_hub(tmp_path: Path) -> N
 
 @pytest.mark.parametrize(("victim", "kind"), [("drive2", "node_lost"), ("hub", "bus_silent")])
 def test_a_stall_after_the_last_row_is_a_fault(tmp_path: Path, victim: str, kind: str) -> None:
+    """A 3 s stall 0.6 s after the last trial's row, while the host closes and writes its outputs,
+    is never silent; which record it gets depends on when the launcher's heartbeat consumer notices
+    it (its consumer time after the stall began) against the host's end, a race with the machine's
+    speed: noticed while the host still ran (the results not yet safe), the run's fault (exit 3,
+    ``after_last_trial``, detected by the launcher); noticed after, a liveness incident of the
+    victim in the summary with an ``ilcrig: note:`` line, the run completed (exit 0). Either way
+    every trial is kept and nothing is left."""
     pids: dict[str, int] = {}
 
     def on_line(line: str, proc: Any) -> None:
@@ -164,12 +171,19 @@ def test_a_stall_after_the_last_row_is_a_fault(tmp_path: Path, victim: str, kind
 
     o = run_rig(tmp_path / "run", on_line=on_line)
     try:
-        assert o.code == 3, o.stderr
-        assert o.summary is not None and o.kept == 2 and o.summary["completed"]
-        fault = o.fault
-        assert fault is not None and (fault["kind"], fault["node"], fault["detected_by"]) == (kind, victim, "launcher"), fault
-        assert fault["position"] == "after_last_trial" and fault["t_detected_wall"] is not None
-        assert o.lines[-1].startswith("ilcrig: fault: ") and not o.left
+        assert o.code in (0, 3), o.stderr
+        assert o.summary is not None and o.kept == 2 and o.summary["completed"] and not o.left
+        if o.code == 3:
+            fault = o.fault
+            assert fault is not None and (fault["kind"], fault["node"], fault["detected_by"]) == (kind, victim, "launcher"), fault
+            assert fault["position"] == "after_last_trial" and fault["t_detected_wall"] is not None
+            assert o.lines[-1].startswith("ilcrig: fault: ")
+        else:
+            assert not o.summary["faults"]
+            incidents = o.summary["liveness_incidents"]
+            assert [i["node"] for i in incidents] == [victim], incidents
+            assert "results safe already" in incidents[0]["what"] and incidents[0]["position"] == "after_last_trial"
+            assert any(ln.startswith(f"ilcrig: note: {victim} ") for ln in o.lines), o.stderr
     finally:
         kill_session(o)
 

@@ -1,11 +1,12 @@
 """The rig over real kernel SocketCAN (vcan0 = fieldbus, vcan1 = io), with stock tools on the
-live bus: digest equality of ``ilcrig run --bus socketcan`` with ``ilcrig sim``; python-can's
-``can.logger`` capturing the io channel while the rig runs; that capture replayed with
-``can.player`` and checked frame by frame by a receiver; the canopen library reading a drive
-process; the pdo feed-forward transport (SYNC + PDOs on vcan0); ``ilcrig robot`` driven by the
-python-canopen example. Only what needs real SocketCAN runs here (each rig costs minutes under
-emulation): a drive SIGKILLed and restarted between trials is protocol, not kernel, and runs over
-the hub (tests/test_rig.py).
+live bus: digest equality of ``ilcrig run --bus socketcan --ff-transport pdo`` (SYNC + PDOs on
+vcan0 every tick) with ``ilcrig sim``; python-can's ``can.logger`` capturing the io channel while
+the rig runs; that capture replayed with ``can.player`` and checked frame by frame by a receiver;
+the canopen library reading a drive process and loading a feed-forward table by SDO block download
+and upload (the table transport's path); ``ilcrig robot`` driven by the python-canopen example.
+Only what needs real SocketCAN runs here (each rig costs minutes under emulation): a drive
+SIGKILLed and restarted between trials is protocol, not kernel, and runs over the hub
+(tests/test_rig.py).
 
 Every test is marked ``vcan`` and skips (with the reason) unless vcan0 and vcan1 exist in the
 current network namespace. ``scripts/vcan-tests`` creates them — natively on a CAN-capable
@@ -22,6 +23,7 @@ import queue
 import re
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -195,8 +197,11 @@ class RigRun:
 
 @pytest.fixture(scope="module")
 def rig_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RigRun]:
-    """``ilcrig run --bus socketcan`` (4 drives, plant, host as processes) while
-    ``python -m can.logger -i socketcan -c vcan1`` records the io channel."""
+    """``ilcrig run --bus socketcan --ff-transport pdo`` (4 drives, plant, host as processes: CiA 402
+    CSP with SYNC + PDOs every tick on vcan0; the SDO block transfers of the other transport are
+    checked on vcan0 by :func:`test_canopen_library_reads_drive_objects_on_vcan0`) while
+    ``python -m can.logger -i socketcan -c vcan1`` records the io channel. One rig for both: under
+    software emulation each rig costs minutes of the CI run."""
     base = tmp_path_factory.mktemp("rig")
     out, capture = base / "run", base / "capture.log"
     logger_proc = popen(
@@ -208,7 +213,7 @@ def rig_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RigRun]:
     try:
         reader = LineReader(logger_proc)
         assert reader.wait_for(r"^Can Logger", 120.0), f"can.logger did not start:\n{reader.text()}"
-        res = run_on_socketcan(out, what="rig")
+        res = run_on_socketcan(out, "--ff-transport", "pdo", what="rig")
         time.sleep(1.0)  # the logger drains its socket
         logger_rc = stop(logger_proc, signal.SIGINT, 30.0)  # KeyboardInterrupt: closes the log
         yield RigRun(out, capture, res, logger_rc)
@@ -224,7 +229,8 @@ def test_rig_over_socketcan_equals_sim(rig_run: RigRun) -> None:
     s = json.loads((rig_run.out / "summary.json").read_text())
     assert s["mode"] == "rig" and s["completed"] is True
     assert len(s["iterations"]) == 2
-    assert s["trace_sha256"] == sim_digest(EXP_CFG)
+    assert s["config"]["ff_transport"] == "pdo"
+    assert s["trace_sha256"] == sim_digest({**EXP_CFG, "ff_transport": "pdo"})
     info = s["bench"]
     assert info["transport"]["name"] == "socketcan"
     assert info["transport"]["fieldbus"]["channel"] == VCAN_FIELDBUS
@@ -233,6 +239,13 @@ def test_rig_over_socketcan_equals_sim(rig_run: RigRun) -> None:
     n = s["ticks"] // 2
     assert io["frames"] == 2 * n * 8 + 2 * 2  # 4 encoder + 4 torque frames per tick, start/stop per trial
     assert fb["frames"] > 1000
+    # vcan0 carried one SYNC, four RPDOs and four TPDOs per tick (the host's own monitor counts them)
+    ticks = s["ticks"]
+    assert info["pdo_frames"] == {"sync": ticks, "rpdo": 4 * ticks, "tpdo": 4 * ticks}
+    ids = [m.arbitration_id for m in can.LogReader(rig_run.out / "fieldbus.log")]
+    assert ids.count(0x080) == ticks
+    for node in (1, 2, 3, 4):
+        assert ids.count(0x200 + node) == ticks and ids.count(0x180 + node) == ticks
 
 
 def test_can_logger_captured_the_io_channel(rig_run: RigRun) -> None:
@@ -319,6 +332,15 @@ def test_canopen_library_reads_drive_objects_on_vcan0(tmp_path: Path) -> None:
         assert node.sdo[0x6041].raw & 0x006F == 0x0021
         node.sdo[0x6065].raw = 4321  # following-error window, counts
         assert node.sdo[0x6065].raw == 4321
+        # a feed-forward table as the default transport loads it: SDO block download, read back by
+        # block upload (CiA 301 §7.2.4.3.10-15) through the kernel's SocketCAN
+        node.sdo[0x2103][1].raw = 64  # table length N
+        table = struct.pack("<64i", *range(-32_000, 32_000, 1000))
+        with node.sdo.open(0x2102, 0, "wb", size=len(table), block_transfer=True) as fh:
+            fh.write(table)
+        with node.sdo.open(0x2102, 0, "rb", block_transfer=True) as fh:
+            assert fh.read() == table
+        assert node.sdo[0x2103][3].raw & 0x04  # the feed-forward table is loaded
         with pytest.raises(canopen.SdoAbortedError) as exc:
             node.sdo.upload(0x5FFF, 0)
         assert exc.value.code == 0x06020000  # object does not exist
@@ -330,30 +352,6 @@ def test_canopen_library_reads_drive_objects_on_vcan0(tmp_path: Path) -> None:
         network.disconnect()
         rc = stop(drive)
     assert rc == 0, tail(tmp_path / "drive2.log")
-
-
-# ---------------------------------------------------------------------------------------
-# the pdo feed-forward transport on SocketCAN: SYNC + RPDO/TPDO every tick on vcan0
-# ---------------------------------------------------------------------------------------
-
-
-def test_pdo_transport_over_socketcan_equals_sim(tmp_path: Path) -> None:
-    """``ilcrig run --bus socketcan --ff-transport pdo``: CiA 402 CSP with SYNC + PDOs on vcan0,
-    the digest equals ``ilcrig sim --ff-transport pdo``, and vcan0 carried one SYNC, four RPDOs
-    and four TPDOs per tick (the host's own monitor on vcan0 counts them)."""
-    out = tmp_path / "run"
-    res = run_on_socketcan(out, "--ff-transport", "pdo", what="pdo rig")
-    logs = "\n".join(f"--- {p.name}\n{tail(p, 15)}" for p in sorted((out / "logs").glob("*.log")))
-    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:] + logs
-    s = json.loads((out / "summary.json").read_text())
-    assert s["completed"] is True and s["config"]["ff_transport"] == "pdo"
-    assert s["trace_sha256"] == sim_digest({**EXP_CFG, "ff_transport": "pdo"})
-    n = s["ticks"]
-    assert s["bench"]["pdo_frames"] == {"sync": n, "rpdo": 4 * n, "tpdo": 4 * n}
-    ids = [m.arbitration_id for m in can.LogReader(out / "fieldbus.log")]
-    assert ids.count(0x080) == n
-    for node in (1, 2, 3, 4):
-        assert ids.count(0x200 + node) == n and ids.count(0x180 + node) == n
 
 
 # ---------------------------------------------------------------------------------------
