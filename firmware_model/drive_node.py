@@ -335,10 +335,8 @@ class DriveNode(SlaveNode):
             return None
         if not self.lockstep:
             return drive.next_deadline()
-        watch, hold = drive.watch_deadline(), self.backlog.deadline()
-        if watch is None or hold is None:
-            return hold if watch is None else watch
-        return watch if watch < hold else hold
+        times = [t for t in (drive.watch_deadline(), self.backlog.deadline()) if t is not None]
+        return min(times) if times else None
 
     def _torque_status(self) -> int:
         """Torque-frame status bits from ``drive.torque_enabled`` and the CiA 402 statusword

@@ -126,7 +126,8 @@ class SyncBacklog:
 
     def expire(self, now_s: float) -> None:
         """No io tick within ``hold_timeout_s`` of its SYNC: the frames go unheld until the next tick."""
-        if not (self.sync_waiting and self.frames) or now_s < self._since + self.hold_timeout_s:
+        due = self.deadline()
+        if due is None or now_s < due:
             return
         logger.warning(
             "node %d: no io tick within %.1f s of its SYNC (the plant stopped stepping): %d frames go unheld",

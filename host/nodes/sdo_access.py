@@ -15,7 +15,7 @@ node never holds the host for the SDO response timeout.
 An interrupt (SIGINT / SIGTERM raised as :class:`KeyboardInterrupt`) inside a block transfer stays
 the interrupt: canopen's stream, closed on the way out, would end the unfinished transfer and raise
 its own ``SdoCommunicationError`` in place of the interrupt (a Ctrl-C would read as an
-``sdo_error`` fault). The transfer is aborted at the node instead (:func:`_interrupt_behind`).
+``sdo_error`` fault). The transfer is aborted at the node instead (:func:`_reraise_interrupt`).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import can
@@ -70,24 +70,17 @@ def sdo_errors(node_id: int | None, what: str) -> Iterator[None]:
         raise SdoTransportError(f"{who}{what} failed: {err}", node_id, elapsed_s=time.monotonic() - t0) from err
 
 
-def _reraise_interrupt(err: BaseException) -> None:
-    """Raise the interrupt behind ``err`` (:func:`_interrupt_behind`), if there is one."""
-    interrupt = _interrupt_behind(err)
-    if interrupt is not None:
-        raise interrupt
-
-
-def _interrupt_behind(err: BaseException) -> KeyboardInterrupt | None:
-    """The :class:`KeyboardInterrupt` that ``err`` was raised while handling (its ``__context__``
-    chain), if any: the stream's close failed because the transfer was interrupted."""
-    seen: set[int] = set()
-    cause: BaseException | None = err.__context__
-    while cause is not None and id(cause) not in seen:
-        if isinstance(cause, KeyboardInterrupt):
-            return cause
-        seen.add(id(cause))
+def _reraise_interrupt(err: BaseException, before: Callable[[], None] | None = None) -> None:
+    """Raise the :class:`KeyboardInterrupt` that ``err`` was raised while handling (its
+    ``__context__`` chain: the stream's close failed because the transfer was interrupted), if
+    there is one, after calling ``before``."""
+    cause = err.__context__
+    while cause is not None and not isinstance(cause, KeyboardInterrupt):
         cause = cause.__context__
-    return None
+    if cause is not None:
+        if before is not None:
+            before()
+        raise cause
 
 
 #: an SDO abort response (0x80, code 0x05040000) that :meth:`SdoAccess.cancel` puts into the
@@ -131,18 +124,13 @@ class SdoAccess:
             return SdoTransportError(f"node {self.node.id}: {self.cancelled}", self.node.id, cancelled=True)
         return SdoTransportError(f"node {self.node.id}: {what} failed: {err}", self.node.id, elapsed_s=time.monotonic() - t0)
 
-    def _interrupted_transfer(self, err: BaseException) -> None:
-        """When ``err`` is the block stream's failure to close a transfer an interrupt broke off:
-        the transfer aborted at the node (best effort, so it does not wait for its SDO timeout) and
-        the interrupt raised (module docstring)."""
-        interrupt = _interrupt_behind(err)
-        if interrupt is None:
-            return
+    def _abort_quietly(self) -> None:
+        """Abort the transfer in progress at the node (best effort: an interrupted block transfer
+        then does not wait for its SDO timeout there)."""
         try:
             self.node.sdo.abort()
-        except (can.CanError, OSError) as abort_err:
-            logger.info("node %s: the interrupted transfer could not be aborted: %s", self.node.id, abort_err)
-        raise interrupt
+        except (can.CanError, OSError) as err:
+            logger.info("node %s: the interrupted transfer could not be aborted: %s", self.node.id, err)
 
     def _is_domain(self, index: int, sub: int) -> bool:
         """True when the node's object dictionary declares ``index:sub`` a DOMAIN (tables,
@@ -162,10 +150,10 @@ class SdoAccess:
         try:
             yield
         except canopen.SdoAbortedError as err:
-            self._interrupted_transfer(err)
+            _reraise_interrupt(err, self._abort_quietly)
             raise self._aborted(err, what) from None
         except (SdoError, can.CanError) as err:
-            self._interrupted_transfer(err)
+            _reraise_interrupt(err, self._abort_quietly)
             raise self._failed(err, what, t0) from err
 
     def read_block(self, index: int, sub: int) -> bytes:
