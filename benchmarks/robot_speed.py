@@ -205,7 +205,7 @@ class CounterReader:
             self._send([sdo_upload_request(self._waiting[0][1])])
 
 
-def realtime(seconds: float, rt_priority: int | None = None) -> dict[str, Any]:
+def realtime(seconds: float, rt_priority: int | None = None, spin_s: float = MASTER_SPIN_S) -> dict[str, Any]:
     """``ilcrig robot --realtime`` with a 1 kHz master: the robot's late periods in the master's window.
 
     The master runs in SCHED_FIFO one step above the robot's processes (a master is a machine of
@@ -217,7 +217,9 @@ def realtime(seconds: float, rt_priority: int | None = None) -> dict[str, Any]:
     period of the robot is the robot's own. The window opens after :data:`RT_WARM_UP`
     periods: the robot's counters (0x2450) are read by SDO then and after the last period.
     ``rt_priority``: the robot's ``--rt-priority`` (None: its default, SCHED_FIFO where allowed; 0: normal
-    scheduling, what a user without CAP_SYS_NICE gets — the master then takes SCHED_FIFO 1 above it)."""
+    scheduling, what a user without CAP_SYS_NICE gets — the master then takes SCHED_FIFO 1 above it).
+    ``spin_s``: the master's wait on the clock before each cycle (``--master-spin-us``; 0: it sleeps to
+    the cycle's time and skips the cycles its wake-up reached late)."""
     ts = 1e-3
     with tempfile.TemporaryDirectory() as tmp:
         rt_args = () if rt_priority is None else ("--rt-priority", str(rt_priority))
@@ -243,8 +245,8 @@ def realtime(seconds: float, rt_priority: int | None = None) -> dict[str, Any]:
                         counters.request()
                     due = t0 + k * ts
                     left = due - time.monotonic()
-                    if left > MASTER_SPIN_S:
-                        time.sleep(left - MASTER_SPIN_S)
+                    if left > spin_s:
+                        time.sleep(left - spin_s)
                     while time.monotonic() < due:
                         pass
                     if time.monotonic() - due > MASTER_JITTER_S:
@@ -301,6 +303,19 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--only", choices=("sync", "realtime"), default=None)
     ap.add_argument("--rounds", type=int, default=1, help="real time: rounds of (floor, fifo, normal), alternating")
+    ap.add_argument(
+        "--variant",
+        action="append",
+        choices=("fifo", "normal"),
+        default=None,
+        help="real time: the robot's scheduling to measure (repeatable; default both)",
+    )
+    ap.add_argument(
+        "--master-spin-us",
+        type=float,
+        default=MASTER_SPIN_S * 1e6,
+        help="real time: the last part of the master's wait for a cycle, spent on the clock, us (default %(default)g)",
+    )
     args = ap.parse_args()
     print(f"ilcrig robot benchmark: hub transport, {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}")
     if args.only in (None, "sync"):
@@ -333,13 +348,13 @@ def main() -> None:
         # in an order rotated from round to round
         from rt_compare import floor as timer_floor
 
-        variants = [("fifo", None), ("normal", 0)]
+        variants = [(name, prio) for name, prio in (("fifo", None), ("normal", 0)) if name in (args.variant or (name,))]
         for round_no in range(args.rounds):
             floors = {name: timer_floor(0 if prio == 0 else 1) for name, prio in variants}
             order = variants[round_no % 2 :] + variants[: round_no % 2]
             for name, prio in order:
                 load0 = os.getloadavg()[0]
-                r = realtime(args.seconds, prio)
+                r = realtime(args.seconds, prio, args.master_spin_us * 1e-6)
                 fl = floors[name]
                 steal = "n/a" if r["steal_s"] is None else f"{r['steal_s'] * 1e3:.0f} ms"
                 print(

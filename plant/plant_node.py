@@ -165,6 +165,8 @@ class PlantNode(SlaveNode):
             self.model,
             send_batch=self._send_io_batch,
             send_emcy=self._send_fault_emcy,
+            # and in the robot's periods likewise (the trial's end sets it back to 0)
+            gather=frame_gatherer(io),
             clock=clock,
             tick_timeout_s=tick_s,
             spin_s=float(spin_s),

@@ -9,7 +9,8 @@ a python-canopen script:
    claimed from the trial protocol's counter, :meth:`plant.plant_node_trial.LockstepMaster.claim_wire_tick`,
    so that a later trial recognises these frames as stale);
 2. the four torque frames of that wire tick are collected (each drive's stream followed by a
-   :class:`bus.io_frames.TickTracker`); a drive whose frame does not say ENABLED (power stage off,
+   :class:`bus.io_frames.TickTracker`; where the transport gathers, the hub hands them over in one
+   write, as in a trial); a drive whose frame does not say ENABLED (power stage off,
    or in fault) gives no torque and its joint is held by its brake;
 3. the robot integrates the period (:class:`plant.mechanics.Mechanics`: brakes, end stops, the
    screw's travel, the mechanism's limits) and the period goes into the trace
@@ -125,6 +126,9 @@ class RobotLoop:
     :param model: the plant (shared with the trials).
     :param send_batch: sends the four encoder frames of a period.
     :param send_emcy: sends one EMCY ``(error code, error register, data)``.
+    :param gather: asks the io transport to deliver the plant's frames n at a time
+        (:func:`bus.bus_features.frame_gatherer`): 4 while the robot steps — the four torque frames
+        of a period wake the plant once —, 0 when it goes off (a trial sets its own and 0 at its end).
     :param clock: monotonic time source [s].
     :param tick_timeout_s: longest wait for the torque frames of one period, s.
     :param spin_s: real time: the last part of the wait for a held period, spent in a loop, s.
@@ -141,7 +145,8 @@ class RobotLoop:
         *,
         send_batch: Callable[[list[can.Message]], None],
         send_emcy: Callable[[Emcy], None],
-        clock: Callable[[], float],
+        gather: Callable[[int], None] | None = None,
+        clock: Callable[[], float] = time.monotonic,
         tick_timeout_s: float,
         spin_s: float = 0.0,
         limits: MechanicalLimits | None = None,
@@ -153,6 +158,8 @@ class RobotLoop:
         self.model = model
         self._send_batch = send_batch
         self._send_emcy = send_emcy
+        self._gather = gather
+        self._gathering = False  # the transport gathers the torque frames four at a time
         self._clock = clock
         self.tick_timeout_s = tick_timeout_s
         self.spin_s = spin_s
@@ -215,6 +222,9 @@ class RobotLoop:
         if mode == RobotMode.OFF:
             self._state = _IDLE
             self._pending.clear()
+            if self._gathering and self._gather is not None:
+                self._gather(0)
+            self._gathering = False
             return
         self._robot()
         if mode == RobotMode.REALTIME and self.pacing is None:
@@ -281,9 +291,11 @@ class RobotLoop:
             self.backlog_max = waiting + 1
 
     def interrupt(self) -> None:
-        """A trial begins: the period in progress is dropped (its frames are stale for the trial)."""
+        """A trial begins: the period in progress is dropped (its frames are stale for the trial); the
+        trial sets the transport's gathering for itself (and 0 at its end)."""
         self._state = _IDLE
         self._pending.clear()
+        self._gathering = False
 
     def next_deadline(self) -> float | None:
         if self._state == _HELD:
@@ -363,6 +375,12 @@ class RobotLoop:
 
     def _send_encoders(self, now: float) -> None:
         mech = self._robot()
+        if not self._gathering and self._gather is not None:
+            # one write of the hub per period for the four torques; a frame too many or too few
+            # (a bus error frame, a drive that does not answer) is held at most the hub's
+            # BULK_HOLD_S, and the next period's four come together again
+            self._gather(_N)
+            self._gathering = True
         self._wire = wire = self.lockstep.claim_wire_tick()
         w16 = wire & io_frames.TICK_MASK
         self._send_batch(
