@@ -386,6 +386,10 @@ def run_node(
         io = can.Bus(**io_config)
         try:
             node = DriveNode(drive, fieldbus, io, node_id=node_id, lockstep=lockstep)
+            if firmware == "pil":  # the heartbeat goes on while the control period waits for its target
+                from firmware_model import pil_link
+
+                pil_link.on_wait = node.heartbeat_if_due
             freeze_heap(f"drive {node_id}")
             node.run(stop)
         finally:

@@ -24,6 +24,7 @@ import select
 import subprocess
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
@@ -71,6 +72,13 @@ CPU = "cortex-m4"
 #: of the drive's heartbeat (500 ms, produced every 200 ms), so a silent target is the drive's fault
 #: (EMCY 0x6100), not a lost drive; the first wait (HELLO) includes QEMU's start
 REPLY_TIMEOUT_S = 0.3
+#: while a reply is awaited, :data:`on_wait` is called at least this often [s]
+WAIT_SLICE_S = 0.05
+#: called while a reply is awaited (every :data:`WAIT_SLICE_S` at least): the drive process keeps
+#: its heartbeat going (:meth:`bus.cia301.slave.SlaveNode.heartbeat_if_due`), so that a target
+#: that stops answering is the drive's fault after the reply time, never a drive whose last
+#: heartbeat before the request plus the reply time looked like a lost node
+on_wait: Callable[[], None] | None = None
 BOOT_TIMEOUT_S = 20.0
 _EXCEPTIONS = {2: "NMI", 3: "HardFault", 4: "MemManage", 5: "BusFault", 6: "UsageFault"}
 
@@ -264,7 +272,9 @@ class PilTarget:
             left = deadline - time.monotonic()
             if left <= 0:
                 raise self._gone(f"no reply within {timeout_s:g} s", PilFailure.NO_ANSWER, kill=True)
-            if not self._poll.poll(left * 1000.0):
+            if not self._poll.poll(min(left, WAIT_SLICE_S) * 1000.0):
+                if on_wait is not None:
+                    on_wait()
                 continue
             try:
                 chunk = os.read(self._out, 65536)

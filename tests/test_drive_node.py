@@ -309,6 +309,15 @@ def test_heartbeat_period_is_0x1017_on_the_node_clock() -> None:
         assert step_at(t0 + 0.5) == [beat]
         assert step_at(t0 + 0.875) == [beat]  # two periods missed: one beat, no burst
         assert step_at(t0 + 0.875) == []
+        # between steps (a drive waiting for its processor-in-the-loop target): the same timer
+        clock.now = t0 + 0.999
+        node.heartbeat_if_due()
+        assert sent() == []
+        clock.now = t0 + 1.0
+        node.heartbeat_if_due()
+        assert sent() == [beat]
+        assert step_at(t0 + 1.1) == []  # the step after it keeps the phase: next due t0 + 1.125
+        assert step_at(t0 + 1.125) == [beat]
     finally:
         for bus in (fb_node, host, io_node):
             bus.shutdown()

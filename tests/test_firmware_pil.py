@@ -265,11 +265,14 @@ def test_a_dead_or_silent_qemu_is_a_pil_error_not_a_hang(monkeypatch: pytest.Mon
     try:
         silent(0, 0, 0, st, tables, rec)  # type: ignore[operator]
         monkeypatch.setattr(pil_link, "REPLY_TIMEOUT_S", 0.5)
+        waits: list[float] = []  # the drive process keeps its heartbeat going from this hook
+        monkeypatch.setattr(pil_link, "on_wait", lambda: waits.append(time.monotonic()))
         os.kill(silent.target.pid, signal.SIGSTOP)  # type: ignore[attr-defined]
         t0 = time.monotonic()
         with pytest.raises(PilError, match=r"node 2 PIL target: no reply within"):
             silent(1, 1, 1, st, tables, rec)  # type: ignore[operator]
         assert time.monotonic() - t0 < 10.0
+        assert waits, "the wait for the silent target never let the process serve its heartbeat"
     finally:
         silent.close()  # type: ignore[attr-defined]
     dead = pil_control_tick(3)

@@ -230,7 +230,10 @@ def test_rig_over_socketcan_equals_sim(rig_run: RigRun) -> None:
     assert s["mode"] == "rig" and s["completed"] is True
     assert len(s["iterations"]) == 2
     assert s["config"]["ff_transport"] == "pdo"
-    assert s["trace_sha256"] == sim_digest({**EXP_CFG, "ff_transport": "pdo"})
+    # the VM's script runs `ilcrig sim` of this experiment on the host with the guest's numba cache
+    # (about 20 s of emulation saved); without it, the sim runs here
+    expected = os.environ.get("ILCRIG_VCAN_SIM_DIGEST_PDO") or sim_digest({**EXP_CFG, "ff_transport": "pdo"})
+    assert s["trace_sha256"] == expected
     info = s["bench"]
     assert info["transport"]["name"] == "socketcan"
     assert info["transport"]["fieldbus"]["channel"] == VCAN_FIELDBUS

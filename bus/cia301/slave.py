@@ -347,11 +347,22 @@ class SlaveNode:
         abort = self.sdo.tick(now)
         if abort is not None:
             self._send(self.fieldbus, self._sdo_tx, abort)
-        if self._next_heartbeat_s is not None and now >= self._next_heartbeat_s:
+        self.heartbeat_if_due(now)
+
+    def heartbeat_if_due(self, now: float | None = None) -> None:
+        """The heartbeat (0x1017) if it is due at ``now`` [s] (default the node's clock): from
+        :meth:`step`, and from a wait inside the application that could outlast a heartbeat period
+        (a drive waiting for its processor-in-the-loop target, :mod:`firmware_model.pil_link`)."""
+        due = self._next_heartbeat_s
+        if due is None:
+            return
+        if now is None:
+            now = self._clock()
+        if now >= due:
             self._send(self.fieldbus, self._hb_id, encode_heartbeat(int(self.app.nmt_state)))
             period = self._heartbeat_ms / 1000.0
             # keep the phase; skip missed beats instead of bursting
-            self._next_heartbeat_s += period
+            self._next_heartbeat_s = due + period
             if self._next_heartbeat_s <= now:
                 self._next_heartbeat_s = now + period
 
