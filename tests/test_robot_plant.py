@@ -250,9 +250,14 @@ def test_trace_file_round_trip_and_a_partial_record(tmp_path: Path) -> None:
 
 
 def test_a_trial_of_the_ilc_host_takes_precedence_and_the_robot_goes_on_from_its_end(robot: Robot) -> None:
+    """And the robot's periods ask the io transport for their four torque frames in one write (the
+    hub's gather record): at the first period, again after the trial (whose end sets 0), and 0 when
+    the robot goes off."""
     from host.nodes.plant_client import PlantClient
     from host.nodes.sdo_access import SdoAccess
 
+    gathers: list[int] = []
+    robot.plant.robot._gather = gathers.append  # the virtual bus does not gather: record the requests
     m = robot.master
     m.configure()
     m.start()
@@ -260,6 +265,7 @@ def test_a_trial_of_the_ilc_host_takes_precedence_and_the_robot_goes_on_from_its
     for _ in range(5):
         m.cycle({n: (0x00, home[n]) for n in DRIVES})
     robot.settle(5)
+    assert gathers == [4]
     # drives in PRE-OPERATIONAL answer the trial's ticks without SYNC, as the ILC host's table mode
     m.network.nmt.state = "PRE-OPERATIONAL"
     client = PlantClient(SdoAccess(m.plant))
@@ -274,32 +280,7 @@ def test_a_trial_of_the_ilc_host_takes_precedence_and_the_robot_goes_on_from_its
     m.start()
     tp = m.cycle({n: (0x00, home[n]) for n in DRIVES})  # the robot goes on where the trial left it
     assert [tp[n][1] for n in DRIVES] == np.rint(q_end / units.RAD_PER_COUNT).astype(int).tolist()
-
-
-def test_the_robot_asks_the_transport_for_its_four_torques_at_once(robot: Robot) -> None:
-    """Each period's four torque frames wake the plant once where the transport gathers (the hub's
-    gather record): the robot asks for 4 at its first period, again after a trial (whose end sets
-    0), and for 0 when it goes off."""
-    calls: list[int] = []
-    robot.plant.robot._gather = calls.append  # the virtual bus does not gather: record the requests
-    m = robot.master
-    m.configure()
-    m.start()
-    home = counts_of(HOME_Q)
-    for _ in range(3):
-        m.cycle({n: (0x00, home[n]) for n in DRIVES})
-    robot.settle(3)
-    assert calls == [4]
-    from host.nodes.plant_client import PlantClient
-    from host.nodes.sdo_access import SdoAccess
-
-    m.network.nmt.state = "PRE-OPERATIONAL"
-    client = PlantClient(SdoAccess(m.plant))
-    client.start_trial(0, 20, HOME_Q, np.zeros(4))
-    assert client.wait_trial(timeout_s=30.0).status.name == "DONE"
-    m.start()
-    m.cycle({n: (0x00, home[n]) for n in DRIVES})
-    robot.settle(4)
-    assert calls == [4, 4]
+    robot.settle(6)
+    assert gathers == [4, 4]
     m.plant.sdo.download(PlantObj.ROBOT, RobotSub.MODE, struct.pack("<B", RobotMode.OFF))
-    assert calls == [4, 4, 0]
+    assert gathers == [4, 4, 0]
