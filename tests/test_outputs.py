@@ -160,6 +160,37 @@ def test_learning_that_diverges_is_a_fault_and_no_nan_is_written(tmp_path: Path)
     assert s["faults"][0]["kind"] in ("learning_diverged", "emcy")
 
 
+def test_a_signal_between_the_guarded_parts_of_a_step_is_marked(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """SIGTERM's interrupt raised just after a trial was kept, outside the parts of the step that
+    catch it (the narrow window that made ``ilcrig sim`` exit 130 with no marker): the run ends the
+    same way — ``interrupted`` SIGTERM in the summary, the trial kept, exit code 143."""
+    import io
+
+    from host.analysis.session import report_fault, run_session
+    from host.experiment.config import build_config
+    from host.experiment.plan import prepare
+    from host.experiment.signal_shield import Interrupted
+    from host.experiment.trial_loop import TrialLoop
+    from host.sim.inprocess import InProcessBench
+
+    guarded = TrialLoop._guarded
+    calls = []
+
+    def then_interrupted(self: TrialLoop, fn: object) -> object:
+        out = guarded(self, fn)  # type: ignore[arg-type]
+        calls.append(self.k)
+        if self.k == 1 and calls.count(1) == 1:  # trial 0 kept: the signal comes before the law's update is guarded
+            raise Interrupted(signal.SIGTERM)
+        return out
+
+    monkeypatch.setattr(TrialLoop, "_guarded", then_interrupted)
+    cfg = build_config(None, {"iterations": 3, "cycle_s": 0.15})
+    res = run_session(prepare(cfg), InProcessBench(cfg), tmp_path, mode="sim", stream=io.StringIO())
+    assert res.interrupted == signal.SIGTERM and report_fault(res) == 143
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["interrupted"]["signal"] == "SIGTERM" and s["completed"] is False and len(s["iterations"]) == 1
+
+
 def test_sigterm_during_sim_is_marked(tmp_path: Path) -> None:
     """``ilcrig sim`` killed with SIGTERM after its first trial: exit 143, ``interrupted`` in the
     summary, the completed trial kept."""

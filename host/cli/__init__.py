@@ -102,9 +102,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     try:
         return int(args.func(args))
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         sys.stderr.write("ilcrig: interrupted\n")
-        return EXIT_INTERRUPTED
+        signum = getattr(exc, "signum", None)  # SIGTERM's Interrupted (host.experiment.signal_shield): 143
+        return EXIT_INTERRUPTED if signum is None else 128 + int(signum)
     except BusUnavailable as exc:
         sys.stderr.write(f"ilcrig: error: {exc}\n")
         return EXIT_FAULT

@@ -32,7 +32,8 @@ terminal with ``--debug``).  On the rig the law's code runs watched
 (:mod:`host.experiment.law_watch`): up to a time limit, past which the run ends with a fault of the
 law; a host-lost fault after an update during which the host's threads did not run names the
 law.  ``summary["end_reason"]`` says how the run ended (:class:`host.experiment.loop_state.EndReason`);
-:meth:`TrialLoop.end_by_user` ends a run for an exception of the caller's own code (the API's ``with`` block).
+:meth:`TrialLoop.end_by_user` ends a run for an exception of the caller's own code (the API's ``with`` block),
+and for a signal that comes between the guarded parts of a step (:func:`run_experiment`).
 
 The run folder gets ``summary.json`` (:mod:`host.experiment.summary`), written before the first
 trial and rewritten atomically after every trial so a fault or Ctrl-C never corrupts the results
@@ -365,8 +366,13 @@ def run_experiment(
     runner = TrialLoop(
         plan, bench, out_dir, mode=mode, on_trial=on_trial, keep_traces=keep_traces, recorder=recorder, folder=folder
     )
-    while runner.step() is not None:
-        pass
+    try:
+        while runner.step() is not None:
+            pass
+    except KeyboardInterrupt as exc:
+        # a signal between the guarded parts of a step (after a trial was kept, before the law's
+        # update): the same end as inside them, the interrupt marked, every kept trial kept
+        return runner.end_by_user(exc)
     return runner.finish()
 
 
