@@ -25,8 +25,13 @@ ROOT = Path(__file__).resolve().parent.parent
 #: that rerun's allocator (mimalloc) reserves and ten 64 MiB per-thread arenas of glibc: reservations
 #: that shrink to what is there under a limit.  The longest trial runs without a limit: it needs
 #: about 2.8 GB of address space, as mimalloc reserves its second arena before the report is drawn
-#: (with ``MIMALLOC_ARENA_RESERVE=64MiB`` it runs within 2 GB).
+#: (with ``MIMALLOC_ARENA_RESERVE=64MiB`` it runs within 2 GB).  Under the limit the allocators'
+#: reservations are kept small (:data:`SMALL_RESERVATIONS`): they count against an address-space
+#: limit but are not memory a machine must have, and how many glibc arenas the threads of a run
+#: happen to create varied enough to leave one run without room to map matplotlib's library.
 ADDRESS_SPACE_BYTES = 2 * 1000**3
+#: the allocators' reservations under the limit: mimalloc's arenas 64 MiB, two glibc arenas
+SMALL_RESERVATIONS = {"MIMALLOC_ARENA_RESERVE": "64MiB", "MALLOC_ARENA_MAX": "2"}
 
 
 def _limit_address_space() -> None:
@@ -44,6 +49,7 @@ def run_sim(tmp_path: Path, *argv: str, limit_address_space: bool, timeout_s: fl
             stderr=err,
             cwd=ROOT,
             preexec_fn=_limit_address_space if limit_address_space else None,
+            env={**os.environ, **SMALL_RESERVATIONS} if limit_address_space else None,
         )
         deadline = time.monotonic() + timeout_s
         try:
