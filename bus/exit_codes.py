@@ -33,6 +33,7 @@ __all__ = [
     "EXIT_CLUSTER_LOST",
     "EXIT_INTERRUPTED",
     "EXIT_TERMINATED",
+    "exit_code_of_signal",
 ]
 
 
@@ -67,3 +68,9 @@ EXIT_CLUSTER_LOST: int = ExitCode.CLUSTER_LOST
 EXIT_INTERRUPTED: int = ExitCode.INTERRUPTED
 #: terminated by SIGTERM
 EXIT_TERMINATED: int = ExitCode.TERMINATED
+
+
+def exit_code_of_signal(signum: int) -> int:
+    """The exit code of a run ended by signal ``signum``: 130 for SIGINT, 143 for SIGTERM, else
+    128 + its number (the shell's convention)."""
+    return 128 + int(signum)

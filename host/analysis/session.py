@@ -14,13 +14,12 @@ code: one line ``ilcrig: fault: …`` and 3 after a fault, 130 / 143 after SIGIN
 from __future__ import annotations
 
 import logging
-import signal
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
 
-from bus.exit_codes import EXIT_FAULT, EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATED
+from bus.exit_codes import EXIT_FAULT, EXIT_OK, exit_code_of_signal
 from host.analysis.recording import RunRecorder
 from host.analysis.run_report import write_run_report
 from host.experiment.arrays import Recorders, TrialArrays
@@ -144,13 +143,7 @@ def report_fault(res: ExperimentResult, summary_path: Path | None = None) -> int
     """The exit code of a finished run; a fault gets its one line on stderr."""
     kept = len(res.summary["iterations"])
     if res.interrupted is not None:
-        return (
-            EXIT_TERMINATED
-            if res.interrupted == signal.SIGTERM
-            else EXIT_INTERRUPTED
-            if res.interrupted == signal.SIGINT
-            else 128 + res.interrupted
-        )
+        return exit_code_of_signal(res.interrupted)
     if res.fault_record is not None:
         sys.stderr.write(fault_line(res.fault_record, kept, summary_path=summary_path) + "\n")
         sys.stderr.flush()

@@ -51,7 +51,7 @@ from collections.abc import Sequence
 from typing import NoReturn
 
 from bus.errors import InputError
-from bus.exit_codes import EXIT_ERROR, EXIT_FAULT, EXIT_INTERRUPTED, EXIT_USAGE
+from bus.exit_codes import EXIT_ERROR, EXIT_FAULT, EXIT_INTERRUPTED, EXIT_USAGE, exit_code_of_signal
 from host.cli import drive, host, hub, laws, plant, robot, run, sim, studies, view
 from host.cli.options import BusUnavailable
 
@@ -105,7 +105,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt as exc:
         sys.stderr.write("ilcrig: interrupted\n")
         signum = getattr(exc, "signum", None)  # SIGTERM's Interrupted (host.experiment.signal_shield): 143
-        return EXIT_INTERRUPTED if signum is None else 128 + int(signum)
+        return EXIT_INTERRUPTED if signum is None else exit_code_of_signal(signum)
     except BusUnavailable as exc:
         sys.stderr.write(f"ilcrig: error: {exc}\n")
         return EXIT_FAULT
