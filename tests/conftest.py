@@ -17,12 +17,14 @@ and the ``sleeper`` fixture (a process to schedule).
 
 from __future__ import annotations
 
+import compileall
 import logging
 import os
 import signal
 import subprocess
 import sys
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
@@ -39,6 +41,21 @@ def pytest_configure(config: pytest.Config) -> None:
     Python installs its KeyboardInterrupt again."""
     if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+    compile_project()
+
+
+#: the checkout (the project's packages are its folders with an ``__init__.py``)
+REPO = Path(__file__).resolve().parent.parent
+
+
+def compile_project() -> None:
+    """The project's bytecode written once, before the tests start processes: with
+    ``PYTHONDONTWRITEBYTECODE`` set (as on the CI machines here) no process writes it, and every
+    process a test starts (six or seven a rig) compiled ~130 modules from source again, ≈ 0.1 s of
+    CPU each (docs/benchmarks.md "The test tiers"). ``compileall`` writes it anyway; a read-only
+    checkout (the vcan VM's view of it) is left as it is."""
+    for pkg in sorted(p for p in REPO.iterdir() if (p / "__init__.py").is_file()):
+        compileall.compile_dir(pkg, quiet=2)
 
 
 #: the markers of a test that belongs to the full tier (unless it is also marked ``fast``)
