@@ -10,6 +10,7 @@ PID 1 may not reap orphans, and a zombie holds no resources or sockets).
 from __future__ import annotations
 
 import io
+import logging
 import os
 import re
 import select
@@ -25,6 +26,7 @@ from pathlib import Path
 import pytest
 
 from bus.exit_codes import EXIT_CHILD_FAILED, EXIT_FAULT
+from bus.units import timeout_scale
 from host.cli import build_parser
 from host.cli.options import experiment_options
 from host.cli.run import run_options
@@ -32,6 +34,7 @@ from host.rig import role_commands
 from host.rig.launcher import RigLauncher
 from host.rig.options import RunOptions
 from host.rig.role_commands import child_argv, host_role_args, role_command
+from host.rig.supervisor import UNHEARD_GRACE_S
 
 pytestmark = pytest.mark.multiprocess
 
@@ -300,6 +303,31 @@ def test_drive_exiting_early_ends_the_run(tmp_path: Path, piddir: Path, roles: d
         lines[0],
     ), lines[0]
     assert [d.name for d in rl.deaths] == ["drive2"]
+    assert_all_gone(rl)
+
+
+def test_a_node_dead_before_its_heartbeat_is_heard_does_not_wait_out_the_hosts_grace(
+    tmp_path: Path, piddir: Path, roles: dict[str, list[str]], caplog: pytest.LogCaptureFixture
+) -> None:
+    """A drive that dies before the host configured its heartbeat (it never booted) cannot be
+    noticed by the host, which awaits its boot-up: the launcher gives the host the short grace of
+    an unheard node, not the whole grace period (here 600 s) in silence."""
+    roles["host"] = fake("host")  # would run forever
+    roles["plant"] = fake("plant")
+    roles["drive3"] = fake("drive", "--sleep", "0.2", "--exit", "1")  # the fake roles send no heartbeat
+    err = io.StringIO()
+    rl = RigLauncher(run_args(tmp_path), stdout=io.StringIO(), stderr=err, host_grace_s=600.0)
+    with caplog.at_level(logging.INFO, logger="host.rig.supervisor"):
+        code = run_launcher(rl)
+    assert code == EXIT_FAULT
+    assert err.getvalue().startswith("ilcrig: fault: drive3 (pid ") and len(err.getvalue().splitlines()) == 1
+    grace = UNHEARD_GRACE_S * timeout_scale()
+    assert any(
+        r.getMessage().endswith(f"its heartbeat was not heard yet; the host gets {grace:.1f} s to notice")
+        and r.getMessage().startswith("drive3 (pid ")
+        for r in caplog.records
+    ), [r.getMessage() for r in caplog.records]
+    assert any(f"the host did not end within {grace:.1f} s of drive3" in r.getMessage() for r in caplog.records)
     assert_all_gone(rl)
 
 

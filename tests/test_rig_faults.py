@@ -217,3 +217,42 @@ def test_lost_nodes_tolerated_between_trials_but_not_during_one(rig: Rig) -> Non
     assert not rig.watchdog.in_trial
     assert rec is not None and (rec.kind, rec.node) == (FaultKind.BUS_SILENT, "virtual")
     assert rec.message == "no heartbeat from any node for 50 ms: the bus is silent (virtual stalled?)"
+
+
+def test_a_bus_error_frame_while_the_boot_ups_are_awaited_ends_the_wait_at_once(rig: Rig) -> None:
+    """Not armed yet (the bring-up awaits the nodes' boot-ups): heartbeats are not judged, but a bus
+    error frame heard (a lost datagram, which may have been a boot-up) is the run's fault at once:
+    declared with NMT STOP and raised, not a boot-up awaited until the host's ``--wait`` runs out."""
+    rig.watchdog.raise_if_bus_fault()  # all is well: nothing declared, nothing raised
+    assert rig.declared == []
+    rig.peer.send(can.Message(is_error_frame=True, arbitration_id=0x20000080, is_extended_id=True, data=bytes(8)))
+    rec: FaultRecord | None = None
+    deadline = time.monotonic() + 30.0
+    while rec is None and time.monotonic() < deadline:  # until the channel's monitor has heard it
+        try:
+            rig.watchdog.raise_if_bus_fault()
+        except TrialFault as exc:
+            rec = exc.record
+        time.sleep(0.005)
+    assert rec is not None and rig.declared == [rec] and (rec.kind, rec.node) == (FaultKind.FRAME_ERROR, "fieldbus")
+    assert nmt_stop_seen(rig.peer)
+
+
+def test_the_launchers_liveness_watch_hears_a_node_from_its_first_heartbeat_to_its_next_boot_up() -> None:
+    """:meth:`host.rig.liveness.LivenessWatch.heard` (the launcher's short grace for a node that
+    dies before the host hears it, tests/test_launcher.py): not before a heartbeat, not after a
+    boot-up (the host awaits it then)."""
+    from host.rig.liveness import LivenessWatch
+
+    watch = LivenessWatch(virtual_transport(prefix=f"liveness-test-{next(_prefix)}"))  # not started: frames fed in
+
+    def frame(state: int) -> can.Message:
+        return can.Message(arbitration_id=heartbeat_cob_id(2), data=[state], is_extended_id=False)
+
+    assert not watch.heard(2)
+    watch._heard(frame(NmtState.BOOT_UP), 1.0)
+    assert not watch.heard(2)
+    watch._heard(frame(NmtState.PRE_OPERATIONAL), 1.2)
+    assert watch.heard(2) and not watch.heard(3)
+    watch._heard(frame(NmtState.BOOT_UP), 1.4)
+    assert not watch.heard(2)

@@ -355,9 +355,9 @@ def test_a_lost_datagram_is_a_fault_of_the_run(tmp_path: Path) -> None:
     """``ilcrig run --bus udp_multicast`` with fieldbus receive buffers far too small for an SDO
     block: the losses are reported as bus errors and the run stops with a fault (exit code 3)
     instead of going on with frames missing. The losses come at the first burst of the bus (the
-    nodes' boot-ups answering the host's NMT reset); when the host's own loss was a boot-up, the
-    fault is that boot-up's absence, after the host's ``--wait``: 30 s here (the nodes are up in
-    seconds), not its default 120 s."""
+    nodes' boot-ups answering the host's NMT reset): a loss the host hears while it awaits them
+    ends the wait as the run's fault at once (it may have been a boot-up), well before the
+    host's ``--wait`` (30 s here, a bound for a run whose losses were all in the nodes)."""
     reason = netns_unavailable_reason()
     if reason:
         pytest.skip(reason)

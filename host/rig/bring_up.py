@@ -7,7 +7,8 @@ This module owns
   bus/plant.eds) on the given network, with the host's clients over SDO
   (:class:`host.nodes.drive_client.DriveClient`, :class:`host.nodes.plant_client.PlantClient`
   through :class:`host.nodes.sdo_access.SdoAccess`, block transfer for tables and recorder data);
-* :class:`BringUp` — NMT reset communication and every node's boot-up; per node: SDO answered,
+* :class:`BringUp` — NMT reset communication and every node's boot-up (a bus fault heard while
+  they are awaited ends the wait as the run's fault: a lost datagram may have been a boot-up); per node: SDO answered,
   a heartbeat producer period (0x1017) and a consumer entry for the host's heartbeat (0x1016:1),
   PDOs configured, NMT START and its first OPERATIONAL heartbeat; the plant node configured; and
   with ``--recover`` the same for a node lost or rebooted between trials.  Once every node's
@@ -58,6 +59,8 @@ __all__ = ["BringUp", "RigNodes", "configure_pdos"]
 NODE_IDS = (*DRIVE_NODE_IDS, PLANT_NODE_ID)
 #: how long the nodes get to report OPERATIONAL after NMT START, s
 OPERATIONAL_WAIT_S = 5.0
+#: how often the boot-up wait looks at the bus (a bus fault heard ends it at once), s
+BOOT_POLL_S = 0.05
 
 
 @dataclass
@@ -168,7 +171,8 @@ class BringUp:
         goes to a node that is not running yet (it would time out, and canopen logs the abort
         at ERROR level).
 
-        :raises TrialFault: a node did not boot within ``wait_s`` (``what`` says what to check)
+        :raises TrialFault: a node did not boot within ``wait_s`` (``what`` says what to check), or
+            a bus fault was heard meanwhile (:meth:`host.rig.watchdog.Watchdog.raise_if_bus_fault`)
         """
         booted: set[int] = set()
         all_booted = threading.Event()
@@ -183,10 +187,14 @@ class BringUp:
             self.network.subscribe(0x700 + nid, on_boot_up)
         try:
             self.network.nmt.send_command(NmtCommand.RESET_COMMUNICATION)
-            if not all_booted.wait(self.wait_s):
-                raise TrialFault(
-                    f"no boot-up from node(s) {', '.join(map(str, sorted(node_ids - booted)))} within {self.wait_s:g} s {what}"
-                )
+            deadline = time.monotonic() + self.wait_s
+            while not all_booted.wait(BOOT_POLL_S):
+                self.watchdog.raise_if_bus_fault()
+                if time.monotonic() >= deadline:
+                    raise TrialFault(
+                        f"no boot-up from node(s) {', '.join(map(str, sorted(node_ids - booted)))} "
+                        f"within {self.wait_s:g} s {what}"
+                    )
         finally:
             for nid in node_ids:
                 self.network.unsubscribe(0x700 + nid, on_boot_up)

@@ -41,7 +41,8 @@ Output
 
 One fault path
     When a role (or the hub) ends while the host runs, the launcher gives the host
-    :data:`HOST_GRACE_S` to notice it on the bus and record it; when the host itself dies, the
+    :data:`HOST_GRACE_S` to notice it on the bus and record it (a node whose heartbeat was not
+    heard yet a few seconds: :data:`host.rig.supervisor.UNHEARD_GRACE_S`); when the host itself dies, the
     launcher records the fault in ``summary.json`` (``faults``, ``completed: false``). Either way
     the run ends with the one line ``ilcrig: fault: <what>: <node>, trial k, tick n; …; its log: …``
     (:mod:`host.rig.run_outcome`).
@@ -187,6 +188,7 @@ class RigLauncher(LaunchCore):
         )
         self._liveness = LivenessWatch(run_tc, self._progress.where, outcome.kept_now)
         self._liveness.start()
+        supervisor.heard = self._liveness.heard
         supervisor.stops = StopWatch(self._progress.where, outcome.kept_now)
         if self.interrupts.signum is not None:
             return self._signal_exit()

@@ -171,6 +171,12 @@ class LivenessWatch(threading.Thread):
             self.silences.append(silence)
             logger.info("node %d silent for %.0f ms", nid, 1000 * (now - silence.t_last_mono))
 
+    def heard(self, node_id: int) -> bool:
+        """Whether ``node_id``'s heartbeat was heard since its last boot-up (the host consumes it
+        then, and notices when it stops)."""
+        with self._lock:
+            return node_id in self._last
+
     def settle(self, since: float) -> list[Silence]:
         """Wait until every tracked node was heard after ``since`` (``t_mono``, the host's end) or
         a consumer time passed, then stop; every silence seen."""

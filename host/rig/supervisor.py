@@ -8,7 +8,11 @@ end itself; where the kernel has no pidfd, it looks every :data:`POLL_S`), and a
 where the run was (the trial and tick of :class:`host.rig.run_watch.RunProgress`) — and gives the
 host a grace period to notice it on the bus and record it (the host's watchdog takes about three
 heartbeat periods); a host that does not end by then is stopped (:meth:`Supervisor.stop_host`:
-signal, wait, SIGKILL its group).  With a :class:`host.rig.liveness.StopWatch` it also looks,
+signal, wait, SIGKILL its group).  A node whose heartbeat nobody hears yet (``heard``: the
+launcher's :class:`host.rig.liveness.LivenessWatch`; a node that died before its boot-up, or before
+the host configured its heartbeat) cannot be noticed by the host, which would await its boot-up:
+then the grace is :data:`UNHEARD_GRACE_S` (× ``ILCRIG_TIMEOUT_SCALE``), enough for a heartbeat
+configured a moment ago, not the host's whole grace period in silence.  With a :class:`host.rig.liveness.StopWatch` it also looks,
 every round, at which processes are stopped.  A signal to the launcher (:class:`host.rig.interrupts.Interrupts`)
 ends the watch at once.  The CPU and wall time the watch took are kept.
 """
@@ -26,16 +30,20 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from bus.cia301.nmt import HOST_NODE_ID
 from bus.processes import killpg
+from bus.units import timeout_scale
 from host.rig.interrupts import Interrupts
-from host.rig.processes import Child, Death, cpu_s, describe_status
+from host.rig.processes import Child, Death, cpu_s, describe_status, node_id_of
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["POLL_S", "Supervisor"]
+__all__ = ["POLL_S", "UNHEARD_GRACE_S", "Supervisor"]
 
 #: watch-loop period, s
 POLL_S: float = 0.05
+#: the host's grace after the end of a node whose heartbeat was not heard yet, s (× scale)
+UNHEARD_GRACE_S: float = 3.0
 
 
 @dataclass(eq=False)
@@ -62,6 +70,8 @@ class Supervisor:
     where: Callable[[], Any] | None = None
     #: looks at which processes are stopped (:class:`host.rig.liveness.StopWatch`), or None
     stops: Any = None
+    #: whether a node's heartbeat is heard now (node id → bool; :meth:`host.rig.liveness.LivenessWatch.heard`), or None
+    heard: Callable[[int], bool] | None = None
     deaths: list[Death] = field(default_factory=list, init=False)
     host_stopped: bool = field(default=False, init=False)
     watch_cpu_s: float = field(default=0.0, init=False)
@@ -75,6 +85,7 @@ class Supervisor:
         meanwhile gives the host :attr:`host_grace_s` to record it; then the host is stopped."""
         cpu0, wall0 = cpu_s(), time.monotonic()
         deadline: float | None = None
+        grace = self.host_grace_s
         self._since = wall0
         try:
             while True:
@@ -88,11 +99,10 @@ class Supervisor:
                 if self.stops is not None:
                     self.stops.look(self._running())
                 if self.deaths and deadline is None:
-                    deadline = time.monotonic() + self.host_grace_s
+                    grace = self._grace(self.deaths[0])
+                    deadline = time.monotonic() + grace
                 if deadline is not None and time.monotonic() > deadline:
-                    logger.info(
-                        "the host did not end within %.1f s of %s: stopping it", self.host_grace_s, self.deaths[0].describe()
-                    )
+                    logger.info("the host did not end within %.1f s of %s: stopping it", grace, self.deaths[0].describe())
                     self.host_stopped = True
                     return self.stop_host(host, signal.SIGTERM)
                 self._wait(host)
@@ -103,6 +113,15 @@ class Supervisor:
                 with contextlib.suppress(OSError):
                     os.close(fd)
             self._pidfds.clear()
+
+    def _grace(self, death: Death) -> float:
+        """How long the host gets to notice ``death`` on the bus (module docstring), s."""
+        node_id = node_id_of(death.name)
+        if self.heard is None or node_id is None or node_id == HOST_NODE_ID or self.heard(node_id):
+            return self.host_grace_s
+        grace = min(self.host_grace_s, UNHEARD_GRACE_S * timeout_scale())
+        logger.info("%s: its heartbeat was not heard yet; the host gets %.1f s to notice", death.describe(), grace)
+        return grace
 
     def _wait(self, host: Child) -> None:
         """Up to :data:`POLL_S` for the end of a process of the run, on their pidfds: a process

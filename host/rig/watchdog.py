@@ -256,13 +256,7 @@ class Watchdog:
         """The first fault visible now (None: all is well, or not armed, or declared already)."""
         if not self._armed or self._fault is not None:
             return None
-        errors: list[BusError] = []
-        if self.fieldbus_errors.error is not None:
-            errors.append(BusError(FIELDBUS, self.fieldbus_errors.error, self.fieldbus_errors.error_t))
-        errors += self.channels.bus_errors()
-        if self.producer is not None and self.producer.error is not None:
-            errors.append(BusError(FIELDBUS, self.producer.error, self.producer.error_t))
-        record = bus_fault(errors, self.bus_name, now) or channel_fault(self.channels.troubles(), now)
+        record = self._bus_fault(now)
         if record is not None:
             return record
         pending = self.events.take_emcy()
@@ -278,6 +272,28 @@ class Watchdog:
             return None  # between trials a lost node is waited for (recover)
         report, last = self.events.report(now), self.events.last_heard()
         return heartbeat_fault(report, last, now, consumer_s=self.consumer_s, period_s=self.period_s, bus_name=self.bus_name)
+
+    def _bus_fault(self, now: float) -> FaultRecord | None:
+        """A bus gone, a channel's log stopped or a bus error frame heard (None: none)."""
+        errors: list[BusError] = []
+        if self.fieldbus_errors.error is not None:
+            errors.append(BusError(FIELDBUS, self.fieldbus_errors.error, self.fieldbus_errors.error_t))
+        errors += self.channels.bus_errors()
+        if self.producer is not None and self.producer.error is not None:
+            errors.append(BusError(FIELDBUS, self.producer.error, self.producer.error_t))
+        return bus_fault(errors, self.bus_name, now) or channel_fault(self.channels.troubles(), now)
+
+    def raise_if_bus_fault(self) -> None:
+        """While the nodes' boot-ups are awaited (the watchdog not armed yet): a bus fault heard
+        already (:meth:`_bus_fault`) is the run's fault now, declared and raised, not a boot-up
+        awaited until its time runs out (a lost datagram may have been that boot-up).
+
+        :raises TrialFault: a fault was declared (now or before)."""
+        if self._fault is None:
+            record = self._bus_fault(time.monotonic())
+            if record is not None:
+                self.declare(record)
+        self.raise_if_fault()
 
     def declare(self, record: FaultRecord) -> None:
         """The run is over: keep ``record`` (the first fault), torque off everywhere at once (NMT
