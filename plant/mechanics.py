@@ -15,7 +15,8 @@ This module owns what a real axis has besides its dynamics (docs/robot.md "Limit
 * the **home pose** (:data:`HOME_POSE`): the workspace centre, where the robot stands at rest when
   it is switched on.
 
-:class:`Mechanics` steps a :class:`plant.simulator.Plant` one control period with these rules.
+:class:`Mechanics` steps a :class:`plant.simulator.Plant` one control period with these rules;
+:func:`warm_up_robot` compiles every kernel such a period may use before the robot's node boots.
 Imports numpy and the plant's model modules only.
 """
 
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,7 +34,7 @@ from plant.simulator import Plant, PlantError
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["HOME_POSE", "LimitHit", "MechanicalLimits", "Mechanics"]
+__all__ = ["HOME_POSE", "LimitHit", "MechanicalLimits", "Mechanics", "warm_up_robot"]
 
 #: the home pose X = (x, y, z, θ) [m, rad]: the workspace centre (docs/robot-model.md §3.5)
 HOME_POSE: tuple[float, float, float, float] = (0.0, 0.0, -0.65, 0.0)
@@ -149,3 +151,23 @@ class Mechanics:
     def _gap_ok(self) -> bool:
         gap = self.gap_m()
         return self.limits.gap_min_m <= gap <= self.limits.gap_max_m
+
+
+def warm_up_robot(scratch: Plant, limits: MechanicalLimits) -> float:
+    """Compile (or load from numba's cache) every kernel a robot period may use, on ``scratch`` (a
+    plant of the robot's Ts and sub-steps, thrown away afterwards): a period with no joint held,
+    with some held (the locked-joint dynamics, first used when the first drive is enabled), with
+    all held, the forward kinematics of 0x2452.  Without it the first period with one drive
+    enabled paid the compilation — seconds on a loaded machine, while the master's SYNCs piled up
+    (a stall of the SYNC-stepped robot).  Returns the seconds it took."""
+    t0 = time.perf_counter()
+    mech = Mechanics(scratch, limits)
+    mech.home()
+    zero = np.zeros(4, dtype=np.int64)
+    for held in ([False] * 4, [True, False, False, False], [True] * 4):
+        mech.step(zero, np.array(held))
+    scratch.encoder_counts()
+    scratch.task_pose()
+    seconds = time.perf_counter() - t0
+    logger.info("robot kernels ready in %.2f s", seconds)
+    return seconds

@@ -21,7 +21,7 @@ waits in order (the drives' frames wait behind it likewise, :mod:`firmware_model
 The one that finds :data:`bus.cyclic.SYNC_BACKLOG_MAX` waiting is a SYNC overrun (0x2450:8; SYNC-
 stepped a robot fault, EMCY 0x8110, once per episode; in real time a counted miss), served late all
 the same: periods stepped = SYNCs seen, the same master sequence the same trace.  Every kernel a
-period may use is compiled before the node boots (:func:`warm_up_robot`).
+period may use is compiled before the node boots (:func:`plant.mechanics.warm_up_robot`).
 
 Real time (mode 2): periods are also paced to the wall clock (the schedule and its figures:
 :class:`plant.plant_node_robot_pacing.RobotPacing`).
@@ -63,7 +63,7 @@ from bus.plant_objects import (
     RobotSub,
     robot_fault_emcy_data,
 )
-from plant.mechanics import LimitHit, MechanicalLimits, Mechanics
+from plant.mechanics import LimitHit, MechanicalLimits, Mechanics, warm_up_robot
 from plant.plant_node_model import TrialModel
 from plant.plant_node_robot_pacing import RobotPacing
 from plant.plant_node_status import Emcy
@@ -73,7 +73,7 @@ from plant.trace import FLAG_FAULT, FLAG_LATE, TraceWriter
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["RobotLoop", "SYNC_COB_ID", "warm_up_robot"]
+__all__ = ["RobotLoop", "SYNC_COB_ID"]
 
 #: the SYNC the robot steps on (CiA 301 predefined connection set)
 SYNC_COB_ID: int = 0x080
@@ -95,26 +95,6 @@ _ALL_HELD = (1 << _N) - 1
 _HELD_MASKS = [np.array([bool(bits >> j & 1) for j in range(_N)]) for bits in range(1 << _N)]
 
 _IDLE, _HELD, _SENT = 0, 1, 2
-
-
-def warm_up_robot(scratch: Plant, limits: MechanicalLimits) -> float:
-    """Compile (or load from numba's cache) every kernel a robot period may use, on ``scratch`` (a
-    plant of the robot's Ts and sub-steps, thrown away afterwards): a period with no joint held,
-    with some held (the locked-joint dynamics, first used when the first drive is enabled), with
-    all held, the forward kinematics of 0x2452.  Without it the first period with one drive
-    enabled paid the compilation — seconds on a loaded machine, while the master's SYNCs piled up
-    (a stall of the SYNC-stepped robot).  Returns the seconds it took."""
-    t0 = time.perf_counter()
-    mech = Mechanics(scratch, limits)
-    mech.home()
-    zero = np.zeros(_N, dtype=np.int64)
-    for held in (0, 1, _ALL_HELD):
-        mech.step(zero, _HELD_MASKS[held])
-    scratch.encoder_counts()
-    scratch.task_pose()
-    seconds = time.perf_counter() - t0
-    logger.info("robot kernels ready in %.2f s", seconds)
-    return seconds
 
 
 class RobotLoop:

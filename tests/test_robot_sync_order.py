@@ -5,7 +5,7 @@ The cause of the stall: the first period with one drive enabled (some joints bra
 free) was the first call of the locked-joint dynamics (``plant._kernels.plant_step_locked``), which
 numba compiled then — seconds on a loaded machine, while the master's SYNCs (every 2–5 ms) piled
 up and all but one were counted as overruns, dropped, with the robot's state still ``ready``.  Now
-the robot compiles every kernel of a period before its boot-up (:func:`plant.plant_node_robot.warm_up_robot`),
+the robot compiles every kernel of a period before its boot-up (:func:`plant.mechanics.warm_up_robot`),
 every SYNC waits in order for its period (served late: periods stepped = SYNCs sent), and in
 SYNC-stepped mode the SYNC that finds :data:`bus.cyclic.SYNC_BACKLOG_MAX` waiting is a robot fault
 (EMCY 0x8110 from node 32, the robot's state ``fault``, torque-free) and is served all the same; in
@@ -32,9 +32,8 @@ from bus.cyclic import SYNC_BACKLOG_MAX
 from bus.plant_objects import ROBOT_EMCY_FLAG, ROBOT_FAULT_EMCY, RobotFault, RobotMode, RobotState
 from plant import _kernels as K
 from plant.disturbance import disturbance_torque
-from plant.mechanics import MechanicalLimits
+from plant.mechanics import MechanicalLimits, warm_up_robot
 from plant.plant_node import PlantNode
-from plant.plant_node_robot import warm_up_robot
 
 REPO = Path(__file__).resolve().parents[1]
 MASTER = Path(__file__).resolve().parent / "streaming_master.py"
