@@ -19,7 +19,7 @@ error are faults of the power stage (:class:`FaultSink`).
   PD loop closes on 0x607A target position; the
   velocity reference is the backward difference of successive targets,
   ``(p[n] − p[n−1])·rate`` in the loop's Q12 arithmetic, rounded and saturated to int32 (0 on
-  the first tick of a trial and after a mode change; the firmware's ``csp_velocity_ref``,
+  the first tick of a trial, after a mode change and when torque comes on; the firmware's ``csp_velocity_ref``,
   :attr:`MotionContext.steps`); the feed-forward is 0x60B2 torque offset
   [‰ of 0x6076].
 * CSV (9, cyclic synchronous velocity): the position demand integrates 0x60FF target velocity
@@ -269,6 +269,13 @@ class CspMode(CyclicSynchronousMode):
         self._prev_target: int | None = None  # 0x607A of the previous tick [counts]
 
     def reset(self) -> None:
+        self._prev_target = None
+
+    def on_enable(self) -> None:
+        """Torque on: no previous target (the first period's velocity reference is 0). The last
+        target of an earlier enable may be far from this one (a master that disables, writes the
+        target where the joint stands now and enables again): their difference as a velocity
+        reference is a torque kick at enable, which grows with each disable/enable cycle."""
         self._prev_target = None
 
     def start_trial(self) -> None:

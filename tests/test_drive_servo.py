@@ -231,3 +231,37 @@ def test_cascade_matches_its_float_twin_within_the_bound_of_its_formats() -> Non
         bound = kvp / q * 1.0 + 1.0 + (k + 1) * kvi_tick / q * 1.0 + 0.5 / q * sum_ev + 1.0
         assert abs(tau - tau_twin) <= bound, (k, tau, tau_twin, bound)
         count += int(rng.integers(-40, 41)) + (ref_pos - count) // 4  # a plant that roughly follows
+
+
+def test_a_csp_drive_enabled_again_starts_without_a_velocity_reference() -> None:
+    """Disable, the target written where the joint stands now (far from the last target of the
+    earlier enable), enable again: the first period's torque is the one a drive enabled for the
+    first time gives there (velocity reference 0), not a kick from the difference of the two
+    targets (the random foreign master's runaway into the screw stop, tests/test_robot_master_fsm.py)."""
+
+    def first_torque_after_enable(d: Drive, target: int, count: int) -> int:
+        """Enabled one SYNC per controlword at ``target``: the torque of the first enabled period."""
+        wr(d, Obj.TARGET_POSITION, 0, "i32", target)
+        torques = []
+        for cw in (0x06, 0x07, 0x0F):
+            wr(d, Obj.CONTROLWORD, 0, "u16", cw)
+            d.on_sync()
+            torques.append(d.io_tick(0, count))
+        assert d.torque_enabled and torques[:2] == [0, 0]
+        return torques[2]
+
+    def csp_drive() -> Drive:
+        d = Drive(2)
+        d.step_on_sync(time.monotonic)  # robot mode: the cascade, with velocity feed-forward
+        d.nmt_command(NmtCommand.START)
+        wr(d, Obj.MODES_OF_OPERATION, 0, "i8", 8)
+        return d
+
+    fresh = first_torque_after_enable(csp_drive(), 50_000, 50_000)
+    again = csp_drive()
+    first_torque_after_enable(again, 0, 0)  # enabled at 0, holding there
+    wr(again, Obj.CONTROLWORD, 0, "u16", 0x06)  # torque off
+    again.on_sync()
+    again.io_tick(0, 50_000)  # the joint stands 50,000 counts further now
+    assert not again.torque_enabled
+    assert first_torque_after_enable(again, 50_000, 50_000) == fresh

@@ -10,14 +10,21 @@ waiting behind them in order) and pauses.  After every step, the invariants:
   (0x2450:12) only if its drive is in Operation enabled (its TPDO when OPERATIONAL, its statusword
   by SDO when PRE-OPERATIONAL: NMT does not switch a power stage off);
 * the TPDO of period k carries period k: after a lockstep SYNC, each drive's TPDO1 position actual is
-  the joint count the plant had at the start of that period (0x2451, read before the SYNC).
+  the joint count the plant had at the start of that period (0x2451, read before the SYNC), plus the
+  offset the master's last homing of that drive gave it (method 35/37: the position actual becomes
+  the home offset 0x607C; the offset is read back by SDO once the robot stands);
+* every PDO remap and every COB-ID write answers as docs/canopen-objects.md §10 says: a valid one
+  reads back as written, an invalid one is refused with the documented abort code.
 
-Bounded for CI (``max_examples`` 10, 15 steps, one robot for the module); a replay of one fixed
-master sequence against two fresh in-process robots gives the same trace digest.
+Bounded for CI (``max_examples`` 10, 15 steps, one robot for the module); a long run by the
+environment (:data:`EXAMPLES_ENV`, :data:`STEPS_ENV`, e.g. 300 and 40: docs/robot.md). A replay of one
+fixed master sequence against two fresh in-process robots gives the same trace digest.
 """
 
 from __future__ import annotations
 
+import logging
+import os
 import struct
 import threading
 import time
@@ -32,8 +39,9 @@ from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule
 from robot_util import DRIVES, PLANT_ID, LockstepMaster, RobotProcess, VirtualRobot, new_channels
 
+from bus.errors import AbortCode
 from bus.objects import DRIVE_EDS_PATH
-from bus.plant_objects import PLANT_EDS_PATH, PlantObj, RobotState, RobotSub
+from bus.plant_objects import PLANT_EDS_PATH, PlantObj, RobotFault, RobotState, RobotSub
 from plant.trace import read_trace, trace_digest
 
 pytestmark = [pytest.mark.slow, pytest.mark.multiprocess]
@@ -41,6 +49,42 @@ pytestmark = [pytest.mark.slow, pytest.mark.multiprocess]
 #: longest wait for the robot to have stepped every SYNC sent (no stall), s
 STALL_S = 20.0
 _OP_ENABLED = 0x27
+#: counts a joint held by its drive may move in the period after its homing (0.07°)
+_HOMING_SLACK = 2000
+#: environment: examples and steps per example of the random master (a long run; defaults 10 and 15)
+EXAMPLES_ENV, STEPS_ENV = "ILCRIG_FSM_EXAMPLES", "ILCRIG_FSM_STEPS"
+
+#: valid TPDO2 mappings a master may choose: (index, sub-index, bits) each
+_TPDO2_MAPS = [
+    [(0x6041, 0, 16)],
+    [(0x6064, 0, 32), (0x606C, 0, 32)],
+    [(0x6041, 0, 16), (0x6077, 0, 16), (0x6064, 0, 32)],
+    [(0x6061, 0, 8), (0x6041, 0, 16)],
+]
+#: invalid remaps of TPDO2 in PRE-OPERATIONAL (TPDO2 not valid, its sub 0 = 0 first, unless the case
+#: says otherwise) and the abort code docs/canopen-objects.md §10 gives each
+_BAD_REMAPS: dict[str, int] = {
+    "unknown object": AbortCode.NO_OBJECT,
+    "PDOMapping 0": AbortCode.NOT_MAPPABLE,
+    "wrong bit length": AbortCode.NOT_MAPPABLE,
+    "more than 64 bits": AbortCode.PDO_LENGTH,
+    "sub 0 above 8": AbortCode.VALUE_TOO_HIGH,
+    "mapping of a valid PDO": AbortCode.UNSUPPORTED_ACCESS,
+    "entry while sub 0 is not 0": AbortCode.UNSUPPORTED_ACCESS,
+    "restricted COB-ID of a PDO": AbortCode.VALUE_RANGE,
+    "restricted COB-ID of the EMCY": AbortCode.VALUE_RANGE,
+}
+
+
+def _u32(v: int) -> bytes:
+    return struct.pack("<I", v)
+
+
+def _abort_code(call: Any, *args: Any) -> int:
+    """The abort code of an SDO call that must be refused."""
+    with pytest.raises(canopen.SdoAbortedError) as err:
+        call(*args)
+    return int(err.value.code)
 
 
 class Master:
@@ -107,6 +151,11 @@ class RandomMaster(RuleBasedStateMachine):
     m: Master
     #: lockstep periods checked over every example (the test sees that the machine ran)
     lockstep_periods = 0
+    #: per drive, position actual − the plant's joint count: 0 until a homing moves it (the robot,
+    #: and so the offset, lives for the module)
+    offsets: dict[int, int] = dict.fromkeys(DRIVES, 0)
+    #: homings that ended in "homing attained", remaps accepted, invalid ones refused (the long run's tally)
+    tally: dict[str, int] = {"homed": 0, "remapped": 0, "refused": 0}
 
     @initialize()
     def begin(self) -> None:
@@ -180,6 +229,106 @@ class RandomMaster(RuleBasedStateMachine):
         except canopen.SdoAbortedError:
             pass  # a mode the drive does not support is refused
 
+    @rule(node=st.sampled_from(DRIVES), method=st.sampled_from([35, 37]), offset=st.integers(-50_000, 50_000))
+    def homing(self, node: int, method: int, offset: int) -> None:
+        """Homing on the current position (mode 6), enabled by SDO one SYNC per step, then bit 4:
+        where the drive reaches Operation enabled, homing is attained and the position actual is the
+        home offset, give or take what the joint moved in the period since. Its new shift against the
+        plant's count: the position actual after one more period minus the count at that period's start."""
+        if self.m.nmt[node] == "STOPPED":
+            return
+        sdo = self.m.drives[node].sdo
+        sdo.download(0x607A, 0, sdo.upload(0x6064, 0))
+        sdo.download(0x6060, 0, struct.pack("<b", 6))
+        sdo.download(0x6098, 0, struct.pack("<b", method))
+        sdo.download(0x607C, 0, struct.pack("<i", offset))
+        for cw in (0x06, 0x07, 0x0F, 0x1F):
+            sdo.download(0x6040, 0, struct.pack("<H", cw))
+            self._sync()
+        self._wait_stepped()
+        status = struct.unpack("<H", sdo.upload(0x6041, 0))[0]
+        position = struct.unpack("<i", sdo.upload(0x6064, 0))[0]
+        if status & 0x6F == _OP_ENABLED:
+            assert status & 0x1000, hex(status)  # homing attained
+            assert abs(position - offset) <= _HOMING_SLACK, (position, offset)
+            RandomMaster.tally["homed"] += 1
+        start = self.m.joint_counts()[node]
+        self._sync()
+        self._wait_stepped()
+        RandomMaster.offsets[node] = struct.unpack("<i", sdo.upload(0x6064, 0))[0] - start
+
+    @rule(node=st.sampled_from(DRIVES), layout=st.sampled_from(range(len(_TPDO2_MAPS))), kind=st.sampled_from([1, 2, 255]))
+    def tpdo2_remap(self, node: int, layout: int, kind: int) -> None:
+        """TPDO2 remapped by the CiA 301 procedure: in PRE-OPERATIONAL it reads back as written (and
+        stays valid); in OPERATIONAL the mapping is refused (0x08000022)."""
+        state = self.m.nmt[node]
+        if state == "STOPPED":
+            return
+        sdo = self.m.drives[node].sdo
+        sdo.download(0x1801, 1, _u32(0xC0000280 + node))  # not valid
+        if state == "OPERATIONAL":
+            assert _abort_code(sdo.download, 0x1A01, 0, b"\x00") == AbortCode.DEVICE_STATE
+            RandomMaster.tally["refused"] += 1
+            return
+        entries = _TPDO2_MAPS[layout]
+        sdo.download(0x1A01, 0, b"\x00")
+        for sub, (index, subindex, bits) in enumerate(entries, 1):
+            sdo.download(0x1A01, sub, _u32(index << 16 | subindex << 8 | bits))
+        sdo.download(0x1A01, 0, bytes([len(entries)]))
+        sdo.download(0x1801, 2, bytes([kind]))
+        sdo.download(0x1801, 1, _u32(0x40000280 + node))  # valid, no RTR
+        assert sdo.upload(0x1A01, 0)[0] == len(entries)
+        for sub, (index, subindex, bits) in enumerate(entries, 1):
+            assert struct.unpack("<I", sdo.upload(0x1A01, sub))[0] == index << 16 | subindex << 8 | bits
+        assert sdo.upload(0x1801, 2)[0] == kind
+        RandomMaster.tally["remapped"] += 1
+
+    @rule(node=st.sampled_from(DRIVES), case=st.sampled_from(sorted(_BAD_REMAPS)))
+    def remap_invalid(self, node: int, case: str) -> None:
+        """A remap or COB-ID CiA 301 forbids: refused with the documented abort code, in
+        PRE-OPERATIONAL; in OPERATIONAL a mapping write is refused for the state (0x08000022)."""
+        state = self.m.nmt[node]
+        if state == "STOPPED":
+            return
+        sdo = self.m.drives[node].sdo
+        if case == "restricted COB-ID of the EMCY":  # 0x701: node 1's heartbeat
+            assert _abort_code(sdo.download, 0x1014, 0, _u32(0x701)) == _BAD_REMAPS[case]
+            RandomMaster.tally["refused"] += 1
+            return
+        sdo.download(0x1801, 1, _u32(0xC0000280 + node))  # not valid
+        if state == "OPERATIONAL":
+            assert _abort_code(sdo.download, 0x1A01, 0, b"\x00") == AbortCode.DEVICE_STATE
+            RandomMaster.tally["refused"] += 1
+            return
+        sdo.download(0x1A01, 0, b"\x00")
+        write = sdo.download
+        if case == "unknown object":
+            code = _abort_code(write, 0x1A01, 1, _u32(0x5FFF0020))
+        elif case == "PDOMapping 0":
+            code = _abort_code(write, 0x1A01, 1, _u32(0x60650020))
+        elif case == "wrong bit length":
+            code = _abort_code(write, 0x1A01, 1, _u32(0x60410020))
+        elif case == "more than 64 bits":
+            for sub in (1, 2, 3):
+                write(0x1A01, sub, _u32(0x60640020))
+            code = _abort_code(write, 0x1A01, 0, b"\x03")
+        elif case == "sub 0 above 8":
+            code = _abort_code(write, 0x1A01, 0, b"\x09")
+        elif case == "mapping of a valid PDO":
+            write(0x1A01, 1, _u32(0x60410010))
+            write(0x1A01, 0, b"\x01")
+            write(0x1801, 1, _u32(0x40000280 + node))
+            code = _abort_code(write, 0x1A01, 0, b"\x00")
+            write(0x1801, 1, _u32(0xC0000280 + node))
+        elif case == "entry while sub 0 is not 0":
+            write(0x1A01, 1, _u32(0x60410010))
+            write(0x1A01, 0, b"\x01")
+            code = _abort_code(write, 0x1A01, 1, _u32(0x60640020))
+        else:  # restricted COB-ID of a PDO: 0x701, node 1's heartbeat, for a valid TPDO2
+            code = _abort_code(write, 0x1801, 1, _u32(0x40000701))
+        assert code == _BAD_REMAPS[case], (case, hex(code))
+        RandomMaster.tally["refused"] += 1
+
     @rule()
     def lockstep_sync(self) -> None:
         """One SYNC, the TPDOs of the OPERATIONAL drives: each carries this period's joint count."""
@@ -194,7 +343,7 @@ class RandomMaster(RuleBasedStateMachine):
             assert self.m.cond.wait_for(lambda: all(n in self.m.tpdo for n in live), STALL_S), self.m.tpdo
             got = dict(self.m.tpdo)
         for n in live:
-            assert got[n][1] == counts[n], (n, got[n], counts)
+            assert got[n][1] == counts[n] + RandomMaster.offsets[n], (n, got[n], counts, RandomMaster.offsets)
         self._wait_stepped()
         brakes = self.m.u32(RobotSub.BRAKES)
         for n in DRIVES:  # torque only where CiA 402 allows it: a free joint's drive is in Operation enabled
@@ -235,15 +384,25 @@ class RandomMaster(RuleBasedStateMachine):
         assert self.m.u32(RobotSub.SYNCS) - self.syncs0 == self.sent
         assert self.m.u32(RobotSub.PERIODS) - self.periods0 == self.sent
         assert self.m.u32(RobotSub.SYNC_OVERRUNS) == 0
-        assert self.m.u32(RobotSub.STATE) == RobotState.READY
+        state = self.m.u32(RobotSub.STATE)
+        if state != RobotState.READY:  # the robot's own record of what happened, in the failure
+            fault = {sub.name: self.m.u32(sub) for sub in (RobotSub.FAULT_CODE, RobotSub.FAULT_JOINT, RobotSub.FAULT_PERIOD)}
+            fault["FAULT_CODE"] = RobotFault(fault["FAULT_CODE"]).name
+            raise AssertionError(f"robot state {RobotState(state).name}: {fault}")
 
 
 def test_a_random_foreign_master_finds_nothing(robot: Master) -> None:
     RandomMaster.m = robot
     RandomMaster.TestCase.settings = settings(
-        max_examples=10, stateful_step_count=15, deadline=None, suppress_health_check=list(HealthCheck)
+        max_examples=int(os.environ.get(EXAMPLES_ENV, "10")),
+        stateful_step_count=int(os.environ.get(STEPS_ENV, "15")),
+        deadline=None,
+        suppress_health_check=list(HealthCheck),
     )
     RandomMaster.TestCase().runTest()
+    logging.getLogger(__name__).warning(
+        "random master: %d lockstep periods checked; %s", RandomMaster.lockstep_periods, RandomMaster.tally
+    )
     assert RandomMaster.lockstep_periods > 0
     assert robot.u32(RobotSub.SYNC_OVERRUNS) == 0 and robot.u32(RobotSub.STATE) == RobotState.READY
 
