@@ -9,6 +9,8 @@ waiting behind them in order) and pauses.  After every step, the invariants:
 * torque only where CiA 402 allows it: after a lockstep SYNC, a joint is free of its brake
   (0x2450:12) only if its drive is in Operation enabled (its TPDO when OPERATIONAL, its statusword
   by SDO when PRE-OPERATIONAL: NMT does not switch a power stage off);
+* no rule moves a target, so every joint stands still or is held: in a lockstep period none moves
+  more than :data:`_HOLD_STEP` counts;
 * the TPDO of period k carries period k: after a lockstep SYNC, each drive's TPDO1 position actual is
   the joint count the plant had at the start of that period (0x2451, read before the SYNC), plus the
   offset the master's last homing of that drive gave it (method 35/37: the position actual becomes
@@ -49,6 +51,8 @@ pytestmark = [pytest.mark.slow, pytest.mark.multiprocess]
 #: longest wait for the robot to have stepped every SYNC sent (no stall), s
 STALL_S = 20.0
 _OP_ENABLED = 0x27
+#: counts a braked or held joint may move in one period (0.007°)
+_HOLD_STEP = 200
 #: counts a joint held by its drive may move in the period after its homing (0.07°)
 _HOMING_SLACK = 2000
 #: environment: examples and steps per example of the random master (a long run; defaults 10 and 15)
@@ -345,6 +349,10 @@ class RandomMaster(RuleBasedStateMachine):
         for n in live:
             assert got[n][1] == counts[n] + RandomMaster.offsets[n], (n, got[n], counts, RandomMaster.offsets)
         self._wait_stepped()
+        moved = {n: c - counts[n] for n, c in self.m.joint_counts().items()}
+        # no rule moves a target: every joint is braked or held where it stood (a held joint sags
+        # a few tens of counts in a period; a torque kick at enable moved hundreds, then thousands)
+        assert all(abs(d) <= _HOLD_STEP for d in moved.values()), moved
         brakes = self.m.u32(RobotSub.BRAKES)
         for n in DRIVES:  # torque only where CiA 402 allows it: a free joint's drive is in Operation enabled
             if brakes >> (n - 1) & 1:
