@@ -394,9 +394,8 @@ class RandomMaster(RuleBasedStateMachine):
         assert self.m.u32(RobotSub.SYNC_OVERRUNS) == 0
         state = self.m.u32(RobotSub.STATE)
         if state != RobotState.READY:  # the robot's own record of what happened, in the failure
-            fault = {sub.name: self.m.u32(sub) for sub in (RobotSub.FAULT_CODE, RobotSub.FAULT_JOINT, RobotSub.FAULT_PERIOD)}
-            fault["FAULT_CODE"] = RobotFault(fault["FAULT_CODE"]).name
-            raise AssertionError(f"robot state {RobotState(state).name}: {fault}")
+            code, joint, period = (self.m.u32(sub) for sub in (RobotSub.FAULT_CODE, RobotSub.FAULT_JOINT, RobotSub.FAULT_PERIOD))
+            raise AssertionError(f"robot state {RobotState(state).name}: {RobotFault(code).name}, joint {joint}, period {period}")
 
 
 def test_a_random_foreign_master_finds_nothing(robot: Master) -> None:
