@@ -54,6 +54,10 @@ _OP_ENABLED = 0x27
 #: a CSP move's hold at its end, periods, and how close to its target the joint then stands,
 #: counts (0.001°: the servo drive's hold of issue-grade, tests/test_drive_servo.py)
 _HOLD_PERIODS, _HOLD_COUNTS = 200, 30
+#: a CSP move's average speed at most, counts per period: the requirement's move, 5° in 500 ms
+#: (a smooth step of 0.65° in 11 ms, six times faster, still settles, but later: 74-85 counts off
+#: after 200 periods, 0 after 500)
+_MOVE_COUNTS_PER_PERIOD = 300
 #: counts a braked or held joint may move in one period (0.007°)
 _HOLD_STEP = 200
 #: counts a joint held by its drive may move in the period after its homing (0.07°)
@@ -347,8 +351,9 @@ class RandomMaster(RuleBasedStateMachine):
     def csp_move(self, node: int, amplitude: int, periods: int) -> None:
         """The way a master streams: NMT OPERATIONAL, enabled in CSP by SDO, then RPDO1 (Enable operation, target) +
         SYNC every period without waiting for the robot (served late, in order), out by
-        ``amplitude`` counts and back along a smooth step, then :data:`_HOLD_PERIODS` periods at the
-        start: the joint ends within :data:`_HOLD_COUNTS` of where it started (robot mode's cascade)."""
+        ``amplitude`` counts and back along a smooth step no faster than the servo requirement's
+        move (:data:`_MOVE_COUNTS_PER_PERIOD`), then :data:`_HOLD_PERIODS` periods at the start: the
+        joint ends within :data:`_HOLD_COUNTS` of where it started (robot mode's cascade)."""
         if self.m.nmt[node] != "OPERATIONAL":  # PDOs need OPERATIONAL: the master starts the node
             self.m.drives[node].nmt.state = "OPERATIONAL"
             self.m.nmt[node] = "OPERATIONAL"
@@ -363,6 +368,7 @@ class RandomMaster(RuleBasedStateMachine):
         self._wait_stepped()
         status = struct.unpack("<H", sdo.upload(0x6041, 0))[0]
         assert status & 0x6F == _OP_ENABLED, hex(status)
+        periods = max(periods, -(-abs(amplitude) // _MOVE_COUNTS_PER_PERIOD))
         path = [round(amplitude * x * x * (3 - 2 * x)) for x in (k / periods for k in range(1, periods + 1))]
         for offset in [*path, *reversed(path[:-1]), *[0] * _HOLD_PERIODS]:
             self.m.net.send_message(0x200 + node, struct.pack("<Hi", 0x0F, start + offset))
