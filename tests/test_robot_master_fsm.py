@@ -91,6 +91,20 @@ def _u32(v: int) -> bytes:
     return struct.pack("<I", v)
 
 
+def map_pdo(sdo: Any, comm: int, invalid: int, entries: list[tuple[int, int, int]], kind: int, valid: int) -> None:
+    """The CiA 301 mapping procedure for the PDO of communication object ``comm`` (its mapping
+    object is ``comm`` + 0x200): COB-ID ``invalid``, sub 0 = 0, the ``entries`` (index, sub-index,
+    bits), sub 0 = their count, transmission type ``kind``, COB-ID ``valid``."""
+    mapping = comm + 0x200
+    sdo.download(comm, 1, _u32(invalid))
+    sdo.download(mapping, 0, b"\x00")
+    for sub, (index, subindex, bits) in enumerate(entries, 1):
+        sdo.download(mapping, sub, _u32(index << 16 | subindex << 8 | bits))
+    sdo.download(mapping, 0, bytes([len(entries)]))
+    sdo.download(comm, 2, bytes([kind]))
+    sdo.download(comm, 1, _u32(valid))
+
+
 def _abort_code(call: Any, *args: Any) -> int:
     """The abort code of an SDO call that must be refused."""
     with pytest.raises(canopen.SdoAbortedError) as err:
@@ -116,23 +130,10 @@ class Master:
         self.nmt = dict.fromkeys(DRIVES, "PRE-OPERATIONAL")
         for n, node in self.drives.items():  # TPDO1 = statusword + position actual, RPDO1 = controlword + target, type 1
             node.nmt.state = "PRE-OPERATIONAL"
-            sdo = node.sdo
-            sdo.download(0x1800, 1, struct.pack("<I", 0xC0000180 + n))
-            sdo.download(0x1A00, 0, b"\x00")
-            sdo.download(0x1A00, 1, struct.pack("<I", 0x60410010))
-            sdo.download(0x1A00, 2, struct.pack("<I", 0x60640020))
-            sdo.download(0x1A00, 0, b"\x02")
-            sdo.download(0x1800, 2, b"\x01")
-            sdo.download(0x1800, 1, struct.pack("<I", 0x40000180 + n))
+            map_pdo(node.sdo, 0x1800, 0xC0000180 + n, [(0x6041, 0, 16), (0x6064, 0, 32)], 1, valid=0x40000180 + n)
             for k in (2, 3, 4):
-                sdo.download(0x1800 + k - 1, 1, struct.pack("<I", 0xC0000180 + 0x100 * (k - 1) + n))
-            sdo.download(0x1400, 1, struct.pack("<I", 0x80000200 + n))
-            sdo.download(0x1600, 0, b"\x00")
-            sdo.download(0x1600, 1, struct.pack("<I", 0x60400010))
-            sdo.download(0x1600, 2, struct.pack("<I", 0x607A0020))
-            sdo.download(0x1600, 0, b"\x02")
-            sdo.download(0x1400, 2, b"\x01")
-            sdo.download(0x1400, 1, struct.pack("<I", 0x200 + n))
+                node.sdo.download(0x1800 + k - 1, 1, _u32(0xC0000180 + 0x100 * (k - 1) + n))
+            map_pdo(node.sdo, 0x1400, 0x80000200 + n, [(0x6040, 0, 16), (0x607A, 0, 32)], 1, valid=0x200 + n)
 
     def _on_tpdo(self, cob: int, data: bytearray, _t: float) -> None:
         with self.cond:
@@ -289,12 +290,7 @@ class RandomMaster(RuleBasedStateMachine):
             RandomMaster.tally["refused"] += 1
             return
         entries = _TPDO2_MAPS[layout]
-        sdo.download(0x1A01, 0, b"\x00")
-        for sub, (index, subindex, bits) in enumerate(entries, 1):
-            sdo.download(0x1A01, sub, _u32(index << 16 | subindex << 8 | bits))
-        sdo.download(0x1A01, 0, bytes([len(entries)]))
-        sdo.download(0x1801, 2, bytes([kind]))
-        sdo.download(0x1801, 1, _u32(0x40000280 + node))  # valid, no RTR
+        map_pdo(sdo, 0x1801, 0xC0000280 + node, entries, kind, valid=0x40000280 + node)  # valid, no RTR
         assert sdo.upload(0x1A01, 0)[0] == len(entries)
         for sub, (index, subindex, bits) in enumerate(entries, 1):
             assert struct.unpack("<I", sdo.upload(0x1A01, sub))[0] == index << 16 | subindex << 8 | bits
