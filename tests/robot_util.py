@@ -19,7 +19,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -125,6 +125,21 @@ class VirtualRobot:
             self.plant.robot.close()
 
 
+def map_pdo(sdo: Any, comm: int, entries: Sequence[int], kind: int, cob_id: int) -> None:
+    """The CiA 301 mapping procedure by SDO for the PDO of communication object ``comm`` (0x1400+k,
+    0x1800+k; its mapping object is ``comm`` + 0x200): invalid while mapped, sub 0 = 0, the
+    ``entries`` (mapping words: index << 16 | sub-index << 8 | bits), sub 0 = their count,
+    transmission type ``kind``, then COB-ID ``cob_id`` (valid)."""
+    mapping = comm + 0x200
+    sdo.download(comm, 1, struct.pack("<I", 0x80000000 | cob_id))
+    sdo.download(mapping, 0, b"\x00")
+    for sub, entry in enumerate(entries, start=1):
+        sdo.download(mapping, sub, struct.pack("<I", entry))
+    sdo.download(mapping, 0, bytes([len(entries)]))
+    sdo.download(comm, 2, bytes([kind]))
+    sdo.download(comm, 1, struct.pack("<I", cob_id))
+
+
 class LockstepMaster:
     """A CANopen master on the robot's fieldbus that steps it one period at a time.
 
@@ -184,18 +199,8 @@ class LockstepMaster:
         actual (both synchronous, every SYNC), mode of operation ``mode`` (8 = CSP)."""
         for node in self.drives.values():
             sdo = node.sdo
-            for comm, entries, cob_id in (
-                (0x1400, (0x60400010, 0x607A0020), 0x200 + node.id),  # RPDO1
-                (0x1800, (0x60410010, 0x60640020), 0x40000180 + node.id),  # TPDO1, no RTR
-            ):
-                mapping = comm + 0x200  # 0x1600 / 0x1A00
-                sdo.download(comm, 1, struct.pack("<I", 0x80000000 | cob_id))  # invalid while mapped
-                sdo.download(mapping, 0, b"\x00")
-                for sub, entry in enumerate(entries, start=1):
-                    sdo.download(mapping, sub, struct.pack("<I", entry))
-                sdo.download(mapping, 0, bytes([len(entries)]))
-                sdo.download(comm, 2, b"\x01")  # synchronous, every SYNC
-                sdo.download(comm, 1, struct.pack("<I", cob_id))
+            map_pdo(sdo, 0x1400, (0x60400010, 0x607A0020), 1, 0x200 + node.id)  # RPDO1, every SYNC
+            map_pdo(sdo, 0x1800, (0x60410010, 0x60640020), 1, 0x40000180 + node.id)  # TPDO1, no RTR
             sdo.download(0x6060, 0, struct.pack("<b", mode))
 
     def start(self) -> None:
