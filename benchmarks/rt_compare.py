@@ -14,7 +14,7 @@ and the worst.
 
 Attribution: ``--without MECH`` adds a variant in normal scheduling with the mechanism ``MECH``
 left out (``ILCRIG_RT_WITHOUT``, docs/timing.md §1: ``slice``, ``host``, ``gc``, ``sleep-wait``,
-``idle-poll-fifo-only`` (left out: the loops also beside normal scheduling), ``idle-nice``;
+``idle-poll-fifo-only`` (left out: the loops also beside normal scheduling), ``idle-nice``, ``cpu-latency``;
 comma-separated for several); ``--variant NAME=OPTIONS[@WITHOUT]`` adds any other (``OPTIONS``:
 ``ilcrig run`` options after ``--realtime``).
 

@@ -138,9 +138,9 @@ def add_realtime_args(p: argparse.ArgumentParser, paced: str) -> None:
     p.add_argument(
         "--no-idle-poll",
         action="store_true",
-        help="with --realtime: let idle CPUs halt (by default a SCHED_IDLE busy loop per CPU keeps them "
-        "awake for the run, so no wake-up of a tick waits for a halted CPU; it uses only CPU time "
-        "nothing else wants)",
+        help="with --realtime: let idle CPUs halt (by default a SCHED_IDLE busy loop per CPU beside "
+        "SCHED_FIFO, and where root a PM QoS CPU latency request of 0 us in either class, keep them "
+        "awake for the run, so no wake-up of a tick waits for a halted CPU)",
     )
 
 

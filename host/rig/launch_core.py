@@ -13,11 +13,13 @@ This module owns :class:`LaunchCore`, the base of :class:`host.rig.launcher.RigL
 * the scheduling of a real-time run or robot (:meth:`LaunchCore.schedule_realtime`): the lockstep
   processes in ``SCHED_FIFO`` where permitted, else the fair-scheduling fallback
   (:mod:`host.rig.fair_scheduling`) with, when there is a host, its policy; the idle-poll loops
-  (:mod:`host.rig.idle_poll`) beside SCHED_FIFO only; the mechanisms in force, for the summary;
+  (:mod:`host.rig.idle_poll`) beside SCHED_FIFO only; idle CPUs kept out of halt where permitted
+  (:mod:`host.rig.cpu_latency`); the mechanisms in force, for the summary;
 * the janitor of the run folder (:mod:`host.rig.janitor`), when the launcher starts one;
-* the shutdown: idle-poll loops stopped, the launcher's watchers stopped, every child terminated
-  (SIGTERM, grace, SIGKILL, reaped: :func:`host.rig.processes.terminate`), the hub stopped, the
-  run folder settled and the janitor dismissed;
+* the shutdown: idle-poll loops stopped, the CPU latency request withdrawn, the launcher's watchers
+  stopped, every child terminated (SIGTERM, grace, SIGKILL, reaped:
+  :func:`host.rig.processes.terminate`), the hub stopped, the run folder settled and the janitor
+  dismissed;
 * the terminal lines (:class:`LauncherConsole`) and the run folder (:func:`make_run_folder`).
 
 May import: bus, host.rig (the modules above), host.experiment (through them).
@@ -36,6 +38,7 @@ from bus.errors import InputError
 from bus.exit_codes import EXIT_CHILD_FAILED, EXIT_ERROR
 from bus.lockstep_process import mechanisms_left_out
 from bus.timer_slack import FINE_TIMER_SLACK_NS
+from host.rig.cpu_latency import CpuLatencyRequest, request_cpu_latency
 from host.rig.fair_scheduling import host_policy
 from host.rig.idle_poll import AUTOGROUP_NICE, IdlePollers, idle_poll_available
 from host.rig.interrupts import Interrupts
@@ -125,6 +128,7 @@ class LaunchCore(LauncherConsole):
     out_dir: Path | None = field(default=None, init=False)
     interrupts: Interrupts = field(default_factory=Interrupts, init=False)
     _idle_pollers: IdlePollers | None = field(default=None, init=False, repr=False)
+    _cpu_latency: CpuLatencyRequest | None = field(default=None, init=False, repr=False)
     _janitor: Any = field(default=None, init=False, repr=False)
 
     # -- the skeleton ---------------------------------------------------------------------------
@@ -206,7 +210,7 @@ class LaunchCore(LauncherConsole):
         ``SCHED_FIFO`` where permitted, else normal scheduling with what an unprivileged process may
         use (:func:`host.rig.realtime.schedule_lockstep`); with a host to come (``host_in_tick`` not
         None: whether it is part of every tick), its policy (:func:`host.rig.fair_scheduling.host_policy`);
-        the idle-poll loops.
+        the idle-poll loops; idle CPUs kept out of halt (:mod:`host.rig.cpu_latency`, where permitted).
 
         :return: the scheduling record (``bench.timing.scheduling`` of a run's summary, ``scheduling`` of the robot's)
         """
@@ -217,6 +221,7 @@ class LaunchCore(LauncherConsole):
         if not fifo and host_in_tick is not None:
             scheduling["host"] = host_policy(host_in_tick, without)
         scheduling["idle_poll"] = self._start_idle_poll(fifo, without)
+        self._cpu_latency, scheduling["cpu_latency"] = request_cpu_latency(without, self.options.no_idle_poll)
         scheduling["in_roles"] = {"heap_frozen": "gc" not in without, "timer_slack_ns": FINE_TIMER_SLACK_NS}
         scheduling["mechanisms"] = scheduling_mechanisms(scheduling)
         return scheduling
@@ -243,12 +248,14 @@ class LaunchCore(LauncherConsole):
     # -- shutdown -------------------------------------------------------------------------------
 
     def shutdown(self) -> None:
-        """Stop the idle-poll loops and the watchers, terminate every child, stop the hub, settle
-        the run folder (when a janitor watches it) and dismiss the janitor."""
+        """Stop the idle-poll loops, withdraw the CPU latency request and stop the watchers, terminate
+        every child, stop the hub, settle the run folder (when a janitor watches it) and dismiss the janitor."""
         self.interrupts.stopping = True
         try:
             if self._idle_pollers is not None:
                 self._idle_pollers.stop()
+            if self._cpu_latency is not None:
+                self._cpu_latency.release()
             self._stop_watchers()
             terminate(self.children, self.grace_s, lambda: self.interrupts.hurry)
             self._children_ended()

@@ -192,6 +192,9 @@ def scheduling_mechanisms(scheduling: Mapping[str, Any]) -> list[str]:
     idle = scheduling.get("idle_poll") or {}
     if idle.get("loops"):
         out.append(f"{idle['loops']} SCHED_IDLE busy loops")
+    latency = scheduling.get("cpu_latency") or {}
+    if "latency_us" in latency:
+        out.append(f"idle CPUs polling (PM QoS {latency['latency_us']} µs)")
     roles = scheduling.get("in_roles") or {}
     if roles.get("heap_frozen"):
         out.append("heap frozen (gc)")
@@ -218,12 +221,20 @@ def scheduling_text(scheduling: Mapping[str, Any]) -> str:
         batch = host.get("policy") == "SCHED_BATCH"
         text += ", host in SCHED_BATCH" if batch else f", host in normal scheduling ({host.get('reason')})"
     idle = scheduling.get("idle_poll")
+    latency = scheduling.get("cpu_latency")
+    polling = latency is not None and "latency_us" in latency
     if idle is not None:
         loops = idle.get("loops", 0)
+        why = idle.get("reason", "no idle-poll loops")
+        if loops:
+            text += f", CPUs kept awake by {loops} SCHED_IDLE busy loops"
+        else:
+            text += f", no SCHED_IDLE busy loops ({why})" if polling else f", idle CPUs may halt ({why})"
+    if latency is not None:
         text += (
-            f", CPUs kept awake by {loops} SCHED_IDLE busy loops"
-            if loops
-            else f", idle CPUs may halt ({idle.get('reason', 'no idle-poll loops')})"
+            f", idle CPUs polling (PM QoS CPU latency {latency['latency_us']} µs)"
+            if polling
+            else f", no PM QoS CPU latency request ({latency.get('reason')})"
         )
     roles = scheduling.get("in_roles")
     if roles is not None:

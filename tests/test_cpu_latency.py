@@ -1,0 +1,96 @@
+"""The PM QoS CPU latency request of a real-time session (host/rig/cpu_latency.py): what it writes,
+that Linux has it in force while the file is held and drops it when the holder closes it or dies,
+every reason it is left out, and the record a launcher keeps of it."""
+
+from __future__ import annotations
+
+import os
+import signal
+import struct
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from host.rig import cpu_latency
+from host.rig.cpu_latency import CPU_LATENCY_PATH, CpuLatencyRequest, cpu_latency_target_us, request_cpu_latency
+from host.rig.realtime import scheduling_mechanisms, scheduling_text
+
+
+def _device_writable() -> bool:
+    return os.path.exists(CPU_LATENCY_PATH) and os.access(CPU_LATENCY_PATH, os.W_OK)
+
+
+needs_device = pytest.mark.skipif(not _device_writable(), reason=f"{CPU_LATENCY_PATH} missing or not writable (root's)")
+
+
+def test_the_request_is_a_native_s32_of_the_latency_written_once(tmp_path: Path) -> None:
+    path = tmp_path / "qos"
+    path.write_bytes(b"")
+    request = CpuLatencyRequest(0, str(path))
+    assert request.held and path.read_bytes() == struct.pack("=i", 0)
+    request.release()
+    request.release()  # again: nothing
+    assert not request.held
+    with pytest.raises(ValueError, match="latency_us"):
+        CpuLatencyRequest(-1, str(path))
+
+
+def test_every_reason_the_request_is_left_out_is_recorded(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    assert request_cpu_latency(frozenset(), True) == (None, {"reason": "--no-idle-poll"})
+    assert request_cpu_latency(frozenset({"cpu-latency"}), False) == (None, {"reason": "ILCRIG_RT_WITHOUT=cpu-latency"})
+    missing = str(tmp_path / "none")
+    assert request_cpu_latency(frozenset(), False, missing) == (None, {"reason": f"this system has no {missing}"})
+    device = tmp_path / "qos"
+    device.write_bytes(b"")
+
+    def refused(*_args: object) -> int:
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(cpu_latency.os, "open", refused)
+    assert request_cpu_latency(frozenset(), False, str(device)) == (None, {"reason": "not permitted (root's)"})
+
+
+def test_the_record_names_the_mechanism_in_both_scheduling_classes() -> None:
+    held = {"policy": "normal", "reason": "--rt-priority 0", "roles": ["plant"], "fair": {"slice_us": 100.0}}
+    held |= {"idle_poll": {"loops": 0, "reason": "not beside normal scheduling"}, "cpu_latency": {"latency_us": 0}}
+    assert scheduling_mechanisms(held) == ["scheduler slice 100 µs", "idle CPUs polling (PM QoS 0 µs)"]
+    text = scheduling_text(held)
+    assert ", no SCHED_IDLE busy loops (not beside normal scheduling), idle CPUs polling (PM QoS CPU latency 0 µs)" in text
+    refused = held | {"cpu_latency": {"reason": "not permitted (root's)"}}
+    assert scheduling_mechanisms(refused) == ["scheduler slice 100 µs"]
+    text = scheduling_text(refused)
+    assert ", idle CPUs may halt (not beside normal scheduling), no PM QoS CPU latency request (not permitted (root's))" in text
+
+
+@needs_device
+def test_linux_has_the_request_in_force_while_held_and_drops_it_when_the_holder_dies() -> None:
+    """Read back from the device: 0 µs while a request holds it; the target before it again after
+    :meth:`CpuLatencyRequest.release`, and after the holder is killed with SIGKILL (nothing outlives
+    a launcher, however it ends). Another holder on the machine (a ``tuned`` profile, a running
+    ``cyclictest``) makes the target 0 already: nothing to see then."""
+    before = cpu_latency_target_us()
+    if before == 0:
+        pytest.skip("another PM QoS request holds the CPU latency at 0 µs")
+    request = CpuLatencyRequest(0)
+    try:
+        assert cpu_latency_target_us() == 0
+    finally:
+        request.release()
+    assert cpu_latency_target_us() == before
+    code = "from host.rig.cpu_latency import CpuLatencyRequest as R; r = R(0); print('held', flush=True); input()"
+    holder = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout is not None and holder.stdout.readline() == "held\n"
+        assert cpu_latency_target_us() == 0
+        holder.send_signal(signal.SIGKILL)
+        holder.wait(timeout=30)
+        deadline = time.monotonic() + 30
+        while cpu_latency_target_us() != before and time.monotonic() < deadline:
+            time.sleep(0.01)  # the kernel closes a killed process's files as it exits
+        assert cpu_latency_target_us() == before
+    finally:
+        holder.kill()
+        holder.wait()
