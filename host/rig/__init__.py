@@ -46,7 +46,8 @@ processes and always cleans them up:
 * :mod:`host.rig.janitor` — the run folder settled after a killed launcher (a process of its own);
 * :mod:`host.rig.interrupts` — SIGINT / SIGTERM / SIGHUP to the launcher;
 * :mod:`host.rig.inject` — kill / stall / EMCY injection; :mod:`host.rig.idle_poll` — the
-  SCHED_IDLE loops that keep the CPUs awake in a real-time run.
+  SCHED_IDLE loops that keep the CPUs awake in a real-time run; :mod:`host.rig.cpu_latency` — the
+  PM QoS CPU latency request that keeps idle CPUs out of halt in a real-time session.
 
 and the robot without the ILC host (``ilcrig robot``, docs/robot.md), on the same processes:
 

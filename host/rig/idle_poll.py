@@ -58,18 +58,14 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["AUTOGROUP_NICE", "IdlePollers", "idle_poll_available"]
 
-#: the busy loop, run with ``python -S -c`` (nothing imported but os, sys, time and ctypes): SCHED_IDLE,
-#: bound to CPU ``argv[3]``, its session's autogroup at nice ``argv[2]`` (empty: left alone; retried while the kernel's
-#: 100 ms rate limit refuses it), and a check of the parent every ~10 ms (the death signal is armed
-#: before exec, by :func:`bus.processes.spawn_process`)
+#: the busy loop, run with ``python -S -c`` (nothing imported but os, sys, time and ctypes): its session's
+#: autogroup at nice ``argv[2]`` (empty: left alone; retried while the kernel's 100 ms rate limit refuses it)
+#: first, while the process is still in normal scheduling (in SCHED_IDLE on a busy machine it would wait
+#: seconds for the CPU to do it), then SCHED_IDLE, bound to CPU ``argv[3]``, and a check of the parent
+#: every ~10 ms (the death signal is armed before exec, by :func:`bus.processes.spawn_process`)
 _LOOP = """
 import os, sys, time
 parent = int(sys.argv[1])
-os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-try:
-    os.sched_setaffinity(0, {int(sys.argv[3])})
-except (OSError, AttributeError):
-    pass
 if sys.argv[2]:
     for _ in range(20):
         try:
@@ -83,6 +79,11 @@ if sys.argv[2]:
             time.sleep(0.11)
         except OSError:
             break
+os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+try:
+    os.sched_setaffinity(0, {int(sys.argv[3])})
+except (OSError, AttributeError):
+    pass
 while os.getppid() == parent:
     for _ in range(20000):
         pass
