@@ -170,7 +170,8 @@ def test_ilcrig_robot_realtime_without_sched_fifo_permission_takes_the_fair_sche
     monkeypatch.setattr(RobotLauncher, "_wait_booted", lambda self: None)
     monkeypatch.setattr(RobotLauncher, "_watch", lambda self: 0)
     out = tmp_path / "robot"
-    launcher = RobotLauncher(RobotOptions(bus="hub", out=str(out), realtime=True), stdout=io.StringIO(), stderr=io.StringIO())
+    said = io.StringIO()
+    launcher = RobotLauncher(RobotOptions(bus="hub", out=str(out), realtime=True), stdout=said, stderr=io.StringIO())
     assert launcher.run() == 0
     assert all(c.proc.returncode is not None for c in launcher.children)
     summary = json.loads((out / "summary.json").read_text())
@@ -180,6 +181,9 @@ def test_ilcrig_robot_realtime_without_sched_fifo_permission_takes_the_fair_sche
     assert "fair" in scheduling and "host" not in scheduling
     assert scheduling["idle_poll"] == {"loops": 0, "reason": "not beside normal scheduling"}
     assert scheduling["mechanisms"] == scheduling_mechanisms(scheduling)
+    # the ready lines say it too, as ilcrig run --realtime's timing line does
+    assert f"  scheduling: {scheduling_text(scheduling)}\n" in said.getvalue()
+    assert "scheduling: normal scheduling (SCHED_FIFO 10 not permitted" in said.getvalue()
 
 
 def test_the_console_line_names_every_mechanism_in_force() -> None:

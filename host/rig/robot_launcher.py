@@ -50,6 +50,7 @@ from host.rig.launch_core import LaunchCore, check_transport, make_run_folder
 from host.rig.monitor import ChannelMonitor
 from host.rig.options import RobotOptions
 from host.rig.processes import Death, LaunchError, describe_status
+from host.rig.realtime import scheduling_text
 from host.rig.robot_watch import RobotBusWatch, robot_fault_of
 from host.rig.role_commands import child_argv
 
@@ -180,13 +181,16 @@ class RobotLauncher(LaunchCore):
             if mode == "realtime"
             else "one control period per SYNC (COB-ID 0x080), deterministic"
         )
+        # real time: how the processes are scheduled, in the words of ilcrig run --realtime's timing line
+        sched = "" if self._scheduling is None else f"  scheduling: {scheduling_text(self._scheduling)}\n"
         self._say_out(
             f"ilcrig robot: ready: drives = nodes {', '.join(map(str, DRIVE_NODE_IDS))} (joints 1-4), "
             f"plant = node {DEFAULT_PLANT_NODE_ID}; transport {tc.name}\n"
             + where
             + f"  EDS: drives {DRIVE_EDS_PATH}, plant {PLANT_EDS_PATH}\n"
             f"  time: {time_mode}; the robot stands at its home pose, drives in Switch on disabled, brakes closed\n"
-            f"  run folder {self.out_dir} (processes: {self.pids_text()}); Ctrl-C to stop"
+            + sched
+            + f"  run folder {self.out_dir} (processes: {self.pids_text()}); Ctrl-C to stop"
         )
 
     def _watch(self) -> int:
