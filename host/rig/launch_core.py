@@ -221,6 +221,8 @@ class LaunchCore(LauncherConsole):
         if not fifo and host_in_tick is not None:
             scheduling["host"] = host_policy(host_in_tick, without)
         scheduling["idle_poll"] = self._start_idle_poll(fifo, without)
+        if self._cpu_latency is not None:  # scheduled again: one request per launcher
+            self._cpu_latency.release()
         self._cpu_latency, scheduling["cpu_latency"] = request_cpu_latency(without, self.options.no_idle_poll)
         scheduling["in_roles"] = {"heap_frozen": "gc" not in without, "timer_slack_ns": FINE_TIMER_SLACK_NS}
         scheduling["mechanisms"] = scheduling_mechanisms(scheduling)
