@@ -31,9 +31,11 @@ from pathlib import Path
 from typing import Any
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent / "tests"))
 sys.path.insert(0, str(HERE.parent))
 
 import can  # noqa: E402
+from robot_util import map_pdo  # noqa: E402
 
 from bus import io_frames  # noqa: E402
 from bus.fastmsg import new_message  # noqa: E402
@@ -45,15 +47,18 @@ NODE = 1
 
 
 class MemoryBus(can.BusABC):
-    """A bus in memory: frames put in :attr:`incoming` are received, sent frames are counted."""
+    """A bus in memory: frames put in :attr:`incoming` are received, sent frames are counted (the
+    last one kept)."""
 
     def __init__(self) -> None:
         self.incoming: deque[can.Message] = deque()
         self.sent = 0
+        self.last: can.Message | None = None
         super().__init__(channel="memory")
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self.sent += 1
+        self.last = msg
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         return (self.incoming.popleft() if self.incoming else None), False
@@ -82,29 +87,10 @@ class DrivePeriods:
         self.node = DriveNode(self.drive, self.fieldbus, self.io, lockstep=True)
         self.node.start()
         self.wire = 0
-        sdo = [
-            (0x1800, 1, "I", 0x8000_0180 + NODE),
-            (0x1A00, 0, "B", 0),
-            (0x1A00, 1, "I", 0x60410010),
-            (0x1A00, 2, "I", 0x60640020),
-            (0x1A00, 0, "B", 2),
-            (0x1800, 2, "B", 1),
-            (0x1800, 1, "I", 0x180 + NODE),
-            (0x1400, 1, "I", 0x8000_0200 + NODE),
-            (0x1600, 0, "B", 0),
-            (0x1600, 1, "I", 0x60400010),
-            (0x1600, 2, "I", 0x607A0020),
-            (0x1600, 0, "B", 2),
-            (0x1400, 2, "B", 1),
-            (0x1400, 1, "I", 0x200 + NODE),
-            (0x6060, 0, "b", 8),
-        ]
-        for index, sub, fmt, value in sdo:  # expedited downloads (CiA 301 §7.2.4.3.3)
-            data = struct.pack("<" + fmt, value).ljust(4, b"\0")
-            command = {1: 0x2F, 2: 0x2B, 4: 0x23}[struct.calcsize(fmt)]
-            request = bytes([command]) + struct.pack("<HB", index, sub) + data
-            self.fieldbus.incoming.append(new_message(0x600 + NODE, bytearray(request)))
-            self.node.step(0.0)
+        # TPDO1 = statusword + position actual, RPDO1 = controlword + target, both synchronous; CSP
+        map_pdo(self, 0x1800, [0x60410010, 0x60640020], 1, 0x180 + NODE)
+        map_pdo(self, 0x1400, [0x60400010, 0x607A0020], 1, 0x200 + NODE)
+        self.download(0x6060, 0, b"\x08")
         self.fieldbus.incoming.append(new_message(0x000, bytearray([0x01, NODE])))  # NMT start
         self.node.step(0.0)
         for controlword in (0x06, 0x07, 0x0F):
@@ -112,6 +98,18 @@ class DrivePeriods:
                 self.period(controlword)
         if self.drive.statusword & 0x006F != 0x0027:
             raise RuntimeError(f"the drive is not in Operation enabled: statusword 0x{self.drive.statusword:04X}")
+
+    def download(self, index: int, sub: int, data: bytes) -> None:
+        """An expedited SDO download (CiA 301 §7.2.4.3.3) of 1, 2 or 4 bytes, served at once (the
+        ``sdo`` of :func:`robot_util.map_pdo`)."""
+        command = {1: 0x2F, 2: 0x2B, 4: 0x23}[len(data)]
+        request = bytes([command]) + struct.pack("<HB", index, sub) + data.ljust(4, b"\0")
+        self.fieldbus.incoming.append(new_message(0x600 + NODE, bytearray(request)))
+        self.node.step(0.0)
+        answer = self.fieldbus.last
+        if answer is None or answer.arbitration_id != 0x580 + NODE or answer.data[0] != 0x60:
+            got = "nothing" if answer is None else bytes(answer.data).hex()
+            raise RuntimeError(f"SDO download of 0x{index:04X}:{sub} not confirmed: {got}")
 
     def close(self) -> None:
         self.fieldbus.shutdown()
