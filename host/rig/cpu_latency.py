@@ -9,7 +9,7 @@ Why
     a CPU with nothing to run halts. In this VM (``haltpoll.guest_halt_poll_ns=0``) a halted CPU
     leaves the guest, and a process woken on it runs slower as well as later: the drive's code of
     one robot period (``benchmarks/wake_cost.py``: in one process, without sockets) takes ~25 µs
-    in a loop that never sleeps and 74–85 µs when the process sleeps 2 ms before each period, but
+    in a loop that never sleeps and 74–90 µs when the process sleeps 2 ms before each period, but
     35–48 µs after the same sleeps with idle CPUs polling (docs/benchmarks.md, "What sleeping
     between periods costs").
 
