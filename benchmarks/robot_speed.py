@@ -23,7 +23,11 @@ Two measurements on the default transport (the zero-privilege hub), each with th
   that no robot could have had).  Target: <= 0.1 % on a quiet machine, judged on the second.  The
   CPU time the hypervisor took meanwhile (steal) is printed with it.
 
-    python benchmarks/robot_speed.py [--periods 5000] [--repeat 3] [--seconds 10] [--only sync|realtime] [--rounds N]
+``--waits`` (root) records the wake-ups of each real-time run in a kernel trace, as
+``benchmarks/rt_attribution.py --waits`` does for ``ilcrig run``, and says over the master's window
+where the robot's processes waited for a CPU and who held it.
+
+    python benchmarks/robot_speed.py [--periods 5000] [--repeat 3] [--seconds 10] [--only sync|realtime] [--rounds N] [--waits]
 """
 
 from __future__ import annotations
@@ -257,6 +261,7 @@ def realtime(seconds: float, rt_priority: int | None = None, spin_s: float = MAS
                         counters.take(msg)
                     if k >= RT_WARM_UP and not start and counters.done:
                         start = counters.values
+                window_s = (t0 + RT_WARM_UP * ts, time.monotonic())  # the master's window, CLOCK_MONOTONIC
                 if not start:
                     raise RuntimeError("the robot's counters did not come in the master's window")
                 counters.request()
@@ -291,9 +296,33 @@ def realtime(seconds: float, rt_priority: int | None = None, spin_s: float = MAS
                 "master_fifo": fifo,
                 "scheduling": summary.get("scheduling"),
                 "steal_s": None if steal0 is None or steal1 is None else steal1 - steal0,
+                "window_s": window_s,
             }
         finally:
             robot.kill()
+
+
+def traced_realtime(seconds: float, rt_priority: int | None, spin_s: float) -> dict[str, Any]:
+    """:func:`realtime` under a kernel trace of the wake-ups (``--waits``, root; the trace of
+    ``benchmarks/rt_attribution.py --waits``): where the robot's processes waited for a CPU in the
+    master's window, and who held it (``result["waits"]``, :func:`host.rig.wake_waits.summarise_waits`)."""
+    from rt_attribution import WAIT_EVENTS, RoleWatcher, kernel_trace, trace_overruns
+
+    from host.rig.wake_waits import parse_waits, summarise_waits
+
+    watcher = RoleWatcher()
+    watcher.root = os.getpid()  # the robot's processes descend from this benchmark
+    watcher.names[os.getpid()] = "master"  # this process: its 1 kHz loop, SCHED_FIFO above the robot
+    watcher.start()
+    try:
+        with kernel_trace(WAIT_EVENTS, record_tgid=True) as trace:
+            r = realtime(seconds, rt_priority, spin_s)
+            text = trace.read_text()
+            r["trace_lost"] = trace_overruns()
+    finally:
+        watcher.done.set()
+    r["waits"] = summarise_waits(parse_waits(text.splitlines(), [r["window_s"]]), watcher.roles, names=watcher.names)
+    return r
 
 
 def main() -> None:
@@ -316,7 +345,14 @@ def main() -> None:
         default=MASTER_SPIN_S * 1e6,
         help="real time: the last part of the master's wait for a cycle, spent on the clock, us (default %(default)g)",
     )
+    ap.add_argument(
+        "--waits",
+        action="store_true",
+        help="real time: a kernel trace of the wake-ups (root): where the robot's processes waited for a CPU, and who held it",
+    )
     args = ap.parse_args()
+    if args.waits and os.geteuid() != 0:
+        raise SystemExit("robot_speed --waits: the kernel trace needs root (tracefs)")
     print(f"ilcrig robot benchmark: hub transport, {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}")
     if args.only in (None, "sync"):
         floors, rates = [], []
@@ -354,7 +390,7 @@ def main() -> None:
             order = variants[round_no % 2 :] + variants[: round_no % 2]
             for name, prio in order:
                 load0 = os.getloadavg()[0]
-                r = realtime(args.seconds, prio, args.master_spin_us * 1e-6)
+                r = (traced_realtime if args.waits else realtime)(args.seconds, prio, args.master_spin_us * 1e-6)
                 fl = floors[name]
                 steal = "n/a" if r["steal_s"] is None else f"{r['steal_s'] * 1e3:.0f} ms"
                 print(
@@ -370,6 +406,11 @@ def main() -> None:
                     f"load average {load0:.2f} -> {os.getloadavg()[0]:.2f}",
                     flush=True,
                 )
+                if "waits" in r:
+                    from rt_attribution import print_waits
+
+                    head = f"robot_speed --waits [{name}]: {r['periods']} periods, {100 * r['own_late_fraction']:.3f} % late"
+                    print_waits(r["waits"], head, r["trace_lost"])
 
 
 if __name__ == "__main__":

@@ -118,12 +118,21 @@ def _role_of(argv: list[str]) -> str | None:
     return None
 
 
+def _is_launcher(argv: list[str]) -> bool:
+    """``ilcrig run`` or ``ilcrig robot`` (``python -m host.cli run|robot …``, or the console script)."""
+    rest = argv[argv.index("host.cli") + 1 :] if "host.cli" in argv else argv[1:] if argv and argv[0].endswith("ilcrig") else []
+    return bool(rest) and rest[0] in ("run", "robot")
+
+
 class RoleWatcher(threading.Thread):
-    """Maps the pids of the rig's processes to their roles while the run lasts (``/proc/*/cmdline``)."""
+    """Maps the pids of the rig's processes to their roles while the run lasts (``/proc/*/cmdline``),
+    and the launcher's (``ilcrig run`` / ``ilcrig robot``) to ``launcher`` in :attr:`names` (a holder of
+    CPUs, not a lockstep role)."""
 
     def __init__(self) -> None:
         super().__init__(daemon=True)
         self.roles: dict[int, str] = {}
+        self.names: dict[int, str] = {}
         self.root = 0  # only descendants of this process (other runs on the machine are not ours)
         self.done = threading.Event()
 
@@ -139,6 +148,8 @@ class RoleWatcher(threading.Thread):
                 role = _role_of(argv)
                 if role is not None and _descends_from(int(entry), self.root):
                     self.roles[int(entry)] = role
+                elif _is_launcher(argv) and _descends_from(int(entry), self.root):
+                    self.names[int(entry)] = "launcher"
 
 
 def _descends_from(pid: int, root: int) -> bool:
@@ -152,7 +163,7 @@ def _descends_from(pid: int, root: int) -> bool:
     return False
 
 
-def _overruns() -> int:
+def trace_overruns() -> int:
     total = 0
     for stats in sorted((TRACEFS / "per_cpu").glob("cpu*/stats")):
         for line in stats.read_text().splitlines():
@@ -161,13 +172,12 @@ def _overruns() -> int:
     return total
 
 
-def _print_waits(summary: dict, timing: dict, run_opts: list[str], rc: int, lost: int) -> None:
-    print(
-        f"rt_attribution --waits: {' '.join(['ilcrig run --realtime', *run_opts])} (exit {rc}): "
-        f"{timing['deadline_misses']} of {timing['ticks']} ticks missed their deadline, lateness p99 "
-        f"{timing['lateness_p99_s'] * 1e3:.3f} ms; load average {os.getloadavg()[0]:.1f}"
-        + (f"; {lost:,} trace events LOST (buffer too small)" if lost else "")
-    )
+def print_waits(summary: dict, headline: str, lost: int) -> None:
+    """Where the lockstep processes waited (:func:`host.rig.wake_waits.summarise_waits`'s ``summary``),
+    after ``headline`` (what ran and how it went); ``lost``: trace events the kernel dropped. Also
+    ``benchmarks/robot_speed.py --waits``."""
+    dropped = f"; {lost:,} trace events LOST (buffer too small)" if lost else ""
+    print(f"{headline}; load average {os.getloadavg()[0]:.1f}{dropped}")
     thr = summary["threshold_s"] * 1e3
     print(f"wake-up -> on a CPU, per role: wake-ups, p50 / p99 / max ms, waits > {thr:g} ms")
     for role, w in summary["waits"].items():
@@ -203,11 +213,12 @@ def main() -> None:
         with kernel_trace(WAIT_EVENTS if args.waits else EVENTS, record_tgid=args.waits) as trace:
             proc = subprocess.Popen(cmd)
             watcher.root = proc.pid
+            watcher.names |= {proc.pid: "launcher", os.getpid(): "rt_attribution"}  # holders, not lockstep roles
             watcher.start()
             rc = proc.wait()
             watcher.done.set()
             trace_text = trace.read_text()
-            lost = _overruns()
+            lost = trace_overruns()
         if args.keep_trace:
             (out / "kernel-trace.txt").write_text(trace_text)
         summary_path = out / "summary.json"
@@ -224,7 +235,12 @@ def main() -> None:
             if not windows:
                 raise SystemExit("rt_attribution --waits: no trial with missed ticks, so no trial times: nothing to look at")
             waits = parse_waits(trace_text.splitlines(), windows)
-            _print_waits(summarise_waits(waits, watcher.roles), timing, run_opts, rc, lost)
+            headline = (
+                f"rt_attribution --waits: {' '.join(['ilcrig run --realtime', *run_opts])} (exit {rc}): "
+                f"{timing['deadline_misses']} of {timing['ticks']} ticks missed their deadline, lateness p99 "
+                f"{timing['lateness_p99_s'] * 1e3:.3f} ms"
+            )
+            print_waits(summarise_waits(waits, watcher.roles, names=watcher.names), headline, lost)
             return
         stretches = parse_sched_trace(trace_text.splitlines())
         verdicts = attribute_misses(stretches, timing["per_trial"], timing["control_period_s"])

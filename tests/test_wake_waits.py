@@ -79,6 +79,10 @@ def test_each_wakeup_its_wait_and_who_held_the_cpu() -> None:
     assert s["long_runs_s"] == {"plant": [pytest.approx(0.003)]}  # make is no role
     # who took the CPU from a lockstep process still runnable: nobody here (the host and make are no lockstep)
     assert s["lockstep_preempted_by"] == {}
+    # a process that is no lockstep role may be named (a launcher, a benchmark's master): it holds, never waits
+    named = summarise_waits(trace, {100: "plant", 200: "hub", 300: "host"}, threshold_s=200e-6, names={900: "master"})
+    assert named["held_while_waiting_s"] == pytest.approx({"master": 0.003, "host": 0.0005})
+    assert set(named["waits"]) == set(s["waits"])
 
 
 def test_a_lockstep_process_preempted_is_counted_by_who_took_the_cpu() -> None:

@@ -124,10 +124,13 @@ def _held(stretches: list[tuple[int, float, float]], a: float, b: float) -> tupl
     return tuple(held.items())
 
 
-def summarise_waits(trace: WaitTrace, roles: Mapping[int, str], threshold_s: float = 200e-6) -> dict[str, Any]:
+def summarise_waits(
+    trace: WaitTrace, roles: Mapping[int, str], threshold_s: float = 200e-6, names: Mapping[int, str] | None = None
+) -> dict[str, Any]:
     """Per role (``roles``: thread group id -> role; only their tasks' wake-ups count, not the
     ``idle-poll`` loops'): wake-ups, the wait p50 / p99 / max [s] and how many waited longer than
-    ``threshold_s``; per holder (a role, ``idle``, or another process's command name), the CPU time
+    ``threshold_s``; per holder (a role, ``idle``, a process named in ``names`` — thread group id ->
+    name, e.g. the launcher, a benchmark's master —, or another process's command name), the CPU time
     it held while a lockstep task (not the host's) waited longer than ``threshold_s``; the lockstep
     roles' and the host's long run stretches; who preempted a lockstep task."""
 
@@ -137,7 +140,8 @@ def summarise_waits(trace: WaitTrace, roles: Mapping[int, str], threshold_s: flo
     def holder(tid: int) -> str:
         if tid == 0:
             return "idle"
-        return role_of(tid) or trace.comm.get(tid, "?")
+        named = names.get(trace.tgid.get(tid, tid)) if names else None
+        return role_of(tid) or named or trace.comm.get(tid, "?")
 
     per_role: dict[str, list[float]] = {}
     held: dict[str, float] = {}
