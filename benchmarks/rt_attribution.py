@@ -119,9 +119,8 @@ def _role_of(argv: list[str]) -> str | None:
 
 
 def _is_launcher(argv: list[str]) -> bool:
-    """``ilcrig run`` or ``ilcrig robot`` (``python -m host.cli run|robot …``, or the console script)."""
-    rest = argv[argv.index("host.cli") + 1 :] if "host.cli" in argv else argv[1:] if argv and argv[0].endswith("ilcrig") else []
-    return bool(rest) and rest[0] in ("run", "robot")
+    """``ilcrig run`` or ``ilcrig robot`` as ``python -m host.cli run|robot …`` (how the benchmarks start it)."""
+    return "host.cli" in argv and argv[argv.index("host.cli") + 1 :][:1] in (["run"], ["robot"])
 
 
 class RoleWatcher(threading.Thread):
@@ -164,6 +163,7 @@ def _descends_from(pid: int, root: int) -> bool:
 
 
 def trace_overruns() -> int:
+    """Trace events the kernel dropped (its per-CPU buffers were full)."""
     total = 0
     for stats in sorted((TRACEFS / "per_cpu").glob("cpu*/stats")):
         for line in stats.read_text().splitlines():

@@ -254,10 +254,10 @@ class LaunchCore(LauncherConsole):
         every child, stop the hub, settle the run folder (when a janitor watches it) and dismiss the janitor."""
         self.interrupts.stopping = True
         try:
+            if self._cpu_latency is not None:  # first: nothing below can keep it
+                self._cpu_latency.release()
             if self._idle_pollers is not None:
                 self._idle_pollers.stop()
-            if self._cpu_latency is not None:
-                self._cpu_latency.release()
             self._stop_watchers()
             terminate(self.children, self.grace_s, lambda: self.interrupts.hurry)
             self._children_ended()
