@@ -4,7 +4,8 @@ gone on return);
 any command started in a session of its own (:func:`start_in_session`), or run there, its group
 killed on a hang (:func:`run_in_session`); a process
 asked to stop, killed if it does not (:func:`stop_process`); ``ilcrig sim`` signalled at a row of its
-table (:func:`sim_signalled_at_row`)."""
+table (:func:`sim_signalled_at_row`); whether a process still runs (:func:`pid_alive`) and waiting
+until processes are gone (:func:`wait_gone`)."""
 
 from __future__ import annotations
 
@@ -20,6 +21,25 @@ from typing import Any
 import pytest
 
 from host.cli import main
+
+
+def pid_alive(pid: int) -> bool:
+    """True while a process with ``pid`` exists and is not a zombie (it runs no more)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] not in ("Z", "X")
+    except (OSError, IndexError):
+        return False
+
+
+def wait_gone(pids: list[int], timeout_s: float) -> list[int]:
+    """Wait until no pid of ``pids`` is alive; returns the ones still alive at the deadline."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        left = [p for p in pids if pid_alive(p)]
+        if not left or time.monotonic() > deadline:
+            return left
+        time.sleep(0.02)
 
 
 def run_cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:

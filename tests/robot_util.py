@@ -26,6 +26,7 @@ from typing import Any
 import can
 import canopen
 import numpy as np
+from cli_util import pid_alive
 
 from bus import units
 from bus.objects import DRIVE_EDS_PATH
@@ -350,15 +351,6 @@ class RobotProcess:
         if self.proc.poll() is None:
             self.proc.kill()
             self.proc.wait(timeout=30)
-
-
-def pid_alive(pid: int) -> bool:
-    """True while a process with ``pid`` exists and is not a zombie."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().split(")")[-1].split()[0] != "Z"
-    except OSError:
-        return False
 
 
 def robot_fault_run(out: Path, victim: str, *, periods_before: int = 100) -> dict[str, Any]:

@@ -4,7 +4,10 @@
 an exception of the caller's own code or a KeyboardInterrupt inside ``with RigRun(...)`` — every
 completed trial is in every view of the run: the trials the API yielded, its ``results``,
 ``ilcrig.load(out)``, ``summary.json``'s iterations, the ``trials/`` files and the recording's
-committed trials, bit for bit; and ``end_reason`` says how the run ended.
+committed trials, bit for bit; and ``end_reason`` says how the run ended.  Paced to the wall clock
+(``realtime=True``, drawn too), the run holds the PM QoS CPU latency request where it may (root:
+the kernel's target reads 0 µs at the trial's row) and, however it ended, the target is what it was
+before once the run is over; the summary records the request or why there was none.
 
 The events are waited for, never slept for: a trial's row is the API yielding it (the summary lists
 it), an update's start the file the scripted law (tests/rig_scripted_law.py) writes before it
@@ -29,6 +32,7 @@ from hypothesis import strategies as st
 from rig_scripted_law import SCRIPT_ENV
 
 import ilcrig
+from host.rig.cpu_latency import CPU_LATENCY_PATH, cpu_latency_target_us
 
 pytestmark = [pytest.mark.slow, pytest.mark.multiprocess]
 
@@ -53,17 +57,27 @@ def wait_for(path: Path, run: ilcrig.RigRun) -> None:
         time.sleep(0.01)
 
 
+def latency_target_us() -> int | None:
+    """The kernel's CPU latency target, µs (None where the PM QoS device cannot be read)."""
+    try:
+        return cpu_latency_target_us()
+    except OSError:
+        return None
+
+
 def run_scenario(
-    folder: Path, iterations: int, kind: str, at: int, signame: str
-) -> tuple[list[ilcrig.TrialResult], ilcrig.Results, BaseException | None, int | None]:
+    folder: Path, iterations: int, kind: str, at: int, signame: str, realtime: bool = False
+) -> tuple[list[ilcrig.TrialResult], ilcrig.Results, BaseException | None, int | None, int | None]:
     """One rig run ended as ``kind`` says at trial ``at``: the trials the API yielded, its results,
-    what reached the caller, the launcher's exit code."""
+    what reached the caller, the launcher's exit code, the kernel's CPU latency target at trial ``at``'s
+    row (µs; None where it cannot be read)."""
     exp = ilcrig.Experiment(law=LAW, iterations=iterations, cycle_s=0.15)
     seen: list[ilcrig.TrialResult] = []
     raised: BaseException | None = None
+    during: int | None = None
     os.environ[SCRIPT_ENV] = json.dumps({"kind": kind, "at": at, "dir": str(folder)})  # the rig inherits it
     try:
-        run = ilcrig.RigRun(exp, folder / "run", bus="hub", timeout_s=WAIT_S)
+        run = ilcrig.RigRun(exp, folder / "run", bus="hub", timeout_s=WAIT_S, realtime=realtime)
     finally:
         del os.environ[SCRIPT_ENV]
     try:
@@ -72,6 +86,7 @@ def run_scenario(
                 seen.append(trial)
                 if trial.trial != at:
                     continue
+                during = latency_target_us()
                 if kind == "row_signal":  # the trial's row is in the summary: the signal now
                     os.kill(run.proc.pid, SIGNALS[signame])
                 elif kind == "update_signal":  # the law's update after this trial has started
@@ -83,7 +98,7 @@ def run_scenario(
                     raise UserError("the caller's code failed\nsecond line")
     except (KeyboardInterrupt, UserError) as exc:
         raised = exc
-    return seen, run.results, raised, run.returncode
+    return seen, run.results, raised, run.returncode, during
 
 
 def assert_views_agree(out: Path, seen: list[ilcrig.TrialResult], res: ilcrig.Results) -> dict[str, Any]:
@@ -110,27 +125,43 @@ def assert_views_agree(out: Path, seen: list[ilcrig.TrialResult], res: ilcrig.Re
 
 
 @st.composite
-def scenarios(draw: st.DrawFn) -> tuple[int, str, int, str]:
+def scenarios(draw: st.DrawFn) -> tuple[int, str, int, str, bool]:
     iterations = draw(st.integers(2, 3))
     kind = draw(st.sampled_from(["law_error", "update_signal", "row_signal", "body_interrupt", "user_exception"]))
     # a law's update runs after trials 0 … iterations-2; a signal after a trial's row must have a trial
     # after it; the caller's body sees every trial
     last = iterations - 1 if kind in ("body_interrupt", "user_exception") else iterations - 2
-    return iterations, kind, draw(st.integers(0, last)), draw(st.sampled_from(sorted(SIGNALS)))
+    return iterations, kind, draw(st.integers(0, last)), draw(st.sampled_from(sorted(SIGNALS))), draw(st.booleans())
+
+
+def assert_latency_request_ended(summary: dict[str, Any], before: int | None, during: int | None) -> None:
+    """A real-time run held the CPU latency request where it may, and nothing of it outlived the run."""
+    record = summary["bench"]["timing"]["scheduling"]["cpu_latency"]
+    if not os.access(CPU_LATENCY_PATH, os.W_OK):
+        assert set(record) == {"reason"}
+        return
+    assert record == {"latency_us": 0}
+    if before is None or before == 0:
+        return  # another holder (a tuned profile, a cyclictest) keeps the target at 0 already
+    assert during == 0  # in force at the trial's row
+    assert latency_target_us() == before  # the run is over, however it ended: the kernel's target as before
 
 
 @settings(max_examples=3, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(scenario=scenarios())
-@example(scenario=(2, "law_error", 0, "SIGINT"))
-@example(scenario=(3, "update_signal", 1, "SIGTERM"))
-@example(scenario=(3, "user_exception", 1, "SIGINT"))
-def test_every_completed_trial_is_in_every_view_on_the_rig(scenario: tuple[int, str, int, str]) -> None:
-    iterations, kind, at, signame = scenario
+@example(scenario=(2, "law_error", 0, "SIGINT", False))
+@example(scenario=(3, "update_signal", 1, "SIGTERM", True))
+@example(scenario=(3, "user_exception", 1, "SIGINT", True))
+def test_every_completed_trial_is_in_every_view_on_the_rig(scenario: tuple[int, str, int, str, bool]) -> None:
+    iterations, kind, at, signame, realtime = scenario
     folder = Path(tempfile.mkdtemp(prefix="ilcrig-rig-interrupts-"))
     try:
-        seen, res, raised, code = run_scenario(folder, iterations, kind, at, signame)
+        before = latency_target_us()
+        seen, res, raised, code, during = run_scenario(folder, iterations, kind, at, signame, realtime)
         out = folder / "run"
         summary = assert_views_agree(out, seen, res)
+        if realtime:
+            assert_latency_request_ended(summary, before, during)
         kept = len(summary["iterations"])
         if kind in ("law_error", "update_signal"):
             assert kept == at + 1  # the trial before the update is kept, none after it

@@ -4,15 +4,21 @@ every reason it is left out, and the record a launcher keeps of it."""
 
 from __future__ import annotations
 
+import json
 import os
+import shutil
 import signal
 import struct
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import pytest
+from cli_util import wait_gone
+from hypothesis import HealthCheck, example, given, settings
+from hypothesis import strategies as st
 
 from host.rig import cpu_latency
 from host.rig.cpu_latency import CPU_LATENCY_PATH, CpuLatencyRequest, cpu_latency_target_us, request_cpu_latency
@@ -94,3 +100,61 @@ def test_linux_has_the_request_in_force_while_held_and_drops_it_when_the_holder_
     finally:
         holder.kill()
         holder.wait()
+
+
+#: who is signalled in a real-time robot session: the launcher, or one of the processes it started
+ROBOT_TARGETS = ("launcher", "hub", "plant", "drive1", "drive2", "drive3", "drive4")
+SIGNALS = {"SIGINT": signal.SIGINT, "SIGTERM": signal.SIGTERM, "SIGKILL": signal.SIGKILL}
+
+
+@pytest.mark.slow
+@pytest.mark.multiprocess
+@needs_device
+@settings(max_examples=4, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(who=st.sampled_from(ROBOT_TARGETS), signame=st.sampled_from(sorted(SIGNALS)), starting=st.booleans())
+@example(who="launcher", signame="SIGKILL", starting=False)
+@example(who="launcher", signame="SIGINT", starting=True)
+@example(who="drive3", signame="SIGTERM", starting=False)
+def test_however_a_real_time_robot_ends_the_request_ends_with_it(who: str, signame: str, starting: bool) -> None:
+    """``ilcrig robot --realtime --rt-priority 0`` (an ordinary user's scheduling, the request held)
+    ended by a drawn signal to the launcher (at its announcement, or while it starts up: as soon as
+    it has said anything) or to one of its processes (at the announcement): it ends in time with the
+    exit code the signal calls for, no process of it is left, the summary says how it ended, and the
+    kernel's CPU latency target is what it was before the session."""
+    from robot_util import RobotProcess  # the robot's test helpers (tests/robot_util.py: canopen, numpy)
+
+    before = cpu_latency_target_us()
+    if before == 0:
+        pytest.skip("another PM QoS request holds the CPU latency at 0 µs")
+    out = Path(tempfile.mkdtemp(prefix="ilcrig-rt-ends-"))
+    robot = RobotProcess(out / "robot", "--realtime", "--rt-priority", "0", env={"DISPLAY": "", "WAYLAND_DISPLAY": ""})
+    sig = SIGNALS[signame]
+    try:
+        pids: dict[str, int] = {}
+        if who == "launcher" and starting:
+            robot.wait_line(r".", timeout_s=180)  # its first line: the processes are being started
+        else:
+            pids = robot.ready()["pids"]
+            assert cpu_latency_target_us() == 0  # held for the session
+        os.kill(robot.proc.pid if who == "launcher" else pids[who], sig)
+        code = robot.wait(timeout_s=120)
+        assert cpu_latency_target_us() == before
+        # its processes end with it (after a launcher killed outright, by the death signal it armed in each)
+        assert wait_gone(list(pids.values()), 30.0) == [], pids
+        summary_path = out / "robot" / "summary.json"
+        if who == "launcher" and sig == signal.SIGKILL:
+            assert code == -signal.SIGKILL  # nothing of it may speak; the kernel dropped the request
+            return
+        if who == "launcher":
+            assert code == {"SIGINT": 130, "SIGTERM": 143}[signame], robot.stderr
+            if summary_path.exists():  # a session stopped before its folder was set up has none
+                summary = json.loads(summary_path.read_text())
+                assert summary["end"] == {"reason": "interrupted", "signal": signame}
+        else:
+            assert code == 3, robot.stderr  # one of its processes ended under it: a fault
+            summary = json.loads(summary_path.read_text())
+            assert summary["exit_code"] == 3 and summary["end"]["process"] == who
+            assert [line for line in robot.stderr if line.startswith("ilcrig: fault:")], robot.stderr
+    finally:
+        robot.kill()
+        shutil.rmtree(out, ignore_errors=True)

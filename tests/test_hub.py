@@ -19,6 +19,7 @@ from typing import Any
 
 import can
 import pytest
+from cli_util import pid_alive
 from clock_util import wait_for
 
 from bus.busload import frame_bits, frame_bits_worst_case
@@ -306,14 +307,6 @@ def test_unix_path_in_use_and_stale(tmp_path: Path) -> None:
 # -- process lifecycle -------------------------------------------------------------------------
 
 
-def _gone(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().split(")")[-1].split()[0] in ("Z", "X")
-    except FileNotFoundError:
-        return True
-
-
 def test_hub_child_always_reaped() -> None:
     hub = start_hub()
     pid = hub.pid
@@ -322,11 +315,11 @@ def test_hub_child_always_reaped() -> None:
     assert hub.stop() == 0  # idempotent
     with pytest.raises(ChildProcessError):
         os.waitpid(pid, os.WNOHANG)  # already reaped: no zombie left
-    assert _gone(pid)
+    assert not pid_alive(pid)
     # leaving the context manager reaps it too
     with start_hub() as hub2:
         pid2 = hub2.pid
-    assert _gone(pid2)
+    assert not pid_alive(pid2)
 
 
 def test_start_failure_is_reaped(tmp_path: Path) -> None:
@@ -352,7 +345,7 @@ def test_hub_exits_when_parent_dies(tmp_path: Path) -> None:
     try:
         assert parent.stdout is not None
         hub_pid = int(parent.stdout.readline())
-        assert not _gone(hub_pid)
+        assert pid_alive(hub_pid)
         pidfd = os.pidfd_open(hub_pid)  # readable when the hub process ends
         try:
             parent.kill()
@@ -360,7 +353,7 @@ def test_hub_exits_when_parent_dies(tmp_path: Path) -> None:
             assert select.select([pidfd], [], [], 10)[0], "hub still running 10 s after its parent died"
         finally:
             os.close(pidfd)
-        assert _gone(hub_pid)
+        assert not pid_alive(hub_pid)
     finally:
         if parent.poll() is None:
             parent.kill()

@@ -9,9 +9,10 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 
 import pytest
+from cli_util import pid_alive
 
 from bus.processes import spawn_process
 from host.rig.fair_scheduling import autogroups_enabled
@@ -37,18 +38,6 @@ def _policy(pid: int) -> int | None:
         return None
 
 
-def _gone(pids: Iterable[int]) -> bool:
-    """Every pid has ended (a zombie counts: it runs no more)."""
-    for pid in pids:
-        try:
-            with open(f"/proc/{pid}/stat") as f:
-                if f.read().rsplit(")", 1)[1].split()[0] != "Z":
-                    return False
-        except OSError:
-            continue
-    return True
-
-
 def test_one_sched_idle_loop_per_cpu_until_stopped() -> None:
     pollers = IdlePollers(2)
     pids = pollers.pids
@@ -63,7 +52,7 @@ def test_one_sched_idle_loop_per_cpu_until_stopped() -> None:
         assert all(os.getsid(p) == p for p in pids)
     finally:
         pollers.stop()
-    assert pollers.pids == [] and _gone(pids)
+    assert pollers.pids == [] and not [p for p in pids if pid_alive(p)]
     pollers.stop()  # again: nothing to do
 
 
@@ -109,7 +98,7 @@ def test_the_loops_die_with_the_process_that_started_them() -> None:
         _wait_for("both loops in SCHED_IDLE", lambda: all(_policy(p) == os.SCHED_IDLE for p in pids))
         parent.send_signal(signal.SIGKILL)  # no chance to stop them itself
         parent.wait()
-        _wait_for("the loops to end with their parent", lambda: _gone(pids))
+        _wait_for("the loops to end with their parent", lambda: not [p for p in pids if pid_alive(p)])
     finally:
         parent.kill()
         parent.wait()

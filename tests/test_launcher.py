@@ -24,6 +24,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from cli_util import pid_alive, wait_gone
 
 from bus.exit_codes import EXIT_CHILD_FAILED, EXIT_FAULT
 from bus.units import timeout_scale
@@ -45,26 +46,6 @@ ROOT = str(Path(__file__).resolve().parents[1])
 # ---------------------------------------------------------------------------------------
 # helpers
 # ---------------------------------------------------------------------------------------
-
-
-def alive(pid: int) -> bool:
-    """True while ``pid`` exists and is not a zombie."""
-    try:
-        with open(f"/proc/{pid}/stat") as fh:
-            state = fh.read().rsplit(")", 1)[1].split()[0]
-    except (FileNotFoundError, ProcessLookupError, IndexError):
-        return False
-    return state not in ("Z", "X")
-
-
-def wait_gone(pids: list[int], timeout_s: float) -> list[int]:
-    """Wait until no pid of ``pids`` is alive; returns the ones still alive at the deadline."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        left = [p for p in pids if alive(p)]
-        if not left or time.monotonic() > deadline:
-            return left
-        time.sleep(0.02)
 
 
 def fake(role: str, *opts: str) -> list[str]:
@@ -96,7 +77,7 @@ def fake_argv(piddir: Path, name: str) -> list[str]:
 
 def kill_leftovers(pids: list[int]) -> None:
     for pid in pids:
-        if alive(pid):
+        if pid_alive(pid):
             try:
                 os.killpg(pid, signal.SIGKILL)
             except (ProcessLookupError, PermissionError):
