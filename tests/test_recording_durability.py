@@ -17,7 +17,6 @@ import signal
 import subprocess
 import sys
 import time
-import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
@@ -26,21 +25,12 @@ from typing import Any
 import numpy as np
 import pytest
 from cli_util import sim_signalled_at_row
+from fault_harness import recorded_trials
 
 from host.analysis.recording import RunRecorder
 from host.analysis.recording_segments import TRAILER_BYTES, SegmentFile, cut_back
 
 REPO = Path(__file__).resolve().parent.parent
-
-
-def recorded(path: Path) -> list[int]:
-    """The trials of a recording, read with rerun's RrdReader (a scan where it has no footer)."""
-    from rerun.chunk import RrdReader
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        ents = {c.entity_path for c in RrdReader(path).stream() if not c.is_static}
-    return sorted(int(e.rsplit("iter", 1)[1]) for e in ents if e.startswith("/joint1/error/iter"))
 
 
 def _trial_args(k: int, n: int = 41) -> tuple[Any, ...]:
@@ -83,12 +73,12 @@ def test_a_write_cut_short_anywhere_leaves_the_earlier_trials(tmp_path: Path) ->
     for i, state in enumerate(states):
         p = tmp_path / f"cut{i}.rrd"
         p.write_bytes(state)
-        assert recorded(p) == [0, 1], i
+        assert recorded_trials(p) == [0, 1], i
     for cut in (1, 5, 16, TRAILER_BYTES - 1):  # the trailer written in part: the new trial is whole already
         p = tmp_path / f"trailer{cut}.rrd"
         p.write_bytes(data[:start] + trailer[:cut] + gap[cut:] + body)
-        assert recorded(p) in ([0, 1], [0, 1, 2]), cut  # readable; the summary, written after, decides
-    assert recorded(tmp_path / "recording.rrd") == [0, 1, 2]
+        assert recorded_trials(p) in ([0, 1], [0, 1, 2]), cut  # readable; the summary, written after, decides
+    assert recorded_trials(tmp_path / "recording.rrd") == [0, 1, 2]
     rec.close()
 
 
@@ -110,25 +100,25 @@ def test_a_failing_write_is_cut_back_and_written_again(tmp_path: Path, monkeypat
 
     with pytest.raises(DiskFullError, match="disk full: cannot write trial 1 of the recording"):
         rec.log_trial(*_trial_args(1))
-    assert path.stat().st_size == sizes[0] and rec.committed()["trials"] == [0] and recorded(path) == [0]
+    assert path.stat().st_size == sizes[0] and rec.committed()["trials"] == [0] and recorded_trials(path) == [0]
     rec.log_trial(*_trial_args(1))  # again: the bytes kept are written now
     rec.log_trial(*_trial_args(1))  # a third time: it is in the file already, nothing is written
     rec.close()
-    assert rec.committed()["trials"] == [0, 1] and recorded(path) == [0, 1]
+    assert rec.committed()["trials"] == [0, 1] and recorded_trials(path) == [0, 1]
 
 
 def test_cut_back_to_the_summarys_trials(tmp_path: Path) -> None:
     path = tmp_path / "recording.rrd"
     rec, sizes = record_trials(path, 3, join=False)
     rec.close()
-    assert recorded(path) == [0, 1, 2]
-    assert cut_back(path, sizes[1]) and path.stat().st_size == sizes[1] and recorded(path) == [0, 1]
+    assert recorded_trials(path) == [0, 1, 2]
+    assert cut_back(path, sizes[1]) and path.stat().st_size == sizes[1] and recorded_trials(path) == [0, 1]
     assert not cut_back(path, sizes[1])  # nothing beyond it any more
     # a recording joined into one stream at the end of its run is left alone
     joined, _ = record_trials(tmp_path / "joined.rrd", 2)
     joined.close()
     assert joined.committed()["joined"] and not cut_back(tmp_path / "joined.rrd", 100)
-    assert recorded(tmp_path / "joined.rrd") == [0, 1]
+    assert recorded_trials(tmp_path / "joined.rrd") == [0, 1]
 
 
 def test_segments_need_rerun_041s_layout() -> None:
@@ -202,7 +192,7 @@ def test_the_janitor_settles_the_folder_after_a_killed_launcher(tmp_path: Path) 
         assert janitor.stdin is not None
         janitor.stdin.close()  # the launcher is gone (no "done")
         time.sleep(0.2)
-        assert recorded(out / "recording.rrd") == [0, 1, 2]  # it waits for the host first
+        assert recorded_trials(out / "recording.rrd") == [0, 1, 2]  # it waits for the host first
         host.kill()
         assert janitor.wait(timeout=60) == 0
     finally:
@@ -210,7 +200,7 @@ def test_the_janitor_settles_the_folder_after_a_killed_launcher(tmp_path: Path) 
         host.wait()
         janitor.kill()
         janitor.wait()
-    assert recorded(out / "recording.rrd") == [0, 1]
+    assert recorded_trials(out / "recording.rrd") == [0, 1]
     assert sorted(p.name for p in (out / "trials").iterdir()) == ["trial-00000.npz", "trial-00001.npz"]
     assert not (out / "summary.json.tmp").exists()
     assert "janitor: the launcher was killed; cut" in (out / "logs" / "janitor.log").read_text()
@@ -317,7 +307,7 @@ def test_a_full_disk_at_each_phase_keeps_a_readable_recording(
     position = {"before_first_trial": "before_first_trial", "report": "after_last_trial"}.get(phase, "between_trials")
     assert (f["kind"], f["position"], len(s["iterations"])) == ("disk_full", position, kept), f
     assert s["recording"]["trials"] == list(range(kept))
-    assert recorded(out / "recording.rrd") == list(range(kept))
+    assert recorded_trials(out / "recording.rrd") == list(range(kept))
     names = {p.name for p in out.rglob("*")}
     assert not {n for n in names if n.endswith(".tmp") or "reserve" in n}, names
     if kept:
@@ -350,7 +340,7 @@ def test_a_rig_run_on_a_disk_that_fills_in_a_trial(tmp_path: Path) -> None:
             assert o.fault is not None and o.fault["kind"] == "disk_full"
             kept = o.kept
             assert 0 < kept < 6 and o.summary is not None
-            assert o.summary["recording"]["trials"] == list(range(kept)) == recorded(mnt / "run" / "recording.rrd")
+            assert o.summary["recording"]["trials"] == list(range(kept)) == recorded_trials(mnt / "run" / "recording.rrd")
             names = {p.name for p in (mnt / "run").rglob("*")}
             assert not {n for n in names if n.endswith(".tmp") or "reserve" in n}, names
         finally:
@@ -367,8 +357,8 @@ def test_a_killed_sim_never_leaves_an_unreadable_recording(tmp_path: Path) -> No
     sim_signalled_at_row(out, "3", signal.SIGKILL)
     s = json.loads((out / "summary.json").read_text())
     k = len(s["iterations"])
-    assert recorded(out / "recording.rrd") in (list(range(k)), list(range(k + 1)))
+    assert recorded_trials(out / "recording.rrd") in (list(range(k)), list(range(k + 1)))
     from host.rig.janitor import settle_run_folder
 
     settle_run_folder(out)
-    assert recorded(out / "recording.rrd") == list(range(k))
+    assert recorded_trials(out / "recording.rrd") == list(range(k))
