@@ -110,7 +110,7 @@ SIGNALS = {"SIGINT": signal.SIGINT, "SIGTERM": signal.SIGTERM, "SIGKILL": signal
 @pytest.mark.slow
 @pytest.mark.multiprocess
 @needs_device
-@settings(max_examples=4, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=2, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(who=st.sampled_from(ROBOT_TARGETS), signame=st.sampled_from(sorted(SIGNALS)), starting=st.booleans())
 @example(who="launcher", signame="SIGKILL", starting=False)
 @example(who="launcher", signame="SIGINT", starting=True)
