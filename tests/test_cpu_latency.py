@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import struct
@@ -102,6 +103,21 @@ def test_linux_has_the_request_in_force_while_held_and_drops_it_when_the_holder_
         holder.wait()
 
 
+def first_child(pid: int, timeout_s: float = 180.0) -> int:
+    """The first child process ``pid`` starts (its pid), waited for; fails if ``pid`` ends first."""
+    deadline = time.monotonic() + timeout_s
+    children = Path(f"/proc/{pid}/task/{pid}/children")
+    while True:
+        try:
+            kids = children.read_text().split()
+        except OSError:
+            pytest.fail(f"process {pid} ended before it started a child")
+        if kids:
+            return int(kids[0])
+        assert time.monotonic() < deadline, f"process {pid} started no child within {timeout_s:g} s"
+        time.sleep(0.005)
+
+
 #: who is signalled in a real-time robot session: the launcher, or one of the processes it started
 ROBOT_TARGETS = ("launcher", "hub", "plant", "drive1", "drive2", "drive3", "drive4")
 SIGNALS = {"SIGINT": signal.SIGINT, "SIGTERM": signal.SIGTERM, "SIGKILL": signal.SIGKILL}
@@ -118,7 +134,7 @@ SIGNALS = {"SIGINT": signal.SIGINT, "SIGTERM": signal.SIGTERM, "SIGKILL": signal
 def test_however_a_real_time_robot_ends_the_request_ends_with_it(who: str, signame: str, starting: bool) -> None:
     """``ilcrig robot --realtime --rt-priority 0`` (an ordinary user's scheduling, the request held)
     ended by a drawn signal to the launcher (at its announcement, or while it starts up: as soon as
-    it has said anything) or to one of its processes (at the announcement): it ends in time with the
+    it has started its first process) or to one of its processes (at the announcement): it ends in time with the
     exit code the signal calls for, no process of it is left, the summary says how it ended, and the
     kernel's CPU latency target is what it was before the session."""
     from robot_util import RobotProcess  # the robot's test helpers (tests/robot_util.py: canopen, numpy)
@@ -132,7 +148,7 @@ def test_however_a_real_time_robot_ends_the_request_ends_with_it(who: str, signa
     try:
         pids: dict[str, int] = {}
         if who == "launcher" and starting:
-            robot.wait_line(r".", timeout_s=180)  # its first line: the processes are being started
+            first_child(robot.proc.pid)  # it has started its first process (the hub); the rest are coming up
         else:
             pids = robot.ready()["pids"]
             assert cpu_latency_target_us() == 0  # held for the session
@@ -147,9 +163,19 @@ def test_however_a_real_time_robot_ends_the_request_ends_with_it(who: str, signa
             return
         if who == "launcher":
             assert code == {"SIGINT": 130, "SIGTERM": 143}[signame], robot.stderr
-            if summary_path.exists():  # a session stopped before its folder was set up has none
-                summary = json.loads(summary_path.read_text())
-                assert summary["end"] == {"reason": "interrupted", "signal": signame}
+            summary = json.loads(summary_path.read_text())  # a session stopped while it starts up says so too
+            assert summary["end"] == {"reason": "interrupted", "signal": signame}
+            assert summary["exit_code"] == code
+            # the console says what happened: the signal on stderr, how the session ended on stdout
+            assert len(robot.stderr) == 1 and re.fullmatch(
+                rf"ilcrig: interrupted \({signame}\); stopping [0-6] processes", robot.stderr[0]
+            ), robot.stderr
+            closing = robot.stdout[-1]
+            if starting:
+                assert closing.startswith(f"ilcrig robot: interrupted ({signame}) before the robot was ready: no period stepped")
+            else:
+                assert robot.stderr[0].endswith("stopping 6 processes")  # the hub, the plant, four drives
+                assert re.match(r"ilcrig robot: \d+ periods stepped", closing), closing
         else:
             assert code == 3, robot.stderr  # one of its processes ended under it: a fault
             summary = json.loads(summary_path.read_text())

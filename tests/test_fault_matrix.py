@@ -190,7 +190,7 @@ def test_sigterm_keeps_143_and_marks_the_summary(tmp_path: Path) -> None:
     try:
         assert o.code == 143, o.stderr
         assert o.left == []
-        assert o.lines == ["ilcrig: interrupted (SIGTERM); stopping 6 processes"]
+        assert o.lines == ["ilcrig: interrupted (SIGTERM); stopping 7 processes"]
         s = o.summary
         assert s is not None and s["completed"] is False and s["faults"] == []
         assert s["interrupted"]["signal"] == "SIGTERM" and s["interrupted"]["trial"] == 1

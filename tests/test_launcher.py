@@ -425,7 +425,7 @@ def test_sigint_to_the_launcher(tmp_path: Path, piddir: Path) -> None:
         os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does
         _, stderr = proc.communicate(timeout=10)
         assert proc.returncode == 130, stderr
-        assert b"ilcrig: interrupted (SIGINT); stopping 6 processes" in stderr
+        assert b"ilcrig: interrupted (SIGINT); stopping 7 processes" in stderr
         assert wait_gone(list(pids.values()), 0.5) == []
         assert not os.path.exists(sock) and not os.path.exists(os.path.dirname(sock))
     finally:

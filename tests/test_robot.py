@@ -105,6 +105,7 @@ def test_the_readme_master_lowers_the_tool(robot: RobotProcess, tmp_path: Path) 
 def test_ctrl_c_stops_every_process_with_130(robot: RobotProcess) -> None:
     pids = robot.ready()["pids"]
     assert robot.stop(signal.SIGINT) == 130
+    assert robot.stderr == ["ilcrig: interrupted (SIGINT); stopping 6 processes"]  # the hub, the plant, four drives
     assert not [name for name, pid in pids.items() if pid_alive(pid)]
     summary = json.loads((robot.out / "summary.json").read_text())
     assert summary["end"] == {"reason": "interrupted", "signal": "SIGINT"}

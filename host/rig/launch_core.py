@@ -172,6 +172,15 @@ class LaunchCore(LauncherConsole):
     def _closing(self, code: int) -> None:
         """Hook: after the shutdown, with the exit code (on every path)."""
 
+    # -- interrupts -----------------------------------------------------------------------------
+
+    def say_interrupted(self) -> int:
+        """SIGINT / SIGTERM / SIGHUP came: the one line that says so (the signal, how many processes
+        are being stopped: the hub and every role started so far) on stderr, as ``ilcrig run`` and
+        ``ilcrig robot`` both say it; the exit code the signal calls for (130, 143, 129)."""
+        self._say_err(f"ilcrig: interrupted ({self.interrupts.name}); stopping {len(self.lockstep_pids())} processes")
+        return self.interrupts.exit_code()
+
     # -- spawning -------------------------------------------------------------------------------
 
     def start_hub(self, inject: str | None, log_path: Path, bus_time: dict[str, int] | None = None) -> str:

@@ -191,16 +191,16 @@ class RigLauncher(LaunchCore):
         supervisor.heard = self._liveness.heard
         supervisor.stops = StopWatch(self._progress.where, outcome.kept_now)
         if self.interrupts.signum is not None:
-            return self._signal_exit()
+            return self.say_interrupted()
         self.spawn("plant", child_argv("plant", bus_args, debug=debug), log_dir / "plant.log")
         for node in DRIVE_NODE_IDS:
             if self.interrupts.signum is not None:
-                return self._signal_exit()
+                return self.say_interrupted()
             firmware = ["--firmware", opts.firmware] if opts.firmware != "python" else []  # (the default)
             drive_argv = child_argv("drive", bus_args, node=node, extra=firmware, debug=debug)
             self.spawn(f"drive{node}", drive_argv, log_dir / f"drive{node}.log")
         if self.interrupts.signum is not None:
-            return self._signal_exit()
+            return self.say_interrupted()
 
         where = f" ({self.hub_address})" if self.hub_address else ""
         self._say_out(
@@ -290,13 +290,9 @@ class RigLauncher(LaunchCore):
 
     # -- interrupts and shutdown ---------------------------------------------------------------
 
-    def _signal_exit(self) -> int:
-        self._say_err(f"ilcrig: interrupted ({self.interrupts.name}); stopping {len(self.children)} processes")
-        return self.interrupts.exit_code()
-
     def _interrupted(self, host: Child, supervisor: Supervisor, outcome: RunOutcome) -> int:
         """SIGINT / SIGTERM / SIGHUP: the host first (it marks the summary), then the rest."""
-        exit_code = self._signal_exit()
+        exit_code = self.say_interrupted()
         if host.proc.poll() is None:
             supervisor.stop_host(host, signal.SIGINT if self.interrupts.signum == signal.SIGINT else signal.SIGTERM)
         outcome.mark_interrupted(self.interrupts.name, self._progress.where() if self._progress is not None else None)

@@ -88,6 +88,8 @@ class RobotLauncher(LaunchCore):
     _t0: float = field(default_factory=time.time, init=False, repr=False)
     _end: dict[str, Any] = field(default_factory=lambda: {"reason": "starting"}, init=False, repr=False)
     _scheduling: dict[str, Any] | None = field(default=None, init=False, repr=False)
+    #: the ready lines were printed (the robot took SYNCs from then on)
+    _ready: bool = field(default=False, init=False, repr=False)
 
     # ------------------------------------------------------------------ run
 
@@ -168,6 +170,7 @@ class RobotLauncher(LaunchCore):
         return None
 
     def _announce(self, tc: TransportConfig, mode: str) -> None:
+        self._ready = True
         fb = tc.channel(FIELDBUS)
         if fb.interface == HUB_INTERFACE:
             where = (
@@ -244,7 +247,7 @@ class RobotLauncher(LaunchCore):
 
     def _interrupted(self) -> int:
         self._end = {"reason": "interrupted", "signal": self.interrupts.name}
-        return self.interrupts.exit_code()
+        return self.say_interrupted()
 
     # ------------------------------------------------------------------ shutdown
 
@@ -311,6 +314,10 @@ class RobotLauncher(LaunchCore):
                 f"ilcrig robot: {robot['periods']} periods stepped, {robot['syncs']} SYNCs seen "
                 f"({robot['sync_overruns']} overruns{late}), {robot['faults_total']} robot faults; summary: {path}"
             )
+        elif not self._ready:  # it ended while starting: say how, not that a summary is missing
+            end = self._end
+            how = f"interrupted ({end['signal']})" if end["reason"] == "interrupted" else str(end["reason"])
+            self._say_out(f"ilcrig robot: {how} before the robot was ready: no period stepped; summary: {path}")
         else:
             self._say_out(f"ilcrig robot: the plant left no session summary; summary: {path}")
 
