@@ -147,7 +147,7 @@ def assert_latency_request_ended(summary: dict[str, Any], before: int | None, du
     assert latency_target_us() == before  # the run is over, however it ended: the kernel's target as before
 
 
-@settings(max_examples=3, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=2, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(scenario=scenarios())
 @example(scenario=(2, "law_error", 0, "SIGINT", False))
 @example(scenario=(3, "update_signal", 1, "SIGTERM", True))
