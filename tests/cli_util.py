@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from clock_util import wait_for
 
 from host.cli import main
 
@@ -34,12 +35,8 @@ def pid_alive(pid: int) -> bool:
 
 def wait_gone(pids: list[int], timeout_s: float) -> list[int]:
     """Wait until no pid of ``pids`` is alive; returns the ones still alive at the deadline."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        left = [p for p in pids if pid_alive(p)]
-        if not left or time.monotonic() > deadline:
-            return left
-        time.sleep(0.02)
+    wait_for(lambda: not any(map(pid_alive, pids)), timeout_s)
+    return [p for p in pids if pid_alive(p)]
 
 
 def run_cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:

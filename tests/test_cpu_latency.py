@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 from cli_util import wait_gone
+from clock_util import wait_for
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
@@ -103,19 +104,12 @@ def test_linux_has_the_request_in_force_while_held_and_drops_it_when_the_holder_
         holder.wait()
 
 
-def first_child(pid: int, timeout_s: float = 180.0) -> int:
-    """The first child process ``pid`` starts (its pid), waited for; fails if ``pid`` ends first."""
-    deadline = time.monotonic() + timeout_s
-    children = Path(f"/proc/{pid}/task/{pid}/children")
-    while True:
-        try:
-            kids = children.read_text().split()
-        except OSError:
-            pytest.fail(f"process {pid} ended before it started a child")
-        if kids:
-            return int(kids[0])
-        assert time.monotonic() < deadline, f"process {pid} started no child within {timeout_s:g} s"
-        time.sleep(0.005)
+def children_of(pid: int) -> list[int]:
+    """The child processes of ``pid`` (none once it has ended)."""
+    try:
+        return [int(k) for k in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+    except OSError:
+        return []
 
 
 #: who is signalled in a real-time robot session: the launcher, or one of the processes it started
@@ -148,7 +142,9 @@ def test_however_a_real_time_robot_ends_the_request_ends_with_it(who: str, signa
     try:
         pids: dict[str, int] = {}
         if who == "launcher" and starting:
-            first_child(robot.proc.pid)  # it has started its first process (the hub); the rest are coming up
+            # it has started its first process (the hub); the rest are coming up
+            assert wait_for(lambda: bool(children_of(robot.proc.pid)) or robot.proc.poll() is not None, 180.0)
+            assert robot.proc.poll() is None, robot.stderr
         else:
             pids = robot.ready()["pids"]
             assert cpu_latency_target_us() == 0  # held for the session

@@ -52,7 +52,7 @@ def test_one_sched_idle_loop_per_cpu_until_stopped() -> None:
         assert all(os.getsid(p) == p for p in pids)
     finally:
         pollers.stop()
-    assert pollers.pids == [] and not [p for p in pids if pid_alive(p)]
+    assert pollers.pids == [] and not any(map(pid_alive, pids))
     pollers.stop()  # again: nothing to do
 
 
@@ -98,7 +98,7 @@ def test_the_loops_die_with_the_process_that_started_them() -> None:
         _wait_for("both loops in SCHED_IDLE", lambda: all(_policy(p) == os.SCHED_IDLE for p in pids))
         parent.send_signal(signal.SIGKILL)  # no chance to stop them itself
         parent.wait()
-        _wait_for("the loops to end with their parent", lambda: not [p for p in pids if pid_alive(p)])
+        _wait_for("the loops to end with their parent", lambda: not any(map(pid_alive, pids)))
     finally:
         parent.kill()
         parent.wait()
