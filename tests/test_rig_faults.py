@@ -13,6 +13,7 @@ import can
 import canopen
 import pytest
 
+from bus.can_errors import overflow_error_frame
 from bus.cia301.emcy import emcy_cob_id, encode_emcy
 from bus.cia301.nmt import HeartbeatReport, NmtCommand, NmtState, heartbeat_cob_id
 from bus.objects import DRIVE_EDS_PATH
@@ -223,18 +224,55 @@ def test_a_bus_error_frame_while_the_boot_ups_are_awaited_ends_the_wait_at_once(
     """Not armed yet (the bring-up awaits the nodes' boot-ups): heartbeats are not judged, but a bus
     error frame heard (a lost datagram, which may have been a boot-up) is the run's fault at once:
     declared with NMT STOP and raised, not a boot-up awaited until the host's ``--wait`` runs out."""
-    rig.watchdog.raise_if_bus_fault()  # all is well: nothing declared, nothing raised
+    rig.watchdog.raise_if_start_fault()  # all is well: nothing declared, nothing raised
     assert rig.declared == []
     rig.peer.send(can.Message(is_error_frame=True, arbitration_id=0x20000080, is_extended_id=True, data=bytes(8)))
     rec: FaultRecord | None = None
     deadline = time.monotonic() + 30.0
     while rec is None and time.monotonic() < deadline:  # until the channel's monitor has heard it
         try:
-            rig.watchdog.raise_if_bus_fault()
+            rig.watchdog.raise_if_start_fault()
         except TrialFault as exc:
             rec = exc.record
         time.sleep(0.005)
     assert rec is not None and rig.declared == [rec] and (rec.kind, rec.node) == (FaultKind.FRAME_ERROR, "fieldbus")
+    assert nmt_stop_seen(rig.peer)
+
+
+def start_fault(rig: Rig) -> FaultRecord:
+    """The fault :meth:`Watchdog.raise_if_start_fault` raises once what the host heard got through
+    (a frame from the peer takes the notifier's thread)."""
+    deadline = time.monotonic() + 30.0
+    while time.monotonic() < deadline:
+        try:
+            rig.watchdog.raise_if_start_fault()
+        except TrialFault as exc:
+            assert exc.record is not None
+            return exc.record
+        time.sleep(0.005)
+    raise AssertionError("no fault raised within 30 s")
+
+
+def test_a_frame_the_hosts_own_receiver_lost_while_the_boot_ups_are_awaited_ends_the_wait_at_once(rig: Rig) -> None:
+    """The canopen network's receiver overflowed (udp_multicast: the kernel dropped a datagram on
+    the host's socket, maybe the boot-up awaited) while the channel monitors' receivers kept every
+    frame: a fault of the fieldbus at once, not a boot-up awaited until ``--wait`` runs out."""
+    rig.watchdog.raise_if_start_fault()
+    rig.watchdog.fieldbus_errors.on_message_received(overflow_error_frame(time.time(), FIELDBUS))  # as the notifier hands it
+    rec = start_fault(rig)
+    assert rig.declared == [rec] and (rec.kind, rec.node, rec.detected_by) == (FaultKind.FRAME_ERROR, "fieldbus", "host")
+    assert rec.message == "a damaged frame on fieldbus (bus error frame)"
+    assert rig.watchdog.channels.troubles() == []  # the monitors heard nothing wrong
+    assert nmt_stop_seen(rig.peer)
+
+
+def test_a_nodes_emcy_while_the_boot_ups_are_awaited_ends_the_wait_at_once(rig: Rig) -> None:
+    """A drive whose receiver lost the NMT reset says so with EMCY 0x8110 and never boots again:
+    its EMCY ends the host's wait for the boot-ups as the run's fault at once."""
+    rig.peer.send(can.Message(arbitration_id=emcy_cob_id(4), data=encode_emcy(0x8110, 0x11), is_extended_id=False))
+    rec = start_fault(rig)
+    assert rig.declared == [rec] and (rec.kind, rec.node) == (FaultKind.EMCY, "drive4")
+    assert "EMCY 0x8110" in rec.message
     assert nmt_stop_seen(rig.peer)
 
 

@@ -348,16 +348,62 @@ def test_udp_multicast_reports_every_lost_datagram_as_a_bus_error(tmp_path: Path
     assert got[where + 1 :] == list(range(where + lost, 103))  # then what followed the lost datagrams
 
 
+SILENT_LOSS_SCRIPT = textwrap.dedent(
+    """
+    import json
+    import can
+    from bus.cia301.slave import SlaveNode
+    from bus.errors import SdoAbort
+    from bus.transports.config import ChannelConfig, open_bus
+
+    class App:  # the least a CANopen slave's application is
+        nmt_state = 0x7F
+        lost = 0
+        def nmt_command(self, cs): pass
+        def read_object(self, index, sub): raise SdoAbort(0x06020000, "none")
+        def write_object(self, index, sub, data): raise SdoAbort(0x06020000, "none")
+        def pop_emcy(self): return []
+        def frames_lost(self): self.lost += 1
+
+    cfg = ChannelConfig("udp_multicast", "239.74.163.14", {"port": 43140, "hop_limit": 1}, private_netns=True)
+    io_cfg = ChannelConfig("udp_multicast", "239.74.163.15", {"port": 43150, "hop_limit": 1}, private_netns=True)
+    small = ChannelConfig(cfg.interface, cfg.channel, {**cfg.kwargs, "receive_buffer_bytes": 8192}, private_netns=True)
+    with open_bus(small) as fieldbus, open_bus(io_cfg) as io, open_bus(cfg) as tx:
+        app = App()
+        node = SlaveNode(app, fieldbus, io, node_id=5)
+        for i in range(100):  # far more than 8 KiB of receive buffer holds; then silence
+            tx.send(can.Message(arbitration_id=0x185, is_extended_id=False, data=i.to_bytes(2, "big")))
+        handled = []
+        while not app.lost and len(handled) < 50:
+            handled.append(node.step(0.1))
+        print(json.dumps({"lost_calls": app.lost, "steps": handled, "frames_lost": fieldbus.frames_lost}))
+    """
+)
+
+
+@pytest.mark.netns
+@pytest.mark.multiprocess
+def test_a_node_hears_the_loss_of_the_last_datagram_before_a_silence(tmp_path: Path) -> None:
+    """No datagram follows the loss to carry the socket's drop count (udp_multicast): the node's
+    drain ends with a receive that finds nothing, which reads the drop count (``SO_MEMINFO``), so
+    the loss reaches the application as a receive overflow (a drive: EMCY 0x8110) all the same,
+    once, in the node's first steps."""
+    out = script_report_in_netns(tmp_path, "silent_loss.py", SILENT_LOSS_SCRIPT, timeout_s=60)
+    assert out["lost_calls"] == 1 and out["frames_lost"] > 0, out
+    assert len(out["steps"]) <= 3, out
+
+
 @pytest.mark.netns
 @pytest.mark.multiprocess
 @pytest.mark.slow
 def test_a_lost_datagram_is_a_fault_of_the_run(tmp_path: Path) -> None:
     """``ilcrig run --bus udp_multicast`` with fieldbus receive buffers far too small for an SDO
     block: the losses are reported as bus errors and the run stops with a fault (exit code 3)
-    instead of going on with frames missing. The losses come at the first burst of the bus (the
-    nodes' boot-ups answering the host's NMT reset): a loss the host hears while it awaits them
-    ends the wait as the run's fault at once (it may have been a boot-up), well before the
-    host's ``--wait`` (30 s here, a bound for a run whose losses were all in the nodes)."""
+    instead of going on with frames missing. The losses come at the first bursts of the bus (the
+    nodes' boot-ups answering the host's NMT reset, the host's first SDO requests): a loss in the
+    host's receiver (it may have been a boot-up or an SDO response) or a node's EMCY 0x8110 (its
+    receiver lost the NMT command or an SDO request) is the run's fault at once, whichever comes
+    first; never the host's ``--wait`` running out (30 s here) or an SDO request timing out."""
     reason = netns_unavailable_reason()
     if reason:
         pytest.skip(reason)
@@ -373,6 +419,11 @@ def test_a_lost_datagram_is_a_fault_of_the_run(tmp_path: Path) -> None:
     res = subprocess.run(wrapped, capture_output=True, text=True, env=env, timeout=300, start_new_session=True, check=False)
     assert res.returncode == 3, res.stdout[-2000:] + res.stderr[-2000:]
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["completed"] is False and summary["faults"]  # which fault comes first is a race
+    assert summary["completed"] is False and summary["faults"]  # which loss comes first is a race
+    first = summary["faults"][0]
+    assert (first["kind"], first["message"]) in (
+        ("frame_error", "a damaged frame on fieldbus (bus error frame)"),
+        ("emcy", f"fault of {first['node']} (EMCY 0x8110)"),
+    ), first
     logs = "".join(p.read_text() for p in (out / "logs").glob("*.log"))
     assert "datagram(s) lost" in logs and "reported as a bus error frame" in logs

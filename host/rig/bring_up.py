@@ -172,7 +172,8 @@ class BringUp:
         at ERROR level).
 
         :raises TrialFault: a node did not boot within ``wait_s`` (``what`` says what to check), or
-            a bus fault was heard meanwhile (:meth:`host.rig.watchdog.Watchdog.raise_if_bus_fault`)
+            a bus fault or a node's EMCY was heard meanwhile
+            (:meth:`host.rig.watchdog.Watchdog.raise_if_start_fault`)
         """
         booted: set[int] = set()
         all_booted = threading.Event()
@@ -189,7 +190,7 @@ class BringUp:
             self.network.nmt.send_command(NmtCommand.RESET_COMMUNICATION)
             deadline = time.monotonic() + self.wait_s
             while not all_booted.wait(BOOT_POLL_S):
-                self.watchdog.raise_if_bus_fault()
+                self.watchdog.raise_if_start_fault()
                 if time.monotonic() >= deadline:
                     raise TrialFault(
                         f"no boot-up from node(s) {', '.join(map(str, sorted(node_ids - booted)))} "
@@ -218,7 +219,7 @@ class BringUp:
                     waiting.discard(nid)
                 except (canopen.SdoCommunicationError, canopen.SdoAbortedError):
                     pass
-            self.watchdog.raise_if_fault()
+            self.watchdog.raise_if_start_fault()  # a node that lost the request may have said so
             if waiting and time.monotonic() > deadline:
                 raise TrialFault(f"node(s) {', '.join(map(str, sorted(waiting)))} did not answer within {self.wait_s:g} s {what}")
         for nid in sorted(node_ids):

@@ -5,7 +5,9 @@ declared, whether a trial runs or not:
 
 * it hears the nodes through :class:`host.rig.node_events.NodeEvents` (their heartbeats and EMCY
   frames, canopen's ``RemoteNode.nmt`` / ``RemoteNode.emcy`` callbacks) and the canopen
-  notifier's errors (:class:`FieldbusErrors`);
+  notifier's errors and its own receiver's overflows (:class:`FieldbusErrors`: a frame the host's
+  protocol side lost -- a boot-up, an SDO response, an EMCY -- is a fault of the run, as a bus
+  error frame of the fieldbus, even when the channel monitors' receivers kept every frame);
 * a thread (every :data:`WATCH_PERIOD_S`), or :meth:`Watchdog.watch_round` in the caller's thread,
   looks at what it has heard, the channels (:class:`host.rig.channels.RigChannels`) and the host's
   heartbeat producer and classifies the first fault visible (:mod:`host.rig.fault_classify`), in
@@ -14,7 +16,8 @@ declared, whether a trial runs or not:
   so within :data:`STALL_SETTLE_S`), a node's heartbeat lost or its boot-up, no node heard at all;
   a round that comes more than a consumer time after the last one (this process did not run)
   judges no heartbeat: the frames that queued meanwhile are read first;
-* once :meth:`Watchdog.arm` was called, that fault is declared: NMT STOP broadcast at once
+* before the first :meth:`Watchdog.arm` (the nodes being brought up) a bus fault or a node's EMCY,
+  and once it was called any fault, is declared: NMT STOP broadcast at once
   (torque off on every drive still alive), the record kept (the trial and the io channel's tick
   filled in, the injection that caused it attached), and the fault hooks run (the bench cancels
   its SDO requests and wakes a SYNC producer waiting for TPDOs); the main thread then ends the
@@ -39,6 +42,7 @@ from pathlib import Path
 import can
 import canopen
 
+from bus.can_errors import is_receive_overflow
 from bus.cia301.nmt import CONSUMER_TIME_MS, NODE_HEARTBEAT_MS, NmtCommand
 from bus.errors import SdoAbort
 from bus.transports.config import FIELDBUS
@@ -49,6 +53,7 @@ from host.nodes.sdo_access import SdoTransportError
 from host.rig.channels import RigChannels
 from host.rig.fault_classify import (
     BusError,
+    ChannelTrouble,
     DetectionTimes,
     bus_fault,
     channel_fault,
@@ -88,14 +93,26 @@ def nmt_stop_all(network: canopen.Network) -> bool:
 
 
 class FieldbusErrors(can.Listener):
-    """A listener on the canopen network's notifier that notes a failing fieldbus."""
+    """A listener on the canopen network's notifier that notes a failing fieldbus, and the bus
+    error frames that say the network's own receiver lost frames (:func:`bus.can_errors.is_receive_overflow`:
+    udp_multicast reports a datagram the kernel dropped on the host's socket so, SocketCAN a
+    controller's receive overflow).
+
+    :ivar overflows: such error frames heard; the first at ``overflow_t`` (monotonic, s)
+    """
 
     def __init__(self) -> None:
         self.error: str | None = None
         self.error_t: float | None = None
+        self.overflows = 0
+        self.overflow_t: float | None = None
 
     def on_message_received(self, msg: can.Message) -> None:
-        pass
+        if msg.is_error_frame and is_receive_overflow(msg):
+            if self.overflow_t is None:
+                self.overflow_t = time.monotonic()
+                logger.warning("the host's fieldbus receiver lost frames (receive overflow)")
+            self.overflows += 1
 
     def on_error(self, exc: Exception) -> None:
         if self.error is None:
@@ -151,6 +168,9 @@ class Watchdog:
         self._fault: FaultRecord | None = None
         self._declaring = False
         self._armed = False
+        #: until the first :meth:`arm` (the run's start): a bus fault or a node's EMCY is declared
+        #: already, by the thread's rounds too; heartbeats are not judged yet
+        self._starting = True
         self._hooks: list[Callable[[FaultRecord], None]] = []
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -163,13 +183,17 @@ class Watchdog:
 
     # -- the thread ---------------------------------------------------------------------------
     def start(self) -> None:
-        """Start the watchdog thread (it declares faults only once :meth:`arm` was called)."""
+        """Start the watchdog thread (until :meth:`arm` it declares only a bus fault or a node's
+        EMCY: the nodes are being brought up)."""
         self._thread = threading.Thread(target=self._loop, name="host watchdog", daemon=True)
         self._thread.start()
 
     def stop(self) -> None:
         """Declare no more faults and end the thread."""
-        self._armed = False
+        self._armed = self._starting = False
+        #: until the first :meth:`arm`: the run's start, when a bus fault or a node's EMCY is
+        #: declared already (heartbeats are not judged yet)
+        self._starting = True
         self._stop.set()
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=1.0)
@@ -179,10 +203,11 @@ class Watchdog:
         if not self._armed and self.producer is not None:
             self.producer.take_gap(float("inf"))  # a gap before the nodes consumed the heartbeat counts for nothing
         self._armed = True
+        self._starting = False
 
     def disarm(self) -> None:
         """Declare no more faults (the thread keeps running until :meth:`stop`)."""
-        self._armed = False
+        self._armed = self._starting = False
 
     def on_fault(self, hook: Callable[[FaultRecord], None]) -> None:
         """Run ``hook(record)`` when a fault is declared (after NMT STOP; in the declaring thread)."""
@@ -253,9 +278,12 @@ class Watchdog:
             self.declare(record)
 
     def detect(self, now: float) -> FaultRecord | None:
-        """The first fault visible now (None: all is well, or not armed, or declared already)."""
-        if not self._armed or self._fault is not None:
+        """The first fault visible now (None: all is well, or declared already; not armed: only a
+        bus fault or an EMCY at the run's start, :attr:`_starting`)."""
+        if self._fault is not None:
             return None
+        if not self._armed:
+            return self._cause_heard(now) if self._starting else None
         record = self._bus_fault(now)
         if record is not None:
             return record
@@ -281,19 +309,35 @@ class Watchdog:
         errors += self.channels.bus_errors()
         if self.producer is not None and self.producer.error is not None:
             errors.append(BusError(FIELDBUS, self.producer.error, self.producer.error_t))
-        return bus_fault(errors, self.bus_name, now) or channel_fault(self.channels.troubles(), now)
+        troubles = self.channels.troubles()
+        own = self.fieldbus_errors
+        if own.overflows:  # the host's own receiver: before the monitors' troubles
+            troubles = [ChannelTrouble(FIELDBUS, error_frames=own.overflows, first_error_frame_t=own.overflow_t), *troubles]
+        return bus_fault(errors, self.bus_name, now) or channel_fault(troubles, now)
 
-    def raise_if_bus_fault(self) -> None:
-        """While the nodes' boot-ups are awaited (the watchdog not armed yet): a bus fault heard
-        already (:meth:`_bus_fault`) is the run's fault now, declared and raised, not a boot-up
-        awaited until its time runs out (a lost datagram may have been that boot-up).
+    def raise_if_start_fault(self) -> None:
+        """While the nodes are brought up (their boot-ups and first SDO answers awaited; at the
+        run's start the watchdog is not armed yet): a bus fault heard already (:meth:`_bus_fault`:
+        a frame the host's receiver lost may have been the boot-up awaited) or a node's EMCY (a
+        drive whose receiver lost the NMT command or the SDO request says so with EMCY 0x8110)
+        is the run's fault now, declared and raised, not an answer awaited until ``--wait`` runs
+        out.
 
         :raises TrialFault: a fault was declared (now or before)."""
         if self._fault is None:
-            record = self._bus_fault(time.monotonic())
+            record = self._cause_heard(time.monotonic())
             if record is not None:
                 self.declare(record)
         self.raise_if_fault()
+
+    def _cause_heard(self, now: float) -> FaultRecord | None:
+        """A bus fault (:meth:`_bus_fault`) or a node's EMCY heard and not declared yet (None: none)."""
+        record = self._bus_fault(now)
+        if record is None:
+            pending = self.events.take_emcy()
+            if pending:
+                record = emcy_fault(min(pending, key=lambda f: f.t_mono), self.times)
+        return record
 
     def declare(self, record: FaultRecord) -> None:
         """The run is over: keep ``record`` (the first fault), torque off everywhere at once (NMT
@@ -325,13 +369,21 @@ class Watchdog:
 
     def describe(self, exc: BaseException, trial: int) -> FaultRecord | None:
         """What the host knows about ``exc``: the declared fault, else the record of the exception
-        (the plant node's fault state, an SDO error), else None."""
+        (the plant node's fault state, an SDO error), else None.  An SDO request that failed after
+        a bus fault or a node's EMCY was heard (not declared yet: the watchdog not armed, or its
+        round not come) failed because of it: that cause is declared and is the record (a lost SDO
+        response after the host's receiver overflowed, a request that a drive's full receiver
+        dropped and said so with EMCY 0x8110)."""
         if self._fault is not None:
             return self._fault
         now = time.monotonic()
         if isinstance(exc, PlantTrialFault):
             record = plant_trial_fault(exc, trial, now, self.times)
         elif isinstance(exc, SdoTransportError | SdoAbort):
+            cause = self._cause_heard(now)
+            if cause is not None:
+                self.declare(cause)
+                return self._fault
             record = sdo_fault(exc, trial, now)
         else:
             return None
