@@ -5,6 +5,7 @@ record, NMT STOP on the bus and the fault hooks out, with no trial running."""
 from __future__ import annotations
 
 import itertools
+import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -21,6 +22,7 @@ from bus.plant_objects import PLANT_EDS_PATH, PlantFault
 from bus.transports.config import FIELDBUS, virtual_transport
 from host.experiment.bench import TrialFault
 from host.experiment.faults import FaultKind, FaultRecord
+from host.nodes.sdo_access import SdoAccess
 from host.rig.bus_accounting import BusTimeAccounting
 from host.rig.channels import RigChannels
 from host.rig.fault_classify import (
@@ -274,6 +276,41 @@ def test_a_nodes_emcy_while_the_boot_ups_are_awaited_ends_the_wait_at_once(rig: 
     assert rig.declared == [rec] and (rec.kind, rec.node) == (FaultKind.EMCY, "drive4")
     assert "EMCY 0x8110" in rec.message
     assert nmt_stop_seen(rig.peer)
+
+
+def _upload_in_thread(node: canopen.RemoteNode) -> tuple[threading.Thread, list[BaseException]]:
+    """``node.sdo.upload(0x1000, 0)`` (canopen's own API, as the bring-up's probe) in a thread; the
+    list gets what it raised."""
+    raised: list[BaseException] = []
+
+    def upload() -> None:
+        try:
+            node.sdo.upload(0x1000, 0)
+        except BaseException as exc:  # noqa: BLE001 - the test looks at it
+            raised.append(exc)
+
+    thread = threading.Thread(target=upload, daemon=True)
+    thread.start()
+    return thread, raised
+
+
+def test_a_fault_ends_the_hosts_sdo_requests_waiting_and_to_come(rig: Rig) -> None:
+    """The fault hook cancels every node's SDO access: a request waiting for a node that never
+    answers ends at once (the wake), and one made afterwards on canopen's own API (the bring-up's
+    probe) is not sent into a 60 s wait either (canopen empties its response queue when a request
+    begins, so the wake alone would miss it)."""
+    network = rig.watchdog.network
+    node = network.add_node(5, str(DRIVE_EDS_PATH))  # nobody answers for node 5
+    node.sdo.RESPONSE_TIMEOUT = 60.0
+    access = SdoAccess(node)
+    waiting, raised = _upload_in_thread(node)
+    assert rig.peer.recv(10.0) is not None  # the request is on the bus: the thread waits for the answer
+    access.cancel("the run stopped")
+    waiting.join(10.0)
+    assert not waiting.is_alive() and isinstance(raised[0], canopen.SdoAbortedError)
+    later, raised_later = _upload_in_thread(node)
+    later.join(10.0)
+    assert not later.is_alive() and isinstance(raised_later[0], canopen.SdoCommunicationError)
 
 
 def test_the_launchers_liveness_watch_hears_a_node_from_its_first_heartbeat_to_its_next_boot_up() -> None:

@@ -104,9 +104,15 @@ class SdoAccess:
 
     def cancel(self, reason: str) -> None:
         """Refuse every further request (:class:`SdoTransportError` with ``reason``) and wake the
-        one waiting for its response now (thread-safe)."""
+        one waiting for its response now (thread-safe).  A request made on ``node.sdo`` directly
+        (canopen's own API: the bring-up's probes, the PDO configuration) fails at once too: the
+        client's response timeout becomes 0 s (canopen empties the response queue when a request
+        begins, so the wake reaches only a request already waiting)."""
         self.cancelled = reason
-        responses = getattr(getattr(self.node, "sdo", None), "responses", None)
+        sdo = getattr(self.node, "sdo", None)
+        if sdo is not None and hasattr(sdo, "RESPONSE_TIMEOUT"):
+            sdo.RESPONSE_TIMEOUT = 0.0
+        responses = getattr(sdo, "responses", None)
         if responses is not None:
             responses.put(_WAKE)
 
