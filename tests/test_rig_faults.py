@@ -160,6 +160,14 @@ def beat(rig: Rig, nodes: tuple[int, ...]) -> dict[int, float]:
         time.sleep(0.005)
 
 
+def emcy_heard(rig: Rig, node_id: int, code: int, register: int) -> None:
+    """An EMCY of ``node_id`` from the peer; returns when the host heard it."""
+    before = len(rig.watchdog.events.emcy)
+    rig.peer.send(can.Message(arbitration_id=emcy_cob_id(node_id), data=encode_emcy(code, register), is_extended_id=False))
+    while len(rig.watchdog.events.emcy) == before:
+        time.sleep(0.005)
+
+
 def nmt_stop_seen(peer: can.BusABC, timeout_s: float = 30.0) -> bool:
     deadline = time.monotonic() + timeout_s
     while (left := deadline - time.monotonic()) > 0:
@@ -196,9 +204,7 @@ def test_a_node_lost_outside_a_trial_is_declared_once_with_nmt_stop(rig: Rig) ->
 def test_an_emcy_is_declared_and_logged(rig: Rig) -> None:
     beat(rig, NODES)
     rig.watchdog.arm()
-    rig.peer.send(can.Message(arbitration_id=emcy_cob_id(2), data=encode_emcy(0x8611, 0x01), is_extended_id=False))
-    while not rig.watchdog.events.emcy:
-        time.sleep(0.005)
+    emcy_heard(rig, 2, 0x8611, 0x01)
     rig.watchdog.watch_round()
     assert len(rig.declared) == 1
     rec = rig.declared[0]
@@ -271,11 +277,32 @@ def test_a_frame_the_hosts_own_receiver_lost_while_the_boot_ups_are_awaited_ends
 def test_a_nodes_emcy_while_the_boot_ups_are_awaited_ends_the_wait_at_once(rig: Rig) -> None:
     """A drive whose receiver lost the NMT reset says so with EMCY 0x8110 and never boots again:
     its EMCY ends the host's wait for the boot-ups as the run's fault at once."""
-    rig.peer.send(can.Message(arbitration_id=emcy_cob_id(4), data=encode_emcy(0x8110, 0x11), is_extended_id=False))
+    emcy_heard(rig, 4, 0x8110, 0x11)
     rec = start_fault(rig)
     assert rig.declared == [rec] and (rec.kind, rec.node) == (FaultKind.EMCY, "drive4")
     assert "EMCY 0x8110" in rec.message
     assert nmt_stop_seen(rig.peer)
+
+
+@pytest.mark.parametrize("when", ["starting", "disarmed", "stopped"])
+def test_an_emcy_is_declared_while_the_nodes_are_brought_up_never_after_the_watchdog_stood_down(rig: Rig, when: str) -> None:
+    """Before the first ``arm`` (the nodes being brought up) the watchdog's own rounds declare a
+    node's EMCY (heartbeats are not judged yet); once disarmed or stopped at the run's close they
+    declare nothing, whatever was heard."""
+    if when == "disarmed":
+        rig.watchdog.arm()
+        rig.watchdog.disarm()
+    elif when == "stopped":
+        rig.watchdog.stop()
+    later = time.monotonic() + 10.0  # every node's heartbeat overdue by then
+    assert rig.watchdog.detect(later) is None
+    emcy_heard(rig, 3, 0x8110, 0x11)
+    rig.watchdog.watch_round()
+    if when == "starting":
+        assert len(rig.declared) == 1 and (rig.declared[0].kind, rig.declared[0].node) == (FaultKind.EMCY, "drive3")
+        assert nmt_stop_seen(rig.peer)
+    else:
+        assert rig.declared == [] and rig.watchdog.detect(later) is None
 
 
 def _upload_in_thread(node: canopen.RemoteNode) -> tuple[threading.Thread, list[BaseException]]:

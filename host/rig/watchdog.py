@@ -191,9 +191,6 @@ class Watchdog:
     def stop(self) -> None:
         """Declare no more faults and end the thread."""
         self._armed = self._starting = False
-        #: until the first :meth:`arm`: the run's start, when a bus fault or a node's EMCY is
-        #: declared already (heartbeats are not judged yet)
-        self._starting = True
         self._stop.set()
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=1.0)
