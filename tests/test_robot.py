@@ -113,6 +113,67 @@ def test_ctrl_c_stops_every_process_with_130(robot: RobotProcess) -> None:
     assert set(DRIVES) <= {int(n[-1]) for n in pids if n.startswith("drive")}
 
 
+def test_a_bus_error_frame_the_monitors_hear_is_said_and_counted(robot: RobotProcess) -> None:
+    """A frame damaged on the wire (a master's CAN controller sends the error frame; udp_multicast
+    reports a datagram lost in the monitor's receiver so): the robot keeps stepping, but its
+    candump log and bus counts miss a frame, and the console and the summary say so, once."""
+    import can
+
+    where = robot.ready()
+    with can.Bus(interface=where["interface"], channel=where["channel"]) as master:
+        for _ in range(2):
+            master.send(can.Message(is_error_frame=True, arbitration_id=0x20000080, is_extended_id=True, data=bytes(8)))
+        robot.wait_line(r"ilcrig robot: bus error frame on fieldbus")
+    assert robot.stop(signal.SIGINT) == 130
+    said = [line for line in robot.stderr if "bus error frame" in line]
+    assert said == [
+        "ilcrig robot: bus error frame on fieldbus (a frame damaged on the wire, or lost in the monitor's receiver): "
+        "fieldbus.log and the bus counts of summary.json miss frames"
+    ]
+    summary = json.loads((robot.out / "summary.json").read_text())
+    assert summary["bus"]["channels"]["fieldbus"]["error_frames"] == 2
+    assert summary["bus"]["channels"]["io"]["error_frames"] == 0
+
+
+#: drive 4's role command in the next test: once the other four nodes booted it puts a bus error
+#: frame on the fieldbus (as a frame lost in the launcher's monitor would be reported) and then
+#: never boots
+_ERROR_THEN_STALL = """
+import signal, sys
+import can
+from bus.transports.config import FIELDBUS, transport_from_name
+args = sys.argv[1:]
+bus = transport_from_name("hub", args[args.index("--hub") + 1]).open(FIELDBUS)
+booted = set()
+while booted != {1, 2, 3, 32}:
+    msg = bus.recv()
+    if msg is not None and not msg.is_error_frame and msg.arbitration_id - 0x700 in (1, 2, 3, 32) and bytes(msg.data) == b"\\x00":
+        booted.add(msg.arbitration_id - 0x700)
+bus.send(can.Message(is_error_frame=True, arbitration_id=0x20000080, is_extended_id=True, data=bytes(8)))
+signal.pause()
+"""
+
+
+def test_a_bus_error_frame_while_the_nodes_boot_ends_the_start_as_a_fault(tmp_path: Path) -> None:
+    """A frame lost while the nodes boot may have been a boot-up: the start ends at once as a fault
+    (exit 3, one line naming the nodes not heard), not after the 120 s boot wait."""
+    script = tmp_path / "error_then_stall.py"
+    script.write_text(_ERROR_THEN_STALL)
+    robot = RobotProcess(tmp_path / "robot", env={"ILCRIG_ROLE_CMD_DRIVE4": f"{sys.executable} {script}"})
+    try:
+        assert robot.wait(timeout_s=180) == 3
+    finally:
+        robot.kill()
+    assert robot.stderr == [
+        "ilcrig: fault: bus error frame on fieldbus while the nodes booted (frames lost or damaged; the boot-up of "
+        "node(s) [4] may be among them); the robot stopped, every process of it ended"
+    ]
+    summary = json.loads((robot.out / "summary.json").read_text())
+    assert summary["end"] == {"reason": "fault", "channel": "fieldbus", "error_frames": 1, "missing_nodes": [4]}
+    assert summary["bus"]["channels"]["fieldbus"]["error_frames"] == 1
+    assert not [name for name, pid in summary["processes"].items() if isinstance(pid, int) and pid_alive(pid)]
+
+
 @pytest.mark.parametrize(
     ("argv", "message"),
     [

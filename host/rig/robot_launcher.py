@@ -20,7 +20,12 @@ SIGTERM (exit 130 / 143) or a fault of one of its own processes (exit 3, one lin
 * two passive channel monitors (:class:`host.rig.monitor.ChannelMonitor`) write the candump logs
   ``fieldbus.log`` and ``io.log`` and feed :class:`host.rig.robot_watch.RobotBusWatch` (boot-ups:
   the robot is announced once all five nodes booted; SYNCs; EMCYs; with ``--view`` the live view
-  :class:`host.analysis.live_view.RobotLiveView`).
+  :class:`host.analysis.live_view.RobotLiveView`).  A bus error frame a monitor hears (a frame
+  damaged on the wire, or lost in the monitor's own receiver: udp_multicast reports a datagram the
+  kernel dropped so) means that log and the counts it feeds miss frames: one console line per
+  channel as it is heard, its count in the summary (``bus.channels.<name>.error_frames``); heard on
+  the fieldbus while the nodes boot (a boot-up may be among the frames lost) it ends the start as a
+  fault (exit 3) instead of a wait for a boot-up already sent.
 
 The run folder (``--out``, default ``runs/robot-<time>``): ``logs/<role>.log``, ``trace.bin``,
 ``fieldbus.log``, ``io.log``, ``plant.json`` and, on every exit, ``summary.json`` (schema
@@ -85,6 +90,8 @@ class RobotLauncher(LaunchCore):
     monitors: list[ChannelMonitor] = field(default_factory=list, init=False)
     deaths: list[Death] = field(default_factory=list, init=False)
     live: Any = field(default=None, init=False)
+    #: the channels whose bus error frames the console was told of
+    _errors_said: set[str] = field(default_factory=set, init=False, repr=False)
     _t0: float = field(default_factory=time.time, init=False, repr=False)
     _end: dict[str, Any] = field(default_factory=lambda: {"reason": "starting"}, init=False, repr=False)
     _scheduling: dict[str, Any] | None = field(default=None, init=False, repr=False)
@@ -159,6 +166,21 @@ class RobotLauncher(LaunchCore):
                 return self._interrupted()
             if self._note_deaths():
                 return self._fault()
+            fieldbus = next((m for m in self.monitors if m.name == FIELDBUS and m.error_frames), None)
+            if fieldbus is not None and not self.watch.wait_booted(0):
+                missing = sorted((set(DRIVE_NODE_IDS) | {DEFAULT_PLANT_NODE_ID}) - self.watch.booted)
+                self._end = {
+                    "reason": "fault",
+                    "channel": FIELDBUS,
+                    "error_frames": fieldbus.error_frames,
+                    "missing_nodes": missing,
+                }
+                self._say_err(
+                    f"ilcrig: fault: bus error frame on {FIELDBUS} while the nodes booted (frames lost or damaged; "
+                    f"the boot-up of node(s) {missing} may be among them); the robot stopped, every process of it ended"
+                )
+                return EXIT_FAULT
+            self._say_monitor_errors()
             if time.monotonic() > deadline:
                 missing = sorted((set(DRIVE_NODE_IDS) | {DEFAULT_PLANT_NODE_ID}) - self.watch.booted)
                 self._end = {"reason": "boot timeout", "missing_nodes": missing}
@@ -204,7 +226,19 @@ class RobotLauncher(LaunchCore):
             if self._note_deaths():
                 return self._fault()
             emcys_seen = self._say_robot_faults(emcys_seen)
+            self._say_monitor_errors()
             time.sleep(POLL_S)
+
+    def _say_monitor_errors(self) -> None:
+        """One console line per channel whose monitor heard its first bus error frame since the
+        last look: its candump log and the counts it feeds miss frames from there on."""
+        for m in self.monitors:
+            if m.error_frames and m.name not in self._errors_said:
+                self._errors_said.add(m.name)
+                self._say_err(
+                    f"ilcrig robot: bus error frame on {m.name} (a frame damaged on the wire, or lost in "
+                    f"the monitor's receiver): {m.name}.log and the bus counts of summary.json miss frames"
+                )
 
     def _say_robot_faults(self, start: int) -> int:
         """One console line per robot fault the plant reported by EMCY since the ``start``-th EMCY
@@ -278,7 +312,7 @@ class RobotLauncher(LaunchCore):
         except (OSError, ValueError):
             plant = None
         robot = (plant or {}).get("robot")
-        channels = {m.name: m.counter.as_dict() for m in self.monitors}
+        channels = {m.name: m.counter.as_dict() | {"error_frames": m.error_frames} for m in self.monitors}
         summary = {
             "schema": SUMMARY_SCHEMA,
             "exit_code": code,
