@@ -236,6 +236,7 @@ class RobotFault(IntEnum):
     TICK_SEQUENCE = 5  #: a torque frame was missing, duplicated, stale or early
     BAD_FRAME = 6  #: a malformed torque frame, or a bus error frame on io
     SYNC_OVERRUN = 7  #: SYNC-stepped: more than bus.cyclic.SYNC_BACKLOG_MAX SYNCs waiting (served late all the same)
+    FRAMES_LOST = 8  #: the plant's fieldbus receiver lost frames (overflowed): a SYNC may be among them
 
 
 #: EMCY error code and error register per robot fault (0xFF1x: manufacturer specific, mechanical)
@@ -247,6 +248,7 @@ ROBOT_FAULT_EMCY: Final[dict[RobotFault, tuple[int, int]]] = {
     RobotFault.TICK_SEQUENCE: (0x8200, 0x11),
     RobotFault.BAD_FRAME: (0x8200, 0x11),
     RobotFault.SYNC_OVERRUN: (0x8110, 0x11),
+    RobotFault.FRAMES_LOST: (0x8110, 0x11),
 }
 #: bit 7 of a plant node EMCY's first manufacturer byte: the code is a :class:`RobotFault`
 ROBOT_EMCY_FLAG: Final[int] = 0x80
@@ -272,7 +274,7 @@ class PlantFault(IntEnum):
     TICK_TIMEOUT = 2  #: a drive did not answer a tick in time
     TICK_SEQUENCE = 3  #: a torque frame was missing, duplicated, stale or early
     ABORTED = 4  #: the host aborted (command 2) or NMT stopped/reset the node
-    BAD_FRAME = 5  #: a malformed torque frame, or a bus error frame on io (a frame damaged on the wire)
+    BAD_FRAME = 5  #: a malformed torque frame, a bus error frame on io (a frame damaged on the wire), fieldbus frames lost
     HOST_LOST = 6  #: the host's heartbeat was lost (consumer 0x1016)
 
 

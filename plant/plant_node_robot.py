@@ -270,6 +270,20 @@ class RobotLoop:
         if waiting >= self.backlog_max:
             self.backlog_max = waiting + 1
 
+    def frames_lost(self) -> None:
+        """The plant's fieldbus receiver lost frames (it overflowed; udp_multicast reports a datagram
+        the kernel dropped so): a SYNC may be among them, and the periods stepped would no longer be
+        the SYNCs on the bus without anybody knowing -- a robot fault (FRAMES_LOST, EMCY 0x8110)."""
+        if not self.on:
+            logger.warning("node %d: fieldbus frames lost while the robot is off", self.node_id)
+            return
+        self._fail(
+            RobotFault.FRAMES_LOST,
+            0,
+            f"fieldbus frames lost in the plant's receiver in period {self.periods} (receive overflow): a SYNC may be "
+            "among them, the periods no longer the SYNCs on the bus; torque-free until reset",
+        )
+
     def interrupt(self) -> None:
         """A trial begins: the period in progress is dropped (its frames are stale for the trial); the
         trial sets the transport's gathering for itself (and 0 at its end)."""

@@ -303,3 +303,30 @@ def test_plant_node_faults_on_a_bus_error_frame_during_a_trial() -> None:
         assert int(bench.nmt_state) == NmtState.OPERATIONAL
     finally:
         rig.close()
+
+
+def test_plant_node_says_fieldbus_frames_its_receiver_lost_during_a_trial_and_between_trials() -> None:
+    """A receive-overflow error frame on the plant's fieldbus (udp_multicast's report of datagrams
+    the kernel dropped): a running trial ends with BAD_FRAME; between trials the EMCY of BAD_FRAME
+    (0x8200) says so; never only a log line."""
+    from bus.can_errors import overflow_error_frame
+
+    rig = _stepped_bench()
+    bench = rig.node
+    try:
+        bench.nmt_command(NmtCommand.START)
+        bench._on_fieldbus(overflow_error_frame(1000.0, "fieldbus"))  # as the select loop hands it over, past the filters
+        frames = rig.step_at(1000.005)
+        assert bench.status != PlantStatus.FAULT
+        assert [(cob, data[:3]) for cob, data in frames if cob == 0x0A0] == [(0x0A0, b"\x00\x82\x11")]
+        bench.store.write_object(0x2420, 0, bytes(64))
+        bench.store.write_object(0x2410, 2, u32(10))
+        bench.store.write_object(0x2410, 3, bytes([1]))
+        rig.step_at(1000.01)
+        assert bench.status == PlantStatus.RUNNING
+        bench._on_fieldbus(overflow_error_frame(1000.0, "fieldbus"))
+        rig.step_at(1000.02)
+        assert bench.status == PlantStatus.FAULT and bench.fault == PlantFault.BAD_FRAME
+        assert "fieldbus frames lost" in bench.last_fault_message
+    finally:
+        rig.close()

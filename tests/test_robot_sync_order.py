@@ -60,6 +60,28 @@ def test_the_robot_compiles_the_locked_joint_dynamics_before_it_boots() -> None:
     assert K.plant_step_locked.signatures  # compiled (or loaded from the cache) here, not in a period
 
 
+def test_frames_the_plants_receiver_lost_are_a_robot_fault_with_its_emcy(node: tuple[PlantNode, can.BusABC]) -> None:
+    """The plant's fieldbus receiver overflowed (udp_multicast reports a datagram the kernel dropped
+    as SocketCAN's receive-overflow error frame): a SYNC may be among the frames lost, so the
+    periods would no longer be the SYNCs on the bus without anybody knowing -- a robot fault
+    (FRAMES_LOST, EMCY 0x8110 of node 32), torque-free until reset, and the next SYNC still a period."""
+    from bus.can_errors import overflow_error_frame
+
+    plant, listener = node
+    robot = plant.robot
+    robot.on_sync(0.0)
+    plant._on_fieldbus(overflow_error_frame(1.0, "fieldbus"))  # as the select loop hands it over
+    assert robot.state == RobotState.FAULT and robot.fault == RobotFault.FRAMES_LOST
+    assert "a SYNC may be among them" in robot.info()["fault"]["message"]
+    emcy = [m for m in iter(lambda: listener.recv(timeout=0.5), None) if m.arbitration_id == 0x080 + plant.node_id]
+    code, register = ROBOT_FAULT_EMCY[RobotFault.FRAMES_LOST]
+    assert (code, register) == (0x8110, 0x11)
+    assert [bytes(m.data) for m in emcy] == [struct.pack("<HBBBHx", code, register, ROBOT_EMCY_FLAG | 8, 0, 0)]
+    syncs = robot.syncs
+    robot.on_sync(2.0)
+    assert robot.syncs == syncs + 1
+
+
 def test_a_sync_beyond_the_bound_is_a_robot_fault_with_its_emcy_and_still_served(node: tuple[PlantNode, can.BusABC]) -> None:
     plant, listener = node
     robot = plant.robot
