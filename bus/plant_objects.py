@@ -274,8 +274,9 @@ class PlantFault(IntEnum):
     TICK_TIMEOUT = 2  #: a drive did not answer a tick in time
     TICK_SEQUENCE = 3  #: a torque frame was missing, duplicated, stale or early
     ABORTED = 4  #: the host aborted (command 2) or NMT stopped/reset the node
-    BAD_FRAME = 5  #: a malformed torque frame, a bus error frame on io (a frame damaged on the wire), fieldbus frames lost
+    BAD_FRAME = 5  #: a malformed torque frame, or a bus error frame on io (a frame damaged on the wire)
     HOST_LOST = 6  #: the host's heartbeat was lost (consumer 0x1016)
+    FRAMES_LOST = 7  #: the plant node's fieldbus receiver lost frames (overflowed; e.g. the host's request)
 
 
 class DisturbanceKind(IntEnum):
@@ -314,6 +315,7 @@ FAULT_EMCY: Final[dict[PlantFault, tuple[int, int]]] = {
     PlantFault.ABORTED: (0xFF01, 0x81),
     PlantFault.BAD_FRAME: (0x8200, 0x11),
     PlantFault.HOST_LOST: (0x8130, 0x11),  # heartbeat consumer (life guard) event
+    PlantFault.FRAMES_LOST: (0x8110, 0x11),  # CAN overrun (objects lost)
 }
 
 _EMCY_DATA = struct.Struct("<BBH")

@@ -235,8 +235,8 @@ class PlantNode(SlaveNode):
     def frames_lost(self) -> None:
         """The fieldbus receiver overflowed (frames lost; :meth:`bus.cia301.slave.SlaveNode.on_frames_lost`):
         the robot faults (a SYNC may be lost, :meth:`plant.plant_node_robot.RobotLoop.frames_lost`);
-        a running trial ends with BAD_FRAME; otherwise the EMCY of BAD_FRAME says so (the host's
-        request that was lost times out on its side)."""
+        a running trial ends with FRAMES_LOST (EMCY 0x8110); otherwise that EMCY alone says so (the
+        host's request that was lost would time out on its side)."""
         if self._nmt_state == NmtState.STOPPED:
             logger.warning("node %d: fieldbus frames lost while NMT STOPPED", self.node_id)
             return
@@ -246,10 +246,10 @@ class PlantNode(SlaveNode):
         lockstep = self.lockstep
         message = f"fieldbus frames lost in the plant's receiver at tick {lockstep.tick} (receive overflow)"
         if lockstep.busy:
-            lockstep.fail(PlantFault.BAD_FRAME, 0, message, started=lockstep.running)
+            lockstep.fail(PlantFault.FRAMES_LOST, 0, message, started=lockstep.running)
         else:
             logger.warning("node %d: %s", self.node_id, message)
-            self._send_fault_emcy(fault_emcy(PlantFault.BAD_FRAME, 0, lockstep.tick))
+            self._send_fault_emcy(fault_emcy(PlantFault.FRAMES_LOST, 0, lockstep.tick))
 
     def bus_lost(self, reason: str) -> None:
         """A bus failed (the hub gone): the trial, if any, ends here (nothing can be sent)."""

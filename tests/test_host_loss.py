@@ -307,8 +307,8 @@ def test_plant_node_faults_on_a_bus_error_frame_during_a_trial() -> None:
 
 def test_plant_node_says_fieldbus_frames_its_receiver_lost_during_a_trial_and_between_trials() -> None:
     """A receive-overflow error frame on the plant's fieldbus (udp_multicast's report of datagrams
-    the kernel dropped): a running trial ends with BAD_FRAME; between trials the EMCY of BAD_FRAME
-    (0x8200) says so; never only a log line."""
+    the kernel dropped): a running trial ends with FRAMES_LOST; between trials its EMCY (0x8110,
+    fault 7) says so; never only a log line."""
     from bus.can_errors import overflow_error_frame
 
     rig = _stepped_bench()
@@ -318,7 +318,7 @@ def test_plant_node_says_fieldbus_frames_its_receiver_lost_during_a_trial_and_be
         bench._on_fieldbus(overflow_error_frame(1000.0, "fieldbus"))  # as the select loop hands it over, past the filters
         frames = rig.step_at(1000.005)
         assert bench.status != PlantStatus.FAULT
-        assert [(cob, data[:3]) for cob, data in frames if cob == 0x0A0] == [(0x0A0, b"\x00\x82\x11")]
+        assert [(cob, data[:4]) for cob, data in frames if cob == 0x0A0] == [(0x0A0, b"\x10\x81\x11\x07")]
         bench.store.write_object(0x2420, 0, bytes(64))
         bench.store.write_object(0x2410, 2, u32(10))
         bench.store.write_object(0x2410, 3, bytes([1]))
@@ -326,7 +326,7 @@ def test_plant_node_says_fieldbus_frames_its_receiver_lost_during_a_trial_and_be
         assert bench.status == PlantStatus.RUNNING
         bench._on_fieldbus(overflow_error_frame(1000.0, "fieldbus"))
         rig.step_at(1000.02)
-        assert bench.status == PlantStatus.FAULT and bench.fault == PlantFault.BAD_FRAME
+        assert bench.status == PlantStatus.FAULT and bench.fault == PlantFault.FRAMES_LOST
         assert "fieldbus frames lost" in bench.last_fault_message
     finally:
         rig.close()

@@ -59,6 +59,12 @@ def test_emcy_frames_as_faults() -> None:
     # the plant node lost the host's heartbeat
     rec = emcy_fault(EmcyFrame(32, 0xFF00, bytes([PlantFault.HOST_LOST, 0, 0, 0]), 1.0, 2.0))
     assert (rec.kind, rec.node, rec.node_id) == (FaultKind.HOST_LOST, "host", 127)
+    # the plant node's fieldbus receiver lost frames at tick 5
+    rec = emcy_fault(EmcyFrame(32, 0x8110, bytes([PlantFault.FRAMES_LOST, 0, 5, 0]), 1.0, 2.0))
+    assert (rec.kind, rec.node, rec.tick, rec.detected_by) == (FaultKind.FRAME_ERROR, "plant", 5, "plant")
+    assert rec.message == (
+        "fieldbus frames lost in the plant node's receiver (receive overflow) at tick 5 (EMCY 0x8110 of the plant node)"
+    )
     # a drive: the host lost, an io tick out of sequence, a following error
     rec = emcy_fault(EmcyFrame(2, 0x8130, b"", 1.0, 2.0))
     assert (rec.kind, rec.node, rec.detected_by) == (FaultKind.HOST_LOST, "host", "drive2")

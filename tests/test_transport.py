@@ -401,8 +401,8 @@ def test_a_lost_datagram_is_a_fault_of_the_run(tmp_path: Path) -> None:
     block: the losses are reported as bus errors and the run stops with a fault (exit code 3)
     instead of going on with frames missing. The losses come at the first bursts of the bus (the
     nodes' boot-ups answering the host's NMT reset, the host's first SDO requests): a loss in the
-    host's receiver (it may have been a boot-up or an SDO response) or a node's EMCY 0x8110 (its
-    receiver lost the NMT command or an SDO request) is the run's fault at once, whichever comes
+    host's receiver (it may have been a boot-up or an SDO response) or a node's EMCY 0x8110 (a
+    drive's or the plant node's receiver lost the NMT command or an SDO request) is the run's fault at once, whichever comes
     first; never the host's ``--wait`` running out (30 s here) or an SDO request timing out."""
     reason = netns_unavailable_reason()
     if reason:
@@ -422,8 +422,12 @@ def test_a_lost_datagram_is_a_fault_of_the_run(tmp_path: Path) -> None:
     assert summary["completed"] is False and summary["faults"]  # which loss comes first is a race
     first = summary["faults"][0]
     assert (first["kind"], first["message"]) in (
-        ("frame_error", "a damaged frame on fieldbus (bus error frame)"),
-        ("emcy", f"fault of {first['node']} (EMCY 0x8110)"),
+        ("frame_error", "a damaged frame on fieldbus (bus error frame)"),  # the host's receiver or a channel monitor's
+        ("emcy", f"fault of {first['node']} (EMCY 0x8110)"),  # a drive's
+        (
+            "frame_error",
+            "fieldbus frames lost in the plant node's receiver (receive overflow) at tick 0 (EMCY 0x8110 of the plant node)",
+        ),
     ), first
     logs = "".join(p.read_text() for p in (out / "logs").glob("*.log"))
     assert "datagram(s) lost" in logs and "reported as a bus error frame" in logs
