@@ -271,18 +271,8 @@ class RobotLoop:
             self.backlog_max = waiting + 1
 
     def frames_lost(self) -> None:
-        """The plant's fieldbus receiver lost frames (it overflowed; udp_multicast reports a datagram
-        the kernel dropped so): a SYNC may be among them, and the periods stepped would no longer be
-        the SYNCs on the bus without anybody knowing -- a robot fault (FRAMES_LOST, EMCY 0x8110)."""
-        if not self.on:
-            logger.warning("node %d: fieldbus frames lost while the robot is off", self.node_id)
-            return
-        self._fail(
-            RobotFault.FRAMES_LOST,
-            0,
-            f"fieldbus frames lost in the plant's receiver in period {self.periods} (receive overflow): a SYNC may be "
-            "among them, the periods no longer the SYNCs on the bus; torque-free until reset",
-        )
+        """The fieldbus receiver overflowed: a SYNC may be lost (robot fault FRAMES_LOST, EMCY 0x8110)."""
+        self._fail(RobotFault.FRAMES_LOST, 0, f"fieldbus frames lost in period {self.periods}: a SYNC may be among them")
 
     def interrupt(self) -> None:
         """A trial begins: the period in progress is dropped (its frames are stale for the trial); the
