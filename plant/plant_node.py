@@ -237,11 +237,11 @@ class PlantNode(SlaveNode):
         the robot faults (a SYNC may be lost, :meth:`plant.plant_node_robot.RobotLoop.frames_lost`);
         a running trial ends with FRAMES_LOST (EMCY 0x8110); otherwise that EMCY alone says so (the
         host's request that was lost would time out on its side)."""
+        if self.robot.on:  # stepping on SYNC in every NMT state (its EMCY is not sent in STOPPED)
+            self.robot.frames_lost()
+            return
         if self._nmt_state == NmtState.STOPPED:
             logger.warning("node %d: fieldbus frames lost while NMT STOPPED", self.node_id)
-            return
-        if self.robot.on:
-            self.robot.frames_lost()
             return
         lockstep = self.lockstep
         message = f"fieldbus frames lost in the plant's receiver at tick {lockstep.tick} (receive overflow)"
