@@ -18,6 +18,7 @@ import sys
 from collections.abc import Iterator
 from pathlib import Path
 
+import can
 import numpy as np
 import pytest
 from cli_util import run_cli
@@ -117,8 +118,6 @@ def test_a_bus_error_frame_the_monitors_hear_is_said_and_counted(robot: RobotPro
     """A frame damaged on the wire (a master's CAN controller sends the error frame; udp_multicast
     reports a datagram lost in the monitor's receiver so): the robot keeps stepping, but its
     candump log and bus counts miss a frame, and the console and the summary say so, once."""
-    import can
-
     where = robot.ready()
     with can.Bus(interface=where["interface"], channel=where["channel"]) as master:
         for _ in range(2):

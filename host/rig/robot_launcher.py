@@ -168,7 +168,7 @@ class RobotLauncher(LaunchCore):
                 return self._fault()
             fieldbus = next((m for m in self.monitors if m.name == FIELDBUS and m.error_frames), None)
             if fieldbus is not None and not self.watch.wait_booted(0):
-                missing = sorted((set(DRIVE_NODE_IDS) | {DEFAULT_PLANT_NODE_ID}) - self.watch.booted)
+                missing = self._not_booted()
                 self._end = {
                     "reason": "fault",
                     "channel": FIELDBUS,
@@ -182,7 +182,7 @@ class RobotLauncher(LaunchCore):
                 return EXIT_FAULT
             self._say_monitor_errors()
             if time.monotonic() > deadline:
-                missing = sorted((set(DRIVE_NODE_IDS) | {DEFAULT_PLANT_NODE_ID}) - self.watch.booted)
+                missing = self._not_booted()
                 self._end = {"reason": "boot timeout", "missing_nodes": missing}
                 self._say_err(
                     f"ilcrig: error: node(s) {missing} did not boot within {BOOT_TIMEOUT_S * timeout_scale():.0f} s; "
@@ -190,6 +190,10 @@ class RobotLauncher(LaunchCore):
                 )
                 return EXIT_CHILD_FAILED
         return None
+
+    def _not_booted(self) -> list[int]:
+        """The node ids of the robot whose boot-up the watch has not seen."""
+        return sorted((set(DRIVE_NODE_IDS) | {DEFAULT_PLANT_NODE_ID}) - self.watch.booted)
 
     def _announce(self, tc: TransportConfig, mode: str) -> None:
         self._ready = True

@@ -281,12 +281,9 @@ class Watchdog:
             return None
         if not self._armed:
             return self._cause_heard(now) if self._starting else None
-        record = self._bus_fault(now)
+        record = self._cause_heard(now)
         if record is not None:
             return record
-        pending = self.events.take_emcy()
-        if pending:
-            return emcy_fault(min(pending, key=lambda f: f.t_mono), self.times)
         if self.producer is not None:
             gap = self.producer.take_gap(self.consumer_s)
             if gap is not None and (self.stopped_at is None or gap[1] - gap[0] < self.stopped_at):
