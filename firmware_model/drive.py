@@ -361,6 +361,13 @@ class Drive:
         """The earliest time [s] on :attr:`clock` at which :meth:`service` has work."""
         return self.pdo.next_deadline()
 
+    @property
+    def tick_settled(self) -> bool:
+        """True when the io ticks so far left :meth:`service` nothing to do before
+        :meth:`next_deadline`: no EMCY waits and no PDO timer runs (an event-driven TPDO, an RPDO
+        deadline); the node may then leave out its service after a tick."""
+        return not self.power.emcy_pending and self.pdo.engine.timers_idle()
+
     # ------------------------------------------------------------------ SYNC and PDOs
 
     @property

@@ -158,6 +158,11 @@ class CyclicDriveLike(DriveLike, Protocol):
         """When :meth:`service` has work next [s]."""
         ...
 
+    @property
+    def tick_settled(self) -> bool:
+        """True when the io ticks left :meth:`service` nothing to do before :meth:`next_deadline`."""
+        ...
+
     def pop_tpdos(self) -> list[tuple[int, bytes]]:
         """(COB-ID, payload) of the TPDOs due after the last io tick."""
         ...
@@ -216,6 +221,7 @@ class DriveNode(SlaveNode):
         self._next_full_tick = 0  # tick number (within the trial) expected next
         self._tick_origin = 0  # wire tick of the trial's tick 0 (from TRIAL_START)
         self._held: tuple[int, int] | None = None  # (count, wire tick) of an encoder frame waiting for its SYNC
+        self._io_plain = True  # the io frames since the last io_settled() were ticks run at once, nothing else
         # the SYNC/PDO service is a declared optional capability (CyclicDriveLike)
         self._cyclic: CyclicDriveLike | None = cyclic
         self.lockstep = lockstep
@@ -242,14 +248,17 @@ class DriveNode(SlaveNode):
                 count, wire = io_frames.encoder_fields(msg)
             except io_frames.IoFrameError as err:
                 logger.warning("node %d: bad encoder frame: %s", self.node_id, err)
+                self._io_plain = False
                 return
             if self._cyclic is None or self._cyclic.tick_ready:
                 self._run_tick(count, wire)
             else:
+                self._io_plain = False
                 if self._held is not None:
                     logger.warning("node %d: encoder frame of wire tick %d replaced before its SYNC", self.node_id, self._held[1])
                 self._held = (count, wire)
         elif cob == io_frames.CONTROL_COB_ID:
+            self._io_plain = False
             try:
                 control = io_frames.decode_control(msg)
             except io_frames.IoFrameError as err:
@@ -275,7 +284,17 @@ class DriveNode(SlaveNode):
         self.io.send(io_frames.encode_torque(self.joint, wire, torque, self._torque_status()))
         self.frames_out += 1
         self._send_tpdos()
+        if self.backlog.frames:
+            self._io_plain = False  # the frames behind its SYNC are handled now
         self.backlog.tick_ran()
+
+    def io_settled(self) -> bool:
+        """The io frames of this wake-up were encoder frames whose ticks ran at once (no control
+        frame, none held for its SYNC, no fieldbus frame released behind one) and the drive has
+        nothing for its service (:attr:`firmware_model.drive.Drive.tick_settled`: no EMCY, no PDO
+        timer): the node's service may wait for its deadline."""
+        plain, self._io_plain = self._io_plain, True
+        return plain and self._cyclic is not None and self._cyclic.tick_settled
 
     def _on_fieldbus(self, msg: can.Message) -> None:
         """Lockstep: a frame that comes while a SYNC waits for its io tick waits too, in order."""

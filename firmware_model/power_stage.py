@@ -190,6 +190,11 @@ class PowerStage:
             return sw | _TARGET_REACHED
         return sw
 
+    @property
+    def emcy_pending(self) -> bool:
+        """True while EMCY messages wait for :meth:`pop_emcy`."""
+        return bool(self._emcy)
+
     def pop_emcy(self) -> list[Emcy]:
         """Pending EMCY messages ``(error code, error register, 5 manufacturer bytes)``, oldest
         first; the queue is emptied."""

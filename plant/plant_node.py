@@ -319,6 +319,16 @@ class PlantNode(SlaveNode):
             return robot if trial is None else trial
         return min(trial, robot)
 
+    def io_settled(self) -> bool:
+        """The torque frames of a wake-up completed ticks (or periods) or wait for the others, and
+        left no deadline earlier than the one the service knows (a tick sent re-arms its timeout
+        later; a held tick or period is due earlier and is served): the service may wait for it.
+        Faults need no service: the plant sends their EMCY at once."""
+        if self.lockstep.pending_start:
+            return False
+        due = self.next_deadline()
+        return due is None or due >= self._due_s
+
     def on_service(self, now: float) -> None:
         if self.lockstep.pending_start:
             self.robot.interrupt()

@@ -666,3 +666,105 @@ def test_lockstep_drive_of_a_sync_stepped_plant() -> None:
     finally:
         for bus in (fb_node, host, io_node, plant):
             bus.shutdown()
+
+
+class CountingNode(DriveNode):
+    """A drive node that counts its services (:meth:`on_service` calls)."""
+
+    services = 0
+
+    def on_service(self, now: float) -> None:
+        self.services += 1
+        super().on_service(now)
+
+
+class AlwaysServedNode(CountingNode):
+    """The node as it was before a wake-up of io ticks alone could leave its service out: the
+    reference the service-skipping node is compared with."""
+
+    def io_settled(self) -> bool:
+        super().io_settled()
+        return False
+
+
+def _ticking_script(node_cls: type[CountingNode]) -> tuple[list[tuple[float, int, bytes]], int]:
+    """A drive ticked every 1 ms on a manual clock for 1.5 s while its timers run: heartbeat 50 ms,
+    two EMCYs under a 10 ms inhibit time raised between ticks, an SDO upload the master leaves
+    hanging, then (back in PRE-OPERATIONAL and started again) an event-driven TPDO1 with an event
+    timer of 20 ms. Returns (clock time [s], COB-ID, data) of every fieldbus frame the node sent,
+    and the number of its services."""
+    fb_node, host, io_node = _virtual_buses("settle")
+    plant = can.Bus(interface="virtual", channel=io_node.channel_id)  # type: ignore[attr-defined]
+    clock = ManualClock(100.0)
+    drive = Drive(NODE)
+    node = node_cls(drive, fb_node, io_node, clock=clock)
+    out: list[tuple[float, int, bytes]] = []
+
+    def step(t: float) -> None:
+        clock.now = t
+        node.step(0.0)
+        while (msg := host.recv(timeout=0)) is not None:
+            out.append((round(t, 6), msg.arbitration_id, bytes(msg.data)))
+        while plant.recv(timeout=0) is not None:
+            pass
+
+    def send(cob: int, data: bytes, t: float) -> None:
+        host.send(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
+        step(t)
+
+    def sdo_write(index: int, sub: int, value: int, size: int, t: float) -> None:
+        cs = {1: 0x2F, 2: 0x2B, 4: 0x23}[size]
+        send(0x600 + NODE, bytes([cs, index & 0xFF, index >> 8, sub]) + value.to_bytes(size, "little").ljust(4, b"\0"), t)
+
+    try:
+        node.start()
+        sdo_write(0x1017, 0, 50, 2, 100.0)  # heartbeat 50 ms
+        sdo_write(0x1015, 0, 100, 2, 100.0)  # EMCY inhibit time 10 ms
+        send(0, bytes([0x01, NODE]), 100.0)  # NMT start
+        for k in range(1500):
+            t = 100.0 + 0.001 * (k + 1)
+            if k == 100:
+                drive.power.warning(0x8110, bytes(5))
+                drive.power.warning(0x8110, bytes(5))
+            if k == 200:  # 0x1008 (device name): a segmented upload the master never continues
+                send(0x600 + NODE, bytes.fromhex("40 08 10 00 00 00 00 00"), t)
+            if k == 1300:  # TPDO1 = statusword, type 255, event timer 20 ms, mapped in PRE-OPERATIONAL
+                send(0, bytes([0x80, NODE]), t)
+                for index, sub, value, size in (
+                    (0x1800, 1, 0x8000_0180 + NODE, 4),
+                    (0x1A00, 0, 0, 1),
+                    (0x1A00, 1, 0x60410010, 4),
+                    (0x1A00, 0, 1, 1),
+                    (0x1800, 2, 255, 1),
+                    (0x1800, 5, 20, 2),
+                    (0x1800, 1, 0x180 + NODE, 4),
+                ):
+                    sdo_write(index, sub, value, size, t)
+                send(0, bytes([0x01, NODE]), t)
+            plant.send(io_frames.encode_encoder(NODE - 1, k, 1000 + k))
+            step(t)
+        for t in (102.0, 102.5):  # no more ticks: the service on its own deadlines
+            step(t)
+    finally:
+        for bus in (fb_node, host, io_node, plant):
+            bus.shutdown()
+    return out, node.services
+
+
+def test_a_wake_up_of_io_ticks_alone_serves_every_timer_on_time() -> None:
+    """A wake-up that handled only io ticks may leave the node's service out until its next deadline
+    (:meth:`DriveNode.io_settled`). Every frame the service sends must still go out at the same
+    clock time as from a node that serves every wake-up: heartbeats, EMCYs under their inhibit
+    time, the SDO server's timeout, an event-driven TPDO's event timer."""
+    warm_up()
+    settled, services = _ticking_script(CountingNode)
+    served, every = _ticking_script(AlwaysServedNode)
+
+    assert settled == served
+    assert every > 1500 and services < 0.4 * every  # it did leave the service out (not with the event timer)
+    kinds = {(cob, data[:2]) for _, cob, data in served}
+    assert (0x700 + NODE, b"\x05") in kinds  # heartbeats in OPERATIONAL
+    assert [t for t, cob, _ in served if cob == 0x80 + NODE] == [100.101, 100.111]  # the inhibit time
+    assert sum(1 for _, cob, _ in served if cob == 0x180 + NODE) >= 10  # the event timer
+    (abort,) = [(t, data) for t, cob, data in served if cob == 0x580 + NODE and data[0] == 0x80]
+    assert abort == (101.202, bytes.fromhex("80 08 10 00 00 00 04 05"))  # the SDO timeout (1 s): on time

@@ -438,6 +438,18 @@ class PdoEngine:
                 return self._sent(pdo, self.pack(pdo), self.clock())
         return None
 
+    def timers_idle(self) -> bool:
+        """True when no PDO timer can fall due: no event-driven TPDO in the valid set (their event
+        timer, inhibit time and change of state) and no RPDO deadline armed. A node may then leave
+        out :meth:`poll` and :meth:`expired_rpdos` until a frame or a clock deadline comes."""
+        plan = self._plan if self._plan is not None else self._read_plan()
+        if plan.tx_event:
+            return False
+        for pdo in self.rpdos:
+            if pdo.deadline_s is not None:
+                return False
+        return True
+
     def next_deadline(self) -> float | None:
         """The earliest time [s] at which :meth:`poll` or :meth:`expired_rpdos` has work (None:
         none)."""

@@ -203,6 +203,12 @@ class SdoServer:
             self._last_activity_s = self._now_s
         return response
 
+    def next_deadline(self) -> float | None:
+        """When a transfer in progress times out [s of the caller's clock] (None: none is)."""
+        if self._state is _State.IDLE or self._last_activity_s is None:
+            return None
+        return self._last_activity_s + self.TIMEOUT_S * _TIMEOUT_SCALE
+
     def tick(self, now_s: float) -> bytes | None:
         """Report the time [s]; abort a transfer that has been silent for over TIMEOUT_S.
 

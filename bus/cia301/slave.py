@@ -44,6 +44,7 @@ plant's io frames).
 from __future__ import annotations
 
 import logging
+import math
 import select
 import signal
 import threading
@@ -146,6 +147,14 @@ class SlaveNode:
         self._fieldbus_ids: frozenset[int] | None = None
         #: why :meth:`run` ended early: the bus failed (None while it works)
         self.bus_error: str | None = None
+        #: the last service was left out (:meth:`io_settled`): :attr:`_due_s` still holds
+        self._settled = False
+        #: when the service has work next [s of the clock]: the earliest deadline (inf: none), as
+        #: the last service left it (for :meth:`io_settled`)
+        self._due_s = 0.0
+        #: the service runs at least this often while io frames keep coming [s of the clock]: the
+        #: bound of a deadline an :meth:`io_settled` missed
+        self._serve_by_s = 0.0
 
     def _filenos(self) -> list[int] | None:
         fds = []
@@ -170,6 +179,12 @@ class SlaveNode:
     def next_deadline(self) -> float | None:
         """Clock time [s] by which :meth:`on_service` must run next (None = no deadline)."""
         return None
+
+    def io_settled(self) -> bool:
+        """True when the io frames just handled left the service nothing to do before the
+        deadlines known at the start of the wake-up: no deadline moved earlier, nothing waits to be
+        sent. :meth:`step` then leaves the service out (default False: it serves every wake-up)."""
+        return False
 
     def on_nmt_reset(self, command: NmtCommand) -> None:
         """Called after the app handled an NMT reset, before the boot-up frame is sent."""
@@ -261,22 +276,15 @@ class SlaveNode:
         :return: number of frames received.
         """
         now = self._clock()
-        wait = max_wait_s
-        due = self._next_heartbeat_s
-        if due is not None and due - now < wait:
-            wait = due - now
-        due = self.next_deadline()
-        if due is not None and due - now < wait:
-            wait = due - now
-        due = self.consumer.next_deadline()
-        if due is not None and due - now < wait:
-            wait = due - now
-        due = self.emcy.next_deadline()
-        if due is not None and due - now < wait:
-            wait = due - now
+        if not self._settled:
+            self._due_s = self._earliest_due()
+            self._serve_by_s = min(self._due_s, now + self.MAX_WAIT_S)
+        wait = self._due_s - now
+        if wait > max_wait_s:
+            wait = max_wait_s
         if wait < 0.0:
             wait = 0.0
-        handled = 0
+        self._settled = False
         fds = self._fds
         if fds is not None:
             io_ready = self._io_pending()
@@ -289,35 +297,52 @@ class SlaveNode:
                 if ready:
                     io_ready = fds[1] in ready
                     fieldbus_ready = fds[0] in ready
-            if fieldbus_ready:
-                handled += self._drain(self.fieldbus)
-            if io_ready:
-                handled += self._drain(self.io)
+            fieldbus_frames = self._drain(self.fieldbus) if fieldbus_ready else 0
+            handled = fieldbus_frames + (self._drain(self.io) if io_ready else 0)
         else:
-            handled += self._drain(self.fieldbus)
-            handled += self._drain(self.io)
+            fieldbus_frames = self._drain(self.fieldbus)
+            handled = fieldbus_frames + self._drain(self.io)
             if not handled:
                 end = self._clock() + wait
                 while True:
                     msg = self.io.recv(timeout=self.POLL_S)
                     if msg is not None:
-                        handled += self._drain(self.fieldbus)
+                        fieldbus_frames = self._drain(self.fieldbus)
                         self.on_io(msg)
-                        handled += 1 + self._drain(self.io)
+                        handled = fieldbus_frames + 1 + self._drain(self.io)
                         break
                     msg = self.fieldbus.recv(timeout=0)
                     if msg is not None:
                         self._on_fieldbus(msg)
-                        handled += 1 + self._drain(self.fieldbus) + self._drain(self.io)
+                        fieldbus_frames = 1 + self._drain(self.fieldbus)
+                        handled = fieldbus_frames + self._drain(self.io)
                         break
                     if self._clock() >= end:
                         break
         self.frames_in += handled
         now = self._clock()
+        if handled and not fieldbus_frames and now < self._serve_by_s and self.io_settled():
+            self._settled = True  # io frames alone, nothing due: the service would find no work
+            return handled
         self._service(now)
         self.on_service(now)
         self.emcy.flush(now)
         return handled
+
+    def _earliest_due(self) -> float:
+        """When the service has work next [s; inf: no deadline]: the heartbeat,
+        :meth:`next_deadline`, the heartbeat consumer, a waiting EMCY, the SDO transfer's timeout."""
+        earliest = math.inf
+        for due in (
+            self._next_heartbeat_s,
+            self.next_deadline(),
+            self.consumer.next_deadline(),
+            self.emcy.next_deadline(),
+            self.sdo.next_deadline(),
+        ):
+            if due is not None and due < earliest:
+                earliest = due
+        return earliest
 
     def _drain(self, bus: can.BusABC) -> int:
         """Handle every frame waiting on ``bus`` (one batch: what arrives meanwhile makes the bus
