@@ -1,6 +1,6 @@
 """Optional capabilities of a python-can bus beyond :class:`can.BusABC`, and how callers use them.
 
-This module owns the six documented extras a transport may offer on top of python-can's
+This module owns the seven documented extras a transport may offer on top of python-can's
 ``BusABC`` (which stays the interface of every transport); callers use an extra only when the
 bus declares it — an ``isinstance`` check against the :class:`typing.Protocol` below, done once
 when the caller is built — and fall back to plain ``BusABC`` calls otherwise:
@@ -9,6 +9,11 @@ when the caller is built — and fall back to plain ``BusABC`` calls otherwise:
   client, :class:`bus.transports.hub.client.HubBus`, sends them as one socket write; the
   frames reach the bus in order, exactly as with one :meth:`can.BusABC.send` each).
   :func:`batch_sender` returns ``send_batch`` or a loop over ``send``.
+* :class:`DataFrameSender` — ``send_data_frames(frames)``: classic data frames given as
+  (11-bit identifier, data) pairs, in order, in one write, without a :class:`can.Message` per
+  frame (the hub client packs its records directly); for the per-tick frames of the io channel
+  (the plant's four encoder frames, a drive's torque frame). :func:`data_frame_sender` returns it,
+  or a callable that builds the messages and sends them through :func:`batch_sender`.
 * :class:`BufferedReceiver` — ``frames_pending()``: the bus reads several frames per system
   call into a local queue, so a frame may be waiting although ``fileno()`` is not readable. A
   ``select()``-based caller must not wait while ``frames_pending()`` is true
@@ -52,9 +57,11 @@ __all__ = [
     "BatchReceiver",
     "BatchSender",
     "BufferedReceiver",
+    "DataFrameSender",
     "FrameArrayReceiver",
     "batch_receiver",
     "batch_sender",
+    "data_frame_sender",
     "exact_standard_ids",
     "frame_bits",
     "frames_from_messages",
@@ -89,6 +96,46 @@ class BatchSender(Protocol):
         :raises can.CanOperationError: as :meth:`can.BusABC.send`
         """
         ...
+
+
+@runtime_checkable
+class DataFrameSender(Protocol):
+    """A bus that sends classic data frames given as (identifier, data) pairs, in order."""
+
+    def send_data_frames(self, frames: Sequence[tuple[int, bytes]]) -> None:
+        """Send ``frames`` — (11-bit identifier, 0..8 data bytes) each: classic CAN data frames
+        with standard identifiers — in order, as :meth:`can.BusABC.send` would one by one.
+
+        :raises ValueError: an identifier outside 0..0x7FF or more than 8 data bytes (nothing is sent)
+        :raises can.CanOperationError: as :meth:`can.BusABC.send`
+        """
+        ...
+
+
+def data_frame_sender(bus: can.BusABC) -> Callable[[Sequence[tuple[int, bytes]]], None]:
+    """``bus.send_data_frames`` when ``bus`` is a :class:`DataFrameSender`, else one
+    :class:`can.Message` per frame through :func:`batch_sender` (the same checks)."""
+    if isinstance(bus, DataFrameSender):
+        return bus.send_data_frames
+    send = batch_sender(bus)
+
+    def send_messages(frames: Sequence[tuple[int, bytes]]) -> None:
+        msgs = []
+        for can_id, data in frames:
+            check_data_frame(can_id, data)
+            msgs.append(new_message(can_id, bytearray(data)))
+        send(msgs)
+
+    return send_messages
+
+
+def check_data_frame(can_id: int, data: bytes) -> None:
+    """The contract of :meth:`DataFrameSender.send_data_frames` for one frame.
+
+    :raises ValueError: an identifier outside 0..0x7FF or more than 8 data bytes
+    """
+    if not 0 <= can_id <= 0x7FF or len(data) > 8:
+        raise ValueError(f"not a classic data frame with a standard identifier: 0x{can_id:X}, {len(data)} bytes")
 
 
 @runtime_checkable

@@ -39,6 +39,7 @@ from __future__ import annotations
 import enum
 import logging
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import can
@@ -249,16 +250,43 @@ def encode_encoder(joint: int, tick: int, count: int) -> can.Message:
     return new_message(ENCODER_COB_BASE + joint, bytearray(_ENCODER.pack(count, tick & TICK_MASK)))
 
 
+def encoder_frames(tick: int, counts: Sequence[int]) -> list[tuple[int, bytes]]:
+    """The encoder frames of one tick, joint 0 first, as (COB-ID, data) pairs
+    (:class:`bus.bus_features.DataFrameSender`): the frames :func:`encode_encoder` gives.
+
+    :raises IoFrameError: not one count per joint, or a count outside int32
+    """
+    if len(counts) != N_JOINTS:
+        raise IoFrameError(f"one encoder count per joint expected, got {len(counts)}")
+    wire = tick & TICK_MASK
+    pack = _ENCODER.pack
+    out = []
+    for joint, count in enumerate(counts):
+        if not INT32_MIN <= count <= INT32_MAX:
+            _check_i32(count, "encoder count")
+        out.append((ENCODER_COB_BASE + joint, pack(count, wire)))
+    return out
+
+
 def encode_torque(joint: int, tick: int, torque_units: int, status: TorqueStatus | int) -> can.Message:
     """Torque frame drive ``joint`` → plant.
 
     :raises IoFrameError: bad joint index, torque outside int32, status outside u8
     """
     _check_joint(joint)
+    return new_message(TORQUE_COB_BASE + joint, bytearray(torque_data(tick, torque_units, status)))
+
+
+def torque_data(tick: int, torque_units: int, status: TorqueStatus | int) -> bytes:
+    """The data bytes of a torque frame (the frame of :func:`encode_torque` without a
+    :class:`can.Message`: (:func:`torque_cob_id`, these) for :class:`bus.bus_features.DataFrameSender`).
+
+    :raises IoFrameError: torque outside int32, status outside u8
+    """
     _check_i32(torque_units, "torque")
     if not 0 <= int(status) <= 0xFF:
         raise IoFrameError(f"status {status} does not fit u8")
-    return new_message(TORQUE_COB_BASE + joint, bytearray(_TORQUE.pack(torque_units, tick & TICK_MASK, int(status))))
+    return _TORQUE.pack(torque_units, tick & TICK_MASK, int(status))
 
 
 def encode_control(command: IoControlCommand | int, tick: int, n_ticks: int = 0) -> can.Message:

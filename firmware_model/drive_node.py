@@ -55,6 +55,7 @@ from typing import Any, Protocol, runtime_checkable
 import can
 
 from bus import io_frames, units
+from bus.bus_features import data_frame_sender
 from bus.cia301.slave import (
     PRODUCER_HEARTBEAT_INDEX,
     SlaveApp,
@@ -232,6 +233,8 @@ class DriveNode(SlaveNode):
         #: lockstep: the fieldbus frames waiting for the period in progress
         self.backlog = SyncBacklog(self.node_id, super()._on_fieldbus, sync_id, self.on_frames_lost, hold_s)
         io.set_filters(self.io_filters())
+        # the torque frame of a tick is packed without a can.Message where the bus can (the hub)
+        self._send_data_frames = data_frame_sender(io)
 
     # ------------------------------------------------------------------ io
 
@@ -281,7 +284,7 @@ class DriveNode(SlaveNode):
         tick = self._next_full_tick + io_frames.tick_diff(rel, self._next_full_tick)
         self._next_full_tick = tick + 1
         torque = int(self.drive.io_tick(tick, count))
-        self.io.send(io_frames.encode_torque(self.joint, wire, torque, self._torque_status()))
+        self._send_data_frames(((self._torque_id, io_frames.torque_data(wire, torque, self._torque_status())),))
         self.frames_out += 1
         self._send_tpdos()
         if self.backlog.frames:

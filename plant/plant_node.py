@@ -41,7 +41,7 @@ from typing import Any
 import can
 
 from bus import io_frames, units
-from bus.bus_features import batch_sender, frame_gatherer
+from bus.bus_features import data_frame_sender, frame_gatherer
 from bus.cia301.nmt import NmtCommand, NmtState, next_state
 from bus.cia301.object_store import ObjectStore
 from bus.cia301.slave import SlaveNode, install_sigterm, quiet_shutdown
@@ -139,8 +139,9 @@ class PlantNode(SlaveNode):
         self._nmt_state = NmtState.PRE_OPERATIONAL
         super().__init__(self, fieldbus, io, node_id=node_id, clock=clock)
         self.trial_status = TrialStatus(self.node_id)
-        # the four encoder frames of a tick go out in one write where the bus can (the hub)
-        self._batch = batch_sender(io)
+        # the four encoder frames of a tick go out in one write where the bus can (the hub), packed
+        # without a can.Message each
+        self._data_frames = data_frame_sender(io)
         self.model = TrialModel(self.node_id, plant_factory, disturbance_fn)
         self.lockstep = LockstepMaster(
             self.node_id,
@@ -357,9 +358,9 @@ class PlantNode(SlaveNode):
         self.io.send(msg)
         self.frames_out += 1
 
-    def _send_io_batch(self, msgs: list[can.Message]) -> None:
-        self._batch(msgs)
-        self.frames_out += len(msgs)
+    def _send_io_batch(self, frames: list[tuple[int, bytes]]) -> None:
+        self._data_frames(frames)
+        self.frames_out += len(frames)
 
     def _send_fault_emcy(self, emcy: Emcy) -> None:
         code, register, data = emcy

@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import logging
 import math
-import struct
 import time
 from collections import deque
 from collections.abc import Callable
@@ -52,7 +51,6 @@ from bus import io_frames
 from bus.cia301.emcy import EmcyCode
 from bus.cia301.object_store import ObjectStore
 from bus.cyclic import SYNC_BACKLOG_MAX
-from bus.fastmsg import new_message
 from bus.plant_objects import (
     ROBOT_FAULT_EMCY,
     ConfigSub,
@@ -87,9 +85,6 @@ _LIMIT_FAULTS = {"end_stop": RobotFault.END_STOP, "screw_stop": RobotFault.SCREW
 #: faults kept with their details for the session summary
 FAULTS_KEPT: int = 100
 
-_ENC_LO = io_frames.ENCODER_COB_BASE
-#: the encoder frame's payload (bus/io_frames.py): i32 counts, u16 wire tick
-_ENC = struct.Struct("<iH")
 _ALL_HELD = (1 << _N) - 1
 #: the brakes of a period (bit j: joint j + 1 held) as the plant's ``locked`` mask
 _HELD_MASKS = [np.array([bool(bits >> j & 1) for j in range(_N)]) for bits in range(1 << _N)]
@@ -104,7 +99,7 @@ class RobotLoop:
     :param store: the node's object store (0x2400 configuration, 0x2450 mode).
     :param lockstep: the trial protocol (precedence, the wire tick counter).
     :param model: the plant (shared with the trials).
-    :param send_batch: sends the four encoder frames of a period.
+    :param send_batch: sends the four encoder frames of a period ((COB-ID, data) pairs).
     :param send_emcy: sends one EMCY ``(error code, error register, data)``.
     :param gather: asks the io transport to deliver the plant's frames n at a time
         (:func:`bus.bus_features.frame_gatherer`): 4 while the robot steps — the four torque frames
@@ -123,7 +118,7 @@ class RobotLoop:
         lockstep: LockstepMaster,
         model: TrialModel,
         *,
-        send_batch: Callable[[list[can.Message]], None],
+        send_batch: Callable[[list[tuple[int, bytes]]], None],
         send_emcy: Callable[[Emcy], None],
         gather: Callable[[int], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
@@ -366,10 +361,7 @@ class RobotLoop:
             self._gather(_N)
             self._gathering = True
         self._wire = wire = self.lockstep.claim_wire_tick()
-        w16 = wire & io_frames.TICK_MASK
-        self._send_batch(
-            [new_message(_ENC_LO + j, bytearray(_ENC.pack(c, w16))) for j, c in enumerate(mech.plant.encoder_counts().tolist())]
-        )
+        self._send_batch(io_frames.encoder_frames(wire, mech.plant.encoder_counts().tolist()))
         for tracker in self._trackers:
             tracker.reset(wire)
         self._got = 0

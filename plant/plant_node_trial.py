@@ -78,7 +78,8 @@ class LockstepMaster:
     :param store: the node's object store (configuration 0x2400, trial 0x2410, initial state 0x2420).
     :param status: where the outcome of each trial goes.
     :param model: the plant and the disturbance of the trials.
-    :param send: sends one io frame; ``send_batch`` sends the four encoder frames of a tick.
+    :param send: sends one io frame; ``send_batch`` sends the four encoder frames of a tick
+        ((COB-ID, data) pairs, :class:`bus.bus_features.DataFrameSender`).
     :param send_emcy: sends one EMCY ``(error code, error register, data)``.
     :param gather: asks the io transport to deliver the frames for the plant n at a time
         (:func:`bus.bus_features.frame_gatherer`): 4 from a trial's start (the torques of a tick
@@ -101,7 +102,7 @@ class LockstepMaster:
         model: TrialModel,
         *,
         send: Callable[[can.Message], None],
-        send_batch: Callable[[list[can.Message]], None],
+        send_batch: Callable[[list[tuple[int, bytes]]], None],
         send_emcy: Callable[[Emcy], None],
         gather: Callable[[int], None] | None = None,
         clock: Callable[[], float],
@@ -307,7 +308,7 @@ class LockstepMaster:
 
     def _send_encoders(self, counts: np.ndarray) -> None:
         wire = self._origin + self.tick
-        self._send_batch([io_frames.encode_encoder(j, wire, int(counts[j])) for j in range(_N)])
+        self._send_batch(io_frames.encoder_frames(wire, counts.tolist()))
         self.io_sent += _N
         self._got = 0
         now = self._clock()

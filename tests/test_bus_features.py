@@ -1,5 +1,7 @@
 """bus.bus_features on python-can's own buses: every waiting frame the filters pass is taken, past
-the frames the filters drop (python-can's software filtering, ``virtual`` and ``udp_multicast``)."""
+the frames the filters drop (python-can's software filtering, ``virtual`` and ``udp_multicast``);
+data frames sent as (identifier, data) pairs arrive as sent frames would, on a virtual bus and on
+the hub."""
 
 from __future__ import annotations
 
@@ -8,8 +10,20 @@ from collections.abc import Iterator
 
 import can
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from bus.bus_features import BatchReceiver, batch_receiver, exact_standard_ids, recv_waiting
+from bus.bus_features import (
+    BatchReceiver,
+    DataFrameSender,
+    batch_receiver,
+    data_frame_sender,
+    exact_standard_ids,
+    recv_waiting,
+)
+from bus.transports.hub.client import HubBus
+from bus.transports.hub.process import start_hub
+from bus.transports.hub.records import encode_data_frames, encode_record
 
 _channels = itertools.count()
 
@@ -124,3 +138,50 @@ def test_exact_standard_ids_pass_what_python_can_passes(filters: can.typecheckin
 )
 def test_exact_standard_ids_none_for_other_filters(filters: can.typechecking.CanFilters | None) -> None:
     assert exact_standard_ids(filters) is None
+
+
+_DATA_FRAMES = st.lists(st.tuples(st.integers(0, 0x7FF), st.binary(max_size=8)), max_size=6)
+
+
+@given(frames=_DATA_FRAMES)
+@settings(max_examples=200, deadline=None)
+def test_hub_data_frame_records_are_the_records_of_their_messages(frames: list[tuple[int, bytes]]) -> None:
+    """DataFrameSender on the hub: the records packed from (identifier, data) are byte for byte the
+    records of the same frames sent as can.Message."""
+    msgs = [can.Message(arbitration_id=cob, data=data, is_extended_id=False) for cob, data in frames]
+    assert encode_data_frames(frames) == b"".join(encode_record(m) for m in msgs)
+
+
+@pytest.mark.parametrize("frame", [(0x800, b""), (-1, b"\x01"), (0x123, bytes(9))])
+def test_a_frame_outside_the_contract_is_refused_and_nothing_is_sent(
+    buses: tuple[can.BusABC, can.BusABC], frame: tuple[int, bytes]
+) -> None:
+    """Not a classic data frame with a standard identifier: ValueError, from the hub's packing and
+    from the fallback of a bus without the extra, before anything goes out."""
+    tx, rx = buses
+    with pytest.raises(ValueError, match="not a classic data frame"):
+        encode_data_frames([(0x101, b"\x01"), frame])
+    with pytest.raises(ValueError, match="not a classic data frame"):
+        data_frame_sender(tx)([(0x101, b"\x01"), frame])
+    assert rx.recv(0) is None
+
+
+def test_data_frames_reach_the_other_members_as_sent_frames_would(buses: tuple[can.BusABC, can.BusABC]) -> None:
+    """The fallback of a bus without the extra (python-can's virtual bus) and the hub client's own
+    send_data_frames: the receivers get the frames in order, exactly as from send()."""
+    frames = [(0x101, bytes([1, 2, 3, 4, 5, 6])), (0x102, b""), (0x103, bytes(range(8)))]
+    tx, rx = buses
+    assert not isinstance(tx, DataFrameSender)
+    data_frame_sender(tx)(frames)
+    got = [rx.recv(1.0) for _ in frames]
+    assert [(m.arbitration_id, bytes(m.data), m.dlc, m.is_extended_id) for m in got if m is not None] == [
+        (cob, data, len(data), False) for cob, data in frames
+    ]
+    with start_hub() as hub, HubBus(hub.channel("io")) as a, HubBus(hub.channel("io")) as b:
+        assert isinstance(a, DataFrameSender) and data_frame_sender(a) == a.send_data_frames
+        data_frame_sender(a)(frames)
+        for cob, data in frames:
+            a.send(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
+        got = [b.recv(5.0) for _ in range(2 * len(frames))]
+        keys = [(m.arbitration_id, bytes(m.data), m.dlc, m.is_extended_id, m.is_remote_frame) for m in got if m is not None]
+        assert keys[: len(frames)] == keys[len(frames) :] == [(cob, data, len(data), False, False) for cob, data in frames]

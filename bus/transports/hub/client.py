@@ -102,6 +102,7 @@ from bus.transports.hub.owner import HubOwnerError
 from bus.transports.hub.records import (
     classic_frames,
     decode_records,
+    encode_data_frames,
     encode_filters,
     encode_gather,
     encode_record,
@@ -434,6 +435,16 @@ class HubBus(can.BusABC):
                         "Failed to transmit: CAN FD frame on a classic CAN bus (opened with fd=False)", errno.EINVAL
                     )
         self._sock_send(b"".join([encode_record(msg) for msg in msgs]))
+
+    def send_data_frames(self, frames: Sequence[tuple[int, bytes]]) -> None:
+        """Send classic data frames given as (11-bit identifier, data) pairs in order in one socket
+        write, without a :class:`can.Message` each (:class:`bus.bus_features.DataFrameSender`): the
+        hub forwards them exactly as if each had been sent with :meth:`send`.
+
+        :raises ValueError: an identifier outside 0..0x7FF or more than 8 data bytes (nothing is sent)
+        :raises can.CanOperationError: as :meth:`send`
+        """
+        self._sock_send(encode_data_frames(frames))
 
     def _sock_send(self, data: bytes) -> None:
         if self._closed:

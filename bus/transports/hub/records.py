@@ -1,20 +1,20 @@
 """Hub records: frames and acceptance filters as the bytes of an ilcrig hub socket.
 
 This module owns the conversion between python-can frames and the hub's records (layout:
-:mod:`bus.transports.hub.wire`): :func:`encode_record` and :func:`encode_filters` (client → hub),
+:mod:`bus.transports.hub.wire`): :func:`encode_record`, :func:`encode_data_frames` and :func:`encode_filters` (client → hub),
 :func:`decode_records` (records → :class:`can.Message`) and :func:`classic_frames` (records → one
 numpy array of :data:`bus.bus_features.FRAME_DTYPE`, without a :class:`can.Message` per frame).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import can
 import numpy as np
 
 from bus import bus_features as bf
-from bus.bus_features import FRAME_DTYPE, frame_flags, message_of
+from bus.bus_features import FRAME_DTYPE, check_data_frame, frame_flags, message_of
 from bus.fastmsg import FAST
 from bus.transports.hub.wire import (
     FILTER_ENTRY,
@@ -64,6 +64,22 @@ def encode_record(msg: can.Message) -> bytes:
         raise ValueError(f"frame data too long ({n} bytes)")
     head = HEADER.pack(KIND_FRAME, flags, msg.dlc & 0xFF, n, msg.arbitration_id & 0xFFFFFFFF, 0, data[:8])
     return head + data[8:] if n > 8 else head
+
+
+def encode_data_frames(frames: Sequence[tuple[int, bytes]]) -> bytes:
+    """The wire records of classic data frames given as (11-bit identifier, data) pairs, timestamp
+    0: the bytes :func:`encode_record` gives for their :class:`can.Message` (no flags, DLC = length).
+
+    :raises ValueError: an identifier outside 0..0x7FF or more than 8 data bytes
+    """
+    pack = HEADER.pack
+    out = []
+    for can_id, data in frames:
+        n = len(data)
+        if n > 8 or not 0 <= can_id <= 0x7FF:
+            check_data_frame(can_id, data)
+        out.append(pack(KIND_FRAME, 0, n, n, can_id, 0, data))
+    return b"".join(out)
 
 
 def encode_filters(filters: can.typechecking.CanFilters | None) -> bytes:
