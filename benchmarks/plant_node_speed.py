@@ -2,7 +2,7 @@
 to a bare lockstep floor on the same transport.
 
 Speed is measured and printed here, never asserted in the test suite.  Set-up: one hub (Unix socket), four drive processes
-(``python -m firmware_model.drive_node``), the plant process (``ilcrig plant --bus hub``), the host in
+(``ilcrig drive --node N --bus hub``), the plant process (``ilcrig plant --bus hub``), the host in
 this process (canopen over the hub).  The drives are enabled but not armed (their PD holds the
 start pose); per trial of ``--ticks`` ticks:
 
@@ -68,6 +68,7 @@ def rig(ticks: int, trials: int, poll_s: float) -> list[dict[str, float]]:
     from host.nodes.drive_client import DriveClient
     from host.nodes.plant_client import PlantClient
     from host.nodes.sdo_access import SdoAccess
+    from host.rig.role_commands import child_argv
 
     drive_eds = REPO / "bus" / "drive.eds"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -76,44 +77,11 @@ def rig(ticks: int, trials: int, poll_s: float) -> list[dict[str, float]]:
     with start_hub() as hub:
         addr = hub.address
         try:
+            # the roles as ilcrig run starts them (the one home of a role's command line)
+            bus_args = ["--bus", "hub", "--hub", addr]
             for node_id in (1, 2, 3, 4):
-                procs.append(
-                    subprocess.Popen(
-                        [
-                            sys.executable,
-                            "-m",
-                            "firmware_model.drive_node",
-                            "--node-id",
-                            str(node_id),
-                            "--fieldbus-interface",
-                            "ilcrig_hub",
-                            "--fieldbus-channel",
-                            f"{addr}#fieldbus",
-                            "--io-interface",
-                            "ilcrig_hub",
-                            "--io-channel",
-                            f"{addr}#io",
-                        ],
-                        env=env,
-                        cwd=REPO,
-                    )
-                )
-            procs.append(
-                subprocess.Popen(
-                    [
-                        sys.executable,
-                        "-c",
-                        "import sys; from host.cli import main; sys.exit(main(sys.argv[1:]))",
-                        "plant",
-                        "--bus",
-                        "hub",
-                        "--hub",
-                        addr,
-                    ],
-                    env=env,
-                    cwd=REPO,
-                )
-            )
+                procs.append(subprocess.Popen(child_argv("drive", bus_args, node=node_id), env=env, cwd=REPO))
+            procs.append(subprocess.Popen(child_argv("plant", bus_args), env=env, cwd=REPO))
             network = canopen.Network()
             network.connect(interface="ilcrig_hub", channel=f"{addr}#fieldbus")
             try:
