@@ -873,3 +873,22 @@ def test_the_bench_pays_its_first_calls_at_boot_not_at_the_first_trial() -> None
     finally:
         for bus in (fb, io, host):
             bus.shutdown()
+
+
+@pytest.mark.multiprocess
+def test_the_plant_node_benchmark_runs_its_trials() -> None:
+    """benchmarks/plant_node_speed.py (hub, four drive processes and the plant process started as
+    ``ilcrig run`` starts them) completes a short trial and prints its rates; it exits 0."""
+    import re
+    import subprocess
+    import sys
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "plant_node_speed.py"
+    proc = subprocess.run(
+        [sys.executable, str(script), "--ticks", "200", "--trials", "1", "--floor-seconds", "0.3", "--pings", "50"],
+        capture_output=True,
+        text=True,
+        timeout=180,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert re.search(r"^0\s+[\d,]+\s+[\d,]+\s+\d+\.\d\d\s+\d+\.\d\d\s+\d+\.\d\d$", proc.stdout, re.M), proc.stdout
