@@ -214,6 +214,7 @@ class FaultCause(IntEnum):
     NMT_ABORT = 7  #: NMT left OPERATIONAL (stop, pre-operational, reset communication) with the power stage on
     CAN_OVERRUN = 8  #: fieldbus frames lost (the receiver overflowed): EMCY 0x8110
     PIL_TARGET = 9  #: the processor-in-the-loop target died or stopped answering: EMCY 0x6100 (:class:`PilFailure`)
+    IO_FRAMES_LOST = 10  #: io frames lost (the io receiver overflowed): the tick sequence is broken, EMCY 0x8110
 
 
 class ModeOfOperation(IntEnum):

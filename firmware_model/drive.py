@@ -307,6 +307,11 @@ class Drive:
         NMT reaction of 0x1029:1 (:meth:`firmware_model.power_stage.PowerStage.frames_lost`)."""
         self.power.frames_lost()
 
+    def io_frames_lost(self, next_tick: int) -> None:
+        """The io receiver overflowed before tick ``next_tick`` (within the trial): a fault, EMCY
+        0x8110 cause 10 (:meth:`firmware_model.power_stage.PowerStage.io_frames_lost`)."""
+        self.power.io_frames_lost(next_tick)
+
     def bus_lost(self, reason: str) -> None:
         """The fieldbus or io bus failed (e.g. the hub is gone): torque off, CiA 402 Fault (no
         EMCY can be sent)."""

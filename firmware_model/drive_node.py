@@ -56,6 +56,7 @@ import can
 
 from bus import io_frames, units
 from bus.bus_features import data_frame_sender
+from bus.can_errors import is_receive_overflow
 from bus.cia301.slave import (
     PRODUCER_HEARTBEAT_INDEX,
     SlaveApp,
@@ -245,6 +246,10 @@ class DriveNode(SlaveNode):
         return exact_id_filters((self._encoder_id, io_frames.CONTROL_COB_ID))
 
     def on_io(self, msg: can.Message) -> None:
+        if msg.is_error_frame:  # its identifier is an error class, never a frame's
+            if is_receive_overflow(msg):
+                self._io_frames_lost()
+            return  # a damaged frame: the plant, which lost it, reports it
         cob = msg.arbitration_id
         if cob == self._encoder_id:
             try:
@@ -276,6 +281,15 @@ class DriveNode(SlaveNode):
                     self.backlog.no_ticks()
             self._held = None
         # anything else (our own torque echo, other joints' frames) is not for us
+
+    def _io_frames_lost(self) -> None:
+        """The io receiver lost frames (a receive-overflow error frame): an encoder or control
+        frame never comes. The drive's optional ``io_frames_lost(next_tick)`` faults at once; a
+        drive without it is left to the plant's tick deadline."""
+        self._io_plain = False
+        hook = getattr(self.drive, "io_frames_lost", None)
+        if hook is not None:
+            hook(self._next_full_tick)
 
     def _run_tick(self, count: int, wire: int) -> None:
         """Run the io tick of the encoder frame (``count``, ``wire`` tick): torque frame on io, then

@@ -349,6 +349,19 @@ class PowerStage:
             struct.pack("<BHH", FaultCause.TICK_SEQUENCE, expected & 0xFFFF, int(tick) & 0xFFFF),
         )
 
+    def io_frames_lost(self, next_tick: int) -> int:
+        """io frames were lost in the drive's io receiver (it overflowed): an encoder or control
+        frame of the plant never came, so the tick sequence is broken from ``next_tick`` (the tick
+        within the trial expected next) on. EMCY 0x8110 (CAN overrun) with cause 10 and that tick,
+        at once -- the plant would only notice the tick it never gets at its tick deadline."""
+        logger.warning("node %d: io frames lost before tick %d", self.node_id, next_tick)
+        return self.fault(
+            EmcyCode.CAN_OVERRUN,
+            ErrorRegister.GENERIC | ErrorRegister.COMMUNICATION,
+            FaultCause.IO_FRAMES_LOST,
+            struct.pack("<BH2x", FaultCause.IO_FRAMES_LOST, next_tick & 0xFFFF),
+        )
+
     def target_failed(self, failure: PilFailure, message: str) -> int:
         """The processor-in-the-loop target failed (``--firmware pil``; ``message``: what the link
         said): the drive's internal error, EMCY 0x6100 with the cause, ``failure`` and the trial

@@ -768,3 +768,64 @@ def test_a_wake_up_of_io_ticks_alone_serves_every_timer_on_time() -> None:
     assert sum(1 for _, cob, _ in served if cob == 0x180 + NODE) >= 10  # the event timer
     (abort,) = [(t, data) for t, cob, data in served if cob == 0x580 + NODE and data[0] == 0x80]
     assert abort == (101.202, bytes.fromhex("80 08 10 00 00 00 04 05"))  # the SDO timeout (1 s): on time
+
+
+def test_lost_io_frames_are_a_fault_at_once_named_by_the_host() -> None:
+    """A receive-overflow error frame on io (udp_multicast's report of datagrams the drive's io
+    socket dropped) in a trial: an encoder frame never comes, so the drive faults at once -- EMCY
+    0x8110 with cause 10 and the tick expected next, CiA 402 Fault, torque 0 with the fault bit in
+    the next torque frame -- and the host names the loss, where the plant would only report the
+    missing tick at its 1 s deadline."""
+    import numpy as np
+
+    from bus.can_errors import overflow_error_frame as overflow
+    from bus.objects import ModeOfOperation
+    from host.nodes.drive_client import DriveClient
+    from host.rig.fault_classify import EmcyFrame, FaultKind, emcy_fault
+
+    warm_up()
+    k = next(_counter)
+    fb_node = can.Bus(interface="virtual", channel=f"iolost-fb-{k}")
+    host = can.Bus(interface="virtual", channel=f"iolost-fb-{k}")
+    io_node = ErrorFramesVirtualBus(channel=f"iolost-io-{k}")
+    plant = can.Bus(interface="virtual", channel=f"iolost-io-{k}")
+    clock = ManualClock(10.0)
+    drive = Drive(NODE)
+    node = DriveNode(drive, fb_node, io_node, clock=clock)
+    sent, step_at = _stepper(node, host, clock)
+
+    def tick(n: int) -> io_frames.TorqueFrame:
+        plant.send(io_frames.encode_encoder(NODE - 1, n, 0))
+        step_at(10.0 + 0.001 * n)
+        msg = plant.recv(timeout=1.0)
+        assert msg is not None
+        return io_frames.decode_torque(msg)
+
+    try:
+        node.start()
+        host.send(can.Message(arbitration_id=0, data=bytes([0x01, NODE]), is_extended_id=False))
+        step_at(10.0)
+        client = DriveClient(drive, NODE)  # the host's set-up, on the firmware's objects directly
+        client.configure(30.0, 1.0)
+        client.set_mode(ModeOfOperation.TABLE_PLAYBACK)
+        client.load_reference(np.zeros(100), np.zeros(100))
+        client.load_feedforward(np.zeros(100))
+        client.enable()
+        client.arm_trial()
+        plant.send(io_frames.encode_control(io_frames.IoControlCommand.TRIAL_START, 0, 100))
+        step_at(10.0)
+        sent()
+        for n in range(5):
+            assert tick(n).status & io_frames.TorqueStatus.ENABLED
+        plant.send(overflow(time.time()))  # before the frame after the loss: tick 5 never comes
+        assert step_at(10.01) == [(0x80 + NODE, bytes.fromhex("10 81 11 0A 05 00 00 00"))]
+        assert drive.cia402_state == Cia402State.FAULT and not drive.torque_enabled
+        assert drive.read_object(0x2120, 4) == bytes([FaultCause.IO_FRAMES_LOST])
+        after = tick(6)
+        assert (after.torque_units, after.status & io_frames.TorqueStatus.FAULT) == (0, io_frames.TorqueStatus.FAULT)
+        record = emcy_fault(EmcyFrame(NODE, 0x8110, bytes.fromhex("0A 05 00 00 00"), 1.0, 2.0))
+        assert (record.kind, record.node, record.tick, record.latency_ms) == (FaultKind.FRAME_LOST, f"drive{NODE}", 5, 0.0)
+        assert record.message == f"io frames lost in drive{NODE}'s receiver (receive overflow) before tick 5 (EMCY 0x8110)"
+    finally:
+        for bus in (fb_node, host, io_node, plant):
+            bus.shutdown()

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from bus.cia301.nmt import CONSUMER_TIME_MS, HOST_NODE_ID, NODE_HEARTBEAT_MS, HeartbeatReport
 from bus.errors import SdoAbort
 from bus.io_frames import TICK_TIMEOUT_S
-from bus.objects import DRIVE_NODE_IDS
+from bus.objects import DRIVE_NODE_IDS, FaultCause
 from bus.pil_fault import pil_target_fault
 from bus.plant_objects import DEFAULT_PLANT_NODE_ID as PLANT_NODE_ID
 from bus.plant_objects import PlantFault
@@ -81,6 +81,7 @@ class DetectionTimes:
 #: EMCY error codes the drives send (docs/canopen-objects.md §3)
 EMCY_HOST_LOST = 0x8130
 EMCY_TICK_SEQUENCE = 0x8200
+EMCY_CAN_OVERRUN = 0x8110
 EMCY_FOLLOWING_ERROR = 0x8611
 
 #: the plant node's fault codes as fault kinds
@@ -254,6 +255,15 @@ def emcy_fault(frame: EmcyFrame, times: DetectionTimes | None = None) -> FaultRe
             frame,
             "the frame's arrival",
             tick=expected,
+        )
+    if frame.code == EMCY_CAN_OVERRUN and data[0] == FaultCause.IO_FRAMES_LOST:
+        next_tick = int.from_bytes(data[1:3], "little")
+        return _own_report(
+            FaultKind.FRAME_LOST,
+            f"io frames lost in {name}'s receiver (receive overflow) before tick {next_tick} (EMCY 0x8110)",
+            frame,
+            "the loss's error frame",
+            tick=next_tick,
         )
     pil = pil_target_fault(frame.code, frame.data)
     if pil is not None:  # the drive's PIL target failed (EMCY 0x6100, cause 9)
