@@ -271,7 +271,8 @@ class SlaveNode:
         frames, process every frame waiting on both buses (the fieldbus first: a SYNC or an NMT
         command is handled before the io frame it caused, which the transport can only have
         delivered after it), then send due heartbeat, EMCY and SDO-timeout frames and call
-        :meth:`on_service`.
+        :meth:`on_service` -- left out after a wake-up of io frames alone that :meth:`io_settled`
+        vouches for, until the earliest deadline or :attr:`MAX_WAIT_S` after the last service.
 
         :return: number of frames received.
         """
