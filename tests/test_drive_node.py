@@ -22,6 +22,8 @@ import clock_util
 import pytest
 from can.interfaces.virtual import VirtualBus
 from clock_util import ManualClock
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 
 from bus import io_frames
 from bus.can_errors import overflow_error_frame
@@ -829,3 +831,96 @@ def test_lost_io_frames_are_a_fault_at_once_named_by_the_host() -> None:
     finally:
         for bus in (fb_node, host, io_node, plant):
             bus.shutdown()
+
+
+_EVENTS = st.lists(
+    st.one_of(
+        st.tuples(st.just("tick"), st.integers(1, 40)),  # an encoder frame after n × 0.5 ms
+        st.tuples(st.just("burst"), st.integers(1, 1500)),  # n encoder frames 1 ms apart
+        st.tuples(st.just("idle"), st.integers(1, 400)),  # no frame: a step after n × 0.5 ms
+        st.tuples(st.just("warn"), st.just(0)),  # the drive raises an EMCY between wake-ups
+        st.tuples(st.just("heartbeat"), st.sampled_from([0, 10, 50, 100])),  # 0x1017 [ms] by SDO
+        st.tuples(st.just("inhibit"), st.sampled_from([0, 20, 100])),  # 0x1015 [100 µs] by SDO
+        st.tuples(st.just("hang"), st.just(0)),  # a segmented upload the master never continues
+        st.tuples(st.just("nmt"), st.sampled_from([0x01, 0x02, 0x80])),
+    ),
+    max_size=60,
+)
+
+
+def _random_script(node_cls: type[CountingNode], events: list[tuple[str, int]]) -> list[tuple[float, str, int, bytes]]:
+    """``events`` played to one drive on a manual clock; every frame it sent on either bus, with
+    the clock time of the step that sent it."""
+    fb_node, host, io_node = _virtual_buses("settle-random")
+    plant = can.Bus(interface="virtual", channel=io_node.channel_id)  # type: ignore[attr-defined]
+    clock = ManualClock(100.0)
+    node = node_cls(Drive(NODE), fb_node, io_node, clock=clock)
+    drive = node.drive
+    assert isinstance(drive, Drive)
+    out: list[tuple[float, str, int, bytes]] = []
+    t, wire = 100.0, 0
+
+    def step() -> None:
+        clock.now = t
+        node.step(0.0)
+        for name, bus in (("fieldbus", host), ("io", plant)):
+            while (msg := bus.recv(timeout=0)) is not None:
+                out.append((round(t, 6), name, msg.arbitration_id, bytes(msg.data)))
+
+    def sdo_write(index: int, value: int, size: int) -> None:
+        cs = {1: 0x2F, 2: 0x2B, 4: 0x23}[size]
+        data = bytes([cs, index & 0xFF, index >> 8, 0]) + value.to_bytes(size, "little").ljust(4, b"\0")
+        host.send(can.Message(arbitration_id=0x600 + NODE, data=data, is_extended_id=False))
+
+    try:
+        node.start()
+        step()
+        for kind, value in events:
+            if kind == "tick":
+                t += 0.0005 * value
+                plant.send(io_frames.encode_encoder(NODE - 1, wire, 1000 + wire))
+                wire += 1
+            elif kind == "burst":
+                for _ in range(value - 1):
+                    t += 0.001
+                    plant.send(io_frames.encode_encoder(NODE - 1, wire, 1000 + wire))
+                    wire += 1
+                    step()
+                t += 0.001
+                plant.send(io_frames.encode_encoder(NODE - 1, wire, 1000 + wire))
+                wire += 1
+            elif kind == "idle":
+                t += 0.0005 * value
+            elif kind == "warn":
+                drive.power.warning(0x8110, bytes(5))
+                continue
+            elif kind == "heartbeat":
+                sdo_write(0x1017, value, 2)
+            elif kind == "inhibit":
+                sdo_write(0x1015, value, 2)
+            elif kind == "hang":
+                host.send(
+                    can.Message(arbitration_id=0x600 + NODE, data=bytes.fromhex("40 08 10 00 00 00 00 00"), is_extended_id=False)
+                )
+            else:
+                host.send(can.Message(arbitration_id=0, data=bytes([value, NODE]), is_extended_id=False))
+            step()
+        t += 2.0  # then the timers alone
+        step()
+    finally:
+        for bus in (fb_node, host, io_node, plant):
+            bus.shutdown()
+    return out
+
+
+@given(events=_EVENTS)
+@example(events=[("hang", 0), ("burst", 1500)])  # an SDO timeout while the ticks never stop
+@example(events=[("nmt", 0x01), ("heartbeat", 10), ("inhibit", 100), ("burst", 30), ("warn", 0), ("warn", 0), ("burst", 40)])
+@settings(max_examples=60, deadline=None)
+def test_at_random_a_node_that_leaves_its_service_out_sends_what_one_that_never_does_sends(events: list[tuple[str, int]]) -> None:
+    """The service skip from outside, at random: io ticks at random intervals and in long bursts, wake-ups without
+    frames, EMCYs raised between wake-ups, 0x1017 and 0x1015 changed by SDO, SDO transfers left
+    hanging, NMT commands -- the drive that leaves its service out after io ticks sends every frame,
+    on both buses, at the same clock time as the one that serves every wake-up."""
+    warm_up()
+    assert _random_script(CountingNode, events) == _random_script(AlwaysServedNode, events)
