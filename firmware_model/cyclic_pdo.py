@@ -232,6 +232,10 @@ class CyclicPdo:
         times = [t for t in (self.engine.next_deadline(), sync) if t is not None]
         return min(times) if times else None
 
+    def timers_idle(self) -> bool:
+        """True when no PDO timer runs (:meth:`bus.cia301.pdo.PdoEngine.timers_idle`)."""
+        return self.engine.timers_idle()
+
     def watch_deadline(self) -> float | None:
         """When the SYNC watchdog fires [s of :attr:`watch_clock`, else :attr:`clock`] (None: not
         armed)."""

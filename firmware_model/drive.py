@@ -371,7 +371,7 @@ class Drive:
         """True when the io ticks so far left :meth:`service` nothing to do before
         :meth:`next_deadline`: no EMCY waits and no PDO timer runs (an event-driven TPDO, an RPDO
         deadline); the node may then leave out its service after a tick."""
-        return not self.power.emcy_pending and self.pdo.engine.timers_idle()
+        return not self.power.emcy_pending and self.pdo.timers_idle()
 
     # ------------------------------------------------------------------ SYNC and PDOs
 
