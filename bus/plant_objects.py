@@ -237,6 +237,7 @@ class RobotFault(IntEnum):
     BAD_FRAME = 6  #: a malformed torque frame, or a bus error frame on io
     SYNC_OVERRUN = 7  #: SYNC-stepped: more than bus.cyclic.SYNC_BACKLOG_MAX SYNCs waiting (served late all the same)
     FRAMES_LOST = 8  #: the plant's fieldbus receiver lost frames (overflowed): a SYNC may be among them
+    IO_FRAMES_LOST = 9  #: the plant's io receiver lost frames (overflowed): a torque frame of the period never comes
 
 
 #: EMCY error code and error register per robot fault (0xFF1x: manufacturer specific, mechanical)
@@ -249,6 +250,7 @@ ROBOT_FAULT_EMCY: Final[dict[RobotFault, tuple[int, int]]] = {
     RobotFault.BAD_FRAME: (0x8200, 0x11),
     RobotFault.SYNC_OVERRUN: (0x8110, 0x11),
     RobotFault.FRAMES_LOST: (0x8110, 0x11),
+    RobotFault.IO_FRAMES_LOST: (0x8110, 0x11),
 }
 #: bit 7 of a plant node EMCY's first manufacturer byte: the code is a :class:`RobotFault`
 ROBOT_EMCY_FLAG: Final[int] = 0x80
@@ -277,6 +279,7 @@ class PlantFault(IntEnum):
     BAD_FRAME = 5  #: a malformed torque frame, or a bus error frame on io (a frame damaged on the wire)
     HOST_LOST = 6  #: the host's heartbeat was lost (consumer 0x1016)
     FRAMES_LOST = 7  #: the plant node's fieldbus receiver lost frames (overflowed; e.g. the host's request)
+    IO_FRAMES_LOST = 8  #: the plant node's io receiver lost frames (overflowed): a torque frame of the tick never comes
 
 
 class DisturbanceKind(IntEnum):
@@ -316,6 +319,7 @@ FAULT_EMCY: Final[dict[PlantFault, tuple[int, int]]] = {
     PlantFault.BAD_FRAME: (0x8200, 0x11),
     PlantFault.HOST_LOST: (0x8130, 0x11),  # heartbeat consumer (life guard) event
     PlantFault.FRAMES_LOST: (0x8110, 0x11),  # CAN overrun (objects lost)
+    PlantFault.IO_FRAMES_LOST: (0x8110, 0x11),
 }
 
 _EMCY_DATA = struct.Struct("<BBH")

@@ -48,6 +48,7 @@ import can
 import numpy as np
 
 from bus import io_frames
+from bus.can_errors import is_receive_overflow
 from bus.cia301.emcy import EmcyCode
 from bus.cia301.object_store import ObjectStore
 from bus.cyclic import SYNC_BACKLOG_MAX
@@ -310,7 +311,14 @@ class RobotLoop:
     def on_io(self, msg: can.Message) -> None:
         """One io frame while a period waits for its torques."""
         if msg.is_error_frame:
-            self._fail(RobotFault.BAD_FRAME, 0, f"period {self.periods}: bus error frame on io (a damaged frame)")
+            if is_receive_overflow(msg):  # this receiver dropped frames: a torque frame never comes
+                self._fail(
+                    RobotFault.IO_FRAMES_LOST,
+                    0,
+                    f"period {self.periods}: io frames lost in the plant's receiver (receive overflow)",
+                )
+            else:
+                self._fail(RobotFault.BAD_FRAME, 0, f"period {self.periods}: bus error frame on io (a damaged frame)")
             self._drop_period()
             return
         cob = msg.arbitration_id

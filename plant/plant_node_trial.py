@@ -25,7 +25,8 @@ of a tick wake the plant once, not once per drive.
 
 After tick N-1: TRIAL_STOP, status DONE.  No answer within ``tick_timeout_s`` [s]
 (``first_tick_timeout_s`` for tick 0) is a TICK_TIMEOUT fault; a bus error frame on io is
-BAD_FRAME; a plant that raises is PLANT.  A fault ends the trial: TRIAL_STOP (if it had
+BAD_FRAME, one that says the plant's io receiver overflowed (frames lost, :mod:`bus.can_errors`)
+IO_FRAMES_LOST, at once; a plant that raises is PLANT.  A fault ends the trial: TRIAL_STOP (if it had
 started), one EMCY, status FAULT.  The wire tick runs on across trials, so a late frame of an
 earlier trial is recognised as stale.
 
@@ -48,6 +49,7 @@ import can
 import numpy as np
 
 from bus import io_frames
+from bus.can_errors import is_receive_overflow
 from bus.cia301.object_store import ObjectStore
 from bus.plant_objects import (
     PLANT_SCALE_SUBS,
@@ -216,8 +218,14 @@ class LockstepMaster:
 
     def on_io(self, msg: can.Message) -> None:
         """One io frame: a torque frame of the tick in progress, or a fault."""
-        if msg.is_error_frame:  # a frame damaged on the wire: the receivers' controllers saw a CRC error
-            if self.running:
+        if msg.is_error_frame:
+            if not self.running:
+                return
+            if is_receive_overflow(msg):  # this receiver dropped frames: a torque frame never comes
+                self.fail(
+                    PlantFault.IO_FRAMES_LOST, 0, f"tick {self.tick}: io frames lost in the plant's receiver (receive overflow)"
+                )
+            else:  # a frame damaged on the wire: the receivers' controllers saw a CRC error
                 self.fail(PlantFault.BAD_FRAME, 0, f"tick {self.tick}: bus error frame on io (a damaged frame)")
             return
         cob = msg.arbitration_id

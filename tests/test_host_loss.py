@@ -32,6 +32,9 @@ from bus.plant_objects import PlantFault, PlantStatus
 from bus.safe_state import parse_safe_state
 from firmware_model.drive import Drive
 from firmware_model.drive_node import DriveNode
+from host.experiment.faults import FaultKind
+from host.nodes.plant_client import PlantState as PlantClientState
+from host.rig.fault_classify import EmcyFrame, emcy_fault
 from plant.plant_node import PlantNode
 
 _counter = itertools.count()
@@ -301,6 +304,38 @@ def test_plant_node_faults_on_a_bus_error_frame_during_a_trial() -> None:
         rig.step_at(1000.02)
         assert bench.status == PlantStatus.FAULT and bench.fault == PlantFault.BAD_FRAME
         assert int(bench.nmt_state) == NmtState.OPERATIONAL
+    finally:
+        rig.close()
+
+
+def test_plant_node_says_io_frames_its_receiver_lost_at_once_not_a_damaged_frame() -> None:
+    """A receive-overflow error frame on the plant's io channel (udp_multicast's report of a torque
+    datagram its socket dropped): the trial ends at once with IO_FRAMES_LOST (EMCY 0x8110, fault 8,
+    the tick), and the host names it a lost frame in the plant's receiver -- not a damaged frame,
+    not a drive that did not answer at the tick deadline."""
+    from bus.can_errors import overflow_error_frame
+
+    rig = _stepped_bench()
+    bench = rig.node
+    try:
+        bench.nmt_command(NmtCommand.START)
+        bench.store.write_object(0x2420, 0, bytes(64))
+        bench.store.write_object(0x2410, 2, u32(10))
+        bench.store.write_object(0x2410, 3, bytes([1]))
+        rig.step_at(1000.01)
+        assert bench.status == PlantStatus.RUNNING
+        rig.plant.send(overflow_error_frame(1000.0, "io"))
+        frames = rig.step_at(1000.02)
+        assert bench.status == PlantStatus.FAULT and bench.fault == PlantFault.IO_FRAMES_LOST
+        assert "io frames lost in the plant's receiver" in bench.last_fault_message
+        emcy = [data for cob, data in frames if cob == 0x0A0]
+        assert [data[:5] for data in emcy] == [b"\x10\x81\x11\x08\x00"]
+        rec = emcy_fault(EmcyFrame(32, 0x8110, emcy[0][3:], 1.0, 2.0))
+        assert (rec.kind, rec.node, rec.tick) == (FaultKind.FRAME_LOST, "plant", int.from_bytes(emcy[0][5:7], "little"))
+        assert rec.message.startswith("io frames lost in the plant node's receiver (receive overflow) at tick ")
+        assert PlantClientState(PlantStatus.FAULT, 3, PlantFault.IO_FRAMES_LOST, 3, 0).describe() == (
+            "fault: io frames lost in the plant node's receiver (receive overflow) at tick 3 (3 ticks done)"
+        )
     finally:
         rig.close()
 

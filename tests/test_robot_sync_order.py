@@ -82,6 +82,27 @@ def test_frames_the_plants_receiver_lost_are_a_robot_fault_with_its_emcy(node: t
     assert robot.syncs == syncs + 1
 
 
+def test_io_frames_the_plants_receiver_lost_are_a_robot_fault_of_their_own(node: tuple[PlantNode, can.BusABC]) -> None:
+    """The plant's io receiver overflowed while a period waited for its torques: a torque frame
+    never comes -- the robot fault IO_FRAMES_LOST at once (EMCY 0x8110 of node 32, fault 9), named
+    as such by ``ilcrig robot``'s console, not a damaged frame nor a period timeout a second later."""
+    from bus.can_errors import overflow_error_frame
+    from host.rig.robot_watch import EmcySeen, robot_fault_of
+
+    plant, listener = node
+    robot = plant.robot
+    robot.on_sync(0.0)
+    assert robot.expecting_io
+    plant.on_io(overflow_error_frame(1.0, "io"))
+    assert robot.state == RobotState.FAULT and robot.fault == RobotFault.IO_FRAMES_LOST
+    assert "io frames lost in the plant's receiver" in robot.info()["fault"]["message"]
+    emcy = [m for m in iter(lambda: listener.recv(timeout=0.5), None) if m.arbitration_id == 0x080 + plant.node_id]
+    code, register = ROBOT_FAULT_EMCY[RobotFault.IO_FRAMES_LOST]
+    assert [bytes(m.data) for m in emcy] == [struct.pack("<HBBBHx", code, register, ROBOT_EMCY_FLAG | 9, 0, 0)]
+    seen = EmcySeen(plant.node_id, code, register, bytes(emcy[0].data[3:]), 0.0)
+    assert robot_fault_of(seen) == "robot fault IO_FRAMES_LOST (EMCY 0x8110) in period 0 (mod 2^16)"
+
+
 def test_a_sync_beyond_the_bound_is_a_robot_fault_with_its_emcy_and_still_served(node: tuple[PlantNode, can.BusABC]) -> None:
     plant, listener = node
     robot = plant.robot

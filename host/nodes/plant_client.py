@@ -81,6 +81,8 @@ _FAULT_TEXT: dict[PlantFault, str] = {
     PlantFault.HOST_LOST: "the host's heartbeat was lost at tick {tick}",
     PlantFault.PLANT: "plant error at tick {tick}",
     PlantFault.ABORTED: "aborted at tick {tick}",
+    PlantFault.FRAMES_LOST: "fieldbus frames lost in the plant node's receiver (receive overflow) at tick {tick}",
+    PlantFault.IO_FRAMES_LOST: "io frames lost in the plant node's receiver (receive overflow) at tick {tick}",
 }
 
 

@@ -93,6 +93,7 @@ PLANT_FAULT_KINDS: Mapping[PlantFault, FaultKind] = {
     PlantFault.HOST_LOST: FaultKind.HOST_LOST,
     PlantFault.ABORTED: FaultKind.TRIAL_FAULT,
     PlantFault.FRAMES_LOST: FaultKind.FRAME_ERROR,
+    PlantFault.IO_FRAMES_LOST: FaultKind.FRAME_LOST,
 }
 
 
@@ -209,6 +210,7 @@ def _plant_emcy_fault(frame: EmcyFrame, data: bytes, times: DetectionTimes) -> F
         ),
         PlantFault.HOST_LOST: "the host's heartbeat was lost",
         PlantFault.FRAMES_LOST: f"fieldbus frames lost in the plant node's receiver (receive overflow) at tick {tick}",
+        PlantFault.IO_FRAMES_LOST: f"io frames lost in the plant node's receiver (receive overflow) at tick {tick}",
         PlantFault.ABORTED: f"the plant node aborted the trial at tick {tick}",
     }
     node = f"drive{drive}" if drive else ("host" if fault == PlantFault.HOST_LOST else "plant")
