@@ -311,14 +311,9 @@ class RobotLoop:
     def on_io(self, msg: can.Message) -> None:
         """One io frame while a period waits for its torques."""
         if msg.is_error_frame:
-            if is_receive_overflow(msg):  # this receiver dropped frames: a torque frame never comes
-                self._fail(
-                    RobotFault.IO_FRAMES_LOST,
-                    0,
-                    f"period {self.periods}: io frames lost in the plant's receiver (receive overflow)",
-                )
-            else:
-                self._fail(RobotFault.BAD_FRAME, 0, f"period {self.periods}: bus error frame on io (a damaged frame)")
+            lost = is_receive_overflow(msg)  # this receiver dropped frames: a torque frame never comes
+            what = "io frames lost in the plant's receiver (receive overflow)" if lost else "bus error frame on io (damaged)"
+            self._fail(RobotFault.IO_FRAMES_LOST if lost else RobotFault.BAD_FRAME, 0, f"period {self.periods}: {what}")
             self._drop_period()
             return
         cob = msg.arbitration_id
