@@ -72,6 +72,7 @@ KINDS: dict[str, tuple[str, tuple[str, ...]]] = {
     "emcy": ("emcy:{drive}@{when}", ("before", "tick", "end", "after")),
     "drop-io": ("drop:io@{when},seed={seed}", ("tick",)),
     "corrupt-io": ("corrupt:io@{when},seed={seed}", ("tick",)),
+    "overflow-io": ("overflow:io@{when},seed={seed}", ("tick",)),
     "duplicate-io": ("duplicate:io@{when},seed={seed}", ("tick",)),
     "delay-io": ("delay:io@{when},seed={seed}", ("tick",)),
     "corrupt-fieldbus": ("corrupt:fieldbus@{when}", ("before", "tick", "end", "after")),
@@ -79,7 +80,7 @@ KINDS: dict[str, tuple[str, tuple[str, ...]]] = {
     "diskfull": ("diskfull@{when}", ("before", "tick", "end", "after")),
 }
 #: the lockstep faults: their latency is also counted in ticks
-FRAME_KINDS = {"drop-io", "corrupt-io", "duplicate-io", "delay-io"}
+FRAME_KINDS = {"drop-io", "corrupt-io", "overflow-io", "duplicate-io", "delay-io"}
 #: what a record must give, never null
 FIELDS = ("kind", "node", "trial", "position", "detected_by", "latency_ms")
 POSITIONS = ("before_first_trial", "in_trial", "between_trials", "after_last_trial")

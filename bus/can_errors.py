@@ -14,10 +14,11 @@ import logging
 from typing import Any
 
 import can
+import numpy as np
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["CAN_ERR_CRTL", "CAN_ERR_CRTL_RX_OVERFLOW", "is_receive_overflow", "overflow_error_frame"]
+__all__ = ["CAN_ERR_CRTL", "CAN_ERR_CRTL_RX_OVERFLOW", "is_receive_overflow", "overflow_error_frame", "receive_overflows"]
 
 #: SocketCAN's error class of a controller problem and its detail "receive buffer overflow"
 #: (linux/can/error.h: CAN_ERR_CRTL in the identifier, data[1] CAN_ERR_CRTL_RX_OVERFLOW)
@@ -44,3 +45,12 @@ def is_receive_overflow(msg: can.Message) -> bool:
     return bool(
         msg.is_error_frame and msg.arbitration_id & CAN_ERR_CRTL and len(msg.data) > 1 and msg.data[1] & CAN_ERR_CRTL_RX_OVERFLOW
     )
+
+
+def receive_overflows(error_ids: np.ndarray, error_data: np.ndarray) -> int:
+    """How many of the error frames with identifiers ``error_ids`` (n,) and data ``error_data``
+    (n, >= 2 bytes) say that the receiver's controller lost frames (:func:`is_receive_overflow`,
+    on arrays: the channel monitors read frames as :data:`bus.bus_features.FRAME_DTYPE` rows)."""
+    if not len(error_ids):
+        return 0
+    return int(np.count_nonzero((error_ids & CAN_ERR_CRTL != 0) & (error_data[:, 1] & CAN_ERR_CRTL_RX_OVERFLOW != 0)))

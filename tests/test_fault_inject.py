@@ -12,9 +12,10 @@ import can
 import pytest
 
 from bus import io_frames
+from bus.can_errors import is_receive_overflow
 from bus.errors import InputError
-from bus.transports.fault_inject import FaultSpecError, FrameFaultInjector, parse_spec
-from bus.transports.hub.records import encode_record
+from bus.transports.fault_inject import FRAME_ACTIONS, FaultSpecError, FrameFaultInjector, parse_spec
+from bus.transports.hub.records import decode_records, encode_record
 from bus.transports.hub.wire import FLAG_ERR
 
 
@@ -74,6 +75,14 @@ def frames_of_trials(trials: int, ticks: int, shuffle: random.Random | None = No
     return out
 
 
+def decode_one(record: bytes) -> can.Message:
+    """The frame of one hub record."""
+    msgs: list[can.Message] = []
+    decode_records(record, "io", msgs.append)
+    assert len(msgs) == 1
+    return msgs[0]
+
+
 def feed(inj: FrameFaultInjector, frames: list[can.Message]) -> list[tuple[float, bytes, int]]:
     """What the hub would deliver: (delay, record, can_id) per delivery."""
     delivered = []
@@ -88,7 +97,7 @@ def hits(inj: FrameFaultInjector) -> list[tuple[int, int, int]]:
     return sorted((r["trial"], r["tick"], r["can_id"]) for r in inj.injected)
 
 
-@pytest.mark.parametrize("action", ["drop", "corrupt", "duplicate", "delay"])
+@pytest.mark.parametrize("action", FRAME_ACTIONS)
 def test_the_same_seed_hits_the_same_frames_whatever_their_order(action: str) -> None:
     spec = parse_spec(f"{action}:io@1:5,rate=0.05,seed=11,count=100")
     a = FrameFaultInjector([spec])
@@ -117,6 +126,11 @@ def test_what_is_delivered(tmp_path: Path) -> None:
     out = feed(FrameFaultInjector([parse_spec("corrupt:io@0:4")]), frames)
     errors = [r for _, r, _ in out if r[1] & FLAG_ERR]
     assert len(out) == n and len(errors) == 1  # the damaged frame became a bus error frame
+    assert not is_receive_overflow(decode_one(errors[0]))  # a CRC error, frames damaged
+    out = feed(FrameFaultInjector([parse_spec("overflow:io@0:4")]), frames)
+    errors = [r for _, r, _ in out if r[1] & FLAG_ERR]
+    assert len(out) == n and len(errors) == 1  # the frame lost in the receivers' queues: their overflow error frame
+    assert is_receive_overflow(decode_one(errors[0]))
     out = feed(FrameFaultInjector([parse_spec("delay:io@0:4,ms=30")]), frames)
     assert [d for d, _, _ in out if d > 0] == [0.03]
     out = feed(FrameFaultInjector([parse_spec("drop:io@1:3")]), frames)  # a fresh injector: count 1

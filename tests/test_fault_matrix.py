@@ -50,6 +50,8 @@ CASES = [
     ("stall-host", f"stall:host@1:{TICK},for=2", {"host_lost"}, "host", {"drive1", "drive2", "drive3", "drive4", "plant"}),
     ("drop-io", f"drop:io@1:{TICK}", {"frame_lost"}, None, {"plant"}),
     ("corrupt-io", f"corrupt:io@1:{TICK}", {"frame_error"}, None, {"host", "plant"}),
+    # every receiver lost the frame and says so at once: a drive, the plant or the host's io monitor
+    ("overflow-io", f"overflow:io@1:{TICK}", {"frame_lost"}, None, {"host", "plant", "drive1", "drive2", "drive3", "drive4"}),
     ("duplicate-io", f"duplicate:io@1:{TICK}", {"frame_sequence"}, None, {"drive1", "drive2", "drive3", "drive4", "plant"}),
     ("delay-io", f"delay:io@1:{TICK}", {"frame_lost"}, None, {"plant"}),
     ("emcy", f"emcy:drive2@1:{TICK},code=0x8611", {"emcy"}, "drive2", {"drive2"}),

@@ -22,7 +22,9 @@ import pytest
 from cli_util import pid_alive
 from clock_util import wait_for
 
+from bus.bus_features import FRAME_ERR
 from bus.busload import frame_bits, frame_bits_worst_case
+from bus.can_errors import CAN_ERR_CRTL, overflow_error_frame
 from bus.transports.hub.addresses import parse_address, parse_channel
 from bus.transports.hub.client import HubBus
 from bus.transports.hub.process import HubHandle, start_hub
@@ -209,6 +211,38 @@ def test_fileno_select_over_two_buses_and_hub_side_filters() -> None:
                     seen[b.bus_name] = (m.arbitration_id, bytes(m.data))
             assert seen == {"io": (0x101, b"e"), "fieldbus": (0x601, b"f")}
             assert select.select([io_rx, fb_rx], [], [], 0.05)[0] == []
+
+
+def test_bus_error_frames_reach_every_member_whatever_its_filters() -> None:
+    """A bus error frame (a receive overflow, a CRC error) reaches a member that accepts only 0x101,
+    as SocketCAN delivers error frames by the socket's error mask, which python-can's SocketcanBus
+    opens to all: a node hears that frames were lost or damaged whatever it accepts. Its other
+    frames are still filtered, by the hub and by the client (recv, recv_batch, recv_frames)."""
+    overflow = overflow_error_frame(0.0)
+    crc = can.Message(is_error_frame=True, arbitration_id=0x008, is_extended_id=False, data=bytes([0, 0, 0, 8, 0, 0, 0, 0]))
+    only = [{"can_id": 0x101, "can_mask": 0x7FF, "extended": False}]
+    with start_hub() as hub, HubBus(hub.channel("io")) as tx:
+        for read in ("recv", "recv_batch", "recv_frames"):
+            with HubBus(hub.channel("io"), can_filters=only) as rx:
+                rx.send(can.Message(arbitration_id=0x7FF, is_extended_id=False))  # its filters are in force once this came
+                assert tx.recv(2.0) is not None
+                for msg in (can.Message(arbitration_id=0x102, is_extended_id=False), overflow, crc):
+                    tx.send(msg)
+                tx.send(can.Message(arbitration_id=0x101, is_extended_id=False, data=b"e"))
+                got: list[tuple[bool, int]] = []
+                while len(got) < 3:
+                    assert select.select([rx], [], [], 2.0)[0] or rx.frames_pending(), (read, got)
+                    if read == "recv":
+                        m = rx.recv(0)
+                        got += [] if m is None else [(m.is_error_frame, m.arbitration_id)]
+                    elif read == "recv_batch":
+                        got += [(m.is_error_frame, m.arbitration_id) for m in rx.recv_batch()]
+                    else:
+                        frames = rx.recv_frames(0)
+                        got += [
+                            (bool(f & FRAME_ERR), int(i)) for f, i in zip(frames["flags"], frames["arbitration_id"], strict=True)
+                        ]
+                assert got == [(True, CAN_ERR_CRTL), (True, 0x008), (False, 0x101)], read
 
 
 def _stay_then_die(channel: str, q: Any) -> None:

@@ -17,7 +17,7 @@ import pytest
 from bus.can_errors import overflow_error_frame
 from bus.cia301.emcy import emcy_cob_id, encode_emcy
 from bus.cia301.nmt import HeartbeatReport, NmtCommand, NmtState, heartbeat_cob_id
-from bus.objects import DRIVE_EDS_PATH
+from bus.objects import DRIVE_EDS_PATH, FaultCause
 from bus.plant_objects import PLANT_EDS_PATH, PlantFault
 from bus.transports.config import FIELDBUS, virtual_transport
 from host.experiment.bench import TrialFault
@@ -61,10 +61,20 @@ def test_emcy_frames_as_faults() -> None:
     assert (rec.kind, rec.node, rec.node_id) == (FaultKind.HOST_LOST, "host", 127)
     # the plant node's fieldbus receiver lost frames at tick 5
     rec = emcy_fault(EmcyFrame(32, 0x8110, bytes([PlantFault.FRAMES_LOST, 0, 5, 0]), 1.0, 2.0))
-    assert (rec.kind, rec.node, rec.tick, rec.detected_by) == (FaultKind.FRAME_ERROR, "plant", 5, "plant")
+    assert (rec.kind, rec.node, rec.tick, rec.detected_by) == (FaultKind.FRAME_LOST, "plant", 5, "plant")
     assert rec.message == (
         "fieldbus frames lost in the plant node's receiver (receive overflow) at tick 5 (EMCY 0x8110 of the plant node)"
     )
+    # a drive's fieldbus receiver lost frames (cause 8)
+    rec = emcy_fault(EmcyFrame(3, 0x8110, bytes([FaultCause.CAN_OVERRUN, 0, 0, 0, 0]), 1.0, 2.0))
+    assert (rec.kind, rec.node, rec.detected_by) == (FaultKind.FRAME_LOST, "drive3", "drive3")
+    assert rec.message == "fieldbus frames lost in drive3's receiver (receive overflow) (EMCY 0x8110)"
+    # a channel monitor heard receive overflows only: frames lost, not damaged; with a CRC error among them: damaged
+    rec = channel_fault([ChannelTrouble("io", error_frames=2, first_error_frame_t=0.2, overflows=2, first_overflow_t=0.2)], 1.0)
+    assert rec is not None and (rec.kind, rec.node, rec.t_detected_mono) == (FaultKind.FRAME_LOST, "io", 0.2)
+    assert rec.message == "frames lost on io: a receiver's queue overflowed (receive-overflow error frame)"
+    rec = channel_fault([ChannelTrouble("io", error_frames=2, first_error_frame_t=0.1, overflows=1, first_overflow_t=0.2)], 1.0)
+    assert rec is not None and (rec.kind, rec.message) == (FaultKind.FRAME_ERROR, "a damaged frame on io (bus error frame)")
     # a drive: the host lost, an io tick out of sequence, a following error
     rec = emcy_fault(EmcyFrame(2, 0x8130, b"", 1.0, 2.0))
     assert (rec.kind, rec.node, rec.detected_by) == (FaultKind.HOST_LOST, "host", "drive2")
@@ -274,8 +284,8 @@ def test_a_frame_the_hosts_own_receiver_lost_while_the_boot_ups_are_awaited_ends
     rig.watchdog.raise_if_start_fault()
     rig.watchdog.fieldbus_errors.on_message_received(overflow_error_frame(time.time(), FIELDBUS))  # as the notifier hands it
     rec = start_fault(rig)
-    assert rig.declared == [rec] and (rec.kind, rec.node, rec.detected_by) == (FaultKind.FRAME_ERROR, "fieldbus", "host")
-    assert rec.message == "a damaged frame on fieldbus (bus error frame)"
+    assert rig.declared == [rec] and (rec.kind, rec.node, rec.detected_by) == (FaultKind.FRAME_LOST, "fieldbus", "host")
+    assert rec.message == "frames lost on fieldbus: a receiver's queue overflowed (receive-overflow error frame)"
     assert rig.watchdog.channels.troubles() == []  # the monitors heard nothing wrong
     assert nmt_stop_seen(rig.peer)
 

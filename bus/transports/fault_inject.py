@@ -22,6 +22,10 @@ Grammar::
 ``drop:CHAN@T:N``              lose frames on ``CHAN`` (``io`` or ``fieldbus``) from tick N of trial T on
 ``corrupt:CHAN@T:N``           damage frames on the wire: like a CAN controller every receiver sees a
                                CRC error — a bus error frame — instead, and the frame is lost
+``overflow:CHAN@T:N``          lose frames in the receivers' full queues: every receiver gets the
+                               receive-overflow error frame a CAN controller (SocketCAN
+                               CAN_ERR_CRTL_RX_OVERFLOW) or udp_multicast's dropped datagram gives
+                               instead, and the frame is lost
 ``duplicate:CHAN@T:N``         deliver frames twice
 ``delay:CHAN@T:N,ms=D``        deliver frames D ms late (default twice the plant's tick deadline
                                :data:`bus.io_frames.TICK_TIMEOUT_S` × scale: a *late* frame; a shorter
@@ -43,7 +47,7 @@ Whether a spec fits the experiment — a trial and a tick inside it, io frame fa
 (the io channel carries no frame between trials), a role the transport has — is checked before
 anything starts (:func:`check_specs`).
 
-Frame faults (drop, corrupt, duplicate, delay) take ``rate=P`` (probability per eligible frame,
+Frame faults (drop, corrupt, overflow, duplicate, delay) take ``rate=P`` (probability per eligible frame,
 default 1: the next one), ``seed=K`` (default 0), ``count=C`` (at most C frames, default 1) and
 ``id=COBID`` (only that COB-ID).  Eligible on ``io``: the encoder and torque frames (the
 TRIAL_START/STOP control frames are idempotent commands); on ``fieldbus``: every frame but NMT.
@@ -88,7 +92,7 @@ __all__ = [
 ]
 
 PROCESS_ACTIONS = ("kill", "stall")
-FRAME_ACTIONS = ("drop", "corrupt", "duplicate", "delay")
+FRAME_ACTIONS = ("drop", "corrupt", "overflow", "duplicate", "delay")
 ACTIONS = (*PROCESS_ACTIONS, *FRAME_ACTIONS, "emcy", "diskfull")
 ROLES = ("host", "plant", "hub", "drive1", "drive2", "drive3", "drive4")
 CHANNELS = ("io", "fieldbus")
@@ -176,7 +180,7 @@ class FaultSpec:
 
 
 _FORM = (
-    "kill|stall:ROLE@WHEN[,for=S], drop|corrupt|duplicate|delay:io|fieldbus@WHEN"
+    "kill|stall:ROLE@WHEN[,for=S], drop|corrupt|overflow|duplicate|delay:io|fieldbus@WHEN"
     "[,rate=P,seed=K,count=C,id=COBID,ms=D], emcy:NODE@WHEN[,code=C] or diskfull@WHEN, "
     "WHEN = TRIAL:TICK, TRIAL:end, before or after"
 )
@@ -477,23 +481,29 @@ class FrameFaultInjector:
                 return [(0.0, record), (0.0, record)]
             if spec.action == "delay":
                 return [(spec.delay_s, record)]
-            return [(0.0, _error_record(record))]
+            return [(0.0, _error_record(record, overflow=spec.action == "overflow"))]
         return [(0.0, record)]
 
 
-def _error_record(record: bytes) -> bytes:
-    """The hub record of the bus error frame that a damaged ``record`` causes at the receivers
-    (the original's stamp kept)."""
+def _error_record(record: bytes, *, overflow: bool = False) -> bytes:
+    """The hub record of the bus error frame the receivers get instead of ``record`` (the original's
+    stamp kept): a CRC error for a damaged frame, a receive overflow (``overflow``) for one lost in
+    their full queues."""
     import can
 
+    from bus.can_errors import overflow_error_frame
     from bus.transports.hub.records import encode_record
     from bus.transports.hub.wire import STAMP, STAMP_OFFSET
 
-    err = can.Message(
-        is_error_frame=True,
-        arbitration_id=_CAN_ERR_PROT,
-        is_extended_id=False,
-        data=bytes([0, 0, 0, _CAN_ERR_PROT_LOC_CRC_SEQ, 0, 0, 0, 0]),
+    err = (
+        overflow_error_frame(0.0)
+        if overflow
+        else can.Message(
+            is_error_frame=True,
+            arbitration_id=_CAN_ERR_PROT,
+            is_extended_id=False,
+            data=bytes([0, 0, 0, _CAN_ERR_PROT_LOC_CRC_SEQ, 0, 0, 0, 0]),
+        )
     )
     rec = bytearray(encode_record(err))
     STAMP.pack_into(rec, STAMP_OFFSET, STAMP.unpack_from(record, STAMP_OFFSET)[0])

@@ -29,7 +29,7 @@ def add_parser(sub: Any) -> None:
         action="append",
         metavar="SPEC",
         help="inject a fault (repeatable): kill|stall:ROLE@WHEN[,for=S], "
-        "drop|corrupt|duplicate|delay:io|fieldbus@WHEN[,rate=P,seed=K,count=C,id=COBID,ms=D], "
+        "drop|corrupt|overflow|duplicate|delay:io|fieldbus@WHEN[,rate=P,seed=K,count=C,id=COBID,ms=D], "
         "emcy:NODE@WHEN[,code=C], diskfull@WHEN; WHEN = TRIAL:TICK, TRIAL:end, before or after "
         "(docs/faults.md: Fault injection)",
     )

@@ -151,7 +151,16 @@ class RigChannels:
     def troubles(self) -> list[ChannelTrouble]:
         """Per channel, a stopped log and the bus error frames seen (only channels with either)."""
         return [
-            ChannelTrouble(m.name, m.log_error, m.log_error_t, m.log_disk_full, m.error_frames, m.first_error_frame_t)
+            ChannelTrouble(
+                m.name,
+                m.log_error,
+                m.log_error_t,
+                m.log_disk_full,
+                m.error_frames,
+                m.first_error_frame_t,
+                m.overflow_frames,
+                m.first_overflow_t,
+            )
             for m in self.monitors
             if m.log_error is not None or m.error_frames
         ]
@@ -169,6 +178,7 @@ class RigChannels:
                     "emulator_throughput_bits_per_s": c.bits_worst_case / wall_s if wall_s > 0 else 0.0,
                     "log": f"{m.name}.log" if m.log is not None or m.log_error else None,
                     "error_frames": m.error_frames,
+                    "overflow_frames": m.overflow_frames,
                 }
         return channels
 

@@ -92,7 +92,7 @@ PLANT_FAULT_KINDS: Mapping[PlantFault, FaultKind] = {
     PlantFault.BAD_FRAME: FaultKind.FRAME_ERROR,
     PlantFault.HOST_LOST: FaultKind.HOST_LOST,
     PlantFault.ABORTED: FaultKind.TRIAL_FAULT,
-    PlantFault.FRAMES_LOST: FaultKind.FRAME_ERROR,
+    PlantFault.FRAMES_LOST: FaultKind.FRAME_LOST,
     PlantFault.IO_FRAMES_LOST: FaultKind.FRAME_LOST,
 }
 
@@ -110,7 +110,9 @@ class BusError:
 class ChannelTrouble:
     """What a channel monitor noted: its log stopped (``log_error``, on a full disk
     ``disk_full``) and the bus error frames it saw (``error_frames``, the first at
-    ``first_error_frame_t``)."""
+    ``first_error_frame_t``), ``overflows`` of them receive overflows (frames lost in a receiver's
+    full queue, :func:`bus.can_errors.is_receive_overflow`; the first at ``first_overflow_t``), the
+    rest damaged frames."""
 
     channel: str
     log_error: str | None = None
@@ -118,6 +120,8 @@ class ChannelTrouble:
     disk_full: bool = False
     error_frames: int = 0
     first_error_frame_t: float | None = None
+    overflows: int = 0
+    first_overflow_t: float | None = None
 
 
 @dataclass(frozen=True)
@@ -151,7 +155,8 @@ def bus_fault(errors: Sequence[BusError], bus_name: str, now: float) -> FaultRec
 
 def channel_fault(channels: Sequence[ChannelTrouble], now: float) -> FaultRecord | None:
     """The first channel in trouble: a stopped log (``disk_full`` / ``output_error``) before its
-    error frames (``frame_error``); None if all are well."""
+    error frames (``frame_lost`` when every one of them was a receive overflow, else
+    ``frame_error``: a damaged frame); None if all are well."""
     for ch in channels:
         if ch.log_error is not None:
             kind = FaultKind.DISK_FULL if ch.disk_full else FaultKind.OUTPUT_ERROR
@@ -164,6 +169,16 @@ def channel_fault(channels: Sequence[ChannelTrouble], now: float) -> FaultRecord
                 t_detected_mono=ch.log_error_t or now,
                 latency_ms=0.0,
                 latency_basis="failed write",
+            )
+        if ch.error_frames and ch.overflows == ch.error_frames:
+            return FaultRecord(
+                FaultKind.FRAME_LOST,
+                f"frames lost on {ch.channel}: a receiver's queue overflowed (receive-overflow error frame)",
+                node=ch.channel,
+                detected_by="host",
+                t_detected_mono=ch.first_overflow_t or now,
+                latency_ms=0.0,
+                latency_basis="bus error frame",
             )
         if ch.error_frames:
             return FaultRecord(
@@ -257,6 +272,13 @@ def emcy_fault(frame: EmcyFrame, times: DetectionTimes | None = None) -> FaultRe
             frame,
             "the frame's arrival",
             tick=expected,
+        )
+    if frame.code == EMCY_CAN_OVERRUN and data[0] == FaultCause.CAN_OVERRUN:
+        return _own_report(
+            FaultKind.FRAME_LOST,
+            f"fieldbus frames lost in {name}'s receiver (receive overflow) (EMCY 0x8110)",
+            frame,
+            "the loss's error frame",
         )
     if frame.code == EMCY_CAN_OVERRUN and data[0] == FaultCause.IO_FRAMES_LOST:
         next_tick = int.from_bytes(data[1:3], "little")

@@ -35,7 +35,7 @@ from typing import Any
 from bus.cia301.emcy import EMCY_BASE
 from bus.cia301.nmt import CONSUMER_TIME_MS, HEARTBEAT_BASE, NMT_COB_ID
 from bus.io_frames import CONTROL_COB_ID, ENCODER_COB_BASE, N_JOINTS, TORQUE_COB_BASE
-from bus.transports.fault_inject import FaultSpec
+from bus.transports.fault_inject import FRAME_ACTIONS, FaultSpec
 from bus.units import timeout_scale
 from host.experiment.faults import Position, node_name, position_of
 
@@ -94,15 +94,17 @@ def _absorbed(action: str, channel: str, can_id: int | None) -> str:
 
 def _what_tolerated(spec: FaultSpec, recs: list[dict[str, Any]]) -> str:
     first = recs[0]
-    if spec.action in ("drop", "corrupt", "duplicate", "delay"):
+    if spec.action in FRAME_ACTIONS:
         channel = str(first.get("target", spec.target))
         can_id = first.get("can_id")
         frame = describe_frame(channel, int(can_id)) if isinstance(can_id, int) else "a frame"
-        verb = {"drop": "dropped", "corrupt": "damaged", "duplicate": "duplicated", "delay": "delayed"}[spec.action]
+        verb = {"drop": "dropped", "corrupt": "damaged", "overflow": "lost", "duplicate": "duplicated", "delay": "delayed"}
         more = f" and {len(recs) - 1} more frame{'s' if len(recs) > 2 else ''}" if len(recs) > 1 else ""
         late = f" by {spec.delay_s * 1000:.0f} ms" if spec.action == "delay" else ""
+        full = " in every receiver's full queue (receive overflow)" if spec.action == "overflow" else ""
         place = f"trial {first.get('trial')}, tick {first.get('tick')}" if first.get("in_trial") else "outside a trial"
-        return f"{verb} {frame}{more}{late} ({place}): {_absorbed(spec.action, channel, can_id)}; no fault followed"
+        what = f"{verb[spec.action]} {frame}{more}{late}{full}"
+        return f"{what} ({place}): {_absorbed(spec.action, channel, can_id)}; no fault followed"
     if spec.action == "stall":
         consumer_ms = CONSUMER_TIME_MS * timeout_scale()
         return (
@@ -181,7 +183,7 @@ def _before(rec: dict[str, Any], fault: dict[str, Any]) -> bool:
 
 
 def _nothing_to_act_on(spec: FaultSpec) -> str:
-    if spec.action in ("drop", "corrupt", "duplicate", "delay"):
+    if spec.action in FRAME_ACTIONS:
         which = f"COB-ID 0x{spec.cob_id:03X}" if spec.cob_id is not None else "eligible"
         return f"no {which} frame passed on the {spec.target} after its moment (the run went on without it)"
     return f"{spec.target or 'its target'} was not there to act on at its moment"

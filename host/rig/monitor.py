@@ -58,6 +58,7 @@ import numpy as np
 from bus import io_frames
 from bus.bus_features import FRAME_ERR, FrameArrayReceiver, load_of, recv_waiting, release_held
 from bus.busload import BusLoadCounter
+from bus.can_errors import is_receive_overflow, receive_overflows
 from bus.canlog import open_log
 from bus.transports.config import IO
 from host.experiment.outputs import is_disk_full
@@ -131,6 +132,10 @@ class ChannelMonitor:
         #: bus error frames seen, and when the first came (monotonic, s)
         self.error_frames = 0
         self.first_error_frame_t: float | None = None
+        #: of them, those that say a receiver's queue overflowed (frames lost, not damaged), and the
+        #: first one's time (monotonic, s)
+        self.overflow_frames = 0
+        self.first_overflow_t: float | None = None
         #: io: trials and ticks as the plant's frames show them
         self.follower = io_frames.TrialTickFollower()
         self._is_io = name == IO
@@ -177,7 +182,7 @@ class ChannelMonitor:
                 if classify is not None:
                     classify(msg)
                 if msg.is_error_frame:
-                    self._error_frames(1)
+                    self._error_frames(1, int(is_receive_overflow(msg)))
                 elif follower is not None:
                     follower.on_frame(msg.arbitration_id, msg.data)
             if log is not None:
@@ -199,10 +204,15 @@ class ChannelMonitor:
                 self.on_log_fail_injected(f.trial, f.tick)
             raise OSError(errno.ENOSPC, "No space left on device (injected)")
 
-    def _error_frames(self, n: int) -> None:
+    def _error_frames(self, n: int, overflows: int = 0) -> None:
+        """``n`` bus error frames heard, ``overflows`` of them receive overflows."""
+        now = time.monotonic()
         if n and self.first_error_frame_t is None:
-            self.first_error_frame_t = time.monotonic()
+            self.first_error_frame_t = now
+        if overflows and self.first_overflow_t is None:
+            self.first_overflow_t = now
         self.error_frames += n
+        self.overflow_frames += overflows
 
     def _log_failed(self, err: BaseException) -> None:
         """The log stopped (noted once; the frames are still counted)."""
@@ -237,7 +247,8 @@ class ChannelMonitor:
                 if self._classify_frames is not None:
                     self._classify_frames(frames)
                 err = (frames["flags"] & FRAME_ERR) != 0
-                self._error_frames(int(err.sum()))
+                n_err = int(err.sum())
+                self._error_frames(n_err, receive_overflows(frames["arbitration_id"][err], frames["data"][err]) if n_err else 0)
                 if self._is_io:
                     self.follower.on_frame_array(frames["arbitration_id"], frames["data"], frames["length"], ~err)
                 if self.log is not None:

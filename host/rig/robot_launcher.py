@@ -239,9 +239,14 @@ class RobotLauncher(LaunchCore):
         for m in self.monitors:
             if m.error_frames and m.name not in self._errors_said:
                 self._errors_said.add(m.name)
+                what = (
+                    "frames lost in a receiver's full queue (receive overflow)"
+                    if m.overflow_frames == m.error_frames
+                    else "a frame damaged on the wire, or lost in the monitor's receiver"
+                )
                 self._say_err(
-                    f"ilcrig robot: bus error frame on {m.name} (a frame damaged on the wire, or lost in "
-                    f"the monitor's receiver): {m.name}.log and the bus counts of summary.json miss frames"
+                    f"ilcrig robot: bus error frame on {m.name} ({what}): "
+                    f"{m.name}.log and the bus counts of summary.json miss frames"
                 )
 
     def _say_robot_faults(self, start: int) -> int:
@@ -316,7 +321,10 @@ class RobotLauncher(LaunchCore):
         except (OSError, ValueError):
             plant = None
         robot = (plant or {}).get("robot")
-        channels = {m.name: m.counter.as_dict() | {"error_frames": m.error_frames} for m in self.monitors}
+        channels = {
+            m.name: m.counter.as_dict() | {"error_frames": m.error_frames, "overflow_frames": m.overflow_frames}
+            for m in self.monitors
+        }
         summary = {
             "schema": SUMMARY_SCHEMA,
             "exit_code": code,

@@ -306,7 +306,14 @@ class Watchdog:
         troubles = self.channels.troubles()
         own = self.fieldbus_errors
         if own.overflows:  # the host's own receiver: before the monitors' troubles
-            troubles = [ChannelTrouble(FIELDBUS, error_frames=own.overflows, first_error_frame_t=own.overflow_t), *troubles]
+            own_lost = ChannelTrouble(
+                FIELDBUS,
+                error_frames=own.overflows,
+                first_error_frame_t=own.overflow_t,
+                overflows=own.overflows,
+                first_overflow_t=own.overflow_t,
+            )
+            troubles = [own_lost, *troubles]
         return bus_fault(errors, self.bus_name, now) or channel_fault(troubles, now)
 
     def raise_if_start_fault(self) -> None:

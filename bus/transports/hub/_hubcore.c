@@ -258,8 +258,11 @@ static void route_frame(Core *c, Member *sender, const uint8_t *rec, size_t tota
     uint32_t can_id = u32le(rec + 4);
     int ext = (flags & FLAG_EXT) ? 1 : 0;
     int fd = flags & FLAG_FD;
+    /* a bus error frame reaches every member whatever its acceptance filters (SocketCAN delivers
+       error frames by the socket's error mask, which python-can's SocketcanBus opens to all) */
+    int err = flags & FLAG_ERR;
     Stats *st = &c->stats[sender->bus];
-    if (flags & FLAG_ERR) {
+    if (err) {
         st->error_frames++;
     } else if (fd) {
         st->fd_frames++;
@@ -276,8 +279,8 @@ static void route_frame(Core *c, Member *sender, const uint8_t *rec, size_t tota
         if (!m || m->dead || m->bus != sender->bus) continue;
         if (fd && m->classic) continue;
         if (m == sender) {
-            if (m->echo && accepts(m, can_id, ext)) queue_for(c, m, rec, total, 1);
-        } else if (accepts(m, can_id, ext)) {
+            if (m->echo && (err || accepts(m, can_id, ext))) queue_for(c, m, rec, total, 1);
+        } else if (err || accepts(m, can_id, ext)) {
             queue_for(c, m, rec, total, 0);
         }
     }

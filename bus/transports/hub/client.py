@@ -54,7 +54,8 @@ Acceptance filters
     ``can_filters`` / :meth:`can.BusABC.set_filters` are pushed to the hub, which then only forwards matching
     frames (like SocketCAN's kernel filters); the client still checks them in software, so frames in flight
     while filters change are filtered too (as one set lookup when each filter is one standard identifier,
-    :func:`bus.bus_features.exact_standard_ids`).
+    :func:`bus.bus_features.exact_standard_ids`). Bus error frames pass whatever the filters, as on
+    python-can's SocketcanBus (its error mask takes every error class).
 
 Reading
     A client reads as many records as are there (up to :attr:`HubBus.RECV_CHUNK` bytes) per
@@ -274,7 +275,10 @@ class HubBus(can.BusABC):
         return self._passed(rxq.popleft()) if rxq else (None, False)
 
     def _passed(self, msg: can.Message) -> tuple[can.Message, bool]:
-        """``msg``, True when :attr:`_exact_ids` passes it (else ``BusABC.recv`` tests it)."""
+        """``msg``, True when :attr:`_exact_ids` passes it or it is a bus error frame (which passes
+        every filter), else ``BusABC.recv`` tests it."""
+        if msg.is_error_frame:
+            return msg, True
         exact = self._exact_ids
         return msg, exact is not None and not msg.is_extended_id and msg.arbitration_id & 0x7FF in exact
 
@@ -342,9 +346,9 @@ class HubBus(can.BusABC):
         if self._filters is not None:  # the hub filtered too, but maybe with filters set before
             exact, matches = self._exact_ids, self._matches_filters
             if exact is not None:  # standard ids only: python-can's test as a set lookup
-                msgs = [m for m in msgs if not m.is_extended_id and m.arbitration_id & 0x7FF in exact]
+                msgs = [m for m in msgs if (not m.is_extended_id and m.arbitration_id & 0x7FF in exact) or m.is_error_frame]
             else:
-                msgs = [m for m in msgs if matches(m)]
+                msgs = [m for m in msgs if m.is_error_frame or matches(m)]
         return msgs
 
     def recv_frames(self, timeout: float | None = None) -> np.ndarray:

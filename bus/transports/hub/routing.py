@@ -19,7 +19,10 @@ Classic CAN members and bitrates
 
 Acceptance filters
     A member's filters (a filter record, see :mod:`bus.transports.hub.wire`) are applied here: only
-    matching frames are forwarded to it (like SocketCAN's kernel filters).
+    matching frames are forwarded to it (like SocketCAN's kernel filters). Bus error frames reach
+    every member whatever its filters, as SocketCAN delivers them by the socket's error mask, which
+    python-can's SocketcanBus opens to every error class: a node hears that frames were damaged or
+    lost whatever it accepts.
 
 Delivery
     The frames routed in one round of the hub's loop (all ready members) are queued per
@@ -140,8 +143,8 @@ class Router:
         self.buses: dict[str, list[Client]] = {}
         #: logical bus name -> its counters (what the Python path counted)
         self.stats: dict[str, HubChannelStats] = {}
-        #: per bus: (sender, can_id, extended, fd) -> [(member, as echo)], see recipients
-        self._cache: dict[str, dict[tuple[Client, int, int, int], list[tuple[Client, bool]]]] = {}
+        #: per bus: (sender, can_id, extended, fd, error frame) -> [(member, as echo)], see recipients
+        self._cache: dict[str, dict[tuple[Client, int, int, int, int], list[tuple[Client, bool]]]] = {}
         #: frames routed in the current round, per destination (see send_round)
         self._pending: dict[Client, list[bytes]] = {}
         #: bulk members holding frames (see send_round, release_held)
@@ -187,11 +190,13 @@ class Router:
             return True
         return False
 
-    def recipients(self, sender: Client, can_id: int, ext: int, fd: int) -> list[tuple[Client, bool]]:
+    def recipients(self, sender: Client, can_id: int, ext: int, fd: int, err: int = 0) -> list[tuple[Client, bool]]:
         """(member, as echo) pairs that get a frame of ``sender`` (cached per bus until a member
-        joins, leaves or changes its filters)."""
+        joins, leaves or changes its filters); a bus error frame (``err``) reaches every member
+        whatever its filters, as SocketCAN delivers error frames by the socket's error mask
+        (python-can's SocketcanBus opens it to all)."""
         cache = self._cache.setdefault(sender.bus, {})
-        key = (sender, can_id, ext, fd)
+        key = (sender, can_id, ext, fd, err)
         found = cache.get(key)
         if found is None:
             found = []
@@ -199,9 +204,9 @@ class Router:
                 if fd and peer.classic:
                     continue  # a classic CAN member never sees FD frames (like a non-FD raw socket)
                 if peer is sender:
-                    if peer.echo and peer.accepts(can_id, ext):
+                    if peer.echo and (err or peer.accepts(can_id, ext)):
                         found.append((peer, True))
-                elif peer.accepts(can_id, ext):
+                elif err or peer.accepts(can_id, ext):
                     found.append((peer, False))
             cache[key] = found
         return found
@@ -256,7 +261,7 @@ class Router:
                     if not clock.enqueue(sender, rec, arrival_ns):
                         self.fan_out(sender, rec)
                 else:  # the plain path
-                    for peer, echo in self.recipients(sender, can_id, ext, fd):
+                    for peer, echo in self.recipients(sender, can_id, ext, fd, flags & FLAG_ERR):
                         chunk = rec[:1] + bytes([flags | FLAG_ECHO]) + rec[2:] if echo else rec
                         queue = pending.get(peer)
                         if queue is None:
@@ -329,7 +334,7 @@ class Router:
         ext = 1 if flags & FLAG_EXT else 0
         fd = flags & FLAG_FD
         pending = self._pending
-        for peer, echo in self.recipients(sender, can_id, ext, fd):
+        for peer, echo in self.recipients(sender, can_id, ext, fd, flags & FLAG_ERR):
             pending.setdefault(peer, []).append(rec[:1] + bytes([flags | FLAG_ECHO]) + rec[2:] if echo else rec)
 
     # -- delivery ---------------------------------------------------------------------------
