@@ -315,8 +315,18 @@ class DriveNode(SlaveNode):
 
     def _on_fieldbus(self, msg: can.Message) -> None:
         """Lockstep: a frame that comes while a SYNC waits for its io tick waits too, in order."""
-        if not self.backlog.offer(msg):
+        if self.backlog.offer(msg):
+            self._fieldbus_plain = False  # held: its deadline and its release are the service's
+        else:
             super()._on_fieldbus(msg)
+
+    def fieldbus_settled(self) -> bool:
+        """The fieldbus frames of this wake-up (SYNCs and RPDOs, handled at once) set no timer of
+        the drive that falls due before the node serves anyway: the SYNC watchdog and the backlog's
+        hold (:meth:`next_deadline`) lie beyond it. EMCYs and PDO timers are
+        :meth:`io_settled`'s question (:attr:`firmware_model.drive.Drive.tick_settled`)."""
+        due = self.next_deadline()
+        return due is None or due >= self._serve_by_s
 
     def _send_tpdos(self) -> None:
         """The TPDOs the drive has due, on the fieldbus."""

@@ -924,3 +924,177 @@ def test_at_random_a_node_that_leaves_its_service_out_sends_what_one_that_never_
     on both buses, at the same clock time as the one that serves every wake-up."""
     warm_up()
     assert _random_script(CountingNode, events) == _random_script(AlwaysServedNode, events)
+
+
+_LOCKSTEP_EVENTS = st.lists(
+    st.one_of(
+        st.tuples(st.just("period"), st.integers(1, 300)),  # n periods: RPDO1 + SYNC, the encoder frame 0.25 ms after
+        st.tuples(st.just("ahead"), st.integers(1, 6)),  # n × (RPDO1 + SYNC) at once: the later ones wait in the backlog
+        st.tuples(st.just("early"), st.just(0)),  # the encoder frame before its SYNC: held
+        st.tuples(st.just("rpdos"), st.integers(1, 40)),  # n RPDO1s 1 ms apart and no SYNC: the watchdog's time passes
+        st.tuples(st.just("idle"), st.integers(1, 400)),  # no frame: a step after n × 0.5 ms
+        st.tuples(st.just("warn"), st.just(0)),  # the drive raises an EMCY between wake-ups
+        st.tuples(st.just("heartbeat"), st.sampled_from([0, 10, 50])),  # 0x1017 [ms] by SDO
+        st.tuples(st.just("watchdog"), st.sampled_from([0, 2000, 10000])),  # 0x1006 [µs] by SDO: the SYNC watchdog
+        st.tuples(st.just("hang"), st.just(0)),  # a segmented upload the master never continues
+        st.tuples(st.just("rtr"), st.just(0)),  # a remote frame for TPDO1
+        st.tuples(st.just("nmt"), st.sampled_from([0x01, 0x80])),
+    ),
+    max_size=40,
+)
+
+
+def _random_lockstep_script(node_cls: type[CountingNode], events: list[tuple[str, int]]) -> list[tuple[float, str, int, bytes]]:
+    """``events`` played to a drive of a SYNC-stepped plant (``lockstep=True``: RPDO1 = controlword +
+    target, TPDO1 = statusword + position on every SYNC, CSP) on a manual clock; every frame it sent
+    on either bus, with the clock time of the step that sent it."""
+    fb_node, host, io_node = _virtual_buses("settle-lockstep")
+    plant = can.Bus(interface="virtual", channel=io_node.channel_id)  # type: ignore[attr-defined]
+    clock = ManualClock(100.0)
+    node = node_cls(Drive(NODE), fb_node, io_node, clock=clock, lockstep=True)
+    drive = node.drive
+    assert isinstance(drive, Drive)
+    out: list[tuple[float, str, int, bytes]] = []
+    t, wire = 100.0, 0
+    sync = can.Message(arbitration_id=0x080, data=b"", is_extended_id=False)
+
+    def step() -> None:
+        clock.now = t
+        node.step(0.0)
+        for name, bus in (("fieldbus", host), ("io", plant)):
+            while (msg := bus.recv(timeout=0)) is not None:
+                out.append((round(t, 6), name, msg.arbitration_id, bytes(msg.data)))
+
+    def sdo_write(index: int, sub: int, value: int, size: int) -> None:
+        cs = {1: 0x2F, 2: 0x2B, 4: 0x23}[size]
+        data = bytes([cs, index & 0xFF, index >> 8, sub]) + value.to_bytes(size, "little").ljust(4, b"\0")
+        host.send(can.Message(arbitration_id=0x600 + NODE, data=data, is_extended_id=False))
+        step()
+
+    def rpdo() -> None:
+        host.send(can.Message(arbitration_id=0x200 + NODE, data=struct.pack("<Hi", 0x0F, 0), is_extended_id=False))
+
+    def encoder() -> None:
+        nonlocal wire
+        plant.send(io_frames.encode_encoder(NODE - 1, wire, 1000))
+        wire += 1
+
+    try:
+        node.start()
+        step()
+        for index, sub, value, size in (
+            (0x1800, 1, 0x8000_0180 + NODE, 4),  # TPDO1: statusword + position actual, on every SYNC
+            (0x1A00, 0, 0, 1),
+            (0x1A00, 1, 0x60410010, 4),
+            (0x1A00, 2, 0x60640020, 4),
+            (0x1A00, 0, 2, 1),
+            (0x1800, 2, 1, 1),
+            (0x1800, 1, 0x180 + NODE, 4),
+            (0x1400, 1, 0x8000_0200 + NODE, 4),  # RPDO1: controlword + target position, synchronous
+            (0x1600, 0, 0, 1),
+            (0x1600, 1, 0x60400010, 4),
+            (0x1600, 2, 0x607A0020, 4),
+            (0x1600, 0, 2, 1),
+            (0x1400, 2, 1, 1),
+            (0x1400, 1, 0x200 + NODE, 4),
+            (0x6060, 0, 8, 1),  # CSP
+        ):
+            sdo_write(index, sub, value, size)
+        host.send(can.Message(arbitration_id=0, data=bytes([0x01, NODE]), is_extended_id=False))
+        step()
+        for kind, value in events:
+            if kind == "period":
+                for _ in range(value):
+                    rpdo()
+                    host.send(sync)
+                    t += 0.00025
+                    step()
+                    encoder()
+                    t += 0.00075
+                    step()
+                continue
+            if kind == "ahead":
+                for _ in range(value):
+                    rpdo()
+                    host.send(sync)
+                t += 0.00025
+                step()
+                for _ in range(value):
+                    encoder()
+                    t += 0.00025
+                    step()
+                continue
+            if kind == "rpdos":
+                for _ in range(value):
+                    rpdo()
+                    t += 0.001
+                    step()
+                continue
+            if kind == "early":
+                encoder()
+                t += 0.00025
+                step()
+                rpdo()
+                host.send(sync)
+                t += 0.00025
+            elif kind == "idle":
+                t += 0.0005 * value
+            elif kind == "warn":
+                drive.power.warning(0x8110, bytes(5))
+                continue
+            elif kind == "heartbeat":
+                sdo_write(0x1017, 0, value, 2)
+                continue
+            elif kind == "watchdog":
+                sdo_write(0x1006, 0, value, 4)
+                continue
+            elif kind == "hang":
+                host.send(
+                    can.Message(arbitration_id=0x600 + NODE, data=bytes.fromhex("40 08 10 00 00 00 00 00"), is_extended_id=False)
+                )
+            elif kind == "rtr":
+                host.send(can.Message(arbitration_id=0x180 + NODE, is_remote_frame=True, dlc=6, is_extended_id=False))
+            else:
+                host.send(can.Message(arbitration_id=0, data=bytes([value, NODE]), is_extended_id=False))
+            step()
+        t += 2.0  # then the timers alone
+        step()
+    finally:
+        for bus in (fb_node, host, io_node, plant):
+            bus.shutdown()
+    return out
+
+
+@given(events=_LOCKSTEP_EVENTS)
+@example(events=[("period", 300)])
+@example(events=[("watchdog", 2000), ("period", 3), ("rpdos", 20)])  # the watchdog armed by a SYNC fires among RPDOs
+@example(events=[("watchdog", 2000), ("period", 20), ("idle", 10), ("period", 5), ("ahead", 4), ("early", 0), ("period", 3)])
+@example(events=[("heartbeat", 10), ("period", 100), ("warn", 0), ("period", 30), ("hang", 0), ("period", 200)])
+@settings(max_examples=40, deadline=None)
+def test_at_random_a_lockstep_drive_that_leaves_its_service_out_after_syncs_sends_what_one_that_never_does_sends(
+    events: list[tuple[str, int]],
+) -> None:
+    """The service skip after a wake-up of SYNCs and RPDOs (:meth:`DriveNode.fieldbus_settled`), from
+    outside, at random: periods of RPDO1 + SYNC and their encoder frame, SYNCs ahead of the plant
+    (the backlog), an encoder frame before its SYNC, RPDOs without a SYNC, pauses, EMCYs, 0x1017 and 0x1006 (the SYNC
+    watchdog) changed by SDO, SDO transfers left hanging, remote frames, NMT commands -- every frame,
+    on both buses, at the same clock time as from the drive that serves every wake-up."""
+    warm_up()
+    assert _random_lockstep_script(CountingNode, events) == _random_lockstep_script(AlwaysServedNode, events)
+
+
+def test_a_sync_stepped_drive_leaves_its_service_out_on_most_periods() -> None:
+    """The skip does happen: 300 periods of RPDO1 + SYNC and their encoder frame, heartbeat 50 ms,
+    no SYNC watchdog -- the service runs about once per heartbeat and the node's ``MAX_WAIT_S``, not
+    twice a period."""
+    warm_up()
+    counted: list[int] = []
+
+    class Counted(CountingNode):
+        def on_service(self, now: float) -> None:
+            super().on_service(now)
+            counted.append(1)
+
+    frames = _random_lockstep_script(Counted, [("heartbeat", 50), ("period", 300)])
+    assert sum(cob == 0x180 + NODE for _, _, cob, _ in frames) >= 300  # a TPDO1 every period
+    assert len(counted) < 0.2 * 600

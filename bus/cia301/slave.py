@@ -155,6 +155,9 @@ class SlaveNode:
         #: the service runs at least this often while io frames keep coming [s of the clock]: the
         #: bound of a deadline an :meth:`io_settled` missed
         self._serve_by_s = 0.0
+        #: every fieldbus frame of this wake-up went to :meth:`on_fieldbus` (no NMT, SDO, heartbeat,
+        #: error or remote frame): :meth:`fieldbus_settled` may vouch for them
+        self._fieldbus_plain = True
 
     def _filenos(self) -> list[int] | None:
         fds = []
@@ -184,6 +187,13 @@ class SlaveNode:
         """True when the io frames just handled left the service nothing to do before the
         deadlines known at the start of the wake-up: no deadline moved earlier, nothing waits to be
         sent. :meth:`step` then leaves the service out (default False: it serves every wake-up)."""
+        return False
+
+    def fieldbus_settled(self) -> bool:
+        """True when the fieldbus frames just handled, all of them given to :meth:`on_fieldbus`
+        (e.g. a SYNC and the RPDOs before it), left the service nothing to do before the service
+        is due anyway (:attr:`_serve_by_s`): :meth:`step` may then leave the service out of a
+        wake-up with fieldbus frames too, if :meth:`io_settled` agrees (default False)."""
         return False
 
     def on_nmt_reset(self, command: NmtCommand) -> None:
@@ -271,8 +281,10 @@ class SlaveNode:
         frames, process every frame waiting on both buses (the fieldbus first: a SYNC or an NMT
         command is handled before the io frame it caused, which the transport can only have
         delivered after it), then send due heartbeat, EMCY and SDO-timeout frames and call
-        :meth:`on_service` -- left out after a wake-up of io frames alone that :meth:`io_settled`
-        vouches for, until the earliest deadline or :attr:`MAX_WAIT_S` after the last service.
+        :meth:`on_service` -- left out after a wake-up whose frames the subclass vouches for (io
+        frames: :meth:`io_settled`; fieldbus frames, all of them for :meth:`on_fieldbus`:
+        :meth:`fieldbus_settled` too), until the earliest deadline or :attr:`MAX_WAIT_S` after the
+        last service.
 
         :return: number of frames received.
         """
@@ -286,6 +298,7 @@ class SlaveNode:
         if wait < 0.0:
             wait = 0.0
         self._settled = False
+        self._fieldbus_plain = True
         fds = self._fds
         if fds is not None:
             io_ready = self._io_pending()
@@ -322,8 +335,13 @@ class SlaveNode:
                         break
         self.frames_in += handled
         now = self._clock()
-        if handled and not fieldbus_frames and now < self._serve_by_s and self.io_settled():
-            self._settled = True  # io frames alone, nothing due: the service would find no work
+        if (
+            handled
+            and now < self._serve_by_s
+            and (not fieldbus_frames or (self._fieldbus_plain and self.fieldbus_settled()))
+            and self.io_settled()
+        ):
+            self._settled = True  # frames the subclass vouches for, nothing due: the service would find no work
             return handled
         self._service(now)
         self.on_service(now)
@@ -430,6 +448,8 @@ class SlaveNode:
     # ------------------------------------------------------------------ fieldbus
 
     def _on_fieldbus(self, msg: can.Message) -> None:
+        if msg.is_error_frame or msg.is_remote_frame:
+            self._fieldbus_plain = False
         if msg.is_error_frame:
             if is_receive_overflow(msg):
                 logger.warning("node %d: fieldbus frames lost (receive overflow)", self.node_id)
@@ -445,10 +465,13 @@ class SlaveNode:
             return  # our own frame, echoed
         producer = heartbeat_node_id(cob)
         if producer is not None:
+            self._fieldbus_plain = False
             self.consumer.on_heartbeat(producer, self._clock())
         elif cob == NMT_COB_ID:
+            self._fieldbus_plain = False
             self._on_nmt(bytes(msg.data))
         elif cob == self._sdo_rx:
+            self._fieldbus_plain = False
             if int(self.app.nmt_state) == NmtState.STOPPED:
                 return
             response = self.sdo.handle(bytes(msg.data), now_s=self._clock())
