@@ -848,29 +848,62 @@ _EVENTS = st.lists(
 )
 
 
+class _Played:
+    """One drive node on virtual buses and a manual clock, played by a test as the master (``host``)
+    and the plant (``plant``): :attr:`out` is every frame the node sent on either bus, with the
+    clock time of the step that sent it."""
+
+    def __init__(self, node_cls: type[CountingNode], name: str, *, lockstep: bool = False) -> None:
+        self.fb_node, self.host, self.io_node = _virtual_buses(name)
+        self.plant = can.Bus(interface="virtual", channel=self.io_node.channel_id)  # type: ignore[attr-defined]
+        self.clock = ManualClock(100.0)
+        self.node = node_cls(Drive(NODE), self.fb_node, self.io_node, clock=self.clock, lockstep=lockstep)
+        drive = self.node.drive
+        assert isinstance(drive, Drive)
+        self.drive = drive
+        self.out: list[tuple[float, str, int, bytes]] = []
+
+    def step(self, t: float) -> None:
+        """The node's step at clock time ``t`` [s]; what it sent to :attr:`out`."""
+        self.clock.now = t
+        self.node.step(0.0)
+        for name, bus in (("fieldbus", self.host), ("io", self.plant)):
+            while (msg := bus.recv(timeout=0)) is not None:
+                self.out.append((round(t, 6), name, msg.arbitration_id, bytes(msg.data)))
+
+    def sdo_write(self, index: int, sub: int, value: int, size: int) -> None:
+        """An expedited SDO download from the master (not stepped)."""
+        cs = {1: 0x2F, 2: 0x2B, 4: 0x23}[size]
+        data = bytes([cs, index & 0xFF, index >> 8, sub]) + value.to_bytes(size, "little").ljust(4, b"\0")
+        self.host.send(can.Message(arbitration_id=0x600 + NODE, data=data, is_extended_id=False))
+
+    def hang(self) -> None:
+        """A segmented SDO upload (0x1008) the master never continues."""
+        self.host.send(
+            can.Message(arbitration_id=0x600 + NODE, data=bytes.fromhex("40 08 10 00 00 00 00 00"), is_extended_id=False)
+        )
+
+    def nmt(self, cs: int) -> None:
+        """NMT command ``cs`` to the node."""
+        self.host.send(can.Message(arbitration_id=0, data=bytes([cs, NODE]), is_extended_id=False))
+
+    def close(self) -> None:
+        for bus in (self.fb_node, self.host, self.io_node, self.plant):
+            bus.shutdown()
+
+
 def _random_script(node_cls: type[CountingNode], events: list[tuple[str, int]]) -> list[tuple[float, str, int, bytes]]:
     """``events`` played to one drive on a manual clock; every frame it sent on either bus, with
     the clock time of the step that sent it."""
-    fb_node, host, io_node = _virtual_buses("settle-random")
-    plant = can.Bus(interface="virtual", channel=io_node.channel_id)  # type: ignore[attr-defined]
-    clock = ManualClock(100.0)
-    node = node_cls(Drive(NODE), fb_node, io_node, clock=clock)
-    drive = node.drive
-    assert isinstance(drive, Drive)
-    out: list[tuple[float, str, int, bytes]] = []
+    played = _Played(node_cls, "settle-random")
+    node, drive, plant = played.node, played.drive, played.plant
     t, wire = 100.0, 0
 
     def step() -> None:
-        clock.now = t
-        node.step(0.0)
-        for name, bus in (("fieldbus", host), ("io", plant)):
-            while (msg := bus.recv(timeout=0)) is not None:
-                out.append((round(t, 6), name, msg.arbitration_id, bytes(msg.data)))
+        played.step(t)
 
     def sdo_write(index: int, value: int, size: int) -> None:
-        cs = {1: 0x2F, 2: 0x2B, 4: 0x23}[size]
-        data = bytes([cs, index & 0xFF, index >> 8, 0]) + value.to_bytes(size, "little").ljust(4, b"\0")
-        host.send(can.Message(arbitration_id=0x600 + NODE, data=data, is_extended_id=False))
+        played.sdo_write(index, 0, value, size)
 
     try:
         node.start()
@@ -899,18 +932,14 @@ def _random_script(node_cls: type[CountingNode], events: list[tuple[str, int]]) 
             elif kind == "inhibit":
                 sdo_write(0x1015, value, 2)
             elif kind == "hang":
-                host.send(
-                    can.Message(arbitration_id=0x600 + NODE, data=bytes.fromhex("40 08 10 00 00 00 00 00"), is_extended_id=False)
-                )
+                played.hang()
             else:
-                host.send(can.Message(arbitration_id=0, data=bytes([value, NODE]), is_extended_id=False))
+                played.nmt(value)
             step()
-        t += 2.0  # then the timers alone
-        step()
+        played.step(t + 2.0)  # then the timers alone
     finally:
-        for bus in (fb_node, host, io_node, plant):
-            bus.shutdown()
-    return out
+        played.close()
+    return played.out
 
 
 @given(events=_EVENTS)
@@ -948,27 +977,16 @@ def _random_lockstep_script(node_cls: type[CountingNode], events: list[tuple[str
     """``events`` played to a drive of a SYNC-stepped plant (``lockstep=True``: RPDO1 = controlword +
     target, TPDO1 = statusword + position on every SYNC, CSP) on a manual clock; every frame it sent
     on either bus, with the clock time of the step that sent it."""
-    fb_node, host, io_node = _virtual_buses("settle-lockstep")
-    plant = can.Bus(interface="virtual", channel=io_node.channel_id)  # type: ignore[attr-defined]
-    clock = ManualClock(100.0)
-    node = node_cls(Drive(NODE), fb_node, io_node, clock=clock, lockstep=True)
-    drive = node.drive
-    assert isinstance(drive, Drive)
-    out: list[tuple[float, str, int, bytes]] = []
+    played = _Played(node_cls, "settle-lockstep", lockstep=True)
+    node, drive, host, plant = played.node, played.drive, played.host, played.plant
     t, wire = 100.0, 0
     sync = can.Message(arbitration_id=0x080, data=b"", is_extended_id=False)
 
     def step() -> None:
-        clock.now = t
-        node.step(0.0)
-        for name, bus in (("fieldbus", host), ("io", plant)):
-            while (msg := bus.recv(timeout=0)) is not None:
-                out.append((round(t, 6), name, msg.arbitration_id, bytes(msg.data)))
+        played.step(t)
 
     def sdo_write(index: int, sub: int, value: int, size: int) -> None:
-        cs = {1: 0x2F, 2: 0x2B, 4: 0x23}[size]
-        data = bytes([cs, index & 0xFF, index >> 8, sub]) + value.to_bytes(size, "little").ljust(4, b"\0")
-        host.send(can.Message(arbitration_id=0x600 + NODE, data=data, is_extended_id=False))
+        played.sdo_write(index, sub, value, size)
         step()
 
     def rpdo() -> None:
@@ -1049,20 +1067,16 @@ def _random_lockstep_script(node_cls: type[CountingNode], events: list[tuple[str
                 sdo_write(0x1006, 0, value, 4)
                 continue
             elif kind == "hang":
-                host.send(
-                    can.Message(arbitration_id=0x600 + NODE, data=bytes.fromhex("40 08 10 00 00 00 00 00"), is_extended_id=False)
-                )
+                played.hang()
             elif kind == "rtr":
                 host.send(can.Message(arbitration_id=0x180 + NODE, is_remote_frame=True, dlc=6, is_extended_id=False))
             else:
-                host.send(can.Message(arbitration_id=0, data=bytes([value, NODE]), is_extended_id=False))
+                played.nmt(value)
             step()
-        t += 2.0  # then the timers alone
-        step()
+        played.step(t + 2.0)  # then the timers alone
     finally:
-        for bus in (fb_node, host, io_node, plant):
-            bus.shutdown()
-    return out
+        played.close()
+    return played.out
 
 
 @given(events=_LOCKSTEP_EVENTS)

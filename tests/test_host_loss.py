@@ -199,6 +199,15 @@ class Stepped:
         self.host.send(can.Message(arbitration_id=0x600 + node_id, data=data, is_extended_id=False))
         assert self.step_at(t) == [(0x580 + node_id, bytes([0x60, index & 0xFF, index >> 8, sub, 0, 0, 0, 0]))]
 
+    def start_trial(self, t: float, ticks: int = 10) -> None:
+        """The bench's trial of ``ticks`` ticks from a zero initial state, started at ``t`` [s]."""
+        bench = self.node
+        bench.store.write_object(0x2420, 0, bytes(64))
+        bench.store.write_object(0x2410, 2, u32(ticks))
+        bench.store.write_object(0x2410, 3, bytes([1]))  # start
+        self.step_at(t)
+        assert bench.status == PlantStatus.RUNNING
+
     def host_beat(self) -> None:
         self.host.send(can.Message(arbitration_id=0x700 + HOST_NODE_ID, data=b"\x05", is_extended_id=False))
 
@@ -272,11 +281,7 @@ def test_plant_node_ends_a_running_trial_when_the_host_is_lost() -> None:
         rig.sdo_write(32, 0x1016, 1, consumer_entry(HOST_NODE_ID, 250), t0)
         rig.host_beat()
         rig.step_at(t0 + 0.01)
-        bench.store.write_object(0x2420, 0, bytes(64))
-        bench.store.write_object(0x2410, 2, u32(10))
-        bench.store.write_object(0x2410, 3, bytes([1]))  # start
-        rig.step_at(t0 + 0.02)
-        assert bench.status == PlantStatus.RUNNING
+        rig.start_trial(t0 + 0.02)
         frames = rig.step_at(t0 + 0.27)
         assert bench.status == PlantStatus.FAULT and bench.fault == PlantFault.HOST_LOST
         assert any(cob == 0x0A0 and data[:2] == b"\x30\x81" for cob, data in frames)
@@ -295,11 +300,7 @@ def test_plant_node_faults_on_a_bus_error_frame_during_a_trial() -> None:
     bench = rig.node
     try:
         bench.nmt_command(NmtCommand.START)
-        bench.store.write_object(0x2420, 0, bytes(64))
-        bench.store.write_object(0x2410, 2, u32(10))
-        bench.store.write_object(0x2410, 3, bytes([1]))
-        rig.step_at(1000.01)
-        assert bench.status == PlantStatus.RUNNING
+        rig.start_trial(1000.01)
         rig.plant.send(can.Message(is_error_frame=True, arbitration_id=0x008, data=bytes(8)))
         rig.step_at(1000.02)
         assert bench.status == PlantStatus.FAULT and bench.fault == PlantFault.BAD_FRAME
@@ -319,11 +320,7 @@ def test_plant_node_says_io_frames_its_receiver_lost_at_once_not_a_damaged_frame
     bench = rig.node
     try:
         bench.nmt_command(NmtCommand.START)
-        bench.store.write_object(0x2420, 0, bytes(64))
-        bench.store.write_object(0x2410, 2, u32(10))
-        bench.store.write_object(0x2410, 3, bytes([1]))
-        rig.step_at(1000.01)
-        assert bench.status == PlantStatus.RUNNING
+        rig.start_trial(1000.01)
         rig.plant.send(overflow_error_frame(1000.0, "io"))
         frames = rig.step_at(1000.02)
         assert bench.status == PlantStatus.FAULT and bench.fault == PlantFault.IO_FRAMES_LOST
@@ -354,11 +351,7 @@ def test_plant_node_says_fieldbus_frames_its_receiver_lost_during_a_trial_and_be
         frames = rig.step_at(1000.005)
         assert bench.status != PlantStatus.FAULT
         assert [(cob, data[:4]) for cob, data in frames if cob == 0x0A0] == [(0x0A0, b"\x10\x81\x11\x07")]
-        bench.store.write_object(0x2420, 0, bytes(64))
-        bench.store.write_object(0x2410, 2, u32(10))
-        bench.store.write_object(0x2410, 3, bytes([1]))
-        rig.step_at(1000.01)
-        assert bench.status == PlantStatus.RUNNING
+        rig.start_trial(1000.01)
         bench._on_fieldbus(overflow_error_frame(1000.0, "fieldbus"))
         rig.step_at(1000.02)
         assert bench.status == PlantStatus.FAULT and bench.fault == PlantFault.FRAMES_LOST

@@ -170,23 +170,16 @@ def channel_fault(channels: Sequence[ChannelTrouble], now: float) -> FaultRecord
                 latency_ms=0.0,
                 latency_basis="failed write",
             )
-        if ch.error_frames and ch.overflows == ch.error_frames:
-            return FaultRecord(
-                FaultKind.FRAME_LOST,
-                f"frames lost on {ch.channel}: a receiver's queue overflowed (receive-overflow error frame)",
-                node=ch.channel,
-                detected_by="host",
-                t_detected_mono=ch.first_overflow_t or now,
-                latency_ms=0.0,
-                latency_basis="bus error frame",
-            )
         if ch.error_frames:
+            lost = ch.overflows == ch.error_frames  # receive overflows only: frames lost, none damaged
             return FaultRecord(
-                FaultKind.FRAME_ERROR,
-                f"a damaged frame on {ch.channel} (bus error frame)",
+                FaultKind.FRAME_LOST if lost else FaultKind.FRAME_ERROR,
+                f"frames lost on {ch.channel}: a receiver's queue overflowed (receive-overflow error frame)"
+                if lost
+                else f"a damaged frame on {ch.channel} (bus error frame)",
                 node=ch.channel,
                 detected_by="host",
-                t_detected_mono=ch.first_error_frame_t or now,
+                t_detected_mono=(ch.first_overflow_t if lost else ch.first_error_frame_t) or now,
                 latency_ms=0.0,
                 latency_basis="bus error frame",
             )
