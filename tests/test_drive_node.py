@@ -1084,7 +1084,7 @@ def _random_lockstep_script(node_cls: type[CountingNode], events: list[tuple[str
 @example(events=[("watchdog", 2000), ("period", 3), ("rpdos", 20)])  # the watchdog armed by a SYNC fires among RPDOs
 @example(events=[("watchdog", 2000), ("period", 20), ("idle", 10), ("period", 5), ("ahead", 4), ("early", 0), ("period", 3)])
 @example(events=[("heartbeat", 10), ("period", 100), ("warn", 0), ("period", 30), ("hang", 0), ("period", 200)])
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=30, deadline=None)
 def test_at_random_a_lockstep_drive_that_leaves_its_service_out_after_syncs_sends_what_one_that_never_does_sends(
     events: list[tuple[str, int]],
 ) -> None:

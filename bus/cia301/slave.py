@@ -190,10 +190,8 @@ class SlaveNode:
         return False
 
     def fieldbus_settled(self) -> bool:
-        """True when the fieldbus frames just handled, all of them given to :meth:`on_fieldbus`
-        (e.g. a SYNC and the RPDOs before it), left the service nothing to do before the service
-        is due anyway (:attr:`_serve_by_s`): :meth:`step` may then leave the service out of a
-        wake-up with fieldbus frames too, if :meth:`io_settled` agrees (default False)."""
+        """As :meth:`io_settled`, for a wake-up's fieldbus frames, all given to :meth:`on_fieldbus`
+        (e.g. a SYNC and its RPDOs): nothing due before :attr:`_serve_by_s` (default False)."""
         return False
 
     def on_nmt_reset(self, command: NmtCommand) -> None:
@@ -335,12 +333,8 @@ class SlaveNode:
                         break
         self.frames_in += handled
         now = self._clock()
-        if (
-            handled
-            and now < self._serve_by_s
-            and (not fieldbus_frames or (self._fieldbus_plain and self.fieldbus_settled()))
-            and self.io_settled()
-        ):
+        vouched = not fieldbus_frames or (self._fieldbus_plain and self.fieldbus_settled())
+        if handled and now < self._serve_by_s and vouched and self.io_settled():
             self._settled = True  # frames the subclass vouches for, nothing due: the service would find no work
             return handled
         self._service(now)
@@ -428,17 +422,8 @@ class SlaveNode:
         self._own_fieldbus_ids = {self._sdo_tx, self._hb_id} | self.emcy.own_ids()
 
     def _reload_consumers(self) -> None:
-        """Re-read the consumer heartbeat entries 0x1016:1..n (an app without 0x1016 consumes
-        nothing)."""
-        entries: dict[int, float] = {}
-        try:
-            count = self.app.read_object(CONSUMER_HEARTBEAT_INDEX, 0)[0]
-            for sub in range(1, count + 1):
-                entry = decode_consumer_entry(int.from_bytes(self.app.read_object(CONSUMER_HEARTBEAT_INDEX, sub)[:4], "little"))
-                if entry is not None:
-                    entries[entry[0]] = entry[1] / 1000.0
-        except (SdoAbort, IndexError):
-            entries = {}
+        """Re-read the consumer heartbeat entries 0x1016:1..n (:func:`consumer_entries`)."""
+        entries = consumer_entries(self.app)
         if entries != self.consumer.producers:
             logger.info(
                 "node %d: heartbeat consumer %s", self.node_id, {n: f"{1000 * t:.0f} ms" for n, t in entries.items()} or "off"
@@ -515,6 +500,21 @@ class SlaveNode:
     def _send(self, bus: can.BusABC, cob_id: int, data: bytes) -> None:
         bus.send(new_message(cob_id, bytearray(data)))
         self.frames_out += 1
+
+
+def consumer_entries(app: SlaveApp) -> dict[int, float]:
+    """The heartbeat producers ``app``'s 0x1016:1..n consume, node id -> consumer time [s] (an app
+    without 0x1016 consumes nothing)."""
+    entries: dict[int, float] = {}
+    try:
+        count = app.read_object(CONSUMER_HEARTBEAT_INDEX, 0)[0]
+        for sub in range(1, count + 1):
+            entry = decode_consumer_entry(int.from_bytes(app.read_object(CONSUMER_HEARTBEAT_INDEX, sub)[:4], "little"))
+            if entry is not None:
+                entries[entry[0]] = entry[1] / 1000.0
+    except (SdoAbort, IndexError):
+        return {}
+    return entries
 
 
 def install_sigterm(stop: threading.Event) -> None:
