@@ -39,7 +39,10 @@ Lifetime
     the kernel when the process that started them dies (``PR_SET_PDEATHSIG``, armed before
     ``exec``: a loop already in ``SCHED_IDLE`` may get no CPU for a long time on a busy machine, so
     the signal must not wait for the loop's own code); each also checks its parent every few
-    milliseconds, so none outlives the launcher, even one killed with SIGKILL.
+    milliseconds, so none outlives the launcher, even one killed with SIGKILL. A killed loop still
+    needs the CPU to finish exiting, which beside CPU-bound processes may take seconds (measured
+    0.02–0.35 s, at times several seconds, beside two): :meth:`IdlePollers.stop` waits
+    :data:`STOP_WAIT_S` for them, then leaves them to a reaper thread.
 
 What the loops change is measured by ``benchmarks/rt_compare.py`` (docs/benchmarks.md).
 """
@@ -51,6 +54,8 @@ import os
 import signal
 import subprocess
 import sys
+import threading
+import time
 
 from bus.processes import spawn_process
 
@@ -91,6 +96,16 @@ while os.getppid() == parent:
 
 #: the nice value of each loop's autogroup (module docstring, "Autogroups")
 AUTOGROUP_NICE: int = 19
+#: how long :meth:`IdlePollers.stop` waits for its killed loops to be gone before it leaves them to
+#: a reaper thread, s
+STOP_WAIT_S: float = 2.0
+
+
+def _reap(procs: list[subprocess.Popen[bytes]]) -> None:
+    """Wait for killed loops to finish exiting (a daemon thread: the process may end first; then
+    init reaps them)."""
+    for p in procs:
+        p.wait()
 
 
 def idle_poll_available() -> bool:
@@ -131,13 +146,26 @@ class IdlePollers:
         return [p.pid for p in self.procs]
 
     def stop(self) -> None:
-        """Kill and reap every loop (idempotent)."""
-        for p in self.procs:
+        """Kill and reap every loop (idempotent). A killed loop still needs CPU time to finish
+        exiting, which a busy machine may not give a task in ``SCHED_IDLE`` for seconds: the loops
+        not gone after :data:`STOP_WAIT_S` are reaped by a background thread instead -- they run no
+        code of their own again (their SIGKILL is pending), and the run's shutdown does not wait."""
+        procs, self.procs = self.procs, []
+        for p in procs:
             if p.poll() is None:
                 try:
                     p.send_signal(signal.SIGKILL)
                 except ProcessLookupError:
                     pass
-        for p in self.procs:
-            p.wait()
-        self.procs = []
+        deadline = time.monotonic() + STOP_WAIT_S
+        exiting = []
+        for p in procs:
+            try:
+                p.wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                exiting.append(p)
+        if exiting:
+            logger.info(
+                "%d idle-poll loop(s) killed and still exiting (no CPU for them yet): reaped in the background", len(exiting)
+            )
+            threading.Thread(target=_reap, args=(exiting,), name="idle-poll reaper", daemon=True).start()
