@@ -41,7 +41,7 @@ Lifetime
     the signal must not wait for the loop's own code); each also checks its parent every few
     milliseconds, so none outlives the launcher, even one killed with SIGKILL. A killed loop still
     needs the CPU to finish exiting, which beside CPU-bound processes may take seconds (measured
-    0.02–0.35 s, at times several seconds, beside two): :meth:`IdlePollers.stop` waits
+    0.02–0.35 s, at times several seconds, beside four to five): :meth:`IdlePollers.stop` waits
     :data:`STOP_WAIT_S` for them, then leaves them to a reaper thread.
 
 What the loops change is measured by ``benchmarks/rt_compare.py`` (docs/benchmarks.md).
