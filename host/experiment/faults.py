@@ -61,9 +61,7 @@ class FaultKind(StrEnum):
     HOST_LOST = "host_lost"  #: the host's heartbeat stopped (the nodes' consumer, EMCY 0x8130)
     BUS_LOST = "bus_lost"  #: the bus itself failed (the hub is gone)
     BUS_SILENT = "bus_silent"  #: no node heard at all (the hub stalled)
-    FRAME_LOST = (
-        "frame_lost"  #: frames lost: a tick's deadline passed (an io frame lost or late), or a receiver's queue overflowed
-    )
+    FRAME_LOST = "frame_lost"  #: frames lost: an io frame lost or late at a tick's deadline, or a receiver overflowed
     FRAME_SEQUENCE = "frame_sequence"  #: an io frame duplicated, stale or out of sequence
     FRAME_ERROR = "frame_error"  #: an io frame damaged on the wire (bus error frame) or malformed
     EMCY = "emcy"  #: a node reported a fault (drive following error, …)

@@ -206,8 +206,10 @@ class ChannelMonitor:
 
     def _error_frames(self, n: int, overflows: int = 0) -> None:
         """``n`` bus error frames heard, ``overflows`` of them receive overflows."""
+        if not n:
+            return
         now = time.monotonic()
-        if n and self.first_error_frame_t is None:
+        if self.first_error_frame_t is None:
             self.first_error_frame_t = now
         if overflows and self.first_overflow_t is None:
             self.first_overflow_t = now
@@ -248,7 +250,7 @@ class ChannelMonitor:
                     self._classify_frames(frames)
                 err = (frames["flags"] & FRAME_ERR) != 0
                 n_err = int(err.sum())
-                self._error_frames(n_err, receive_overflows(frames["arbitration_id"][err], frames["data"][err]) if n_err else 0)
+                self._error_frames(n_err, receive_overflows(frames["arbitration_id"][err], frames["data"][err]))
                 if self._is_io:
                     self.follower.on_frame_array(frames["arbitration_id"], frames["data"], frames["length"], ~err)
                 if self.log is not None:
