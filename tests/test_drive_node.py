@@ -862,9 +862,12 @@ class _Played:
         assert isinstance(drive, Drive)
         self.drive = drive
         self.out: list[tuple[float, str, int, bytes]] = []
+        #: the script's clock time [s]
+        self.t = 100.0
 
-    def step(self, t: float) -> None:
-        """The node's step at clock time ``t`` [s]; what it sent to :attr:`out`."""
+    def step(self, t: float | None = None) -> None:
+        """The node's step at clock time ``t`` [s] (default :attr:`t`); what it sent to :attr:`out`."""
+        t = self.t if t is None else t
         self.clock.now = t
         self.node.step(0.0)
         for name, bus in (("fieldbus", self.host), ("io", self.plant)):
@@ -887,6 +890,34 @@ class _Played:
         """NMT command ``cs`` to the node."""
         self.host.send(can.Message(arbitration_id=0, data=bytes([cs, NODE]), is_extended_id=False))
 
+    def play(
+        self, events: list[tuple[str, int]], own: Callable[[str, int], bool], setup: Callable[[], None] | None = None
+    ) -> list[tuple[float, str, int, bytes]]:
+        """Start the node, ``setup()``, then each event: ``own(kind, value)`` plays the script's own
+        kinds, stepping as it needs (True: it did); the shared ones here are "warn" (the drive raises
+        an EMCY between wake-ups, no step), "hang" and "nmt" (each followed by a step). At the end
+        the timers alone, 2 s later; the buses closed. Returns :attr:`out`."""
+        try:
+            self.node.start()
+            self.step()
+            if setup is not None:
+                setup()
+            for kind, value in events:
+                if own(kind, value):
+                    continue
+                if kind == "warn":
+                    self.drive.power.warning(0x8110, bytes(5))
+                    continue
+                if kind == "hang":
+                    self.hang()
+                else:
+                    self.nmt(value)
+                self.step()
+            self.step(self.t + 2.0)  # then the timers alone
+        finally:
+            self.close()
+        return self.out
+
     def close(self) -> None:
         for bus in (self.fb_node, self.host, self.io_node, self.plant):
             bus.shutdown()
@@ -896,50 +927,34 @@ def _random_script(node_cls: type[CountingNode], events: list[tuple[str, int]]) 
     """``events`` played to one drive on a manual clock; every frame it sent on either bus, with
     the clock time of the step that sent it."""
     played = _Played(node_cls, "settle-random")
-    node, drive, plant = played.node, played.drive, played.plant
-    t, wire = 100.0, 0
+    wire = 0
 
-    def step() -> None:
-        played.step(t)
+    def encoder() -> None:
+        nonlocal wire
+        played.plant.send(io_frames.encode_encoder(NODE - 1, wire, 1000 + wire))
+        wire += 1
 
-    def sdo_write(index: int, value: int, size: int) -> None:
-        played.sdo_write(index, 0, value, size)
+    def own(kind: str, value: int) -> bool:
+        if kind == "tick":
+            played.t += 0.0005 * value
+            encoder()
+        elif kind == "burst":
+            for _ in range(value - 1):
+                played.t += 0.001
+                encoder()
+                played.step()
+            played.t += 0.001
+            encoder()
+        elif kind == "idle":
+            played.t += 0.0005 * value
+        elif kind in ("heartbeat", "inhibit"):
+            played.sdo_write(0x1017 if kind == "heartbeat" else 0x1015, 0, value, 2)
+        else:
+            return False
+        played.step()
+        return True
 
-    try:
-        node.start()
-        step()
-        for kind, value in events:
-            if kind == "tick":
-                t += 0.0005 * value
-                plant.send(io_frames.encode_encoder(NODE - 1, wire, 1000 + wire))
-                wire += 1
-            elif kind == "burst":
-                for _ in range(value - 1):
-                    t += 0.001
-                    plant.send(io_frames.encode_encoder(NODE - 1, wire, 1000 + wire))
-                    wire += 1
-                    step()
-                t += 0.001
-                plant.send(io_frames.encode_encoder(NODE - 1, wire, 1000 + wire))
-                wire += 1
-            elif kind == "idle":
-                t += 0.0005 * value
-            elif kind == "warn":
-                drive.power.warning(0x8110, bytes(5))
-                continue
-            elif kind == "heartbeat":
-                sdo_write(0x1017, value, 2)
-            elif kind == "inhibit":
-                sdo_write(0x1015, value, 2)
-            elif kind == "hang":
-                played.hang()
-            else:
-                played.nmt(value)
-            step()
-        played.step(t + 2.0)  # then the timers alone
-    finally:
-        played.close()
-    return played.out
+    return played.play(events, own)
 
 
 @given(events=_EVENTS)
@@ -978,28 +993,27 @@ def _random_lockstep_script(node_cls: type[CountingNode], events: list[tuple[str
     target, TPDO1 = statusword + position on every SYNC, CSP) on a manual clock; every frame it sent
     on either bus, with the clock time of the step that sent it."""
     played = _Played(node_cls, "settle-lockstep", lockstep=True)
-    node, drive, host, plant = played.node, played.drive, played.host, played.plant
-    t, wire = 100.0, 0
+    host = played.host
+    wire = 0
     sync = can.Message(arbitration_id=0x080, data=b"", is_extended_id=False)
-
-    def step() -> None:
-        played.step(t)
 
     def sdo_write(index: int, sub: int, value: int, size: int) -> None:
         played.sdo_write(index, sub, value, size)
-        step()
+        played.step()
 
     def rpdo() -> None:
         host.send(can.Message(arbitration_id=0x200 + NODE, data=struct.pack("<Hi", 0x0F, 0), is_extended_id=False))
 
     def encoder() -> None:
         nonlocal wire
-        plant.send(io_frames.encode_encoder(NODE - 1, wire, 1000))
+        played.plant.send(io_frames.encode_encoder(NODE - 1, wire, 1000))
         wire += 1
 
-    try:
-        node.start()
-        step()
+    def advance(dt_s: float) -> None:
+        played.t += dt_s
+        played.step()
+
+    def setup() -> None:
         for index, sub, value, size in (
             (0x1800, 1, 0x8000_0180 + NODE, 4),  # TPDO1: statusword + position actual, on every SYNC
             (0x1A00, 0, 0, 1),
@@ -1018,65 +1032,47 @@ def _random_lockstep_script(node_cls: type[CountingNode], events: list[tuple[str
             (0x6060, 0, 8, 1),  # CSP
         ):
             sdo_write(index, sub, value, size)
-        host.send(can.Message(arbitration_id=0, data=bytes([0x01, NODE]), is_extended_id=False))
-        step()
-        for kind, value in events:
-            if kind == "period":
-                for _ in range(value):
-                    rpdo()
-                    host.send(sync)
-                    t += 0.00025
-                    step()
-                    encoder()
-                    t += 0.00075
-                    step()
-                continue
-            if kind == "ahead":
-                for _ in range(value):
-                    rpdo()
-                    host.send(sync)
-                t += 0.00025
-                step()
-                for _ in range(value):
-                    encoder()
-                    t += 0.00025
-                    step()
-                continue
-            if kind == "rpdos":
-                for _ in range(value):
-                    rpdo()
-                    t += 0.001
-                    step()
-                continue
-            if kind == "early":
-                encoder()
-                t += 0.00025
-                step()
+        played.nmt(0x01)
+        played.step()
+
+    def own(kind: str, value: int) -> bool:
+        if kind == "period":
+            for _ in range(value):
                 rpdo()
                 host.send(sync)
-                t += 0.00025
-            elif kind == "idle":
-                t += 0.0005 * value
-            elif kind == "warn":
-                drive.power.warning(0x8110, bytes(5))
-                continue
-            elif kind == "heartbeat":
-                sdo_write(0x1017, 0, value, 2)
-                continue
-            elif kind == "watchdog":
-                sdo_write(0x1006, 0, value, 4)
-                continue
-            elif kind == "hang":
-                played.hang()
-            elif kind == "rtr":
-                host.send(can.Message(arbitration_id=0x180 + NODE, is_remote_frame=True, dlc=6, is_extended_id=False))
-            else:
-                played.nmt(value)
-            step()
-        played.step(t + 2.0)  # then the timers alone
-    finally:
-        played.close()
-    return played.out
+                advance(0.00025)
+                encoder()
+                advance(0.00075)
+        elif kind == "ahead":
+            for _ in range(value):
+                rpdo()
+                host.send(sync)
+            advance(0.00025)
+            for _ in range(value):
+                encoder()
+                advance(0.00025)
+        elif kind == "rpdos":
+            for _ in range(value):
+                rpdo()
+                advance(0.001)
+        elif kind == "early":
+            encoder()
+            advance(0.00025)
+            rpdo()
+            host.send(sync)
+            advance(0.00025)
+        elif kind == "idle":
+            advance(0.0005 * value)
+        elif kind in ("heartbeat", "watchdog"):
+            sdo_write(0x1017 if kind == "heartbeat" else 0x1006, 0, value, 2 if kind == "heartbeat" else 4)
+        elif kind == "rtr":
+            host.send(can.Message(arbitration_id=0x180 + NODE, is_remote_frame=True, dlc=6, is_extended_id=False))
+            played.step()
+        else:
+            return False
+        return True
+
+    return played.play(events, own, setup)
 
 
 @given(events=_LOCKSTEP_EVENTS)
