@@ -33,9 +33,12 @@ class Shield:
     """While :attr:`active` (the end of a run: safe state, summary), the signal handler of
     :func:`interrupt_on_signals` records a signal in :attr:`pending` instead of raising; while
     :attr:`defer_depth` > 0 (a trial's outputs being written) it keeps it in :attr:`deferred`,
-    raised when the block ends (:func:`deferred_interrupts`)."""
+    raised when the block ends (:func:`deferred_interrupts`); once :attr:`ended` (the run's end
+    began: every record is being or has been written) a signal is only logged until
+    :func:`interrupt_on_signals` gives the handlers back — the command's records stay as they are."""
 
     active: bool = False
+    ended: bool = False
     pending: int | None = None
     defer_depth: int = 0
     deferred: int | None = None
@@ -67,14 +70,15 @@ def deferred_interrupts() -> Iterator[None]:
 def interrupt_on_signals(signals: Sequence[int] = (signal.SIGINT, signal.SIGTERM)) -> Iterator[None]:
     """While inside: SIGINT / SIGTERM raise :class:`Interrupted` in the main thread (the run then
     ends through its fault path: safe state, summary with an ``interrupted`` marker); a second
-    signal during that shutdown is ignored so the summary gets written. Restores the handlers."""
+    signal during that shutdown, or any signal once the run has ended (:attr:`Shield.ended`: its
+    report and closing lines are being written), is logged, not raised. Restores the handlers."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     fired: list[int] = []
 
     def handler(signum: int, _frame: object) -> None:
-        if fired or SHIELD.active:
+        if fired or SHIELD.active or SHIELD.ended:
             if SHIELD.active and SHIELD.pending is None:
                 SHIELD.pending = signum  # the run is ending already: marked, not raised
             logger.warning("signal %d while stopping: the run ends as soon as its outputs are written", signum)
@@ -85,9 +89,11 @@ def interrupt_on_signals(signals: Sequence[int] = (signal.SIGINT, signal.SIGTERM
             return
         raise Interrupted(signum)
 
+    SHIELD.ended, SHIELD.pending = False, None
     old = {s: signal.signal(s, handler) for s in signals}
     try:
         yield
     finally:
+        SHIELD.ended = False
         for s, h in old.items():
             signal.signal(s, h)

@@ -335,7 +335,7 @@ class TrialLoop:
         try:
             _finish(self.bench, self.result.summary, self.recorder, self.out, self.folder, self.result, self.trials)
         finally:
-            SHIELD.active = False
+            SHIELD.active, SHIELD.ended = False, True  # the records are final: later signals are only logged
             if SHIELD.pending is not None and self.result.interrupted is None and not self.result.summary.get("completed"):
                 self.result.interrupted = SHIELD.pending
         return self.result

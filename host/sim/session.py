@@ -195,9 +195,14 @@ def run_sim(opts: SimOptions, stream: TextIO) -> int:
     plan = prepared(cfg)  # refused with one line before the run folder is made
     session = SimSession(plan, opts.out, stream=stream, view=opts.view, firmware=opts.firmware)
     with interrupt_on_signals():
-        for _ in session:
-            pass
-    res = session.close()
+        try:
+            for _ in session:
+                pass
+        except KeyboardInterrupt as exc:
+            # a signal between the guarded parts of two trials (after a trial was kept and printed,
+            # before the next one runs): the same end as inside them, the interrupt marked
+            session.end_by_user(exc)
+        res = session.close()
     s = res.summary
     stream.write(
         f"{s['ticks']} ticks in {s['wall_s']:.2f} s ({s['ticks_per_s']:.0f} ticks/s); "
