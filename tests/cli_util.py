@@ -119,10 +119,10 @@ def group_gone(pgid: int, guard_s: float) -> None:
 
 
 def sim_signalled_at_row(out: Path, row: str, sig: int) -> tuple[int, str]:
-    """``ilcrig sim --iterations 1000 --cycle 0.15 --out out``, sent ``sig`` when it prints the
+    """``ilcrig sim --iterations 200 --cycle 0.15 --out out``, sent ``sig`` when it prints the
     table row of trial ``row``; (exit code, stderr). The process is always reaped."""
     proc = subprocess.Popen(
-        [sys.executable, "-u", "-m", "host.cli", "sim", "--iterations", "1000", "--cycle", "0.15", "--out", str(out)],
+        [sys.executable, "-u", "-m", "host.cli", "sim", "--iterations", "200", "--cycle", "0.15", "--out", str(out)],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,

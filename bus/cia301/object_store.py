@@ -11,11 +11,12 @@ objects to its state.  The SDO server (:mod:`bus.cia301.sdo`) and the PDO servic
 from __future__ import annotations
 
 import functools
+import os
 import struct
 from collections.abc import Callable
 from pathlib import Path
 
-from canopen.objectdictionary import ODArray, ODRecord, ODVariable, import_od
+from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVariable, import_od
 from canopen.objectdictionary import datatypes as dt
 
 from bus.errors import AbortCode, SdoAbort
@@ -38,6 +39,13 @@ Value = int | float | bytes | str
 Key = tuple[int, int]
 
 
+@functools.lru_cache(maxsize=64)
+def _described(eds_path: str, node_id: int, mtime_ns: int) -> ObjectDictionary:
+    """The EDS parsed once per file version and node id (a drive's EDS takes ~15 ms to parse;
+    the stores share it: nothing writes to a description, only to the stores' values)."""
+    return import_od(eds_path, node_id)
+
+
 def struct_of(var: ODVariable) -> struct.Struct | None:
     """The packing of a numeric ``var``; None for DOMAIN, strings and a missing data type."""
     return None if var.data_type is None else _STRUCTS.get(var.data_type)
@@ -57,7 +65,8 @@ class ObjectStore:
     """
 
     def __init__(self, eds_path: str | Path, node_id: int) -> None:
-        self.od = import_od(str(eds_path), int(node_id))
+        path = str(eds_path)
+        self.od = _described(path, int(node_id), os.stat(path).st_mtime_ns)
         self.vars: dict[Key, ODVariable] = {}
         for obj in self.od.values():
             if obj.index < 0x1000:
