@@ -219,6 +219,59 @@ def test_a_signal_between_two_trials_of_ilcrig_sim_is_marked(tmp_path: Path, mon
     assert s["end_reason"] == "interrupted" and (out / "report.md").is_file()
 
 
+def test_a_signal_while_ilcrig_sim_makes_its_folder_is_marked(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """SIGTERM just after the run folder's recording was opened, before the first trial (the
+    process died there, leaving a folder with a recording and no summary): exit 143, the summary
+    says interrupted before the first trial, no trial."""
+    import io
+
+    import host.sim.session as sim_mod
+    from host.experiment.config import build_config
+    from host.sim.session import SimOptions, run_sim
+
+    opened = sim_mod.open_outputs
+
+    def signalled(*args: object, **kwargs: object) -> object:
+        outputs = opened(*args, **kwargs)  # type: ignore[arg-type]
+        os.kill(os.getpid(), signal.SIGTERM)
+        return outputs
+
+    monkeypatch.setattr(sim_mod, "open_outputs", signalled)
+    out = tmp_path / "run"
+    assert run_sim(SimOptions(build_config(None, {"iterations": 2, "cycle_s": 0.15}), out), io.StringIO()) == 143
+    s = json.loads((out / "summary.json").read_text())
+    assert s["interrupted"]["signal"] == "SIGTERM" and s["interrupted"]["position"] == "before_first_trial"
+    assert s["iterations"] == [] and s["end_reason"] == "interrupted" and s["completed"] is False
+
+
+def test_a_signal_while_a_host_makes_its_folder_is_marked(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same for the run session of ``ilcrig host`` (:func:`host.analysis.session.run_session`
+    under the role's signal handlers): SIGTERM after the recording was opened ends the run
+    before its first trial with the summary saying so, never a half-made folder."""
+    import io
+
+    import host.analysis.session as session_mod
+    from host.experiment.config import build_config
+    from host.experiment.plan import prepare
+    from host.experiment.signal_shield import interrupt_on_signals
+    from host.sim.inprocess import InProcessBench
+
+    opened = session_mod.open_outputs
+
+    def signalled(*args: object, **kwargs: object) -> object:
+        outputs = opened(*args, **kwargs)  # type: ignore[arg-type]
+        os.kill(os.getpid(), signal.SIGTERM)
+        return outputs
+
+    monkeypatch.setattr(session_mod, "open_outputs", signalled)
+    cfg = build_config(None, {"iterations": 2, "cycle_s": 0.15})
+    with interrupt_on_signals():
+        res = session_mod.run_session(prepare(cfg), InProcessBench(cfg), tmp_path, mode="rig", stream=io.StringIO())
+    assert res.interrupted == signal.SIGTERM and session_mod.report_fault(res) == 143
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["interrupted"]["position"] == "before_first_trial" and s["iterations"] == [] and s["completed"] is False
+
+
 def test_a_signal_once_a_run_ended_leaves_its_records_as_they_are(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """SIGTERM while ``ilcrig sim`` writes the report of a run that completed: logged, not raised
     (the summary says completed, so the exit code is 0 and the report is written whole)."""

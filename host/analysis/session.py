@@ -30,6 +30,7 @@ from host.experiment.faults import fault_line
 from host.experiment.loop_state import ExperimentResult
 from host.experiment.outputs import OutputError, RunFolder, output_error
 from host.experiment.plan import Plan
+from host.experiment.signal_shield import deferred_interrupts
 from host.experiment.summary import write_summary
 from host.experiment.trial_loop import run_experiment
 
@@ -102,10 +103,15 @@ def run_session(
     :param fail_spec: the ``--inject`` spec of that injection (for its record)
     :param view: the recording also goes live to a Rerun viewer (:mod:`host.analysis.live_view`)
     """
-    outputs = open_outputs(plan, out, view=view, fail_writes_from_trial=fail_writes_from_trial, fail_spec=fail_spec)
-    if outputs.live_line is not None:
-        stream.write(outputs.live_line + "\n")
-    print_header(stream)
+    held: KeyboardInterrupt | None = None
+    try:
+        with deferred_interrupts():  # a signal while the folder is made: the run ends marked, not half made
+            outputs = open_outputs(plan, out, view=view, fail_writes_from_trial=fail_writes_from_trial, fail_spec=fail_spec)
+            if outputs.live_line is not None:
+                stream.write(outputs.live_line + "\n")
+            print_header(stream)
+    except KeyboardInterrupt as exc:  # raised as the block ended: the outputs are made
+        held = exc
     res = run_experiment(
         plan,
         bench,
@@ -114,6 +120,7 @@ def run_session(
         on_trial=lambda m, role: print_row(stream, m, role),
         recorder=outputs.recorder,
         folder=outputs.folder,
+        interrupted=held,
     )
     finish_run_report(out, res, outputs.folder)
     return res

@@ -351,6 +351,7 @@ def run_experiment(
     keep_traces: bool = False,
     recorder: TrialRecorder | None = None,
     folder: RunFolder | None = None,
+    interrupted: KeyboardInterrupt | None = None,
 ) -> ExperimentResult:
     """Run ``plan.cfg.iterations`` trials on ``bench``; write ``summary.json`` before the first
     and after each.
@@ -362,10 +363,14 @@ def run_experiment(
 
     :param folder: the run folder's space reserve (given back on a full disk before the final write)
     :param on_trial: called after each trial with its metrics and its role (``learning`` / ``auxiliary``)
+    :param interrupted: a signal that came while the caller made the outputs: the run ends at
+        once, marked as interrupted before its first trial, its summary written
     """
     runner = TrialLoop(
         plan, bench, out_dir, mode=mode, on_trial=on_trial, keep_traces=keep_traces, recorder=recorder, folder=folder
     )
+    if interrupted is not None:
+        return runner.end_by_user(interrupted)
     try:
         while runner.step() is not None:
             pass

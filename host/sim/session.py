@@ -32,7 +32,7 @@ from host.experiment.console import print_header, print_plan, print_row
 from host.experiment.loop_state import ExperimentResult, TrialOutcome
 from host.experiment.outputs import RunFolder, check_out_dir
 from host.experiment.plan import Plan, plan_with_gains
-from host.experiment.signal_shield import interrupt_on_signals
+from host.experiment.signal_shield import deferred_interrupts, interrupt_on_signals
 from host.experiment.trial_loop import TrialLoop
 from host.learning.metrics import TrialMetrics
 
@@ -193,14 +193,15 @@ def run_sim(opts: SimOptions, stream: TextIO) -> int:
     check_config_limits(cfg)  # the trial length and the memory first: an out-of-range --cycle is said as such
     check_out_dir(opts.out, iterations=cfg.iterations, n_ticks=cfg.n_ticks, create=False)
     plan = prepared(cfg)  # refused with one line before the run folder is made
-    session = SimSession(plan, opts.out, stream=stream, view=opts.view, firmware=opts.firmware)
     with interrupt_on_signals():
         try:
+            with deferred_interrupts():  # a signal while the folder is made: raised once the run can end
+                session = SimSession(plan, opts.out, stream=stream, view=opts.view, firmware=opts.firmware)
             for _ in session:
                 pass
         except KeyboardInterrupt as exc:
-            # a signal between the guarded parts of two trials (after a trial was kept and printed,
-            # before the next one runs): the same end as inside them, the interrupt marked
+            # a signal before the first trial or between the guarded parts of two trials (after a
+            # trial was kept and printed, before the next one runs): the same end as inside them
             session.end_by_user(exc)
         res = session.close()
     s = res.summary
