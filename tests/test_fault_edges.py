@@ -339,3 +339,35 @@ def test_a_signal_while_a_trials_outputs_are_written_waits_for_them(tmp_path: Pa
     assert s["interrupted"]["position"] == "between_trials" and s["interrupted"]["trial"] == 1
     assert s["recording"]["trials"] == [0] and _recorded(tmp_path / "run") == [0]
     assert np.isfinite(s["iterations"][0]["rmse_deg"]).all()
+
+
+def test_a_signal_held_while_outputs_fail_is_in_the_summary_as_in_the_exit_code(tmp_path: Path) -> None:
+    """SIGTERM held while trial 0's outputs are written, whose write then fails (a full disk): the
+    run ends through its fault path and the held signal is marked there — the final summary says
+    ``interrupted`` (and the fault) and the exit code is 143; never a 143 whose summary is silent."""
+    from host.analysis.recording import RunRecorder
+    from host.analysis.session import report_fault, run_session
+    from host.experiment.config import build_config
+    from host.experiment.plan import prepare
+    from host.experiment.signal_shield import interrupt_on_signals
+    from host.sim.inprocess import InProcessBench
+
+    real = RunRecorder.log_trial
+
+    def log_trial(self: RunRecorder, k: int, *a: Any, **kw: Any) -> None:
+        if k == 0:
+            os.kill(os.getpid(), signal.SIGTERM)  # held: the outputs of trial 0 are being written
+        real(self, k, *a, **kw)
+
+    cfg = build_config(None, {"iterations": 3, "cycle_s": 0.15})
+    out = tmp_path / "run"
+    RunRecorder.log_trial = log_trial  # type: ignore[method-assign]
+    try:
+        with interrupt_on_signals():
+            res = run_session(prepare(cfg), InProcessBench(cfg), out, mode="sim", stream=io.StringIO(), fail_writes_from_trial=0)
+    finally:
+        RunRecorder.log_trial = real  # type: ignore[method-assign]
+    assert report_fault(res) == 143
+    s = json.loads((out / "summary.json").read_text())
+    assert s["interrupted"]["signal"] == "SIGTERM" and s["end_reason"] == "interrupted"
+    assert [f["kind"] for f in s["faults"]] == ["disk_full"] and s["completed"] is False

@@ -1,5 +1,5 @@
 """SIGINT / SIGTERM during a run: raised as :class:`Interrupted` in the main thread, held back
-while a trial's outputs are written, recorded (not raised) while the run ends.
+while a trial's outputs are written, logged (not raised) once the run's end has begun.
 
 Owns the one signal shield of the process (:data:`SHIELD`), :func:`interrupt_on_signals` (the
 handlers of a run) and :func:`deferred_interrupts` (a block the signals wait for).  Used by the trial
@@ -30,16 +30,13 @@ class Interrupted(KeyboardInterrupt):
 
 
 class Shield:
-    """While :attr:`active` (the end of a run: safe state, summary), the signal handler of
-    :func:`interrupt_on_signals` records a signal in :attr:`pending` instead of raising; while
-    :attr:`defer_depth` > 0 (a trial's outputs being written) it keeps it in :attr:`deferred`,
-    raised when the block ends (:func:`deferred_interrupts`); once :attr:`ended` (the run's end
-    began: every record is being or has been written) a signal is only logged until
-    :func:`interrupt_on_signals` gives the handlers back — the command's records stay as they are."""
+    """While :attr:`defer_depth` > 0 (a trial's outputs being written) the signal handler of
+    :func:`interrupt_on_signals` keeps a signal in :attr:`deferred`, raised when the block ends
+    (:func:`deferred_interrupts`); once :attr:`ended` (the run's end began: safe state, final
+    summary, report) a signal is only logged until :func:`interrupt_on_signals` gives the handlers
+    back — the run's records and exit code stay those of the run as it ended."""
 
-    active: bool = False
     ended: bool = False
-    pending: int | None = None
     defer_depth: int = 0
     deferred: int | None = None
 
@@ -78,9 +75,7 @@ def interrupt_on_signals(signals: Sequence[int] = (signal.SIGINT, signal.SIGTERM
     fired: list[int] = []
 
     def handler(signum: int, _frame: object) -> None:
-        if fired or SHIELD.active or SHIELD.ended:
-            if SHIELD.active and SHIELD.pending is None:
-                SHIELD.pending = signum  # the run is ending already: marked, not raised
+        if fired or SHIELD.ended:
             logger.warning("signal %d while stopping: the run ends as soon as its outputs are written", signum)
             return
         fired.append(signum)
@@ -89,7 +84,7 @@ def interrupt_on_signals(signals: Sequence[int] = (signal.SIGINT, signal.SIGTERM
             return
         raise Interrupted(signum)
 
-    SHIELD.ended, SHIELD.pending = False, None
+    SHIELD.ended, SHIELD.deferred = False, None  # nothing from an earlier run
     old = {s: signal.signal(s, handler) for s in signals}
     try:
         yield

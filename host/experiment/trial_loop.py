@@ -330,14 +330,14 @@ class TrialLoop:
         if self.finished:
             return self.result
         self.finished = True
-        SHIELD.active, SHIELD.pending = True, SHIELD.deferred
-        SHIELD.deferred = None
-        try:
-            _finish(self.bench, self.result.summary, self.recorder, self.out, self.folder, self.result, self.trials)
-        finally:
-            SHIELD.active, SHIELD.ended = False, True  # the records are final: later signals are only logged
-            if SHIELD.pending is not None and self.result.interrupted is None and not self.result.summary.get("completed"):
-                self.result.interrupted = SHIELD.pending
+        SHIELD.ended = True
+        held, SHIELD.deferred = SHIELD.deferred, None  # a signal held while outputs were written, then a fault
+        if held is not None and self.result.interrupted is None and not self.result.summary.get("completed"):
+            self.result.interrupted = held
+            self.result.summary["interrupted"] = self._where_now(signal.Signals(held).name)
+        # a signal from here on is logged, not raised or recorded: the final summary and the exit
+        # code stay those of the run as it ended
+        _finish(self.bench, self.result.summary, self.recorder, self.out, self.folder, self.result, self.trials)
         return self.result
 
 
