@@ -239,3 +239,35 @@ def test_a_role_that_cannot_be_started_leaves_a_summary(tmp_path: Path, monkeypa
         assert fault["t_detected_wall"] is not None and not o.left
     finally:
         kill_session(o)
+
+
+@pytest.mark.parametrize("moment", ["status", "closing"])
+def test_a_sigterm_to_the_launcher_is_in_the_summary_as_in_the_exit_code(tmp_path: Path, moment: str) -> None:
+    """SIGTERM to ``ilcrig run`` at its status line (before the host: the launcher's summary) or at
+    the host's closing line (every trial kept, the processes not yet stopped): exit 143 and a
+    summary that says ``interrupted`` with ``end_reason`` interrupted (its ``completed`` as the host
+    left it) — or, when the run had ended before the signal, exit 0 and no marker; never a 143
+    whose summary says completed and nothing else, nor a marker without an end reason."""
+    out = tmp_path / "run"
+    sent: list[str] = []
+
+    def on_line(line: str, proc: Any) -> None:
+        if sent:
+            return
+        if (moment == "status" and line.startswith("ilcrig run:")) or (moment == "closing" and "trace_sha256" in line):
+            sent.append(line)
+            _signal(proc.pid, signal.SIGTERM)
+
+    o = run_rig(out, on_line=on_line)
+    assert sent and o.summary is not None and o.left == [], (o.stdout, o.stderr)
+    s = o.summary
+    if o.code == 0:
+        assert moment == "closing" and s["completed"] is True and "interrupted" not in s and s["end_reason"] == "completed"
+        return
+    assert o.code == 143, o.stderr
+    assert s["interrupted"]["signal"] == "SIGTERM" and s["end_reason"] == "interrupted"
+    if moment == "closing":
+        assert s["completed"] is True and len(s["iterations"]) == 2
+        assert (s["interrupted"]["position"], s["interrupted"]["trial"]) == ("after_last_trial", 1)
+    else:
+        assert s["iterations"] == [] and s["interrupted"]["position"] == "before_first_trial"

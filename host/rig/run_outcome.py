@@ -216,12 +216,13 @@ class RunOutcome:
             logger.info("%s", line)
 
     def mark_interrupted(self, signal_name: str, where: Any = None) -> None:
-        """A run interrupted by ``signal_name``: the summary says so (if the host did not; placed
-        with the io channel's position ``where``), the drives' safe state completed from their
-        logs, the folder settled."""
+        """A run interrupted by ``signal_name``: the summary says so as the exit code will (if the
+        host did not; placed with the io channel's position ``where``, after the last trial when
+        the host had completed: ``completed`` stays true), the drives' safe state completed from
+        their logs, the folder settled."""
         summary = self.load_summary() or self.launcher_summary()
         if summary is not None:
-            if not summary.get("interrupted") and not summary.get("completed"):
+            if not summary.get("interrupted"):  # also after the last trial: the exit code is the signal's
                 kept = len(summary["iterations"])
                 planned = int(summary.get("config", {}).get("iterations", kept + 1))
                 in_trial = where is not None and where.trial >= kept and kept < planned
@@ -234,6 +235,7 @@ class RunOutcome:
                     "tick": tick,
                     "by": "launcher",
                 }
+                summary["end_reason"] = "interrupted"
             self._complete_evidence(summary, time.monotonic())
             self.account(summary, ended_early=True)
             self.save(summary)
