@@ -266,6 +266,10 @@ def test_a_sigterm_to_the_launcher_is_in_the_summary_as_in_the_exit_code(tmp_pat
         return
     assert o.code == 143, o.stderr
     assert s["interrupted"]["signal"] == "SIGTERM" and s["end_reason"] == "interrupted"
+    assert (
+        "**Interrupted** by SIGTERM, " + ("after the last trial" if moment == "closing" else "before the first trial")
+        in (out / "report.md").read_text()
+    )
     if moment == "closing":
         assert s["completed"] is True and len(s["iterations"]) == 2
         assert (s["interrupted"]["position"], s["interrupted"]["trial"]) == ("after_last_trial", 1)

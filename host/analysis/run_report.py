@@ -15,7 +15,7 @@ import numpy as np
 from bus.atomic import atomic_write
 from host.analysis.figures import figure, save_png
 from host.analysis.markdown import JOINTS, fmt, md_table
-from host.experiment.faults import FaultRecord
+from host.experiment.faults import FaultRecord, position_words
 
 __all__ = ["write_run_report"]
 
@@ -73,7 +73,8 @@ def write_run_report(run_dir: str | Path, summary: Mapping[str, Any]) -> Path:
         ]
     if summary.get("interrupted"):
         i = summary["interrupted"]
-        lines += [f"**Interrupted** by {i.get('signal')} during trial {i.get('trial')}.", ""]
+        where = position_words(i.get("position"), i.get("trial"), i.get("tick"))
+        lines += [f"**Interrupted** by {i.get('signal')}, {where}.", ""]
     safe = summary.get("safe_state") or []
     if safe and (summary.get("faults") or summary.get("interrupted")):
         lines += ["Safe state after the run:", ""]

@@ -166,17 +166,22 @@ class FaultRecord:
                 self.node
                 + (f" (node {self.node_id})" if self.node_id is not None and not self.node.endswith(str(self.node_id)) else "")
             )
-        trial = self.trial if self.trial is not None else "?"
-        if self.position == Position.BEFORE_FIRST_TRIAL:
-            parts.append(f"before the first trial (trial {trial} not started)")
-        elif self.position == Position.BETWEEN_TRIALS and isinstance(self.trial, int):
-            parts.append(f"between trials {self.trial - 1} and {self.trial} (trial {self.trial} not started)")
-        elif self.position == Position.AFTER_LAST_TRIAL:
-            parts.append(f"after the last trial (trial {trial}, kept)")
-        else:
-            parts.append(f"trial {trial}")
-            parts.append(f"tick {self.tick}" if self.tick is not None else "tick unknown")
+        parts.append(position_words(self.position, self.trial, self.tick))
         return ", ".join(parts)
+
+
+def position_words(position: str | None, trial: int | None, tick: int | None) -> str:
+    """Where in a run something happened, in words (a fault's or an interrupt's ``position``,
+    ``trial``, ``tick``): ``trial 1, tick 150``, ``between trials 0 and 1 (trial 1 not started)``,
+    ``before the first trial (trial 0 not started)``, ``after the last trial (trial 2, kept)``."""
+    shown = trial if trial is not None else "?"
+    if position == Position.BEFORE_FIRST_TRIAL:
+        return f"before the first trial (trial {shown} not started)"
+    if position == Position.BETWEEN_TRIALS and isinstance(trial, int):
+        return f"between trials {trial - 1} and {trial} (trial {trial} not started)"
+    if position == Position.AFTER_LAST_TRIAL:
+        return f"after the last trial (trial {shown}, kept)"
+    return f"trial {shown}, " + (f"tick {tick}" if tick is not None else "tick unknown")
 
 
 def fault_line(record: FaultRecord, kept: int, *, summary_path: str | Path | None = None, extra: str = "") -> str:

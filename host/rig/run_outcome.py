@@ -222,7 +222,8 @@ class RunOutcome:
         their logs, the folder settled."""
         summary = self.load_summary() or self.launcher_summary()
         if summary is not None:
-            if not summary.get("interrupted"):  # also after the last trial: the exit code is the signal's
+            marked = not summary.get("interrupted")
+            if marked:  # also after the last trial: the exit code is the signal's
                 kept = len(summary["iterations"])
                 planned = int(summary.get("config", {}).get("iterations", kept + 1))
                 in_trial = where is not None and where.trial >= kept and kept < planned
@@ -238,7 +239,7 @@ class RunOutcome:
                 summary["end_reason"] = "interrupted"
             self._complete_evidence(summary, time.monotonic())
             self.account(summary, ended_early=True)
-            self.save(summary)
+            self.save(summary, report=marked)  # report.md says how the run ended, as the summary does
         self.settle_folder()
 
     # -- the exit paths -------------------------------------------------------------------
