@@ -452,10 +452,12 @@ def test_tiny_sweep_report_and_resume(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 @pytest.mark.multiprocess
-def test_ctrl_c_stops_cleanly_and_keeps_finished(tmp_path: Path) -> None:
-    """Ctrl-C (SIGINT to the process group, as a terminal sends it) while one experiment is
-    finished and another one is held (tests/sweep_hold.py): the sweep cannot end before the
-    interrupt, whatever the machine's speed; one line, no traceback from anyone; the local
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_ctrl_c_stops_cleanly_and_keeps_finished(tmp_path: Path, signum: int) -> None:
+    """Ctrl-C (SIGINT to the process group, as a terminal sends it) or SIGTERM to the command
+    alone (as ``kill`` sends it) while one experiment is finished and another one is held
+    (tests/sweep_hold.py): the sweep cannot end before the interrupt, whatever the machine's
+    speed; one line, no traceback from anyone, exit 130 / 143 (SIGTERM was 130); the local
     cluster's workers end with it; running again resumes."""
     out = tmp_path / "sweep"
     done, held = Experiment("pd-ilc"), Experiment("d-ilc")
@@ -476,12 +478,15 @@ def test_ctrl_c_stops_cleanly_and_keeps_finished(tmp_path: Path) -> None:
             assert time.monotonic() < deadline, "the sweep neither finished one experiment nor held the other"
             time.sleep(0.1)
         held_pid = int((run_dir_of(out, held) / "held").read_text())
-        os.killpg(proc.pid, signal.SIGINT)  # as Ctrl-C on a terminal: the whole process group
+        if signum == signal.SIGINT:
+            os.killpg(proc.pid, signal.SIGINT)  # as Ctrl-C on a terminal: the whole process group
+        else:
+            proc.send_signal(signal.SIGTERM)  # as kill: the command alone
         _, err = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
-    assert proc.returncode == 130, err
+    assert proc.returncode == 128 + signum, err
     assert "ilcrig: interrupted;" in err and "run again to resume" in err
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err  # from no one: the workers ignore SIGINT
     deadline = time.monotonic() + 30
@@ -506,6 +511,32 @@ def test_ctrl_c_stops_cleanly_and_keeps_finished(tmp_path: Path) -> None:
     assert "1 run, 1 already finished" in p.stdout
     assert is_finished(run_dir_of(out, held), held.config(2)) and (out / "report.md").is_file()
     assert [h["ran"] for h in json.loads((out / "sweep.json").read_text())["history"]] == [1, 1]
+
+
+@pytest.mark.slow
+@pytest.mark.multiprocess
+def test_a_signal_once_the_experiments_ran_leaves_the_records_whole(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """SIGTERM while ``ilcrig reproduce`` writes its report after every experiment ran (the process
+    died there, with sweep.json and no report, or no sweep.json at all): the report, the table and
+    sweep.json are written, exit 0, one warning saying the signal came while the records were
+    finished."""
+    import host.studies.paper.reproduce as reproduce_mod
+    from host.cli import main
+
+    write = reproduce_mod.write_sweep_report
+    sent: list[int] = []
+
+    def signalled(out: Path, iterations: int) -> None:
+        os.kill(os.getpid(), signal.SIGTERM)
+        sent.append(1)
+        write(out, iterations)
+
+    monkeypatch.setattr(reproduce_mod, "write_sweep_report", signalled)
+    out = tmp_path / "sweep"
+    argv = ["reproduce", "--out", str(out), "--iterations", "2", "--only", "table2", "--jobs", "1", "--no-progress"]
+    assert main([*argv, "--no-dashboard"]) == 0 and sent == [1]
+    assert (out / "report.md").is_file() and (out / "results.parquet").is_file()
+    assert [h["interrupted"] for h in json.loads((out / "sweep.json").read_text())["history"]] == [False]
 
 
 def test_near_misses_are_flagged_as_ties() -> None:

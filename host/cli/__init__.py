@@ -51,9 +51,10 @@ from collections.abc import Sequence
 from typing import NoReturn
 
 from bus.errors import InputError
-from bus.exit_codes import EXIT_ERROR, EXIT_FAULT, EXIT_INTERRUPTED, EXIT_USAGE, exit_code_of_signal
+from bus.exit_codes import EXIT_ERROR, EXIT_FAULT, EXIT_USAGE, exit_code_of_signal
 from host.cli import drive, host, hub, laws, plant, robot, run, sim, studies, view
 from host.cli.options import BusUnavailable
+from host.experiment.signal_shield import signum_of
 
 __all__ = ["build_parser", "main"]
 
@@ -104,8 +105,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.func(args))
     except KeyboardInterrupt as exc:
         sys.stderr.write("ilcrig: interrupted\n")
-        signum = getattr(exc, "signum", None)  # SIGTERM's Interrupted (host.experiment.signal_shield): 143
-        return EXIT_INTERRUPTED if signum is None else exit_code_of_signal(signum)
+        return exit_code_of_signal(signum_of(exc))  # SIGTERM's Interrupted (host.experiment.signal_shield): 143
     except BusUnavailable as exc:
         sys.stderr.write(f"ilcrig: error: {exc}\n")
         return EXIT_FAULT

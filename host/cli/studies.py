@@ -20,18 +20,23 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
 import sys
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from bus.errors import InputError
-from bus.exit_codes import EXIT_CLUSTER_LOST, EXIT_INTERRUPTED
+from bus.exit_codes import EXIT_CLUSTER_LOST, exit_code_of_signal
 from host.cli.options import options_of
+from host.experiment.signal_shield import end_of_run, interrupt_on_signals
 
 if TYPE_CHECKING:  # the handlers import the studies when they run: building the parser stays cheap
+    from collections.abc import Sequence
+
     from host.studies.engine import Engine, SweepOutcome
-    from host.studies.spec import SweepSpec
+    from host.studies.spec import Point, SweepSpec
+    from host.studies.tune import Tuner
 
 logger = logging.getLogger(__name__)
 
@@ -118,16 +123,23 @@ def _say_cluster_lost(command: str, outcome: SweepOutcome, out: Path) -> int:
 
 def sweep_main(args: argparse.Namespace) -> int:
     """``ilcrig sweep``: run the points of the spec, write ``results.parquet`` and ``report.md``."""
-    from host.studies.engine import run_points
-    from host.studies.report import write_report
     from host.studies.sweep_record import check_study_folder
-    from host.studies.table import TABLE_FILE, write_table
 
     spec = spec_of_args(args)
     points = spec.points()  # every point validated before anything starts
     out = Path(args.out) if getattr(args, "out", None) else Path("runs") / time.strftime("sweep-%Y%m%d-%H%M%S")
     check_study_folder(out, "sweep", _spec_doc(spec))  # one study, one folder: a resume or a new folder
     keys = ", ".join(spec.varied_keys) or "nothing varied"
+    with interrupt_on_signals():  # Ctrl-C / SIGTERM: what finished is kept, the records say so
+        return _sweep_points(args, spec, points, out, keys)
+
+
+def _sweep_points(args: argparse.Namespace, spec: SweepSpec, points: list[Point], out: Path, keys: str) -> int:
+    """The part of :func:`sweep_main` under its signal handlers."""
+    from host.studies.engine import run_points
+    from host.studies.report import write_report
+    from host.studies.table import TABLE_FILE, write_table
+
     with engine_of_args(args) as engine:
         where = engine.describe()
         sys.stderr.write(f"ilcrig sweep: {len(points)} point(s) ({keys}) on {where}; folder {out}\n")
@@ -142,6 +154,7 @@ def sweep_main(args: argparse.Namespace) -> int:
             progress=not getattr(args, "no_progress", False),
             desc="sweep",
         )
+        end_of_run()  # the records from here: a signal now is logged, not raised
     _record(out, spec, [p.id for p in points], where, outcome, "sweep")
     if outcome.cluster_lost:
         return _say_cluster_lost("sweep", outcome, out / "runs")
@@ -150,7 +163,7 @@ def sweep_main(args: argparse.Namespace) -> int:
             f"ilcrig: interrupted; {len(outcome.ran)} point(s) finished in this call are kept in {out / 'runs'}; "
             "run the same command again to resume\n"
         )
-        return EXIT_INTERRUPTED
+        return exit_code_of_signal(outcome.signum or signal.SIGINT)
     write_table(out, points)
     report = write_report(out, spec, points, outcome.wall_s)
     sys.stdout.write(
@@ -167,7 +180,7 @@ def tune_main(args: argparse.Namespace) -> int:
     """``ilcrig tune``: open (or resume) the study in ``--out``, run it to its budget on the engine,
     write the outputs and print the best gains."""
     from host.studies.sweep_record import check_study_folder
-    from host.studies.tune import BEST_FILE, STUDY_FILE, Tuner
+    from host.studies.tune import Tuner
     from host.studies.tune_params import TuneOverrides, tune_settings
 
     spec = spec_of_args(args)
@@ -179,6 +192,14 @@ def tune_main(args: argparse.Namespace) -> int:
     check_study_folder(out, "tune")  # one study, one folder: study.db resumes, anything else is refused
     tuner = Tuner(out, spec, params, objective, budget, sampler_seed=getattr(args, "sampler_seed", 0) or 0)
     tuner.open_study()
+    with interrupt_on_signals():  # Ctrl-C / SIGTERM: the study keeps every finished trial
+        return _tune_study(args, engine, tuner, out, params, budget)
+
+
+def _tune_study(args: argparse.Namespace, engine: Engine, tuner: Tuner, out: Path, params: Sequence[Any], budget: int) -> int:
+    """The part of :func:`tune_main` under its signal handlers."""
+    from host.studies.tune import BEST_FILE, STUDY_FILE
+
     with engine:
         sys.stderr.write(
             f"ilcrig tune: {', '.join(p.key for p in params)}; {budget} trials "
@@ -187,6 +208,7 @@ def tune_main(args: argparse.Namespace) -> int:
         if engine.dashboard:
             sys.stderr.write(f"ilcrig tune: dashboard {engine.dashboard}\n")
         outcome = tuner.run(engine, progress=not getattr(args, "no_progress", False))
+        end_of_run()  # the records from here: a signal now is logged, not raised
     report = tuner.write_outputs(outcome)
     if outcome.cluster_lost:
         sys.stderr.write(
@@ -196,7 +218,7 @@ def tune_main(args: argparse.Namespace) -> int:
         return EXIT_CLUSTER_LOST
     if outcome.interrupted:
         sys.stderr.write(f"ilcrig: interrupted; the study in {out / STUDY_FILE} is kept; run the same command again to resume\n")
-        return EXIT_INTERRUPTED
+        return exit_code_of_signal(outcome.signum or signal.SIGINT)
     if outcome.best_trial is None:
         sys.stderr.write("ilcrig tune: no trial gave a finite objective (every run faulted or was infeasible)\n")
         return 1
@@ -215,13 +237,20 @@ def reproduce_main(args: argparse.Namespace) -> int:
     """``ilcrig reproduce``: the paper's sweep (:func:`host.studies.paper.reproduce.reproduce`) with
     ``--out``, ``--jobs``, ``--scheduler``, ``--iterations``, ``--only``, ``--fresh``,
     ``--no-progress``, ``--no-dashboard``."""
-    from host.studies.paper.reproduce import reproduce
 
     out = Path(getattr(args, "out", None) or "runs/reproduce")
     jobs = getattr(args, "jobs", None)
     scheduler = getattr(args, "scheduler", None)
     if jobs is not None and jobs < 1:
         raise InputError(f"--jobs must be >= 1, got {jobs}")
+    with interrupt_on_signals():  # Ctrl-C / SIGTERM: the finished experiments are kept, the records say so
+        return _reproduce(args, out, jobs, scheduler)
+
+
+def _reproduce(args: argparse.Namespace, out: Path, jobs: int | None, scheduler: str | None) -> int:
+    """The part of :func:`reproduce_main` under its signal handlers."""
+    from host.studies.paper.reproduce import reproduce
+
     code, outcome = reproduce(
         out,
         iterations=10 if getattr(args, "iterations", None) is None else args.iterations,

@@ -18,7 +18,7 @@ from collections.abc import Iterator, Sequence
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Interrupted", "SHIELD", "Shield", "deferred_interrupts", "interrupt_on_signals"]
+__all__ = ["Interrupted", "SHIELD", "Shield", "deferred_interrupts", "end_of_run", "interrupt_on_signals", "signum_of"]
 
 
 class Interrupted(KeyboardInterrupt):
@@ -27,6 +27,12 @@ class Interrupted(KeyboardInterrupt):
     def __init__(self, signum: int) -> None:
         super().__init__(signum)
         self.signum = signum
+
+
+def signum_of(exc: BaseException) -> int:
+    """The signal behind a :class:`KeyboardInterrupt`: an :class:`Interrupted`'s own, else SIGINT
+    (Python's Ctrl-C)."""
+    return int(getattr(exc, "signum", signal.SIGINT))
 
 
 class Shield:
@@ -42,6 +48,13 @@ class Shield:
 
 
 SHIELD = Shield()
+
+
+def end_of_run() -> None:
+    """The run's work is over and its records are being made final (safe state, summary, report,
+    a study's table): from now until :func:`interrupt_on_signals` gives the handlers back a
+    signal is only logged, the records and the exit code stay those of the run."""
+    SHIELD.ended = True
 
 
 @contextlib.contextmanager
@@ -76,7 +89,7 @@ def interrupt_on_signals(signals: Sequence[int] = (signal.SIGINT, signal.SIGTERM
 
     def handler(signum: int, _frame: object) -> None:
         if fired or SHIELD.ended:
-            logger.warning("signal %d while stopping: the run ends as soon as its outputs are written", signum)
+            logger.warning("%s while the run ends: its records are finished first", signal.Signals(signum).name)
             return
         fired.append(signum)
         if SHIELD.defer_depth > 0:
@@ -84,11 +97,12 @@ def interrupt_on_signals(signals: Sequence[int] = (signal.SIGINT, signal.SIGTERM
             return
         raise Interrupted(signum)
 
-    SHIELD.ended, SHIELD.deferred = False, None  # nothing from an earlier run
+    outer = SHIELD.ended, SHIELD.deferred  # an enclosing block's (a command around a library call)
+    SHIELD.ended, SHIELD.deferred = False, None
     old = {s: signal.signal(s, handler) for s in signals}
     try:
         yield
     finally:
-        SHIELD.ended = False
+        SHIELD.ended, SHIELD.deferred = outer
         for s, h in old.items():
             signal.signal(s, h)

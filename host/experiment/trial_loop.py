@@ -78,7 +78,7 @@ from host.experiment.law_watch import LawWatch
 from host.experiment.loop_state import EndReason, ExperimentResult, LoopState, TrialOutcome, end_reason, new_summary
 from host.experiment.outputs import OutputError, RunFolder
 from host.experiment.plan import Plan
-from host.experiment.signal_shield import SHIELD, deferred_interrupts
+from host.experiment.signal_shield import SHIELD, deferred_interrupts, end_of_run, signum_of
 from host.experiment.summary import jsonable, write_summary
 from host.learning.laws.checked import LawError
 from host.learning.metrics import TrialMetrics
@@ -272,7 +272,7 @@ class TrialLoop:
                 result.end_reason = EndReason.LAW_ERROR
                 self._law_traceback(exc)
         except KeyboardInterrupt as exc:  # Ctrl-C, or Interrupted from the SIGTERM/SIGINT handler
-            signum = getattr(exc, "signum", signal.SIGINT)
+            signum = signum_of(exc)
             result.interrupted = int(signum)
             summary["interrupted"] = self._where_now(signal.Signals(signum).name)
             if summary["interrupted"]["position"] == Position.AFTER_LAST_TRIAL:
@@ -303,7 +303,7 @@ class TrialLoop:
         if not self.finished:
             summary = self.result.summary
             if isinstance(exc, KeyboardInterrupt):
-                signum = int(getattr(exc, "signum", signal.SIGINT))
+                signum = signum_of(exc)
                 if self.result.interrupted is None:
                     self.result.interrupted = signum
                     summary["interrupted"] = self._where_now(signal.Signals(signum).name)
@@ -330,7 +330,7 @@ class TrialLoop:
         if self.finished:
             return self.result
         self.finished = True
-        SHIELD.ended = True
+        end_of_run()
         held, SHIELD.deferred = SHIELD.deferred, None  # a signal held while outputs were written, then a fault
         if held is not None and self.result.interrupted is None and not self.result.summary.get("completed"):
             self.result.interrupted = held

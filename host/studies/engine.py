@@ -35,17 +35,15 @@ import contextlib
 import importlib.util
 import logging
 import os
-import signal
 import sys
-import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from bus.errors import InputError
+from host.experiment.signal_shield import interrupt_on_signals, signum_of
 from host.studies.point import commit, is_finished, run_dir, run_point
 from host.studies.spec import Point
 
@@ -62,7 +60,6 @@ __all__ = [
     "lost_point",
     "LOOPBACK",
     "dashboard_available",
-    "interrupt_on_sigterm",
 ]
 
 #: the only address the processes this module starts listen on
@@ -139,7 +136,11 @@ class Engine:
         self._log_levels: dict[str, int] = {}
 
     def __enter__(self) -> Engine:
-        self.start()
+        try:
+            self.start()
+        except BaseException:  # a signal or an error while the cluster starts: none of it is left
+            self.close()
+            raise
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -271,25 +272,10 @@ class SweepOutcome:
     skipped: list[str] = field(default_factory=list)
     errors: dict[str, str] = field(default_factory=dict)
     interrupted: bool = False
+    #: the signal that interrupted it (SIGINT for Ctrl-C, SIGTERM), when ``interrupted``
+    signum: int | None = None
     cluster_lost: str | None = None
     wall_s: float = 0.0
-
-
-def _raise_interrupt(signum: int, frame: Any) -> None:  # SIGTERM → the path of Ctrl-C
-    raise KeyboardInterrupt
-
-
-@contextmanager
-def interrupt_on_sigterm() -> Iterator[None]:
-    """While inside (main thread only): SIGTERM raises KeyboardInterrupt, as Ctrl-C does."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    old = signal.signal(signal.SIGTERM, _raise_interrupt)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, old)
 
 
 #: the function a worker runs for a point (a test may put a wrapper in its place)
@@ -451,18 +437,18 @@ def run_points(
         return outcome
     t0 = time.perf_counter()
     try:
-        with interrupt_on_sigterm():
+        with interrupt_on_signals():
             engine.await_workers()
     except ClusterLost as exc:
         outcome.cluster_lost = str(exc)
         return outcome
-    except KeyboardInterrupt:
-        outcome.interrupted = True
+    except KeyboardInterrupt as exc:
+        outcome.interrupted, outcome.signum = True, signum_of(exc)
         return outcome
     bar = tqdm(total=len(todo), desc=desc, unit="pt", file=sys.stderr, disable=not progress, dynamic_ncols=True)
     queue = PointQueue(engine, out, save_errors=save_errors)
     try:
-        with interrupt_on_sigterm():
+        with interrupt_on_signals():
             try:
                 for i, p in enumerate(todo):  # the first points first (reproduce: the slowest)
                     queue.submit(p, priority=len(todo) - i)
@@ -476,8 +462,8 @@ def run_points(
                         on_result(p, result)
                     bar.set_postfix_str(p.id, refresh=False)
                     bar.update(1)
-            except KeyboardInterrupt:
-                outcome.interrupted = True
+            except KeyboardInterrupt as exc:
+                outcome.interrupted, outcome.signum = True, signum_of(exc)
                 queue.cancel()
             except ClusterLost as exc:
                 outcome.cluster_lost = str(exc)

@@ -52,7 +52,8 @@ from bus.errors import InputError
 from host.analysis.figures import figure, save_png
 from host.analysis.markdown import fmt, md_table
 from host.experiment.config import options_toml
-from host.studies.engine import ClusterLost, Engine, PointQueue, interrupt_on_sigterm, point_doc
+from host.experiment.signal_shield import interrupt_on_signals, signum_of
+from host.studies.engine import ClusterLost, Engine, PointQueue, point_doc
 from host.studies.point import is_finished, load_point, plan_of, run_dir
 from host.studies.spec import Point, SweepSpec, set_key
 from host.studies.table import write_table
@@ -89,6 +90,8 @@ class TuneOutcome:
     best_trial: int | None = None
     start_value: float | None = None
     interrupted: bool = False
+    #: the signal that interrupted it (SIGINT for Ctrl-C, SIGTERM), when ``interrupted``
+    signum: int | None = None
     cluster_lost: str | None = None
     wall_s: float = 0.0
     points_ran: int = 0
@@ -263,15 +266,15 @@ class Tuner:
         t0 = time.perf_counter()
         todo = self.budget - len(self.finished())
         try:
-            with interrupt_on_sigterm():
+            with interrupt_on_signals():
                 if todo > 0:
                     engine.await_workers()
         except ClusterLost as exc:
             outcome.cluster_lost = str(exc)
             self._fill_best(outcome)
             return outcome
-        except KeyboardInterrupt:
-            outcome.interrupted = True
+        except KeyboardInterrupt as exc:
+            outcome.interrupted, outcome.signum = True, signum_of(exc)
             self._fill_best(outcome)
             return outcome
         bar = tqdm(total=max(todo, 0), desc="tune", unit="trial", file=sys.stderr, disable=not progress, dynamic_ncols=True)
@@ -323,7 +326,7 @@ class Tuner:
                 run.futures.append(queue.submit(p, tag=f"trial-{run.trial.number}", doc=doc, owner=run))
 
         try:
-            with interrupt_on_sigterm():
+            with interrupt_on_signals():
                 try:
                     while True:
                         while started < todo and sum(len(r.points) - len(r.values) for r in in_flight.values()) < workers:
@@ -336,8 +339,8 @@ class Tuner:
                         p, result, run = queue.next()  # written into its folder; a pruned trial's are dropped
                         outcome.points_ran += 1
                         add_value(run, p, self.objective.of_summary(result.get("summary")))
-                except KeyboardInterrupt:
-                    outcome.interrupted = True
+                except KeyboardInterrupt as exc:
+                    outcome.interrupted, outcome.signum = True, signum_of(exc)
                     queue.cancel()
                     self._requeue(in_flight.values())
                 except ClusterLost as exc:  # the trials in flight run again on resume

@@ -17,13 +17,15 @@ the paper's report (:func:`host.studies.paper.report.write_sweep_report`) and th
 from __future__ import annotations
 
 import logging
+import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 from bus.errors import InputError
-from bus.exit_codes import EXIT_CLUSTER_LOST, EXIT_INTERRUPTED
+from bus.exit_codes import EXIT_CLUSTER_LOST, exit_code_of_signal
 from host.experiment.config import gains_table
+from host.experiment.signal_shield import end_of_run
 from host.studies.engine import WAIT_WORKERS_S, Engine, SweepOutcome, run_points
 from host.studies.paper.plan import Experiment, ReproduceError, experiment_list
 from host.studies.paper.report import write_sweep_report
@@ -85,11 +87,12 @@ def reproduce(
         if engine.dashboard:
             sys.stderr.write(f"ilcrig reproduce: dashboard {engine.dashboard}\n")
         outcome = run_points(engine, out, points, save_errors=True, fresh=fresh, progress=progress, desc="reproduce")
+        end_of_run()  # the records from here: a signal now is logged, not raised
     write_sweep_json(out, [p.id for p in points], iterations, where, outcome)
     if outcome.cluster_lost:
         return EXIT_CLUSTER_LOST, outcome
     if outcome.interrupted:
-        return EXIT_INTERRUPTED, outcome
+        return exit_code_of_signal(outcome.signum or signal.SIGINT), outcome
     write_sweep_report(out, iterations)
     write_table(out, points)
     return (1 if outcome.errors else 0), outcome
