@@ -69,7 +69,7 @@ def reproduce(
     """Run the reproduction into sweep folder ``out`` and write its report.
 
     Returns (exit code, outcome): 0, 1 if an experiment could not run (its error.txt says why),
-    130 if interrupted, 5 if the cluster was lost (the finished experiments are kept; running again
+    130 / 143 if interrupted by SIGINT / SIGTERM, 5 if the cluster was lost (the finished experiments are kept; running again
     resumes).
 
     :raises InputError: bad arguments (before anything starts)."""
