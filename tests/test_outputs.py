@@ -190,6 +190,24 @@ def test_a_signal_between_the_guarded_parts_of_a_step_is_marked(tmp_path: Path, 
     assert s["interrupted"]["signal"] == "SIGTERM" and s["completed"] is False and len(s["iterations"]) == 1
 
 
+def _sigterm_at(monkeypatch: pytest.MonkeyPatch, module: object, name: str, *, before: bool = False) -> list[int]:
+    """``module.name`` sends this process SIGTERM as it returns (``before``: as it is called);
+    the list it returns counts the signals sent."""
+    real = getattr(module, name)
+    sent: list[int] = []
+
+    def signalled(*args: object, **kwargs: object) -> object:
+        if before:
+            sent.append(os.kill(os.getpid(), signal.SIGTERM) or 1)
+        out = real(*args, **kwargs)
+        if not before:
+            sent.append(os.kill(os.getpid(), signal.SIGTERM) or 1)
+        return out
+
+    monkeypatch.setattr(module, name, signalled)
+    return sent
+
+
 def test_a_signal_between_two_trials_of_ilcrig_sim_is_marked(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """SIGTERM's interrupt raised after a trial was kept and its step returned, before the next
     step (the window where ``ilcrig sim`` left its folder unfinished and said only
@@ -229,14 +247,7 @@ def test_a_signal_while_ilcrig_sim_makes_its_folder_is_marked(tmp_path: Path, mo
     from host.experiment.config import build_config
     from host.sim.session import SimOptions, run_sim
 
-    opened = sim_mod.open_outputs
-
-    def signalled(*args: object, **kwargs: object) -> object:
-        outputs = opened(*args, **kwargs)  # type: ignore[arg-type]
-        os.kill(os.getpid(), signal.SIGTERM)
-        return outputs
-
-    monkeypatch.setattr(sim_mod, "open_outputs", signalled)
+    _sigterm_at(monkeypatch, sim_mod, "open_outputs")
     out = tmp_path / "run"
     assert run_sim(SimOptions(build_config(None, {"iterations": 2, "cycle_s": 0.15}), out), io.StringIO()) == 143
     s = json.loads((out / "summary.json").read_text())
@@ -256,14 +267,7 @@ def test_a_signal_while_a_host_makes_its_folder_is_marked(tmp_path: Path, monkey
     from host.experiment.signal_shield import interrupt_on_signals
     from host.sim.inprocess import InProcessBench
 
-    opened = session_mod.open_outputs
-
-    def signalled(*args: object, **kwargs: object) -> object:
-        outputs = opened(*args, **kwargs)  # type: ignore[arg-type]
-        os.kill(os.getpid(), signal.SIGTERM)
-        return outputs
-
-    monkeypatch.setattr(session_mod, "open_outputs", signalled)
+    _sigterm_at(monkeypatch, session_mod, "open_outputs")
     cfg = build_config(None, {"iterations": 2, "cycle_s": 0.15})
     with interrupt_on_signals():
         res = session_mod.run_session(prepare(cfg), InProcessBench(cfg), tmp_path, mode="rig", stream=io.StringIO())
@@ -281,15 +285,7 @@ def test_a_signal_once_a_run_ended_leaves_its_records_as_they_are(tmp_path: Path
     from host.experiment.config import build_config
     from host.sim.session import SimOptions, run_sim
 
-    write = session_mod.write_run_report
-    sent: list[int] = []
-
-    def signalled(out: Path, summary: dict[str, object]) -> None:
-        os.kill(os.getpid(), signal.SIGTERM)
-        sent.append(1)
-        write(out, summary)
-
-    monkeypatch.setattr(session_mod, "write_run_report", signalled)
+    sent = _sigterm_at(monkeypatch, session_mod, "write_run_report", before=True)
     out = tmp_path / "run"
     cfg = build_config(None, {"iterations": 2, "cycle_s": 0.15})
     assert run_sim(SimOptions(cfg, out), io.StringIO()) == 0 and sent == [1]
