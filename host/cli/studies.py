@@ -8,8 +8,9 @@ table and the report, and print one closing line.  Bad input is a :class:`bus.er
 (one line, exit code 2) raised before anything starts, among it an ``--out`` that holds a run or
 another study (:func:`host.studies.sweep_record.check_study_folder`); an interrupted sweep returns
 130 / 143 (SIGINT / SIGTERM; the handlers of :mod:`host.experiment.signal_shield` cover the whole
-command, a signal once the points ran is only logged while the records are written) and a lost scheduler or a cluster without workers returns 5
-(``EXIT_CLUSTER_LOST``), one line each, with every finished point kept for the resume.
+command, a signal once the points ran is only logged while the records are written) and a lost
+scheduler or a cluster without workers returns 5 (``EXIT_CLUSTER_LOST``), one line each, with every
+finished point kept for the resume.
 
 May import: what ``host.cli`` may (:mod:`host.studies` and, for ``reproduce``,
 :mod:`host.studies.paper`).  The studies are imported when a handler runs, so building the command
