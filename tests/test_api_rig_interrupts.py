@@ -152,6 +152,7 @@ def assert_latency_request_ended(summary: dict[str, Any], before: int | None, du
 @example(scenario=(2, "law_error", 0, "SIGINT", False))
 @example(scenario=(3, "update_signal", 1, "SIGTERM", True))
 @example(scenario=(3, "user_exception", 1, "SIGINT", True))
+@example(scenario=(2, "user_exception", 1, "SIGINT", False))  # after the last trial: the run stays completed
 def test_every_completed_trial_is_in_every_view_on_the_rig(scenario: tuple[int, str, int, str, bool]) -> None:
     iterations, kind, at, signame, realtime = scenario
     folder = Path(tempfile.mkdtemp(prefix="ilcrig-rig-interrupts-"))

@@ -58,6 +58,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from bus.errors import InputError
+from bus.exit_codes import EXIT_OK
 from bus.objects import DRIVE_NODE_IDS
 from bus.transports.fault_inject import FRAME_ACTIONS, FaultSpec, check_specs, parse_specs
 from bus.units import timeout_scale
@@ -295,8 +296,13 @@ class RigLauncher(LaunchCore):
         exit_code = self.say_interrupted()
         if host.proc.poll() is None:
             supervisor.stop_host(host, signal.SIGINT if self.interrupts.signum == signal.SIGINT else signal.SIGTERM)
-        outcome.mark_interrupted(self.interrupts.name, self._progress.where() if self._progress is not None else None)
-        return exit_code
+        if outcome.mark_interrupted(self.interrupts.name, self._progress.where() if self._progress is not None else None):
+            return exit_code
+        self._say_err(
+            f"ilcrig: the run had completed before {self.interrupts.name}: every trial kept; "
+            f"summary: {outcome.out_dir / 'summary.json'}"
+        )
+        return EXIT_OK
 
     def _launch_failed(self, err: LaunchError) -> None:
         self._launch_error = err  # its summary once every process is gone (_closing)

@@ -215,15 +215,20 @@ class RunOutcome:
         for line in settle_run_folder(self.out_dir):
             logger.info("%s", line)
 
-    def mark_interrupted(self, signal_name: str, where: Any = None) -> None:
+    def mark_interrupted(self, signal_name: str, where: Any = None) -> bool:
         """A run interrupted by ``signal_name``: the summary says so as the exit code will (if the
-        host did not; placed with the io channel's position ``where``, after the last trial when
-        the host had completed: ``completed`` stays true), the drives' safe state completed from
-        their logs, the folder settled."""
+        host did not; placed with the io channel's position ``where``; after the last trial for a
+        run that completed with a fault), the drives' safe state completed from their logs, the
+        folder settled.  Returns False when the host had completed the run cleanly (every trial
+        kept, no fault) before the signal: its records stay as they are, and so does its exit code
+        (as a signal once a run's end began, :mod:`host.experiment.signal_shield`)."""
         summary = self.load_summary() or self.launcher_summary()
+        if summary is not None and summary.get("completed") and not summary.get("faults") and not summary.get("interrupted"):
+            self.settle_folder()
+            return False
         if summary is not None:
             marked = not summary.get("interrupted")
-            if marked:  # also after the last trial: the exit code is the signal's
+            if marked:
                 kept = len(summary["iterations"])
                 planned = int(summary.get("config", {}).get("iterations", kept + 1))
                 in_trial = where is not None and where.trial >= kept and kept < planned
@@ -241,6 +246,7 @@ class RunOutcome:
             self.account(summary, ended_early=True)
             self.save(summary, report=marked)  # report.md says how the run ended, as the summary does
         self.settle_folder()
+        return True
 
     # -- the exit paths -------------------------------------------------------------------
     def conclude(
