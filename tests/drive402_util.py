@@ -23,6 +23,7 @@ from math import isqrt
 from typing import Any
 
 import canopen
+from clock_util import SDO_RESPONSE_S
 
 from bus import fixedpoint as fp
 from bus.cia301.nmt import NmtCommand
@@ -117,7 +118,7 @@ def canopen_view(node: DriveNode, node_id: int, **connect: Any) -> Iterator[tupl
     network.connect(**connect)
     try:
         remote = network.add_node(node_id, str(DRIVE_EDS_PATH))
-        remote.sdo.RESPONSE_TIMEOUT = 5.0
+        remote.sdo.RESPONSE_TIMEOUT = SDO_RESPONSE_S
         yield network, remote
     finally:
         network.disconnect()

@@ -30,7 +30,7 @@ from typing import Any
 import can
 import canopen
 from canopen.profiles.p402 import BaseNode402
-from clock_util import wait_for
+from clock_util import SDO_RESPONSE_S, wait_for
 from drive402_util import K_ECHO
 
 from bus import io_frames
@@ -81,7 +81,7 @@ class MasterRig:
         self.node = BaseNode402(node_id, str(DRIVE_EDS_PATH))
         self.network.add_node(self.node)
         node = self.node
-        node.sdo.RESPONSE_TIMEOUT = 5.0 * timeout_scale()
+        node.sdo.RESPONSE_TIMEOUT = SDO_RESPONSE_S
         node.TIMEOUT_SWITCH_STATE_FINAL = WAIT_S
         node.TIMEOUT_SWITCH_STATE_SINGLE = WAIT_S / 4
         node.TIMEOUT_SWITCH_OP_MODE = WAIT_S / 4

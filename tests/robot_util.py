@@ -27,6 +27,7 @@ import can
 import canopen
 import numpy as np
 from cli_util import pid_alive
+from clock_util import SDO_RESPONSE_S
 
 from bus import units
 from bus.objects import DRIVE_EDS_PATH
@@ -160,6 +161,8 @@ class LockstepMaster:
         self.network.connect(**bus_kwargs)
         self.drives = {n: self.network.add_node(n, str(DRIVE_EDS_PATH)) for n in DRIVES}
         self.plant = self.network.add_node(PLANT_ID, str(PLANT_EDS_PATH))
+        for node in (*self.drives.values(), self.plant):
+            node.sdo.RESPONSE_TIMEOUT = SDO_RESPONSE_S
         self.emcy: list[tuple[int, bytes]] = []
         self.booted: set[int] = set()
         self._tpdo: dict[int, tuple[int, int]] = {}
