@@ -258,3 +258,41 @@ def test_leaving_a_trials_loop_early_is_a_stop_not_an_exception(tmp_path: Path) 
     assert len(res) == 2 and res.end_reason == "stopped" and "user_exception" not in res.summary
     peaks = [it["peak_feedforward_nm"] for it in res.summary["iterations"]]
     np.testing.assert_array_equal(res.peak_feedforward_nm, peaks)
+
+
+#: a fresh interpreter: a signal sent while ``scipy.signal`` is being imported during a step (the
+#: run's own handler installed), as a Ctrl-C could land; then a second run in the same interpreter
+_IMPORT_SIGNAL_SCRIPT = """
+import os, signal, sys
+import ilcrig
+
+class Hook:
+    sent = False
+
+    def find_spec(self, name, path=None, target=None):
+        # once, halfway through scipy.signal's own import, and only inside a step (the run's handler)
+        if name == "scipy.signal.bsplines" and not Hook.sent and signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+            Hook.sent = True
+            os.kill(os.getpid(), signal.SIGTERM)
+        return None
+
+sys.meta_path.insert(0, Hook())
+for run in ("first", "second"):
+    try:
+        res = ilcrig.Experiment(law="no-ilc-id", iterations=2, cycle_s=0.15).run()
+        print(run, "end", res.summary["end_reason"], "faults", len(res.summary["faults"]))
+    except KeyboardInterrupt:
+        print(run, "interrupted")
+"""
+
+
+def test_a_signal_cannot_land_inside_the_laws_first_import(tmp_path: Path) -> None:
+    """What the law's update imports on first use (``scipy.signal`` for ``no-ilc-id``) is imported
+    when the session is made, before its first step: a signal during a step (where the run's own
+    handler raises it) never lands inside that import, which would leave ``scipy.signal`` half made
+    in the interpreter and fail a later run's update (``NameError`` in the law)."""
+    proc = subprocess.run(
+        [sys.executable, "-c", _IMPORT_SIGNAL_SCRIPT], cwd=tmp_path, capture_output=True, text=True, timeout=300, check=False
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines() == ["first end completed faults 0", "second end completed faults 0"], proc.stderr

@@ -293,6 +293,26 @@ def test_a_signal_once_a_run_ended_leaves_its_records_as_they_are(tmp_path: Path
     assert s["completed"] is True and "interrupted" not in s and (out / "report.md").is_file()
 
 
+def test_a_signal_as_the_runs_end_begins_is_marked_after_the_last_trial(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """SIGTERM's interrupt raised as the trial loop begins its end, after the last trial was kept
+    (the window where a run marked ``completed`` ended without its final summary, or interrupted
+    yet not completed): the run ends through its end once — exit 143, ``interrupted`` placed
+    ``after_last_trial``, ``completed`` (every trial run and kept), the final summary and report."""
+    import io
+
+    import host.experiment.trial_loop as loop_mod
+    from host.experiment.config import build_config
+    from host.sim.session import SimOptions, run_sim
+
+    sent = _sigterm_at(monkeypatch, loop_mod, "end_of_run", before=True)
+    out = tmp_path / "run"
+    assert run_sim(SimOptions(build_config(None, {"iterations": 2, "cycle_s": 0.15}), out), io.StringIO()) == 143
+    s = json.loads((out / "summary.json").read_text())
+    assert s["interrupted"]["signal"] == "SIGTERM" and s["interrupted"]["position"] == "after_last_trial"
+    assert s["end_reason"] == "interrupted" and s["completed"] is True and len(s["iterations"]) == 2
+    assert (out / "report.md").is_file() and sent == [1]  # the first raised before it was counted; the second: logged
+
+
 def test_sigterm_during_sim_is_marked(tmp_path: Path) -> None:
     """``ilcrig sim`` killed with SIGTERM after its first trial: exit 143, ``interrupted`` in the
     summary, the completed trial kept."""

@@ -26,6 +26,8 @@ from hypothesis import strategies as st
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 
+#: trials of each run (a run that kept them all is ``completed``, whatever its exit code)
+ITERATIONS = 2
 #: the delays drawn after the status line, s: a 2-trial run ends about 4 s after it (quiet machine)
 MAX_DELAY_S = 4.5
 _RUNS = itertools.count()
@@ -50,7 +52,7 @@ def test_at_random_a_signal_over_ilcrig_run_leaves_every_record_true(tmp_path: P
             timers[0].start()
 
     try:
-        o = run_rig(out, on_line=on_line)
+        o = run_rig(out, iterations=ITERATIONS, on_line=on_line)
     finally:
         for t in timers:
             t.cancel()
@@ -65,6 +67,7 @@ def test_at_random_a_signal_over_ilcrig_run_leaves_every_record_true(tmp_path: P
         assert o.code == 128 + signum, (o.code, o.stderr)
         assert s["interrupted"]["signal"] == name and s["end_reason"] == "interrupted", s.get("interrupted")
     kept = len(s["iterations"])
+    assert s["completed"] is (kept == ITERATIONS), (kept, s.get("interrupted"))  # every trial run and kept
     rows = [ln for ln in o.stdout.splitlines() if len(ln.split()) == 9 and ln.split()[0].isdigit()]
     assert len(rows) == kept, o.stdout
     assert len(list((out / "trials").glob("trial-*.npz"))) == kept

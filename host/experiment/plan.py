@@ -16,9 +16,10 @@ to measurements (``benchmarks/run_memory.py``; linear in the trial length N, per
 per trial and sample, times a margin); :func:`available_memory_bytes` is MemAvailable, or less under
 a cgroup memory limit, or ``$ILCRIG_AVAILABLE_MEMORY`` (:data:`MEMORY_ENV`) when set.
 
-For ``ilcrig run`` the host process rehearses the law's first update on a copy
-(:func:`rehearse_first_update`), so that what it imports or compiles on first use is paid before
-the nodes watch its heartbeat.
+The process that runs the law rehearses its first update on a copy (:func:`rehearse_first_update`)
+before the first trial: ``ilcrig run``'s host process, so that what the update imports or compiles
+on first use is paid before the nodes watch its heartbeat; a sim session (``ilcrig sim``, the API),
+so that no interrupt lands inside that import.
 """
 
 from __future__ import annotations
@@ -334,7 +335,7 @@ def prepare(cfg: ExperimentConfig, *, rig: bool = False) -> Plan:
     """Plan the task, map it to joints, check feasibility and convergence (raise ValueError
     subclasses with one-line messages on anything infeasible); ``rig``: the memory check counts all
     processes of ``ilcrig run`` (:func:`check_config_limits`). The law's first update is not
-    rehearsed here: that is the rig's host process's own step (:func:`rehearse_first_update`)."""
+    rehearsed here: that is the step of the process that runs the law (:func:`rehearse_first_update`)."""
     check_config_limits(cfg, rig=rig)
     path = resolve_path(cfg.path)
     task = plan_task(path, cfg.cycle_s, cfg.profile, cfg.ts_s)
@@ -401,10 +402,11 @@ def prepare(cfg: ExperimentConfig, *, rig: bool = False) -> Plan:
 
 
 def rehearse_first_update(law: CheckedLaw, u0_nm: np.ndarray) -> None:
-    """The law's first update rehearsed on a copy in the rig's host process, before its nodes watch
-    its heartbeat (:meth:`host.learning.laws.checked.CheckedLaw.rehearse_first_update`): what the
-    update imports or compiles on first use is paid in that process (where it counts: a launcher or
-    an API process that rehearsed it would only have paid it once more)."""
+    """The law's first update rehearsed on a copy in the process that runs the law, before its first
+    trial (:meth:`host.learning.laws.checked.CheckedLaw.rehearse_first_update`): what the update
+    imports or compiles on first use is paid there — in the rig's host process before its nodes
+    watch its heartbeat, in a sim session before the trials (where an interrupt may end the run,
+    never inside an import). A launcher that rehearsed it would only pay it once more."""
     law.rehearse_first_update(u0_nm)
 
 

@@ -272,12 +272,7 @@ class TrialLoop:
                 result.end_reason = EndReason.LAW_ERROR
                 self._law_traceback(exc)
         except KeyboardInterrupt as exc:  # Ctrl-C, or Interrupted from the SIGTERM/SIGINT handler
-            signum = signum_of(exc)
-            result.interrupted = int(signum)
-            summary["interrupted"] = self._where_now(signal.Signals(signum).name)
-            if summary["interrupted"]["position"] == Position.AFTER_LAST_TRIAL:
-                summary["completed"] = True  # every trial was run and kept
-            logger.info("interrupted by %s (%s)", signal.Signals(signum).name, summary["interrupted"]["position"])
+            self._mark_interrupted(signum_of(exc))
         self.finish()
         return None
 
@@ -303,10 +298,8 @@ class TrialLoop:
         if not self.finished:
             summary = self.result.summary
             if isinstance(exc, KeyboardInterrupt):
-                signum = signum_of(exc)
                 if self.result.interrupted is None:
-                    self.result.interrupted = signum
-                    summary["interrupted"] = self._where_now(signal.Signals(signum).name)
+                    self._mark_interrupted(signum_of(exc))
             elif self.result.end_reason is None:
                 self.result.end_reason = EndReason.USER_EXCEPTION
                 text = str(exc)
@@ -316,6 +309,16 @@ class TrialLoop:
                     "after_trial": len(summary["iterations"]) - 1 if summary["iterations"] else None,
                 }
         return self.finish()
+
+    def _mark_interrupted(self, signum: int) -> None:
+        """The interrupt in the result and the summary's ``interrupted`` marker, placed now; after
+        the last trial was kept the run is also ``completed`` (every trial was run and kept)."""
+        summary, name = self.result.summary, signal.Signals(signum).name
+        self.result.interrupted = int(signum)
+        summary["interrupted"] = self._where_now(name)
+        if summary["interrupted"]["position"] == Position.AFTER_LAST_TRIAL:
+            summary["completed"] = True
+        logger.info("interrupted by %s (%s)", name, summary["interrupted"]["position"])
 
     def _where_now(self, signal_name: str) -> dict[str, Any]:
         """The summary's ``interrupted`` marker: signal, position, trial and tick now."""
@@ -329,12 +332,11 @@ class TrialLoop:
         """Close the bench (safe state), finish the recording, write the final summary (idempotent)."""
         if self.finished:
             return self.result
+        end_of_run()  # before ``finished``: a signal that lands ahead of it ends the run through here again
         self.finished = True
-        end_of_run()
         held, SHIELD.deferred = SHIELD.deferred, None  # a signal held while outputs were written, then a fault
         if held is not None and self.result.interrupted is None and not self.result.summary.get("completed"):
-            self.result.interrupted = held
-            self.result.summary["interrupted"] = self._where_now(signal.Signals(held).name)
+            self._mark_interrupted(held)
         # a signal from here on is logged, not raised or recorded: the final summary and the exit
         # code stay those of the run as it ended
         _finish(self.bench, self.result.summary, self.recorder, self.out, self.folder, self.result, self.trials)

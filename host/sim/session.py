@@ -31,7 +31,7 @@ from host.experiment.config import ExperimentConfig, build_config, gains_table
 from host.experiment.console import print_header, print_plan, print_row
 from host.experiment.loop_state import ExperimentResult, TrialOutcome
 from host.experiment.outputs import RunFolder, check_out_dir
-from host.experiment.plan import Plan, plan_with_gains
+from host.experiment.plan import Plan, plan_with_gains, rehearse_first_update
 from host.experiment.signal_shield import deferred_interrupts, interrupt_on_signals
 from host.experiment.trial_loop import TrialLoop
 from host.learning.metrics import TrialMetrics
@@ -76,6 +76,10 @@ class SimSession:
         check_firmware(firmware)  # before anything is made
         if view and self.out is None:
             raise InputError("view: the live view streams the run's recording; give a run folder (out)")
+        # what the law's update imports on first use (scipy.signal, ...) is imported now, in
+        # ``ilcrig sim`` while signals are held: an interrupt raised inside an import leaves that
+        # module half made in this interpreter, and an API caller's next run would fail on it
+        rehearse_first_update(plan.law, plan.u0)
         outputs: RunOutputs | None = None
         if self.out is not None:
             check_out_dir(self.out, iterations=plan.cfg.iterations, n_ticks=plan.n_ticks, new_run=True)
