@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import signal
 import sys
 import time
 from pathlib import Path
@@ -160,12 +159,12 @@ def _sweep_points(args: argparse.Namespace, spec: SweepSpec, points: list[Point]
     _record(out, spec, [p.id for p in points], where, outcome, "sweep")
     if outcome.cluster_lost:
         return _say_cluster_lost("sweep", outcome, out / "runs")
-    if outcome.interrupted:
+    if outcome.signum is not None:
         sys.stderr.write(
             f"ilcrig: interrupted; {len(outcome.ran)} point(s) finished in this call are kept in {out / 'runs'}; "
             "run the same command again to resume\n"
         )
-        return exit_code_of_signal(outcome.signum or signal.SIGINT)
+        return exit_code_of_signal(outcome.signum)
     write_table(out, points)
     report = write_report(out, spec, points, outcome.wall_s)
     sys.stdout.write(
@@ -218,9 +217,9 @@ def _tune_study(args: argparse.Namespace, engine: Engine, tuner: Tuner, out: Pat
             "run the same command again to resume\n"
         )
         return EXIT_CLUSTER_LOST
-    if outcome.interrupted:
+    if outcome.signum is not None:
         sys.stderr.write(f"ilcrig: interrupted; the study in {out / STUDY_FILE} is kept; run the same command again to resume\n")
-        return exit_code_of_signal(outcome.signum or signal.SIGINT)
+        return exit_code_of_signal(outcome.signum)
     if outcome.best_trial is None:
         sys.stderr.write("ilcrig tune: no trial gave a finite objective (every run faulted or was infeasible)\n")
         return 1
@@ -266,7 +265,7 @@ def _reproduce(args: argparse.Namespace, out: Path, jobs: int | None, scheduler:
     )
     if outcome.cluster_lost:
         return _say_cluster_lost("reproduce", outcome, out / "runs")
-    if outcome.interrupted:
+    if outcome.signum is not None:
         sys.stderr.write(
             f"ilcrig: interrupted; {len(outcome.ran)} experiment(s) finished in this call are kept "
             f"in {out / 'runs'}; run again to resume\n"

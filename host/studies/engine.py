@@ -271,11 +271,15 @@ class SweepOutcome:
     ran: list[str] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)
     errors: dict[str, str] = field(default_factory=dict)
-    interrupted: bool = False
-    #: the signal that interrupted it (SIGINT for Ctrl-C, SIGTERM), when ``interrupted``
+    #: the signal that interrupted it (SIGINT for Ctrl-C, SIGTERM); None: not interrupted
     signum: int | None = None
     cluster_lost: str | None = None
     wall_s: float = 0.0
+
+    @property
+    def interrupted(self) -> bool:
+        """A signal ended it (:attr:`signum`)."""
+        return self.signum is not None
 
 
 #: the function a worker runs for a point (a test may put a wrapper in its place)
@@ -443,7 +447,7 @@ def run_points(
         outcome.cluster_lost = str(exc)
         return outcome
     except KeyboardInterrupt as exc:
-        outcome.interrupted, outcome.signum = True, signum_of(exc)
+        outcome.signum = signum_of(exc)
         return outcome
     bar = tqdm(total=len(todo), desc=desc, unit="pt", file=sys.stderr, disable=not progress, dynamic_ncols=True)
     queue = PointQueue(engine, out, save_errors=save_errors)
@@ -463,7 +467,7 @@ def run_points(
                     bar.set_postfix_str(p.id, refresh=False)
                     bar.update(1)
             except KeyboardInterrupt as exc:
-                outcome.interrupted, outcome.signum = True, signum_of(exc)
+                outcome.signum = signum_of(exc)
                 queue.cancel()
             except ClusterLost as exc:
                 outcome.cluster_lost = str(exc)

@@ -89,12 +89,16 @@ class TuneOutcome:
     best_params: dict[str, Any] = field(default_factory=dict)
     best_trial: int | None = None
     start_value: float | None = None
-    interrupted: bool = False
-    #: the signal that interrupted it (SIGINT for Ctrl-C, SIGTERM), when ``interrupted``
+    #: the signal that interrupted it (SIGINT for Ctrl-C, SIGTERM); None: not interrupted
     signum: int | None = None
     cluster_lost: str | None = None
     wall_s: float = 0.0
     points_ran: int = 0
+
+    @property
+    def interrupted(self) -> bool:
+        """A signal ended it (:attr:`signum`)."""
+        return self.signum is not None
 
 
 @dataclass
@@ -274,7 +278,7 @@ class Tuner:
             self._fill_best(outcome)
             return outcome
         except KeyboardInterrupt as exc:
-            outcome.interrupted, outcome.signum = True, signum_of(exc)
+            outcome.signum = signum_of(exc)
             self._fill_best(outcome)
             return outcome
         bar = tqdm(total=max(todo, 0), desc="tune", unit="trial", file=sys.stderr, disable=not progress, dynamic_ncols=True)
@@ -340,7 +344,7 @@ class Tuner:
                         outcome.points_ran += 1
                         add_value(run, p, self.objective.of_summary(result.get("summary")))
                 except KeyboardInterrupt as exc:
-                    outcome.interrupted, outcome.signum = True, signum_of(exc)
+                    outcome.signum = signum_of(exc)
                     queue.cancel()
                     self._requeue(in_flight.values())
                 except ClusterLost as exc:  # the trials in flight run again on resume

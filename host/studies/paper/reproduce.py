@@ -17,7 +17,6 @@ the paper's report (:func:`host.studies.paper.report.write_sweep_report`) and th
 from __future__ import annotations
 
 import logging
-import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -91,8 +90,8 @@ def reproduce(
     write_sweep_json(out, [p.id for p in points], iterations, where, outcome)
     if outcome.cluster_lost:
         return EXIT_CLUSTER_LOST, outcome
-    if outcome.interrupted:
-        return exit_code_of_signal(outcome.signum or signal.SIGINT), outcome
+    if outcome.signum is not None:
+        return exit_code_of_signal(outcome.signum), outcome
     write_sweep_report(out, iterations)
     write_table(out, points)
     return (1 if outcome.errors else 0), outcome
