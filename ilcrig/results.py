@@ -13,7 +13,6 @@ recorded it.  Metrics in degrees (RMSE, MaxE, MAE) and N·m (peak total torque),
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -27,6 +26,7 @@ import numpy.typing as npt
 from bus import units
 from bus.errors import InputError
 from host.experiment.arrays import load_reference, load_trial
+from host.experiment.outputs import summary_of
 from host.learning.protocol import AUXILIARY, LEARNING
 
 logger = logging.getLogger(__name__)
@@ -358,7 +358,7 @@ def load(run_dir: str | Path) -> Results:
     """
     d = Path(run_dir)
     try:
-        summary = json.loads((d / "summary.json").read_text(encoding="utf-8"))
+        summary = summary_of(d)
     except FileNotFoundError:
         what = "no such folder" if not d.exists() else "not a run folder (no summary.json)"
         raise InputError(f"load: {d}: {what}") from None

@@ -24,7 +24,6 @@ process (:func:`ilcrig.register_law`) cannot run on the rig: it is refused befor
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import os
 import signal
@@ -40,6 +39,7 @@ from bus.exit_codes import EXIT_CHILD_FAILED, EXIT_USAGE
 from bus.processes import spawn_process
 from host.experiment.arrays import load_reference, load_trial
 from host.experiment.config import ExperimentConfig, config_toml
+from host.experiment.outputs import read_summary
 from host.learning.protocol import LEARNING
 from host.learning.registry import law_class, registered_here
 from ilcrig.errors import InputError, RigError, input_error
@@ -199,11 +199,7 @@ class RigRun:
             logger.warning("the user exception could not be noted in %s: %s", self.out / "summary.json", err)
 
     def _summary(self) -> dict[str, Any] | None:
-        try:
-            data = json.loads((self.out / "summary.json").read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            return None
-        return data if isinstance(data, dict) else None
+        return read_summary(self.out)
 
     def _new_trials(self) -> list[TrialResult]:
         s = self._summary()

@@ -337,6 +337,23 @@ def test_view_missing_recording_is_exit_2(tmp_path: Path, capsys: pytest.Capture
     assert len(lines) == 1 and lines[0].startswith("ilcrig: error: no recording at ")
 
 
+def test_view_of_a_run_without_a_recording_says_how_it_ended(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A run folder whose run ended before a recording was made (here: the summary of a run
+    interrupted before its first trial): one line naming what its summary says, exit 2."""
+    from host.experiment.summary import write_summary
+
+    marker = {"signal": "SIGTERM", "position": "before_first_trial", "trial": 0, "tick": None}
+    summary = {"iterations": [], "completed": False, "end_reason": "interrupted", "interrupted": marker, "faults": []}
+    write_summary(tmp_path, summary)
+    code = main(["view", str(tmp_path)])
+    out, err = capsys.readouterr()
+    assert code == 2 and out == ""
+    assert err.splitlines() == [
+        f"ilcrig: error: no recording at {tmp_path / 'recording.rrd'}: the run kept 0 trials (interrupted by SIGTERM); "
+        f"summary: {tmp_path / 'summary.json'}"
+    ]
+
+
 def test_import_host_does_not_import_rerun() -> None:
     code = (
         "import sys, host, host.analysis.recording, host.cli, host.experiment.trial_loop; "

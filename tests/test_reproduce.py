@@ -147,7 +147,12 @@ def test_is_finished_requires_same_config_and_errors(tmp_path: Path) -> None:
     d = run_dir_of(tmp_path, e)
     d.mkdir(parents=True)
     cfg = e.config(3)
-    summary = {"completed": True, "faults": [], "config": cfg.as_dict() | {"n_ticks": 501, "trial_s": 0.5}}
+    summary = {
+        "iterations": [{}, {}, {}],
+        "completed": True,
+        "faults": [],
+        "config": cfg.as_dict() | {"n_ticks": 501, "trial_s": 0.5},
+    }
     (d / "summary.json").write_text(json.dumps(summary))
     assert not is_finished(d, cfg)  # no errors.npy yet
     np.save(d / "errors.npy", np.zeros((3, 5, 4), np.float32))

@@ -181,6 +181,23 @@ def _end_group(proc: subprocess.Popen[bytes]) -> None:
     proc.poll()
 
 
+def _why_no_recording(folder: Path) -> str:
+    """What the run folder's summary says of a run without a recording ("": no summary there)."""
+    from host.experiment.outputs import SUMMARY_NAME, read_summary
+
+    s = read_summary(folder)
+    if s is None:
+        return ""
+    how = s.get("end_reason") or "still running, or killed"
+    mark = s.get("interrupted")
+    if isinstance(mark, dict) and mark.get("signal"):
+        how = f"interrupted by {mark['signal']}"
+    elif s.get("faults"):
+        how = f"fault: {s['faults'][0].get('kind', '?')}"
+    kept = len(s["iterations"])
+    return f": the run kept {kept} trial{'s' if kept != 1 else ''} ({how}); summary: {folder / SUMMARY_NAME}"
+
+
 def view_run(run_dir: str | Path, *, stdout: TextIO | None = None, stderr: TextIO | None = None) -> int:
     """``ilcrig view RUN_DIR``: open ``RUN_DIR/recording.rrd`` in the native viewer, or serve it in
     the web viewer on loopback (module docstring), or say how to open it.
@@ -194,7 +211,7 @@ def view_run(run_dir: str | Path, *, stdout: TextIO | None = None, stderr: TextI
     p = Path(run_dir)
     rrd = p if p.suffix == ".rrd" else p / "recording.rrd"
     if not rrd.is_file():
-        err.write(f"ilcrig: error: no recording at {rrd}\n")
+        err.write(f"ilcrig: error: no recording at {rrd}{_why_no_recording(rrd.parent)}\n")
         return EXIT_USAGE
     rrd = rrd.resolve()
     cmd = viewer_command()

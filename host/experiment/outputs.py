@@ -15,6 +15,8 @@ This module owns
   where the filesystem has none, a file unlinked right after it is made) whose space the process
   holds through open descriptors: it never outlives the process, whatever ends it (SIGKILL
   included);
+* :func:`summary_of` / :func:`read_summary` — the one reading of a folder's ``summary.json`` (a
+  dict with its list of ``iterations``, else not a summary);
 * :func:`remove_leftovers` — what a run that was killed may leave in its folder (temporary files of
   atomic writes, trial arrays the summary does not hold), removed by whoever outlives it;
 * :class:`OutputError` / :class:`DiskFullError` — a failing write of the run's outputs as one
@@ -34,6 +36,7 @@ import os
 import shutil
 import time
 from pathlib import Path
+from typing import Any
 
 from bus.errors import IlcrigError, InputError
 
@@ -48,9 +51,12 @@ __all__ = [
     "RUN_FOLDER_MARKERS",
     "is_disk_full",
     "output_error",
+    "read_summary",
     "remove_leftovers",
     "reserve_bytes",
     "RESERVE_NAME",
+    "SUMMARY_NAME",
+    "summary_of",
 ]
 
 #: the reserve's name while it is made, where the filesystem cannot make a file without a name
@@ -117,8 +123,31 @@ def reserve_bytes(iterations: int, n_ticks: int = 0) -> int:
     return RESERVE_BASE_BYTES + RESERVE_PER_TRIAL_BYTES * max(int(iterations), 0) + trial
 
 
+#: the run's summary in its folder (:mod:`host.experiment.summary` writes it)
+SUMMARY_NAME = "summary.json"
+
 #: what a run leaves in its folder: a folder holding one of them holds a run
-RUN_FOLDER_MARKERS: tuple[str, ...] = ("summary.json", "trials", "recording.rrd", "report.md", "logs", "fieldbus.log", "io.log")
+RUN_FOLDER_MARKERS: tuple[str, ...] = (SUMMARY_NAME, "trials", "recording.rrd", "report.md", "logs", "fieldbus.log", "io.log")
+
+
+def summary_of(folder: str | Path) -> dict[str, Any]:
+    """``folder/summary.json`` as written by the run.
+
+    :raises OSError: absent or unreadable
+    :raises ValueError: not JSON, or not a run's summary (no list of ``iterations``)
+    """
+    doc = json.loads((Path(folder) / SUMMARY_NAME).read_text(encoding="utf-8"))
+    if not isinstance(doc, dict) or not isinstance(doc.get("iterations"), list):
+        raise ValueError("not a run's summary (no list of iterations)")
+    return doc
+
+
+def read_summary(folder: str | Path) -> dict[str, Any] | None:
+    """``folder/summary.json`` (:func:`summary_of`), or None when there is none to read."""
+    try:
+        return summary_of(folder)
+    except (OSError, ValueError):
+        return None
 
 
 def check_out_dir(

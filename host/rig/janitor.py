@@ -19,7 +19,6 @@ and exits.  The space reserve needs nobody: it is a file without a name held ope
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import os
 import select
@@ -27,7 +26,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import IO, Any
+from typing import IO
 
 from bus.processes import spawn_process
 
@@ -45,17 +44,12 @@ def settle_run_folder(out_dir: str | Path) -> list[str]:
     """Make the run folder hold what its ``summary.json`` says (module docstring); returns what was
     done, one line each. Never raises (a failure is logged)."""
     from host.analysis.recording_segments import cut_back
-    from host.experiment.outputs import remove_leftovers
+    from host.experiment.outputs import read_summary, remove_leftovers
 
     d = Path(out_dir)
     done: list[str] = []
     try:
-        try:
-            summary: Any = json.loads((d / "summary.json").read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            summary = None
-        if not isinstance(summary, dict) or not isinstance(summary.get("iterations"), list):
-            summary = None
+        summary = read_summary(d)
         kept = len(summary["iterations"]) if summary is not None else None
         rec = summary.get("recording") if summary is not None else None
         if isinstance(rec, dict) and isinstance(rec.get("bytes"), int):

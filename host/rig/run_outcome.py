@@ -40,7 +40,6 @@ removed — the host may have died anywhere.
 
 from __future__ import annotations
 
-import json
 import logging
 import signal
 import time
@@ -63,6 +62,7 @@ from host.experiment.faults import (
     position_of,
     read_injections,
 )
+from host.experiment.outputs import read_summary
 from host.rig.fault_classify import with_wall_time
 from host.rig.processes import Child, Death, describe_status, node_id_of, tail
 from host.rig.role_logs import log_started, safe_state_lines
@@ -98,11 +98,7 @@ class RunOutcome:
     # -- the summary ----------------------------------------------------------------------
     def load_summary(self) -> dict[str, Any] | None:
         """The run's ``summary.json`` as the host left it (None: none, or unreadable)."""
-        try:
-            data = json.loads((self.out_dir / "summary.json").read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            return None
-        return data if isinstance(data, dict) and isinstance(data.get("iterations"), list) else None
+        return read_summary(self.out_dir)
 
     def kept_now(self) -> int:
         """The trials the run's summary holds now (0: none yet)."""

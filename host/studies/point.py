@@ -38,6 +38,7 @@ import numpy as np
 
 from bus.errors import InputError
 from host.experiment.config import ExperimentConfig, build_config
+from host.experiment.outputs import read_summary
 from host.experiment.plan import Plan, prepare
 from host.experiment.summary import jsonable, write_summary
 
@@ -48,7 +49,6 @@ __all__ = [
     "plan_of",
     "commit",
     "is_finished",
-    "read_summary",
     "load_point",
     "PointRecord",
     "POINT_FILE",
@@ -127,15 +127,6 @@ def run_dir(out: Path, point_id: str) -> Path:
     return Path(out) / "runs" / point_id
 
 
-def read_summary(folder: Path) -> dict[str, Any] | None:
-    """``folder/summary.json``, or None (absent or unreadable)."""
-    try:
-        doc: dict[str, Any] = json.loads((Path(folder) / "summary.json").read_text())
-    except (OSError, ValueError):
-        return None
-    return doc
-
-
 def is_finished(folder: Path, cfg: ExperimentConfig, need_errors: bool = True) -> bool:
     """True if ``folder`` holds the finished run (completed, or ended by a recorded fault: both
     deterministic results) of exactly ``cfg``, with its errors file (``errors.npy``) if ``need_errors``."""
@@ -210,7 +201,4 @@ def load_point(folder: Path) -> PointRecord | None:
         point = json.loads((folder / POINT_FILE).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return None
-    summary = None
-    with contextlib.suppress(OSError, ValueError):
-        summary = json.loads((folder / "summary.json").read_text(encoding="utf-8"))
-    return PointRecord(folder, point, summary, point.get("error"))
+    return PointRecord(folder, point, read_summary(folder), point.get("error"))

@@ -24,8 +24,9 @@ from typing import Any
 import numpy as np
 
 from host.experiment.config import ExperimentConfig, build_config
+from host.experiment.outputs import read_summary
 from host.learning.names import LAWS
-from host.studies.point import is_finished, read_summary
+from host.studies.point import is_finished
 
 logger = logging.getLogger(__name__)
 
