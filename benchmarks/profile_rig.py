@@ -12,6 +12,13 @@ load average.
 
 A wall-clock measurement: run it beside ``benchmarks/rig_speed.py`` and read the figures as
 shares of the total, not as absolute numbers on a shared machine.
+
+``--phases``: where a whole run's time goes, start-up and end included. At each of the run's
+console marks (the launcher's status line, the host's first line, the trials' header, the last
+trial's row, the closing line, the launcher's exit) the wall time since the start and the CPU
+seconds each process has used so far; then the CPU of each phase per process.
+
+    python benchmarks/profile_rig.py --phases [--iterations 2] [--cycle 0.15] [--repeat 3]
 """
 
 from __future__ import annotations
@@ -72,13 +79,93 @@ def children_of(pid: int) -> list[int]:
     return out
 
 
+#: the console marks of a run, in order: (name, how its line starts); "row" is every trial's row
+_MARKS = (
+    ("status", "ilcrig run: transport"),
+    ("host", "ilcrig host:"),
+    ("header", "iter "),
+    ("row", ""),
+    ("closing", ""),
+)
+_ROW = re.compile(r"^\s*\d+\s+\d")
+
+
+def _mark_of(line: str) -> str | None:
+    """Which console mark ``line`` is (None: none)."""
+    if _ROW.match(line):
+        return "row"
+    if re.search(r"ticks/s in trials|ticks in .* s \(", line) and "trace_sha256" in line:
+        return "closing"
+    for name, start in _MARKS:
+        if start and line.startswith(start):
+            return name
+    return None
+
+
+def phases(iterations: int, cycle: float, extra: list[str]) -> list[tuple[str, float, dict[str, float]]]:
+    """One ``ilcrig run``: at each console mark (the last row only), (mark, wall s since the start,
+    CPU s of each process so far); "exit" last, with the launcher's own and its reaped children's CPU."""
+    with tempfile.TemporaryDirectory() as tmp:
+        cmd = [sys.executable, "-u", "-m", "host.cli", "run", "--iterations", str(iterations), "--cycle", str(cycle)]
+        cmd += ["--bus", "hub", "--out", str(Path(tmp) / "run"), *extra]
+        t0 = time.monotonic()
+        proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, text=True, start_new_session=True)
+        assert proc.stdout is not None
+        roles: dict[str, int] = {"launcher": proc.pid}
+        last: dict[str, float] = {}
+        marks: list[tuple[str, float, dict[str, float]]] = []
+        for line in proc.stdout:
+            mark = _mark_of(line)
+            if mark is None:
+                continue
+            now = time.monotonic() - t0
+            if mark == "status":
+                m = re.search(r"processes: (.*); role logs", line)
+                if m:
+                    roles |= {name: int(pid) for name, pid in (p.split() for p in m.group(1).split(", "))}
+            if "host" not in roles and mark != "status":
+                host = [p for p in children_of(proc.pid) if p not in roles.values()]
+                if host:
+                    roles["host"] = host[0]
+            for name, pid in roles.items():
+                c = cpu_s(pid)
+                if c is not None:
+                    last[name] = sum(c)
+            if mark == "row" and marks and marks[-1][0] == "row":
+                marks.pop()  # the last row only
+            marks.append((mark, now, dict(last)))
+        proc.wait()
+        marks.append(("exit", time.monotonic() - t0, dict(last)))
+    return marks
+
+
+def main_phases(args: argparse.Namespace) -> None:
+    """``--phases``: the marks of ``--repeat`` runs, then the CPU of each phase per process."""
+    print(f"load average {os.getloadavg()[0]:.2f}; ilcrig run --iterations {args.iterations} --cycle {args.cycle} --bus hub")
+    for r in range(args.repeat):
+        marks = phases(args.iterations, args.cycle, args.extra)
+        names = sorted({n for _, _, cpu in marks for n in cpu}, key=lambda n: (n != "launcher", n))
+        print(f"run {r + 1}: " + ", ".join(f"{m} {t:.2f} s" for m, t, _ in marks))
+        print(f"  {'phase':<18}{'wall s':>8}" + "".join(f"{n:>9}" for n in names) + f"{'all':>9}   (CPU s)")
+        prev_t, prev_cpu = 0.0, dict.fromkeys(names, 0.0)
+        for mark, t, cpu in marks:
+            used = [cpu.get(n, prev_cpu[n]) - prev_cpu[n] for n in names]
+            print(f"  {'to ' + mark:<18}{t - prev_t:8.2f}" + "".join(f"{u:9.2f}" for u in used) + f"{sum(used):9.2f}")
+            prev_t, prev_cpu = t, {n: cpu.get(n, prev_cpu[n]) for n in names}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--iterations", type=int, default=3)
     ap.add_argument("--cycle", type=float, default=0.5)
     ap.add_argument("--every", type=float, default=0.25, help="sampling period, s")
+    ap.add_argument("--phases", action="store_true", help="where a whole run's time goes (module docstring)")
+    ap.add_argument("--repeat", type=int, default=3, help="runs, with --phases")
     ap.add_argument("extra", nargs="*", help="more `ilcrig run` options")
     args = ap.parse_args()
+    if args.phases:
+        main_phases(args)
+        return
     with tempfile.TemporaryDirectory() as tmp:
         cmd = [
             sys.executable,
