@@ -286,6 +286,7 @@ for run in ("first", "second"):
 """
 
 
+@pytest.mark.slow  # a fresh interpreter and two runs: 3-5 s
 def test_a_signal_cannot_land_inside_the_laws_first_import(tmp_path: Path) -> None:
     """What the law's update imports on first use (``scipy.signal`` for ``no-ilc-id``) is imported
     when the session is made, before its first step: a signal during a step (where the run's own
