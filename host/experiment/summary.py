@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from bus.atomic import atomic_write
-from host.experiment.outputs import OutputError, RunFolder, output_error
+from host.experiment.outputs import SUMMARY_NAME, OutputError, RunFolder, output_error
 
 logger = logging.getLogger(__name__)
 
@@ -73,9 +73,9 @@ def write_summary(out_dir: Path, summary: dict[str, Any], *, folder: RunFolder |
         out_dir.mkdir(parents=True, exist_ok=True)
         if folder is not None:
             folder.check_write(trial)
-        atomic_write(out_dir / "summary.json", data, fsync=True)
+        atomic_write(out_dir / SUMMARY_NAME, data, fsync=True)
     except OSError as err:
-        raise output_error(str(out_dir / "summary.json"), err) from None
+        raise output_error(str(out_dir / SUMMARY_NAME), err) from None
 
 
 __all__ += ["OutputError"]
