@@ -79,14 +79,9 @@ def children_of(pid: int) -> list[int]:
     return out
 
 
-#: the console marks of a run, in order: (name, how its line starts); "row" is every trial's row
-_MARKS = (
-    ("status", "ilcrig run: transport"),
-    ("host", "ilcrig host:"),
-    ("header", "iter "),
-    ("row", ""),
-    ("closing", ""),
-)
+#: the console marks a line's start says: the launcher's status line, the host's first line, the
+#: trials' header; a trial's row and the closing line are matched by :func:`_mark_of`
+_STARTS = {"status": "ilcrig run: transport", "host": "ilcrig host:", "header": "iter "}
 _ROW = re.compile(r"^\s*\d+\s+\d")
 
 
@@ -94,12 +89,9 @@ def _mark_of(line: str) -> str | None:
     """Which console mark ``line`` is (None: none)."""
     if _ROW.match(line):
         return "row"
-    if re.search(r"ticks/s in trials|ticks in .* s \(", line) and "trace_sha256" in line:
+    if "trace_sha256" in line and "ticks/s in trials" in line:
         return "closing"
-    for name, start in _MARKS:
-        if start and line.startswith(start):
-            return name
-    return None
+    return next((name for name, start in _STARTS.items() if line.startswith(start)), None)
 
 
 def phases(iterations: int, cycle: float, extra: list[str]) -> list[tuple[str, float, dict[str, float]]]:
