@@ -11,7 +11,9 @@ Two measurements on the default transport (the zero-privilege hub), each with th
   the same transport (benchmarks/transport_speed.py, the floor of benchmarks/rig_speed.py).
   Target: >= 2,000 periods/s on 2 cores.  With it, the CPU time per period of every process over
   the measured periods (the kernel's run time of each of its threads, ``/proc/<pid>/task/*/schedstat``):
-  the hub, the plant, each drive, the launcher (its channel monitors) and the master's thread.
+  the hub, the plant, each drive, the launcher (its channel monitors) and the master's thread;
+  and the times per period each process was put on a CPU (its wake-ups and preemptions, the
+  schedstat's third field).
 * **real time** (``ilcrig robot --realtime``): the master sends SYNC + RPDOs at 1 kHz on its own
   clock (t0 + k·1 ms; SCHED_FIFO one step above the robot, as a master on a machine of its own
   would not be starved by the robot) and takes the TPDOs as they come; the robot paces its periods
@@ -70,15 +72,18 @@ def floor() -> float | None:
     return (res.get("io") or {}).get("ticks_per_s")
 
 
-def cpu_s(pid: int) -> float:
-    """CPU time [s] process ``pid`` has run so far, all its threads (the kernel's run time, ns)."""
-    total = 0
+def sched_stat(pid: int) -> tuple[float, int]:
+    """CPU time [s] process ``pid`` has run so far, all its threads, and the times they were put
+    on a CPU (``/proc/<pid>/task/*/schedstat``: run time ns, wait time ns, timeslices)."""
+    total = runs = 0
     for task in Path(f"/proc/{pid}/task").iterdir():
         try:
-            total += int((task / "schedstat").read_text().split()[0])
+            fields = (task / "schedstat").read_text().split()
+            total += int(fields[0])
+            runs += int(fields[2])
         except (OSError, IndexError, ValueError):
             continue  # a thread that ended meanwhile
-    return total * 1e-9
+    return total * 1e-9, runs
 
 
 def set_up(where: dict[str, Any]) -> dict[int, int]:
@@ -124,11 +129,11 @@ def sync_stepped(periods: int) -> dict[str, Any]:
         try:
             where, bus, send, frames = master_of(robot)
             pids = {**where["pids"], "launcher": robot.proc.pid}
-            cpu0: dict[str, float] = {}
+            stat0: dict[str, tuple[float, int]] = {}
             try:
                 for k in range(periods + 200):
                     if k == 200:  # the first 200 periods warm up
-                        cpu0 = {name: cpu_s(pid) for name, pid in pids.items()}
+                        stat0 = {name: sched_stat(pid) for name, pid in pids.items()}
                         master0 = time.thread_time()
                         t0 = time.perf_counter()
                     send(frames)
@@ -139,13 +144,15 @@ def sync_stepped(periods: int) -> dict[str, Any]:
                             raise TimeoutError(f"period {k}: TPDOs missing")
                         got += 1
                 rate = periods / (time.perf_counter() - t0)
-                cpu_us = {name: (cpu_s(pid) - cpu0[name]) / periods * 1e6 for name, pid in pids.items()}
+                stat1 = {name: sched_stat(pid) for name, pid in pids.items()}
+                cpu_us = {name: (stat1[name][0] - stat0[name][0]) / periods * 1e6 for name in pids}
+                runs = {name: (stat1[name][1] - stat0[name][1]) / periods for name in pids}
                 cpu_us["master"] = (time.thread_time() - master0) / periods * 1e6
             finally:
                 bus.shutdown()
             robot.stop()
             summary = json.loads((robot.out / "summary.json").read_text())
-            return {"periods_per_s": rate, "overruns": summary["robot"]["sync_overruns"], "cpu_us": cpu_us}
+            return {"periods_per_s": rate, "overruns": summary["robot"]["sync_overruns"], "cpu_us": cpu_us, "runs": runs}
         finally:
             robot.kill()
 
@@ -365,10 +372,11 @@ def main() -> None:
             rates.append(r["periods_per_s"])
             cpu = r["cpu_us"]
             roles = ", ".join(f"{name} {us:.0f}" for name, us in sorted(cpu.items()))
+            runs = ", ".join(f"{name} {n:.2f}" for name, n in sorted(r["runs"].items()))
             print(
                 f"  floor {f or float('nan'):,.0f} ticks/s; robot {r['periods_per_s']:,.0f} periods/s "
                 f"({r['overruns']} overruns); CPU per period [us]: {roles}, "
-                f"all {sum(cpu.values()):.0f}; load average {os.getloadavg()[0]:.2f}",
+                f"all {sum(cpu.values()):.0f}; on a CPU per period: {runs}; load average {os.getloadavg()[0]:.2f}",
                 flush=True,
             )
         best = max(rates)
