@@ -7,6 +7,9 @@ from __future__ import annotations
 
 import json
 import re
+import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -229,3 +232,42 @@ def test_paper_literal_gains_are_flagged_and_fault_cleanly(tmp_path: Path) -> No
     else:
         r = np.array([it["rmse_deg"] for it in s["iterations"]])
         assert r[-1, 0] > r[0, 0]
+
+
+#: ``ilcrig run`` in a fresh interpreter, signalled by itself (argv[1]) as its command modules are
+#: imported: the moment a user's Ctrl-C or ``kill`` lands when it comes in the command's first
+#: fraction of a second
+_START_SIGNAL_SCRIPT = """
+import os, signal, sys
+
+class Hook:
+    def find_spec(self, name, path=None, target=None):
+        if name == "host.planning.task_plan":
+            os.kill(os.getpid(), getattr(signal, sys.argv[1]))
+        return None
+
+sys.meta_path.insert(0, Hook())
+from host.cli import main
+sys.exit(main(["run", "--out", sys.argv[2]]))
+"""
+
+
+@pytest.mark.parametrize("signame", ["SIGINT", "SIGTERM"])
+def test_a_signal_while_the_command_modules_are_imported_is_said_in_one_line(tmp_path: Path, signame: str) -> None:
+    """main() holds SIGINT and SIGTERM from its first statement and imports the command modules
+    after: a signal then is one line and exit 130 / 143 (it was Python's traceback for SIGINT, and
+    for SIGTERM a death by the signal with nothing said); nothing was made."""
+    proc = subprocess.run(
+        [sys.executable, "-c", _START_SIGNAL_SCRIPT, signame, str(tmp_path / "run")],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert (proc.returncode, proc.stdout, proc.stderr) == (
+        128 + getattr(signal, signame),
+        "",
+        f"ilcrig: interrupted ({signame})\n",
+    )
+    assert not (tmp_path / "run").exists()

@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 import traceback
 from collections.abc import Sequence
@@ -52,9 +53,7 @@ from typing import NoReturn
 
 from bus.errors import InputError
 from bus.exit_codes import EXIT_ERROR, EXIT_FAULT, EXIT_USAGE, exit_code_of_signal
-from host.cli import drive, host, hub, laws, plant, robot, run, sim, studies, view
-from host.cli.options import BusUnavailable
-from host.experiment.signal_shield import signum_of
+from host.experiment.signal_shield import interrupt_on_signals, signum_of
 
 __all__ = ["build_parser", "main"]
 
@@ -70,7 +69,10 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The ``ilcrig`` parser: ``--debug`` and one subcommand per command module."""
+    """The ``ilcrig`` parser: ``--debug`` and one subcommand per command module (imported here, so
+    that :func:`main` holds the signals before any of them is)."""
+    from host.cli import drive, host, hub, laws, plant, robot, run, sim, studies, view
+
     p = _Parser(prog="ilcrig", description="ILC on an emulated 4-DOF parallel robot with CAN servo drives")
     p.add_argument("--debug", action="store_true", help="show tracebacks and debug logging (exit codes unchanged)")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
@@ -93,8 +95,44 @@ def _first_line(exc: BaseException) -> str:
     return str(exc).splitlines()[0] if str(exc) else ""
 
 
+#: the role processes a launcher starts: their signals are their launcher's (Python's defaults until
+#: their own handlers: the nodes' stop event, the hub's wake-up), so a role stopped while it starts
+#: ends as the launcher expects
+ROLE_COMMANDS = frozenset({"drive", "plant", "host", "hub"})
+
+
+def _command_of(words: Sequence[str]) -> str | None:
+    """The subcommand of a command line (its first word that is not an option)."""
+    return next((w for w in words if not w.startswith("-")), None)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """``ilcrig [--debug] COMMAND …``; returns the exit code (:mod:`bus.exit_codes`)."""
+    """``ilcrig [--debug] COMMAND …``; returns the exit code (:mod:`bus.exit_codes`).
+
+    From its first statement to its return SIGINT and SIGTERM end a user's command as
+    ``ilcrig: interrupted (SIGINT)`` and exit code 130 / 143 (no traceback, no silent death) —
+    while the command modules are imported, the command line is parsed and the command plans,
+    before the command's own handling of signals (a run's, a launcher's) takes over; the role
+    commands (:data:`ROLE_COMMANDS`) keep Python's defaults."""
+    words = list(sys.argv[1:] if argv is None else argv)
+    if _command_of(words) in ROLE_COMMANDS:
+        return _main(words)
+    with interrupt_on_signals():
+        try:
+            return _main(words)
+        except KeyboardInterrupt as exc:  # while the command starts, outside _main's own handling
+            return _interrupted(exc)
+
+
+def _interrupted(exc: KeyboardInterrupt) -> int:
+    signum = signum_of(exc)  # SIGTERM's Interrupted (host.experiment.signal_shield): 143
+    sys.stderr.write(f"ilcrig: interrupted ({signal.Signals(signum).name})\n")
+    return exit_code_of_signal(signum)
+
+
+def _main(argv: Sequence[str]) -> int:
+    from host.cli.options import BusUnavailable
+
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.debug else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -104,8 +142,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args))
     except KeyboardInterrupt as exc:
-        sys.stderr.write("ilcrig: interrupted\n")
-        return exit_code_of_signal(signum_of(exc))  # SIGTERM's Interrupted (host.experiment.signal_shield): 143
+        return _interrupted(exc)
     except BusUnavailable as exc:
         sys.stderr.write(f"ilcrig: error: {exc}\n")
         return EXIT_FAULT
