@@ -72,7 +72,7 @@ from plant.trace import FLAG_FAULT, FLAG_LATE, TraceWriter
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["RobotLoop", "SYNC_COB_ID"]
+__all__ = ["RobotLoop", "SYNC_COB_ID", "robot_info"]
 
 #: the SYNC the robot steps on (CiA 301 predefined connection set)
 SYNC_COB_ID: int = 0x080
@@ -160,6 +160,12 @@ class RobotLoop:
         self.backlog_max = 0  # the most SYNCs that waited behind a period in progress
         self._overrunning = False  # an overrun episode: more than SYNC_BACKLOG_MAX waited (reported once)
         self.timeouts = 0
+        #: periods started and dropped (a drive's answer missing past the timeout, a bad or lost io
+        #: frame, the robot going off or a trial beginning during it)
+        self.dropped = 0
+        #: SYNCs that never started a period: seen while the robot was off or a trial ran, or waiting
+        #: when the robot went off or a trial began
+        self.unstepped = 0
         self.fault = RobotFault.NONE
         self.fault_joint = 0
         self.fault_period = 0
@@ -196,8 +202,7 @@ class RobotLoop:
         time; later it goes on from where it stands), or goes off after the period in progress."""
         self.store.values[(PlantObj.ROBOT, RobotSub.MODE)] = int(mode)
         if mode == RobotMode.OFF:
-            self._state = _IDLE
-            self._pending.clear()
+            self._forget_periods()
             if self._gathering and self._gather is not None:
                 self._gather(0)
             self._gathering = False
@@ -247,6 +252,7 @@ class RobotLoop:
         :data:`bus.cyclic.SYNC_BACKLOG_MAX` waiting: an overrun, SYNC-stepped a robot fault)."""
         self.syncs += 1
         if not self.on or self.lockstep.busy:
+            self.unstepped += 1
             return
         if self._state == _IDLE:
             self._start(now, now)
@@ -273,9 +279,16 @@ class RobotLoop:
     def interrupt(self) -> None:
         """A trial begins: the period in progress is dropped (its frames are stale for the trial); the
         trial sets the transport's gathering for itself (and 0 at its end)."""
+        self._forget_periods()
+        self._gathering = False
+
+    def _forget_periods(self) -> None:
+        """The period in progress is dropped and the SYNCs waiting are not stepped (counted)."""
+        if self._state != _IDLE:
+            self.dropped += 1
+        self.unstepped += len(self._pending)
         self._state = _IDLE
         self._pending.clear()
-        self._gathering = False
 
     def next_deadline(self) -> float | None:
         if self._state == _HELD:
@@ -295,6 +308,7 @@ class RobotLoop:
         elif self._state == _SENT and now >= self._deadline:
             missing = [j + 1 for j in range(_N) if self._trackers[j].next_tick == self._wire]
             self.timeouts += 1
+            self.dropped += 1
             self._state = _IDLE
             self._fail(
                 RobotFault.PERIOD_TIMEOUT,
@@ -399,6 +413,8 @@ class RobotLoop:
                 self._overrunning = False  # caught up: a new overrun is a new episode
 
     def _drop_period(self) -> None:
+        if self._state != _IDLE:
+            self.dropped += 1
         self._state = _IDLE
         self._next(self._clock())
 
@@ -460,35 +476,58 @@ class RobotLoop:
             self.trace.close()
 
     def info(self) -> dict[str, Any]:
-        """The session so far, for the summary."""
-        out: dict[str, Any] = {
-            "mode": self.mode.name.lower(),
-            "state": self.state.name.lower(),
-            "periods": self.periods,
-            "syncs": self.syncs,
-            "sync_overruns": self.overruns,
-            "sync_backlog_max": self.backlog_max,
-            "syncs_waiting": len(self._pending),
-            "period_timeouts": self.timeouts,
-            "faults_total": self.faults_total,
-            "faults": list(self.faults),
-            "fault": None
-            if self.fault == RobotFault.NONE
-            else {
-                "fault": self.fault.name,
-                "joint": self.fault_joint,
-                "period": self.fault_period,
-                "t_s": self.fault_time_s,
-                "message": self.fault_message,
-            },
-            "brakes": self._held_bits,
-            "ts_s": self._ts_substeps()[0],
-        }
-        if self.pacing is not None:
-            out["realtime"] = self.pacing.info()
-        if self.mechanics is not None:
-            out["q_rad"] = [float(v) for v in self.mechanics.plant.q]
-            out["tcp"] = list(self.tcp_pose())
-        if self.trace is not None:
-            out["trace"] = {"path": str(self.trace.path), "records": self.trace.records, "error": self.trace.error}
-        return out
+        """The session so far, for the summary (:func:`robot_info`)."""
+        return robot_info(self)
+
+    @property
+    def in_period(self) -> bool:
+        """A period has started (its encoder frames sent or held) and not completed."""
+        return self._state != _IDLE
+
+    @property
+    def syncs_waiting(self) -> int:
+        """SYNCs waiting behind the period in progress."""
+        return len(self._pending)
+
+    @property
+    def ts_s(self) -> float:
+        """The control period Ts (0x2400:1), s."""
+        return self._ts_substeps()[0]
+
+
+def robot_info(loop: RobotLoop) -> dict[str, Any]:
+    """The session of robot loop ``loop`` so far, for the summary (docs/robot.md, What a session leaves)."""
+    out: dict[str, Any] = {
+        "mode": loop.mode.name.lower(),
+        "state": loop.state.name.lower(),
+        "periods": loop.periods,
+        "syncs": loop.syncs,
+        "sync_overruns": loop.overruns,
+        "sync_backlog_max": loop.backlog_max,
+        "syncs_waiting": loop.syncs_waiting,
+        "period_in_progress": int(loop.in_period),
+        "periods_dropped": loop.dropped,
+        "syncs_unstepped": loop.unstepped,
+        "period_timeouts": loop.timeouts,
+        "faults_total": loop.faults_total,
+        "faults": list(loop.faults),
+        "fault": None
+        if loop.fault == RobotFault.NONE
+        else {
+            "fault": loop.fault.name,
+            "joint": loop.fault_joint,
+            "period": loop.fault_period,
+            "t_s": loop.fault_time_s,
+            "message": loop.fault_message,
+        },
+        "brakes": loop.brakes,
+        "ts_s": loop.ts_s,
+    }
+    if loop.pacing is not None:
+        out["realtime"] = loop.pacing.info()
+    if loop.mechanics is not None:
+        out["q_rad"] = [float(v) for v in loop.mechanics.plant.q]
+        out["tcp"] = list(loop.tcp_pose())
+    if loop.trace is not None:
+        out["trace"] = {"path": str(loop.trace.path), "records": loop.trace.records, "error": loop.trace.error}
+    return out

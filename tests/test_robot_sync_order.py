@@ -103,6 +103,31 @@ def test_io_frames_the_plants_receiver_lost_are_a_robot_fault_of_their_own(node:
     assert robot_fault_of(seen) == "robot fault IO_FRAMES_LOST (EMCY 0x8110) in period 0 (mod 2^16)"
 
 
+def _accounted(info: dict[str, int]) -> int:
+    """The SYNCs a robot summary accounts for (docs/robot.md, What a session leaves)."""
+    keys = ("periods", "periods_dropped", "period_in_progress", "syncs_waiting", "syncs_unstepped")
+    return sum(int(info[k]) for k in keys)
+
+
+def test_every_sync_the_plant_saw_is_accounted_for(node: tuple[PlantNode, can.BusABC]) -> None:
+    from bus.can_errors import overflow_error_frame
+
+    plant, _ = node
+    robot = plant.robot
+    for k in range(3):  # one period in progress (no drive answers here), two waiting
+        robot.on_sync(float(k))
+    info = robot.info()
+    assert (info["syncs"], info["period_in_progress"], info["syncs_waiting"]) == (3, 1, 2) and _accounted(info) == 3
+    plant.on_io(overflow_error_frame(1.0, "io"))  # the period in progress is dropped, the next one starts
+    info = robot.info()
+    assert (info["periods_dropped"], info["period_in_progress"], info["syncs_waiting"]) == (1, 1, 1) and _accounted(info) == 3
+    robot.set_mode(RobotMode.OFF)  # the period in progress is dropped, the waiting SYNC never stepped
+    robot.on_sync(5.0)  # seen while the robot is off
+    info = robot.info()
+    assert (info["periods_dropped"], info["period_in_progress"], info["syncs_waiting"], info["syncs_unstepped"]) == (2, 0, 0, 2)
+    assert info["syncs"] == 4 == _accounted(info)
+
+
 def test_a_sync_beyond_the_bound_is_a_robot_fault_with_its_emcy_and_still_served(node: tuple[PlantNode, can.BusABC]) -> None:
     plant, listener = node
     robot = plant.robot
