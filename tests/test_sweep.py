@@ -501,3 +501,58 @@ def test_tune_over_monte_carlo_plants(tmp_path: Path) -> None:
     ]
     assert first.value == pytest.approx(float(np.mean(js)), rel=1e-12)
     assert len(list((out / "runs").iterdir())) == 4  # two trials × two plants
+
+
+#: ``ilcrig sweep`` in a fresh interpreter that sends itself SIGINT as its local cluster is made,
+#: inside the moment the worker processes are spawned with SIGINT ignored (host.studies.dask_quiet)
+_CLUSTER_SIGINT_SCRIPT = """
+import importlib.abc, importlib.machinery, os, signal, sys
+
+class After(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name != "host.studies.dask_quiet":
+            return None
+        sys.meta_path.remove(self)
+        spec = importlib.machinery.PathFinder.find_spec(name, path)
+        run = spec.loader.exec_module
+
+        def exec_module(module):
+            run(module)
+            made = module.NoHttpLocalCluster.__init__
+
+            def init(self, *args, **kwargs):
+                assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN  # inside the window
+                os.kill(os.getpid(), signal.SIGINT)
+                return made(self, *args, **kwargs)
+
+            module.NoHttpLocalCluster.__init__ = init
+
+        spec.loader.exec_module = exec_module
+        return spec
+
+sys.meta_path.insert(0, After())
+from host.cli import main
+sys.exit(main(["sweep", "--out", sys.argv[1], "--vary", "gains.alpha=2,3", "--set", "iterations=2",
+               "--workers", "1", "--no-progress", "--no-dashboard"]))
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.multiprocess
+def test_a_ctrl_c_while_the_workers_are_spawned_is_not_lost(tmp_path: Path) -> None:
+    """The workers are spawned while this process ignores SIGINT (they inherit it: no traceback
+    from them); a Ctrl-C then is held, not dropped, and ends the sweep once the cluster is made
+    (it was dropped: the sweep ran to its end with exit 0)."""
+    out = tmp_path / "sweep"
+    proc = subprocess.run(
+        [sys.executable, "-c", _CLUSTER_SIGINT_SCRIPT, str(out)],
+        cwd=Path(__file__).resolve().parent.parent,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert proc.returncode == 130, (proc.stdout, proc.stderr)
+    assert proc.stderr.splitlines()[-1] == "ilcrig: interrupted (SIGINT)", proc.stderr
+    assert "Traceback" not in proc.stdout + proc.stderr
+    assert not (out / "results.parquet").exists()

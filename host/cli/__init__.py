@@ -119,9 +119,23 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _main(words)
     with interrupt_on_signals():
         try:
+            _native_threads_without_signals()
             return _main(words)
         except KeyboardInterrupt as exc:  # while the command starts, outside _main's own handling
             return _interrupted(exc)
+
+
+def _native_threads_without_signals() -> None:
+    """numpy's thread pool (its BLAS threads, started when numpy is imported) starts with SIGINT
+    and SIGTERM blocked, and its threads keep them blocked: the kernel gives a signal sent to this
+    process to a thread that does not block it, and while the main thread blocks SIGINT
+    (:func:`host.studies.dask_quiet.sigint_ignored`, as a sweep's cluster starts) one of the pool's
+    would take it and drop it. A signal meanwhile is handled when the import is done."""
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    try:
+        import numpy  # noqa: F401 - imported for its threads
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
 
 
 def _interrupted(exc: KeyboardInterrupt) -> int:

@@ -22,6 +22,7 @@ import logging
 import signal
 import threading
 from collections.abc import Iterator
+from multiprocessing import resource_tracker
 from typing import Any
 
 from distributed import LocalCluster, Nanny, Scheduler, Worker
@@ -65,15 +66,28 @@ def quiet_dask_logs(saved: dict[str, int]) -> None:
 
 @contextlib.contextmanager
 def sigint_ignored() -> Iterator[None]:
-    """While inside (main thread only): SIGINT ignored — processes spawned meanwhile inherit it."""
+    """While inside (main thread only): SIGINT ignored — processes spawned meanwhile inherit it —
+    and blocked in this thread and the threads it starts meanwhile, so that a Ctrl-C then is not
+    lost: Linux keeps a blocked signal pending even when it is ignored, and it is handled when the
+    block ends, after this process's own handler is back.
+
+    Two things would end the block early, and are ruled out before it begins: multiprocessing's
+    resource tracker, started on the first spawn, unblocks SIGINT and SIGTERM in the thread that
+    starts it (``SIG_UNBLOCK`` after its spawn, not the mask it found: CPython 3.11), so it is
+    started first; and a thread that does not block SIGINT takes it and drops it — numpy's thread
+    pool is started with it blocked by :func:`host.cli.main`. A program of a user's that calls the
+    engine may have such threads, and a Ctrl-C in this window is then lost, as it was."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    resource_tracker.ensure_running()
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     old = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         yield
     finally:
         signal.signal(signal.SIGINT, old)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # a SIGINT that came meanwhile is handled now
 
 
 class _NoHttpListener:
