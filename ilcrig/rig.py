@@ -39,7 +39,7 @@ from bus.exit_codes import EXIT_CHILD_FAILED, EXIT_USAGE
 from bus.processes import spawn_process
 from host.experiment.arrays import load_reference, load_trial
 from host.experiment.config import ExperimentConfig, config_toml
-from host.experiment.outputs import read_summary
+from host.experiment.outputs import SUMMARY_NAME, read_summary
 from host.learning.protocol import LEARNING
 from host.learning.registry import law_class, registered_here
 from ilcrig.errors import InputError, RigError, input_error
@@ -196,7 +196,7 @@ class RigRun:
         try:
             write_summary(self.out, summary)
         except Exception as err:  # noqa: BLE001 - the caller's exception goes on; the rig's summary stays
-            logger.warning("the user exception could not be noted in %s: %s", self.out / "summary.json", err)
+            logger.warning("the user exception could not be noted in %s: %s", self.out / SUMMARY_NAME, err)
 
     def _summary(self) -> dict[str, Any] | None:
         return read_summary(self.out)
@@ -265,7 +265,7 @@ class RigRun:
         line = next((ln for ln in reversed(err) if ln.startswith("ilcrig: ")), "")
         if code == EXIT_USAGE:
             raise InputError(line.removeprefix("ilcrig: error: ") or f"the rig refused the experiment (see {self._err_path})")
-        if not (self.out / "summary.json").is_file():
+        if not (self.out / SUMMARY_NAME).is_file():
             raise RigError(f"{line or f'the rig ended with exit code {code}'}; its run folder: {self.out}")
         if code == EXIT_CHILD_FAILED:
             raise RigError(line or f"a role process of the rig could not be started; its run folder: {self.out}")

@@ -160,12 +160,8 @@ class RobotLoop:
         self.backlog_max = 0  # the most SYNCs that waited behind a period in progress
         self._overrunning = False  # an overrun episode: more than SYNC_BACKLOG_MAX waited (reported once)
         self.timeouts = 0
-        #: periods started and dropped (a drive's answer missing past the timeout, a bad or lost io
-        #: frame, the robot going off or a trial beginning during it)
-        self.dropped = 0
-        #: SYNCs that never started a period: seen while the robot was off or a trial ran, or waiting
-        #: when the robot went off or a trial began
-        self.unstepped = 0
+        self.dropped = 0  # periods started, then dropped (docs/robot.md, What a session leaves)
+        self.unstepped = 0  # SYNCs that never started a period (seen while off or in a trial, or waiting then)
         self.fault = RobotFault.NONE
         self.fault_joint = 0
         self.fault_period = 0
@@ -284,11 +280,15 @@ class RobotLoop:
 
     def _forget_periods(self) -> None:
         """The period in progress is dropped and the SYNCs waiting are not stepped (counted)."""
+        self._end_period()
+        self.unstepped += len(self._pending)
+        self._pending.clear()
+
+    def _end_period(self) -> None:
+        """The period in progress, if any, is dropped (counted)."""
         if self._state != _IDLE:
             self.dropped += 1
-        self.unstepped += len(self._pending)
-        self._state = _IDLE
-        self._pending.clear()
+            self._state = _IDLE
 
     def next_deadline(self) -> float | None:
         if self._state == _HELD:
@@ -308,8 +308,7 @@ class RobotLoop:
         elif self._state == _SENT and now >= self._deadline:
             missing = [j + 1 for j in range(_N) if self._trackers[j].next_tick == self._wire]
             self.timeouts += 1
-            self.dropped += 1
-            self._state = _IDLE
+            self._end_period()
             self._fail(
                 RobotFault.PERIOD_TIMEOUT,
                 missing[0] if missing else 0,
@@ -413,9 +412,7 @@ class RobotLoop:
                 self._overrunning = False  # caught up: a new overrun is a new episode
 
     def _drop_period(self) -> None:
-        if self._state != _IDLE:
-            self.dropped += 1
-        self._state = _IDLE
+        self._end_period()
         self._next(self._clock())
 
     # ------------------------------------------------------------------ faults

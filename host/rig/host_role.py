@@ -28,6 +28,7 @@ from host.analysis.session import report_fault, run_session
 from host.experiment.config import ExperimentConfig
 from host.experiment.console import prepared, print_plan
 from host.experiment.loop_state import ExperimentResult
+from host.experiment.outputs import SUMMARY_NAME
 from host.experiment.plan import rehearse_first_update
 from host.experiment.signal_shield import interrupt_on_signals
 from host.rig.bus_accounting import bus_time_lines
@@ -122,7 +123,7 @@ def run_host_role(opts: HostOptions, cfg: ExperimentConfig, transport: Transport
         bench.close()  # run_session closed it already, unless it was interrupted before
         _disconnect(network)
     _print_closing_lines(res, out)
-    return report_fault(res, out / "summary.json")
+    return report_fault(res, out / SUMMARY_NAME)
 
 
 def _disk_full_injection(text: str | None, iterations: int, bench: RigBench) -> tuple[int | None, str | None]:
@@ -171,6 +172,6 @@ def _print_closing_lines(res: ExperimentResult, out: Path) -> None:
     sys.stdout.write(
         f"{s['ticks']} ticks, {s['ticks_per_s']:.0f} ticks/s in trials (host's wall clock); fieldbus {fb.get('frames', 0)} "
         f"frames, io {ch.get(IO, {}).get('frames', 0)} frames; "
-        f"trace_sha256 {s['trace_sha256'][:16]}…; summary: {out / 'summary.json'}\n"
+        f"trace_sha256 {s['trace_sha256'][:16]}…; summary: {out / SUMMARY_NAME}\n"
     )
     sys.stdout.flush()

@@ -62,6 +62,7 @@ from bus.exit_codes import EXIT_OK
 from bus.objects import DRIVE_NODE_IDS
 from bus.transports.fault_inject import FRAME_ACTIONS, FaultSpec, check_specs, parse_specs
 from bus.units import timeout_scale
+from host.experiment.outputs import SUMMARY_NAME
 from host.rig.launch_core import LaunchCore, check_transport, make_run_folder
 from host.rig.liveness import LivenessWatch, StopWatch
 from host.rig.options import RunOptions
@@ -174,7 +175,7 @@ class RigLauncher(LaunchCore):
                         "specs": frame_specs,
                         "log": str(log_dir / "injections-hub.jsonl"),
                         "iterations": iterations,
-                        "summary": str(out_dir / "summary.json"),
+                        "summary": str(out_dir / SUMMARY_NAME),
                     }
                 )
                 if frame_specs
@@ -234,7 +235,7 @@ class RigLauncher(LaunchCore):
                 self._pid_of,
                 log_dir / "injections-launcher.jsonl",
                 iterations=iterations or 1,
-                summary_path=out_dir / "summary.json",
+                summary_path=out_dir / SUMMARY_NAME,
             )
             self._injector.start()
         code = supervisor.watch(host)
@@ -300,7 +301,7 @@ class RigLauncher(LaunchCore):
             return exit_code
         self._say_err(
             f"ilcrig: the run had completed before {self.interrupts.name}: every trial kept; "
-            f"summary: {outcome.out_dir / 'summary.json'}"
+            f"summary: {outcome.out_dir / SUMMARY_NAME}"
         )
         return EXIT_OK
 

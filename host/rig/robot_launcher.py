@@ -51,6 +51,7 @@ from bus.plant_objects import DEFAULT_PLANT_NODE_ID, PLANT_EDS_PATH
 from bus.transports.config import FIELDBUS, HUB_INTERFACE, TransportConfig
 from bus.transports.config import IO as IO_CHANNEL
 from bus.units import timeout_scale
+from host.experiment.outputs import SUMMARY_NAME
 from host.rig.launch_core import LaunchCore, check_transport, make_run_folder
 from host.rig.monitor import ChannelMonitor
 from host.rig.options import RobotOptions
@@ -342,7 +343,7 @@ class RobotLauncher(LaunchCore):
             "bus": self.watch.info() | {"channels": channels},
             "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
         }
-        path = out / "summary.json"
+        path = out / SUMMARY_NAME
         try:
             atomic_write(path, json.dumps(summary, indent=2, default=str) + "\n", fsync=True)
         except OSError as err:

@@ -62,7 +62,7 @@ from host.experiment.faults import (
     position_of,
     read_injections,
 )
-from host.experiment.outputs import read_summary
+from host.experiment.outputs import SUMMARY_NAME, read_summary
 from host.rig.fault_classify import with_wall_time
 from host.rig.processes import Child, Death, describe_status, node_id_of, tail
 from host.rig.role_logs import log_started, safe_state_lines
@@ -134,7 +134,7 @@ class RunOutcome:
         ``process_died`` of the process that could not start, before the first trial) or the
         ``interrupted`` marker, the injections accounted for, and ``report.md``. Returns whether it
         wrote one."""
-        if (self.out_dir / "summary.json").exists() or code in (EXIT_OK, EXIT_USAGE):
+        if (self.out_dir / SUMMARY_NAME).exists() or code in (EXIT_OK, EXIT_USAGE):
             return False
         summary = self.launcher_summary()
         now_mono, now_wall = time.monotonic(), time.time()
@@ -272,7 +272,7 @@ class RunOutcome:
                     self.save(summary)
                 from host.rig.injection_account import note_lines
 
-                for line in note_lines(entries, str(self.out_dir / "summary.json")):
+                for line in note_lines(entries, str(self.out_dir / SUMMARY_NAME)):
                     self.say_err(line)
             self.settle_folder()
             return EXIT_OK
@@ -298,7 +298,7 @@ class RunOutcome:
         self.account(summary, ended_early=True)
         self.save(summary, report=True)
         self.settle_folder()
-        summary_path = self.out_dir / "summary.json"
+        summary_path = self.out_dir / SUMMARY_NAME
         where = self._where(record, first, host)
         if summary.get("law_error_log") and first is None:  # the law failed: its own traceback, not the host's log
             where = f"the law's traceback: {self.out_dir / summary['law_error_log']}"
@@ -317,7 +317,7 @@ class RunOutcome:
         if incidents:
             summary["liveness_incidents"] = incidents
             for inc in incidents:
-                self.say_err(f"ilcrig: note: {inc['what']}; recorded in {self.out_dir / 'summary.json'}")
+                self.say_err(f"ilcrig: note: {inc['what']}; recorded in {self.out_dir / SUMMARY_NAME}")
         if not faults:
             self.save(summary)
             return None
@@ -328,7 +328,7 @@ class RunOutcome:
         self.save(summary, report=True)
         self.settle_folder()
         kept = len(summary["iterations"])
-        self.say_err(fault_line(record, kept, summary_path=self.out_dir / "summary.json", extra=self._where(record, None, host)))
+        self.say_err(fault_line(record, kept, summary_path=self.out_dir / SUMMARY_NAME, extra=self._where(record, None, host)))
         return EXIT_FAULT
 
     def _host_line_record(self, host: Child) -> FaultRecord:

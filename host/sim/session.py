@@ -30,7 +30,7 @@ from host.analysis.session import RunOutputs, finish_run_report, open_outputs, r
 from host.experiment.config import ExperimentConfig, build_config, gains_table
 from host.experiment.console import print_header, print_plan, print_row
 from host.experiment.loop_state import ExperimentResult, TrialOutcome
-from host.experiment.outputs import RunFolder, check_out_dir
+from host.experiment.outputs import SUMMARY_NAME, RunFolder, check_out_dir
 from host.experiment.plan import Plan, plan_with_gains, rehearse_first_update
 from host.experiment.signal_shield import deferred_interrupts, interrupt_on_signals
 from host.experiment.trial_loop import TrialLoop
@@ -211,6 +211,6 @@ def run_sim(opts: SimOptions, stream: TextIO) -> int:
     s = res.summary
     stream.write(
         f"{s['ticks']} ticks in {s['wall_s']:.2f} s ({s['ticks_per_s']:.0f} ticks/s); "
-        f"trace_sha256 {s['trace_sha256'][:16]}…; summary: {opts.out / 'summary.json'}\n"
+        f"trace_sha256 {s['trace_sha256'][:16]}…; summary: {opts.out / SUMMARY_NAME}\n"
     )
-    return report_fault(res, opts.out / "summary.json")
+    return report_fault(res, opts.out / SUMMARY_NAME)
