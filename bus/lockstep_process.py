@@ -2,6 +2,7 @@
 
 This module owns :func:`freeze_heap`, called by the plant and drive roles after their warm-up
 (numba kernels compiled, models built), just before their select loop starts;
+:func:`numba_without_blas`, the warm-up's first kernel load without numba's BLAS probe;
 :func:`spin_in_this_class`, whether the plant spins the last stretch of a paced wait; and
 :func:`mechanisms_left_out`, the diagnostic switch of the real-time mechanisms
 (``ILCRIG_RT_WITHOUT``, read here because both the roles and the launcher honour it).
@@ -19,11 +20,13 @@ Why
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import logging
 import os
+import sys
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 
 logger = logging.getLogger(__name__)
 
@@ -33,6 +36,7 @@ __all__ = [
     "freeze_heap",
     "in_realtime_class",
     "mechanisms_left_out",
+    "numba_without_blas",
     "spin_in_this_class",
     "watch_collections",
 ]
@@ -48,6 +52,41 @@ def mechanisms_left_out(environ: Mapping[str, str] | None = None) -> frozenset[s
     """The mechanism names listed in ``ILCRIG_RT_WITHOUT`` (empty: every mechanism in force)."""
     text = (os.environ if environ is None else environ).get(WITHOUT_ENV, "")
     return frozenset(w.strip() for w in text.split(",") if w.strip())
+
+
+#: the module numba imports to find a BLAS when its CPU target first loads
+BLAS_PROBE_MODULE: str = "scipy.linalg"
+
+
+@contextlib.contextmanager
+def numba_without_blas(role: str) -> Iterator[None]:
+    """Load numba's CPU target (the first compile or cache load of a kernel, inside the block)
+    without its BLAS probe.
+
+    When numba's CPU target loads, ``numba.np.arraymath`` checks for a BLAS (for ``np.dot`` and
+    ``np.linalg`` in compiled code) by importing ``scipy.linalg``: 0.3 s of CPU in each process,
+    paid by every drive and the plant of every rig run while all of them start on the same CPUs.
+    Their kernels use no BLAS (the drive's control period is integer arithmetic, the plant solves
+    its 4 × 4 mass matrix with its own LU, ``plant._kernels.lu4_solve``). Inside the block
+    ``scipy.linalg`` is marked absent (``None`` in :data:`sys.modules`), so the probe fails at once
+    and numba records that it has no BLAS; afterwards the mark is removed and ``scipy.linalg``
+    imports as usual, but a kernel compiled later in this process cannot call a BLAS function (numba
+    says so when it compiles it). If ``scipy.linalg`` is already imported, or the probe has run, the
+    block changes nothing.
+    ``role`` names the process in the log line that says which it was."""
+    probed = "numba.np.arraymath" in sys.modules  # the module whose import probes
+    marked = BLAS_PROBE_MODULE not in sys.modules and not probed
+    if marked:
+        sys.modules[BLAS_PROBE_MODULE] = None  # type: ignore[assignment]  # the import system's "absent"
+    try:
+        yield
+    finally:
+        if marked and sys.modules.get(BLAS_PROBE_MODULE, 0) is None:
+            del sys.modules[BLAS_PROBE_MODULE]
+    if not marked:
+        logger.debug("%s: numba's BLAS probe left as it was (it had run, or %s was imported)", role, BLAS_PROBE_MODULE)
+    elif "numba.np.arraymath" in sys.modules:
+        logger.debug("%s: numba's kernels loaded without its BLAS probe (%s not imported)", role, BLAS_PROBE_MODULE)
 
 
 def freeze_heap(role: str) -> bool:

@@ -66,7 +66,7 @@ from bus.cia301.slave import (
     quiet_shutdown,
 )
 from bus.exit_codes import EXIT_FAULT, EXIT_OK
-from bus.lockstep_process import freeze_heap
+from bus.lockstep_process import freeze_heap, numba_without_blas
 from firmware_model.sync_backlog import SyncBacklog
 
 logger = logging.getLogger(__name__)
@@ -422,7 +422,8 @@ def run_node(
     from firmware_model.control_law import warm_up
     from firmware_model.drive import Drive  # the firmware is only needed in the process
 
-    warm_up()  # before boot-up: the host's boot wait covers the JIT, the first trial does not
+    with numba_without_blas(f"drive {node_id}"):  # its integer kernel needs no BLAS: 0.3 s of CPU less at start
+        warm_up()  # before boot-up: the host's boot wait covers the JIT, the first trial does not
     if stop is None:
         stop = threading.Event()
         install_sigterm(stop)

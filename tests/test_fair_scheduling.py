@@ -263,6 +263,53 @@ def test_a_role_freezes_its_heap_unless_left_out(without: str, frozen: bool) -> 
     assert out.stdout.split() == [str(frozen), str(frozen)]
 
 
+@pytest.mark.parametrize("linalg_first", [False, True])
+def test_numba_loads_without_its_blas_probe_and_scipy_linalg_still_imports(linalg_first: bool) -> None:
+    """A role's first kernel load inside :func:`numba_without_blas` does not import scipy.linalg;
+    afterwards scipy.linalg imports as usual. With scipy.linalg imported before, the block changes
+    nothing."""
+    code = f"""
+import sys, logging
+logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)
+logging.getLogger("bus.lockstep_process").setLevel(logging.DEBUG)
+if {linalg_first}:
+    import scipy.linalg
+from bus.lockstep_process import numba_without_blas
+from firmware_model import control_law as cl
+with numba_without_blas("drive 3"):
+    cl.warm_up()
+print("linalg", "scipy.linalg" in sys.modules)
+import numba.np.arraymath
+print("blas", numba.np.arraymath._HAVE_BLAS)
+import scipy.linalg
+print("solve", float(scipy.linalg.solve([[2.0]], [4.0])[0]))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=REPO)
+    lines = out.stdout.splitlines()
+    if linalg_first:
+        assert lines[0] == "drive 3: numba's BLAS probe left as it was (it had run, or scipy.linalg was imported)"
+        assert lines[1:] == ["linalg True", "blas True", "solve 2.0"]
+    else:
+        assert lines[0] == "drive 3: numba's kernels loaded without its BLAS probe (scipy.linalg not imported)"
+        assert lines[1:] == ["linalg False", "blas False", "solve 2.0"]
+
+
+def test_a_drive_process_loads_its_kernel_without_scipy_linalg() -> None:
+    """The drive role's entry (:func:`firmware_model.drive_node.run_node`, virtual buses, stopped at
+    once) warms its kernel up without numba's BLAS probe: scipy.linalg, 0.3 s of CPU per drive and
+    run, is never imported, and the drive serves and stops as before."""
+    code = """
+import sys, threading
+from firmware_model.drive_node import run_node
+stop = threading.Event()
+stop.set()
+cfg = {"interface": "virtual", "receive_own_messages": False}
+print(run_node(2, dict(cfg, channel="fb-blas"), dict(cfg, channel="io-blas"), stop), "scipy.linalg" in sys.modules)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=REPO, timeout=120)
+    assert out.stdout.split() == ["None", "False"]
+
+
 def test_a_long_garbage_collection_is_logged(caplog: pytest.LogCaptureFixture) -> None:
     callback = watch_collections("drive 2", longer_than_s=0.0)
     try:

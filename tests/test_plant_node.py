@@ -844,10 +844,12 @@ def test_rig_on_virtual_buses_is_bit_identical_to_in_process() -> None:
     assert not np.array_equal(rig_traces[0][0].torque_fb_units, rig_traces[1][0].torque_fb_units)
 
 
-def test_the_bench_pays_its_first_calls_at_boot_not_at_the_first_trial() -> None:
-    """start() builds the plant and computes a disturbance once (its first call imports
-    scipy.signal, about a second), before the boot-up: a first trial's start then holds the select
-    loop that answers SDO no longer than any other."""
+@pytest.mark.parametrize("expected", [None, "none", "nonrepetitive"])
+def test_the_bench_pays_its_first_calls_at_boot_not_at_the_first_trial(expected: str | None) -> None:
+    """start() builds the plant and computes a disturbance once (a non-repetitive one's first call
+    imports scipy.signal, about a second), before the boot-up: a first trial's start then holds the
+    select loop that answers SDO no longer than any other. The kind is the one the node was told
+    to expect (``ilcrig run`` tells it the experiment's); by default every kind (``both``)."""
     k = next(_counter)
     calls: list[tuple[str, int, int, int, float]] = []
     built: list[tuple[float, int]] = []
@@ -864,10 +866,11 @@ def test_the_bench_pays_its_first_calls_at_boot_not_at_the_first_trial() -> None
     io = can.Bus(interface="virtual", channel=f"boot-io-{k}")
     host = can.Bus(interface="virtual", channel=f"boot-fb-{k}")
     try:
-        bench = PlantNode(fb, io, plant_factory=factory, disturbance_fn=disturbance)
+        told = {} if expected is None else {"disturbance": expected}
+        bench = PlantNode(fb, io, plant_factory=factory, disturbance_fn=disturbance, **told)
         bench.start()
         assert built == [(0.001, 4)]
-        assert calls == [("both", 0, 0, 2, 0.001)]
+        assert calls == [(expected or "both", 0, 0, 2, 0.001)]
         boot = host.recv(timeout=0)
         assert boot is not None and (boot.arbitration_id, bytes(boot.data)) == (0x700 + PLANT_ID, b"\x00")
     finally:

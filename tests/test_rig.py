@@ -131,6 +131,8 @@ def test_rig_over_hub_equals_sim_and_logs_read_back(hub_run: tuple[subprocess.Co
     assert 0 <= len(fb_frames) - s["bench"]["channels"]["fieldbus"]["frames"] < 300
     assert any(m.arbitration_id == 0x601 for m in fb_frames)  # SDO requests to drive 1
     assert any(m.arbitration_id == 0x701 for m in fb_frames)  # heartbeats of drive 1
+    # the plant prepared the run's disturbance alone (the launcher told it the experiment's)
+    assert f"disturbance model ({EXP_CFG['disturbance']}) ready" in (out / "logs" / "plant.log").read_text()
 
 
 def test_run_from_a_folder_holding_modules_named_like_the_packages(tmp_path: Path, sim_digest: str) -> None:

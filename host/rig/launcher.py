@@ -194,7 +194,9 @@ class RigLauncher(LaunchCore):
         supervisor.stops = StopWatch(self._progress.where, outcome.kept_now)
         if self.interrupts.signum is not None:
             return self.say_interrupted()
-        self.spawn("plant", child_argv("plant", bus_args, debug=debug), log_dir / "plant.log")
+        # the plant prepares the run's disturbance alone (scipy's filter design only when it needs it)
+        plant_extra = ["--disturbance", self._disturbance()]
+        self.spawn("plant", child_argv("plant", bus_args, extra=plant_extra, debug=debug), log_dir / "plant.log")
         for node in DRIVE_NODE_IDS:
             if self.interrupts.signum is not None:
                 return self.say_interrupted()
@@ -254,6 +256,12 @@ class RigLauncher(LaunchCore):
         from host.experiment.console import experiment_config
 
         return experiment_config(self.options.experiment).iterations
+
+    def _disturbance(self) -> str:
+        """The disturbance kind of the run's trials (``--disturbance`` of the experiment)."""
+        from host.experiment.console import experiment_config
+
+        return experiment_config(self.options.experiment).disturbance
 
     def _schedule_run(self) -> dict[str, Any]:
         """A real-time run's scheduling, before the host starts (:meth:`LaunchCore.schedule_realtime`,
