@@ -19,8 +19,9 @@ This package owns the command line: :func:`build_parser` (one module per command
 ``add_parser(sub)``: :mod:`host.cli.sim`, :mod:`host.cli.run`, :mod:`host.cli.robot`,
 :mod:`host.cli.host`, :mod:`host.cli.drive`, :mod:`host.cli.plant`, :mod:`host.cli.hub`,
 :mod:`host.cli.laws`, :mod:`host.cli.view`, :mod:`host.cli.studies`; the option groups several of
-them share, defined once, in :mod:`host.cli.options`), the one-line error parser and :func:`main`
-with the error handling of every command; ``python -m host.cli`` is :mod:`host.cli.__main__`.  The
+them share, defined once, in :mod:`host.cli.options`), the one-line error parser, :func:`main`
+with the error handling of every command (its console held by :mod:`host.cli.console`) and
+:func:`command`, the console script; ``python -m host.cli`` is :mod:`host.cli.__main__`.  The
 command lines of the ``python -m`` tools that are not ``ilcrig`` subcommands live here too:
 :mod:`host.cli.dbc` (the DBC files), :mod:`host.cli.selfcheck` (the plant's check),
 :mod:`host.cli.janitor` (the launcher's janitor process).
@@ -54,6 +55,7 @@ from typing import NoReturn
 
 from bus.errors import InputError
 from bus.exit_codes import EXIT_ERROR, EXIT_FAULT, EXIT_USAGE, exit_code_of_signal
+from host.cli.console import hold_console
 from host.experiment.signal_shield import interrupt_on_signals, signum_of
 
 __all__ = ["build_parser", "command", "main"]
@@ -110,15 +112,18 @@ def _command_of(words: Sequence[str]) -> str | None:
 def main(argv: Sequence[str] | None = None) -> int:
     """``ilcrig [--debug] COMMAND …``; returns the exit code (:mod:`bus.exit_codes`).
 
-    From its first statement to its return SIGINT and SIGTERM end a user's command as
-    ``ilcrig: interrupted (SIGINT)`` and exit code 130 / 143 (no traceback, no silent death) —
-    while the command modules are imported, the command line is parsed and the command plans,
-    before the command's own handling of signals (a run's, a launcher's) takes over; the role
-    commands (:data:`ROLE_COMMANDS`) keep Python's defaults."""
+    From its first statement to its return SIGINT, SIGTERM and SIGHUP end a user's command as
+    ``ilcrig: interrupted (SIGINT)`` and exit code 130 / 143 / 129 (no traceback, no silent death)
+    — while the command modules are imported, the command line is parsed and the command plans,
+    before the command's own handling of signals (a run's, a launcher's) takes over; and a console
+    whose reader went away is dropped, not an error (:mod:`host.cli.console`; for the role commands
+    too, whose host writes a run's rows to the user's terminal). The role commands
+    (:data:`ROLE_COMMANDS`) keep Python's default signal handling."""
     words = list(sys.argv[1:] if argv is None else argv)
     if _command_of(words) in ROLE_COMMANDS:
-        return _main(words)
-    with interrupt_on_signals():
+        with hold_console():  # the host role writes the run's rows to the user's terminal
+            return _main(words)
+    with hold_console(), interrupt_on_signals():
         try:
             _native_threads_without_signals()
             return _main(words)

@@ -1,8 +1,10 @@
-"""SIGINT / SIGTERM during a run: raised as :class:`Interrupted` in the main thread, held back
-while a trial's outputs are written, logged (not raised) once the run's end has begun.
+"""SIGINT / SIGTERM / SIGHUP during a run: raised as :class:`Interrupted` in the main thread, held
+back while a trial's outputs are written, logged (not raised) once the run's end has begun.
 
-Owns the one signal shield of the process (:data:`SHIELD`), :func:`interrupt_on_signals` (the
-handlers of a run) and :func:`deferred_interrupts` (a block the signals wait for).  Used by the trial
+Owns the one signal shield of the process (:data:`SHIELD`), the signals that end a run
+(:data:`RUN_SIGNALS`; SIGHUP only where it is not ignored, :func:`hangup_ignored`: ``nohup``),
+:func:`interrupt_on_signals` (the handlers of a run) and :func:`deferred_interrupts` (a block the
+signals wait for).  Used by the trial
 loop (:mod:`host.experiment.trial_loop`), ``ilcrig sim`` and the rig's host role.
 
 May import: the standard library only.
@@ -18,11 +20,31 @@ from collections.abc import Iterator, Sequence
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Interrupted", "SHIELD", "Shield", "deferred_interrupts", "end_of_run", "interrupt_on_signals", "signum_of"]
+__all__ = [
+    "Interrupted",
+    "RUN_SIGNALS",
+    "SHIELD",
+    "Shield",
+    "deferred_interrupts",
+    "end_of_run",
+    "hangup_ignored",
+    "interrupt_on_signals",
+    "signum_of",
+]
+
+#: the signals that end a run: Ctrl-C, ``kill``'s default, the terminal hung up (its window closed,
+#: the ssh connection lost) — SIGHUP only where it is not ignored (:func:`hangup_ignored`)
+RUN_SIGNALS: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+def hangup_ignored() -> bool:
+    """SIGHUP is ignored in this process (``nohup``, or a parent that ignored it before ``exec``):
+    the user asked for the command to outlive its terminal, and no handler of ours takes it."""
+    return signal.getsignal(signal.SIGHUP) == signal.SIG_IGN
 
 
 class Interrupted(KeyboardInterrupt):
-    """SIGINT / SIGTERM during a run (raised by the signal handler of the process)."""
+    """SIGINT / SIGTERM / SIGHUP during a run (raised by the signal handler of the process)."""
 
     def __init__(self, signum: int) -> None:
         super().__init__(signum)
@@ -77,11 +99,12 @@ def deferred_interrupts() -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def interrupt_on_signals(signals: Sequence[int] = (signal.SIGINT, signal.SIGTERM)) -> Iterator[None]:
-    """While inside: SIGINT / SIGTERM raise :class:`Interrupted` in the main thread (the run then
-    ends through its fault path: safe state, summary with an ``interrupted`` marker); a second
-    signal during that shutdown, or any signal once the run has ended (:attr:`Shield.ended`: its
-    report and closing lines are being written), is logged, not raised. Restores the handlers."""
+def interrupt_on_signals(signals: Sequence[int] = RUN_SIGNALS) -> Iterator[None]:
+    """While inside: SIGINT / SIGTERM / SIGHUP raise :class:`Interrupted` in the main thread (the
+    run then ends through its fault path: safe state, summary with an ``interrupted`` marker); a
+    second signal during that shutdown, or any signal once the run has ended (:attr:`Shield.ended`:
+    its report and closing lines are being written), is logged, not raised. An ignored SIGHUP
+    (:func:`hangup_ignored`) stays ignored. Restores the handlers."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -99,7 +122,8 @@ def interrupt_on_signals(signals: Sequence[int] = (signal.SIGINT, signal.SIGTERM
 
     outer = SHIELD.ended, SHIELD.deferred  # an enclosing block's (a command around a library call)
     SHIELD.ended, SHIELD.deferred = False, None
-    old = {s: signal.signal(s, handler) for s in signals}
+    taken = [s for s in signals if not (s == signal.SIGHUP and hangup_ignored())]
+    old = {s: signal.signal(s, handler) for s in taken}
     try:
         yield
     finally:

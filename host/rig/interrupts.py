@@ -3,7 +3,8 @@
 This module owns :class:`Interrupts`: while installed (main thread only) it notes the first of
 these signals (the launcher then stops the host first, then the rest) and whether a second one
 came while the launcher was already stopping (then no grace period is waited), and maps the
-signal to the run's exit code (130 for SIGINT, 143 for SIGTERM, 128 + n otherwise).
+signal to the run's exit code (130 for SIGINT, 143 for SIGTERM, 128 + n otherwise). An ignored
+SIGHUP (``nohup``) stays ignored: the run outlives its terminal.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import threading
 from typing import Any
 
 from bus.exit_codes import EXIT_INTERRUPTED, EXIT_TERMINATED
+from host.experiment.signal_shield import hangup_ignored
 
 logger = logging.getLogger(__name__)
 
@@ -43,11 +45,15 @@ class Interrupts:
         self._old: dict[int, Any] = {}
 
     def install(self) -> None:
-        """Intercept :data:`HANDLED_SIGNALS` (only in the main thread; elsewhere nothing happens)."""
+        """Intercept :data:`HANDLED_SIGNALS` (only in the main thread; elsewhere nothing happens) —
+        SIGHUP not where it is ignored (``nohup``: the run outlives its terminal)."""
         if threading.current_thread() is not threading.main_thread():
             logger.debug("not the main thread: signals are not intercepted")
             return
         for signum in HANDLED_SIGNALS:
+            if signum == signal.SIGHUP and hangup_ignored():
+                logger.debug("SIGHUP is ignored (nohup): the run outlives its terminal")
+                continue
             self._old[signum] = signal.signal(signum, self._on_signal)
 
     def restore(self) -> None:

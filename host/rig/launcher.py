@@ -301,10 +301,11 @@ class RigLauncher(LaunchCore):
     # -- interrupts and shutdown ---------------------------------------------------------------
 
     def _interrupted(self, host: Child, supervisor: Supervisor, outcome: RunOutcome) -> int:
-        """SIGINT / SIGTERM / SIGHUP: the host first (it marks the summary), then the rest."""
+        """SIGINT / SIGTERM / SIGHUP: the host first, with the same signal (it marks the summary with
+        it, as the exit code says it), then the rest."""
         exit_code = self.say_interrupted()
         if host.proc.poll() is None:
-            supervisor.stop_host(host, signal.SIGINT if self.interrupts.signum == signal.SIGINT else signal.SIGTERM)
+            supervisor.stop_host(host, signal.Signals(self.interrupts.signum or signal.SIGTERM))
         if outcome.mark_interrupted(self.interrupts.name, self._progress.where() if self._progress is not None else None):
             return exit_code
         self._say_err(
