@@ -133,3 +133,17 @@ def test_a_rig_run_whose_terminal_hangs_up(tmp_path: Path, nohup: bool) -> None:
         assert 3 <= len(s["iterations"]) < 12
     left = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True).stdout.split()
     assert left == []
+
+
+def test_a_console_that_cannot_show_a_character_gets_it_escaped(tmp_path: Path) -> None:
+    """A console whose encoding is ASCII (``PYTHONIOENCODING=ascii``, a Latin-1 locale): the lines
+    with µ, ≥ or the digest's … are written with those escaped, the run's exit code is its own (the
+    closing line made it an internal error, exit 1, after the run)."""
+    env = os.environ | {"PYTHONIOENCODING": "ascii"}
+    res = subprocess.run(
+        [*ILCRIG, "sim", "--iterations", "2", "--out", str(tmp_path / "run")], capture_output=True, env=env, timeout=300
+    )
+    assert res.returncode == EXIT_OK, res.stderr
+    assert res.stderr == b""
+    closing = res.stdout.decode("ascii").splitlines()[-1]
+    assert f"trace_sha256 {_summary(tmp_path / 'run')['trace_sha256'][:16]}\\u2026; summary: " in closing

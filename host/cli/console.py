@@ -14,6 +14,8 @@ Why
     Now the console is dropped instead: later writes go nowhere, the run goes on to its end and
     its records and exit code are those of the run. Ending on the terminal's hang-up is SIGHUP's
     job (:data:`host.experiment.signal_shield.RUN_SIGNALS`), which a closed terminal sends.
+    Likewise a console whose encoding cannot show a character of a line (µ, ≥, the digest's …:
+    ``PYTHONIOENCODING=ascii``, a Latin-1 locale) gets it escaped (``\u2026``), not an error.
 """
 
 from __future__ import annotations
@@ -33,7 +35,8 @@ __all__ = ["ConsoleStream", "hold_console"]
 
 class ConsoleStream(io.TextIOBase):
     """A text stream that writes to ``stream`` until a write or flush fails with an
-    :class:`OSError` (the console went away), and from then on drops what it is given.
+    :class:`OSError` (the console went away), and from then on drops what it is given; what the
+    stream's encoding cannot show is written escaped.
 
     The file descriptor under ``stream`` is pointed at ``/dev/null`` when that happens, so that what
     ``stream`` still buffers, and any other writer of the descriptor (a library, Python's own
@@ -51,7 +54,12 @@ class ConsoleStream(io.TextIOBase):
     def write(self, text: str) -> int:
         if self.lost is None:
             try:
-                return self.stream.write(text)
+                try:
+                    return self.stream.write(text)
+                except UnicodeEncodeError:  # a console that cannot show µ, ≥ or …: escaped
+                    encoding = self.stream.encoding or "ascii"
+                    self.stream.write(text.encode(encoding, "backslashreplace").decode(encoding))
+                    return len(text)
             except OSError as err:
                 self._lose(err)
         return len(text)
