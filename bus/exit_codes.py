@@ -2,7 +2,7 @@
 
 This module owns :class:`ExitCode` and its module-level aliases.  Every process of the project
 (the command line, the launchers, the roles, the hub, the sweep commands) exits with one of these;
-docs/usage.md and docs/faults.md print the same table (checked by tests/test_cli.py).
+docs/usage.md prints the same table (checked by tests/test_cli.py).
 
 ===  =====================  ==================================================================
 0    ``OK``                 the command did what it was asked
@@ -12,6 +12,7 @@ docs/usage.md and docs/faults.md print the same table (checked by tests/test_cli
 4    ``CHILD_FAILED``       ``ilcrig run`` / ``ilcrig robot``: a role process could not be started
 5    ``CLUSTER_LOST``       ``ilcrig sweep`` / ``ilcrig tune``: the Dask scheduler was lost or has no
                             workers; the finished points are kept and a resume runs the rest
+129  ``HANGUP``             the terminal hung up (SIGHUP: its window closed, the ssh connection lost)
 130  ``INTERRUPTED``        Ctrl-C (SIGINT)
 143  ``TERMINATED``         SIGTERM
 ===  =====================  ==================================================================
@@ -31,6 +32,7 @@ __all__ = [
     "EXIT_FAULT",
     "EXIT_CHILD_FAILED",
     "EXIT_CLUSTER_LOST",
+    "EXIT_HANGUP",
     "EXIT_INTERRUPTED",
     "EXIT_TERMINATED",
     "exit_code_of_signal",
@@ -46,6 +48,7 @@ class ExitCode(IntEnum):
     FAULT = 3
     CHILD_FAILED = 4
     CLUSTER_LOST = 5
+    HANGUP = 129
     INTERRUPTED = 130
     TERMINATED = 143
 
@@ -64,6 +67,8 @@ EXIT_FAULT: int = ExitCode.FAULT
 EXIT_CHILD_FAILED: int = ExitCode.CHILD_FAILED
 #: ``ilcrig sweep`` / ``ilcrig tune``: the Dask scheduler was lost or has no workers
 EXIT_CLUSTER_LOST: int = ExitCode.CLUSTER_LOST
+#: the terminal hung up (SIGHUP), unless it is ignored (``nohup``)
+EXIT_HANGUP: int = ExitCode.HANGUP
 #: interrupted by Ctrl-C (SIGINT)
 EXIT_INTERRUPTED: int = ExitCode.INTERRUPTED
 #: terminated by SIGTERM

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from bus.exit_codes import EXIT_OK
+from bus.exit_codes import EXIT_HANGUP, EXIT_OK
 
 ILCRIG = [sys.executable, "-m", "host.cli"]
 
@@ -93,7 +93,7 @@ def test_a_sim_whose_terminal_hangs_up_ends_interrupted_with_its_trials(tmp_path
     killed by the signal, its summary naming no end)."""
     out = tmp_path / "run"
     status, seen = _on_a_terminal([*ILCRIG, "sim", "--iterations", "300", "--out", str(out)], b"\n   2 ")
-    assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 128 + signal.SIGHUP, (status, seen[-300:])
+    assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == EXIT_HANGUP, (status, seen[-300:])
     s = _summary(out)
     assert (s["completed"], s["end_reason"], s["interrupted"]["signal"]) == (False, "interrupted", "SIGHUP")
     kept = len(s["iterations"])
@@ -128,7 +128,7 @@ def test_a_rig_run_whose_terminal_hangs_up(tmp_path: Path, nohup: bool) -> None:
         assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == EXIT_OK, (status, seen[-300:])
         assert (s["completed"], s["end_reason"], len(s["iterations"]), s["faults"]) == (True, "completed", 12, [])
     else:
-        assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 128 + signal.SIGHUP, (status, seen[-300:])
+        assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == EXIT_HANGUP, (status, seen[-300:])
         assert (s["completed"], s["end_reason"], s["interrupted"]["signal"]) == (False, "interrupted", "SIGHUP")
         assert 3 <= len(s["iterations"]) < 12
     left = subprocess.run(["pgrep", "-f", str(out)], capture_output=True, text=True).stdout.split()

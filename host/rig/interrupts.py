@@ -14,7 +14,7 @@ import signal
 import threading
 from typing import Any
 
-from bus.exit_codes import EXIT_INTERRUPTED, EXIT_TERMINATED
+from bus.exit_codes import EXIT_HANGUP, EXIT_INTERRUPTED, EXIT_TERMINATED
 from host.experiment.signal_shield import hangup_ignored
 
 logger = logging.getLogger(__name__)
@@ -24,7 +24,7 @@ __all__ = ["HANDLED_SIGNALS", "Interrupts"]
 _SIGNAL_EXIT: dict[int, int] = {
     signal.SIGINT: EXIT_INTERRUPTED,
     signal.SIGTERM: EXIT_TERMINATED,
-    signal.SIGHUP: 128 + signal.SIGHUP,
+    signal.SIGHUP: EXIT_HANGUP,
 }
 #: the signals the launcher intercepts
 HANDLED_SIGNALS: tuple[int, ...] = tuple(_SIGNAL_EXIT)
