@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import importlib.util
 import re
+import subprocess
 import sys
 from pathlib import Path
 from types import ModuleType
@@ -84,6 +85,25 @@ def test_quickstart_test_command_is_what_ci_runs() -> None:
     ci = (ROOT / ".ci" / "run").read_text()
     cmd = "python3 -m venv .venv && .venv/bin/pip install -q -e '.[test]' && .venv/bin/python -m pytest"
     assert cmd in readme and cmd in ci
+
+
+@pytest.mark.parametrize("step", ["set-up", "fast tier"])
+def test_ci_ends_when_the_readme_command_fails_at_any_of_its_steps(tmp_path: Path, step: str) -> None:
+    """``.ci/run``'s set-up and fast-tier lines (``python3 -m venv … && pip … && pytest``) run under
+    ``set -e``, which does not stop a script for a failed command inside an ``&&`` list unless it is
+    the last one: a venv that could not be made (a killed ``ensurepip``) skipped the fast tier, and
+    the run went on to the full tier as if it had passed. Each line, run as ``.ci/run`` runs it with
+    a ``python3`` that fails, ends the script with that exit code and says which step failed."""
+    ci = (ROOT / ".ci" / "run").read_text().splitlines()
+    line = next(x for x in ci if x.startswith("python3 -m venv .venv && ") and f'"== {step} failed' in x)
+    stub = tmp_path / "bin"
+    stub.mkdir()
+    (stub / "python3").write_text("#!/bin/sh\nexit 7\n")
+    (stub / "python3").chmod(0o755)
+    script = f"set -euo pipefail\n{line}\necho 'the next step'\n"
+    env = {"PATH": f"{stub}:/usr/bin:/bin"}
+    res = subprocess.run(["bash", "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60)
+    assert (res.returncode, res.stdout) == (7, f"== {step} failed (exit code 7)\n")
 
 
 def test_readme_is_short_and_tells_no_history() -> None:
