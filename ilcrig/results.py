@@ -168,7 +168,7 @@ class Results:
     @property
     def end_reason(self) -> str | None:
         """How the run ended: ``completed``, ``fault``, ``interrupted``, ``law_error``,
-        ``user_exception`` or ``stopped`` (None while it runs)."""
+        ``user_exception``, ``stopped`` or, on the rig, ``launcher_lost`` (None while it runs)."""
         reason = self.summary.get("end_reason")
         return str(reason) if reason is not None else None
 

@@ -203,7 +203,22 @@ def test_the_janitor_settles_the_folder_after_a_killed_launcher(tmp_path: Path) 
     assert recorded_trials(out / "recording.rrd") == [0, 1]
     assert sorted(p.name for p in (out / "trials").iterdir()) == ["trial-00000.npz", "trial-00001.npz"]
     assert not (out / "summary.json.tmp").exists()
-    assert "janitor: the launcher was killed; cut" in (out / "logs" / "janitor.log").read_text()
+    log = (out / "logs" / "janitor.log").read_text()
+    assert "janitor: the launcher was killed; cut" in log
+    # the host had not ended the run (no end_reason): the summary says the launcher was lost
+    s = json.loads((out / "summary.json").read_text())
+    assert s["end_reason"] == "launcher_lost" and s["launcher_lost"]["trials_kept"] == 2
+    assert "janitor: the launcher was killed; marked the summary: end_reason launcher_lost, 2 trial(s) kept" in log
+
+
+def test_the_janitor_leaves_the_summary_of_a_run_that_had_ended(tmp_path: Path) -> None:
+    from host.rig.janitor import mark_launcher_lost
+
+    out, _ = _run_folder(tmp_path)
+    s = json.loads((out / "summary.json").read_text()) | {"end_reason": "completed"}
+    (out / "summary.json").write_text(json.dumps(s))
+    assert mark_launcher_lost(out) is None
+    assert json.loads((out / "summary.json").read_text()) == s
 
 
 def test_a_janitor_told_done_touches_nothing(tmp_path: Path) -> None:

@@ -1,21 +1,23 @@
 """A signal at a random moment of ``ilcrig run`` leaves every record true.
 
-The real multi-process rig (tests/fault_harness.py); SIGTERM or SIGINT goes to the launcher from a
+The real multi-process rig (tests/fault_harness.py); SIGTERM, SIGINT or SIGHUP goes to the launcher from a
 timer started at its status line, at a random delay over the rest of the run (the nodes' bring-up,
 the trials, the end, the processes' stop). After each example:
 
 * no process of the run is left;
 * a summary, with an ``end_reason``; exit 0 only for a completed run without an ``interrupted``
-  marker; exit 130 / 143 only with the marker of that signal and ``end_reason`` interrupted;
+  marker; exit 130 / 143 / 129 only with the marker of that signal and ``end_reason`` interrupted;
 * the summary's trials = the console's rows = the trials' arrays = the recording's trials.
 """
 
 from __future__ import annotations
 
 import itertools
+import json
 import os
 import signal
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -41,7 +43,7 @@ def _send(pid: int, signum: int) -> None:
 
 
 @settings(max_examples=5, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
-@given(delay_s=st.floats(0.0, MAX_DELAY_S), signum=st.sampled_from([signal.SIGTERM, signal.SIGINT]))
+@given(delay_s=st.floats(0.0, MAX_DELAY_S), signum=st.sampled_from([signal.SIGTERM, signal.SIGINT, signal.SIGHUP]))
 def test_at_random_a_signal_over_ilcrig_run_leaves_every_record_true(tmp_path: Path, delay_s: float, signum: int) -> None:
     out = tmp_path / f"run{next(_RUNS)}"
     timers: list[threading.Timer] = []
@@ -68,6 +70,7 @@ def test_at_random_a_signal_over_ilcrig_run_leaves_every_record_true(tmp_path: P
         assert s["interrupted"]["signal"] == name and s["end_reason"] == "interrupted", s.get("interrupted")
     kept = len(s["iterations"])
     assert s["completed"] is (kept == ITERATIONS), (kept, s.get("interrupted"))  # every trial run and kept
+    assert s["end_reason"] in ("completed", "interrupted"), s["end_reason"]
     rows = [ln for ln in o.stdout.splitlines() if len(ln.split()) == 9 and ln.split()[0].isdigit()]
     assert len(rows) == kept, o.stdout
     assert len(list((out / "trials").glob("trial-*.npz"))) == kept
@@ -75,3 +78,31 @@ def test_at_random_a_signal_over_ilcrig_run_leaves_every_record_true(tmp_path: P
         assert recorded_trials(out / "recording.rrd") == list(range(kept))
     else:
         assert kept == 0
+
+
+def test_a_launcher_that_dies_of_sigquit_leaves_a_summary_that_says_so(tmp_path: Path) -> None:
+    """Ctrl-\\ (SIGQUIT) to the launcher after trial 1's row: it dies of the signal and takes its
+    roles with it (their death signal); its janitor settles the folder and marks the summary, whose
+    ``end_reason`` stayed empty as in a run still going: ``launcher_lost``, with the trials kept."""
+    out = tmp_path / "run"
+    sent: list[int] = []
+
+    def on_line(line: str, proc: Any) -> None:
+        if not sent and line.startswith("   1 "):
+            sent.append(proc.pid)
+            _send(proc.pid, signal.SIGQUIT)
+
+    o = run_rig(out, iterations=8, on_line=on_line)
+    assert sent and o.code == -signal.SIGQUIT and o.left == [], (o.code, o.stderr)
+    deadline = time.monotonic() + 60.0
+    while True:  # the janitor marks it once the host is gone
+        s = json.loads((out / "summary.json").read_text())
+        if s.get("end_reason") is not None:
+            break
+        assert time.monotonic() < deadline, "the summary was never marked"
+        time.sleep(0.05)
+    kept = len(s["iterations"])
+    assert s["end_reason"] == "launcher_lost" and s["launcher_lost"]["trials_kept"] == kept
+    assert s["completed"] is False and 2 <= kept < 8
+    assert len(list((out / "trials").glob("trial-*.npz"))) == kept
+    assert "marked the summary: end_reason launcher_lost" in (out / "logs" / "janitor.log").read_text()

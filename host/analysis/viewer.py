@@ -188,7 +188,7 @@ def _why_no_recording(folder: Path) -> str:
     s = read_summary(folder)
     if s is None:
         return ""
-    how = s.get("end_reason") or "still running, or killed"
+    how = s.get("end_reason") or "still running, or killed with no one left to say so"
     mark = s.get("interrupted")
     if isinstance(mark, dict) and mark.get("signal"):
         how = f"interrupted by {mark['signal']}"

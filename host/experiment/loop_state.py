@@ -43,10 +43,11 @@ class EndReason(StrEnum):
 
     COMPLETED = "completed"  # every planned trial ran and was kept
     FAULT = "fault"  # a fault ended it (summary["faults"])
-    INTERRUPTED = "interrupted"  # SIGINT / SIGTERM / Ctrl-C (summary["interrupted"])
+    INTERRUPTED = "interrupted"  # SIGINT / SIGTERM / SIGHUP / Ctrl-C (summary["interrupted"])
     LAW_ERROR = "law_error"  # the learning law failed or diverged (a fault of the law, in summary["faults"])
     USER_EXCEPTION = "user_exception"  # an exception of the caller's code in the API (summary["user_exception"])
     STOPPED = "stopped"  # the caller ended it early (the API: a break, close())
+    LAUNCHER_LOST = "launcher_lost"  # ilcrig run's launcher died first (SIGKILL, SIGQUIT): its janitor said so
 
 
 @dataclass

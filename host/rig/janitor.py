@@ -1,9 +1,11 @@
-"""What outlives a killed ``ilcrig run``: its run folder made to hold what its summary says.
+"""What outlives a killed ``ilcrig run``: its run folder made to hold what its summary says, and
+the summary made to say how the run ended.
 
 This module owns :func:`settle_run_folder` — ``recording.rrd`` cut back to the trials of
 ``summary.json`` (:func:`host.analysis.recording_segments.cut_back`), the temporary files of atomic writes
 and the trial arrays the summary does not hold removed (:func:`host.experiment.outputs.remove_leftovers`)
-— and the janitor process that does it when nobody else can (``python -P -m host.cli.janitor
+—, :func:`mark_launcher_lost` (a summary the host could not finish: ``end_reason``
+``launcher_lost``) and the janitor process that does both when nobody else can (``python -P -m host.cli.janitor
 --out DIR --wait PID``: :func:`run_janitor`; :func:`start_janitor` / :class:`Janitor`).
 
 The launcher settles the folder itself on every exit path it lives through (the host killed
@@ -11,8 +13,10 @@ included: :class:`host.rig.run_outcome.RunOutcome`).  A SIGKILL of the launcher 
 (``PR_SET_PDEATHSIG``), possibly between its recording's write and its summary's: then the
 janitor, started right after the host in a session of its own with a pipe from the launcher on its
 stdin, sees that pipe close without the launcher's ``done``, waits for the host to be gone (a
-pidfd opened while the host ran), settles the folder, writes what it did to ``logs/janitor.log``
-and exits.  The space reserve needs nobody: it is a file without a name held open by the host
+pidfd opened while the host ran), settles the folder, marks the summary if the host had not
+ended the run (a launcher killed by SIGKILL, SIGQUIT — Ctrl-\\ —, or any crash: otherwise its
+``end_reason`` would stay empty, as in a run still going), writes what it did to
+``logs/janitor.log`` and exits.  The space reserve needs nobody: it is a file without a name held open by the host
 (:class:`host.experiment.outputs.RunFolder`).
 """
 
@@ -32,7 +36,7 @@ from bus.processes import spawn_process
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["DONE", "HOST_WAIT_S", "Janitor", "run_janitor", "settle_run_folder", "start_janitor"]
+__all__ = ["DONE", "HOST_WAIT_S", "Janitor", "mark_launcher_lost", "run_janitor", "settle_run_folder", "start_janitor"]
 
 #: what the launcher writes when it has settled the folder itself
 DONE = b"done\n"
@@ -60,6 +64,30 @@ def settle_run_folder(out_dir: str | Path) -> list[str]:
     except Exception:  # noqa: BLE001 - tidying must not raise
         logger.warning("cannot settle the run folder %s", d, exc_info=True)
     return done
+
+
+def mark_launcher_lost(out_dir: str | Path) -> str | None:
+    """The summary of a run whose launcher died before the run had ended (its ``end_reason`` still
+    empty): ``end_reason`` ``launcher_lost`` and ``launcher_lost`` (when it was noticed, by whom,
+    the trials kept); ``completed`` as the host left it. Returns the line that says so (None: the
+    run had ended, or there is no summary). Never raises (a failure is logged)."""
+    from host.experiment.loop_state import EndReason
+    from host.experiment.outputs import read_summary
+    from host.experiment.summary import write_summary
+
+    d = Path(out_dir)
+    try:
+        summary = read_summary(d)
+        if summary is None or summary.get("end_reason"):
+            return None
+        kept = len(summary.get("iterations") or [])
+        summary["end_reason"] = str(EndReason.LAUNCHER_LOST)
+        summary["launcher_lost"] = {"noticed_wall": time.time(), "noticed_by": "janitor", "trials_kept": kept}
+        write_summary(d, summary)
+    except Exception:  # noqa: BLE001 - tidying must not raise
+        logger.warning("cannot mark the summary of %s", d, exc_info=True)
+        return None
+    return f"marked the summary: end_reason launcher_lost, {kept} trial(s) kept"
 
 
 class Janitor:
@@ -137,6 +165,9 @@ def run_janitor(out: str | Path, host_pid: int) -> int:
         return 0
     _wait_for(pidfd, host_pid, HOST_WAIT_S)
     done = settle_run_folder(out)
+    marked = mark_launcher_lost(out)
+    if marked is not None:
+        done.append(marked)
     if done:
         logs = Path(out) / "logs"
         with contextlib.suppress(OSError), open(logs / "janitor.log", "a", encoding="utf-8") as fh:
