@@ -15,7 +15,7 @@ Why
     its records and exit code are those of the run. Ending on the terminal's hang-up is SIGHUP's
     job (:data:`host.experiment.signal_shield.RUN_SIGNALS`), which a closed terminal sends.
     Likewise a console whose encoding cannot show a character of a line (µ, ≥, the digest's …:
-    ``PYTHONIOENCODING=ascii``, a Latin-1 locale) gets it escaped (``\u2026``), not an error.
+    ``PYTHONIOENCODING=ascii``, a Latin-1 locale) gets it escaped (``\\u2026``), not an error.
 """
 
 from __future__ import annotations
