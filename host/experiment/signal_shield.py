@@ -29,6 +29,7 @@ __all__ = [
     "end_of_run",
     "hangup_ignored",
     "interrupt_on_signals",
+    "signals_taken",
     "signum_of",
 ]
 
@@ -41,6 +42,12 @@ def hangup_ignored() -> bool:
     """SIGHUP is ignored in this process (``nohup``, or a parent that ignored it before ``exec``):
     the user asked for the command to outlive its terminal, and no handler of ours takes it."""
     return signal.getsignal(signal.SIGHUP) == signal.SIG_IGN
+
+
+def signals_taken(signals: Sequence[int] = RUN_SIGNALS) -> list[int]:
+    """The ones of ``signals`` a handler of ours may take now: all but an ignored SIGHUP
+    (:func:`hangup_ignored`). Used by :func:`interrupt_on_signals` and the launchers' interrupts."""
+    return [s for s in signals if not (s == signal.SIGHUP and hangup_ignored())]
 
 
 class Interrupted(KeyboardInterrupt):
@@ -122,8 +129,7 @@ def interrupt_on_signals(signals: Sequence[int] = RUN_SIGNALS) -> Iterator[None]
 
     outer = SHIELD.ended, SHIELD.deferred  # an enclosing block's (a command around a library call)
     SHIELD.ended, SHIELD.deferred = False, None
-    taken = [s for s in signals if not (s == signal.SIGHUP and hangup_ignored())]
-    old = {s: signal.signal(s, handler) for s in taken}
+    old = {s: signal.signal(s, handler) for s in signals_taken(signals)}
     try:
         yield
     finally:

@@ -3,8 +3,9 @@
 This module owns :class:`Interrupts`: while installed (main thread only) it notes the first of
 these signals (the launcher then stops the host first, then the rest) and whether a second one
 came while the launcher was already stopping (then no grace period is waited), and maps the
-signal to the run's exit code (130 for SIGINT, 143 for SIGTERM, 128 + n otherwise). An ignored
-SIGHUP (``nohup``) stays ignored: the run outlives its terminal.
+signal to the run's exit code (:func:`bus.exit_codes.exit_code_of_signal`: 130, 143, 129). The
+signals are the runs' own (:data:`host.experiment.signal_shield.RUN_SIGNALS`); an ignored SIGHUP
+(``nohup``) stays ignored: the run outlives its terminal.
 """
 
 from __future__ import annotations
@@ -14,20 +15,15 @@ import signal
 import threading
 from typing import Any
 
-from bus.exit_codes import EXIT_HANGUP, EXIT_INTERRUPTED, EXIT_TERMINATED
-from host.experiment.signal_shield import hangup_ignored
+from bus.exit_codes import exit_code_of_signal
+from host.experiment.signal_shield import RUN_SIGNALS, signals_taken
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["HANDLED_SIGNALS", "Interrupts"]
 
-_SIGNAL_EXIT: dict[int, int] = {
-    signal.SIGINT: EXIT_INTERRUPTED,
-    signal.SIGTERM: EXIT_TERMINATED,
-    signal.SIGHUP: EXIT_HANGUP,
-}
 #: the signals the launcher intercepts
-HANDLED_SIGNALS: tuple[int, ...] = tuple(_SIGNAL_EXIT)
+HANDLED_SIGNALS: tuple[int, ...] = RUN_SIGNALS
 
 
 class Interrupts:
@@ -50,10 +46,7 @@ class Interrupts:
         if threading.current_thread() is not threading.main_thread():
             logger.debug("not the main thread: signals are not intercepted")
             return
-        for signum in HANDLED_SIGNALS:
-            if signum == signal.SIGHUP and hangup_ignored():
-                logger.debug("SIGHUP is ignored (nohup): the run outlives its terminal")
-                continue
+        for signum in signals_taken(HANDLED_SIGNALS):
             self._old[signum] = signal.signal(signum, self._on_signal)
 
     def restore(self) -> None:
@@ -77,4 +70,4 @@ class Interrupts:
     def exit_code(self) -> int:
         """The run's exit code for the first signal."""
         assert self.signum is not None
-        return _SIGNAL_EXIT.get(self.signum, 128 + self.signum)
+        return exit_code_of_signal(self.signum)
