@@ -134,6 +134,14 @@ class ChannelLog(can.Listener):
         self._writer.on_message_received(copy)
         self.frames += 1
 
+    def flush(self) -> None:
+        """Hand what is written so far to the kernel (a writer killed afterwards loses none of it).
+
+        :raises OSError: the write failed (e.g. a full disk)
+        """
+        if not self._stopped:
+            self._writer.file.flush()
+
     def stop(self) -> None:
         """Flush and close the file (idempotent)."""
         if not self._stopped:

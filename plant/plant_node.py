@@ -41,6 +41,7 @@ from typing import Any
 import can
 
 from bus import io_frames, units
+from bus.atomic import atomic_write
 from bus.bus_features import data_frame_sender, frame_gatherer
 from bus.cia301.nmt import NmtCommand, NmtState, next_state
 from bus.cia301.object_store import ObjectStore
@@ -452,10 +453,8 @@ def run_plant_role(
 def _write_summary(path: Path, node: PlantNode) -> None:
     """The node's counters and the robot's session as JSON (written atomically; a failure is logged)."""
     info = {"node": node.node_id, "bus_error": node.bus_error, **node.info()}
-    tmp = path.with_name(path.name + ".tmp")
     try:
-        tmp.write_text(json.dumps(info, indent=2) + "\n")
-        tmp.replace(path)
+        atomic_write(path, json.dumps(info, indent=2) + "\n")
     except OSError as err:
         logger.error("cannot write the plant summary %s: %s", path, err)
 

@@ -13,6 +13,9 @@ After each example:
 * the channel monitors saw at least the SYNCs the plant saw (``bus.syncs_on_bus``; they stop after
   the plant, so a master that goes on meanwhile adds SYNCs the plant never saw) and no frame was
   lost on the way.
+
+And SIGKILL of the launcher itself, while the robot starts and after a master: the janitor ends
+the summary (``launcher_lost``) with the plant's session, and the candump logs hold every frame.
 """
 
 from __future__ import annotations
@@ -25,10 +28,12 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 from cli_util import ROOT, start_in_session, wait_gone
+from clock_util import wait_for
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from robot_util import RobotProcess
@@ -43,6 +48,12 @@ EXAMPLES = int(os.environ.get("ILCRIG_ROBOT_SIGNAL_EXAMPLES", "4"))
 _RUNS = itertools.count()
 
 
+def _start_master(where: dict[str, Any]) -> subprocess.Popen[str]:
+    """The streaming master (seed 1) against the robot announced as ``where``, in a session of its own."""
+    argv = [sys.executable, str(ROOT / "tests" / "streaming_master.py"), where["interface"], where["channel"], "1"]
+    return start_in_session(argv, env={**os.environ, "PYTHONPATH": str(ROOT)})
+
+
 @settings(max_examples=EXAMPLES, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 @given(delay_s=st.floats(0.0, MAX_DELAY_S), signum=st.sampled_from([signal.SIGINT, signal.SIGTERM]))
 def test_at_random_a_signal_while_a_master_streams_leaves_every_record_true(tmp_path: Path, delay_s: float, signum: int) -> None:
@@ -53,10 +64,7 @@ def test_at_random_a_signal_while_a_master_streams_leaves_every_record_true(tmp_
     try:
         where = robot.ready()
         pids = where["pids"]
-        master = start_in_session(
-            [sys.executable, str(ROOT / "tests" / "streaming_master.py"), where["interface"], where["channel"], "1"],
-            env={**os.environ, "PYTHONPATH": str(ROOT)},
-        )
+        master = _start_master(where)
         time.sleep(delay_s)  # the random moment itself
         code = robot.stop(signum)
     finally:
@@ -79,3 +87,47 @@ def test_at_random_a_signal_while_a_master_streams_leaves_every_record_true(tmp_
     bus = summary["bus"]
     assert bus["syncs_on_bus"] >= r["syncs"], (bus["syncs_on_bus"], r["syncs"])
     assert all(ch["error_frames"] == 0 for ch in bus["channels"].values()), bus["channels"]
+
+
+@pytest.mark.parametrize("when", ["starting", "after a master"])
+def test_a_killed_robot_launcher_leaves_a_summary_that_says_so(tmp_path: Path, when: str) -> None:
+    """SIGKILL of ``ilcrig robot`` itself (no handler runs): the drives die with it, the plant ends
+    its session (SIGTERM), and the janitor ends the summary the launcher kept: ``end``
+    ``launcher_lost``, what the robot was doing, the plant's session; the candump logs hold every
+    frame the monitors had heard (flushed while the robot ran)."""
+    out = tmp_path / "robot"
+    robot = RobotProcess(out)
+    pids: dict[str, int] = {}
+    try:
+        if when == "starting":
+            wait_for(lambda: (out / "summary.json").exists(), 120.0)
+        else:
+            where = robot.ready()
+            pids = where["pids"]
+            master = _start_master(where)
+            master_out, master_err = master.communicate(timeout=300)
+            assert master.returncode == 0, master_err
+        robot.proc.kill()
+        assert robot.wait() == -signal.SIGKILL
+        assert wait_for(lambda: (out / "logs" / "janitor.log").exists(), 60.0), sorted(p.name for p in (out / "logs").iterdir())
+    finally:
+        robot.kill()
+    assert wait_gone(list(pids.values()), 30.0) == []
+    summary = json.loads((out / "summary.json").read_text())
+    end = summary["end"]
+    assert end["reason"] == "launcher_lost" and end["noticed_by"] == "janitor", end
+    assert summary["exit_code"] is None
+    janitor_log = (out / "logs" / "janitor.log").read_text()
+    assert "end launcher_lost" in janitor_log, janitor_log
+    if when == "starting":
+        assert end["was"] == "starting", end
+        return
+    assert end["was"] == "running", end
+    r = summary["robot"]
+    assert r is not None and r["syncs"] == r["periods"] == int(master_out.split()[0]) == 565, (r, master_out)
+    records = read_trace(out / "trace.bin").records
+    assert len(records) == r["periods"], len(records)
+    log = (out / "fieldbus.log").read_text().splitlines()
+    assert sum(" 080#" in line for line in log) == 565
+    cob_ids = {line.split()[2].split("#")[0] for line in log}
+    assert cob_ids >= {"701", "702", "703", "704", "720"}, cob_ids  # the boot-ups

@@ -556,3 +556,16 @@ def test_a_ctrl_c_while_the_workers_are_spawned_is_not_lost(tmp_path: Path) -> N
     assert proc.stderr.splitlines()[-1] == "ilcrig: interrupted (SIGINT)", proc.stderr
     assert "Traceback" not in proc.stdout + proc.stderr
     assert not (out / "results.parquet").exists()
+    assert not out.exists()  # interrupted before its first point: no folder claims a sweep
+
+
+def test_an_interrupted_call_is_recorded_with_its_signal(tmp_path: Path) -> None:
+    """``sweep.json``'s history says which signal ended a call, beside what it ran."""
+    from host.studies.engine import SweepOutcome
+    from host.studies.sweep_record import record_call
+
+    record_call(tmp_path, {"spec": {}}, {"command": "sweep"}, {"on": "here"}, SweepOutcome(ran=["a"], signum=signal.SIGTERM))
+    record_call(tmp_path, {"spec": {}}, {"command": "sweep"}, {"on": "here"}, SweepOutcome(ran=["b"]))
+    first, second = json.loads((tmp_path / "sweep.json").read_text())["history"]
+    assert (first["interrupted"], first["signal"], first["ran"]) == (True, "SIGTERM", 1)
+    assert (second["interrupted"], second["signal"], second["ran"]) == (False, None, 1)

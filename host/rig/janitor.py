@@ -18,29 +18,48 @@ ended the run (a launcher killed by SIGKILL, SIGQUIT — Ctrl-\\ —, or any cra
 ``end_reason`` would stay empty, as in a run still going), writes what it did to
 ``logs/janitor.log`` and exits.  The space reserve needs nobody: it is a file without a name held open by the host
 (:class:`host.experiment.outputs.RunFolder`).
+
+``ilcrig robot`` has a janitor too (``--robot``), watching the plant: a killed robot launcher
+ends the drives (SIGKILL) and the plant (SIGTERM, so that it writes its session, ``plant.json``,
+and closes its trace); the janitor waits for the plant to be gone (SIGKILL after
+:data:`HOST_WAIT_S`), then ends the ``summary.json`` the launcher keeps while the robot runs
+(``end`` ``starting`` or ``running``, ``exit_code`` null): :func:`mark_robot_launcher_lost`, with
+the plant's session read by :func:`plant_session` (the launcher's own summary reads it there too).
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import select
+import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 from bus.processes import spawn_process
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["DONE", "HOST_WAIT_S", "Janitor", "mark_launcher_lost", "run_janitor", "settle_run_folder", "start_janitor"]
+__all__ = [
+    "DONE",
+    "HOST_WAIT_S",
+    "Janitor",
+    "mark_launcher_lost",
+    "mark_robot_launcher_lost",
+    "plant_session",
+    "run_janitor",
+    "settle_run_folder",
+    "start_janitor",
+]
 
 #: what the launcher writes when it has settled the folder itself
 DONE = b"done\n"
-#: longest the janitor waits for the host to be gone after the launcher died, s
+#: longest the janitor waits for the host (the robot's plant) to be gone after the launcher died, s
 HOST_WAIT_S = 30.0
 
 
@@ -90,11 +109,57 @@ def mark_launcher_lost(out_dir: str | Path) -> str | None:
     return f"marked the summary: end_reason launcher_lost, {kept} trial(s) kept"
 
 
-class Janitor:
-    """The janitor process of one run (:func:`start_janitor`)."""
+def plant_session(out: Path) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
+    """The robot's session and the plant node's other counters, from the ``plant.json`` the plant
+    writes as it ends (``summary.json``'s ``robot`` and ``plant``; None where it left none)."""
+    try:
+        plant = json.loads((out / "plant.json").read_text())
+    except (OSError, ValueError):
+        return None, None
+    if not isinstance(plant, dict):
+        return None, None
+    return plant.get("robot"), {k: v for k, v in plant.items() if k != "robot"} or None
 
-    def __init__(self, proc: subprocess.Popen[bytes]) -> None:
+
+def mark_robot_launcher_lost(out_dir: str | Path) -> str | None:
+    """The ``summary.json`` of a robot session whose launcher died while starting or running it
+    (``exit_code`` still null): ``end`` ``{"reason": "launcher_lost", "was": …, "noticed_wall": …,
+    "noticed_by": "janitor"}``, the plant's session (``robot``, ``plant``: what the plant wrote as it
+    ended), the duration up to now; ``exit_code`` stays null (the launcher never exited). Returns the
+    line that says so (None: the launcher ended the session itself, or there is no summary). Never
+    raises (a failure is logged)."""
+
+    from bus.atomic import atomic_write
+    from host.experiment.outputs import SUMMARY_NAME
+
+    d = Path(out_dir)
+    path = d / SUMMARY_NAME
+    try:
+        summary = json.loads(path.read_text())
+        if not isinstance(summary, dict) or summary.get("exit_code") is not None:
+            return None
+        now = time.time()
+        was = (summary.get("end") or {}).get("reason")
+        summary["end"] = {"reason": "launcher_lost", "was": was, "noticed_wall": now, "noticed_by": "janitor"}
+        summary["robot"], summary["plant"] = plant_session(d)
+        if isinstance(summary.get("started"), int | float):
+            summary["duration_s"] = now - summary["started"]
+        atomic_write(path, json.dumps(summary, indent=2, default=str) + "\n", fsync=True)
+    except Exception:  # noqa: BLE001 - tidying must not raise
+        logger.warning("cannot mark the summary of %s", d, exc_info=True)
+        return None
+    robot = summary["robot"]
+    stepped = f"{robot['periods']} periods stepped, {robot['syncs']} SYNCs seen" if robot else "the plant left no session"
+    return f"marked the summary: end launcher_lost (the robot was {was}); {stepped}"
+
+
+class Janitor:
+    """The janitor process of one run (:func:`start_janitor`); ``robot``: of an ``ilcrig robot``
+    session (nothing to settle in its folder)."""
+
+    def __init__(self, proc: subprocess.Popen[bytes], robot: bool = False) -> None:
         self.proc = proc
+        self.robot = robot
 
     @property
     def pid(self) -> int:
@@ -113,17 +178,19 @@ class Janitor:
             self.proc.wait()
 
 
-def start_janitor(out_dir: Path, host_pid: int) -> Janitor | None:
-    """Start the janitor of the run folder ``out_dir`` whose host is ``host_pid`` (None: it could
-    not be started; logged — the run goes on without it)."""
+def start_janitor(out_dir: Path, host_pid: int, robot: bool = False) -> Janitor | None:
+    """Start the janitor of the run folder ``out_dir`` whose host is ``host_pid`` (``robot``: of the
+    robot session whose plant is ``host_pid``); None: it could not be started (logged — the run goes
+    on without it)."""
     argv = [sys.executable, "-P", "-m", "host.cli.janitor", "--out", str(out_dir), "--wait", str(host_pid)]
+    argv += ["--robot"] if robot else []
     try:
         # a session of its own (a terminal's Ctrl-C is the launcher's) and no death signal: it outlives the launcher
         proc = spawn_process(argv, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, death_signal=None)
     except OSError as err:
         logger.warning("cannot start the run folder's janitor: %s", err)
         return None
-    return Janitor(proc)
+    return Janitor(proc, robot)
 
 
 def _launcher_gone(stdin: IO[bytes]) -> bool:
@@ -138,34 +205,45 @@ def _launcher_gone(stdin: IO[bytes]) -> bool:
             return False
 
 
-def _wait_for(pidfd: int | None, pid: int, timeout_s: float) -> None:
-    """Until process ``pid`` is gone (its pidfd readable; without one: /proc says so), ≤ ``timeout_s``."""
+def _wait_for(pidfd: int | None, pid: int, timeout_s: float) -> bool:
+    """Until process ``pid`` is gone (its pidfd readable; without one: /proc says so), ≤ ``timeout_s``;
+    whether it is gone."""
     if pidfd is not None:
-        select.select([pidfd], [], [], timeout_s)
-        return
+        return bool(select.select([pidfd], [], [], timeout_s)[0])
     deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
+    while True:
         try:
             state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
         except (OSError, IndexError):
-            return
+            return True
         if state in ("Z", "X"):
-            return
+            return True
+        if time.monotonic() >= deadline:
+            return False
         time.sleep(0.05)
 
 
-def run_janitor(out: str | Path, host_pid: int) -> int:
-    """The janitor process of the run folder ``out`` whose host is ``host_pid`` (module docstring);
-    its exit code."""
+def run_janitor(out: str | Path, host_pid: int, robot: bool = False) -> int:
+    """The janitor process of the run folder ``out`` whose host (``robot``: the robot's plant) is
+    ``host_pid`` (module docstring); its exit code."""
     try:
         pidfd: int | None = os.pidfd_open(host_pid)
     except (AttributeError, OSError):
         pidfd = None  # no pidfds here, or the host is gone already
     if not _launcher_gone(sys.stdin.buffer):
         return 0
-    _wait_for(pidfd, host_pid, HOST_WAIT_S)
-    done = settle_run_folder(out)
-    marked = mark_launcher_lost(out)
+    done: list[str] = []
+    if not _wait_for(pidfd, host_pid, HOST_WAIT_S):
+        done.append(f"process {host_pid} still ran {HOST_WAIT_S:.0f} s after the launcher died: killed")
+        with contextlib.suppress(OSError):
+            if pidfd is not None:
+                signal.pidfd_send_signal(pidfd, signal.SIGKILL)
+            else:
+                os.kill(host_pid, signal.SIGKILL)
+        _wait_for(pidfd, host_pid, HOST_WAIT_S)
+    if not robot:
+        done += settle_run_folder(out)
+    marked = mark_robot_launcher_lost(out) if robot else mark_launcher_lost(out)
     if marked is not None:
         done.append(marked)
     if done:

@@ -37,6 +37,7 @@ from typing import IO, Any
 from bus.errors import InputError
 from bus.exit_codes import EXIT_CHILD_FAILED, EXIT_ERROR
 from bus.lockstep_process import mechanisms_left_out
+from bus.processes import DEFAULT_DEATH_SIGNAL
 from bus.timer_slack import FINE_TIMER_SLACK_NS
 from host.rig.cpu_latency import CpuLatencyRequest, request_cpu_latency
 from host.rig.fair_scheduling import host_policy
@@ -190,19 +191,26 @@ class LaunchCore(LauncherConsole):
         return self.hub_address
 
     def spawn(
-        self, name: str, argv: list[str], log_path: Path | None, *, stderr_only: bool = False, batch: bool = False
+        self,
+        name: str,
+        argv: list[str],
+        log_path: Path | None,
+        *,
+        stderr_only: bool = False,
+        batch: bool = False,
+        death_signal: int = DEFAULT_DEATH_SIGNAL,
     ) -> Child:
         """Start one role (:func:`host.rig.processes.spawn`) and keep it among :attr:`children`."""
-        child = spawn(name, argv, log_path, stderr_only=stderr_only, batch=batch)
+        child = spawn(name, argv, log_path, stderr_only=stderr_only, batch=batch, death_signal=death_signal)
         self.children.append(child)
         return child
 
-    def start_janitor(self, host_pid: int) -> None:
-        """The run folder's janitor, watching ``host_pid`` (:mod:`host.rig.janitor`)."""
+    def start_janitor(self, host_pid: int, robot: bool = False) -> None:
+        """The run folder's janitor, watching ``host_pid`` (``robot``: the robot's plant; :mod:`host.rig.janitor`)."""
         from host.rig.janitor import start_janitor
 
         if self.out_dir is not None:
-            self._janitor = start_janitor(self.out_dir, host_pid)
+            self._janitor = start_janitor(self.out_dir, host_pid, robot)
 
     def lockstep_pids(self) -> dict[str, int]:
         """The hub (if any) and every child started so far: name → pid."""
@@ -286,7 +294,7 @@ class LaunchCore(LauncherConsole):
     def _dismiss_janitor(self) -> None:
         if self._janitor is None:
             return
-        if self.out_dir is not None:
+        if self.out_dir is not None and not self._janitor.robot:
             from host.rig.janitor import settle_run_folder
 
             settle_run_folder(self.out_dir)  # every path: also a launch that failed half way

@@ -33,7 +33,9 @@ Waiting for a marker, not for rounds
 
 What can go wrong is noted, with the monotonic time it was seen, for the host's watchdog: the bus
 failing (:attr:`ChannelMonitor.bus_error`), bus error frames (:attr:`ChannelMonitor.error_frames`),
-the log failing, e.g. on a full disk (:attr:`ChannelMonitor.log_error`: the log stops, the
+the log failing (it is flushed at most :attr:`ChannelMonitor.LOG_FLUSH_S` after a frame was
+written, or once the channel is quiet for :attr:`ChannelMonitor.WAIT_S`: a launcher killed then
+loses no more than that), e.g. on a full disk (:attr:`ChannelMonitor.log_error`: the log stops, the
 counting goes on).  On the io channel the monitor also follows the trials and ticks as the plant's
 frames show them (:attr:`ChannelMonitor.follower`, for a fault's ``tick``; with arrays only the
 control frames and the last encoder frame between them are looked at).  For ``--inject
@@ -89,6 +91,8 @@ class ChannelMonitor:
     FRAMES_ROUND_S: float = 0.1
     #: longest blocking wait for a frame, s (bounds the reaction to :meth:`close`)
     WAIT_S: float = 0.1
+    #: the log is handed to the kernel at least this often while frames come, s
+    LOG_FLUSH_S: float = 0.05
     #: the reading thread's nice increment: nobody waits for a monitor, so it yields the cores
     #: to the lockstep processes (Linux sets the nice value per thread)
     NICE_INCREMENT: int = 10
@@ -150,6 +154,7 @@ class ChannelMonitor:
         if self.bulk:
             _lower_own_priority(self.NICE_INCREMENT)
         try:
+            flush_due: float | None = None  # when the log's unflushed lines must be flushed
             while not self._stop.is_set():
                 if self._recv_frames is not None:
                     batch: Sized = self._read_frames()
@@ -157,6 +162,11 @@ class ChannelMonitor:
                     batch = recv_waiting(bus, self.WAIT_S)
                     if batch:
                         self._process(batch)
+                if len(batch) and flush_due is None:
+                    flush_due = time.monotonic() + self.LOG_FLUSH_S
+                if flush_due is not None and (not len(batch) or time.monotonic() >= flush_due):
+                    self._flush_log()
+                    flush_due = None
                 with self._round_done:
                     self._rounds += 1
                     self._round_done.notify_all()
@@ -191,6 +201,15 @@ class ChannelMonitor:
                     for msg in batch:
                         log.on_message_received(msg)
                 except (OSError, ValueError) as err:  # ValueError: a write to a file closed by a failure
+                    self._log_failed(err)
+
+    def _flush_log(self) -> None:
+        """Hand the log's lines written so far to the kernel (a failure stops the log, as a write's does)."""
+        with self.lock:
+            if self.log is not None:
+                try:
+                    self.log.flush()
+                except (OSError, ValueError) as err:
                     self._log_failed(err)
 
     def _injected_failure(self) -> None:

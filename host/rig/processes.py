@@ -29,7 +29,7 @@ from typing import Any
 
 from bus.cia301.nmt import HOST_NODE_ID
 from bus.plant_objects import DEFAULT_PLANT_NODE_ID
-from bus.processes import killpg, spawn_process
+from bus.processes import DEFAULT_DEATH_SIGNAL, killpg, spawn_process
 
 logger = logging.getLogger(__name__)
 
@@ -136,7 +136,15 @@ def cpu_s() -> float:
     return ru.ru_utime + ru.ru_stime
 
 
-def spawn(name: str, argv: list[str], log_path: Path | None, *, stderr_only: bool = False, batch: bool = False) -> Child:
+def spawn(
+    name: str,
+    argv: list[str],
+    log_path: Path | None,
+    *,
+    stderr_only: bool = False,
+    batch: bool = False,
+    death_signal: int = DEFAULT_DEATH_SIGNAL,
+) -> Child:
     """Start one role (see the module docstring).
 
     :param log_path: its stdout and stderr go here (None: the launcher's)
@@ -152,6 +160,7 @@ def spawn(name: str, argv: list[str], log_path: Path | None, *, stderr_only: boo
             stdout=None if stderr_only else log,
             stderr=log if stderr_only else (subprocess.STDOUT if log is not None else None),
             batch=batch,
+            death_signal=death_signal,
         )
     except OSError as err:
         raise LaunchError(f"cannot start {name} ({shlex.join(argv[:4])} …): {err}", name) from err

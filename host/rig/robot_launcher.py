@@ -38,6 +38,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import signal
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -52,6 +53,7 @@ from bus.transports.config import FIELDBUS, HUB_INTERFACE, TransportConfig
 from bus.transports.config import IO as IO_CHANNEL
 from bus.units import timeout_scale
 from host.experiment.outputs import SUMMARY_NAME
+from host.rig.janitor import plant_session
 from host.rig.launch_core import LaunchCore, check_transport, make_run_folder
 from host.rig.monitor import ChannelMonitor
 from host.rig.options import RobotOptions
@@ -62,7 +64,7 @@ from host.rig.role_commands import child_argv
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["BOOT_TIMEOUT_S", "RobotLauncher", "launch_robot"]
+__all__ = ["BOOT_TIMEOUT_S", "SUMMARY_SCHEMA", "RobotLauncher", "launch_robot"]
 
 #: how long the nodes get to boot (a first start compiles the numba kernels), s (× scale)
 BOOT_TIMEOUT_S: float = 120.0
@@ -124,7 +126,14 @@ class RobotLauncher(LaunchCore):
             return self._interrupted()
         mode = "realtime" if opts.realtime else "sync"
         plant_extra = ["--robot", mode, "--trace", str(out / "trace.bin"), "--summary", str(out / "plant.json")]
-        self.spawn("plant", child_argv("plant", bus_args, extra=plant_extra, debug=debug), log_dir / "plant.log")
+        # SIGTERM when the launcher dies: the plant ends its session (plant.json, the trace) for the janitor
+        plant = self.spawn(
+            "plant",
+            child_argv("plant", bus_args, extra=plant_extra, debug=debug),
+            log_dir / "plant.log",
+            death_signal=signal.SIGTERM,
+        )
+        self.start_janitor(plant.pid, robot=True)
         # drives of a SYNC-stepped plant: a SYNC's TPDOs carry its control cycle (docs/robot.md, Time)
         param_dir = opts.param_dir
         drive_extra = ["--lockstep"] + (["--param-dir", str(Path(param_dir).resolve())] if param_dir else [])
@@ -132,13 +141,15 @@ class RobotLauncher(LaunchCore):
         for node in DRIVE_NODE_IDS:
             argv = child_argv("drive", bus_args, node=node, extra=drive_extra, debug=debug)
             self.spawn(f"drive{node}", argv, log_dir / f"drive{node}.log")
+        self._write_summary(None)  # "starting": what a killed launcher leaves for the janitor to end
         code = self._wait_booted()
         if code is not None:
             return code
         if opts.realtime:
             self._scheduling = self.schedule_realtime()  # no host: SCHED_FIFO, else the fair-scheduling fallback
-        self._announce(tc, mode)
         self._end = {"reason": "running"}
+        self._write_summary(None)
+        self._announce(tc, mode)
         return self._watch()
 
     def _open_monitors(self, tc: TransportConfig, out: Path) -> None:
@@ -309,19 +320,19 @@ class RobotLauncher(LaunchCore):
                 self.live.close()
 
     def _closing(self, code: int) -> None:
-        self._write_summary(code)
+        written = self._write_summary(code)
+        if written is not None:
+            self._say_closing(*written)
 
-    def _write_summary(self, code: int) -> None:
-        """``summary.json`` of the session (module docstring); the closing line on stdout."""
+    def _write_summary(self, code: int | None) -> tuple[Path, dict[str, Any] | None] | None:
+        """``summary.json`` of the session (module docstring) as it stands: written when the
+        processes are started (``end`` ``starting``, ``exit_code`` null), when the robot is ready
+        (``running``) and on every exit (the exit code); its path and the robot's session (None: no
+        folder, or the write failed: said on stderr at the exit)."""
         out = self.out_dir
         if out is None:
-            return
-        plant: dict[str, Any] | None = None
-        try:
-            plant = json.loads((out / "plant.json").read_text())
-        except (OSError, ValueError):
-            plant = None
-        robot = (plant or {}).get("robot")
+            return None
+        robot, plant = plant_session(out) if code is not None else (None, None)
         channels = {
             m.name: m.counter.as_dict() | {"error_frames": m.error_frames, "overflow_frames": m.overflow_frames}
             for m in self.monitors
@@ -339,7 +350,7 @@ class RobotLauncher(LaunchCore):
             "deaths": [{"name": d.name, "pid": d.pid, "status": d.status} for d in self.deaths],
             "scheduling": self._scheduling,
             "robot": robot,
-            "plant": {k: v for k, v in (plant or {}).items() if k != "robot"} or None,
+            "plant": plant,
             "bus": self.watch.info() | {"channels": channels},
             "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
         }
@@ -347,8 +358,15 @@ class RobotLauncher(LaunchCore):
         try:
             atomic_write(path, json.dumps(summary, indent=2, default=str) + "\n", fsync=True)
         except OSError as err:
-            self._say_err(f"ilcrig: error: cannot write {path}: {err.strerror or err}")
-            return
+            if code is not None:
+                self._say_err(f"ilcrig: error: cannot write {path}: {err.strerror or err}")
+            else:
+                logger.warning("cannot write %s: %s", path, err)
+            return None
+        return path, robot
+
+    def _say_closing(self, path: Path, robot: dict[str, Any] | None) -> None:
+        """The closing line on stdout: the periods stepped and the SYNCs seen, or why there are none."""
         if robot is not None:
             rt = robot.get("realtime") or {}
             late = (

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+import signal
 from pathlib import Path
 from typing import Any
 
@@ -93,6 +94,7 @@ def record_call(out: Path, doc: dict[str, Any], call: dict[str, Any], where: dic
         "skipped": len(outcome.skipped),
         "errors": outcome.errors,
         "interrupted": outcome.interrupted,
+        "signal": signal.Signals(outcome.signum).name if outcome.signum is not None else None,
         "cluster_lost": outcome.cluster_lost,
     }
     history.append(call | counts | where | {"wall_s": round(outcome.wall_s, 3)})
