@@ -13,7 +13,8 @@ extras of a python-can bus (:mod:`bus.bus_features`), SocketCAN's error frame of
 and the real-time diagnostic switch (:mod:`bus.lockstep_process`), candump logs (:mod:`bus.canlog`),
 the SAFE-STATE log record (:mod:`bus.safe_state`), the shared errors (:mod:`bus.errors`), every
 exit code (:mod:`bus.exit_codes`), atomic writes (:mod:`bus.atomic`) and the one spawn function
-with its lifetime policy (:mod:`bus.processes`).
+with its lifetime policy (:mod:`bus.processes`), a record's writer and whether it still runs
+(:mod:`bus.process_identity`).
 Subpackages: :mod:`bus.cia301` (the hand-written CANopen stack) and :mod:`bus.transports` (how
 channels are carried).
 

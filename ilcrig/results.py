@@ -26,7 +26,7 @@ import numpy.typing as npt
 from bus import units
 from bus.errors import InputError
 from host.experiment.arrays import load_reference, load_trial
-from host.experiment.outputs import summary_of
+from host.experiment.outputs import end_reason_of, summary_of
 from host.learning.protocol import AUXILIARY, LEARNING
 
 logger = logging.getLogger(__name__)
@@ -168,9 +168,10 @@ class Results:
     @property
     def end_reason(self) -> str | None:
         """How the run ended: ``completed``, ``fault``, ``interrupted``, ``law_error``,
-        ``user_exception``, ``stopped`` or, on the rig, ``launcher_lost`` (None while it runs)."""
-        reason = self.summary.get("end_reason")
-        return str(reason) if reason is not None else None
+        ``user_exception``, ``stopped``, on the rig ``launcher_lost``, or ``writer_lost`` (the
+        process that wrote the summary is gone and left it without an end: killed with nobody left
+        to say so); None while it runs."""
+        return end_reason_of(self.summary)
 
     @property
     def check(self) -> dict[str, Any]:

@@ -118,9 +118,9 @@ def group_gone(pgid: int, guard_s: float) -> None:
         time.sleep(0.1)
 
 
-def sim_signalled_at_row(out: Path, row: str, sig: int) -> tuple[int, str]:
+def sim_signalled_at_row(out: Path, row: str, sig: int) -> tuple[int, str, int]:
     """``ilcrig sim --iterations 200 --cycle 0.15 --out out``, sent ``sig`` when it prints the
-    table row of trial ``row``; (exit code, stderr). The process is always reaped."""
+    table row of trial ``row``; (exit code, stderr, its pid). The process is always reaped."""
     proc = subprocess.Popen(
         [sys.executable, "-u", "-m", "host.cli", "sim", "--iterations", "200", "--cycle", "0.15", "--out", str(out)],
         stdout=subprocess.PIPE,
@@ -139,4 +139,4 @@ def sim_signalled_at_row(out: Path, row: str, sig: int) -> tuple[int, str]:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    return proc.returncode, err
+    return proc.returncode, err, proc.pid

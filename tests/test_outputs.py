@@ -317,7 +317,7 @@ def test_sigterm_during_sim_is_marked(tmp_path: Path) -> None:
     """``ilcrig sim`` killed with SIGTERM after its first trial: exit 143, ``interrupted`` in the
     summary, the completed trial kept."""
     out = tmp_path / "run"
-    code, err = sim_signalled_at_row(out, "0", signal.SIGTERM)  # the row of trial 0
+    code, err, _ = sim_signalled_at_row(out, "0", signal.SIGTERM)  # the row of trial 0
     assert code == 143, err
     # nothing on stderr (but a warning of the plan's convergence check, were there one)
     assert "Traceback" not in err

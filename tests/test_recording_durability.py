@@ -367,9 +367,10 @@ def test_a_rig_run_on_a_disk_that_fills_in_a_trial(tmp_path: Path) -> None:
 def test_a_killed_sim_never_leaves_an_unreadable_recording(tmp_path: Path) -> None:
     """``ilcrig sim`` killed with SIGKILL in the middle of its trials (no process outlives it): the
     recording opens with RrdReader and holds the summary's trials, or one more (killed between
-    the two writes; the launcher or the janitor cut that back in ``ilcrig run``)."""
+    the two writes; the launcher or the janitor cut that back in ``ilcrig run``); the API reads
+    the run as ``writer_lost``, not as one still going."""
     out = tmp_path / "run"
-    sim_signalled_at_row(out, "3", signal.SIGKILL)
+    pid = sim_signalled_at_row(out, "3", signal.SIGKILL)[2]
     s = json.loads((out / "summary.json").read_text())
     k = len(s["iterations"])
     assert recorded_trials(out / "recording.rrd") in (list(range(k)), list(range(k + 1)))
@@ -377,3 +378,9 @@ def test_a_killed_sim_never_leaves_an_unreadable_recording(tmp_path: Path) -> No
 
     settle_run_folder(out)
     assert recorded_trials(out / "recording.rrd") == list(range(k))
+    # nobody outlived it to end the summary; its writer's identity says the run is not still going
+    assert s["end_reason"] is None and s["writer"]["pid"] == pid
+    import ilcrig
+
+    res = ilcrig.load(out)
+    assert (res.end_reason, res.completed, len(res.trials)) == ("writer_lost", False, k)

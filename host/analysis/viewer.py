@@ -183,12 +183,12 @@ def _end_group(proc: subprocess.Popen[bytes]) -> None:
 
 def _why_no_recording(folder: Path) -> str:
     """What the run folder's summary says of a run without a recording ("": no summary there)."""
-    from host.experiment.outputs import SUMMARY_NAME, read_summary
+    from host.experiment.outputs import SUMMARY_NAME, end_reason_of, read_summary
 
     s = read_summary(folder)
     if s is None:
         return ""
-    how = s.get("end_reason") or "still running, or killed with no one left to say so"
+    how = end_reason_of(s) or "still running"
     mark = s.get("interrupted")
     if isinstance(mark, dict) and mark.get("signal"):
         how = f"interrupted by {mark['signal']}"

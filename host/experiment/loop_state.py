@@ -23,6 +23,7 @@ from bus import units
 from bus.cyclic import PDO_MODE, nm_to_permille_array, permille_to_nm_array
 from bus.errors import IlcrigError
 from bus.objects import ModeOfOperation
+from bus.process_identity import process_identity
 from host.experiment.bench import Bench, CyclicSetpoints, TrialFault, TrialRecorder
 from host.experiment.faults import FaultKind, FaultRecord
 from host.experiment.law_watch import LawWatch
@@ -48,6 +49,9 @@ class EndReason(StrEnum):
     USER_EXCEPTION = "user_exception"  # an exception of the caller's code in the API (summary["user_exception"])
     STOPPED = "stopped"  # the caller ended it early (the API: a break, close())
     LAUNCHER_LOST = "launcher_lost"  # ilcrig run's launcher died first (SIGKILL, SIGQUIT): its janitor said so
+    #: never written: what a reader says of a summary still without an end whose writer is gone
+    #: (host.experiment.outputs.end_reason_of: killed with nobody left to say so)
+    WRITER_LOST = "writer_lost"
 
 
 @dataclass
@@ -100,6 +104,7 @@ def new_summary(plan: Plan, mode: str, digest: TraceDigest) -> dict[str, Any]:
         "faults": [],
         "completed": False,
         "end_reason": None,
+        "writer": process_identity(),  # who ends this summary: a reader can tell a run killed unseen
     } | ({"bus_fit": plan.bus_fit} if plan.bus_fit is not None else {})
 
 

@@ -16,7 +16,8 @@ This module owns
   holds through open descriptors: it never outlives the process, whatever ends it (SIGKILL
   included);
 * :func:`summary_of` / :func:`read_summary` — the one reading of a folder's ``summary.json`` (a
-  dict with its list of ``iterations``, else not a summary);
+  dict with its list of ``iterations``, else not a summary); :func:`end_reason_of` — how its run
+  ended, ``writer_lost`` for a summary left unfinished by a process that is gone;
 * :func:`remove_leftovers` — what a run that was killed may leave in its folder (temporary files of
   atomic writes, trial arrays the summary does not hold), removed by whoever outlives it;
 * :class:`OutputError` / :class:`DiskFullError` — a failing write of the run's outputs as one
@@ -39,6 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from bus.errors import IlcrigError, InputError
+from bus.process_identity import identity_alive
 
 logger = logging.getLogger(__name__)
 
@@ -148,6 +150,17 @@ def read_summary(folder: str | Path) -> dict[str, Any] | None:
         return summary_of(folder)
     except (OSError, ValueError):
         return None
+
+
+def end_reason_of(summary: dict[str, Any]) -> str | None:
+    """How the run of ``summary`` ended: its ``end_reason``; while that is empty, ``writer_lost``
+    when the process that writes the summary (``writer``, :mod:`bus.process_identity`) is gone —
+    killed with nobody left to say so —, else None (the run is still going, or this machine cannot
+    tell: a summary written on another host)."""
+    reason = summary.get("end_reason")
+    if reason is not None:
+        return str(reason)
+    return "writer_lost" if identity_alive(summary.get("writer")) is False else None
 
 
 def check_out_dir(
