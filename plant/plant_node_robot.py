@@ -526,5 +526,12 @@ def robot_info(loop: RobotLoop) -> dict[str, Any]:
         out["q_rad"] = [float(v) for v in loop.mechanics.plant.q]
         out["tcp"] = list(loop.tcp_pose())
     if loop.trace is not None:
-        out["trace"] = {"path": str(loop.trace.path), "records": loop.trace.records, "error": loop.trace.error}
+        trace = loop.trace
+        # records: in the file; not_written: the periods a failed write lost (trace.error says why)
+        out["trace"] = {
+            "path": str(trace.path),
+            "records": trace.written,
+            "not_written": trace.records - trace.written,
+            "error": trace.error,
+        }
     return out

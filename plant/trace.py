@@ -72,8 +72,10 @@ class TraceWriter:
         self._file.write(MAGIC + json.dumps(header).encode() + b"\n")
         self._buf = np.zeros(self.BLOCK, dtype=TRACE_DTYPE)
         self._n = 0
-        #: records written (or buffered) so far
+        #: records added so far (written, buffered, or lost to a failed write)
         self.records = 0
+        #: records in the file (written and flushed)
+        self.written = 0
         #: why writing stopped (None while it works)
         self.error: str | None = None
 
@@ -100,6 +102,7 @@ class TraceWriter:
         try:
             f.write(self._buf[: self._n].tobytes())
             f.flush()
+            self.written += self._n
         except OSError as err:
             self.error = f"{err.strerror or err}"
             logger.error("robot trace %s stopped: %s", self.path, self.error)

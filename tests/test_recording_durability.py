@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 from cli_util import sim_signalled_at_row
 from fault_harness import recorded_trials
+from fs_util import small_tmpfs
 
 from host.analysis.recording import RunRecorder
 from host.analysis.recording_segments import TRAILER_BYTES, SegmentFile, cut_back
@@ -134,16 +135,8 @@ def test_segments_need_rerun_041s_layout() -> None:
 @pytest.fixture
 def small_fs(tmp_path: Path) -> Iterator[Path]:
     """A 4 MB tmpfs (as root), unmounted after the test."""
-    mnt = tmp_path / "small"
-    mnt.mkdir()
-    if os.geteuid() != 0 or shutil.which("mount") is None:
-        pytest.skip("needs root to mount a small tmpfs")
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(mnt)], capture_output=True).returncode:
-        pytest.skip("cannot mount a tmpfs here")
-    try:
+    with small_tmpfs(tmp_path / "small", 4096) as mnt:
         yield mnt
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
 
 
 def test_the_reserve_never_outlives_its_process(small_fs: Path) -> None:
@@ -336,16 +329,10 @@ def test_a_rig_run_on_a_disk_that_fills_in_a_trial(tmp_path: Path) -> None:
     """``ilcrig run`` on a small tmpfs: the candump logs fill it during a trial; the run ends with a
     disk_full fault, the recording (written into the reserve's room) holds exactly the summary's
     trials, nothing is left behind. Sized from a run of the same experiment: a few trials fit."""
-    mnt = tmp_path / "small"
-    mnt.mkdir()
-    if os.geteuid() != 0:
-        pytest.skip("needs root to mount a small tmpfs")
     from host.experiment.outputs import reserve_bytes
 
     size_k = (reserve_bytes(6, 301) + 1_400_000) // 1024  # the reserve and ~2 trials' logs, recording and arrays
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_k}k", "tmpfs", str(mnt)], capture_output=True).returncode:
-        pytest.skip("cannot mount a tmpfs here")
-    try:
+    with small_tmpfs(tmp_path / "small", size_k) as mnt:
         from fault_harness import kill_session, run_rig
 
         o = run_rig(mnt / "run", iterations=6)
@@ -360,8 +347,6 @@ def test_a_rig_run_on_a_disk_that_fills_in_a_trial(tmp_path: Path) -> None:
             assert not {n for n in names if n.endswith(".tmp") or "reserve" in n}, names
         finally:
             kill_session(o)
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
 
 
 def test_a_killed_sim_never_leaves_an_unreadable_recording(tmp_path: Path) -> None:

@@ -15,6 +15,7 @@ import json
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -22,6 +23,7 @@ import can
 import numpy as np
 import pytest
 from cli_util import run_cli
+from fs_util import small_tmpfs
 from robot_util import DRIVES, RobotProcess, check_pick_and_place, pid_alive, run_example, run_example_in_process
 
 from bus.canlog import read_log
@@ -112,6 +114,43 @@ def test_ctrl_c_stops_every_process_with_130(robot: RobotProcess) -> None:
     assert summary["end"] == {"reason": "interrupted", "signal": "SIGINT"}
     assert summary["robot"]["periods"] == 0 and summary["robot"]["brakes"] == 0xF
     assert set(DRIVES) <= {int(n[-1]) for n in pids if n.startswith("drive")}
+
+
+def test_a_disk_that_fills_ends_the_session_as_a_fault_with_every_record_true(tmp_path: Path) -> None:
+    """The run folder on a small filesystem that the session's candump logs fill while a master
+    steps the robot: the session ends as a fault (one line naming the log and the error, exit 3),
+    the space reserve taken at the start holds the last records — the plant's session, the whole
+    trace, the summary saying how it ended — and no process is left."""
+    with small_tmpfs(tmp_path / "small", 400) as mnt:
+        robot = RobotProcess(mnt / "robot")
+        try:
+            where = robot.ready()
+            sent = 0
+            with can.Bus(interface=where["interface"], channel=where["channel"]) as master:
+                while robot.proc.poll() is None and sent < 20_000:  # ~1,000 periods of logs fill it
+                    try:
+                        master.send(can.Message(arbitration_id=0x080, is_extended_id=False, data=b""))
+                    except can.CanError:
+                        break  # the hub went away with the robot
+                    sent += 1
+                    time.sleep(0.002)
+            code = robot.wait()
+        finally:
+            robot.kill()
+        assert code == 3, (robot.stdout, robot.stderr)
+        assert not [pid for pid in where["pids"].values() if pid_alive(pid)]
+        (line,) = [ln for ln in robot.stderr if ln.startswith("ilcrig: fault:")]
+        assert "No space left on device" in line and "the robot stopped, every process of it ended" in line, line
+        summary = json.loads((robot.out / "summary.json").read_text())
+        assert summary["exit_code"] == 3
+        end = summary["end"]
+        assert end["reason"] == "fault" and end["disk_full"] is True and end["records"] in ("io.log", "fieldbus.log"), end
+        r = summary["robot"]
+        accounted = r["periods"] + r["periods_dropped"] + r["period_in_progress"] + r["syncs_waiting"] + r["syncs_unstepped"]
+        assert r["syncs"] == accounted and r["periods"] > 0, r  # the session ended while a master streamed
+        assert r["trace"]["error"] is None and r["trace"]["not_written"] == 0, r
+        assert len(read_trace(robot.out / "trace.bin").records) == r["trace"]["records"] == r["periods"]
+        assert f"{r['periods']} periods stepped" in robot.stdout[-1], robot.stdout[-1]
 
 
 def test_a_bus_error_frame_the_monitors_hear_is_said_and_counted(robot: RobotProcess) -> None:

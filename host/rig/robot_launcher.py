@@ -35,6 +35,7 @@ stepped, SYNCs seen, late / missing SYNCs, overruns, faults — and what the mon
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -52,7 +53,7 @@ from bus.plant_objects import DEFAULT_PLANT_NODE_ID, PLANT_EDS_PATH
 from bus.transports.config import FIELDBUS, HUB_INTERFACE, TransportConfig
 from bus.transports.config import IO as IO_CHANNEL
 from bus.units import timeout_scale
-from host.experiment.outputs import SUMMARY_NAME
+from host.experiment.outputs import SUMMARY_NAME, RunFolder
 from host.rig.janitor import plant_session
 from host.rig.launch_core import LaunchCore, check_transport, make_run_folder
 from host.rig.monitor import ChannelMonitor
@@ -98,6 +99,8 @@ class RobotLauncher(LaunchCore):
     _t0: float = field(default_factory=time.time, init=False, repr=False)
     _end: dict[str, Any] = field(default_factory=lambda: {"reason": "starting"}, init=False, repr=False)
     _scheduling: dict[str, Any] | None = field(default=None, init=False, repr=False)
+    #: the run folder's space reserve (given back for the last records after a full disk)
+    _space: RunFolder | None = field(default=None, init=False, repr=False)
     #: the ready lines were printed (the robot took SYNCs from then on)
     _ready: bool = field(default=False, init=False, repr=False)
 
@@ -114,6 +117,8 @@ class RobotLauncher(LaunchCore):
         tc = transport_from_name(opts.bus, opts.hub, opts.allow_remote)
         out, log_dir = make_run_folder(opts.out or None, "robot")
         self.out_dir = out
+        self._space = RunFolder(out, 0)
+        self._space.reserve()  # room for the last records after a full disk (_records_failed)
         bus_args = ["--bus", tc.name]
         if tc.needs_hub:
             bus_args += ["--hub", self.start_hub(None, log_dir / "hub.log")]
@@ -243,7 +248,34 @@ class RobotLauncher(LaunchCore):
                 return self._fault()
             emcys_seen = self._say_robot_faults(emcys_seen)
             self._say_monitor_errors()
+            if self._log_failed() is not None:
+                return self._records_failed()
             time.sleep(POLL_S)
+
+    def _log_failed(self) -> ChannelMonitor | None:
+        """The first monitor whose candump log stopped (a failing write: a full disk), if any."""
+        return next((m for m in self.monitors if m.log_error is not None), None)
+
+    def _records_failed(self) -> int:
+        """A channel log could not be written (a full disk): the session's records would stop
+        there, so the session ends as a fault — one line, exit 3 —, the space reserve given back
+        first so that the plant's session and the summary still fit."""
+        m = self._log_failed()
+        assert m is not None
+        if self._space is not None:
+            self._space.release_last()
+        self._end = {
+            "reason": "fault",
+            "records": f"{m.name}.log",
+            "error": m.log_error,
+            "disk_full": m.log_disk_full,
+            "t_mono": m.log_error_t,
+        }
+        self._say_err(
+            f"ilcrig: fault: cannot write {m.name}.log in {self.out_dir} ({m.log_error}): the session's records "
+            "would stop there; the robot stopped, every process of it ended"
+        )
+        return EXIT_FAULT
 
     def _say_monitor_errors(self) -> None:
         """One console line per channel whose monitor heard its first bus error frame since the
@@ -320,6 +352,8 @@ class RobotLauncher(LaunchCore):
                 self.live.close()
 
     def _closing(self, code: int) -> None:
+        if self._space is not None:
+            self._space.release_last()  # every process has ended: the summary is the last write
         written = self._write_summary(code)
         if written is not None:
             self._say_closing(*written)
@@ -355,14 +389,22 @@ class RobotLauncher(LaunchCore):
             "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
         }
         path = out / SUMMARY_NAME
+        text = json.dumps(summary, indent=2, default=str) + "\n"
         try:
-            atomic_write(path, json.dumps(summary, indent=2, default=str) + "\n", fsync=True)
+            atomic_write(path, text, fsync=True)
         except OSError as err:
-            if code is not None:
-                self._say_err(f"ilcrig: error: cannot write {path}: {err.strerror or err}")
-            else:
+            if code is None:
                 logger.warning("cannot write %s: %s", path, err)
-            return None
+                return None
+            # the last word: the summary kept while the robot ran says it still runs — never leave
+            # that behind; its space may be what this one needs
+            with contextlib.suppress(OSError):
+                path.unlink()
+            try:
+                atomic_write(path, text, fsync=True)
+            except OSError:
+                self._say_err(f"ilcrig: error: cannot write {path}: {err.strerror or err}; the session left no summary")
+                return None
         return path, robot
 
     def _say_closing(self, path: Path, robot: dict[str, Any] | None) -> None:
@@ -375,9 +417,11 @@ class RobotLauncher(LaunchCore):
                 if rt
                 else ""
             )
+            trace = robot.get("trace") or {}
+            lost = f"; trace.bin holds {trace['records']} of them ({trace['error']})" if trace.get("error") is not None else ""
             self._say_out(
                 f"ilcrig robot: {robot['periods']} periods stepped, {robot['syncs']} SYNCs seen "
-                f"({robot['sync_overruns']} overruns{late}), {robot['faults_total']} robot faults; summary: {path}"
+                f"({robot['sync_overruns']} overruns{late}), {robot['faults_total']} robot faults{lost}; summary: {path}"
             )
         elif not self._ready:  # it ended while starting: say how, not that a summary is missing
             end = self._end
