@@ -1,5 +1,5 @@
 """One run, one folder: a run folder that holds another run is refused before anything starts
-(``ilcrig sim``, ``ilcrig run``, the API), with one line and exit code 2, and nothing in it changes."""
+(``ilcrig sim``, ``ilcrig run``, ``ilcrig robot``, the API), with one line and exit code 2, and nothing in it changes."""
 
 from __future__ import annotations
 
@@ -51,10 +51,19 @@ def test_the_api_refuses_a_folder_holding_a_run_too(tmp_path: Path) -> None:
         exp.run(out=tmp_path / "r")
 
 
+@pytest.mark.parametrize("command", ["sim", "robot"])
 @pytest.mark.parametrize("marker", RUN_FOLDER_MARKERS)
-def test_any_output_of_a_run_marks_the_folder(marker: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_any_output_of_a_run_marks_the_folder(
+    marker: str, command: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Of a run or of a robot session (``trace.bin``, ``plant.json``): ``ilcrig sim`` and ``ilcrig
+    robot`` (which checks before any process starts) refuse the folder, exit 2, one line."""
     out = tmp_path / "x"
     out.mkdir()
     (out / marker).mkdir() if marker in ("trials", "logs") else (out / marker).write_text("")
-    code, _, err = run_cli(capsys, "sim", "--iterations", "1", "--cycle", "0.15", "--out", str(out))
-    assert code == 2 and f"holds another run ({marker})" in err
+    args = ["--iterations", "1", "--cycle", "0.15"] if command == "sim" else []
+    code, _, err = run_cli(capsys, command, *args, "--out", str(out))
+    assert code == 2 and err.splitlines() == [
+        f"ilcrig: error: --out {out}: holds another run ({marker}); give a new or an empty folder, or remove that run"
+    ]
+    assert sorted(p.name for p in out.iterdir()) == [marker]

@@ -129,7 +129,17 @@ def reserve_bytes(iterations: int, n_ticks: int = 0) -> int:
 SUMMARY_NAME = "summary.json"
 
 #: what a run leaves in its folder: a folder holding one of them holds a run
-RUN_FOLDER_MARKERS: tuple[str, ...] = (SUMMARY_NAME, "trials", "recording.rrd", "report.md", "logs", "fieldbus.log", "io.log")
+RUN_FOLDER_MARKERS: tuple[str, ...] = (
+    SUMMARY_NAME,
+    "trials",
+    "recording.rrd",
+    "report.md",
+    "logs",
+    "fieldbus.log",
+    "io.log",
+    "trace.bin",  # an ilcrig robot session's
+    "plant.json",
+)
 
 
 def summary_of(folder: str | Path) -> dict[str, Any]:

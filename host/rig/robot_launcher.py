@@ -53,7 +53,7 @@ from bus.plant_objects import DEFAULT_PLANT_NODE_ID, PLANT_EDS_PATH
 from bus.transports.config import FIELDBUS, HUB_INTERFACE, TransportConfig
 from bus.transports.config import IO as IO_CHANNEL
 from bus.units import timeout_scale
-from host.experiment.outputs import SUMMARY_NAME, RunFolder
+from host.experiment.outputs import SUMMARY_NAME, RunFolder, check_out_dir
 from host.rig.janitor import plant_session
 from host.rig.launch_core import LaunchCore, check_transport, make_run_folder
 from host.rig.monitor import ChannelMonitor
@@ -441,9 +441,10 @@ def launch_robot(options: RobotOptions) -> int:
         raise InputError(f"--rt-priority {options.rt_priority}: the priority of a real-time robot; add --realtime")
     if options.no_idle_poll and not options.realtime:
         raise InputError("--no-idle-poll: the CPUs are kept awake only in real time; add --realtime")
-    for option, value in (("--out", options.out), ("--param-dir", options.param_dir)):
-        if value and Path(value).exists() and not Path(value).is_dir():
-            raise InputError(f"{option} {value}: not a folder")
+    if options.param_dir and Path(options.param_dir).exists() and not Path(options.param_dir).is_dir():
+        raise InputError(f"--param-dir {options.param_dir}: not a folder")
+    if options.out:  # one session, one folder: never a second session over the records of another
+        check_out_dir(options.out, create=False, new_run=True, iterations=0)
     check_transport(options)
     if not options.debug:
         # a monitor whose bus ends with a process of the robot is part of that fault, which the
