@@ -39,7 +39,7 @@ from bus.exit_codes import EXIT_CHILD_FAILED, EXIT_USAGE
 from bus.processes import spawn_process
 from host.experiment.arrays import load_reference, load_trial
 from host.experiment.config import ExperimentConfig, config_toml
-from host.experiment.outputs import SUMMARY_NAME, read_summary
+from host.experiment.outputs import SUMMARY_NAME, default_run_folder, read_summary
 from host.learning.protocol import LEARNING
 from host.learning.registry import law_class, registered_here
 from ilcrig.errors import InputError, RigError, input_error
@@ -111,7 +111,7 @@ class RigRun:
             prepare(config, rig=True)  # the launcher's preflight, here: bad input before anything starts
         except (ValueError, FileNotFoundError) as exc:
             raise input_error(exc) from None
-        self.out = Path(out) if out is not None else Path("runs") / time.strftime("api-rig-%Y%m%d-%H%M%S")
+        self.out = Path(out) if out is not None else default_run_folder("api-rig", claim=True)
         try:
             check_out_dir(self.out, iterations=config.iterations, n_ticks=config.n_ticks)
         except ValueError as exc:

@@ -67,3 +67,33 @@ def test_any_output_of_a_run_marks_the_folder(
         f"ilcrig: error: --out {out}: holds another run ({marker}); give a new or an empty folder, or remove that run"
     ]
     assert sorted(p.name for p in out.iterdir()) == [marker]
+
+
+def test_a_run_nobody_named_gets_a_folder_of_its_own(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``runs/<kind>-<time>``: two commands of the same second (or a name taken earlier) get
+    ``-2``, ``-3`` …, claimed atomically — never one folder for two runs."""
+    from host.experiment.outputs import default_run_folder
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("time.strftime", lambda fmt: fmt.replace("%Y%m%d-%H%M%S", "20261206-120000"))
+    named = default_run_folder("sim", claim=False)
+    assert named == Path("runs/sim-20261206-120000") and not named.exists()
+    claimed = [default_run_folder("sim", claim=True) for _ in range(3)]
+    assert [p.name for p in claimed] == ["sim-20261206-120000", "sim-20261206-120000-2", "sim-20261206-120000-3"]
+    assert all(p.is_dir() and not any(p.iterdir()) for p in claimed)
+    assert default_run_folder("sim", claim=False).name == "sim-20261206-120000-4"
+
+
+def test_two_sims_of_the_same_second_without_out_keep_two_folders(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("time.strftime", lambda fmt: fmt.replace("%Y%m%d-%H%M%S", "20261206-120000"))
+    for _ in range(2):
+        code, out, err = run_cli(capsys, "sim", "--iterations", "1", "--cycle", "0.15")
+        assert code == 0, err
+    runs = sorted(p.name for p in (tmp_path / "runs").iterdir())
+    assert runs == ["sim-20261206-120000", "sim-20261206-120000-2"]
+    assert all(json.loads((tmp_path / "runs" / r / "summary.json").read_text())["completed"] for r in runs)
+    code, out, err = run_cli(capsys, "sim", "--iterations", "1", "--cycle", "1e9")  # bad input: no folder made
+    assert code == 2 and sorted(p.name for p in (tmp_path / "runs").iterdir()) == runs

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -34,11 +33,11 @@ def add_parser(sub: Any) -> None:
 
 def cmd_sim(args: argparse.Namespace) -> int:
     """``ilcrig sim``: the experiment in this process (:func:`host.sim.session.run_sim`)."""
-    from host.experiment.outputs import check_out_dir
+    from host.experiment.outputs import check_out_dir, default_run_folder
     from host.sim.session import SimOptions, run_sim
 
-    out = Path(args.out) if args.out is not None else Path("runs") / time.strftime("sim-%Y%m%d-%H%M%S")
-    check_out_dir(args.out if args.out is not None else out, create=False, new_run=True)  # fast: before the configuration
+    out = Path(args.out) if args.out is not None else None  # None: a fresh runs/sim-<time>, made once the input is good
+    check_out_dir(out or default_run_folder("sim", claim=False), create=False, new_run=True)  # fast: before the configuration
     return run_sim(
         SimOptions(experiment_config(experiment_options(args)), out, view=bool(args.view), firmware=args.firmware),
         sys.stdout,

@@ -23,7 +23,6 @@ import argparse
 import logging
 import os
 import sys
-import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -128,7 +127,9 @@ def sweep_main(args: argparse.Namespace) -> int:
 
     spec = spec_of_args(args)
     points = spec.points()  # every point validated before anything starts
-    out = Path(args.out) if getattr(args, "out", None) else Path("runs") / time.strftime("sweep-%Y%m%d-%H%M%S")
+    from host.experiment.outputs import default_run_folder
+
+    out = Path(args.out) if getattr(args, "out", None) else default_run_folder("sweep", claim=True)
     check_study_folder(out, "sweep", _spec_doc(spec))  # one study, one folder: a resume or a new folder
     keys = ", ".join(spec.varied_keys) or "nothing varied"
     with interrupt_on_signals():  # Ctrl-C / SIGTERM: what finished is kept, the records say so
@@ -189,7 +190,9 @@ def tune_main(args: argparse.Namespace) -> int:
     if spec.vary:
         raise InputError("ilcrig tune takes no --vary / [vary]: the tuned keys are --param / [tune]")
     params, objective, budget = tune_settings(spec, options_of(TuneOverrides, args, params=tuple(args.param or ())))
-    out = Path(args.out) if getattr(args, "out", None) else Path("runs") / time.strftime("tune-%Y%m%d-%H%M%S")
+    from host.experiment.outputs import default_run_folder
+
+    out = Path(args.out) if getattr(args, "out", None) else default_run_folder("tune", claim=True)
     check_study_folder(out, "tune")  # one study, one folder: study.db resumes, anything else is refused
     tuner = Tuner(out, spec, params, objective, budget, sampler_seed=getattr(args, "sampler_seed", 0) or 0)
     tuner.open_study()

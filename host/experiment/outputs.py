@@ -15,6 +15,7 @@ This module owns
   where the filesystem has none, a file unlinked right after it is made) whose space the process
   holds through open descriptors: it never outlives the process, whatever ends it (SIGKILL
   included);
+* :func:`default_run_folder` — the one naming (and making) of a run folder nobody named;
 * :func:`summary_of` / :func:`read_summary` — the one reading of a folder's ``summary.json`` (a
   dict with its list of ``iterations``, else not a summary); :func:`end_reason_of` — how its run
   ended, ``writer_lost`` for a summary left unfinished by a process that is gone;
@@ -46,6 +47,9 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "DiskFullError",
+    "default_run_folder",
+    "end_reason_of",
+    "RUNS_DIR",
     "OutputError",
     "OutFolderError",
     "RunFolder",
@@ -160,6 +164,36 @@ def read_summary(folder: str | Path) -> dict[str, Any] | None:
         return summary_of(folder)
     except (OSError, ValueError):
         return None
+
+
+#: where the commands put a run folder the user did not name
+RUNS_DIR = Path("runs")
+
+
+def default_run_folder(kind: str, *, claim: bool) -> Path:
+    """The run folder of a command the user gave no ``--out``: ``runs/<kind>-<local time>``, or
+    with ``-2``, ``-3`` … where that name is taken — by an earlier run, or by another command
+    started in the same second, which would otherwise write a second run into the same folder.
+
+    :param claim: make it (atomically: of two commands racing for a name, one gets the next); else
+        only name the first one not there now (for checks before anything is made)
+    :raises OutFolderError: ``runs`` cannot hold it (one line)
+    """
+    base = RUNS_DIR / time.strftime(f"{kind}-%Y%m%d-%H%M%S")
+    for n in range(1, 10_000):
+        path = base if n == 1 else base.with_name(f"{base.name}-{n}")
+        if not claim:
+            if not path.exists():
+                return path
+            continue
+        try:
+            path.mkdir(parents=True)
+        except FileExistsError:
+            continue
+        except OSError as err:
+            raise OutFolderError(f"--out {path}: cannot create the run folder: {err.strerror or err}") from None
+        return path
+    raise OutFolderError(f"--out {base}: every name of this second is taken; give a run folder")
 
 
 def end_reason_of(summary: dict[str, Any]) -> str | None:

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import logging
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -73,11 +72,12 @@ def run_host_role(opts: HostOptions, cfg: ExperimentConfig, transport: Transport
 
     :raises InputError: a bad run folder or an infeasible experiment (before the bus is opened)
     """
-    from host.experiment.outputs import check_out_dir
+    from host.experiment.outputs import check_out_dir, default_run_folder
 
-    out = opts.out if opts.out is not None else Path("runs") / time.strftime("rig-%Y%m%d-%H%M%S")
-    check_out_dir(opts.out if opts.out is not None else out, iterations=cfg.iterations, n_ticks=cfg.n_ticks, create=False)
+    named = opts.out if opts.out is not None else default_run_folder("rig", claim=False)
+    check_out_dir(named, iterations=cfg.iterations, n_ticks=cfg.n_ticks, create=False)
     plan = prepared(cfg)
+    out = opts.out if opts.out is not None else default_run_folder("rig", claim=True)
     check_out_dir(out, iterations=cfg.iterations, n_ticks=plan.n_ticks)
     print_plan(sys.stdout, "host", plan, extra=f", transport {transport.name}")
     # what the law's first update imports or compiles (scipy.signal, numba kernels) is paid now, in

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import logging
 import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -79,7 +78,9 @@ def make_run_folder(out: str | None, kind: str) -> tuple[Path, Path]:
 
     :raises ValueError: the folder cannot be created (one line naming ``--out``)
     """
-    out_dir = Path(out) if out is not None else Path("runs") / time.strftime(f"{kind}-%Y%m%d-%H%M%S")
+    from host.experiment.outputs import default_run_folder
+
+    out_dir = Path(out) if out is not None else default_run_folder(kind, claim=True)
     log_dir = out_dir / "logs"
     try:
         log_dir.mkdir(parents=True, exist_ok=True)

@@ -30,7 +30,7 @@ from host.analysis.session import RunOutputs, finish_run_report, open_outputs, r
 from host.experiment.config import ExperimentConfig, build_config, gains_table
 from host.experiment.console import print_header, print_plan, print_row
 from host.experiment.loop_state import ExperimentResult, TrialOutcome
-from host.experiment.outputs import SUMMARY_NAME, RunFolder, check_out_dir
+from host.experiment.outputs import SUMMARY_NAME, RunFolder, check_out_dir, default_run_folder
 from host.experiment.plan import Plan, plan_with_gains, rehearse_first_update
 from host.experiment.signal_shield import deferred_interrupts, interrupt_on_signals
 from host.experiment.trial_loop import TrialLoop
@@ -178,7 +178,8 @@ class SimOptions:
     firmware."""
 
     config: ExperimentConfig
-    out: Path
+    #: the run folder (None: a fresh ``runs/sim-<time>``, :func:`host.experiment.outputs.default_run_folder`)
+    out: Path | None
     view: bool = False
     firmware: str = DEFAULT_FIRMWARE
 
@@ -195,12 +196,14 @@ def run_sim(opts: SimOptions, stream: TextIO) -> int:
 
     cfg = opts.config
     check_config_limits(cfg)  # the trial length and the memory first: an out-of-range --cycle is said as such
-    check_out_dir(opts.out, iterations=cfg.iterations, n_ticks=cfg.n_ticks, create=False)
+    named = opts.out if opts.out is not None else default_run_folder("sim", claim=False)
+    check_out_dir(named, iterations=cfg.iterations, n_ticks=cfg.n_ticks, create=False)
     plan = prepared(cfg)  # refused with one line before the run folder is made
     with interrupt_on_signals():
         try:
             with deferred_interrupts():  # a signal while the folder is made: raised once the run can end
-                session = SimSession(plan, opts.out, stream=stream, view=opts.view, firmware=opts.firmware)
+                out = opts.out if opts.out is not None else default_run_folder("sim", claim=True)
+                session = SimSession(plan, out, stream=stream, view=opts.view, firmware=opts.firmware)
             for _ in session:
                 pass
         except KeyboardInterrupt as exc:
@@ -211,6 +214,6 @@ def run_sim(opts: SimOptions, stream: TextIO) -> int:
     s = res.summary
     stream.write(
         f"{s['ticks']} ticks in {s['wall_s']:.2f} s ({s['ticks_per_s']:.0f} ticks/s); "
-        f"trace_sha256 {s['trace_sha256'][:16]}…; summary: {opts.out / SUMMARY_NAME}\n"
+        f"trace_sha256 {s['trace_sha256'][:16]}…; summary: {out / SUMMARY_NAME}\n"
     )
-    return report_fault(res, opts.out / SUMMARY_NAME)
+    return report_fault(res, out / SUMMARY_NAME)
