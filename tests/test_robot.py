@@ -153,6 +153,47 @@ def test_a_disk_that_fills_ends_the_session_as_a_fault_with_every_record_true(tm
         assert f"{r['periods']} periods stepped" in robot.stdout[-1], robot.stdout[-1]
 
 
+def test_a_monitor_that_loses_its_bus_ends_the_session_as_a_fault(tmp_path: Path) -> None:
+    """The hub drops a reader that stopped reading (an ``ilcrig robot`` stopped with Ctrl-Z for
+    long enough: its output buffer overflows) by closing its socket; the launcher, going on, found
+    its io log and counts silently ended there. Played here by closing the io monitor's socket from
+    outside while the robot runs (the launcher in this process): one fault line, exit 3, the
+    summary says which channel's records stopped."""
+    import io
+    import socket
+    import threading
+
+    from clock_util import wait_for
+
+    from host.rig.options import RobotOptions
+    from host.rig.robot_launcher import RobotLauncher
+
+    out, err = io.StringIO(), io.StringIO()
+    launcher = RobotLauncher(RobotOptions(bus="hub", out=str(tmp_path / "robot")), stdout=out, stderr=err)
+    closed: list[bool] = []
+
+    def hub_drops_the_io_monitor() -> None:
+        if wait_for(lambda: "Ctrl-C to stop" in out.getvalue(), 180.0):
+            monitor = next(m for m in launcher.monitors if m.name == "io")
+            monitor.bus._sock.shutdown(socket.SHUT_RDWR)  # type: ignore[attr-defined]  # the hub client's socket
+            closed.append(True)
+
+    outsider = threading.Thread(target=hub_drops_the_io_monitor)
+    outsider.start()
+    try:
+        code = launcher.run()
+    finally:
+        outsider.join(timeout=200)
+    assert closed and code == 3, (out.getvalue(), err.getvalue())
+    (line,) = err.getvalue().splitlines()
+    assert line.startswith("ilcrig: fault: the io channel's monitor lost its bus (") and line.endswith(
+        "the session's records would stop there; the robot stopped, every process of it ended"
+    ), line
+    summary = json.loads((tmp_path / "robot" / "summary.json").read_text())
+    assert summary["exit_code"] == 3 and summary["end"]["reason"] == "fault" and summary["end"]["records"] == "io monitor"
+    assert not [name for name, pid in summary["processes"].items() if isinstance(pid, int) and pid_alive(pid)]
+
+
 def test_a_bus_error_frame_the_monitors_hear_is_said_and_counted(robot: RobotProcess) -> None:
     """A frame damaged on the wire (a master's CAN controller sends the error frame; udp_multicast
     reports a datagram lost in the monitor's receiver so): the robot keeps stepping, but its

@@ -71,6 +71,8 @@ __all__ = ["BOOT_TIMEOUT_S", "SUMMARY_SCHEMA", "RobotLauncher", "launch_robot"]
 BOOT_TIMEOUT_S: float = 120.0
 #: watch-loop period, s
 POLL_S: float = 0.05
+#: how long a monitor that lost its bus waits to see whether the hub ended (then that is the fault), s
+HUB_DEATH_WAIT_S: float = 0.5
 SUMMARY_SCHEMA = "ilcrig.robot/1"
 #: the control period the robot starts with (the plant's 0x2400:1 default), s
 DEFAULT_TS_S: float = 1e-3
@@ -248,34 +250,51 @@ class RobotLauncher(LaunchCore):
                 return self._fault()
             emcys_seen = self._say_robot_faults(emcys_seen)
             self._say_monitor_errors()
-            if self._log_failed() is not None:
+            if self._records_lost() is not None:
                 return self._records_failed()
             time.sleep(POLL_S)
 
-    def _log_failed(self) -> ChannelMonitor | None:
-        """The first monitor whose candump log stopped (a failing write: a full disk), if any."""
-        return next((m for m in self.monitors if m.log_error is not None), None)
+    def _records_lost(self) -> ChannelMonitor | None:
+        """The first monitor that stopped keeping the session's records: its candump log failed (a
+        full disk) or its bus did (the hub drops a member that stopped reading: a launcher stopped
+        with Ctrl-Z for long enough), if any."""
+        return next((m for m in self.monitors if m.log_error is not None or m.bus_error is not None), None)
 
     def _records_failed(self) -> int:
-        """A channel log could not be written (a full disk): the session's records would stop
-        there, so the session ends as a fault — one line, exit 3 —, the space reserve given back
-        first so that the plant's session and the summary still fit."""
-        m = self._log_failed()
+        """A channel's records stopped (:meth:`_records_lost`): the session's records would be
+        incomplete from there, so the session ends as a fault — one line, exit 3 —, the space
+        reserve given back first so that the plant's session and the summary still fit."""
+        m = self._records_lost()
         assert m is not None
+        if m.log_error is None and self._death_within(HUB_DEATH_WAIT_S):
+            return self._fault()  # the hub ended, and the monitor's bus with it: that is the fault
         if self._space is not None:
             self._space.release_last()
-        self._end = {
-            "reason": "fault",
-            "records": f"{m.name}.log",
-            "error": m.log_error,
-            "disk_full": m.log_disk_full,
-            "t_mono": m.log_error_t,
-        }
+        if m.log_error is not None:
+            self._end = {
+                "reason": "fault",
+                "records": f"{m.name}.log",
+                "error": m.log_error,
+                "disk_full": m.log_disk_full,
+                "t_mono": m.log_error_t,
+            }
+            what = f"cannot write {m.name}.log in {self.out_dir} ({m.log_error})"
+        else:
+            self._end = {"reason": "fault", "records": f"{m.name} monitor", "error": m.bus_error, "t_mono": m.bus_error_t}
+            what = f"the {m.name} channel's monitor lost its bus ({m.bus_error}; a hub drops a reader that stops reading)"
         self._say_err(
-            f"ilcrig: fault: cannot write {m.name}.log in {self.out_dir} ({m.log_error}): the session's records "
-            "would stop there; the robot stopped, every process of it ended"
+            f"ilcrig: fault: {what}: the session's records would stop there; the robot stopped, every process of it ended"
         )
         return EXIT_FAULT
+
+    def _death_within(self, timeout_s: float) -> bool:
+        """Whether a process of the robot ended (noted, :meth:`_note_deaths`) within ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        while not self._note_deaths():
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.01)
+        return True
 
     def _say_monitor_errors(self) -> None:
         """One console line per channel whose monitor heard its first bus error frame since the
