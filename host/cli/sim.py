@@ -37,7 +37,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
     from host.sim.session import SimOptions, run_sim
 
     out = Path(args.out) if args.out is not None else None  # None: a fresh runs/sim-<time>, made once the input is good
-    check_out_dir(out or default_run_folder("sim", claim=False), create=False, new_run=True)  # fast: before the configuration
+    named = args.out if args.out is not None else default_run_folder("sim", claim=False)
+    check_out_dir(named, create=False, new_run=True)  # fast: before the configuration
     return run_sim(
         SimOptions(experiment_config(experiment_options(args)), out, view=bool(args.view), firmware=args.firmware),
         sys.stdout,
