@@ -200,6 +200,8 @@ class RobotLauncher(LaunchCore):
                 )
                 return EXIT_FAULT
             self._say_monitor_errors()
+            if self._records_lost() is not None:
+                return self._records_failed()
             if time.monotonic() > deadline:
                 missing = self._not_booted()
                 self._end = {"reason": "boot timeout", "missing_nodes": missing}
