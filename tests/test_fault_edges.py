@@ -104,9 +104,12 @@ def test_injections_that_can_happen_pass() -> None:
         check_specs([parse_spec("kill:hub@before")], iterations=3, n_ticks=301, hub=False)
 
 
-def test_the_cli_refuses_them_before_anything_starts(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_the_cli_refuses_them_before_anything_starts(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
     from host.cli import main
 
+    monkeypatch.chdir(tmp_path)  # a refusal that regressed would write a run into the current folder
     out = tmp_path / "run"
     for argv, line in (
         (
@@ -122,7 +125,7 @@ def test_the_cli_refuses_them_before_anything_starts(tmp_path: Path, capsys: pyt
     assert capsys.readouterr().err == "ilcrig: error: --out '': an empty path (give the run folder)\n"
     assert main(["sim", "--iterations", "1", "--out", ""]) == 2
     assert capsys.readouterr().err == "ilcrig: error: --out '': an empty path (give the run folder)\n"
-    assert not out.exists()
+    assert not out.exists() and list(tmp_path.iterdir()) == []
 
 
 def test_pick_equal_to_place_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
