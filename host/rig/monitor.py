@@ -33,14 +33,16 @@ Waiting for a marker, not for rounds
 
 What can go wrong is noted, with the monotonic time it was seen, for the host's watchdog: the bus
 failing (:attr:`ChannelMonitor.bus_error`), bus error frames (:attr:`ChannelMonitor.error_frames`),
-the log failing (it is flushed at most :attr:`ChannelMonitor.LOG_FLUSH_S` after a frame was
-written, or once the channel is quiet for :attr:`ChannelMonitor.WAIT_S`: a launcher killed then
-loses no more than that), e.g. on a full disk (:attr:`ChannelMonitor.log_error`: the log stops, the
-counting goes on).  On the io channel the monitor also follows the trials and ticks as the plant's
-frames show them (:attr:`ChannelMonitor.follower`, for a fault's ``tick``; with arrays only the
-control frames and the last encoder frame between them are looked at).  For ``--inject
-diskfull@T:N`` the io monitor's log fails with ``ENOSPC`` once the channel shows tick N of trial
-T (:attr:`ChannelMonitor.fail_log_from`; ``on_log_fail_injected`` records it).
+the log failing (it is flushed after the first reading round that ends
+:attr:`ChannelMonitor.LOG_FLUSH_S` or more after a line was written — within about ``LOG_FLUSH_S`` +
+:attr:`ChannelMonitor.FRAMES_ROUND_S` —, and once the channel is quiet for
+:attr:`ChannelMonitor.WAIT_S`: a launcher killed then loses no more than that), e.g. on a full disk
+(:attr:`ChannelMonitor.log_error`: the log stops, the counting goes on). On the io channel the
+monitor also follows the trials and ticks as the plant's frames show them
+(:attr:`ChannelMonitor.follower`, for a fault's ``tick``; with arrays only the control frames and
+the last encoder frame between them are looked at). For ``--inject diskfull@T:N`` the io monitor's
+log fails with ``ENOSPC`` once the channel shows tick N of trial T
+(:attr:`ChannelMonitor.fail_log_from`; ``on_log_fail_injected`` records it).
 """
 
 from __future__ import annotations
