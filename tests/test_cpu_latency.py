@@ -125,6 +125,7 @@ SIGNALS = {"SIGINT": signal.SIGINT, "SIGTERM": signal.SIGTERM, "SIGKILL": signal
 @example(who="launcher", signame="SIGKILL", starting=False)
 @example(who="launcher", signame="SIGINT", starting=True)
 @example(who="drive3", signame="SIGTERM", starting=False)
+@example(who="hub", signame="SIGINT", starting=False)  # the hub's end, not a drive that lost its bus with it
 def test_however_a_real_time_robot_ends_the_request_ends_with_it(who: str, signame: str, starting: bool) -> None:
     """``ilcrig robot --realtime --rt-priority 0`` (an ordinary user's scheduling, the request held)
     ended by a drawn signal to the launcher (at its announcement, or while it starts up: as soon as

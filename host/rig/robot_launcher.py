@@ -71,7 +71,8 @@ __all__ = ["BOOT_TIMEOUT_S", "SUMMARY_SCHEMA", "RobotLauncher", "launch_robot"]
 BOOT_TIMEOUT_S: float = 120.0
 #: watch-loop period, s
 POLL_S: float = 0.05
-#: how long a monitor that lost its bus waits to see whether the hub ended (then that is the fault), s
+#: how long a fault waits to see whether the hub ended too (then that is the fault: it takes every
+#: member's bus with it), s
 HUB_DEATH_WAIT_S: float = 0.5
 SUMMARY_SCHEMA = "ilcrig.robot/1"
 #: the control period the robot starts with (the plant's 0x2400:1 default), s
@@ -268,7 +269,7 @@ class RobotLauncher(LaunchCore):
         reserve given back first so that the plant's session and the summary still fit."""
         m = self._records_lost()
         assert m is not None
-        if m.log_error is None and self._death_within(HUB_DEATH_WAIT_S):
+        if m.log_error is None and self._hub_death_within(HUB_DEATH_WAIT_S):
             return self._fault()  # the hub ended, and the monitor's bus with it: that is the fault
         if self._space is not None:
             self._space.release_last()
@@ -289,14 +290,18 @@ class RobotLauncher(LaunchCore):
         )
         return EXIT_FAULT
 
-    def _death_within(self, timeout_s: float) -> bool:
-        """Whether a process of the robot ended (noted, :meth:`_note_deaths`) within ``timeout_s``."""
+    def _hub_death_within(self, timeout_s: float) -> bool:
+        """Whether the hub ended (noted among :attr:`deaths`) within ``timeout_s``: a hub that stops
+        closes its members' connections first — the drives, the plant and the monitors lose their
+        bus at once, and a drive may exit before the hub's own exit is seen."""
         deadline = time.monotonic() + timeout_s
-        while not self._note_deaths():
-            if time.monotonic() >= deadline:
+        while True:
+            self._note_deaths()
+            if any(d.name == "hub" for d in self.deaths):
+                return True
+            if self.hub is None or time.monotonic() >= deadline:
                 return False
             time.sleep(0.01)
-        return True
 
     def _say_monitor_errors(self) -> None:
         """One console line per channel whose monitor heard its first bus error frame since the
@@ -346,7 +351,10 @@ class RobotLauncher(LaunchCore):
         return self.out_dir / "logs" / f"{name}.log" if name else self.out_dir / "logs"
 
     def _fault(self) -> int:
-        """A process of the robot ended: one line, exit 3 (the rest is stopped by the shutdown)."""
+        """A process of the robot ended: one line, exit 3 (the rest is stopped by the shutdown). The
+        hub's end is the fault when it ended too (it takes the others' buses with it): it gets
+        :data:`HUB_DEATH_WAIT_S` to be seen."""
+        self._hub_death_within(HUB_DEATH_WAIT_S)
         hub = next((d for d in self.deaths if d.name == "hub"), None)
         first = hub or self.deaths[0]
         self._end = {"reason": "fault", "process": first.name, "pid": first.pid, "status": first.status}
