@@ -532,21 +532,24 @@ class After(importlib.abc.MetaPathFinder):
 
 sys.meta_path.insert(0, After())
 from host.cli import main
-sys.exit(main(["sweep", "--out", sys.argv[1], "--vary", "gains.alpha=2,3", "--set", "iterations=2",
+out = ["--out", sys.argv[1]] if sys.argv[1] else []  # "": the default folder, runs/sweep-<time>
+sys.exit(main(["sweep", *out, "--vary", "gains.alpha=2,3", "--set", "iterations=2",
                "--workers", "1", "--no-progress", "--no-dashboard"]))
 """
 
 
 @pytest.mark.slow
 @pytest.mark.multiprocess
-def test_a_ctrl_c_while_the_workers_are_spawned_is_not_lost(tmp_path: Path) -> None:
+@pytest.mark.parametrize("named", [True, False], ids=["out", "default-folder"])
+def test_a_ctrl_c_while_the_workers_are_spawned_is_not_lost(tmp_path: Path, named: bool) -> None:
     """The workers are spawned while this process ignores SIGINT (they inherit it: no traceback
     from them); a Ctrl-C then is held, not dropped, and ends the sweep once the cluster is made
-    (it was dropped: the sweep ran to its end with exit 0)."""
+    (it was dropped: the sweep ran to its end with exit 0). Without ``--out`` the folder it claimed
+    is given back: nothing was written into it (an empty ``runs/sweep-<time>`` was left)."""
     out = tmp_path / "sweep"
     proc = subprocess.run(
-        [sys.executable, "-c", _CLUSTER_SIGINT_SCRIPT, str(out)],
-        cwd=Path(__file__).resolve().parent.parent,
+        [sys.executable, "-c", _CLUSTER_SIGINT_SCRIPT, str(out) if named else ""],
+        cwd=tmp_path,
         capture_output=True,
         text=True,
         timeout=300,
@@ -557,6 +560,7 @@ def test_a_ctrl_c_while_the_workers_are_spawned_is_not_lost(tmp_path: Path) -> N
     assert "Traceback" not in proc.stdout + proc.stderr
     assert not (out / "results.parquet").exists()
     assert not out.exists()  # interrupted before its first point: no folder claims a sweep
+    assert list(tmp_path.glob("runs/*")) == []  # nor an empty default folder
 
 
 def test_an_interrupted_call_is_recorded_with_its_signal(tmp_path: Path) -> None:

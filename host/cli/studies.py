@@ -127,13 +127,18 @@ def sweep_main(args: argparse.Namespace) -> int:
 
     spec = spec_of_args(args)
     points = spec.points()  # every point validated before anything starts
-    from host.experiment.outputs import default_run_folder
+    from host.experiment.outputs import default_run_folder, release_unused_folder
 
-    out = Path(args.out) if getattr(args, "out", None) else default_run_folder("sweep", claim=True)
+    claimed = not getattr(args, "out", None)
+    out = Path(args.out) if not claimed else default_run_folder("sweep", claim=True)
     check_study_folder(out, "sweep", _spec_doc(spec))  # one study, one folder: a resume or a new folder
     keys = ", ".join(spec.varied_keys) or "nothing varied"
-    with interrupt_on_signals():  # Ctrl-C / SIGTERM: what finished is kept, the records say so
-        return _sweep_points(args, spec, points, out, keys)
+    try:
+        with interrupt_on_signals():  # Ctrl-C / SIGTERM: what finished is kept, the records say so
+            return _sweep_points(args, spec, points, out, keys)
+    finally:
+        if claimed:  # ended before its first record (e.g. Ctrl-C while the cluster started): no empty folder left
+            release_unused_folder(out)
 
 
 def _sweep_points(args: argparse.Namespace, spec: SweepSpec, points: list[Point], out: Path, keys: str) -> int:

@@ -16,6 +16,7 @@ This module owns
   holds through open descriptors: it never outlives the process, whatever ends it (SIGKILL
   included);
 * :func:`default_run_folder` — the one naming (and making) of a run folder nobody named;
+  :func:`release_unused_folder` gives one back that nothing was written into;
 * :func:`summary_of` / :func:`read_summary` — the one reading of a folder's ``summary.json`` (a
   dict with its list of ``iterations``, else not a summary); :func:`end_reason_of` — how its run
   ended, ``writer_lost`` for a summary left unfinished by a process that is gone;
@@ -48,6 +49,7 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "DiskFullError",
     "default_run_folder",
+    "release_unused_folder",
     "end_reason_of",
     "RUNS_DIR",
     "OutputError",
@@ -194,6 +196,17 @@ def default_run_folder(kind: str, *, claim: bool) -> Path:
             raise OutFolderError(f"--out {path}: cannot create the run folder: {err.strerror or err}") from None
         return path
     raise OutFolderError(f"--out {base}: every name of this second is taken; give a run folder")
+
+
+def release_unused_folder(path: Path) -> bool:
+    """Remove ``path`` — a folder :func:`default_run_folder` claimed — when nothing was written into
+    it: a command that ended before its first record (interrupted while a cluster started) leaves
+    no empty folder that looks like a run or a study. True when it was removed."""
+    try:
+        path.rmdir()  # only an empty folder
+    except OSError:
+        return False
+    return True
 
 
 def end_reason_of(summary: dict[str, Any]) -> str | None:
