@@ -6,7 +6,9 @@ by SDO, then RPDO1 + SYNC every 2–5 ms up to 565 SYNCs) starts beside it, and 
 reaches the robot at a random delay over the master's sequence (its set-up, its stream, after it).
 After each example:
 
-* exit code 128 + n, the summary's ``end`` that signal, no process of the session left;
+* exit code 128 + n, the summary's ``end`` that signal, no process of the session left; for
+  SIGKILL of the launcher (also drawn), the janitor's ``end`` ``launcher_lost`` and the plant's
+  session in the summary;
 * every SYNC the plant saw is accounted for: ``syncs`` = ``periods`` + ``periods_dropped`` +
   ``period_in_progress`` + ``syncs_waiting`` + ``syncs_unstepped``; no robot fault, no overrun;
 * the trace holds exactly the periods stepped, numbered 0, 1, …;
@@ -34,7 +36,7 @@ import numpy as np
 import pytest
 from cli_util import ROOT, start_in_session, wait_gone
 from clock_util import wait_for
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from robot_util import RobotProcess
 
@@ -55,8 +57,12 @@ def _start_master(where: dict[str, Any]) -> subprocess.Popen[str]:
 
 
 @settings(max_examples=EXAMPLES, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
-@given(delay_s=st.floats(0.0, MAX_DELAY_S), signum=st.sampled_from([signal.SIGINT, signal.SIGTERM]))
-def test_at_random_a_signal_while_a_master_streams_leaves_every_record_true(tmp_path: Path, delay_s: float, signum: int) -> None:
+@given(delay_s=st.floats(0.0, MAX_DELAY_S), signame=st.sampled_from(["SIGINT", "SIGTERM", "SIGKILL"]))
+@example(delay_s=2.0, signame="SIGKILL")  # the launcher killed while the master streams, in every run
+def test_at_random_a_signal_while_a_master_streams_leaves_every_record_true(tmp_path: Path, delay_s: float, signame: str) -> None:
+    """SIGINT / SIGTERM reach the robot's launcher, which ends the session; SIGKILL kills the
+    launcher (no handler runs), and the janitor ends the summary with the plant's session."""
+    signum = signal.Signals[signame]
     out = tmp_path / f"robot{next(_RUNS)}"
     robot = RobotProcess(out)
     master: subprocess.Popen[str] | None = None
@@ -66,27 +72,50 @@ def test_at_random_a_signal_while_a_master_streams_leaves_every_record_true(tmp_
         pids = where["pids"]
         master = _start_master(where)
         time.sleep(delay_s)  # the random moment itself
-        code = robot.stop(signum)
+        if signum == signal.SIGKILL:
+            robot.proc.kill()
+            code = robot.wait()
+            janitor_log = out / "logs" / "janitor.log"
+            assert wait_for(lambda: "end launcher_lost" in _read(janitor_log), 60.0), _read(janitor_log)
+        else:
+            code = robot.stop(signum)
     finally:
         robot.kill()
         if master is not None:
             if master.poll() is None:
                 os.killpg(master.pid, signal.SIGKILL)
             master.communicate()
-    assert code == 128 + signum, robot.stderr
-    assert wait_gone(list(pids.values()), 10.0) == []
+    assert wait_gone(list(pids.values()), 30.0) == []
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["end"] == {"reason": "interrupted", "signal": signal.Signals(signum).name}
+    if signum == signal.SIGKILL:
+        assert code == -signal.SIGKILL
+        end = summary["end"]
+        assert (end["reason"], end["was"], end["noticed_by"]) == ("launcher_lost", "running", "janitor"), end
+        assert summary["exit_code"] is None
+    else:
+        assert code == 128 + signum, robot.stderr
+        assert summary["end"] == {"reason": "interrupted", "signal": signame}
     r = summary["robot"]
-    assert r["fault"] is None and r["faults_total"] == 0 and r["sync_overruns"] == 0, r
+    assert r is not None, summary  # the plant's session, also when the janitor wrote it
+    assert r["sync_overruns"] == 0, r
+    if signum != signal.SIGKILL:
+        assert r["fault"] is None and r["faults_total"] == 0, r
     accounted = r["periods"] + r["periods_dropped"] + r["period_in_progress"] + r["syncs_waiting"] + r["syncs_unstepped"]
     assert r["syncs"] == accounted, r
     records = read_trace(out / "trace.bin").records
     assert r["trace"]["records"] == len(records) == r["periods"]
     np.testing.assert_array_equal(records["period"], np.arange(r["periods"]))
-    bus = summary["bus"]
-    assert bus["syncs_on_bus"] >= r["syncs"], (bus["syncs_on_bus"], r["syncs"])
-    assert all(ch["error_frames"] == 0 for ch in bus["channels"].values()), bus["channels"]
+    if signum != signal.SIGKILL:  # the janitor keeps the bus counts the launcher last wrote
+        bus = summary["bus"]
+        assert bus["syncs_on_bus"] >= r["syncs"], (bus["syncs_on_bus"], r["syncs"])
+        assert all(ch["error_frames"] == 0 for ch in bus["channels"].values()), bus["channels"]
+
+
+def _read(path: Path) -> str:
+    try:
+        return path.read_text()
+    except OSError:
+        return ""
 
 
 @pytest.mark.parametrize("when", ["starting", "after a master"])
