@@ -34,7 +34,8 @@ from rig_scripted_law import SCRIPT_ENV
 import ilcrig
 from host.rig.cpu_latency import CPU_LATENCY_PATH, cpu_latency_target_us
 
-pytestmark = [pytest.mark.slow, pytest.mark.multiprocess]
+# alone: it reads the kernel's CPU latency target, which a real-time run beside it would hold (pyproject.toml)
+pytestmark = [pytest.mark.slow, pytest.mark.multiprocess, pytest.mark.alone]
 
 ARRAYS = ("error_rad", "actual_rad", "feedforward_nm", "feedback_nm", "torque_nm", "rmse_deg", "peak_torque_nm")
 LAW = "rig_scripted_law:RigScriptedLaw"

@@ -31,6 +31,9 @@ def _device_writable() -> bool:
     return os.path.exists(CPU_LATENCY_PATH) and os.access(CPU_LATENCY_PATH, os.W_OK)
 
 
+# alone: the kernel's CPU latency target is the machine's, and a real-time run beside it would hold it (pyproject.toml)
+pytestmark = pytest.mark.alone
+
 needs_device = pytest.mark.skipif(not _device_writable(), reason=f"{CPU_LATENCY_PATH} missing or not writable (root's)")
 
 

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import pytest
 
-pytestmark = [pytest.mark.slow, pytest.mark.multiprocess]
+# alone: its idle run is the machine as it is, its loaded runs beside hogs of its own (pyproject.toml)
+pytestmark = [pytest.mark.slow, pytest.mark.multiprocess, pytest.mark.alone]
 
 REPO = Path(__file__).resolve().parents[1]
 SOAK = REPO / "scripts" / "robot-soak"
