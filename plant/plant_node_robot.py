@@ -369,6 +369,15 @@ class RobotLoop:
         self._send_encoders(now)
 
     def _send_encoders(self, now: float) -> None:
+        # the period is in progress from here, before anything is sent: a send that fails (the hub
+        # gone as the session ends) leaves it counted as the period in progress — never a SYNC
+        # that no count of the session holds
+        self._wire = wire = self.lockstep.claim_wire_tick()
+        for tracker in self._trackers:
+            tracker.reset(wire)
+        self._got = 0
+        self._state = _SENT
+        self._deadline = now + self.tick_timeout_s
         mech = self._robot()
         if not self._gathering and self._gather is not None:
             # one write of the hub per period for the four torques; a frame too many or too few
@@ -376,13 +385,7 @@ class RobotLoop:
             # BULK_HOLD_S, and the next period's four come together again
             self._gather(_N)
             self._gathering = True
-        self._wire = wire = self.lockstep.claim_wire_tick()
         self._send_batch(io_frames.encoder_frames(wire, mech.plant.encoder_counts().tolist()))
-        for tracker in self._trackers:
-            tracker.reset(wire)
-        self._got = 0
-        self._state = _SENT
-        self._deadline = now + self.tick_timeout_s
         if self.pacing is not None:
             self.pacing.started(now)
 

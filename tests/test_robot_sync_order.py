@@ -181,3 +181,22 @@ def test_a_streaming_master_never_meets_a_silent_robot(tmp_path: Path) -> None:
     assert code == 143
     assert "robot kernels ready" in (tmp_path / "run" / "logs" / "plant.log").read_text()
     assert np.isfinite(periods)
+
+
+def test_a_sync_whose_encoder_frames_cannot_be_sent_is_still_accounted_for() -> None:
+    """The hub gone as the session ends (the launcher killed): the SYNC that reached the plant starts
+    a period whose encoder frames cannot be sent; the period counts as in progress (it was a SYNC
+    counted by no field of the session: 409 SYNCs, 408 periods and nothing else)."""
+    fb_ch, io_ch = new_channels()
+    fb, io = (can.Bus(interface="virtual", channel=c) for c in (fb_ch, io_ch))
+    plant = PlantNode(fb, io, plant_factory=plant_factory, disturbance_fn=disturbance_torque, robot_mode=RobotMode.SYNC)
+    plant.robot.set_mode(RobotMode.SYNC)
+    try:
+        io.shutdown()  # every send on io fails from here
+        with pytest.raises(can.CanError):
+            plant.robot.on_sync(0.0)
+        info = plant.robot.info()
+        assert (info["syncs"], info["period_in_progress"], info["periods"]) == (1, 1, 0) and _accounted(info) == 1
+    finally:
+        plant.robot.close()
+        fb.shutdown()
