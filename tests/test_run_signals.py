@@ -80,6 +80,19 @@ def test_at_random_a_signal_over_ilcrig_run_leaves_every_record_true(tmp_path: P
         assert kept == 0
 
 
+def _quit_masks(pid: int) -> str:
+    """Whether process ``pid`` blocks or ignores SIGQUIT (``/proc/PID/status``), for a message."""
+    try:
+        fields = dict(ln.split(":\t", 1) for ln in Path(f"/proc/{pid}/status").read_text().splitlines() if ":\t" in ln)
+    except OSError as err:
+        return f"{pid}: {err}"
+    bit = 1 << (signal.SIGQUIT - 1)
+    return f"{pid}: SIGQUIT blocked {bool(int(fields['SigBlk'], 16) & bit)}, ignored {bool(int(fields['SigIgn'], 16) & bit)}"
+
+
+# alone (pyproject.toml): on two pytest-xdist workers the launcher outlived the SIGQUIT in two of three
+# full-tier runs (exit 0 after the held update's 120 s); it never has when the test runs by itself
+@pytest.mark.alone
 def test_a_launcher_that_dies_of_sigquit_leaves_a_summary_that_says_so(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Ctrl-\\ (SIGQUIT) to the launcher after trial 1's row: it dies of the signal and takes its
     roles with it (their death signal); its janitor settles the folder and marks the summary, whose
@@ -97,10 +110,12 @@ def test_a_launcher_that_dies_of_sigquit_leaves_a_summary_that_says_so(tmp_path:
     def on_line(line: str, proc: Any) -> None:
         if not sent and line.startswith("   1 "):
             sent.append(proc.pid)
+            masks.append(_quit_masks(proc.pid))
             _send(proc.pid, signal.SIGQUIT)
 
+    masks: list[str] = []
     o = run_rig(out, "--law", "rig_scripted_law:RigScriptedLaw", iterations=8, on_line=on_line)
-    assert sent and o.code == -signal.SIGQUIT and o.left == [], (o.code, o.stderr)
+    assert sent and o.code == -signal.SIGQUIT and o.left == [], (o.code, o.stderr, masks, _quit_masks(os.getpid()))
     deadline = time.monotonic() + 60.0
     while True:  # the janitor marks it once the host is gone
         s = json.loads((out / "summary.json").read_text())
