@@ -34,13 +34,16 @@ _TRUE = ("1", "true", "yes")
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    """A runner started with SIGINT ignored (pytest in the background of a non-interactive shell)
-    would pass that on to every process the tests start, since an ignored signal stays ignored
-    across exec, and a tool the tests stop with Ctrl-C (``can.bridge``, ``can.logger``) would never
-    stop. Python's own handler instead: a handled signal is back to its default across exec, where
-    Python installs its KeyboardInterrupt again."""
+    """A runner started with SIGINT and SIGQUIT ignored (pytest in the background of a
+    non-interactive shell, ``( pytest & )``) would pass that on to every process the tests start,
+    since an ignored signal stays ignored across exec: a tool the tests stop with Ctrl-C
+    (``can.bridge``, ``can.logger``) would never stop, and a launcher the tests end with Ctrl-\\
+    would outlive it. Python's own handler for SIGINT instead (a handled signal is back to its
+    default across exec, where Python installs its KeyboardInterrupt again), the default for SIGQUIT."""
     if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+    if signal.getsignal(signal.SIGQUIT) == signal.SIG_IGN:
+        signal.signal(signal.SIGQUIT, signal.SIG_DFL)
     compile_project()
 
 

@@ -90,9 +90,6 @@ def _quit_masks(pid: int) -> str:
     return f"{pid}: SIGQUIT blocked {bool(int(fields['SigBlk'], 16) & bit)}, ignored {bool(int(fields['SigIgn'], 16) & bit)}"
 
 
-# alone (pyproject.toml): on two pytest-xdist workers the launcher outlived the SIGQUIT in two of three
-# full-tier runs (exit 0 after the held update's 120 s); it never has when the test runs by itself
-@pytest.mark.alone
 def test_a_launcher_that_dies_of_sigquit_leaves_a_summary_that_says_so(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Ctrl-\\ (SIGQUIT) to the launcher after trial 1's row: it dies of the signal and takes its
     roles with it (their death signal); its janitor settles the folder and marks the summary, whose
