@@ -1,6 +1,6 @@
 """Optional capabilities of a python-can bus beyond :class:`can.BusABC`, and how callers use them.
 
-This module owns the seven documented extras a transport may offer on top of python-can's
+This module owns the eight documented extras a transport may offer on top of python-can's
 ``BusABC`` (which stays the interface of every transport); callers use an extra only when the
 bus declares it — an ``isinstance`` check against the :class:`typing.Protocol` below, done once
 when the caller is built — and fall back to plain ``BusABC`` calls otherwise:
@@ -36,10 +36,20 @@ when the caller is built — and fall back to plain ``BusABC`` calls otherwise:
   time (the hub); a lockstep master that waits for the n answers of a tick (the plant: four
   torque frames) wakes once per tick instead of once per answer. :func:`frame_gatherer` returns
   it, or a callable that does nothing.
+* :class:`FrameAnswerer` — ``answer_frames(rx_id, rx_count, rx_len, on_frame, deadline_s, other_fd)``:
+  the transport waits, reads and writes outside the interpreter and calls ``on_frame(index, data)``
+  for each classic data frame of a range of identifiers and one length, writing the frames it
+  answers (the hub client, in C): a drive's plain io ticks (encoder frame in, torque frame out),
+  the plant's (four torque frames in, the next tick's four encoder frames out), without the
+  per-frame Python of the receive loop. It returns (:class:`AnswerEnd`) at a deadline, when another
+  descriptor is readable, at any other frame (left waiting for :meth:`can.BusABC.recv`) or when
+  ``on_frame`` handled its frame itself. :func:`frame_answerer` returns it, or None (the caller
+  reads as usual).
 """
 
 from __future__ import annotations
 
+import enum
 import logging
 from collections.abc import Callable, Sequence
 from typing import Protocol, runtime_checkable
@@ -54,15 +64,19 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "FRAME_DTYPE",
+    "AnswerEnd",
     "BatchReceiver",
     "BatchSender",
     "BufferedReceiver",
     "DataFrameSender",
+    "FrameAnswer",
+    "FrameAnswerer",
     "FrameArrayReceiver",
     "batch_receiver",
     "batch_sender",
     "data_frame_sender",
     "exact_standard_ids",
+    "frame_answerer",
     "frame_bits",
     "frames_from_messages",
     "load_of",
@@ -280,6 +294,45 @@ def frame_gatherer(bus: can.BusABC) -> Callable[[int], None]:
     if isinstance(bus, FrameGatherer):
         return bus.gather_frames
     return _gather_nothing
+
+
+class AnswerEnd(enum.IntEnum):
+    """Why :meth:`FrameAnswerer.answer_frames` returned (the values of the hub's C core)."""
+
+    DEADLINE = 0  #: ``deadline_s`` came
+    OTHER = 1  #: ``other_fd`` is readable
+    PYTHON = 2  #: a frame that is not ``rx_id`` of ``rx_len`` bytes (or any frame already read) waits for ``recv``
+    STOPPED = 3  #: ``on_frame`` returned None: it handled its frame itself
+    CLOSED = 4  #: the connection ended or failed: the next ``recv`` says how
+
+
+#: ``on_frame(index, data)`` of :meth:`FrameAnswerer.answer_frames`: the frame ``rx_id + index``'s data
+#: bytes in; the answers out as (11-bit identifier, 0..8 data bytes) pairs, written at once in one
+#: write (none: nothing to answer yet), or None: it handled the frame itself (the loop returns)
+FrameAnswer = Callable[[int, bytes], Sequence[tuple[int, bytes]] | None]
+
+
+@runtime_checkable
+class FrameAnswerer(Protocol):
+    """A bus that can answer frames outside the interpreter (module docstring)."""
+
+    def answer_frames(
+        self, rx_id: int, rx_count: int, rx_len: int, on_frame: FrameAnswer, deadline_s: float, other_fd: int = -1
+    ) -> tuple[int, AnswerEnd]:
+        """Wait for and read frames; each classic data frame ``rx_id`` .. ``rx_id + rx_count - 1`` of
+        ``rx_len`` bytes goes to ``on_frame`` (:data:`FrameAnswer`) and its answers go out at once.
+        Returns (frames handed to ``on_frame``, why: :class:`AnswerEnd`) at ``deadline_s``
+        (``time.monotonic()``), when ``other_fd`` (-1: none) is readable, at any other frame (it and
+        all after it wait for :meth:`can.BusABC.recv`) or when ``on_frame`` returned None."""
+        ...
+
+
+def frame_answerer(bus: can.BusABC) -> Callable[..., tuple[int, AnswerEnd]] | None:
+    """``bus.answer_frames`` when ``bus`` is a :class:`FrameAnswerer` that can answer now (the
+    hub client with its C core), else None."""
+    if isinstance(bus, FrameAnswerer) and getattr(bus, "answers_in_c", False):
+        return bus.answer_frames
+    return None
 
 
 def frames_from_messages(msgs: Sequence[can.Message]) -> np.ndarray:

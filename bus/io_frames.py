@@ -39,7 +39,7 @@ from __future__ import annotations
 import enum
 import logging
 import struct
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import can
@@ -67,6 +67,8 @@ TICK_MASK: int = TICK_MODULUS - 1
 _TICK_HALF: int = TICK_MODULUS >> 1
 
 _ENCODER = struct.Struct("<iH")
+#: data bytes of an encoder frame (int32 count, uint16 wire tick)
+ENCODER_LEN: int = _ENCODER.size
 _TORQUE = struct.Struct("<iHB")
 _CONTROL = struct.Struct("<BHI")
 
@@ -340,6 +342,16 @@ def encoder_fields(msg: can.Message) -> tuple[int, int]:
         decode_encoder(msg)  # raises with the precise reason
     count, tick = _ENCODER.unpack(data)
     return count, tick
+
+
+#: data bytes of a torque frame (int32 torque, uint16 wire tick, uint8 status)
+TORQUE_LEN: int = _TORQUE.size
+#: (torque µN·m, wire tick, status bits) of a torque frame's TORQUE_LEN data bytes (a frame the
+#: caller checked: identifier and length, e.g. the transport that read it)
+torque_data_fields: Callable[[bytes], tuple[int, int, int]] = _TORQUE.unpack
+#: (count, wire tick) of an encoder frame's ENCODER_LEN data bytes (a frame the caller checked:
+#: identifier and length, e.g. the transport that read it, :class:`bus.bus_features.FrameAnswerer`)
+encoder_data_fields: Callable[[bytes], tuple[int, int]] = _ENCODER.unpack
 
 
 def torque_fields(msg: can.Message) -> tuple[int, int, int]:

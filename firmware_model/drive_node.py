@@ -55,7 +55,7 @@ from typing import Any, Protocol, runtime_checkable
 import can
 
 from bus import io_frames, units
-from bus.bus_features import data_frame_sender
+from bus.bus_features import AnswerEnd, data_frame_sender, frame_answerer
 from bus.can_errors import is_receive_overflow
 from bus.cia301.slave import (
     PRODUCER_HEARTBEAT_INDEX,
@@ -236,6 +236,12 @@ class DriveNode(SlaveNode):
         io.set_filters(self.io_filters())
         # the torque frame of a tick is packed without a can.Message where the bus can (the hub)
         self._send_data_frames = data_frame_sender(io)
+        # plain io ticks answered by the transport outside the interpreter where it can (the hub
+        # client in C, :meth:`step`); on the monotonic clock only (its deadlines are that clock's).
+        # Not in lockstep: a SYNC-stepped drive wakes for its SYNC every period anyway, and the loop
+        # handing back to Python for it cost as much as the io side saved (docs/benchmarks.md).
+        self._answer = frame_answerer(io) if clock is time.monotonic and not lockstep else None
+        self.answered = 0  #: io ticks whose encoder frame was read and torque frame written in C
 
     # ------------------------------------------------------------------ io
 
@@ -261,10 +267,7 @@ class DriveNode(SlaveNode):
             if self._cyclic is None or self._cyclic.tick_ready:
                 self._run_tick(count, wire)
             else:
-                self._io_plain = False
-                if self._held is not None:
-                    logger.warning("node %d: encoder frame of wire tick %d replaced before its SYNC", self.node_id, self._held[1])
-                self._held = (count, wire)
+                self._hold(count, wire)
         elif cob == io_frames.CONTROL_COB_ID:
             self._io_plain = False
             try:
@@ -282,6 +285,13 @@ class DriveNode(SlaveNode):
             self._held = None
         # anything else (our own torque echo, other joints' frames) is not for us
 
+    def _hold(self, count: int, wire: int) -> None:
+        """An encoder frame that came before its SYNC waits for it."""
+        self._io_plain = False
+        if self._held is not None:
+            logger.warning("node %d: encoder frame of wire tick %d replaced before its SYNC", self.node_id, self._held[1])
+        self._held = (count, wire)
+
     def _io_frames_lost(self) -> None:
         """The io receiver lost frames (a receive-overflow error frame): an encoder or control
         frame never comes. The drive's optional ``io_frames_lost(next_tick)`` faults at once; a
@@ -294,16 +304,77 @@ class DriveNode(SlaveNode):
     def _run_tick(self, count: int, wire: int) -> None:
         """Run the io tick of the encoder frame (``count``, ``wire`` tick): torque frame on io, then
         the TPDOs due on the fieldbus."""
+        self._send_tick(self._tick_data(count, wire))
+
+    def _tick_data(self, count: int, wire: int) -> bytes:
+        """Run the io tick of the encoder frame (``count``, ``wire`` tick): the torque frame's data."""
         rel = (wire - self._tick_origin) & io_frames.TICK_MASK
         tick = self._next_full_tick + io_frames.tick_diff(rel, self._next_full_tick)
         self._next_full_tick = tick + 1
         torque = int(self.drive.io_tick(tick, count))
-        self._send_data_frames(((self._torque_id, io_frames.torque_data(wire, torque, self._torque_status())),))
+        return io_frames.torque_data(wire, torque, self._torque_status())
+
+    def _send_tick(self, data: bytes, tpdos: list[tuple[int, bytes]] | None = None) -> None:
+        """After an io tick: its torque frame (``data``) on io, then the TPDOs due (``tpdos``, or
+        the drive's) on the fieldbus; the frames waiting behind the tick's SYNC go on."""
+        self._send_data_frames(((self._torque_id, data),))
         self.frames_out += 1
-        self._send_tpdos()
+        if tpdos is None:
+            self._send_tpdos()
+        else:
+            for cob_id, payload in tpdos:
+                self._send(self.fieldbus, cob_id, payload)
+                self.tpdos_out += 1
         if self.backlog.frames:
             self._io_plain = False  # the frames behind its SYNC are handled now
         self.backlog.tick_ran()
+
+    # ------------------------------------------------------------------ plain ticks in C
+
+    def step(self, max_wait_s: float) -> int:
+        """:meth:`SlaveNode.step`; while the last wake-up left the service nothing to do, first
+        the plain io ticks that come before its deadline, answered by the io transport outside the
+        interpreter (:class:`bus.bus_features.FrameAnswerer`: the hub client's C loop waits, reads
+        the encoder frame, calls :meth:`_answer_tick`, writes the torque frame). It hands back at
+        the service's deadline, at a fieldbus frame, at any other io frame (control frames, frames
+        held for a SYNC, anything unexpected: :meth:`on_io` as ever) and after a tick that was not
+        plain; the order of frames and the service are those of the Python path (tests/test_drive_answer.py)."""
+        answer = self._answer
+        if answer is None or not self._settled or self._held is not None or self._fds is None:
+            return super().step(max_wait_s)
+        if self._fieldbus_pending():
+            return super().step(max_wait_s)
+        deadline = min(self._serve_by_s, self._clock() + max_wait_s)
+        n, why = answer(self._encoder_id, 1, io_frames.ENCODER_LEN, self._answer_tick, deadline, self._fds[0])
+        self.frames_in += n
+        if why != AnswerEnd.STOPPED:
+            self.answered += n
+            return n + super().step(max_wait_s)
+        self.answered += n - 1  # the last one went the Python way
+        if self._io_plain:  # only TPDOs after its tick: still nothing for the service, as in SlaveNode.step
+            return n
+        return n + super().step(0.0)  # what waits, then the service
+
+    def _answer_tick(self, _index: int, data: bytes) -> tuple[tuple[int, bytes]] | None:
+        """An encoder frame read in C (:meth:`step`): its tick runs; the torque frame when the
+        tick was plain (nothing else to send, nothing for the service before its deadline), else
+        None once the Python path sent what it had (:meth:`_send_tick`)."""
+        count, wire = io_frames.encoder_data_fields(data)
+        cyclic = self._cyclic
+        if cyclic is not None and not cyclic.tick_ready:
+            self._hold(count, wire)
+            return None
+        torque = self._tick_data(count, wire)
+        tpdos = cyclic.pop_tpdos() if cyclic is not None else []
+        settled = cyclic is not None and cyclic.tick_settled and self._clock() < self._serve_by_s
+        if tpdos or self.backlog.frames or not settled:
+            if not settled:
+                self._io_plain = False  # the service looks at once (step(0.0))
+            self._send_tick(torque, tpdos)
+            return None
+        self.frames_out += 1
+        self.backlog.tick_ran()
+        return ((self._torque_id, torque),)
 
     def io_settled(self) -> bool:
         """The io frames of this wake-up were encoder frames whose ticks ran at once (no control

@@ -42,11 +42,12 @@ import can
 
 from bus import io_frames, units
 from bus.atomic import atomic_write
-from bus.bus_features import data_frame_sender, frame_gatherer
+from bus.bus_features import AnswerEnd, data_frame_sender, frame_answerer, frame_gatherer
 from bus.cia301.nmt import NmtCommand, NmtState, next_state
 from bus.cia301.object_store import ObjectStore
 from bus.cia301.slave import SlaveNode, install_sigterm, quiet_shutdown
 from bus.exit_codes import EXIT_FAULT, EXIT_OK
+from bus.fastmsg import new_message
 from bus.lockstep_process import freeze_heap, numba_without_blas, spin_in_this_class
 from bus.plant_objects import (
     DEFAULT_PLANT_NODE_ID,
@@ -145,6 +146,11 @@ class PlantNode(SlaveNode):
         # the four encoder frames of a tick go out in one write where the bus can (the hub), packed
         # without a can.Message each
         self._data_frames = data_frame_sender(io)
+        # a trial's torque frames read and its encoder frames written outside the interpreter where
+        # the io bus can (the hub client in C, :meth:`step`); on the monotonic clock only
+        self._answer = frame_answerer(io) if clock is time.monotonic else None
+        self._outbox: list[tuple[int, bytes]] | None = None  # encoder frames for the C loop to write
+        self.answered = 0  #: torque frames read in C during trials
         self.model = TrialModel(self.node_id, plant_factory, disturbance_fn)
         self.lockstep = LockstepMaster(
             self.node_id,
@@ -359,12 +365,67 @@ class PlantNode(SlaveNode):
     # ------------------------------------------------------------------ sending
 
     def _send_io(self, msg: can.Message) -> None:
+        if self._outbox:  # what the C loop would write comes first
+            self._data_frames(self._outbox)
+            self._outbox.clear()
         self.io.send(msg)
         self.frames_out += 1
 
     def _send_io_batch(self, frames: list[tuple[int, bytes]]) -> None:
-        self._data_frames(frames)
+        if self._outbox is not None:
+            self._outbox.extend(frames)  # written by the C loop right after this frame's call
+        else:
+            self._data_frames(frames)
         self.frames_out += len(frames)
+
+    # ------------------------------------------------------------------ a trial's frames in C
+
+    def step(self, max_wait_s: float) -> int:
+        """:meth:`SlaveNode.step`; during a trial, while the last wake-up left the service nothing to
+        do, first the torque frames that come before its deadline, read by the io transport outside
+        the interpreter (:class:`bus.bus_features.FrameAnswerer`: the hub client's C loop), each
+        handed to :meth:`LockstepMaster.on_torque` as :meth:`on_io` would, the next tick's encoder
+        frames written by the loop. It hands back at the deadline, at a fieldbus frame, at any other
+        io frame and after a frame that ended the trial or left the service something to do."""
+        answer = self._answer
+        if (
+            answer is None
+            or not self._settled
+            or self._fds is None
+            or not self.lockstep.running
+            or self.robot.expecting_io
+            or self._fieldbus_pending()
+        ):
+            return super().step(max_wait_s)
+        deadline = min(self._serve_by_s, self._clock() + max_wait_s)
+        n, why = answer(_TORQUE_LO, _TORQUE_HI - _TORQUE_LO, io_frames.TORQUE_LEN, self._answer_torque, deadline, self._fds[0])
+        self.frames_in += n
+        if why != AnswerEnd.STOPPED:
+            self.answered += n
+            return n + super().step(max_wait_s)
+        self.answered += n - 1  # the last one went the Python way
+        return n + super().step(0.0)  # what waits, then the service
+
+    def _answer_torque(self, j: int, data: bytes) -> list[tuple[int, bytes]] | None:
+        """A torque frame of drive ``j + 1`` read in C (:meth:`step`): the encoder frames it makes
+        due (none until the tick's fourth), or None after the Python path handled it (the trial
+        ended, the service has something to do)."""
+        lockstep = self.lockstep
+        if not lockstep.running or self.robot.expecting_io:  # the trial ended in this read
+            self.on_io(new_message(_TORQUE_LO + j, bytearray(data)))
+            return None
+        lockstep.io_received += 1
+        outbox: list[tuple[int, bytes]] = []
+        self._outbox = outbox
+        try:
+            lockstep.on_torque(j, *io_frames.torque_data_fields(data))
+        finally:
+            self._outbox = None
+        if lockstep.running and self._clock() < self._serve_by_s and self.io_settled():
+            return outbox
+        if outbox:
+            self._data_frames(outbox)
+        return None
 
     def _send_fault_emcy(self, emcy: Emcy) -> None:
         code, register, data = emcy

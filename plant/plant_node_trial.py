@@ -238,6 +238,15 @@ class LockstepMaster:
         j = cob - _TORQUE_LO
         try:
             torque, wire, status = io_frames.torque_fields(msg)
+        except io_frames.IoFrameError as err:
+            self.fail(PlantFault.BAD_FRAME, j + 1, f"tick {self.tick}: bad torque frame: {err}")
+            return
+        self.on_torque(j, torque, wire, status)
+
+    def on_torque(self, j: int, torque: int, wire: int, status: int) -> None:
+        """The fields of a well-formed torque frame of drive ``j + 1`` during a trial (:meth:`on_io`;
+        the plant node's frames read in C, :meth:`plant.plant_node.PlantNode.step`)."""
+        try:
             if io_frames.tick_diff(wire, self._origin + self.tick) < -self.tick:
                 # an answer to a tick of an earlier (e.g. aborted) trial arriving late: wire ticks
                 # keep counting across trials, so it is further back than this trial's tick 0 (the

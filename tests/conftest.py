@@ -94,7 +94,8 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo):  # type
 def hub_data_plane(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
     """Run a hub test once with each data plane of the hub: the C core (skipped where it is not
     built) and the pure-Python path. Hubs started by the test, in-process or as child processes,
-    take it from the environment (bus.transports.hub.core.HUB_CORE_ENV)."""
+    take it from the environment (bus.transports.hub.core.HUB_CORE_ENV), and so do the hub
+    clients it opens (with ``python`` none answers frames in C: HubBus.answers_in_c)."""
     from bus.transports.hub.core import HUB_CORE_ENV, core_built
 
     if request.param == "c" and not core_built():

@@ -18,11 +18,24 @@
  * before their handshake) with watch(); poll() returns their events, and handles every member's
  * events itself. A member the core drops (disconnected, read/write error, output overflow, an
  * unknown record kind) is taken out of the core and reported by poll(); Python closes it.
+ *
+ * The member's side of the same wire, one function: answer_frames() (below Core), behind
+ * HubBus.answer_frames (client.py): the receive loop of a drive's plain io ticks
+ * (firmware_model/drive_node.py, DriveNode.step). It waits on the member's socket and one more
+ * descriptor (the node's fieldbus), reads the records, hands each frame of a range of identifiers
+ * and one length (the encoder frame of the drive's joint; the plant's four torque frames) to a
+ * Python callable, which runs the tick, and writes the answers the callable returns (the torque
+ * frame; the next tick's encoder frames); anything else goes back to the Python client, and the
+ * loop returns. Why C: a drive spent about four fifths of its CPU per tick in the Python interpreter
+ * around a control period of a few microseconds (benchmarks/robot_speed.py, py-spy; the numbers in
+ * docs/benchmarks.md); the tick itself stays Python (the firmware's own code), only the waiting,
+ * the reading and the record codec move here.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
 #include <errno.h>
+#include <poll.h>
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
@@ -734,8 +747,207 @@ static PyTypeObject CoreType = {
     .tp_methods = Core_methods,
 };
 
+/* ---------------------------------------------------------------- answer_frames (a member's side) */
+
+#define BURST_TIMEOUT 0 /* the deadline came */
+#define BURST_OTHER 1   /* the other descriptor is readable (the drive's fieldbus first) */
+#define BURST_PYTHON 2  /* a record that is not a plain encoder frame: in rest, for Python */
+#define BURST_STOPPED 3 /* the callable returned None: it handled its tick itself */
+#define BURST_CLOSED 4  /* the io socket read 0 bytes or failed: Python's own read says why */
+#define BURST_SENDFAIL 5 /* writing the torque frame failed (errno in the result) */
+#define BURST_CHUNK 65536
+#define MAX_ANSWERS 16 /* answers to one frame, written in one send */
+
+static int set_rest(PyObject *rest, const uint8_t *p, size_t n) {
+    if (PyByteArray_Resize(rest, (Py_ssize_t)n) < 0) return -1;
+    if (n) memcpy(PyByteArray_AS_STRING(rest), p, n);
+    return 0;
+}
+
+/* write all of rec[0..n) to a blocking (or non-blocking) stream socket; 0, or the errno */
+static int send_all(int fd, const uint8_t *rec, size_t n) {
+    size_t off = 0;
+    while (off < n) {
+        ssize_t k = send(fd, rec + off, n - off, MSG_NOSIGNAL);
+        if (k > 0) {
+            off += (size_t)k;
+            continue;
+        }
+        if (k < 0 && errno == EINTR) continue;
+        if (k < 0 && (errno == EAGAIN || errno == EWOULDBLOCK)) {
+            struct pollfd p = {.fd = fd, .events = POLLOUT};
+            if (poll(&p, 1, -1) < 0 && errno != EINTR) return errno;
+            continue;
+        }
+        return k < 0 ? errno : EPIPE;
+    }
+    return 0;
+}
+
+static PyObject *answer_frames(PyObject *self, PyObject *args) {
+    int io_fd, other_fd;
+    double deadline_s;
+    unsigned int rx_id, rx_count, rx_len;
+    PyObject *on_frame, *rest, *lock;
+    if (!PyArg_ParseTuple(args, "iidIIIOO!O:answer_frames", &io_fd, &other_fd, &deadline_s, &rx_id, &rx_count, &rx_len,
+                          &on_frame, &PyByteArray_Type, &rest, &lock))
+        return NULL;
+    if (rx_len > 8 || rx_id > 0x7FF || rx_count > 0x800 - rx_id) {
+        PyErr_SetString(PyExc_ValueError, "answer_frames: classic frames (rx_len <= 8, rx_id + rx_count <= 0x800)");
+        return NULL;
+    }
+    uint8_t *buf = malloc(BURST_CHUNK);
+    if (!buf) return PyErr_NoMemory();
+    size_t len = 0;      /* bytes in buf (records not yet handled, a partial one at the end) */
+    long ticks = 0;      /* ticks run */
+    int why = BURST_TIMEOUT, err = 0;
+    for (;;) {
+        size_t off = 0;
+        while (len - off >= HEADER_SIZE) {
+            const uint8_t *rec = buf + off;
+            uint32_t index = u32le(rec + 4) - rx_id; /* wraps for an id below rx_id */
+            if (rec[0] != KIND_FRAME || rec[1] != 0 || rec[2] != rx_len || rec[3] != rx_len || index >= rx_count) {
+                why = BURST_PYTHON;
+                goto done;
+            }
+            off += HEADER_SIZE;
+            ticks++;
+            PyObject *res = PyObject_CallFunction(on_frame, "Iy#", (unsigned)index, (const char *)rec + 16, (Py_ssize_t)rx_len);
+            if (!res) {
+                set_rest(rest, buf + off, len - off);
+                free(buf);
+                return NULL;
+            }
+            if (res == Py_None) {
+                Py_DECREF(res);
+                why = BURST_STOPPED;
+                goto done;
+            }
+            uint8_t out[HEADER_SIZE * MAX_ANSWERS];
+            size_t nout = 0;
+            PyObject *seq = PySequence_Fast(res, "answer_frames: the answers must be a sequence of (id, data) pairs or None");
+            Py_DECREF(res);
+            if (seq && PySequence_Fast_GET_SIZE(seq) > MAX_ANSWERS) {
+                PyErr_SetString(PyExc_ValueError, "answer_frames: more than 16 answers to one frame");
+                Py_CLEAR(seq);
+            }
+            for (Py_ssize_t a = 0; seq && a < PySequence_Fast_GET_SIZE(seq); a++) {
+                unsigned int tx_id;
+                const char *data;
+                Py_ssize_t n;
+                PyObject *pair = PySequence_Fast_GET_ITEM(seq, a);
+                if (!PyArg_ParseTuple(pair, "Iy#:answer", &tx_id, &data, &n)) {
+                    Py_CLEAR(seq);
+                } else if (tx_id > 0x7FF || n > 8) {
+                    PyErr_Format(PyExc_ValueError, "answer_frames: not a classic data frame: 0x%X, %zd bytes", tx_id, n);
+                    Py_CLEAR(seq);
+                } else {
+                    uint8_t *o = out + nout;
+                    memset(o, 0, HEADER_SIZE);
+                    o[0] = KIND_FRAME;
+                    o[2] = o[3] = (uint8_t)n;
+                    o[4] = (uint8_t)tx_id;
+                    o[5] = (uint8_t)(tx_id >> 8);
+                    memcpy(o + 16, data, (size_t)n);
+                    nout += HEADER_SIZE;
+                }
+            }
+            if (!seq) {
+                set_rest(rest, buf + off, len - off);
+                free(buf);
+                return NULL;
+            }
+            Py_DECREF(seq);
+            if (!nout) continue;
+            PyObject *held = PyObject_CallMethod(lock, "acquire", NULL); /* the client's send lock */
+            if (!held) {
+                set_rest(rest, buf + off, len - off);
+                free(buf);
+                return NULL;
+            }
+            Py_DECREF(held);
+            err = send_all(io_fd, out, nout);
+            PyObject *freed = PyObject_CallMethod(lock, "release", NULL);
+            if (!freed) {
+                set_rest(rest, buf + off, len - off);
+                free(buf);
+                return NULL;
+            }
+            Py_DECREF(freed);
+            if (err) {
+                why = BURST_SENDFAIL;
+                goto done;
+            }
+        }
+        if (off) {
+            memmove(buf, buf + off, len - off);
+            len -= off;
+        }
+        struct pollfd fds[2] = {{.fd = io_fd, .events = POLLIN}, {.fd = other_fd, .events = POLLIN}};
+        double left = deadline_s - mono_s();
+        if (left <= 0) {
+            why = BURST_TIMEOUT;
+            goto done_at;
+        }
+        struct timespec ts = {.tv_sec = (time_t)left, .tv_nsec = (long)((left - (double)(time_t)left) * 1e9)};
+        int r;
+        Py_BEGIN_ALLOW_THREADS r = ppoll(fds, other_fd >= 0 ? 2 : 1, &ts, NULL);
+        Py_END_ALLOW_THREADS if (r < 0) {
+            if (errno == EINTR) {
+                if (PyErr_CheckSignals() < 0) {
+                    set_rest(rest, buf, len);
+                    free(buf);
+                    return NULL;
+                }
+                continue;
+            }
+            why = BURST_CLOSED;
+            goto done_at;
+        }
+        if (r == 0) continue; /* the deadline: checked above */
+        if (other_fd >= 0 && fds[1].revents) {
+            why = BURST_OTHER;
+            goto done_at;
+        }
+        if (!fds[0].revents) continue;
+        if (fds[0].revents & ~POLLIN) { /* hang-up or error: Python's read reports it */
+            why = BURST_CLOSED;
+            goto done_at;
+        }
+        ssize_t k = recv(io_fd, buf + len, BURST_CHUNK - len, MSG_DONTWAIT);
+        if (k < 0 && (errno == EAGAIN || errno == EWOULDBLOCK || errno == EINTR)) continue;
+        if (k <= 0) {
+            why = BURST_CLOSED;
+            goto done_at;
+        }
+        len += (size_t)k;
+        continue;
+    done:
+        memmove(buf, buf + off, len - off);
+        len -= off;
+    done_at:
+        break;
+    }
+    if (set_rest(rest, buf, len) < 0) {
+        free(buf);
+        return NULL;
+    }
+    free(buf);
+    return Py_BuildValue("lii", ticks, why, err);
+}
+
+static PyMethodDef module_methods[] = {
+    {"answer_frames", answer_frames, METH_VARARGS,
+     "answer_frames(fd, other_fd, deadline_s, rx_id, rx_count, rx_len, on_frame, rest, lock) -> (n, why, errno): "
+     "read fd's records; each classic data frame rx_id + i (i < rx_count) of rx_len bytes goes to on_frame(i, data), "
+     "whose answers ((id, data) pairs, classic) are written at once in one send holding lock (the client's send "
+     "lock); until deadline_s (CLOCK_MONOTONIC: time.monotonic()), other_fd (-1: none) readable, another record "
+     "(why BURST_PYTHON) or on_frame returning None; rest (a bytearray) gets the bytes read and not handled"},
+    {NULL, NULL, 0, NULL},
+};
+
 static struct PyModuleDef hubcore_module = {
-    PyModuleDef_HEAD_INIT, "_hubcore", "The hub's data plane in C (see bus/transports/hub/_hubcore.c).", -1, NULL,
+    PyModuleDef_HEAD_INIT, "_hubcore", "The hub's data plane in C (see bus/transports/hub/_hubcore.c).", -1, module_methods,
 };
 
 PyMODINIT_FUNC PyInit__hubcore(void) {
@@ -750,7 +962,13 @@ PyMODINIT_FUNC PyInit__hubcore(void) {
     }
     if (PyModule_AddIntConstant(mod, "REPORT_EVENTS", REPORT_EVENTS) < 0 ||
         PyModule_AddIntConstant(mod, "REPORT_DROP", REPORT_DROP) < 0 ||
-        PyModule_AddIntConstant(mod, "REPORT_REFUSE", REPORT_REFUSE) < 0) {
+        PyModule_AddIntConstant(mod, "REPORT_REFUSE", REPORT_REFUSE) < 0 ||
+        PyModule_AddIntConstant(mod, "BURST_TIMEOUT", BURST_TIMEOUT) < 0 ||
+        PyModule_AddIntConstant(mod, "BURST_OTHER", BURST_OTHER) < 0 ||
+        PyModule_AddIntConstant(mod, "BURST_PYTHON", BURST_PYTHON) < 0 ||
+        PyModule_AddIntConstant(mod, "BURST_STOPPED", BURST_STOPPED) < 0 ||
+        PyModule_AddIntConstant(mod, "BURST_CLOSED", BURST_CLOSED) < 0 ||
+        PyModule_AddIntConstant(mod, "BURST_SENDFAIL", BURST_SENDFAIL) < 0) {
         Py_DECREF(mod);
         return NULL;
     }

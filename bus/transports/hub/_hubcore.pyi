@@ -1,10 +1,29 @@
-"""Type stub of the C extension bus/transports/hub/_hubcore.c (the hub's data plane)."""
+"""Type stub of the C extension bus/transports/hub/_hubcore.c (the hub's data plane, and a member's answer loop)."""
 
-from collections.abc import Sequence
+import threading
+from collections.abc import Callable, Sequence
 
 REPORT_EVENTS: int
 REPORT_DROP: int
 REPORT_REFUSE: int
+BURST_TIMEOUT: int
+BURST_OTHER: int
+BURST_PYTHON: int
+BURST_STOPPED: int
+BURST_CLOSED: int
+BURST_SENDFAIL: int
+
+def answer_frames(
+    fd: int,
+    other_fd: int,
+    deadline_s: float,
+    rx_id: int,
+    rx_count: int,
+    rx_len: int,
+    on_frame: Callable[[int, bytes], Sequence[tuple[int, bytes]] | None],
+    rest: bytearray,
+    lock: threading.Lock,
+) -> tuple[int, int, int]: ...
 
 class Core:
     def __init__(

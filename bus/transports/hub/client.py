@@ -86,19 +86,22 @@ from __future__ import annotations
 import collections
 import errno
 import logging
+import os
 import select
 import socket
 import threading
 import time
 from collections.abc import Sequence
+from types import ModuleType
 from typing import Any
 
 import can
 import numpy as np
 from can import CanProtocol
 
-from bus.bus_features import FRAME_DTYPE, exact_standard_ids, frames_from_messages, recv_waiting
+from bus.bus_features import FRAME_DTYPE, AnswerEnd, FrameAnswer, exact_standard_ids, frames_from_messages, recv_waiting
 from bus.transports.hub.addresses import connect, parse_channel
+from bus.transports.hub.core import member_core
 from bus.transports.hub.owner import HubOwnerError
 from bus.transports.hub.records import (
     classic_frames,
@@ -121,6 +124,18 @@ from bus.transports.hub.wire import (
 logger = logging.getLogger(__name__)
 
 _CLOSED = "Cannot operate on a closed bus"
+
+
+def _refuse_fd(msgs: Sequence[can.Message]) -> None:
+    """A classic CAN controller's refusal of FD frames and of more than 8 data bytes (as SocketCAN's).
+
+    :raises can.CanOperationError: ``EINVAL``
+    """
+    for msg in msgs:
+        if msg.is_fd or (not msg.is_remote_frame and len(msg.data) > 8):
+            raise can.CanOperationError(
+                "Failed to transmit: CAN FD frame on a classic CAN bus (opened with fd=False)", errno.EINVAL
+            )
 
 
 def _bitrate_arg(name: str, value: object) -> int:
@@ -227,6 +242,8 @@ class HubBus(can.BusABC):
         self._sock = sock
         self._closed = False
         self._send_lock = threading.Lock()
+        #: the C side of answer_frames (None: not built, or ILCRIG_HUB_CORE=python)
+        self._core: ModuleType | None = member_core()
         self._address = addr
         self.bus_name = name
         self.receive_own_messages = receive_own_messages
@@ -418,10 +435,8 @@ class HubBus(can.BusABC):
         """
         if self._closed:
             raise can.CanOperationError(_CLOSED)
-        if not self.fd and (msg.is_fd or (not msg.is_remote_frame and len(msg.data) > 8)):
-            raise can.CanOperationError(
-                "Failed to transmit: CAN FD frame on a classic CAN bus (opened with fd=False)", errno.EINVAL
-            )
+        if not self.fd:
+            _refuse_fd((msg,))
         self._sock_send(encode_record(msg))
 
     def send_batch(self, msgs: Sequence[can.Message]) -> None:
@@ -433,11 +448,7 @@ class HubBus(can.BusABC):
         if self._closed:
             raise can.CanOperationError(_CLOSED)
         if not self.fd:
-            for msg in msgs:
-                if msg.is_fd or (not msg.is_remote_frame and len(msg.data) > 8):
-                    raise can.CanOperationError(
-                        "Failed to transmit: CAN FD frame on a classic CAN bus (opened with fd=False)", errno.EINVAL
-                    )
+            _refuse_fd(msgs)
         self._sock_send(b"".join([encode_record(msg) for msg in msgs]))
 
     def send_data_frames(self, frames: Sequence[tuple[int, bytes]]) -> None:
@@ -466,6 +477,30 @@ class HubBus(can.BusABC):
         if self._closed:
             raise can.CanOperationError(_CLOSED)
         return super().send_periodic(*args, **kwargs)
+
+    @property
+    def answers_in_c(self) -> bool:
+        """:meth:`answer_frames` answers (the C core is built, ``ILCRIG_HUB_CORE`` is not ``python``)."""
+        return self._core is not None
+
+    def answer_frames(
+        self, rx_id: int, rx_count: int, rx_len: int, on_frame: FrameAnswer, deadline_s: float, other_fd: int = -1
+    ) -> tuple[int, AnswerEnd]:
+        """:class:`bus.bus_features.FrameAnswerer` in C (``_hubcore.answer_frames``; answers written as by
+        :meth:`send_data_frames`, records not handled left for :meth:`recv`); :raises: as :meth:`send`."""
+        if self._closed:
+            raise can.CanOperationError(_CLOSED)
+        core, rest = self._core, bytearray()
+        if core is None or self._rxq or self._rxbuf:  # (0, PYTHON) at once: what was read waits here
+            return 0, AnswerEnd.PYTHON
+        try:
+            args = (self._sock.fileno(), other_fd, deadline_s, rx_id, rx_count, rx_len, on_frame, rest, self._send_lock)
+            n, why, err = core.answer_frames(*args)
+        finally:
+            self._parse(bytes(rest))
+        if why == core.BURST_SENDFAIL:
+            raise can.CanOperationError(_CLOSED if self._closed else f"hub send failed: {os.strerror(err)}", err)
+        return n, AnswerEnd(why)
 
     def release_held(self) -> None:
         """Ask the hub for the frames it holds for this bulk member now (the release record of :mod:`bus.transports.hub.wire`;

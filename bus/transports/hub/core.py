@@ -2,7 +2,8 @@
 C extension :mod:`bus.transports.hub._hubcore`.
 
 This module owns whether a hub moves its members' frames in C (:func:`core_built`,
-:func:`hub_core_available`, :data:`HUB_CORE_ENV`) and :class:`CoreSelector`, the selector of a hub
+:func:`hub_core_available`, :data:`HUB_CORE_ENV`), whether a member answers frames in C
+(:func:`member_core`) and :class:`CoreSelector`, the selector of a hub
 whose members the C core serves (:func:`new_core_selector`).
 
 Data planes
@@ -51,6 +52,12 @@ def core_built() -> bool:
 def hub_core_available() -> bool:
     """A hub started now (without frame faults or bus time) would move frames in C."""
     return _hubcore is not None and os.environ.get(HUB_CORE_ENV, "c").strip().lower() != "python"
+
+
+def member_core() -> ModuleType | None:
+    """The C extension for a member's side of the wire (:meth:`bus.transports.hub.client.HubBus.answer_frames`),
+    None where it is not built or :data:`HUB_CORE_ENV` is ``python`` (then every member reads in Python)."""
+    return _hubcore if hub_core_available() else None
 
 
 class CoreSelector(selectors.BaseSelector):
