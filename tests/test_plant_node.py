@@ -12,9 +12,11 @@ the hub with real processes is a benchmark: benchmarks/plant_node_speed.py.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
 import struct
+import tempfile
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -27,6 +29,7 @@ import pytest
 from canopen.objectdictionary import ODRecord, ODVariable, import_od
 from canopen.objectdictionary import datatypes as dt
 from clock_util import ManualClock, wait_for
+from hub_util import serving
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from robot_util import NodeThread
@@ -47,6 +50,8 @@ from bus.plant_objects import (
     pack_initial_state,
     unpack_initial_state,
 )
+from bus.transports.hub.core import HUB_CORE_ENV, core_built
+from bus.transports.hub.server import HubServer
 from host.nodes.plant_client import (
     PlantClient,
     PlantInputError,
@@ -128,8 +133,8 @@ class ScriptedDrives:
     ticks wait (in order) until :meth:`hold_at` allows them, so a test decides exactly how far
     a trial gets."""
 
-    def __init__(self, io_channel: str, policy: Policy = honest) -> None:
-        self.bus = can.Bus(interface="virtual", channel=io_channel)
+    def __init__(self, io_channel: str, policy: Policy = honest, bus: can.BusABC | None = None) -> None:
+        self.bus = can.Bus(interface="virtual", channel=io_channel) if bus is None else bus
         self.policy = policy
         self.controls: list[io_frames.ControlFrame] = []
         self.encoders: list[io_frames.EncoderFrame] = []
@@ -182,10 +187,10 @@ class ScriptedDrives:
 class Host:
     """canopen Network on a virtual fieldbus channel, EMCY and heartbeat capture."""
 
-    def __init__(self, fb_channel: str) -> None:
+    def __init__(self, fb_channel: str, interface: str = "virtual") -> None:
         self.network = canopen.Network()
         self.network.NOTIFIER_CYCLE = 0.02
-        self.network.connect(interface="virtual", channel=fb_channel)
+        self.network.connect(interface=interface, channel=fb_channel)
         self.emcy: list[tuple[int, bytes]] = []
         self.heartbeats: list[tuple[int, int]] = []
         for node in (1, 2, 3, 4, PLANT_ID):
@@ -202,14 +207,30 @@ class Host:
 
 
 class PlantRig:
-    """PlantNode (fake plant) in a thread + canopen host + scripted drives."""
+    """PlantNode (fake plant) in a thread + canopen host + scripted drives, on python-can
+    ``virtual`` buses or on a hub of this process (``hub``: :data:`TRANSPORTS`; the plant reads a
+    trial's torque frames in C where the environment lets the hub client, ``ILCRIG_HUB_CORE``)."""
 
-    def __init__(self, policy: Policy = honest, tick_timeout_s: float = 2.0, first_tick_timeout_s: float | None = None) -> None:
+    def __init__(
+        self,
+        policy: Policy = honest,
+        tick_timeout_s: float = 2.0,
+        first_tick_timeout_s: float | None = None,
+        transport: str = "virtual",
+    ) -> None:
         k = next(_counter)
         self.fb_channel, self.io_channel = f"bench-fb-{k}", f"bench-io-{k}"
         self.plants = PlantBox()
-        fb = can.Bus(interface="virtual", channel=self.fb_channel)
-        io = can.Bus(interface="virtual", channel=self.io_channel)
+        self._hub: contextlib.ExitStack | None = None
+        interface = "virtual"
+        if transport != "virtual":
+            self._hub = contextlib.ExitStack()
+            folder = Path(self._hub.enter_context(tempfile.TemporaryDirectory(prefix="plant-rig-")))
+            server = self._hub.enter_context(serving(HubServer([f"unix:{folder}/hub.sock"])))
+            address = server.addresses[0]
+            self.fb_channel, self.io_channel, interface = f"{address}#fb", f"{address}#io", "ilcrig_hub"
+        fb = can.Bus(interface=interface, channel=self.fb_channel)
+        io = can.Bus(interface=interface, channel=self.io_channel)
         self.bench = PlantNode(
             fb,
             io,
@@ -218,8 +239,8 @@ class PlantRig:
             tick_timeout_s=tick_timeout_s,
             first_tick_timeout_s=first_tick_timeout_s,
         )
-        self.host = Host(self.fb_channel)
-        self.drives = ScriptedDrives(self.io_channel, policy)
+        self.host = Host(self.fb_channel, interface)
+        self.drives = ScriptedDrives(self.io_channel, policy, can.Bus(interface=interface, channel=self.io_channel))
         self.remote = self.host.node(PLANT_ID, PLANT_EDS_PATH)
         self.access = SdoAccess(self.remote)
         self.client = PlantClient(self.access)
@@ -229,11 +250,29 @@ class PlantRig:
         self.node.close()
         self.drives.close()
         self.host.close()
+        if self._hub is not None:
+            self._hub.close()
+
+
+#: the plant's transports in the trial tests: python-can's virtual bus; the hub, its client
+#: reading the trial's torque frames in C (``hub-c``, where the C core is built) or in Python
+TRANSPORTS = ["virtual", "hub-c", "hub-python"]
+
+
+@pytest.fixture(params=TRANSPORTS)
+def transport(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Each transport of :data:`TRANSPORTS` (``ILCRIG_HUB_CORE`` set for the hub's)."""
+    name = str(request.param)
+    if name == "hub-c" and not core_built():
+        pytest.skip("the hub's C core is not built here (no C compiler at install)")
+    if name != "virtual":
+        monkeypatch.setenv(HUB_CORE_ENV, name.removeprefix("hub-"))
+    return name
 
 
 @pytest.fixture
-def rig() -> Iterator[PlantRig]:
-    r = PlantRig()
+def rig(transport: str) -> Iterator[PlantRig]:
+    r = PlantRig(transport=transport)
     try:
         yield r
     finally:
@@ -486,7 +525,7 @@ def test_nmt_reset_node_restores_defaults(rig: PlantRig) -> None:
 # ---------------------------------------------------------------------------------------
 
 
-def test_trial_protocol_frames_plant_and_counters(rig: PlantRig) -> None:
+def test_trial_protocol_frames_plant_and_counters(rig: PlantRig, transport: str) -> None:
     client = rig.client
     client.configure(0.002, 3, "nonrepetitive", 5)
     n = 12
@@ -519,12 +558,16 @@ def test_trial_protocol_frames_plant_and_counters(rig: PlantRig) -> None:
     assert c["io_sent"] == 2 * (4 * n + 2) and c["io_received"] == 2 * 4 * n
     assert c["trials_done"] == 2 and c["tick_timeouts"] == 0 and c["last_trial_us"] > 0
     assert not rig.host.emcy
+    if transport == "hub-c":  # the torque frames of most ticks were read in C (after each service: Python)
+        assert rig.bench.answered >= 2 * 4 * n - 8 * 4, rig.bench.answered
+    else:
+        assert rig.bench.answered == 0
 
 
-def test_status_is_served_during_a_trial() -> None:
+def test_status_is_served_during_a_trial(transport: str) -> None:
     """The drives are held (no tick timeout can fire: 60 s), so the trial stands exactly where the
     test wants it while the status is polled."""
-    rig = PlantRig(tick_timeout_s=60.0)
+    rig = PlantRig(tick_timeout_s=60.0, transport=transport)
     try:
         rig.drives.hold_at(0)
         rig.client.start_trial(0, 100, Q0, QD0)
@@ -663,7 +706,7 @@ def test_tick_zero_gets_the_longer_first_tick_timeout() -> None:
 
 
 @pytest.mark.parametrize("kind", ["duplicate", "stale", "early", "missing"])
-def test_bad_torque_sequence_is_a_fault(kind: str) -> None:
+def test_bad_torque_sequence_is_a_fault(kind: str, transport: str) -> None:
     def policy(joint: int, n: int, wire: int, count: int) -> list[tuple[int, int]]:
         frames = honest(joint, n, wire, count)
         if joint == 1 and n == 6:
@@ -676,7 +719,7 @@ def test_bad_torque_sequence_is_a_fault(kind: str) -> None:
             return [(wire + 1, 0)]  # the frame of tick 6 missing, tick 7 instead
         return frames
 
-    rig = PlantRig(policy)
+    rig = PlantRig(policy, transport=transport)
     try:
         rig.client.start_trial(0, 20, Q0, QD0)
         with pytest.raises(PlantTrialFault, match="drive 2 out of sequence at tick 6") as err:
