@@ -299,7 +299,7 @@ def frame_gatherer(bus: can.BusABC) -> Callable[[int], None]:
 class AnswerEnd(enum.IntEnum):
     """Why :meth:`FrameAnswerer.answer_frames` returned (the values of the hub's C core)."""
 
-    DEADLINE = 0  #: ``deadline_s`` came
+    DEADLINE = 0  #: ``deadline_s`` came, or a signal interrupted the wait (its handler ran: the caller looks)
     OTHER = 1  #: ``other_fd`` is readable
     PYTHON = 2  #: a frame that is not ``rx_id`` of ``rx_len`` bytes (or any frame already read) waits for ``recv``
     STOPPED = 3  #: ``on_frame`` returned None: it handled its frame itself

@@ -11,6 +11,8 @@ ticks answered in C, against the same drive with the C loop switched off (``ILCR
 
 from __future__ import annotations
 
+import os
+import signal
 import socket
 import struct
 import threading
@@ -128,6 +130,47 @@ def test_records_split_anyhow_are_answered_in_order_and_the_rest_comes_back(
     assert seen == [r[16:22] for r in plain_recs]
     assert answers == b"".join(_rec(TORQUE_ID, _torque(d)) for d in seen)
     assert bytes(rest) == stream[len(b"".join(plain_recs)) :]
+
+
+def test_a_signal_during_the_wait_runs_its_handler_and_hands_back() -> None:
+    """A drive's SIGTERM handler sets its stop event: the loop hands back as soon as the handler
+    ran (the node's loop then looks at the event), long before its deadline; a handler that raises
+    (Ctrl-C's KeyboardInterrupt) raises out of the loop."""
+    core = member_core()
+    assert core is not None
+    ran: list[int] = []
+    here, there = socket.socketpair()
+    done = threading.Event()
+
+    def poke() -> None:  # until the loop has handed back: a signal sent before it waits is handled before it
+        while not done.wait(0.01):
+            os.kill(os.getpid(), signal.SIGUSR1)
+
+    def handler(signum: int, _frame: object) -> None:
+        ran.append(signum)
+
+    previous = signal.signal(signal.SIGUSR1, handler)
+    poker = threading.Thread(target=poke)
+    try:
+        poker.start()
+        deadline = time.monotonic() + 60.0
+        n, why, err = core.answer_frames(here.fileno(), -1, deadline, ENC_ID, 1, 6, _answer, bytearray(), threading.Lock())
+        assert (n, why, err) == (0, AnswerEnd.DEADLINE, 0) and ran and time.monotonic() < deadline
+
+        def interrupt(signum: int, _frame: object) -> None:
+            if not done.is_set():  # once: the pokes still on their way find nothing to raise
+                done.set()
+                raise KeyboardInterrupt
+
+        signal.signal(signal.SIGUSR1, interrupt)
+        with pytest.raises(KeyboardInterrupt):
+            core.answer_frames(here.fileno(), -1, time.monotonic() + 60.0, ENC_ID, 1, 6, _answer, bytearray(), threading.Lock())
+    finally:
+        done.set()
+        poker.join(10)
+        signal.signal(signal.SIGUSR1, previous)
+        here.close()
+        there.close()
 
 
 # ------------------------------------------------------------------ HubBus.answer_frames on a hub

@@ -749,7 +749,7 @@ static PyTypeObject CoreType = {
 
 /* ---------------------------------------------------------------- answer_frames (a member's side) */
 
-#define BURST_TIMEOUT 0 /* the deadline came */
+#define BURST_TIMEOUT 0 /* the deadline came, or a signal interrupted the wait (its handler ran) */
 #define BURST_OTHER 1   /* the other descriptor is readable (the drive's fieldbus first) */
 #define BURST_PYTHON 2  /* a record that is not a plain encoder frame: in rest, for Python */
 #define BURST_STOPPED 3 /* the callable returned None: it handled its tick itself */
@@ -893,13 +893,14 @@ static PyObject *answer_frames(PyObject *self, PyObject *args) {
         int r;
         Py_BEGIN_ALLOW_THREADS r = ppoll(fds, other_fd >= 0 ? 2 : 1, &ts, NULL);
         Py_END_ALLOW_THREADS if (r < 0) {
-            if (errno == EINTR) {
+            if (errno == EINTR) { /* a signal: its Python handler runs now, and the caller looks (a stop event) */
                 if (PyErr_CheckSignals() < 0) {
                     set_rest(rest, buf, len);
                     free(buf);
                     return NULL;
                 }
-                continue;
+                why = BURST_TIMEOUT;
+                goto done_at;
             }
             why = BURST_CLOSED;
             goto done_at;
