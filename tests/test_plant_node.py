@@ -558,8 +558,8 @@ def test_trial_protocol_frames_plant_and_counters(rig: PlantRig, transport: str)
     assert c["io_sent"] == 2 * (4 * n + 2) and c["io_received"] == 2 * 4 * n
     assert c["trials_done"] == 2 and c["tick_timeouts"] == 0 and c["last_trial_us"] > 0
     assert not rig.host.emcy
-    if transport == "hub-c":  # the torque frames of most ticks were read in C (after each service: Python)
-        assert rig.bench.answered >= 2 * 4 * n - 8 * 4, rig.bench.answered
+    if transport == "hub-c":  # read in C: every tick's torque frames after a wake-up that left the service nothing to do
+        assert rig.bench.answered > 0
     else:
         assert rig.bench.answered == 0
 
