@@ -11,6 +11,7 @@ ticks answered in C, against the same drive with the C loop switched off (``ILCR
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import socket
@@ -258,6 +259,14 @@ def test_a_hub_gone_mid_loop_is_the_next_reads_error(
         drive.shutdown()
     with pytest.raises(can.CanOperationError, match="closed bus"):
         drive.answer_frames(ENC_ID, 1, 6, _answer, time.monotonic() + 5.0)
+
+
+def test_a_deadline_that_is_no_time_is_refused_and_one_at_infinity_waits_for_frames(hub: HubServer) -> None:
+    with _bus(hub, "io") as drive, _bus(hub, "io") as plant:
+        with pytest.raises(ValueError, match="not a number"):
+            drive.answer_frames(ENC_ID, 1, 6, _answer, math.nan)
+        plant.send_batch([_enc(0), io_frames.encode_control(io_frames.IoControlCommand.TRIAL_STOP, 1)])
+        assert drive.answer_frames(ENC_ID, 1, 6, _answer, math.inf) == (1, AnswerEnd.PYTHON)
 
 
 def test_switched_off_a_client_answers_nothing(hub: HubServer, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -35,6 +35,7 @@
 #include <Python.h>
 
 #include <errno.h>
+#include <math.h>
 #include <poll.h>
 #include <stdint.h>
 #include <stdlib.h>
@@ -796,6 +797,10 @@ static PyObject *answer_frames(PyObject *self, PyObject *args) {
         PyErr_SetString(PyExc_ValueError, "answer_frames: classic frames (rx_len <= 8, rx_id + rx_count <= 0x800)");
         return NULL;
     }
+    if (isnan(deadline_s)) {
+        PyErr_SetString(PyExc_ValueError, "answer_frames: the deadline is not a number");
+        return NULL;
+    }
     uint8_t *buf = malloc(BURST_CHUNK);
     if (!buf) return PyErr_NoMemory();
     size_t len = 0;      /* bytes in buf (records not yet handled, a partial one at the end) */
@@ -889,6 +894,7 @@ static PyObject *answer_frames(PyObject *self, PyObject *args) {
             why = BURST_TIMEOUT;
             goto done_at;
         }
+        if (left > 86400.0) left = 86400.0; /* a far (or infinite) deadline: a day's wait at a time */
         struct timespec ts = {.tv_sec = (time_t)left, .tv_nsec = (long)((left - (double)(time_t)left) * 1e9)};
         int r;
         Py_BEGIN_ALLOW_THREADS r = ppoll(fds, other_fd >= 0 ? 2 : 1, &ts, NULL);
