@@ -323,7 +323,8 @@ class FrameAnswerer(Protocol):
         ``rx_len`` bytes goes to ``on_frame`` (:data:`FrameAnswer`) and its answers go out at once.
         Returns (frames handed to ``on_frame``, why: :class:`AnswerEnd`) at ``deadline_s``
         (``time.monotonic()``), when ``other_fd`` (-1: none) is readable, at any other frame (it and
-        all after it wait for :meth:`can.BusABC.recv`) or when ``on_frame`` returned None."""
+        all after it wait for :meth:`can.BusABC.recv`) or when ``on_frame`` returned None. The bus's
+        one reader calls it (no other thread receives on the bus meanwhile; sending is safe)."""
         ...
 
 
