@@ -55,12 +55,12 @@ from typing import Any, Protocol, runtime_checkable
 import can
 
 from bus import io_frames, units
-from bus.bus_features import AnswerEnd, data_frame_sender, frame_answerer
+from bus.bus_features import data_frame_sender, frame_answerer
 from bus.can_errors import is_receive_overflow
+from bus.cia301.answering import AnsweringNode
 from bus.cia301.slave import (
     PRODUCER_HEARTBEAT_INDEX,
     SlaveApp,
-    SlaveNode,
     exact_id_filters,
     install_sigterm,
     quiet_shutdown,
@@ -178,7 +178,7 @@ class CyclicDriveLike(DriveLike, Protocol):
         ...
 
 
-class DriveNode(SlaveNode):
+class DriveNode(AnsweringNode):
     """Runs one drive on a fieldbus and an io bus.
 
     :param drive: the firmware (see :class:`DriveLike`).
@@ -241,7 +241,7 @@ class DriveNode(SlaveNode):
         # Not in lockstep: a SYNC-stepped drive wakes for its SYNC every period anyway, and the loop
         # handing back to Python for it cost as much as the io side saved (docs/benchmarks.md).
         self._answer = frame_answerer(io) if clock is time.monotonic and not lockstep else None
-        self.answered = 0  #: io ticks whose encoder frame was read and torque frame written in C
+        self._answer_rx = (self._encoder_id, 1, io_frames.ENCODER_LEN)  # this joint's encoder frame
 
     # ------------------------------------------------------------------ io
 
@@ -319,12 +319,7 @@ class DriveNode(SlaveNode):
         the drive's) on the fieldbus; the frames waiting behind the tick's SYNC go on."""
         self._send_data_frames(((self._torque_id, data),))
         self.frames_out += 1
-        if tpdos is None:
-            self._send_tpdos()
-        else:
-            for cob_id, payload in tpdos:
-                self._send(self.fieldbus, cob_id, payload)
-                self.tpdos_out += 1
+        self._send_tpdos(tpdos)
         if self.backlog.frames:
             self._io_plain = False  # the frames behind its SYNC are handled now
         self.backlog.tick_ran()
@@ -334,26 +329,21 @@ class DriveNode(SlaveNode):
     def step(self, max_wait_s: float) -> int:
         """:meth:`SlaveNode.step`; while the last wake-up left the service nothing to do, first
         the plain io ticks that come before its deadline, answered by the io transport outside the
-        interpreter (:class:`bus.bus_features.FrameAnswerer`: the hub client's C loop waits, reads
-        the encoder frame, calls :meth:`_answer_tick`, writes the torque frame). It hands back at
-        the service's deadline, at a fieldbus frame, at any other io frame (control frames, frames
-        held for a SYNC, anything unexpected: :meth:`on_io` as ever) and after a tick that was not
-        plain; the order of frames and the service are those of the Python path (tests/test_drive_answer.py)."""
+        interpreter (:class:`bus.cia301.answering.AnsweringNode`: the hub client's C loop waits,
+        reads the encoder frame, calls :meth:`_answer_tick`, writes the torque frame). It hands back
+        at the service's deadline, at a fieldbus frame, at any other io frame (control frames,
+        frames held for a SYNC, anything unexpected: :meth:`on_io` as ever) and after a tick that was
+        not plain; the order of frames and the service are those of the Python path
+        (tests/test_drive_answer.py)."""
         answer = self._answer
-        if answer is None or not self._settled or self._held is not None or self._fds is None:
+        if answer is None or self._held is not None or not self.answering_now():
             return super().step(max_wait_s)
-        if self._fieldbus_pending():
-            return super().step(max_wait_s)
-        deadline = min(self._serve_by_s, self._clock() + max_wait_s)
-        n, why = answer(self._encoder_id, 1, io_frames.ENCODER_LEN, self._answer_tick, deadline, self._fds[0])
-        self.frames_in += n
-        if why != AnswerEnd.STOPPED:
-            self.answered += n
-            return n + super().step(max_wait_s)
-        self.answered += n - 1  # the last one went the Python way
-        if self._io_plain:  # only TPDOs after its tick: still nothing for the service, as in SlaveNode.step
-            return n
-        return n + super().step(0.0)  # what waits, then the service
+        return self.step_answering(answer, self._answer_rx, self._answer_tick, max_wait_s)
+
+    def stopped_plain(self) -> bool:
+        """The tick the loop stopped at only had TPDOs after it: still nothing for the service, as in
+        :meth:`SlaveNode.step`."""
+        return self._io_plain
 
     def _answer_tick(self, _index: int, data: bytes) -> tuple[tuple[int, bytes]] | None:
         """An encoder frame read in C (:meth:`step`): its tick runs; the torque frame when the
@@ -399,12 +389,15 @@ class DriveNode(SlaveNode):
         due = self.next_deadline()
         return due is None or due >= self._serve_by_s
 
-    def _send_tpdos(self) -> None:
-        """The TPDOs the drive has due, on the fieldbus."""
-        if self._cyclic is not None:
-            for cob_id, data in self._cyclic.pop_tpdos():
-                self._send(self.fieldbus, cob_id, data)
-                self.tpdos_out += 1
+    def _send_tpdos(self, tpdos: list[tuple[int, bytes]] | None = None) -> None:
+        """The TPDOs ``tpdos`` (default: those the drive has due), on the fieldbus."""
+        if tpdos is None:
+            if self._cyclic is None:
+                return
+            tpdos = self._cyclic.pop_tpdos()
+        for cob_id, data in tpdos:
+            self._send(self.fieldbus, cob_id, data)
+            self.tpdos_out += 1
 
     def consumed_fieldbus_ids(self) -> set[int]:
         """SYNC (0x1005), the valid RPDOs' identifiers (0x1400..: sub 1) and those of the TPDOs that

@@ -42,10 +42,11 @@ import can
 
 from bus import io_frames, units
 from bus.atomic import atomic_write
-from bus.bus_features import AnswerEnd, data_frame_sender, frame_answerer, frame_gatherer
+from bus.bus_features import data_frame_sender, frame_answerer, frame_gatherer
+from bus.cia301.answering import AnsweringNode
 from bus.cia301.nmt import NmtCommand, NmtState, next_state
 from bus.cia301.object_store import ObjectStore
-from bus.cia301.slave import SlaveNode, install_sigterm, quiet_shutdown
+from bus.cia301.slave import install_sigterm, quiet_shutdown
 from bus.exit_codes import EXIT_FAULT, EXIT_OK
 from bus.fastmsg import new_message
 from bus.lockstep_process import freeze_heap, numba_without_blas, spin_in_this_class
@@ -74,9 +75,11 @@ __all__ = ["PlantNode", "PlantOptions", "run_plant", "run_plant_role"]
 
 _TORQUE_LO = io_frames.TORQUE_COB_BASE
 _TORQUE_HI = io_frames.TORQUE_COB_BASE + io_frames.N_JOINTS
+#: the frames a trial's answer loop hands to the plant: the four torque frames
+_ANSWER_RX = (_TORQUE_LO, _TORQUE_HI - _TORQUE_LO, io_frames.TORQUE_LEN)
 
 
-class PlantNode(SlaveNode):
+class PlantNode(AnsweringNode):
     """The plant as CANopen node ``node_id`` and io clock master.
 
     :param fieldbus: python-can bus of the fieldbus.
@@ -150,7 +153,6 @@ class PlantNode(SlaveNode):
         # the io bus can (the hub client in C, :meth:`step`); on the monotonic clock only
         self._answer = frame_answerer(io) if clock is time.monotonic else None
         self._outbox: list[tuple[int, bytes]] | None = None  # encoder frames for the C loop to write
-        self.answered = 0  #: torque frames read in C during trials
         self.model = TrialModel(self.node_id, plant_factory, disturbance_fn)
         self.lockstep = LockstepMaster(
             self.node_id,
@@ -388,23 +390,9 @@ class PlantNode(SlaveNode):
         frames written by the loop. It hands back at the deadline, at a fieldbus frame, at any other
         io frame and after a frame that ended the trial or left the service something to do."""
         answer = self._answer
-        if (
-            answer is None
-            or not self._settled
-            or self._fds is None
-            or not self.lockstep.running
-            or self.robot.expecting_io
-            or self._fieldbus_pending()
-        ):
+        if answer is None or not self.lockstep.running or self.robot.expecting_io or not self.answering_now():
             return super().step(max_wait_s)
-        deadline = min(self._serve_by_s, self._clock() + max_wait_s)
-        n, why = answer(_TORQUE_LO, _TORQUE_HI - _TORQUE_LO, io_frames.TORQUE_LEN, self._answer_torque, deadline, self._fds[0])
-        self.frames_in += n
-        if why != AnswerEnd.STOPPED:
-            self.answered += n
-            return n + super().step(max_wait_s)
-        self.answered += n - 1  # the last one went the Python way
-        return n + super().step(0.0)  # what waits, then the service
+        return self.step_answering(answer, _ANSWER_RX, self._answer_torque, max_wait_s)
 
     def _answer_torque(self, j: int, data: bytes) -> list[tuple[int, bytes]] | None:
         """A torque frame of drive ``j + 1`` read in C (:meth:`step`): the encoder frames it makes
