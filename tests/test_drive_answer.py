@@ -11,11 +11,13 @@ ticks answered in C, against the same drive with the C loop switched off (``ILCR
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import signal
 import socket
 import struct
+import tempfile
 import threading
 import time
 from collections.abc import Iterator
@@ -25,9 +27,10 @@ import can
 import numpy as np
 import pytest
 from clock_util import wait_for
-from hub_util import serving_in
+from hub_util import serving, serving_in
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
 from test_drive_client import DoubleIntegrator, reference
 
 from bus import io_frames
@@ -345,3 +348,100 @@ def test_a_drive_through_a_trial_answers_its_plain_ticks_in_c_and_sends_what_it_
     # frame's wake-up is served, and the tick after a service goes the Python way)
     assert answered == n - 1, f"{answered} of {n} ticks answered in C"
     assert frames_in == in_python[3]
+
+
+# ------------------------------------------------------------------ an outsider at random
+
+
+class AnswerLoopMachine(RuleBasedStateMachine):
+    """A plant at random on a hub: encoder frames of the answering joint and of others, control
+    frames, frames of the encoder's id with another length, fieldbus frames, in random batches;
+    the reader takes them by turns through the answer loop (its callback answering, handling a
+    frame itself, or raising) and through ``recv``. After every step: every frame sent went,
+    once and in order, either to the callback or to ``recv``; the plant got exactly the callback's
+    answers, in order; nothing else came."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._stack = contextlib.ExitStack()
+        folder = Path(self._stack.enter_context(tempfile.TemporaryDirectory(prefix="answer-fsm-")))
+        server = self._stack.enter_context(serving(HubServer([f"unix:{folder}/hub.sock"])))
+        self.drive = self._stack.enter_context(_bus(server, "io"))
+        self.plant = self._stack.enter_context(_bus(server, "io"))
+        self.fb = self._stack.enter_context(_bus(server, "fb"))
+        self.master = self._stack.enter_context(_bus(server, "fb"))
+        self.sent: list[tuple[int, bytes]] = []  # io frames the plant sent, in order
+        self.taken: list[tuple[int, bytes]] = []  # the same, as the reader took them
+        self.answers: list[tuple[int, bytes]] = []  # what the callback answered
+        self.plant_got: list[tuple[int, bytes]] = []  # what the plant received
+        self.fieldbus_sent = self.fieldbus_taken = 0
+        self.mode = "answer"
+
+    def teardown(self) -> None:
+        self._stack.close()
+
+    @rule(
+        frames=st.lists(
+            st.one_of(
+                st.tuples(st.just(ENC_ID), st.integers(-(2**31), 2**31 - 1).map(lambda c: struct.pack("<iH", c, 7))),
+                st.tuples(st.sampled_from([0x102, 0x103, io_frames.CONTROL_COB_ID]), st.binary(max_size=8)),
+                st.tuples(st.just(ENC_ID), st.binary(max_size=8).filter(lambda b: len(b) != 6)),
+            ),
+            min_size=1,
+            max_size=12,
+        )
+    )
+    def plant_sends(self, frames: list[tuple[int, bytes]]) -> None:
+        self.plant.send_batch([can.Message(arbitration_id=i, data=d, is_extended_id=False) for i, d in frames])
+        self.sent += frames
+
+    @rule()
+    def master_sends(self) -> None:
+        self.master.send(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False))
+        self.fieldbus_sent += 1
+
+    @rule(mode=st.sampled_from(["answer", "none", "raise"]))
+    def callback_will(self, mode: str) -> None:
+        self.mode = mode
+
+    def _on_frame(self, index: int, data: bytes) -> list[tuple[int, bytes]] | None:
+        self.taken.append((ENC_ID + index, data))
+        if self.mode == "raise":
+            raise RuntimeError("the tick failed")
+        if self.mode == "none":
+            return None
+        self.answers.append((TORQUE_ID, data[:4]))
+        return [(TORQUE_ID, data[:4])]
+
+    @rule()
+    def reader_drains(self) -> None:
+        """Until every frame sent was taken: the loop, then recv for what it hands back."""
+
+        def settled() -> bool:
+            try:
+                n, why = self.drive.answer_frames(ENC_ID, 1, 6, self._on_frame, time.monotonic() + 0.05, self.fb.fileno())
+            except RuntimeError:
+                pass
+            else:
+                if why == AnswerEnd.OTHER:
+                    while self.fb.recv(0) is not None:
+                        self.fieldbus_taken += 1
+            while (msg := self.drive.recv(0)) is not None:
+                self.taken.append((msg.arbitration_id, bytes(msg.data)))
+            return len(self.taken) >= len(self.sent)
+
+        assert wait_for(settled, 10.0)
+
+    @invariant()
+    def every_frame_once_in_order(self) -> None:
+        assert self.taken == self.sent[: len(self.taken)]
+        got = []
+        while (msg := self.plant.recv(0.05 if len(got) < len(self.answers) else 0)) is not None:
+            got.append((msg.arbitration_id, bytes(msg.data)))
+        self.plant_got += got
+        assert self.plant_got == self.answers
+        assert self.fieldbus_taken <= self.fieldbus_sent
+
+
+TestAnswerLoopAtRandom = AnswerLoopMachine.TestCase
+TestAnswerLoopAtRandom.settings = settings(max_examples=15, stateful_step_count=20, deadline=None)
