@@ -15,8 +15,9 @@ offset (:mod:`firmware_model.motion`), trial playback with its tables and data r
 (:mod:`firmware_model.playback`), the cyclic PDO exchange, its timers and SYNC pacing
 (:mod:`firmware_model.cyclic_pdo`), the object-dictionary hooks (:mod:`firmware_model.od_hooks`),
 the drive as their composition with its NMT state and its clock (:mod:`firmware_model.drive`, class
-``Drive``), the drive process on the bus (:mod:`firmware_model.drive_node`, ``ilcrig drive``) and
-its fieldbus frames waiting in order for the period of the SYNC-stepped robot in progress
+``Drive``), the drive process on the bus (:mod:`firmware_model.drive_node`, ``ilcrig drive``), a
+trial's plain io ticks run by the C core outside the interpreter (:mod:`firmware_model.plain_ticks`)
+and its fieldbus frames waiting in order for the period of the SYNC-stepped robot in progress
 (:mod:`firmware_model.sync_backlog`).
 
 May import: ``bus`` and ``bus.cia301`` (the contract it shares with the host).  Never ``host`` or

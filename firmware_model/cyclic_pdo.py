@@ -236,6 +236,13 @@ class CyclicPdo:
         """True when no PDO timer runs (:meth:`bus.cia301.pdo.PdoEngine.timers_idle`)."""
         return self.engine.timers_idle()
 
+    def quiet_ticks(self) -> bool:
+        """True when an io tick now leaves this side nothing to do: no SYNC credit for it to use
+        (:meth:`consume_sync`), no TPDO sampled for it or waiting (:meth:`after_tick`,
+        :meth:`pop_tpdos`), no PDO timer (:meth:`timers_idle`: nothing for :meth:`after_tick`'s
+        poll). Only frames and the node's service change that (firmware_model/plain_ticks.py)."""
+        return not self.sync_credit and self._deferred is None and not self._out and self.engine.timers_idle()
+
     def watch_deadline(self) -> float | None:
         """When the SYNC watchdog fires [s of :attr:`watch_clock`, else :attr:`clock`] (None: not
         armed)."""

@@ -76,6 +76,11 @@ class SyncBacklog:
     def __len__(self) -> int:
         return len(self.frames)
 
+    @property
+    def quiet(self) -> bool:
+        """No frame waits, no SYNC waits for its io tick, none timed out: an io tick changes nothing here."""
+        return not (self.frames or self.sync_waiting or self._off)
+
     # ------------------------------------------------------------------ events
 
     def offer(self, msg: can.Message) -> bool:

@@ -22,6 +22,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import can
 import numpy as np
@@ -283,13 +284,23 @@ def test_switched_off_a_client_answers_nothing(hub: HubServer, monkeypatch: pyte
 # ------------------------------------------------------------------ a real drive through a trial
 
 
-def _trial(server: HubServer, n_ticks: int) -> tuple[list[tuple[int, bytes]], np.ndarray, int, int]:
+class TrialRun(NamedTuple):
+    """What :func:`_trial` saw."""
+
+    torques: list[tuple[int, bytes]]  #: the torque frames (id, data)
+    trace: np.ndarray  #: the recorded trace's torques
+    answered: int  #: ticks answered in C
+    frames_in: int  #: frames the node counted in
+    ran_in_c: int  #: ticks the firmware's C core ran (firmware_model/plain_ticks.py)
+    state: tuple[Any, ...]  #: the drive's control state, time and trial bookkeeping after it
+
+
+def _trial(server: HubServer, n_ticks: int, firmware: str = "python") -> TrialRun:
     """A real drive (table playback, a cosine move) on the hub in a thread of this process, and a
     toy plant written here as the io master: TRIAL_START, then each tick's encoder frame after
-    the last torque frame. The torque frames (id, data), the recorded trace's torques, the
-    ticks answered in C and the frames the node counted in."""
+    the last torque frame."""
     q, qd, qdd = reference(n_ticks)
-    drive = Drive(NODE)
+    drive = Drive(NODE, firmware=firmware)
     drive.nmt_command(0x01)
     client = DriveClient(drive, NODE)
     client.set_mode(-1)
@@ -325,7 +336,10 @@ def _trial(server: HubServer, n_ticks: int) -> tuple[list[tuple[int, bytes]], np
         for bus in (plant, io, fieldbus):
             bus.shutdown()
     assert not thread.is_alive() and node.bus_error is None
-    return torques, client.read_trace().torque_units, node.answered, node.frames_in
+    plain = node._plain
+    state = (drive.motion.mode.st.tolist(), drive.time_us, int(drive.trial.state), drive.trial.next_tick, node.frames_out)
+    trace = client.read_trace().torque_units
+    return TrialRun(torques, trace, node.answered, node.frames_in, 0 if plain is None else plain.ticks, state)
 
 
 def test_a_drive_through_a_trial_answers_its_plain_ticks_in_c_and_sends_what_it_sends_without(
@@ -339,7 +353,7 @@ def test_a_drive_through_a_trial_answers_its_plain_ticks_in_c_and_sends_what_it_
     (tmp_path / "p").mkdir()
     with serving_in(tmp_path / "p", "python") as server:
         in_python = _trial(server, n)
-    torques, trace, answered, frames_in = in_c
+    torques, trace, answered, frames_in = in_c.torques, in_c.trace, in_c.answered, in_c.frames_in
     assert torques == in_python[0] and np.array_equal(trace, in_python[1])
     assert [struct.unpack("<iHB", d)[0] for _, d in torques] == list(trace)
     assert {i for i, _ in torques} == {io_frames.torque_cob_id(NODE - 1)}
