@@ -36,6 +36,7 @@ from test_drive_client import DoubleIntegrator, reference
 
 from bus import io_frames
 from bus.bus_features import AnswerEnd, FrameAnswerer, frame_answerer
+from bus.objects import Obj
 from bus.transports.hub.client import HubBus
 from bus.transports.hub.core import HUB_CORE_ENV, core_built, member_core
 from bus.transports.hub.server import HubServer
@@ -295,20 +296,35 @@ class TrialRun(NamedTuple):
     state: tuple[Any, ...]  #: the drive's control state, time and trial bookkeeping after it
 
 
-def _trial(server: HubServer, n_ticks: int, firmware: str = "python") -> TrialRun:
-    """A real drive (table playback, a cosine move) on the hub in a thread of this process, and a
-    toy plant written here as the io master: TRIAL_START, then each tick's encoder frame after
-    the last torque frame."""
-    q, qd, qdd = reference(n_ticks)
+def playing_drive(
+    n_ticks: int, firmware: str = "python", amp: float = 0.2, fe_window: int = -1, offset: int = 0
+) -> tuple[Drive, DriveClient]:
+    """A drive (node :data:`NODE`) armed to play an ``n_ticks`` cosine move of ``amp`` rad in table
+    playback (its feed-forward at most 5 N·m: a short move is steep), with a following-error window
+    of ``fe_window`` counts for 2 ms (-1: none) and a homing offset of ``offset`` counts."""
+    q, qd, qdd = reference(n_ticks, amp)
     drive = Drive(NODE, firmware=firmware)
     drive.nmt_command(0x01)
     client = DriveClient(drive, NODE)
     client.set_mode(-1)
     client.configure(300.0, 10.0)
     client.load_reference(q, qd)
-    client.load_feedforward(0.1 * qdd)
+    client.load_feedforward(np.clip(0.1 * qdd, -5.0, 5.0))
+    if fe_window >= 0:
+        drive.write_object(Obj.FOLLOWING_ERROR_WINDOW, 0, struct.pack("<I", fe_window))
+        drive.write_object(Obj.FOLLOWING_ERROR_TIME_OUT, 0, struct.pack("<H", 2))
     client.enable()
+    drive.motion.rehome(offset)  # the position is sat32(count + offset)
     client.arm_trial()
+    return drive, client
+
+
+def _trial(server: HubServer, n_ticks: int, firmware: str = "python") -> TrialRun:
+    """A real drive (:func:`playing_drive`) on the hub in a thread of this process, and a toy plant
+    written here as the io master: TRIAL_START, then each tick's encoder frame after the last
+    torque frame."""
+    q, qd, _ = reference(n_ticks)
+    drive, client = playing_drive(n_ticks, firmware)
     fieldbus, io, plant = _bus(server, "fb"), _bus(server, "io"), _bus(server, "io")
     node = DriveNode(drive, fieldbus, io)
     node.MAX_WAIT_S = 60.0  # the node serves only when something is due (no heartbeat, no timer): never here

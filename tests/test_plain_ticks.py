@@ -6,8 +6,8 @@ the same trace and ends in the same state with the ticker as without it (``ILCRI
 for the Python model's kernel and for the C core's, and the ticker ran every tick but the first
 and the last; and, at random, two drives fed the same encoder frames (counts anywhere, ticks
 skipped or repeated, a following-error window that trips, the service's deadline passing, the
-answer loop returning at any frame) — one through the ticker, one through the Python path —
-answer every frame alike and hold the same state after each."""
+answer loop returning at any frame, a homing offset up to saturation) — one through the ticker,
+one through the Python path — answer every frame alike and hold the same state after each."""
 
 from __future__ import annotations
 
@@ -22,18 +22,16 @@ import pytest
 from hub_util import serving_in
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from test_drive_answer import NODE, _trial
+from test_drive_answer import NODE, _trial, playing_drive
 from test_drive_client import reference
 
 from bus import io_frames
-from bus.objects import Obj
 from bus.transports.hub.core import HUB_CORE_ENV, core_built
 from bus.units import rad_to_counts
 from firmware_model.drive import Drive
 from firmware_model.drive_node import DriveNode
 from firmware_model.firmware_select import c_available
 from firmware_model.plain_ticks import PLAIN_TICKS_ENV, PlainTicks, plain_ticks_for
-from host.nodes.drive_client import DriveClient
 
 pytestmark = pytest.mark.skipif(
     not (core_built() and c_available()), reason="the C cores are not built here (no C compiler at install)"
@@ -81,20 +79,8 @@ class _Twin:
     """A drive in a trial on virtual buses, its node's callback driven by hand as the answer loop
     drives it: the ticker (armed at each start of the loop) or the Python path alone."""
 
-    def __init__(self, name: str, firmware: str, n_ticks: int, fe_window: int, clock: _Clock, ticker: bool) -> None:
-        q, qd, qdd = reference(n_ticks, amp=0.05)
-        drive = Drive(NODE, firmware=firmware)
-        drive.nmt_command(0x01)
-        client = DriveClient(drive, NODE)
-        client.set_mode(-1)
-        client.configure(300.0, 10.0)
-        client.load_reference(q, qd)
-        client.load_feedforward(np.clip(0.1 * qdd, -5.0, 5.0))  # a short table's move is steep
-        if fe_window >= 0:
-            drive.write_object(Obj.FOLLOWING_ERROR_WINDOW, 0, struct.pack("<I", fe_window))
-            drive.write_object(Obj.FOLLOWING_ERROR_TIME_OUT, 0, struct.pack("<H", 2))
-        client.enable()
-        client.arm_trial()
+    def __init__(self, name: str, firmware: str, n_ticks: int, fe_window: int, offset: int, clock: _Clock, ticker: bool) -> None:
+        drive, _ = playing_drive(n_ticks, firmware, 0.05, fe_window, offset)
         self.io = can.Bus(interface="virtual", channel=f"plain-io-{name}", receive_own_messages=False)
         self.fieldbus = can.Bus(interface="virtual", channel=f"plain-fb-{name}")
         self.wire = can.Bus(interface="virtual", channel=f"plain-io-{name}")  # the plant's end
@@ -172,23 +158,24 @@ _STEP = st.one_of(*[_TICK] * 8, *[st.just(("loop returns",))] * 3, st.tuples(st.
 @given(
     n_ticks=st.integers(3, 60),
     fe_window=st.sampled_from([-1, 2_000, 50_000]),
+    offset=st.sampled_from([0, 0, 12_345, -(2**31) + 5, 2**31 - 5]),
     steps=st.lists(_STEP, min_size=20, max_size=120),
 )
 def test_the_ticker_answers_and_changes_what_the_python_path_does(
-    firmware: str, n_ticks: int, fe_window: int, steps: list[tuple[Any, ...]], twins: list[_Twin]
+    firmware: str, n_ticks: int, fe_window: int, offset: int, steps: list[tuple[Any, ...]], twins: list[_Twin]
 ) -> None:
     clock = _Clock()
     k = len(twins)
-    ticker = _Twin(f"t{k}", firmware, n_ticks, fe_window, clock, ticker=True)
-    python = _Twin(f"p{k}", firmware, n_ticks, fe_window, clock, ticker=False)
+    ticker = _Twin(f"t{k}", firmware, n_ticks, fe_window, offset, clock, ticker=True)
+    python = _Twin(f"p{k}", firmware, n_ticks, fe_window, offset, clock, ticker=False)
     twins += [ticker, python]
     q, _, _ = reference(n_ticks, amp=0.05)
     wire = 0
     for step in steps:
         if step[0] == "tick":
-            _, skew, offset = step
+            _, skew, jitter = step
             tick = max(wire + skew, 0)
-            count = rad_to_counts(float(q[min(tick, n_ticks - 1)])) + offset
+            count = rad_to_counts(float(q[min(tick, n_ticks - 1)])) + jitter
             data = struct.pack("<iH", max(min(count, 2**31 - 1), -(2**31)), tick & 0xFFFF)
             got, want = ticker.frame(data), python.frame(data)
             assert got == want, f"tick {tick}: {got} != {want}"
