@@ -202,3 +202,42 @@ def test_only_the_firmware_model_has_a_ticker_and_the_switch_turns_it_off(
     assert plain_ticks_for(drive, fallback, _Clock(), object(), 0x181, lambda: 0) is not None
     monkeypatch.setenv(PLAIN_TICKS_ENV, "python")
     assert plain_ticks_for(drive, fallback, _Clock(), object(), 0x181, lambda: 0) is None
+
+
+def test_the_ticker_checks_what_it_is_armed_with_and_never_writes_outside_its_arrays() -> None:
+    from firmware_model import _fwcore, control_law
+
+    calls: list[tuple[int, bytes]] = []
+
+    def fallback(index: int, data: bytes) -> list[tuple[int, bytes]]:
+        calls.append((index, data))
+        return []
+
+    class Obj:
+        pass
+
+    ticker = _fwcore.TrialTicker(fallback, _Clock(), _fwcore.control_tick, Obj(), Obj(), Obj(), 0x181)
+    st_, tables, rec = control_law.new_state(), control_law.new_tables(4), control_law.new_recorder(4)
+    good = (st_, tables, rec, 0, 4, 0, 0, 0, 1000, 0, 0, 1.0, 1, 9)
+    with pytest.raises(TypeError):
+        ticker.arm(st_.astype(np.int32), *good[1:])
+    with pytest.raises(ValueError):
+        ticker.arm(st_, control_law.new_tables(4)[:2].copy(), *good[2:])
+    with pytest.raises(ValueError):
+        ticker.arm(*good[:12], 256, 9)  # a status outside a byte
+    with pytest.raises(TypeError):
+        ticker.arm(*good[:5])
+    assert not ticker.armed
+    assert ticker(0, struct.pack("<iH", 5, 0)) == [] and len(calls) == 1  # disarmed: the Python path's
+    ticker.arm(*good)
+    assert ticker.armed
+    answer = ticker(0, struct.pack("<iH", 5, 0))
+    assert answer is not None and answer[0][0] == 0x181 and ticker.ticks == 1 and len(calls) == 1
+    ticker.arm(st_, tables, rec, 2, 99, 2, 0, 0, 1000, 0, 0, 1.0, 1, 9)  # 99 ticks, 4 columns
+    before = rec.copy()
+    for k in (2, 3):
+        assert ticker(0, struct.pack("<iH", 5, k)) is not None
+    assert ticker(0, struct.pack("<iH", 5, 4)) == [] and not ticker.armed  # column 4: the Python path's
+    assert len(calls) == 2 and ticker.ticks == 3 and np.array_equal(rec[:, :2], before[:, :2])
+    ticker.arm(*good)
+    assert ticker(0, b"\x00" * 5) == [] and not ticker.armed  # not an encoder frame's data
