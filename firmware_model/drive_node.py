@@ -339,7 +339,9 @@ class DriveNode(AnsweringNode):
         """:meth:`SlaveNode.step`; while the last wake-up left the service nothing to do, first
         the plain io ticks that come before its deadline, answered by the io transport outside the
         interpreter (:class:`bus.cia301.answering.AnsweringNode`: the hub client's C loop waits,
-        reads the encoder frame, calls :meth:`_answer_tick`, writes the torque frame). It hands back
+        reads the encoder frame, calls :meth:`_answer_tick` -- or, while the trial's ticks are
+        plain, the firmware's C core, :mod:`firmware_model.plain_ticks` --, writes the torque
+        frame). It hands back
         at the service's deadline, at a fieldbus frame, at any other io frame (control frames,
         frames held for a SYNC, anything unexpected: :meth:`on_io` as ever) and after a tick that was
         not plain; the order of frames and the service are those of the Python path
