@@ -138,7 +138,9 @@ def test_a_killed_robot_launcher_leaves_a_summary_that_says_so(tmp_path: Path, w
             assert master.returncode == 0, master_err
         robot.proc.kill()
         assert robot.wait() == -signal.SIGKILL
-        assert wait_for(lambda: (out / "logs" / "janitor.log").exists(), 60.0), sorted(p.name for p in (out / "logs").iterdir())
+        # the janitor's last act: its log says how the summary ended (the file exists before it is written)
+        janitor_log = out / "logs" / "janitor.log"
+        assert wait_for(lambda: "end launcher_lost" in _read(janitor_log), 60.0), sorted(p.name for p in (out / "logs").iterdir())
     finally:
         robot.kill()
     assert wait_gone(list(pids.values()), 30.0) == []
@@ -146,8 +148,7 @@ def test_a_killed_robot_launcher_leaves_a_summary_that_says_so(tmp_path: Path, w
     end = summary["end"]
     assert end["reason"] == "launcher_lost" and end["noticed_by"] == "janitor", end
     assert summary["exit_code"] is None
-    janitor_log = (out / "logs" / "janitor.log").read_text()
-    assert "end launcher_lost" in janitor_log, janitor_log
+    assert "end launcher_lost" in janitor_log.read_text(), janitor_log.read_text()
     if when == "starting":
         assert end["was"] == "starting", end
         return
