@@ -33,7 +33,6 @@ every tick to the Python path, as a build without the C core does.
 
 from __future__ import annotations
 
-import importlib.util
 import logging
 import os
 from collections.abc import Callable
@@ -41,6 +40,7 @@ from typing import TYPE_CHECKING, Any
 
 from bus.bus_features import FrameAnswer
 from firmware_model import control_law
+from firmware_model.firmware_select import c_available
 from firmware_model.modes import TablePlaybackMode
 from firmware_model.playback import TrialState
 
@@ -61,7 +61,7 @@ def plain_ticks_enabled() -> bool:
     """The C core is built and :data:`PLAIN_TICKS_ENV` does not say ``python``."""
     if os.environ.get(PLAIN_TICKS_ENV, "c").strip().lower() == "python":
         return False
-    return importlib.util.find_spec("firmware_model._fwcore") is not None
+    return c_available()
 
 
 def _kernels() -> tuple[Any, ...]:
@@ -116,8 +116,8 @@ class PlainTicks:
         self._drive = drive
         self._fallback = fallback
         self._status = torque_status
-        self._kernel = drive.motion.mode.control_tick
-        self._ticker = _fwcore.TrialTicker(fallback, clock, self._kernel, node, drive, drive.trial, torque_id)
+        kernel = drive.motion.mode.control_tick  # every mode's: the drive's firmware (MotionContext)
+        self._ticker = _fwcore.TrialTicker(fallback, clock, kernel, node, drive, drive.trial, torque_id)
 
     @property
     def ticks(self) -> int:
@@ -136,7 +136,6 @@ class PlainTicks:
             trial.state != _RUNNING
             or trial.next_tick + 1 >= trial.n_table
             or type(mode) is not TablePlaybackMode
-            or mode.control_tick is not self._kernel
             or not power.on
             or power.quick_stopping
             or power.emcy_pending
