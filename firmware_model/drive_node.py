@@ -35,6 +35,12 @@ plant node (:mod:`plant.plant_node`); :class:`DriveNode` adds the io side:
   serves the master between cycles (heartbeat producer and consumer, SDO timeout, EMCY inhibit
   time, the SYNC watchdog) stays on ``clock``, so a master that pauses its SYNCs still gets
   heartbeats and a master that stops them is noticed.
+* one wake-up per period: in lockstep, after an io tick of the SYNC-stepped robot the node waits for
+  the next encoder frame alone, at most :attr:`DriveNode.IO_LEAD_S` (2 ms), and takes the fieldbus
+  frames that came meanwhile (the period's RPDOs and SYNC, an SDO request) first, in order, when it
+  comes -- the order of the frames is what it was, a wake-up for the SYNC alone is saved; past
+  ``IO_LEAD_S`` without one (the master paused, or sends only SDOs) the fieldbus wakes the node as
+  ever (docs/robot.md "Time").
 * a master faster than the robot is served late: in lockstep, the fieldbus frames after a SYNC wait
   in order until its io tick ran (:class:`firmware_model.sync_backlog.SyncBacklog`), so period k
   takes the frames that came before SYNC k and its TPDOs carry it (docs/robot.md "Time").
@@ -64,6 +70,7 @@ from bus.cia301.slave import (
     exact_id_filters,
     install_sigterm,
     quiet_shutdown,
+    select_ready,
 )
 from bus.exit_codes import EXIT_FAULT, EXIT_OK
 from bus.lockstep_process import freeze_heap, numba_without_blas
@@ -198,6 +205,9 @@ class DriveNode(AnsweringNode):
 
     #: lockstep: the longest wait for a SYNC's io tick while frames wait behind it, s
     HOLD_TIMEOUT_S: float = 10.0
+    #: lockstep: after an io tick of the robot, the longest wait for the next encoder frame alone
+    #: before a fieldbus frame wakes the node again, s (module docstring: one wake-up per period)
+    IO_LEAD_S: float = 0.002
 
     def __init__(
         self,
@@ -226,6 +236,7 @@ class DriveNode(AnsweringNode):
         self._next_full_tick = 0  # tick number (within the trial) expected next
         self._tick_origin = 0  # wire tick of the trial's tick 0 (from TRIAL_START)
         self._held: tuple[int, int] | None = None  # (count, wire tick) of an encoder frame waiting for its SYNC
+        self._io_lead_until = -1.0  # monotonic s: until then a wait is for the io frame alone (IO_LEAD_S)
         self._io_plain = True  # the io frames since the last io_settled() were ticks run at once, nothing else
         # the SYNC/PDO service is a declared optional capability (CyclicDriveLike)
         self._cyclic: CyclicDriveLike | None = cyclic
@@ -328,6 +339,8 @@ class DriveNode(AnsweringNode):
         the drive's) on the fieldbus; the frames waiting behind the tick's SYNC go on."""
         self._send_data_frames(((self._torque_id, data),))
         self.frames_out += 1
+        if self.lockstep and not self._cyclic_plant_trial():
+            self._io_lead_until = time.monotonic() + self.IO_LEAD_S
         self._send_tpdos(tpdos)
         if self.backlog.frames:
             self._io_plain = False  # the frames behind its SYNC are handled now
@@ -357,6 +370,21 @@ class DriveNode(AnsweringNode):
             return self.step_answering(answer, self._answer_rx, on_frame, max_wait_s)
         finally:
             plain.disarm()
+
+    def _wait_ready(self, fds: list[int], wait: float) -> tuple[bool, bool]:
+        """:meth:`SlaveNode._wait_ready`; in lockstep within :attr:`IO_LEAD_S` of the robot's last io
+        tick (and no encoder frame held for its SYNC), the wait is for the io frame alone, whose
+        wake-up takes the fieldbus frames first (module docstring: one wake-up per period)."""
+        lead = self._io_lead_until - time.monotonic()
+        if lead <= 0.0 or self._held is not None:
+            return super()._wait_ready(fds, wait)
+        if select_ready(fds[1:], min(wait, lead)):
+            return True, True  # the fieldbus is drained first: its SYNC and RPDOs came before this frame
+        return super()._wait_ready(fds, 0.0)  # the deadline or the lead's end: whatever waits, at once
+
+    def _cyclic_plant_trial(self) -> bool:
+        """The plant runs a trial (its io ticks are not SYNC's), or the drive has no SYNC service."""
+        return self._cyclic is None or self._cyclic.plant_trial
 
     def ticks_text(self) -> str:
         """Where the io ticks ran, for the drive's log: ``io ticks: 3004 answered in C, 3000 of them run in C``."""

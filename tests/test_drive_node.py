@@ -670,6 +670,123 @@ def test_lockstep_drive_of_a_sync_stepped_plant() -> None:
             bus.shutdown()
 
 
+class _PairedLockstepDrive:
+    """A real drive of a SYNC-stepped plant (``lockstep=True``) on socket-pair buses (the select()
+    path), stepped by the test: RPDO1 = controlword + target, TPDO1 = statusword + position actual,
+    both synchronous; heartbeat off, so that only frames end a wait."""
+
+    def __init__(self) -> None:
+        self.fb_node, self.fb = SocketPairBus.pair()
+        self.io_node, self.io = SocketPairBus.pair()
+        self.drive = Drive(NODE)
+        self.node = DriveNode(self.drive, self.fb_node, self.io_node, lockstep=True)
+        self.node.start()
+        self.download(0x1017, 0, struct.pack("<H", 0))
+        for comm, entries, cob in (
+            (0x1800, (0x60410010, 0x60640020), 0x180 + NODE),
+            (0x1400, (0x60400010, 0x607A0020), 0x200 + NODE),
+        ):
+            self.download(comm, 1, struct.pack("<I", 0x8000_0000 | cob))
+            self.download(comm + 0x200, 0, b"\x00")
+            for sub, entry in enumerate(entries, start=1):
+                self.download(comm + 0x200, sub, struct.pack("<I", entry))
+            self.download(comm + 0x200, 0, bytes([len(entries)]))
+            self.download(comm, 2, b"\x01")
+            self.download(comm, 1, struct.pack("<I", cob))
+        self.fb.send(can.Message(arbitration_id=0, data=bytes([0x01, NODE]), is_extended_id=False))
+        self.node.step(1.0)
+        self.wire = 0
+
+    def fieldbus_frames(self) -> list[tuple[int, bytes]]:
+        out = []
+        while (msg := self.fb.recv(timeout=0)) is not None:
+            out.append((msg.arbitration_id, bytes(msg.data)))
+        return out
+
+    def download(self, index: int, sub: int, data: bytes) -> None:
+        command = {1: 0x2F, 2: 0x2B, 4: 0x23}[len(data)]
+        request = bytes([command]) + struct.pack("<HB", index, sub) + data.ljust(4, b"\0")
+        self.fb.send(can.Message(arbitration_id=0x600 + NODE, data=request, is_extended_id=False))
+        self.node.step(1.0)
+        answers = [data for cob, data in self.fieldbus_frames() if cob == 0x580 + NODE]
+        assert answers and answers[-1][0] == 0x60, (hex(index), sub, answers)
+
+    def rpdo_and_sync(self, target: int) -> None:
+        self.fb.send(can.Message(arbitration_id=0x200 + NODE, data=struct.pack("<Hi", 0x06, target), is_extended_id=False))
+        self.fb.send(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False))
+
+    def encoder(self, count: int) -> None:
+        self.io.send(io_frames.encode_encoder(NODE - 1, self.wire & io_frames.TICK_MASK, count))
+        self.wire += 1
+
+    def step_in_thread(self, max_wait_s: float) -> tuple[threading.Thread, list[int]]:
+        """``node.step(max_wait_s)`` in a thread of its own; its frame count lands in the list."""
+        got: list[int] = []
+        thread = threading.Thread(target=lambda: got.append(self.node.step(max_wait_s)), daemon=True)
+        thread.start()
+        return thread, got
+
+    def close(self) -> None:
+        for bus in (self.fb_node, self.fb, self.io_node, self.io):
+            bus.shutdown()
+
+
+def test_a_sync_stepped_drive_takes_a_periods_sync_and_rpdo_with_its_encoder_frame_in_one_wake_up() -> None:
+    """After an io tick of the robot the drive waits for the next encoder frame alone (at most
+    ``IO_LEAD_S``): the SYNC and RPDO that came first are taken with it, in order, in one step --
+    and the period's TPDO1 carries that tick. A frame no encoder frame follows (an SDO request)
+    is answered once ``IO_LEAD_S`` ran out; an encoder frame before its SYNC waits for it, which
+    then wakes the drive as ever."""
+    rig = _PairedLockstepDrive()
+    try:
+        for k in range(3):  # the first periods, on the select() of both buses
+            rig.rpdo_and_sync(0)
+            rig.encoder(1000 + k)
+            assert rig.node.step(1.0) == 3
+            assert rig.io.recv(timeout=1.0) is not None
+        assert [cob for cob, _ in rig.fieldbus_frames()] == [0x180 + NODE] * 3
+        rig.node.IO_LEAD_S = 60.0  # a wake-up for the SYNC alone would end the step with 2 frames
+        rig.rpdo_and_sync(0)
+        thread, got = rig.step_in_thread(60.0)
+        rig.encoder(2000)  # whenever it comes, the step took the period's three frames together
+        thread.join(timeout=30.0)
+        assert not thread.is_alive() and got == [3]
+        torque = rig.io.recv(timeout=1.0)
+        assert torque is not None and io_frames.decode_torque(torque).tick == (rig.wire - 1) & io_frames.TICK_MASK
+        assert rig.fieldbus_frames() == [(0x180 + NODE, struct.pack("<Hi", rig.drive.statusword, 2000))]
+
+        rig.node.IO_LEAD_S = 0.05  # an SDO request with no encoder frame after it: answered after the lead
+        rig.rpdo_and_sync(0)
+        rig.encoder(2001)
+        assert rig.node.step(1.0) == 3
+        rig.fb.send(can.Message(arbitration_id=0x600 + NODE, data=bytes.fromhex("40 41 60 00 00 00 00 00"), is_extended_id=False))
+        thread, got = rig.step_in_thread(60.0)
+        thread.join(timeout=30.0)
+        assert not thread.is_alive() and got == [1]
+        frames = rig.fieldbus_frames()
+        assert [cob for cob, _ in frames] == [0x180 + NODE, 0x580 + NODE]
+        assert frames[1][1][:4] == bytes.fromhex("4B 41 60 00")
+
+        rig.node.IO_LEAD_S = 60.0  # an encoder frame before its SYNC is held; the SYNC then wakes the drive
+        rig.rpdo_and_sync(0)
+        rig.encoder(2002)
+        assert rig.node.step(1.0) == 3
+        rig.fieldbus_frames()
+        rig.io.recv(timeout=1.0)
+        rig.encoder(2003)
+        assert rig.node.step(1.0) == 1  # held: no SYNC yet
+        thread, got = rig.step_in_thread(60.0)
+        rig.rpdo_and_sync(0)
+        thread.join(timeout=30.0)
+        assert not thread.is_alive() and got and got[0] >= 1
+        if got[0] == 1:  # the RPDO came alone: the SYNC wakes the next step
+            assert rig.node.step(1.0) == 1
+        assert rig.io.recv(timeout=1.0) is not None
+        assert rig.fieldbus_frames() == [(0x180 + NODE, struct.pack("<Hi", rig.drive.statusword, 2003))]
+    finally:
+        rig.close()
+
+
 class CountingNode(DriveNode):
     """A drive node that counts its services (:meth:`on_service` calls)."""
 

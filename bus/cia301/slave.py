@@ -101,6 +101,17 @@ class SlaveApp(Protocol):
     def pop_emcy(self) -> Sequence[tuple[int, int, bytes]]: ...
 
 
+def select_ready(fds: list[int], wait: float) -> list[int]:
+    """The descriptors of ``fds`` readable within ``wait`` [s] (``select``), for a node's wait.
+
+    :raises can.CanOperationError: a bus closed its descriptor under us
+    """
+    try:
+        return select.select(fds, (), (), wait)[0]
+    except ValueError as err:
+        raise can.CanOperationError(f"bus closed: {err}") from err
+
+
 class SlaveNode:
     """One CANopen slave on a fieldbus and an io bus; subclasses add the io protocol.
 
@@ -302,13 +313,7 @@ class SlaveNode:
             io_ready = self._io_pending()
             fieldbus_ready = self._fieldbus_pending()
             if not (io_ready or fieldbus_ready):
-                try:
-                    ready = select.select(fds, (), (), wait)[0]
-                except ValueError as err:  # a bus closed its descriptor under us
-                    raise can.CanOperationError(f"bus closed: {err}") from err
-                if ready:
-                    io_ready = fds[1] in ready
-                    fieldbus_ready = fds[0] in ready
+                io_ready, fieldbus_ready = self._wait_ready(fds, wait)
             fieldbus_frames = self._drain(self.fieldbus) if fieldbus_ready else 0
             handled = fieldbus_frames + (self._drain(self.io) if io_ready else 0)
         else:
@@ -341,6 +346,11 @@ class SlaveNode:
         self.on_service(now)
         self.emcy.flush(now)
         return handled
+
+    def _wait_ready(self, fds: list[int], wait: float) -> tuple[bool, bool]:
+        """Wait up to ``wait`` [s] for a frame on either bus (``fds``: fieldbus, io): (io ready, fieldbus ready)."""
+        ready = select_ready(fds, wait)
+        return (fds[1] in ready, fds[0] in ready) if ready else (False, False)
 
     def _earliest_due(self) -> float:
         """When the service has work next [s; inf: no deadline]: the heartbeat,
