@@ -739,13 +739,14 @@ def test_a_sync_stepped_drive_takes_a_periods_sync_and_rpdo_with_its_encoder_fra
     then wakes the drive as ever."""
     rig = _PairedLockstepDrive()
     try:
-        for k in range(3):  # the first periods, on the select() of both buses
+        # a wake-up for the SYNC alone would end a step with 2 frames; the lead runs from an io tick
+        rig.node.IO_LEAD_S = 60.0
+        for k in range(3):  # the first periods: both frames wait before each step
             rig.rpdo_and_sync(0)
             rig.encoder(1000 + k)
             assert rig.node.step(1.0) == 3
             assert rig.io.recv(timeout=1.0) is not None
         assert [cob for cob, _ in rig.fieldbus_frames()] == [0x180 + NODE] * 3
-        rig.node.IO_LEAD_S = 60.0  # a wake-up for the SYNC alone would end the step with 2 frames
         rig.rpdo_and_sync(0)
         thread, got = rig.step_in_thread(60.0)
         rig.encoder(2000)  # whenever it comes, the step took the period's three frames together
