@@ -98,8 +98,8 @@ class Mechanics:
         """
         self.plant.reset(inverse_kinematics(np.asarray(pose, dtype=np.float64)), _ZERO4)
 
-    def step(self, torque_units: np.ndarray, held: np.ndarray) -> LimitHit | None:
-        """Integrate one control period: the joints ``held`` (bool (4,)) by their brakes, the others
+    def step(self, torque_units: np.ndarray, held: np.ndarray | None) -> LimitHit | None:
+        """Integrate one control period: the joints ``held`` (bool (4,); None: none) by their brakes, the others
         with ``torque_units`` (int64 (4,), µN·m) held.  Returns the limit the robot ran into in this
         period (it then stands at the limit at rest), or None.
 
@@ -113,7 +113,8 @@ class Mechanics:
             plant.set_state(q_before)
             return LimitHit("mechanism", 0, f"the mechanism cannot follow: {err}")
         q = plant.q
-        if min(q.tolist()) < self._lo or max(q.tolist()) > self._hi:
+        angles = q.tolist()
+        if min(angles) < self._lo or max(angles) > self._hi:
             low, high = q < self._lo, q > self._hi
             j = int(np.flatnonzero(low | high)[0])
             stop = self._lo if low[j] else self._hi
@@ -145,8 +146,8 @@ class Mechanics:
 
     def gap_m(self) -> float:
         """The screw's gap z_u − z_l at the last evaluation, m."""
-        y = self.plant.Y
-        return float(y[2] - y[3])
+        y = self.plant.Y.tolist()  # Python floats: no numpy scalar arithmetic every period
+        return y[2] - y[3]
 
     def _gap_ok(self) -> bool:
         gap = self.gap_m()

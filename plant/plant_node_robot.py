@@ -88,7 +88,8 @@ FAULTS_KEPT: int = 100
 
 _ALL_HELD = (1 << _N) - 1
 #: the brakes of a period (bit j: joint j + 1 held) as the plant's ``locked`` mask
-_HELD_MASKS = [np.array([bool(bits >> j & 1) for j in range(_N)]) for bits in range(1 << _N)]
+#: the brakes' mask per held bits: None when no joint is held (the plant's step then looks at no mask)
+_HELD_MASKS: list[np.ndarray | None] = [None] + [np.array([bool(bits >> j & 1) for j in range(_N)]) for bits in range(1, 1 << _N)]
 
 _IDLE, _HELD, _SENT = 0, 1, 2
 
@@ -180,7 +181,7 @@ class RobotLoop:
 
     @property
     def on(self) -> bool:
-        return self.mode != RobotMode.OFF
+        return int(self.store.get(PlantObj.ROBOT, RobotSub.MODE)) != RobotMode.OFF  # every SYNC: no enum built
 
     @property
     def state(self) -> RobotState:

@@ -31,6 +31,7 @@ logger = logging.getLogger(__name__)
 _I64 = np.dtype(np.int64)
 _F64 = np.dtype(np.float64)
 _SHAPE4 = (4,)
+_N_JOINTS = 4
 
 
 class PlantError(RuntimeError):
@@ -213,9 +214,10 @@ class Plant:
             d = np.ascontiguousarray(d, dtype=np.float64)
             if d.shape != _SHAPE4:
                 raise ValueError(f"disturbance_nm must have shape (4,), got {d.shape}")
-        if locked is None or not locked.any():
+        held = 0 if locked is None else int(np.count_nonzero(locked))  # one C call, not any() + all()
+        if held == 0:
             st = K.plant_step(self._ws, self._p, tu, d, self._counts)
-        elif locked.all():
+        elif held == _N_JOINTS:
             self._ws[K.R_STATE, 4:8] = 0.0
             self._ws[K.R_V3, 12:16] = 0.0
             self._ws[K.R_AUX, 0:4] = 0.0

@@ -70,8 +70,9 @@ class TraceWriter:
         self._file: IO[bytes] | None = open(self.path, "wb")  # noqa: SIM115 - closed by close()
         header = {"ts_s": float(ts_s), "substeps": int(substeps), "dtype": TRACE_DTYPE.descr}
         self._file.write(MAGIC + json.dumps(header).encode() + b"\n")
-        self._buf = np.zeros(self.BLOCK, dtype=TRACE_DTYPE)
-        self._n = 0
+        # the block's records as Python tuples, made a record array when written: a period's
+        # record costs a tuple, not five field writes of a structured array (docs/benchmarks.md)
+        self._rows: list[tuple[int, list[float], list[int], int, int]] = []
         #: records added so far (written, buffered, or lost to a failed write)
         self.records = 0
         #: records in the file (written and flushed)
@@ -81,33 +82,28 @@ class TraceWriter:
 
     def add(self, period: int, q_rad: np.ndarray, torque: np.ndarray, held_bits: int, flags: int) -> None:
         """One period's record (written when the block is full)."""
-        rec = self._buf[self._n]
-        rec["period"] = period
-        rec["q_rad"] = q_rad
-        rec["torque"] = torque
-        rec["held"] = held_bits
-        rec["flags"] = flags
-        self._n += 1
+        rows = self._rows
+        rows.append((period, q_rad.tolist(), torque.tolist(), held_bits, flags))
         self.records += 1
-        if self._n == self.BLOCK:
+        if len(rows) == self.BLOCK:
             self.flush()
 
     def flush(self) -> None:
         """Write the buffered records.  A failing write (a full disk) stops the trace (:attr:`error`)
         and is logged once; the robot goes on."""
-        f = self._file
-        if f is None or not self._n:
-            self._n = 0
+        f, rows = self._file, self._rows
+        if f is None or not rows:
+            rows.clear()
             return
         try:
-            f.write(self._buf[: self._n].tobytes())
+            f.write(np.array(rows, dtype=TRACE_DTYPE).tobytes())
             f.flush()
-            self.written += self._n
+            self.written += len(rows)
         except OSError as err:
             self.error = f"{err.strerror or err}"
             logger.error("robot trace %s stopped: %s", self.path, self.error)
             self._close_file()
-        self._n = 0
+        rows.clear()
 
     def close(self) -> None:
         """Write what is buffered and close the file (idempotent)."""
