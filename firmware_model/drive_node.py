@@ -339,7 +339,8 @@ class DriveNode(AnsweringNode):
         the drive's) on the fieldbus; the frames waiting behind the tick's SYNC go on."""
         self._send_data_frames(((self._torque_id, data),))
         self.frames_out += 1
-        if self.lockstep and not self._cyclic_plant_trial():
+        cyclic = self._cyclic  # a lockstep drive always has one
+        if self.lockstep and cyclic is not None and not cyclic.plant_trial:
             self._io_lead_until = time.monotonic() + self.IO_LEAD_S
         self._send_tpdos(tpdos)
         if self.backlog.frames:
@@ -381,10 +382,6 @@ class DriveNode(AnsweringNode):
         if select_ready(fds[1:], min(wait, lead)):
             return True, True  # the fieldbus is drained first: its SYNC and RPDOs came before this frame
         return super()._wait_ready(fds, 0.0)  # the deadline or the lead's end: whatever waits, at once
-
-    def _cyclic_plant_trial(self) -> bool:
-        """The plant runs a trial (its io ticks are not SYNC's), or the drive has no SYNC service."""
-        return self._cyclic is None or self._cyclic.plant_trial
 
     def ticks_text(self) -> str:
         """Where the io ticks ran, for the drive's log: ``io ticks: 3004 answered in C, 3000 of them run in C``."""

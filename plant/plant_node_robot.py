@@ -87,8 +87,8 @@ _LIMIT_FAULTS = {"end_stop": RobotFault.END_STOP, "screw_stop": RobotFault.SCREW
 FAULTS_KEPT: int = 100
 
 _ALL_HELD = (1 << _N) - 1
-#: the brakes of a period (bit j: joint j + 1 held) as the plant's ``locked`` mask
-#: the brakes' mask per held bits: None when no joint is held (the plant's step then looks at no mask)
+#: the brakes of a period (bit j: joint j + 1 held) as the plant's ``locked`` mask; None when no
+#: joint is held (the plant's step then looks at no mask)
 _HELD_MASKS: list[np.ndarray | None] = [None] + [np.array([bool(bits >> j & 1) for j in range(_N)]) for bits in range(1, 1 << _N)]
 
 _IDLE, _HELD, _SENT = 0, 1, 2
