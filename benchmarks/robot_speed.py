@@ -55,6 +55,7 @@ import can  # noqa: E402
 import numpy as np  # noqa: E402
 from robot_util import DRIVES, PLANT_ID, RPDO_LAYOUT, LockstepMaster, RobotProcess, counts_of  # noqa: E402
 
+from bus import run_queue  # noqa: E402
 from bus.bus_features import batch_sender  # noqa: E402
 from bus.fastmsg import new_message  # noqa: E402
 from bus.plant_objects import PlantObj, RobotSub  # noqa: E402
@@ -74,16 +75,9 @@ def floor() -> float | None:
 
 def sched_stat(pid: int) -> tuple[float, int]:
     """CPU time [s] process ``pid`` has run so far, all its threads, and the times they were put
-    on a CPU (``/proc/<pid>/task/*/schedstat``: run time ns, wait time ns, timeslices)."""
-    total = runs = 0
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        try:
-            fields = (task / "schedstat").read_text().split()
-            total += int(fields[0])
-            runs += int(fields[2])
-        except (OSError, IndexError, ValueError):
-            continue  # a thread that ended meanwhile
-    return total * 1e-9, runs
+    on a CPU (:func:`bus.run_queue.sched_stat`)."""
+    stat = run_queue.sched_stat(pid)
+    return (0.0, 0) if stat is None else (stat.run_s, stat.slices)
 
 
 def set_up(where: dict[str, Any]) -> dict[int, int]:

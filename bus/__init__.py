@@ -14,7 +14,8 @@ and the real-time diagnostic switch (:mod:`bus.lockstep_process`), candump logs 
 the SAFE-STATE log record (:mod:`bus.safe_state`), the shared errors (:mod:`bus.errors`), every
 exit code (:mod:`bus.exit_codes`), atomic writes (:mod:`bus.atomic`) and the one spawn function
 with its lifetime policy (:mod:`bus.processes`), a record's writer and whether it still runs
-(:mod:`bus.process_identity`).
+(:mod:`bus.process_identity`), the process at the other end of a Unix socket (:mod:`bus.peer`),
+a process's wait for a CPU and the ledger of the heartbeat judges (:mod:`bus.run_queue`).
 Subpackages: :mod:`bus.cia301` (the hand-written CANopen stack) and :mod:`bus.transports` (how
 channels are carried).
 

@@ -162,6 +162,13 @@ class CyclicPdo:
             else:
                 self._out.extend(engine.sample(due))
 
+    def grace(self) -> None:
+        """The node did not run before now (:meth:`bus.cia301.slave.SlaveNode.after_stall`): the
+        SYNC watchdog counts from now, as after a SYNC."""
+        if self._sync_deadline_s is not None:
+            period_us = int(self._values.get(_PERIOD_KEY, 0))
+            self._sync_deadline_s = self._watch_now() + SYNC_TIMEOUT_PERIODS * period_us * 1e-6 if period_us else None
+
     def _watch_now(self) -> float:
         return (self.clock if self.watch_clock is None else self.watch_clock)()
 

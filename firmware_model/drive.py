@@ -206,6 +206,11 @@ class Drive:
         for key, value in self.role_defaults.items():
             self.store.values[key] = value
 
+    def stall_grace(self) -> None:
+        """The node did not run before now (a stall of its process or the machine): the SYNC
+        watchdog counts from now (:meth:`firmware_model.cyclic_pdo.CyclicPdo.grace`)."""
+        self.pdo.grace()
+
     def watch_deadline(self) -> float | None:
         """When the SYNC watchdog fires, on the clock given to :meth:`step_on_sync` [s] (None:
         not armed)."""

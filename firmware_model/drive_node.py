@@ -146,6 +146,10 @@ class CyclicDriveLike(DriveLike, Protocol):
         """When the SYNC watchdog fires, on the clock given to :meth:`step_on_sync` [s]."""
         ...
 
+    def stall_grace(self) -> None:
+        """The node did not run before now: the SYNC watchdog counts from now."""
+        ...
+
     def on_sync(self, counter: int | None = None) -> None:
         """A SYNC frame arrived (``counter``: its counter byte, if any)."""
         ...
@@ -371,6 +375,12 @@ class DriveNode(AnsweringNode):
             return self.step_answering(answer, self._answer_rx, on_frame, max_wait_s)
         finally:
             plain.disarm()
+
+    def after_stall(self, due_s: float, now_s: float) -> None:
+        """:meth:`SlaveNode.after_stall`, the drive's SYNC watchdog too."""
+        super().after_stall(due_s, now_s)
+        if self._cyclic is not None:
+            self._cyclic.stall_grace()
 
     def _wait_ready(self, fds: list[int], wait: float) -> tuple[bool, bool]:
         """:meth:`SlaveNode._wait_ready`; in lockstep within :attr:`IO_LEAD_S` of the robot's last io

@@ -106,15 +106,15 @@ class Mechanics:
         :raises PlantError: the plant fails at the pose it stood at (never expected: that pose was valid).
         """
         plant = self.plant
-        q_before = plant.q
+        q_before = plant.q_list()  # Python floats: no array made every period (set_state takes them)
         try:
             plant.step(torque_units, None, held)
         except PlantError as err:
             plant.set_state(q_before)
             return LimitHit("mechanism", 0, f"the mechanism cannot follow: {err}")
-        q = plant.q
-        angles = q.tolist()
+        angles = plant.q_list()
         if min(angles) < self._lo or max(angles) > self._hi:
+            q = np.array(angles)
             low, high = q < self._lo, q > self._hi
             j = int(np.flatnonzero(low | high)[0])
             stop = self._lo if low[j] else self._hi

@@ -325,6 +325,12 @@ class PlantNode(AnsweringNode):
             self.robot.set_mode(self._robot_mode)
         super().start()
 
+    def after_stall(self, due_s: float, now_s: float) -> None:
+        """:meth:`SlaveNode.after_stall`, the deadlines of a trial's tick and of the robot's period too."""
+        super().after_stall(due_s, now_s)
+        self.lockstep.grace(now_s)
+        self.robot.grace(now_s)
+
     def next_deadline(self) -> float | None:
         trial = self.lockstep.next_deadline()
         robot = self.robot.next_deadline()

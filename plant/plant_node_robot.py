@@ -146,6 +146,7 @@ class RobotLoop:
         self.mechanics: Mechanics | None = None
         self._trackers = [io_frames.TickTracker(0, f"torque frames of drive {j + 1}") for j in range(_N)]
         self._tau = np.zeros(_N, dtype=np.int64)
+        self._tau_w = self._tau.data  # its items written without a numpy call per torque frame
         self._enabled_bits = 0  # bit j: drive j+1's torque frame of the period said ENABLED
         self._state = _IDLE
         self._wire = 0
@@ -298,6 +299,10 @@ class RobotLoop:
             return self._deadline
         return None
 
+    def grace(self, now: float) -> None:
+        """The plant did not run until ``now`` (:meth:`PlantNode.after_stall`): the period's torques get their time from now."""
+        self._deadline = max(self._deadline, now + self.tick_timeout_s)
+
     def service(self, now: float) -> None:
         """Send a held period that is due, or detect a period whose torques did not come."""
         if self._state == _HELD:
@@ -310,11 +315,8 @@ class RobotLoop:
             missing = [j + 1 for j in range(_N) if self._trackers[j].next_tick == self._wire]
             self.timeouts += 1
             self._end_period()
-            self._fail(
-                RobotFault.PERIOD_TIMEOUT,
-                missing[0] if missing else 0,
-                f"drive(s) {missing} did not answer period {self.periods} within {self.tick_timeout_s:g} s",
-            )
+            what = f"drive(s) {missing} did not answer period {self.periods} within {self.tick_timeout_s:g} s"
+            self._fail(RobotFault.PERIOD_TIMEOUT, missing[0] if missing else 0, what)
             self._next(now)
 
     @property
@@ -349,10 +351,10 @@ class RobotLoop:
             return
         if status & _ENABLED and not status & _FAULT_BIT:
             self._enabled_bits |= 1 << j
-            self._tau[j] = torque
+            self._tau_w[j] = torque
         else:
             self._enabled_bits &= ~(1 << j)
-            self._tau[j] = 0
+            self._tau_w[j] = 0
         self._got += 1
         if self._got == _N:
             self._advance()
@@ -376,17 +378,14 @@ class RobotLoop:
         self._wire = wire = self.lockstep.claim_wire_tick()
         for tracker in self._trackers:
             tracker.reset(wire)
-        self._got = 0
-        self._state = _SENT
-        self._deadline = now + self.tick_timeout_s
+        self._got, self._state, self._deadline = 0, _SENT, now + self.tick_timeout_s
         mech = self._robot()
         if not self._gathering and self._gather is not None:
-            # one write of the hub per period for the four torques; a frame too many or too few
-            # (a bus error frame, a drive that does not answer) is held at most the hub's
-            # BULK_HOLD_S, and the next period's four come together again
+            # one write of the hub per period for the four torques; a frame too many or too few (a bus error
+            # frame, a drive that does not answer) is held at most BULK_HOLD_S, the next four come together again
             self._gather(_N)
             self._gathering = True
-        self._send_batch(io_frames.encoder_frames(wire, mech.plant.encoder_counts().tolist()))
+        self._send_batch(io_frames.encoder_frames(wire, mech.plant.encoder_counts_list()))
         if self.pacing is not None:
             self.pacing.started(now)
 
@@ -400,7 +399,7 @@ class RobotLoop:
             self._limit(hit)
         if self.trace is not None:
             flags = (FLAG_LATE if self._late else 0) | (FLAG_FAULT if self.fault != RobotFault.NONE else 0)
-            self.trace.add(self.periods, mech.plant.q, self._tau, self._held_bits, flags)
+            self.trace.add(self.periods, mech.plant.q_list(), self._tau, self._held_bits, flags)
         self.periods += 1
         now = self._clock()
         if self.pacing is not None:

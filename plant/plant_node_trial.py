@@ -184,6 +184,17 @@ class LockstepMaster:
         self.status.begin()
         self.tick = 0
 
+    @property
+    def _tick_timeout_s(self) -> float:
+        """The current tick's deadline after its encoder frames, s (tick 0's is longer)."""
+        return self.tick_timeout_s if self.tick else self.first_tick_timeout_s
+
+    def grace(self, now: float) -> None:
+        """The plant did not run until ``now`` (:meth:`plant.plant_node.PlantNode.after_stall`): the
+        tick's torques get their time from now."""
+        if self.running:
+            self._deadline = max(self._deadline, now + self._tick_timeout_s)
+
     def next_deadline(self) -> float | None:
         """Clock time [s] by which :meth:`service` must run (None: no trial)."""
         if not self.running:
@@ -212,7 +223,7 @@ class LockstepMaster:
                 PlantFault.TICK_TIMEOUT,
                 node,
                 f"drive {node} did not answer tick {self.tick} within "
-                f"{self.tick_timeout_s if self.tick else self.first_tick_timeout_s:g} s "
+                f"{self._tick_timeout_s:g} s "
                 f"(missing drives: {[j + 1 for j in missing]})",
             )
 
@@ -331,7 +342,7 @@ class LockstepMaster:
         now = self._clock()
         if self.pacer is not None:
             self.pacer.started(self.tick, now)
-        self._deadline = now + (self.tick_timeout_s if self.tick else self.first_tick_timeout_s)
+        self._deadline = now + self._tick_timeout_s
 
     def _advance(self) -> None:
         """All four torques of tick n are in: integrate [t_n, t_n + Ts], then tick n + 1."""

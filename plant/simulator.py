@@ -69,6 +69,7 @@ class Plant:
             torque_lsb_nm=self.torque_lsb_nm,
         )
         self._ws = np.zeros((K.N_ROWS, 16), dtype=np.float64)
+        self._q_view = self._ws[K.R_STATE, 0:4]  # the joint angles in the workspace (a view, made once)
         self._counts = np.zeros(4, dtype=np.int64)
         self._zero4 = np.zeros(4, dtype=np.float64)
         self._y_guess = np.array(DEFAULT_Y_GUESS, dtype=np.float64)
@@ -100,7 +101,7 @@ class Plant:
         self._fault_text = ""
         self._ready = True
 
-    def set_state(self, q: np.ndarray, qd: np.ndarray | None = None) -> None:
+    def set_state(self, q: np.ndarray | list[float], qd: np.ndarray | None = None) -> None:
         """Put the robot at q [rad] with q̇ [rad/s] (default at rest) without restarting its time: FK
         warm-started from the last sub-platform pose (the same assembly branch), e.g. a joint held
         at an end stop.
@@ -134,7 +135,11 @@ class Plant:
     @property
     def q(self) -> np.ndarray:
         """Joint angles, rad (copy)."""
-        return self._ws[K.R_STATE, 0:4].copy()
+        return self._q_view.copy()
+
+    def q_list(self) -> list[float]:
+        """Joint angles, rad, as Python floats: one C call, no array made (a robot period's reads)."""
+        return self._q_view.tolist()
 
     @property
     def qd(self) -> np.ndarray:
@@ -187,6 +192,10 @@ class Plant:
     def encoder_counts(self) -> np.ndarray:
         """Encoder readings: nearest integer of q / rad_per_count, int64 (4,)."""
         return self._counts.copy()
+
+    def encoder_counts_list(self) -> list[int]:
+        """:meth:`encoder_counts` as Python ints: one C call, no array made (a robot period's encoder frames)."""
+        return self._counts.tolist()
 
     # ---- integration ---------------------------------------------------------------------
 

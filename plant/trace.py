@@ -80,10 +80,11 @@ class TraceWriter:
         #: why writing stopped (None while it works)
         self.error: str | None = None
 
-    def add(self, period: int, q_rad: np.ndarray, torque: np.ndarray, held_bits: int, flags: int) -> None:
-        """One period's record (written when the block is full)."""
+    def add(self, period: int, q_rad: list[float] | np.ndarray, torque: np.ndarray, held_bits: int, flags: int) -> None:
+        """One period's record (written when the block is full); ``q_rad`` as Python floats
+        (:meth:`plant.simulator.Plant.q_list`) or an array."""
         rows = self._rows
-        rows.append((period, q_rad.tolist(), torque.tolist(), held_bits, flags))
+        rows.append((period, q_rad if isinstance(q_rad, list) else q_rad.tolist(), torque.tolist(), held_bits, flags))
         self.records += 1
         if len(rows) == self.BLOCK:
             self.flush()

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from fault_harness import Outcome, host_pid, kill_session, recorded_trials, run_rig, status_pids
+from fault_harness import Outcome, host_pid, kill_session, recorded_trials, run_rig, sim_digest, status_pids
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 
@@ -271,3 +271,55 @@ def test_a_sigterm_to_the_launcher_is_in_the_summary_as_in_the_exit_code(tmp_pat
     assert s["interrupted"]["signal"] == "SIGTERM" and s["end_reason"] == "interrupted"
     assert s["iterations"] == [] and s["interrupted"]["position"] == "before_first_trial"
     assert "**Interrupted** by SIGTERM, before the first trial" in (out / "report.md").read_text()
+
+
+def _run_tree(root: int) -> list[int]:
+    """``root`` and every process below it (the role processes lead sessions of their own, but
+    their parent is the launcher), from /proc."""
+    children: dict[int, list[int]] = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            with contextlib.suppress(OSError, IndexError, ValueError):
+                ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+                children.setdefault(ppid, []).append(int(d.name))
+    found, todo = [], [root]
+    while todo:
+        pid = todo.pop()
+        found.append(pid)
+        todo += children.get(pid, [])
+    return found
+
+
+def test_a_freeze_of_the_whole_machine_is_no_fault(tmp_path: Path) -> None:
+    """Every process of the run stopped at once for 1.5 s -- what a virtual machine the hypervisor
+    does not run looks like from inside -- longer than the heartbeat consumer time (0.5 s), the
+    drives' SDO server timeout and the plant's tick deadline (1 s): each process that did not run
+    itself judges the others from when it runs again, lockstep time stood still, so the run
+    completes with the digest of the same experiment in process and says what happened in a note
+    and in the summary."""
+    frozen: list[int] = []
+
+    def on_line(line: str, proc: Any) -> None:
+        if not frozen and re.match(r"\s+0\s+\d", line):  # trial 0's row: the run goes on to trial 1
+            frozen.extend(_run_tree(proc.pid))  # the launcher first, stopped first and continued last
+            for pid in frozen:
+                _signal(pid, signal.SIGSTOP)
+
+            def thaw() -> None:
+                for pid in reversed(frozen):
+                    _signal(pid, signal.SIGCONT)
+
+            threading.Timer(1.5, thaw).start()
+
+    o = run_rig(tmp_path / "run", iterations=3, on_line=on_line)
+    try:
+        assert len(frozen) >= 7, frozen  # launcher, hub, plant, four drives, host
+        assert o.code == 0, o.stderr
+        assert o.summary is not None and o.summary["completed"] and not o.summary["faults"] and not o.left
+        assert o.summary["trace_sha256"] == sim_digest(3)
+        stalls = o.summary["bench"]["heartbeat"]["host_stalls"]
+        assert len(stalls) == 1 and stalls[0]["gap_ms"] > 1000, stalls
+        assert stalls[0]["what"].endswith("the nodes did not run either (the whole machine was stopped); not a fault")
+        assert f"ilcrig: note: {stalls[0]['what']}; recorded in {o.out / 'summary.json'}" in o.stderr
+    finally:
+        kill_session(o)

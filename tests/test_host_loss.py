@@ -16,6 +16,8 @@ from typing import Any
 import can
 import pytest
 from clock_util import ManualClock
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from bus.cia301.nmt import (
     CONSUMER_TIME_MS,
@@ -240,6 +242,176 @@ def test_drive_node_consumes_the_host_heartbeat_within_the_consumer_time() -> No
         rig.close()
 
 
+def _freeze_in_next_wait(rig: Stepped, until: float) -> None:
+    """The machine stops while the node waits in its next step: its clock reads ``until`` when it
+    runs again (the io bus's receive is where a virtual bus's node waits)."""
+    recv = rig.io.recv
+
+    def frozen_recv(timeout: float | None = None) -> can.Message | None:
+        rig.clock.now = max(rig.clock.now, until)
+        rig.io.recv = recv  # type: ignore[method-assign]
+        return recv(timeout=timeout)
+
+    rig.io.recv = frozen_recv  # type: ignore[method-assign]
+
+
+def _drive_consuming_the_host(t0: float) -> tuple[Drive, Stepped]:
+    """Drive 2, enabled, on a :class:`Stepped` rig, consuming the host's heartbeat from ``t0`` (heard at t0 + 0.1)."""
+    drive = enabled_drive(2)
+    rig = Stepped(lambda fb, io, clock: DriveNode(drive, fb, io, clock=clock))
+    rig.sdo_write(2, 0x1016, 1, consumer_entry(HOST_NODE_ID, CONSUMER_TIME_MS), t0)
+    rig.host_beat()
+    assert rig.step_at(t0 + 0.1) == []
+    return drive, rig
+
+
+_HOST_LOST_EMCY = (0x082, bytes([0x30, 0x81, 0x11, FaultCause.HEARTBEAT, HOST_NODE_ID, 0, 0, 0]))
+
+
+def test_a_node_that_did_not_run_itself_loses_no_host_for_that_time(caplog: pytest.LogCaptureFixture) -> None:
+    """The whole machine froze (the node and the host with it: no heartbeat could come): the node,
+    woken more than half its consumer time after its wake-up was due, judges its producers from then
+    on, and says so in its log; a host still silent a consumer time after that is lost."""
+    t0, c = 1001.0, CONSUMER_TIME_MS / 1000.0
+    drive, rig = _drive_consuming_the_host(t0)
+    try:
+        assert rig.node.consumer.stall_s == pytest.approx(c / 2)
+        resumed = t0 + 0.2 + 3 * c
+        _freeze_in_next_wait(rig, resumed)  # the machine stops while the node waits for its wake-up at t0 + 0.2
+        with caplog.at_level("INFO", logger="bus.cia301.nmt"):
+            assert rig.step_at(t0 + 0.2) == []  # no EMCY
+        assert drive.torque_enabled and drive.cia402_state == Cia402State.OPERATION_ENABLED
+        assert "node 2: ran again 1500 ms after its wake-up was due: heartbeats judged from now" in caplog.text
+        assert rig.node.consumer.next_deadline() == pytest.approx(resumed + c)
+        assert rig.step_at(resumed + c - 0.001) == []
+        assert _HOST_LOST_EMCY in rig.step_at(resumed + c)  # the host stays silent: lost a consumer time after the freeze
+        assert not drive.torque_enabled
+    finally:
+        rig.close()
+
+
+def test_a_node_stopped_between_two_steps_of_its_loop_loses_no_host_for_that_time(caplog: pytest.LogCaptureFixture) -> None:
+    """The machine froze after a step's service and before the next step (or after the answer loop
+    returned, before the step that follows it): in its loop (:meth:`SlaveNode.run`) the node finds
+    the time it did not run at the next step and judges its producers from then on -- before, a
+    plant stopped there judged the host lost the moment it ran again, its consumer's deadline past
+    and the host's beat not yet sent (the CI failure of ``test_a_freeze_of_the_whole_machine_is_no_fault``)."""
+    t0, c = 1001.0, CONSUMER_TIME_MS / 1000.0
+    drive, rig = _drive_consuming_the_host(t0)
+    try:
+        rig.node._ran_s = rig.clock.now  # as SlaveNode.run does before its loop (the test steps the node itself)
+        assert rig.step_at(t0 + 0.2) == []
+        resumed = t0 + 0.2 + 3 * c  # the node did not run from the end of that step until now: no wait was due
+        with caplog.at_level("INFO", logger="bus.cia301.nmt"):
+            assert rig.step_at(resumed) == []  # no EMCY
+        assert drive.torque_enabled and drive.cia402_state == Cia402State.OPERATION_ENABLED
+        assert "node 2: ran again 1500 ms after its wake-up was due: heartbeats judged from now" in caplog.text
+        assert rig.step_at(resumed + 0.2) == [] and rig.step_at(resumed + 0.4) == []  # steps closer than a stall
+        assert _HOST_LOST_EMCY in rig.step_at(resumed + c)  # the host stays silent: lost a consumer time after the freeze
+    finally:
+        rig.close()
+
+
+def test_a_node_woken_late_by_less_than_half_its_consumer_time_judges_as_ever() -> None:
+    """A late wake-up short of the stall bound is not a stall: the host silent past its consumer time is lost."""
+    t0, c = 1001.0, CONSUMER_TIME_MS / 1000.0
+    _, rig = _drive_consuming_the_host(t0)
+    try:
+        _freeze_in_next_wait(rig, t0 + 0.1 + c - 0.01 + 0.4 * c)
+        assert _HOST_LOST_EMCY in rig.step_at(t0 + 0.1 + c - 0.01)
+    finally:
+        rig.close()
+
+
+def test_a_drive_that_did_not_run_keeps_an_sdo_transfer_open() -> None:
+    """A segmented upload in progress when the machine stops for 3 s (the SDO server's timeout is
+    1 s): the drive, running again, aborts nothing -- the client did not run either -- and answers
+    the next segment request."""
+    t0 = 1001.0
+    _, rig = _drive_consuming_the_host(t0)
+    try:
+        rig.host.send(can.Message(arbitration_id=0x602, data=bytes([0x40, 0x08, 0x10, 0, 0, 0, 0, 0]), is_extended_id=False))
+        (answer,) = rig.step_at(t0 + 0.15)
+        assert answer[0] == 0x582 and answer[1][0] == 0x41  # segmented upload initiated (0x1008 device name)
+        _freeze_in_next_wait(rig, t0 + 3.2)
+        assert rig.step_at(t0 + 0.2) == []  # no abort 0x05040000
+        rig.host.send(can.Message(arbitration_id=0x602, data=bytes([0x60, 0, 0, 0, 0, 0, 0, 0]), is_extended_id=False))
+        (segment,) = rig.step_at(t0 + 3.3)
+        assert segment[0] == 0x582 and segment[1][0] & 0xE0 == 0x00  # an upload segment
+    finally:
+        rig.close()
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    st.lists(
+        st.tuples(st.sampled_from(["beat", "wait", "freeze", "pause"]), st.floats(min_value=0.001, max_value=1.5)),
+        min_size=1,
+        max_size=30,
+    )
+)
+def test_at_random_a_drive_loses_the_host_only_for_silence_it_ran_through(events: list[tuple[str, float]]) -> None:
+    """An outsider at random: host heartbeats, waits of the drive (stepped at their end), freezes of
+    the whole machine during a wait, and between two steps of the drive's loop (pauses). After every
+    step the drive has reported the host lost (EMCY 0x8130, torque off) exactly when the host was
+    silent for a consumer time the drive itself ran through: a freeze or a pause longer than half the
+    consumer time counts from its end, a shorter one as time."""
+    t0, c = 1001.0, CONSUMER_TIME_MS / 1000.0
+    drive, rig = _drive_consuming_the_host(t0)
+    try:
+        rig.node._ran_s = rig.clock.now  # as SlaveNode.run does before its loop: a pause between two steps is seen
+        t, last = t0 + 0.1, t0 + 0.1  # the node's time; when the model last heard the host (or graced)
+        for kind, dt in events:
+            if kind == "beat":
+                rig.host_beat()
+                t += 0.001
+                last = t
+                frames = rig.step_at(t)
+            elif kind == "wait":
+                dt = min(dt, 0.9 * c / 2)  # a step well within every half consumer time: the drive judges on time
+                t += dt
+                frames = rig.step_at(t)
+            elif kind == "pause":  # the machine stops after a step, before the next one
+                ran, t = t, t + dt
+                frames = rig.step_at(t)
+                if t - ran > c / 2:  # as the node reckons it: run again this long after its last step
+                    last = t
+            else:  # the machine stops while the drive waits for a wake-up due now
+                woke, t = t, t + dt
+                _freeze_in_next_wait(rig, t)
+                frames = rig.step_at(woke)
+                if t - woke > c / 2:  # as the node reckons it: run again this long after its wake-up was due
+                    last = t
+            lost = t - last >= c
+            assert (_HOST_LOST_EMCY in frames) == lost, (kind, dt, t - last)
+            assert drive.torque_enabled == (not lost)
+            if lost:
+                return  # the drive is in Fault: the rest of the sequence tells nothing more
+    finally:
+        rig.close()
+
+
+def test_a_plant_that_did_not_run_gives_the_ticks_torques_their_time_from_then() -> None:
+    """A trial's tick waits for its torques when the machine stops for 3 s (the tick deadline is
+    1 s, 2 s for tick 0): the plant, running again, ends no trial -- the drives did not run either
+    -- and its tick deadline counts from then on."""
+    rig = _stepped_bench(tick_timeout_s=1.0, first_tick_timeout_s=2.0)
+    bench = rig.node
+    try:
+        t0 = 1001.0
+        bench.nmt_command(NmtCommand.START)
+        rig.sdo_write(32, 0x1016, 1, consumer_entry(HOST_NODE_ID, CONSUMER_TIME_MS), t0)
+        rig.start_trial(t0 + 0.01)
+        _freeze_in_next_wait(rig, t0 + 3.0)
+        rig.step_at(t0 + 0.02)
+        assert bench.status == PlantStatus.RUNNING
+        assert rig.step_at(t0 + 3.0 + 2.0 - 0.001) == [] and bench.status == PlantStatus.RUNNING
+        rig.step_at(t0 + 3.0 + 2.0)  # the drives stay silent: tick 0's deadline from the resume
+        assert bench.status == PlantStatus.FAULT and bench.fault == PlantFault.TICK_TIMEOUT
+    finally:
+        rig.close()
+
+
 class _StillPlant:
     """A plant that never moves (the plant node's trial logic is what is tested)."""
 
@@ -255,8 +427,8 @@ class _StillPlant:
         pass
 
 
-def _stepped_bench() -> Any:
-    """A plant node on a :class:`Stepped` rig with a still plant and long tick deadlines."""
+def _stepped_bench(tick_timeout_s: float = 60.0, first_tick_timeout_s: float = 60.0) -> Any:
+    """A plant node on a :class:`Stepped` rig with a still plant and (by default) long tick deadlines."""
     import numpy as np
 
     return Stepped(
@@ -266,8 +438,8 @@ def _stepped_bench() -> Any:
             plant_factory=lambda ts, n: _StillPlant(),
             disturbance_fn=lambda *a: np.zeros((a[3], 4)),
             clock=clock,
-            tick_timeout_s=60.0,
-            first_tick_timeout_s=60.0,
+            tick_timeout_s=tick_timeout_s,
+            first_tick_timeout_s=first_tick_timeout_s,
         )
     )
 

@@ -82,6 +82,7 @@ def check_run(res: subprocess.CompletedProcess[str], out: Path, digest: str, tra
         "host_period_ms": 200,
         "node_period_ms": 200,
         "consumer_time_ms": 500.0 * timeout_scale(),
+        "host_stalls": [],
     }
     assert info["emcy"] == [] and info["recoveries"] == []
     bt = info["bus_time"]

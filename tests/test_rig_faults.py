@@ -35,7 +35,7 @@ from host.rig.fault_classify import (
     heartbeat_fault,
     node_name,
 )
-from host.rig.watchdog import Watchdog
+from host.rig.watchdog import STALL_SETTLE_S, Watchdog
 
 NODES = (1, 2, 3, 4, 32)
 _prefix = itertools.count()
@@ -374,3 +374,46 @@ def test_the_launchers_liveness_watch_hears_a_node_from_its_first_heartbeat_to_i
     assert watch.heard(2) and not watch.heard(3)
     watch._heard(frame(NmtState.BOOT_UP), 1.4)
     assert not watch.heard(2)
+
+
+class _HostGap:
+    """The host's heartbeat producer as the watchdog asks it (:meth:`HostHeartbeat.take_gap`): the
+    gap between two of its beats that the test sets, taken once."""
+
+    error: str | None = None
+    error_t: float | None = None
+
+    def __init__(self) -> None:
+        self.gap: tuple[float, float] | None = None
+
+    def take_gap(self, longer_than_s: float, since: float | None = None) -> tuple[float, float] | None:
+        gap, self.gap = self.gap, None
+        return gap if gap is not None and gap[0] > longer_than_s else None
+
+
+def test_a_host_gap_no_node_reports_is_kept_while_they_consume_it_and_a_fault_once_they_are_stopped(rig: Rig) -> None:
+    """The host did not run for 0.9 s and no node's EMCY 0x8130 came: while the nodes consume its
+    heartbeat (operational), they did not run either (the whole machine stopped) -- kept in
+    ``stalls``, not declared; once they are NMT STOPPED (the shutdown) they report no loss, and the
+    same gap is the host's fault."""
+    watchdog, producer = rig.watchdog, _HostGap()
+    watchdog.producer = producer  # type: ignore[assignment]
+    watchdog.tolerate_lost_between_trials = True  # the nodes' heartbeats are not the question here
+    watchdog.arm()
+    now = time.monotonic()
+    producer.gap = (0.9, now)
+    assert watchdog.detect(now) is None  # the nodes' EMCYs may still come
+    settled = STALL_SETTLE_S + 0.001  # (now + 0.2) - now may round to below 0.2 s
+    assert watchdog.detect(now + settled) is None and not rig.declared
+    (stall,) = watchdog.stalls
+    assert (stall["gap_ms"], stall["trial"], stall["in_trial"]) == (900.0, 0, False)
+    assert stall["what"] == (
+        "the host did not run for 900 ms (before trial 0) and no node reported losing its heartbeat: "
+        "the nodes did not run either (the whole machine was stopped); not a fault"
+    )
+    watchdog.stopped_at = now + 1.5
+    producer.gap = (0.9, now + 2.0)  # began before the NMT STOP
+    assert watchdog.detect(now + 2.0) is None
+    rec = watchdog.detect(now + 2.0 + settled)
+    assert rec is not None and (rec.kind, rec.node, rec.detected_by) == (FaultKind.HOST_LOST, "host", "host")
+    assert rec.message.startswith("the host did not run for 900 ms (it was stopped)") and len(watchdog.stalls) == 1

@@ -16,14 +16,21 @@ The heartbeat timing of the rig is defined here, once (both sides must agree):
 * every consumer — the nodes consuming the host (0x1016, written by the host) and the host
   consuming the nodes — declares a producer lost after :data:`CONSUMER_TIME_MS`
   (2.5 producer periods; × ``ILCRIG_TIMEOUT_SCALE``), so a lost producer is noticed within
-  3 heartbeat periods.
+  3 heartbeat periods;
+* a consumer that did not run itself for half its shortest consumer time (its process, or the whole
+  machine, stopped) judges no producer for that time: it reads what came meanwhile, then counts the
+  producers as heard (the host's watchdog and the launcher's liveness watch alike; a node:
+  :meth:`NodeHeartbeatConsumer.grace`).  A freeze of the whole machine is no lost host.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 from enum import IntEnum
+
+from bus.run_queue import RECHECK_S, RunQueueLedger
 
 logger = logging.getLogger(__name__)
 
@@ -189,9 +196,12 @@ class HeartbeatConsumer:
     (the first time passed in after :meth:`watch`).
 
     :param timeouts_s: consumer timeout per node id [s] (typically 1.5–3 × the producer period).
+    :param ledger: the waits for a CPU of the processes that carry the heartbeats (the hub,
+        :mod:`bus.run_queue`): a silence they explain is not overdue, the node is judged from then on
     """
 
-    def __init__(self, timeouts_s: dict[int, float] | None = None) -> None:
+    def __init__(self, timeouts_s: dict[int, float] | None = None, ledger: RunQueueLedger | None = None) -> None:
+        self.ledger = ledger
         self._timeouts_s: dict[int, float] = {}
         self._last_s: dict[int, float | None] = {}
         self._states: dict[int, NmtState] = {}
@@ -218,6 +228,8 @@ class HeartbeatConsumer:
             self._booted.append(node_id)
         self._states[node_id] = state
         self._last_s[node_id] = now_s
+        if self.ledger is not None:
+            self.ledger.heard(node_id)
         return state
 
     def on_frame(self, cob_id: int, data: bytes, now_s: float) -> NmtState | None:
@@ -240,6 +252,8 @@ class HeartbeatConsumer:
         run (its process was stopped), the frames queued meanwhile are still to be read."""
         for node_id in self._timeouts_s:
             self._last_s[node_id] = now_s
+            if self.ledger is not None:
+                self.ledger.heard(node_id)
 
     def timeout(self, node_id: int) -> float | None:
         """The consumer timeout of ``node_id`` [s] (None if not monitored)."""
@@ -253,7 +267,11 @@ class HeartbeatConsumer:
             if last is None:
                 self._last_s[node_id] = last = now_s  # monitoring starts now
             if now_s - last > timeout_s:
-                overdue.append(node_id)
+                excuse = None if self.ledger is None else self.ledger.judge(node_id, now_s - last, timeout_s)
+                if excuse is None:
+                    overdue.append(node_id)
+                elif not excuse.pending:  # else its carrier waits for a CPU now: the next report judges
+                    self._last_s[node_id] = now_s  # its carrier waited for a CPU: judged from now
         booted, self._booted = self._booted, []
         return HeartbeatReport(sorted(overdue), booted, dict(self._states))
 
@@ -284,18 +302,31 @@ class NodeHeartbeatConsumer:
 
     Monitoring of a producer starts with the first heartbeat (or boot-up) received from it after
     it was configured; when nothing more arrives for its consumer time the producer is reported
-    lost once by :meth:`expired`; the next heartbeat from it arms the monitoring again.
+    lost once by :meth:`expired`; the next heartbeat from it arms the monitoring again.  With a
+    ``ledger`` (:class:`bus.run_queue.RunQueueLedger`: the processes that carry the heartbeats,
+    the hub) a silence explained by their wait for a CPU is no loss: the producer is judged from
+    then on (logged).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, ledger: RunQueueLedger | None = None) -> None:
+        #: the carriers' waits for a CPU (None: every silence is the producer's)
+        self.ledger = ledger
+        #: the producers to judge again at ``_recheck_s``: their carrier waits for a CPU now
+        self._rechecking: set[int] = set()
+        self._recheck_s = 0.0
         self._time_s: dict[int, float] = {}
         self._last_s: dict[int, float] = {}
         #: earliest loss time [s] of the armed producers (None: none armed); asked every loop of
         #: the node, so kept up to date on each change instead of recomputed
         self._due_s: float | None = None
+        #: half the shortest consumer time, s (inf: none configured): a node woken this much past
+        #: the time it asked for did not run meanwhile (:meth:`grace`)
+        self.stall_s = math.inf
 
     def _update_due(self) -> None:
-        due = [last + self._time_s[n] for n, last in self._last_s.items()]
+        due = [last + self._time_s[n] for n, last in self._last_s.items() if n not in self._rechecking]
+        if self._rechecking:
+            due.append(self._recheck_s)
         self._due_s = min(due) if due else None
 
     @property
@@ -313,13 +344,38 @@ class NodeHeartbeatConsumer:
         for node_id, time_s in entries.items():
             if time_s > 0:
                 self._time_s[node_id] = float(time_s)
+        self.stall_s = min(self._time_s.values()) / 2 if self._time_s else math.inf
         self._update_due()
+
+    def grace(self, now_s: float) -> None:
+        """Count every armed producer as heard at ``now_s``: the node itself did not run for longer
+        than :attr:`stall_s` (its process, or the whole machine, was stopped). What a producer sent
+        meanwhile was read before this; a producer stopped with it (the same machine) cannot have
+        been heard -- it gets a consumer time from now, as after its first heartbeat."""
+        for node_id in self._last_s:
+            self._last_s[node_id] = now_s
+            if self.ledger is not None:
+                self.ledger.heard(node_id)
+        self._rechecking.clear()
+        self._update_due()
+
+    def after_stall(self, node_id: int, due_s: float, now_s: float) -> None:
+        """Node ``node_id`` ran again at ``now_s``, more than :attr:`stall_s` after a wake-up due at
+        ``due_s`` (it did not run meanwhile): :meth:`grace`, said in its log -- never a producer
+        lost for the node's own stall."""
+        logger.info(
+            "node %d: ran again %.0f ms after its wake-up was due: heartbeats judged from now", node_id, 1e3 * (now_s - due_s)
+        )
+        self.grace(now_s)
 
     def on_heartbeat(self, node_id: int, now_s: float) -> None:
         """A heartbeat (or boot-up) frame of ``node_id`` arrived at ``now_s``."""
         if node_id in self._time_s:
             self._last_s[node_id] = now_s
+            self._rechecking.discard(node_id)
             self._update_due()
+            if self.ledger is not None:
+                self.ledger.heard(node_id)
 
     def next_deadline(self) -> float | None:
         """Earliest time [s] at which a monitored producer becomes lost (None: none armed)."""
@@ -330,7 +386,17 @@ class NodeHeartbeatConsumer:
         if self._due_s is None or now_s < self._due_s - 1e-9:  # margin: the exact test is below
             return []
         lost = sorted(n for n, last in self._last_s.items() if now_s - last >= self._time_s[n])
-        for n in lost:
-            del self._last_s[n]  # disarmed until its next heartbeat
+        self._rechecking.clear()
+        for n in list(lost):
+            excuse = None if self.ledger is None else self.ledger.judge(n, now_s - self._last_s[n], self._time_s[n])
+            if excuse is None:
+                del self._last_s[n]  # disarmed until its next heartbeat
+                continue
+            lost.remove(n)
+            if excuse.pending:  # its carrier waits for a CPU now: judged again soon
+                self._rechecking.add(n)
+                self._recheck_s = now_s + RECHECK_S
+            else:
+                self._last_s[n] = now_s  # its carrier waited for a CPU: judged from now
         self._update_due()
         return lost

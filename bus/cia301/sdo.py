@@ -209,6 +209,12 @@ class SdoServer:
             return None
         return self._last_activity_s + self.TIMEOUT_S * _TIMEOUT_SCALE
 
+    def grace(self, now_s: float) -> None:
+        """A transfer in progress counts as active at ``now_s``: the node itself did not run before
+        (:meth:`bus.cia301.slave.SlaveNode.after_stall`), its client may not have either."""
+        if self._state is not _State.IDLE:
+            self._last_activity_s = now_s
+
     def tick(self, now_s: float) -> bytes | None:
         """Report the time [s]; abort a transfer that has been silent for over TIMEOUT_S.
 

@@ -73,6 +73,7 @@ from bus.cia301.nmt import (
 from bus.cia301.sdo import SdoServer, sdo_request_cob_id, sdo_response_cob_id
 from bus.errors import SdoAbort
 from bus.fastmsg import new_message
+from bus.run_queue import carrier_ledger
 
 logger = logging.getLogger(__name__)
 
@@ -112,6 +113,20 @@ def select_ready(fds: list[int], wait: float) -> list[int]:
         raise can.CanOperationError(f"bus closed: {err}") from err
 
 
+def bus_filenos(*buses: can.BusABC) -> list[int] | None:
+    """The file descriptors of ``buses`` for a node's ``select`` (None: one of them has none, e.g. ``virtual``)."""
+    fds = []
+    for bus in buses:
+        try:
+            fd = bus.fileno()
+        except (NotImplementedError, AttributeError, OSError):
+            return None
+        if fd is None or fd < 0:
+            return None
+        fds.append(fd)
+    return fds
+
+
 class SlaveNode:
     """One CANopen slave on a fieldbus and an io bus; subclasses add the io protocol.
 
@@ -143,8 +158,8 @@ class SlaveNode:
         self._own_fieldbus_ids = {self._sdo_tx, self._hb_id} | self.emcy.own_ids()
         self._heartbeat_ms = 0
         self._next_heartbeat_s: float | None = None
-        self.consumer = NodeHeartbeatConsumer()
-        self._fds = self._filenos()
+        self.consumer = NodeHeartbeatConsumer(carrier_ledger(fieldbus))  # the hub's waits for a CPU excuse
+        self._fds = bus_filenos(fieldbus, io)
         # buses that read several frames per system call keep them in a local queue that
         # select() does not see (bus.bus_features.BufferedReceiver)
         self._io_pending = pending_check(io)
@@ -160,6 +175,8 @@ class SlaveNode:
         self.bus_error: str | None = None
         #: the last service was left out (:meth:`io_settled`): :attr:`_due_s` still holds
         self._settled = False
+        #: in :meth:`run`, when the loop last read its clock [s] (None: stepped from outside, e.g. a test)
+        self._ran_s: float | None = None
         #: when the service has work next [s of the clock]: the earliest deadline (inf: none), as
         #: the last service left it (for :meth:`io_settled`)
         self._due_s = 0.0
@@ -169,18 +186,6 @@ class SlaveNode:
         #: every fieldbus frame of this wake-up went to :meth:`on_fieldbus` (no NMT, SDO, heartbeat,
         #: error or remote frame): :meth:`fieldbus_settled` may vouch for them
         self._fieldbus_plain = True
-
-    def _filenos(self) -> list[int] | None:
-        fds = []
-        for bus in (self.fieldbus, self.io):
-            try:
-                fd = bus.fileno()
-            except (NotImplementedError, AttributeError, OSError):
-                return None
-            if fd is None or fd < 0:
-                return None
-            fds.append(fd)
-        return fds
 
     # ------------------------------------------------------------------ subclass hooks
 
@@ -274,6 +279,7 @@ class SlaveNode:
         ``bus_lost(reason)`` is called and :attr:`bus_error` is set; no exception escapes)."""
         try:
             self.start()
+            self._ran_s = self._clock()  # from now on a stall between two steps is found too
             while not stop.is_set():
                 self.step(self.MAX_WAIT_S)
         except (can.CanError, OSError) as exc:
@@ -298,6 +304,7 @@ class SlaveNode:
         :return: number of frames received.
         """
         now = self._clock()
+        self.ran_at(now, self._ran_s)  # run(): did this process run between two steps?
         if not self._settled:
             self._due_s = self._earliest_due()
             self._serve_by_s = min(self._due_s, now + self.MAX_WAIT_S)
@@ -306,6 +313,7 @@ class SlaveNode:
             wait = max_wait_s
         if wait < 0.0:
             wait = 0.0
+        wake_s = now + wait  # the latest this wake-up is due
         self._settled = False
         self._fieldbus_plain = True
         fds = self._fds
@@ -338,6 +346,7 @@ class SlaveNode:
                         break
         self.frames_in += handled
         now = self._clock()
+        self.ran_at(now, wake_s)
         vouched = not fieldbus_frames or (self._fieldbus_plain and self.fieldbus_settled())
         if handled and now < self._serve_by_s and vouched and self.io_settled():
             self._settled = True  # frames the subclass vouches for, nothing due: the service would find no work
@@ -346,6 +355,19 @@ class SlaveNode:
         self.on_service(now)
         self.emcy.flush(now)
         return handled
+
+    def ran_at(self, now_s: float, due_s: float | None) -> None:
+        """This node runs at ``now_s``, due at ``due_s`` (None: no bound): later by over ``consumer.stall_s`` is a stall."""
+        if due_s is not None and now_s - due_s > self.consumer.stall_s:
+            self.after_stall(due_s, now_s)
+        if self._ran_s is not None:
+            self._ran_s = now_s
+
+    def after_stall(self, due_s: float, now_s: float) -> None:
+        """Run again at ``now_s``, over half the shortest consumer time after ``due_s`` (this process did not
+        run): the timers that watch others judge from now -- heartbeat consumer, SDO timeout, a subclass's own."""
+        self.consumer.after_stall(self.node_id, due_s, now_s)
+        self.sdo.grace(now_s)
 
     def _wait_ready(self, fds: list[int], wait: float) -> tuple[bool, bool]:
         """Wait up to ``wait`` [s] for a frame on either bus (``fds``: fieldbus, io): (io ready, fieldbus ready)."""
@@ -356,13 +378,8 @@ class SlaveNode:
         """When the service has work next [s; inf: no deadline]: the heartbeat,
         :meth:`next_deadline`, the heartbeat consumer, a waiting EMCY, the SDO transfer's timeout."""
         earliest = math.inf
-        for due in (
-            self._next_heartbeat_s,
-            self.next_deadline(),
-            self.consumer.next_deadline(),
-            self.emcy.next_deadline(),
-            self.sdo.next_deadline(),
-        ):
+        near = (self._next_heartbeat_s, self.next_deadline(), self.consumer.next_deadline())
+        for due in (*near, self.emcy.next_deadline(), self.sdo.next_deadline()):
             if due is not None and due < earliest:
                 earliest = due
         return earliest

@@ -207,16 +207,19 @@ class TransportConfig:
             return self.io
         raise TransportConfigError(f"unknown logical channel {logical!r}; use {LOGICAL_CHANNELS}")
 
-    def open(self, logical: str, *, passive: bool = False) -> can.BusABC:
+    def open(self, logical: str, *, passive: bool = False, can_filters: can.typechecking.CanFilters | None = None) -> can.BusABC:
         """Open the bus of logical channel ``logical``.
 
         :param passive: for a member that only listens and nobody waits for (a monitor, a
             logger): on the hub it joins for bulk delivery (frames held up to
             :data:`bus.transports.hub.wire.BULK_HOLD_S`, fewer writes); other transports ignore it
+        :param can_filters: the member's acceptance filters (python-can's), None: every frame
         """
         cfg = self.channel(logical)
         if passive and cfg.interface == HUB_INTERFACE:
             cfg = dataclasses.replace(cfg, kwargs={**cfg.kwargs, "bulk_delivery": True})
+        if can_filters is not None:
+            cfg = dataclasses.replace(cfg, kwargs={**cfg.kwargs, "can_filters": can_filters})
         return open_bus(cfg)
 
     @property

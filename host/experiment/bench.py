@@ -110,4 +110,6 @@ class Bench(Protocol):
         evidence of its torque-free state), ``describe_fault(exc, trial) -> FaultRecord | None``
         (what the bench knows about the fault ``exc``), ``progress() -> int | None`` (the tick of
         the trial in progress), ``closing_fault() -> FaultRecord | None`` (after close: a fault the
-        bench saw after the trial loop's last step — while the run ended or while it closed)."""
+        bench saw after the trial loop's last step — while the run ended or while it closed),
+        ``hold_heartbeat(seconds | None)`` (the host's heartbeat goes on that long without the
+        interpreter while a law's code runs; None: as usual)."""

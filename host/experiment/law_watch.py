@@ -7,16 +7,18 @@ while the loop's thread waits for it in short slices, so:
 * a law may take as long as it needs, up to :data:`LAW_UPDATE_LIMIT_S` (``$ILCRIG_LAW_UPDATE_LIMIT_S``
   overrides it): past the limit the run ends with a fault of the law (a
   :class:`host.learning.laws.checked.LawError` naming the law, the limit, and where the law's code
-  was: its stack in ``logs/law-error.log``); the host's heartbeat, SDO and the signals go on
-  meanwhile, as the interpreter switches threads while pure Python code runs (and numpy releases
-  it in its long loops);
-* a single call that holds the interpreter (the GIL) without letting it switch — a C extension's
-  long loop, ``sum(range(10**9))`` — stops the host's heartbeat thread too: the nodes then lose the
-  host after their consumer time (:data:`bus.cia301.nmt.CONSUMER_TIME_MS`).  So does a machine
-  without a CPU to spare for the host's threads while the law computes.  The waiting thread
-  measures the longest time the host's threads did not run (it cannot wake meanwhile, whichever
-  the cause); one longer than the consumer time is logged, and the host-lost fault that follows
-  names the law's update and both possible causes (:meth:`LawWatch.blame`).
+  was: its stack in ``logs/law-error.log``);
+* the host's heartbeat goes on meanwhile, also through a single call that holds the interpreter
+  (the GIL) without letting it switch — a C extension's long loop, ``sum(range(10**9))`` — and on
+  a machine without a CPU to spare for the host's threads: a thread of C writes it, and the watch
+  holds its lease for the limit (``hold``: the bench's ``hold_heartbeat``;
+  :mod:`host.rig.host_heartbeat`);
+* where a Python thread sends the heartbeat (a transport other than the hub, or a hub client
+  without its C core) such a call stops it: the nodes then lose the host after their consumer time
+  (:data:`bus.cia301.nmt.CONSUMER_TIME_MS`).  The waiting thread measures the longest time the
+  host's threads did not run (it cannot wake meanwhile, whichever the cause); one longer than the
+  consumer time is logged, and a host-lost fault that follows names the law's update and both
+  possible causes (:meth:`LawWatch.blame`).
 
 In process (``ilcrig sim``, the API's sessions) the law runs in the loop's own thread, unwatched.
 May import: ``bus``, ``numpy``, :mod:`host.learning`.
@@ -81,10 +83,13 @@ class LawWatch:
 
     :param law_name: the law's name, for the messages
     :param limit_s: the limit, s (default :func:`law_update_limit_s`)
+    :param hold: ``hold(seconds)`` before each call keeps the host's heartbeat going that long
+        without the interpreter, ``hold(None)`` after it (None: nothing to hold)
     """
 
-    def __init__(self, law_name: str, limit_s: float | None = None) -> None:
+    def __init__(self, law_name: str, limit_s: float | None = None, hold: Callable[[float | None], None] | None = None) -> None:
         self.law_name = law_name
+        self.hold = hold
         self.limit_s = law_update_limit_s() if limit_s is None else float(limit_s)
         #: the nodes' heartbeat consumer time, s: a longer hold of the interpreter loses the host
         self.consumer_s = CONSUMER_TIME_MS * timeout_scale() / 1000.0
@@ -106,18 +111,24 @@ class LawWatch:
                 box["error"] = exc
 
         worker = threading.Thread(target=work, name=f"law {self.law_name}", daemon=True)
-        t0 = time.monotonic()
-        worker.start()  # may return only once the law's code lets go of the interpreter
-        last = time.monotonic()
-        held = last - t0
-        while worker.is_alive():
-            worker.join(WAKE_S)
-            now = time.monotonic()
-            held = max(held, now - last - WAKE_S)
-            last = now
-            if worker.is_alive() and now - t0 > self.limit_s:
-                self.last = LastCall(after_trial, now - t0, held)
-                raise self._over_limit(worker, after_trial, now - t0)
+        if self.hold is not None:
+            self.hold(self.limit_s + self.consumer_s)  # past the limit this thread ends the run
+        try:
+            t0 = time.monotonic()
+            worker.start()  # may return only once the law's code lets go of the interpreter
+            last = time.monotonic()
+            held = last - t0
+            while worker.is_alive():
+                worker.join(WAKE_S)
+                now = time.monotonic()
+                held = max(held, now - last - WAKE_S)
+                last = now
+                if worker.is_alive() and now - t0 > self.limit_s:
+                    self.last = LastCall(after_trial, now - t0, held)
+                    raise self._over_limit(worker, after_trial, now - t0)
+        finally:
+            if self.hold is not None:
+                self.hold(None)
         self.last = LastCall(after_trial, time.monotonic() - t0, max(held, 0.0))
         logger.debug(
             "law %s after trial %d: %.3f s, held the interpreter %.3f s",
@@ -129,8 +140,8 @@ class LawWatch:
         if self.last.held_s > self.consumer_s:
             logger.warning(
                 "during law %s's update after trial %d the host's threads did not run for %.2f s (longer than the "
-                "nodes' heartbeat consumer time, %.2f s: they lose the host): a call that holds the GIL, or no CPU "
-                "to spare for the host (docs/api.md)",
+                "nodes' heartbeat consumer time, %.2f s: they lose the host unless a thread of C writes its "
+                "heartbeat): a call that holds the GIL, or no CPU to spare for the host (docs/api.md)",
                 self.law_name,
                 after_trial,
                 self.last.held_s,

@@ -125,7 +125,7 @@ class TrialLoop:
         self.trials = LoopState(plan, bench, self.result, keep_traces, recorder)
         self.result.summary.update(new_summary(plan, mode, self.trials.digest))
         if mode == "rig":  # the law's code watched: a time limit, the host kept alive meanwhile
-            self.trials.law_watch = LawWatch(plan.law.name)
+            self.trials.law_watch = LawWatch(plan.law.name, hold=getattr(bench, "hold_heartbeat", None))
         self.k = 0
         self.started = False
         self.finished = False

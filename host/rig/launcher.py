@@ -188,7 +188,7 @@ class RigLauncher(LaunchCore):
         self.supervisor = supervisor = Supervisor(
             self.children, self.hub, log_dir / "hub.log", float(self.host_grace_s), self.interrupts, self._progress.where
         )
-        self._liveness = LivenessWatch(run_tc, self._progress.where, outcome.kept_now)
+        self._liveness = LivenessWatch(run_tc, self._progress.where, outcome.kept_now, self.lockstep_pids)
         self._liveness.start()
         supervisor.heard = self._liveness.heard
         supervisor.stops = StopWatch(self._progress.where, outcome.kept_now)

@@ -38,6 +38,7 @@ from typing import Any
 import can
 
 from bus.cia301.nmt import CONSUMER_TIME_MS, HEARTBEAT_BASE, HOST_NODE_ID
+from bus.run_queue import RunQueueLedger
 from bus.transports.config import FIELDBUS, TransportConfig
 from bus.units import timeout_scale
 from host.experiment.fault_placement import place
@@ -63,7 +64,10 @@ class Silence:
     :ivar t_heard_mono: when it was heard again (None: not before the watch ended)
     :ivar where: the run's position when it was noticed (:class:`host.rig.run_watch.Where`), or None
     :ivar kept: the trials in the summary when it was noticed
-    :ivar how: ``heartbeat`` (its heartbeat not heard) or ``stopped`` (its process stopped, SIGSTOP)
+    :ivar how: ``heartbeat`` (its heartbeat not heard), ``stopped`` (its process stopped, SIGSTOP)
+        or ``waited`` (while ``carrier`` waited ``waited_s`` for a CPU: not a fault, :mod:`bus.run_queue`)
+    :ivar carrier: the process that waited (``waited``), else None
+    :ivar waited_s: how long it waited for a CPU meanwhile, s (``waited``)
     """
 
     node_id: int | None
@@ -74,6 +78,8 @@ class Silence:
     where: Any = None
     kept: int = 0
     how: str = "heartbeat"
+    carrier: str | None = None
+    waited_s: float = 0.0
 
     @property
     def node(self) -> str:
@@ -92,10 +98,17 @@ class LivenessWatch(threading.Thread):
     :param transport: the run's transport (the hub's address)
     :param where: the run's position now, or None
     :param kept: the trials the summary holds now
+    :param pids: the run's processes now, name → pid (``hub``, ``drive1`` …): a node's silence
+        explained by its own process's or the hub's wait for a CPU is no silence
+        (:mod:`bus.run_queue`), kept as a ``waited`` silence for the summary's incidents
     """
 
     def __init__(
-        self, transport: TransportConfig, where: Callable[[], Any] | None = None, kept: Callable[[], int] | None = None
+        self,
+        transport: TransportConfig,
+        where: Callable[[], Any] | None = None,
+        kept: Callable[[], int] | None = None,
+        pids: Callable[[], dict[str, int]] | None = None,
     ) -> None:
         super().__init__(name="liveness watch", daemon=True)
         self.transport = transport
@@ -108,6 +121,13 @@ class LivenessWatch(threading.Thread):
         self._stop_event = threading.Event()
         self._lock = threading.Lock()
         self._bus: can.BusABC | None = None
+        self._pids = pids
+        self._ledger = RunQueueLedger(self._carriers) if pids is not None else None
+
+    def _carriers(self, node_id: int) -> list[int]:
+        """The pids node ``node_id``'s heartbeat passes through: its own process's, the hub's."""
+        pids = self._pids() if self._pids is not None else {}
+        return [pids[name] for name in (node_name(node_id), "hub") if name in pids]
 
     def run(self) -> None:
         try:
@@ -120,7 +140,7 @@ class LivenessWatch(threading.Thread):
                 with self._lock:
                     if now - prev > self.consumer_s / 2:  # the launcher did not run: nothing judged
                         for nid in self._last:
-                            self._last[nid] = now
+                            self._heard_at(nid, now)
                     prev = now
                     if msg is not None:
                         self._heard(msg, now)
@@ -141,8 +161,33 @@ class LivenessWatch(threading.Thread):
             self._last.pop(nid, None)
             self._close(nid, now)
             return
-        self._last[nid] = now
+        self._heard_at(nid, now)
         self._close(nid, now)
+
+    def _heard_at(self, nid: int, now: float) -> None:
+        self._last[nid] = now
+        if self._ledger is not None:
+            self._ledger.heard(nid)
+
+    def _waited(self, overdue: list[int], now: float, where: Any, kept: int) -> list[int]:
+        """``overdue`` without the nodes whose silence a wait for a CPU explains (each kept as a
+        ``waited`` silence, judged from now)."""
+        if self._ledger is None:
+            return overdue
+        names = {pid: name for name, pid in (self._pids() if self._pids is not None else {}).items()}
+        left = []
+        for nid in overdue:
+            excuse = self._ledger.judge(nid, now - self._last[nid], self.consumer_s)
+            if excuse is None:
+                left.append(nid)
+                continue
+            if excuse.pending:  # its process or the hub waits for a CPU now: the next round judges
+                continue
+            carrier = names.get(excuse.pid, f"pid {excuse.pid}")
+            silence = Silence(nid, self._last[nid], now, time.time(), now, where, kept, "waited", carrier, excuse.waited_s)
+            self.silences.append(silence)
+            self._last[nid] = now  # judged from now
+        return left
 
     def _close(self, nid: int, now: float) -> None:
         for key in (nid, -1):  # the node's own silence, or the hub's
@@ -154,9 +199,12 @@ class LivenessWatch(threading.Thread):
         overdue = [nid for nid, t in self._last.items() if now - t > self.consumer_s and nid not in self._open]
         if not overdue or -1 in self._open:
             return
-        silent_all = len(self._last) > 1 and all(now - t > self.consumer_s for t in self._last.values())
         where = self.where() if self.where is not None else None
         kept = self.kept() if self.kept is not None else 0
+        overdue = self._waited(overdue, now, where, kept)
+        if not overdue:
+            return
+        silent_all = len(self._last) > 1 and all(now - t > self.consumer_s for t in self._last.values())
         if silent_all:
             silence = Silence(None, max(self._last.values()), now, time.time(), where=where, kept=kept)
             self._open[-1] = silence
@@ -264,7 +312,26 @@ def judge_silences(
     records, the later ones as incidents (JSON-ready); ``planned``: the run's trials."""
     faults: list[FaultRecord] = []
     incidents: list[dict[str, Any]] = []
-    for s in first_per_node(silences):
+    for s in silences:
+        if s.how == "waited":  # no fault, said in the summary
+            position, trial = position_of(s.kept, planned, False)
+            silent_ms = 1000.0 * (s.t_noticed_mono - s.t_last_mono)
+            incidents.append(
+                {
+                    "node": s.node,
+                    "what": (
+                        f"{s.node} silent for {silent_ms:.0f} ms while {s.carrier} waited {1000 * s.waited_s:.0f} ms "
+                        "for a CPU (the machine had none to spare): judged from then on, not a fault"
+                    ),
+                    "silent_ms": round(silent_ms, 1),
+                    "position": str(position),
+                    "trial": trial,
+                    "t_noticed_mono": s.t_noticed_mono,
+                    "t_noticed_wall": s.t_noticed_wall,
+                    "detected_by": "launcher",
+                }
+            )
+    for s in first_per_node([s for s in silences if s.how != "waited"]):
         node = s.node
         w = s.where
         in_trial = w is not None and bool(getattr(w, "in_trial", False)) and w.trial >= s.kept and s.kept < planned

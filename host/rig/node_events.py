@@ -20,6 +20,7 @@ import canopen
 from bus.cia301.nmt import HeartbeatConsumer, HeartbeatReport, NmtState
 from bus.objects import DRIVE_NODE_IDS
 from bus.plant_objects import DEFAULT_PLANT_NODE_ID as PLANT_NODE_ID
+from bus.run_queue import RunQueueLedger
 from host.rig.fault_classify import EmcyFrame
 
 __all__ = ["NODE_IDS", "NodeEvents"]
@@ -33,14 +34,15 @@ class NodeEvents:
 
     :param consumer_s: the host's consumer time of a node's heartbeat, s
     :param t_start: the host's start (``time.monotonic()``, s), origin of the EMCY log's ``t_s``
+    :param ledger: the waits for a CPU of the hub that carries the heartbeats (:mod:`bus.run_queue`)
     :ivar emcy: every EMCY frame heard: node, code, register, data (hex), ``t_s``
     """
 
-    def __init__(self, consumer_s: float, t_start: float) -> None:
+    def __init__(self, consumer_s: float, t_start: float, ledger: RunQueueLedger | None = None) -> None:
         self.consumer_s = consumer_s
         self.emcy: list[dict[str, Any]] = []
         self._t_start = t_start
-        self._heartbeats = HeartbeatConsumer()
+        self._heartbeats = HeartbeatConsumer(ledger=ledger)
         self._pending_emcy: list[EmcyFrame] = []
         self._lock = threading.Lock()
 

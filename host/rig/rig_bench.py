@@ -36,6 +36,7 @@ from bus.cia301.nmt import CONSUMER_TIME_MS, HOST_HEARTBEAT_MS, HOST_NODE_ID, NO
 from bus.objects import DRIVE_NODE_IDS
 from bus.traffic import DEFAULT_BITRATE
 from bus.transports.config import FIELDBUS, IO, TransportConfig
+from bus.transports.hub.client import NOTHING_IN
 from bus.units import timeout_scale
 from host.experiment.bench import CyclicActuals, CyclicSetpoints
 from host.experiment.config import ExperimentConfig
@@ -46,7 +47,7 @@ from host.rig.bring_up import BringUp, RigNodes
 from host.rig.bus_accounting import BusTimeAccounting
 from host.rig.channels import RigChannels
 from host.rig.fault_classify import sdo_fault
-from host.rig.host_heartbeat import HostHeartbeat
+from host.rig.host_heartbeat import LEASE_CONSUMER_TIMES, HostHeartbeat
 from host.rig.pdo_stream import SyncProducer
 from host.rig.shutdown import bring_to_safe_state
 from host.rig.trial_runner import TrialRunner
@@ -161,7 +162,14 @@ class RigBench:
                 on_pdos=streamer.attach if streamer is not None else None,
                 on_watched=watchdog.arm,
             )
-            self._heartbeat = watchdog.producer = HostHeartbeat(network, HOST_HEARTBEAT_MS / 1000.0)
+            # the beats from a thread of C on a member of their own where the hub can (host_heartbeat.py)
+            own_bus = transport.open(FIELDBUS, can_filters=NOTHING_IN) if transport.needs_hub else None
+            self._heartbeat = watchdog.producer = HostHeartbeat(
+                network,
+                HOST_HEARTBEAT_MS / 1000.0,
+                own_bus=own_bus,
+                lease_s=LEASE_CONSUMER_TIMES * CONSUMER_TIME_MS * self.scale / 1000.0,
+            )
             self._heartbeat.start()
             watchdog.start()
         except Exception:
@@ -180,6 +188,12 @@ class RigBench:
         with sdo_errors(None, "bring-up"):
             self.bring_up.start_all()
         self.watchdog.arm()
+
+    def hold_heartbeat(self, seconds: float | None) -> None:
+        """The host's heartbeat goes on for ``seconds`` whether or not the host's interpreter runs
+        (a law's code runs meanwhile); None: back to its usual lease (:meth:`HostHeartbeat.hold`)."""
+        if self._heartbeat is not None:
+            self._heartbeat.hold(seconds)
 
     def recover(self, trial: int) -> list[int]:
         """Before ``trial``: with ``recover_s`` > 0, nodes whose heartbeat was lost or that booted
@@ -239,6 +253,7 @@ class RigBench:
                 "host_period_ms": HOST_HEARTBEAT_MS,
                 "node_period_ms": NODE_HEARTBEAT_MS,
                 "consumer_time_ms": CONSUMER_TIME_MS * self.scale,
+                "host_stalls": list(self.watchdog.stalls),
             },
             "timing": self.trials.timing(self.cfg.ts_s, self.realtime, self.rt_scheduling),
             "emcy": self.watchdog.events.emcy,

@@ -274,6 +274,8 @@ class RunOutcome:
 
                 for line in note_lines(entries, str(self.out_dir / SUMMARY_NAME)):
                     self.say_err(line)
+                for stall in summary.get("bench", {}).get("heartbeat", {}).get("host_stalls", []):
+                    self.say_err(f"ilcrig: note: {stall['what']}; recorded in {self.out_dir / SUMMARY_NAME}")
             self.settle_folder()
             return EXIT_OK
         kept = len(summary["iterations"]) if summary is not None else 0

@@ -12,8 +12,10 @@ declared, whether a trial runs or not:
   looks at what it has heard, the channels (:class:`host.rig.channels.RigChannels`) and the host's
   heartbeat producer and classifies the first fault visible (:mod:`host.rig.fault_classify`), in
   order: a bus gone, a channel's log stopped or a bus error frame, an EMCY, the host itself
-  stopped for longer than the nodes' consumer time (its heartbeat's gap, when no node's EMCY says
-  so within :data:`STALL_SETTLE_S`), a node's heartbeat lost or its boot-up, no node heard at all;
+  stopped for longer than the nodes' consumer time while they are NMT STOPPED (its heartbeat's gap,
+  when no node's EMCY says so within :data:`STALL_SETTLE_S`; while they consume it and none reports
+  its loss, they did not run either -- the whole machine stopped -- and the gap is kept in
+  :attr:`Watchdog.stalls`, not a fault), a node's heartbeat lost or its boot-up, no node heard at all;
   a round that comes more than a consumer time after the last one (this process did not run)
   judges no heartbeat: the frames that queued meanwhile are read first;
 * before the first :meth:`Watchdog.arm` (the nodes being brought up) a bus fault or a node's EMCY,
@@ -45,6 +47,7 @@ import canopen
 from bus.can_errors import is_receive_overflow
 from bus.cia301.nmt import CONSUMER_TIME_MS, NODE_HEARTBEAT_MS, NmtCommand
 from bus.errors import SdoAbort
+from bus.run_queue import carrier_ledger
 from bus.transports.config import FIELDBUS
 from host.experiment.bench import TrialFault
 from host.experiment.faults import FaultRecord, attach_injection, read_injections
@@ -157,7 +160,9 @@ class Watchdog:
         self.times = DetectionTimes.scaled(scale)
         self.tolerate_lost_between_trials = tolerate_lost_between_trials
         #: the nodes' heartbeats and EMCY frames
-        self.events = NodeEvents(self.consumer_s, time.monotonic() if t_start is None else t_start)
+        self.events = NodeEvents(
+            self.consumer_s, time.monotonic() if t_start is None else t_start, carrier_ledger(getattr(network, "bus", None))
+        )
         self.fieldbus_errors = FieldbusErrors()
         #: the host's heartbeat producer, whose failure is a lost bus (set by the bench)
         self.producer: HostHeartbeat | None = None
@@ -175,11 +180,17 @@ class Watchdog:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._last_round: float | None = None
-        #: when this process was last stopped for longer than the consumer time: (gap s, its end)
+        #: when this process was last stopped for longer than the consumer time: (gap s, its end),
+        #: and the trial then (its number, whether it ran)
         self._stall: tuple[float, float] | None = None
+        self._stall_where = (0, False)
         #: from this time (``t_mono``) on the nodes are NMT STOPPED on purpose (the shutdown): a
         #: stall of the host that begins later costs them nothing
         self.stopped_at: float | None = None
+        #: the host's stalls longer than the consumer time that no node reported while they consumed
+        #: its heartbeat (they did not run either: the whole machine stopped), for the summary:
+        #: ``{"what", "gap_ms", "trial", "in_trial", "t_end_mono"}`` -- not faults
+        self.stalls: list[dict[str, object]] = []
 
     # -- the thread ---------------------------------------------------------------------------
     def start(self) -> None:
@@ -287,13 +298,34 @@ class Watchdog:
         if self.producer is not None:
             gap = self.producer.take_gap(self.consumer_s)
             if gap is not None and (self.stopped_at is None or gap[1] - gap[0] < self.stopped_at):
-                self._stall = gap
+                self._stall, self._stall_where = gap, (self.trial, self.in_trial)
         if self._stall is not None and now - self._stall[1] >= STALL_SETTLE_S:
-            return host_stall_fault(*self._stall, self.times)  # no node's EMCY came: they were not operational, or lost
+            if self.stopped_at is not None:  # the nodes are STOPPED: they report no loss, the host's gap is the fault
+                return host_stall_fault(*self._stall, self.times)
+            self._note_stall(*self._stall)  # operational consumers, none lost the host: they did not run either
         if not self.in_trial and self.tolerate_lost_between_trials:
             return None  # between trials a lost node is waited for (recover)
         report, last = self.events.report(now), self.events.last_heard()
         return heartbeat_fault(report, last, now, consumer_s=self.consumer_s, period_s=self.period_s, bus_name=self.bus_name)
+
+    def _note_stall(self, gap_s: float, t_end: float) -> None:
+        """The host did not run for ``gap_s`` (ending at ``t_end``, ``t_mono``), longer than the
+        nodes' consumer time, and no node's EMCY 0x8130 came within :data:`STALL_SETTLE_S` while
+        every node consumed its heartbeat: they did not run either (the whole machine stopped: a
+        virtual machine not scheduled, every process of the run stopped), and each judges its
+        producers from when it ran again (:meth:`bus.cia301.nmt.NodeHeartbeatConsumer.grace`).
+        Lockstep time stood still with them: not a fault, kept for the summary and logged."""
+        self._stall = None
+        trial, in_trial = self._stall_where
+        where = f"in trial {trial}" if in_trial else f"before trial {trial}"
+        what = (
+            f"the host did not run for {1000 * gap_s:.0f} ms ({where}) and no node reported losing its heartbeat: "
+            "the nodes did not run either (the whole machine was stopped); not a fault"
+        )
+        logger.warning("%s", what)
+        self.stalls.append(
+            {"what": what, "gap_ms": round(1000 * gap_s, 1), "trial": trial, "in_trial": in_trial, "t_end_mono": t_end}
+        )
 
     def _bus_fault(self, now: float) -> FaultRecord | None:
         """A bus gone, a channel's log stopped or a bus error frame heard (None: none)."""

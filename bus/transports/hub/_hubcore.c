@@ -30,6 +30,15 @@
  * around a control period of a few microseconds (benchmarks/robot_speed.py, py-spy; the numbers in
  * docs/benchmarks.md); the tick itself stays Python (the firmware's own code), only the waiting,
  * the reading and the record codec move here.
+ *
+ * A member's periodic frame without the interpreter: PeriodicWriter (below answer_frames), behind
+ * HubBus.periodic_writer (client.py): a POSIX thread that writes one record every period on a
+ * member of its own (nothing else sends there; its acceptance filter lets nothing in, and what
+ * comes anyway, an error frame, is read and dropped) while its lease lasts, and keeps the longest
+ * gap between two of its writes. Why C: the host's heartbeat (host/rig/host_heartbeat.py) must go
+ * on while a law computes in the host's interpreter; a Python thread needs the GIL for every beat,
+ * and a thread holding the GIL keeps it while the OS does not run it, so on a loaded machine a
+ * beat came 505 ms late (the nodes' consumer time is 500 ms) with a pure-Python law running.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -37,6 +46,7 @@
 #include <errno.h>
 #include <math.h>
 #include <poll.h>
+#include <pthread.h>
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
@@ -943,6 +953,219 @@ static PyObject *answer_frames(PyObject *self, PyObject *args) {
     return Py_BuildValue("lii", ticks, why, err);
 }
 
+/* ---------------------------------------------------------------- PeriodicWriter (a member's beat) */
+
+typedef struct {
+    PyObject_HEAD
+    pthread_mutex_t mu;
+    pthread_cond_t cv;
+    pthread_t thread;
+    int started, joined, stop;
+    int starved; /* the last period passed without a write: the lease had run out */
+    int kick;    /* a lease came after that: write now, not at the next period */
+    int fd;
+    uint8_t rec[HEADER_SIZE + 64];
+    size_t rec_len;
+    double period_s;
+    double lease_until; /* CLOCK_MONOTONIC s: no write after it (INFINITY: no lease) */
+    long long sent;
+    double last_sent;   /* -1: none yet */
+    double gap_s, gap_end; /* the longest gap between two writes not taken yet (gap_s < 0: none) */
+    int err;            /* errno of the write (or read) that ended the thread, 0 */
+    double err_t;
+} PeriodicWriter;
+
+static void abs_time(double t_s, struct timespec *ts) {
+    double sec = floor(t_s);
+    ts->tv_sec = (time_t)sec;
+    ts->tv_nsec = (long)((t_s - sec) * 1e9);
+    if (ts->tv_nsec >= 1000000000L) {
+        ts->tv_sec += 1;
+        ts->tv_nsec -= 1000000000L;
+    }
+}
+
+/* what came on the member (its filter lets nothing in but error frames): read and dropped; 0, or the
+ * errno (EPIPE: the hub closed the connection) */
+static int drain(int fd) {
+    uint8_t buf[4096];
+    for (;;) {
+        ssize_t k = recv(fd, buf, sizeof buf, MSG_DONTWAIT);
+        if (k > 0) continue;
+        if (k == 0) return EPIPE;
+        if (errno == EINTR) continue;
+        if (errno == EAGAIN || errno == EWOULDBLOCK) return 0;
+        return errno;
+    }
+}
+
+static void *writer_main(void *arg) {
+    PeriodicWriter *w = (PeriodicWriter *)arg;
+    pthread_mutex_lock(&w->mu);
+    double due = mono_s();
+    while (!w->stop) {
+        w->starved = mono_s() > w->lease_until;
+        if (!w->starved) {
+            pthread_mutex_unlock(&w->mu);
+            int e = send_all(w->fd, w->rec, w->rec_len);
+            if (!e) e = drain(w->fd);
+            double t = mono_s();
+            pthread_mutex_lock(&w->mu);
+            if (e) {
+                w->err = e;
+                w->err_t = t;
+                break;
+            }
+            w->sent++;
+            if (w->last_sent >= 0 && t - w->last_sent > w->gap_s) {
+                w->gap_s = t - w->last_sent;
+                w->gap_end = t;
+            }
+            w->last_sent = t;
+        }
+        due += w->period_s;
+        double now = mono_s();
+        if (due < now) due = now + w->period_s; /* this process was not running: no burst of late writes */
+        struct timespec ts;
+        abs_time(due, &ts);
+        while (!w->stop && !w->kick && mono_s() < due) {
+            if (pthread_cond_timedwait(&w->cv, &w->mu, &ts) == ETIMEDOUT) break;
+        }
+        if (w->kick) { /* renewed after a period without a write: the beat goes out now */
+            w->kick = 0;
+            due = mono_s() - w->period_s;
+        }
+    }
+    pthread_mutex_unlock(&w->mu);
+    return NULL;
+}
+
+static PyObject *PeriodicWriter_new(PyTypeObject *type, PyObject *args, PyObject *kwds) {
+    PeriodicWriter *w = (PeriodicWriter *)type->tp_alloc(type, 0);
+    if (!w) return NULL;
+    pthread_mutex_init(&w->mu, NULL);
+    pthread_condattr_t ca;
+    pthread_condattr_init(&ca);
+    pthread_condattr_setclock(&ca, CLOCK_MONOTONIC);
+    pthread_cond_init(&w->cv, &ca);
+    pthread_condattr_destroy(&ca);
+    w->fd = -1;
+    w->last_sent = -1.0;
+    w->gap_s = -1.0;
+    w->lease_until = INFINITY;
+    return (PyObject *)w;
+}
+
+static int PeriodicWriter_init(PeriodicWriter *w, PyObject *args, PyObject *kwds) {
+    static char *kwlist[] = {"fd", "record", "period_s", NULL};
+    int fd;
+    Py_buffer rec;
+    double period_s;
+    if (!PyArg_ParseTupleAndKeywords(args, kwds, "iy*d", kwlist, &fd, &rec, &period_s)) return -1;
+    int bad = rec.len <= 0 || (size_t)rec.len > sizeof w->rec || !(period_s > 0.0) || fd < 0 || w->started;
+    if (!bad) {
+        memcpy(w->rec, rec.buf, (size_t)rec.len);
+        w->rec_len = (size_t)rec.len;
+    }
+    PyBuffer_Release(&rec);
+    if (bad) {
+        PyErr_SetString(PyExc_ValueError, "PeriodicWriter(fd >= 0, record of 1..88 bytes, period_s > 0), once");
+        return -1;
+    }
+    w->fd = fd;
+    w->period_s = period_s;
+    int e = pthread_create(&w->thread, NULL, writer_main, w);
+    if (e) {
+        errno = e;
+        PyErr_SetFromErrno(PyExc_OSError);
+        return -1;
+    }
+    w->started = 1;
+    return 0;
+}
+
+static void writer_join(PeriodicWriter *w) {
+    if (!w->started || w->joined) return;
+    pthread_mutex_lock(&w->mu);
+    w->stop = 1;
+    pthread_cond_signal(&w->cv);
+    pthread_mutex_unlock(&w->mu);
+    pthread_join(w->thread, NULL);
+    w->joined = 1;
+}
+
+static PyObject *PeriodicWriter_stop(PeriodicWriter *w, PyObject *noargs) {
+    Py_BEGIN_ALLOW_THREADS
+    writer_join(w);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
+static PyObject *PeriodicWriter_lease(PeriodicWriter *w, PyObject *arg) {
+    double s = PyFloat_AsDouble(arg);
+    if (s == -1.0 && PyErr_Occurred()) return NULL;
+    double until = isinf(s) && s > 0 ? INFINITY : mono_s() + s;
+    pthread_mutex_lock(&w->mu);
+    w->lease_until = until;
+    if (w->starved) {
+        w->kick = 1;
+        pthread_cond_signal(&w->cv); /* the write that waited for a lease goes out now */
+    }
+    pthread_mutex_unlock(&w->mu);
+    Py_RETURN_NONE;
+}
+
+static PyObject *PeriodicWriter_state(PeriodicWriter *w, PyObject *args) {
+    int take = 0;
+    if (!PyArg_ParseTuple(args, "|p", &take)) return NULL;
+    pthread_mutex_lock(&w->mu);
+    long long sent = w->sent;
+    double last = w->last_sent, gap = w->gap_s, gap_end = w->gap_end, err_t = w->err_t;
+    int err = w->err, alive = w->started && !w->joined && !w->err;
+    if (take) w->gap_s = -1.0;
+    pthread_mutex_unlock(&w->mu);
+    PyObject *last_o = last >= 0 ? PyFloat_FromDouble(last) : (Py_INCREF(Py_None), Py_None);
+    PyObject *gap_o = gap >= 0 ? Py_BuildValue("(dd)", gap, gap_end) : (Py_INCREF(Py_None), Py_None);
+    PyObject *err_o = err ? Py_BuildValue("(id)", err, err_t) : (Py_INCREF(Py_None), Py_None);
+    if (!last_o || !gap_o || !err_o) {
+        Py_XDECREF(last_o);
+        Py_XDECREF(gap_o);
+        Py_XDECREF(err_o);
+        return NULL;
+    }
+    return Py_BuildValue("(LNNNO)", sent, last_o, gap_o, err_o, alive ? Py_True : Py_False);
+}
+
+static void PeriodicWriter_dealloc(PeriodicWriter *w) {
+    Py_BEGIN_ALLOW_THREADS
+    writer_join(w);
+    Py_END_ALLOW_THREADS
+    pthread_cond_destroy(&w->cv);
+    pthread_mutex_destroy(&w->mu);
+    Py_TYPE(w)->tp_free((PyObject *)w);
+}
+
+static PyMethodDef PeriodicWriter_methods[] = {
+    {"lease", (PyCFunction)PeriodicWriter_lease, METH_O,
+     "lease(seconds): write only until seconds from now (inf: without end); the lease of a new writer is without end"},
+    {"state", (PyCFunction)PeriodicWriter_state, METH_VARARGS,
+     "state(take=False) -> (sent, last write t_mono or None, (longest gap s, t_mono of the write that ended it) or None, "
+     "(errno, t_mono) of the failure that ended the thread or None, running); take: forget the gap"},
+    {"stop", (PyCFunction)PeriodicWriter_stop, METH_NOARGS, "stop the thread and wait for it (idempotent)"},
+    {NULL, NULL, 0, NULL},
+};
+
+static PyTypeObject PeriodicWriterType = {
+    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "bus.transports.hub._hubcore.PeriodicWriter",
+    .tp_basicsize = sizeof(PeriodicWriter),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "PeriodicWriter(fd, record, period_s): a thread of C writes record on fd every period_s (see the file's comment).",
+    .tp_new = PeriodicWriter_new,
+    .tp_init = (initproc)PeriodicWriter_init,
+    .tp_dealloc = (destructor)PeriodicWriter_dealloc,
+    .tp_methods = PeriodicWriter_methods,
+};
+
 static PyMethodDef module_methods[] = {
     {"answer_frames", answer_frames, METH_VARARGS,
      "answer_frames(fd, other_fd, deadline_s, rx_id, rx_count, rx_len, on_frame, rest, lock) -> (n, why, errno): "
@@ -958,12 +1181,18 @@ static struct PyModuleDef hubcore_module = {
 };
 
 PyMODINIT_FUNC PyInit__hubcore(void) {
-    if (PyType_Ready(&CoreType) < 0) return NULL;
+    if (PyType_Ready(&CoreType) < 0 || PyType_Ready(&PeriodicWriterType) < 0) return NULL;
     PyObject *mod = PyModule_Create(&hubcore_module);
     if (!mod) return NULL;
     Py_INCREF(&CoreType);
     if (PyModule_AddObject(mod, "Core", (PyObject *)&CoreType) < 0) {
         Py_DECREF(&CoreType);
+        Py_DECREF(mod);
+        return NULL;
+    }
+    Py_INCREF(&PeriodicWriterType);
+    if (PyModule_AddObject(mod, "PeriodicWriter", (PyObject *)&PeriodicWriterType) < 0) {
+        Py_DECREF(&PeriodicWriterType);
         Py_DECREF(mod);
         return NULL;
     }

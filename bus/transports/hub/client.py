@@ -73,6 +73,11 @@ Sending several frames
     :meth:`HubBus.send_batch` (:class:`bus.bus_features.BatchSender`) writes several frames
     in one system call; the hub forwards them as if sent one by one.
 
+A frame without the interpreter
+    :meth:`HubBus.periodic_writer` hands one frame to a thread of C that writes it every period
+    without taking the GIL (the host's heartbeat, :mod:`host.rig.host_heartbeat`), on a member of
+    its own opened with the filter :data:`NOTHING_IN`.
+
 After :meth:`shutdown`
     ``recv``, ``send``, ``set_filters``, ``flush_tx_buffer`` and ``send_periodic`` raise
     :class:`can.CanOperationError` ("Cannot operate on a closed bus", python-can's virtual
@@ -100,7 +105,7 @@ import numpy as np
 from can import CanProtocol
 
 from bus.bus_features import FRAME_DTYPE, AnswerEnd, FrameAnswer, exact_standard_ids, frames_from_messages, recv_waiting
-from bus.transports.hub.addresses import connect, parse_channel
+from bus.transports.hub.addresses import HubAddress, connect, parse_channel
 from bus.transports.hub.core import member_core
 from bus.transports.hub.owner import HubOwnerError
 from bus.transports.hub.records import (
@@ -124,6 +129,9 @@ from bus.transports.hub.wire import (
 logger = logging.getLogger(__name__)
 
 _CLOSED = "Cannot operate on a closed bus"
+#: an acceptance filter that lets no frame in (the fieldbus and io carry 11-bit identifiers only):
+#: for a member that only writes (:meth:`HubBus.periodic_writer`)
+NOTHING_IN: can.typechecking.CanFilters = [{"can_id": 0x1FFFFFFF, "can_mask": 0x1FFFFFFF, "extended": True}]
 
 
 def _refuse_fd(msgs: Sequence[can.Message]) -> None:
@@ -148,6 +156,30 @@ def _bitrate_arg(name: str, value: object) -> int:
     if isinstance(value, bool) or not isinstance(value, int | float) or value != int(value) or not 0 < value < 1 << 32:
         raise ValueError(f"{name} must be a positive integer in bit/s, got {value!r}")
     return int(value)
+
+
+def _join(addr: HubAddress, greeting: bytes, timeout_s: float) -> tuple[socket.socket, tuple[int, int]]:
+    """A member's socket to the hub at ``addr``, its ``greeting`` (a hello) answered, blocking from
+    then on; and the bus's (bitrate, data bitrate) from the answer.
+
+    :raises can.CanInitializationError: no hub there, or it refused
+    """
+    try:
+        sock = connect(addr, timeout_s)
+    except HubOwnerError:
+        raise  # the hub runs as another user: said as it is, not as an unreachable bus
+    except OSError as err:
+        raise can.CanInitializationError(f"cannot reach ilcrig hub at {addr}: {err}") from err
+    try:
+        sock.sendall(greeting)
+        rates = read_member_reply(sock)
+        sock.settimeout(None)  # blocking from now on
+    except (OSError, HubProtocolError) as err:
+        sock.close()
+        old_hub = "bad hello" in str(err)  # a version-1 hub's words for any other version
+        hint = f" (this client speaks hub protocol version {PROTOCOL_VERSION}: an older hub?)" if old_hub else ""
+        raise can.CanInitializationError(f"hub handshake with {addr} failed: {err}{hint}") from err
+    return sock, rates
 
 
 class HubBus(can.BusABC):
@@ -199,6 +231,7 @@ class HubBus(can.BusABC):
         **kwargs: Any,
     ) -> None:
         self._closed = True  # until connected: nothing to operate on
+        self._writer: Any = None  # the member's PeriodicWriter (periodic_writer), if any
         self._exact_ids: frozenset[int] | None = None
         self._rxq: collections.deque[can.Message] = collections.deque()
         self._rxbuf = bytearray()
@@ -214,31 +247,16 @@ class HubBus(can.BusABC):
         self.fd = fd is None or bool(fd)
         asked = _bitrate_arg("bitrate", bitrate), _bitrate_arg("data_bitrate", data_bitrate) if self.fd else 0
         timeout = self.CONNECT_TIMEOUT_S if connect_timeout_s is None else connect_timeout_s
-        try:
-            sock = connect(addr, timeout)
-        except HubOwnerError:
-            raise  # the hub runs as another user: said as it is, not as an unreachable bus
-        except OSError as err:
-            raise can.CanInitializationError(f"cannot reach ilcrig hub at {addr}: {err}") from err
-        try:
-            sock.sendall(
-                hello(
-                    ROLE_MEMBER,
-                    name,
-                    echo=receive_own_messages,
-                    classic=not self.fd,
-                    bitrate=asked[0],
-                    data_bitrate=asked[1],
-                    bulk=bulk_delivery,
-                )
-            )
-            bus_bitrate, bus_data_bitrate = read_member_reply(sock)
-            sock.settimeout(None)  # blocking from now on
-        except (OSError, HubProtocolError) as err:
-            sock.close()
-            old_hub = "bad hello" in str(err)  # a version-1 hub's words for any other version
-            hint = f" (this client speaks hub protocol version {PROTOCOL_VERSION}: an older hub?)" if old_hub else ""
-            raise can.CanInitializationError(f"hub handshake with {addr} failed: {err}{hint}") from err
+        greeting = hello(
+            ROLE_MEMBER,
+            name,
+            echo=receive_own_messages,
+            classic=not self.fd,
+            bitrate=asked[0],
+            data_bitrate=asked[1],
+            bulk=bulk_delivery,
+        )
+        sock, (bus_bitrate, bus_data_bitrate) = _join(addr, greeting, timeout)
         self._sock = sock
         self._closed = False
         self._send_lock = threading.Lock()
@@ -461,9 +479,21 @@ class HubBus(can.BusABC):
         """
         self._sock_send(encode_data_frames(frames))
 
+    def periodic_writer(self, msg: can.Message, period_s: float) -> Any:
+        """``msg`` written every ``period_s`` by a thread of C without the interpreter (``_hubcore.PeriodicWriter``,
+        stopped by :meth:`shutdown`); the member's frames are then its alone (:meth:`send` refused), so open it
+        with the filter :data:`NOTHING_IN`. :raises can.CanOperationError: no C core, shut down, a writer already"""
+        if self._core is None or self._closed or self._writer is not None:
+            why = "no C core (ILCRIG_HUB_CORE=python?)" if self._core is None else _CLOSED if self._closed else "one already"
+            raise can.CanOperationError(f"no periodic writer: {why}")
+        self._writer = self._core.PeriodicWriter(self._sock.fileno(), encode_record(msg), float(period_s))
+        return self._writer
+
     def _sock_send(self, data: bytes) -> None:
         if self._closed:
             raise can.CanOperationError(_CLOSED)
+        if self._writer is not None:
+            raise can.CanOperationError("this member's frames are its periodic writer's (HubBus.periodic_writer)")
         try:
             with self._send_lock:
                 self._sock.sendall(data)
@@ -536,6 +566,8 @@ class HubBus(can.BusABC):
         if self._is_shutdown:
             return
         super().shutdown()  # stops the periodic tasks while the socket still works
+        if self._writer is not None:
+            self._writer.stop()  # before the descriptor closes (its number could be another's next)
         if self._closed:
             return
         self._closed = True

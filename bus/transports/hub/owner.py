@@ -31,6 +31,7 @@ import struct
 import tempfile
 from pathlib import Path
 
+from bus.peer import peer_cred
 from bus.transports.hub.wire import HubAddressError
 
 logger = logging.getLogger(__name__)
@@ -48,8 +49,6 @@ __all__ = [
 
 #: the folder of this user's hubs inside ``$XDG_RUNTIME_DIR``
 RUNTIME_DIR_NAME = "ilcrig"
-#: ``struct ucred`` of SO_PEERCRED: pid, uid, gid
-_UCRED = struct.Struct("3i")
 
 
 class HubOwnerError(HubAddressError, PermissionError):
@@ -160,10 +159,8 @@ def peer_uid(sock: socket.socket) -> int | None:
     """The user id of the process at the other end of the connected ``sock`` (see the module
     docstring); None where it cannot be known (TCP to another machine)."""
     if sock.family == socket.AF_UNIX:
-        if not hasattr(socket, "SO_PEERCRED"):  # pragma: no cover - Linux has it
-            return None
-        _pid, uid, _gid = _UCRED.unpack(sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, _UCRED.size))
-        return uid
+        cred = peer_cred(sock)
+        return None if cred is None else cred[1]
     peer, here = sock.getpeername()[:2], sock.getsockname()[:2]
     if not ipaddress.ip_address(str(peer[0]).split("%")[0]).is_loopback:
         return None
