@@ -8,7 +8,8 @@ by the plant node's period counter (:meth:`FaultMaster.sync_only`: for drives th
 any more), the robot's joints, brakes and periods by SDO, and a motion around where the robot
 stands (:meth:`FaultMaster.sway`: the tool up and down, so a fault comes mid-motion).
 
-Each scenario (:data:`SCENARIOS`) enables the robot in CSP, moves it, causes its fault, steps on
+Each scenario (:data:`SCENARIOS`) enables the robot in CSP, glides it to where the first scenario
+began (:meth:`FaultMaster.enable_here`: none depends on the ones before), moves it, causes its fault, steps on
 until the drives' reaction has made the robot torque-free, and returns what happened
 (:class:`FaultResult`: the EMCYs, the states, the brakes, whether the robot stood still, the time
 from the cause to the first EMCY).  The drives' settings of each scenario choose a different
@@ -41,6 +42,8 @@ SYNC_PERIOD_US = round(200_000 * units.timeout_scale())
 RPDO_DEADLINE_MS = 50
 #: the drives' heartbeat [ms]: their NMT state, seen on the bus
 HEARTBEAT_MS = 50
+#: control periods of the glide back to the first scenario's pose (:meth:`FaultMaster.enable_here`)
+GLIDE_PERIODS = 300
 SWITCH_ON_DISABLED, FAULT = (0x4F, 0x40), (0x4F, 0x08)
 
 
@@ -73,7 +76,12 @@ class FaultResult:
 
 
 class FaultMaster(LockstepMaster):
-    """The lockstep master with the helpers of the scenarios (module docstring)."""
+    """The lockstep master with the helpers of the scenarios (module docstring).
+
+    :ivar home: the joint counts where the first scenario began (every scenario starts there)
+    """
+
+    home: dict[int, int]
 
     def u(self, index: int, sub: int, signed: bool = False) -> int:
         """An object of the plant node, by SDO."""
@@ -122,14 +130,21 @@ class FaultMaster(LockstepMaster):
 
     def enable_here(self, before_start: Callable[[], None] | None = None) -> dict[int, int]:
         """CSP with RPDO1/TPDO1 (:meth:`configure`), NMT start, Operation enabled where the robot
-        stands; its joint counts."""
+        stands, then a glide back to where the first scenario began (:attr:`home`); those joint
+        counts.  So every scenario starts from one pose, whatever the ones before it did: how many
+        periods a scenario runs depends on the machine's speed (a consumer time is wall-clock time),
+        and where a sway stopped decided which limit a later move met first."""
         self.configure()
         if before_start is not None:
             before_start()
         self.start()
         here = self.joints()
         self.enable(here)
-        return here
+        home = self.home = getattr(self, "home", here)
+        for k in range(1, GLIDE_PERIODS + 1):
+            s = (1.0 - np.cos(np.pi * k / GLIDE_PERIODS)) / 2.0
+            self.cycle({n: (0x0F, here[n] + round(s * (home[n] - here[n]))) for n in DRIVES})
+        return dict(home)
 
     def sway(
         self, here: dict[int, int], amplitude_m: float = 0.01, period: int = 800
