@@ -17,25 +17,31 @@ for the CPU, and the kernel counts that wait.  A stopped process (SIGSTOP, a fau
 ``stall:``) or one that spins in its own code does not wait in a run queue: its silence stays a
 fault.
 
-The rule (:meth:`RunQueueLedger.excuse`): a producer silent for ``silent_s`` one of whose
-carriers (the processes its heartbeat passes through that this machine can ask) waited
-``waited_s`` for a CPU *in one wait* since it was last heard is excused when ``waited_s >=
-consumer_s / 4`` and ``silent_s - waited_s <= consumer_s``: the wait was a real one (a quarter of
-the consumer time), and without it the producer would have been silent no longer than its
-consumer time.  One wait, never a sum: a busy carrier on a loaded machine waits a few ms before
-each of its hundreds of time slices, and those waits hold no frame for long -- summed, they would
-excuse a producer whose heartbeat has really stopped at every judgement, for as long as the load
-lasts.  ``schedstat`` holds sums only, so the longest wait that ended is bounded from below by the
-waits that ended divided by the slices since (each ended wait is followed by a slice): only a wait
-that long is sure.  The kernel adds a wait to ``schedstat`` only once it ends (the thread is put on
-a CPU); a carrier that is runnable now and neither ran nor was put on a CPU since the judge last
+The rule (:meth:`RunQueueLedger.excuse`) excuses a producer silent for ``silent_s`` for one wait
+of one of its carriers (the processes its heartbeat passes through that this machine can ask),
+and only for a wait of a quarter of the consumer time or more (a real one):
+
+* a wait that ended since the producer was last heard, ``waited_s`` long, when ``silent_s -
+  waited_s <= consumer_s``: without it the producer would have been silent no longer than its
+  consumer time;
+* a wait going on at the judgement: the beat may be held in it.
+
+One wait, never a sum: a busy carrier on a loaded machine waits a few ms before each of its
+hundreds of time slices, and those waits hold no frame for long -- summed, they would excuse a
+producer whose heartbeat has really stopped at every judgement, for as long as the load lasts.
+``schedstat`` holds sums only, so the longest wait that ended is bounded from below by the waits
+that ended divided by the slices since (each ended wait is followed by a slice): only a wait that
+long is sure.  The kernel adds a wait to ``schedstat`` only once it ends (the thread is put on a
+CPU); a carrier that is runnable now and neither ran nor was put on a CPU since the judge last
 looked is waiting now: the judge does not decide yet (:attr:`Excuse.pending`: it looks again
-within :data:`RECHECK_S`) and counts that wait from its first such look.  (A thread's
-``se.exec_start`` in ``/proc/…/sched`` would date the wait, but the kernel zeroes it when it moves
-a waiting thread to another CPU.)  The producer's own process is often starved with its carrier,
-which is why the bound is the whole consumer time and not a producer period.  An excused producer
-is judged from now: a producer lost meanwhile is lost one consumer time later, when the machine
-lets its carriers run.
+within :data:`RECHECK_S`) and counts that wait from its first such look, at most half a consumer
+time (a carrier busy on a CPU all along is runnable too).  (A thread's ``se.exec_start`` in
+``/proc/…/sched`` would date the wait, but the kernel zeroes it when it moves a waiting thread to
+another CPU.)  The wait going on is counted from the judge's first look, which comes after the
+producer was already a consumer time silent: that is why it is not held against the silence.  An
+excused producer is judged from now: a producer lost meanwhile is lost one consumer time after
+the machine lets its carriers run (at most two and a half consumer times after the end of the
+last wait that excused it).
 
 May import: the standard library, :mod:`bus.peer`.
 """
@@ -145,7 +151,7 @@ class RunQueueLedger:
     def excuse(self, node_id: int, silent_s: float, consumer_s: float) -> Excuse | None:
         """The carrier wait that explains ``node_id``'s silence of ``silent_s`` against a consumer
         time ``consumer_s`` (module docstring), a pending one, or None: the silence is the producer's."""
-        longest: Excuse | None = None
+        best: Excuse | None = None
         pending: Excuse | None = None
         carriers = set(self._carriers(node_id))
         seen = self._waiting.setdefault(node_id, {})
@@ -154,20 +160,27 @@ class RunQueueLedger:
             stat = self._stat_of(pid) if pid in carriers else None
             if stat is None:
                 continue
-            # the longest wait that ended is at least their mean (module docstring)
-            waited = (stat.wait_s - wait_mark) / max(1, stat.slices - slices_mark)
-            key = (stat.run_s, stat.slices)
+            found: list[float] = []
+            # the longest wait that ended is at least their mean (module docstring); it explains the
+            # silence when, without it, the silence would have been no longer than the consumer time
+            ended = (stat.wait_s - wait_mark) / max(1, stat.slices - slices_mark)
+            if ended >= consumer_s / 4 and silent_s - ended <= consumer_s:
+                found.append(ended)
             if not stat.runnable:
                 seen.pop(pid, None)
             else:  # waiting now, or on a CPU
+                key = (stat.run_s, stat.slices)
                 if pid not in seen or seen[pid][0] != key:  # it ran since the last look
                     seen[pid] = (key, now)
-                waited = max(waited, now - seen[pid][1])  # waiting since the first look with nothing run
-                pending = Excuse(pid, waited, pending=True)
-            if longest is None or waited > longest.waited_s:
-                longest = Excuse(pid, waited)
-        if longest is not None and longest.waited_s >= consumer_s / 4 and silent_s - longest.waited_s <= consumer_s:
-            return longest
+                going_on = now - seen[pid][1]  # waiting since the first look with nothing run
+                if going_on >= consumer_s / 4:
+                    found.append(going_on)  # a wait at the judgement itself: the beat may be held in it
+                pending = Excuse(pid, going_on, pending=True)
+            for waited in found:
+                if best is None or waited > best.waited_s:
+                    best = Excuse(pid, waited)
+        if best is not None:
+            return best
         if pending is not None and now - self._pending_since.setdefault(node_id, now) <= consumer_s / 2:
             return pending  # a carrier busy on a CPU all along is not waited for longer than that
         return None

@@ -16,6 +16,9 @@ import time
 
 import can
 import pytest
+from hypothesis import settings
+from hypothesis import strategies as st
+from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
 
 from bus.cia301.nmt import HeartbeatConsumer, NodeHeartbeatConsumer, heartbeat_cob_id
 from bus.run_queue import RECHECK_S, RunQueueLedger, SchedStat, carrier_pid, sched_stat
@@ -285,3 +288,109 @@ def test_a_hub_member_knows_its_hubs_pid_a_virtual_bus_has_none() -> None:
         assert carrier_pid(virtual) is None
     finally:
         virtual.shutdown()
+
+
+# ------------------------------------------------------------------ a machine at random
+
+
+class MachineAtRandom(RuleBasedStateMachine):
+    """A heartbeat producer behind a hub on a machine at random, judged by a node's consumer that
+    runs on time (its service at every deadline it asks for).  The hub, by turns: runs with
+    hundreds of short waits for a CPU (up to half the time waiting, runnable or not at a look, on
+    a CPU or not), or is starved: runnable, its run time and slices standing still, the beats
+    meanwhile held and handed over when it runs again (the kernel then adds the whole wait and one
+    slice).  The producer beats every 200 ms until it stops.  After every step: a producer that
+    beats is never lost, whatever the machine did; a producer that stopped is lost once, and by
+    1.5 consumer times (the consumer time, then at most half of it for a hub runnable at the
+    judgement) plus two looks after its last beat, or 2.5 consumer times after the end of the last
+    wait long enough to excuse (a quarter of the consumer time) -- never excused for as long as the
+    machine is merely busy."""
+
+    STEP_S = 0.005
+    BEAT_S = 0.2
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.stats = Stats()
+        self.stats.wait[HUB_PID], self.stats.slices[HUB_PID] = 0.0, 0
+        self.consumer = NodeHeartbeatConsumer(ledger(self.stats))
+        self.consumer.configure({127: CONSUMER_S})
+        self.now = 0.0
+        self.alive = True
+        self.held = False  # a beat came while the hub was starved: handed over when it runs
+        self.next_beat = 0.0
+        self.last_heard = 0.0
+        self.long_wait_end = -1.0
+        self.lost: list[float] = []
+        self.consumer.on_heartbeat(127, 0.0)
+
+    def _tick(self, starved: bool) -> None:
+        self.now = round(self.now + self.STEP_S, 9)
+        self.stats.t = self.now
+        if self.alive and self.now >= self.next_beat - 1e-9:
+            self.next_beat += self.BEAT_S
+            if starved:
+                self.held = True
+            else:
+                self._heard()
+        self._judge()
+
+    def _heard(self) -> None:
+        self.consumer.on_heartbeat(127, self.now)
+        self.last_heard = self.now
+
+    def _judge(self) -> None:
+        due = self.consumer.next_deadline()
+        if due is not None and self.now >= due - 1e-9:
+            self.lost += [self.now] * len(self.consumer.expired(self.now))
+
+    @rule(
+        ms=st.integers(5, 400),
+        wait_fraction=st.floats(0.0, 0.5),
+        slice_ms=st.sampled_from([1, 2, 5]),
+        runnable=st.booleans(),
+        on_cpu=st.booleans(),
+    )
+    def busy(self, ms: int, wait_fraction: float, slice_ms: int, runnable: bool, on_cpu: bool) -> None:
+        stats = self.stats
+        stats.runnable[HUB_PID] = runnable
+        for _ in range(ms // 5):
+            stats.wait[HUB_PID] += wait_fraction * self.STEP_S
+            stats.slices[HUB_PID] += max(1, 5 // slice_ms)
+            if on_cpu:
+                stats.run[HUB_PID] = stats.run.get(HUB_PID, 0.0) + (1 - wait_fraction) * self.STEP_S
+            self._tick(starved=False)
+
+    @rule(ms=st.integers(5, 1500))
+    def starved(self, ms: int) -> None:
+        stats = self.stats
+        stats.runnable[HUB_PID] = True
+        for _ in range(ms // 5):
+            self._tick(starved=True)
+        stats.wait[HUB_PID] += ms // 5 * self.STEP_S
+        stats.slices[HUB_PID] += 1
+        stats.runnable[HUB_PID] = False
+        if ms // 5 * self.STEP_S >= CONSUMER_S / 4:
+            self.long_wait_end = self.now
+        if self.held:
+            self.held = False
+            self._heard()  # the hub runs: the held beat reaches the node before it judges again
+        self._judge()
+
+    @rule()
+    def stop(self) -> None:
+        self.alive = False
+
+    @invariant()
+    def a_beating_producer_is_never_lost_and_a_stopped_one_is_lost_in_time(self) -> None:
+        if self.alive:
+            assert self.lost == []
+            return
+        assert len(self.lost) <= 1
+        bound = max(self.last_heard + 1.5 * CONSUMER_S, self.long_wait_end + 2.5 * CONSUMER_S) + 2 * RECHECK_S + self.STEP_S
+        if self.now > bound and not self.held:
+            assert self.lost, f"stopped at {self.last_heard:.3f} s, not lost by {self.now:.3f} s"
+
+
+TestMachineAtRandom = MachineAtRandom.TestCase
+TestMachineAtRandom.settings = settings(max_examples=150, stateful_step_count=15, deadline=None)
