@@ -5,8 +5,9 @@
 four TPDO1 back) plus what a scenario needs: every drive back to its defaults (NMT reset node) and
 the robot's fault reset (:meth:`FaultMaster.fresh`), a period stepped by SYNC alone and confirmed
 by the plant node's period counter (:meth:`FaultMaster.sync_only`: for drives that send no TPDO
-any more), the robot's joints, brakes and periods by SDO, and a motion around where the robot
-stands (:meth:`FaultMaster.sway`: the tool up and down, so a fault comes mid-motion).
+any more), the robot's joints, brakes and periods by SDO, a glide back to where the first scenario
+began (:meth:`FaultMaster.enable_here`), and a motion around that pose (:meth:`FaultMaster.sway`:
+the tool up and down, so a fault comes mid-motion).
 
 Each scenario (:data:`SCENARIOS`) enables the robot in CSP, glides it to where the first scenario
 began (:meth:`FaultMaster.enable_here`: none depends on the ones before), moves it, causes its fault, steps on
@@ -81,7 +82,7 @@ class FaultMaster(LockstepMaster):
     :ivar home: the joint counts where the first scenario began (every scenario starts there)
     """
 
-    home: dict[int, int]
+    home: dict[int, int] | None = None
 
     def u(self, index: int, sub: int, signed: bool = False) -> int:
         """An object of the plant node, by SDO."""
@@ -140,7 +141,9 @@ class FaultMaster(LockstepMaster):
         self.start()
         here = self.joints()
         self.enable(here)
-        home = self.home = getattr(self, "home", here)
+        if self.home is None:
+            self.home = here
+        home = self.home
         for k in range(1, GLIDE_PERIODS + 1):
             s = (1.0 - np.cos(np.pi * k / GLIDE_PERIODS)) / 2.0
             self.cycle({n: (0x0F, here[n] + round(s * (home[n] - here[n]))) for n in DRIVES})
