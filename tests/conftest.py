@@ -10,6 +10,9 @@ It also owns two rules. Under ``CI=true`` a *skipped* ``vcan`` test is a failure
 the vcan suite was asked for (``-m vcan``, as ``scripts/vcan-tests`` runs it, or
 ``ILCRIG_REQUIRE_VCAN=1``): in CI the suite must really run on SocketCAN, not quietly skip.
 The ordinary ``pytest`` run (no ``-m vcan``) keeps skipping vcan tests on kernels without vcan.
+A failing test that wrote a run folder under its ``tmp_path`` shows the tails of the run's role
+logs (``logs/*.log``, their INFO records and above) in its report (:func:`run_logs_of`): a flake in
+CI leaves its evidence in CI's output, where the run folder does not outlive the machine.
 And the processes the tests start take SIGINT (Ctrl-C) as Python's KeyboardInterrupt however the
 test runner was started (:func:`pytest_configure`). It also holds the ``hub_data_plane`` fixture
 and the ``sleeper`` fixture (a process to schedule).
@@ -88,6 +91,30 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo):  # type
         reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
         report.outcome = "failed"
         report.longrepr = f"vcan test skipped where it must run (CI=true, -m vcan): {reason}"
+    if report.failed and report.when == "call":
+        tmp = getattr(item, "funcargs", {}).get("tmp_path")
+        logs = run_logs_of(tmp) if isinstance(tmp, Path) else ""
+        if logs:
+            report.sections.append(("the run's role logs (tails, INFO and above)", logs))
+
+
+#: how many lines of each role log a failing test's report shows
+RUN_LOG_TAIL_LINES = 40
+
+
+def run_logs_of(root: Path) -> str:
+    """The last :data:`RUN_LOG_TAIL_LINES` lines (DEBUG left out) of every ``logs/*.log`` of the
+    run folders under ``root``, each under its path; '' when there are none."""
+    parts = []
+    for log in sorted(root.glob("**/logs/*.log"))[:40]:
+        try:
+            text = log.read_text(errors="replace")
+            lines = [ln for ln in text.splitlines() if " DEBUG " not in ln and not ln.startswith("DEBUG ")]
+        except OSError:
+            continue
+        if lines:
+            parts.append(f"== {log.relative_to(root)}\n" + "\n".join(lines[-RUN_LOG_TAIL_LINES:]))
+    return "\n".join(parts)
 
 
 @pytest.fixture(params=["c", "python"])

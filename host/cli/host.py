@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from bus.errors import InputError
-from host.cli.options import add_rig_experiment_args, experiment_options, transport_of
+from host.cli.options import HOST_INFO_LOGGERS, add_rig_experiment_args, experiment_options, role_logging, transport_of
 from host.experiment.console import experiment_config
 
 if TYPE_CHECKING:
@@ -78,4 +78,5 @@ def cmd_host(args: argparse.Namespace) -> int:
     """``ilcrig host``: :func:`host.rig.host_role.run_host_role` with typed options."""
     from host.rig.host_role import run_host_role
 
+    role_logging(HOST_INFO_LOGGERS)
     return run_host_role(host_options(args), experiment_config(experiment_options(args)), transport_of(args))

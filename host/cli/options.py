@@ -244,13 +244,21 @@ def bus_errors(transport: str) -> Iterator[None]:
         raise BusUnavailable(f"cannot open the bus ({transport}): {exc}") from exc
 
 
-def role_logging() -> None:
-    """Node roles log the project's INFO records too (their SAFE-STATE records, NMT, trials) with
-    a time stamp: their output is a log file of ``ilcrig run``."""
+#: the loggers whose INFO records a node role keeps (its SAFE-STATE records, NMT, trials)
+NODE_INFO_LOGGERS = ("bus", "firmware_model", "plant")
+#: the loggers whose INFO records the host role keeps: the decisions of its heartbeat consumer (a
+#: silence excused by a carrier's wait for a CPU, heartbeats judged afresh after the host itself
+#: did not run), which a lost node's fault must be read against
+HOST_INFO_LOGGERS = ("bus.run_queue", "host.rig.watchdog")
+
+
+def role_logging(info_from: tuple[str, ...] = NODE_INFO_LOGGERS) -> None:
+    """A role's log records with a time stamp (its output is a log file of ``ilcrig run``, read
+    beside the other roles'), and the INFO records of the loggers ``info_from`` too."""
     root = logging.getLogger()
     for handler in root.handlers:
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
-    for name in ("bus", "firmware_model", "plant"):
+    for name in info_from:
         logging.getLogger(name).setLevel(min(logging.INFO, root.level))
 
 

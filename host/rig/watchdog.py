@@ -280,6 +280,7 @@ class Watchdog:
         if last is not None and now - last > self.consumer_s:
             # this process did not run (it was stopped): let the notifier read what queued up first
             self.events.grace(now)
+            logger.info("the watchdog did not run for %.0f ms: the nodes' heartbeats judged from now", 1000 * (now - last))
             return
         record = self.detect(now)
         if record is not None:
