@@ -417,3 +417,28 @@ def test_a_host_gap_no_node_reports_is_kept_while_they_consume_it_and_a_fault_on
     rec = watchdog.detect(now + 2.0 + settled)
     assert rec is not None and (rec.kind, rec.node, rec.detected_by) == (FaultKind.HOST_LOST, "host", "host")
     assert rec.message.startswith("the host did not run for 900 ms (it was stopped)") and len(watchdog.stalls) == 1
+
+
+def test_a_watchdog_round_that_raises_is_the_runs_fault_never_a_thread_that_ends_unseen(
+    rig: Rig, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    beat(rig, NODES)
+    rig.watchdog.arm()
+
+    def broken(now: float) -> FaultRecord | None:
+        raise RuntimeError("a detector's bug")
+
+    monkeypatch.setattr(rig.watchdog, "detect", broken)
+    declared = threading.Event()
+    rig.watchdog.on_fault(lambda _record: declared.set())
+    with caplog.at_level("ERROR", logger="host.rig.watchdog"):
+        rig.watchdog.start()
+        assert declared.wait(30.0)
+    rec = rig.watchdog.fault
+    assert rec is not None and rig.declared == [rec]
+    assert (rec.kind, rec.node, rec.detected_by) == (FaultKind.TRIAL_FAULT, "host", "host")
+    assert rec.message.startswith("the host's watchdog failed (RuntimeError: a detector's bug): the run was no longer watched")
+    assert nmt_stop_seen(rig.peer)  # torque off everywhere, as for any fault
+    assert any("a detector's bug" in (r.exc_text or "") or r.exc_info for r in caplog.records)  # where, in the host's log
+    with pytest.raises(TrialFault):
+        rig.watchdog.raise_if_fault()

@@ -50,7 +50,7 @@ from bus.errors import SdoAbort
 from bus.run_queue import carrier_ledger
 from bus.transports.config import FIELDBUS
 from host.experiment.bench import TrialFault
-from host.experiment.faults import FaultRecord, attach_injection, read_injections
+from host.experiment.faults import FaultKind, FaultRecord, attach_injection, read_injections
 from host.nodes.plant_client import PlantTrialFault
 from host.nodes.sdo_access import SdoTransportError
 from host.rig.channels import RigChannels
@@ -224,7 +224,30 @@ class Watchdog:
     def _loop(self) -> None:
         self._last_round = time.monotonic()
         while not self._stop.wait(WATCH_PERIOD_S):
-            self._round(time.monotonic())
+            try:
+                self._round(time.monotonic())
+            except Exception as exc:  # noqa: BLE001 - a watchdog that dies unseen would leave the run unwatched
+                self._failed(exc)
+                return
+
+    def _failed(self, exc: Exception) -> None:
+        """A round of the thread raised ``exc``: the run is no longer watched, which is the run's fault
+        (declared, its traceback in the host's log), never a thread that ends unseen while the trials go on."""
+        logger.error("the host's watchdog failed; the run is no longer watched", exc_info=exc)
+        record = FaultRecord(
+            FaultKind.TRIAL_FAULT,
+            f"the host's watchdog failed ({type(exc).__name__}: {exc}): the run was no longer watched (the host's log has where)",
+            node="host",
+            detected_by="host",
+            t_detected_mono=time.monotonic(),
+        )
+        try:
+            self.declare(record)
+        except Exception:  # noqa: BLE001 - the record stays the fault; what failed is in the log
+            logger.exception("declaring the watchdog's failure failed")
+            with self._lock:
+                if self._fault is None:
+                    self._fault = record
 
     # -- detection and declaration --------------------------------------------------------------
     @property
