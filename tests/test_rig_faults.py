@@ -442,3 +442,38 @@ def test_a_watchdog_round_that_raises_is_the_runs_fault_never_a_thread_that_ends
     assert any("a detector's bug" in (r.exc_text or "") or r.exc_info for r in caplog.records)  # where, in the host's log
     with pytest.raises(TrialFault):
         rig.watchdog.raise_if_fault()
+
+
+def test_a_round_after_the_watchdog_did_not_run_waits_for_the_grace_of_the_round_that_saw_it(
+    rig: Rig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two threads judge (the watchdog's and the trial loop's ``watch_round``). After the host did
+    not run for seconds (a law's call holding the GIL), the first round sees the gap and counts every
+    node as heard; a second round that comes while that grace waits (for the notifier, which reads
+    the heartbeats queued meanwhile) must not judge the heartbeats of before the gap -- it would find
+    the first node the notifier had not read yet lost ("heartbeat of drive3 lost (silent for 7719
+    ms)" after a 7 s call, drives 1 and 2 read already). The rounds' times are given: the host stood
+    still for 10 s."""
+    t = max(beat(rig, NODES).values())
+    rig.watchdog.arm()
+    rig.watchdog._round(t)  # a round just after the nodes were heard: all well
+    assert rig.declared == []
+    real_grace = rig.watchdog.events.grace
+    entered, go = threading.Event(), threading.Event()
+
+    def slow_grace(now: float) -> None:
+        entered.set()
+        go.wait(30.0)
+        real_grace(now)
+
+    monkeypatch.setattr(rig.watchdog.events, "grace", slow_grace)
+    first = threading.Thread(target=rig.watchdog._round, args=(t + 10.0,))  # 10 s without a round: the gap
+    first.start()
+    assert entered.wait(30.0)
+    second = threading.Thread(target=rig.watchdog._round, args=(t + 10.01,))
+    second.start()
+    second.join(0.5)  # the second round may not judge before the grace: it waits for it
+    go.set()
+    first.join(30.0)
+    second.join(30.0)
+    assert rig.declared == []  # every node counted as heard at t + 10 s, judged from there

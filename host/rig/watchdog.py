@@ -298,12 +298,20 @@ class Watchdog:
             self.in_trial = False
 
     def _round(self, now: float) -> None:
+        """One round at ``now``: after a gap of the rounds longer than the consumer time (this
+        process did not run) every node counts as heard now, else the faults visible now are
+        declared.  Two threads run rounds (the watchdog's, the trial loop's :meth:`watch_round`):
+        the round that sees the gap takes it and applies the grace under one lock, so a round of the
+        other thread that comes meanwhile waits for the grace instead of judging the heartbeats of
+        before the gap (its own gap is the first one's end: it sees none)."""
         with self._lock:
             last, self._last_round = self._last_round, now
-        if last is not None and now - last > self.consumer_s:
-            # this process did not run (it was stopped): let the notifier read what queued up first
-            self.events.grace(now)
-            logger.info("the watchdog did not run for %.0f ms: the nodes' heartbeats judged from now", 1000 * (now - last))
+            gap_s = now - last if last is not None else 0.0
+            if gap_s > self.consumer_s:
+                # this process did not run (it was stopped): let the notifier read what queued up first
+                self.events.grace(now)
+        if gap_s > self.consumer_s:
+            logger.info("the watchdog did not run for %.0f ms: the nodes' heartbeats judged from now", 1000 * gap_s)
             return
         record = self.detect(now)
         if record is not None:
