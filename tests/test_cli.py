@@ -294,3 +294,59 @@ def test_the_console_script_runs_main_and_leaves_the_heap_out_of_the_final_colle
     )
     assert (bad.returncode, bad.stdout) == (EXIT_USAGE, "")
     assert bad.stderr.startswith("ilcrig: error: ") and bad.stderr.count("\n") == 1
+
+
+THREAD_FAILS = """
+import sys, threading
+from host.cli import command
+from host.learning import registry
+
+real = registry.law_descriptions
+
+def with_a_failing_thread():
+    def fail():
+        raise RuntimeError("a helper thread's bug\\nsecond line")
+    t = threading.Thread(target=fail, name="helper")
+    t.start()
+    t.join()
+    return real()
+
+registry.law_descriptions = with_a_failing_thread
+sys.argv = ["ilcrig", *sys.argv[1:]]
+sys.exit(command())
+"""
+
+
+@pytest.mark.parametrize("debug", [False, True])
+def test_a_thread_that_fails_is_one_line_on_a_users_terminal_never_a_traceback(debug: bool) -> None:
+    """A thread of a user's command that ends with an exception is said like the main thread's bug
+    (``ilcrig: internal error in thread …``, one line; the traceback only with ``--debug``); the
+    command itself goes on (``laws`` lists the laws, exit 0)."""
+    argv = [sys.executable, "-c", THREAD_FAILS, *(["--debug"] if debug else []), "laws"]
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=120, cwd=Path(__file__).resolve().parents[1])
+    assert proc.returncode == 0 and "pd-ilc" in proc.stdout
+    line = "ilcrig: internal error in thread helper: RuntimeError: a helper thread's bug (run with --debug for details)"
+    if debug:
+        assert "Traceback" in proc.stderr and "a helper thread's bug" in proc.stderr
+    else:
+        assert proc.stderr.strip() == line
+
+
+def test_a_role_logs_a_failing_thread_with_its_traceback(monkeypatch: pytest.MonkeyPatch, caplog, capsys) -> None:
+    import threading
+
+    from host.cli import report_thread_errors
+
+    monkeypatch.setattr(threading, "excepthook", threading.excepthook)  # restored after the test
+    report_thread_errors(debug=False, role=True)
+
+    def fail() -> None:
+        raise RuntimeError("a role thread's bug")
+
+    with caplog.at_level("ERROR", logger="host.cli"):
+        t = threading.Thread(target=fail, name="role helper")
+        t.start()
+        t.join()
+    (record,) = [r for r in caplog.records if r.name == "host.cli"]
+    assert record.getMessage() == "thread role helper failed" and record.exc_info is not None
+    assert "internal error" not in capsys.readouterr().err  # the role's log has it, with its traceback

@@ -32,7 +32,9 @@ roles' own), never the parsed ``argparse.Namespace``: argparse lives only in thi
 Errors: bad input (:class:`bus.errors.InputError`, and argparse's own errors) is one line
 ``ilcrig: error: …`` with exit code 2 before anything moves; a bus a role cannot open is one line
 and exit code 3; an unexpected exception (a bug) is one line ``ilcrig: internal error: …`` with
-exit code 1 and its traceback in the log (printed with ``--debug``).  The exit codes are the same
+exit code 1 and its traceback in the log (printed with ``--debug``); so is a thread that ends with an
+exception (``ilcrig: internal error in thread …``; a role logs it with its traceback:
+:func:`report_thread_errors`).  The exit codes are the same
 with and without ``--debug`` (:mod:`bus.exit_codes`).  A fault during a trial ends the run with
 exit code 3 after the summary (with every completed trial) has been written.
 
@@ -49,6 +51,7 @@ import gc
 import logging
 import signal
 import sys
+import threading
 import traceback
 from collections.abc import Sequence
 from typing import NoReturn
@@ -104,6 +107,30 @@ def _first_line(exc: BaseException) -> str:
 ROLE_COMMANDS = frozenset({"drive", "plant", "host", "hub"})
 
 
+def report_thread_errors(*, debug: bool, role: bool) -> None:
+    """A thread of this process that ends with an exception (a bug) says so as the main thread's
+    errors do, never Python's traceback on a user's terminal nor a thread that ends unseen: a user's
+    command writes one line ``ilcrig: internal error in thread <name>: …`` (its traceback in the log,
+    printed with ``--debug``); a role (:data:`ROLE_COMMANDS`, whose output is its log file) logs it
+    with its traceback.  The thread's own work is what it was: a watcher whose end matters declares
+    it (e.g. the host's watchdog, :mod:`host.rig.watchdog`)."""
+
+    def hook(args: threading.ExceptHookArgs) -> None:
+        if args.exc_type is SystemExit:
+            return
+        name = args.thread.name if args.thread is not None else "?"
+        exc = args.exc_value
+        info = (args.exc_type, exc, args.exc_traceback) if exc is not None else None
+        if role or debug:
+            logger.error("thread %s failed", name, exc_info=info)
+            return
+        logger.debug("thread %s failed", name, exc_info=info)
+        what = f"{args.exc_type.__name__}: {_first_line(exc)}" if exc is not None else args.exc_type.__name__
+        sys.stderr.write(f"ilcrig: internal error in thread {name}: {what} (run with --debug for details)\n")
+
+    threading.excepthook = hook
+
+
 def _command_of(words: Sequence[str]) -> str | None:
     """The subcommand of a command line (its first word that is not an option)."""
     return next((w for w in words if not w.startswith("-")), None)
@@ -133,7 +160,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def command() -> int:
     """The ``ilcrig`` console script and ``python -m host.cli``: :func:`main`, for a process that ends
-    when it returns. Its exit code; before it, every object alive is moved out of the cycle
+    when it returns; its exit code.
+
+    Before it, a thread of the process that ends with an exception is set to be said as the main
+    thread's errors are (:func:`report_thread_errors`; here, for the process, not in :func:`main`,
+    which tests call in their own process). After it, every object alive is moved out of the cycle
     collector's reach (:func:`gc.freeze`): the collections of Python's finalization would otherwise
     traverse the whole heap of a process that imported numpy, scipy and numba, 0.24 s of CPU at the
     end of a launcher, and as long again in a host, on the run's path to its end (the launcher
@@ -141,6 +172,10 @@ def command() -> int:
     freed as before; what the freeze leaves is cyclic garbage that Python's finalization does not
     promise to collect either. Files and records are closed by the code that wrote them, never by
     the collector."""
+    words = sys.argv[1:]
+    name = _command_of(words)
+    options = words[: words.index(name)] if name is not None else words
+    report_thread_errors(debug="--debug" in options, role=name in ROLE_COMMANDS)
     code = main()
     gc.freeze()
     return code
