@@ -98,15 +98,16 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo):  # type
             report.sections.append(("the run's role logs (tails, INFO and above)", logs))
 
 
-#: how many lines of each role log a failing test's report shows
+#: how many lines of each role log a failing test's report shows, and of how many logs at most
 RUN_LOG_TAIL_LINES = 40
+RUN_LOGS_MAX = 40
 
 
 def run_logs_of(root: Path) -> str:
     """The last :data:`RUN_LOG_TAIL_LINES` lines (DEBUG left out) of every ``logs/*.log`` of the
     run folders under ``root``, each under its path; '' when there are none."""
     parts = []
-    for log in sorted(root.glob("**/logs/*.log"))[:40]:
+    for log in sorted(root.glob("**/logs/*.log"))[:RUN_LOGS_MAX]:
         try:
             text = log.read_text(errors="replace")
             lines = [ln for ln in text.splitlines() if " DEBUG " not in ln and not ln.startswith("DEBUG ")]

@@ -136,7 +136,7 @@ def _command_of(words: Sequence[str]) -> str | None:
     return next((w for w in words if not w.startswith("-")), None)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def main(argv: Sequence[str] | None = None, *, report_threads: bool = False) -> int:
     """``ilcrig [--debug] COMMAND …``; returns the exit code (:mod:`bus.exit_codes`).
 
     From its first statement to its return SIGINT, SIGTERM and SIGHUP end a user's command as
@@ -145,15 +145,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     before the command's own handling of signals (a run's, a launcher's) takes over; and a console
     whose reader went away is dropped, not an error (:mod:`host.cli.console`; for the role commands
     too, whose host writes a run's rows to the user's terminal). The role commands
-    (:data:`ROLE_COMMANDS`) keep Python's default signal handling."""
+    (:data:`ROLE_COMMANDS`) keep Python's default signal handling. ``report_threads``: once the
+    command line is parsed, a thread that ends with an exception is said (:func:`report_thread_errors`;
+    the console script's, for its whole process)."""
     words = list(sys.argv[1:] if argv is None else argv)
     if _command_of(words) in ROLE_COMMANDS:
         with hold_console():  # the host role writes the run's rows to the user's terminal
-            return _main(words)
+            return _main(words, report_threads)
     with hold_console(), interrupt_on_signals():
         try:
             _native_threads_without_signals()
-            return _main(words)
+            return _main(words, report_threads)
         except KeyboardInterrupt as exc:  # while the command starts, outside _main's own handling
             return _interrupted(exc)
 
@@ -162,21 +164,17 @@ def command() -> int:
     """The ``ilcrig`` console script and ``python -m host.cli``: :func:`main`, for a process that ends
     when it returns; its exit code.
 
-    Before it, a thread of the process that ends with an exception is set to be said as the main
-    thread's errors are (:func:`report_thread_errors`; here, for the process, not in :func:`main`,
-    which tests call in their own process). After it, every object alive is moved out of the cycle
-    collector's reach (:func:`gc.freeze`): the collections of Python's finalization would otherwise
-    traverse the whole heap of a process that imported numpy, scipy and numba, 0.24 s of CPU at the
-    end of a launcher, and as long again in a host, on the run's path to its end (the launcher
-    stops the other roles after the host's exit). Objects still freed by their references are
-    freed as before; what the freeze leaves is cyclic garbage that Python's finalization does not
-    promise to collect either. Files and records are closed by the code that wrote them, never by
-    the collector."""
-    words = sys.argv[1:]
-    name = _command_of(words)
-    options = words[: words.index(name)] if name is not None else words
-    report_thread_errors(debug="--debug" in options, role=name in ROLE_COMMANDS)
-    code = main()
+    A thread of the process that ends with an exception is said as the main thread's errors are
+    (``report_threads``: :func:`report_thread_errors`, for the process, once the command line is
+    parsed; tests that call :func:`main` in their own process leave their hook alone). After it,
+    every object alive is moved out of the cycle collector's reach (:func:`gc.freeze`): the
+    collections of Python's finalization would otherwise traverse the whole heap of a process that
+    imported numpy, scipy and numba, 0.24 s of CPU at the end of a launcher, and as long again in a
+    host, on the run's path to its end (the launcher stops the other roles after the host's exit).
+    Objects still freed by their references are freed as before; what the freeze leaves is cyclic
+    garbage that Python's finalization does not promise to collect either. Files and records are
+    closed by the code that wrote them, never by the collector."""
+    code = main(report_threads=True)
     gc.freeze()
     return code
 
@@ -200,11 +198,13 @@ def _interrupted(exc: KeyboardInterrupt) -> int:
     return exit_code_of_signal(signum)
 
 
-def _main(argv: Sequence[str]) -> int:
+def _main(argv: Sequence[str], report_threads: bool = False) -> int:
     from host.cli.options import BusUnavailable
 
     parser = build_parser()
     args = parser.parse_args(argv)
+    if report_threads:
+        report_thread_errors(debug=bool(args.debug), role=args.command in ROLE_COMMANDS)
     logging.basicConfig(level=logging.DEBUG if args.debug else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     if not getattr(args, "func", None):
         parser.print_help()
